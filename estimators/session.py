@@ -1,0 +1,139 @@
+"""An IMU session in SI units, and its validation with counted rejections.
+
+A session is what every offline tool consumes (calibrate, diagnose, audit):
+time stamps and the two triads, optionally temperature. Units follow
+:mod:`estimators.conventions`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class SessionError(ValueError):
+    """The session cannot be used at all (the message says why, in one line)."""
+
+
+@dataclass(frozen=True)
+class ImuSession:
+    """Samples of one IMU.
+
+    Attributes
+    ----------
+    t_s : (N,) sample times, s, strictly increasing after validation.
+    accel_mps2 : (N, 3) specific force, m/s², sensor axes; or None (no accelerometer triad).
+    gyro_rps : (N, 3) angular rate, rad/s, sensor axes; or None (no gyro triad).
+    temp_c : (N,) temperature, °C; or None.
+    """
+
+    t_s: np.ndarray
+    accel_mps2: np.ndarray | None
+    gyro_rps: np.ndarray | None
+    temp_c: np.ndarray | None = None
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.t_s.shape[0])
+
+    @property
+    def rate_hz(self) -> float:
+        """Median sample rate, Hz."""
+        if self.n_samples < 2:
+            raise SessionError("a session needs at least two samples to have a rate")
+        return float(1.0 / np.median(np.diff(self.t_s)))
+
+    def select(self, mask_or_slice) -> "ImuSession":
+        """A sub-session (boolean mask or slice over samples)."""
+        pick = lambda a: None if a is None else a[mask_or_slice]  # noqa: E731
+        return ImuSession(self.t_s[mask_or_slice], pick(self.accel_mps2), pick(self.gyro_rps), pick(self.temp_c))
+
+
+@dataclass
+class Rejections:
+    """Counts of samples removed by validation, by reason (nothing is dropped silently)."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def add(self, reason: str, n: int) -> None:
+        if n:
+            self.counts[reason] = self.counts.get(reason, 0) + int(n)
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+def validate_session(
+    session: ImuSession,
+    *,
+    accel_limit_mps2: float | None = None,
+    gyro_limit_rps: float | None = None,
+) -> tuple[ImuSession, Rejections]:
+    """Check a session and drop unusable samples, counting each reason.
+
+    Rules: shapes must agree (else :class:`SessionError`); samples with a
+    non-finite value, a time stamp that is not later than the last kept one
+    (duplicate or going back), or a value at or beyond a saturation limit are
+    dropped and counted. Raises :class:`SessionError` if nothing usable is left.
+
+    Parameters
+    ----------
+    accel_limit_mps2, gyro_limit_rps : full-scale ranges; a sample with any axis
+        at or beyond them is saturated (its true value is unknown).
+    """
+    t = np.asarray(session.t_s, dtype=float)
+    if t.ndim != 1 or t.size == 0:
+        raise SessionError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
+    if session.accel_mps2 is None and session.gyro_rps is None:
+        raise SessionError("the session has neither accelerometer nor gyro samples")
+    arrays = {}
+    for name, arr, shape in (
+        ("accel_mps2", session.accel_mps2, (t.size, 3)),
+        ("gyro_rps", session.gyro_rps, (t.size, 3)),
+        ("temp_c", session.temp_c, (t.size,)),
+    ):
+        if arr is None:
+            arrays[name] = None
+            continue
+        a = np.asarray(arr, dtype=float)
+        if a.shape != shape:
+            raise SessionError(f"{name} must have shape {shape}, got {a.shape}")
+        arrays[name] = a
+
+    rej = Rejections()
+    finite = np.isfinite(t)
+    for name in ("accel_mps2", "gyro_rps"):
+        if arrays[name] is not None:
+            finite &= np.isfinite(arrays[name]).all(axis=1)
+    if arrays["temp_c"] is not None:
+        finite &= np.isfinite(arrays["temp_c"])
+    rej.add("non_finite", int((~finite).sum()))
+    keep = finite.copy()
+
+    for name, limit in (("accel_mps2", accel_limit_mps2), ("gyro_rps", gyro_limit_rps)):
+        if limit is not None and arrays[name] is not None:
+            sat = keep & (np.abs(arrays[name]) >= limit).any(axis=1)
+            rej.add(f"saturated_{name.split('_')[0]}", int(sat.sum()))
+            keep &= ~sat
+
+    # A time stamp must be later than the last *kept* one: a running maximum over
+    # the kept samples finds duplicates and steps back in one vectorized pass.
+    idx = np.flatnonzero(keep)
+    if idx.size:
+        tk = t[idx]
+        prev_max = np.maximum.accumulate(np.concatenate([[-np.inf], tk[:-1]]))
+        bad = tk <= prev_max
+        rej.add("non_monotonic_time", int(bad.sum()))
+        keep[idx[bad]] = False
+
+    if not keep.any():
+        raise SessionError(f"no usable samples left after validation (rejected: {rej.counts})")
+    out = ImuSession(
+        t[keep],
+        None if arrays["accel_mps2"] is None else arrays["accel_mps2"][keep],
+        None if arrays["gyro_rps"] is None else arrays["gyro_rps"][keep],
+        None if arrays["temp_c"] is None else arrays["temp_c"][keep],
+    )
+    return out, rej

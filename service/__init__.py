@@ -1,0 +1,1 @@
+"""The ins-health service: async daemon, pipeline wiring, outbox, passport store, CLI."""
