@@ -1,0 +1,689 @@
+"""The error model of a simulated IMU: an ordered chain of named effects per triad.
+
+A triad's output is the true input ``x_b`` (N, 3) — specific force in m/s² or
+inertial body rate in rad/s, body axes — passed through its effects in order.
+Every effect is a small frozen dataclass with a ``name`` (the names the model
+audit uses, issue 4), its own parameters in SI units, and ``apply(y, ctx)``.
+The chain order is the ``stage`` of each effect (non-decreasing), which is the
+physical order of the signal path:
+
+====== ======================== ===========================================================
+stage  name                     what it does to ``y`` (per sensor axis ``i``)
+====== ======================== ===========================================================
+0      ``non_orthogonality``    ``y_i = s_i · x_b``: projection on the sensitive axes (M1)
+10     ``scale_nonlinearity``   ``y_i += K2_i y_i² + K3_i y_i³`` (M3's K2, K3)
+20     ``scale_factor``         ``y_i *= 1 + e_i``
+25     ``temperature_scale``    ``y_i *= 1 + Σ_j k_ij (T − T_ref)^j`` (M3, j ≥ 1)
+30     ``bias``                 ``y_i += b_i``
+31     ``bias_drift``           ``y_i += Σ_j c_ij (t − t_0)^j`` (j ≥ 1)
+32     ``temperature_bias``     ``y_i += Σ_j d_ij (T − T_ref)^j`` (M3, j ≥ 1)
+33     ``bias_instability``     ``y_i +=`` Gauss–Markov + random walk + flicker noise
+34     ``g_sensitivity``        gyros: ``y += G f_b`` (M4's Bg, rad/s per m/s²)
+40     ``white_noise``          ``y_i += σ_i n``, ``σ_i = density_i·√rate``
+45     (noise-burst faults)     see :mod:`estimators.sim.faults`
+50     ``quantization``         ``y_i = k_i·Entier(y_i / k_i)`` (M2)
+====== ======================== ===========================================================
+
+With only ``non_orthogonality``, ``scale_factor`` and ``bias`` the chain is the
+exact triad model of :mod:`estimators.conventions` (``y/ref = A u + b``), so
+:meth:`TriadErrorModel.nine_params` is the exact truth of the nine parameters.
+Constant terms live in ``bias`` and ``scale_factor`` only: the polynomial
+effects start at the first power, so the nine parameters are those at
+``T = T_ref`` and ``t = t_0``.
+
+Two *environment* effects change the truth rather than a sensor and sit in
+:attr:`ErrorModel.environment`: ``gravity_mismatch`` (the true local gravity
+differs from the assumed one) and ``nonstatic_positions`` (small motion inside
+nominally static intervals).
+
+A new effect is a new subclass of :class:`Effect` with a ``name``, a ``stage``
+and ``apply``; nothing else changes.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field, fields, replace
+from enum import Enum
+from typing import ClassVar
+
+import numpy as np
+from scipy.signal import fftconvolve, lfilter
+
+from estimators.conventions import Triad, nine_params, sensor_axes
+
+from .motion import Motion, angle_excursion, displacement_accel, random_sinusoids
+
+NOISE_BURST_STAGE = 45
+"""Where the noise-burst faults enter the chain: after white noise, before quantization."""
+
+
+@dataclass(frozen=True)
+class EffectContext:
+    """What an effect may read besides the signal.
+
+    Attributes
+    ----------
+    t_s : (N,) sample times, s.
+    rate_hz : sample rate, Hz.
+    triad : the triad the chain belongs to.
+    reference : the triad's true scalar reference (g in m/s², or Ω in rad/s).
+    specific_force_b_mps2 : (N, 3) true specific force, body axes (for g-sensitivity).
+    temp_c : (N,) true temperature, °C, or None.
+    param_delta : (N, 9) parameter changes of injected faults, or None.
+    rng : this effect's own random stream.
+    """
+
+    t_s: np.ndarray
+    rate_hz: float
+    triad: Triad
+    reference: float
+    specific_force_b_mps2: np.ndarray
+    temp_c: np.ndarray | None
+    param_delta: np.ndarray | None
+    rng: np.random.Generator
+
+    def delta(self, cols: slice) -> np.ndarray | None:
+        """(N, k) fault changes of parameters ``cols``, or None if they never change."""
+        if self.param_delta is None:
+            return None
+        d = self.param_delta[:, cols]
+        return d if np.any(d) else None
+
+    def temperature(self, effect: str) -> np.ndarray:
+        if self.temp_c is None:
+            raise ValueError(f"effect {effect!r} needs a temperature profile in the session spec")
+        return self.temp_c
+
+
+def _floats(value, shape: tuple[int, ...], name: str):
+    """``value`` broadcast to ``shape`` as nested tuples of finite floats (hashable, frozen)."""
+    try:
+        a = np.broadcast_to(np.asarray(value, dtype=float), shape)
+    except ValueError:
+        raise ValueError(f"{name} must broadcast to shape {shape}, got {np.shape(value)}") from None
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite, got {a.tolist()!r}")
+    return tuple(map(tuple, a)) if a.ndim == 2 else tuple(a.tolist())
+
+
+def _poly_coefs(value, name: str):
+    """(3, n) per-axis polynomial coefficients of powers 1…n, n ≥ 1."""
+    a = np.asarray(value, dtype=float)
+    if a.ndim == 1:
+        a = np.broadcast_to(a, (3, a.size))
+    if a.ndim != 2 or a.shape[0] != 3 or a.shape[1] < 1:
+        raise ValueError(f"{name} must have shape (3, n) or (n,) with n >= 1, got {np.shape(value)}")
+    return _floats(a, a.shape, name)
+
+
+def _poly(coefs, x: np.ndarray) -> np.ndarray:
+    """(N, 3) ``Σ_j c_ij x^j`` for j = 1…n (no constant term)."""
+    c = np.asarray(coefs)
+    powers = x[:, None] ** np.arange(1, c.shape[1] + 1)[None]
+    return powers @ c.T
+
+
+class Effect(abc.ABC):
+    """One named term of a triad's error model (see the module docstring)."""
+
+    name: ClassVar[str]
+    stage: ClassVar[int]
+    triads: ClassVar[tuple[Triad, ...]] = (Triad.ACCEL, Triad.GYRO)
+
+    @abc.abstractmethod
+    def apply(self, y: np.ndarray, ctx: EffectContext) -> np.ndarray:
+        """The signal (N, 3) after this effect; never modifies ``y`` in place."""
+
+
+@dataclass(frozen=True)
+class NonOrthogonality(Effect):
+    """Sensitive axes from the six small angles ``[δ_xy, δ_xz, δ_yx, δ_yz, δ_zx, δ_zy]``, rad.
+
+    Uses :func:`estimators.conventions.sensor_axes`. A fault in ``d1…d3``
+    changes the Gram matrix ``G = S Sᵀ`` of the axes (the cosines) to ``G'``;
+    the faulted axes are ``S' = G'^½ G^−½ S`` (``S' S'ᵀ = G'`` exactly, and
+    ``S' → S`` as the change vanishes).
+    """
+
+    angles_rad: tuple = (0.0,) * 6
+    name: ClassVar[str] = "non_orthogonality"
+    stage: ClassVar[int] = 0
+
+    def __post_init__(self):
+        object.__setattr__(self, "angles_rad", _floats(self.angles_rad, (6,), "angles_rad"))
+
+    @property
+    def axes(self) -> np.ndarray:
+        return sensor_axes(np.array(self.angles_rad))
+
+    def apply(self, y, ctx):
+        s = self.axes
+        out = y @ s.T
+        d = ctx.delta(slice(6, 9))
+        if d is None:
+            return out
+        hit = np.any(d != 0.0, axis=1)
+        rows, inverse = np.unique(d[hit], axis=0, return_inverse=True)
+        gram = s @ s.T
+        gram_f = np.repeat(gram[None], len(rows), axis=0)
+        for col, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
+            gram_f[:, i, j] += rows[:, col]
+            gram_f[:, j, i] += rows[:, col]
+        lam, vec = np.linalg.eigh(gram_f)
+        if np.any(lam <= 0):
+            raise ValueError("a non-orthogonality fault makes the sensitive axes linearly dependent")
+        lam0, vec0 = np.linalg.eigh(gram)
+        inv_sqrt = (vec0 / np.sqrt(lam0)) @ vec0.T
+        s_f = (vec * np.sqrt(lam)[:, None, :]) @ np.swapaxes(vec, 1, 2) @ inv_sqrt @ s
+        out[hit] = np.einsum("nij,nj->ni", s_f[inverse.reshape(-1)], y[hit])
+        return out
+
+
+@dataclass(frozen=True)
+class ScaleNonlinearity(Effect):
+    """``y_i += K2_i y_i² + K3_i y_i³`` (M3); K2 in 1/SI, K3 in 1/SI² of the triad's unit."""
+
+    k2_per_si: tuple = (0.0,) * 3
+    k3_per_si2: tuple = (0.0,) * 3
+    name: ClassVar[str] = "scale_nonlinearity"
+    stage: ClassVar[int] = 10
+
+    def __post_init__(self):
+        object.__setattr__(self, "k2_per_si", _floats(self.k2_per_si, (3,), "k2_per_si"))
+        object.__setattr__(self, "k3_per_si2", _floats(self.k3_per_si2, (3,), "k3_per_si2"))
+
+    def apply(self, y, ctx):
+        return y + np.array(self.k2_per_si) * y**2 + np.array(self.k3_per_si2) * y**3
+
+
+@dataclass(frozen=True)
+class ScaleFactor(Effect):
+    """``y_i *= 1 + e_i`` with the relative scale-factor errors ``e`` (3,)."""
+
+    scale_err: tuple = (0.0,) * 3
+    name: ClassVar[str] = "scale_factor"
+    stage: ClassVar[int] = 20
+
+    def __post_init__(self):
+        object.__setattr__(self, "scale_err", _floats(self.scale_err, (3,), "scale_err"))
+
+    def apply(self, y, ctx):
+        e = np.array(self.scale_err)
+        d = ctx.delta(slice(3, 6))
+        return y * (1.0 + (e if d is None else e + d))
+
+
+@dataclass(frozen=True)
+class TemperatureScale(Effect):
+    """``y_i *= 1 + Σ_j k_ij (T − t_ref_c)^j``, j = 1…n (M3's ``l_i(t)`` without its constant).
+
+    ``coef_per_c`` (3, n): relative scale change per °C^j.
+    """
+
+    coef_per_c: tuple = ((0.0,),) * 3
+    t_ref_c: float = 20.0
+    name: ClassVar[str] = "temperature_scale"
+    stage: ClassVar[int] = 25
+
+    def __post_init__(self):
+        object.__setattr__(self, "coef_per_c", _poly_coefs(self.coef_per_c, "coef_per_c"))
+
+    def apply(self, y, ctx):
+        return y * (1.0 + _poly(self.coef_per_c, ctx.temperature(self.name) - self.t_ref_c))
+
+
+@dataclass(frozen=True)
+class Bias(Effect):
+    """``y_i += b_i`` with the zero signal ``bias_si`` (3,) in the triad's SI unit.
+
+    The normalized parameter of M1 is ``bias_si / reference``; a bias fault
+    adds ``Δb·reference``.
+    """
+
+    bias_si: tuple = (0.0,) * 3
+    name: ClassVar[str] = "bias"
+    stage: ClassVar[int] = 30
+
+    def __post_init__(self):
+        object.__setattr__(self, "bias_si", _floats(self.bias_si, (3,), "bias_si"))
+
+    def apply(self, y, ctx):
+        b = np.array(self.bias_si)
+        d = ctx.delta(slice(0, 3))
+        return y + (b if d is None else b + d * ctx.reference)
+
+
+@dataclass(frozen=True)
+class BiasDrift(Effect):
+    """Deterministic bias change with time: ``y_i += Σ_j c_ij (t − t_0)^j``, j = 1…n.
+
+    ``coef_si_per_s`` (3, n): SI per s^j; ``t_0`` is the first sample's time.
+    """
+
+    coef_si_per_s: tuple = ((0.0,),) * 3
+    name: ClassVar[str] = "bias_drift"
+    stage: ClassVar[int] = 31
+
+    def __post_init__(self):
+        object.__setattr__(self, "coef_si_per_s", _poly_coefs(self.coef_si_per_s, "coef_si_per_s"))
+
+    def apply(self, y, ctx):
+        return y + _poly(self.coef_si_per_s, ctx.t_s - ctx.t_s[0])
+
+
+@dataclass(frozen=True)
+class TemperatureBias(Effect):
+    """``y_i += Σ_j d_ij (T − t_ref_c)^j``, j = 1…n (M3's ``D_i(t)`` without its constant).
+
+    ``coef_si_per_c`` (3, n): SI per °C^j.
+    """
+
+    coef_si_per_c: tuple = ((0.0,),) * 3
+    t_ref_c: float = 20.0
+    name: ClassVar[str] = "temperature_bias"
+    stage: ClassVar[int] = 32
+
+    def __post_init__(self):
+        object.__setattr__(self, "coef_si_per_c", _poly_coefs(self.coef_si_per_c, "coef_si_per_c"))
+
+    def apply(self, y, ctx):
+        return y + _poly(self.coef_si_per_c, ctx.temperature(self.name) - self.t_ref_c)
+
+
+@dataclass(frozen=True)
+class BiasInstability(Effect):
+    """Correlated bias noise that does not average down; three independent parts per axis.
+
+    * Gauss–Markov: stationary, standard deviation ``gm_sigma_si``, correlation
+      time ``gm_tau_s``: ``β_k = φ β_{k−1} + w_k``, ``φ = exp(−Δt/τ)``,
+      ``var w = σ²(1 − φ²)``, ``β_0`` drawn from the stationary law.
+    * Random walk: ``random_walk_si_per_sqrt_s`` (SI/√s, the rate random walk
+      coefficient K): ``β_k = β_{k−1} + K √Δt n_k``, ``β_0 = 0``.
+    * Flicker (1/f) noise of bias-instability coefficient ``flicker_si`` (B of
+      IEEE Std 952: two-sided PSD ``B² / (2π f)``, Allan deviation floor
+      ``B·√(2 ln 2 / π) ≈ 0.664 B``): white noise of variance ``B²`` through
+      Kasdin's (1995) fractional integrator ``h_0 = 1, h_k = h_{k−1} (k − ½) / k``,
+      whose power gain ``|2 sin(π f Δt)|^−1 ≈ 1 / (2π f Δt)`` turns the white
+      two-sided PSD ``B² Δt`` into ``B² / (2π f)`` below Nyquist; it starts at 0.
+    """
+
+    gm_sigma_si: tuple = (0.0,) * 3
+    gm_tau_s: tuple = (100.0,) * 3
+    random_walk_si_per_sqrt_s: tuple = (0.0,) * 3
+    flicker_si: tuple = (0.0,) * 3
+    name: ClassVar[str] = "bias_instability"
+    stage: ClassVar[int] = 33
+
+    def __post_init__(self):
+        for f in ("gm_sigma_si", "gm_tau_s", "random_walk_si_per_sqrt_s", "flicker_si"):
+            object.__setattr__(self, f, _floats(getattr(self, f), (3,), f))
+            if min(getattr(self, f)) < 0:
+                raise ValueError(f"{f} must be non-negative, got {getattr(self, f)!r}")
+        if min(self.gm_tau_s) <= 0:
+            raise ValueError(f"gm_tau_s must be positive, got {self.gm_tau_s!r}")
+
+    def apply(self, y, ctx):
+        n = y.shape[0]
+        dt = 1.0 / ctx.rate_hz
+        beta = np.zeros_like(y)
+        white = ctx.rng.standard_normal((3, 3, n))
+        start = ctx.rng.standard_normal(3)
+        flicker = np.array(self.flicker_si)
+        if flicker.any():
+            kasdin = np.cumprod(np.concatenate([[1.0], (np.arange(1, n) - 0.5) / np.arange(1, n)]))
+            beta += fftconvolve(flicker[:, None] * white[2], kasdin[None, :], axes=1)[:, :n].T
+        for i in range(3):
+            sigma, tau = self.gm_sigma_si[i], self.gm_tau_s[i]
+            if sigma > 0:
+                phi = np.exp(-dt / tau)
+                w = sigma * np.sqrt(1.0 - phi * phi) * white[0, i]
+                beta[:, i] += lfilter([1.0], [1.0, -phi], w, zi=[phi * sigma * start[i]])[0]
+            k = self.random_walk_si_per_sqrt_s[i]
+            if k > 0:
+                steps = k * np.sqrt(dt) * white[1, i]
+                steps[0] = 0.0
+                beta[:, i] += np.cumsum(steps)
+        return y + beta
+
+
+@dataclass(frozen=True)
+class GSensitivity(Effect):
+    """Gyro bias proportional to specific force (M4): ``y += G f_b``.
+
+    ``coef_rps_per_mps2`` (3, 3): row ``i`` holds gyro ``i``'s ``[Bgx, Bgy, Bgz]``
+    in rad/s per m/s².
+    """
+
+    coef_rps_per_mps2: tuple = ((0.0,) * 3,) * 3
+    name: ClassVar[str] = "g_sensitivity"
+    stage: ClassVar[int] = 34
+    triads: ClassVar[tuple[Triad, ...]] = (Triad.GYRO,)
+
+    def __post_init__(self):
+        object.__setattr__(self, "coef_rps_per_mps2", _floats(self.coef_rps_per_mps2, (3, 3), "coef_rps_per_mps2"))
+
+    def apply(self, y, ctx):
+        return y + ctx.specific_force_b_mps2 @ np.array(self.coef_rps_per_mps2).T
+
+
+@dataclass(frozen=True)
+class WhiteNoise(Effect):
+    """Additive white noise; per-sample standard deviation ``density·√rate_hz``.
+
+    ``density_si_per_sqrt_hz`` (3,): SI/√Hz (m/s²/√Hz, or rad/s/√Hz = rad/√s,
+    the angle random walk).
+    """
+
+    density_si_per_sqrt_hz: tuple = (0.0,) * 3
+    name: ClassVar[str] = "white_noise"
+    stage: ClassVar[int] = 40
+
+    def __post_init__(self):
+        object.__setattr__(self, "density_si_per_sqrt_hz", _floats(self.density_si_per_sqrt_hz, (3,), "density_si_per_sqrt_hz"))
+        if min(self.density_si_per_sqrt_hz) < 0:
+            raise ValueError(f"noise density must be non-negative, got {self.density_si_per_sqrt_hz!r}")
+
+    @classmethod
+    def from_sample_sd(cls, sd_si, rate_hz: float) -> "WhiteNoise":
+        """The noise whose per-sample standard deviation at ``rate_hz`` is ``sd_si``."""
+        return cls(np.asarray(sd_si, float) / np.sqrt(rate_hz))
+
+    def sample_sd(self, rate_hz: float) -> np.ndarray:
+        """(3,) per-sample standard deviation at ``rate_hz``, SI."""
+        return np.array(self.density_si_per_sqrt_hz) * np.sqrt(rate_hz)
+
+    def apply(self, y, ctx):
+        return y + self.sample_sd(ctx.rate_hz) * ctx.rng.standard_normal(y.shape)
+
+
+class Rounding(str, Enum):
+    """How a converter turns ``signal / k`` into a whole number of counts."""
+
+    FLOOR = "floor"
+    """M2's Entier: the largest integer ≤ the value. Averaged counts are low by ½."""
+    TOWARD_ZERO = "toward_zero"
+    """A signed pulse counter: the integer part. Averaged counts are ½ closer to zero."""
+    NEAREST = "nearest"
+    """Round half to even: no mean offset."""
+
+
+def half_pulse_correction(mean_counts: np.ndarray, rounding: Rounding) -> np.ndarray:
+    """Averaged counts → unbiased ``signal / k`` (M2: ``N̂ + 0.5·sign N̂`` for a signed counter).
+
+    Valid when the noise before quantization is at least about one count (the
+    rounding error is then uniform); for FLOOR the correction is ``+½`` for
+    either sign, for TOWARD_ZERO it is M2's ``+½·sign(N̂)``, for NEAREST none.
+    """
+    n = np.asarray(mean_counts, float)
+    r = Rounding(rounding)
+    if r is Rounding.FLOOR:
+        return n + 0.5
+    if r is Rounding.TOWARD_ZERO:
+        return n + 0.5 * np.sign(n)
+    return n
+
+
+@dataclass(frozen=True)
+class Quantization(Effect):
+    """Output on a grid of whole counts (M2): ``N = round(y / k)``, output ``N·k``.
+
+    ``step_si`` (3,) is the count size ``k`` per axis (SI per count, M2's k*);
+    ``rounding`` picks the converter (:class:`Rounding`; FLOOR is M2's Entier).
+    The output stays in SI on the grid ``k·ℤ``; :func:`half_pulse_correction`
+    removes the mean rounding offset from averaged counts.
+    """
+
+    step_si: tuple = (1.0,) * 3
+    rounding: Rounding = Rounding.FLOOR
+    name: ClassVar[str] = "quantization"
+    stage: ClassVar[int] = 50
+
+    def __post_init__(self):
+        object.__setattr__(self, "step_si", _floats(self.step_si, (3,), "step_si"))
+        object.__setattr__(self, "rounding", Rounding(self.rounding))
+        if min(self.step_si) <= 0:
+            raise ValueError(f"quantization step_si must be positive, got {self.step_si!r}")
+
+    def counts(self, y: np.ndarray) -> np.ndarray:
+        """(N, 3) whole counts of the signal ``y`` (SI)."""
+        v = y / np.array(self.step_si)
+        if self.rounding is Rounding.FLOOR:
+            return np.floor(v)
+        if self.rounding is Rounding.TOWARD_ZERO:
+            return np.trunc(v)
+        return np.round(v)
+
+    def apply(self, y, ctx):
+        return self.counts(y) * np.array(self.step_si)
+
+
+# --- environment effects (change the truth, not a sensor) ----------------------
+
+
+class EnvironmentEffect(abc.ABC):
+    """An effect on the true motion or site rather than on one triad."""
+
+    name: ClassVar[str]
+
+    def gravity_delta_mps2(self) -> float:
+        """How much the true local gravity exceeds the assumed one, m/s²."""
+        return 0.0
+
+    def perturb(self, motion: Motion, rng: np.random.Generator) -> Motion:
+        """The true motion with this effect (default: unchanged)."""
+        return motion
+
+
+@dataclass(frozen=True)
+class GravityMismatch(EnvironmentEffect):
+    """The true local gravity is the assumed one plus ``delta_mps2``.
+
+    The session spec's gravity is what a user would configure; the truth's
+    ``gravity_true_mps2`` drives the physics. Against the assumed value this
+    looks like a common scale error ``≈ delta / g`` of the accelerometers: it
+    is identifiable only against a passport (or a known reference).
+    """
+
+    delta_mps2: float = 0.0
+    name: ClassVar[str] = "gravity_mismatch"
+
+    def __post_init__(self):
+        if not np.isfinite(self.delta_mps2):
+            raise ValueError(f"delta_mps2 must be finite, got {self.delta_mps2!r}")
+
+    def gravity_delta_mps2(self) -> float:
+        return float(self.delta_mps2)
+
+
+@dataclass(frozen=True)
+class NonstaticPositions(EnvironmentEffect):
+    """Small motion inside nominally static intervals (hand-held, soft table, vibration).
+
+    In every static interval the attitude wobbles by windowed sinusoids
+    (``n_components`` per axis, log-uniform frequencies in ``band_hz``) of RMS
+    ``angle_rms_rad`` about each body axis, and the unit translates with
+    acceleration RMS ``accel_rms_mps2`` per navigation axis; both fade in and
+    out over ``ramp_s``. The rates are the exact derivatives of the wobble, so
+    the truth stays consistent; the static flags stay as scheduled.
+    """
+
+    angle_rms_rad: float = 1.0e-4
+    accel_rms_mps2: float = 0.0
+    band_hz: tuple = (0.1, 5.0)
+    n_components: int = 4
+    ramp_s: float = 0.5
+    name: ClassVar[str] = "nonstatic_positions"
+
+    def __post_init__(self):
+        if not (self.angle_rms_rad >= 0 and self.accel_rms_mps2 >= 0):
+            raise ValueError(f"nonstatic_positions amplitudes must be non-negative, got {self!r}")
+        object.__setattr__(self, "band_hz", _floats(self.band_hz, (2,), "band_hz"))
+
+    def perturb(self, motion: Motion, rng: np.random.Generator) -> Motion:
+        mat = motion.mat_nb.copy()
+        rate = motion.rate_nb_b_rps.copy()
+        acc = motion.accel_n_mps2.copy()
+        dt = float(motion.t_s[1] - motion.t_s[0]) if motion.t_s.size > 1 else 1.0
+        for j in range(int(motion.position_index.max()) + 1):
+            idx = np.flatnonzero(motion.position_index == j)
+            tau = (idx - idx[0]) * dt
+            length = idx.size * dt
+            amp, freq, phase = random_sinusoids(rng, 3, self.n_components, self.angle_rms_rad, self.band_hz)
+            dev, dev_rate = angle_excursion(tau, length, self.ramp_s, amp, freq, phase)
+            mat[idx] = mat[idx] @ dev
+            rate[idx] += dev_rate
+            aamp, afreq, aphase = random_sinusoids(rng, 3, self.n_components, self.accel_rms_mps2, self.band_hz)
+            acc[idx] += displacement_accel(tau, length, self.ramp_s, aamp, afreq, aphase)
+        return replace(motion, mat_nb=mat, rate_nb_b_rps=rate, accel_n_mps2=acc)
+
+
+EFFECTS: dict[str, type] = {
+    cls.name: cls
+    for cls in (
+        NonOrthogonality,
+        ScaleNonlinearity,
+        ScaleFactor,
+        TemperatureScale,
+        Bias,
+        BiasDrift,
+        TemperatureBias,
+        BiasInstability,
+        GSensitivity,
+        WhiteNoise,
+        Quantization,
+        GravityMismatch,
+        NonstaticPositions,
+    )
+}
+"""Every effect class by its name (the names of the model audit, issue 4)."""
+
+
+def make_effect(name: str, params: dict) -> Effect | EnvironmentEffect:
+    """The effect called ``name`` with ``params`` (its dataclass fields; lists for arrays).
+
+    The inverse of :func:`effect_params`. Unknown names or fields are a ``ValueError``.
+    """
+    if name not in EFFECTS:
+        raise ValueError(f"unknown effect {name!r} (known: {', '.join(sorted(EFFECTS))})")
+    cls = EFFECTS[name]
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(params) - known)
+    if unknown:
+        raise ValueError(f"effect {name}: unknown parameter {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    return cls(**params)
+
+
+def effect_params(effect: Effect | EnvironmentEffect) -> dict:
+    """The parameters of ``effect`` as plain JSON/TOML types (tuples become lists, enums their value)."""
+
+    def plain(v):
+        if isinstance(v, Enum):
+            return v.value
+        if isinstance(v, tuple):
+            return [plain(x) for x in v]
+        return v
+
+    return {f.name: plain(getattr(effect, f.name)) for f in fields(effect)}
+
+
+# --- models -------------------------------------------------------------------
+
+PARAMETER_EFFECT = {0: Bias, 1: ScaleFactor, 2: NonOrthogonality}
+"""Which baseline effect carries parameters 0–2, 3–5, 6–8 (``index // 3``)."""
+
+
+@dataclass(frozen=True)
+class TriadErrorModel:
+    """The ordered effects of one triad (stages non-decreasing, names unique)."""
+
+    effects: tuple = ()
+
+    def __post_init__(self):
+        effs = tuple(self.effects)
+        for e in effs:
+            if not isinstance(e, Effect):
+                raise ValueError(f"not a triad effect: {e!r}")
+        names = [e.name for e in effs]
+        if len(set(names)) != len(names):
+            raise ValueError(f"each effect may appear once per triad, got {names}")
+        stages = [e.stage for e in effs]
+        if stages != sorted(stages):
+            raise ValueError(f"effects must be in signal-path order (by stage), got {names}")
+        object.__setattr__(self, "effects", effs)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(e.name for e in self.effects)
+
+    def find(self, name: str) -> Effect | None:
+        """The effect called ``name``, or None."""
+        return next((e for e in self.effects if e.name == name), None)
+
+    def with_effect(self, effect: Effect) -> "TriadErrorModel":
+        """A model with ``effect`` added at its stage, replacing one of the same name."""
+        kept = [e for e in self.effects if e.name != effect.name]
+        at = next((k for k, e in enumerate(kept) if e.stage > effect.stage), len(kept))
+        return TriadErrorModel(tuple(kept[:at]) + (effect,) + tuple(kept[at:]))
+
+    def without(self, name: str) -> "TriadErrorModel":
+        """A model without the effect called ``name`` (unchanged if absent)."""
+        return TriadErrorModel(tuple(e for e in self.effects if e.name != name))
+
+    def nine_params(self, reference: float) -> np.ndarray:
+        """(9,) the exact ``[b, e, d]`` of :mod:`estimators.conventions` (absent effects are zero).
+
+        ``reference`` is the triad's true scalar reference (g in m/s² or Ω in rad/s).
+        """
+        bias = self.find("bias")
+        scale = self.find("scale_factor")
+        nonorth = self.find("non_orthogonality")
+        return nine_params(
+            np.zeros(3) if bias is None else np.array(bias.bias_si) / reference,
+            np.zeros(3) if scale is None else np.array(scale.scale_err),
+            np.eye(3) if nonorth is None else nonorth.axes,
+        )
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """Both triads' effect chains and the environment effects."""
+
+    accel: TriadErrorModel = field(default_factory=TriadErrorModel)
+    gyro: TriadErrorModel = field(default_factory=TriadErrorModel)
+    environment: tuple = ()
+
+    def __post_init__(self):
+        for triad in Triad:
+            for e in self.triad(triad).effects:
+                if triad not in e.triads:
+                    raise ValueError(f"effect {e.name!r} does not apply to the {triad.value} triad")
+        env = tuple(self.environment)
+        for e in env:
+            if not isinstance(e, EnvironmentEffect):
+                raise ValueError(f"not an environment effect: {e!r}")
+        names = [e.name for e in env]
+        if len(set(names)) != len(names):
+            raise ValueError(f"each environment effect may appear once, got {names}")
+        object.__setattr__(self, "environment", env)
+
+    def triad(self, triad: Triad) -> TriadErrorModel:
+        return self.accel if Triad(triad) is Triad.ACCEL else self.gyro
+
+    def with_effect(self, effect: Effect | EnvironmentEffect, triad: Triad | None = None) -> "ErrorModel":
+        """A model with ``effect`` added (replacing one of the same name).
+
+        Environment effects need no triad; triad effects need ``triad``.
+        """
+        if isinstance(effect, EnvironmentEffect):
+            kept = tuple(e for e in self.environment if e.name != effect.name)
+            return replace(self, environment=kept + (effect,))
+        if triad is None:
+            raise ValueError(f"effect {effect.name!r} needs the triad it applies to")
+        if Triad(triad) is Triad.ACCEL:
+            return replace(self, accel=self.accel.with_effect(effect))
+        return replace(self, gyro=self.gyro.with_effect(effect))
+
+    @property
+    def gravity_delta_mps2(self) -> float:
+        return float(sum(e.gravity_delta_mps2() for e in self.environment))

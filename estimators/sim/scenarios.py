@@ -1,0 +1,139 @@
+"""Ready-made session specs: multi-position calibration, long static, flight.
+
+These are what the tests, the demo and the benchmarks start from; every
+argument is keyword-only and has a typical default.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+import numpy as np
+
+from .errors import ErrorModel
+from .grades import Grade, grade_error_model
+from .motion import Fly, eighteen_position_attitudes, flight_profile, multi_position_profile, random_attitudes, static_profile
+from .session import SessionSpec
+from .temperature import TemperatureProfile
+
+
+class OrientationScheme(str, Enum):
+    """How the positions of a multi-position session are chosen."""
+
+    EIGHTEEN = "eighteen"
+    """The 18-position scheme (6 faces and 12 edges at 45°), first ``n`` of them."""
+    RANDOM = "random"
+    """Attitudes uniform over the rotation group."""
+
+
+def position_attitudes(
+    n_positions: int, *, scheme: OrientationScheme = OrientationScheme.EIGHTEEN, heading_rad: float = 0.0, rng: np.random.Generator | None = None
+) -> np.ndarray:
+    """(n, 3, 3) attitudes of ``n_positions`` positions.
+
+    EIGHTEEN allows up to 18 positions, with ``heading_rad`` about the up axis;
+    RANDOM needs ``rng``.
+    """
+    scheme = OrientationScheme(scheme)
+    if scheme is OrientationScheme.EIGHTEEN:
+        if not 1 <= n_positions <= 18:
+            raise ValueError(f"the 18-position scheme has 1 to 18 positions, got {n_positions}")
+        return eighteen_position_attitudes(heading_rad)[:n_positions]
+    if rng is None:
+        raise ValueError("random orientations need a numpy Generator (rng)")
+    return random_attitudes(n_positions, rng)
+
+
+def _model(grade: Grade, model: ErrorModel | None) -> ErrorModel:
+    return grade_error_model(grade) if model is None else model
+
+
+def multi_position_spec(
+    *,
+    grade: Grade = Grade.MEMS,
+    model: ErrorModel | None = None,
+    n_positions: int = 18,
+    scheme: OrientationScheme = OrientationScheme.EIGHTEEN,
+    orientation_rng: np.random.Generator | None = None,
+    heading_rad: float = 0.0,
+    static_s: float | np.ndarray = 20.0,
+    transition_s: float | np.ndarray = 4.0,
+    first_static_s: float | None = None,
+    rate_hz: float = 100.0,
+    latitude_deg: float = 45.0,
+    height_m: float = 0.0,
+    gravity_mps2: float | None = None,
+    temperature: TemperatureProfile | None = None,
+    faults: tuple = (),
+) -> SessionSpec:
+    """A multi-position session (methods.md M1's diagnosis geometry).
+
+    ``model`` defaults to the grade's fixed preset
+    (:func:`~estimators.sim.grades.grade_error_model`); lengths as in
+    :func:`~estimators.sim.motion.multi_position_profile`. With the defaults: 18
+    positions of 20 s, 4 s turns, 100 Hz: 428 s, 42,800 samples.
+    """
+    att = position_attitudes(n_positions, scheme=scheme, heading_rad=heading_rad, rng=orientation_rng)
+    profile = multi_position_profile(att, static_s=static_s, transition_s=transition_s, first_static_s=first_static_s)
+    return SessionSpec(
+        profile,
+        _model(grade, model),
+        rate_hz=rate_hz,
+        latitude_deg=latitude_deg,
+        height_m=height_m,
+        gravity_mps2=gravity_mps2,
+        temperature=temperature,
+        faults=tuple(faults),
+    )
+
+
+def static_spec(
+    *,
+    duration_s: float = 600.0,
+    grade: Grade = Grade.MEMS,
+    model: ErrorModel | None = None,
+    mat_nb: np.ndarray | None = None,
+    rate_hz: float = 100.0,
+    latitude_deg: float = 45.0,
+    height_m: float = 0.0,
+    gravity_mps2: float | None = None,
+    temperature: TemperatureProfile | None = None,
+    faults: tuple = (),
+) -> SessionSpec:
+    """One long static interval (noise studies, Allan deviation, warm-up)."""
+    return SessionSpec(
+        static_profile(duration_s, mat_nb),
+        _model(grade, model),
+        rate_hz=rate_hz,
+        latitude_deg=latitude_deg,
+        height_m=height_m,
+        gravity_mps2=gravity_mps2,
+        temperature=temperature,
+        faults=tuple(faults),
+    )
+
+
+def flight_spec(
+    *,
+    fly: Fly = Fly(120.0),
+    rest_s: float = 10.0,
+    grade: Grade = Grade.MEMS,
+    model: ErrorModel | None = None,
+    rate_hz: float = 100.0,
+    latitude_deg: float = 45.0,
+    height_m: float = 0.0,
+    gravity_mps2: float | None = None,
+    temperature: TemperatureProfile | None = None,
+    faults: tuple = (),
+) -> SessionSpec:
+    """Rest level, fly the :class:`~estimators.sim.motion.Fly` segment ``fly``, rest again."""
+    return SessionSpec(
+        flight_profile(fly, rest_s=rest_s),
+        _model(grade, model),
+        rate_hz=rate_hz,
+        latitude_deg=latitude_deg,
+        height_m=height_m,
+        gravity_mps2=gravity_mps2,
+        temperature=temperature,
+        faults=tuple(faults),
+    )

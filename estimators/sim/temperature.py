@@ -1,0 +1,89 @@
+"""Temperature profiles of a simulated session (the input of methods.md M3's polynomials).
+
+Each profile is a frozen dataclass with ``temp_c(t_s)``: time ``t_s`` (N,) in
+seconds from the session start → temperature (N,) in °C. A profile that is not
+monotone in time (:class:`CycleTemperature`) is what separates temperature
+effects from time effects (issue 4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _finite(name: str, value: float) -> None:
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+
+
+@dataclass(frozen=True)
+class ConstantTemperature:
+    """``T(t) = temp_c``."""
+
+    temp_c: float = 20.0
+
+    def __post_init__(self):
+        _finite("temp_c", self.temp_c)
+
+    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+        return np.full(np.shape(t_s), float(self.temp_c))
+
+
+@dataclass(frozen=True)
+class RampTemperature:
+    """Linear from ``start_c`` at t = 0 at ``rate_c_per_s``."""
+
+    start_c: float = 20.0
+    rate_c_per_s: float = 0.01
+
+    def __post_init__(self):
+        _finite("start_c", self.start_c)
+        _finite("rate_c_per_s", self.rate_c_per_s)
+
+    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+        return self.start_c + self.rate_c_per_s * np.asarray(t_s, float)
+
+
+@dataclass(frozen=True)
+class WarmupTemperature:
+    """Self-heating after switch-on: ``T = final − (final − start)·exp(−t / tau_s)``."""
+
+    start_c: float = 20.0
+    final_c: float = 35.0
+    tau_s: float = 300.0
+
+    def __post_init__(self):
+        _finite("start_c", self.start_c)
+        _finite("final_c", self.final_c)
+        if not np.isfinite(self.tau_s) or self.tau_s <= 0:
+            raise ValueError(f"tau_s must be positive, got {self.tau_s!r}")
+
+    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+        return self.final_c - (self.final_c - self.start_c) * np.exp(-np.asarray(t_s, float) / self.tau_s)
+
+
+@dataclass(frozen=True)
+class CycleTemperature:
+    """Heat up and cool down: ``T = base + (peak − base)·(1 − cos(2π t / period_s)) / 2``.
+
+    Not monotone: the same temperature recurs at different times.
+    """
+
+    base_c: float = 20.0
+    peak_c: float = 40.0
+    period_s: float = 600.0
+
+    def __post_init__(self):
+        _finite("base_c", self.base_c)
+        _finite("peak_c", self.peak_c)
+        if not np.isfinite(self.period_s) or self.period_s <= 0:
+            raise ValueError(f"period_s must be positive, got {self.period_s!r}")
+
+    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+        phase = 2.0 * np.pi * np.asarray(t_s, float) / self.period_s
+        return self.base_c + (self.peak_c - self.base_c) * 0.5 * (1.0 - np.cos(phase))
+
+
+TemperatureProfile = ConstantTemperature | RampTemperature | WarmupTemperature | CycleTemperature

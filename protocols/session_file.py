@@ -1,0 +1,407 @@
+"""Session files ⇄ :class:`estimators.session.ImuSession` (SI).
+
+Two formats:
+
+**CSV session file** (read and write). A header row names the columns, then one
+sample a line::
+
+    # comment lines start with '#'; '# key = value' lines are kept as metadata
+    # gravity_mps2 = 9.80619
+    t,ax,ay,az,gx,gy,gz,temp
+    0.00,0.0012,-0.0031,9.8071,0.0001,-0.0002,0.0000,21.5
+
+``t`` in s, ``ax ay az`` specific force in m/s², ``gx gy gz`` angular rate in
+rad/s, ``temp`` in °C (optional). Columns may come in any order; a file may
+hold one triad only (all three of its columns). Blank lines are skipped.
+``nan``/``inf`` values are passed through: :func:`estimators.session.validate_session`
+counts and drops them — this reader never drops a row.
+
+**Xsens raw-count pair** (read). Two whitespace-separated text files on the same
+time stamps, ``time_s x y z`` per line, accelerometer and gyro in raw 16-bit
+counts (IMU-TK's test data, ``../shared/data/measured/xsens-multiposition``).
+Counts become SI with a nominal offset and scale per axis from a TOML sidecar
+(:class:`XsensNominal`); the packaged default ``sidecars/xsens_mti.toml``
+documents where its numbers come from.
+
+Every problem with a file is a :class:`SessionFileError` (a ``ValueError``)
+whose one-line message names the file, the line and the column.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from estimators.session import ImuSession, SessionError
+
+CSV_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz", "temp")
+ACCEL_COLUMNS = ("ax", "ay", "az")
+GYRO_COLUMNS = ("gx", "gy", "gz")
+XSENS_SIDECAR_FORMAT = "ins-health/xsens-nominal"
+XSENS_SIDECAR_VERSION = 1
+GRAVITY_KEY = "gravity_mps2"
+
+
+class SessionFileError(SessionError):
+    """A session file cannot be read; the message names file, line and column."""
+
+
+@dataclass(frozen=True)
+class LoadedSession:
+    """A session read from files, with what the files say about it.
+
+    Attributes
+    ----------
+    session : the samples, SI.
+    gravity_mps2 : local gravity stated by the file or sidecar, m/s², or None.
+    metadata : ``key = value`` comment lines of a CSV file (strings).
+    source : the file or files read.
+    """
+
+    session: ImuSession
+    gravity_mps2: float | None
+    metadata: dict[str, str] = field(default_factory=dict)
+    source: str = ""
+
+
+# --- generic numeric table ---------------------------------------------------
+
+
+def _read_text(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise SessionFileError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from None
+
+
+def _parse_rows(path: Path, rows: list[tuple[int, str]], names: tuple[str, ...], delimiter: str | None) -> np.ndarray:
+    """(R, len(names)) floats from ``rows`` of (line number, text).
+
+    numpy parses the whole table at once; only when that fails is the table
+    scanned line by line, to name the first bad line and column.
+    """
+    if not rows:
+        return np.empty((0, len(names)))
+    try:
+        data = np.loadtxt([text for _, text in rows], delimiter=delimiter, comments=None, ndmin=2, dtype=float)
+        if data.shape[1] == len(names):
+            return data
+    except ValueError:
+        pass
+    for lineno, text in rows:
+        fields = text.split(delimiter)
+        if len(fields) != len(names):
+            raise SessionFileError(
+                f"{path}: line {lineno}: expected {len(names)} fields ({','.join(names)}), got {len(fields)}"
+            )
+        for name, value in zip(names, fields):
+            try:
+                float(value)
+            except ValueError:
+                raise SessionFileError(f"{path}: line {lineno}, column {name!r}: not a number: {value.strip()!r}") from None
+    raise SessionFileError(f"{path}: the numeric table cannot be parsed")
+
+
+def _split_lines(path: Path, text: str) -> tuple[list[tuple[int, str]], list[str]]:
+    """Non-blank, non-comment lines with their 1-based numbers, and the comment texts."""
+    rows, comments = [], []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            comments.append(s[1:].strip())
+        else:
+            rows.append((lineno, s))
+    return rows, comments
+
+
+# --- CSV ---------------------------------------------------------------------
+
+
+def _metadata(comments: list[str]) -> dict[str, str]:
+    out = {}
+    for c in comments:
+        key, sep, value = c.partition("=")
+        if sep and key.strip() and " " not in key.strip():
+            out[key.strip()] = value.strip()
+    return out
+
+
+def _gravity_from(metadata: dict[str, str], path: Path) -> float | None:
+    if GRAVITY_KEY not in metadata:
+        return None
+    try:
+        g = float(metadata[GRAVITY_KEY])
+    except ValueError:
+        raise SessionFileError(f"{path}: comment {GRAVITY_KEY} is not a number: {metadata[GRAVITY_KEY]!r}") from None
+    if not (math.isfinite(g) and g > 0):
+        raise SessionFileError(f"{path}: comment {GRAVITY_KEY} must be positive, got {g!r}")
+    return g
+
+
+def _all_numbers(fields: list[str]) -> bool:
+    try:
+        [float(f) for f in fields]
+    except ValueError:
+        return False
+    return True
+
+
+def _check_header(path: Path, lineno: int, names: list[str]) -> None:
+    expected = "t,ax,ay,az,gx,gy,gz[,temp]"
+    for n in names:
+        if n not in CSV_COLUMNS:
+            raise SessionFileError(f"{path}: line {lineno}: unknown column {n!r} (expected {expected})")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise SessionFileError(f"{path}: line {lineno}: duplicate column {dup[0]!r}")
+    if "t" not in names:
+        raise SessionFileError(f"{path}: line {lineno}: missing column 't' (expected {expected})")
+    for triad in (ACCEL_COLUMNS, GYRO_COLUMNS):
+        present = [c for c in triad if c in names]
+        if present and len(present) < 3:
+            missing = next(c for c in triad if c not in names)
+            raise SessionFileError(f"{path}: line {lineno}: missing column {missing!r} (expected {expected})")
+    if not any(c in names for c in ACCEL_COLUMNS + GYRO_COLUMNS):
+        raise SessionFileError(f"{path}: line {lineno}: missing columns ax,ay,az and gx,gy,gz (expected {expected})")
+
+
+def read_csv_session(path: str | os.PathLike) -> LoadedSession:
+    """Read a CSV session file (format in the module docstring)."""
+    path = Path(path)
+    rows, comments = _split_lines(path, _read_text(path))
+    if not rows:
+        raise SessionFileError(f"{path}: empty file (no header row t,ax,ay,az,gx,gy,gz[,temp])")
+    header_line, header = rows[0]
+    if _all_numbers(header.split()):
+        raise SessionFileError(
+            f"{path}: line {header_line}: no header row; this looks like one file of a raw-count pair "
+            "(give the gyro file too, or the directory holding both)"
+        )
+    names = [n.strip().lower() for n in header.split(",")]
+    _check_header(path, header_line, names)
+    if len(rows) == 1:
+        raise SessionFileError(f"{path}: no data rows after the header (line {header_line})")
+    data = _parse_rows(path, rows[1:], tuple(names), ",")
+    col = {n: data[:, k] for k, n in enumerate(names)}
+
+    def triad(cols):
+        return np.column_stack([col[c] for c in cols]) if cols[0] in col else None
+
+    session = ImuSession(col["t"].copy(), triad(ACCEL_COLUMNS), triad(GYRO_COLUMNS), col["temp"].copy() if "temp" in col else None)
+    meta = _metadata(comments)
+    return LoadedSession(session, _gravity_from(meta, path), meta, str(path))
+
+
+def write_csv_session(
+    path: str | os.PathLike, session: ImuSession, *, metadata: dict[str, object] | None = None, comments: tuple[str, ...] = ()
+) -> Path:
+    """Write ``session`` as a CSV session file; returns the path.
+
+    Values are written with 17 significant digits, so reading the file back
+    gives the same float64 arrays. ``metadata`` becomes ``# key = value``
+    lines, ``comments`` plain ``#`` lines, both before the header. The file is
+    written next to its destination and renamed into place.
+    """
+    path = Path(path)
+    cols, names = [session.t_s[:, None]], ["t"]
+    if session.accel_mps2 is not None:
+        cols.append(session.accel_mps2)
+        names += ACCEL_COLUMNS
+    if session.gyro_rps is not None:
+        cols.append(session.gyro_rps)
+        names += GYRO_COLUMNS
+    if session.temp_c is not None:
+        cols.append(session.temp_c[:, None])
+        names.append("temp")
+    if session.accel_mps2 is None and session.gyro_rps is None:
+        raise SessionFileError(f"{path}: the session has neither accelerometer nor gyro samples")
+    table = np.hstack([np.asarray(c, float) for c in cols])
+    head = ["ins-health session file: t s, ax..az m/s^2, gx..gz rad/s, temp degC"]
+    head += [str(c) for c in comments]
+    for key, value in (metadata or {}).items():
+        if not str(key).isidentifier():
+            raise ValueError(f"metadata key must be an identifier, got {key!r}")
+        head.append(f"{key} = {value}")
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write("".join(f"# {h}\n" for h in head))
+        fh.write(",".join(names) + "\n")
+        np.savetxt(fh, table, fmt="%.17g", delimiter=",")
+    os.replace(tmp, path)
+    return path
+
+
+# --- Xsens raw-count pair ----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CountScale:
+    """Nominal raw-count conversion of one triad: ``SI = (counts − offset_counts) · scale_si_per_count``.
+
+    Both are (3,) per axis; the scale is in m/s² or rad/s per count.
+    """
+
+    offset_counts: tuple
+    scale_si_per_count: tuple
+
+    def __post_init__(self):
+        for name in ("offset_counts", "scale_si_per_count"):
+            a = np.broadcast_to(np.asarray(getattr(self, name), dtype=float), (3,))
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"{name} must be finite, got {a.tolist()!r}")
+            object.__setattr__(self, name, tuple(a.tolist()))
+        if 0.0 in self.scale_si_per_count:
+            raise ValueError("scale_si_per_count must not be zero")
+
+    def to_si(self, counts: np.ndarray) -> np.ndarray:
+        return (counts - np.array(self.offset_counts)) * np.array(self.scale_si_per_count)
+
+
+@dataclass(frozen=True)
+class XsensNominal:
+    """Nominal conversion of an Xsens raw-count pair, and the local gravity, m/s² (or None)."""
+
+    accel: CountScale
+    gyro: CountScale
+    gravity_mps2: float | None = None
+    source: str = ""
+
+
+DEFAULT_XSENS_SIDECAR = "xsens_mti.toml"
+
+
+def load_xsens_sidecar(path: str | os.PathLike | None = None) -> XsensNominal:
+    """Read a TOML sidecar (``None``: the packaged default for IMU-TK's Xsens MTi).
+
+    Keys: ``format = "ins-health/xsens-nominal"``, ``version = 1``, optional
+    ``gravity_mps2``, and tables ``[accel]``, ``[gyro]`` with ``offset_counts``
+    and ``scale_si_per_count`` (a number or three).
+    """
+    if path is None:
+        ref = resources.files("protocols.sidecars").joinpath(DEFAULT_XSENS_SIDECAR)
+        text, where = ref.read_text(encoding="utf-8"), f"packaged {DEFAULT_XSENS_SIDECAR}"
+    else:
+        text, where = _read_text(Path(path)), str(path)
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SessionFileError(f"{where}: not valid TOML: {exc}") from None
+    if doc.get("format") != XSENS_SIDECAR_FORMAT:
+        raise SessionFileError(f"{where}: format must be {XSENS_SIDECAR_FORMAT!r}, got {doc.get('format')!r}")
+    if doc.get("version") != XSENS_SIDECAR_VERSION:
+        raise SessionFileError(
+            f"{where}: unknown sidecar version {doc.get('version')!r} (this reader knows version {XSENS_SIDECAR_VERSION})"
+        )
+    scales = {}
+    for triad in ("accel", "gyro"):
+        table = doc.get(triad)
+        if not isinstance(table, dict) or "offset_counts" not in table or "scale_si_per_count" not in table:
+            raise SessionFileError(f"{where}: needs a [{triad}] table with offset_counts and scale_si_per_count")
+        try:
+            scales[triad] = CountScale(table["offset_counts"], table["scale_si_per_count"])
+        except (ValueError, TypeError) as exc:
+            raise SessionFileError(f"{where}: [{triad}]: {exc}") from None
+    g = doc.get(GRAVITY_KEY)
+    if g is not None and not (isinstance(g, (int, float)) and math.isfinite(g) and g > 0):
+        raise SessionFileError(f"{where}: {GRAVITY_KEY} must be a positive number, got {g!r}")
+    return XsensNominal(scales["accel"], scales["gyro"], None if g is None else float(g), where)
+
+
+def _read_count_file(path: Path) -> np.ndarray:
+    rows, _ = _split_lines(path, _read_text(path))
+    if not rows:
+        raise SessionFileError(f"{path}: empty file (expected lines 'time_s x y z')")
+    return _parse_rows(path, rows, ("time_s", "x", "y", "z"), None)
+
+
+def read_xsens_pair(
+    accel_path: str | os.PathLike, gyro_path: str | os.PathLike, *, nominal: XsensNominal | None = None
+) -> LoadedSession:
+    """Read the two-file raw-count format; ``nominal`` defaults to the packaged sidecar."""
+    nominal = load_xsens_sidecar() if nominal is None else nominal
+    accel_path, gyro_path = Path(accel_path), Path(gyro_path)
+    acc = _read_count_file(accel_path)
+    gyr = _read_count_file(gyro_path)
+    if acc.shape[0] != gyr.shape[0]:
+        raise SessionFileError(f"{accel_path} has {acc.shape[0]} samples but {gyro_path} has {gyr.shape[0]}: not a pair")
+    differ = np.flatnonzero(acc[:, 0] != gyr[:, 0])
+    if differ.size:
+        k = int(differ[0])
+        raise SessionFileError(
+            f"{accel_path} and {gyro_path}: time stamps differ at sample {k + 1} ({float(acc[k, 0])!r} vs {float(gyr[k, 0])!r}): not a pair"
+        )
+    session = ImuSession(acc[:, 0].copy(), nominal.accel.to_si(acc[:, 1:]), nominal.gyro.to_si(gyr[:, 1:]), None)
+    meta = {"sidecar": nominal.source}
+    return LoadedSession(session, nominal.gravity_mps2, meta, f"{accel_path} + {gyro_path}")
+
+
+def find_xsens_pair(directory: Path) -> tuple[Path, Path, Path | None]:
+    """The accelerometer file, gyro file and optional sidecar (``*.toml``) of a directory.
+
+    The pair is the one data file whose name contains ``acc`` and the one whose
+    name contains ``gyr``.
+    """
+    files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() not in (".md", ".txt", ".toml"))
+    accs = [p for p in files if "acc" in p.name.lower()]
+    gyrs = [p for p in files if "gyr" in p.name.lower()]
+    if len(accs) != 1 or len(gyrs) != 1:
+        raise SessionFileError(
+            f"{directory}: expected one accelerometer file (name with 'acc') and one gyro file (name with 'gyr'), "
+            f"found {[p.name for p in accs]} and {[p.name for p in gyrs]}"
+        )
+    tomls = sorted(directory.glob("*.toml"))
+    if len(tomls) > 1:
+        raise SessionFileError(f"{directory}: more than one sidecar: {[p.name for p in tomls]}")
+    return accs[0], gyrs[0], tomls[0] if tomls else None
+
+
+# --- dispatch ----------------------------------------------------------------
+
+
+def load_session(
+    path: str | os.PathLike,
+    gyro_path: str | os.PathLike | None = None,
+    *,
+    sidecar: str | os.PathLike | None = None,
+    nominal: XsensNominal | None = None,
+) -> LoadedSession:
+    """Read a session from what ``path`` is.
+
+    * ``path`` + ``gyro_path``: an Xsens raw-count pair (accelerometer file, gyro file);
+    * a directory: the raw-count pair inside it (see :func:`find_xsens_pair`),
+      with the directory's own ``*.toml`` sidecar if it has one;
+    * a file: a CSV session file.
+
+    The nominal conversion of a pair is ``nominal`` if given, else the
+    ``sidecar`` file, else the directory's sidecar, else the packaged default.
+    """
+    path = Path(path)
+    if gyro_path is None and path.is_dir():
+        path, gyro_path, found = find_xsens_pair(path)
+        sidecar = sidecar if sidecar is not None else found
+    if gyro_path is not None:
+        if nominal is None:
+            nominal = load_xsens_sidecar(sidecar)
+        return read_xsens_pair(path, gyro_path, nominal=nominal)
+    if not path.exists():
+        raise FileNotFoundError(f"no such session file: {path}")
+    return read_csv_session(path)
+
+
+def read_session(
+    path: str | os.PathLike,
+    gyro_path: str | os.PathLike | None = None,
+    *,
+    sidecar: str | os.PathLike | None = None,
+    nominal: XsensNominal | None = None,
+) -> ImuSession:
+    """The :class:`ImuSession` of :func:`load_session` (same arguments)."""
+    return load_session(path, gyro_path, sidecar=sidecar, nominal=nominal).session

@@ -1,0 +1,1 @@
+"""Packaged sidecar files: nominal raw-count conversions of known units (TOML)."""
