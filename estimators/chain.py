@@ -1,0 +1,140 @@
+"""The offline chain of methods.md M1 on a whole session.
+
+Fig. 2 of M1, offline: static detection → positions → the 9 parameters of each
+triad with covariance → predicates F1…F9 against the passport. Used by the
+``calibrate`` and ``diagnose`` commands and by the audit; the streaming service
+runs the same steps sample by sample (``service/pipeline.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from estimators.conventions import Triad, reference_magnitude
+from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Diagnosis, Finding, diagnose
+from estimators.ninepar import Estimate, Method, ellipsoid_residual, equation_sigma, estimate_triad, position_arrays
+from estimators.passport import Passport
+from estimators.positions import Position, PositionConfig, PositionRejection, PositionsResult, build_positions
+from estimators.session import ImuSession, Rejections, validate_session
+from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
+
+
+@dataclass(frozen=True)
+class ChainConfig:
+    """Settings of the offline chain (all defaults documented in their classes).
+
+    Attributes
+    ----------
+    gravity_mps2 : local gravity magnitude g, m/s² (the accelerometers' reference).
+    detector : static / orientation-change detector thresholds.
+    positions : trimming, minimum samples and covariance of the position means.
+    method : 9-parameter estimator (refined by default: exact, efficient).
+    false_alarm_prob : per-triad false-alarm probability of the diagnosis.
+    accel_limit_mps2, gyro_limit_rps : full-scale ranges; samples at or beyond them are rejected.
+    """
+
+    gravity_mps2: float
+    detector: StaticDetectorConfig = field(default_factory=StaticDetectorConfig)
+    positions: PositionConfig = field(default_factory=PositionConfig)
+    method: Method = Method.REFINED
+    false_alarm_prob: float = DEFAULT_FALSE_ALARM_PROB
+    accel_limit_mps2: float | None = None
+    gyro_limit_rps: float | None = None
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.gravity_mps2) or not 9.7 < self.gravity_mps2 < 9.9:
+            raise ValueError(f"gravity_mps2 must be a local gravity value near 9.8 m/s², got {self.gravity_mps2!r}")
+
+
+@dataclass(frozen=True)
+class TriadResult:
+    """One triad through the chain.
+
+    Attributes
+    ----------
+    estimate : the 9 parameters with covariance and observability verdict.
+    residuals : (n_positions,) exact scalar equation per position, normalized
+        (dimensionless, a fraction of the reference), or None without an estimate.
+    residual_sigma : (n_positions,) its predicted standard deviation from the noise.
+    diagnosis : predicates F1…F9 against the passport, or None when the
+        passport (or the passport of this triad) is missing.
+    """
+
+    estimate: Estimate
+    residuals: np.ndarray | None
+    residual_sigma: np.ndarray | None
+    diagnosis: Diagnosis | None
+
+
+@dataclass(frozen=True)
+class ChainResult:
+    """Everything the offline chain found on a session."""
+
+    n_samples: int
+    sample_rejections: Rejections
+    detection: StaticDetection
+    positions: tuple[Position, ...]
+    position_rejections: tuple[PositionRejection, ...]
+    triads: dict[Triad, TriadResult]
+    gravity_mps2: float
+
+    @property
+    def faults(self) -> tuple[Finding, ...]:
+        return tuple(f for r in self.triads.values() if r.diagnosis is not None for f in r.diagnosis.findings)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: positions, estimates with standard deviations, predicates, faults."""
+        return {
+            "n_samples": self.n_samples,
+            "gravity_mps2": self.gravity_mps2,
+            "rejected_samples": dict(self.sample_rejections.counts),
+            "static_intervals": len(self.detection.intervals),
+            "positions": [p.to_dict() for p in self.positions],
+            "position_rejections": [r.to_dict() for r in self.position_rejections],
+            "triads": {
+                t.value: {
+                    "estimate": r.estimate.to_dict(),
+                    "residuals": None if r.residuals is None else [float(v) for v in r.residuals],
+                    "residual_sigma": None if r.residual_sigma is None else [float(v) for v in r.residual_sigma],
+                    "residual_rms": None if r.residuals is None else float(np.sqrt(np.mean(r.residuals**2))),
+                    "predicates": None if r.diagnosis is None else r.diagnosis.to_dict(),
+                    "diagnosed": r.diagnosis is not None,
+                }
+                for t, r in self.triads.items()
+            },
+            "faults": [f.to_dict() for f in self.faults],
+        }
+
+
+def present_triads(session: ImuSession) -> tuple[Triad, ...]:
+    """The triads a session carries, accelerometers first."""
+    return tuple(t for t, a in ((Triad.ACCEL, session.accel_mps2), (Triad.GYRO, session.gyro_rps)) if a is not None)
+
+
+def run_chain(session: ImuSession, config: ChainConfig, passport: Passport | None = None) -> ChainResult:
+    """Static detection → positions → estimates → diagnosis (module docstring).
+
+    Raises ``ValueError`` (a :class:`~estimators.session.SessionError`) when the
+    session has no usable samples; a session without enough positions is not an
+    error: its estimates say "not observable yet" and no predicate is evaluated.
+    """
+    clean, rejected = validate_session(session, accel_limit_mps2=config.accel_limit_mps2, gyro_limit_rps=config.gyro_limit_rps)
+    detection = detect_static(clean, config=config.detector)
+    found: PositionsResult = build_positions(clean, detection, config=config.positions)
+    triads = {}
+    for triad in present_triads(clean):
+        reference = reference_magnitude(triad, config.gravity_mps2)
+        est = estimate_triad(found.positions, triad, reference, method=config.method)
+        residuals = sigma = None
+        if est.params is not None:
+            mean, cov = position_arrays(found.positions, triad, reference)
+            residuals = ellipsoid_residual(est.params, mean)[0]
+            sigma = equation_sigma(est.params, mean, cov)
+        has_passport = passport is not None and triad in passport.triads
+        diag = None if not has_passport else diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
+        triads[triad] = TriadResult(est, residuals, sigma, diag)
+    return ChainResult(session.n_samples, rejected, detection, found.positions, found.rejections, triads, config.gravity_mps2)
+

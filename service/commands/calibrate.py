@@ -1,0 +1,70 @@
+"""``ins-health calibrate SESSION --out PASSPORT.json``: a passport from a fault-free session (methods.md M1)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+from pathlib import Path
+
+from estimators.chain import ChainConfig, run_chain
+from estimators.conventions import Triad
+from estimators.ninepar import Verdict
+from estimators.passport import Grade, passport_from_estimates, per_sample_noise_std
+from protocols.passport_codec import write_passport_json
+from service.cli import UsageError
+from service.session_args import add_session_arguments, load_session_input
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="fit both triads from a fault-free multi-position session and write a passport",
+        description="Static positions → the 9 parameters of each triad (refined least squares) → a passport. "
+        "Tolerances default to max(3σ of the calibration, a floor for the sensor grade) (estimators/passport.py).",
+    )
+    add_session_arguments(p)
+    p.add_argument("--out", required=True, metavar="PASSPORT.json", help="where to write the passport")
+    p.add_argument("--unit-id", help="identity of the unit (default: the session file's name)")
+    p.add_argument("--sensor-model", default="unknown", help="sensor model name recorded in the passport")
+    p.add_argument("--grade", choices=[g.value for g in Grade], default=Grade.MEMS.value, help="sensor grade for the tolerance floors (default mems)")
+    p.add_argument("--json", action="store_true", help="also print the full chain result as JSON on stdout")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    inp = load_session_input(args)
+    result = run_chain(inp.session, ChainConfig(gravity_mps2=inp.gravity_mps2))
+    estimates = {t: r.estimate for t, r in result.triads.items() if r.estimate.params is not None}
+    if not estimates:
+        reasons = "; ".join(f"{t.value}: {r.estimate.reason}" for t, r in result.triads.items())
+        raise UsageError(f"no triad could be calibrated from {len(result.positions)} positions ({reasons})")
+    passport = passport_from_estimates(
+        estimates,
+        unit_id=args.unit_id or Path(args.session).stem,
+        sensor_model=args.sensor_model,
+        sensor_ids={},
+        created=dt.date.today().isoformat(),
+        noise_std={t: per_sample_noise_std(result.positions, t, e.reference) for t, e in estimates.items()},
+        sample_rate_hz=inp.session.rate_hz,
+        grade=Grade(args.grade),
+    )
+    write_passport_json(passport, args.out)
+    print(f"calibrate: {len(result.positions)} positions ({len(result.position_rejections)} intervals rejected or merged), g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})", file=sys.stderr)
+    for triad in (Triad.ACCEL, Triad.GYRO):
+        r = result.triads.get(triad)
+        if r is None:
+            continue
+        est = r.estimate
+        line = f"  {triad.value}: {est.verdict.value}"
+        if r.residuals is not None:
+            line += f", residual rms {float((r.residuals**2).mean() ** 0.5):.3g} (normalized), chi2/dof {est.chi2_per_dof or float('nan'):.2f}"
+        if est.verdict is not Verdict.OBSERVABLE:
+            line += f" — {est.reason}"
+        print(line, file=sys.stderr)
+    print(f"  passport written to {args.out}", file=sys.stderr)
+    if args.json:
+        json.dump(result.to_dict(), sys.stdout, indent=1)
+        print()
+    return 0
