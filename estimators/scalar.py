@@ -1,0 +1,550 @@
+"""The scalar check F0 of a triad on every sample (methods.md M1).
+
+Normalization
+-------------
+A triad's output is divided by its scalar reference (:func:`estimators.conventions.reference_magnitude`):
+``ã = a / g`` for the accelerometers, ``ω̃ = ω / Ω`` for the gyros. ``g`` is the
+local gravity magnitude, either configured or from WGS-84 normal gravity
+(:func:`triad_reference`).
+
+Optionally the passport's nominal errors are compensated first, so the shell is
+centred on the *calibrated* output: with the triad model of
+:mod:`estimators.conventions` (``ã = A u + b``) the compensated output is
+``u' = A⁻¹ (ã − b)``, which has unit norm for a static unit whose errors equal
+the passport's.
+
+The predicate
+-------------
+``s = ½(|ã|² − 1)`` (the left side of M1's scalar calibration equation) and::
+
+    F0 = OK    if |s| ≤ λ0      (the paper's accelerometer form, two-sided)
+         FAIL  otherwise
+         NOT_APPLICABLE  while the unit is not static (the scalar relation does
+                         not hold there: F0 then says nothing, it never "fails")
+
+With ``n_avg > 1`` the test is applied to the mean of ``n_avg`` consecutive
+static samples (non-overlapping windows aligned at the start of each static
+run); every sample then carries the outcome of the last completed window of its
+run, and ``NOT_APPLICABLE`` until the first window of the run completes.
+
+λ0 is derived, not chosen: :func:`derive_lambda0`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+from scipy import optimize, stats
+
+from estimators.conventions import Triad, normal_gravity_mps2, reference_magnitude
+
+
+class F0State(IntEnum):
+    """Outcome of F0 for one sample (the paper's F0 = 1 / 0, plus "not applicable")."""
+
+    OK = 1
+    FAIL = 0
+    NOT_APPLICABLE = -1
+
+
+_OK = F0State.OK
+_FAIL = F0State.FAIL
+_NA = F0State.NOT_APPLICABLE
+
+
+def triad_reference(
+    triad: Triad,
+    *,
+    gravity_mps2: float | None = None,
+    latitude_deg: float | None = None,
+    height_m: float = 0.0,
+) -> float:
+    """The scalar reference of a triad in its SI unit (g in m/s², Ω in rad/s).
+
+    For accelerometers exactly one of ``gravity_mps2`` (a configured, e.g.
+    measured, value) or ``latitude_deg`` (WGS-84 normal gravity at
+    ``height_m``) must be given; gyros always use the Earth rate.
+    """
+    triad = Triad(triad)
+    if triad is Triad.GYRO:
+        return reference_magnitude(triad, math.nan)
+    if (gravity_mps2 is None) == (latitude_deg is None):
+        raise ValueError("give exactly one of gravity_mps2 or latitude_deg for the accelerometer reference")
+    if gravity_mps2 is not None:
+        if not (math.isfinite(gravity_mps2) and 9.7 < gravity_mps2 < 9.9):
+            raise ValueError(f"gravity_mps2 must be a surface gravity within (9.7, 9.9), got {gravity_mps2!r}")
+        return reference_magnitude(triad, gravity_mps2)
+    return reference_magnitude(triad, normal_gravity_mps2(latitude_deg, height_m))
+
+
+def normalize(x_si: np.ndarray, reference: float) -> np.ndarray:
+    """``x / reference`` as a new array (never in place): (N, 3) SI → (N, 3) dimensionless."""
+    if not (math.isfinite(reference) and reference > 0.0):
+        raise ValueError(f"reference must be finite and > 0, got {reference!r}")
+    return np.asarray(x_si, dtype=float) / reference
+
+
+def scalar_residual(x_norm: np.ndarray) -> np.ndarray:
+    """``½(|x|² − 1)`` per row: (N, 3) normalized outputs → (N,) (methods.md M1, left side)."""
+    x = np.asarray(x_norm, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"x_norm must have shape (N, 3), got {x.shape}")
+    return 0.5 * (np.einsum("ij,ij->i", x, x) - 1.0)
+
+
+def compensate(x_norm: np.ndarray, bias_norm: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """``A⁻¹ (x − b)`` per row: the output with the passport's nominal errors removed.
+
+    ``matrix`` is ``A`` of :func:`estimators.conventions.triad_matrix`; solved, not inverted.
+    """
+    x = np.asarray(x_norm, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"x_norm must have shape (N, 3), got {x.shape}")
+    return np.linalg.solve(np.asarray(matrix, float), (x - np.asarray(bias_norm, float)).T).T
+
+
+@dataclass(frozen=True)
+class F0Config:
+    """What F0 needs for one triad.
+
+    Attributes
+    ----------
+    lambda0 : half thickness of the shell in ``s = ½(|ã|²−1)`` (dimensionless), from :func:`derive_lambda0`.
+    reference : the triad's scalar reference in its SI unit (g in m/s², Ω in rad/s).
+    bias_norm : (3,) nominal normalized zero signals to compensate (default none).
+    matrix : (3, 3) nominal ``A`` of :func:`estimators.conventions.triad_matrix` (default identity).
+    n_avg : samples per tested window mean (default 1: every sample is tested).
+    """
+
+    lambda0: float
+    reference: float
+    bias_norm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    matrix: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    n_avg: int = 1
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.lambda0) and self.lambda0 > 0.0):
+            raise ValueError(f"lambda0 must be finite and > 0, got {self.lambda0!r}")
+        if not (math.isfinite(self.reference) and self.reference > 0.0):
+            raise ValueError(f"reference must be finite and > 0, got {self.reference!r}")
+        b = np.asarray(self.bias_norm, dtype=float)
+        a = np.asarray(self.matrix, dtype=float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"bias_norm must be 3 finite numbers, got {self.bias_norm!r}")
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise ValueError(f"matrix must be a finite 3x3 matrix, got {self.matrix!r}")
+        if np.linalg.cond(a) > 1e6:
+            raise ValueError(f"matrix is singular or nearly so (condition {np.linalg.cond(a):.3g})")
+        if isinstance(self.n_avg, bool) or not isinstance(self.n_avg, (int, np.integer)) or self.n_avg < 1:
+            raise ValueError(f"n_avg must be an integer >= 1, got {self.n_avg!r}")
+        object.__setattr__(self, "bias_norm", tuple(float(v) for v in b))
+        object.__setattr__(self, "matrix", tuple(tuple(float(v) for v in row) for row in a))
+        object.__setattr__(self, "n_avg", int(self.n_avg))
+
+    @property
+    def is_uncompensated(self) -> bool:
+        """No nominal errors to remove (zero bias, identity matrix)."""
+        return self.bias_norm == (0.0, 0.0, 0.0) and self.matrix == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    def affine(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(M, c)`` with ``u' = M x_si − c``: ``M = A⁻¹ / reference``, ``c = A⁻¹ b``.
+
+        The 3×3 ``A`` is solved once against the identity and against ``b``; folding
+        ``1/reference`` into ``M`` lets the per-sample path work on raw SI floats.
+        """
+        a = np.asarray(self.matrix)
+        m = np.linalg.solve(a, np.eye(3)) / self.reference
+        c = np.linalg.solve(a, np.asarray(self.bias_norm))
+        return m, c
+
+
+@dataclass(frozen=True)
+class F0Result:
+    """F0 over a batch of N samples.
+
+    Attributes
+    ----------
+    state : (N,) int8, values of :class:`F0State`.
+    residual : (N,) the tested statistic ``s`` (of the sample, or of its window mean
+        when ``n_avg > 1``); NaN where the state is NOT_APPLICABLE.
+    n_tests : number of shell tests made (samples, or windows when ``n_avg > 1``).
+    n_fail : tests that failed.
+    n_rejected : non-finite samples (counted, never tested).
+    """
+
+    state: np.ndarray
+    residual: np.ndarray
+    n_tests: int
+    n_fail: int
+    n_rejected: int
+
+
+def f0_batch(x_si: np.ndarray, static: np.ndarray, config: F0Config) -> F0Result:
+    """F0 on N samples at once (methods.md M1, the predicate F0).
+
+    Parameters
+    ----------
+    x_si : (N, 3) triad output in its SI unit (m/s² or rad/s), sensor axes.
+    static : (N,) bool, True where the unit is static (e.g. from
+        :func:`estimators.static_detector.detect_static`).
+    config : threshold, reference, nominal compensation, window length.
+
+    Gives the same states as feeding the rows one by one to :class:`F0Monitor`.
+    """
+    x = np.asarray(x_si, dtype=float)
+    st = np.asarray(static)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"x_si must have shape (N, 3), got {x.shape}")
+    if st.shape != (x.shape[0],) or st.dtype != bool:
+        raise ValueError(f"static must be a bool array of shape ({x.shape[0]},), got {st.dtype} {st.shape}")
+    m, c = config.affine()
+    if config.n_avg == 1 and config.is_uncompensated:
+        # Nothing to compensate: |x|²/ref² directly, without an (N, 3) temporary.
+        s = np.einsum("ij,ij->i", x, x)
+        s *= 0.5 / config.reference**2
+        s -= 0.5
+    else:
+        with np.errstate(invalid="ignore"):  # NaN rows are expected: counted below
+            u = x @ m.T
+        u -= c
+        s = 0.5 * (np.einsum("ij,ij->i", u, u) - 1.0)
+    finite = np.isfinite(s)
+    n_rejected = int(x.shape[0] - np.count_nonzero(finite))
+    if config.n_avg != 1:
+        return _f0_windows(u, st, finite, config, n_rejected)
+    tested = st & finite
+    ok = tested & (np.abs(s) <= config.lambda0)
+    # OK = 1, FAIL = 0, NOT_APPLICABLE = -1 from two boolean masks: ok + (tested − 1).
+    state = ok.view(np.int8) + (tested.view(np.int8) - np.int8(1))
+    residual = np.where(tested, s, np.nan)
+    n_tests = int(np.count_nonzero(tested))
+    return F0Result(state, residual, n_tests, int(n_tests - np.count_nonzero(ok)), n_rejected)
+
+
+def _f0_windows(u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F0Config, n_rejected: int) -> F0Result:
+    """The ``n_avg > 1`` form of :func:`f0_batch` (non-finite rows are skipped, not run breaks)."""
+    n = u.shape[0]
+    n_avg = config.n_avg
+    rows = np.flatnonzero(finite)
+    st = static[rows]
+    k = np.arange(rows.size)
+    # Position inside the current static run (valid rows only): runs restart after any non-static row.
+    run_start = np.maximum.accumulate(np.where(st & ~np.concatenate([[False], st[:-1]]), k, 0))
+    pos = k - run_start
+    done = st & ((pos + 1) % n_avg == 0)
+    csum = np.concatenate([np.zeros((1, 3)), np.cumsum(u[rows], axis=0)])
+    ends = np.flatnonzero(done)
+    wmean = (csum[ends + 1] - csum[ends + 1 - n_avg]) / n_avg
+    ws = 0.5 * (np.einsum("ij,ij->i", wmean, wmean) - 1.0)
+    wok = np.abs(ws) <= config.lambda0
+    # Each static row carries the last completed window of its own run.
+    last = np.maximum.accumulate(np.where(done, k, -1))
+    has = st & (last >= run_start)
+    widx = np.searchsorted(ends, last[has])
+    state_v = np.full(rows.size, np.int8(_NA), dtype=np.int8)
+    state_v[has] = np.where(wok[widx], np.int8(_OK), np.int8(_FAIL))
+    res_v = np.full(rows.size, np.nan)
+    res_v[has] = ws[widx]
+    state = np.full(n, np.int8(_NA), dtype=np.int8)
+    residual = np.full(n, np.nan)
+    state[rows] = state_v
+    residual[rows] = res_v
+    return F0Result(state, residual, int(ends.size), int(ends.size - np.count_nonzero(wok)), n_rejected)
+
+
+class F0Monitor:
+    """F0 one sample at a time: O(1), plain floats, no array allocation per sample.
+
+    ``check(x, y, z, static)`` takes one triad sample in its SI unit and whether
+    the unit is static at that sample; it returns an :class:`F0State`. A
+    non-finite sample is counted in ``n_rejected``, returns NOT_APPLICABLE and
+    leaves the state untouched. Same decisions as :func:`f0_batch`.
+    """
+
+    __slots__ = (
+        "config", "_m", "_c", "_lam", "_n_avg", "_sx", "_sy", "_sz", "_count", "_last",
+        "last_residual", "n_tests", "n_fail", "n_not_applicable", "n_rejected",
+    )
+
+    def __init__(self, config: F0Config) -> None:
+        self.config = config
+        m, c = config.affine()
+        self._m = tuple(float(v) for v in m.ravel())
+        self._c = tuple(float(v) for v in c)
+        self._lam = config.lambda0
+        self._n_avg = config.n_avg
+        self._sx = self._sy = self._sz = 0.0
+        self._count = 0
+        self._last = _NA
+        self.last_residual = math.nan
+        self.n_tests = 0
+        self.n_fail = 0
+        self.n_not_applicable = 0
+        self.n_rejected = 0
+
+    def check(self, x: float, y: float, z: float, static: bool) -> F0State:
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = self._m
+        c0, c1, c2 = self._c
+        u = m00 * x + m01 * y + m02 * z - c0
+        v = m10 * x + m11 * y + m12 * z - c1
+        w = m20 * x + m21 * y + m22 * z - c2
+        s = 0.5 * (u * u + v * v + w * w - 1.0)
+        # Any NaN/Inf input makes s non-finite (0·inf is NaN too): one test covers all axes.
+        if not math.isfinite(s):
+            self.n_rejected += 1
+            return _NA
+        if not static:
+            self._count = 0
+            self._sx = self._sy = self._sz = 0.0
+            self._last = _NA
+            self.n_not_applicable += 1
+            return _NA
+        if self._n_avg != 1:
+            return self._window(u, v, w)
+        self.last_residual = s
+        self.n_tests += 1
+        if -self._lam <= s <= self._lam:
+            return _OK
+        self.n_fail += 1
+        return _FAIL
+
+    def _window(self, u: float, v: float, w: float) -> F0State:
+        self._sx += u
+        self._sy += v
+        self._sz += w
+        self._count += 1
+        if self._count == self._n_avg:
+            k = 1.0 / self._n_avg
+            mu, mv, mw = self._sx * k, self._sy * k, self._sz * k
+            s = 0.5 * (mu * mu + mv * mv + mw * mw - 1.0)
+            self._count = 0
+            self._sx = self._sy = self._sz = 0.0
+            self.last_residual = s
+            self.n_tests += 1
+            if -self._lam <= s <= self._lam:
+                self._last = _OK
+            else:
+                self.n_fail += 1
+                self._last = _FAIL
+        if self._last is _NA:
+            self.n_not_applicable += 1
+        return self._last
+
+    def state_dict(self) -> dict:
+        """Plain JSON-able state (counters and the open window) for checkpoints."""
+        return {
+            "window_sum": [self._sx, self._sy, self._sz],
+            "window_count": self._count,
+            "last_state": int(self._last),
+            "last_residual": None if math.isnan(self.last_residual) else self.last_residual,
+            "n_tests": self.n_tests,
+            "n_fail": self.n_fail,
+            "n_not_applicable": self.n_not_applicable,
+            "n_rejected": self.n_rejected,
+        }
+
+    @classmethod
+    def from_state_dict(cls, config: F0Config, state: dict) -> "F0Monitor":
+        mon = cls(config)
+        try:
+            mon._sx, mon._sy, mon._sz = (float(v) for v in state["window_sum"])
+            mon._count = int(state["window_count"])
+            mon._last = F0State(int(state["last_state"]))
+            lr = state["last_residual"]
+            mon.last_residual = math.nan if lr is None else float(lr)
+            for name in ("n_tests", "n_fail", "n_not_applicable", "n_rejected"):
+                setattr(mon, name, int(state[name]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"invalid F0Monitor state: {exc}") from None
+        if not 0 <= mon._count < config.n_avg:
+            raise ValueError(f"invalid F0Monitor state: window_count {mon._count} outside [0, {config.n_avg})")
+        return mon
+
+
+@dataclass(frozen=True)
+class Lambda0:
+    """The derived F0 threshold and what it is made of (all dimensionless, in units of ``s``).
+
+    ``lambda0 = noise_threshold + tolerance_first_order + tolerance_second_order + reference_offset``.
+
+    Attributes
+    ----------
+    lambda0 : the threshold.
+    noise_threshold : ``x`` with ``P(|s_noise| > x) = false_alarm_prob`` for a unit exactly at its nominal.
+    noise_std : per-test standard deviation of the normalized output used (worst axis, after averaging).
+    quadratic_mean : ``E[½|n|²]`` of that noise (the second-order noise term's offset).
+    tolerance_first_order : max over orientations of M1's linear error terms with every
+        parameter at its tolerance and the worst signs.
+    tolerance_second_order : bound of the neglected second-order terms of the error model.
+    reference_offset : offset from the relative error of the reference (g or Ω).
+    false_alarm_prob : stated probability per test (two-sided).
+    n_avg : samples per test.
+    """
+
+    lambda0: float
+    noise_threshold: float
+    noise_std: float
+    quadratic_mean: float
+    tolerance_first_order: float
+    tolerance_second_order: float
+    reference_offset: float
+    false_alarm_prob: float
+    n_avg: int
+
+
+_NCX2_MIN_SIGMA = 1e-4
+"""Below this normalized noise scipy's non-central χ² loses accuracy (its non-centrality
+1/σ² exceeds 1e8); the Gaussian with the exact two moments is then exact to O(σ)."""
+
+
+def _noise_tail(x: float, sigma: float) -> float:
+    """``P(|s| > x)`` for ``s = ½(|u + n|² − 1)``, ``|u| = 1``, ``n ~ N(0, σ² I₃)``."""
+    if sigma >= _NCX2_MIN_SIGMA:
+        nc = 1.0 / (sigma * sigma)
+        up = stats.ncx2.sf((1.0 + 2.0 * x) * nc, 3, nc)
+        lo = stats.ncx2.cdf((1.0 - 2.0 * x) * nc, 3, nc) if 2.0 * x < 1.0 else 0.0
+        return float(up + lo)
+    mean = 1.5 * sigma**2
+    sd = math.sqrt(sigma**2 + 1.5 * sigma**4)
+    return float(stats.norm.sf((x - mean) / sd) + stats.norm.cdf((-x - mean) / sd))
+
+
+def _worst_first_order(tol: np.ndarray) -> float:
+    """``max_{|u|=1} Σ tb_i|u_i| + Σ te_i u_i² + td1|u_x u_y| + td2|u_x u_z| + td3|u_y u_z|``.
+
+    With free signs of the nine errors the worst ``|s|`` is this sum of absolute
+    terms, whose maximum lies in the positive octant: a grid over the octant's
+    two angles, refined by a bounded quasi-Newton step from the best node.
+    """
+    tb, te, td = tol[:3], tol[3:6], tol[6:]
+
+    def value(angles: np.ndarray) -> np.ndarray:
+        th, ph = angles[..., 0], angles[..., 1]
+        ux, uy, uz = np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)
+        return (
+            tb[0] * ux + tb[1] * uy + tb[2] * uz
+            + te[0] * ux**2 + te[1] * uy**2 + te[2] * uz**2
+            + td[0] * ux * uy + td[1] * ux * uz + td[2] * uy * uz
+        )
+
+    g = np.linspace(0.0, 0.5 * np.pi, 61)
+    grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1)
+    vals = value(grid)
+    best = np.unravel_index(np.argmax(vals), vals.shape)
+    res = optimize.minimize(
+        lambda a: -value(a), grid[best], method="L-BFGS-B", bounds=[(0.0, 0.5 * np.pi)] * 2
+    )
+    return float(max(vals[best], -res.fun))
+
+
+def derive_lambda0(
+    *,
+    noise_std_norm,
+    false_alarm_prob: float,
+    quantization_norm=None,
+    n_avg: int = 1,
+    tolerance_norm=None,
+    reference_rel_err: float = 0.0,
+) -> Lambda0:
+    """Derive F0's threshold λ0 from noise, tolerances and a false-alarm probability (methods.md M1).
+
+    Model. For a static unit the tested output is ``ã = P v + b + n`` with
+    ``|v| = 1`` (``P = I + D`` symmetric: the triad matrix up to a rotation,
+    which does not change the norm), ``b`` the residual zero signals and ``n``
+    the noise. Then exactly::
+
+        s = ½(|ã|² − 1) = [v·Dv + b·v] + ½|Dv + b|² + (v + Dv + b)·n + ½|n|²
+
+    1. **Noise.** With the deterministic errors at zero, ``s = v·n + ½|n|²``.
+       Taking every axis at the worst variance ``σ² = maxᵢ(σᵢ² + qᵢ²/12) / n_avg``
+       (white noise plus uniform quantization of step ``qᵢ``; dividing by
+       ``n_avg`` assumes independent samples, which holds for the quantization
+       error when the noise is at least about half a step) makes ``|ã|²/σ²`` a
+       non-central χ² with 3 degrees of freedom and non-centrality ``1/σ²``: the
+       ``½|n|²`` term (mean ``3σ²/2``) is included exactly, not dropped.
+       ``noise_threshold`` solves ``P(s > x) + P(s < −x) = p`` (two-sided, as
+       the paper's ``|s| ≤ λ0``). For σ < 1e-4 the Gaussian with the exact mean
+       ``3σ²/2`` and variance ``σ² + 3σ⁴/2`` is used (skewness O(σ)). The worst
+       axis is the worst orientation of the linear term ``v·n`` and
+       overestimates ``½|n|²`` for unequal axes: conservative.
+    2. **Tolerances, first order.** ``v·Dv + b·v`` is M1's right side
+       ``Σ bᵢvᵢ + Σ eᵢvᵢ² + δ1 vxvy + δ2 vxvz + δ3 vyvz``. With each parameter
+       anywhere within ± its tolerance the worst ``|s|`` over all orientations
+       is the maximum over the unit sphere of the sum of absolute terms
+       (:func:`_worst_first_order`).
+    3. **Tolerances, second order.** ``½|Dv + b|² ≤ ½(‖D‖ + |b|)²`` with
+       ``‖D‖_F² = Σeᵢ² + ½Σδⱼ²``, plus the second-order part of ``P`` itself
+       (``P = I + E + K/2 + ¼(EK + KE) − K²/8 + …`` with ``E = diag(e)`` and
+       ``K`` the cosines off the diagonal): ``½‖E‖‖K‖ + ⅛‖K‖²``. Third-order
+       terms are neglected.
+    4. **Reference.** A relative error ``r`` of the reference (g or Ω) scales
+       ``|ã|`` by ``1 ± r``: an offset of at most ``r + r²/2``.
+
+    ``λ0`` is the sum: the false-alarm probability is ``p`` for a unit exactly
+    at the values the monitor compensates and at most ``p`` for any unit within
+    tolerance. The noise cross term ``(Dv + b)·n`` changes the noise variance by
+    a relative O(tolerance) and is neglected.
+
+    Parameters
+    ----------
+    noise_std_norm : (3,) per-sample white-noise standard deviation of each axis,
+        normalized (SI value / reference).
+    false_alarm_prob : stated probability of a FAIL per test for a healthy static unit, in (0, 1).
+    quantization_norm : (3,) converter step of each axis, normalized, or None. Its error
+        is taken as zero-mean (rounding to nearest); a truncating converter (M2's
+        Entier) reads low by half a step on average: compensate that in ``bias_norm``
+        of :class:`F0Config` (M2's half-pulse correction) or add it to the
+        zero-signal tolerances.
+    n_avg : samples per tested window mean (:class:`F0Config`).
+    tolerance_norm : (9,) bound of each parameter's deviation from the values
+        the monitor compensates, order ``[bx by bz ex ey ez d1 d2 d3]``,
+        normalized: the passport tolerances when the monitor compensates the
+        passport's nominal values, ``|nominal| + tolerance`` when it does not.
+        None: zero.
+    reference_rel_err : bound of the relative error of the reference, ≥ 0.
+    """
+    sig = np.asarray(noise_std_norm, dtype=float).reshape(-1)
+    if sig.shape != (3,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+        raise ValueError(f"noise_std_norm must be 3 finite positive numbers, got {noise_std_norm!r}")
+    if not (0.0 < false_alarm_prob < 1.0):
+        raise ValueError(f"false_alarm_prob must be in (0, 1), got {false_alarm_prob!r}")
+    if isinstance(n_avg, bool) or not isinstance(n_avg, (int, np.integer)) or n_avg < 1:
+        raise ValueError(f"n_avg must be an integer >= 1, got {n_avg!r}")
+    var = sig**2
+    if quantization_norm is not None:
+        q = np.asarray(quantization_norm, dtype=float).reshape(-1)
+        if q.shape != (3,) or not np.all(np.isfinite(q)) or np.any(q < 0):
+            raise ValueError(f"quantization_norm must be 3 finite numbers >= 0, got {quantization_norm!r}")
+        var = var + q**2 / 12.0
+    tol = np.zeros(9) if tolerance_norm is None else np.asarray(tolerance_norm, dtype=float).reshape(-1)
+    if tol.shape != (9,) or not np.all(np.isfinite(tol)) or np.any(tol < 0):
+        raise ValueError(f"tolerance_norm must be 9 finite numbers >= 0, got {tolerance_norm!r}")
+    if not (math.isfinite(reference_rel_err) and 0.0 <= reference_rel_err < 1.0):
+        raise ValueError(f"reference_rel_err must be in [0, 1), got {reference_rel_err!r}")
+
+    sigma = math.sqrt(float(var.max()) / n_avg)
+    hi = 10.0 * sigma + sigma**2
+    while _noise_tail(hi, sigma) > false_alarm_prob:
+        hi *= 2.0
+    x_p = optimize.brentq(lambda x: _noise_tail(x, sigma) - false_alarm_prob, 0.0, hi, xtol=1e-15, rtol=1e-12)
+
+    first = _worst_first_order(tol) if np.any(tol) else 0.0
+    tb, te, td = tol[:3], tol[3:6], tol[6:]
+    d_norm = math.sqrt(float(np.sum(te**2) + 0.5 * np.sum(td**2)))
+    k_norm = math.sqrt(2.0 * float(np.sum(td**2)))
+    second = 0.5 * (d_norm + float(np.linalg.norm(tb))) ** 2 + 0.5 * float(te.max()) * k_norm + 0.125 * k_norm**2
+    ref = reference_rel_err + 0.5 * reference_rel_err**2
+    return Lambda0(
+        lambda0=float(x_p + first + second + ref),
+        noise_threshold=float(x_p),
+        noise_std=sigma,
+        quadratic_mean=1.5 * sigma**2,
+        tolerance_first_order=first,
+        tolerance_second_order=second,
+        reference_offset=ref,
+        false_alarm_prob=float(false_alarm_prob),
+        n_avg=int(n_avg),
+    )

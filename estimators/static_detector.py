@@ -1,0 +1,710 @@
+"""Static intervals and orientation changes (methods.md M1: "what to do while the unit moves").
+
+M1's scalar relation holds only for a static unit, and its diagnosis averages
+the outputs of each fixed position. This module finds those positions.
+
+Stationarity (moving-window variance test)
+------------------------------------------
+Samples are first validated: a sample with a non-finite time or value, or a
+time not later than the last accepted one, is rejected and counted; the rest
+are *accepted* samples. A time step larger than ``max_gap_s`` starts a new
+*segment* (the unit may have moved unseen); windows and intervals never span a
+segment boundary.
+
+For the window of the last ``W = round(window_s · rate_hz)`` accepted samples
+of a segment ending at sample ``k``, the *window spread* of a triad is the
+root of the summed per-axis sample variances (the RMS distance of the samples
+from their mean, in the triad's SI unit)::
+
+    σ_acc(k) = sqrt(Σ_i var_i(accel[k−W+1 … k]))   (m/s²)
+    σ_gyr(k) = sqrt(Σ_i var_i(gyro[k−W+1 … k]))    (rad/s)
+
+The window is *quiet* if every triad present is within its threshold
+(``accel_std_mps2``, ``gyro_std_rps``) and, when ``gyro_rate_rps`` is set,
+the norm of the window's mean angular rate is within it. A variance test is
+blind to a rotation at a *constant* rate about the vertical (the specific force
+does not change and the rate does not vary); the mean-rate bound sees it, but
+must sit above the gyros' zero signal (up to ~0.05 rad/s for a MEMS unit such
+as the Xsens session), so it is off by default. A sample is *static* if some quiet
+window contains it, i.e. the static set is the union of the quiet windows. A
+*static run* is a maximal set of consecutive static samples of one segment; a
+run at least ``min_static_s`` long (last minus first time stamp) is a *static
+interval*; shorter runs are reported separately.
+
+For white noise of per-axis standard deviation σ the window spread is about
+``σ·√3``; the defaults (0.05 m/s², 0.02 rad/s over 0.5 s) are about 3× the
+spread of the measured Xsens MTi session (0.015 m/s², 0.0075 rad/s, see
+``shared/data/measured/xsens-multiposition``), so a quiet window is missed with
+negligible probability while the hand motion between positions (window spreads
+of 0.3 … 5 m/s²) is far above. Set them from a unit's noise with
+:meth:`StaticDetectorConfig.from_noise`.
+
+The streaming form (:class:`StreamingStaticDetector`) gives the same decisions
+as the batch form (:func:`detect_static`): whether sample ``j`` is static is
+final once the window ending at ``j + W − 1`` has been seen (or the segment
+ended), so decisions come out ``W − 1`` samples late; ``static_now`` is the
+causal verdict of the latest window.
+
+Orientation changes
+-------------------
+Two consecutive static intervals belong to the same position unless the unit
+turned between them: the angle between their mean specific-force directions
+(:func:`direction_change_deg`) and, with gyros, the angle of the rotation
+integrated from the bias-compensated gyro output between them
+(:class:`RotationIntegrator`) must both stay below ``orientation_change_deg``
+(:func:`is_new_orientation`). The gyro check sees turns about the vertical,
+which leave the specific force unchanged but change the gyros' Earth-rate
+projections. :mod:`estimators.positions` applies the rule to its positions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+
+from estimators.session import ImuSession, Rejections
+
+
+@dataclass(frozen=True)
+class StaticDetectorConfig:
+    """Thresholds of the stationarity and orientation-change detectors (physical units).
+
+    Attributes
+    ----------
+    window_s : length of the moving window, s (default 0.5).
+    accel_std_mps2 : largest window spread of a static accelerometer triad, m/s² (default 0.05).
+    gyro_std_rps : largest window spread of a static gyro triad, rad/s (default 0.02).
+    gyro_rate_rps : largest norm of a static window's mean angular rate, rad/s, or None
+        (default: no bound; see the module docstring).
+    min_static_s : shortest static interval, s (default 1.0); shorter runs are reported apart.
+    max_gap_s : a larger time step between accepted samples starts a new segment, s
+        (default None: five nominal sample periods).
+    orientation_change_deg : consecutive intervals closer than this (specific-force direction
+        and integrated rotation) are the same position, deg (default 1.0; see
+        :mod:`estimators.positions` for what merging costs).
+    """
+
+    window_s: float = 0.5
+    accel_std_mps2: float = 0.05
+    gyro_std_rps: float = 0.02
+    gyro_rate_rps: float | None = None
+    min_static_s: float = 1.0
+    max_gap_s: float | None = None
+    orientation_change_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("window_s", "accel_std_mps2", "gyro_std_rps", "orientation_change_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+        if not (math.isfinite(self.min_static_s) and self.min_static_s >= 0):
+            raise ValueError(f"min_static_s must be finite and >= 0, got {self.min_static_s!r}")
+        if self.gyro_rate_rps is not None and not (math.isfinite(self.gyro_rate_rps) and self.gyro_rate_rps > 0):
+            raise ValueError(f"gyro_rate_rps must be finite and > 0 or None, got {self.gyro_rate_rps!r}")
+        if self.max_gap_s is not None and not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+            raise ValueError(f"max_gap_s must be finite and > 0 or None, got {self.max_gap_s!r}")
+
+    @classmethod
+    def from_noise(
+        cls,
+        *,
+        accel_noise_mps2: float | None = None,
+        gyro_noise_rps: float | None = None,
+        factor: float = 3.0,
+        base: "StaticDetectorConfig | None" = None,
+    ) -> "StaticDetectorConfig":
+        """``base`` (default: the defaults) with thresholds at ``factor`` times the white-noise window spread ``σ·√3``.
+
+        ``accel_noise_mps2``, ``gyro_noise_rps`` are per-axis, per-sample standard
+        deviations (a triad left None keeps its threshold); for W ≥ 10 samples the
+        spread of a static window exceeds 3× its mean with probability far below
+        1e-12 (χ² with 3(W−1) degrees of freedom).
+        """
+        out = cls() if base is None else base
+        if accel_noise_mps2 is not None:
+            out = replace(out, accel_std_mps2=factor * math.sqrt(3.0) * accel_noise_mps2)
+        if gyro_noise_rps is not None:
+            out = replace(out, gyro_std_rps=factor * math.sqrt(3.0) * gyro_noise_rps)
+        return out
+
+    def window_samples(self, rate_hz: float) -> int:
+        """W, samples per window at ``rate_hz`` (at least 2)."""
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"rate_hz must be finite and > 0, got {rate_hz!r}")
+        return max(2, int(round(self.window_s * rate_hz)))
+
+    def gap_limit_s(self, rate_hz: float) -> float:
+        return self.max_gap_s if self.max_gap_s is not None else 5.0 / rate_hz
+
+
+@dataclass(frozen=True)
+class StaticInterval:
+    """A static run of samples.
+
+    Attributes
+    ----------
+    start, stop : input sample indices, half-open ``[start, stop)`` (rejected samples inside are skipped).
+    t_start_s, t_end_s : time stamps of the first and last static sample, s.
+    n_samples : accepted samples in the run.
+    """
+
+    start: int
+    stop: int
+    t_start_s: float
+    t_end_s: float
+    n_samples: int
+
+    @property
+    def duration_s(self) -> float:
+        return self.t_end_s - self.t_start_s
+
+
+@dataclass(frozen=True)
+class StaticDetection:
+    """Result of :func:`detect_static` on a session of N samples.
+
+    Attributes
+    ----------
+    static : (N,) bool, True for accepted static samples.
+    accepted : (M,) int, input indices of the accepted samples (increasing).
+    segment_start : (M,) bool over accepted samples, True where a segment starts.
+    intervals : static intervals (runs of at least ``min_static_s``), in time order.
+    short_runs : static runs shorter than ``min_static_s``.
+    rejections : counts of rejected samples by reason.
+    config : the thresholds used.
+    rate_hz : the nominal rate used (sets W and the gap limit).
+    """
+
+    static: np.ndarray
+    accepted: np.ndarray
+    segment_start: np.ndarray
+    intervals: tuple[StaticInterval, ...]
+    short_runs: tuple[StaticInterval, ...]
+    rejections: Rejections
+    config: StaticDetectorConfig
+    rate_hz: float
+
+    @property
+    def window_samples(self) -> int:
+        return self.config.window_samples(self.rate_hz)
+
+
+def _accepted_mask(t: np.ndarray, values: list[np.ndarray]) -> tuple[np.ndarray, Rejections]:
+    """Accepted samples: finite time and values, time later than the last accepted one."""
+    rej = Rejections()
+    # A row sum is non-finite iff some entry is (or the values overflow, which is no data either).
+    total = t.copy()
+    for v in values:
+        total += v[:, 0]
+        total += v[:, 1]
+        total += v[:, 2]
+    finite = np.isfinite(total)
+    rej.add("non_finite", int(finite.size - np.count_nonzero(finite)))
+    if rej.total == 0 and t.size > 1 and np.all(t[1:] > t[:-1]):
+        return finite, rej
+    idx = np.flatnonzero(finite)
+    tk = t[idx]
+    prev_max = np.maximum.accumulate(np.concatenate([[-np.inf], tk[:-1]]))
+    bad = tk <= prev_max
+    rej.add("non_monotonic_time", int(np.count_nonzero(bad)))
+    finite[idx[bad]] = False
+    return finite, rej
+
+
+_CHUNK = 16384
+"""Windows per block of :func:`_window_dev2`: the block's arrays stay in cache."""
+
+
+def _window_dev2(x: np.ndarray, w: int, *, mean_norm2: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """(M − W + 1,) summed squared deviations from the mean of the windows of ``w`` rows of ``x`` (M, 3).
+
+    With ``mean_norm2`` also the squared norm of each window's mean (else None).
+
+    Entry ``i`` is the window of rows ``i … i + w − 1``: ``Σ_axes Σ (y − ȳ)²``
+    from running sums of ``y`` and ``|y|²``. The rows are processed in blocks
+    (with ``w − 1`` rows of overlap), each shifted by its first row: the running
+    sums then stay small where the unit rests (no cancellation between g² and the
+    noise variance) and the block's arrays stay in cache.
+    """
+    m = x.shape[0]
+    n_win = m - w + 1
+    out = np.empty(n_win)
+    mean2 = np.empty(n_win) if mean_norm2 else None
+    for i0 in range(0, n_win, _CHUNK):
+        i1 = min(n_win, i0 + _CHUNK)
+        y = x[i0 : i1 + w - 1] - x[i0]
+        c1 = np.empty((y.shape[0] + 1, 3))
+        c1[0] = 0.0
+        np.cumsum(y, axis=0, out=c1[1:])
+        c2 = np.empty(y.shape[0] + 1)
+        c2[0] = 0.0
+        np.cumsum(np.einsum("ij,ij->i", y, y), out=c2[1:])
+        s1 = c1[w:] - c1[:-w]
+        out[i0:i1] = (c2[w:] - c2[:-w]) - np.einsum("ij,ij->i", s1, s1) / w
+        if mean_norm2:
+            mean = s1 / w + x[i0]
+            mean2[i0:i1] = np.einsum("ij,ij->i", mean, mean)
+    return out, mean2
+
+
+def detect_static(
+    session: ImuSession,
+    *,
+    config: StaticDetectorConfig = StaticDetectorConfig(),
+    rate_hz: float | None = None,
+) -> StaticDetection:
+    """Static samples and intervals of a session, vectorized (module docstring).
+
+    Parameters
+    ----------
+    session : t_s (N,), accel_mps2 (N, 3) and/or gyro_rps (N, 3); the triads present are used.
+    config : thresholds.
+    rate_hz : nominal rate that sets W and the default gap limit (default: the
+        session's median rate); pass the streaming detector's rate to compare them.
+    """
+    t = np.asarray(session.t_s, dtype=float)
+    n = t.shape[0]
+    checks = [
+        (np.asarray(a, dtype=float), thr, rate)
+        for a, thr, rate in (
+            (session.accel_mps2, config.accel_std_mps2, None),
+            (session.gyro_rps, config.gyro_std_rps, config.gyro_rate_rps),
+        )
+        if a is not None
+    ]
+    if not checks:
+        raise ValueError("the session has neither accelerometer nor gyro samples")
+    if t.ndim != 1:
+        raise ValueError(f"t_s must be 1-D, got shape {t.shape}")
+    for a, _, _ in checks:
+        if a.shape != (n, 3):
+            raise ValueError(f"triad arrays must have shape ({n}, 3), got {a.shape}")
+    if rate_hz is None:
+        rate_hz = session.rate_hz
+    w = config.window_samples(rate_hz)
+    accepted_mask, rej = _accepted_mask(t, [a for a, _, _ in checks])
+    everything = rej.total == 0
+    acc = np.arange(n) if everything else np.flatnonzero(accepted_mask)
+    m = acc.size
+    tk = t if everything else t[acc]
+    seg_start = np.ones(m, dtype=bool)
+    if m > 1:
+        np.greater(tk[1:] - tk[:-1], config.gap_limit_s(rate_hz), out=seg_start[1:])
+    starts = np.flatnonzero(seg_start)
+    lengths = np.diff(np.append(starts, m))
+
+    quiet = np.zeros(m, dtype=bool)
+    if m >= w:
+        ok = np.ones(m - w + 1, dtype=bool)
+        for a, thr, rate in checks:
+            dev2, mean2 = _window_dev2(a if everything else a[acc], w, mean_norm2=rate is not None)
+            ok &= dev2 <= thr * thr * (w - 1)
+            if rate is not None:
+                ok &= mean2 <= rate * rate
+        quiet[w - 1 :] = ok
+        # A window must lie in one segment: the first W − 1 samples of each segment end no full window.
+        for s0, ln in zip(starts[1:].tolist(), lengths[1:].tolist()):
+            quiet[s0 : s0 + min(ln, w - 1)] = False
+    # Union of quiet windows: sample j is static iff a quiet window ends in [j, j + W − 1].
+    cq = np.empty(m + w, dtype=np.int64)
+    cq[0] = 0
+    np.cumsum(quiet, out=cq[1 : m + 1])
+    cq[m + 1 :] = cq[m]
+    static_k = cq[w : m + w] > cq[:m]
+
+    prev = np.zeros(m, dtype=bool)
+    prev[1:] = static_k[:-1]
+    nxt = np.zeros(m, dtype=bool)
+    nxt[:-1] = static_k[1:]
+    nxt_break = np.ones(m, dtype=bool)
+    nxt_break[:-1] = seg_start[1:]
+    firsts = np.flatnonzero(static_k & (~prev | seg_start))
+    lasts = np.flatnonzero(static_k & (~nxt | nxt_break))
+    intervals, short_runs = [], []
+    for f, last in zip(firsts.tolist(), lasts.tolist()):
+        iv = StaticInterval(int(acc[f]), int(acc[last]) + 1, float(tk[f]), float(tk[last]), last - f + 1)
+        (intervals if iv.duration_s >= config.min_static_s else short_runs).append(iv)
+    static = np.zeros(n, dtype=bool)
+    static[acc] = static_k
+    return StaticDetection(static, acc, seg_start, tuple(intervals), tuple(short_runs), rej, config, float(rate_hz))
+
+
+class StreamingStaticDetector:
+    """The stationarity detector one sample at a time: O(1), ring buffers and running sums.
+
+    ``update(t_s, ax, ay, az, gx, gy, gz)`` takes one sample (values of a triad
+    the detector does not use are ignored) and returns the static interval that
+    closed with it, if any (only intervals of at least ``min_static_s``). After
+    each call:
+
+    * ``static_now`` — the latest window is quiet (causal verdict: use the value
+      *before* feeding a sample as that sample's static flag for F0);
+    * ``fin_lo``, ``fin_split``, ``fin_hi`` — accepted-sample numbers whose
+      decision became final in this call: ``[fin_lo, fin_split)`` static,
+      ``[fin_split, fin_hi)`` not;
+    * ``fin_break`` — a segment ended after those samples (gap, or :meth:`finish`);
+    * ``closed_run`` — the static run that closed in this call (any length) or None,
+      and ``closed_run_short`` whether it is shorter than ``min_static_s``.
+
+    Decisions equal :func:`detect_static`'s on the same samples; call
+    :meth:`finish` at the end of the data to finalize the last ``W − 1``.
+    Rejected samples (non-finite, time not increasing) are counted in
+    ``rejections`` and leave the state untouched.
+    """
+
+    def __init__(
+        self,
+        config: StaticDetectorConfig = StaticDetectorConfig(),
+        *,
+        rate_hz: float,
+        has_accel: bool = True,
+        has_gyro: bool = True,
+    ) -> None:
+        if not (has_accel or has_gyro):
+            raise ValueError("the detector needs at least one triad (has_accel or has_gyro)")
+        self.config = config
+        self.rate_hz = float(rate_hz)
+        self.has_accel = bool(has_accel)
+        self.has_gyro = bool(has_gyro)
+        w = config.window_samples(rate_hz)
+        self.window_samples = w
+        self._gap_s = config.gap_limit_s(rate_hz)
+        self._lim_a = config.accel_std_mps2**2 * (w - 1)
+        self._lim_g = config.gyro_std_rps**2 * (w - 1)
+        self._lim_rate = None if config.gyro_rate_rps is None else (config.gyro_rate_rps * w) ** 2
+        self.rejections = Rejections()
+        self._buf = [[0.0] * w for _ in range(6)]
+        self._t = [0.0] * w
+        self._idx = [0] * w
+        self._s = [0.0] * 6
+        self._q = [0.0] * 6
+        self._x0 = [0.0] * 6
+        self._last_t: float | None = None
+        self._seg_open = False
+        self.n_input = 0
+        self.n_accepted = 0
+        self._seg_first = 0
+        self._last_quiet = -1
+        self._next_final = 0
+        self._run_open = False
+        self._run_first_idx = 0
+        self._run_first_t = 0.0
+        self._run_last_idx = 0
+        self._run_last_t = 0.0
+        self._run_n = 0
+        self.static_now = False
+        self._clear_outputs()
+
+    def _clear_outputs(self) -> None:
+        self.fin_lo = self.fin_split = self.fin_hi = self._next_final
+        self.fin_break = False
+        self.closed_run: StaticInterval | None = None
+        self.closed_run_short = False
+
+    def update(self, t_s: float, ax: float, ay: float, az: float, gx: float, gy: float, gz: float) -> StaticInterval | None:
+        self.fin_lo = self.fin_split = self.fin_hi = self._next_final
+        self.fin_break = self.closed_run_short = False
+        self.closed_run = None
+        self.n_input += 1
+        ha, hg = self.has_accel, self.has_gyro
+        chk = t_s + (ax + ay + az if ha else 0.0) + (gx + gy + gz if hg else 0.0)
+        if not math.isfinite(chk):
+            self.rejections.add("non_finite", 1)
+            return None
+        last_t = self._last_t
+        if last_t is not None and not t_s > last_t:
+            self.rejections.add("non_monotonic_time", 1)
+            return None
+        if not self._seg_open or t_s - last_t > self._gap_s:
+            if self._seg_open:
+                self._end_segment()
+            self._start_segment((ax, ay, az) if ha else (0.0, 0.0, 0.0), (gx, gy, gz) if hg else (0.0, 0.0, 0.0))
+        self._last_t = t_s
+        c = self.n_accepted
+        self.n_accepted = c + 1
+        w = self.window_samples
+        pos = c % w
+        self._t[pos] = t_s
+        self._idx[pos] = self.n_input - 1
+        n_before = c - self._seg_first  # samples of this segment already in the window
+        full = n_before + 1 >= w
+        pop = n_before >= w
+        s, q, x0 = self._s, self._q, self._x0
+        quiet = True
+        # The two triads are written out rather than looped over: this is the hot path.
+        if ha:
+            b0, b1, b2 = self._buf[0], self._buf[1], self._buf[2]
+            y0, y1, y2 = ax - x0[0], ay - x0[1], az - x0[2]
+            if pop:
+                p0, p1, p2 = b0[pos], b1[pos], b2[pos]
+            else:
+                p0 = p1 = p2 = 0.0
+            b0[pos] = y0
+            b1[pos] = y1
+            b2[pos] = y2
+            s0 = s[0] = s[0] + y0 - p0
+            s1 = s[1] = s[1] + y1 - p1
+            s2 = s[2] = s[2] + y2 - p2
+            q0 = q[0] = q[0] + y0 * y0 - p0 * p0
+            q1 = q[1] = q[1] + y1 * y1 - p1 * p1
+            q2 = q[2] = q[2] + y2 * y2 - p2 * p2
+            quiet = (q0 + q1 + q2) - (s0 * s0 + s1 * s1 + s2 * s2) / w <= self._lim_a
+        if hg:
+            b0, b1, b2 = self._buf[3], self._buf[4], self._buf[5]
+            y0, y1, y2 = gx - x0[3], gy - x0[4], gz - x0[5]
+            if pop:
+                p0, p1, p2 = b0[pos], b1[pos], b2[pos]
+            else:
+                p0 = p1 = p2 = 0.0
+            b0[pos] = y0
+            b1[pos] = y1
+            b2[pos] = y2
+            s0 = s[3] = s[3] + y0 - p0
+            s1 = s[4] = s[4] + y1 - p1
+            s2 = s[5] = s[5] + y2 - p2
+            q0 = q[3] = q[3] + y0 * y0 - p0 * p0
+            q1 = q[4] = q[4] + y1 * y1 - p1 * p1
+            q2 = q[5] = q[5] + y2 * y2 - p2 * p2
+            quiet = quiet and (q0 + q1 + q2) - (s0 * s0 + s1 * s1 + s2 * s2) / w <= self._lim_g
+            if self._lim_rate is not None and full:
+                # Window sum of the rates, unshifted: Σω = Σy + W·x0.
+                r0, r1, r2 = s0 + w * x0[3], s1 + w * x0[4], s2 + w * x0[5]
+                quiet = quiet and r0 * r0 + r1 * r1 + r2 * r2 <= self._lim_rate
+        if not full:
+            # A run closed by a time gap comes out here.
+            return self.closed_run if (self.closed_run is not None and not self.closed_run_short) else None
+        if pos == w - 1:
+            self._resum()
+        self.static_now = quiet
+        if quiet:
+            self._last_quiet = c
+        j = c - w + 1
+        self.fin_lo = j
+        self.fin_hi = self._next_final = j + 1
+        if self._last_quiet >= j:
+            self.fin_split = j + 1
+            if self._run_open:
+                jp = j % w
+                self._run_last_idx = self._idx[jp]
+                self._run_last_t = self._t[jp]
+                self._run_n += 1
+            else:
+                self._run_add(j)
+            return None
+        self.fin_split = j
+        if self._run_open:
+            self._run_close()
+            if not self.closed_run_short:
+                return self.closed_run
+        return None
+
+    def _resum(self) -> None:
+        """Recompute the running sums from the ring (once per W samples) so rounding cannot accumulate."""
+        for ch in range(6):
+            b = self._buf[ch]
+            self._s[ch] = math.fsum(b)
+            self._q[ch] = math.fsum(v * v for v in b)
+
+    def _start_segment(self, accel0, gyro0) -> None:
+        self._seg_open = True
+        self._seg_first = self.n_accepted
+        self._x0 = [float(v) for v in (*accel0, *gyro0)]
+        self._s = [0.0] * 6
+        self._q = [0.0] * 6
+        self.static_now = False
+
+    def _end_segment(self) -> None:
+        """Finalize the pending samples of the segment (static iff a quiet window reached them) and close the run."""
+        lo = self._next_final
+        hi = self.n_accepted
+        split = min(hi, max(lo, self._last_quiet + 1))
+        for j in range(lo, split):
+            self._run_add(j)
+        self._run_close()
+        self.fin_lo, self.fin_split, self.fin_hi = lo, split, hi
+        self.fin_break = True
+        self._next_final = hi
+
+    def _run_add(self, j: int) -> None:
+        pos = j % self.window_samples
+        if not self._run_open:
+            self._run_open = True
+            self._run_first_idx = self._idx[pos]
+            self._run_first_t = self._t[pos]
+            self._run_n = 0
+        self._run_last_idx = self._idx[pos]
+        self._run_last_t = self._t[pos]
+        self._run_n += 1
+
+    def _run_close(self) -> None:
+        if not self._run_open:
+            return
+        self._run_open = False
+        iv = StaticInterval(self._run_first_idx, self._run_last_idx + 1, self._run_first_t, self._run_last_t, self._run_n)
+        self.closed_run = iv
+        self.closed_run_short = iv.duration_s < self.config.min_static_s
+
+    def finish(self) -> StaticInterval | None:
+        """End of data: finalize the pending decisions; returns the interval that closed, if any.
+
+        The detector stays usable: the next sample starts a new segment.
+        """
+        self._clear_outputs()
+        if self._seg_open:
+            self._end_segment()
+            self._seg_open = False
+        self.static_now = False
+        return self.closed_run if (self.closed_run is not None and not self.closed_run_short) else None
+
+    def state_dict(self) -> dict:
+        """Plain JSON-able state (config, rate and everything of the window) for checkpoints."""
+        return {
+            "config": asdict(self.config),
+            "rate_hz": self.rate_hz,
+            "has_accel": self.has_accel,
+            "has_gyro": self.has_gyro,
+            "buf": [list(b) for b in self._buf],
+            "t": list(self._t),
+            "idx": list(self._idx),
+            "s": list(self._s),
+            "q": list(self._q),
+            "x0": list(self._x0),
+            "last_t": self._last_t,
+            "seg_open": self._seg_open,
+            "n_input": self.n_input,
+            "n_accepted": self.n_accepted,
+            "seg_first": self._seg_first,
+            "last_quiet": self._last_quiet,
+            "next_final": self._next_final,
+            "run": [self._run_open, self._run_first_idx, self._run_first_t, self._run_last_idx, self._run_last_t, self._run_n],
+            "static_now": self.static_now,
+            "rejections": dict(self.rejections.counts),
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "StreamingStaticDetector":
+        try:
+            det = cls(
+                StaticDetectorConfig(**state["config"]),
+                rate_hz=float(state["rate_hz"]),
+                has_accel=bool(state["has_accel"]),
+                has_gyro=bool(state["has_gyro"]),
+            )
+            w = det.window_samples
+            buf = [[float(v) for v in b] for b in state["buf"]]
+            t = [float(v) for v in state["t"]]
+            idx = [int(v) for v in state["idx"]]
+            if len(buf) != 6 or any(len(b) != w for b in buf) or len(t) != w or len(idx) != w:
+                raise ValueError(f"ring buffers must hold 6 channels of {w} samples")
+            det._buf, det._t, det._idx = buf, t, idx
+            det._s = [float(v) for v in state["s"]]
+            det._q = [float(v) for v in state["q"]]
+            det._x0 = [float(v) for v in state["x0"]]
+            det._last_t = None if state["last_t"] is None else float(state["last_t"])
+            det._seg_open = bool(state["seg_open"])
+            for name in ("n_input", "n_accepted"):
+                setattr(det, name, int(state[name]))
+            det._seg_first = int(state["seg_first"])
+            det._last_quiet = int(state["last_quiet"])
+            det._next_final = int(state["next_final"])
+            ro, rfi, rft, rli, rlt, rn = state["run"]
+            det._run_open, det._run_first_idx, det._run_first_t = bool(ro), int(rfi), float(rft)
+            det._run_last_idx, det._run_last_t, det._run_n = int(rli), float(rlt), int(rn)
+            det.static_now = bool(state["static_now"])
+            det.rejections = Rejections({str(k): int(v) for k, v in state["rejections"].items()})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"invalid StreamingStaticDetector state: {exc}") from None
+        if len(det._s) != 6 or len(det._q) != 6 or len(det._x0) != 6:
+            raise ValueError("invalid StreamingStaticDetector state: sums must have 6 channels")
+        det._clear_outputs()
+        return det
+
+
+def direction_change_deg(mean_a: np.ndarray, mean_b: np.ndarray) -> float:
+    """Angle between two mean specific-force vectors (3,), deg (atan2 form: exact at small angles)."""
+    a = np.asarray(mean_a, dtype=float)
+    b = np.asarray(mean_b, dtype=float)
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b)))
+
+
+class RotationIntegrator:
+    """Attitude change from a gyro stream, O(1) per sample (unit quaternion, plain floats).
+
+    ``add(wx, wy, wz, dt_s)`` composes the rotation ``exp(½ (ω − bias) dt)``
+    (body rate in rad/s held over ``dt_s``) on the right; ``angle_deg`` is the
+    angle of the accumulated rotation. ``bias_rps`` is removed first: the mean
+    gyro output of the last static position (zero signal plus Earth rate).
+    """
+
+    __slots__ = ("bias_rps", "q", "mark")
+
+    def __init__(self, bias_rps=(0.0, 0.0, 0.0)) -> None:
+        self.reset(bias_rps)
+
+    def reset(self, bias_rps=(0.0, 0.0, 0.0)) -> None:
+        self.bias_rps = tuple(float(v) for v in bias_rps)
+        self.q = (1.0, 0.0, 0.0, 0.0)
+        self.mark = self.q
+
+    def add(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
+        bx, by, bz = self.bias_rps
+        rx, ry, rz = (wx - bx) * dt_s, (wy - by) * dt_s, (wz - bz) * dt_s
+        th = math.sqrt(rx * rx + ry * ry + rz * rz)
+        half = 0.5 * th
+        # sin(θ/2)/θ by its series below 1e-4 rad, where the division would lose digits.
+        k = math.sin(half) / th if th > 1e-4 else 0.5 - th * th / 48.0
+        dw, dx, dy, dz = math.cos(half), rx * k, ry * k, rz * k
+        w, x, y, z = self.q
+        self.q = (
+            w * dw - x * dx - y * dy - z * dz,
+            w * dx + x * dw + y * dz - z * dy,
+            w * dy - x * dz + y * dw + z * dx,
+            w * dz + x * dy - y * dx + z * dw,
+        )
+
+    def set_mark(self) -> None:
+        """Remember the rotation so far (the start of the next static run)."""
+        self.mark = self.q
+
+    @staticmethod
+    def quaternion_angle_deg(q) -> float:
+        w, x, y, z = q
+        return math.degrees(2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w)))
+
+    @property
+    def angle_deg(self) -> float:
+        return self.quaternion_angle_deg(self.q)
+
+    @property
+    def mark_angle_deg(self) -> float:
+        return self.quaternion_angle_deg(self.mark)
+
+    def state_dict(self) -> dict:
+        return {"bias_rps": list(self.bias_rps), "q": list(self.q), "mark": list(self.mark)}
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "RotationIntegrator":
+        try:
+            r = cls(state["bias_rps"])
+            r.q = tuple(float(v) for v in state["q"])
+            r.mark = tuple(float(v) for v in state["mark"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"invalid RotationIntegrator state: {exc}") from None
+        if len(r.q) != 4 or len(r.mark) != 4 or len(r.bias_rps) != 3:
+            raise ValueError("invalid RotationIntegrator state: q and mark need 4 numbers, bias_rps 3")
+        return r
+
+
+def is_new_orientation(config: StaticDetectorConfig, *, direction_deg: float | None, rotation_deg: float | None) -> bool:
+    """Whether a static interval is a new position (module docstring, "Orientation changes").
+
+    ``direction_deg`` : angle between the mean specific forces (None without accelerometers);
+    ``rotation_deg`` : integrated rotation between the intervals (None without gyros, or
+    unknown across a time gap). With neither measure the interval is a new position.
+    """
+    measures = [v for v in (direction_deg, rotation_deg) if v is not None]
+    if not measures:
+        return True
+    return any(not v < config.orientation_change_deg for v in measures)

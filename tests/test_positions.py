@@ -1,0 +1,218 @@
+"""Positions from static intervals: averages with an honest covariance, rejects and merges (methods.md M1)."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import stats
+from synthetic_static import G_MPS2, Bump, Gap, Rest, Rotate, build_scene, tumble
+
+from estimators.session import ImuSession
+from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
+from estimators.positions import (
+    CovarianceMethod,
+    Position,
+    PositionAccumulator,
+    PositionConfig,
+    RejectReason,
+    build_positions,
+)
+from estimators.static_detector import detect_static
+
+
+def _stream(session: ImuSession, *, rate_hz: float, state_at: int | None = None, **options):
+    """Positions and rejections from a PositionAccumulator fed sample by sample (optionally checkpointed)."""
+    acc = PositionAccumulator(rate_hz=rate_hz, has_accel=session.accel_mps2 is not None, has_gyro=session.gyro_rps is not None, **options)
+    n = session.n_samples
+    zeros = [[0.0, 0.0, 0.0]] * n
+    accel = zeros if session.accel_mps2 is None else session.accel_mps2.tolist()
+    gyro = zeros if session.gyro_rps is None else session.gyro_rps.tolist()
+    temp = [None] * n if session.temp_c is None else session.temp_c.tolist()
+    out = []
+    for i, t in enumerate(session.t_s.tolist()):
+        if i == state_at:
+            acc = PositionAccumulator.from_state_dict(json.loads(json.dumps(acc.state_dict())))
+        p = acc.update(t, *accel[i], *gyro[i], temp[i])
+        if p is not None:
+            out.append(p)
+    out += acc.flush()
+    return out, acc.drain_rejections()
+
+
+def _assert_same_positions(got, expected):
+    assert len(got) == len(expected)
+    for p, q in zip(got, expected):
+        for name in ("t_start_s", "t_end_s", "n_samples", "index_start", "index_stop", "n_intervals"):
+            assert getattr(p, name) == getattr(q, name), name
+        for name in ("accel_mean_mps2", "gyro_mean_rps", "accel_cov_mps2", "gyro_cov_rps", "temp_mean_c", "accel_n_eff", "gyro_n_eff"):
+            a, b = getattr(p, name), getattr(q, name)
+            assert (a is None) == (b is None), name
+            if a is not None:
+                # Running sums of shifted samples vs numpy means: rounding only.
+                np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-15, err_msg=name)
+
+
+# --- a simulated MEMS unit: means agree with the truth within their covariance ----------------------
+
+
+def test_means_of_a_simulated_unit_are_consistent_with_their_covariance():
+    spec = multi_position_spec(grade=Grade.MEMS, n_positions=18, static_s=5.0, transition_s=3.0, temperature=RampTemperature(20.0, 0.02))
+    noisy = simulate(spec, seed=3)
+    m = spec.model
+    quiet = replace(m, accel=m.accel.without("white_noise").without("quantization"), gyro=m.gyro.without("white_noise").without("quantization"))
+    clean = simulate(replace(spec, model=quiet), seed=3)  # same motion: the seeds of the streams are per effect
+    res = build_positions(noisy.session, detect_static(noisy.session))
+    assert len(res.positions) == 18 and res.rejections == ()
+    chi2, dof = 0.0, 0
+    for pos, (t0, t1) in zip(res.positions, noisy.truth.static_intervals_s):
+        # The truth is the noise-free output in the middle of the true rest, so leakage of the
+        # turns into the trimmed interval would show; M2's Entier reads half a count low.
+        mid = int(np.searchsorted(noisy.session.t_s, 0.5 * (t0 + t1)))
+        for triad, mean, cov in (("accel", pos.accel_mean_mps2, pos.accel_cov_mps2), ("gyro", pos.gyro_mean_rps, pos.gyro_cov_rps)):
+            step = np.array(m.triad(triad).find("quantization").step_si)
+            truth = (clean.session.accel_mps2 if triad == "accel" else clean.session.gyro_rps)[mid] - 0.5 * step
+            d = mean - truth
+            chi2 += d @ np.linalg.solve(cov, d)
+            dof += 3
+        assert pos.temp_mean_c == pytest.approx(noisy.session.temp_c[pos.index_start : pos.index_stop].mean())
+    # Batch means never shrink the covariance (τ̂ ≥ 1): χ² may sit a little low, never high.
+    assert stats.chi2.ppf(1e-4, dof) < chi2 < stats.chi2.ppf(1 - 1e-4, dof)
+
+
+def test_batch_means_cover_correlated_noise_where_the_sample_covariance_does_not():
+    # AR(1) noise, φ = 0.9: the variance of a long mean is τ = (1 + φ)/(1 − φ) = 19 times σ²/n.
+    rng = np.random.default_rng(17)
+    scene = build_scene(tumble(100, rest_s=20.0, rng=rng), rng=rng, phi=0.9, accel_noise_mps2=0.005)
+    det = detect_static(scene.session)
+    coverage = {}
+    for method in CovarianceMethod:
+        # Batches of 2 s are 200 samples ≫ the 19-sample correlation time.
+        res = build_positions(scene.session, det, config=PositionConfig(batch_s=2.0, covariance=method))
+        assert len(res.positions) == 100
+        z = []
+        for pos in res.positions:
+            k = scene.rest_index[pos.index_start]
+            truth = G_MPS2 * scene.up_b[scene.rest_index == k][0]
+            z.append((pos.accel_mean_mps2 - truth) / np.sqrt(np.diag(pos.accel_cov_mps2)))
+        coverage[method] = np.mean(np.abs(np.concatenate(z)) < 3.0)
+        if method is CovarianceMethod.BATCH_MEANS:
+            n_eff = np.array([p.accel_n_eff / p.n_samples for p in res.positions])
+            assert 1 / 19 * 0.7 < np.median(n_eff) < 1 / 19 * 1.3
+    # τ̂ from 3 × 9 degrees of freedom: z is about t(27)-distributed, P(|t| < 3) = 0.994;
+    # over 300 values fewer than 97 % covered has probability < 1e-3.
+    assert coverage[CovarianceMethod.BATCH_MEANS] >= 0.97
+    # σ/√n is √19 ≈ 4.4 times too small: |z| < 3 only for |N(0,1)| < 0.69, about half.
+    assert coverage[CovarianceMethod.SAMPLE] < 0.7
+
+
+# --- rejections and merges, batch = streaming -----------------------------------------------------------
+
+
+def _scene(rng):
+    return build_scene(
+        [
+            Rest(5.0), Bump(0.6), Rest(4.0),  # a bump splits one position: merged
+            # The union of quiet windows reaches ~0.25 s into the slow ends of each turn:
+            Rotate(2.0, (1, 0, 0), 90.0), Rest(0.3),  # a run of 0.6–0.8 s: too short for an interval
+            Rotate(2.0, (0, 0, 1), 60.0), Rest(0.8),  # 1.1–1.4 s: an interval, < 100 samples once trimmed
+            Rotate(2.0, (1, 1, 0), 80.0), Rest(4.0), Gap(2.0), Rest(3.0),  # same direction across a gap
+            Rotate(2.0, None, 90.0), Rest(3.0),  # heading change: same specific force, new position
+        ],
+        rng=rng,
+        temp_c=25.0,
+    )
+
+
+CFG = PositionConfig(trim_s=0.3, min_samples=100)
+
+
+def test_short_sparse_and_duplicate_intervals_are_recorded_with_their_reason():
+    rng = np.random.default_rng(1)
+    scene = _scene(rng)
+    det = detect_static(scene.session)
+    res = build_positions(scene.session, det, config=CFG)
+    assert [p.n_intervals for p in res.positions] == [2, 2, 1]
+    assert [r.reason for r in res.rejections] == [
+        RejectReason.MERGED,
+        RejectReason.SHORT_INTERVAL,
+        RejectReason.TOO_FEW_SAMPLES,
+        RejectReason.MERGED,
+    ]
+    t = scene.session.t_s
+    # Each record spans the rest it stands for (rests 1, 2, 3, 5 of the scene).
+    for rec, k in zip(res.rejections, (1, 2, 3, 5)):
+        rest_t = t[scene.rest_index == k]
+        assert rec.t_start_s <= rest_t[rest_t.size // 2] <= rec.t_end_s
+    assert res.rejections[1].t_end_s - res.rejections[1].t_start_s < 1.0
+    assert "rotation" in res.rejections[0].detail and "rotation" not in res.rejections[3].detail  # gap: rotation unknown
+    # Merged: both intervals minus 0.3 s (30 samples) at each of their four ends.
+    first, (iv0, iv1) = res.positions[0], det.intervals[:2]
+    assert first.n_samples == iv0.n_samples + iv1.n_samples - 4 * 30
+    assert first.t_start_s == pytest.approx(iv0.t_start_s + 0.3) and first.t_end_s == pytest.approx(iv1.t_end_s - 0.3)
+    np.testing.assert_allclose(first.accel_mean_mps2, G_MPS2 * scene.up_b[0], atol=5 * 0.01 / np.sqrt(first.n_samples))
+    assert first.temp_mean_c == pytest.approx(25.0, abs=0.05)
+    # The heading change leaves the specific force alone; the gyros saw it.
+    m1, m2 = res.positions[1].accel_mean_mps2, res.positions[2].accel_mean_mps2
+    assert np.degrees(np.arccos(np.clip(m1 @ m2 / np.linalg.norm(m1) / np.linalg.norm(m2), -1, 1))) < 0.5
+
+
+def test_streaming_accumulator_gives_the_batch_positions_through_a_checkpoint():
+    rng = np.random.default_rng(1)
+    scene = _scene(rng)
+    s = scene.session
+    temp = s.temp_c.copy()
+    temp[rng.choice(temp.size, 50, replace=False)] = np.nan  # unknown temperature: the sample still counts
+    accel = s.accel_mps2.copy()
+    accel[[100, 2000, 2001]] = np.nan  # bad samples: counted, skipped
+    session = ImuSession(s.t_s, accel, s.gyro_rps, temp)
+    batch = build_positions(session, detect_static(session, rate_hz=100.0), config=CFG)
+    for state_at in (None, 1234, 2150):
+        got, rejections = _stream(session, rate_hz=100.0, config=CFG, state_at=state_at)
+        _assert_same_positions(got, batch.positions)
+        assert rejections == list(batch.rejections)
+
+
+@pytest.mark.parametrize(
+    ("triads", "n_intervals"),
+    [
+        # Gyros only: across the gap the rotation is unknown, so no merge there.
+        ("gyro", [2, 1, 1, 1]),
+        # Accelerometers only: the heading change is invisible (not even a break in stationarity),
+        # harmless for them: the specific force did not change.
+        ("accel", [2, 2]),
+    ],
+)
+def test_one_triad_merges_by_what_it_can_see(triads, n_intervals):
+    rng = np.random.default_rng(1)
+    s = _scene(rng).session
+    session = ImuSession(s.t_s, s.accel_mps2 if triads == "accel" else None, s.gyro_rps if triads == "gyro" else None)
+    det = detect_static(session)
+    res = build_positions(session, det, config=CFG)
+    assert [p.n_intervals for p in res.positions] == n_intervals
+    got, rejections = _stream(session, rate_hz=100.0, config=CFG, detector_config=det.config)
+    _assert_same_positions(got, res.positions)
+    assert rejections == list(res.rejections)
+
+
+def test_position_round_trips_through_a_plain_dict():
+    rng = np.random.default_rng(1)
+    scene = _scene(rng)
+    pos = build_positions(scene.session, detect_static(scene.session), config=CFG).positions[0]
+    again = Position.from_dict(json.loads(json.dumps(pos.to_dict())))
+    _assert_same_positions([again], [pos])
+    with pytest.raises(ValueError, match="accel_mean_mps2 must have shape"):
+        Position.from_dict({**pos.to_dict(), "accel_mean_mps2": [1.0, 2.0]})
+
+
+def test_bad_configs_and_states_are_clear_errors():
+    with pytest.raises(ValueError, match="min_samples"):
+        PositionConfig(min_samples=1)
+    with pytest.raises(ValueError, match="trim_s"):
+        PositionConfig(trim_s=-0.1)
+    with pytest.raises(ValueError, match="invalid PositionAccumulator state"):
+        PositionAccumulator.from_state_dict({"detector": {}})
+    session = ImuSession(np.arange(10.0), np.zeros((10, 3)), None)
+    other = ImuSession(np.arange(11.0), np.zeros((11, 3)), None)
+    with pytest.raises(ValueError, match="detection covers"):
+        build_positions(session, detect_static(other, rate_hz=1.0))

@@ -1,0 +1,232 @@
+"""Stationarity and orientation-change detection (methods.md M1: positions of a static unit)."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from synthetic_static import Bump, Gap, Rest, Rotate, build_scene, tumble
+
+from estimators.session import ImuSession
+from estimators.sim import Grade, multi_position_spec, simulate
+from estimators.static_detector import (
+    RotationIntegrator,
+    StaticDetectorConfig,
+    StreamingStaticDetector,
+    detect_static,
+    direction_change_deg,
+    is_new_orientation,
+)
+from protocols.session_file import read_session
+
+XSENS = Path("/work/shared/data/measured/xsens-multiposition")
+
+
+def _stream(session: ImuSession, *, config=StaticDetectorConfig(), rate_hz: float, state_at: int | None = None):
+    """Feed a session sample by sample: (static mask over input rows, intervals, detector)."""
+    det = StreamingStaticDetector(config, rate_hz=rate_hz, has_accel=session.accel_mps2 is not None, has_gyro=session.gyro_rps is not None)
+    n = session.n_samples
+    zeros = [[0.0, 0.0, 0.0]] * n
+    accel = zeros if session.accel_mps2 is None else session.accel_mps2.tolist()
+    gyro = zeros if session.gyro_rps is None else session.gyro_rps.tolist()
+    static = np.zeros(n, bool)
+    accepted: list[int] = []
+    intervals = []
+
+    def collect(iv):
+        static[[accepted[c] for c in range(det.fin_lo, det.fin_split)]] = True
+        if iv is not None:
+            intervals.append(iv)
+
+    for i, t in enumerate(session.t_s.tolist()):
+        if i == state_at:
+            det = StreamingStaticDetector.from_state_dict(json.loads(json.dumps(det.state_dict())))
+        before = det.n_accepted
+        iv = det.update(t, *accel[i], *gyro[i])
+        if det.n_accepted != before:
+            accepted.append(i)
+        collect(iv)
+    collect(det.finish())
+    return static, intervals, det
+
+
+@pytest.fixture(scope="module")
+def mems_session():
+    spec = multi_position_spec(grade=Grade.MEMS, n_positions=18, static_s=5.0, transition_s=3.0)
+    return simulate(spec, seed=3)
+
+
+def test_finds_every_simulated_position_and_covers_it(mems_session):
+    session, truth = mems_session.session, mems_session.truth
+    det = detect_static(session)
+    assert len(det.intervals) == len(truth.static_intervals_s) == 18
+    assert det.short_runs == ()
+    for iv, (t0, t1) in zip(det.intervals, truth.static_intervals_s):
+        # Every window inside a true rest is quiet (its spread is ~1/3 of the threshold),
+        # so the union of quiet windows contains the whole rest.
+        assert iv.t_start_s <= t0 and iv.t_end_s >= t1
+    # ... and no sample in the middle half of a 3 s turn is static (see test_scalar for the bound).
+    t = session.t_s
+    t_rest = t[truth.static]
+    k = np.clip(np.searchsorted(t_rest, t), 1, t_rest.size - 1)
+    from_rest_s = np.minimum(np.abs(t - t_rest[k - 1]), np.abs(t_rest[k] - t))
+    assert not np.any(det.static[from_rest_s > 0.75])
+
+
+def test_streaming_gives_the_batch_decisions_on_messy_data(mems_session):
+    s = mems_session.session
+    t = s.t_s.copy()
+    accel = s.accel_mps2.copy()
+    gyro = s.gyro_rps.copy()
+    rng = np.random.default_rng(7)
+    accel[rng.choice(t.size, 30, replace=False), 0] = np.nan
+    gyro[rng.choice(t.size, 10, replace=False), 2] = np.inf
+    t[5000] = t[4999]  # duplicate time stamp
+    t[9000] = t[8990]  # a step back
+    keep = np.ones(t.size, bool)
+    keep[1800:1900] = False  # a 1 s gap inside the third position (16–21 s): it splits in two
+    messy = ImuSession(t[keep], accel[keep], gyro[keep])
+    batch = detect_static(messy, rate_hz=100.0)
+    static, intervals, det = _stream(messy, rate_hz=100.0, state_at=6543)
+    np.testing.assert_array_equal(static, batch.static)
+    assert intervals == list(batch.intervals)
+    n_bad = int((~np.isfinite(np.hstack([accel, gyro])).all(axis=1))[keep].sum())
+    assert det.rejections.counts == batch.rejections.counts == {"non_finite": n_bad, "non_monotonic_time": 2}
+    assert len(batch.intervals) == 19
+    assert [iv.t_end_s for iv in batch.intervals][2] == t[1799]
+    assert [iv.t_start_s for iv in batch.intervals][3] == t[1900]
+
+
+def test_nan_sample_is_a_counted_rejection_that_leaves_the_state_alone():
+    det = StreamingStaticDetector(rate_hz=100.0)
+    for k in range(80):
+        det.update(0.01 * k, 0.0, 0.0, 9.8, 0.0, 0.0, 0.0)
+    before = det.state_dict()
+    assert det.update(0.8, math.nan, 0.0, 9.8, 0.0, 0.0, 0.0) is None
+    assert det.update(0.79, 0.0, 0.0, 9.8, 0.0, 0.0, 0.0) is None
+    after = det.state_dict()
+    assert after.pop("n_input") == before.pop("n_input") + 2
+    assert after.pop("rejections") == {"non_finite": 1, "non_monotonic_time": 1}
+    before.pop("rejections")
+    assert after == before
+    assert det.static_now
+
+
+def test_one_triad_is_enough(mems_session):
+    s = mems_session.session
+    full = detect_static(s).intervals
+    for session in (ImuSession(s.t_s, s.accel_mps2, None), ImuSession(s.t_s, None, s.gyro_rps)):
+        det = detect_static(session)
+        assert len(det.intervals) == 18
+        static, intervals, _ = _stream(session, rate_hz=100.0)
+        np.testing.assert_array_equal(static, det.static)
+        assert intervals == list(det.intervals)
+        # One triad alone is no stricter than both.
+        for iv, ref in zip(det.intervals, full):
+            assert iv.t_start_s <= ref.t_start_s and iv.t_end_s >= ref.t_end_s
+    with pytest.raises(ValueError, match="neither"):
+        detect_static(ImuSession(s.t_s, None, None))
+
+
+def test_xsens_session_has_its_initial_rest_and_37_positions():
+    # SOURCE.md: about 50 s static, then about 37 short static positions, 100 Hz.
+    session = read_session(XSENS)
+    det = detect_static(session)
+    durations = np.array([iv.duration_s for iv in det.intervals])
+    assert len(det.intervals) == 38
+    assert 45.0 < durations[0] < 55.0
+    assert np.all((durations[1:] > 3.0) & (durations[1:] < 15.0))
+    # The only other quiet run is a 0.7 s pause inside a turn, shorter than min_static_s.
+    assert [round(r.duration_s, 1) for r in det.short_runs] == [0.7]
+    static, intervals, _ = _stream(session, rate_hz=det.rate_hz)
+    np.testing.assert_array_equal(static, det.static)
+    assert intervals == list(det.intervals)
+
+
+def test_constant_rate_turn_about_the_vertical_needs_the_mean_rate_bound():
+    rng = np.random.default_rng(2)
+    scene = build_scene([Rest(5.0), Rotate(10.0, (0, 0, 1), 90.0, constant_rate=True), Rest(5.0)], rng=rng)
+    plain = detect_static(scene.session)
+    # Variance only: the turn (0.157 rad/s, constant) looks static — a documented blind spot.
+    assert len(plain.intervals) == 1
+    cfg = StaticDetectorConfig(gyro_rate_rps=0.05)
+    bounded = detect_static(scene.session, config=cfg)
+    assert len(bounded.intervals) == 2
+    assert not np.any(bounded.static[~scene.rest])
+    static, intervals, _ = _stream(scene.session, config=cfg, rate_hz=100.0)
+    np.testing.assert_array_equal(static, bounded.static)
+    assert intervals == list(bounded.intervals)
+
+
+def test_short_runs_are_reported_apart():
+    rng = np.random.default_rng(4)
+    scene = build_scene([Rest(3.0), Bump(1.0), Rest(0.8), Bump(1.0), Rest(3.0)], rng=rng)
+    det = detect_static(scene.session)
+    assert [round(iv.duration_s, 2) for iv in det.intervals] == [2.99, 2.99]
+    assert [round(iv.duration_s, 2) for iv in det.short_runs] == [0.79]
+
+
+def test_from_noise_sets_thresholds_at_a_multiple_of_the_white_noise_spread():
+    cfg = StaticDetectorConfig.from_noise(accel_noise_mps2=0.01, gyro_noise_rps=0.001, base=StaticDetectorConfig(window_s=1.0))
+    assert cfg.accel_std_mps2 == pytest.approx(3 * math.sqrt(3) * 0.01)
+    assert cfg.gyro_std_rps == pytest.approx(3 * math.sqrt(3) * 0.001)
+    assert cfg.window_s == 1.0
+    with pytest.raises(ValueError, match="accel_std_mps2"):
+        StaticDetectorConfig(accel_std_mps2=-1.0)
+    with pytest.raises(ValueError, match="rate_hz"):
+        cfg.window_samples(0.0)
+    with pytest.raises(ValueError, match="invalid StreamingStaticDetector state"):
+        StreamingStaticDetector.from_state_dict({"config": {}})
+
+
+# --- orientation changes ---------------------------------------------------------------------------
+
+
+def test_direction_change_is_exact_at_small_and_right_angles():
+    assert direction_change_deg([0, 0, 9.8], [9.8, 0, 0]) == pytest.approx(90.0)
+    tiny = 1e-7  # rad: arccos of the dot product would lose it entirely
+    assert direction_change_deg([0, 0, 1], [0, math.sin(tiny), math.cos(tiny)]) == pytest.approx(math.degrees(tiny), rel=1e-9)
+
+
+def test_rotation_integrator_composes_like_rotation_matrices():
+    rng = np.random.default_rng(6)
+    rates = rng.normal(0, 1.0, (500, 3))
+    dt = 0.01
+    bias = (0.01, -0.02, 0.005)
+    rot = RotationIntegrator(bias)
+    for w in rates.tolist():
+        rot.add(*w, dt)
+    expected = Rotation.identity()
+    for w in rates:
+        expected = expected * Rotation.from_rotvec((w - bias) * dt)
+    assert rot.angle_deg == pytest.approx(np.degrees(expected.magnitude()), abs=1e-9)
+    # Four quarter turns x, y, −x, −y do not cancel: their commutator is a 120° rotation.
+    rot.reset()
+    for axis in ((1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0)):
+        for _ in range(100):
+            rot.add(*(np.array(axis) * (math.pi / 2)).tolist(), 0.01)
+    assert rot.angle_deg == pytest.approx(120.0, abs=1e-9)
+    again = RotationIntegrator.from_state_dict(json.loads(json.dumps(rot.state_dict())))
+    assert again.q == rot.q and again.bias_rps == rot.bias_rps
+
+
+def test_new_orientation_needs_a_change_in_any_available_measure():
+    cfg = StaticDetectorConfig(orientation_change_deg=1.0)
+    assert not is_new_orientation(cfg, direction_deg=0.5, rotation_deg=0.5)
+    assert is_new_orientation(cfg, direction_deg=0.5, rotation_deg=90.0)  # a turn about the vertical
+    assert is_new_orientation(cfg, direction_deg=30.0, rotation_deg=None)
+    assert not is_new_orientation(cfg, direction_deg=None, rotation_deg=0.2)
+    assert is_new_orientation(cfg, direction_deg=None, rotation_deg=None)
+
+
+def test_gaps_split_segments_and_windows_never_span_them():
+    rng = np.random.default_rng(9)
+    scene = build_scene([Rest(3.0), Gap(2.0), Rest(3.0)] + tumble(3, rest_s=3.0, rng=rng)[1:], rng=rng)
+    det = detect_static(scene.session)
+    assert len(det.intervals) == 4
+    assert det.segment_start.sum() == 2
+    static, intervals, _ = _stream(scene.session, rate_hz=100.0)
+    assert intervals == list(det.intervals)
+    np.testing.assert_array_equal(static, det.static)
