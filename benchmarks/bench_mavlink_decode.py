@@ -1,0 +1,57 @@
+"""MAVLink input cost: the service's conversion to SampleBatch next to pymavlink's own parse of the same bytes.
+
+For each IMU message type a byte stream of N MAVLink 2 packets is parsed by
+pymavlink (``MAVLink.parse_buffer``: framing, CRC, unpacking); the parsed
+messages are then converted to one-sample SI batches as the service does
+(``MavlinkLink.to_batch``: unit conversion, IMU mapping, validated frozen
+``SampleBatch``). Printed: µs per message for each step and their ratio.
+Run: ``python benchmarks/bench_mavlink_decode.py [N]``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from protocols.mavlink_adapter import ImuMessage, MavlinkLink, MavlinkSettings, imu_message
+
+
+def _stream(kind: ImuMessage, n: int, rng: np.random.Generator) -> bytes:
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    acc = rng.normal([0.0, 0.0, -9.8], 0.05, (n, 3))
+    gyr = rng.normal(0.0, 0.01, (n, 3))
+    return b"".join(
+        imu_message(kind, t_s=k * 0.001, accel_mps2=acc[k], gyro_rps=gyr[k], temp_c=35.0).pack(mav) for k in range(n)
+    )
+
+
+def _best_of(repeats: int, fn) -> tuple[float, object]:
+    best, out = np.inf, None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def main(n: int = 20_000) -> int:
+    rng = np.random.default_rng(0)
+    print(f"MAVLink IMU input, {n} messages per type, best of 3 (µs per message)")
+    print(f"{'message':<12} {'pymavlink parse':>16} {'to SampleBatch':>15} {'ratio':>7}")
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="bench")) as link:
+        for kind in (ImuMessage.RAW_IMU, ImuMessage.SCALED_IMU2, ImuMessage.HIGHRES_IMU):
+            data = _stream(kind, n, rng)
+            parse_s, messages = _best_of(3, lambda: mavlink2.MAVLink(None).parse_buffer(data))
+            assert len(messages) == n
+            convert_s, batches = _best_of(3, lambda: [link.to_batch(m) for m in messages])
+            assert all(b is not None for b in batches)
+            p_us, c_us = parse_s / n * 1e6, convert_s / n * 1e6
+            print(f"{kind.value:<12} {p_us:16.2f} {c_us:15.2f} {c_us / p_us:7.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(*(int(a) for a in sys.argv[1:])))

@@ -1,0 +1,570 @@
+"""Fault events and service status: typed values and their versioned schemas.
+
+An :class:`Event` is what the service reports: one failed predicate of one IMU
+(F0 of methods.md M1 on a sample, F1…F9 of the M1 diagnosis against the
+passport, or a stream-validity check). It travels to the durable outbox, to
+Zenoh (msgpack), to MAVLink (STATUSTEXT) and to replay output (JSON lines).
+
+Event id
+--------
+``event_id`` is 32 lowercase hex digits: the first 16 bytes of BLAKE2b over the
+msgpack encoding of ``[tag, vehicle, imu, predicate, triad, axis, cause, t_s]``
+where ``t_s`` is the *data* time (seconds, the time stamp of the sample that
+completed the detection, packed as float64) — never a wall clock. The same
+detection therefore gets the same id in a retry, after a restart, and in a
+replay of the same log; the outbox and every receiver deduplicate by it.
+
+Wire schema, version 1 (msgpack map; JSON lines use the same map)
+-----------------------------------------------------------------
+``type`` = ``"ins.health.event"``, ``v`` = 1, ``id`` (str, 32 hex), ``vehicle``
+(str), ``imu`` (int 0..255), ``t_s`` (float, s), ``predicate`` (str,
+:class:`Predicate`), ``triad`` (str :class:`~estimators.conventions.Triad` or
+nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
+:class:`~estimators.conventions.Cause` or :class:`StreamCause` value),
+``estimate``, ``nominal``, ``tolerance``, ``sigma`` (finite float or nil),
+``unit`` (str, unit of those four numbers: ``"1"`` dimensionless, ``"s"``,
+``"m/s^2"``, ``"rad/s"``, ``"count"``), ``severity`` (str, lower-case
+:class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
+
+Status schema, version 1: ``type`` = ``"ins.health.status"``, ``v`` = 1,
+``vehicle``, ``service`` (instance name), ``t_s`` (service clock, s since the
+Unix epoch), ``counters`` (map str → int ≥ 0), ``imus`` (array of maps
+``{imu, state, samples, last_t_s, positions, detail}``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import struct
+from dataclasses import dataclass, field as dc_field, replace
+from enum import Enum, IntEnum
+from types import MappingProxyType
+from typing import Any, Mapping, Protocol
+
+import msgpack
+
+from estimators.conventions import AXES, Cause, Triad
+from protocols._schema import (
+    MAX_MESSAGE_BYTES,
+    Reason,
+    SchemaError,
+    check_header,
+    check_imu,
+    check_vehicle,
+    enum_field,
+    field,
+    float_field,
+    unpack_map,
+)
+
+EVENT_TYPE = "ins.health.event"
+EVENT_VERSION = 1
+SUPPORTED_EVENT_VERSIONS = (1,)
+STATUS_TYPE = "ins.health.status"
+STATUS_VERSION = 1
+SUPPORTED_STATUS_VERSIONS = (1,)
+MAX_EVENT_BYTES = 64 * 1024
+MAX_STATUS_BYTES = MAX_MESSAGE_BYTES
+MAX_TEXT_CHARS = 1000
+EVENT_AXES = AXES + ("xy", "xz", "yz")
+"""Valid ``axis`` values: one sensor axis, or an axis pair for non-orthogonality (conventions.PARAM_AXIS)."""
+
+
+class EventError(SchemaError):
+    """An event or status message that cannot be used; ``reason`` says why."""
+
+
+class Severity(IntEnum):
+    """Event severity; values equal MAVLink's ``MAV_SEVERITY`` (0 most severe)."""
+
+    EMERGENCY = 0
+    ALERT = 1
+    CRITICAL = 2
+    ERROR = 3
+    WARNING = 4
+    NOTICE = 5
+    INFO = 6
+    DEBUG = 7
+
+
+class Predicate(str, Enum):
+    """Which check failed: F0…F9 of methods.md M1, or a stream-validity check."""
+
+    F0 = "F0"
+    F1 = "F1"
+    F2 = "F2"
+    F3 = "F3"
+    F4 = "F4"
+    F5 = "F5"
+    F6 = "F6"
+    F7 = "F7"
+    F8 = "F8"
+    F9 = "F9"
+    TIMEOUT = "timeout"
+    STALE = "stale"
+    ERROR_DENSITY = "error_density"
+    CROSS_IMU = "cross_imu"
+    TEMPERATURE = "temperature"
+
+    @classmethod
+    def parse(cls, value: Any) -> "Predicate":
+        """Accept a :class:`Predicate`, its string value, an ``int`` j (→ ``Fj``) or any Enum holding one of those."""
+        if isinstance(value, Enum) and not isinstance(value, Predicate):
+            value = value.value
+        if type(value) is int:
+            value = f"F{value}"
+        try:
+            return cls(value)
+        except ValueError:
+            raise EventError(Reason.BAD_VALUE, f"unknown predicate {value!r}; expected one of {[p.value for p in cls]}") from None
+
+
+class StreamCause(str, Enum):
+    """Causes named by F0 and the stream-validity checks (the M1 diagnosis uses :class:`~estimators.conventions.Cause`)."""
+
+    OUT_OF_SHELL = "out_of_shell"
+    NO_DATA = "no_data"
+    STUCK_VALUE = "stuck_value"
+    REJECTED_SAMPLES = "rejected_samples"
+    DISAGREEMENT = "disagreement"
+    TEMPERATURE_RANGE = "temperature_range"
+    RECOVERED = "recovered"
+
+
+EventCause = Cause | StreamCause
+
+
+class FindingLike(Protocol):
+    """What :func:`event_from_finding` reads from ``estimators.diagnosis.Finding``."""
+
+    predicate: Any
+    triad: Triad
+    axis: str
+    cause: Cause
+    estimate: float
+    nominal: float
+    tolerance: float
+    sigma: float
+
+
+@dataclass(frozen=True)
+class Event:
+    """One detection. Build with :func:`make_event` or :func:`event_from_finding` (they derive the id).
+
+    Attributes
+    ----------
+    event_id : 32 hex digits, stable across retries and replays (module docstring).
+    vehicle, imu : the IMU.
+    t_s : data time of the sample that completed the detection, s.
+    predicate, triad, axis, cause : what failed and why.
+    estimate, nominal, tolerance, sigma : the number behind it, the passport value,
+        the allowed deviation and the estimate's standard deviation, in ``unit``.
+    unit : unit of those four numbers.
+    severity : :class:`Severity` (MAV_SEVERITY values).
+    text : one human sentence.
+    """
+
+    event_id: str
+    vehicle: str
+    imu: int
+    t_s: float
+    predicate: Predicate
+    triad: Triad | None
+    axis: str | None
+    cause: EventCause
+    estimate: float | None
+    nominal: float | None
+    tolerance: float | None
+    sigma: float | None
+    unit: str
+    severity: Severity
+    text: str
+
+    def __post_init__(self) -> None:
+        check_vehicle(self.vehicle, error=EventError)
+        check_imu(self.imu, error=EventError)
+        if not (isinstance(self.event_id, str) and len(self.event_id) == 32 and all(c in "0123456789abcdef" for c in self.event_id)):
+            raise EventError(Reason.BAD_VALUE, f"event id must be 32 lower-case hex digits, got {self.event_id!r}")
+        if isinstance(self.t_s, bool) or not isinstance(self.t_s, (int, float)) or not math.isfinite(self.t_s):
+            raise EventError(Reason.BAD_VALUE, f"t_s must be a finite number, got {self.t_s!r}")
+        object.__setattr__(self, "t_s", float(self.t_s))
+        object.__setattr__(self, "predicate", Predicate.parse(self.predicate))
+        object.__setattr__(self, "cause", _parse_cause(self.cause))
+        object.__setattr__(self, "severity", _parse_severity(self.severity))
+        if self.triad is not None:
+            object.__setattr__(self, "triad", Triad(self.triad))
+        if self.axis is not None and self.axis not in EVENT_AXES:
+            raise EventError(Reason.BAD_VALUE, f"axis must be one of {EVENT_AXES} or None, got {self.axis!r}")
+        for name in ("estimate", "nominal", "tolerance", "sigma"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise EventError(Reason.NON_FINITE if isinstance(value, float) else Reason.WRONG_TYPE, f"{name} must be a finite number or None, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if not isinstance(self.text, str) or len(self.text) > MAX_TEXT_CHARS:
+            raise EventError(Reason.BAD_VALUE, f"text must be a str of at most {MAX_TEXT_CHARS} characters")
+        if not isinstance(self.unit, str) or len(self.unit) > 16:
+            raise EventError(Reason.BAD_VALUE, f"unit must be a short str, got {self.unit!r}")
+
+    @property
+    def sensor(self) -> str | None:
+        """``"accel"`` or ``"gyro"`` (None when the event is about the whole IMU)."""
+        return None if self.triad is None else self.triad.value
+
+
+def event_id(*, vehicle: str, imu: int, predicate: Predicate, triad: Triad | None, axis: str | None, cause: EventCause, t_s: float) -> str:
+    """The stable id of a detection (module docstring): 32 hex digits."""
+    key = msgpack.packb(
+        [
+            EVENT_TYPE,
+            vehicle,
+            int(imu),
+            Predicate.parse(predicate).value,
+            None if triad is None else Triad(triad).value,
+            axis,
+            _parse_cause(cause).value,
+            struct.pack("<d", float(t_s)),
+        ],
+        use_bin_type=True,
+    )
+    return hashlib.blake2b(key, digest_size=16).hexdigest()
+
+
+def make_event(
+    *,
+    vehicle: str,
+    imu: int,
+    t_s: float,
+    predicate: Predicate | str | int,
+    cause: EventCause | str,
+    severity: Severity | int,
+    triad: Triad | str | None = None,
+    axis: str | None = None,
+    estimate: float | None = None,
+    nominal: float | None = None,
+    tolerance: float | None = None,
+    sigma: float | None = None,
+    unit: str = "1",
+    text: str | None = None,
+) -> Event:
+    """The generic constructor: any predicate (F0, stream validity, cross-IMU, …), id derived, text defaulted.
+
+    ``t_s`` is the data time of the sample that completed the detection (it
+    enters the id); ``text`` defaults to :func:`describe` of the event.
+    """
+    predicate = Predicate.parse(predicate)
+    cause = _parse_cause(cause)
+    triad = None if triad is None else Triad(triad)
+    eid = event_id(vehicle=vehicle, imu=imu, predicate=predicate, triad=triad, axis=axis, cause=cause, t_s=t_s)
+    event = Event(eid, vehicle, imu, t_s, predicate, triad, axis, cause, estimate, nominal, tolerance, sigma, unit, Severity(severity), text or "")
+    return event if text is not None else replace(event, text=describe(event))
+
+
+def event_from_finding(finding: FindingLike, *, vehicle: str, imu: int, t_s: float, severity: Severity = Severity.ERROR) -> Event:
+    """An event for a failed predicate F1…F9 of the M1 diagnosis (``estimators.diagnosis.Finding``).
+
+    The numbers of a finding are normalized parameters (dimensionless, methods.md
+    M1: zero signal ``b = bias/g`` or ``bias/Ω``, scale-factor error ``e``,
+    non-orthogonality ``δ``), so the unit is ``"1"``.
+    """
+    return make_event(
+        vehicle=vehicle,
+        imu=imu,
+        t_s=t_s,
+        predicate=finding.predicate,
+        cause=finding.cause,
+        severity=severity,
+        triad=finding.triad,
+        axis=finding.axis,
+        estimate=finding.estimate,
+        nominal=finding.nominal,
+        tolerance=finding.tolerance,
+        sigma=finding.sigma,
+        unit="1",
+    )
+
+
+_CAUSE_WORDS = {
+    Cause.ZERO_SIGNAL: "zero signal",
+    Cause.SCALE_FACTOR: "scale factor error",
+    Cause.NON_ORTHOGONALITY: "non-orthogonality",
+    StreamCause.OUT_OF_SHELL: "output off the unit sphere",
+    StreamCause.NO_DATA: "no samples",
+    StreamCause.STUCK_VALUE: "stuck value",
+    StreamCause.REJECTED_SAMPLES: "rejected samples",
+    StreamCause.DISAGREEMENT: "disagrees with the other IMUs",
+    StreamCause.TEMPERATURE_RANGE: "temperature outside the passport range",
+    StreamCause.RECOVERED: "recovered",
+}
+_TRIAD_WORDS = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
+
+
+def cause_words(cause: EventCause) -> str:
+    """The cause in a few plain words."""
+    return _CAUSE_WORDS[_parse_cause(cause)]
+
+
+def describe(event: Event) -> str:
+    """One human sentence naming vehicle, instance, sensor, cause and the number, e.g.
+
+    ``"v1 IMU0 accelerometer y: scale factor error 2.1e-03 (nominal 0, tolerance 1e-03, sigma 1e-04) [F5]"``.
+    """
+    where = f"{event.vehicle} IMU{event.imu}"
+    if event.triad is not None:
+        where += f" {_TRIAD_WORDS[event.triad]}"
+    if event.axis is not None:
+        where += f" {event.axis}"
+    unit = "" if event.unit == "1" else f" {event.unit}"
+    what = cause_words(event.cause)
+    if event.estimate is not None:
+        what += f" {event.estimate:.3g}{unit}"
+    extra = [
+        f"{name} {value:.3g}"
+        for name, value in (("nominal", event.nominal), ("tolerance", event.tolerance), ("sigma", event.sigma))
+        if value is not None
+    ]
+    if extra:
+        what += f" ({', '.join(extra)})"
+    return f"{where}: {what} [{event.predicate.value}]"
+
+
+def event_to_dict(event: Event) -> dict[str, Any]:
+    """The schema map (module docstring) of an event."""
+    return {
+        "type": EVENT_TYPE,
+        "v": EVENT_VERSION,
+        "id": event.event_id,
+        "vehicle": event.vehicle,
+        "imu": event.imu,
+        "t_s": event.t_s,
+        "predicate": event.predicate.value,
+        "triad": None if event.triad is None else event.triad.value,
+        "axis": event.axis,
+        "cause": event.cause.value,
+        "estimate": event.estimate,
+        "nominal": event.nominal,
+        "tolerance": event.tolerance,
+        "sigma": event.sigma,
+        "unit": event.unit,
+        "severity": event.severity.name.lower(),
+        "text": event.text,
+    }
+
+
+def event_from_dict(obj: Mapping[str, Any]) -> Event:
+    """Validate a schema map and build the :class:`Event`; raises :class:`EventError`.
+
+    The id is checked against the fields: a map whose id does not match its
+    content is rejected (``bad_value``), so a corrupted or forged id cannot
+    break deduplication.
+    """
+    if not isinstance(obj, Mapping):
+        raise EventError(Reason.NOT_A_MAP, f"an event must be a map, got {type(obj).__name__}")
+    obj = dict(obj)
+    check_header(obj, type_tag=EVENT_TYPE, versions=SUPPORTED_EVENT_VERSIONS, error=EventError)
+    err = {"error": EventError}
+    severity_name = field(obj, "severity", str, **err)
+    if severity_name.upper() not in Severity.__members__ or severity_name != severity_name.lower():
+        raise EventError(Reason.BAD_VALUE, f"severity {severity_name!r} is not one of {[s.name.lower() for s in Severity]}")
+    axis = field(obj, "axis", str, optional=True, **err)
+    if axis is not None and axis not in EVENT_AXES:
+        raise EventError(Reason.BAD_VALUE, f"axis {axis!r} is not one of {EVENT_AXES}")
+    event = Event(
+        event_id=field(obj, "id", str, **err),
+        vehicle=check_vehicle(field(obj, "vehicle", str, **err), **err),
+        imu=check_imu(field(obj, "imu", int, **err), **err),
+        t_s=float_field(obj, "t_s", **err),
+        predicate=enum_field(obj, "predicate", (Predicate,), **err),
+        triad=enum_field(obj, "triad", (Triad,), optional=True, **err),
+        axis=axis,
+        cause=enum_field(obj, "cause", (Cause, StreamCause), **err),
+        estimate=float_field(obj, "estimate", optional=True, **err),
+        nominal=float_field(obj, "nominal", optional=True, **err),
+        tolerance=float_field(obj, "tolerance", optional=True, **err),
+        sigma=float_field(obj, "sigma", optional=True, **err),
+        unit=field(obj, "unit", str, **err),
+        severity=Severity[severity_name.upper()],
+        text=field(obj, "text", str, **err),
+    )
+    expected = event_id(
+        vehicle=event.vehicle, imu=event.imu, predicate=event.predicate, triad=event.triad, axis=event.axis, cause=event.cause, t_s=event.t_s
+    )
+    if event.event_id != expected:
+        raise EventError(Reason.BAD_VALUE, f"event id {event.event_id} does not match its fields (expected {expected})")
+    return event
+
+
+def encode_event(event: Event) -> bytes:
+    """msgpack bytes of an event (schema version :data:`EVENT_VERSION`)."""
+    return msgpack.packb(event_to_dict(event), use_bin_type=True)
+
+
+def decode_event(data: bytes, *, max_bytes: int = MAX_EVENT_BYTES) -> Event:
+    """Decode and validate msgpack bytes; raises :class:`EventError` with a reason."""
+    return event_from_dict(unpack_map(data, error=EventError, max_bytes=max_bytes))
+
+
+def event_to_json(event: Event) -> str:
+    """One JSON line (no newline), keys sorted: the same map as msgpack."""
+    return json.dumps(event_to_dict(event), sort_keys=True, separators=(",", ":"), allow_nan=False)
+
+
+def event_from_json(text: str) -> Event:
+    """Parse one JSON line; raises :class:`EventError` with a reason."""
+    if not isinstance(text, str):
+        raise EventError(Reason.WRONG_TYPE, f"expected str, got {type(text).__name__}")
+    if len(text) > MAX_EVENT_BYTES:
+        raise EventError(Reason.TOO_LARGE, f"{len(text)} characters exceeds the limit of {MAX_EVENT_BYTES}")
+    try:
+        obj = json.loads(text, parse_constant=_reject_constant)
+    except EventError:
+        raise
+    except ValueError as exc:
+        raise EventError(Reason.MALFORMED, f"not valid JSON ({exc})") from None
+    return event_from_dict(obj)
+
+
+def _reject_constant(name: str) -> float:
+    raise EventError(Reason.NON_FINITE, f"JSON constant {name} is not allowed")
+
+
+def _parse_cause(value: Any) -> EventCause:
+    if isinstance(value, (Cause, StreamCause)):
+        return value
+    for kind in (Cause, StreamCause):
+        try:
+            return kind(value)
+        except ValueError:
+            continue
+    raise EventError(Reason.BAD_VALUE, f"unknown cause {value!r}")
+
+
+def _parse_severity(value: Any) -> Severity:
+    try:
+        return Severity(value)
+    except ValueError:
+        raise EventError(Reason.BAD_VALUE, f"severity must be a MAV_SEVERITY value 0..7, got {value!r}") from None
+
+
+# --------------------------------------------------------------------------- status
+
+
+class ImuState(str, Enum):
+    """Health state of one IMU as the status topic reports it."""
+
+    STARTING = "starting"
+    OK = "ok"
+    WARNING = "warning"
+    FAULT = "fault"
+    NO_DATA = "no_data"
+    NO_PASSPORT = "no_passport"
+
+
+@dataclass(frozen=True)
+class ImuStatus:
+    """Per-IMU part of a status message.
+
+    Attributes
+    ----------
+    imu : IMU index.
+    state : :class:`ImuState`.
+    samples : samples accepted so far.
+    last_t_s : data time of the last accepted sample, s (None before the first).
+    positions : static positions accumulated for the diagnosis.
+    detail : short free text (e.g. the last failed predicate).
+    """
+
+    imu: int
+    state: ImuState
+    samples: int = 0
+    last_t_s: float | None = None
+    positions: int = 0
+    detail: str = ""
+
+    def __post_init__(self) -> None:
+        check_imu(self.imu, error=EventError)
+        object.__setattr__(self, "state", ImuState(self.state))
+        for name in ("samples", "positions"):
+            value = getattr(self, name)
+            if type(value) is not int or value < 0:
+                raise EventError(Reason.BAD_VALUE, f"{name} must be an int >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Status:
+    """The periodic status of one vehicle as seen by one service instance.
+
+    Attributes
+    ----------
+    vehicle : vehicle id.
+    service : name of the service instance that publishes it.
+    t_s : service clock at publication, s since the Unix epoch.
+    counters : name → count (accepted frames, rejections by reason, drops, events, …).
+    imus : per-IMU state.
+    """
+
+    vehicle: str
+    service: str
+    t_s: float
+    counters: Mapping[str, int] = dc_field(default_factory=dict)
+    imus: tuple[ImuStatus, ...] = ()
+
+    def __post_init__(self) -> None:
+        check_vehicle(self.vehicle, error=EventError)
+        if not isinstance(self.service, str) or not self.service:
+            raise EventError(Reason.BAD_VALUE, f"service must be a non-empty str, got {self.service!r}")
+        for name, value in self.counters.items():
+            if not isinstance(name, str) or type(value) is not int or value < 0:
+                raise EventError(Reason.BAD_VALUE, f"counter {name!r} must be a str name with an int >= 0, got {value!r}")
+        object.__setattr__(self, "counters", MappingProxyType(dict(self.counters)))
+        object.__setattr__(self, "imus", tuple(self.imus))
+
+
+def encode_status(status: Status) -> bytes:
+    """msgpack bytes of a status message (schema version :data:`STATUS_VERSION`)."""
+    return msgpack.packb(
+        {
+            "type": STATUS_TYPE,
+            "v": STATUS_VERSION,
+            "vehicle": status.vehicle,
+            "service": status.service,
+            "t_s": float(status.t_s),
+            "counters": dict(status.counters),
+            "imus": [
+                {"imu": s.imu, "state": s.state.value, "samples": s.samples, "last_t_s": s.last_t_s, "positions": s.positions, "detail": s.detail}
+                for s in status.imus
+            ],
+        },
+        use_bin_type=True,
+    )
+
+
+def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
+    """Decode and validate a status message; raises :class:`EventError` with a reason."""
+    err = {"error": EventError}
+    obj = unpack_map(data, max_bytes=max_bytes, **err)
+    check_header(obj, type_tag=STATUS_TYPE, versions=SUPPORTED_STATUS_VERSIONS, **err)
+    imus = []
+    for item in field(obj, "imus", list, **err):
+        if not isinstance(item, dict):
+            raise EventError(Reason.WRONG_TYPE, f"each imus entry must be a map, got {type(item).__name__}")
+        imus.append(
+            ImuStatus(
+                imu=field(item, "imu", int, **err),
+                state=enum_field(item, "state", (ImuState,), **err),
+                samples=field(item, "samples", int, **err),
+                last_t_s=float_field(item, "last_t_s", optional=True, **err),
+                positions=field(item, "positions", int, **err),
+                detail=field(item, "detail", str, **err),
+            )
+        )
+    return Status(
+        vehicle=field(obj, "vehicle", str, **err),
+        service=field(obj, "service", str, **err),
+        t_s=float_field(obj, "t_s", **err),
+        counters=field(obj, "counters", dict, **err),
+        imus=tuple(imus),
+    )

@@ -1,0 +1,558 @@
+"""MAVLink transport (pymavlink): IMU messages in as SI batches; HEARTBEAT and STATUSTEXT alerts out.
+
+Input messages and their units (converted once, here, to the SI of
+:mod:`estimators.conventions`)
+=================  ============  ==================  ==================  ===================
+message            time          accel               gyro                temperature
+=================  ============  ==================  ==================  ===================
+``RAW_IMU``        time_usec µs  raw × scale          raw × scale          raw × scale (0: none)
+``SCALED_IMU[23]`` time_boot_ms  mG (1e-3 g0)         mrad/s              cdegC (0: none)
+``HIGHRES_IMU``    time_usec µs  m/s²                rad/s               °C if fields_updated has bit 4096
+=================  ============  ==================  ==================  ===================
+
+``RAW_IMU`` carries raw sensor counts whose scale the standard leaves to the
+sender; :data:`RAW_IMU_ARDUPILOT` (the default) is what ArduPilot sends: mG,
+mrad/s and cdegC, the same as ``SCALED_IMU``. Configure :class:`ImuScale` for
+other senders. ``g0`` is :data:`~estimators.conventions.STANDARD_GRAVITY_MPS2`
+(a unit, as in ArduPilot's ``GRAVITY_MSS``). Axes and signs are passed through:
+MAVLink's body frame is FRD and its accelerations are specific force, which is
+the convention of this project (a level unit reads −g on z: +g along *up*).
+Time is the sender's boot clock; ``time_boot_ms`` wraps after 49.7 days.
+
+Each message type maps to an IMU index (:data:`DEFAULT_IMU_INDEX`); for
+``RAW_IMU`` and ``HIGHRES_IMU`` the message's own ``id`` field is added. An
+autopilot that sends two types for the same IMU (PX4 may send HIGHRES_IMU and
+SCALED_IMU) should have one of them left out of ``messages``.
+
+pymavlink global state
+----------------------
+pymavlink chooses its wire protocol and dialect through environment variables
+read at import (``MAVLINK20``, ``MAVLINK_DIALECT``) and switches them *globally*
+(``os.environ`` and ``mavutil.mavlink``) when it first sees a MAVLink 2 byte.
+This module never relies on that: it imports the MAVLink 2 ``ardupilotmega``
+dialect module explicitly, gives every connection its own parser/encoder of
+that dialect, and marks the connection as already MAVLink 2 so pymavlink's
+auto-switch never runs. A MAVLink 2 parser also reads MAVLink 1 packets.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import numpy as np
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
+from protocols._handoff import ThreadToAsyncRing
+from protocols.events import Event, Severity, StreamCause
+from protocols.frames import FrameError, SampleBatch
+
+STATUSTEXT_MAX_CHARS = 50
+"""Characters of one STATUSTEXT (the MAVLink field; ground stations show one message per line)."""
+
+
+class ImuMessage(str, Enum):
+    """The MAVLink messages read as IMU samples."""
+
+    RAW_IMU = "RAW_IMU"
+    SCALED_IMU = "SCALED_IMU"
+    SCALED_IMU2 = "SCALED_IMU2"
+    SCALED_IMU3 = "SCALED_IMU3"
+    HIGHRES_IMU = "HIGHRES_IMU"
+
+
+@dataclass(frozen=True)
+class ImuScale:
+    """SI value of one count of an integer IMU message."""
+
+    accel_mps2_per_lsb: float
+    gyro_rps_per_lsb: float
+    temp_c_per_lsb: float
+
+
+MILLI_UNITS = ImuScale(STANDARD_GRAVITY_MPS2 * 1e-3, 1e-3, 1e-2)
+"""mG, mrad/s, cdegC: fixed by the standard for SCALED_IMU*."""
+RAW_IMU_ARDUPILOT = MILLI_UNITS
+"""ArduPilot's RAW_IMU scaling (the default for RAW_IMU)."""
+
+DEFAULT_IMU_INDEX: Mapping[ImuMessage, int] = {
+    ImuMessage.RAW_IMU: 0,
+    ImuMessage.SCALED_IMU: 0,
+    ImuMessage.SCALED_IMU2: 1,
+    ImuMessage.SCALED_IMU3: 2,
+    ImuMessage.HIGHRES_IMU: 0,
+}
+_HIGHRES_TEMPERATURE_BIT = mavlink2.HIGHRES_IMU_UPDATED_TEMPERATURE
+
+
+# --------------------------------------------------------------------------- in
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU sample decoded from a MAVLink message, SI units (before it becomes a batch)."""
+
+    imu: int
+    t_s: float
+    accel_mps2: tuple[float, float, float]
+    gyro_rps: tuple[float, float, float]
+    temp_c: float | None
+
+
+def decode_imu_message(msg, *, raw_scale: ImuScale = RAW_IMU_ARDUPILOT, imu_index: Mapping[ImuMessage, int] = DEFAULT_IMU_INDEX) -> ImuSample | None:
+    """SI sample of a RAW_IMU / SCALED_IMU* / HIGHRES_IMU message; ``None`` for other messages.
+
+    ``msg`` is a pymavlink message object (live link or log). Units: module table.
+    """
+    try:
+        kind = ImuMessage(msg.get_type())
+    except ValueError:
+        return None
+    base = imu_index.get(kind)
+    if base is None:
+        return None
+    if kind is ImuMessage.HIGHRES_IMU:
+        temp = float(msg.temperature) if msg.fields_updated & _HIGHRES_TEMPERATURE_BIT else None
+        return ImuSample(
+            base + int(getattr(msg, "id", 0)),
+            msg.time_usec * 1e-6,
+            (float(msg.xacc), float(msg.yacc), float(msg.zacc)),
+            (float(msg.xgyro), float(msg.ygyro), float(msg.zgyro)),
+            temp,
+        )
+    if kind is ImuMessage.RAW_IMU:
+        scale, t_s, imu = raw_scale, msg.time_usec * 1e-6, base + int(getattr(msg, "id", 0))
+    else:
+        scale, t_s, imu = MILLI_UNITS, msg.time_boot_ms * 1e-3, base
+    # The temperature extension field is 0 when the sender has none (MAVLink spec; a real 0 °C is sent as 1).
+    raw_temp = int(getattr(msg, "temperature", 0))
+    ka, kg = scale.accel_mps2_per_lsb, scale.gyro_rps_per_lsb
+    return ImuSample(
+        imu,
+        t_s,
+        (msg.xacc * ka, msg.yacc * ka, msg.zacc * ka),
+        (msg.xgyro * kg, msg.ygyro * kg, msg.zgyro * kg),
+        raw_temp * scale.temp_c_per_lsb if raw_temp else None,
+    )
+
+
+def sample_to_batch(sample: ImuSample, *, vehicle: str, seq: int) -> SampleBatch:
+    """A one-sample :class:`~protocols.frames.SampleBatch` of an :class:`ImuSample`."""
+    temp = 0.0 if sample.temp_c is None else sample.temp_c
+    row = np.array([[sample.t_s, *sample.accel_mps2, *sample.gyro_rps, temp]])
+    # One read-only row, viewed as the batch's arrays: SampleBatch then keeps the views without copying.
+    row.flags.writeable = False
+    return SampleBatch(vehicle, sample.imu, seq, row[:, 0], row[:, 1:4], row[:, 4:7], None if sample.temp_c is None else row[:, 7])
+
+
+# --------------------------------------------------------------------------- out: typed builders
+
+
+def imu_message(kind: ImuMessage, *, t_s: float, accel_mps2, gyro_rps, temp_c: float | None = None, imu_id: int = 0,
+                raw_scale: ImuScale = RAW_IMU_ARDUPILOT):
+    """Build an IMU message from SI values (the inverse of :func:`decode_imu_message`; a simulated autopilot).
+
+    Integer messages round to the nearest count; ``imu_id`` goes into the
+    ``id`` field of RAW_IMU and HIGHRES_IMU (the SCALED_IMU* number is the IMU).
+    """
+    kind = ImuMessage(kind)
+    a = [float(v) for v in np.asarray(accel_mps2, float).reshape(3)]
+    g = [float(v) for v in np.asarray(gyro_rps, float).reshape(3)]
+    if kind is ImuMessage.HIGHRES_IMU:
+        return mavlink2.MAVLink_highres_imu_message(
+            time_usec=int(round(t_s * 1e6)), xacc=a[0], yacc=a[1], zacc=a[2], xgyro=g[0], ygyro=g[1], zgyro=g[2],
+            xmag=0.0, ymag=0.0, zmag=0.0, abs_pressure=0.0, diff_pressure=0.0, pressure_alt=0.0,
+            temperature=0.0 if temp_c is None else float(temp_c),
+            fields_updated=0b111111 | (0 if temp_c is None else _HIGHRES_TEMPERATURE_BIT), id=int(imu_id),
+        )
+    scale = raw_scale if kind is ImuMessage.RAW_IMU else MILLI_UNITS
+    ia = [_count(v / scale.accel_mps2_per_lsb) for v in a]
+    ig = [_count(v / scale.gyro_rps_per_lsb) for v in g]
+    it = 0 if temp_c is None else (_count(temp_c / scale.temp_c_per_lsb) or 1)
+    common = dict(xacc=ia[0], yacc=ia[1], zacc=ia[2], xgyro=ig[0], ygyro=ig[1], zgyro=ig[2], xmag=0, ymag=0, zmag=0, temperature=it)
+    if kind is ImuMessage.RAW_IMU:
+        return mavlink2.MAVLink_raw_imu_message(time_usec=int(round(t_s * 1e6)), id=int(imu_id), **common)
+    cls = {
+        ImuMessage.SCALED_IMU: mavlink2.MAVLink_scaled_imu_message,
+        ImuMessage.SCALED_IMU2: mavlink2.MAVLink_scaled_imu2_message,
+        ImuMessage.SCALED_IMU3: mavlink2.MAVLink_scaled_imu3_message,
+    }[kind]
+    return cls(time_boot_ms=int(round(t_s * 1e3)), **common)
+
+
+def _count(value: float) -> int:
+    """Nearest int16 count; out of range is an error (a saturated field would lie)."""
+    n = int(round(value))
+    if not -32768 <= n <= 32767:
+        raise ValueError(f"{value:.1f} counts do not fit the int16 field of the message")
+    return n
+
+
+def heartbeat_message(*, system_status: int = mavlink2.MAV_STATE_ACTIVE):
+    """HEARTBEAT of an onboard computer component (MAV_TYPE_ONBOARD_CONTROLLER, no autopilot)."""
+    return mavlink2.MAVLink_heartbeat_message(
+        type=mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+        autopilot=mavlink2.MAV_AUTOPILOT_INVALID,
+        base_mode=0,
+        custom_mode=0,
+        system_status=int(system_status),
+        mavlink_version=3,
+    )
+
+
+def statustext_messages(text: str, *, severity: Severity, chunk_id: int = 0) -> list:
+    """STATUSTEXT message(s) for ``text`` (ASCII; other characters become ``?``).
+
+    Up to 50 characters: one message with ``id`` 0 (the MAVLink rule for a
+    single chunk). Longer: 50-character chunks sharing ``chunk_id`` (1..65535)
+    with ``chunk_seq`` 0, 1, …; a final shorter (possibly empty) chunk marks
+    the end, so ground stations that reassemble MAVLink 2 chunks show the whole text.
+    """
+    data = text.encode("ascii", "replace")
+    if len(data) <= STATUSTEXT_MAX_CHARS:
+        return [mavlink2.MAVLink_statustext_message(severity=int(Severity(severity)), text=data, id=0, chunk_seq=0)]
+    if not 1 <= chunk_id <= 65535:
+        raise ValueError(f"a long text needs a chunk_id in 1..65535, got {chunk_id}")
+    pieces = [data[i : i + STATUSTEXT_MAX_CHARS] for i in range(0, len(data), STATUSTEXT_MAX_CHARS)]
+    if len(pieces[-1]) == STATUSTEXT_MAX_CHARS:
+        pieces.append(b"")
+    if len(pieces) > 256:
+        raise ValueError(f"text of {len(data)} characters needs more than 256 chunks")
+    return [
+        mavlink2.MAVLink_statustext_message(severity=int(Severity(severity)), text=p, id=chunk_id, chunk_seq=i)
+        for i, p in enumerate(pieces)
+    ]
+
+
+_SENSOR_ABBREV = {Triad.ACCEL: "ACC", Triad.GYRO: "GYR"}
+_CAUSE_ABBREV = {
+    Cause.ZERO_SIGNAL: "bias",
+    Cause.SCALE_FACTOR: "scale",
+    Cause.NON_ORTHOGONALITY: "nonorth",
+    StreamCause.OUT_OF_SHELL: "off-sphere",
+    StreamCause.NO_DATA: "no data",
+    StreamCause.STUCK_VALUE: "stuck",
+    StreamCause.REJECTED_SAMPLES: "rejects",
+    StreamCause.DISAGREEMENT: "disagree",
+    StreamCause.TEMPERATURE_RANGE: "temp range",
+    StreamCause.RECOVERED: "recovered",
+}
+_UNIT_ABBREV = {"1": "", "s": "s", "m/s^2": "m/s2", "rad/s": "rad/s", "count": ""}
+
+
+def alert_text(event: Event) -> str:
+    """The ≤ 50-character STATUSTEXT line of an event.
+
+    Rule: ``IMU<n> <SENSOR> <AXIS> <cause> <estimate>[unit] lim <tolerance> <predicate>``,
+    e.g. ``"IMU1 ACC Y scale 0.0021 lim 0.001 F5"``. Instance, sensor, cause and
+    the estimate are always kept; when the line is too long the predicate is
+    dropped first, then the limit, then the estimate loses digits. (The vehicle
+    is the MAVLink system itself, so it is not repeated.)
+    """
+    head = f"IMU{event.imu}"
+    if event.triad is not None:
+        head += f" {_SENSOR_ABBREV[event.triad]}"
+    if event.axis is not None:
+        head += f" {event.axis.upper()}"
+    head += f" {_CAUSE_ABBREV[event.cause]}"
+    unit = _UNIT_ABBREV.get(event.unit, event.unit)
+    for digits in (3, 2, 1):
+        number = "" if event.estimate is None else f" {event.estimate:.{digits}g}{unit}"
+        limit = "" if event.tolerance is None else f" lim {event.tolerance:.{digits}g}"
+        for candidate in (f"{head}{number}{limit} {event.predicate.value}", f"{head}{number}{limit}", f"{head}{number}"):
+            if len(candidate) <= STATUSTEXT_MAX_CHARS:
+                return candidate
+    return f"{head}{number}"[:STATUSTEXT_MAX_CHARS]
+
+
+class AlertRateLimiter:
+    """Rate limit for STATUSTEXT alerts: the Zenoh event stream stays complete, the GCS is not flooded.
+
+    At most one alert per ``min_interval_s`` for the same (imu, predicate,
+    triad, axis), and at most ``max_per_s`` alerts per second overall (token
+    bucket, burst ``max_per_s``). Time comes from the caller (``now_s``,
+    any monotonic clock), so the rule is deterministic in tests and replays.
+    """
+
+    def __init__(self, *, min_interval_s: float = 10.0, max_per_s: float = 1.0):
+        if min_interval_s < 0 or max_per_s <= 0:
+            raise ValueError(f"need min_interval_s >= 0 and max_per_s > 0, got {min_interval_s}, {max_per_s}")
+        self._interval_s = float(min_interval_s)
+        self._rate = float(max_per_s)
+        self._tokens = float(max_per_s)
+        self._last_s: float | None = None
+        self._last_by_key: dict[tuple, float] = {}
+        self.suppressed = 0
+
+    def allow(self, event: Event, now_s: float) -> bool:
+        """True if an alert for ``event`` may be sent at ``now_s`` (and counts it as sent)."""
+        if self._last_s is not None:
+            self._tokens = min(self._rate, self._tokens + (now_s - self._last_s) * self._rate)
+        self._last_s = now_s
+        key = (event.vehicle, event.imu, event.predicate, event.triad, event.axis)
+        last = self._last_by_key.get(key)
+        if (last is not None and now_s - last < self._interval_s) or self._tokens < 1.0:
+            self.suppressed += 1
+            return False
+        self._tokens -= 1.0
+        self._last_by_key[key] = now_s
+        return True
+
+
+# --------------------------------------------------------------------------- the link
+
+
+@dataclass(frozen=True)
+class MavlinkSettings:
+    """One MAVLink link; :meth:`from_dict` reads the ``[mavlink]`` table of the service configuration.
+
+    Attributes
+    ----------
+    device : pymavlink connection string: ``udpin:0.0.0.0:14550``, ``udpout:host:port``,
+        ``tcp:host:port``, ``tcpin:host:port``, or a serial device ``/dev/ttyACM0``.
+    vehicle : vehicle id given to the batches read from this link.
+    baud : serial baud rate.
+    source_system : our MAVLink system id (an onboard computer uses its vehicle's, usually 1).
+    source_component : our component id (default MAV_COMP_ID_ONBOARD_COMPUTER = 191).
+    autopilot_system : accept IMU messages only from this system id (None: any).
+    messages : IMU message types read.
+    imu_index : message type → IMU index (module docstring).
+    raw_scale : scaling of RAW_IMU counts.
+    signing_key : 32-byte MAVLink 2 signing secret; when set, everything sent is signed.
+    signing_link_id : link id in the signature.
+    accept_unsigned : with signing on, still accept unsigned incoming messages
+        (autopilots that do not sign their telemetry).
+    """
+
+    device: str
+    vehicle: str
+    baud: int = 115200
+    source_system: int = 1
+    source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
+    autopilot_system: int | None = None
+    messages: tuple[ImuMessage, ...] = tuple(ImuMessage)
+    imu_index: Mapping[ImuMessage, int] = field(default_factory=lambda: dict(DEFAULT_IMU_INDEX))
+    raw_scale: ImuScale = RAW_IMU_ARDUPILOT
+    signing_key: bytes | None = None
+    signing_link_id: int = 1
+    accept_unsigned: bool = True
+
+    def __post_init__(self) -> None:
+        if self.signing_key is not None and len(self.signing_key) != 32:
+            raise ValueError(f"a MAVLink 2 signing key has 32 bytes, got {len(self.signing_key)}")
+        for name in ("source_system", "source_component", "signing_link_id"):
+            value = getattr(self, name)
+            if not 0 <= value <= 255:
+                raise ValueError(f"{name} must be in 0..255, got {value}")
+        object.__setattr__(self, "messages", tuple(ImuMessage(m) for m in self.messages))
+
+    _KEYS = ("device", "vehicle", "baud", "source_system", "source_component", "autopilot_system", "messages",
+             "imu_index", "raw_scale", "signing_key_hex", "signing_link_id", "accept_unsigned")
+
+    @classmethod
+    def from_dict(cls, table: Mapping[str, Any]) -> "MavlinkSettings":
+        """From a plain dict: as the attributes, with ``signing_key_hex`` (64 hex digits) for the key,
+        ``raw_scale`` as ``{accel_mps2_per_lsb, gyro_rps_per_lsb, temp_c_per_lsb}`` and
+        ``imu_index`` as ``{"SCALED_IMU2": 1, ...}``. Errors are ``ValueError`` naming the key."""
+        unknown = sorted(set(table) - set(cls._KEYS))
+        if unknown:
+            raise ValueError(f"unknown mavlink setting(s) {unknown}; allowed: {list(cls._KEYS)}")
+        for name in ("device", "vehicle"):
+            if not isinstance(table.get(name), str) or not table[name]:
+                raise ValueError(f"mavlink {name} must be a non-empty string")
+        kw: dict[str, Any] = {k: table[k] for k in ("device", "vehicle", "baud", "source_system", "source_component",
+                                                    "autopilot_system", "signing_link_id", "accept_unsigned") if k in table}
+        try:
+            if "messages" in table:
+                kw["messages"] = tuple(ImuMessage(m) for m in table["messages"])
+            if "imu_index" in table:
+                kw["imu_index"] = {**DEFAULT_IMU_INDEX, **{ImuMessage(k): int(v) for k, v in table["imu_index"].items()}}
+        except ValueError as exc:
+            raise ValueError(f"mavlink messages/imu_index: {exc}; known: {[m.value for m in ImuMessage]}") from None
+        if "raw_scale" in table:
+            kw["raw_scale"] = ImuScale(**{k: float(v) for k, v in table["raw_scale"].items()})
+        if "signing_key_hex" in table:
+            try:
+                kw["signing_key"] = bytes.fromhex(table["signing_key_hex"])
+            except (ValueError, TypeError):
+                raise ValueError("mavlink signing_key_hex must be 64 hexadecimal digits") from None
+        return cls(**kw)
+
+
+@dataclass
+class LinkCounters:
+    """What a :class:`MavlinkLink` saw and sent."""
+
+    messages: int = 0
+    imu_samples: dict[str, int] = field(default_factory=dict)
+    ignored_system: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    alerts_sent: int = 0
+    texts_sent: int = 0
+    heartbeats_sent: int = 0
+
+
+class MavlinkLink:
+    """A MAVLink 2 connection of an onboard health monitor.
+
+    Reads IMU messages as :class:`~protocols.frames.SampleBatch` (one sample
+    per batch, ``seq`` counted per IMU), sends HEARTBEAT and STATUSTEXT.
+    Blocking calls: in a service run :meth:`recv_batch` in a thread or use
+    :class:`MavlinkSource`. A context manager (closes the port).
+    """
+
+    def __init__(self, settings: MavlinkSettings):
+        self.settings = settings
+        self._conn = mavutil.mavlink_connection(
+            settings.device, baud=settings.baud, source_system=settings.source_system, source_component=settings.source_component
+        )
+        use_mavlink2(self._conn)
+        if settings.signing_key is not None:
+            self._conn.setup_signing(
+                settings.signing_key,
+                sign_outgoing=True,
+                link_id=settings.signing_link_id,
+                allow_unsigned_callback=(lambda mav, msg_id: True) if settings.accept_unsigned else None,
+            )
+        self._types = [m.value for m in settings.messages]
+        self._seq: dict[int, int] = {}
+        self._send_lock = threading.Lock()
+        self._chunk_id = 0
+        self.counters = LinkCounters()
+
+    @property
+    def connection(self) -> mavutil.mavfile:
+        """The pymavlink connection (its ``mav`` is a MAVLink 2 ``ardupilotmega`` instance)."""
+        return self._conn
+
+    def recv_batch(self, timeout_s: float) -> SampleBatch | None:
+        """The next IMU sample as a batch, or ``None`` if none arrives within ``timeout_s``."""
+        msg = self._conn.recv_match(type=self._types, blocking=True, timeout=timeout_s)
+        if msg is None:
+            return None
+        return self.to_batch(msg)
+
+    def to_batch(self, msg) -> SampleBatch | None:
+        """Convert one received IMU message (counted); ``None`` if it is from another system or unusable."""
+        self.counters.messages += 1
+        if self.settings.autopilot_system is not None and msg.get_srcSystem() != self.settings.autopilot_system:
+            self.counters.ignored_system += 1
+            return None
+        sample = decode_imu_message(msg, raw_scale=self.settings.raw_scale, imu_index=self.settings.imu_index)
+        if sample is None:
+            return None
+        seq = self._seq.get(sample.imu, 0)
+        try:
+            batch = sample_to_batch(sample, vehicle=self.settings.vehicle, seq=seq)
+        except FrameError as exc:
+            self.counters.rejected[exc.reason.value] = self.counters.rejected.get(exc.reason.value, 0) + 1
+            return None
+        self._seq[sample.imu] = seq + 1
+        kind = msg.get_type()
+        self.counters.imu_samples[kind] = self.counters.imu_samples.get(kind, 0) + 1
+        return batch
+
+    def send(self, msg) -> None:
+        """Send a message built by one of the typed builders (signed if signing is configured)."""
+        with self._send_lock:
+            self._conn.mav.send(msg)
+
+    def send_heartbeat(self) -> None:
+        """One HEARTBEAT (the service sends it at 1 Hz)."""
+        self.send(heartbeat_message())
+        self.counters.heartbeats_sent += 1
+
+    def send_text(self, text: str, severity: Severity) -> int:
+        """Send free text as STATUSTEXT (chunked beyond 50 characters); returns messages sent."""
+        with self._send_lock:
+            self._chunk_id = self._chunk_id % 65535 + 1
+            chunk_id = self._chunk_id
+        messages = statustext_messages(text, severity=severity, chunk_id=chunk_id)
+        for msg in messages:
+            self.send(msg)
+        self.counters.texts_sent += len(messages)
+        return len(messages)
+
+    def send_alert(self, event: Event) -> str:
+        """Send the event's :func:`alert_text` as one STATUSTEXT with its severity; returns the text."""
+        text = alert_text(event)
+        self.send(statustext_messages(text, severity=event.severity)[0])
+        self.counters.alerts_sent += 1
+        return text
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> "MavlinkLink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:
+    """Give a pymavlink connection its own MAVLink 2 ``ardupilotmega`` parser/encoder (module docstring)."""
+    conn.mav = mavlink2.MAVLink(conn, srcSystem=conn.source_system, srcComponent=conn.source_component)
+    conn.mav.robust_parsing = True
+    conn.WIRE_PROTOCOL_VERSION = mavlink2.WIRE_PROTOCOL_VERSION
+    conn.first_byte = False  # pymavlink's auto-switch would rewrite os.environ and the global dialect
+    return conn
+
+
+class MavlinkSource:
+    """IMU batches from a :class:`MavlinkLink` for asyncio: a reader thread and a bounded ring.
+
+    The thread blocks on the link (``poll_s`` at a time, so :meth:`close`
+    returns promptly); when the consumer lags, the oldest batch is dropped and
+    counted in :attr:`dropped_overload`. ``async for batch in source`` or
+    ``await source.get()``; create it inside the running loop (or pass ``loop``).
+    """
+
+    def __init__(self, link: MavlinkLink, *, capacity: int = 4096, poll_s: float = 0.1, loop: asyncio.AbstractEventLoop | None = None):
+        self.link = link
+        self._ring: ThreadToAsyncRing[SampleBatch] = ThreadToAsyncRing(capacity, loop or asyncio.get_running_loop())
+        self._stop = threading.Event()
+        self._poll_s = float(poll_s)
+        self._thread = threading.Thread(target=self._run, name=f"mavlink-{link.settings.device}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            batch = self.link.recv_batch(self._poll_s)
+            if batch is not None:
+                self._ring.put(batch)
+
+    @property
+    def dropped_overload(self) -> int:
+        return self._ring.dropped
+
+    async def get(self) -> SampleBatch:
+        """The next batch; ``EOFError`` after :meth:`close` once drained."""
+        return await self._ring.get()
+
+    def __aiter__(self):
+        return self
+
+    async def __anext__(self) -> SampleBatch:
+        try:
+            return await self.get()
+        except EOFError:
+            raise StopAsyncIteration from None
+
+    def close(self, *, timeout_s: float = 5.0) -> None:
+        """Stop the reader thread (within ``poll_s``) and end iteration; the link stays open."""
+        self._stop.set()
+        self._thread.join(timeout_s)
+        self._ring.close()
+
+    def __enter__(self) -> "MavlinkSource":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,698 @@
+"""Zenoh transport: IMU frames in, fault events and status out (eclipse-zenoh 1.x).
+
+Key expressions
+---------------
+=================================  ==========================================
+``ins/<vehicle>/imu/<n>``          IMU frames (:mod:`protocols.frames`)
+``ins/<vehicle>/health/events``    events (:mod:`protocols.events`), full stream
+``ins/<vehicle>/health/ack``       event acknowledgement queries (below)
+``ins/<vehicle>/health/status``    periodic :class:`~protocols.events.Status`
+=================================  ==========================================
+
+A frame subscription may cover the whole fleet (``ins/*/imu/*``) or a subset:
+``ins/uav-7/imu/*``, or a prefix with Zenoh's in-chunk wildcard
+``ins/fleetA-$*/imu/*``. Service instances share a fleet by taking disjoint key
+expressions; the router is the distributed engine that routes each vehicle's
+frames to the one instance that subscribed to them.
+
+Back-pressure per stream
+------------------------
+* Frames: a :class:`FrameSource` copies each payload from Zenoh's callback
+  thread into a bounded ring and hands it to asyncio through
+  ``loop.call_soon_threadsafe``. When the ring is full the *oldest* frame is
+  dropped and counted (fresh data is worth more to a health monitor; the seq
+  gap shows the pipeline what was lost). Frames are published with
+  ``CongestionControl.DROP``: a congested link sheds frames, never blocks the
+  vehicle.
+* Events: reliable, ``CongestionControl.BLOCK``; never dropped on purpose.
+
+What "acknowledged by the transport" means
+------------------------------------------
+A Zenoh ``put`` returns as soon as the data is queued locally; it returns
+without error even when no router is connected, so by itself it proves
+nothing. :class:`EventPublisher.publish` therefore does two things:
+
+1. ``put`` the event on ``ins/<vehicle>/health/events`` (reliable, BLOCK), so
+   every subscriber (dashboards, loggers) sees the full stream;
+2. with :attr:`AckMode.RECEIVER` (the default) it sends a query carrying the
+   same encoded event to ``ins/<vehicle>/health/ack``. Each
+   :class:`EventReceiver` with ``acknowledge=True`` decodes it, hands it to its
+   application callback (exactly once per id: it deduplicates) and only then
+   replies with the event id. The event counts as acknowledged when at least
+   ``min_acks`` replies carrying its id arrive within ``ack_timeout_s``: an
+   end-to-end acknowledgement by the receiving application.
+
+With :attr:`AckMode.MATCHED` the acknowledgement is weaker: ``put`` returned
+without error on the reliable/blocking publisher *and* Zenoh reported at least
+one matching subscriber (a route exists). Use it only where every consumer is a
+plain subscriber. Either way the caller (the outbox) retries what is not
+acknowledged, and receivers deduplicate by id, so delivery is at-least-once on
+the wire and exactly-once per id at the application.
+
+Connection
+----------
+:func:`zenoh_config` builds a ``zenoh.Config`` from a plain dict (see
+:class:`ZenohSettings`). A *client* session needs its router: ``zenoh.open``
+blocks until it connects or ``connect_timeout_s`` passes (``None``: wait
+forever); afterwards Zenoh reconnects by itself when the router restarts
+(verified by ``tests/test_zenoh_adapter.py``), and declared subscribers,
+queryables and publishers keep working.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from protocols._handoff import ThreadToAsyncRing
+from protocols._schema import MAX_IMU_INDEX, VEHICLE_ID_PATTERN, Reason, SchemaError, check_imu, check_vehicle
+from protocols.events import Event, EventError, Status, decode_event, decode_status, encode_event, encode_status
+from protocols.frames import MAX_FRAME_BYTES, FrameError, SampleBatch, SampleDtype, decode_frame, encode_frame
+
+ROOT = "ins"
+ALL_FRAMES = f"{ROOT}/*/imu/*"
+ALL_EVENTS = f"{ROOT}/*/health/events"
+ALL_STATUS = f"{ROOT}/*/health/status"
+
+
+# ----------------------------------------------------------------------------- keys
+
+
+def frame_key(vehicle: str, imu: int) -> str:
+    """``ins/<vehicle>/imu/<n>``."""
+    return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/imu/{check_imu(imu, error=SchemaError)}"
+
+
+def events_key(vehicle: str) -> str:
+    """``ins/<vehicle>/health/events``."""
+    return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/health/events"
+
+
+def ack_key(vehicle: str) -> str:
+    """``ins/<vehicle>/health/ack`` (acknowledgement queries, see the module docstring)."""
+    return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/health/ack"
+
+
+def status_key(vehicle: str) -> str:
+    """``ins/<vehicle>/health/status``."""
+    return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/health/status"
+
+
+def frame_selectors(vehicles: Iterable[str] | None = None) -> tuple[str, ...]:
+    """Frame key expressions for some vehicles (``None``: the whole fleet, ``ins/*/imu/*``)."""
+    if vehicles is None:
+        return (ALL_FRAMES,)
+    return tuple(f"{ROOT}/{check_vehicle(v, error=SchemaError)}/imu/*" for v in vehicles)
+
+
+def parse_frame_key(key: str) -> tuple[str, int]:
+    """``(vehicle, imu)`` of a concrete frame key; raises :class:`~protocols.frames.FrameError` (``key_mismatch``) otherwise."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != ROOT or parts[2] != "imu" or not parts[3].isdigit() or int(parts[3]) > MAX_IMU_INDEX:
+        raise FrameError(Reason.KEY_MISMATCH, f"{key!r} is not a frame key ins/<vehicle>/imu/<n>")
+    if not VEHICLE_ID_PATTERN.match(parts[1]):
+        raise FrameError(Reason.KEY_MISMATCH, f"{key!r} does not name a valid vehicle id")
+    return parts[1], int(parts[3])
+
+
+# --------------------------------------------------------------------------- config
+
+
+class Mode(str, Enum):
+    PEER = "peer"
+    CLIENT = "client"
+    ROUTER = "router"
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """Session settings; :meth:`from_dict` reads the ``[zenoh]`` table of the service configuration.
+
+    Attributes
+    ----------
+    mode : peer, client or router.
+    connect : endpoints to connect to, e.g. ``("tcp/10.0.0.1:7447",)`` or ``("tls/host:7447",)``.
+    listen : endpoints to listen on.
+    multicast_scouting : UDP multicast discovery; off by default (explicit endpoints on a vehicle network).
+    connect_timeout_s : how long opening waits for the ``connect`` endpoints; ``None`` waits forever.
+    tls : passed unchanged to Zenoh's ``transport/link/tls`` (``root_ca_certificate``,
+        ``listen_certificate``, ``listen_private_key``, ``enable_mtls``, ``connect_certificate``, …).
+    access_control : passed unchanged to Zenoh's ``access_control`` (``enabled``,
+        ``default_permission``, ``rules``, ``subjects``, ``policies``).
+    extra : any other Zenoh configuration, as ``{"json/key/path": value}``.
+    """
+
+    mode: Mode = Mode.PEER
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    connect_timeout_s: float | None = None
+    tls: Mapping[str, Any] | None = None
+    access_control: Mapping[str, Any] | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    _KEYS = ("mode", "connect", "listen", "multicast_scouting", "connect_timeout_s", "tls", "access_control", "extra")
+
+    @classmethod
+    def from_dict(cls, table: Mapping[str, Any]) -> "ZenohSettings":
+        """Validate a plain dict (e.g. a TOML table); unknown keys are a ``ValueError`` naming them."""
+        unknown = sorted(set(table) - set(cls._KEYS))
+        if unknown:
+            raise ValueError(f"unknown zenoh setting(s) {unknown}; allowed: {list(cls._KEYS)}")
+        try:
+            mode = Mode(table.get("mode", Mode.PEER.value))
+        except ValueError:
+            raise ValueError(f"zenoh mode must be one of {[m.value for m in Mode]}, got {table.get('mode')!r}") from None
+        endpoints = {}
+        for name in ("connect", "listen"):
+            value = table.get(name, ())
+            if isinstance(value, str) or not all(isinstance(e, str) and "/" in e for e in value):
+                raise ValueError(f"zenoh {name} must be a list of endpoints like 'tcp/127.0.0.1:7447', got {value!r}")
+            endpoints[name] = tuple(value)
+        timeout = table.get("connect_timeout_s")
+        if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout < 0):
+            raise ValueError(f"zenoh connect_timeout_s must be a number >= 0 or absent, got {timeout!r}")
+        for name in ("tls", "access_control", "extra"):
+            if table.get(name) is not None and not isinstance(table[name], Mapping):
+                raise ValueError(f"zenoh {name} must be a table, got {type(table[name]).__name__}")
+        scouting = table.get("multicast_scouting", False)
+        if not isinstance(scouting, bool):
+            raise ValueError(f"zenoh multicast_scouting must be true or false, got {scouting!r}")
+        return cls(
+            mode=mode,
+            connect=endpoints["connect"],
+            listen=endpoints["listen"],
+            multicast_scouting=scouting,
+            connect_timeout_s=None if timeout is None else float(timeout),
+            tls=table.get("tls"),
+            access_control=table.get("access_control"),
+            extra=dict(table.get("extra") or {}),
+        )
+
+
+def zenoh_config(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Config:
+    """A ``zenoh.Config`` from :class:`ZenohSettings` (or the plain dict it is read from)."""
+    if not isinstance(settings, ZenohSettings):
+        settings = ZenohSettings.from_dict(settings)
+    entries: dict[str, Any] = {
+        "mode": settings.mode.value,
+        "scouting/multicast/enabled": settings.multicast_scouting,
+    }
+    if settings.connect:
+        entries["connect/endpoints"] = list(settings.connect)
+        # Keep trying instead of failing the service when the router is late.
+        entries["connect/exit_on_failure"] = False
+        entries["connect/timeout_ms"] = -1 if settings.connect_timeout_s is None else int(settings.connect_timeout_s * 1000)
+    if settings.listen:
+        entries["listen/endpoints"] = list(settings.listen)
+    if settings.tls is not None:
+        entries["transport/link/tls"] = dict(settings.tls)
+    if settings.access_control is not None:
+        entries["access_control"] = dict(settings.access_control)
+    entries.update(settings.extra)
+    config = zenoh.Config()
+    for key, value in entries.items():
+        try:
+            config.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as exc:
+            raise ValueError(f"zenoh rejects configuration {key} = {value!r}: {exc}") from None
+    return config
+
+
+def open_session(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Session:
+    """Open a Zenoh session (a context manager: ``with open_session(cfg) as session``).
+
+    Blocks in client mode until a router answers (module docstring); raises
+    ``ConnectionError`` if ``connect_timeout_s`` passes first.
+    """
+    config = zenoh_config(settings)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ConnectionError(f"cannot open the zenoh session: {exc}") from None
+
+
+@contextmanager
+def open_router(listen_endpoint: str, *, extra: Mapping[str, Any] | None = None) -> Iterator[zenoh.Session]:
+    """An in-process Zenoh router listening on ``listen_endpoint`` (e.g. ``tcp/127.0.0.1:7447``).
+
+    Multicast scouting is off; closing the context closes the router.
+    """
+    settings = ZenohSettings(mode=Mode.ROUTER, listen=(listen_endpoint,), extra=dict(extra or {}))
+    session = open_session(settings)
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def _matching(entity) -> bool:
+    status = entity.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+# ---------------------------------------------------------------------- frames in
+
+
+@dataclass(frozen=True)
+class SourceCounters:
+    """A snapshot of what a source saw (all monotonic counts)."""
+
+    received: int = 0
+    accepted: int = 0
+    dropped_overload: int = 0
+    rejected: Mapping[str, int] = field(default_factory=dict)
+
+    def as_dict(self, prefix: str = "frames") -> dict[str, int]:
+        """Flat counters for the status topic: ``frames.received``, ``frames.rejected.non_finite``, …"""
+        out = {f"{prefix}.received": self.received, f"{prefix}.accepted": self.accepted, f"{prefix}.dropped_overload": self.dropped_overload}
+        out.update({f"{prefix}.rejected.{reason}": n for reason, n in sorted(self.rejected.items())})
+        return out
+
+
+class FrameSource:
+    """IMU frames from Zenoh as validated :class:`~protocols.frames.SampleBatch` values, for asyncio.
+
+    Use as ``async for batch in source`` or ``await source.get()``; create it
+    inside the running loop (or pass ``loop``). Payloads are copied out of
+    Zenoh's callback thread into a :class:`~protocols._handoff.ThreadToAsyncRing`
+    and decoded by the consumer, so a flood costs the receiving thread only a
+    copy. Rejected frames (bad bytes, or a payload whose vehicle/imu differ
+    from its key: ``key_mismatch``) are counted by reason in :attr:`counters`
+    and reported to ``on_reject`` (an ``(key, FrameError)`` callable, called in
+    the consumer); they never stop the source.
+
+    Parameters
+    ----------
+    session : an open Zenoh session.
+    key_exprs : frame key expressions, default the whole fleet (:func:`frame_selectors`).
+    capacity : frames held between Zenoh and the pipeline; beyond it the oldest is dropped and counted.
+    max_frame_bytes : size limit passed to :func:`~protocols.frames.decode_frame`.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_exprs: Sequence[str] = (ALL_FRAMES,),
+        *,
+        capacity: int = 4096,
+        max_frame_bytes: int = MAX_FRAME_BYTES,
+        on_reject: Callable[[str, FrameError], None] | None = None,
+        loop: asyncio.AbstractEventLoop | None = None,
+    ):
+        self._ring: ThreadToAsyncRing[tuple[str, bytes]] = ThreadToAsyncRing(capacity, loop or asyncio.get_running_loop())
+        self._max_bytes = int(max_frame_bytes)
+        self._on_reject = on_reject
+        self._accepted = 0
+        self._rejected: dict[str, int] = {}
+        self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in key_exprs]
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._ring.put((str(sample.key_expr), sample.payload.to_bytes()))
+
+    @property
+    def counters(self) -> SourceCounters:
+        return SourceCounters(self._ring.put_count, self._accepted, self._ring.dropped, dict(self._rejected))
+
+    async def get(self) -> SampleBatch:
+        """The next valid frame (waits; rejected frames are counted and skipped); ``EOFError`` after :meth:`close`."""
+        while True:
+            batch = self._decode(*await self._ring.get())
+            if batch is not None:
+                return batch
+
+    def get_nowait(self) -> SampleBatch | None:
+        """The next valid frame if one is queued, else ``None``."""
+        while (item := self._ring.get_nowait()) is not None:
+            batch = self._decode(*item)
+            if batch is not None:
+                return batch
+        return None
+
+    def _decode(self, key: str, payload: bytes) -> SampleBatch | None:
+        try:
+            batch = decode_frame(payload, max_bytes=self._max_bytes)
+            if parse_frame_key(key) != (batch.vehicle, batch.imu):
+                raise FrameError(Reason.KEY_MISMATCH, f"frame of {batch.vehicle}/imu {batch.imu} published on {key}")
+        except FrameError as exc:
+            self._rejected[exc.reason.value] = self._rejected.get(exc.reason.value, 0) + 1
+            if self._on_reject is not None:
+                self._on_reject(key, exc)
+            return None
+        self._accepted += 1
+        return batch
+
+    @property
+    def queued(self) -> int:
+        return len(self._ring)
+
+    def __aiter__(self):
+        return self
+
+    async def __anext__(self) -> SampleBatch:
+        try:
+            return await self.get()
+        except EOFError:
+            raise StopAsyncIteration from None
+
+    def close(self) -> None:
+        """Undeclare the subscribers; a waiting consumer finishes what is queued, then stops."""
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._subscribers = []
+        self._ring.close()
+
+    def __enter__(self) -> "FrameSource":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------- frames out
+
+
+class FramePublisher:
+    """Publishes one IMU's samples as frames of up to ``batch_samples`` samples.
+
+    :meth:`add` buffers samples and publishes every full batch; :meth:`flush`
+    publishes the rest (also done by :meth:`close`). ``seq`` counts frames from
+    ``first_seq``. Frames use ``CongestionControl.DROP`` (module docstring).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        vehicle: str,
+        imu: int,
+        *,
+        batch_samples: int = 100,
+        dtype: SampleDtype = SampleDtype.F64,
+        first_seq: int = 0,
+        congestion_control: zenoh.CongestionControl = zenoh.CongestionControl.DROP,
+    ):
+        if batch_samples < 1:
+            raise ValueError(f"batch_samples must be >= 1, got {batch_samples}")
+        self.vehicle, self.imu = vehicle, imu
+        self._publisher = session.declare_publisher(frame_key(vehicle, imu), congestion_control=congestion_control)
+        self._batch = int(batch_samples)
+        self._dtype = SampleDtype(dtype)
+        self.seq = int(first_seq)
+        self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = []
+        self._buffered = 0
+        self.frames_published = 0
+
+    def add(self, t_s, accel_mps2, gyro_rps, temp_c=None) -> int:
+        """Buffer samples (one: scalars and (3,) vectors; many: (N,), (N, 3)); returns frames published."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=float))
+        a = np.asarray(accel_mps2, dtype=float).reshape(-1, 3)
+        g = np.asarray(gyro_rps, dtype=float).reshape(-1, 3)
+        tc = None if temp_c is None else np.atleast_1d(np.asarray(temp_c, dtype=float))
+        if not (a.shape[0] == g.shape[0] == t.shape[0] and (tc is None or tc.shape[0] == t.shape[0])):
+            raise ValueError(f"sample counts differ: t_s {t.shape[0]}, accel {a.shape[0]}, gyro {g.shape[0]}")
+        if self._parts and (self._parts[0][3] is None) != (tc is None):
+            raise ValueError("temperature must be given for every sample of a frame or for none")
+        self._parts.append((t, a, g, tc))
+        self._buffered += t.shape[0]
+        if self._buffered < self._batch:
+            return 0
+        # Join once, then cut full frames: cost linear in the samples however they arrive.
+        t, a, g, tc = self._joined()
+        n_full = self._buffered // self._batch
+        for k in range(n_full):
+            cut = slice(k * self._batch, (k + 1) * self._batch)
+            self.publish(SampleBatch(self.vehicle, self.imu, self.seq, t[cut], a[cut], g[cut], None if tc is None else tc[cut]))
+        rest = slice(n_full * self._batch, None)
+        self._parts = [(t[rest], a[rest], g[rest], None if tc is None else tc[rest])] if self._buffered % self._batch else []
+        self._buffered %= self._batch
+        return n_full
+
+    def flush(self) -> int:
+        """Publish buffered samples as one frame (if any); returns frames published."""
+        if not self._buffered:
+            return 0
+        t, a, g, tc = self._joined()
+        self._parts, self._buffered = [], 0
+        self.publish(SampleBatch(self.vehicle, self.imu, self.seq, t, a, g, tc))
+        return 1
+
+    def _joined(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        t, a, g = (np.concatenate([p[i] for p in self._parts]) for i in range(3))
+        return t, a, g, None if self._parts[0][3] is None else np.concatenate([p[3] for p in self._parts])
+
+    @property
+    def matched(self) -> bool:
+        """Whether Zenoh currently routes these frames to at least one subscriber."""
+        return _matching(self._publisher)
+
+    def publish(self, batch: SampleBatch) -> None:
+        """Publish one ready batch as it is (its own ``seq``); advances :attr:`seq` past it."""
+        self._publisher.put(encode_frame(batch, dtype=self._dtype))
+        self.seq = batch.seq + 1
+        self.frames_published += 1
+
+    def close(self) -> None:
+        self.flush()
+        self._publisher.undeclare()
+
+    def __enter__(self) -> "FramePublisher":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------- events out
+
+
+class AckMode(str, Enum):
+    """What makes :meth:`EventPublisher.publish` return True (module docstring)."""
+
+    RECEIVER = "receiver"
+    MATCHED = "matched"
+
+
+class EventPublisher:
+    """Publishes events reliably (``CongestionControl.BLOCK``) and reports whether each was acknowledged.
+
+    :meth:`publish` blocks (up to ``ack_timeout_s`` plus the BLOCK wait):
+    call it from a worker thread (``asyncio.to_thread``) in a service.
+    """
+
+    def __init__(self, session: zenoh.Session, *, ack: AckMode = AckMode.RECEIVER, ack_timeout_s: float = 1.0, min_acks: int = 1):
+        if min_acks < 1 or ack_timeout_s <= 0:
+            raise ValueError(f"need min_acks >= 1 and ack_timeout_s > 0, got {min_acks}, {ack_timeout_s}")
+        self._session = session
+        self._ack = AckMode(ack)
+        self._timeout_s = float(ack_timeout_s)
+        self._min_acks = int(min_acks)
+        self._entities: dict[str, tuple[zenoh.Publisher, zenoh.Querier]] = {}
+        self._lock = threading.Lock()
+
+    def _declared(self, vehicle: str) -> tuple[zenoh.Publisher, zenoh.Querier]:
+        with self._lock:
+            pair = self._entities.get(vehicle)
+            if pair is None:
+                pair = (
+                    self._session.declare_publisher(
+                        events_key(vehicle),
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                        reliability=zenoh.Reliability.RELIABLE,
+                        priority=zenoh.Priority.DATA_HIGH,
+                    ),
+                    self._session.declare_querier(
+                        ack_key(vehicle),
+                        target=zenoh.QueryTarget.ALL,
+                        consolidation=zenoh.ConsolidationMode.NONE,
+                        timeout=self._timeout_s,
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                        priority=zenoh.Priority.DATA_HIGH,
+                    ),
+                )
+                self._entities[vehicle] = pair
+            return pair
+
+    def ready(self, vehicle: str) -> bool:
+        """Whether Zenoh currently routes this vehicle's events to anyone who can acknowledge them.
+
+        :attr:`AckMode.RECEIVER`: an acknowledging :class:`EventReceiver` is
+        reachable; :attr:`AckMode.MATCHED`: a subscriber is. (A hint for the
+        status topic and for waiting in tests; :meth:`publish` is the proof.)
+        """
+        pub, querier = self._declared(vehicle)
+        return _matching(querier if self._ack is AckMode.RECEIVER else pub)
+
+    def publish(self, event: Event) -> bool:
+        """Put the event on its events key and return True iff it is acknowledged (:class:`AckMode`)."""
+        payload = encode_event(event)
+        pub, querier = self._declared(event.vehicle)
+        pub.put(payload)
+        if self._ack is AckMode.MATCHED:
+            return _matching(pub)
+        expected = event.event_id.encode()
+        acks = sum(1 for reply in querier.get(payload=payload) if reply.ok is not None and reply.ok.payload.to_bytes() == expected)
+        return acks >= self._min_acks
+
+    def close(self) -> None:
+        with self._lock:
+            for pub, querier in self._entities.values():
+                pub.undeclare()
+                querier.undeclare()
+            self._entities.clear()
+
+    def __enter__(self) -> "EventPublisher":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class EventReceiver:
+    """The receiving side of events: subscribes, deduplicates by id, acknowledges (module docstring).
+
+    ``on_event`` is called once per event id (from a Zenoh thread; keep it
+    short or hand over to your own queue). Ids are remembered up to
+    ``dedup_capacity`` (oldest forgotten first). Undecodable payloads are
+    counted in :attr:`rejected` by reason and answered with an error reply.
+
+    Parameters
+    ----------
+    vehicles : a vehicle id or a chunk pattern (``"*"``, ``"fleetA-$*"``) selecting whose events to receive.
+    acknowledge : declare the ack queryable (be one of the ``min_acks`` receivers).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        on_event: Callable[[Event], None],
+        *,
+        vehicles: str = "*",
+        acknowledge: bool = True,
+        dedup_capacity: int = 100_000,
+    ):
+        self._on_event = on_event
+        self._seen: OrderedDict[str, None] = OrderedDict()
+        self._capacity = int(dedup_capacity)
+        self._lock = threading.Lock()
+        self.received = 0
+        self.duplicates = 0
+        self.rejected: dict[str, int] = {}
+        self._entities = [session.declare_subscriber(f"{ROOT}/{vehicles}/health/events", self._on_sample)]
+        if acknowledge:
+            self._entities.append(session.declare_queryable(f"{ROOT}/{vehicles}/health/ack", self._on_query))
+
+    def _accept(self, payload: bytes) -> Event:
+        event = decode_event(payload)
+        # One lock around check-and-deliver: the subscriber and the queryable
+        # threads may carry the same event at the same time.
+        with self._lock:
+            if event.event_id in self._seen:
+                self.duplicates += 1
+                return event
+            self._seen[event.event_id] = None
+            if len(self._seen) > self._capacity:
+                self._seen.popitem(last=False)
+            self.received += 1
+            self._on_event(event)
+        return event
+
+    def _reject(self, exc: EventError) -> None:
+        with self._lock:
+            self.rejected[exc.reason.value] = self.rejected.get(exc.reason.value, 0) + 1
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            self._accept(sample.payload.to_bytes())
+        except EventError as exc:
+            self._reject(exc)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = query.payload
+        if payload is None:
+            query.reply_err(b"no event in the acknowledgement query")
+            return
+        try:
+            event = self._accept(payload.to_bytes())
+        except EventError as exc:
+            self._reject(exc)
+            query.reply_err(str(exc).encode())
+            return
+        query.reply(query.key_expr, event.event_id.encode())
+
+    @property
+    def seen_ids(self) -> set[str]:
+        with self._lock:
+            return set(self._seen)
+
+    def close(self) -> None:
+        for entity in self._entities:
+            entity.undeclare()
+        self._entities = []
+
+    def __enter__(self) -> "EventReceiver":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------- status
+
+
+class StatusPublisher:
+    """Publishes :class:`~protocols.events.Status` on ``ins/<vehicle>/health/status``.
+
+    Status is periodic and the latest one supersedes the others, so it uses
+    ``CongestionControl.DROP``; the service's clock decides the period.
+    """
+
+    def __init__(self, session: zenoh.Session):
+        self._session = session
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    def publish(self, status: Status) -> None:
+        pub = self._publishers.get(status.vehicle)
+        if pub is None:
+            pub = self._session.declare_publisher(status_key(status.vehicle), congestion_control=zenoh.CongestionControl.DROP)
+            self._publishers[status.vehicle] = pub
+        pub.put(encode_status(status))
+
+    def close(self) -> None:
+        for pub in self._publishers.values():
+            pub.undeclare()
+        self._publishers.clear()
+
+    def __enter__(self) -> "StatusPublisher":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def subscribe_status(session: zenoh.Session, on_status: Callable[[Status], None], *, vehicles: str = "*",
+                     on_reject: Callable[[EventError], None] | None = None) -> zenoh.Subscriber:
+    """Subscribe to status messages (``ins/<vehicles>/health/status``); undecodable ones go to ``on_reject``.
+
+    Returns the subscriber (undeclare it, or use it as a context manager, to stop).
+    """
+
+    def callback(sample: zenoh.Sample) -> None:
+        try:
+            status = decode_status(sample.payload.to_bytes())
+        except EventError as exc:
+            if on_reject is not None:
+                on_reject(exc)
+            return
+        on_status(status)
+
+    return session.declare_subscriber(f"{ROOT}/{vehicles}/health/status", callback)

@@ -1,0 +1,113 @@
+"""A Zenoh router as its own process: ``python -m protocols.zenoh_router --listen tcp/127.0.0.1:PORT``.
+
+The process prints one line ``ready <endpoint>`` on stdout once it listens,
+and runs until SIGTERM or SIGINT (or its stdin closes, when ``--stdin`` is
+given, so a parent that dies takes its router with it). Tests that must stop
+and restart the router (reconnection) use :class:`RouterProcess`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+
+from protocols.zenoh_adapter import open_router
+
+
+def free_local_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (bind to port 0, read it, release it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class RouterProcess:
+    """A router child process on ``endpoint``; :meth:`start` waits for its ``ready`` line.
+
+    ``with RouterProcess(endpoint) as router: ...`` starts and stops it;
+    :meth:`stop` (SIGTERM) and :meth:`kill` (SIGKILL) end it, :meth:`start`
+    starts it again on the same endpoint.
+    """
+
+    def __init__(self, endpoint: str, *, ready_timeout_s: float = 20.0):
+        self.endpoint = endpoint
+        self._timeout_s = float(ready_timeout_s)
+        self._proc: subprocess.Popen | None = None
+
+    def start(self) -> "RouterProcess":
+        if self.running:
+            raise RuntimeError("the router is already running")
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "protocols.zenoh_router", "--listen", self.endpoint, "--stdin"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        )
+        ready, _, _ = select.select([self._proc.stdout], [], [], self._timeout_s)
+        line = self._proc.stdout.readline().strip() if ready else ""
+        if line != f"ready {self.endpoint}":
+            self.kill()
+            raise RuntimeError(f"zenoh router on {self.endpoint} did not become ready (got {line!r})")
+        return self
+
+    @property
+    def running(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._proc is None else self._proc.pid
+
+    def stop(self) -> int:
+        """SIGTERM and wait; returns the exit status (0 if it was not running)."""
+        return self._end(signal.SIGTERM)
+
+    def kill(self) -> int:
+        """SIGKILL and wait; returns the exit status (0 if it was not running)."""
+        return self._end(signal.SIGKILL)
+
+    def _end(self, sig: signal.Signals) -> int:
+        if self._proc is None:
+            return 0
+        if self._proc.poll() is None:
+            self._proc.send_signal(sig)
+        status = self._proc.wait(timeout=self._timeout_s)
+        for stream in (self._proc.stdin, self._proc.stdout):
+            stream.close()
+        self._proc = None
+        return status
+
+    def __enter__(self) -> "RouterProcess":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m protocols.zenoh_router", description=__doc__.splitlines()[0])
+    parser.add_argument("--listen", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--stdin", action="store_true", help="also stop when stdin reaches end of file")
+    args = parser.parse_args(argv)
+    done = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: done.set())
+    if args.stdin:
+        threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+    with open_router(args.listen):
+        print(f"ready {args.listen}", flush=True)
+        # wait() with a timeout in a loop so the main thread stays responsive to signals.
+        while not done.wait(timeout=0.5):
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

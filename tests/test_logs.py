@@ -1,0 +1,222 @@
+"""Log readers on the real logs (pinned counts and values) and round trips of the log writers."""
+
+import os
+
+import numpy as np
+import pytest
+from pymavlink import DFReader, mavutil
+
+from estimators.conventions import STANDARD_GRAVITY_MPS2
+from estimators.session import ImuSession
+from protocols.frames import concat_batches
+from protocols.logs import (
+    LogFormat,
+    LogReader,
+    detect_format,
+    read_log_sessions,
+    write_dataflash_bin,
+    write_dataflash_text,
+    write_tlog,
+)
+from protocols.mavlink_adapter import ImuMessage
+
+DATA = "/work/shared/data/logs"
+REAL_BIN = f"{DATA}/ardupilot-test.BIN"
+REAL_TLOG = f"{DATA}/ardupilot-sitl-vtol.tlog"
+
+
+# ------------------------------------------------------------------ real logs
+
+
+def test_real_dataflash_log_two_imus_with_temperature():
+    sessions, stats = read_log_sessions(REAL_BIN)
+    assert stats.messages == {"IMU": 45, "IMU2": 45} and stats.dropped == {}
+    assert sorted(sessions) == [0, 1]
+    imu0, imu1 = sessions[0], sessions[1]
+    assert imu0.n_samples == imu1.n_samples == 45
+    # Logged every 20 ms (median) over 0.975 s, from 81.794643 s after boot.
+    assert imu0.t_s[0] == pytest.approx(81.794643, abs=1e-9)
+    assert imu0.rate_hz == pytest.approx(49.94, abs=0.01)
+    assert imu0.t_s[-1] - imu0.t_s[0] == pytest.approx(0.974846, abs=1e-6)
+    np.testing.assert_allclose(imu0.accel_mps2[0], [0.41619188, 0.46917608, -9.78099442], rtol=1e-7)
+    np.testing.assert_allclose(imu0.gyro_rps[0], [-0.11657085, 0.00964673, -0.00366144], rtol=1e-6)
+    np.testing.assert_allclose(imu1.accel_mps2[0], [0.387851, 0.52207196, -9.67627525], rtol=1e-6)
+    assert imu0.temp_c[0] == pytest.approx(44.4232826) and imu1.temp_c[0] == pytest.approx(39.9229507)
+    # Specific force magnitude near g (the vehicle is not quite still in this second).
+    assert np.linalg.norm(imu0.accel_mps2, axis=1).mean() == pytest.approx(9.93140, abs=1e-5)
+
+
+@pytest.fixture(scope="module")
+def real_tlog():
+    reader = LogReader(REAL_TLOG, vehicle="vtol", batch_samples=100)
+    return reader, list(reader), reader.stats
+
+
+def test_real_tlog_counts_and_an_out_of_order_record(real_tlog):
+    _, batches, stats = real_tlog
+    sessions = {imu: concat_batches([b for b in batches if b.imu == imu]) for imu in (0, 1)}
+    assert stats.messages == {"RAW_IMU": 795, "SCALED_IMU2": 796}
+    # One record of each stream arrives a second late in the log: left out and counted.
+    assert stats.dropped == {"time_not_increasing": 2}
+    assert {k: s.n_samples for k, s in sessions.items()} == {0: 794, 1: 795}
+    assert sessions[0].rate_hz == pytest.approx(4.17, abs=0.01)
+    assert sessions[0].t_s[0] == pytest.approx(608.582234)
+    # RAW_IMU (ArduPilot: mG, mrad/s): xacc 33, zacc -999, zgyro -231.
+    np.testing.assert_allclose(sessions[0].accel_mps2[0], np.array([33, -10, -999]) * STANDARD_GRAVITY_MPS2 / 1000)
+    np.testing.assert_allclose(sessions[0].gyro_rps[0], [-0.009, 0.003, -0.231])
+    assert sessions[0].temp_c is None and sessions[1].temp_c is None  # temperature field 0: not provided
+
+
+def test_reading_is_deterministic_and_batches_stay_interleaved(real_tlog):
+    reader, first, _ = real_tlog
+    assert list(reader) == first
+    assert [(b.imu, b.seq) for b in first[:4]] == [(0, 0), (1, 0), (0, 1), (1, 1)]
+    assert {b.vehicle for b in first} == {"vtol"} and all(b.n_samples == 100 for b in first[:14])
+
+
+def test_detect_format_by_content():
+    assert detect_format(REAL_BIN) is LogFormat.DATAFLASH_BIN
+    assert detect_format(REAL_TLOG) is LogFormat.TLOG
+
+
+# ------------------------------------------------------------------ writers: round trips
+
+
+def _sessions(n=400, rate_hz=200.0, seed=3, temp=True, imus=(0, 1, 2)):
+    rng = np.random.default_rng(seed)
+    out = {}
+    for imu in imus:
+        t = 10.0 + np.arange(n) / rate_hz + imu * 1e-3  # IMUs sampled 1 ms apart
+        acc = rng.normal([0.3, -0.2, -9.8], 0.05, (n, 3))
+        gyr = rng.normal(0.0, 0.01, (n, 3))
+        out[imu] = ImuSession(t, acc, gyr, 30.0 + imu + 0.01 * np.arange(n) if temp else None)
+    return out
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["instance-field", "IMU-IMU2-IMU3"])
+def test_dataflash_bin_round_trip_through_pymavlink(tmp_path, legacy):
+    sessions = _sessions()
+    path = tmp_path / "flight.bin"
+    assert write_dataflash_bin(path, sessions, legacy_names=legacy) == 1200
+    # pymavlink's own reader accepts the file ...
+    reader = DFReader.DFReader_binary(str(path))
+    names = {"IMU", "IMU2", "IMU3"} if legacy else {"IMU"}
+    assert set(reader.name_to_id) == names | {"FMT"}
+    reader.close()
+    # ... and ours gives the sessions back, at float32 precision and 1 µs time resolution.
+    back, stats = read_log_sessions(path)
+    assert stats.dropped == {} and sorted(back) == [0, 1, 2]
+    for imu, s in sessions.items():
+        np.testing.assert_allclose(back[imu].t_s, s.t_s, atol=0.5e-6, rtol=0)
+        np.testing.assert_allclose(back[imu].accel_mps2, s.accel_mps2, rtol=2.0**-24, atol=0)
+        np.testing.assert_allclose(back[imu].gyro_rps, s.gyro_rps, rtol=2.0**-24, atol=0)
+        np.testing.assert_allclose(back[imu].temp_c, s.temp_c, rtol=2.0**-24, atol=0)
+
+
+@pytest.mark.parametrize("legacy", [False, True], ids=["instance-field", "IMU-IMU2-IMU3"])
+def test_dataflash_text_round_trip_is_exact(tmp_path, legacy):
+    sessions = _sessions(n=150, temp=False)
+    path = tmp_path / "flight.log"
+    write_dataflash_text(path, sessions, legacy_names=legacy)
+    assert detect_format(path) is LogFormat.DATAFLASH_TEXT
+    back, _ = read_log_sessions(path)
+    for imu, s in sessions.items():
+        np.testing.assert_allclose(back[imu].t_s, s.t_s, atol=0.5e-6, rtol=0)  # TimeUS is an integer µs
+        np.testing.assert_array_equal(back[imu].accel_mps2, s.accel_mps2)
+        np.testing.assert_array_equal(back[imu].gyro_rps, s.gyro_rps)
+        assert back[imu].temp_c is None
+
+
+def test_tlog_round_trip_quantized_as_the_messages_are(tmp_path):
+    sessions = _sessions(n=200)
+    path = tmp_path / "flight.tlog"
+    assert write_tlog(path, sessions) == 600
+    back, stats = read_log_sessions(path)
+    assert stats.messages == {"RAW_IMU": 200, "SCALED_IMU2": 200, "SCALED_IMU3": 200}
+    half_mg, half_mrad = STANDARD_GRAVITY_MPS2 * 0.5e-3, 0.5e-3
+    for imu, s in sessions.items():
+        time_quantum = 1e-6 if imu == 0 else 1e-3  # RAW_IMU: time_usec; SCALED_IMU*: time_boot_ms
+        np.testing.assert_allclose(back[imu].t_s, s.t_s, atol=time_quantum / 2 + 1e-9, rtol=0)
+        np.testing.assert_allclose(back[imu].accel_mps2, s.accel_mps2, atol=half_mg * (1 + 1e-9), rtol=0)
+        np.testing.assert_allclose(back[imu].gyro_rps, s.gyro_rps, atol=half_mrad * (1 + 1e-9), rtol=0)
+        np.testing.assert_allclose(back[imu].temp_c, s.temp_c, atol=0.005 + 1e-9)
+    # Every record is an 8-byte big-endian µs wall stamp + one MAVLink 2 packet.
+    data = path.read_bytes()
+    assert int.from_bytes(data[:8], "big") == round((1.7e9 + sessions[0].t_s[0]) * 1e6) and data[8] == 0xFD
+
+
+def test_reading_a_tlog_leaves_pymavlink_global_state_alone(tmp_path):
+    before = (os.environ.get("MAVLINK20"), mavutil.mavlink, mavutil.current_dialect)
+    path = tmp_path / "flight.tlog"
+    write_tlog(path, _sessions(n=5))
+    assert sum(s.n_samples for s in read_log_sessions(path)[0].values()) == 15
+    assert (os.environ.get("MAVLINK20"), mavutil.mavlink, mavutil.current_dialect) == before
+
+
+def test_tlog_highres_round_trip_at_float32(tmp_path):
+    sessions = _sessions(n=100, imus=(0, 1))
+    path = tmp_path / "px4.tlog"
+    write_tlog(path, sessions, messages={0: ImuMessage.HIGHRES_IMU, 1: ImuMessage.HIGHRES_IMU})
+    back, stats = read_log_sessions(path)
+    assert stats.messages == {"HIGHRES_IMU": 200}
+    for imu, s in sessions.items():
+        np.testing.assert_allclose(back[imu].accel_mps2, s.accel_mps2, rtol=2.0**-24, atol=0)
+        np.testing.assert_allclose(back[imu].temp_c, s.temp_c, rtol=2.0**-24, atol=0)
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def test_non_finite_and_repeated_samples_are_dropped_and_counted(tmp_path):
+    s = _sessions(n=20, imus=(0,))[0]
+    acc = s.accel_mps2.copy()
+    acc[5, 1] = np.nan
+    t = s.t_s.copy()
+    t[9] = t[8]
+    path = tmp_path / "bad.log"
+    write_dataflash_text(path, {0: ImuSession(t, acc, s.gyro_rps, s.temp_c)})
+    back, stats = read_log_sessions(path)
+    assert stats.dropped == {"non_finite": 1, "time_not_increasing": 1} and back[0].n_samples == 18
+
+
+def test_unreadable_files_are_clear_errors(tmp_path):
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(b"this is not a log at all, just some text")
+    with pytest.raises(ValueError, match="not a MAVLink .tlog or a DataFlash"):
+        LogReader(junk)
+    with pytest.raises(ValueError, match="no such log file"):
+        LogReader(tmp_path / "missing.tlog")
+    with pytest.raises(ValueError, match="batch_samples"):
+        LogReader(REAL_BIN, batch_samples=0)
+    with pytest.raises(ValueError, match="SCALED_IMU2 carries IMU 1 only, not IMU 0"):
+        write_tlog(tmp_path / "x.tlog", _sessions(n=2, imus=(0,)), messages={0: ImuMessage.SCALED_IMU2})
+
+
+@pytest.mark.parametrize("name,writer", [("cut.bin", write_dataflash_bin), ("cut.tlog", write_tlog), ("cut.log", write_dataflash_text)])
+def test_truncated_logs_give_what_they_hold(tmp_path, name, writer):
+    sessions = _sessions(n=100, imus=(0, 1))
+    path = tmp_path / name
+    writer(path, sessions)
+    size = os.path.getsize(path)
+    with open(path, "r+b") as fh:
+        fh.truncate(size * 2 // 3 + 5)  # mid-record
+    back, stats = read_log_sessions(path)
+    kept = sum(s.n_samples for s in back.values())
+    assert 120 <= kept < 200  # about two thirds survive, the cut record does not
+    for imu, s in back.items():
+        np.testing.assert_allclose(s.accel_mps2, sessions[imu].accel_mps2[: s.n_samples], atol=5e-3)
+
+
+def test_old_dataflash_text_with_time_in_ms_and_no_temperature(tmp_path):
+    path = tmp_path / "old.log"
+    path.write_text(
+        "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns\n"
+        "FMT, 129, 31, IMU2, Iffffff, TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ\n"
+        "IMU2, 1000, 0.01, 0.02, 0.03, 0.1, 0.2, -9.8\n"
+        "IMU2, 1020, 0.01, 0.02, 0.03, 0.1, 0.2, -9.7\n"
+    )
+    back, stats = read_log_sessions(path)
+    assert list(back) == [1] and stats.messages == {"IMU2": 2}
+    np.testing.assert_array_equal(back[1].t_s, [1.0, 1.02])
+    np.testing.assert_array_equal(back[1].accel_mps2[:, 2], [-9.8, -9.7])
+    assert back[1].temp_c is None
