@@ -1,0 +1,599 @@
+"""The passport of an IMU: nominal nine parameters per triad with tolerances (methods.md M1, M2).
+
+M1's predicates F1…F9 compare each re-estimated parameter with the unit's
+*passport* (nominal value and tolerance λ1…λ9); M2 builds such passports from
+calibration runs with confidence intervals. This module is the versioned data
+model and its plain-dict form; files and bytes are in
+:mod:`protocols.passport_codec`.
+
+Units: every parameter is normalized as in :mod:`estimators.conventions`
+(biases divided by the triad's ``reference``, which is stored with it: local g
+in m/s² for the accelerometers, Ω in rad/s for the gyros); scale errors and
+cosines are dimensionless.
+
+Plain-dict schema, version 1
+----------------------------
+``type`` = ``"ins.health.passport"``, ``schema_version`` = 1, ``unit_id``,
+``sensor_model`` (str), ``sensor_ids`` (map str → str), ``created`` (ISO 8601
+date or date-time string, supplied by the caller), ``triads`` (map
+``"accel"``/``"gyro"`` → triad map). A triad map: ``param_names`` (the nine
+names, checked), ``reference`` (float), ``reference_kind``
+(``"gravity_mps2"``/``"earth_rate_rps"``), ``nominal``, ``tolerance``,
+``sigma`` (9 floats each), ``observable`` (9 bools), ``noise_std`` (3 floats:
+per-sample standard deviation of the normalized output per axis),
+``sample_rate_hz``, ``quantization_step`` (3 floats, normalized, or null),
+``temperature`` (null or ``{reference_temp_c, bias_coeffs, scale_coeffs}``)
+and ``provenance`` (``{method, n_positions, confidence, ci_low, ci_high}``).
+Unknown keys, wrong shapes and non-finite numbers are rejected with the field
+and the received value; a newer schema version raises
+:class:`PassportVersionError`.
+
+Default tolerance rule (``calibrate``)
+--------------------------------------
+``λ_j = max(k·σ_j, floor_j)`` with ``k = 3`` and ``σ_j`` the calibration's
+standard deviation. The floor is the change a *healthy* sensor of that grade
+shows between calibration and use (turn-on and in-run repeatability, per
+parameter class, :data:`GRADE_FLOORS`): a tolerance below it would flag normal
+behaviour. The ``k·σ`` term keeps the tolerance no tighter than what the
+calibration itself resolved: a nominal value known only to ±σ cannot support a
+tolerance smaller than its own 3σ interval. (The diagnosis adds the uncertainty
+of the new estimate on top: :mod:`estimators.diagnosis`.)
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from dataclasses import dataclass
+from enum import Enum
+from types import MappingProxyType
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy.stats import norm
+
+from estimators.conventions import N_PARAMS, PARAM_NAMES, STANDARD_GRAVITY_MPS2, Triad
+from estimators.ninepar import Estimate, Method
+from estimators.positions import Position
+
+PASSPORT_TYPE = "ins.health.passport"
+PASSPORT_SCHEMA_VERSION = 1
+SUPPORTED_PASSPORT_VERSIONS = (1,)
+
+
+class PassportError(ValueError):
+    """A passport (or its plain dict) that cannot be used; the message names the field and value."""
+
+
+class PassportVersionError(PassportError):
+    """The passport's schema version is not one this build reads."""
+
+
+class ReferenceKind(str, Enum):
+    """What a triad was normalized by."""
+
+    GRAVITY = "gravity_mps2"
+    EARTH_RATE = "earth_rate_rps"
+
+
+def reference_kind(triad: Triad) -> ReferenceKind:
+    """g for the accelerometers, Ω for the gyros."""
+    return ReferenceKind.GRAVITY if Triad(triad) is Triad.ACCEL else ReferenceKind.EARTH_RATE
+
+
+class Grade(str, Enum):
+    """Sensor grade, selects the tolerance floors."""
+
+    MEMS = "mems"
+    TACTICAL = "tactical"
+    NAVIGATION = "navigation"
+
+
+_MG_MPS2 = 1.0e-3 * STANDARD_GRAVITY_MPS2
+_DEG_PER_H_RPS = math.radians(1.0) / 3600.0
+
+GRADE_FLOORS: Mapping[tuple[Triad, Grade], tuple[float, float, float]] = MappingProxyType(
+    {
+        # (bias in m/s² or rad/s, relative scale error, cosine = rad): typical turn-on/in-run repeatability.
+        (Triad.ACCEL, Grade.MEMS): (2.0 * _MG_MPS2, 2.0e-3, 1.0e-3),
+        (Triad.ACCEL, Grade.TACTICAL): (0.3 * _MG_MPS2, 3.0e-4, 2.0e-4),
+        (Triad.ACCEL, Grade.NAVIGATION): (0.05 * _MG_MPS2, 1.0e-4, 5.0e-5),
+        (Triad.GYRO, Grade.MEMS): (20.0 * _DEG_PER_H_RPS, 2.0e-3, 1.0e-3),
+        (Triad.GYRO, Grade.TACTICAL): (1.0 * _DEG_PER_H_RPS, 3.0e-4, 2.0e-4),
+        (Triad.GYRO, Grade.NAVIGATION): (0.01 * _DEG_PER_H_RPS, 5.0e-5, 2.0e-5),
+    }
+)
+"""Tolerance floors per (triad, grade): bias (SI), scale error, cosine between axes."""
+
+
+@dataclass(frozen=True, eq=False)
+class ToleranceRule:
+    """``λ_j = max(k_sigma · σ_j, floor_j)`` (module docstring).
+
+    Attributes
+    ----------
+    k_sigma : multiple of the calibration standard deviation (default 3).
+    floor : (9,) smallest tolerance per parameter, normalized.
+    """
+
+    floor: np.ndarray
+    k_sigma: float = 3.0
+
+    def __post_init__(self) -> None:
+        floor = _array(self.floor, (N_PARAMS,), "ToleranceRule.floor")
+        if np.any(floor <= 0.0):
+            raise PassportError(f"ToleranceRule.floor must be positive, got {floor.tolist()}")
+        if not math.isfinite(self.k_sigma) or self.k_sigma <= 0.0:
+            raise PassportError(f"ToleranceRule.k_sigma must be positive, got {self.k_sigma!r}")
+        object.__setattr__(self, "floor", floor)
+
+    def tolerance(self, sigma: np.ndarray) -> np.ndarray:
+        """(9,) tolerances for calibration standard deviations ``sigma`` (9,)."""
+        return np.maximum(self.k_sigma * _array(sigma, (N_PARAMS,), "sigma"), self.floor)
+
+
+def default_tolerance_rule(triad: Triad, grade: Grade, reference: float, *, k_sigma: float = 3.0) -> ToleranceRule:
+    """The documented default rule for ``triad`` of ``grade``; ``reference`` in m/s² or rad/s normalizes the bias floor."""
+    if not math.isfinite(reference) or reference <= 0.0:
+        raise PassportError(f"reference must be a positive finite number, got {reference!r}")
+    bias, scale, nonorth = GRADE_FLOORS[(Triad(triad), Grade(grade))]
+    return ToleranceRule(np.repeat([bias / reference, scale, nonorth], 3), k_sigma)
+
+
+@dataclass(frozen=True, eq=False)
+class TemperatureModel:
+    """Polynomial temperature model of bias and scale per axis (methods.md M3).
+
+    ``b_i(t) = Σ_k bias_coeffs[i, k]·(t − reference_temp_c)^k`` (normalized) and
+    ``e_i(t) = Σ_k scale_coeffs[i, k]·(t − reference_temp_c)^k``.
+
+    Attributes
+    ----------
+    reference_temp_c : temperature the polynomials are centred on, °C.
+    bias_coeffs : (3, order+1) normalized bias coefficients, per °C^k.
+    scale_coeffs : (3, order+1) relative scale-error coefficients, per °C^k.
+    """
+
+    reference_temp_c: float
+    bias_coeffs: np.ndarray
+    scale_coeffs: np.ndarray
+
+    def __post_init__(self) -> None:
+        _finite(self.reference_temp_c, "temperature.reference_temp_c")
+        bias = np.asarray(self.bias_coeffs, dtype=float)
+        if bias.ndim != 2 or bias.shape[0] != 3 or bias.shape[1] < 1:
+            raise PassportError(f"temperature.bias_coeffs must have shape (3, order+1), got {np.shape(self.bias_coeffs)}: {_short(self.bias_coeffs)}")
+        object.__setattr__(self, "bias_coeffs", _array(bias, bias.shape, "temperature.bias_coeffs"))
+        object.__setattr__(self, "scale_coeffs", _array(self.scale_coeffs, bias.shape, "temperature.scale_coeffs"))
+
+    @property
+    def order(self) -> int:
+        return self.bias_coeffs.shape[1] - 1
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "reference_temp_c": float(self.reference_temp_c),
+            "bias_coeffs": self.bias_coeffs.tolist(),
+            "scale_coeffs": self.scale_coeffs.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, obj: Any) -> "TemperatureModel":
+        obj = _map(obj, "temperature", ("reference_temp_c", "bias_coeffs", "scale_coeffs"))
+        return cls(_number(obj["reference_temp_c"], "temperature.reference_temp_c"), obj["bias_coeffs"], obj["scale_coeffs"])
+
+
+@dataclass(frozen=True, eq=False)
+class Provenance:
+    """Where the nominal values come from (methods.md M2: confidence intervals of the calibration).
+
+    Attributes
+    ----------
+    method : estimator used.
+    n_positions : positions used.
+    confidence : confidence level of the intervals, in (0, 1).
+    ci_low, ci_high : (9,) interval bounds, normalized.
+    """
+
+    method: Method
+    n_positions: int
+    confidence: float
+    ci_low: np.ndarray
+    ci_high: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "method", _enum(Method, self.method, "provenance.method"))
+        if type(self.n_positions) is not int or self.n_positions < 0:
+            raise PassportError(f"provenance.n_positions must be a non-negative int, got {self.n_positions!r}")
+        if not (isinstance(self.confidence, (int, float)) and 0.0 < self.confidence < 1.0):
+            raise PassportError(f"provenance.confidence must be in (0, 1), got {self.confidence!r}")
+        low = _array(self.ci_low, (N_PARAMS,), "provenance.ci_low")
+        high = _array(self.ci_high, (N_PARAMS,), "provenance.ci_high")
+        if np.any(low > high):
+            raise PassportError(f"provenance.ci_low must not exceed ci_high, got {low.tolist()} > {high.tolist()}")
+        object.__setattr__(self, "ci_low", low)
+        object.__setattr__(self, "ci_high", high)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "method": self.method.value,
+            "n_positions": self.n_positions,
+            "confidence": float(self.confidence),
+            "ci_low": self.ci_low.tolist(),
+            "ci_high": self.ci_high.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, obj: Any) -> "Provenance":
+        obj = _map(obj, "provenance", ("method", "n_positions", "confidence", "ci_low", "ci_high"))
+        return cls(obj["method"], obj["n_positions"], _number(obj["confidence"], "provenance.confidence"), obj["ci_low"], obj["ci_high"])
+
+
+@dataclass(frozen=True, eq=False)
+class TriadPassport:
+    """Passport of one triad (methods.md M1: nominal values and tolerances λ1…λ9).
+
+    Attributes
+    ----------
+    triad : which triad.
+    reference : normalizing value, m/s² (accel, local g) or rad/s (gyro, Ω).
+    reference_kind : :class:`ReferenceKind`, must match the triad.
+    nominal : (9,) nominal parameters, normalized.
+    tolerance : (9,) tolerances λ (> 0), normalized.
+    sigma : (9,) standard deviation of the nominal values (≥ 0).
+    observable : (9,) bool, whether the calibration resolved each parameter.
+    noise_std : (3,) per-sample standard deviation of the normalized output per axis.
+    sample_rate_hz : sample rate the noise refers to, Hz.
+    quantization_step : (3,) normalized step of one count per axis, or None.
+    temperature : :class:`TemperatureModel` or None.
+    provenance : :class:`Provenance`.
+    """
+
+    triad: Triad
+    reference: float
+    reference_kind: ReferenceKind
+    nominal: np.ndarray
+    tolerance: np.ndarray
+    sigma: np.ndarray
+    observable: np.ndarray
+    noise_std: np.ndarray
+    sample_rate_hz: float
+    provenance: Provenance
+    quantization_step: np.ndarray | None = None
+    temperature: TemperatureModel | None = None
+
+    def __post_init__(self) -> None:
+        triad = _enum(Triad, self.triad, "triad")
+        where = f"triads.{triad.value}"
+        kind = _enum(ReferenceKind, self.reference_kind, f"{where}.reference_kind")
+        if kind is not reference_kind(triad):
+            raise PassportError(f"{where}.reference_kind must be {reference_kind(triad).value!r} for the {triad.value} triad, got {kind.value!r}")
+        for name in ("reference", "sample_rate_hz"):
+            value = _finite(getattr(self, name), f"{where}.{name}")
+            if value <= 0.0:
+                raise PassportError(f"{where}.{name} must be positive, got {value!r}")
+        arrays = {
+            "nominal": _array(self.nominal, (N_PARAMS,), f"{where}.nominal"),
+            "tolerance": _array(self.tolerance, (N_PARAMS,), f"{where}.tolerance"),
+            "sigma": _array(self.sigma, (N_PARAMS,), f"{where}.sigma"),
+            "noise_std": _array(self.noise_std, (3,), f"{where}.noise_std"),
+        }
+        if np.any(arrays["tolerance"] <= 0.0):
+            raise PassportError(f"{where}.tolerance must be positive, got {arrays['tolerance'].tolist()}")
+        for name in ("sigma", "noise_std"):
+            if np.any(arrays[name] < 0.0):
+                raise PassportError(f"{where}.{name} must not be negative, got {arrays[name].tolist()}")
+        obs = np.asarray(self.observable)
+        if obs.shape != (N_PARAMS,) or obs.dtype != bool:
+            raise PassportError(f"{where}.observable must be {N_PARAMS} booleans, got {_short(self.observable)}")
+        arrays["observable"] = _readonly(obs)
+        if self.quantization_step is not None:
+            step = _array(self.quantization_step, (3,), f"{where}.quantization_step")
+            if np.any(step <= 0.0):
+                raise PassportError(f"{where}.quantization_step must be positive, got {step.tolist()}")
+            arrays["quantization_step"] = step
+        if self.temperature is not None and not isinstance(self.temperature, TemperatureModel):
+            raise PassportError(f"{where}.temperature must be a TemperatureModel or None, got {type(self.temperature).__name__}")
+        if not isinstance(self.provenance, Provenance):
+            raise PassportError(f"{where}.provenance must be a Provenance, got {type(self.provenance).__name__}")
+        object.__setattr__(self, "triad", triad)
+        object.__setattr__(self, "reference_kind", kind)
+        object.__setattr__(self, "reference", float(self.reference))
+        object.__setattr__(self, "sample_rate_hz", float(self.sample_rate_hz))
+        for name, value in arrays.items():
+            object.__setattr__(self, name, value)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "param_names": list(PARAM_NAMES),
+            "reference": self.reference,
+            "reference_kind": self.reference_kind.value,
+            "nominal": self.nominal.tolist(),
+            "tolerance": self.tolerance.tolist(),
+            "sigma": self.sigma.tolist(),
+            "observable": [bool(v) for v in self.observable],
+            "noise_std": self.noise_std.tolist(),
+            "sample_rate_hz": self.sample_rate_hz,
+            "quantization_step": None if self.quantization_step is None else self.quantization_step.tolist(),
+            "temperature": None if self.temperature is None else self.temperature.to_dict(),
+            "provenance": self.provenance.to_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, triad: Triad, obj: Any) -> "TriadPassport":
+        where = f"triads.{Triad(triad).value}"
+        keys = ("param_names", "reference", "reference_kind", "nominal", "tolerance", "sigma", "observable", "noise_std",
+                "sample_rate_hz", "quantization_step", "temperature", "provenance")  # fmt: skip
+        obj = _map(obj, where, keys)
+        if obj["param_names"] != list(PARAM_NAMES):
+            raise PassportError(f"{where}.param_names must be {list(PARAM_NAMES)}, got {_short(obj['param_names'])}")
+        observable = obj["observable"]
+        if not isinstance(observable, list) or not all(isinstance(v, bool) for v in observable):
+            raise PassportError(f"{where}.observable must be a list of booleans, got {_short(observable)}")
+        return cls(
+            triad=triad,
+            reference=_number(obj["reference"], f"{where}.reference"),
+            reference_kind=obj["reference_kind"],
+            nominal=obj["nominal"],
+            tolerance=obj["tolerance"],
+            sigma=obj["sigma"],
+            observable=np.array(observable, dtype=bool),
+            noise_std=obj["noise_std"],
+            sample_rate_hz=_number(obj["sample_rate_hz"], f"{where}.sample_rate_hz"),
+            quantization_step=obj["quantization_step"],
+            temperature=None if obj["temperature"] is None else TemperatureModel.from_dict(obj["temperature"]),
+            provenance=Provenance.from_dict(obj["provenance"]),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Passport:
+    """Passport of one IMU: identity and one :class:`TriadPassport` per triad.
+
+    Attributes
+    ----------
+    unit_id : identity of the IMU (non-empty).
+    sensor_model : model name.
+    sensor_ids : per-sensor identities (e.g. serial numbers by triad), str → str.
+    created : ISO 8601 date or date-time string given by the caller (estimators read no clock).
+    triads : :class:`Triad` → :class:`TriadPassport` (at least one).
+    schema_version : :data:`PASSPORT_SCHEMA_VERSION`.
+    """
+
+    unit_id: str
+    sensor_model: str
+    sensor_ids: Mapping[str, str]
+    created: str
+    triads: Mapping[Triad, TriadPassport]
+    schema_version: int = PASSPORT_SCHEMA_VERSION
+
+    def __post_init__(self) -> None:
+        _check_version(self.schema_version)
+        for name in ("unit_id", "sensor_model", "created"):
+            if not isinstance(getattr(self, name), str):
+                raise PassportError(f"{name} must be a string, got {_short(getattr(self, name))}")
+        if not self.unit_id.strip():
+            raise PassportError(f"unit_id must not be empty, got {self.unit_id!r}")
+        try:
+            _dt.datetime.fromisoformat(self.created)
+        except ValueError:
+            raise PassportError(f"created must be an ISO 8601 date or date-time, got {self.created!r}") from None
+        if not isinstance(self.sensor_ids, Mapping) or not all(isinstance(k, str) and isinstance(v, str) for k, v in self.sensor_ids.items()):
+            raise PassportError(f"sensor_ids must map strings to strings, got {_short(self.sensor_ids)}")
+        if not isinstance(self.triads, Mapping) or not self.triads:
+            raise PassportError(f"triads must be a non-empty mapping, got {_short(self.triads)}")
+        triads = {}
+        for key, value in self.triads.items():
+            triad = _enum(Triad, key, "triads key")
+            if not isinstance(value, TriadPassport) or value.triad is not triad:
+                raise PassportError(f"triads[{triad.value!r}] must be the TriadPassport of that triad, got {_short(value)}")
+            triads[triad] = value
+        object.__setattr__(self, "sensor_ids", MappingProxyType(dict(self.sensor_ids)))
+        object.__setattr__(self, "triads", MappingProxyType(triads))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The plain-dict form (JSON and msgpack ready; schema in the module docstring)."""
+        return {
+            "type": PASSPORT_TYPE,
+            "schema_version": self.schema_version,
+            "unit_id": self.unit_id,
+            "sensor_model": self.sensor_model,
+            "sensor_ids": dict(self.sensor_ids),
+            "created": self.created,
+            "triads": {t.value: tp.to_dict() for t, tp in sorted(self.triads.items(), key=lambda kv: kv[0].value)},
+        }
+
+    @classmethod
+    def from_dict(cls, obj: Any) -> "Passport":
+        """Validate and build; raises :class:`PassportError` (or :class:`PassportVersionError`)."""
+        if not isinstance(obj, dict):
+            raise PassportError(f"a passport must be a map, got {type(obj).__name__}")
+        if obj.get("type") != PASSPORT_TYPE:
+            raise PassportError(f"type tag {_short(obj.get('type'))} is not {PASSPORT_TYPE!r}")
+        _check_version(obj.get("schema_version"))
+        obj = _map(obj, "passport", ("type", "schema_version", "unit_id", "sensor_model", "sensor_ids", "created", "triads"))
+        triads_obj = obj["triads"]
+        if not isinstance(triads_obj, dict):
+            raise PassportError(f"triads must be a map, got {_short(triads_obj)}")
+        triads = {}
+        for key, value in triads_obj.items():
+            triad = _enum(Triad, key, "triads key")
+            triads[triad] = TriadPassport.from_dict(triad, value)
+        sensor_ids = obj["sensor_ids"]
+        if not isinstance(sensor_ids, dict):
+            raise PassportError(f"sensor_ids must be a map, got {_short(sensor_ids)}")
+        return cls(
+            unit_id=obj["unit_id"],
+            sensor_model=obj["sensor_model"],
+            sensor_ids=sensor_ids,
+            created=obj["created"],
+            triads=triads,
+            schema_version=obj["schema_version"],
+        )
+
+
+def per_sample_noise_std(positions: Sequence[Position], triad: Triad, reference: float) -> np.ndarray:
+    """(3,) per-sample standard deviation of the normalized output per axis.
+
+    Each position's covariance of the mean times its sample count is a
+    per-sample variance; the median over positions resists a disturbed one.
+    """
+    triad = Triad(triad)
+    variances = []
+    for k, pos in enumerate(positions):
+        cov = pos.accel_cov_mps2 if triad is Triad.ACCEL else pos.gyro_cov_rps
+        if cov is None:
+            raise PassportError(f"position {k} has no {triad.value} covariance")
+        variances.append(np.diag(np.asarray(cov, dtype=float)) * pos.n_samples)
+    if not variances:
+        raise PassportError("no positions to estimate the noise from")
+    return np.sqrt(np.median(np.array(variances), axis=0)) / reference
+
+
+def passport_from_estimates(
+    estimates: Mapping[Triad, Estimate],
+    *,
+    unit_id: str,
+    sensor_model: str,
+    sensor_ids: Mapping[str, str],
+    created: str,
+    noise_std: Mapping[Triad, np.ndarray],
+    sample_rate_hz: float,
+    grade: Grade | Mapping[Triad, Grade],
+    quantization_step: Mapping[Triad, np.ndarray] | None = None,
+    tolerance_rules: Mapping[Triad, ToleranceRule] | None = None,
+    confidence: float = 0.95,
+) -> Passport:
+    """A passport from calibration estimates of a fault-free session.
+
+    Nominal = the estimate; sigma = its standard deviation; tolerance by the
+    default rule for ``grade`` (or ``tolerance_rules``); confidence intervals
+    ``nominal ± z σ`` at ``confidence`` (two-sided normal). Parameters that the
+    estimate flags as not observable keep its value but are marked so, and the
+    diagnosis does not evaluate them.
+
+    Parameters
+    ----------
+    estimates : per triad, an estimate with params and a known ``reference``.
+    noise_std : per triad, (3,) per-sample normalized noise (:func:`per_sample_noise_std`).
+    sample_rate_hz : sample rate of the session, Hz.
+    grade : sensor grade for the default tolerance floors, one for all triads or per triad.
+    quantization_step : per triad, (3,) normalized count step, when known.
+    """
+    if not 0.0 < confidence < 1.0:
+        raise PassportError(f"confidence must be in (0, 1), got {confidence!r}")
+    z = float(norm.ppf(0.5 + 0.5 * confidence))
+    triads = {}
+    for key, est in estimates.items():
+        triad = Triad(key)
+        if est.params is None or est.cov is None:
+            raise PassportError(f"cannot build the {triad.value} passport: {est.reason}")
+        if est.reference is None:
+            raise PassportError(f"the {triad.value} estimate does not record its reference (use estimate_triad or pass reference=)")
+        triad_grade = grade.get(triad) if isinstance(grade, Mapping) else grade
+        if triad_grade is None or triad not in noise_std:
+            raise PassportError(f"the {triad.value} triad needs a grade and a noise_std to build its passport")
+        rule = (tolerance_rules or {}).get(triad) or default_tolerance_rule(triad, triad_grade, est.reference)
+        sigma = est.sigma
+        triads[triad] = TriadPassport(
+            triad=triad,
+            reference=est.reference,
+            reference_kind=reference_kind(triad),
+            nominal=est.params,
+            tolerance=rule.tolerance(sigma),
+            sigma=sigma,
+            observable=np.asarray(est.observable, dtype=bool),
+            noise_std=noise_std[triad],
+            sample_rate_hz=sample_rate_hz,
+            quantization_step=None if quantization_step is None else quantization_step.get(triad),
+            provenance=Provenance(est.method, est.n_positions, confidence, est.params - z * sigma, est.params + z * sigma),
+        )
+    return Passport(unit_id=unit_id, sensor_model=sensor_model, sensor_ids=dict(sensor_ids), created=created, triads=triads)
+
+
+# --------------------------------------------------------------------------- validation helpers
+
+
+def _check_version(version: Any) -> None:
+    if type(version) is int and version in SUPPORTED_PASSPORT_VERSIONS:
+        return
+    if type(version) is int and version > PASSPORT_SCHEMA_VERSION:
+        raise PassportVersionError(
+            f"passport schema version {version} is newer than this build reads ({list(SUPPORTED_PASSPORT_VERSIONS)}); "
+            "upgrade ins-health, or re-create the passport with this version's `ins-health calibrate`"
+        )
+    raise PassportVersionError(
+        f"passport schema version {_short(version)} is not supported (this build reads {list(SUPPORTED_PASSPORT_VERSIONS)}); "
+        "the file is not an ins-health passport or is damaged"
+    )
+
+
+def _map(obj: Any, where: str, keys: tuple[str, ...]) -> dict[str, Any]:
+    if not isinstance(obj, dict):
+        raise PassportError(f"{where} must be a map, got {_short(obj)}")
+    missing = [k for k in keys if k not in obj]
+    if missing:
+        raise PassportError(f"{where} lacks field(s) {missing}")
+    unknown = sorted(str(k) for k in obj if k not in keys)
+    if unknown:
+        raise PassportError(f"{where} has unknown field(s) {unknown}")
+    return obj
+
+
+def _array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise PassportError(f"{name} must be numbers of shape {shape}, got {_short(value)}") from None
+    if arr.shape != shape:
+        raise PassportError(f"{name} must have shape {shape}, got shape {arr.shape}: {_short(value)}")
+    if _has_bool(value):
+        raise PassportError(f"{name} must be numbers, got booleans: {_short(value)}")
+    if not np.isfinite(arr).all():
+        raise PassportError(f"{name} must be finite, got {_short(value)}")
+    return _readonly(arr)
+
+
+def _has_bool(value: Any) -> bool:
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.dtype == bool
+    if isinstance(value, (list, tuple)):
+        return any(_has_bool(v) for v in value)
+    return False
+
+
+def _number(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise PassportError(f"{name} must be a number, got {_short(value)}")
+    return _finite(value, name)
+
+
+def _finite(value: Any, name: str) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise PassportError(f"{name} must be a number, got {_short(value)}") from None
+    if not math.isfinite(out):
+        raise PassportError(f"{name} must be finite, got {value!r}")
+    return out
+
+
+def _enum(kind: type[Enum], value: Any, name: str):
+    try:
+        return kind(value)
+    except ValueError:
+        raise PassportError(f"{name} is {_short(value)}, expected one of {[m.value for m in kind]}") from None
+
+
+def _readonly(arr: np.ndarray) -> np.ndarray:
+    out = np.array(arr)
+    out.setflags(write=False)
+    return out
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    text = repr(value.tolist() if isinstance(value, np.ndarray) else value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+

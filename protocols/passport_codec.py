@@ -1,0 +1,81 @@
+"""Passports as JSON files on disk and msgpack bytes on the wire.
+
+Both carry :meth:`estimators.passport.Passport.to_dict` unchanged (its type tag
+``"ins.health.passport"`` and ``schema_version`` included) and decode through
+:meth:`~estimators.passport.Passport.from_dict`, so one validation applies to
+both. JSON is strict (no NaN/Infinity) and written atomically: a temporary file
+in the target directory, flushed and fsynced, then ``os.replace`` — a reader
+sees the old passport or the new one, never a torn file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import msgpack
+
+from estimators.passport import Passport, PassportError
+from protocols._schema import MAX_MESSAGE_BYTES, SchemaError, unpack_map
+
+MAX_PASSPORT_BYTES = MAX_MESSAGE_BYTES
+"""Largest passport accepted as msgpack bytes or as a JSON file (1 MiB; a passport is ~5 kB)."""
+
+
+class PassportCodecError(SchemaError):
+    """Passport bytes that are not a msgpack map (``reason`` says why)."""
+
+
+def write_passport_json(passport: Passport, path: str | os.PathLike[str]) -> None:
+    """Write ``passport`` as indented JSON to ``path`` atomically (temp file + ``os.replace``)."""
+    target = Path(path)
+    text = json.dumps(passport.to_dict(), indent=2, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_passport_json(path: str | os.PathLike[str]) -> Passport:
+    """Read and validate a JSON passport; unusable content raises :class:`PassportError` naming the file."""
+    source = Path(path)
+    size = source.stat().st_size
+    if size > MAX_PASSPORT_BYTES:
+        raise PassportError(f"{source}: {size} bytes exceeds the passport limit of {MAX_PASSPORT_BYTES}")
+    text = source.read_text(encoding="utf-8")
+    try:
+        obj = json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise PassportError(f"{source}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    except ValueError as exc:
+        raise PassportError(f"{source}: {exc}") from None
+    try:
+        return Passport.from_dict(obj)
+    except PassportError as exc:
+        raise type(exc)(f"{source}: {exc}") from None
+
+
+def encode_passport(passport: Passport) -> bytes:
+    """msgpack bytes of :meth:`Passport.to_dict`."""
+    return msgpack.packb(passport.to_dict(), use_bin_type=True)
+
+
+def decode_passport(data: bytes, *, max_bytes: int = MAX_PASSPORT_BYTES) -> Passport:
+    """Validate msgpack bytes into a :class:`Passport`.
+
+    Raises :class:`PassportCodecError` for bytes that are not a msgpack map and
+    :class:`PassportError` (or its version subclass) for an invalid passport.
+    """
+    return Passport.from_dict(unpack_map(data, error=PassportCodecError, max_bytes=max_bytes))
+
+
+def _reject_constant(name: str) -> None:
+    raise ValueError(f"non-finite number {name} is not allowed in a passport")
