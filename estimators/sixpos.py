@@ -1,0 +1,656 @@
+"""Six-position tests, g-dependent gyro bias and the rate-table scale factor (methods.md M4).
+
+Li et al. calibrate an ADIS16355 on a three-axis table:
+
+* **accelerometers, six positions** (each axis up, then down; 100 Hz, 1 min per
+  position after a 10 min warm-up). The model of sensor ``i`` (the paper's eq. 7
+  in SI units) is::
+
+      A_i = b_i + (1 + S_i)·a_i + M_ij·a_j + M_ik·a_k + Q_i·a_i²
+
+  with ``a = g·u`` the specific force of a static unit whose body-frame up
+  direction is ``u``; ``b`` bias (m/s²), ``S`` relative scale-factor error,
+  ``M`` misalignment (coupling of the other two axes, ≈ rad), ``Q`` quadratic
+  term (1/(m/s²)). Five unknowns per axis, six positions: least squares, one
+  residual degree of freedom per axis.
+* **gyro g-dependent bias**: in the same positions, ``W_i = Bf_i + Σ_j Bg_ij·a_j``
+  (+ the Earth rate). Axis ``j`` up and down give ``m1 = Bf + Bg·g`` and
+  ``m2 = Bf − Bg·g``, so ``Bf = (m1 + m2)/2`` and ``Bg = (m1 − m2)/(2g)``; the
+  least squares over all six positions is exactly that.
+* **gyro scale factor** from a rate table stepping 20 °/s at a time to ±200 °/s:
+  a straight-line fit of the gyro output against the table rate.
+
+``g`` must be the *local* gravity (:func:`estimators.conventions.normal_gravity_mps2`):
+the paper used 9.788 m/s² at Guangzhou; assuming 9.80665 instead scales every
+``S`` by ``g_local/9.80665`` (about −0.19 %).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Triad, nine_params
+from estimators.plateaus import find_plateaus
+from estimators.positions import Position, build_positions
+from estimators.repeatability import LinearFit, fit_linear
+from estimators.session import ImuSession
+from estimators.sim import (
+    GRADES,
+    Bias,
+    EffectContext,
+    ErrorModel,
+    GSensitivity,
+    NonOrthogonality,
+    Quantization,
+    Rounding,
+    ScaleFactor,
+    ScaleNonlinearity,
+    SessionSpec,
+    TemperatureProfile,
+    TriadErrorModel,
+    WhiteNoise,
+    attitude_with_up,
+    multi_position_profile,
+)
+from estimators.sim import Grade as SimGrade
+from estimators.sim.session import RandomStreams, earth_rate_n_rps
+from estimators.static_detector import StaticDetectorConfig, detect_static
+
+ACCEL_TERM_NAMES = ("bias_mps2", "scale_error", "misalign_1", "misalign_2", "quad_per_mps2")
+"""Per-axis parameter order of :class:`AccelSixPosition` (``misalign_1/2``: the other axes in x, y, z order)."""
+
+GYRO_TERM_NAMES = ("bias_rps", "g_sens_x", "g_sens_y", "g_sens_z")
+"""Per-gyro parameter order of :class:`GyroGSensitivity` (``g_sens_*`` in rad/s per m/s²)."""
+
+MAX_FACE_TILT_RAD = np.radians(20.0)
+"""A position farther than this from every axis-up/down attitude is not a six-position face."""
+
+
+def _face_name(axis: int, sign: float) -> str:
+    return f"{'+' if sign > 0 else '-'}{AXES[axis]} up"
+
+
+def face_directions(accel_mean_mps2: np.ndarray) -> np.ndarray:
+    """(K, 3) nominal up directions ``±e_i`` of the positions, from their mean specific force.
+
+    Raises ValueError if a position is more than 20° from every axis-up/down
+    attitude, or if one of the six faces (±x, ±y, ±z up) is missing.
+    """
+    a = np.asarray(accel_mean_mps2, dtype=float)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"accelerometer means must have shape (K, 3), got {a.shape}")
+    norm = np.linalg.norm(a, axis=1)
+    if np.any(norm == 0.0):
+        raise ValueError("a position with zero specific force cannot be a six-position face")
+    axis = np.argmax(np.abs(a), axis=1)
+    sign = np.sign(a[np.arange(len(a)), axis])
+    tilt = np.arccos(np.clip(np.abs(a[np.arange(len(a)), axis]) / norm, 0.0, 1.0))
+    bad = np.flatnonzero(tilt > MAX_FACE_TILT_RAD)
+    if bad.size:
+        raise ValueError(
+            f"position {int(bad[0])} is {np.degrees(tilt[bad[0]]):.0f}° from the nearest axis-up/down attitude "
+            f"(six-position faces must be within {np.degrees(MAX_FACE_TILT_RAD):.0f}°)"
+        )
+    present = {(int(i), float(s)) for i, s in zip(axis, sign)}
+    missing = [_face_name(i, s) for i in range(3) for s in (1.0, -1.0) if (i, s) not in present]
+    if missing:
+        raise ValueError(f"the six-position test needs every axis up and down; missing: {', '.join(missing)}")
+    up = np.zeros_like(a)
+    up[np.arange(len(a)), axis] = sign
+    return up
+
+
+def _weighted_fit(h: np.ndarray, y: np.ndarray, var: np.ndarray | None, names) -> LinearFit:
+    """LS with per-equation variances ``var`` (M,) (known noise) or, if None, noise from the residuals."""
+    if var is None:
+        return fit_linear(h, y, names=names)
+    if np.any(~(var > 0)):
+        raise ValueError("every position needs a positive variance of its mean")
+    s = 1.0 / np.sqrt(var)
+    fit = fit_linear(h * s[:, None], y * s, sigma_y=1.0, names=names)
+    return LinearFit(values=fit.values, cov=fit.cov, residuals=y - h @ fit.values, sigma=1.0, dof=fit.dof)
+
+
+def _diag_var(cov: np.ndarray | None, k: int) -> np.ndarray | None:
+    if cov is None:
+        return None
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (k, 3, 3):
+        raise ValueError(f"covariances of the means must have shape ({k}, 3, 3), got {c.shape}")
+    return np.diagonal(c, axis1=1, axis2=2)
+
+
+@dataclass(frozen=True)
+class AccelSixPosition:
+    """Six-position accelerometer calibration (M4).
+
+    Attributes
+    ----------
+    gravity_mps2 : the gravity magnitude assumed, m/s².
+    bias_mps2 : (3,) ``b``.
+    scale_error : (3,) ``S``.
+    misalignment : (3, 3) ``M`` (zero diagonal): ``M[i, j]`` couples axis ``j`` into sensor ``i``.
+    quad_per_mps2 : (3,) ``Q``, 1/(m/s²).
+    cov : (3, 5, 5) covariance of each axis's ``[b, S, M_ij, M_ik, Q]`` (:data:`ACCEL_TERM_NAMES`).
+    residuals_mps2 : (K, 3) measured minus modelled position means.
+    """
+
+    gravity_mps2: float
+    bias_mps2: np.ndarray
+    scale_error: np.ndarray
+    misalignment: np.ndarray
+    quad_per_mps2: np.ndarray
+    cov: np.ndarray
+    residuals_mps2: np.ndarray
+
+    @property
+    def std(self) -> np.ndarray:
+        """(3, 5) standard deviations in the order of :data:`ACCEL_TERM_NAMES`."""
+        return np.sqrt(np.diagonal(self.cov, axis1=1, axis2=2))
+
+    @property
+    def values(self) -> np.ndarray:
+        """(3, 5) estimates in the order of :data:`ACCEL_TERM_NAMES`."""
+        others = np.array([[self.misalignment[i, j] for j in range(3) if j != i] for i in range(3)])
+        return np.column_stack([self.bias_mps2, self.scale_error, others, self.quad_per_mps2])
+
+    def nine_params(self) -> np.ndarray:
+        """The triad's ``[b/g, e, d]`` (conventions order): rows ``[1, M_ij, M_ik]`` normalized give the axes."""
+        rows = np.eye(3) + self.misalignment
+        axes = rows / np.linalg.norm(rows, axis=1, keepdims=True)
+        return nine_params(self.bias_mps2 / self.gravity_mps2, self.scale_error, axes)
+
+    def correct(self, accel_mps2: np.ndarray) -> np.ndarray:
+        """(N, 3) specific force with the model inverted (quadratic and coupling by two fixed-point passes).
+
+        ``a = (A − b − M a − Q a²) / (1 + S)``, starting from ``a = (A − b)/(1 + S)``;
+        the neglected terms are of order ``(M, Q·a)²``.
+        """
+        meas = np.asarray(accel_mps2, dtype=float)
+        a = (meas - self.bias_mps2) / (1.0 + self.scale_error)
+        for _ in range(2):
+            a = (meas - self.bias_mps2 - a @ self.misalignment.T - self.quad_per_mps2 * a * a) / (1.0 + self.scale_error)
+        return a
+
+
+def six_position_accel(
+    accel_mean_mps2: np.ndarray,
+    *,
+    gravity_mps2: float,
+    accel_cov_mps2: np.ndarray | None = None,
+    up_b: np.ndarray | None = None,
+) -> AccelSixPosition:
+    """Scale, bias, misalignment and quadratic term of each accelerometer (M4, the paper's eq. 7).
+
+    Parameters
+    ----------
+    accel_mean_mps2 : (K, 3) mean specific force of K ≥ 6 static positions, m/s².
+    gravity_mps2 : *local* gravity, m/s².
+    accel_cov_mps2 : (K, 3, 3) covariance of each mean, (m/s²)²; None estimates
+        the noise from the residuals (needs more than six positions).
+    up_b : (K, 3) body-frame up direction of each position; None takes the
+        nearest ``±e_i`` (:func:`face_directions`).
+    """
+    meas = np.asarray(accel_mean_mps2, dtype=float)
+    up = face_directions(meas) if up_b is None else np.asarray(up_b, dtype=float)
+    if up.shape != meas.shape:
+        raise ValueError(f"up directions must have the shape of the means {meas.shape}, got {up.shape}")
+    if not gravity_mps2 > 0:
+        raise ValueError(f"gravity_mps2 must be positive, got {gravity_mps2!r}")
+    k = meas.shape[0]
+    if k < 6:
+        raise ValueError(f"the six-position test needs at least 6 positions, got {k}")
+    var = _diag_var(accel_cov_mps2, k)
+    if var is None and k < 7:
+        raise ValueError("with exactly six positions the noise cannot be estimated from residuals: give the covariances of the means")
+    a = float(gravity_mps2) * up
+    values = np.zeros((3, 5))
+    cov = np.zeros((3, 5, 5))
+    resid = np.zeros((k, 3))
+    for i in range(3):
+        j, l = [m for m in range(3) if m != i]
+        h = np.column_stack([np.ones(k), a[:, i], a[:, j], a[:, l], a[:, i] ** 2])
+        names = [f"{n} ({AXES[i]})" for n in ACCEL_TERM_NAMES]
+        fit = _weighted_fit(h, meas[:, i] - a[:, i], None if var is None else var[:, i], names)
+        values[i], cov[i], resid[:, i] = fit.values, fit.cov, fit.residuals
+    mis = np.zeros((3, 3))
+    for i in range(3):
+        j, l = [m for m in range(3) if m != i]
+        mis[i, j], mis[i, l] = values[i, 2], values[i, 3]
+    return AccelSixPosition(
+        gravity_mps2=float(gravity_mps2),
+        bias_mps2=values[:, 0],
+        scale_error=values[:, 1],
+        misalignment=mis,
+        quad_per_mps2=values[:, 4],
+        cov=cov,
+        residuals_mps2=resid,
+    )
+
+
+@dataclass(frozen=True)
+class GyroGSensitivity:
+    """g-independent and g-dependent gyro bias (M4).
+
+    Attributes
+    ----------
+    bias_rps : (3,) ``Bf``, rad/s.
+    g_sensitivity : (3, 3) ``Bg[i, j]``: gyro ``i`` per m/s² along body axis ``j``, rad/s per m/s².
+    cov : (3, 4, 4) covariance of each gyro's ``[Bf, Bg_x, Bg_y, Bg_z]``.
+    earth_rate_removed : whether the vertical Earth-rate component was subtracted.
+    residuals_rps : (K, 3).
+    """
+
+    bias_rps: np.ndarray
+    g_sensitivity: np.ndarray
+    cov: np.ndarray
+    earth_rate_removed: bool
+    residuals_rps: np.ndarray
+
+    @property
+    def std(self) -> np.ndarray:
+        """(3, 4) standard deviations in the order of :data:`GYRO_TERM_NAMES`."""
+        return np.sqrt(np.diagonal(self.cov, axis1=1, axis2=2))
+
+
+def gyro_g_sensitivity(
+    gyro_mean_rps: np.ndarray,
+    up_b: np.ndarray,
+    *,
+    gravity_mps2: float,
+    gyro_cov_rps: np.ndarray | None = None,
+    latitude_deg: float | None = None,
+    earth_rate_b_rps: np.ndarray | None = None,
+) -> GyroGSensitivity:
+    """``Bf`` and ``Bg`` of each gyro from the six positions (M4: ``W = Bf + Bg·a``).
+
+    The static gyro also reads the Earth rate. Its vertical component
+    ``Ω·sin φ`` projects on the up direction ``u`` and flips with it, so it
+    would enter ``Bg`` as ``Ω sin φ / g`` (about 5e-6 °/s per m/s² at 45°):
+    with ``latitude_deg`` it is subtracted. The horizontal component
+    (``Ω cos φ``, 0.004 °/s at mid latitudes) depends on the heading of each
+    position; when the fixture's headings are known pass the whole Earth rate
+    in body axes per position as ``earth_rate_b_rps`` instead, otherwise it
+    stays in ``Bf``, ``Bg`` and the residuals (far below a MEMS gyro's bias).
+
+    Parameters
+    ----------
+    gyro_mean_rps : (K, 3) mean gyro outputs of the positions, rad/s.
+    up_b : (K, 3) body-frame up directions (e.g. from :func:`face_directions`).
+    gravity_mps2 : local gravity, m/s².
+    gyro_cov_rps : (K, 3, 3) covariance of the means; None estimates the noise
+        from the residuals.
+    latitude_deg : geodetic latitude, degrees, or None.
+    earth_rate_b_rps : (K, 3) Earth rate in body axes per position, rad/s, or None.
+    """
+    w = np.asarray(gyro_mean_rps, dtype=float)
+    up = np.asarray(up_b, dtype=float)
+    if w.ndim != 2 or w.shape[1] != 3 or up.shape != w.shape:
+        raise ValueError(f"gyro means and up directions must both have shape (K, 3), got {w.shape} and {up.shape}")
+    if latitude_deg is not None and earth_rate_b_rps is not None:
+        raise ValueError("give the latitude (vertical Earth rate) or the full Earth rate per position, not both")
+    k = w.shape[0]
+    var = _diag_var(gyro_cov_rps, k)
+    if var is None and k < 5:
+        raise ValueError(f"estimating Bf and Bg with the noise from residuals needs at least 5 positions, got {k}")
+    if latitude_deg is not None:
+        w = w - EARTH_RATE_RPS * np.sin(np.radians(latitude_deg)) * up
+    if earth_rate_b_rps is not None:
+        er = np.asarray(earth_rate_b_rps, dtype=float)
+        if er.shape != w.shape:
+            raise ValueError(f"earth_rate_b_rps must have shape {w.shape}, got {er.shape}")
+        w = w - er
+    a = float(gravity_mps2) * up
+    h = np.column_stack([np.ones(k), a])
+    values = np.zeros((3, 4))
+    cov = np.zeros((3, 4, 4))
+    resid = np.zeros((k, 3))
+    for i in range(3):
+        names = [f"{n} (gyro {AXES[i]})" for n in GYRO_TERM_NAMES]
+        fit = _weighted_fit(h, w[:, i], None if var is None else var[:, i], names)
+        values[i], cov[i], resid[:, i] = fit.values, fit.cov, fit.residuals
+    return GyroGSensitivity(
+        bias_rps=values[:, 0],
+        g_sensitivity=values[:, 1:],
+        cov=cov,
+        earth_rate_removed=latitude_deg is not None or earth_rate_b_rps is not None,
+        residuals_rps=resid,
+    )
+
+
+def paper_rate_profile_rps(*, max_dps: float = 200.0, step_dps: float = 20.0) -> np.ndarray:
+    """Table rates in time order, rad/s: from rest up in steps to ``+max``, then down to ``−max`` (M4).
+
+    ``0, 20, …, 200, 180, …, −200`` °/s for the defaults.
+    """
+    if not (step_dps > 0 and max_dps >= step_dps):
+        raise ValueError(f"need 0 < step_dps <= max_dps, got step {step_dps!r}, max {max_dps!r}")
+    n = int(round(max_dps / step_dps))
+    up = np.arange(0, n + 1) * step_dps
+    down = np.arange(n - 1, -n - 1, -1) * step_dps
+    return np.radians(np.concatenate([up, down]))
+
+
+@dataclass(frozen=True)
+class RateTableFit:
+    """Straight-line fit of one gyro axis against the table rate (M4).
+
+    Attributes
+    ----------
+    axis : the gyro axis on the table axis (0, 1, 2).
+    scale_error : ``S`` of ``W = bias + (1 + S)·ω``.
+    bias_rps : intercept, rad/s.
+    cov : (2, 2) covariance of ``[bias, S]``.
+    cross_coupling : (3,) slope of every gyro against the table rate (the tested axis's own entry is ``1 + S``).
+    residuals_rps : (K,) of the tested axis.
+    nonlinearity : largest |residual| over the largest |table rate| (the data-sheet figure).
+    table_rate_rps : (K,) the rates used.
+    """
+
+    axis: int
+    scale_error: float
+    bias_rps: float
+    cov: np.ndarray
+    cross_coupling: np.ndarray
+    residuals_rps: np.ndarray
+    nonlinearity: float
+    table_rate_rps: np.ndarray
+
+    @property
+    def scale_error_std(self) -> float:
+        return float(np.sqrt(self.cov[1, 1]))
+
+
+def rate_table_fit(
+    table_rate_rps: np.ndarray, gyro_mean_rps: np.ndarray, *, axis: int, gyro_var_rps: np.ndarray | None = None
+) -> RateTableFit:
+    """Scale factor of gyro ``axis`` by a linear fit over the rate steps (M4).
+
+    Parameters
+    ----------
+    table_rate_rps : (K,) table rates, rad/s (at least three distinct, some non-zero).
+    gyro_mean_rps : (K, 3) mean gyro output on each step, rad/s.
+    axis : the gyro axis aligned with the table axis.
+    gyro_var_rps : (K,) variance of the tested axis's means, (rad/s)²; None
+        estimates the noise from the residuals.
+    """
+    r = np.asarray(table_rate_rps, dtype=float)
+    w = np.asarray(gyro_mean_rps, dtype=float)
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+    if r.ndim != 1 or w.shape != (r.size, 3):
+        raise ValueError(f"need table rates (K,) and gyro means (K, 3), got {r.shape} and {w.shape}")
+    distinct = np.unique(np.round(r, 9)).size
+    if distinct < 3:
+        raise ValueError(f"the rate-table fit needs at least 3 different table rates, got {distinct}")
+    h = np.column_stack([np.ones(r.size), r])
+    fit = _weighted_fit(h, w[:, axis] - r, None if gyro_var_rps is None else np.asarray(gyro_var_rps, float), ("bias", "scale factor"))
+    cross = np.array([fit_linear(h, w[:, i]).values[1] if i != axis else 1.0 + fit.values[1] for i in range(3)])
+    return RateTableFit(
+        axis=int(axis),
+        scale_error=float(fit.values[1]),
+        bias_rps=float(fit.values[0]),
+        cov=fit.cov,
+        cross_coupling=cross,
+        residuals_rps=fit.residuals,
+        nonlinearity=float(np.max(np.abs(fit.residuals)) / np.max(np.abs(r))),
+        table_rate_rps=r,
+    )
+
+
+@dataclass(frozen=True)
+class RateSteps:
+    """The rate steps found in a record: slices, mean (K, 3) and variance of the mean (K, 3) per step."""
+
+    slices: tuple[slice, ...]
+    gyro_mean_rps: np.ndarray
+    gyro_var_rps: np.ndarray
+
+
+def find_rate_steps(
+    t_s: np.ndarray, gyro_rps: np.ndarray, *, axis: int, profile_rps: np.ndarray, min_hold_s: float = 5.0
+) -> RateSteps:
+    """The constant-rate steps of a rate-table record, matched in time order to ``profile_rps``.
+
+    The steps are the plateaus of gyro ``axis`` (:func:`estimators.plateaus.find_plateaus`,
+    smallest level change: half the smallest change between consecutive profile
+    rates); their number must equal the profile's length. Variances of the
+    means assume white noise (sample variance / n).
+    """
+    t = np.asarray(t_s, dtype=float)
+    g = np.asarray(gyro_rps, dtype=float)
+    prof = np.asarray(profile_rps, dtype=float)
+    if g.shape != (t.size, 3):
+        raise ValueError(f"gyro samples must have shape ({t.size}, 3), got {g.shape}")
+    if prof.size < 3:
+        raise ValueError(f"a rate profile needs at least 3 steps, got {prof.size}")
+    step = float(np.min(np.abs(np.diff(prof))))
+    if not step > 0:
+        raise ValueError("consecutive profile rates must differ")
+    slices = find_plateaus(t, g[:, axis], min_step=0.5 * step, min_duration_s=min_hold_s)
+    if len(slices) != prof.size:
+        raise ValueError(
+            f"found {len(slices)} constant-rate steps of gyro {AXES[axis]} lasting at least {min_hold_s:g} s, "
+            f"but the profile has {prof.size}: check --axis, the profile and the hold time"
+        )
+    mean = np.array([g[s].mean(axis=0) for s in slices])
+    var = np.array([g[s].var(axis=0, ddof=1) / (s.stop - s.start) for s in slices])
+    return RateSteps(slices=tuple(slices), gyro_mean_rps=mean, gyro_var_rps=var)
+
+
+
+
+def _robust_noise(x: np.ndarray) -> float:
+    """Largest per-axis per-sample noise of (N, 3) samples from the median absolute first difference (robust to turns)."""
+    d = np.diff(x, axis=0)
+    return float(np.max(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2.0)))
+
+
+def session_positions(session: ImuSession, *, min_static_s: float = 5.0) -> tuple[Position, ...]:
+    """The static positions of a bench session (static detector, then :func:`estimators.positions.build_positions`).
+
+    Bench positions are long and separated by large turns, so the detector's
+    thresholds are its defaults or three times the session's own noise spread
+    (:meth:`StaticDetectorConfig.from_noise`), whichever is larger; intervals
+    shorter than ``min_static_s`` are not positions.
+    """
+    defaults = StaticDetectorConfig()
+    accel_std = defaults.accel_std_mps2 if session.accel_mps2 is None else max(defaults.accel_std_mps2, 3.0 * np.sqrt(3.0) * _robust_noise(session.accel_mps2))
+    gyro_std = defaults.gyro_std_rps if session.gyro_rps is None else max(defaults.gyro_std_rps, 3.0 * np.sqrt(3.0) * _robust_noise(session.gyro_rps))
+    config = StaticDetectorConfig(accel_std_mps2=accel_std, gyro_std_rps=gyro_std, min_static_s=min_static_s)
+    return build_positions(session, detect_static(session, config=config)).positions
+
+
+@dataclass(frozen=True)
+class SixPositionTest:
+    """Both results of one six-position session (M4)."""
+
+    accel: AccelSixPosition
+    gyro: GyroGSensitivity | None
+    positions: tuple[Position, ...]
+
+
+def six_position_test(
+    positions: Sequence[Position], *, gravity_mps2: float, latitude_deg: float | None = None
+) -> SixPositionTest:
+    """Accelerometer calibration and gyro ``Bf``/``Bg`` from the static positions of one test."""
+    positions = tuple(positions)
+    if not positions:
+        raise ValueError("no static positions: the six-position test needs each axis up and down")
+    mean = np.array([p.accel_mean_mps2 for p in positions])
+    cov = np.array([p.accel_cov_mps2 for p in positions])
+    up = face_directions(mean)
+    accel = six_position_accel(mean, gravity_mps2=gravity_mps2, accel_cov_mps2=cov, up_b=up)
+    gyro = None
+    if positions[0].gyro_mean_rps is not None:
+        gyro = gyro_g_sensitivity(
+            np.array([p.gyro_mean_rps for p in positions]),
+            up,
+            gravity_mps2=gravity_mps2,
+            gyro_cov_rps=np.array([p.gyro_cov_rps for p in positions]),
+            latitude_deg=latitude_deg,
+        )
+    return SixPositionTest(accel=accel, gyro=gyro, positions=positions)
+
+
+# --- simulated benches (estimators.sim) ---------------------------------------------------------
+
+GUANGZHOU_LATITUDE_DEG = 23.13
+GUANGZHOU_HEIGHT_M = 20.0
+"""Where the paper's tests ran; normal gravity there is 9.788 m/s² (the paper's value)."""
+
+SIX_FACES_UP_B = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [0, 0, 1.0], [0, 0, -1.0]])
+"""Body-frame up direction of the six positions in the paper's order (x up, x down, y up, …)."""
+
+_DEG = np.pi / 180.0
+
+
+def adis_like_model(*, quantization: bool = True) -> ErrorModel:
+    """A MEMS unit like the paper's ADIS16355 (:class:`estimators.sim.ErrorModel`).
+
+    Accelerometers: sensitive axes off by ~1 mrad, a quadratic term of about
+    1e-4 per m/s² (``scale_nonlinearity`` K2), scale errors 0.3–0.6 %, bias
+    3–8 mg, and the MEMS grade's noise and 16-bit steps. Gyros: scale errors
+    0.4–0.6 %, bias 0.1–0.3 °/s, g-sensitivity 0.01–0.05 °/s per g
+    (``g_sensitivity``), noise 0.05 °/s/√Hz, the grade's steps.
+    """
+    grade = GRADES[SimGrade.MEMS]
+    accel = [
+        NonOrthogonality((0.8e-3, -1.1e-3, 0.6e-3, 1.3e-3, -0.9e-3, 0.7e-3)),
+        ScaleNonlinearity(k2_per_si=(1.2e-4, -0.8e-4, 1.5e-4)),
+        ScaleFactor((3.1e-3, -4.4e-3, 5.6e-3)),
+        Bias((0.03, -0.05, 0.08)),
+        WhiteNoise((grade.accel.noise_density_si,) * 3),
+    ]
+    gyro = [
+        ScaleFactor((4.0e-3, -6.0e-3, 5.0e-3)),
+        Bias((0.2 * _DEG, -0.3 * _DEG, 0.1 * _DEG)),
+        GSensitivity(np.array([[0.03, 0.01, -0.02], [-0.01, 0.05, 0.02], [0.02, -0.03, 0.04]]) * _DEG / STANDARD_GRAVITY_MPS2),
+        WhiteNoise((0.05 * _DEG,) * 3),
+    ]
+    if quantization:
+        accel.append(Quantization((grade.accel.quant_step_si,) * 3))
+        gyro.append(Quantization((grade.gyro.quant_step_si,) * 3))
+    return ErrorModel(accel=TriadErrorModel(tuple(accel)), gyro=TriadErrorModel(tuple(gyro)))
+
+
+def six_position_spec(
+    model: ErrorModel,
+    *,
+    static_s: float = 60.0,
+    transition_s: float = 4.0,
+    rate_hz: float = 100.0,
+    latitude_deg: float = GUANGZHOU_LATITUDE_DEG,
+    height_m: float = GUANGZHOU_HEIGHT_M,
+    temperature: TemperatureProfile | None = None,
+) -> SessionSpec:
+    """The paper's six-position test as a simulator spec: each axis up then down, 1 min at 100 Hz."""
+    attitudes = np.array([attitude_with_up(u) for u in SIX_FACES_UP_B])
+    profile = multi_position_profile(attitudes, static_s=static_s, transition_s=transition_s)
+    return SessionSpec(profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, height_m=height_m, temperature=temperature)
+
+
+def _effect(chain: TriadErrorModel, name: str, default):
+    e = chain.find(name)
+    return default if e is None else e
+
+
+def quantizer_offset(chain: TriadErrorModel) -> np.ndarray:
+    """(3,) mean offset of averaged (dithered) quantized output: −step/2 for FLOOR, 0 for NEAREST."""
+    q = chain.find("quantization")
+    if q is None or q.rounding is Rounding.NEAREST:
+        return np.zeros(3)
+    if q.rounding is Rounding.FLOOR:
+        return -0.5 * np.array(q.step_si)
+    raise ValueError("a truncating converter's half-step offset depends on the sign of each reading: no constant bias to state")
+
+
+def accel_truth(model: ErrorModel) -> np.ndarray:
+    """(3, 5) true six-position parameters (:data:`ACCEL_TERM_NAMES` order) of a simulator model.
+
+    With unit sensitive axes ``s_i``, scale error ``e``, quadratic ``K2`` and
+    bias ``b`` the chain gives ``A_i = b_i + (1 + e_i)(s_i·a + K2_i (s_i·a)²)``,
+    so ``S_i = (1 + e_i) s_ii − 1``, ``M_ij = (1 + e_i) s_ij`` and
+    ``Q_i = (1 + e_i) K2_i`` (the quadratic cross terms ``K2 s_ij² g²`` are ~1e-6 of g).
+    A FLOOR quantizer makes the averaged output half a step low: that is part
+    of the bias a user of the output sees, so it is in ``b``.
+    """
+    chain = model.accel
+    axes = _effect(chain, "non_orthogonality", NonOrthogonality()).axes
+    e = np.array(_effect(chain, "scale_factor", ScaleFactor()).scale_err)
+    k2 = np.array(_effect(chain, "scale_nonlinearity", ScaleNonlinearity()).k2_per_si)
+    b = np.array(_effect(chain, "bias", Bias()).bias_si) + quantizer_offset(chain)
+    full = (1.0 + e)[:, None] * axes
+    others = np.array([[full[i, j] for j in range(3) if j != i] for i in range(3)])
+    return np.column_stack([b, np.diag(full) - 1.0, others, (1.0 + e) * k2])
+
+
+def gyro_truth(model: ErrorModel) -> tuple[np.ndarray, np.ndarray]:
+    """True ``Bf`` (3,) rad/s (with the quantizer's mean offset) and ``Bg`` (3, 3) rad/s per m/s² of a simulator model."""
+    chain = model.gyro
+    bias = np.array(_effect(chain, "bias", Bias()).bias_si) + quantizer_offset(chain)
+    gs = np.array(_effect(chain, "g_sensitivity", GSensitivity()).coef_rps_per_mps2)
+    return bias, gs
+
+
+def rate_table_truth(model: ErrorModel) -> np.ndarray:
+    """(3, 3) true slope of gyro ``i`` against a table rate about body axis ``j``: ``(1 + e_i) s_ij``."""
+    chain = model.gyro
+    axes = _effect(chain, "non_orthogonality", NonOrthogonality()).axes
+    e = np.array(_effect(chain, "scale_factor", ScaleFactor()).scale_err)
+    return (1.0 + e)[:, None] * axes
+
+
+def simulate_rate_table(
+    model: ErrorModel,
+    *,
+    axis: int,
+    profile_rps: np.ndarray,
+    hold_s: float = 10.0,
+    ramp_s: float = 1.0,
+    rate_hz: float = 100.0,
+    latitude_deg: float = GUANGZHOU_LATITUDE_DEG,
+    gravity_mps2: float,
+    seed: int,
+) -> ImuSession:
+    """A rate-table record: body axis ``axis`` vertical (up) on the table axis, the table
+    holding each rate of ``profile_rps`` for ``hold_s`` with linear ramps of ``ramp_s``.
+
+    The true inputs (table rate plus the Earth rate, whose horizontal part
+    turns with the table; ``g`` along the vertical axis) go through the
+    model's effect chains with the simulator's own effects and random streams
+    (:mod:`estimators.sim`); the simulator's motion profiles have no
+    constant-rate segment, so the table's kinematics are built here.
+    """
+    prof = np.asarray(profile_rps, dtype=float)
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
+    n_hold = max(1, int(round(hold_s * rate_hz)))
+    n_ramp = max(1, int(round(ramp_s * rate_hz)))
+    parts = [np.full(n_hold, prof[0])]
+    for a, b in zip(prof[:-1], prof[1:]):
+        parts += [np.linspace(a, b, n_ramp + 2)[1:-1], np.full(n_hold, b)]
+    table = np.concatenate(parts)
+    t = np.arange(table.size) / rate_hz
+    heading = np.cumsum(table) / rate_hz
+    earth = earth_rate_n_rps(latitude_deg)
+    j, k = [m for m in range(3) if m != axis]
+    w = np.zeros((t.size, 3))
+    w[:, axis] = table + earth[2]
+    w[:, j] = earth[1] * np.cos(heading)
+    w[:, k] = -earth[1] * np.sin(heading)
+    f = np.zeros((t.size, 3))
+    f[:, axis] = gravity_mps2
+    streams = RandomStreams(seed)
+
+    def output(triad: Triad, x: np.ndarray, reference: float) -> np.ndarray:
+        y = x
+        for effect in model.triad(triad).effects:
+            ctx = EffectContext(t, rate_hz, triad, reference, f, None, None, streams.rng(triad.value, effect.name))
+            y = effect.apply(y, ctx)
+        return y
+
+    return ImuSession(t, output(Triad.ACCEL, f, gravity_mps2), output(Triad.GYRO, w, EARTH_RATE_RPS), None)
