@@ -56,7 +56,7 @@ def register(subparsers) -> None:
     st.add_argument("--frequency-hz", type=float, help="stand frequency setting, Hz (simulate: 0.53; log: fitted if not given)")
     st.add_argument("--amplitude-rel-sigma", type=float, default=PAPER_REL_SIGMA, help="stated relative amplitude uncertainty (default 0.01)")
     st.add_argument("--frequency-rel-sigma", type=float, default=PAPER_REL_SIGMA, help="stated relative frequency uncertainty (default 0.01)")
-    st.add_argument("--latitude-deg", type=float, help="model the Earth rate at this latitude (default: not modelled)")
+    st.add_argument("--latitude", dest="latitude_deg", type=float, metavar="DEG", help="model the Earth rate at this latitude (default: not modelled)")
     st.add_argument("--heading-deg", type=float, default=0.0, help="heading of the stand's X axis from north, deg (default 0)")
     sim = p.add_argument_group("simulation (--simulate)")
     sim.add_argument("--dk", type=float, nargs=3, metavar=("DK1", "DK2", "DK3"), help="scale-factor errors of channels 1-3 (default: the paper's)")
