@@ -8,8 +8,6 @@ to the batch size. Each figure is the best of five runs. Run:
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from estimators.conventions import Triad
@@ -17,15 +15,7 @@ from estimators.scalar import F0Config, F0Monitor, derive_lambda0, f0_batch, tri
 from estimators.session import ImuSession
 from estimators.sim import Grade, multi_position_spec, simulate
 from estimators.static_detector import StreamingStaticDetector, detect_static
-
-
-def _best_of(fn, repeats: int) -> float:
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+from stopwatch import best_s
 
 
 def main() -> None:
@@ -50,11 +40,11 @@ def main() -> None:
         det = detect_static(big, rate_hz=100.0)
         f0_batch(big.accel_mps2, det.static, config)
 
-    t_det = _best_of(lambda: detect_static(big, rate_hz=100.0), 5)
+    t_det = best_s(lambda: detect_static(big, rate_hz=100.0), 5)
     static = detect_static(big, rate_hz=100.0).static
-    t_f0 = _best_of(lambda: f0_batch(big.accel_mps2, static, config), 5)
-    t_f0c = _best_of(lambda: f0_batch(big.accel_mps2, static, compensated), 5)
-    t_both = _best_of(batch, 5)
+    t_f0 = best_s(lambda: f0_batch(big.accel_mps2, static, config), 5)
+    t_f0c = best_s(lambda: f0_batch(big.accel_mps2, static, compensated), 5)
+    t_both = best_s(batch, 5)
     print(f"batch, {n:,} samples:")
     print(f"  detector        {n / t_det / 1e6:8.2f} M samples/s")
     print(f"  F0              {n / t_f0 / 1e6:8.2f} M samples/s")
@@ -92,9 +82,9 @@ def main() -> None:
             check(ax, ay, az, True)
 
     print(f"per sample, {m:,} samples (pure Python):")
-    print(f"  detector        {m / _best_of(detector_only, 5) / 1e3:8.1f} k samples/s")
-    print(f"  F0              {m / _best_of(f0_only, 5) / 1e3:8.1f} k samples/s")
-    print(f"  F0 + detector   {m / _best_of(per_sample, 5) / 1e3:8.1f} k samples/s   (target >= 100)")
+    print(f"  detector        {m / best_s(detector_only, 5) / 1e3:8.1f} k samples/s")
+    print(f"  F0              {m / best_s(f0_only, 5) / 1e3:8.1f} k samples/s")
+    print(f"  F0 + detector   {m / best_s(per_sample, 5) / 1e3:8.1f} k samples/s   (target >= 100)")
 
 
 if __name__ == "__main__":

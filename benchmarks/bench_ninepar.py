@@ -22,11 +22,9 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import time  # noqa: E402
-
 import numpy as np  # noqa: E402
 
-from estimators.conventions import EARTH_RATE_RPS, PARAM_NAMES, Triad  # noqa: E402
+from estimators.conventions import EARTH_RATE_RPS, PARAM_NAMES, RPS_PER_DPH, Triad  # noqa: E402
 from estimators.ninepar import (  # noqa: E402
     RecursiveNineParam,
     canonical_triad_matrix,
@@ -35,8 +33,9 @@ from estimators.ninepar import (  # noqa: E402
     estimate_refined,
     scheme_directions,
 )
+from stopwatch import median_s  # noqa: E402
 
-DEG_PER_H_NORM = np.radians(1.0) / 3600.0 / EARTH_RATE_RPS
+DEG_PER_H_NORM = RPS_PER_DPH / EARTH_RATE_RPS
 SEEDS = 2000
 
 
@@ -56,15 +55,6 @@ NAV_GYRO = np.concatenate([np.array([0.01, -0.008, 0.012]) * DEG_PER_H_NORM, [2e
 NAV_GYRO_SIGMA = 0.002 * 60.0 / np.sqrt(300.0) * DEG_PER_H_NORM  # 0.002 °/√h over 300 s
 
 
-def _median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
 def timing() -> None:
     print("Time per re-estimation (MEMS accelerometer, median), ms; recursive: one more position after n")
     print(f"{'positions':>10} {'linear':>10} {'refined':>10} {'recursive/pos':>14}")
@@ -72,8 +62,8 @@ def timing() -> None:
     for n in (9, 18, 100):
         truth, cov = _case(MEMS_ACCEL, n, MEMS_ACCEL_SIGMA, seed=n)
         means = truth + rng.normal(0.0, MEMS_ACCEL_SIGMA, truth.shape)
-        t_lin = _median_time(lambda: estimate_linear(means, cov, Triad.ACCEL), 50)
-        t_ref = _median_time(lambda: estimate_refined(means, cov, Triad.ACCEL), 50)
+        t_lin = median_s(lambda: estimate_linear(means, cov, Triad.ACCEL), 50)
+        t_ref = median_s(lambda: estimate_refined(means, cov, Triad.ACCEL), 50)
         rec = RecursiveNineParam(Triad.ACCEL, warmup_positions=min(n, 18))
         for m, c in zip(means, cov):
             rec.update(m, c)
@@ -85,7 +75,7 @@ def timing() -> None:
             rec.update(*next(stream))
             rec.estimate()
 
-        t_rec = _median_time(one_position, 400)
+        t_rec = median_s(one_position, 400)
         print(f"{n:>10} {1e3 * t_lin:>10.3f} {1e3 * t_ref:>10.3f} {1e3 * t_rec:>14.3f}")
 
 

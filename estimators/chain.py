@@ -47,6 +47,10 @@ class ChainConfig:
     def __post_init__(self) -> None:
         if not np.isfinite(self.gravity_mps2) or not 9.7 < self.gravity_mps2 < 9.9:
             raise ValueError(f"gravity_mps2 must be a local gravity value near 9.8 m/s², got {self.gravity_mps2!r}")
+        for name in ("accel_limit_mps2", "gyro_limit_rps"):
+            limit = getattr(self, name)
+            if limit is not None and not (np.isfinite(limit) and limit > 0.0):
+                raise ValueError(f"{name} must be a positive full-scale range or None, got {limit!r}")
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,12 @@ EARTH_RATE_RPS = 7.292115e-5
 STANDARD_GRAVITY_MPS2 = 9.80665
 """Conventional standard gravity g_n, m/s² (a unit, not a local value)."""
 
+MPS2_PER_MG = 1.0e-3 * STANDARD_GRAVITY_MPS2
+"""One milli-g (datasheet unit of accelerometer bias and noise) in m/s²."""
+
+RPS_PER_DPH = np.pi / 180.0 / 3600.0
+"""One degree per hour (datasheet unit of gyro bias) in rad/s."""
+
 # WGS-84 constants for Somigliana's normal gravity and the free-air correction.
 _WGS84_GAMMA_E = 9.7803253359  # normal gravity at the equator, m/s²
 _WGS84_K = 1.931852652458e-3  # Somigliana constant
@@ -77,6 +83,14 @@ class Triad(str, Enum):
 
     ACCEL = "accel"
     GYRO = "gyro"
+
+
+class Grade(str, Enum):
+    """Sensor grade of an IMU: selects the passport's tolerance floors and the simulator's presets."""
+
+    MEMS = "mems"
+    TACTICAL = "tactical"
+    NAVIGATION = "navigation"
 
 
 class Cause(str, Enum):

@@ -55,7 +55,12 @@ Observability (M1 leaves it open; decided here)
    noise of the means along that plane's normal, the positions count as one
    rotation axis iff ``s⊥ ≤ max(min_plane_spread, noise_factor·σ⊥)``
    (defaults 0.05 of the reference and 3). Translation invariant, so a bias
-   larger than the reference (a MEMS gyro against Ω) does not fake it;
+   larger than the reference (a MEMS gyro against Ω) does not fake it. When
+   ``noise_factor·σ⊥`` alone reaches ``1/√3`` — the largest ``s⊥`` of any
+   scheme on the unit sphere (the scatter of unit vectors has trace at most 1,
+   so its smallest eigenvalue is at most 1/3) — no scheme could pass: the
+   noise of the means, not the rotation axes, is the cause, and the reason
+   says so (a MEMS gyro against Ω: the reference is not resolvable by it);
 3. rank of ``HᵀH`` below 9 or its condition number above ``max_condition``
    (default 1e4), with ``H = regressors(û_k)`` and ``û_k`` the unit directions
    of the means about their best-fitting sphere centre (the geometry of the
@@ -101,6 +106,7 @@ from scipy.optimize import least_squares
 
 from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
 from estimators.positions import Position
+from estimators.scalar import normalize, scalar_residual
 
 MIN_POSITIONS = N_PARAMS
 """Nine unknowns need at least nine scalar equations (methods.md M1: n ≥ 9)."""
@@ -397,7 +403,17 @@ class _Geometry:
     centre: np.ndarray | None  # best-fitting sphere centre, normalized
 
 
-def _check_geometry(mean: np.ndarray, cov: np.ndarray, rule: GeometryRule) -> _Geometry:
+MAX_PLANE_SPREAD = 1.0 / np.sqrt(3.0)
+"""Largest RMS distance from their best-fitting plane that unit vectors can have (module docstring, item 2)."""
+
+_REFERENCE_WORDS = {
+    Triad.ACCEL: ("g", "gravity", "accelerometer triad"),
+    Triad.GYRO: ("Ω", "Earth rate", "gyro"),
+}
+"""Per triad: symbol of the reference, its name, the sensor (for the reasons of the geometry check)."""
+
+
+def _check_geometry(mean: np.ndarray, cov: np.ndarray, rule: GeometryRule, triad: Triad) -> _Geometry:
     n = mean.shape[0]
     if n < MIN_POSITIONS:
         return _Geometry(False, f"{n} positions; the nine parameters need at least {MIN_POSITIONS}", 0, np.inf, None, None)
@@ -406,18 +422,24 @@ def _check_geometry(mean: np.ndarray, cov: np.ndarray, rule: GeometryRule) -> _G
     normal = evecs[:, 0]
     spread = float(np.sqrt(max(evals[0], 0.0)))
     noise = float(np.sqrt(np.mean(np.einsum("i,nij,j->n", normal, cov, normal))))
-    limit = max(rule.min_plane_spread, rule.noise_factor * noise)
+    noise_limit = rule.noise_factor * noise
+    limit = max(rule.min_plane_spread, noise_limit)
     if spread <= limit:
-        return _Geometry(
-            False,
-            f"positions around fewer than two rotation axes: the means lie within {spread:.3g} (RMS) of one plane "
-            f"with normal {np.array2string(normal, precision=3)}, limit {limit:.3g} "
-            f"(max of {rule.min_plane_spread:g} and {rule.noise_factor:g}× noise {noise:.3g})",
-            0,
-            np.inf,
-            None,
-            None,
-        )
+        symbol, name, sensor = _REFERENCE_WORDS[Triad(triad)]
+        if noise_limit >= MAX_PLANE_SPREAD:
+            reason = (
+                f"the position means' noise ({noise:.2g} {symbol} along the normal of their best-fitting plane) is too large "
+                f"against the reference to tell the positions' geometry: {rule.noise_factor:g}× that noise "
+                f"({noise_limit:.3g} {symbol}) exceeds the largest spread any position scheme can reach ({MAX_PLANE_SPREAD:.2f} {symbol}); "
+                f"{name} is not resolvable by this {sensor} (longer positions or a less noisy {sensor} would be needed)"
+            )
+        else:
+            reason = (
+                f"positions around fewer than two rotation axes: the means lie within {spread:.3g} {symbol} (RMS) of one plane "
+                f"with normal {np.array2string(normal, precision=3)}, limit {limit:.3g} {symbol} "
+                f"(max of {rule.min_plane_spread:g} and {rule.noise_factor:g}× noise {noise:.3g})"
+            )
+        return _Geometry(False, reason, 0, np.inf, None, None)
     # Sphere |ã|² = 2cᵀã + k, linear in (c, k): defined once the means are not coplanar.
     sol, *_ = np.linalg.lstsq(np.column_stack([2.0 * mean, np.ones(n)]), np.einsum("ij,ij->i", mean, mean), rcond=None)
     centre = sol[:3]
@@ -475,7 +497,7 @@ def estimate_linear(
     reference : the normalizing value (m/s² or rad/s), recorded in the estimate.
     """
     mean, cov = _check_positions(mean_norm, cov_norm)
-    geo = _check_geometry(mean, cov, geometry)
+    geo = _check_geometry(mean, cov, geometry, triad)
     if not geo.ok:
         return _not_observable(triad, Method.LINEAR, geo, mean.shape[0], reference)
     params, cov_p, chi2 = _linear_solve(mean, cov, np.zeros(3))
@@ -520,7 +542,7 @@ def _refined(
     max_passes: int = 6,
 ) -> tuple[Estimate, _Geometry]:
     """:func:`estimate_refined` on validated arrays, with the geometry it found."""
-    geo = _check_geometry(mean, cov, geometry)
+    geo = _check_geometry(mean, cov, geometry, triad)
     if not geo.ok:
         return _not_observable(triad, method, geo, mean.shape[0], reference), geo
     start, _, _ = _linear_solve(mean, cov, geo.centre)
@@ -541,21 +563,15 @@ def position_arrays(positions: Sequence[Position], triad: Triad, reference: floa
     reference : g in m/s² for the accelerometers, Ω in rad/s for the gyros.
     """
     triad = Triad(triad)
-    if not np.isfinite(reference) or reference <= 0.0:
-        raise ValueError(f"reference must be a positive finite number, got {reference!r}")
     means, covs = [], []
     for k, pos in enumerate(positions):
-        if triad is Triad.ACCEL:
-            mean, cov = pos.accel_mean_mps2, pos.accel_cov_mps2
-        else:
-            mean, cov = pos.gyro_mean_rps, pos.gyro_cov_rps
+        mean, cov = pos.mean(triad), pos.cov(triad)
         if mean is None or cov is None:
             raise ValueError(f"position {k} has no {triad.value} mean/covariance")
-        means.append(np.asarray(mean, dtype=float) / reference)
-        covs.append(np.asarray(cov, dtype=float) / reference**2)
-    if not means:
-        return np.empty((0, 3)), np.empty((0, 3, 3))
-    return _check_positions(np.array(means), np.array(covs))
+        means.append(mean)
+        covs.append(cov)
+    mean_norm = normalize(np.array(means, dtype=float).reshape(-1, 3), reference)
+    return _check_positions(mean_norm, np.array(covs, dtype=float).reshape(-1, 3, 3) / reference**2)
 
 
 def estimate_triad(
@@ -587,7 +603,7 @@ def estimate_triad(
 def _linear_solve(mean: np.ndarray, cov: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Paper's weighted linear LS on the means taken about ``centre`` (bias = centre + estimate)."""
     rel = mean - centre
-    y = 0.5 * (np.einsum("ij,ij->i", rel, rel) - 1.0)
+    y = scalar_residual(rel)
     h = regressors(rel)
     sigma = np.sqrt(np.einsum("ni,nij,nj->n", rel, cov, rel))
     hw, yw = h / sigma[:, None], y / sigma

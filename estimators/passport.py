@@ -52,7 +52,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy.stats import norm
 
-from estimators.conventions import N_PARAMS, PARAM_NAMES, STANDARD_GRAVITY_MPS2, Triad
+from estimators.conventions import MPS2_PER_MG, N_PARAMS, PARAM_NAMES, RPS_PER_DPH, Grade, Triad
 from estimators.ninepar import Estimate, Method
 from estimators.positions import Position
 
@@ -81,26 +81,15 @@ def reference_kind(triad: Triad) -> ReferenceKind:
     return ReferenceKind.GRAVITY if Triad(triad) is Triad.ACCEL else ReferenceKind.EARTH_RATE
 
 
-class Grade(str, Enum):
-    """Sensor grade, selects the tolerance floors."""
-
-    MEMS = "mems"
-    TACTICAL = "tactical"
-    NAVIGATION = "navigation"
-
-
-_MG_MPS2 = 1.0e-3 * STANDARD_GRAVITY_MPS2
-_DEG_PER_H_RPS = math.radians(1.0) / 3600.0
-
 GRADE_FLOORS: Mapping[tuple[Triad, Grade], tuple[float, float, float]] = MappingProxyType(
     {
         # (bias in m/s² or rad/s, relative scale error, cosine = rad): typical turn-on/in-run repeatability.
-        (Triad.ACCEL, Grade.MEMS): (2.0 * _MG_MPS2, 2.0e-3, 1.0e-3),
-        (Triad.ACCEL, Grade.TACTICAL): (0.3 * _MG_MPS2, 3.0e-4, 2.0e-4),
-        (Triad.ACCEL, Grade.NAVIGATION): (0.05 * _MG_MPS2, 1.0e-4, 5.0e-5),
-        (Triad.GYRO, Grade.MEMS): (20.0 * _DEG_PER_H_RPS, 2.0e-3, 1.0e-3),
-        (Triad.GYRO, Grade.TACTICAL): (1.0 * _DEG_PER_H_RPS, 3.0e-4, 2.0e-4),
-        (Triad.GYRO, Grade.NAVIGATION): (0.01 * _DEG_PER_H_RPS, 5.0e-5, 2.0e-5),
+        (Triad.ACCEL, Grade.MEMS): (2.0 * MPS2_PER_MG, 2.0e-3, 1.0e-3),
+        (Triad.ACCEL, Grade.TACTICAL): (0.3 * MPS2_PER_MG, 3.0e-4, 2.0e-4),
+        (Triad.ACCEL, Grade.NAVIGATION): (0.05 * MPS2_PER_MG, 1.0e-4, 5.0e-5),
+        (Triad.GYRO, Grade.MEMS): (20.0 * RPS_PER_DPH, 2.0e-3, 1.0e-3),
+        (Triad.GYRO, Grade.TACTICAL): (1.0 * RPS_PER_DPH, 3.0e-4, 2.0e-4),
+        (Triad.GYRO, Grade.NAVIGATION): (0.01 * RPS_PER_DPH, 5.0e-5, 2.0e-5),
     }
 )
 """Tolerance floors per (triad, grade): bias (SI), scale error, cosine between axes."""
@@ -435,16 +424,26 @@ class Passport:
 def per_sample_noise_std(positions: Sequence[Position], triad: Triad, reference: float) -> np.ndarray:
     """(3,) per-sample standard deviation of the normalized output per axis.
 
-    Each position's covariance of the mean times its sample count is a
-    per-sample variance; the median over positions resists a disturbed one.
+    Each position's covariance of the mean times its effective sample count
+    (``n_eff``, :mod:`estimators.positions`; ``n_samples`` when not recorded)
+    is a per-sample variance: the covariance of the mean is ``Σ·τ/n`` and
+    ``n_eff = n/τ``, so the correlation factor ``τ`` cancels. The median over
+    positions resists a disturbed one.
+
+    Parameters
+    ----------
+    positions : static positions (SI covariances of the means).
+    triad : which triad.
+    reference : g in m/s² or Ω in rad/s, the normalizing value.
     """
     triad = Triad(triad)
     variances = []
     for k, pos in enumerate(positions):
-        cov = pos.accel_cov_mps2 if triad is Triad.ACCEL else pos.gyro_cov_rps
+        cov = pos.cov(triad)
         if cov is None:
             raise PassportError(f"position {k} has no {triad.value} covariance")
-        variances.append(np.diag(np.asarray(cov, dtype=float)) * pos.n_samples)
+        n_eff = pos.accel_n_eff if triad is Triad.ACCEL else pos.gyro_n_eff
+        variances.append(np.diag(np.asarray(cov, dtype=float)) * (pos.n_samples if n_eff is None else n_eff))
     if not variances:
         raise PassportError("no positions to estimate the noise from")
     return np.sqrt(np.median(np.array(variances), axis=0)) / reference

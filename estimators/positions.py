@@ -525,6 +525,8 @@ class PositionAccumulator:
     ) -> None:
         self.detector = StreamingStaticDetector(detector_config, rate_hz=rate_hz, has_accel=has_accel, has_gyro=has_gyro)
         self.config = config
+        # Channel offsets (accel 0, gyro 3) of the triads present, fixed here so the per-sample path builds nothing.
+        self._offsets = tuple(o for o, present in ((0, has_accel), (3, has_gyro)) if present)
         self._trim = config.trim_samples(rate_hz)
         self._batch = config.batch_samples(rate_hz)
         self._ring_n = self.detector.window_samples + self._trim + 2
@@ -598,7 +600,6 @@ class PositionAccumulator:
         p = c % self._ring_n
         r = self._ring
         sm = self._sums
-        det = self.detector
         if sm.n == 0:
             sm.shift = [r[k][p] for k in range(1, 7)]
             sm.start = self._ring_idx[p]
@@ -611,10 +612,8 @@ class PositionAccumulator:
             sm.temp_sum += temp
             sm.temp_n += 1
         batch_done = sm.part_n + 1 == self._batch
-        for o, present in ((0, det.has_accel), (3, det.has_gyro)):
-            if not present:
-                continue
-            sh, s, q, part = sm.shift, sm.s, sm.q, sm.part
+        sh, s, q, part = sm.shift, sm.s, sm.q, sm.part
+        for o in self._offsets:
             y0 = r[1 + o][p] - sh[o]
             y1 = r[2 + o][p] - sh[o + 1]
             y2 = r[3 + o][p] - sh[o + 2]

@@ -210,7 +210,7 @@ def f0_batch(x_si: np.ndarray, static: np.ndarray, config: F0Config) -> F0Result
         with np.errstate(invalid="ignore"):  # NaN rows are expected: counted below
             u = x @ m.T
         u -= c
-        s = 0.5 * (np.einsum("ij,ij->i", u, u) - 1.0)
+        s = scalar_residual(u)
     finite = np.isfinite(s)
     n_rejected = int(x.shape[0] - np.count_nonzero(finite))
     if config.n_avg != 1:
@@ -238,7 +238,7 @@ def _f0_windows(u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F
     csum = np.concatenate([np.zeros((1, 3)), np.cumsum(u[rows], axis=0)])
     ends = np.flatnonzero(done)
     wmean = (csum[ends + 1] - csum[ends + 1 - n_avg]) / n_avg
-    ws = 0.5 * (np.einsum("ij,ij->i", wmean, wmean) - 1.0)
+    ws = scalar_residual(wmean)
     wok = np.abs(ws) <= config.lambda0
     # Each static row carries the last completed window of its own run.
     last = np.maximum.accumulate(np.where(done, k, -1))

@@ -4,21 +4,22 @@ Both carry :meth:`estimators.passport.Passport.to_dict` unchanged (its type tag
 ``"ins.health.passport"`` and ``schema_version`` included) and decode through
 :meth:`~estimators.passport.Passport.from_dict`, so one validation applies to
 both. JSON is strict (no NaN/Infinity) and written atomically: a temporary file
-in the target directory, flushed and fsynced, then ``os.replace`` — a reader
-sees the old passport or the new one, never a torn file.
+in the target directory, flushed and fsynced, then ``os.replace``
+(:mod:`protocols.atomic_file`) — a reader sees the old passport or the new
+one, never a torn file.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import msgpack
 
 from estimators.passport import Passport, PassportError
 from protocols._schema import MAX_MESSAGE_BYTES, SchemaError, unpack_map
+from protocols.atomic_file import atomic_write_bytes
 
 MAX_PASSPORT_BYTES = MAX_MESSAGE_BYTES
 """Largest passport accepted as msgpack bytes or as a JSON file (1 MiB; a passport is ~5 kB)."""
@@ -30,18 +31,7 @@ class PassportCodecError(SchemaError):
 
 def write_passport_json(passport: Passport, path: str | os.PathLike[str]) -> None:
     """Write ``passport`` as indented JSON to ``path`` atomically (temp file + ``os.replace``)."""
-    target = Path(path)
-    text = json.dumps(passport.to_dict(), indent=2, allow_nan=False) + "\n"
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, (json.dumps(passport.to_dict(), indent=2, allow_nan=False) + "\n").encode("utf-8"))
 
 
 def read_passport_json(path: str | os.PathLike[str]) -> Passport:

@@ -29,6 +29,7 @@ whose one-line message names the file, the line and the column.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import tomllib
@@ -39,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from estimators.session import ImuSession, SessionError
+from protocols.atomic_file import atomic_write_bytes
 
 CSV_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz", "temp")
 ACCEL_COLUMNS = ("ax", "ay", "az")
@@ -208,7 +210,7 @@ def write_csv_session(
     Values are written with 17 significant digits, so reading the file back
     gives the same float64 arrays. ``metadata`` becomes ``# key = value``
     lines, ``comments`` plain ``#`` lines, both before the header. The file is
-    written next to its destination and renamed into place.
+    replaced atomically (:mod:`protocols.atomic_file`).
     """
     path = Path(path)
     cols, names = [session.t_s[:, None]], ["t"]
@@ -230,13 +232,11 @@ def write_csv_session(
         if not str(key).isidentifier():
             raise ValueError(f"metadata key must be an identifier, got {key!r}")
         head.append(f"{key} = {value}")
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write("".join(f"# {h}\n" for h in head))
-        fh.write(",".join(names) + "\n")
-        np.savetxt(fh, table, fmt="%.17g", delimiter=",")
-    os.replace(tmp, path)
-    return path
+    text = io.StringIO(newline="\n")
+    text.write("".join(f"# {h}\n" for h in head))
+    text.write(",".join(names) + "\n")
+    np.savetxt(text, table, fmt="%.17g", delimiter=",")
+    return atomic_write_bytes(path, text.getvalue().encode("utf-8"))
 
 
 # --- Xsens raw-count pair ----------------------------------------------------

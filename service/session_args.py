@@ -3,22 +3,36 @@
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import dataclass
 
 from estimators.conventions import normal_gravity_mps2
 from estimators.session import ImuSession
+from estimators.static_detector import StaticDetectorConfig
 from protocols.session_file import load_session
+from service.cli import UsageError
 
 DEFAULT_LATITUDE_DEG = 45.0
 
 
 @dataclass(frozen=True)
 class SessionInput:
-    """A session read from the command line, with its local gravity and where that came from."""
+    """A session read from the command line and the settings that go with it.
+
+    Attributes
+    ----------
+    session : the samples, SI.
+    gravity_mps2, gravity_source : local gravity, m/s², and where it came from.
+    accel_limit_mps2, gyro_limit_rps : full-scale ranges (saturation check), or None.
+    detector : static-detector thresholds (from the stated noise, else the defaults).
+    """
 
     session: ImuSession
     gravity_mps2: float
     gravity_source: str
+    accel_limit_mps2: float | None = None
+    gyro_limit_rps: float | None = None
+    detector: StaticDetectorConfig = StaticDetectorConfig()
 
 
 def add_session_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,6 +44,12 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--gravity", type=float, metavar="MPS2", help="local gravity magnitude, m/s²")
     g.add_argument("--latitude", type=float, metavar="DEG", help="geodetic latitude, degrees (WGS-84 normal gravity)")
     g.add_argument("--height", type=float, default=0.0, metavar="M", help="height above the ellipsoid, metres (default 0)")
+    r = parser.add_argument_group("full-scale ranges (a sample with any axis at or beyond its range is saturated: rejected and counted)")
+    r.add_argument("--accel-range", type=float, metavar="MPS2", help="accelerometer full scale, m/s² (default: not checked)")
+    r.add_argument("--gyro-range", type=float, metavar="RPS", help="gyro full scale, rad/s (default: not checked)")
+    n = parser.add_argument_group("static detection (default thresholds suit MEMS units: 0.05 m/s², 0.02 rad/s window spread)")
+    n.add_argument("--accel-noise", type=float, metavar="MPS2", help="per-sample white noise of each accelerometer, m/s²: threshold at 3× its window spread")
+    n.add_argument("--gyro-noise", type=float, metavar="RPS", help="per-sample white noise of each gyro, rad/s (navigation-grade gyros need it): threshold at 3× its window spread")
 
 
 def load_session_input(args: argparse.Namespace) -> SessionInput:
@@ -43,4 +63,8 @@ def load_session_input(args: argparse.Namespace) -> SessionInput:
         gravity, source = loaded.gravity_mps2, "session file"
     else:
         gravity, source = normal_gravity_mps2(DEFAULT_LATITUDE_DEG, 0.0), f"WGS-84 at {DEFAULT_LATITUDE_DEG}° (default)"
-    return SessionInput(loaded.session, float(gravity), source)
+    for name, noise in (("--accel-noise", args.accel_noise), ("--gyro-noise", args.gyro_noise)):
+        if noise is not None and not (math.isfinite(noise) and noise > 0.0):
+            raise UsageError(f"{name} must be a positive noise level, got {noise!r}")
+    detector = StaticDetectorConfig.from_noise(accel_noise_mps2=args.accel_noise, gyro_noise_rps=args.gyro_noise)
+    return SessionInput(loaded.session, float(gravity), source, args.accel_range, args.gyro_range, detector)

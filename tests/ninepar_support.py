@@ -11,10 +11,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from estimators.conventions import EARTH_RATE_RPS, Triad, nine_params, sensor_axes, triad_matrix
+from estimators.conventions import EARTH_RATE_RPS, RPS_PER_DPH, Triad, nine_params, sensor_axes, triad_matrix
 from estimators.ninepar import scheme_directions
 
-DEG_PER_H_NORM = np.radians(1.0) / 3600.0 / EARTH_RATE_RPS
+DEG_PER_H_NORM = RPS_PER_DPH / EARTH_RATE_RPS
 """1 °/h in units of Ω."""
 
 # Where a cosine d_j is moved by one of the six angles (conventions.py, first order):

@@ -7,13 +7,15 @@ so detection, trimming, covariance of the means and quantization all play.
 
 import numpy as np
 import pytest
-from scipy.stats import binom
+from scipy.stats import binom, chi2
 
 from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import PARAM_AXIS, PARAM_CAUSE, Triad
+from estimators.ninepar import Verdict
 from estimators.passport import Grade, passport_from_estimates, per_sample_noise_std
 from estimators.session import SessionError
 from estimators.sim import Fault, FaultKind, Rounding, grade_error_model, multi_position_spec, simulate
+from estimators.static_detector import StaticDetectorConfig
 
 GRAVITY_45_MPS2 = 9.806197769  # the simulator's default: WGS-84 at 45°, 0 m
 
@@ -22,12 +24,12 @@ def _unit(unit_seed):
     return grade_error_model(Grade.MEMS, rng=np.random.default_rng(1000 + unit_seed))
 
 
-def _effective_accel_params(model, truth_params, gravity_mps2):
+def _effective_params(model, triad, truth):
     """A floor converter (M2's Entier) reads half a count low on average: the bias a calibration sees."""
-    q = model.accel.find("quantization")
-    out = np.array(truth_params, dtype=float)
+    q = model.triad(triad).find("quantization")
+    out = truth.params(triad).copy()
     if q is not None and q.rounding is Rounding.FLOOR:
-        out[:3] -= 0.5 * np.asarray(q.step_si) / gravity_mps2
+        out[:3] -= 0.5 * np.asarray(q.step_si) / truth.reference(triad)
     return out
 
 
@@ -35,24 +37,40 @@ def _chain(session, passport=None):
     return run_chain(session, ChainConfig(gravity_mps2=GRAVITY_45_MPS2), passport)
 
 
+def _assert_consistent(z):
+    """(units, 9) normalized errors: 3σ coverage near 99.7 % and a spread not far below 1."""
+    n = z.size
+    # Under the covariance each error leaves 3σ with p = 0.0027: allow the count whose binomial tail is < 1e-3.
+    assert (np.abs(z) > 3).sum() <= int(binom.ppf(1 - 1e-3, n, 0.0027))
+    # A covariance too large would hide real faults: the mean square must pass the lower 1e-3 χ² bound (0.71 for 180).
+    assert np.mean(z**2) > chi2.ppf(1e-3, n) / n
+
+
 def test_calibration_errors_are_consistent_with_the_reported_covariance():
-    # 20 units × 9 parameters = 180 normalized errors; under the covariance each
-    # leaves 3σ with p = 0.0027. Allow the count whose binomial tail is < 1e-3.
-    n_units = 20
+    # 20 MEMS units × 9 accelerometer parameters = 180 normalized errors.
     z = []
-    for seed in range(n_units):
+    for seed in range(20):
         model = _unit(seed)
         res = simulate(multi_position_spec(model=model), seed=seed)
         est = _chain(res.session).triads[Triad.ACCEL].estimate
-        truth = _effective_accel_params(model, res.truth.accel_params, GRAVITY_45_MPS2)
-        z.append((est.params - truth) / est.sigma)
-    z = np.array(z)
-    n = z.size
-    limit = int(binom.ppf(1 - 1e-3, n, 0.0027))
-    assert (np.abs(z) > 3).sum() <= limit
-    # A covariance too large would hide real faults: the spread must not be far below 1
-    # (χ² bound on the variance of 180 unit normals at 1e-3: 0.72).
-    assert np.mean(z**2) > 0.72
+        z.append((est.params - _effective_params(model, Triad.ACCEL, res.truth)) / est.sigma)
+    _assert_consistent(np.array(z))
+
+
+def test_navigation_gyro_calibration_is_consistent_with_the_reported_covariance():
+    # 20 navigation-grade units, 18 positions of 20 s: Ω is resolved (means good to ≈ 2e-3 Ω).
+    # The detector thresholds come from the unit's white noise: the defaults are set for MEMS
+    # units and would let the slow end of each turn (≫ Ω) into a navigation gyro's positions.
+    z = []
+    for seed in range(20):
+        model = grade_error_model(Grade.NAVIGATION, rng=np.random.default_rng(2000 + seed))
+        res = simulate(multi_position_spec(model=model), seed=seed)
+        noise_mps2, noise_rps = (float(model.triad(t).find("white_noise").sample_sd(res.spec.rate_hz).max()) for t in Triad)
+        detector = StaticDetectorConfig.from_noise(accel_noise_mps2=noise_mps2, gyro_noise_rps=noise_rps)
+        est = run_chain(res.session, ChainConfig(gravity_mps2=GRAVITY_45_MPS2, detector=detector)).triads[Triad.GYRO].estimate
+        assert est.verdict is Verdict.OBSERVABLE and est.n_positions == 18
+        z.append((est.params - _effective_params(model, Triad.GYRO, res.truth)) / est.sigma)
+    _assert_consistent(np.array(z))
 
 
 @pytest.fixture(scope="module")
@@ -95,8 +113,9 @@ def test_each_single_parameter_fault_at_five_tolerances_is_isolated(calibrated_u
 def test_mems_gyro_is_reported_not_observable_rather_than_estimated():
     res = simulate(multi_position_spec(model=_unit(1)), seed=1)
     est = _chain(res.session).triads[Triad.GYRO].estimate
-    assert not est.observable.any()
-    assert est.reason
+    assert not est.observable.any() and est.params is None
+    # The cause is the noise of 20 s gyro means against Ω, not the (two-axis) position scheme.
+    assert "Earth rate is not resolvable by this gyro" in est.reason and "rotation axes" not in est.reason
 
 
 def test_too_few_positions_give_not_observable_yet_and_no_predicates(calibrated_unit):

@@ -67,6 +67,41 @@ def test_unusable_input_exits_2_with_a_one_line_reason(unit_files, tmp_path, cap
     assert len(err.splitlines()) == 1 and reason in err.lower()
 
 
+def test_saturated_samples_are_rejected_and_counted_given_the_full_scale(unit_files, tmp_path, capsys):
+    # A ±2 g accelerometer that sat on its rail for 25 samples inside the third position.
+    full_scale = 2.0 * 9.80665
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    session = simulate(multi_position_spec(model=model), seed=32).session
+    session.accel_mps2[5000:5025, 0] = full_scale
+    write_csv_session(tmp_path / "railed.csv", session)
+    args = (str(tmp_path / "railed.csv"), "--passport", str(unit_files / "pp.json"))
+    out = _diagnose_json(capsys, *args, "--accel-range", str(full_scale))
+    assert out["rejected_samples"] == {"saturated_accel": 25}
+    assert len(out["positions"]) == 18 and out["faults"] == []
+    assert _diagnose_json(capsys, *args)["rejected_samples"] == {}
+    assert main(["diagnose", *args, "--accel-range", "-1"]) == 2
+    assert "accel_limit_mps2 must be a positive full-scale range" in capsys.readouterr().err
+
+
+def test_a_navigation_grade_gyro_calibrates_once_the_detector_knows_its_noise(tmp_path, capsys):
+    # The default thresholds (MEMS) let the slow end of each turn into the positions, which a gyro
+    # that resolves Ω sees; stating the unit's per-sample noise sets them at 3× its window spread.
+    model = grade_error_model(Grade.NAVIGATION, rng=np.random.default_rng(4))
+    res = simulate(multi_position_spec(model=model), seed=33)
+    write_csv_session(tmp_path / "nav.csv", res.session)
+    noise = {t: model.triad(t).find("white_noise").sample_sd(res.spec.rate_hz).max() for t in Triad}
+    argv = ["calibrate", str(tmp_path / "nav.csv"), "--grade", "navigation", "--latitude", "45"]
+    assert main([*argv, "--out", str(tmp_path / "default.json")]) == 0
+    assert set(read_passport_json(tmp_path / "default.json").triads) == {Triad.ACCEL}
+    noise_args = ["--accel-noise", str(noise[Triad.ACCEL]), "--gyro-noise", str(noise[Triad.GYRO])]
+    assert main([*argv, "--out", str(tmp_path / "nav.json"), *noise_args]) == 0
+    gyro = read_passport_json(tmp_path / "nav.json").triads[Triad.GYRO]
+    assert gyro.observable.all() and gyro.provenance.n_positions == 18
+    capsys.readouterr()
+    assert main([*argv, "--out", str(tmp_path / "x.json"), "--gyro-noise", "0"]) == 2
+    assert "--gyro-noise must be a positive noise level" in capsys.readouterr().err
+
+
 def test_missing_passport_exits_2(unit_files, tmp_path, capsys):
     assert main(["diagnose", str(unit_files / "clean.csv"), "--passport", str(tmp_path / "none.json")]) == 2
     assert "none.json" in capsys.readouterr().err

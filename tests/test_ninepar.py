@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -147,13 +148,32 @@ def test_navigation_gyro_against_earth_rate_is_resolved_and_consistent():
 
 
 def test_mems_gyro_with_short_positions_is_not_observable_and_says_so():
-    # Bias ≈ 140 Ω, noise of a 10 s mean ≈ 0.38 Ω: the means are not resolved off one plane.
+    # Bias ≈ 140 Ω, noise of a 10 s mean ≈ 0.38 Ω: 3× that noise exceeds the 1/√3 spread the best
+    # scheme reaches on the unit sphere, so the cause is the noise against Ω, not the rotation axes.
     case = mems_gyro(np.random.default_rng(14), seconds_per_position=10.0)
     est = estimate_refined(case.draw(np.random.default_rng(15), 1)[0], case.cov, case.triad)
     assert est.verdict is Verdict.NOT_OBSERVABLE_YET
     assert est.params is None and est.cov is None and not est.observable.any()
-    assert "fewer than two rotation axes" in est.reason
+    noise = float(re.search(r"the position means' noise \(([0-9.]+) Ω along the normal", est.reason).group(1))
+    assert 3.0 * noise >= 1.0 / np.sqrt(3.0)
+    assert "too large against the reference to tell the positions' geometry" in est.reason
+    assert "Earth rate is not resolvable by this gyro" in est.reason
+    assert "rotation axes" not in est.reason
     assert all(name in est.reason for name in PARAM_NAMES)
+
+
+@pytest.mark.parametrize(("sigma", "noise_cause"), [(0.15, False), (0.2, True)])
+def test_geometry_blames_the_noise_only_when_no_scheme_could_pass(sigma, noise_cause):
+    # A single-axis circle fails either way; 3σ = 0.45 < 1/√3 could still be resolved by a scheme
+    # around two axes (the reason names the axes), 3σ = 0.6 ≥ 1/√3 could not (it names the noise).
+    base = mems_accel(np.random.default_rng(26))
+    dirs = single_axis_directions([0, 0, 1], 18, cone_deg=60.0)
+    cov = np.repeat((sigma**2 * np.eye(3))[None], 18, axis=0)
+    case = TriadCase(base.triad, base.bias, base.scale, base.angles, dirs, cov)
+    est = estimate_linear(case.means_true, case.cov, case.triad)
+    assert est.verdict is Verdict.NOT_OBSERVABLE_YET and est.params is None
+    assert ("gravity is not resolvable by this accelerometer triad" in est.reason) is noise_cause
+    assert ("fewer than two rotation axes" in est.reason) is not noise_cause
 
 
 def test_mems_gyro_with_long_positions_resolves_its_bias_only():

@@ -92,6 +92,9 @@ def test_per_sample_noise_is_recovered_from_the_covariance_of_the_means():
     per_sample = np.array([0.01, 0.02, 0.03])
     positions = [Position(0.0, 10.0, n, np.zeros(3), np.diag(per_sample**2 / n), None, None) for n in (500, 1000, 2000)]
     np.testing.assert_allclose(per_sample_noise_std(positions, Triad.ACCEL, 2.0), per_sample / 2.0)
+    # Correlated noise (τ = n / n_eff = 4) widens the covariance of the mean, not the per-sample noise.
+    correlated = [dataclasses.replace(p, accel_cov_mps2=4.0 * p.accel_cov_mps2, accel_n_eff=p.n_samples / 4.0) for p in positions]
+    np.testing.assert_allclose(per_sample_noise_std(correlated, Triad.ACCEL, 2.0), per_sample / 2.0)
     with pytest.raises(PassportError, match="position 0 has no gyro covariance"):
         per_sample_noise_std(positions, Triad.GYRO, EARTH_RATE_RPS)
 

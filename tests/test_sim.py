@@ -389,6 +389,9 @@ def test_grades_put_earth_rate_below_mems_gyro_bias_and_above_navigation_noise()
     assert a.accel.find("bias") != b.accel.find("bias")
     assert grade_error_model(Grade.NAVIGATION) == grade_error_model(Grade.NAVIGATION)
     assert grade_error_model(Grade.MEMS, quantization=False).accel.find("quantization") is None
+    # One grade enum for passports and simulation; a grade without a preset is a clear error.
+    with pytest.raises(ValueError, match="no simulation preset for grade 'tactical'"):
+        grade_error_model(Grade.TACTICAL)
 
 
 def test_a_mems_session_passes_validation_within_its_range():

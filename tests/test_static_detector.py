@@ -21,7 +21,7 @@ from estimators.static_detector import (
 )
 from protocols.session_file import read_session
 
-XSENS = Path("/work/shared/data/measured/xsens-multiposition")
+XSENS = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 
 
 def _stream(session: ImuSession, *, config=StaticDetectorConfig(), rate_hz: float, state_at: int | None = None):

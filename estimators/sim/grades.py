@@ -16,24 +16,14 @@ Figures are typical datasheet orders of magnitude, not a particular product:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 
-from estimators.conventions import STANDARD_GRAVITY_MPS2
+from estimators.conventions import MPS2_PER_MG, RPS_PER_DPH, STANDARD_GRAVITY_MPS2, Grade
 
 from .errors import Bias, ErrorModel, NonOrthogonality, Quantization, ScaleFactor, TriadErrorModel, WhiteNoise
 
 _DEG = np.pi / 180.0
-_DEG_PER_H = _DEG / 3600.0
-_MG = 1.0e-3 * STANDARD_GRAVITY_MPS2
-
-
-class Grade(str, Enum):
-    """An IMU grade with a preset of typical errors."""
-
-    MEMS = "mems"
-    NAVIGATION = "navigation"
 
 
 @dataclass(frozen=True)
@@ -67,10 +57,10 @@ class GradeSpec:
 GRADES: dict[Grade, GradeSpec] = {
     Grade.MEMS: GradeSpec(
         accel=TriadGrade(
-            bias_sd_si=3.0 * _MG,
+            bias_sd_si=3.0 * MPS2_PER_MG,
             scale_sd=3.0e-3,
             nonorth_sd_rad=1.0e-3,
-            noise_density_si=0.1 * _MG,
+            noise_density_si=0.1 * MPS2_PER_MG,
             quant_step_si=16.0 * STANDARD_GRAVITY_MPS2 / 65536.0,
             range_si=8.0 * STANDARD_GRAVITY_MPS2,
         ),
@@ -85,15 +75,15 @@ GRADES: dict[Grade, GradeSpec] = {
     ),
     Grade.NAVIGATION: GradeSpec(
         accel=TriadGrade(
-            bias_sd_si=0.025 * _MG,
+            bias_sd_si=0.025 * MPS2_PER_MG,
             scale_sd=50.0e-6,
             nonorth_sd_rad=20.0e-6,
-            noise_density_si=0.01 * _MG,
+            noise_density_si=0.01 * MPS2_PER_MG,
             quant_step_si=1.0e-5,
             range_si=40.0 * STANDARD_GRAVITY_MPS2,
         ),
         gyro=TriadGrade(
-            bias_sd_si=0.01 * _DEG_PER_H,
+            bias_sd_si=0.01 * RPS_PER_DPH,
             scale_sd=10.0e-6,
             nonorth_sd_rad=10.0e-6,
             noise_density_si=0.002 * _DEG / 60.0,
@@ -130,7 +120,10 @@ def grade_error_model(grade: Grade, *, rng: np.random.Generator | None = None, q
     normal laws with the grade's standard deviations; without it a fixed
     representative set is used (the same every time).
     """
-    spec = GRADES[Grade(grade)]
+    grade = Grade(grade)
+    if grade not in GRADES:
+        raise ValueError(f"no simulation preset for grade {grade.value!r} (presets: {', '.join(g.value for g in GRADES)})")
+    spec = GRADES[grade]
 
     def triad(g: TriadGrade) -> TriadErrorModel:
         if rng is None:

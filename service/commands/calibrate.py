@@ -35,7 +35,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     inp = load_session_input(args)
-    result = run_chain(inp.session, ChainConfig(gravity_mps2=inp.gravity_mps2))
+    config = ChainConfig(
+        gravity_mps2=inp.gravity_mps2, detector=inp.detector,
+        accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
+    )  # fmt: skip
+    result = run_chain(inp.session, config)
     estimates = {t: r.estimate for t, r in result.triads.items() if r.estimate.params is not None}
     if not estimates:
         reasons = "; ".join(f"{t.value}: {r.estimate.reason}" for t, r in result.triads.items())
@@ -52,6 +56,8 @@ def run(args: argparse.Namespace) -> int:
     )
     write_passport_json(passport, args.out)
     print(f"calibrate: {len(result.positions)} positions ({len(result.position_rejections)} intervals rejected or merged), g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})", file=sys.stderr)
+    if result.sample_rejections.total:
+        print(f"  rejected samples: {result.sample_rejections.counts}", file=sys.stderr)
     for triad in (Triad.ACCEL, Triad.GYRO):
         r = result.triads.get(triad)
         if r is None:

@@ -28,7 +28,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     passport = read_passport_json(args.passport)
     inp = load_session_input(args)
-    result = run_chain(inp.session, ChainConfig(gravity_mps2=inp.gravity_mps2, false_alarm_prob=args.false_alarm), passport)
+    config = ChainConfig(
+        gravity_mps2=inp.gravity_mps2, false_alarm_prob=args.false_alarm, detector=inp.detector,
+        accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
+    )  # fmt: skip
+    result = run_chain(inp.session, config, passport)
     if args.json:
         out = result.to_dict()
         out["unit_id"] = passport.unit_id
@@ -37,6 +41,8 @@ def run(args: argparse.Namespace) -> int:
         print()
         return 0
     print(f"{passport.unit_id}: {len(result.positions)} positions, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})")
+    if result.sample_rejections.total:
+        print(f"  rejected samples: {result.sample_rejections.counts}")
     for triad, r in result.triads.items():
         note = "" if r.diagnosis is not None else " (no passport for this triad: not diagnosed)"
         print(f"  {triad.value}: {r.estimate.verdict.value} — {r.estimate.reason}{note}")

@@ -62,6 +62,7 @@ import numpy as np
 
 from estimators.conventions import PARAM_NAMES, Triad
 from estimators.sim import (
+    GRADES,
     ConstantTemperature,
     CycleTemperature,
     EnvironmentEffect,
@@ -115,7 +116,7 @@ def register(subparsers) -> None:
     p.add_argument("--duration-s", dest="duration_s", type=float, help="length of a static or flight profile, s")
     p.add_argument("--rest-s", dest="rest_s", type=float, help="rest before and after a flight, s (default 10)")
     p.add_argument("--rate-hz", dest="rate_hz", type=float, help="sample rate, Hz (default 100)")
-    p.add_argument("--grade", choices=[g.value for g in Grade], help="IMU grade preset (default mems)")
+    p.add_argument("--grade", choices=[g.value for g in GRADES], help="IMU grade preset (default mems)")
     p.add_argument("--random-errors", dest="random_errors", action="store_const", const=True, help="draw the errors from the grade")
     p.add_argument("--no-quantization", dest="quantization", action="store_const", const=False, help="no output quantization")
     p.add_argument("--latitude", dest="latitude_deg", type=float, help="latitude, degrees (default 45)")
