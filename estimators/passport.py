@@ -179,9 +179,14 @@ class Provenance:
     Attributes
     ----------
     method : estimator used.
-    n_positions : positions used.
+    n_positions : positions (or equations) used.
     confidence : confidence level of the intervals, in (0, 1).
     ci_low, ci_high : (9,) interval bounds, normalized.
+    procedure : the calibration procedure (free text, e.g. "M1 multi-position",
+        "M2 tilt table", "M3 temperature chamber").
+    n_runs : independent runs behind the values (M2's reproducibility check needs ≥ 2).
+    reproducible : (9,) bool, the parameters whose run intervals intersect
+        (M2), or None when only one run was made.
     """
 
     method: Method
@@ -189,6 +194,9 @@ class Provenance:
     confidence: float
     ci_low: np.ndarray
     ci_high: np.ndarray
+    procedure: str = "M1 multi-position"
+    n_runs: int = 1
+    reproducible: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", _enum(Method, self.method, "provenance.method"))
@@ -202,6 +210,15 @@ class Provenance:
             raise PassportError(f"provenance.ci_low must not exceed ci_high, got {low.tolist()} > {high.tolist()}")
         object.__setattr__(self, "ci_low", low)
         object.__setattr__(self, "ci_high", high)
+        if not isinstance(self.procedure, str) or not self.procedure.strip():
+            raise PassportError(f"provenance.procedure must be a non-empty string, got {_short(self.procedure)}")
+        if type(self.n_runs) is not int or self.n_runs < 1:
+            raise PassportError(f"provenance.n_runs must be a positive int, got {self.n_runs!r}")
+        if self.reproducible is not None:
+            rep = np.asarray(self.reproducible)
+            if rep.shape != (N_PARAMS,) or rep.dtype != bool:
+                raise PassportError(f"provenance.reproducible must be 9 booleans or null, got {_short(self.reproducible)}")
+            object.__setattr__(self, "reproducible", _readonly(rep.copy()))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -210,12 +227,27 @@ class Provenance:
             "confidence": float(self.confidence),
             "ci_low": self.ci_low.tolist(),
             "ci_high": self.ci_high.tolist(),
+            "procedure": self.procedure,
+            "n_runs": self.n_runs,
+            "reproducible": None if self.reproducible is None else self.reproducible.tolist(),
         }
 
     @classmethod
     def from_dict(cls, obj: Any) -> "Provenance":
-        obj = _map(obj, "provenance", ("method", "n_positions", "confidence", "ci_low", "ci_high"))
-        return cls(obj["method"], obj["n_positions"], _number(obj["confidence"], "provenance.confidence"), obj["ci_low"], obj["ci_high"])
+        obj = _map(obj, "provenance", ("method", "n_positions", "confidence", "ci_low", "ci_high", "procedure", "n_runs", "reproducible"))
+        rep = obj["reproducible"]
+        if rep is not None and not (isinstance(rep, list) and all(isinstance(v, bool) for v in rep)):
+            raise PassportError(f"provenance.reproducible must be a list of booleans or null, got {_short(rep)}")
+        return cls(
+            obj["method"],
+            obj["n_positions"],
+            _number(obj["confidence"], "provenance.confidence"),
+            obj["ci_low"],
+            obj["ci_high"],
+            obj["procedure"],
+            obj["n_runs"],
+            None if rep is None else np.array(rep, dtype=bool),
+        )
 
 
 @dataclass(frozen=True, eq=False)

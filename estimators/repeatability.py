@@ -375,5 +375,14 @@ def passport_from_runs(runs: TriadRuns, *, noise_std: np.ndarray, sample_rate_hz
         observable=np.asarray(runs.observable & sp.reproducible, dtype=bool),
         noise_std=noise_std,
         sample_rate_hz=sample_rate_hz,
-        provenance=Provenance(Method.REFINED, int(sum(e.n_positions for e in runs.estimates)), sp.level, lo, hi),
+        provenance=Provenance(
+            Method.REFINED,
+            int(sum(e.n_positions for e in runs.estimates)),
+            sp.level,
+            lo,
+            hi,
+            procedure="M2 repeated multi-position runs",
+            n_runs=len(runs.estimates),
+            reproducible=np.asarray(sp.reproducible, dtype=bool),
+        ),
     )

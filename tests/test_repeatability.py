@@ -121,6 +121,7 @@ def test_triad_passport_from_clean_runs_holds_the_truth_within_its_tolerances(cl
     assert runs.spread.all_reproducible and tp.observable.all()
     assert np.all(np.abs(tp.nominal - truth) <= tp.tolerance)
     assert np.all(tp.provenance.ci_low <= tp.nominal) and np.all(tp.nominal <= tp.provenance.ci_high)
+    assert tp.provenance.n_runs == 3 and tp.provenance.reproducible.all()
     assert [st.n_equations[-1] for st in runs.stabilizations] == [18, 18, 18]
 
 

@@ -147,6 +147,8 @@ def test_triad_passport_carries_the_axis_in_the_conventions_error_model(paper):
     assert tp.nominal[4] == pytest.approx(bench.lsb_mps2 / result.scale_mps2 - 1.0, rel=1e-12)
     assert tp.nominal[1] == pytest.approx(result.spread.value[0] * bench.lsb_mps2 / result.scale_mps2 / g, rel=1e-12)
     assert list(np.flatnonzero(tp.observable)) == [1, 4]
+    assert tp.provenance.procedure == "M2 tilt table, axis y" and tp.provenance.n_runs == bench.n_runs
+    assert list(np.flatnonzero(tp.provenance.reproducible)) == [1, 4]
     low, high = tp.provenance.ci_low, tp.provenance.ci_high
     assert low[1] < tp.nominal[1] < high[1] and low[4] < tp.nominal[4] < high[4]
     assert tp.noise_std[1] == pytest.approx(result.noise_pulses * bench.lsb_mps2 / g)

@@ -461,6 +461,6 @@ def _temperature_passport(fit, series, positions, g: float, grade: Grade, level:
         observable=np.ones(9, dtype=bool),
         noise_std=per_sample_noise_std(positions, Triad.ACCEL, g),
         sample_rate_hz=rate_hz,
-        provenance=Provenance(Method.LINEAR, len(positions), level, nine - z * sigma, nine + z * sigma),
+        provenance=Provenance(Method.LINEAR, len(positions), level, nine - z * sigma, nine + z * sigma, procedure="M3 temperature chamber, six-position tests"),
         temperature=fit.model,
     )
