@@ -11,12 +11,12 @@ Run: ``python benchmarks/bench_mavlink_decode.py [N]``.
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from protocols.mavlink_adapter import ImuMessage, MavlinkLink, MavlinkSettings, imu_message
+from stopwatch import best_s
 
 
 def _stream(kind: ImuMessage, n: int, rng: np.random.Generator) -> bytes:
@@ -28,15 +28,6 @@ def _stream(kind: ImuMessage, n: int, rng: np.random.Generator) -> bytes:
     )
 
 
-def _best_of(repeats: int, fn) -> tuple[float, object]:
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
-
-
 def main(n: int = 20_000) -> int:
     rng = np.random.default_rng(0)
     print(f"MAVLink IMU input, {n} messages per type, best of 3 (µs per message)")
@@ -44,10 +35,11 @@ def main(n: int = 20_000) -> int:
     with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="bench")) as link:
         for kind in (ImuMessage.RAW_IMU, ImuMessage.SCALED_IMU2, ImuMessage.HIGHRES_IMU):
             data = _stream(kind, n, rng)
-            parse_s, messages = _best_of(3, lambda: mavlink2.MAVLink(None).parse_buffer(data))
+            messages = mavlink2.MAVLink(None).parse_buffer(data)
             assert len(messages) == n
-            convert_s, batches = _best_of(3, lambda: [link.to_batch(m) for m in messages])
-            assert all(b is not None for b in batches)
+            assert all(link.to_batch(m) is not None for m in messages)
+            parse_s = best_s(lambda: mavlink2.MAVLink(None).parse_buffer(data), 3)
+            convert_s = best_s(lambda: [link.to_batch(m) for m in messages], 3)
             p_us, c_us = parse_s / n * 1e6, convert_s / n * 1e6
             print(f"{kind.value:<12} {p_us:16.2f} {c_us:15.2f} {c_us / p_us:7.2f}")
     return 0

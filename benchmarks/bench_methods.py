@@ -18,8 +18,6 @@ Each figure is the best of three runs. Run: ``python benchmarks/bench_methods.py
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from estimators.conventions import normal_gravity_mps2
@@ -38,15 +36,7 @@ from estimators.sixpos import (
 )
 from estimators.temperature import PAPER_TEMPS_C, fit_temperature_model, hidden_quartic_model, simulate_chamber, temperature_series
 from estimators.tilt import TiltBench, bench_session, run_from_session, runs_from_samples, simulate_samples, tilt_passport
-
-
-def _best_of(fn, repeats: int = 3) -> tuple[float, object]:
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+from stopwatch import best_s
 
 
 def _row(name: str, seconds: float, size: str) -> None:
@@ -57,11 +47,12 @@ def main() -> None:
     print(f"{'step':<52} {'time':>12}   size")
 
     bench = TiltBench()
-    t, samples = _best_of(lambda: simulate_samples(bench, np.random.default_rng(1)))
+    samples = simulate_samples(bench, np.random.default_rng(1))
+    t = best_s(lambda: simulate_samples(bench, np.random.default_rng(1)), 3)
     n = sum(s.up.size + s.down.size + s.angles.size for s in samples)
     _row("M2 simulate the bench (whole pulses)", t, f"{n:,} samples")
     runs = runs_from_samples(bench, samples)
-    t, _ = _best_of(lambda: tilt_passport(runs, gravity_mps2=bench.gravity_mps2))
+    t = best_s(lambda: tilt_passport(runs, gravity_mps2=bench.gravity_mps2), 3)
     _row("M2 passport (5 runs: LS, stabilization, intervals)", t, f"{len(runs)} runs × {len(bench.angles_deg)} angles")
     sessions = [bench_session(bench, s, rng=np.random.default_rng(2)) for s in samples]
     angles = np.radians(bench.angles_deg)
@@ -69,28 +60,33 @@ def main() -> None:
     def from_sessions():
         return tilt_passport([run_from_session(s, angles_rad=angles)[0] for s in sessions], gravity_mps2=bench.gravity_mps2)
 
-    t, _ = _best_of(from_sessions)
+    t = best_s(from_sessions, 3)
     _row("M2 passport from session samples", t, f"{sum(s.n_samples for s in sessions):,} samples")
 
     g = normal_gravity_mps2(45.0, 0.0)
     chamber = simulate_chamber(hidden_quartic_model(gravity_mps2=g), PAPER_TEMPS_C, seed=1, static_s=20.0)
-    t, positions = _best_of(lambda: session_positions(chamber))
+    positions = session_positions(chamber)
+    t = best_s(lambda: session_positions(chamber), 3)
     _row("M3 static positions of the chamber session", t, f"{chamber.n_samples:,} samples")
-    t, series = _best_of(lambda: temperature_series(positions, gravity_mps2=g))
+    series = temperature_series(positions, gravity_mps2=g)
+    t = best_s(lambda: temperature_series(positions, gravity_mps2=g), 3)
     _row("M3 six-position tests at every temperature", t, f"{series.temp_c.size} temperatures")
-    t, fit = _best_of(
-        lambda: fit_temperature_model(
+    def gmdh():
+        return fit_temperature_model(
             series.temp_c, series.bias_mps2, series.scale_error, bias_std_mps2=series.bias_std_mps2, scale_std=series.scale_std, gravity_mps2=g
         )
-    )
+
+    fit = gmdh()
+    t = best_s(gmdh, 3)
     _row(f"M3 GMDH orders 1-5 and fit (selected {fit.order})", t, "6 series")
 
     g_site = normal_gravity_mps2(GUANGZHOU_LATITUDE_DEG, GUANGZHOU_HEIGHT_M)
     model = adis_like_model()
     six = simulate(six_position_spec(model), 1).session
-    t, pos6 = _best_of(lambda: session_positions(six))
+    pos6 = session_positions(six)
+    t = best_s(lambda: session_positions(six), 3)
     _row("M4 static positions of a six-position session", t, f"{six.n_samples:,} samples")
-    t, _ = _best_of(lambda: six_position_test(pos6, gravity_mps2=g_site, latitude_deg=GUANGZHOU_LATITUDE_DEG))
+    t = best_s(lambda: six_position_test(pos6, gravity_mps2=g_site, latitude_deg=GUANGZHOU_LATITUDE_DEG), 3)
     _row("M4 six-position accelerometer + gyro Bf/Bg fits", t, f"{len(pos6)} positions")
     profile = paper_rate_profile_rps()
     rate = simulate_rate_table(model, axis=0, profile_rps=profile, gravity_mps2=g_site, seed=1)
@@ -99,7 +95,7 @@ def main() -> None:
         steps = find_rate_steps(rate.t_s, rate.gyro_rps, axis=0, profile_rps=profile)
         return rate_table_fit(profile, steps.gyro_mean_rps, axis=0, gyro_var_rps=steps.gyro_var_rps[:, 0])
 
-    t, _ = _best_of(rate_fit)
+    t = best_s(rate_fit, 3)
     _row("M4 rate-table steps and fit", t, f"{rate.n_samples:,} samples, {profile.size} steps")
 
 

@@ -10,21 +10,11 @@ batches). Each figure is the best of three runs. Run:
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from estimators.rocking import PAPER_DK, GyroUnit, StandSettings, estimate_scale_errors, paper_runs, simulate_run
 from estimators.strapdown import integrate_attitude
-
-
-def _best_of(fn, repeats: int = 3) -> float:
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+from stopwatch import best_s
 
 
 def main() -> None:
@@ -32,7 +22,7 @@ def main() -> None:
     sessions = [simulate_run(r, GyroUnit(), rate_hz=100.0, rng=rng) for r in paper_runs()]
     n_samples = sum(s.n_samples for s in sessions)
     result = estimate_scale_errors(sessions, stand=StandSettings())
-    t_method = _best_of(lambda: estimate_scale_errors(sessions, stand=StandSettings()))
+    t_method = best_s(lambda: estimate_scale_errors(sessions, stand=StandSettings()), 3)
     print(f"rocking method, paper bench (3 runs, {n_samples} samples at 100 Hz): {t_method:.2f} s, "
           f"{result.model.steps} Gauss–Newton steps")
     for name, dk in (("model-based", result.dk), ("closed form", result.closed.dk)):
@@ -42,10 +32,10 @@ def main() -> None:
     t = np.arange(n) / 100.0
     w = rng.normal(0.0, 0.5, (n, 3))
     for coning in (True, False):
-        dt = _best_of(lambda: integrate_attitude(t, w, coning=coning))
+        dt = best_s(lambda: integrate_attitude(t, w, coning=coning), 3)
         print(f"attitude integrator, one record of {n} samples, coning={coning}: {n / dt / 1e6:.2f} M samples/s")
     batch = rng.normal(0.0, 0.5, (16, 20_000, 3))
-    dt = _best_of(lambda: integrate_attitude(t[:20_000], batch))
+    dt = best_s(lambda: integrate_attitude(t[:20_000], batch), 3)
     print(f"attitude integrator, batch of 16 x 20000 samples: {batch.shape[0] * batch.shape[1] / dt / 1e6:.2f} M samples/s")
 
 

@@ -67,7 +67,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize_scalar
 
-from estimators.conventions import EARTH_RATE_RPS
+from estimators.conventions import EARTH_RATE_RPS, RPS_PER_DPH
 from estimators.session import ImuSession
 from estimators.strapdown import (
     ANGLE_NAMES,
@@ -79,9 +79,6 @@ from estimators.strapdown import (
     quat_multiply,
     rotate_to_body,
 )
-
-RPS_PER_DPH = np.radians(1.0) / 3600.0
-"""One degree per hour in rad/s."""
 
 PAPER_X = np.array([0.002954, 0.014514, 0.009119])
 """The paper's measured ``[Xγ, Xψ, Xθ]`` (body-axis order)."""

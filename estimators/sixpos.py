@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Triad, nine_params
+from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Grade, nine_params
 from estimators.plateaus import find_plateaus
 from estimators.positions import Position, build_positions
 from estimators.repeatability import LinearFit, fit_linear
@@ -40,23 +40,23 @@ from estimators.session import ImuSession
 from estimators.sim import (
     GRADES,
     Bias,
-    EffectContext,
     ErrorModel,
     GSensitivity,
+    MotionProfile,
     NonOrthogonality,
     Quantization,
     Rounding,
     ScaleFactor,
     ScaleNonlinearity,
     SessionSpec,
+    Spin,
     TemperatureProfile,
     TriadErrorModel,
     WhiteNoise,
     attitude_with_up,
     multi_position_profile,
+    simulate,
 )
-from estimators.sim import Grade as SimGrade
-from estimators.sim.session import RandomStreams, earth_rate_n_rps
 from estimators.static_detector import StaticDetectorConfig, detect_static
 
 ACCEL_TERM_NAMES = ("bias_mps2", "scale_error", "misalign_1", "misalign_2", "quad_per_mps2")
@@ -517,7 +517,7 @@ def adis_like_model(*, quantization: bool = True) -> ErrorModel:
     0.4–0.6 %, bias 0.1–0.3 °/s, g-sensitivity 0.01–0.05 °/s per g
     (``g_sensitivity``), noise 0.05 °/s/√Hz, the grade's steps.
     """
-    grade = GRADES[SimGrade.MEMS]
+    grade = GRADES[Grade.MEMS]
     accel = [
         NonOrthogonality((0.8e-3, -1.1e-3, 0.6e-3, 1.3e-3, -0.9e-3, 0.7e-3)),
         ScaleNonlinearity(k2_per_si=(1.2e-4, -0.8e-4, 1.5e-4)),
@@ -619,38 +619,20 @@ def simulate_rate_table(
     """A rate-table record: body axis ``axis`` vertical (up) on the table axis, the table
     holding each rate of ``profile_rps`` for ``hold_s`` with linear ramps of ``ramp_s``.
 
-    The true inputs (table rate plus the Earth rate, whose horizontal part
-    turns with the table; ``g`` along the vertical axis) go through the
-    model's effect chains with the simulator's own effects and random streams
-    (:mod:`estimators.sim`); the simulator's motion profiles have no
-    constant-rate segment, so the table's kinematics are built here.
+    The table's motion is a sequence of :class:`estimators.sim.Spin` segments
+    simulated by :func:`estimators.sim.simulate` (true inputs: table rate plus
+    the Earth rate, whose horizontal part turns with the table; ``g`` along
+    the vertical axis; then the model's effect chains).
     """
     prof = np.asarray(profile_rps, dtype=float)
     if axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
-    n_hold = max(1, int(round(hold_s * rate_hz)))
-    n_ramp = max(1, int(round(ramp_s * rate_hz)))
-    parts = [np.full(n_hold, prof[0])]
+    if prof.ndim != 1 or prof.size < 1:
+        raise ValueError(f"profile_rps must be a non-empty 1-D array of rates, got shape {prof.shape}")
+    up_b = np.eye(3)[axis]
+    segments = [Spin(hold_s, prof[0], up_b)]
     for a, b in zip(prof[:-1], prof[1:]):
-        parts += [np.linspace(a, b, n_ramp + 2)[1:-1], np.full(n_hold, b)]
-    table = np.concatenate(parts)
-    t = np.arange(table.size) / rate_hz
-    heading = np.cumsum(table) / rate_hz
-    earth = earth_rate_n_rps(latitude_deg)
-    j, k = [m for m in range(3) if m != axis]
-    w = np.zeros((t.size, 3))
-    w[:, axis] = table + earth[2]
-    w[:, j] = earth[1] * np.cos(heading)
-    w[:, k] = -earth[1] * np.sin(heading)
-    f = np.zeros((t.size, 3))
-    f[:, axis] = gravity_mps2
-    streams = RandomStreams(seed)
-
-    def output(triad: Triad, x: np.ndarray, reference: float) -> np.ndarray:
-        y = x
-        for effect in model.triad(triad).effects:
-            ctx = EffectContext(t, rate_hz, triad, reference, f, None, None, streams.rng(triad.value, effect.name))
-            y = effect.apply(y, ctx)
-        return y
-
-    return ImuSession(t, output(Triad.ACCEL, f, gravity_mps2), output(Triad.GYRO, w, EARTH_RATE_RPS), None)
+        segments += [Spin(ramp_s, a, up_b, end_rate_rps=b), Spin(hold_s, b, up_b)]
+    profile = MotionProfile(attitude_with_up(up_b), tuple(segments))
+    spec = SessionSpec(profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, gravity_mps2=gravity_mps2)
+    return simulate(spec, seed).session

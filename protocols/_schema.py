@@ -155,13 +155,23 @@ def enum_field(obj: dict[str, Any], name: str, enums: tuple[type[Enum], ...], *,
     value = field(obj, name, str, error=error, optional=optional)
     if value is None:
         return None
+    member = first_enum(value, enums)
+    if member is None:
+        allowed = sorted(m.value for kind in enums for m in kind)
+        raise error(Reason.BAD_VALUE, f"field {name!r} is {_short(value)}, expected one of {allowed}")
+    return member
+
+
+def first_enum(value: Any, enums: tuple[type[Enum], ...]) -> Enum | None:
+    """``value`` as a member of the first of ``enums`` that has it (a member passes as it is), else None."""
     for kind in enums:
+        if isinstance(value, kind):
+            return value
         try:
             return kind(value)
         except ValueError:
             continue
-    allowed = sorted(m.value for kind in enums for m in kind)
-    raise error(Reason.BAD_VALUE, f"field {name!r} is {_short(value)}, expected one of {allowed}")
+    return None
 
 
 def _kind_names(kinds: type | tuple[type, ...]) -> str:

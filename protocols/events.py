@@ -41,7 +41,7 @@ import struct
 from dataclasses import dataclass, field as dc_field, replace
 from enum import Enum, IntEnum
 from types import MappingProxyType
-from typing import Any, Mapping, Protocol
+from typing import TYPE_CHECKING, Any, Mapping
 
 import msgpack
 
@@ -55,9 +55,13 @@ from protocols._schema import (
     check_vehicle,
     enum_field,
     field,
+    first_enum,
     float_field,
     unpack_map,
 )
+
+if TYPE_CHECKING:  # the diagnosis pulls in scipy.stats: too heavy an import for a wire schema
+    from estimators.diagnosis import Finding
 
 EVENT_TYPE = "ins.health.event"
 EVENT_VERSION = 1
@@ -134,19 +138,6 @@ class StreamCause(str, Enum):
 
 
 EventCause = Cause | StreamCause
-
-
-class FindingLike(Protocol):
-    """What :func:`event_from_finding` reads from ``estimators.diagnosis.Finding``."""
-
-    predicate: Any
-    triad: Triad
-    axis: str
-    cause: Cause
-    estimate: float
-    nominal: float
-    tolerance: float
-    sigma: float
 
 
 @dataclass(frozen=True)
@@ -263,7 +254,7 @@ def make_event(
     return event if text is not None else replace(event, text=describe(event))
 
 
-def event_from_finding(finding: FindingLike, *, vehicle: str, imu: int, t_s: float, severity: Severity = Severity.ERROR) -> Event:
+def event_from_finding(finding: Finding, *, vehicle: str, imu: int, t_s: float, severity: Severity = Severity.ERROR) -> Event:
     """An event for a failed predicate F1…F9 of the M1 diagnosis (``estimators.diagnosis.Finding``).
 
     The numbers of a finding are normalized parameters (dimensionless, methods.md
@@ -432,14 +423,10 @@ def _reject_constant(name: str) -> float:
 
 
 def _parse_cause(value: Any) -> EventCause:
-    if isinstance(value, (Cause, StreamCause)):
-        return value
-    for kind in (Cause, StreamCause):
-        try:
-            return kind(value)
-        except ValueError:
-            continue
-    raise EventError(Reason.BAD_VALUE, f"unknown cause {value!r}")
+    cause = first_enum(value, (Cause, StreamCause))
+    if cause is None:
+        raise EventError(Reason.BAD_VALUE, f"unknown cause {value!r}")
+    return cause
 
 
 def _parse_severity(value: Any) -> Severity:

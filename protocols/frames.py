@@ -43,9 +43,10 @@ frames (duplicated or out-of-order ``seq``, time jumps) is the pipeline's job.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import Enum
-from typing import Iterable
+from typing import Iterable, Self
 
 import msgpack
 import numpy as np
@@ -153,6 +154,37 @@ class SampleBatch:
         )
 
     __hash__ = None  # type: ignore[assignment]  # equal by value, mutable-looking arrays: not hashable
+
+
+class BatchSource(ABC):
+    """A live source of :class:`SampleBatch` values for asyncio (Zenoh, MAVLink).
+
+    ``await source.get()`` or ``async for batch in source``; ``with source:``
+    closes it. Iteration ends when :meth:`get` raises ``EOFError``.
+    """
+
+    @abstractmethod
+    async def get(self) -> SampleBatch:
+        """The next batch (waits); ``EOFError`` once the source is closed and drained."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop receiving; a waiting consumer finishes what is queued, then stops."""
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> SampleBatch:
+        try:
+            return await self.get()
+        except EOFError:
+            raise StopAsyncIteration from None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _frozen_f64(value, name: str) -> np.ndarray:

@@ -51,7 +51,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
 from protocols._handoff import ThreadToAsyncRing
 from protocols.events import Event, Severity, StreamCause
-from protocols.frames import FrameError, SampleBatch
+from protocols.frames import BatchSource, FrameError, SampleBatch
 
 STATUSTEXT_MAX_CHARS = 50
 """Characters of one STATUSTEXT (the MAVLink field; ground stations show one message per line)."""
@@ -505,7 +505,7 @@ def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:
     return conn
 
 
-class MavlinkSource:
+class MavlinkSource(BatchSource):
     """IMU batches from a :class:`MavlinkLink` for asyncio: a reader thread and a bounded ring.
 
     The thread blocks on the link (``poll_s`` at a time, so :meth:`close`
@@ -536,23 +536,8 @@ class MavlinkSource:
         """The next batch; ``EOFError`` after :meth:`close` once drained."""
         return await self._ring.get()
 
-    def __aiter__(self):
-        return self
-
-    async def __anext__(self) -> SampleBatch:
-        try:
-            return await self.get()
-        except EOFError:
-            raise StopAsyncIteration from None
-
     def close(self, *, timeout_s: float = 5.0) -> None:
         """Stop the reader thread (within ``poll_s``) and end iteration; the link stays open."""
         self._stop.set()
         self._thread.join(timeout_s)
         self._ring.close()
-
-    def __enter__(self) -> "MavlinkSource":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

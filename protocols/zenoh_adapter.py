@@ -77,7 +77,7 @@ import zenoh
 from protocols._handoff import ThreadToAsyncRing
 from protocols._schema import MAX_IMU_INDEX, VEHICLE_ID_PATTERN, Reason, SchemaError, check_imu, check_vehicle
 from protocols.events import Event, EventError, Status, decode_event, decode_status, encode_event, encode_status
-from protocols.frames import MAX_FRAME_BYTES, FrameError, SampleBatch, SampleDtype, decode_frame, encode_frame
+from protocols.frames import MAX_FRAME_BYTES, BatchSource, FrameError, SampleBatch, SampleDtype, decode_frame, encode_frame
 
 ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
@@ -280,7 +280,7 @@ class SourceCounters:
         return out
 
 
-class FrameSource:
+class FrameSource(BatchSource):
     """IMU frames from Zenoh as validated :class:`~protocols.frames.SampleBatch` values, for asyncio.
 
     Use as ``async for batch in source`` or ``await source.get()``; create it
@@ -356,27 +356,12 @@ class FrameSource:
     def queued(self) -> int:
         return len(self._ring)
 
-    def __aiter__(self):
-        return self
-
-    async def __anext__(self) -> SampleBatch:
-        try:
-            return await self.get()
-        except EOFError:
-            raise StopAsyncIteration from None
-
     def close(self) -> None:
         """Undeclare the subscribers; a waiting consumer finishes what is queued, then stops."""
         for sub in self._subscribers:
             sub.undeclare()
         self._subscribers = []
         self._ring.close()
-
-    def __enter__(self) -> "FrameSource":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 # ---------------------------------------------------------------------- frames out

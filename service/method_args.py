@@ -24,6 +24,13 @@ from protocols.session_file import LoadedSession, load_session
 from service.cli import UsageError
 
 
+def add_method_command(subparsers, name: str, *, help: str, doc: str, dest: str, metavar: str):
+    """Add the command ``name`` (described by the first paragraph of ``doc``) and return the
+    subparsers of its required sub-command (the method or test), stored as ``args.<dest>``."""
+    p = subparsers.add_parser(name, help=help, description=doc.split("\n\n")[0])
+    return p.add_subparsers(dest=dest, metavar=metavar, required=True)
+
+
 def add_gravity_options(p: argparse.ArgumentParser) -> None:
     """Local gravity, with the option names of the other session commands (``calibrate``, ``simulate``)."""
     g = p.add_argument_group("local gravity (first that applies: --gravity, --latitude/--height, the file's gravity_mps2)")

@@ -1,13 +1,14 @@
 """Event and status schemas: stable ids, lossless round trips, validated decoding."""
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import msgpack
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from estimators.conventions import Cause, Triad
+from estimators.diagnosis import Finding
 from protocols._schema import Reason
 from protocols.events import (
     Event,
@@ -30,19 +31,7 @@ from protocols.events import (
 )
 
 
-@dataclass(frozen=True)
-class _Finding:  # the fields of estimators.diagnosis.Finding that an event reads
-    predicate: str
-    triad: Triad
-    axis: str
-    cause: Cause
-    estimate: float
-    nominal: float
-    tolerance: float
-    sigma: float
-
-
-FINDING = _Finding("F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR, 2.1e-3, 0.0, 1.0e-3, 1.0e-4)
+FINDING = Finding("F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR, 2.1e-3, 0.0, 1.0e-3, 1.0e-4)
 
 
 def _event(**kw):

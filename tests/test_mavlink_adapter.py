@@ -10,6 +10,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
+from estimators.diagnosis import Finding
 from protocols.events import Severity, StreamCause, event_from_finding, make_event
 from protocols.mavlink_adapter import (
     STATUSTEXT_MAX_CHARS,
@@ -46,10 +47,8 @@ def _recv(conn, kind):
 
 
 def _finding_event(**kw):
-    class F:
-        predicate, triad, axis, cause = "F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR
-        estimate, nominal, tolerance, sigma = 2.1e-3, 0.0, 1.0e-3, 1.0e-4
-    return event_from_finding(F, vehicle="v1", imu=1, t_s=kw.pop("t_s", 100.0), **kw)
+    finding = Finding("F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR, 2.1e-3, 0.0, 1.0e-3, 1.0e-4)
+    return event_from_finding(finding, vehicle="v1", imu=1, t_s=kw.pop("t_s", 100.0), **kw)
 
 
 # ------------------------------------------------------------------ alerts out

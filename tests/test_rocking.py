@@ -7,12 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from estimators.conventions import RPS_PER_DPH
 from estimators.rocking import (
     PAPER_AMPLITUDE_RAD,
     PAPER_DK,
     PAPER_FREQUENCY_HZ,
     PAPER_X,
-    RPS_PER_DPH,
     GyroUnit,
     RockingError,
     RockingPair,

@@ -26,6 +26,7 @@ from estimators.sim import (
     Grade,
     GravityMismatch,
     GSensitivity,
+    MotionProfile,
     NonOrthogonality,
     NonstaticPositions,
     OrientationScheme,
@@ -33,6 +34,8 @@ from estimators.sim import (
     Rounding,
     ScaleFactor,
     ScaleNonlinearity,
+    SessionSpec,
+    Spin,
     TemperatureBias,
     TemperatureScale,
     TriadErrorModel,
@@ -183,6 +186,24 @@ def test_flight_moves_and_ends_at_rest_where_it_started():
     assert np.abs(np.linalg.norm(tr.specific_force_b_mps2[moving], axis=1) - tr.gravity_true_mps2).max() > 0.5
     np.testing.assert_allclose(tr.mat_nb[-1], tr.mat_nb[0], atol=1e-12)
     assert len(tr.static_intervals_s) == 2
+
+
+def test_a_spin_turns_at_its_rate_about_its_axis():
+    # A rate linear in time about a fixed axis makes the trapezoid rotation
+    # vector exact: integrating the rate reproduces the attitude to round-off
+    # (a rate inconsistent with the attitude would leave a visible angle).
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    segments = (Spin(2.0, 0.0, axis, end_rate_rps=1.5), Spin(4.0, 1.5, axis), Spin(2.0, 1.5, axis, end_rate_rps=-0.5))
+    tr = simulate(SessionSpec(MotionProfile(np.eye(3), segments), NOISE_FREE, rate_hz=100.0), 0).truth
+    assert _integrate(tr) < 1e-9
+    np.testing.assert_allclose(tr.rate_nb_b_rps, np.outer(tr.rate_nb_b_rps @ axis, axis), atol=1e-15)
+    np.testing.assert_allclose(tr.rate_nb_b_rps[200:600] @ axis, 1.5, rtol=1e-15)
+    # Angle at the last sample (τ = 1.99 s into the last ramp): 1.5 + 6 + 1.5·1.99 − 1.99²/2 rad.
+    angle = 7.5 + 1.5 * 1.99 - 0.5 * 1.99**2
+    np.testing.assert_allclose(tr.mat_nb[-1], Rotation.from_rotvec(angle * axis).as_matrix(), atol=1e-12)
+    assert not tr.static.any()
+    with pytest.raises(ValueError, match="axis_b"):
+        Spin(1.0, 0.1, (0.0, 0.0, 0.0))
 
 
 def test_eighteen_positions_span_two_axes_with_hand_sized_turns():

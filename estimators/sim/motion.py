@@ -16,6 +16,9 @@ A profile is an initial attitude and an ordered list of segments:
 * :class:`Fly` — flight-like motion of a small vehicle: smooth roll, pitch and
   yaw excursions, translational acceleration and vibration, faded in and out
   so the segment starts and ends at rest in its start attitude.
+* :class:`Spin` — a rotation about a fixed body axis at a constant rate, or at
+  a rate changing linearly in time (a rate table's steps and the ramps between
+  them).
 
 Every segment gives its attitude and rate from the same analytic angle
 functions, so integrating ``rate_nb_b`` reproduces ``mat_nb`` exactly (up to
@@ -86,7 +89,36 @@ class Fly:
     ramp_s: float = 2.0
 
 
-Segment = Hold | Turn | Fly
+@dataclass(frozen=True)
+class Spin:
+    """A rotation about the fixed body axis ``axis_b`` at the rate ``rate_rps``, rad/s.
+
+    With ``end_rate_rps`` the rate changes linearly from ``rate_rps`` to it over
+    the segment (constant angular acceleration); the angle is then
+    ``θ(τ) = r₀τ + (r₁ − r₀)τ²/(2·duration_s)``. The rate is not faded: a
+    neighbouring segment at another rate makes a step, as a table's does.
+    ``axis_b`` is normalized to unit length.
+    """
+
+    duration_s: float
+    rate_rps: float
+    axis_b: tuple = (0.0, 0.0, 1.0)
+    end_rate_rps: float | None = None
+
+    def __post_init__(self):
+        k = np.asarray(self.axis_b, dtype=float)
+        norm = np.linalg.norm(k) if k.shape == (3,) else 0.0
+        if not np.isfinite(norm) or norm == 0.0:
+            raise ValueError(f"Spin.axis_b must be a non-zero finite 3-vector, got {self.axis_b!r}")
+        end = self.rate_rps if self.end_rate_rps is None else self.end_rate_rps
+        if not (np.isfinite(self.rate_rps) and np.isfinite(end)):
+            raise ValueError(f"Spin rates must be finite, got {self.rate_rps!r} and {self.end_rate_rps!r}")
+        object.__setattr__(self, "axis_b", tuple(k / norm))
+        object.__setattr__(self, "rate_rps", float(self.rate_rps))
+        object.__setattr__(self, "end_rate_rps", float(end))
+
+
+Segment = Hold | Turn | Fly | Spin
 
 
 @dataclass(frozen=True)
@@ -105,7 +137,7 @@ class MotionProfile:
         if not segs:
             raise ValueError("a motion profile needs at least one segment")
         for s in segs:
-            if not isinstance(s, (Hold, Turn, Fly)):
+            if not isinstance(s, (Hold, Turn, Fly, Spin)):
                 raise ValueError(f"unknown segment {s!r}")
             if not np.isfinite(s.duration_s) or s.duration_s <= 0:
                 raise ValueError(f"segment duration must be positive and finite, got {s!r}")
@@ -438,6 +470,13 @@ def build_motion(profile: MotionProfile, rate_hz: float, rng: np.random.Generato
             mat[sl] = current @ Rotation.from_rotvec(np.outer(theta * s, axis)).as_matrix()
             rate[sl] = np.outer(theta * s1 / length, axis)
             current = target
+        elif isinstance(seg, Spin):
+            axis = np.array(seg.axis_b)
+            accel = (seg.end_rate_rps - seg.rate_rps) / length
+            angle = seg.rate_rps * tau + 0.5 * accel * tau**2
+            mat[sl] = current @ Rotation.from_rotvec(np.outer(angle, axis)).as_matrix()
+            rate[sl] = np.outer(seg.rate_rps + accel * tau, axis)
+            current = current @ Rotation.from_rotvec(0.5 * (seg.rate_rps + seg.end_rate_rps) * length * axis).as_matrix()
         else:
             amp, freq, phase = random_sinusoids(rng, 3, seg.n_components, [seg.attitude_amp_rad] * 2 + [seg.yaw_amp_rad], seg.maneuver_hz)
             vamp, vfreq, vphase = random_sinusoids(rng, 3, seg.n_components, seg.vibration_rad, seg.vibration_hz)

@@ -12,7 +12,7 @@ import numpy as np
 
 from .errors import ErrorModel
 from .grades import Grade, grade_error_model
-from .motion import Fly, eighteen_position_attitudes, flight_profile, multi_position_profile, random_attitudes, static_profile
+from .motion import Fly, MotionProfile, eighteen_position_attitudes, flight_profile, multi_position_profile, random_attitudes, static_profile
 from .session import SessionSpec
 from .temperature import TemperatureProfile
 
@@ -44,8 +44,20 @@ def position_attitudes(
     return random_attitudes(n_positions, rng)
 
 
-def _model(grade: Grade, model: ErrorModel | None) -> ErrorModel:
-    return grade_error_model(grade) if model is None else model
+def _spec(
+    profile: MotionProfile, grade: Grade, model: ErrorModel | None, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults
+) -> SessionSpec:
+    """``profile`` as a :class:`SessionSpec`, with the grade's fixed preset unless ``model`` is given."""
+    return SessionSpec(
+        profile,
+        grade_error_model(grade) if model is None else model,
+        rate_hz=rate_hz,
+        latitude_deg=latitude_deg,
+        height_m=height_m,
+        gravity_mps2=gravity_mps2,
+        temperature=temperature,
+        faults=tuple(faults),
+    )
 
 
 def multi_position_spec(
@@ -75,16 +87,7 @@ def multi_position_spec(
     """
     att = position_attitudes(n_positions, scheme=scheme, heading_rad=heading_rad, rng=orientation_rng)
     profile = multi_position_profile(att, static_s=static_s, transition_s=transition_s, first_static_s=first_static_s)
-    return SessionSpec(
-        profile,
-        _model(grade, model),
-        rate_hz=rate_hz,
-        latitude_deg=latitude_deg,
-        height_m=height_m,
-        gravity_mps2=gravity_mps2,
-        temperature=temperature,
-        faults=tuple(faults),
-    )
+    return _spec(profile, grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults)
 
 
 def static_spec(
@@ -101,16 +104,7 @@ def static_spec(
     faults: tuple = (),
 ) -> SessionSpec:
     """One long static interval (noise studies, Allan deviation, warm-up)."""
-    return SessionSpec(
-        static_profile(duration_s, mat_nb),
-        _model(grade, model),
-        rate_hz=rate_hz,
-        latitude_deg=latitude_deg,
-        height_m=height_m,
-        gravity_mps2=gravity_mps2,
-        temperature=temperature,
-        faults=tuple(faults),
-    )
+    return _spec(static_profile(duration_s, mat_nb), grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults)
 
 
 def flight_spec(
@@ -127,13 +121,4 @@ def flight_spec(
     faults: tuple = (),
 ) -> SessionSpec:
     """Rest level, fly the :class:`~estimators.sim.motion.Fly` segment ``fly``, rest again."""
-    return SessionSpec(
-        flight_profile(fly, rest_s=rest_s),
-        _model(grade, model),
-        rate_hz=rate_hz,
-        latitude_deg=latitude_deg,
-        height_m=height_m,
-        gravity_mps2=gravity_mps2,
-        temperature=temperature,
-        faults=tuple(faults),
-    )
+    return _spec(flight_profile(fly, rest_s=rest_s), grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults)

@@ -27,11 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimators.conventions import PARAM_NAMES, Triad
-from estimators.passport import Grade, Provenance, TriadPassport, default_tolerance_rule, per_sample_noise_std, reference_kind
+from estimators.conventions import PARAM_NAMES, Grade, Triad
+from estimators.passport import Provenance, TriadPassport, default_tolerance_rule, per_sample_noise_std, reference_kind
 from estimators.ninepar import Method
 from estimators.repeatability import passport_from_runs, t_quantile, triad_runs
-from estimators.sim import Grade as SimGrade
 from estimators.sim import Rounding, multi_position_spec, simulate
 from estimators.sixpos import quantizer_offset, session_positions
 from estimators.temperature import (
@@ -61,6 +60,7 @@ from protocols.session_file import write_csv_session
 from service.cli import UsageError
 from service.method_args import (
     add_gravity_options,
+    add_method_command,
     add_passport_options,
     add_rejections,
     axis_index,
@@ -76,12 +76,10 @@ _ARCMIN = np.pi / 180.0 / 60.0
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "passport",
-        help="make a passport on a bench: tilt table (M2), repeated triad sessions, temperature model (M3)",
-        description=__doc__.split("\n\n")[0],
+    sub = add_method_command(
+        subparsers, "passport", doc=__doc__, dest="method", metavar="METHOD",
+        help="make a passport on a bench: tilt table (M2), repeated triad sessions, temperature model (M3)"
     )
-    sub = p.add_subparsers(dest="method", metavar="METHOD", required=True)
 
     t = sub.add_parser("tilt", help="single-axis accelerometer on a tilt table (M2)")
     _source_options(t, runs_default=5, session_help="CSV session file of one run (repeat the option for each run)")
@@ -287,7 +285,7 @@ def run_triad(args: argparse.Namespace) -> int:
     rejected: dict[str, int] = {}
     if args.simulate:
         for i in range(args.runs):
-            res = simulate(multi_position_spec(grade=SimGrade.MEMS), args.seed + i)
+            res = simulate(multi_position_spec(grade=Grade.MEMS), args.seed + i)
             sessions.append((f"run {i + 1}", res.session))
             file_gravity = res.truth.gravity_mps2
             if args.save_sessions is not None:

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from estimators.conventions import RPS_PER_DPH
 from estimators.rocking import (
     PAPER_AMPLITUDE_RAD,
     PAPER_DK,
     PAPER_FREQUENCY_HZ,
     PAPER_REL_SIGMA,
-    RPS_PER_DPH,
     GyroUnit,
     RockingResult,
     StandSettings,

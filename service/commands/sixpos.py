@@ -47,18 +47,15 @@ from estimators.sixpos import (
 )
 from protocols.session_file import write_csv_session
 from service.cli import UsageError
-from service.method_args import add_gravity_options, axis_index, emit, gravity_from, load_valid, rejected_text
+from service.method_args import add_gravity_options, add_method_command, axis_index, emit, gravity_from, load_valid, rejected_text
 
 _DEG = np.pi / 180.0
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "sixpos",
-        help="six-position accelerometer/gyro test and rate-table gyro scale factor (M4)",
-        description=__doc__.split("\n\n")[0],
+    sub = add_method_command(
+        subparsers, "sixpos", doc=__doc__, dest="test", metavar="TEST", help="six-position accelerometer/gyro test and rate-table gyro scale factor (M4)"
     )
-    sub = p.add_subparsers(dest="test", metavar="TEST", required=True)
     s = sub.add_parser("static", help="six positions: accelerometer scale, bias, misalignment, quadratic term; gyro Bf, Bg")
     _source(s)
     s.add_argument("--static-s", type=float, default=60.0, help="with --simulate: seconds per position (default 60, the paper's)")
