@@ -1,0 +1,196 @@
+"""Statistics of a session that the service relies on, measured and simulated (issue 4, step 2–3).
+
+Every statistic is computed by the same function on the measured session and
+on each Monte Carlo replica, so their ratio and tail probability say how well
+the simulation reproduces the unit:
+
+* ``chi2_per_dof`` (accelerometers): the exact scalar equation of M1 per
+  position, normalized by its predicted sigma, squared and summed over
+  ``n − 9`` — the headline (≈ 1 when the white-noise model holds);
+* ``halves_rms`` per axis: difference of a position's first- and second-half
+  means over its predicted standard deviation ``2σ_mean`` (RMS over positions):
+  correlated noise or motion inside positions;
+* ``f0_sd`` and ``f0_q999`` (accelerometers): per-sample F0 statistic
+  ``s = ½(|ã|² − 1)`` of the compensated output in static samples (M1's F0);
+* ``allan`` per axis: overlapping Allan deviation of the first (longest)
+  position at ``τ = L/8`` (:mod:`estimators.noise`);
+* ``param_scatter`` (accelerometers): the 9 estimates from the first and the
+  second half of the positions, ``mean((p₁ − p₂)² / (σ₁² + σ₂²))`` (≈ 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators.chain import ChainResult
+from estimators.conventions import AXES, Triad, reference_magnitude
+from estimators.ninepar import canonical_triad_matrix, ellipsoid_residual, estimate_triad, position_arrays
+from estimators.noise import overlapping_allan_deviation
+from estimators.scalar import F0Config, f0_batch
+
+MIN_POSITIONS = 12
+"""Positions needed for the accelerometer statistics (9 parameters plus a few degrees of freedom)."""
+
+
+@dataclass(frozen=True)
+class PositionTable:
+    """Position-level arrays of one triad (normalized by the triad's reference).
+
+    Attributes
+    ----------
+    t_mid_s : (n,) mid time of each position, s from the session start.
+    temp_c : (n,) mean temperature, °C, or None.
+    mean : (n, 3) normalized position means; cov : (n, 3, 3) covariance of those means.
+    halves : (n, 3) first-half minus second-half mean, normalized.
+    n_samples : (n,) samples per position; duration_s : (n,) lengths, s.
+    spans : (n, 2) sample index spans ``[start, stop)``.
+    """
+
+    t_mid_s: np.ndarray
+    temp_c: np.ndarray | None
+    mean: np.ndarray
+    cov: np.ndarray
+    halves: np.ndarray
+    n_samples: np.ndarray
+    duration_s: np.ndarray
+    spans: np.ndarray
+
+
+def position_table(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad) -> PositionTable:
+    """The :class:`PositionTable` of ``triad`` from a chain result and the session's samples ``x_si`` (N, 3)."""
+    ref = reference_magnitude(triad, chain.gravity_mps2)
+    mean, cov = position_arrays(chain.positions, triad, ref)
+    spans = np.array([[p.index_start, p.index_stop] for p in chain.positions], dtype=int).reshape(-1, 2)
+    halves = np.empty((len(spans), 3))
+    for k, (a, b) in enumerate(spans):
+        h = (a + b) // 2
+        halves[k] = (x_si[a:h].mean(axis=0) - x_si[h:b].mean(axis=0)) / ref
+    temps = [p.temp_mean_c for p in chain.positions]
+    temp = None if any(v is None for v in temps) or not temps else np.array(temps, float)
+    return PositionTable(
+        t_mid_s=np.array([0.5 * (p.t_start_s + p.t_end_s) for p in chain.positions]) - float(t_s[0]),
+        temp_c=temp,
+        mean=mean,
+        cov=cov,
+        halves=halves,
+        n_samples=np.array([p.n_samples for p in chain.positions], int),
+        duration_s=np.array([p.duration_s for p in chain.positions]),
+        spans=spans,
+    )
+
+
+def static_mask(n: int, spans: np.ndarray) -> np.ndarray:
+    """(n,) bool: samples inside the position spans."""
+    mask = np.zeros(n, bool)
+    for a, b in spans:
+        mask[a:b] = True
+    return mask
+
+
+def f0_config(params: np.ndarray, reference: float, lambda0: float, n_avg: int = 1) -> F0Config:
+    """F0 settings that compensate the estimated nine parameters (M1)."""
+    return F0Config(lambda0=lambda0, reference=reference, bias_norm=tuple(params[:3]), matrix=canonical_triad_matrix(params), n_avg=n_avg)
+
+
+def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float) -> dict[str, float]:
+    """Flat ``{name: value}`` statistics of one triad (module docstring); absent ones are left out."""
+    triad = Triad(triad)
+    out: dict[str, float] = {}
+    if len(chain.positions) == 0:
+        return out
+    tab = position_table(chain, x_si, t_s, triad)
+    sd_half = 2.0 * np.sqrt(np.einsum("kii->ki", tab.cov))
+    ok = sd_half > 0
+    for i, ax in enumerate(AXES):
+        if ok[:, i].any():
+            out[f"halves_rms_{ax}"] = float(np.sqrt(np.mean((tab.halves[ok[:, i], i] / sd_half[ok[:, i], i]) ** 2)))
+    a, b = tab.spans[0]
+    first = x_si[a:b]
+    if first.shape[0] >= 16:
+        m = max(1, first.shape[0] // 8)
+        adev = overlapping_allan_deviation(first, rate_hz, np.array([m])).adev[0]
+        for i, ax in enumerate(AXES):
+            out[f"allan_{ax}"] = float(adev[i])
+    est = chain.triads[triad].estimate
+    if triad is Triad.ACCEL and est.params is not None and len(chain.positions) >= MIN_POSITIONS:
+        if est.chi2_per_dof is not None:
+            out["chi2_per_dof"] = float(est.chi2_per_dof)
+        ref = reference_magnitude(triad, chain.gravity_mps2)
+        s = f0_batch(x_si, static_mask(x_si.shape[0], tab.spans), f0_config(est.params, ref, 1.0)).residual
+        s = s[np.isfinite(s)]
+        out["f0_sd"] = float(np.std(s))
+        out["f0_q999"] = float(np.quantile(np.abs(s - np.mean(s)), 0.999))
+        half = len(chain.positions) // 2
+        parts = [estimate_triad(chain.positions[sl], triad, ref) for sl in (slice(0, half), slice(half, None))]
+        if all(p.params is not None for p in parts):
+            var = np.diag(parts[0].cov) + np.diag(parts[1].cov)
+            out["param_scatter"] = float(np.mean((parts[0].params - parts[1].params) ** 2 / var))
+    return out
+
+
+def scalar_residuals(params: np.ndarray, tab: PositionTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact scalar equation per position (M1): residual, its sigma, ∂f/∂params (n, 9), ∂f/∂ã (n, 3)."""
+    f, jac, grad = ellipsoid_residual(params, tab.mean)
+    sigma = np.sqrt(np.einsum("ni,nij,nj->n", grad, tab.cov, grad))
+    return f, sigma, jac, grad
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """One statistic, measured against its simulated distribution.
+
+    ``ratio`` = measured / median simulated; ``tail_prob`` = fraction of
+    replicas at or above the measured value (near 0: the simulation
+    under-predicts the statistic; near 1: it over-predicts).
+    """
+
+    statistic: str
+    triad: Triad
+    axis: str | None
+    measured: float
+    simulated_median: float
+    simulated_p05: float
+    simulated_p95: float
+    ratio: float
+    tail_prob: float
+
+    @property
+    def inside(self) -> bool:
+        """The measured value lies within the replicas' 5–95 % band."""
+        return self.simulated_p05 <= self.measured <= self.simulated_p95
+
+    def to_dict(self) -> dict:
+        return {
+            "statistic": self.statistic,
+            "triad": self.triad.value,
+            "axis": self.axis,
+            "measured": self.measured,
+            "simulated_median": self.simulated_median,
+            "simulated_p05": self.simulated_p05,
+            "simulated_p95": self.simulated_p95,
+            "ratio": self.ratio,
+            "tail_prob": self.tail_prob,
+            "inside_band": self.inside,
+        }
+
+
+def compare(triad: Triad, measured: dict[str, float], replicas: list[dict[str, float]]) -> list[Comparison]:
+    """Measured statistics against the replicas' distributions (names present in both)."""
+    out = []
+    for name, value in measured.items():
+        sims = np.array([r[name] for r in replicas if name in r], float)
+        if sims.size == 0:
+            continue
+        med = float(np.median(sims))
+        above = float(np.mean(sims >= value))
+        axis = name.rsplit("_", 1)[1] if name.rsplit("_", 1)[-1] in AXES else None
+        base = name if axis is None else name.rsplit("_", 1)[0]
+        out.append(
+            Comparison(
+                base, triad, axis, float(value), med, float(np.quantile(sims, 0.05)), float(np.quantile(sims, 0.95)),
+                float(value / med) if med != 0 else float("inf"), above,
+            )
+        )
+    return out

@@ -1,0 +1,106 @@
+"""Noise of static data: overlapping Allan deviation, white-noise level, quantization step.
+
+Pure numerics on arrays of one static interval (methods.md M1's noise ``n_i``
+and M2's quantization). Used by the model audit (:mod:`estimators.audit`) to
+fit the baseline noise model from the data itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AllanDeviation:
+    """Overlapping Allan deviation of a (N, k) static record.
+
+    Attributes
+    ----------
+    tau_s : (m,) averaging times, s.
+    adev : (m, k) Allan deviation per column, in the input's unit.
+    n_terms : (m,) number of overlapping second differences behind each value.
+    """
+
+    tau_s: np.ndarray
+    adev: np.ndarray
+    n_terms: np.ndarray
+
+
+def default_cluster_sizes(n_samples: int, *, per_octave: int = 2, max_fraction: float = 0.25) -> np.ndarray:
+    """Cluster sizes ``m`` (samples), log-spaced, from 1 to ``max_fraction · n_samples``."""
+    top = max(1, int(n_samples * max_fraction))
+    m = np.unique(np.round(2.0 ** (np.arange(0, np.log2(top) + 1e-9, 1.0 / per_octave))).astype(int))
+    return m[m <= top]
+
+
+def overlapping_allan_deviation(x: np.ndarray, rate_hz: float, cluster_sizes: np.ndarray | None = None) -> AllanDeviation:
+    """Overlapping Allan deviation (IEEE Std 952, eq. of the overlapping estimator).
+
+    ``σ²(τ) = 1 / (2 τ² (N − 2m)) Σ_k (θ_{k+2m} − 2θ_{k+m} + θ_k)²`` with
+    ``θ`` the cumulative sum of the samples times ``1/rate`` and ``τ = m/rate``.
+    White noise of per-sample standard deviation ``σ`` gives ``σ/√m``.
+
+    Parameters
+    ----------
+    x : (N,) or (N, k) samples of a static interval, any unit.
+    rate_hz : sample rate, Hz.
+    cluster_sizes : (m,) cluster sizes in samples (default :func:`default_cluster_sizes`);
+        sizes with ``2m ≥ N`` are dropped.
+    """
+    a = np.asarray(x, dtype=float)
+    if a.ndim == 1:
+        a = a[:, None]
+    n = a.shape[0]
+    if n < 3:
+        raise ValueError(f"an Allan deviation needs at least 3 samples, got {n}")
+    m = default_cluster_sizes(n) if cluster_sizes is None else np.asarray(cluster_sizes, int)
+    m = m[(m >= 1) & (2 * m < n)]
+    theta = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a, axis=0)]) / rate_hz
+    adev = np.empty((m.size, a.shape[1]))
+    for j, mj in enumerate(m):
+        d = theta[2 * mj :] - 2.0 * theta[mj:-mj] + theta[: -2 * mj]
+        tau = mj / rate_hz
+        adev[j] = np.sqrt(np.mean(d * d, axis=0) / (2.0 * tau * tau))
+    return AllanDeviation(m / rate_hz, adev, n - 2 * m + 1)
+
+
+def white_noise_sd(x: np.ndarray) -> np.ndarray:
+    """(k,) per-sample white-noise standard deviation from first differences: ``std(Δx)/√2``.
+
+    Differences remove the mean and any slow wander (bias instability, drift),
+    so this is the white level alone even when the record is not stationary.
+    """
+    a = np.asarray(x, dtype=float)
+    if a.ndim == 1:
+        a = a[:, None]
+    if a.shape[0] < 3:
+        raise ValueError(f"a noise level needs at least 3 samples, got {a.shape[0]}")
+    return np.std(np.diff(a, axis=0), axis=0, ddof=1) / np.sqrt(2.0)
+
+
+def quantization_step(x: np.ndarray, *, rel_tol: float = 0.02, min_levels: int = 3) -> float | None:
+    """The output grid step of a record (M2's count size ``k``), or None when the data are not on a grid.
+
+    The smallest positive difference between distinct values is the candidate
+    step; the record is on a grid when every distinct value lies within
+    ``rel_tol`` of a step multiple from the smallest value, with at least
+    ``min_levels`` distinct levels.
+
+    Parameters
+    ----------
+    x : (N,) samples of one axis, SI.
+    """
+    v = np.unique(np.asarray(x, dtype=float).ravel())
+    v = v[np.isfinite(v)]
+    if v.size < min_levels:
+        return None
+    gaps = np.diff(v)
+    step = float(gaps.min())
+    if step <= 0.0:
+        return None
+    k = (v - v[0]) / step
+    if np.max(np.abs(k - np.round(k))) > rel_tol:
+        return None
+    return step
