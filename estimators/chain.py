@@ -8,7 +8,7 @@ runs the same steps sample by sample (``service/pipeline.py``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,9 @@ class ChainConfig:
     method : 9-parameter estimator (refined by default: exact, efficient).
     false_alarm_prob : per-triad false-alarm probability of the diagnosis.
     accel_limit_mps2, gyro_limit_rps : full-scale ranges; samples at or beyond them are rejected.
+    bias_instability_std : per triad, (3,) normalized bias wander that does not average
+        down (the audited model, :attr:`TriadPassport.bias_instability_std`); added to each
+        position's covariance. None: the passport's value when diagnosing, else white noise only.
     """
 
     gravity_mps2: float
@@ -43,6 +46,7 @@ class ChainConfig:
     false_alarm_prob: float = DEFAULT_FALSE_ALARM_PROB
     accel_limit_mps2: float | None = None
     gyro_limit_rps: float | None = None
+    bias_instability_std: dict[Triad, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.gravity_mps2) or not 9.7 < self.gravity_mps2 < 9.9:
@@ -128,17 +132,37 @@ def run_chain(session: ImuSession, config: ChainConfig, passport: Passport | Non
     clean, rejected = validate_session(session, accel_limit_mps2=config.accel_limit_mps2, gyro_limit_rps=config.gyro_limit_rps)
     detection = detect_static(clean, config=config.detector)
     found: PositionsResult = build_positions(clean, detection, config=config.positions)
+    instability = config.bias_instability_std
+    if instability is None and passport is not None:
+        instability = {t: tp.bias_instability_std for t, tp in passport.triads.items()}
+    positions = _with_bias_instability(found.positions, instability or {}, config.gravity_mps2)
     triads = {}
     for triad in present_triads(clean):
         reference = reference_magnitude(triad, config.gravity_mps2)
-        est = estimate_triad(found.positions, triad, reference, method=config.method)
+        est = estimate_triad(positions, triad, reference, method=config.method)
         residuals = sigma = None
         if est.params is not None:
-            mean, cov = position_arrays(found.positions, triad, reference)
+            mean, cov = position_arrays(positions, triad, reference)
             residuals = ellipsoid_residual(est.params, mean)[0]
             sigma = equation_sigma(est.params, mean, cov)
         has_passport = passport is not None and triad in passport.triads
         diag = None if not has_passport else diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
         triads[triad] = TriadResult(est, residuals, sigma, diag)
-    return ChainResult(session.n_samples, rejected, detection, found.positions, found.rejections, triads, config.gravity_mps2)
+    return ChainResult(session.n_samples, rejected, detection, positions, found.rejections, triads, config.gravity_mps2)
+
+
+def _with_bias_instability(positions: tuple[Position, ...], std_norm: dict[Triad, np.ndarray], gravity_mps2: float) -> tuple[Position, ...]:
+    """Positions whose mean covariances also carry the bias wander (it does not average down)."""
+    extra = {t: np.diag((np.asarray(s, float) * reference_magnitude(t, gravity_mps2)) ** 2) for t, s in std_norm.items() if np.any(s)}
+    if not extra:
+        return positions
+    out = []
+    for p in positions:
+        fields = {}
+        if Triad.ACCEL in extra and p.accel_cov_mps2 is not None:
+            fields["accel_cov_mps2"] = p.accel_cov_mps2 + extra[Triad.ACCEL]
+        if Triad.GYRO in extra and p.gyro_cov_rps is not None:
+            fields["gyro_cov_rps"] = p.gyro_cov_rps + extra[Triad.GYRO]
+        out.append(replace(p, **fields))
+    return tuple(out)
 

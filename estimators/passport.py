@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from types import MappingProxyType
 from typing import Any, Mapping, Sequence
@@ -268,6 +268,11 @@ class TriadPassport:
     quantization_step : (3,) normalized step of one count per axis, or None.
     temperature : :class:`TemperatureModel` or None.
     provenance : :class:`Provenance`.
+    bias_instability_std : (3,) normalized standard deviation of the bias wander that
+        does not average down within a position (the model audit's ``bias_instability``,
+        ``ins-health calibrate --audit``); zeros when the white-noise model was not audited.
+        Thresholds and position covariances add it to the white noise
+        (:meth:`effective_noise_std`, :meth:`position_cov_floor`).
     """
 
     triad: Triad
@@ -282,6 +287,19 @@ class TriadPassport:
     provenance: Provenance
     quantization_step: np.ndarray | None = None
     temperature: TemperatureModel | None = None
+    bias_instability_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def effective_noise_std(self, n_avg: int = 1) -> np.ndarray:
+        """(3,) per-sample normalized noise for windows of ``n_avg`` samples.
+
+        :func:`estimators.scalar.derive_lambda0` divides the variance by ``n_avg``; the
+        bias wander must survive that division: ``σ_eff² = σ_white² + n_avg·σ_bi²``.
+        """
+        return np.sqrt(self.noise_std**2 + n_avg * self.bias_instability_std**2)
+
+    def position_cov_floor(self) -> np.ndarray:
+        """(3, 3) covariance, in the triad's SI unit squared, that a position mean carries beyond its white noise."""
+        return np.diag((self.bias_instability_std * self.reference) ** 2)
 
     def __post_init__(self) -> None:
         triad = _enum(Triad, self.triad, "triad")
@@ -298,10 +316,11 @@ class TriadPassport:
             "tolerance": _array(self.tolerance, (N_PARAMS,), f"{where}.tolerance"),
             "sigma": _array(self.sigma, (N_PARAMS,), f"{where}.sigma"),
             "noise_std": _array(self.noise_std, (3,), f"{where}.noise_std"),
+            "bias_instability_std": _array(self.bias_instability_std, (3,), f"{where}.bias_instability_std"),
         }
         if np.any(arrays["tolerance"] <= 0.0):
             raise PassportError(f"{where}.tolerance must be positive, got {arrays['tolerance'].tolist()}")
-        for name in ("sigma", "noise_std"):
+        for name in ("sigma", "noise_std", "bias_instability_std"):
             if np.any(arrays[name] < 0.0):
                 raise PassportError(f"{where}.{name} must not be negative, got {arrays[name].tolist()}")
         obs = np.asarray(self.observable)
@@ -334,6 +353,7 @@ class TriadPassport:
             "sigma": self.sigma.tolist(),
             "observable": [bool(v) for v in self.observable],
             "noise_std": self.noise_std.tolist(),
+            "bias_instability_std": self.bias_instability_std.tolist(),
             "sample_rate_hz": self.sample_rate_hz,
             "quantization_step": None if self.quantization_step is None else self.quantization_step.tolist(),
             "temperature": None if self.temperature is None else self.temperature.to_dict(),
@@ -344,7 +364,7 @@ class TriadPassport:
     def from_dict(cls, triad: Triad, obj: Any) -> "TriadPassport":
         where = f"triads.{Triad(triad).value}"
         keys = ("param_names", "reference", "reference_kind", "nominal", "tolerance", "sigma", "observable", "noise_std",
-                "sample_rate_hz", "quantization_step", "temperature", "provenance")  # fmt: skip
+                "bias_instability_std", "sample_rate_hz", "quantization_step", "temperature", "provenance")  # fmt: skip
         obj = _map(obj, where, keys)
         if obj["param_names"] != list(PARAM_NAMES):
             raise PassportError(f"{where}.param_names must be {list(PARAM_NAMES)}, got {_short(obj['param_names'])}")
@@ -360,6 +380,7 @@ class TriadPassport:
             sigma=obj["sigma"],
             observable=np.array(observable, dtype=bool),
             noise_std=obj["noise_std"],
+            bias_instability_std=obj["bias_instability_std"],
             sample_rate_hz=_number(obj["sample_rate_hz"], f"{where}.sample_rate_hz"),
             quantization_step=obj["quantization_step"],
             temperature=None if obj["temperature"] is None else TemperatureModel.from_dict(obj["temperature"]),
@@ -494,6 +515,7 @@ def passport_from_estimates(
     quantization_step: Mapping[Triad, np.ndarray] | None = None,
     tolerance_rules: Mapping[Triad, ToleranceRule] | None = None,
     confidence: float = 0.95,
+    bias_instability_std: Mapping[Triad, np.ndarray] | None = None,
 ) -> Passport:
     """A passport from calibration estimates of a fault-free session.
 
@@ -510,6 +532,7 @@ def passport_from_estimates(
     sample_rate_hz : sample rate of the session, Hz.
     grade : sensor grade for the default tolerance floors, one for all triads or per triad.
     quantization_step : per triad, (3,) normalized count step, when known.
+    bias_instability_std : per triad, (3,) normalized bias wander from the model audit (default: none).
     """
     if not 0.0 < confidence < 1.0:
         raise PassportError(f"confidence must be in (0, 1), got {confidence!r}")
@@ -537,6 +560,7 @@ def passport_from_estimates(
             noise_std=noise_std[triad],
             sample_rate_hz=sample_rate_hz,
             quantization_step=None if quantization_step is None else quantization_step.get(triad),
+            bias_instability_std=np.zeros(3) if bias_instability_std is None else bias_instability_std.get(triad, np.zeros(3)),
             provenance=Provenance(est.method, est.n_positions, confidence, est.params - z * sigma, est.params + z * sigma),
         )
     return Passport(unit_id=unit_id, sensor_model=sensor_model, sensor_ids=dict(sensor_ids), created=created, triads=triads)

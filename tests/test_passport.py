@@ -22,6 +22,7 @@ from estimators.passport import (
     PassportError,
     PassportVersionError,
     TemperatureModel,
+    TriadPassport,
     default_tolerance_rule,
     passport_from_estimates,
     per_sample_noise_std,
@@ -164,6 +165,7 @@ def _mutated(passport: Passport, path: tuple, value) -> dict:
         (("triads", "accel", "noise_std"), [True, 1.0, 1.0], "must be numbers, got booleans"),
         (("triads", "accel", "temperature", "bias_coeffs"), [[1.0, 2.0]] * 2, r"bias_coeffs must have shape \(3, order\+1\), got \(2, 2\)"),
         (("triads", "accel", "provenance", "confidence"), 1.5, r"confidence must be in \(0, 1\), got 1\.5"),
+        (("triads", "accel", "bias_instability_std"), [0.0, -1e-5, 0.0], r"bias_instability_std must not be negative"),
         (("triads", "accel", "provenance", "n_runs"), 0, r"n_runs must be a positive int, got 0"),
         (("triads", "accel", "provenance", "reproducible"), [1] * 9, r"reproducible must be a list of booleans or null"),
         (("triads", "accel", "provenance", "reproducible"), [True] * 8, r"reproducible must be 9 booleans or null"),
@@ -212,3 +214,14 @@ def test_passport_arrays_are_read_only(passport):
         tp.nominal[0] = 1.0
     with pytest.raises(TypeError):
         passport.triads[Triad.GYRO] = tp
+
+
+def test_bias_instability_survives_window_averaging_and_floors_position_covariances(passport):
+    tp = passport.triads[Triad.ACCEL]
+    wander = np.array([1e-4, 2e-4, 0.0])
+    audited = TriadPassport.from_dict(Triad.ACCEL, {**tp.to_dict(), "bias_instability_std": wander.tolist()})
+    # White noise averages down as 1/n, the wander not at all: σ_eff²/n = σ_w²/n + σ_bi².
+    n = 100
+    np.testing.assert_allclose(audited.effective_noise_std(n) ** 2 / n, tp.noise_std**2 / n + wander**2, rtol=1e-12)
+    np.testing.assert_allclose(tp.effective_noise_std(n), tp.noise_std)
+    np.testing.assert_allclose(np.diag(audited.position_cov_floor()), (wander * tp.reference) ** 2)

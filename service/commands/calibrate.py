@@ -6,8 +6,10 @@ import argparse
 import datetime as dt
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
+from estimators.audit import AuditConfig, run_audit
 from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import Triad
 from estimators.ninepar import Verdict
@@ -30,6 +32,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-model", default="unknown", help="sensor model name recorded in the passport")
     p.add_argument("--grade", choices=[g.value for g in Grade], default=Grade.MEMS.value, help="sensor grade for the tolerance floors (default mems)")
     p.add_argument("--json", action="store_true", help="also print the full chain result as JSON on stdout")
+    p.add_argument(
+        "--audit",
+        action="store_true",
+        help="audit the white-noise model against the session first (docs/audit-xsens.md) and carry the bias "
+        "instability that survives it into the passport: the service's thresholds then use the audited model",
+    )
+    p.add_argument("--replicas", type=int, default=20, metavar="N", help="Monte Carlo replicas of the audit (default 20)")
     p.set_defaults(func=run)
 
 
@@ -39,7 +48,13 @@ def run(args: argparse.Namespace) -> int:
         gravity_mps2=inp.gravity_mps2, detector=inp.detector,
         accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
     )  # fmt: skip
-    result = run_chain(inp.session, config)
+    result = white = run_chain(inp.session, config)
+    instability = None
+    if args.audit:
+        audit = run_audit(inp.session, AuditConfig(chain=config, replicas=args.replicas))
+        instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
+        print(f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}", file=sys.stderr)
+        result = run_chain(inp.session, replace(config, bias_instability_std=instability))
     estimates = {t: r.estimate for t, r in result.triads.items() if r.estimate.params is not None}
     if not estimates:
         reasons = "; ".join(f"{t.value}: {r.estimate.reason}" for t, r in result.triads.items())
@@ -50,9 +65,11 @@ def run(args: argparse.Namespace) -> int:
         sensor_model=args.sensor_model,
         sensor_ids={},
         created=dt.date.today().isoformat(),
-        noise_std={t: per_sample_noise_std(result.positions, t, e.reference) for t, e in estimates.items()},
+        # White noise from the positions before the audited wander is added to their covariances.
+        noise_std={t: per_sample_noise_std(white.positions, t, e.reference) for t, e in estimates.items()},
         sample_rate_hz=inp.session.rate_hz,
         grade=Grade(args.grade),
+        bias_instability_std=instability,
     )
     write_passport_json(passport, args.out)
     print(f"calibrate: {len(result.positions)} positions ({len(result.position_rejections)} intervals rejected or merged), g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})", file=sys.stderr)
