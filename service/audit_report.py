@@ -11,9 +11,113 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from estimators.audit import AuditResult  # noqa: E402
+from estimators.conventions import AXES, Triad  # noqa: E402
+
+MODELS = (("baseline", "C0"), ("extended", "C1"))
+UNIT = {Triad.ACCEL: "m/s²", Triad.GYRO: "rad/s"}
+PLOTS = ("residuals.png", "allan.png", "f0_histogram.png", "statistics.png", "headline.png")
+"""The PNG files a report with statistics writes, in the order the Markdown shows them (a plot without data is left out)."""
 
 
-def _stat_plot(result: AuditResult, path: Path) -> None:
+def _simulated(result: AuditResult) -> list[tuple[str, str, dict]]:
+    """(model, colour, {Triad: [TriadCurves per replica]}) of the simulations the audit ran."""
+    return [(name, colour, result.replica_curves[name]) for name, colour in MODELS if name in result.replica_curves]
+
+
+def _band(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Median and 5–95 % band over replica curves of one length (None without any)."""
+    if not curves:
+        return None
+    a = np.stack(curves)
+    return np.median(a, axis=0), np.quantile(a, 0.05, axis=0), np.quantile(a, 0.95, axis=0)
+
+
+def _residual_plot(result: AuditResult, path: Path) -> bool:
+    """Normalized scalar residual per position, measured, with each model's replica band (same position count only)."""
+    meas = result.measured_curves[Triad.ACCEL].residual_norm
+    if meas is None:
+        return False
+    k = np.arange(1, meas.size + 1)
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    # Extended first: the wider band goes underneath the baseline's.
+    for name, colour, curves in reversed(_simulated(result)):
+        same = [c.residual_norm for c in curves[Triad.ACCEL] if c.residual_norm is not None and c.residual_norm.size == meas.size]
+        band = _band(same)
+        if band is not None:
+            ax.fill_between(k, band[1], band[2], color=colour, alpha=0.8 if name == "baseline" else 0.4, step="mid", label=f"{name} simulation, 5–95 % of {len(same)} replicas")
+    ax.plot(k, meas, "ko-", ms=3, lw=0.8, label="measured")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel("position (in time order)")
+    ax.set_ylabel("scalar residual / predicted σ (–)")
+    ax.set_title("Accelerometers: exact scalar equation per position (M1)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def _allan_plot(result: AuditResult, path: Path) -> bool:
+    """Allan deviation of the longest position per triad and axis: measured, each model's median and 5–95 % band."""
+    triads = [t for t in (Triad.ACCEL, Triad.GYRO) if t in result.measured_curves and result.measured_curves[t].allan_tau_s.size]
+    if not triads:
+        return False
+    fig, axes = plt.subplots(len(triads), 3, figsize=(10, 3.0 * len(triads)), squeeze=False)
+    for row, t in zip(axes, triads):
+        meas = result.measured_curves[t]
+        for i, ax in enumerate(row):
+            for name, colour, curves in _simulated(result):
+                m = min([meas.allan_tau_s.size] + [c.allan_tau_s.size for c in curves[t]])
+                band = _band([c.allan_si[:m, i] for c in curves[t]])
+                if band is not None:
+                    ax.fill_between(meas.allan_tau_s[:m], band[1], band[2], color=colour, alpha=0.3, label=f"{name}: 5–95 %")
+                    ax.plot(meas.allan_tau_s[:m], band[0], color=colour, lw=1.2, label=f"{name}: median")
+            ax.plot(meas.allan_tau_s, meas.allan_si[:, i], "k.-", lw=1, label="measured")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("averaging time τ (s)")
+            ax.set_ylabel(f"Allan deviation ({UNIT[t]})")
+            ax.set_title(f"{t.value} {AXES[i]}", fontsize=9)
+            ax.grid(True, which="both", lw=0.3)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("Allan deviation within the longest static position", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def _f0_plot(result: AuditResult, path: Path) -> bool:
+    """Histogram of the F0 statistic of window means, measured against the pooled replicas, with each model's λ0."""
+    meas = result.measured_curves[Triad.ACCEL].f0_window
+    if meas is None or meas.size == 0:
+        return False
+    pooled = {name: np.concatenate([c.f0_window for c in curves[Triad.ACCEL] if c.f0_window is not None] or [np.zeros(0)])
+              for name, _, curves in _simulated(result)}
+    lam = {name: result.gain.get(f"f0_lambda0_{name}") for name, _ in MODELS}
+    top = max([float(np.max(np.abs(v))) for v in (meas, *pooled.values()) if v.size] + [v for v in lam.values() if v])
+    edges = np.linspace(-1.05 * top, 1.05 * top, 41)
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for name, colour in MODELS:
+        if pooled.get(name, np.zeros(0)).size:
+            ax.hist(pooled[name], bins=edges, density=True, histtype="step", lw=1.5, color=colour, label=f"{name} simulation ({result.replicas} replicas)")
+        if lam[name]:
+            ax.axvline(lam[name], color=colour, ls="--", lw=1, label=f"λ0 from the {name} model")
+            ax.axvline(-lam[name], color=colour, ls="--", lw=1)
+    ax.hist(meas, bins=edges, density=True, color="k", alpha=0.35, label=f"measured ({meas.size} windows)")
+    ax.set_yscale("log")
+    window = result.gain.get("f0_window_samples")
+    ax.set_xlabel(f"F0 statistic s = ½(|ã|² − 1) of {window}-sample window means (normalized, –)")
+    ax.set_ylabel("probability density (1/unit of s)")
+    ax.set_title("F0 statistic on the static data: measured against simulated")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def _stat_plot(result: AuditResult, path: Path) -> bool:
     """Measured / median-simulated ratio of every statistic, baseline and extended, with the replicas' 5–95 % band."""
     fig, ax = plt.subplots(figsize=(9, 4))
     for k, (name, cmp, mark) in enumerate((("baseline", result.baseline_cmp, "o"), ("extended", result.extended_cmp, "s"))):
@@ -29,11 +133,12 @@ def _stat_plot(result: AuditResult, path: Path) -> None:
     ax.legend(fontsize=7)
     ax.set_title(f"Measured statistics against {result.replicas} Monte Carlo replicas")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
+    return True
 
 
-def _headline_plot(result: AuditResult, path: Path) -> None:
+def _headline_plot(result: AuditResult, path: Path) -> bool:
     """Histogram of the simulated χ²/dof (baseline and extended) with the measured value."""
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for name, k in (("baseline", 0), ("extended", 1)):
@@ -44,11 +149,13 @@ def _headline_plot(result: AuditResult, path: Path) -> None:
     head = result.headline(result.baseline_cmp)
     if head is not None:
         ax.axvline(head.measured, color="k", label="measured")
-    ax.set_xlabel("accelerometer χ²/dof of the scalar equation per position")
+    ax.set_xlabel("accelerometer χ²/dof of the scalar equation per position (–)")
+    ax.set_ylabel("replicas")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
+    return True
 
 
 def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Path:
@@ -56,20 +163,20 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     lines = [f"# Model audit: {title}", ""]
-    lines += [f"- {s}" for s in result.statements]
+    lines += [f"- {s}" for s in result.statements] + ([""] if result.statements else [])
     if result.baseline_cmp:
-        _stat_plot(result, d / "statistics.png")
-        _headline_plot(result, d / "headline.png")
+        written = [name for name, plot in zip(PLOTS, (_residual_plot, _allan_plot, _f0_plot, _stat_plot, _headline_plot)) if plot(result, d / name)]
         data = result.to_dict()
-        lines += [
-            f"Positions: {result.n_positions}; Monte Carlo replicas: {result.replicas}.", "",
-            f"Headline (accelerometer χ²/dof): baseline ratio {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}),"
-            f" extended ratio {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f}).", "",
-            "## Named causes", "",
-        ]
+        lines += [f"Positions: {result.n_positions}; Monte Carlo replicas: {result.replicas}.", ""]
+        if data["baseline"]["ratio"] is not None and data["extended"]["ratio"] is not None:
+            lines += [
+                f"Headline (accelerometer χ²/dof): baseline ratio {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}),"
+                f" extended ratio {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f}).", "",
+            ]
+        lines += ["## Named causes", ""]
         lines += [f"- **{c['effect']}** ({c['triad']}{'' if c['axis'] is None else ' ' + c['axis']}): {c['evidence']}; params {c['params']}" for c in data["named_causes"]] or ["- none"]
         lines += ["", "## Gain", ""] + [f"- {k}: {v:.4g}" for k, v in data["gain"].items()]
-        lines += ["", "![statistics](statistics.png)", "", "![headline](headline.png)", ""]
+        lines += ["", "## Plots", ""] + [f"![{Path(name).stem}]({name})\n" for name in written]
     path = d / "audit.md"
     path.write_text("\n".join(lines) + "\n")
     return path

@@ -7,7 +7,7 @@ Public entry points: :func:`run_audit` with :class:`AuditConfig`, and
 
 from .audit import DEFAULT_REPLICAS, AuditConfig, AuditResult, TriadBaseline, effective_noise_std_norm, find_candidates, fit_baseline, run_audit, same_session_spec
 from .candidates import CANDIDATE_NAMES, FAMILY_ALPHA, Candidate
-from .statistics import MIN_POSITIONS, Comparison
+from .statistics import MIN_POSITIONS, Comparison, TriadCurves
 
 __all__ = [
     "CANDIDATE_NAMES",
@@ -19,6 +19,7 @@ __all__ = [
     "Candidate",
     "Comparison",
     "TriadBaseline",
+    "TriadCurves",
     "effective_noise_std_norm",
     "find_candidates",
     "fit_baseline",

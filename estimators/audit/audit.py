@@ -48,8 +48,20 @@ from estimators.sim import (
     tilt_sequence,
 )
 
-from .candidates import Candidate, _loo_rss, accel_candidates, gyro_candidates
-from .statistics import MIN_POSITIONS, Comparison, compare, f0_config, position_table, scalar_residuals, static_mask, triad_statistics
+from .candidates import Candidate, _loo_rss, accel_candidates, gyro_candidates, temperature_reason
+from .statistics import (
+    MIN_POSITIONS,
+    Comparison,
+    TriadCurves,
+    compare,
+    f0_config,
+    f0_window_samples,
+    position_table,
+    scalar_residuals,
+    static_mask,
+    triad_curves,
+    triad_statistics,
+)
 
 DEFAULT_REPLICAS = 20
 F0_FALSE_ALARM_PROB = 1.0e-3
@@ -155,9 +167,12 @@ def _at_rate(chain: TriadErrorModel, rate_hz: float) -> TriadErrorModel:
     return chain.with_effect(WhiteNoise(np.array(wn.density_si_per_sqrt_hz) / np.sqrt(rate_hz)))
 
 
-def replica_statistics(spec: SessionSpec, config: ChainConfig, triads: tuple[Triad, ...], replicas: int, seed: int) -> dict[Triad, list[dict]]:
-    """Statistics of ``replicas`` simulated sessions, per triad."""
-    out: dict[Triad, list[dict]] = {t: [] for t in triads}
+def replica_statistics(
+    spec: SessionSpec, config: ChainConfig, triads: tuple[Triad, ...], replicas: int, seed: int
+) -> tuple[dict[Triad, list[dict]], dict[Triad, list[TriadCurves]]]:
+    """Statistics and plotted curves of ``replicas`` simulated sessions, per triad."""
+    stats: dict[Triad, list[dict]] = {t: [] for t in triads}
+    curves: dict[Triad, list[TriadCurves]] = {t: [] for t in triads}
     for r in range(replicas):
         sim = simulate(spec, np.random.SeedSequence([seed, r]).generate_state(1)[0])
         s = sim.session
@@ -166,8 +181,9 @@ def replica_statistics(spec: SessionSpec, config: ChainConfig, triads: tuple[Tri
         chain = run_chain(s, config)
         for t in triads:
             x = s.accel_mps2 if t is Triad.ACCEL else s.gyro_rps
-            out[t].append(triad_statistics(chain, x, s.t_s, t, s.rate_hz))
-    return out
+            stats[t].append(triad_statistics(chain, x, s.t_s, t, s.rate_hz))
+            curves[t].append(triad_curves(chain, x, s.t_s, t, s.rate_hz))
+    return stats, curves
 
 
 def gm_sigma_for_between(between_var: float, length_s: float, tau_s: float) -> float:
@@ -193,7 +209,11 @@ class AuditConfig:
 
 @dataclass
 class AuditResult:
-    """Everything the audit found (``to_dict`` is the JSON of the ``audit`` command)."""
+    """Everything the audit found (``to_dict`` is the JSON of the ``audit`` command).
+
+    ``replica_stats`` / ``replica_curves``: ``{"baseline" | "extended": {Triad: [per replica]}}``;
+    ``measured_stats`` / ``measured_curves``: ``{Triad: ...}`` (curves: :class:`TriadCurves`, for the report).
+    """
 
     statements: list[str]
     n_positions: int
@@ -206,6 +226,8 @@ class AuditResult:
     replicas: int = 0
     replica_stats: dict = field(default_factory=dict)
     measured_stats: dict = field(default_factory=dict)
+    replica_curves: dict = field(default_factory=dict)
+    measured_curves: dict = field(default_factory=dict)
     extension: list[dict] = field(default_factory=list)
 
     @property
@@ -245,6 +267,8 @@ def _present(session: ImuSession) -> tuple[Triad, ...]:
 
 def find_candidates(session: ImuSession, chain: ChainResult, accel_baseline: TriadBaseline) -> list[Candidate]:
     """Every candidate effect of :mod:`estimators.audit.candidates` fitted on a session with ≥ MIN_POSITIONS positions."""
+    if len(chain.positions) < MIN_POSITIONS:
+        raise ValueError(f"candidates need at least {MIN_POSITIONS} static positions, got {len(chain.positions)}")
     g = chain.gravity_mps2
     triads = _present(session)
     tab_a = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL)
@@ -277,6 +301,9 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
     if Triad.ACCEL not in triads:
         res.statements.append("no accelerometer triad: position directions and the scalar equation are unknown; nothing can be concluded")
         return res
+    if n == 0:
+        res.statements.append("no static interval found: the scalar equation has nothing to test; no statistic, no candidate, no cause can be concluded")
+        return res
     if n < MIN_POSITIONS:
         res.statements.append(
             f"{n} static positions (need ≥ {MIN_POSITIONS}: 9 parameters plus degrees of freedom): no statistic, no candidate, no cause can be concluded"
@@ -284,6 +311,9 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         return res
     if Triad.GYRO not in triads:
         res.statements.append("single triad (no gyro): gyro effects (g_sensitivity) are not identifiable")
+    temp_reason = temperature_reason(position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL))
+    if temp_reason is not None:
+        res.statements.append(f"temperature effects (temperature_bias, temperature_scale) are {temp_reason}")
     res.baseline = {t: fit_baseline(session, chain, t) for t in triads}
     g = config.chain.gravity_mps2
     model = ErrorModel(
@@ -294,7 +324,8 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
     for t in triads:
         x = session.accel_mps2 if t is Triad.ACCEL else session.gyro_rps
         res.measured_stats[t] = triad_statistics(chain, x, session.t_s, t, session.rate_hz)
-    reps = replica_statistics(spec, config.chain, triads, config.replicas, config.seed)
+        res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
+    reps, res.replica_curves["baseline"] = replica_statistics(spec, config.chain, triads, config.replicas, config.seed)
     res.replica_stats["baseline"] = reps
     res.baseline_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], reps[t])]
 
@@ -307,7 +338,7 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
     ext_model, ext_base = _extend(model, res.baseline, cands, tab_a, g)
     res.extension = [{"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params} for c in res.named]
     if res.named:
-        ext_reps = replica_statistics(same_session_spec(chain, session, ext_model), config.chain, triads, config.replicas, config.seed + 1)
+        ext_reps, ext_curves = replica_statistics(same_session_spec(chain, session, ext_model), config.chain, triads, config.replicas, config.seed + 1)
         head = res.measured_stats[Triad.ACCEL].get("chi2_per_dof")
         sims = [r["chi2_per_dof"] for r in ext_reps[Triad.ACCEL] if "chi2_per_dof" in r]
         if any(c.effect == "bias_instability" and c.triad is Triad.ACCEL for c in res.named) and head is not None and sims:
@@ -316,8 +347,9 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
             scale = float(np.sqrt(max(head - 1.0, 0.0) / max(float(np.median(sims)) - 1.0, 1e-6)))
             ext_model, ext_base = _extend(model, res.baseline, cands, tab_a, g, scale)
             res.extension.append({"effect": "bias_instability", "triad": "accel", "axis": None, "params": {"simulated_moment_scale": scale}})
-            ext_reps = replica_statistics(same_session_spec(chain, session, ext_model), config.chain, triads, config.replicas, config.seed + 2)
+            ext_reps, ext_curves = replica_statistics(same_session_spec(chain, session, ext_model), config.chain, triads, config.replicas, config.seed + 2)
         res.replica_stats["extended"] = ext_reps
+        res.replica_curves["extended"] = ext_curves
         res.extended_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], ext_reps[t])]
     else:
         res.extended_cmp = res.baseline_cmp
@@ -389,7 +421,7 @@ def _gain(session: ImuSession, chain: ChainResult, tab_a, res: AuditResult, sigm
         loo = e / np.clip(1.0 - h, 1e-9, None)
         out[f"heldout_rms_norm_{name}"] = float(np.sqrt(np.mean(loo**2)))
         out[f"heldout_chi2_{name}"] = float(np.mean(loo**2 / var))
-    n_avg = max(1, int(round(session.rate_hz)))
+    n_avg = f0_window_samples(session.rate_hz)
     mask = static_mask(session.n_samples, tab_a.spans)
     for name, model in (("baseline", base), ("extended", ext)):
         std = effective_noise_std_norm(model, g, n_avg)

@@ -33,7 +33,8 @@ observable against the Earth rate):
   the means;
 * ``nonstatic_positions``: motion inside positions turns the sensed direction,
   so it adds half-to-half differences *perpendicular* to gravity; tested as
-  extra perpendicular variance beyond an isotropic (sensor) excess;
+  extra perpendicular variance beyond an isotropic (sensor) excess, the latter
+  measured along gravity (where a small turn changes nothing to first order);
 * ``quantization``: read from the output grid (:func:`estimators.noise.quantization_step`), part of the baseline;
 * ``gravity_mismatch``: a wrong local g is a common scale error of the three
   accelerometers, absorbed by ``e_x, e_y, e_z``: identifiable only against a passport.
@@ -153,7 +154,10 @@ def excess_variance(r: np.ndarray, var0: np.ndarray) -> tuple[float, float]:
         return 0.5 * np.sum(np.log(s) + r * r / s)
 
     top = max(float(np.mean(r * r)) * 4.0, 1e-30)
-    v = float(minimize_scalar(nll, bounds=(0.0, top), method="bounded").x)
+    # The tolerance must be relative: normalized variances are ~1e-8, far below the default absolute 1e-5.
+    v = float(minimize_scalar(nll, bounds=(0.0, top), method="bounded", options={"xatol": 1e-6 * top}).x)
+    if nll(0.0) <= nll(v):
+        v = 0.0
     return v, float(max(0.0, 2.0 * (nll(0.0) - nll(v))))
 
 
@@ -298,7 +302,8 @@ def nonstatic_candidate(tab: PositionTable, n_tests: int) -> Candidate:
         var0.append(4.0 * np.einsum("ki,kij,kj->k", basis, tab.cov, basis))
         perp.append(np.full(len(u), is_perp))
     d, v0, pp = np.concatenate(comp), np.concatenate(var0), np.concatenate(perp)
-    iso, _ = excess_variance(d, v0)
+    # A small turn leaves the component along gravity unchanged (second order): it alone measures the sensor excess.
+    iso, _ = excess_variance(d[~pp], v0[~pp])
     extra, lr = excess_variance(d[pp], v0[pp] + iso)
     thr = _threshold(1, n_tests)
     angle = float(np.sqrt(extra / 2.0))

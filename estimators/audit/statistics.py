@@ -12,10 +12,15 @@ the simulation reproduces the unit:
   correlated noise or motion inside positions;
 * ``f0_sd`` and ``f0_q999`` (accelerometers): per-sample F0 statistic
   ``s = ½(|ã|² − 1)`` of the compensated output in static samples (M1's F0);
-* ``allan`` per axis: overlapping Allan deviation of the first (longest)
-  position at ``τ = L/8`` (:mod:`estimators.noise`);
+* ``allan`` per axis: overlapping Allan deviation of the longest position at
+  ``τ = L/8`` (:mod:`estimators.noise`);
 * ``param_scatter`` (accelerometers): the 9 estimates from the first and the
   second half of the positions, ``mean((p₁ − p₂)² / (σ₁² + σ₂²))`` (≈ 1).
+
+:func:`triad_curves` keeps, by the same rule for the measured session and every
+replica, the few curves the report plots (:class:`TriadCurves`): the
+normalized residual per position, the Allan deviation curve of the longest
+position and the distribution of the F0 statistic of 1 s window means.
 """
 
 from __future__ import annotations
@@ -32,6 +37,9 @@ from estimators.scalar import F0Config, f0_batch
 
 MIN_POSITIONS = 12
 """Positions needed for the accelerometer statistics (9 parameters plus a few degrees of freedom)."""
+
+F0_KEPT_VALUES = 512
+"""Most F0 values a :class:`TriadCurves` keeps: beyond that, quantiles at evenly spaced probabilities."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +97,17 @@ def static_mask(n: int, spans: np.ndarray) -> np.ndarray:
     return mask
 
 
+def longest_span(tab: PositionTable) -> tuple[int, int]:
+    """Sample span ``[start, stop)`` of the longest position (the Allan deviation's record)."""
+    k = int(np.argmax(tab.spans[:, 1] - tab.spans[:, 0]))
+    return int(tab.spans[k, 0]), int(tab.spans[k, 1])
+
+
+def f0_window_samples(rate_hz: float) -> int:
+    """Samples of the F0 window the audit tests with: 1 s of data (at least one sample)."""
+    return max(1, int(round(rate_hz)))
+
+
 def f0_config(params: np.ndarray, reference: float, lambda0: float, n_avg: int = 1) -> F0Config:
     """F0 settings that compensate the estimated nine parameters (M1)."""
     return F0Config(lambda0=lambda0, reference=reference, bias_norm=tuple(params[:3]), matrix=canonical_triad_matrix(params), n_avg=n_avg)
@@ -106,7 +125,7 @@ def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, tria
     for i, ax in enumerate(AXES):
         if ok[:, i].any():
             out[f"halves_rms_{ax}"] = float(np.sqrt(np.mean((tab.halves[ok[:, i], i] / sd_half[ok[:, i], i]) ** 2)))
-    a, b = tab.spans[0]
+    a, b = longest_span(tab)
     first = x_si[a:b]
     if first.shape[0] >= 16:
         m = max(1, first.shape[0] // 8)
@@ -128,6 +147,51 @@ def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, tria
             var = np.diag(parts[0].cov) + np.diag(parts[1].cov)
             out["param_scatter"] = float(np.mean((parts[0].params - parts[1].params) ** 2 / var))
     return out
+
+
+@dataclass(frozen=True)
+class TriadCurves:
+    """The curves of one session the report plots (a few hundred numbers; no samples are kept).
+
+    Attributes
+    ----------
+    residual_norm : (n,) exact scalar residual of each position (M1) over its predicted sigma,
+        after the session's own fit; None for a gyro triad or too few positions.
+    allan_tau_s : (m,) averaging times, s; allan_si : (m, 3) overlapping Allan deviation of the
+        longest position, SI (empty when it is too short). The cluster sizes are
+        :func:`estimators.noise.default_cluster_sizes`, so curves of different lengths share a prefix.
+    f0_window : (q,) sorted F0 statistic ``s`` (M1) of the window means of :func:`f0_window_samples`
+        samples, normalized; at most :data:`F0_KEPT_VALUES` (quantiles beyond); None as for ``residual_norm``.
+    """
+
+    residual_norm: np.ndarray | None
+    allan_tau_s: np.ndarray
+    allan_si: np.ndarray
+    f0_window: np.ndarray | None
+
+
+def triad_curves(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float) -> TriadCurves:
+    """The :class:`TriadCurves` of one triad of a session (module docstring)."""
+    triad = Triad(triad)
+    tab = position_table(chain, x_si, t_s, triad)
+    a, b = longest_span(tab) if len(chain.positions) else (0, 0)
+    if b - a >= 16:
+        ad = overlapping_allan_deviation(x_si[a:b], rate_hz)
+        tau, adev = ad.tau_s, ad.adev
+    else:
+        tau, adev = np.zeros(0), np.zeros((0, 3))
+    est = chain.triads[triad].estimate
+    if triad is not Triad.ACCEL or est.params is None or len(chain.positions) < MIN_POSITIONS:
+        return TriadCurves(None, tau, adev, None)
+    f, sigma, _, _ = scalar_residuals(np.asarray(est.params, float), tab)
+    ref = reference_magnitude(triad, chain.gravity_mps2)
+    s = f0_batch(x_si, static_mask(x_si.shape[0], tab.spans), f0_config(est.params, ref, 1.0, f0_window_samples(rate_hz))).residual
+    # Every static row carries its run's last completed window: a window's value starts where it changes.
+    first = np.concatenate([[True], s[1:] != s[:-1]])
+    s = np.sort(s[first & np.isfinite(s)])
+    if s.size > F0_KEPT_VALUES:
+        s = np.quantile(s, (np.arange(F0_KEPT_VALUES) + 0.5) / F0_KEPT_VALUES)
+    return TriadCurves(f / sigma, tau, adev, s)
 
 
 def scalar_residuals(params: np.ndarray, tab: PositionTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
