@@ -1,0 +1,419 @@
+"""Stream validity of one IMU and consistency between the IMUs of a vehicle.
+
+Not a method of ``docs/methods.md``: these are the checks the autopilots run
+before any model-based test, and the scalar checks (M1) are only meaningful on
+a stream that passes them.
+
+* **Timeout**: no sample for ``timeout_s`` (PX4 ``DataValidator`` timeout).
+* **Stale axis**: a run of ``stale_run_samples`` identical consecutive values on
+  one axis — the "stuck gyro" of real ICM42688 and MPU6000 failures; with
+  sensor noise of a few LSB a healthy axis never repeats that long (PX4's
+  ``VALUE_EQUAL_COUNT`` is 100).
+* **Error density**: the fraction of bad samples (rejected, non-finite,
+  duplicated or out of order) among the last ``error_window_samples``.
+* **Cross-IMU consistency**: the time-binned mean specific force and angular
+  rate of each IMU against the others; ArduPilot blocks arming above
+  0.75 m/s² and 5 °/s, PX4 above 0.7 m/s² (``COM_ARM_IMU_ACC``). With three or
+  more IMUs the outlier is the one far from the per-axis median; with two
+  the pair is reported and the scalar diagnosis of each says which is wrong.
+
+Everything here is pure: times are passed in (``arrival_s`` for the timeout,
+sample time ``t_s`` for the bins), state is small and fixed-size, and
+``state_dict`` / ``from_state`` round-trip it for checkpoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimators.conventions import AXES, Triad
+
+
+@dataclass(frozen=True)
+class ValidityLimits:
+    """Thresholds of the stream checks (defaults follow PX4 and ArduPilot).
+
+    Attributes
+    ----------
+    timeout_s : no sample for this long → timeout (default 0.5 s: a companion link
+        batches frames, so the autopilot's 20 ms would be noise).
+    stale_run_samples : identical consecutive values on one axis → stale (default 100, PX4).
+    error_window_samples : window of the error density, samples (default 100).
+    error_density_max : bad fraction in that window above which the stream is flagged (default 0.1).
+    cross_imu_accel_mps2 : mean specific-force disagreement limit, m/s² (default 0.75, ArduPilot).
+    cross_imu_gyro_rps : mean angular-rate disagreement limit, rad/s (default 5 °/s = 0.0873, ArduPilot).
+    cross_imu_window_s : length of the time bins compared, s (default 0.5).
+    cross_imu_persist_windows : consecutive disagreeing bins before a report (default 4, i.e. 2 s).
+    """
+
+    timeout_s: float = 0.5
+    stale_run_samples: int = 100
+    error_window_samples: int = 100
+    error_density_max: float = 0.1
+    cross_imu_accel_mps2: float = 0.75
+    cross_imu_gyro_rps: float = float(np.radians(5.0))
+    cross_imu_window_s: float = 0.5
+    cross_imu_persist_windows: int = 4
+
+    def __post_init__(self) -> None:
+        for name in ("timeout_s", "cross_imu_accel_mps2", "cross_imu_gyro_rps", "cross_imu_window_s"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+        for name, least in (("stale_run_samples", 2), ("error_window_samples", 2), ("cross_imu_persist_windows", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+        if not 0.0 < self.error_density_max < 1.0:
+            raise ValueError(f"error_density_max must be in (0, 1), got {self.error_density_max!r}")
+
+
+@dataclass(frozen=True)
+class StaleAxis:
+    """An axis whose output repeated the same value ``run_samples`` times in a row."""
+
+    triad: Triad
+    axis: str
+    run_samples: int
+    value: float
+
+
+@dataclass(frozen=True)
+class StaleChange:
+    """An axis that became stale (``stale`` True: its run reached the limit) or stopped being stale.
+
+    ``run_samples`` is the run length at that sample (the limit when it became stale, the length
+    the run ended with when it stopped), ``value`` the repeated value, ``t_s`` the sample's time
+    (None when the caller gave no times). Every change inside a batch is reported, in time order,
+    so the changes do not depend on how the stream was cut into batches.
+    """
+
+    triad: Triad
+    axis: str
+    stale: bool
+    run_samples: int
+    value: float
+    t_s: float | None = None
+
+
+@dataclass(frozen=True)
+class ValidityReport:
+    """The stream's condition after one batch.
+
+    Attributes
+    ----------
+    stale : axes stale at the end of the batch (run still going).
+    changes : every :class:`StaleChange` inside the batch, in time order.
+    error_density : bad fraction of the last ``error_window_samples`` samples, at the end of the batch.
+    peak_error_density : its maximum over the batch.
+    error_dense : ``peak_error_density > error_density_max``.
+    """
+
+    stale: tuple[StaleAxis, ...]
+    changes: tuple[StaleChange, ...]
+    error_density: float
+    peak_error_density: float
+    error_dense: bool
+
+
+def _axis_names() -> list[tuple[Triad, str]]:
+    return [(Triad.ACCEL, a) for a in AXES] + [(Triad.GYRO, a) for a in AXES]
+
+
+def run_lengths(values: np.ndarray, prev_value: np.ndarray, prev_run: np.ndarray) -> np.ndarray:
+    """Length of the run of identical values ending at each sample, per column.
+
+    Parameters
+    ----------
+    values : (N, K) samples.
+    prev_value : (K,) the last value before this batch (NaN if none).
+    prev_run : (K,) the length of the run that ended at ``prev_value`` (0 if none).
+
+    Returns
+    -------
+    (N, K) integer run lengths (1 for a value different from its predecessor).
+    """
+    values = np.asarray(values, dtype=float)
+    n = values.shape[0]
+    before = np.vstack([prev_value[None, :], values[:-1]])
+    reset = values != before
+    idx = np.arange(n)[:, None]
+    last_reset = np.maximum.accumulate(np.where(reset, idx, -1), axis=0)
+    return np.where(last_reset >= 0, idx - last_reset + 1, prev_run[None, :] + idx + 1).astype(np.int64)
+
+
+class StreamValidity:
+    """Timeout, stale axes and error density of one IMU stream (PX4-style).
+
+    State: the last value and run length of each of the six axes, a ring of
+    ``error_window_samples`` bad-sample flags, the last arrival time.
+    """
+
+    def __init__(self, *, limits: ValidityLimits = ValidityLimits()) -> None:
+        self.limits = limits
+        self._last_value = np.full(6, np.nan)
+        self._run = np.zeros(6, dtype=np.int64)
+        self._ring = np.zeros(limits.error_window_samples, dtype=bool)  # oldest first
+        self._last_arrival_s: float | None = None
+
+    def update(
+        self,
+        *,
+        accel_mps2: np.ndarray,
+        gyro_rps: np.ndarray,
+        bad: np.ndarray,
+        arrival_s: float,
+        t_s: np.ndarray | None = None,
+    ) -> ValidityReport:
+        """Account one batch.
+
+        Parameters
+        ----------
+        accel_mps2, gyro_rps : (N, 3) samples, m/s² and rad/s; rows flagged ``bad`` are ignored
+            for the stale check (a NaN neither extends nor breaks a run).
+        bad : (N,) bool, samples the caller rejected (non-finite, duplicated, out of order).
+        arrival_s : when the batch arrived (the caller's monotonic clock), s.
+        t_s : (N,) sample times, s (optional): then each change carries the time of its sample.
+        """
+        bad = np.asarray(bad, dtype=bool).reshape(-1)
+        values = np.hstack([np.asarray(accel_mps2, float).reshape(-1, 3), np.asarray(gyro_rps, float).reshape(-1, 3)])
+        if values.shape[0] != bad.size:
+            raise ValueError(f"bad has {bad.size} flags for {values.shape[0]} samples")
+        self._last_arrival_s = float(arrival_s)
+        limit = self.limits.stale_run_samples
+        good = values[~bad]
+        changes: list[tuple[int, int, StaleChange]] = []
+        if good.shape[0]:
+            runs = run_lengths(good, self._last_value, self._run)
+            over = runs >= limit
+            before = np.vstack([(self._run >= limit)[None, :], over[:-1]])
+            names = _axis_names()
+            t_good = None if t_s is None else np.asarray(t_s, float).reshape(-1)[~bad]
+            prev_run = np.vstack([self._run[None, :], runs[:-1]])
+            prev_val = np.vstack([self._last_value[None, :], good[:-1]])
+            for k, ax in zip(*np.nonzero(over != before)):
+                rising = bool(over[k, ax])
+                run = int(runs[k, ax]) if rising else int(prev_run[k, ax])
+                value = float(good[k, ax]) if rising else float(prev_val[k, ax])
+                t = None if t_good is None else float(t_good[k])
+                changes.append((int(k), int(ax), StaleChange(names[ax][0], names[ax][1], rising, run, value, t)))
+            self._last_value = good[-1].copy()
+            self._run = runs[-1].copy()
+        density, peak = self._push_errors(bad)
+        return ValidityReport(
+            stale=self.stale_axes(),
+            changes=tuple(c for _, _, c in sorted(changes, key=lambda c: (c[0], c[1]))),
+            error_density=density,
+            peak_error_density=peak,
+            error_dense=peak > self.limits.error_density_max,
+        )
+
+    def record_rejected(self, n_samples: int) -> ValidityReport:
+        """Account ``n_samples`` samples lost in frames the decoder rejected (they count as errors)."""
+        flags = np.ones(int(n_samples), dtype=bool)
+        density, peak = self._push_errors(flags)
+        return ValidityReport(self.stale_axes(), (), density, peak, peak > self.limits.error_density_max)
+
+    def _push_errors(self, bad: np.ndarray) -> tuple[float, float]:
+        w = self.limits.error_window_samples
+        if bad.size == 0:
+            d = float(self._ring.sum()) / w
+            return d, d
+        # Window sums at each new sample over the old ring followed by the batch.
+        history = np.concatenate([self._ring, bad])
+        csum = np.concatenate([[0], np.cumsum(history)])
+        end = np.arange(w, history.size) + 1
+        counts = csum[end] - csum[end - w]
+        # Before the window has filled, unseen samples count as good (no start-up alarm on one bad sample).
+        dens = counts / w
+        self._ring = history[-w:].copy()
+        return float(dens[-1]), float(dens.max())
+
+    def stale_axes(self) -> tuple[StaleAxis, ...]:
+        names = _axis_names()
+        return tuple(
+            StaleAxis(names[k][0], names[k][1], int(self._run[k]), float(self._last_value[k]))
+            for k in np.flatnonzero(self._run >= self.limits.stale_run_samples)
+        )
+
+    def timed_out(self, now_s: float) -> bool:
+        """True when no batch arrived within ``timeout_s`` before ``now_s`` (False before the first)."""
+        return self._last_arrival_s is not None and now_s - self._last_arrival_s > self.limits.timeout_s
+
+    def state_dict(self) -> dict:
+        return {
+            "last_value": self._last_value.copy(),
+            "run": self._run.copy(),
+            "ring": self._ring.copy(),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict, *, limits: ValidityLimits = ValidityLimits()) -> "StreamValidity":
+        """Restore from :meth:`state_dict` (a ring of another window length restarts the density count)."""
+        out = cls(limits=limits)
+        out._last_value = np.asarray(state["last_value"], float).reshape(6).copy()
+        out._run = np.asarray(state["run"], np.int64).reshape(6).copy()
+        ring = np.asarray(state["ring"], bool).reshape(-1)
+        if ring.size == limits.error_window_samples:
+            out._ring = ring.copy()
+        return out
+
+
+@dataclass(frozen=True)
+class CrossImuVerdict:
+    """One compared time bin.
+
+    Attributes
+    ----------
+    bin_start_s : start of the bin (sample time), s.
+    imus : IMU indices compared, ascending.
+    accel_dev_mps2 : (K,) each IMU's largest per-axis distance from the reference, m/s².
+    gyro_dev_rps : (K,) the same for angular rate, rad/s.
+    disagreeing : IMUs beyond a limit in this bin. With three or more IMUs the reference is the
+        per-axis median, so only the outlier is listed; with two it is the other IMU, and both are.
+    """
+
+    bin_start_s: float
+    imus: tuple[int, ...]
+    accel_dev_mps2: np.ndarray
+    gyro_dev_rps: np.ndarray
+    disagreeing: tuple[int, ...]
+
+
+def compare_imus(
+    imus: tuple[int, ...],
+    accel_mean_mps2: np.ndarray,
+    gyro_mean_rps: np.ndarray,
+    *,
+    limits: ValidityLimits,
+    bin_start_s: float = 0.0,
+) -> CrossImuVerdict:
+    """Cross-IMU consistency of one time bin.
+
+    Parameters
+    ----------
+    imus : (K,) IMU indices, K >= 2.
+    accel_mean_mps2, gyro_mean_rps : (K, 3) mean outputs over the same bin, SI, body axes.
+    """
+    a = np.asarray(accel_mean_mps2, float).reshape(-1, 3)
+    g = np.asarray(gyro_mean_rps, float).reshape(-1, 3)
+    k = len(imus)
+    if k < 2 or a.shape[0] != k or g.shape[0] != k:
+        raise ValueError(f"need K >= 2 IMUs with (K, 3) means, got {k} indices, {a.shape} and {g.shape}")
+    if k == 2:
+        da = np.full(2, np.abs(a[0] - a[1]).max())
+        dg = np.full(2, np.abs(g[0] - g[1]).max())
+    else:
+        da = np.abs(a - np.median(a, axis=0)).max(axis=1)
+        dg = np.abs(g - np.median(g, axis=0)).max(axis=1)
+    bad = (da > limits.cross_imu_accel_mps2) | (dg > limits.cross_imu_gyro_rps)
+    return CrossImuVerdict(float(bin_start_s), tuple(int(i) for i in imus), da, dg, tuple(int(imus[i]) for i in np.flatnonzero(bad)))
+
+
+@dataclass(frozen=True)
+class CrossImuReport:
+    """An IMU that disagreed with the others for ``persist`` consecutive bins (or stopped doing so)."""
+
+    imu: int
+    others: tuple[int, ...]
+    accel_dev_mps2: float
+    gyro_dev_rps: float
+    bin_start_s: float
+    consistent: bool
+
+
+class CrossImuMonitor:
+    """Bins each IMU's samples by sample time and compares complete bins across IMUs.
+
+    A bin is compared once every IMU seen in the last bins has moved past it;
+    an IMU that stopped sending does not hold the others back for more than
+    two bins (its timeout is reported by :class:`StreamValidity`). State: per
+    IMU one open bin (sums and count) and a few closed bin means.
+    """
+
+    _KEEP_BINS = 4
+
+    def __init__(self, *, limits: ValidityLimits = ValidityLimits()) -> None:
+        self.limits = limits
+        self._open: dict[int, list] = {}  # imu -> [bin index, n, accel sum (3,), gyro sum (3,)]
+        self._closed: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+        self._streak: dict[int, int] = {}
+        self._flagged: set[int] = set()
+        self._last_compared = -(2**62)
+
+    def add(self, imu: int, t_s: np.ndarray, accel_mps2: np.ndarray, gyro_rps: np.ndarray) -> list[CrossImuReport]:
+        """Add one IMU's good samples (sample time, SI); returns the reports of newly compared bins."""
+        t = np.asarray(t_s, float).reshape(-1)
+        if t.size == 0:
+            return []
+        a = np.asarray(accel_mps2, float).reshape(-1, 3)
+        g = np.asarray(gyro_rps, float).reshape(-1, 3)
+        w = self.limits.cross_imu_window_s
+        bins = np.floor(t / w).astype(np.int64)
+        # Samples are in time order (the pipeline guarantees it), so bins are sorted.
+        starts = np.flatnonzero(np.concatenate([[True], bins[1:] != bins[:-1]]))
+        sums_a = np.add.reduceat(a, starts, axis=0)
+        sums_g = np.add.reduceat(g, starts, axis=0)
+        counts = np.diff(np.concatenate([starts, [t.size]]))
+        closed = self._closed.setdefault(imu, {})
+        cur = self._open.get(imu)
+        for j, b in enumerate(bins[starts]):
+            b = int(b)
+            if cur is not None and cur[0] == b:
+                cur[1] += int(counts[j])
+                cur[2] = cur[2] + sums_a[j]
+                cur[3] = cur[3] + sums_g[j]
+                continue
+            if cur is not None and cur[0] < b:
+                closed[cur[0]] = (cur[2] / cur[1], cur[3] / cur[1])
+            cur = [b, int(counts[j]), sums_a[j].copy(), sums_g[j].copy()]
+        self._open[imu] = cur
+        for old in [k for k in closed if k < cur[0] - self._KEEP_BINS]:
+            del closed[old]
+        return self._compare_ready()
+
+    def _compare_ready(self) -> list[CrossImuReport]:
+        if len(self._open) < 2:
+            return []
+        newest = max(o[0] for o in self._open.values())
+        live = [i for i, o in self._open.items() if o[0] >= newest - 2]
+        horizon = min(self._open[i][0] for i in live)  # every live IMU has closed the bins before it
+        reports: list[CrossImuReport] = []
+        candidates = sorted({b for i in live for b in self._closed.get(i, {}) if self._last_compared < b < horizon})
+        for b in candidates:
+            have = [i for i in sorted(live) if b in self._closed.get(i, {})]
+            self._last_compared = b
+            if len(have) < 2:
+                continue
+            verdict = compare_imus(
+                tuple(have),
+                np.array([self._closed[i][b][0] for i in have]),
+                np.array([self._closed[i][b][1] for i in have]),
+                limits=self.limits,
+                bin_start_s=b * self.limits.cross_imu_window_s,
+            )
+            reports.extend(self._persist(verdict))
+        return reports
+
+    def _persist(self, v: CrossImuVerdict) -> list[CrossImuReport]:
+        out = []
+        for j, imu in enumerate(v.imus):
+            others = tuple(i for i in v.imus if i != imu)
+            if imu in v.disagreeing:
+                self._streak[imu] = self._streak.get(imu, 0) + 1
+                if self._streak[imu] >= self.limits.cross_imu_persist_windows and imu not in self._flagged:
+                    self._flagged.add(imu)
+                    out.append(CrossImuReport(imu, others, float(v.accel_dev_mps2[j]), float(v.gyro_dev_rps[j]), v.bin_start_s, False))
+            else:
+                self._streak[imu] = 0
+                if imu in self._flagged:
+                    self._flagged.discard(imu)
+                    out.append(CrossImuReport(imu, others, float(v.accel_dev_mps2[j]), float(v.gyro_dev_rps[j]), v.bin_start_s, True))
+        return out
+
+    @property
+    def flagged(self) -> frozenset[int]:
+        """IMUs currently reported as disagreeing."""
+        return frozenset(self._flagged)

@@ -1,0 +1,50 @@
+"""``ins-health store put|check``: the daemon's passport store (service/passport_store.py).
+
+* ``put DIR VEHICLE IMU PASSPORT.json`` — validate a passport file (e.g. from
+  ``ins-health calibrate``) and file it for (vehicle, IMU) as a checksummed,
+  versioned entry, written atomically.
+* ``check DIR`` — load every entry and report each unit as ``ok`` or with the
+  reason it is unusable (missing, corrupt, checksum, version, filed under the
+  wrong unit). Exit status 0 if all are usable, 1 if any is not.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from protocols.passport_codec import read_passport_json
+from service.passport_store import PassportStore
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("store", help="file passports into the daemon's passport store, or check it")
+    sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    put = sub.add_parser("put", help="file a passport for (vehicle, IMU)")
+    put.add_argument("dir", type=Path, metavar="DIR", help="the passport store ([service] passport_dir)")
+    put.add_argument("vehicle", metavar="VEHICLE", help="vehicle id")
+    put.add_argument("imu", type=int, metavar="IMU", help="IMU index on the vehicle")
+    put.add_argument("passport", type=Path, metavar="PASSPORT.json", help="a passport file")
+    put.set_defaults(func=run_put)
+    check = sub.add_parser("check", help="load every entry and report the unusable ones")
+    check.add_argument("dir", type=Path, metavar="DIR", help="the passport store")
+    check.set_defaults(func=run_check)
+
+
+def run_put(args: argparse.Namespace) -> int:
+    passport = read_passport_json(args.passport)
+    path = PassportStore(args.dir).put(args.vehicle, args.imu, passport)
+    print(f"{args.vehicle} IMU{args.imu}: {passport.unit_id} filed as {path}")
+    return 0
+
+
+def run_check(args: argparse.Namespace) -> int:
+    store = PassportStore(args.dir)
+    scan = store.scan()
+    for (vehicle, imu), passport in sorted(scan.passports.items()):
+        print(f"{vehicle} IMU{imu}: ok ({passport.unit_id}, triads {', '.join(sorted(t.value for t in passport.triads))})")
+    for key, err in sorted(scan.errors.items()):
+        print(f"{key[0]} IMU{key[1]}: {err.reason}")
+    if not scan.passports and not scan.errors:
+        print(f"{args.dir}: no passport entries")
+    return 1 if scan.errors else 0

@@ -1,0 +1,348 @@
+"""Service configuration: TOML in, typed frozen dataclasses out, every default documented.
+
+``ins-health run --config FILE.toml`` reads one file with the sections below;
+every key is optional and an unknown key is an error (a typo must not silently
+fall back to a default). ``deploy/ins-health.toml`` is a complete, commented
+example, loaded by the tests.
+
+Sections
+--------
+``[service]``      instance name, data and passport directories, periods.
+``[site]``         local gravity (measured value, or latitude/height → WGS-84).
+``[zenoh]``        session (mode, endpoints, TLS, access control), the key expression of this
+                   instance's share of the fleet, event acknowledgement.
+``[mavlink]``      link (device, identity, RAW_IMU scaling, signing), alert rate limit.
+``[pipeline]``     queue capacity, F0 false-alarm probability, minimum positions.
+``[validity]``     stream validity and cross-IMU consistency thresholds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
+from estimators.stream_validity import ValidityLimits
+from protocols._schema import SchemaError, check_vehicle
+from protocols.mavlink_adapter import MavlinkSettings
+from protocols.zenoh_adapter import AckMode, Mode, ZenohSettings
+
+
+class ConfigError(ValueError):
+    """The configuration cannot be used; the message names the key and the value."""
+
+
+@dataclass(frozen=True)
+class ServiceSection:
+    """``[service]``.
+
+    name : instance name, shown on the status topic (default ``"ins-health"``).
+    data_dir : directory of ``outbox.sqlite`` and ``checkpoints.sqlite`` (default ``"./ins-health-data"``; a default
+        is relative to the working directory, a configured relative path to the configuration file).
+    passport_dir : directory of the passport store (default ``"./passports"``).
+    status_period_s : period of the status publication and of the timeout checks, s (default 1.0).
+    checkpoint_period_s : period of the estimator-state checkpoints, s (default 30.0);
+        SIGTERM always writes a last one.
+    delivery_retry_s : delay before a sink retries events its transport did not accept, s (default 0.5).
+    vehicles : vehicle ids served; empty (default) serves every vehicle the key expression delivers.
+        A frame of a vehicle outside a non-empty list is counted as ``unknown_vehicle``; the
+        passport of IMU 0 of each listed vehicle is checked at startup.
+    """
+
+    name: str = "ins-health"
+    data_dir: Path = Path("./ins-health-data")
+    passport_dir: Path = Path("./passports")
+    status_period_s: float = 1.0
+    checkpoint_period_s: float = 30.0
+    delivery_retry_s: float = 0.5
+    vehicles: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class SiteSection:
+    """``[site]``: the local gravity magnitude, the accelerometers' scalar reference (M1).
+
+    gravity_mps2 : a measured local value, m/s² (takes precedence when given).
+    latitude_deg, height_m : else WGS-84 normal gravity at this place
+        (:func:`estimators.conventions.normal_gravity_mps2`).
+    With neither, standard gravity 9.80665 m/s² is used (an error up to 0.3 %, which
+    widens F0's shell accordingly: configure the site).
+    """
+
+    gravity_mps2: float | None = None
+    latitude_deg: float | None = None
+    height_m: float = 0.0
+
+    @property
+    def local_gravity_mps2(self) -> float:
+        if self.gravity_mps2 is not None:
+            return float(self.gravity_mps2)
+        if self.latitude_deg is not None:
+            return normal_gravity_mps2(self.latitude_deg, self.height_m)
+        return STANDARD_GRAVITY_MPS2
+
+
+DEFAULT_ZENOH_SESSION = ZenohSettings(mode=Mode.CLIENT, connect=("tcp/127.0.0.1:7447",))
+
+
+@dataclass(frozen=True)
+class ZenohSection:
+    """``[zenoh]``.
+
+    enabled : subscribe to frames and publish events/status over Zenoh (default true).
+    frames_key : key expression of the frames this instance handles (default ``"ins/*/imu/*"``);
+        split a fleet across instances by giving each its own (e.g. ``"ins/alpha-$*/imu/*"``).
+    event_ack : ``"receiver"`` (default: an event is delivered once a receiving application
+        acknowledged it, :class:`protocols.zenoh_adapter.AckMode`) or ``"matched"`` (once the
+        reliable put found a subscriber).
+    ack_timeout_s : how long one delivery waits for acknowledgements (default 1.0 s).
+    min_acks : acknowledgements needed per event (default 1).
+    session : the session itself, from the other keys of the table, read by
+        :meth:`protocols.zenoh_adapter.ZenohSettings.from_dict`: ``mode`` (default ``"client"``),
+        ``connect`` (default ``["tcp/127.0.0.1:7447"]`` in client mode), ``listen``,
+        ``multicast_scouting`` (default false), ``connect_timeout_s`` (default: wait for the
+        router), ``tls`` and ``access_control`` (tables passed to Zenoh), ``extra``.
+    """
+
+    enabled: bool = True
+    frames_key: str = "ins/*/imu/*"
+    event_ack: AckMode = AckMode.RECEIVER
+    ack_timeout_s: float = 1.0
+    min_acks: int = 1
+    session: ZenohSettings = DEFAULT_ZENOH_SESSION
+
+
+DEFAULT_MAVLINK_LINK = MavlinkSettings(device="udpin:127.0.0.1:14550", vehicle="mav1")
+
+
+@dataclass(frozen=True)
+class MavlinkSection:
+    """``[mavlink]``.
+
+    enabled : read IMU messages and send alerts over MAVLink (default false).
+    alert_min_interval_s : a repeat of the same alert (vehicle, IMU, predicate, sensor, axis,
+        cause) within this interval is suppressed (default 10 s; :class:`service.daemon.AlertPolicy`).
+    alert_max_per_s : distinct alerts are paced to at most this many per second (default 1);
+        they wait in the outbox, none is dropped. The Zenoh event stream stays complete whatever
+        these say.
+    heartbeat_period_s : HEARTBEAT period of the onboard-computer component (default 1.0 s).
+    link : the link itself, from the other keys of the table, read by
+        :meth:`protocols.mavlink_adapter.MavlinkSettings.from_dict`: ``device`` (pymavlink
+        connection string, default ``"udpin:127.0.0.1:14550"``; ``tcp:…``, or a serial device
+        with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default ``"mav1"``),
+        ``source_system``, ``source_component`` (default 191, MAV_COMP_ID_ONBOARD_COMPUTER),
+        ``autopilot_system``, ``messages``, ``imu_index``, ``raw_scale`` (RAW_IMU counts → SI,
+        default ArduPilot's mG, mrad/s, cdegC), ``signing_key_hex`` (MAVLink2 signing of what
+        is sent), ``signing_link_id``, ``accept_unsigned``.
+    """
+
+    enabled: bool = False
+    alert_min_interval_s: float = 10.0
+    alert_max_per_s: float = 1.0
+    heartbeat_period_s: float = 1.0
+    link: MavlinkSettings = DEFAULT_MAVLINK_LINK
+
+
+@dataclass(frozen=True)
+class PipelineSection:
+    """``[pipeline]``.
+
+    queue_capacity : frames queued per (vehicle, IMU) before new frames are dropped and counted (default 256).
+    false_alarm_probability : per-sample false-alarm probability of F0 from which λ0 is derived
+        with the passport's noise and tolerances (default 1e-9: at 1 kHz about one false alarm
+        in 11 days of static data; :func:`estimators.scalar.derive_lambda0`).
+    min_positions : static positions needed before the nine-parameter diagnosis runs (default 9, M1).
+    max_imus_per_vehicle : pipelines created per vehicle at most (default 4); more IMU indices are
+        counted as ``unknown_imu`` (a flood of fake indices cannot exhaust memory).
+    max_vehicles : vehicles served at most (default 256), for the same reason.
+    """
+
+    queue_capacity: int = 256
+    false_alarm_probability: float = 1e-9
+    min_positions: int = 9
+    max_imus_per_vehicle: int = 4
+    max_vehicles: int = 256
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """The whole configuration (see the module docstring for the sections)."""
+
+    service: ServiceSection = field(default_factory=ServiceSection)
+    site: SiteSection = field(default_factory=SiteSection)
+    zenoh: ZenohSection = field(default_factory=ZenohSection)
+    mavlink: MavlinkSection = field(default_factory=MavlinkSection)
+    pipeline: PipelineSection = field(default_factory=PipelineSection)
+    validity: ValidityLimits = field(default_factory=ValidityLimits)
+
+    @property
+    def outbox_path(self) -> Path:
+        return self.service.data_dir / "outbox.sqlite"
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.service.data_dir / "checkpoints.sqlite"
+
+
+_SECTIONS: dict[str, type] = {
+    "service": ServiceSection,
+    "site": SiteSection,
+    "zenoh": ZenohSection,
+    "mavlink": MavlinkSection,
+    "pipeline": PipelineSection,
+    "validity": ValidityLimits,
+}
+
+
+def _coerce(where: str, kind: Any, value: Any, base_dir: Path) -> Any:
+    args = typing.get_args(kind)
+    if type(None) in args:
+        if value is None:
+            return None
+        kind = next(a for a in args if a is not type(None))
+    if typing.get_origin(kind) is tuple:
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{where} must be a list of strings, got {value!r}")
+        return tuple(value)
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return value
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where} must be a number, got {value!r}")
+        return float(value)
+    if kind is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        return value
+    if kind is Path:
+        if not isinstance(value, str) or not value:
+            raise ConfigError(f"{where} must be a non-empty path string, got {value!r}")
+        path = Path(value).expanduser()
+        return path if path.is_absolute() else (base_dir / path)
+    if isinstance(kind, type) and issubclass(kind, Enum):
+        try:
+            return kind(value)
+        except ValueError:
+            raise ConfigError(f"{where} must be one of {[m.value for m in kind]}, got {value!r}") from None
+    raise ConfigError(f"{where}: unsupported option type {kind!r}")
+
+
+def _split_section(name: str, cls: type, raw: Any, base_dir: Path, nested: str, parse, defaults: dict[str, Any]):
+    """A section whose own keys are fields of ``cls`` and whose other keys configure a transport (``nested``)."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"[{name}] must be a table, got {raw!r}")
+    own = {f.name for f in dataclasses.fields(cls)} - {nested}
+    rest = {**defaults, **{k: v for k, v in raw.items() if k not in own}}
+    try:
+        settings = parse(rest)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(f"[{name}] {exc}") from None
+    section = _build_section(name, cls, {k: v for k, v in raw.items() if k in own}, base_dir)
+    return dataclasses.replace(section, **{nested: settings})
+
+
+def _zenoh_section(raw: Any, base_dir: Path) -> ZenohSection:
+    mode = raw.get("mode", Mode.CLIENT.value) if isinstance(raw, dict) else None
+    defaults: dict[str, Any] = {"mode": Mode.CLIENT.value}
+    if mode == Mode.CLIENT.value:
+        defaults["connect"] = list(DEFAULT_ZENOH_SESSION.connect)
+    return _split_section("zenoh", ZenohSection, raw, base_dir, "session", ZenohSettings.from_dict, defaults)
+
+
+def _mavlink_section(raw: Any, base_dir: Path) -> MavlinkSection:
+    defaults = {"device": DEFAULT_MAVLINK_LINK.device, "vehicle": DEFAULT_MAVLINK_LINK.vehicle}
+    return _split_section("mavlink", MavlinkSection, raw, base_dir, "link", MavlinkSettings.from_dict, defaults)
+
+
+_NESTED = {"zenoh": _zenoh_section, "mavlink": _mavlink_section}
+
+
+def _build_section(section: str, cls: type, raw: Any, base_dir: Path) -> Any:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"[{section}] must be a table, got {raw!r}")
+    hints = typing.get_type_hints(cls)
+    unknown = sorted(set(raw) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ConfigError(f"[{section}] has unknown keys {unknown}; known: {sorted(hints)}")
+    values = {name: _coerce(f"[{section}] {name}", hints[name], value, base_dir) for name, value in raw.items()}
+    try:
+        return cls(**values)
+    except ValueError as exc:
+        raise ConfigError(f"[{section}] {exc}") from None
+
+
+def config_from_dict(raw: dict[str, Any], *, base_dir: Path | None = None) -> ServiceConfig:
+    """A :class:`ServiceConfig` from a parsed TOML document; relative paths resolve against ``base_dir``."""
+    base = Path.cwd() if base_dir is None else Path(base_dir)
+    unknown = sorted(set(raw) - set(_SECTIONS))
+    if unknown:
+        raise ConfigError(f"unknown sections {unknown}; known: {sorted(_SECTIONS)}")
+    parts = {
+        name: _NESTED[name](raw[name], base) if name in _NESTED else _build_section(name, cls, raw[name], base)
+        for name, cls in _SECTIONS.items()
+        if name in raw
+    }
+    cfg = ServiceConfig(**parts)
+    _check(cfg)
+    return cfg
+
+
+def load_config(path: str | Path) -> ServiceConfig:
+    """Read and validate a TOML configuration file (relative paths are relative to the file)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            raw = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return config_from_dict(raw, base_dir=path.resolve().parent)
+
+
+def _positive(where: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{where} must be > 0, got {value!r}")
+
+
+def _check(cfg: ServiceConfig) -> None:
+    s, p, m, z = cfg.service, cfg.pipeline, cfg.mavlink, cfg.zenoh
+    for vehicle in s.vehicles:
+        try:
+            check_vehicle(vehicle, error=SchemaError)
+        except SchemaError as exc:
+            raise ConfigError(f"[service] vehicles: {exc}") from None
+    if not s.name:
+        raise ConfigError("[service] name must not be empty")
+    for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
+        _positive(f"[service] {name}", getattr(s, name))
+    for name in ("queue_capacity", "max_imus_per_vehicle", "max_vehicles"):
+        _positive(f"[pipeline] {name}", getattr(p, name))
+    if not 0.0 < p.false_alarm_probability < 0.5:
+        raise ConfigError(f"[pipeline] false_alarm_probability must be in (0, 0.5), got {p.false_alarm_probability!r}")
+    if p.min_positions < 9:
+        raise ConfigError(f"[pipeline] min_positions must be >= 9 (nine parameters, M1), got {p.min_positions}")
+    g = cfg.site.local_gravity_mps2
+    if not 9.7 < g < 9.9:
+        raise ConfigError(f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)")
+    for name in ("alert_min_interval_s", "alert_max_per_s", "heartbeat_period_s"):
+        _positive(f"[mavlink] {name}", getattr(m, name))
+    try:
+        check_vehicle(m.link.vehicle, error=SchemaError)
+    except SchemaError as exc:
+        raise ConfigError(f"[mavlink] vehicle: {exc}") from None
+    if not z.enabled and not m.enabled:
+        raise ConfigError("neither [zenoh] nor [mavlink] is enabled: the service would have no input")
+    if z.enabled and not z.frames_key.startswith("ins/"):
+        raise ConfigError(f"[zenoh] frames_key must be under 'ins/' (ins/<vehicle>/imu/<n>), got {z.frames_key!r}")
+    if not z.ack_timeout_s > 0 or z.min_acks < 1:
+        raise ConfigError(f"[zenoh] needs ack_timeout_s > 0 and min_acks >= 1, got {z.ack_timeout_s!r} and {z.min_acks!r}")

@@ -1,0 +1,523 @@
+"""The daemon: sources → :class:`~service.pipeline.FleetProcessor` → durable outbox → sinks, in asyncio.
+
+Tasks of :meth:`Service.run`
+----------------------------
+* **frames** — IMU frames from Zenoh (:class:`protocols.zenoh_adapter.FrameSource`:
+  a bounded ring between Zenoh's thread and the loop; when it is full the
+  oldest frame is dropped and counted) and, when configured, from MAVLink
+  (:class:`protocols.mavlink_adapter.MavlinkSource`, one-sample batches joined
+  into one batch per IMU every 20 ms by :class:`Coalescer`). Each frame goes
+  through its (vehicle, IMU) pipeline; the events it raises are written to the
+  outbox in one transaction *before* any sink sees them.
+* **delivery**, one per sink — reads the sink's pending events from the outbox
+  in order, hands each to its transport, acks what the transport accepted,
+  and retries the rest every ``delivery_retry_s``. Zenoh: the event stream on
+  ``ins/<vehicle>/health/events``, acknowledged end to end by the receiving
+  application (:class:`protocols.zenoh_adapter.EventPublisher`, ``[zenoh]
+  event_ack``); each attempt puts the event again, so a plain subscriber that
+  is there while no acknowledging receiver is may see an id more than once
+  (ids are stable: deduplicate by id). MAVLink: STATUSTEXT alerts through a rate limiter
+  (:class:`AlertPolicy`): a repeat is suppressed (it counts as delivered to
+  that sink; the full stream stays on Zenoh), distinct alerts are paced.
+* **status** — every ``status_period_s``: the timeout checks, then one
+  :class:`~protocols.events.Status` per vehicle on ``ins/<vehicle>/health/status``
+  with every counter (rejections by reason, drops, outbox backlog, …).
+* **checkpoints** — every ``checkpoint_period_s`` the state of every pipeline
+  (positions, recursive estimates) to SQLite.
+
+SIGTERM (``stop`` set) drains: the sources stop, the frames already received
+are processed, the checkpoints are written, and delivery continues for up to
+:data:`DRAIN_TIMEOUT_S` before the outbox is closed; whatever is still pending is
+re-sent by the next start. ``kill -9`` loses only the frames in flight and the
+state since the last checkpoint; no event that reached the outbox is lost, and
+events are never stored twice (their ids derive from the data, see
+:mod:`protocols.events`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import sys
+import time
+from dataclasses import dataclass
+from typing import Callable, Protocol, TextIO
+
+import numpy as np
+import zenoh
+
+from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
+from estimators.passport import Passport
+from protocols._schema import SchemaError
+from protocols.events import Event, EventError, decode_event, encode_event
+from protocols.frames import FrameError, SampleBatch
+from protocols.mavlink_adapter import MavlinkLink, MavlinkSource
+from protocols.zenoh_adapter import AckMode, EventPublisher, FrameSource, StatusPublisher, open_session, parse_frame_key
+from service.checkpoint import CheckpointError, CheckpointStore, encode_state
+from service.config import ServiceConfig
+from service.outbox import Outbox
+from service.passport_store import PassportStore
+from service.pipeline import FleetProcessor, PipelineOptions
+
+TRANSPORT_ERRORS = (zenoh.ZError, OSError, ConnectionError, ValueError)
+"""What a transport raises when its link is gone: zenoh errors, socket errors, and pymavlink's
+``ValueError`` for a write on a closed port. The event stays in the outbox and is retried."""
+DRAIN_TIMEOUT_S = 5.0
+"""How long SIGTERM keeps delivering before the service exits (the rest is re-sent at the next start)."""
+
+
+class EventSink(Protocol):
+    """A transport that events are delivered to; ``deliver`` returns True once the transport accepted the event."""
+
+    name: str
+
+    async def deliver(self, event: Event) -> bool: ...
+
+    def close(self) -> None: ...
+
+
+class ZenohEventSink:
+    """Events on ``ins/<vehicle>/health/events`` (reliable, blocking), acknowledged as configured."""
+
+    name = "zenoh"
+
+    def __init__(self, session: zenoh.Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
+        self._publisher = EventPublisher(session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks)
+
+    async def deliver(self, event: Event) -> bool:
+        # publish() blocks up to the acknowledgement timeout: keep it off the loop.
+        return await asyncio.to_thread(self._publisher.publish, event)
+
+    def close(self) -> None:
+        self._publisher.close()
+
+
+class AlertPolicy:
+    """When a STATUSTEXT alert may go out (no flood on the operator's screen; the Zenoh stream stays complete).
+
+    * A *repeat* — the same (vehicle, IMU, predicate, sensor, axis, cause) within
+      ``min_interval_s`` of the last one sent — is suppressed: it counts as delivered.
+    * Distinct alerts are *paced*, at most ``max_per_s``: an alert that comes too soon is
+      deferred (the sink refuses it and the outbox retries it), never dropped, so a new fault
+      is not lost behind the alert of another.
+    """
+
+    def __init__(self, *, min_interval_s: float, max_per_s: float):
+        if not (min_interval_s > 0 and max_per_s > 0):
+            raise ValueError(f"need min_interval_s > 0 and max_per_s > 0, got {min_interval_s!r}, {max_per_s!r}")
+        self.min_interval_s = float(min_interval_s)
+        self.period_s = 1.0 / float(max_per_s)
+        self._next_s = -math.inf
+        self._last: dict[tuple, float] = {}
+        self.suppressed = 0
+        self.deferred = 0
+
+    def decide(self, event: Event, now_s: float) -> bool | None:
+        """True: send now; False: suppressed repeat (drop); None: defer (try again later)."""
+        if now_s < self._next_s:
+            self.deferred += 1
+            return None
+        key = (event.vehicle, event.imu, event.predicate, event.triad, event.axis, event.cause)
+        last = self._last.get(key)
+        if last is not None and now_s - last < self.min_interval_s:
+            self.suppressed += 1
+            return False
+        self._last[key] = now_s
+        self._next_s = now_s + self.period_s
+        return True
+
+
+class MavlinkAlertSink:
+    """STATUSTEXT alerts (:func:`protocols.mavlink_adapter.alert_text`) for the events of the link's vehicle."""
+
+    name = "mavlink"
+
+    def __init__(self, link: MavlinkLink, *, policy: AlertPolicy, clock: Callable[[], float]):
+        self.link = link
+        self.policy = policy
+        self._clock = clock
+        self.other_vehicles = 0
+
+    async def deliver(self, event: Event) -> bool:
+        if event.vehicle != self.link.settings.vehicle:
+            self.other_vehicles += 1
+            return True
+        decision = self.policy.decide(event, self._clock())
+        if decision is None:
+            return False
+        if decision:
+            # A serial port may block on a full buffer: keep the write off the loop.
+            await asyncio.to_thread(self.link.send_alert, event)
+        return True
+
+    async def heartbeat(self) -> None:
+        await asyncio.to_thread(self.link.send_heartbeat)
+
+    def close(self) -> None:
+        """The link belongs to the service; closing the sink leaves it open."""
+
+
+class Coalescer:
+    """Joins one-sample MAVLink batches into one batch per IMU (the pipeline's cost is per batch).
+
+    The joined batches are numbered per (vehicle, IMU) by the coalescer itself:
+    a MAVLink link has no frame numbers of its own to check.
+    """
+
+    def __init__(self) -> None:
+        self._seq: dict[tuple[str, int], int] = {}
+
+    def join(self, batches: list[SampleBatch]) -> list[SampleBatch]:
+        groups: dict[tuple[str, int], list[SampleBatch]] = {}
+        for b in batches:
+            groups.setdefault((b.vehicle, b.imu), []).append(b)
+        out = []
+        for key, group in groups.items():
+            seq = self._seq.get(key, 0)
+            self._seq[key] = seq + 1
+            temps = None if any(b.temp_c is None for b in group) else np.concatenate([b.temp_c for b in group])
+            out.append(
+                SampleBatch(
+                    key[0], key[1], seq, np.concatenate([b.t_s for b in group]),
+                    np.concatenate([b.accel_mps2 for b in group]), np.concatenate([b.gyro_rps for b in group]), temps,
+                )
+            )  # fmt: skip
+        return out
+
+
+COALESCE_WINDOW_S = 0.02
+"""How long the MAVLink task gathers samples before running them through the pipeline (20 ms)."""
+COALESCE_MAX = 256
+
+
+def pipeline_options(config: ServiceConfig) -> PipelineOptions:
+    """The pipelines' options from the service configuration."""
+    site = config.site
+    # A configured gravity (measured or WGS-84 at the site) is good to ~1e-4; standard gravity to ~3e-3.
+    rel_err = 1.0e-4 if (site.gravity_mps2 is not None or site.latitude_deg is not None) else 3.0e-3
+    return PipelineOptions(
+        gravity_mps2=site.local_gravity_mps2,
+        gravity_rel_err=rel_err,
+        false_alarm_probability=config.pipeline.false_alarm_probability,
+        diagnosis_false_alarm_probability=DEFAULT_FALSE_ALARM_PROB,
+        min_positions=config.pipeline.min_positions,
+        validity=config.validity,
+    )
+
+
+@dataclass
+class _Wake:
+    """An asyncio event per sink, set whenever new events reach the outbox."""
+
+    events: dict[str, asyncio.Event]
+
+    def set(self) -> None:
+        for e in self.events.values():
+            e.set()
+
+
+class Service:
+    """The ins-health daemon (module docstring).
+
+    Parameters
+    ----------
+    config : the service configuration.
+    log : where one-line notices go (passport errors, drains); default: ``sys.stderr`` at the time of writing.
+    clock : the monotonic clock that stamps arrivals (timeouts) and paces alerts.
+    """
+
+    def __init__(
+        self,
+        config: ServiceConfig,
+        *,
+        log: TextIO | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.config = config
+        self._log = log
+        self._clock = clock
+        self.store = PassportStore(config.service.passport_dir)
+        self._passports: dict[tuple[str, int], Passport] = {}
+        self.fleet = FleetProcessor(
+            passports=self._passport,
+            options=pipeline_options(config),
+            vehicles=config.service.vehicles,
+            max_vehicles=config.pipeline.max_vehicles,
+            max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
+            on_passport_error=self._passport_error,
+        )
+        self.outbox: Outbox | None = None
+        self.checkpoints: CheckpointStore | None = None
+        self.source: FrameSource | None = None
+        self.sinks: list[EventSink] = []
+        self._status_pub: StatusPublisher | None = None
+        self.mavlink_sink: MavlinkAlertSink | None = None
+        self.mavlink_source: MavlinkSource | None = None
+        self._wake: _Wake | None = None
+        self._reported: set[str] = set()
+        self.events_stored = 0
+
+    def _say(self, text: str) -> None:
+        print(text, file=self._log if self._log is not None else sys.stderr, flush=True)
+
+    # ------------------------------------------------------------------ passports and checkpoints
+
+    def _passport(self, vehicle: str, imu: int) -> Passport:
+        key = (vehicle, imu)
+        if key not in self._passports:
+            self._passports[key] = self.store.get(vehicle, imu)
+        return self._passports[key]
+
+    def _passport_error(self, vehicle: str, imu: int, message: str) -> None:
+        self._say(f"ins-health: {message}; {vehicle} IMU{imu} runs the stream checks only")
+
+    def _restore(self, vehicle: str, imu: int) -> dict | None:
+        try:
+            cp = self.checkpoints.load(f"{vehicle}/{imu}")
+        except CheckpointError as exc:
+            self._say(f"ins-health: {exc}; {vehicle} IMU{imu} starts fresh")
+            return None
+        return None if cp is None else cp.state
+
+    def _startup_scan(self) -> None:
+        """Load every passport in the store and report the unusable ones (the other units start normally).
+
+        IMU 0 of every configured vehicle is expected to have one; other units are checked
+        when their first frame arrives.
+        """
+        scan = self.store.scan([(v, 0) for v in self.config.service.vehicles])
+        self._passports.update(scan.passports)
+        for err in scan.errors.values():
+            self._say(f"ins-health: {err}")
+
+    # ------------------------------------------------------------------ events
+
+    def _store(self, events: list[Event]) -> None:
+        if not events:
+            return
+        new = self.outbox.put_many((e.event_id, e.vehicle, encode_event(e)) for e in events)
+        self.events_stored += new
+        if new:
+            self._wake.set()
+
+    def _on_reject(self, key: str, error: FrameError) -> None:
+        try:
+            vehicle, imu = parse_frame_key(key)
+        except SchemaError:
+            vehicle, imu = None, None
+        self._store(self.fleet.reject(vehicle, imu, error.reason.value))
+
+    def _process(self, batch: SampleBatch) -> None:
+        try:
+            events = self.fleet.process(batch, arrival_s=self._clock())
+        except Exception as exc:  # noqa: BLE001 - a defect on one unit's frame must not stop every unit's intake
+            self.fleet.count_service("pipeline.errors")
+            kind = f"{type(exc).__name__}: {exc}"
+            if kind not in self._reported:
+                self._reported.add(kind)
+                self._say(
+                    f"ins-health: frame of {batch.vehicle} IMU{batch.imu} seq {batch.seq} failed in the pipeline: {kind} "
+                    "(skipped, counted as pipeline.errors)"
+                )
+            return
+        self._store(events)
+
+    async def _frames(self) -> None:
+        async for batch in self.source:
+            self._process(batch)
+            # Let the delivery and status tasks run between frames.
+            await asyncio.sleep(0)
+
+    async def _mavlink_frames(self, source: MavlinkSource) -> None:
+        loop = asyncio.get_running_loop()
+        coalescer = Coalescer()
+        while True:
+            try:
+                group = [await source.get()]
+            except EOFError:
+                return
+            deadline = loop.time() + COALESCE_WINDOW_S
+            while len(group) < COALESCE_MAX and (left := deadline - loop.time()) > 0:
+                try:
+                    group.append(await asyncio.wait_for(source.get(), left))
+                except (asyncio.TimeoutError, EOFError):
+                    break
+            for batch in coalescer.join(group):
+                self._process(batch)
+            await asyncio.sleep(0)
+
+    async def _heartbeat(self, sink: MavlinkAlertSink, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            try:
+                await sink.heartbeat()
+            except TRANSPORT_ERRORS as exc:
+                self._transport_error(sink.name, exc)
+            await _wait_any(stop, None, timeout_s=self.config.mavlink.heartbeat_period_s)
+
+    def _transport_error(self, name: str, exc: BaseException) -> None:
+        """A send that failed: counted, and reported once per kind of failure (the send is retried)."""
+        kind = f"{name}: {type(exc).__name__}: {exc}"
+        self.fleet.count_service(f"delivery.{name}.errors")
+        if kind not in self._reported:
+            self._reported.add(kind)
+            self._say(f"ins-health: sending on {kind} (retrying; counted as delivery.{name}.errors)")
+
+    async def _deliver(self, sink: EventSink, wake: asyncio.Event, stop: asyncio.Event) -> None:
+        retry_s = self.config.service.delivery_retry_s
+        while True:
+            pending = self.outbox.pending(sink.name, limit=64)
+            if not pending:
+                if stop.is_set():
+                    return
+                await _wait_any(wake, stop, timeout_s=None)
+                wake.clear()
+                continue
+            acked, refused = [], None
+            for p in pending:
+                try:
+                    ok = await sink.deliver(decode_event(p.payload))
+                except EventError:
+                    self.fleet.count_service("outbox.undecodable")
+                    ok = True
+                except TRANSPORT_ERRORS as exc:
+                    self._transport_error(sink.name, exc)
+                    ok = False
+                if not ok:
+                    refused = p
+                    break
+                acked.append(p.seq)
+            self.outbox.ack(sink.name, acked)
+            if refused is not None:
+                self.outbox.record_attempt(sink.name, [refused.seq])
+                self.fleet.count_service(f"delivery.{sink.name}.retries")
+                if stop.is_set():
+                    return
+                await _wait_any(stop, None, timeout_s=retry_s)
+
+    async def _publish_status(self) -> None:
+        extra = {f"service.{k}": v for k, v in self.source.counters.as_dict("frames").items()} if self.source else {}
+        if self.mavlink_sink is not None:
+            link = self.mavlink_sink.link.counters
+            extra["service.mavlink.messages"] = link.messages
+            extra.update({f"service.mavlink.samples.{k}": n for k, n in link.imu_samples.items()})
+            extra.update({f"service.mavlink.rejected.{k}": n for k, n in link.rejected.items()})
+            extra["service.mavlink.ignored_system"] = link.ignored_system
+            extra["service.mavlink.alerts_sent"] = link.alerts_sent
+            extra["service.mavlink.alerts_suppressed"] = self.mavlink_sink.policy.suppressed
+            extra["service.mavlink.alerts_deferred"] = self.mavlink_sink.policy.deferred
+            extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
+            extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
+        counts = self.outbox.counts()
+        extra["service.outbox.stored"] = counts.stored
+        extra.update({f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()})
+        now = time.time()
+        for vehicle in self.fleet.vehicles():
+            self._status_pub.publish(self.fleet.status(vehicle, service=self.config.service.name, now_unix_s=now, extra=extra))
+            # One vehicle at a time: frames waiting behind a large fleet's status are not held up.
+            await asyncio.sleep(0)
+
+    async def _status(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            self._store(self.fleet.tick(self._clock()))
+            if self._status_pub is not None:
+                await self._publish_status()
+            await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
+
+    async def checkpoint(self) -> None:
+        """Write the state of every pipeline that changed since the last checkpoint (one transaction)."""
+        payloads = {}
+        for vehicle, imu in self.fleet.changed_keys():
+            payloads[f"{vehicle}/{imu}"] = encode_state(self.fleet.pipelines[(vehicle, imu)].state_dict())
+            # One pipeline at a time, so frames keep flowing while a large fleet is saved.
+            await asyncio.sleep(0)
+        if payloads:
+            self.checkpoints.save_encoded(payloads)
+
+    async def _checkpoints(self, stop: asyncio.Event) -> None:
+        while not stop.is_set():
+            await _wait_any(stop, None, timeout_s=self.config.service.checkpoint_period_s)
+            await self.checkpoint()
+
+    # ------------------------------------------------------------------ run
+
+    async def run(self, stop: asyncio.Event, *, ready: asyncio.Event | None = None) -> None:
+        """Run until ``stop`` is set, then drain (module docstring). ``ready`` is set once frames are accepted."""
+        cfg = self.config
+        with contextlib.ExitStack() as resources:
+            # Closed in reverse order on the way out, whatever happened in between.
+            self.outbox = resources.enter_context(Outbox(cfg.outbox_path, sinks=self.sink_names()))
+            self.checkpoints = resources.enter_context(CheckpointStore(cfg.checkpoint_path))
+            self.fleet.set_restore(self._restore)
+            self._startup_scan()
+            for key in self.checkpoints.keys():
+                # Units seen before the restart come back with their positions before their first frame.
+                vehicle, imu = key.rsplit("/", 1)
+                self.fleet.admit(vehicle, int(imu))
+            if cfg.zenoh.enabled:
+                session = resources.enter_context(await asyncio.to_thread(open_session, cfg.zenoh.session))
+                zsink = ZenohEventSink(session, ack=cfg.zenoh.event_ack, ack_timeout_s=cfg.zenoh.ack_timeout_s, min_acks=cfg.zenoh.min_acks)
+                resources.callback(zsink.close)
+                self.sinks.append(zsink)
+                self._status_pub = resources.enter_context(StatusPublisher(session))
+                self.source = FrameSource(session, (cfg.zenoh.frames_key,), capacity=cfg.pipeline.queue_capacity, on_reject=self._on_reject)
+                resources.callback(self.source.close)
+            if cfg.mavlink.enabled:
+                link = resources.enter_context(await asyncio.to_thread(MavlinkLink, cfg.mavlink.link))
+                policy = AlertPolicy(min_interval_s=cfg.mavlink.alert_min_interval_s, max_per_s=cfg.mavlink.alert_max_per_s)
+                self.mavlink_sink = MavlinkAlertSink(link, policy=policy, clock=self._clock)
+                self.sinks.append(self.mavlink_sink)
+                self.mavlink_source = MavlinkSource(link, capacity=cfg.pipeline.queue_capacity * COALESCE_MAX)
+                resources.callback(self.mavlink_source.close)
+            self._wake = _Wake({s.name: asyncio.Event() for s in self.sinks})
+            for ev in self._wake.events.values():
+                ev.set()  # deliver what a previous run left in the outbox
+            drain = asyncio.Event()
+            tasks = [asyncio.create_task(self._deliver(s, self._wake.events[s.name], drain), name=f"deliver-{s.name}") for s in self.sinks]
+            tasks.append(asyncio.create_task(self._status(stop), name="status"))
+            tasks.append(asyncio.create_task(self._checkpoints(stop), name="checkpoints"))
+            inputs = [asyncio.create_task(self._frames(), name="frames")] if self.source else []
+            if self.mavlink_sink is not None:
+                tasks.append(asyncio.create_task(self._heartbeat(self.mavlink_sink, stop), name="heartbeat"))
+                inputs.append(asyncio.create_task(self._mavlink_frames(self.mavlink_source), name="mavlink-frames"))
+            if ready is not None:
+                ready.set()
+            await stop.wait()
+            await self._drain(inputs, tasks, drain)
+
+    def sink_names(self) -> list[str]:
+        """The sinks every event must reach (the outbox keeps a delivery state for each)."""
+        names = [ZenohEventSink.name] if self.config.zenoh.enabled else []
+        return names + ([MavlinkAlertSink.name] if self.config.mavlink.enabled else [])
+
+    async def _drain(self, inputs: list[asyncio.Task], tasks: list[asyncio.Task], drain: asyncio.Event) -> None:
+        if self.source is not None:
+            self.source.close()
+        if self.mavlink_source is not None:
+            await asyncio.to_thread(self.mavlink_source.close)
+        # The sources are closed: the input tasks finish what is queued, then end.
+        for task in inputs:
+            await task
+        await self.checkpoint()
+        drain.set()
+        self._wake.set()
+        deliveries = [t for t in tasks if t.get_name().startswith("deliver-")]
+        done, pending = await asyncio.wait(deliveries, timeout=DRAIN_TIMEOUT_S) if deliveries else (set(), set())
+        for t in list(pending) + [t for t in tasks if t not in deliveries]:
+            t.cancel()
+        for t, result in zip(tasks, await asyncio.gather(*tasks, return_exceptions=True)):
+            if isinstance(result, Exception):
+                self._say(f"ins-health: task {t.get_name()} ended with {type(result).__name__}: {result}")
+        left = sum(self.outbox.counts().pending_by_sink.values())
+        if left:
+            self._say(f"ins-health: {left} event deliveries still pending; they are sent at the next start")
+
+
+async def _wait_any(a: asyncio.Event, b: asyncio.Event | None, *, timeout_s: float | None) -> None:
+    """Wait until ``a`` or ``b`` is set, or ``timeout_s`` passes."""
+    waits = [asyncio.create_task(a.wait())] + ([asyncio.create_task(b.wait())] if b is not None else [])
+    try:
+        await asyncio.wait(waits, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for w in waits:
+            w.cancel()

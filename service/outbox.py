@@ -1,0 +1,214 @@
+"""The durable outbox: every event is written here first, then delivered.
+
+Events are stored in SQLite in WAL mode with ``synchronous=FULL`` so that a
+committed event survives ``kill -9`` and a power cut. Each event is inserted
+once by its id (``INSERT OR IGNORE``: the id is stable across retries and
+restarts, so the same event produced again after a restart is not stored
+twice) together with one *pending* row per sink. A sink's delivery task reads
+its pending rows in insertion order, hands them to its transport, and acks the
+ids the transport accepted; only then are the pending rows deleted. After a
+crash the pending rows are still there, so the restarted service re-sends what
+was not delivered, and nothing that was acked is sent again.
+
+The outbox keeps delivered events for ``retain_delivered`` rows (a short
+history for the status topic and for diagnosis of a fleet), then prunes the
+oldest delivered ones, so the file stays bounded.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    id TEXT NOT NULL UNIQUE,
+    vehicle TEXT NOT NULL,
+    payload BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS pending (
+    seq INTEGER NOT NULL,
+    sink TEXT NOT NULL,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    PRIMARY KEY (sink, seq)
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+"""
+
+OUTBOX_SCHEMA_VERSION = 1
+
+
+class OutboxError(RuntimeError):
+    """The outbox file cannot be used (wrong schema version, unknown sink)."""
+
+
+@dataclass(frozen=True)
+class PendingEvent:
+    """One event waiting for a sink: its id, vehicle, encoded bytes and how often it was tried."""
+
+    seq: int
+    id: str
+    vehicle: str
+    payload: bytes
+    attempts: int
+
+
+@dataclass(frozen=True)
+class OutboxCounts:
+    """Totals for the status topic."""
+
+    stored: int
+    pending_by_sink: dict[str, int]
+
+
+class Outbox:
+    """A durable, idempotent event store with per-sink delivery state.
+
+    Parameters
+    ----------
+    path : SQLite file (created if missing); ``":memory:"`` for tests of logic only.
+    sinks : names of the sinks every new event must reach (e.g. ``("zenoh", "mavlink")``).
+    retain_delivered : how many delivered events to keep before pruning the oldest.
+
+    Thread-safe: the connection is used under a lock, so a transport callback
+    thread and the asyncio loop may both call it. A context manager; ``close``
+    releases the file.
+    """
+
+    def __init__(self, path: str | Path, *, sinks: Sequence[str], retain_delivered: int = 10_000) -> None:
+        if not sinks:
+            raise ValueError("an outbox needs at least one sink")
+        if retain_delivered < 0:
+            raise ValueError(f"retain_delivered must be >= 0, got {retain_delivered!r}")
+        self._sinks = tuple(dict.fromkeys(str(s) for s in sinks))
+        self._retain = int(retain_delivered)
+        self._lock = threading.Lock()
+        if str(path) != ":memory:":
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        # FULL: a commit is on disk before put() returns (kill -9 and power loss safe).
+        self._db.execute("PRAGMA synchronous=FULL")
+        self._db.executescript(_SCHEMA)
+        row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        if row is None:
+            self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(OUTBOX_SCHEMA_VERSION),))
+        elif int(row[0]) != OUTBOX_SCHEMA_VERSION:
+            self._db.close()
+            raise OutboxError(
+                f"outbox {path} has schema version {row[0]}, this service writes {OUTBOX_SCHEMA_VERSION}: "
+                "deliver or move the old file first"
+            )
+
+    @property
+    def sinks(self) -> tuple[str, ...]:
+        return self._sinks
+
+    def _check_sink(self, sink: str) -> None:
+        if sink not in self._sinks:
+            raise OutboxError(f"unknown sink {sink!r}; this outbox delivers to {self._sinks}")
+
+    def put(self, event_id: str, vehicle: str, payload: bytes) -> bool:
+        """Store one event durably and mark it pending for every sink.
+
+        Returns True if the event was new, False if an event with this id was
+        already stored (then nothing changes: the id is the deduplication key).
+        """
+        return self.put_many([(event_id, vehicle, payload)]) == 1
+
+    def put_many(self, events: Iterable[tuple[str, str, bytes]]) -> int:
+        """Store several events in one transaction; returns how many were new."""
+        new = 0
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                for event_id, vehicle, payload in events:
+                    cur = self._db.execute(
+                        "INSERT OR IGNORE INTO events (id, vehicle, payload) VALUES (?, ?, ?)",
+                        (str(event_id), str(vehicle), bytes(payload)),
+                    )
+                    if cur.rowcount == 1:
+                        new += 1
+                        seq = cur.lastrowid
+                        self._db.executemany(
+                            "INSERT INTO pending (seq, sink) VALUES (?, ?)", [(seq, s) for s in self._sinks]
+                        )
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        return new
+
+    def pending(self, sink: str, *, limit: int = 100) -> list[PendingEvent]:
+        """The oldest events not yet acked by ``sink``, in insertion order."""
+        self._check_sink(sink)
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT e.seq, e.id, e.vehicle, e.payload, p.attempts FROM pending p JOIN events e ON e.seq = p.seq "
+                "WHERE p.sink = ? ORDER BY p.seq LIMIT ?",
+                (sink, int(limit)),
+            ).fetchall()
+        return [PendingEvent(int(s), i, v, bytes(p), int(a)) for s, i, v, p, a in rows]
+
+    def stored(self, *, limit: int = 1000) -> list[PendingEvent]:
+        """The retained events (delivered or not), oldest first; ``attempts`` is 0 here."""
+        with self._lock:
+            rows = self._db.execute("SELECT seq, id, vehicle, payload FROM events ORDER BY seq LIMIT ?", (int(limit),)).fetchall()
+        return [PendingEvent(int(q), i, v, bytes(p), 0) for q, i, v, p in rows]
+
+    def ack(self, sink: str, seqs: Iterable[int]) -> None:
+        """Mark events delivered to ``sink`` (they will not be sent to it again)."""
+        self._check_sink(sink)
+        seqs = [(sink, int(s)) for s in seqs]
+        if not seqs:
+            return
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", seqs)
+                self._prune_locked()
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+
+    def record_attempt(self, sink: str, seqs: Iterable[int]) -> None:
+        """Count a failed delivery attempt (for the status topic and back-off)."""
+        self._check_sink(sink)
+        with self._lock:
+            self._db.executemany(
+                "UPDATE pending SET attempts = attempts + 1 WHERE sink = ? AND seq = ?", [(sink, int(s)) for s in seqs]
+            )
+
+    def _prune_locked(self) -> None:
+        # Delete the oldest fully delivered events beyond the retention count.
+        self._db.execute(
+            "DELETE FROM events WHERE seq NOT IN (SELECT seq FROM pending) AND seq <= "
+            "(SELECT COALESCE(MAX(seq), 0) FROM events) - ?",
+            (self._retain,),
+        )
+
+    def contains(self, event_id: str) -> bool:
+        """Whether an event with this id was ever stored (and not yet pruned)."""
+        with self._lock:
+            return self._db.execute("SELECT 1 FROM events WHERE id = ?", (event_id,)).fetchone() is not None
+
+    def counts(self) -> OutboxCounts:
+        with self._lock:
+            stored = self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]
+            rows = dict(self._db.execute("SELECT sink, COUNT(*) FROM pending GROUP BY sink").fetchall())
+        return OutboxCounts(int(stored), {s: int(rows.get(s, 0)) for s in self._sinks})
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> "Outbox":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

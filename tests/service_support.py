@@ -1,0 +1,216 @@
+"""Shared helpers of the service tests: ephemeral ports, Zenoh router and client sessions, waits."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+import time
+from contextlib import contextmanager
+from typing import Callable, Iterator
+
+import numpy as np
+import zenoh
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from protocols.events import decode_event
+from protocols.frames import SampleBatch
+from protocols.mavlink_adapter import imu_message
+from service.config import config_from_dict
+from service.daemon import Service
+
+
+def free_tcp_port() -> int:
+    """A TCP port the OS just handed out on 127.0.0.1 (ephemeral; released for the caller to bind)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def zenoh_client_config(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def zenoh_router_config(port: int) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+@contextmanager
+def zenoh_router(port: int | None = None) -> Iterator[int]:
+    """An in-process Zenoh router on 127.0.0.1; yields its port and closes it on exit."""
+    port = free_tcp_port() if port is None else port
+    session = zenoh.open(zenoh_router_config(port))
+    try:
+        yield port
+    finally:
+        session.close()
+
+
+def wait_until(predicate: Callable[[], bool], *, timeout_s: float, what: str | Callable[[], str]) -> None:
+    """Poll ``predicate`` until it holds; fail with ``what`` (a text, or a function giving one) after ``timeout_s``.
+
+    The wait is on a condition, not a fixed delay: it returns as soon as the
+    condition holds; the small poll interval only bounds the CPU spent waiting.
+    """
+    deadline = time.monotonic() + timeout_s
+    tick = threading.Event()
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what() if callable(what) else what}")
+        tick.wait(0.01)
+
+
+def batches_of(session, *, vehicle: str, imu: int, batch_samples: int, first_seq: int = 0):
+    """The samples of an :class:`~estimators.session.ImuSession` as consecutive frames."""
+    n = session.n_samples
+    for k, start in enumerate(range(0, n, batch_samples)):
+        sl = slice(start, min(n, start + batch_samples))
+        yield SampleBatch(
+            vehicle, imu, first_seq + k, session.t_s[sl], session.accel_mps2[sl], session.gyro_rps[sl],
+            None if session.temp_c is None else session.temp_c[sl],
+        )
+
+
+def run_fleet(fleet, batches, *, finish: bool = True) -> list:
+    """Feed frames to a FleetProcessor with arrival time = data time; returns every event (and the end-of-data ones)."""
+    events = []
+    for b in batches:
+        events += fleet.process(b, arrival_s=float(b.t_s[-1]))
+    if finish:
+        events += fleet.finish()
+    return events
+
+
+class ServiceThread:
+    """An in-process :class:`service.daemon.Service` on its own event loop in a thread (a context manager).
+
+    ``__enter__`` returns once the service takes frames (timeout 30 s); ``__exit__`` stops it the
+    way SIGTERM does (drain, checkpoints) and joins the thread.
+    """
+
+    def __init__(self, config, **service_options):
+        self.service = Service(config, **service_options)
+        self._loop = asyncio.new_event_loop()
+        self._stop = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._main, name="ins-health-service", daemon=True)
+
+    def _main(self) -> None:
+        async def go():
+            self._stop = asyncio.Event()
+            ready = asyncio.Event()
+            task = asyncio.create_task(self.service.run(self._stop, ready=ready))
+            await asyncio.wait([task, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED)
+            self._ready.set()
+            await task
+
+        try:
+            self._loop.run_until_complete(go())
+        except BaseException as exc:  # reported to the test by __enter__/__exit__
+            self._error = exc
+            self._ready.set()
+        finally:
+            self._loop.close()
+
+    def __enter__(self) -> "ServiceThread":
+        self._thread.start()
+        if not self._ready.wait(30.0):
+            raise AssertionError("the service did not start within 30 s")
+        if self._error is not None:
+            raise self._error
+        return self
+
+    def call(self, fn, *args):
+        """Run ``fn(*args)`` on the service's loop and return its result (thread-safe access to its state)."""
+        done = threading.Event()
+        box = {}
+
+        def run():
+            try:
+                box["value"] = fn(*args)
+            except BaseException as exc:
+                box["error"] = exc
+            done.set()
+
+        self._loop.call_soon_threadsafe(run)
+        if not done.wait(30.0):
+            raise AssertionError("the service loop did not answer within 30 s")
+        if "error" in box:
+            raise box["error"]
+        return box["value"]
+
+    def __exit__(self, *exc) -> None:
+        if self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._stop.set)
+            self._thread.join(60.0)
+        if self._error is not None and exc[0] is None:
+            raise self._error
+
+
+def wait_subscribed(session, key: str, *, timeout_s: float = 10.0) -> None:
+    """Wait until some subscriber matches ``key`` (the service declared its frame subscription)."""
+    pub = session.declare_publisher(key)
+    try:
+        wait_until(lambda: pub.matching_status.matching, timeout_s=timeout_s, what=f"a subscriber on {key}")
+    finally:
+        pub.undeclare()
+
+
+def service_config(tmp_path, *, port: int | None, passport_dir, name: str = "ins-health", **sections):
+    """A ServiceConfig for tests: data under ``tmp_path``, Zenoh client of the router on ``port`` (None: no Zenoh)."""
+    raw = {
+        "service": {"name": name, "data_dir": str(tmp_path / name), "passport_dir": str(passport_dir), "status_period_s": 0.2},
+        "zenoh": {"enabled": False} if port is None else {"connect": [f"tcp/127.0.0.1:{port}"]},
+    }
+    for section, values in sections.items():
+        raw.setdefault(section, {}).update(values)
+    return config_from_dict(raw)
+
+
+class EventStream:
+    """A plain subscriber on ``ins/*/health/events``: every event id as it was put on the wire (no dedup)."""
+
+    def __init__(self, session, vehicles: str = "*"):
+        self.ids: list[str] = []
+        self._lock = threading.Lock()
+
+        def on_sample(sample):
+            event = decode_event(sample.payload.to_bytes())
+            with self._lock:
+                self.ids.append(event.event_id)
+
+        self._sub = session.declare_subscriber(f"ins/{vehicles}/health/events", on_sample)
+
+    def snapshot(self) -> list[str]:
+        with self._lock:
+            return list(self.ids)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def free_udp_port() -> int:
+    """A UDP port the OS just handed out on 127.0.0.1."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def mavlink_packets(session, kind, *, imu_id: int = 0, start_s: float = -1e9) -> list[bytes]:
+    """Each sample of ``session`` from ``start_s`` on as one packed MAVLink 2 message of ``kind`` (an autopilot's stream)."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1)
+    out = []
+    for k in range(int(np.searchsorted(session.t_s, start_s)), session.n_samples):
+        msg = imu_message(kind, t_s=float(session.t_s[k]), accel_mps2=session.accel_mps2[k], gyro_rps=session.gyro_rps[k], imu_id=imu_id)
+        out.append(msg.pack(mav))
+    return out

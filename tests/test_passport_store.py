@@ -1,0 +1,98 @@
+"""The passport store: checksummed, versioned entries per (vehicle, IMU); one bad unit never stops the others."""
+
+from __future__ import annotations
+
+import functools
+import json
+
+import pytest
+
+from protocols.passport_codec import write_passport_json
+from service.cli import main
+from service.demo import demo_passport
+from service.passport_store import PassportStore, PassportStoreError, passport_checksum
+
+
+@functools.lru_cache(maxsize=None)
+def passport():
+    return demo_passport()[0]
+
+
+def test_put_then_get_round_trips_and_the_file_is_a_checksummed_entry(tmp_path):
+    store = PassportStore(tmp_path)
+    path = store.put("uav-1", 2, passport())
+    assert path == tmp_path / "uav-1" / "imu2.passport.json"
+    entry = json.loads(path.read_text())
+    assert entry["type"] == "ins.health.passport-entry" and entry["entry_version"] == 1
+    assert entry["sha256"] == passport_checksum(entry["passport"])
+    back = store.get("uav-1", 2)
+    assert back.to_dict() == passport().to_dict()
+    assert store.keys() == [("uav-1", 2)]
+    # No temporary file is left next to the entry.
+    assert [p.name for p in path.parent.iterdir()] == ["imu2.passport.json"]
+
+
+def corrupt(path, edit):
+    entry = json.loads(path.read_text())
+    edit(entry)
+    path.write_text(json.dumps(entry))
+
+
+@pytest.mark.parametrize(
+    "damage, reason",
+    [
+        (lambda p: p.write_text('{"type": "ins.health.passport-entry", '), "corrupt: not valid JSON"),
+        (lambda p: p.write_bytes(b"\xff\xfe\x00garbage"), "corrupt: not valid JSON"),
+        (lambda p: corrupt(p, lambda e: e["passport"]["triads"]["accel"]["nominal"].__setitem__(0, 0.5)), "checksum mismatch"),
+        (lambda p: corrupt(p, lambda e: e.__setitem__("entry_version", 7)), "entry version 7 is not supported"),
+        (lambda p: corrupt(p, lambda e: e.__setitem__("imu", 5)), "filed under the wrong unit"),
+        (lambda p: corrupt(p, lambda e: e.__setitem__("type", "ins.health.passport")), "a bare passport file"),
+    ],
+)
+def test_a_damaged_entry_is_a_clear_error_for_that_unit_only(tmp_path, damage, reason):
+    store = PassportStore(tmp_path)
+    store.put("uav-1", 0, passport())
+    damage(store.put("uav-2", 0, passport()))
+    with pytest.raises(PassportStoreError, match=reason) as info:
+        store.get("uav-2", 0)
+    assert "uav-2 IMU0" in str(info.value) and str(tmp_path / "uav-2") in str(info.value)
+    scan = store.scan()
+    assert list(scan.passports) == [("uav-1", 0)] and list(scan.errors) == [("uav-2", 0)]
+
+
+def test_a_newer_passport_schema_is_reported_with_its_version(tmp_path):
+    store = PassportStore(tmp_path)
+    path = store.put("uav-1", 0, passport())
+
+    def newer(entry):
+        entry["passport"]["schema_version"] = 99
+        entry["sha256"] = passport_checksum(entry["passport"])
+
+    corrupt(path, newer)
+    with pytest.raises(PassportStoreError, match="schema version 99 is newer"):
+        store.get("uav-1", 0)
+
+
+def test_missing_units_and_bad_keys(tmp_path):
+    store = PassportStore(tmp_path)
+    with pytest.raises(PassportStoreError, match="missing: no passport file"):
+        store.get("uav-9", 1)
+    scan = store.scan([("uav-9", 0)])
+    assert scan.passports == {} and "missing" in str(scan.errors[("uav-9", 0)])
+    with pytest.raises(ValueError, match="not a valid unit key"):
+        store.path_for("../etc", 0)
+    with pytest.raises(ValueError, match="not a valid unit key"):
+        store.path_for("uav-1", 300)
+
+
+def test_store_command_puts_and_checks(tmp_path, capsys):
+    src = tmp_path / "calibrated.json"
+    write_passport_json(passport(), src)
+    root = tmp_path / "store"
+    assert main(["store", "put", str(root), "uav-3", "1", str(src)]) == 0
+    assert main(["store", "check", str(root)]) == 0
+    out = capsys.readouterr().out
+    assert "uav-3 IMU1: ok (demo-uav-imu0, triads accel)" in out
+    (root / "uav-3" / "imu1.passport.json").write_text("{}")
+    assert main(["store", "check", str(root)]) == 1
+    assert "uav-3 IMU1: not a passport-store entry" in capsys.readouterr().out

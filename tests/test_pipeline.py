@@ -1,0 +1,238 @@
+"""The streaming pipeline on simulated units with known faults (methods.md M1 end to end)."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+import pytest
+
+from estimators.conventions import Triad
+from estimators.passport import TemperatureModel
+from estimators.sim import TemperatureBias, WarmupTemperature, simulate
+from protocols.events import ImuState, Predicate, Severity, StreamCause
+from service.checkpoint import decode_state, encode_state
+from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
+from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
+from service_support import batches_of, run_fleet
+
+V = DEMO_VEHICLE
+
+
+@functools.lru_cache(maxsize=None)
+def calibrated():
+    return demo_passport()
+
+
+@functools.lru_cache(maxsize=None)
+def faulty():
+    return demo_scenario()
+
+
+def options(g):
+    return PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4)
+
+
+def fleet_for(passport, g, **kw):
+    return FleetProcessor(passports=lambda v, i: passport, options=options(g), **kw)
+
+
+def kinds(events):
+    return [(e.predicate, e.cause) for e in events]
+
+
+def test_fault_is_detected_by_f0_and_named_by_the_diagnosis():
+    """+3 % scale factor on the z accelerometer after landing: F0 at the onset, then F6 (ez) and nothing else."""
+    passport, g = calibrated()
+    sc = faulty()
+    events = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=50))
+    assert kinds(events) == [(Predicate.F0, StreamCause.OUT_OF_SHELL), (Predicate.F6, "scale_factor")]
+    f0, f6 = events
+    # F0 is tested on the final, eroded static decisions: the unit rests level when the fault starts.
+    assert sc.fault_s <= f0.t_s < sc.fault_s + 0.05 and f0.triad is Triad.ACCEL and f0.severity is Severity.WARNING
+    assert f0.estimate > f0.tolerance
+    assert f6.triad is Triad.ACCEL and f6.axis == "z" and f6.severity is Severity.ERROR
+    assert f6.t_s > sc.handling2_start_s
+    truth = sc.truth_accel[5] + 0.03
+    assert abs(f6.estimate - truth) < 4.0 * f6.sigma
+    assert "accelerometer z: scale factor error" in f6.text
+
+
+def test_fault_free_unit_raises_nothing_and_reaches_ok():
+    passport, g = calibrated()
+    clean = demo_scenario(fault_magnitude=0.0)
+    fleet = fleet_for(passport, g)
+    events = run_fleet(fleet, batches_of(clean.session, vehicle=V, imu=0, batch_samples=50))
+    assert events == []
+    status = fleet.status(V, service="t", now_unix_s=0.0)
+    assert status.imus[0].state is ImuState.OK and status.imus[0].positions >= 20
+    assert status.counters.get("imu0.f0.accel.fail", 0) == 0 and status.counters["imu0.f0.accel.tests"] > 5000
+
+
+def test_same_batches_give_the_same_event_ids_whatever_the_frame_size():
+    """Event ids derive from data time: replaying the same data (even batched differently) gives the same ids."""
+    passport, g = calibrated()
+    sc = faulty()
+    a = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=50))
+    b = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=333))
+    assert [e.event_id for e in a] == [e.event_id for e in b]
+
+
+def test_checkpoint_mid_stream_resumes_with_the_same_events():
+    """Stop after the fault, checkpoint through msgpack bytes, resume in a new fleet: nothing is lost or changed."""
+    passport, g = calibrated()
+    sc = faulty()
+    frames = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=50))
+    whole_fleet = fleet_for(passport, g)
+    whole = run_fleet(whole_fleet, frames)
+    cut = next(k for k, b in enumerate(frames) if b.t_s[0] > sc.fault_s + 10.0)
+    first = fleet_for(passport, g)
+    before = run_fleet(first, frames[:cut], finish=False)
+    saved = {k: encode_state(s) for k, s in first.state_dicts().items()}
+    second = fleet_for(passport, g)
+    second.set_restore(lambda v, i: decode_state(saved[f"{v}/{i}"]))
+    after = run_fleet(second, frames[cut:])
+    assert [e.event_id for e in before + after] == [e.event_id for e in whole]
+    assert second.pipelines[(V, 0)].n_positions == whole_fleet.pipelines[(V, 0)].n_positions
+
+
+def test_frame_order_problems_are_counted_and_state_stays_sane():
+    passport, g = calibrated()
+    sc = faulty()
+    frames = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=100))[:60]
+    fleet = fleet_for(passport, g)
+    late = frames[10]
+    jumbled = frames[:12] + [frames[11], late] + frames[12:20]
+    # A frame whose samples go back in time with a fresh seq, then a forward time jump of 10 s.
+    back = dataclasses.replace(frames[20], seq=20, t_s=frames[20].t_s - 5.0)
+    jump = [dataclasses.replace(b, t_s=b.t_s + 10.0) for b in frames[21:30]]
+    run_fleet(fleet, jumbled + [back] + jump, finish=False)
+    c = fleet.status(V, service="t", now_unix_s=0.0).counters
+    assert c["imu0.frames.duplicate"] == 1 and c["imu0.frames.out_of_order"] == 1
+    assert c["imu0.frames.rejected.no_new_samples"] == 1 and c["imu0.time_jumps"] == 1
+    assert c["imu0.samples.accepted"] == 100 * 29
+    pipe = fleet.pipelines[(V, 0)]
+    assert pipe.last_seq == 29 and pipe.last_t_s == pytest.approx(frames[29].t_s[-1] + 10.0)
+
+
+def test_a_restarted_source_is_followed_after_three_consistent_frames():
+    passport, g = calibrated()
+    sc = faulty()
+    frames = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=100))
+    fleet = fleet_for(passport, g)
+    run_fleet(fleet, frames[:40], finish=False)
+    # The vehicle reboots: seq from 0 and time from 0 again.
+    restarted = [dataclasses.replace(b, seq=k) for k, b in enumerate(frames[:10])]
+    run_fleet(fleet, restarted, finish=False)
+    c = fleet.status(V, service="t", now_unix_s=0.0).counters
+    assert c["imu0.source_restarts"] == 1 and c["imu0.frames.out_of_order"] == 2
+    assert c["imu0.frames.accepted"] == 40 + 8
+    assert fleet.pipelines[(V, 0)].last_t_s == pytest.approx(frames[9].t_s[-1])
+
+
+def test_stuck_gyro_is_a_critical_stale_event_naming_the_axis():
+    passport, g = calibrated()
+    sc = faulty()
+    s = sc.session
+    gyro = s.gyro_rps.copy()
+    k0 = int(np.searchsorted(s.t_s, 20.0))
+    gyro[k0 : k0 + 400, 1] = gyro[k0, 1]  # 2 s at 200 Hz
+    session = dataclasses.replace(s, gyro_rps=gyro)
+    events = run_fleet(fleet_for(passport, g), list(batches_of(session, vehicle=V, imu=0, batch_samples=50))[:600])
+    stale = [e for e in events if e.predicate is Predicate.STALE]
+    assert [(e.cause, e.triad, e.axis) for e in stale] == [
+        (StreamCause.STUCK_VALUE, Triad.GYRO, "y"),
+        (StreamCause.RECOVERED, Triad.GYRO, "y"),
+    ]
+    assert stale[0].severity is Severity.CRITICAL and stale[0].estimate >= 100
+
+
+def test_timeout_and_recovery_on_the_arrival_clock():
+    passport, g = calibrated()
+    frames = list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))
+    fleet = fleet_for(passport, g)
+    fleet.process(frames[0], arrival_s=100.0)
+    assert fleet.tick(100.4) == []
+    timeout = fleet.tick(100.6)
+    assert kinds(timeout) == [(Predicate.TIMEOUT, StreamCause.NO_DATA)] and timeout[0].unit == "s"
+    assert fleet.tick(101.0) == []  # one event per outage
+    assert fleet.status(V, service="t", now_unix_s=0.0).imus[0].state is ImuState.NO_DATA
+    back = fleet.process(frames[1], arrival_s=102.0)
+    assert kinds(back) == [(Predicate.TIMEOUT, StreamCause.RECOVERED)]
+
+
+def test_missing_passport_runs_the_stream_checks_only_and_says_why():
+    errors = []
+
+    def lookup(v, i):
+        raise ValueError(f"passport of {v} IMU{i}: missing")
+
+    fleet = FleetProcessor(passports=lookup, on_passport_error=lambda v, i, m: errors.append(m))
+    run_fleet(fleet, list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))[:50], finish=False)
+    st = fleet.status(V, service="t", now_unix_s=0.0).imus[0]
+    assert st.state is ImuState.NO_PASSPORT and "missing" in st.detail
+    assert errors == [f"passport of {V} IMU0: missing"]
+
+
+def test_admission_limits_and_unknown_vehicles_are_counted():
+    passport, g = calibrated()
+    fleet = fleet_for(passport, g, vehicles=(V,), max_imus_per_vehicle=2)
+    frame = next(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=10))
+    for imu in range(4):
+        fleet.process(dataclasses.replace(frame, imu=imu), arrival_s=0.0)
+    fleet.process(dataclasses.replace(frame, vehicle="intruder"), arrival_s=0.0)
+    c = fleet.status(V, service="t", now_unix_s=0.0).counters
+    assert c["frames.over_imu_limit"] == 2 and c["service.frames.unknown_vehicle"] == 1
+    assert sorted(fleet.pipelines) == [(V, 0), (V, 1)]
+
+
+def test_warm_up_is_compensated_with_the_passport_temperature_model():
+    """Bias drifting 1 mG/°C over a 20 → 50 °C warm-up: F0 would fire; with the M3 model in the passport it does not."""
+    passport, g = calibrated()
+    sc = faulty()
+    k_mps2_per_c = 1e-3 * 9.80665
+    spec = sc.spec
+    model = spec.model.with_effect(TemperatureBias(coef_si_per_c=((k_mps2_per_c,),) * 3), triad=Triad.ACCEL)
+    warm = simulate(
+        dataclasses.replace(spec, model=model, faults=(), temperature=WarmupTemperature(start_c=20.0, final_c=50.0, tau_s=15.0)), seed=3
+    ).session
+    tp = passport.triads[Triad.ACCEL]
+    tmodel = TemperatureModel(20.0, np.column_stack([tp.nominal[:3], np.full(3, k_mps2_per_c / tp.reference)]), np.zeros((3, 2)))
+    with_model = dataclasses.replace(passport, triads={Triad.ACCEL: dataclasses.replace(tp, temperature=tmodel)})
+    frames = list(batches_of(warm, vehicle=V, imu=0, batch_samples=100))
+    assert run_fleet(fleet_for(passport, g), frames)[0].predicate is Predicate.F0
+    fleet = fleet_for(with_model, g)
+    assert run_fleet(fleet, frames) == []
+    assert "temperature-compensated (M3)" in fleet.status(V, service="t", now_unix_s=0.0).imus[0].detail
+
+
+def test_cross_imu_names_the_outlier_and_quotes_its_scalar_check():
+    """Three IMUs; IMU2's z accelerometer gains a 0.1 g bias after landing (≈ 0.98 m/s² > 0.75 m/s²)."""
+    passport, g = calibrated()
+    clean = demo_scenario(fault_magnitude=0.0)
+    bad = demo_scenario(fault_index=2, fault_magnitude=0.1)
+    fleet = fleet_for(passport, g)
+    streams = {0: clean.session, 1: clean.session, 2: bad.session}
+    frames = {i: list(batches_of(s, vehicle=V, imu=i, batch_samples=100)) for i, s in streams.items()}
+    events = []
+    for k in range(len(frames[0])):
+        for i in range(3):
+            events += fleet.process(frames[i][k], arrival_s=float(frames[i][k].t_s[-1]))
+    cross = [e for e in events if e.predicate is Predicate.CROSS_IMU and e.cause is StreamCause.DISAGREEMENT]
+    assert cross and {e.imu for e in cross} == {2}
+    assert "disagrees with IMU0,IMU1" in cross[0].text and "F0 accel failing" in cross[0].text
+    assert cross[0].t_s > bad.fault_s and cross[0].unit == "m/s^2"
+
+
+def test_pipeline_state_round_trips_through_msgpack():
+    passport, g = calibrated()
+    pipe = ImuPipeline(V, 0, passport=passport, options=options(g))
+    for b in list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))[:150]:
+        pipe.process(b, arrival_s=0.0)
+    state = decode_state(encode_state(pipe.state_dict()))
+    twin = ImuPipeline(V, 0, passport=passport, options=options(g))
+    twin.load_state(state)
+    assert twin.status() == pipe.status() and twin.n_positions == pipe.n_positions > 5
+    with pytest.raises(ValueError, match="not a version-1 state of demo-uav IMU1"):
+        ImuPipeline(V, 1, passport=passport, options=options(g)).load_state(state)

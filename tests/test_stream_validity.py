@@ -1,0 +1,194 @@
+"""Stream validity (PX4-style timeout, stale axis, error density) and cross-IMU consistency."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
+from estimators.stream_validity import (
+    CrossImuMonitor,
+    StreamValidity,
+    ValidityLimits,
+    compare_imus,
+    run_lengths,
+)
+
+RATE_HZ = 1000.0
+ACCEL_NOISE_MPS2 = 0.02
+GYRO_NOISE_RPS = 1e-3
+
+
+def static_samples(rng: np.random.Generator, n: int, *, t0_s: float = 0.0):
+    t = t0_s + np.arange(n) / RATE_HZ
+    accel = np.array([0.0, 0.0, STANDARD_GRAVITY_MPS2]) + ACCEL_NOISE_MPS2 * rng.standard_normal((n, 3))
+    gyro = GYRO_NOISE_RPS * rng.standard_normal((n, 3))
+    return t, accel, gyro
+
+
+def test_run_lengths_by_hand():
+    values = np.array([[1.0], [1.0], [2.0], [2.0], [2.0], [3.0]])
+    runs = run_lengths(values, np.array([1.0]), np.array([4]))
+    np.testing.assert_array_equal(runs[:, 0], [5, 6, 1, 2, 3, 1])
+
+
+def test_noisy_stream_is_never_stale_and_stuck_gyro_is_named():
+    rng = np.random.default_rng(1)
+    limits = ValidityLimits()
+    sv = StreamValidity(limits=limits)
+    for k in range(20):
+        _, a, g = static_samples(rng, 500)
+        rep = sv.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(500, bool), arrival_s=k * 0.5)
+        assert rep.stale == () and rep.changes == () and not rep.error_dense
+    # The gyro z axis sticks at its last value (the ICM42688 "stuck gyro").
+    t, a, g = static_samples(rng, 500, t0_s=10.0)
+    g[:, 2] = 0.0123
+    rep = sv.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(500, bool), arrival_s=10.0, t_s=t)
+    assert [(c.triad, c.axis, c.stale) for c in rep.changes] == [(Triad.GYRO, "z", True)]
+    # The run reaches 100 identical values at the 100th stuck sample.
+    assert rep.changes[0].t_s == pytest.approx(t[99])
+    assert rep.changes[0].run_samples == 100 and rep.changes[0].value == pytest.approx(0.0123)
+    # Still stuck: reported as stale, but not as newly stale again.
+    _, a, g = static_samples(rng, 100)
+    g[:, 2] = 0.0123
+    rep = sv.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(100, bool), arrival_s=10.1)
+    assert rep.changes == () and [s.axis for s in rep.stale] == ["z"] and rep.stale[0].run_samples == 600
+
+
+def test_run_spanning_batches_and_bad_samples_do_not_break_it():
+    rng = np.random.default_rng(2)
+    limits = ValidityLimits(stale_run_samples=100)
+    sv = StreamValidity(limits=limits)
+    reports = []
+    for k in range(4):
+        _, a, g = static_samples(rng, 40)
+        a[:, 0] = 1.5
+        bad = np.zeros(40, bool)
+        bad[5] = True
+        a[5, 0] = np.nan  # a rejected sample neither extends nor resets the run
+        reports.append(sv.update(accel_mps2=a, gyro_rps=g, bad=bad, arrival_s=float(k)))
+    assert [len(r.changes) for r in reports] == [0, 0, 1, 0]
+    # 39 good samples per batch: the 100th identical value is the 22nd good one of the third batch.
+    assert reports[2].changes[0].run_samples == 100 and reports[2].stale[0].run_samples == 3 * 39
+
+
+def test_error_density_window_and_rejected_frames():
+    limits = ValidityLimits(error_window_samples=100, error_density_max=0.1)
+    sv = StreamValidity(limits=limits)
+    rng = np.random.default_rng(3)
+    _, a, g = static_samples(rng, 200)
+    bad = np.zeros(200, bool)
+    bad[::20] = True  # 5 %: below the limit
+    rep = sv.update(accel_mps2=a, gyro_rps=g, bad=bad, arrival_s=0.0)
+    assert rep.error_density == pytest.approx(0.05) and not rep.error_dense
+    rep = sv.record_rejected(15)  # a rejected frame of 15 samples: 15 + 4 errors among the last 100
+    assert rep.error_dense and rep.error_density == pytest.approx(0.19)
+    _, a, g = static_samples(rng, 200)
+    rep = sv.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(200, bool), arrival_s=1.0)
+    assert rep.error_density == 0.0 and rep.peak_error_density == pytest.approx(0.19)
+
+
+def test_every_change_inside_one_batch_is_reported_in_time_order():
+    """Stuck, free, stuck again within one batch: the same changes as sample by sample."""
+    rng = np.random.default_rng(7)
+    t, a, g = static_samples(rng, 600)
+    a[:150, 0] = 0.5
+    a[200:350, 0] = 0.7
+    g[300:420, 2] = 0.001
+    whole = StreamValidity().update(accel_mps2=a, gyro_rps=g, bad=np.zeros(600, bool), arrival_s=0.0, t_s=t)
+    one = StreamValidity()
+    singles = [c for k in range(600) for c in one.update(accel_mps2=a[k : k + 1], gyro_rps=g[k : k + 1], bad=np.zeros(1, bool), arrival_s=0.0, t_s=t[k : k + 1]).changes]
+    assert whole.changes == tuple(singles)
+    assert [(c.axis, c.stale, c.t_s) for c in whole.changes] == [
+        ("x", True, t[99]), ("x", False, t[150]), ("x", True, t[299]), ("x", False, t[350]), ("z", True, t[399]), ("z", False, t[420]),
+    ]
+    assert whole.changes[1].run_samples == 150 and whole.changes[3].value == 0.7
+
+
+def test_timeout_uses_the_arrival_clock():
+    sv = StreamValidity(limits=ValidityLimits(timeout_s=0.5))
+    assert not sv.timed_out(100.0)  # nothing arrived yet: not a timeout but "no data"
+    sv.update(accel_mps2=np.zeros((1, 3)), gyro_rps=np.zeros((1, 3)), bad=np.zeros(1, bool), arrival_s=10.0)
+    assert not sv.timed_out(10.5) and sv.timed_out(10.51)
+
+
+def test_state_round_trip_keeps_the_run():
+    rng = np.random.default_rng(4)
+    sv = StreamValidity()
+    _, a, g = static_samples(rng, 60)
+    g[:, 0] = 0.5
+    sv.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(60, bool), arrival_s=0.0)
+    restored = StreamValidity.from_state(sv.state_dict())
+    _, a, g = static_samples(rng, 60)
+    g[:, 0] = 0.5
+    rep = restored.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(60, bool), arrival_s=1.0)
+    assert [(c.triad, c.axis, c.stale) for c in rep.changes] == [(Triad.GYRO, "x", True)]
+    assert rep.stale[0].run_samples == 120
+
+
+def test_limits_are_validated():
+    with pytest.raises(ValueError, match="timeout_s"):
+        ValidityLimits(timeout_s=0.0)
+    with pytest.raises(ValueError, match="stale_run_samples"):
+        ValidityLimits(stale_run_samples=1)
+    with pytest.raises(ValueError, match="error_density_max"):
+        ValidityLimits(error_density_max=1.5)
+
+
+def test_compare_three_imus_names_the_outlier_only():
+    limits = ValidityLimits()
+    a = np.array([[0, 0, 9.81], [0.05, 0, 9.80], [0.9, 0, 9.81]])
+    g = np.zeros((3, 3))
+    v = compare_imus((0, 1, 2), a, g, limits=limits)
+    assert v.disagreeing == (2,)
+    assert v.accel_dev_mps2[2] == pytest.approx(0.85)
+    # Gyro disagreement of 6 °/s on IMU 0.
+    g[0, 1] = np.radians(6.0)
+    v = compare_imus((0, 1, 2), np.zeros((3, 3)), g, limits=limits)
+    assert v.disagreeing == (0,)
+
+
+def test_compare_two_imus_flags_the_pair():
+    v = compare_imus((0, 1), np.array([[0, 0, 9.8], [0, 0.8, 9.8]]), np.zeros((2, 3)), limits=ValidityLimits())
+    assert v.disagreeing == (0, 1)
+    v = compare_imus((0, 1), np.array([[0, 0, 9.8], [0, 0.6, 9.8]]), np.zeros((2, 3)), limits=ValidityLimits())
+    assert v.disagreeing == ()
+
+
+def test_cross_imu_monitor_persistence_and_recovery():
+    """Three IMUs in 0.5 s bins; IMU 1 has a 1 m/s² offset for 3 s, then recovers."""
+    rng = np.random.default_rng(5)
+    limits = ValidityLimits(cross_imu_persist_windows=4)
+    mon = CrossImuMonitor(limits=limits)
+    reports = []
+    for step in range(20):  # 20 batches of 0.25 s at 1 kHz
+        t0 = step * 0.25
+        for imu in (0, 1, 2):
+            t, a, g = static_samples(rng, 250, t0_s=t0)
+            if imu == 1 and 1.0 <= t0 < 4.0:
+                a[:, 0] += 1.0
+            reports.extend(mon.add(imu, t, a, g))
+    bad = [r for r in reports if not r.consistent]
+    good = [r for r in reports if r.consistent]
+    assert [r.imu for r in bad] == [1] and bad[0].others == (0, 2)
+    assert bad[0].accel_dev_mps2 == pytest.approx(1.0, abs=5 * ACCEL_NOISE_MPS2)
+    # Flagged after the 4th consecutive disagreeing bin (bins at 1.0, 1.5, 2.0, 2.5 s).
+    assert bad[0].bin_start_s == pytest.approx(2.5)
+    assert [r.imu for r in good] == [1] and good[0].bin_start_s == pytest.approx(4.0)
+    assert mon.flagged == frozenset()
+
+
+def test_cross_imu_monitor_does_not_wait_for_a_dead_imu():
+    rng = np.random.default_rng(6)
+    mon = CrossImuMonitor(limits=ValidityLimits(cross_imu_persist_windows=1))
+    reports = []
+    for step in range(16):
+        t0 = step * 0.25
+        for imu in (0, 1, 2):
+            if imu == 2 and t0 >= 1.0:
+                continue  # IMU 2 stops sending
+            t, a, g = static_samples(rng, 250, t0_s=t0)
+            if imu == 1 and t0 >= 2.0:
+                a[:, 2] += 2.0
+            reports.extend(mon.add(imu, t, a, g))
+    assert {r.imu for r in reports if not r.consistent} == {0, 1}
