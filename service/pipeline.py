@@ -140,9 +140,10 @@ class _TriadCheck:
 def _f0_config(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> tuple[F0Config | None, float, str]:
     """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5)."""
     ref = options.reference(tp.triad)
-    # Per-sample white noise scales with the square root of the rate it is sampled at.
-    noise_si = tp.noise_std * tp.reference * math.sqrt(rate_hz / tp.sample_rate_hz)
-    noise_norm = np.maximum(noise_si / ref, 1e-12)
+    # Per-sample white noise scales with the square root of the rate it is sampled at; the
+    # audited bias wander (passport.bias_instability_std, docs/audit-xsens.md) does not.
+    white = tp.noise_std * math.sqrt(rate_hz / tp.sample_rate_hz)
+    noise_norm = np.maximum(np.hypot(white, tp.bias_instability_std) * tp.reference / ref, 1e-12)
     quant = None if tp.quantization_step is None else tp.quantization_step * tp.reference / ref
     nominal = tp.nominal.copy()
     nominal[:3] *= tp.reference / ref
@@ -524,7 +525,8 @@ class ImuPipeline:
                     continue
                 ref = self.options.reference(triad)
                 try:
-                    check.estimator.update(pos.mean(triad) / ref, pos.cov(triad) / ref**2)
+                    # The bias wander does not average down within a position (audited model).
+                    check.estimator.update(pos.mean(triad) / ref, (pos.cov(triad) + check.passport.position_cov_floor()) / ref**2)
                 except ValueError:
                     self._count(f"positions.rejected.{triad.value}")
                     continue
