@@ -29,15 +29,14 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from estimators.passport import Passport, PassportError
 from protocols._schema import SchemaError, check_imu, check_vehicle
+from protocols.atomic_file import atomic_write_bytes
 
 ENTRY_TYPE = "ins.health.passport-entry"
 ENTRY_VERSION = 1
@@ -58,27 +57,6 @@ def passport_checksum(passport_map: dict[str, Any]) -> str:
     """SHA-256 hex digest of the canonical JSON of a passport map."""
     text = json.dumps(passport_map, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that a reader or a crash sees the old file or the new one, nothing else."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    # The rename is durable only once the directory entry is on disk.
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
 
 
 @dataclass(frozen=True)
@@ -115,6 +93,7 @@ class PassportStore:
             "sha256": passport_checksum(body),
             "passport": body,
         }
+        path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, (json.dumps(entry, indent=2, allow_nan=False) + "\n").encode("utf-8"))
         return path
 
