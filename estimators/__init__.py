@@ -1,4 +1,4 @@
-"""Pure numerics of ins-health: no I/O, no asyncio, no clocks, no logging.
+"""Pure numerics of ins-health: no I/O, no event loop, no clocks, no logging.
 
 The conventions contract (units, frames, error model, parameter order) is
 :mod:`estimators.conventions`; every module refers to it. Each module implements

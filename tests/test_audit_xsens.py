@@ -2,19 +2,15 @@
 
 from pathlib import Path
 
-import pytest
-
 from estimators.audit import AuditConfig, run_audit
 from estimators.chain import ChainConfig
 from estimators.conventions import Triad
+from protocols.session_file import load_session
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 
 
-@pytest.mark.skipif(not DATA.exists(), reason="the shared Xsens data is not present in this checkout")
 def test_xsens_bias_instability_explains_the_headline():
-    from protocols.session_file import load_session
-
     res = run_audit(load_session(str(DATA)).session, AuditConfig(ChainConfig(gravity_mps2=9.81744), replicas=10, seed=0))
     named = {(c.effect, c.triad) for c in res.named}
     assert ("bias_instability", Triad.ACCEL) in named
