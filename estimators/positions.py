@@ -479,6 +479,8 @@ def _rotation_between(t, gyro, acc, segment_start, bias, last_end: int, first: i
 
 
 _NAN = float("nan")
+_MIN_VECTOR = 64
+"""Shortest stretch :meth:`PositionAccumulator.update_batch` vectorizes: below, numpy's per-call cost exceeds the loop's."""
 
 
 @dataclass
@@ -500,6 +502,29 @@ class _RunSums:
     stop: int = 0
     t_first: float = 0.0
     t_last: float = 0.0
+
+
+def _seq_sum(start: float, values: np.ndarray) -> float:
+    """``start + v₀ + v₁ + …`` added one by one, left to right (what a running ``+=`` gives, bit for bit)."""
+    if values.size == 0:
+        return start
+    return float(np.cumsum(np.concatenate([[start], values]))[-1])
+
+
+def _seq_sum_rows(start: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(K,) ``start + rows[0] + rows[1] + …`` per column, added row by row (:func:`_seq_sum` per column)."""
+    if rows.shape[0] == 0:
+        return start
+    return np.cumsum(np.vstack([start, rows]), axis=0)[-1]
+
+
+@dataclass(frozen=True)
+class _Extended:
+    """Accepted samples ``base …``: the ring before a batch, then the batch; columns t, ax … gz, temp, and input indices."""
+
+    base: int
+    cols: list
+    idx: np.ndarray
 
 
 class PositionAccumulator:
@@ -527,6 +552,12 @@ class PositionAccumulator:
         self.config = config
         # Channel offsets (accel 0, gyro 3) of the triads present, fixed here so the per-sample path builds nothing.
         self._offsets = tuple(o for o, present in ((0, has_accel), (3, has_gyro)) if present)
+        # The same as channel indices, and the (q index, channel, channel) of _add's products, for the batch path.
+        self._chans = [o + i for o in self._offsets for i in range(3)]
+        prods = [(2 * o + kk, o + u, o + v) for o in self._offsets
+                 for kk, (u, v) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))]
+        base = {ch: i for i, ch in enumerate(self._chans)}
+        self._pairs = tuple(np.array(v) for v in ([p[0] for p in prods], [base[p[1]] for p in prods], [base[p[2]] for p in prods]))
         self._trim = config.trim_samples(rate_hz)
         self._batch = config.batch_samples(rate_hz)
         self._ring_n = self.detector.window_samples + self._trim + 2
@@ -561,6 +592,206 @@ class PositionAccumulator:
             return None
         return self._after_detector()
 
+    def update_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None,
+                     temp_c: np.ndarray | None = None) -> tuple[list[Position], list[tuple[int, int, int, bool]]]:
+        """:meth:`update` over N samples: the same positions, rejections, decisions and state.
+
+        Parameters
+        ----------
+        t_s : (N,) time stamps, s.
+        accel_mps2 : (N, 3) specific force, m/s² (None when the accumulator has no accelerometers).
+        gyro_rps : (N, 3) angular rate, rad/s (None without gyros).
+        temp_c : (N,) temperature, °C, NaN where unknown, or None.
+
+        Returns ``(positions, decisions)``: the positions completed, and per sample that
+        finalized detector decisions ``(fin_lo, fin_split, fin_hi, fin_break)`` as read
+        after :meth:`update`. The stretch of a batch after the detector's window is full
+        whose samples are all accepted into the open segment runs vectorized
+        (:meth:`StreamingStaticDetector.update_batch`); a batch with a rejected sample or
+        a time gap, and the first samples of a segment, go through :meth:`update`.
+        """
+        det = self.detector
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        n = t.shape[0]
+        triads = {}
+        for name, arr, present in (("accel_mps2", accel_mps2, det.has_accel), ("gyro_rps", gyro_rps, det.has_gyro)):
+            if present:
+                if arr is None:
+                    raise ValueError(f"{name} is required: the accumulator was built with that triad")
+                triads[name] = np.asarray(arr, dtype=float)
+                if triads[name].shape != (n, 3):
+                    raise ValueError(f"{name} must have shape ({n}, 3), got {triads[name].shape}")
+        accel = triads.get("accel_mps2")
+        gyro = triads.get("gyro_rps")
+        temp = np.full(n, np.nan) if temp_c is None else np.asarray(temp_c, dtype=float).reshape(-1)
+        if temp.shape != (n,):
+            raise ValueError(f"temp_c must have shape ({n},), got {temp.shape}")
+        positions: list[Position] = []
+        decisions: list[tuple[int, int, int, bool]] = []
+        i = 0
+        while i < n and not det.steady():
+            self._update_row(t, accel, gyro, temp, i, positions, decisions)
+            i += 1
+        if i == n:
+            return positions, decisions
+        if n - i < _MIN_VECTOR or not det.clean_batch(t[i:], None if accel is None else accel[i:],
+                                                        None if gyro is None else gyro[i:]):
+            for k in range(i, n):
+                self._update_row(t, accel, gyro, temp, k, positions, decisions)
+            return positions, decisions
+        self._steady_batch(t[i:], None if accel is None else accel[i:], None if gyro is None else gyro[i:], temp[i:],
+                           positions, decisions)
+        return positions, decisions
+
+    def _update_row(self, t, accel, gyro, temp, i, positions, decisions) -> None:
+        det = self.detector
+        a = (0.0, 0.0, 0.0) if accel is None else accel[i].tolist()
+        g = (0.0, 0.0, 0.0) if gyro is None else gyro[i].tolist()
+        tc = float(temp[i])
+        pos = self.update(float(t[i]), *a, *g, None if tc != tc else tc)
+        if pos is not None:
+            positions.append(pos)
+        if det.fin_hi > det.fin_lo:
+            decisions.append((det.fin_lo, det.fin_split, det.fin_hi, det.fin_break))
+
+    def _steady_batch(self, t, accel, gyro, temp, positions, decisions) -> None:
+        """Clean samples in the steady state: each finalizes one decision (detector's ``update_batch``)."""
+        det = self.detector
+        n = t.shape[0]
+        w = det.window_samples
+        rn = self._ring_n
+        c0 = det.n_accepted
+        idx0 = det.n_input
+        static, closes = det.update_batch(t, accel, gyro)
+        # Accepted samples c0 − rn … c0 + n − 1: the ring, then the batch (absent triads keep the ring's values).
+        old = np.arange(c0 - rn, c0) % rn
+        every = np.arange(c0 - rn, c0 + n) % rn
+        ring = np.asarray(self._ring)
+        cols = [np.concatenate([ring[0][old], t])]
+        for o, x in ((0, accel), (3, gyro)):
+            for k in range(3):
+                cols.append(ring[1 + o + k][every] if x is None else np.concatenate([ring[1 + o + k][old], x[:, k]]))
+        cols.append(np.concatenate([ring[7][old], temp]))
+        idx = np.concatenate([np.asarray(self._ring_idx)[old], idx0 + np.arange(n)])
+        ext = _Extended(base=c0 - rn, cols=cols, idx=idx)
+
+        j0 = c0 - w + 1  # decision finalized by the first sample
+        edges = np.flatnonzero(static[1:] != static[:-1]) + 1
+        bounds = [0, *edges.tolist(), n]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            ja, jb = j0 + a, j0 + b
+            if static[a]:
+                if not self._run_open:
+                    self._run_open = True
+                    self._run_count = 0
+                    self._sums = _RunSums()
+                    if self._rot_active:
+                        self._integrate_ext(ext, ja, ja + 1)
+                        self._rot.set_mark()
+                    first = ja + 1
+                else:
+                    first = ja
+                # Sample number r of the run (1-based) adds sample j − trim once r > 2·trim.
+                r0 = self._run_count
+                if self._rot_active and first < jb:
+                    self._integrate_ext(ext, first, self._first_sure(ext, first, jb, ja, r0))
+                self._run_count += b - a
+                skip = max(0, 2 * self._trim - r0)
+                if ja + skip < jb:
+                    self._add_many(ext, ja + skip - self._trim, jb - self._trim)
+            else:
+                if a in closes:
+                    emitted = self._close_run(*closes[a])
+                    if emitted is not None:
+                        positions.append(emitted)
+                if self._rot_active:
+                    self._integrate_ext(ext, ja, jb)
+        lo = np.arange(j0, j0 + n)
+        decisions += zip(lo.tolist(), (lo + static).tolist(), (lo + 1).tolist(), [False] * n)
+        # The ring keeps the last rn accepted samples (absent triads keep their old values).
+        tail = np.arange(max(0, n - rn), n)
+        pos = (c0 + tail) % rn
+        rows = [0, *(1 + c for c in self._chans), 7]
+        ring_arr = np.asarray(self._ring)
+        ring_arr[np.ix_(rows, pos)] = np.vstack([cols[k][rn + tail] for k in rows])
+        idx_arr = np.asarray(self._ring_idx)
+        idx_arr[pos] = idx[rn + tail]
+        self._ring, self._ring_idx = ring_arr.tolist(), idx_arr.tolist()
+
+    def _first_sure(self, ext: "_Extended", lo: int, hi: int, ja: int, r0: int) -> int:
+        """First static sample in ``[lo, hi)`` from which :meth:`_run_sure` holds (``hi`` if none).
+
+        The run holds ``r0`` samples before ``ja``; sample ``j`` is judged with the
+        kept samples added before it, as the per-sample path does.
+        """
+        sm = self._sums
+        tt = ext.cols[0]
+        trim2 = 2 * self._trim
+        d = np.arange(lo - ja, hi - ja)
+        n_before = sm.n + np.maximum(0, r0 + d - max(r0, trim2))
+        if sm.n:
+            t_first = sm.t_first
+        else:
+            first_add = ja + max(0, trim2 - r0)
+            if first_add >= hi:
+                return hi
+            t_first = tt[first_add - self._trim - ext.base]
+        sure = (n_before >= self.config.min_samples) & (tt[lo - ext.base : hi - ext.base] - t_first >= self.detector.config.min_static_s)
+        k = int(np.argmax(sure))
+        return lo + k if sure[k] else hi
+
+    def _integrate_ext(self, ext: "_Extended", lo: int, hi: int) -> None:
+        """:meth:`_integrate` for accepted samples ``[lo, hi)`` from the extended arrays."""
+        k0, k1 = lo - ext.base, hi - ext.base
+        if k1 > k0:
+            tt = ext.cols[0]
+            gyro = np.column_stack([ext.cols[c][k0:k1] for c in (4, 5, 6)]).tolist()
+            self._rot.add_many(gyro, (tt[k0:k1] - tt[k0 - 1 : k1 - 1]).tolist())
+
+    def _add_many(self, ext: "_Extended", lo: int, hi: int) -> None:
+        """:meth:`_add` for accepted samples ``[lo, hi)``: the same sequential sums, by ``cumsum``."""
+        k0, k1 = lo - ext.base, hi - ext.base
+        sm = self._sums
+        cols = ext.cols
+        if sm.n == 0:
+            sm.shift = [float(cols[k][k0]) for k in range(1, 7)]
+            sm.start = int(ext.idx[k0])
+            sm.t_first = float(cols[0][k0])
+        sm.n += k1 - k0
+        sm.stop = int(ext.idx[k1 - 1]) + 1
+        sm.t_last = float(cols[0][k1 - 1])
+        temps = cols[7][k0:k1]
+        temps = temps[~np.isnan(temps)]
+        if temps.size:
+            sm.temp_sum = _seq_sum(sm.temp_sum, temps)
+            sm.temp_n += int(temps.size)
+        bt = self._batch
+        m = k1 - k0
+        head = min(m, bt - sm.part_n)  # samples that complete (or extend) the open batch
+        n_full = (m - head) // bt
+        tail = m - head - n_full * bt
+        done_first = sm.part_n + head == bt
+        chans, pairs = self._chans, self._pairs
+        y = np.column_stack([cols[1 + c][k0:k1] for c in chans]) - np.asarray(sm.shift)[chans]
+        s_arr, q_arr, part = np.asarray(sm.s), np.asarray(sm.q), np.asarray(sm.part)
+        s_arr[chans] = _seq_sum_rows(s_arr[chans], y)
+        q_arr[pairs[0]] = _seq_sum_rows(q_arr[pairs[0]], y[:, pairs[1]] * y[:, pairs[2]])
+        first = _seq_sum_rows(part[chans], y[:head])
+        full = np.cumsum(y[head : head + n_full * bt].reshape(n_full, bt, len(chans)), axis=1)[:, -1, :]
+        if done_first:
+            means = np.vstack([first, full]) / bt
+            part[chans] = _seq_sum_rows(np.zeros(len(chans)), y[m - tail :])
+        else:
+            means = full / bt
+            part[chans] = first
+        bs_arr, bq_arr = np.asarray(sm.bs), np.asarray(sm.bq)
+        bs_arr[chans] = _seq_sum_rows(bs_arr[chans], means)
+        bq_arr[pairs[0]] = _seq_sum_rows(bq_arr[pairs[0]], means[:, pairs[1]] * means[:, pairs[2]])
+        sm.s, sm.q, sm.part, sm.bs, sm.bq = s_arr.tolist(), q_arr.tolist(), part.tolist(), bs_arr.tolist(), bq_arr.tolist()
+        nb_new = int(done_first) + n_full
+        sm.nb += nb_new
+        sm.part_n = tail if done_first else sm.part_n + head
+
     def _after_detector(self) -> Position | None:
         det = self.detector
         emitted = None
@@ -590,11 +821,22 @@ class PositionAccumulator:
             if self._rot_active:
                 self._integrate(c)
                 self._rot.set_mark()
-        elif self._rot_active:
+        elif self._rot_active and not self._run_sure(c):
             self._integrate(c)
         self._run_count += 1
         if self._run_count > 2 * self._trim:
             self._add(c - self._trim)
+
+    def _run_sure(self, c: int) -> bool:
+        """Whether the open run will be accepted whatever follows sample ``c``.
+
+        Then its close resets the rotation, so integrating its samples from ``c``
+        on cannot change any output: the hot path skips them. The run spans at
+        least ``t(c) − t(first kept sample)`` and already keeps ``min_samples``.
+        """
+        sm = self._sums
+        return (sm.n >= self.config.min_samples
+                and self._ring[0][c % self._ring_n] - sm.t_first >= self.detector.config.min_static_s)
 
     def _add(self, c: int) -> None:
         p = c % self._ring_n

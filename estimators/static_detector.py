@@ -500,6 +500,142 @@ class StreamingStaticDetector:
                 return self.closed_run
         return None
 
+    def steady(self) -> bool:
+        """A segment is open and its window full: the next clean sample finalizes exactly one decision."""
+        return self._seg_open and self.n_accepted - self._seg_first >= self.window_samples
+
+    def clean_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None) -> bool:
+        """Whether every sample of the batch would be accepted into the open segment (no rejection, no gap).
+
+        The finiteness check is :meth:`update`'s (``t + Σaccel + Σgyro`` finite), elementwise in the same order.
+        """
+        if t_s.size == 0 or self._last_t is None:
+            return False
+        chk = t_s.copy()
+        if self.has_accel:
+            chk += (accel_mps2[:, 0] + accel_mps2[:, 1]) + accel_mps2[:, 2]
+        else:
+            chk += 0.0
+        if self.has_gyro:
+            chk += (gyro_rps[:, 0] + gyro_rps[:, 1]) + gyro_rps[:, 2]
+        else:
+            chk += 0.0
+        if not np.all(np.isfinite(chk)):
+            return False
+        dt = np.diff(t_s, prepend=self._last_t)
+        return bool(np.all(dt > 0.0) and not np.any(dt > self._gap_s))
+
+    def update_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None):
+        """:meth:`update` over a clean batch in the steady state (:meth:`steady`, :meth:`clean_batch`), vectorized.
+
+        Returns ``(static (N,) bool, closes)``: sample ``i`` finalizes the decision of
+        accepted sample ``n_accepted₀ − W + 1 + i`` (static or not), and ``closes`` maps
+        ``i`` to ``(run, short)`` for the runs that closed at sample ``i``. The state,
+        counters and per-call outputs after the batch are those :meth:`update` leaves.
+        The running sums are rebuilt with the same additions in the same order
+        (sequential ``cumsum`` of the interleaved ``+y, −p`` terms, restarted at
+        each ``fsum`` re-summation), so every bit agrees.
+        """
+        n = t_s.shape[0]
+        w = self.window_samples
+        c0 = self.n_accepted
+        i_res = (w - 1 - c0 % w) % w  # first sample whose ring position is W − 1 (re-summation)
+        pad = w - 1 - i_res
+        rows = (pad + n + w - 1) // w
+        res_at = np.arange(i_res, n, w)
+        old_pos = np.arange(c0 - w, c0) % w
+        chans = ([0, 1, 2] if self.has_accel else []) + ([3, 4, 5] if self.has_gyro else [])
+        nc = len(chans)
+        x = np.column_stack([v for v, present in ((accel_mps2, self.has_accel), (gyro_rps, self.has_gyro)) if present])
+        y = x - np.asarray(self._x0)[chans]
+        # y of the accepted samples c0 − W … c0 + n − 1 (the ring, then the batch), and their squares.
+        ext = np.concatenate([np.asarray(self._buf)[chans][:, old_pos].T, y])
+        ext2 = ext * ext
+        e1, e2 = ext.T.tolist(), ext2.T.tolist()
+        res = res_at.tolist()
+        starts = np.empty((2 * nc, len(res) + 1))
+        starts[:nc, 0] = np.asarray(self._s)[chans]
+        starts[nc:, 0] = np.asarray(self._q)[chans]
+        for r, i in enumerate(res, start=1):
+            starts[:nc, r] = [math.fsum(e[i + 1 : i + w + 1]) for e in e1]
+            starts[nc:, r] = [math.fsum(e[i + 1 : i + w + 1]) for e in e2]
+        # One row per stretch between re-summations: start, +y, −p, +y, −p, … added in update's order.
+        z = np.zeros((2 * nc, rows, 2 * w + 1))
+        z[:, :, 0] = starts[:, :rows]
+        flat = np.zeros((2, 2 * nc, rows * w))
+        flat[0, :nc, pad : pad + n] = y.T
+        flat[0, nc:, pad : pad + n] = ext2[w:].T
+        flat[1, :nc, pad : pad + n] = -ext[:n].T
+        flat[1, nc:, pad : pad + n] = -ext2[:n].T
+        z[:, :, 1::2] = flat[0].reshape(2 * nc, rows, w)
+        z[:, :, 2::2] = flat[1].reshape(2 * nc, rows, w)
+        np.cumsum(z, axis=2, out=z)
+        sums = z[:, :, 2::2].reshape(2 * nc, rows * w)[:, pad : pad + n]
+        quiet = np.ones(n, dtype=bool)
+        lims = ([self._lim_a] if self.has_accel else []) + ([self._lim_g] if self.has_gyro else [])
+        for k, lim in enumerate(lims):
+            s0, s1, s2 = sums[3 * k : 3 * k + 3]
+            q0, q1, q2 = sums[nc + 3 * k : nc + 3 * k + 3]
+            quiet &= (q0 + q1 + q2) - (s0 * s0 + s1 * s1 + s2 * s2) / w <= lim
+        if self.has_gyro and self._lim_rate is not None:
+            s0, s1, s2 = sums[nc - 3 : nc]
+            x0 = self._x0
+            r0, r1, r2 = s0 + w * x0[3], s1 + w * x0[4], s2 + w * x0[5]
+            quiet &= r0 * r0 + r1 * r1 + r2 * r2 <= self._lim_rate
+        final = starts[:, -1] if res and res[-1] == n - 1 else sums[:, -1]
+        s_arr, q_arr = np.asarray(self._s), np.asarray(self._q)
+        s_arr[chans], q_arr[chans] = final[:nc], final[nc:]
+        self._s, self._q = s_arr.tolist(), q_arr.tolist()
+        tail = np.arange(max(0, n - w), n)
+        tail_pos = (c0 + tail) % w
+        buf = np.asarray(self._buf)
+        buf[np.ix_(chans, tail_pos)] = y[tail].T
+        self._buf = buf.tolist()
+
+        c = c0 + np.arange(n)
+        j = c - w + 1
+        last_quiet = np.maximum.accumulate(np.where(quiet, c, -1))
+        np.maximum(last_quiet, self._last_quiet, out=last_quiet)
+        static = last_quiet >= j
+        # Times and input indices of the accepted samples c0 − W … (ring, then the batch).
+        t_ext = np.concatenate([np.asarray(self._t)[old_pos], t_s])
+        idx_new = self.n_input + np.arange(n)
+        idx_ext = np.concatenate([np.asarray(self._idx)[old_pos], idx_new])
+        closes = {}
+        edges = np.flatnonzero(static[1:] != static[:-1]) + 1
+        bounds = [0, *edges.tolist(), n]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if static[a]:
+                if not self._run_open:
+                    # Sample j of batch sample a sits at a + 1 in the extended arrays.
+                    self._run_open = True
+                    self._run_first_idx = int(idx_ext[a + 1])
+                    self._run_first_t = float(t_ext[a + 1])
+                    self._run_n = 0
+                self._run_last_idx = int(idx_ext[b])
+                self._run_last_t = float(t_ext[b])
+                self._run_n += b - a
+            elif self._run_open:
+                self._run_close()
+                closes[a] = (self.closed_run, self.closed_run_short)
+
+        t_ring, idx_ring = np.asarray(self._t), np.asarray(self._idx)
+        t_ring[tail_pos], idx_ring[tail_pos] = t_s[tail], idx_new[tail]
+        self._t, self._idx = t_ring.tolist(), idx_ring.tolist()
+        self.n_input += n
+        self.n_accepted += n
+        self._last_t = float(t_s[-1])
+        self._last_quiet = int(last_quiet[-1])
+        self.static_now = bool(quiet[-1])
+        jl = int(j[-1])
+        self.fin_lo = jl
+        self.fin_hi = self._next_final = jl + 1
+        self.fin_split = jl + 1 if static[-1] else jl
+        self.fin_break = False
+        last_close = closes.get(n - 1)
+        self.closed_run, self.closed_run_short = last_close if last_close is not None else (None, False)
+        return static, closes
+
     def _resum(self) -> None:
         """Recompute the running sums from the ring (once per W samples) so rounding cannot accumulate."""
         for ch in range(6):
@@ -649,20 +785,27 @@ class RotationIntegrator:
         self.mark = self.q
 
     def add(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
+        self.add_many(((wx, wy, wz),), (dt_s,))
+
+    def add_many(self, rates_rps, dts_s) -> None:
+        """:meth:`add` for each ``(wx, wy, wz)`` of ``rates_rps`` held over the matching ``dts_s``, in order."""
         bx, by, bz = self.bias_rps
-        rx, ry, rz = (wx - bx) * dt_s, (wy - by) * dt_s, (wz - bz) * dt_s
-        th = math.sqrt(rx * rx + ry * ry + rz * rz)
-        half = 0.5 * th
-        # sin(θ/2)/θ by its series below 1e-4 rad, where the division would lose digits.
-        k = math.sin(half) / th if th > 1e-4 else 0.5 - th * th / 48.0
-        dw, dx, dy, dz = math.cos(half), rx * k, ry * k, rz * k
         w, x, y, z = self.q
-        self.q = (
-            w * dw - x * dx - y * dy - z * dz,
-            w * dx + x * dw + y * dz - z * dy,
-            w * dy - x * dz + y * dw + z * dx,
-            w * dz + x * dy - y * dx + z * dw,
-        )
+        sin, cos, sqrt = math.sin, math.cos, math.sqrt
+        for (wx, wy, wz), dt_s in zip(rates_rps, dts_s):
+            rx, ry, rz = (wx - bx) * dt_s, (wy - by) * dt_s, (wz - bz) * dt_s
+            th = sqrt(rx * rx + ry * ry + rz * rz)
+            half = 0.5 * th
+            # sin(θ/2)/θ by its series below 1e-4 rad, where the division would lose digits.
+            k = sin(half) / th if th > 1e-4 else 0.5 - th * th / 48.0
+            dw, dx, dy, dz = cos(half), rx * k, ry * k, rz * k
+            w, x, y, z = (
+                w * dw - x * dx - y * dy - z * dz,
+                w * dx + x * dw + y * dz - z * dy,
+                w * dy - x * dz + y * dw + z * dx,
+                w * dz + x * dy - y * dx + z * dw,
+            )
+        self.q = (w, x, y, z)
 
     def set_mark(self) -> None:
         """Remember the rotation so far (the start of the next static run)."""

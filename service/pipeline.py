@@ -453,21 +453,8 @@ class ImuPipeline:
         return events + self._positions(positions)
 
     def _feed(self, t_s, accel, gyro, temp) -> tuple[list[Position], list[tuple[int, int, int, bool]]]:
-        """The per-sample part: static detector and positions (O(1) per sample, plain floats)."""
-        n = t_s.size
-        positions: list[Position] = []
-        decisions: list[tuple[int, int, int, bool]] = []
-        acc = self.accumulator
-        det = acc.detector
-        update = acc.update
-        rows = np.column_stack([t_s, accel, gyro, np.full(n, np.nan) if temp is None else temp]).tolist()
-        for t, ax, ay, az, gx, gy, gz, tc in rows:
-            pos = update(t, ax, ay, az, gx, gy, gz, None if tc != tc else tc)
-            if pos is not None:
-                positions.append(pos)
-            if det.fin_hi > det.fin_lo:
-                decisions.append((det.fin_lo, det.fin_split, det.fin_hi, det.fin_break))
-        return positions, decisions
+        """Static detector and positions over the batch: the per-sample results, vectorized where the stream is clean."""
+        return self.accumulator.update_batch(t_s, accel, gyro, temp)
 
     def _f0_all(self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, static: np.ndarray) -> list[Event]:
         events: list[Event] = []

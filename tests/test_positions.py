@@ -18,7 +18,7 @@ from estimators.positions import (
     RejectReason,
     build_positions,
 )
-from estimators.static_detector import detect_static
+from estimators.static_detector import StaticDetectorConfig, detect_static
 
 
 def _stream(session: ImuSession, *, rate_hz: float, state_at: int | None = None, **options):
@@ -109,19 +109,19 @@ def test_batch_means_cover_correlated_noise_where_the_sample_covariance_does_not
 # --- rejections and merges, batch = streaming -----------------------------------------------------------
 
 
+def _scene_segments():
+    return [
+        Rest(5.0), Bump(0.6), Rest(4.0),  # a bump splits one position: merged
+        # The union of quiet windows reaches ~0.25 s into the slow ends of each turn:
+        Rotate(2.0, (1, 0, 0), 90.0), Rest(0.3),  # a run of 0.6–0.8 s: too short for an interval
+        Rotate(2.0, (0, 0, 1), 60.0), Rest(0.8),  # 1.1–1.4 s: an interval, < 100 samples once trimmed
+        Rotate(2.0, (1, 1, 0), 80.0), Rest(4.0), Gap(2.0), Rest(3.0),  # same direction across a gap
+        Rotate(2.0, None, 90.0), Rest(3.0),  # heading change: same specific force, new position
+    ]
+
+
 def _scene(rng):
-    return build_scene(
-        [
-            Rest(5.0), Bump(0.6), Rest(4.0),  # a bump splits one position: merged
-            # The union of quiet windows reaches ~0.25 s into the slow ends of each turn:
-            Rotate(2.0, (1, 0, 0), 90.0), Rest(0.3),  # a run of 0.6–0.8 s: too short for an interval
-            Rotate(2.0, (0, 0, 1), 60.0), Rest(0.8),  # 1.1–1.4 s: an interval, < 100 samples once trimmed
-            Rotate(2.0, (1, 1, 0), 80.0), Rest(4.0), Gap(2.0), Rest(3.0),  # same direction across a gap
-            Rotate(2.0, None, 90.0), Rest(3.0),  # heading change: same specific force, new position
-        ],
-        rng=rng,
-        temp_c=25.0,
-    )
+    return build_scene(_scene_segments(), rng=rng, temp_c=25.0)
 
 
 CFG = PositionConfig(trim_s=0.3, min_samples=100)
@@ -216,3 +216,109 @@ def test_bad_configs_and_states_are_clear_errors():
     other = ImuSession(np.arange(11.0), np.zeros((11, 3)), None)
     with pytest.raises(ValueError, match="detection covers"):
         build_positions(session, detect_static(other, rate_hz=1.0))
+
+
+# --- update_batch: the per-sample results, bit for bit, however the stream is cut -------------------
+
+
+def _per_sample(acc: PositionAccumulator, s):
+    """Positions and per-sample decisions of ``update`` (the service's loop)."""
+    n = s.t_s.size
+    zeros = np.zeros((n, 3))
+    rows = np.column_stack([s.t_s, zeros if s.accel_mps2 is None else s.accel_mps2, zeros if s.gyro_rps is None else s.gyro_rps,
+                            np.full(n, np.nan) if s.temp_c is None else s.temp_c]).tolist()
+    out, decisions = [], []
+    det = acc.detector
+    for t, ax, ay, az, gx, gy, gz, tc in rows:
+        p = acc.update(t, ax, ay, az, gx, gy, gz, None if tc != tc else tc)
+        if p is not None:
+            out.append(p)
+        if det.fin_hi > det.fin_lo:
+            decisions.append((det.fin_lo, det.fin_split, det.fin_hi, det.fin_break))
+    return out, decisions
+
+
+def _batched(acc: PositionAccumulator, s, cuts):
+    out, decisions = [], []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        part = [None if v is None else v[a:b] for v in (s.accel_mps2, s.gyro_rps, s.temp_c)]
+        p, d = acc.update_batch(s.t_s[a:b], *part)
+        out += p
+        decisions += d
+    return out, decisions
+
+
+def _assert_identical(p: Position, q: Position):
+    for name, a in p.__dict__.items():
+        b = getattr(q, name)
+        assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, name
+
+
+def _messy(rng):
+    """The scene of _scene plus tumbles, with NaN/Inf values, repeated time stamps and unknown temperatures."""
+    s = build_scene(_scene_segments() + tumble(4, rest_s=3.0, rng=rng), rng=rng, temp_c=25.0).session
+    t, accel, gyro, temp = s.t_s.copy(), s.accel_mps2.copy(), s.gyro_rps.copy(), s.temp_c.copy()
+    accel[rng.choice(t.size, 8, replace=False), 1] = np.nan
+    gyro[rng.choice(t.size, 4, replace=False), 2] = np.inf
+    dup = rng.choice(t.size - 1, 8, replace=False)
+    t[dup + 1] = t[dup]
+    temp[rng.choice(t.size, 60, replace=False)] = np.nan
+    return ImuSession(t, accel, gyro, temp)
+
+
+@pytest.mark.parametrize("case", ["clean", "messy", "sim400", "accel", "gyro", "rate_bound"])
+def test_update_batch_equals_update_bit_for_bit_for_any_cut(case):
+    rng = np.random.default_rng(7)
+    s = build_scene(_scene_segments() + tumble(4, rest_s=3.0, rng=rng), rng=rng, temp_c=25.0).session
+    rate, options = 100.0, {"config": CFG}
+    if case == "messy":
+        s = _messy(rng)
+    elif case == "sim400":
+        s = simulate(multi_position_spec(grade=Grade.MEMS, n_positions=5, static_s=3.0, transition_s=2.0, rate_hz=400.0), 3).session
+        rate, options = 400.0, {}
+    elif case in ("accel", "gyro"):
+        s = ImuSession(s.t_s, s.accel_mps2 if case == "accel" else None, s.gyro_rps if case == "gyro" else None)
+    elif case == "rate_bound":
+        options["detector_config"] = StaticDetectorConfig(gyro_rate_rps=0.05)
+    kw = dict(rate_hz=rate, has_accel=s.accel_mps2 is not None, has_gyro=s.gyro_rps is not None, **options)
+    ref = PositionAccumulator(**kw)
+    expected, expected_decisions = _per_sample(ref, s)
+    ref_state = json.dumps(ref.state_dict())
+    ref_flush = ref.flush()
+    ref_rejections = ref.drain_rejections()
+    assert len(expected) + len(ref_flush) >= 3
+    for sizes in ((1, 9), (60, 400), (300, 3000)):
+        n = s.t_s.size
+        cuts = np.unique(np.concatenate([[0, n], np.cumsum(rng.integers(*sizes, size=n // sizes[0] + 1))]))
+        cuts = cuts[cuts <= n]
+        acc = PositionAccumulator(**kw)
+        got, decisions = _batched(acc, s, cuts)
+        assert decisions == expected_decisions
+        assert len(got) == len(expected)
+        for p, q in zip(got, expected):
+            _assert_identical(p, q)
+        assert json.dumps(acc.state_dict()) == ref_state
+        for p, q in zip(acc.flush(), ref_flush, strict=True):
+            _assert_identical(p, q)
+        assert acc.drain_rejections() == ref_rejections
+    if case == "messy":
+        assert ref.detector.rejections.counts == {"non_finite": 12, "non_monotonic_time": 8}
+
+
+def test_update_batch_checkpoints_mid_stream_and_rejects_bad_shapes():
+    rng = np.random.default_rng(8)
+    s = build_scene(tumble(3, rest_s=4.0, rng=rng), rng=rng).session
+    ref = PositionAccumulator(rate_hz=100.0, config=CFG)
+    expected, _ = _per_sample(ref, s)
+    expected += ref.flush()
+    acc = PositionAccumulator(rate_hz=100.0, config=CFG)
+    got = acc.update_batch(s.t_s[:777], s.accel_mps2[:777], s.gyro_rps[:777])[0]
+    acc = PositionAccumulator.from_state_dict(json.loads(json.dumps(acc.state_dict())))
+    got += acc.update_batch(s.t_s[777:], s.accel_mps2[777:], s.gyro_rps[777:])[0] + acc.flush()
+    assert len(got) == len(expected) == 3
+    for p, q in zip(got, expected):
+        _assert_identical(p, q)
+    with pytest.raises(ValueError, match="gyro_rps is required"):
+        acc.update_batch(s.t_s[:5], s.accel_mps2[:5], None)
+    with pytest.raises(ValueError, match="shape"):
+        acc.update_batch(s.t_s[:5], s.accel_mps2[:4], s.gyro_rps[:5])

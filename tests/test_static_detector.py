@@ -230,3 +230,42 @@ def test_gaps_split_segments_and_windows_never_span_them():
     static, intervals, _ = _stream(scene.session, rate_hz=100.0)
     assert intervals == list(det.intervals)
     np.testing.assert_array_equal(static, det.static)
+
+
+def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
+    rng = np.random.default_rng(5)
+    s = build_scene(tumble(4, rest_s=3.0, rng=rng), rng=rng).session
+    t, accel, gyro = s.t_s, s.accel_mps2, s.gyro_rps
+    rows = np.column_stack([t, accel, gyro]).tolist()  # update takes plain floats
+    config = StaticDetectorConfig(gyro_rate_rps=0.05)
+    ref = StreamingStaticDetector(config, rate_hz=100.0)
+    det = StreamingStaticDetector(config, rate_hz=100.0)
+    i = 0
+    while not det.steady():
+        det.update(*rows[i])
+        ref.update(*rows[i])
+        i += 1
+    closed = 0
+    for size in rng.integers(1, 300, size=200).tolist():
+        sl = slice(i, min(t.size, i + size))
+        assert det.clean_batch(t[sl], accel[sl], gyro[sl])
+        static, closes = det.update_batch(t[sl], accel[sl], gyro[sl])
+        expected = []
+        for k in range(sl.start, sl.stop):
+            ref.update(*rows[k])
+            expected.append(ref.fin_split > ref.fin_lo)
+            if ref.closed_run is not None:
+                assert closes[k - i] == (ref.closed_run, ref.closed_run_short)
+                closed += 1
+        assert static.tolist() == expected
+        assert json.dumps(det.state_dict()) == json.dumps(ref.state_dict())
+        assert (det.fin_lo, det.fin_split, det.fin_hi, det.static_now) == (ref.fin_lo, ref.fin_split, ref.fin_hi, ref.static_now)
+        i = sl.stop
+        if i == t.size:
+            break
+    assert closed == 3  # the fourth rest ends with the data
+    assert not det.clean_batch(np.array([t[-1]]), accel[:1], gyro[:1])  # time not increasing
+    bad = accel[:3].copy()
+    bad[1, 0] = np.nan
+    assert not det.clean_batch(t[-1] + np.array([0.01, 0.02, 0.03]), bad, gyro[:3])
+    assert not det.clean_batch(t[-1] + np.array([0.01, 1.0]), accel[:2], gyro[:2])  # a gap ends the segment
