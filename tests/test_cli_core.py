@@ -37,6 +37,8 @@ def test_calibrate_writes_a_passport_of_the_resolvable_triads(unit_files):
     passport = read_passport_json(unit_files / "pp.json")
     assert set(passport.triads) == {Triad.ACCEL}  # a MEMS gyro cannot see Ω
     assert passport.triads[Triad.ACCEL].provenance.n_positions == 18
+    # The audit (on by default) finds nothing beyond white noise in a white-noise simulation.
+    assert not passport.triads[Triad.ACCEL].bias_instability_std.any()
 
 
 def test_diagnose_json_names_the_fault(unit_files, capsys):
@@ -109,7 +111,7 @@ def test_missing_passport_exits_2(unit_files, tmp_path, capsys):
 
 def test_xsens_session_calibrates_from_its_38_positions(tmp_path, capsys):
     # SOURCE.md: a ~50 s initial static interval and ~37 short positions.
-    assert main(["calibrate", str(XSENS), "--out", str(tmp_path / "xs.json"), "--json"]) == 0
+    assert main(["calibrate", str(XSENS), "--out", str(tmp_path / "xs.json"), "--json", "--no-audit"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert len(out["positions"]) == 38
     first = out["positions"][0]
@@ -130,4 +132,4 @@ def test_audited_calibration_of_xsens_carries_the_bias_instability_that_explains
     out = json.loads(capsys.readouterr().out)
     assert out["triads"]["accel"]["estimate"]["chi2_per_dof"] < 2.0
     tp = read_passport_json(tmp_path / "xs.json").triads[Triad.ACCEL]
-    assert np.all(tp.bias_instability_std > 0)
+    assert tp.bias_instability_std.max() > 5e-5  # ≈ 0.1 mg of wander on at least one axis (docs/audit-xsens.md)

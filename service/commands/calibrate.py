@@ -34,9 +34,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="also print the full chain result as JSON on stdout")
     p.add_argument(
         "--audit",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=True,
         help="audit the white-noise model against the session first (docs/audit-xsens.md) and carry the bias "
-        "instability that survives it into the passport: the service's thresholds then use the audited model",
+        "instability that survives it into the passport, so the service's thresholds use the audited model "
+        "(default: on; --no-audit keeps the white-noise model)",
     )
     p.add_argument("--replicas", type=int, default=20, metavar="N", help="Monte Carlo replicas of the audit (default 20)")
     p.set_defaults(func=run)
