@@ -80,6 +80,60 @@ def white_noise_sd(x: np.ndarray) -> np.ndarray:
     return np.std(np.diff(a, axis=0), axis=0, ddof=1) / np.sqrt(2.0)
 
 
+def sample_noise_sd(x: np.ndarray, window: int) -> np.ndarray:
+    """(k,) per-sample noise standard deviation about a centred moving mean of ``window`` samples.
+
+    ``var(x − mean_window) = σ²(1 − 1/window)`` for white noise, so the result
+    is divided by that factor's root. Unlike :func:`white_noise_sd` it keeps the
+    short-lag correlation of a sensor's own low-pass filter (the per-sample
+    spread F0 sees), while wander slower than the window drops out. Only full
+    windows are used (no edge padding).
+
+    Parameters
+    ----------
+    x : (N,) or (N, k) samples of one static interval, any unit.
+    window : moving-mean length, samples (≥ 2, ≤ N).
+    """
+    a = np.asarray(x, dtype=float)
+    if a.ndim == 1:
+        a = a[:, None]
+    n = a.shape[0]
+    if not 2 <= window <= n:
+        raise ValueError(f"window must be within [2, {n}] samples, got {window}")
+    c = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a - a.mean(axis=0), axis=0)])
+    moving = (c[window:] - c[:-window]) / window
+    centre = a[window // 2 : window // 2 + moving.shape[0]] - a.mean(axis=0)
+    return np.sqrt(np.mean((centre - moving) ** 2, axis=0) / (1.0 - 1.0 / window))
+
+
+def batch_means_sd(records: list[np.ndarray], batch: int) -> np.ndarray:
+    """(k,) noise level that governs averages: ``√(m · var(batch means))``, pooled over records.
+
+    Each record (a static interval, (N_r, k)) is cut into whole batches of
+    ``m = batch`` samples; the batch means' scatter about their record's mean,
+    pooled with ``Σ (n_b − 1)`` degrees of freedom, times ``m``. For white noise
+    this is the per-sample sd; for noise with short-lag correlation (a sensor's
+    own filter) it is ``σ·√(1 + 2Σρ)``, the level at which means average down.
+    Records with fewer than two batches are skipped.
+    """
+    if batch < 1:
+        raise ValueError(f"batch must be at least 1 sample, got {batch}")
+    total, dof = None, 0
+    for r in records:
+        a = np.asarray(r, dtype=float)
+        a = a[:, None] if a.ndim == 1 else a
+        nb = a.shape[0] // batch
+        if nb < 2:
+            continue
+        means = a[: nb * batch].reshape(nb, batch, -1).mean(axis=1)
+        ss = np.sum((means - means.mean(axis=0)) ** 2, axis=0)
+        total = ss if total is None else total + ss
+        dof += nb - 1
+    if total is None:
+        raise ValueError(f"no record holds two batches of {batch} samples")
+    return np.sqrt(batch * total / dof)
+
+
 def quantization_step(x: np.ndarray, *, rel_tol: float = 0.02, min_levels: int = 3) -> float | None:
     """The output grid step of a record (M2's count size ``k``), or None when the data are not on a grid.
 

@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from estimators.audit import AuditResult  # noqa: E402
-from estimators.conventions import AXES, Triad  # noqa: E402
+from estimators.conventions import AXES, Triad, reference_magnitude  # noqa: E402
 
 MODELS = (("baseline", "C0"), ("extended", "C1"))
 UNIT = {Triad.ACCEL: "m/s²", Triad.GYRO: "rad/s"}
@@ -158,6 +158,50 @@ def _headline_plot(result: AuditResult, path: Path) -> bool:
     return True
 
 
+def _fmt(v) -> str:
+    """A parameter value for the report: numbers to 3 significant digits, lists element-wise."""
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.3g}"
+    return str(v)
+
+
+def _where(triad: str, axis: str | None) -> str:
+    return triad if axis is None else f"{triad} {axis}"
+
+
+def _statistics_table(result: AuditResult) -> list[str]:
+    """Measured statistics against both simulations: ratio (measured / median) and tail (replicas ≥ measured)."""
+    ext = {(c.triad, c.statistic, c.axis): c for c in result.extended_cmp}
+    lines = ["| triad | statistic | axis | measured | baseline ratio | baseline tail | extended ratio | extended tail | extended inside 5–95 % |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for c in result.baseline_cmp:
+        e = ext.get((c.triad, c.statistic, c.axis), c)
+        lines.append(f"| {c.triad.value} | {c.statistic} | {c.axis or ''} | {c.measured:.3g} | {c.ratio:.2f} | {c.tail_prob:.2f} | "
+                     f"{e.ratio:.2f} | {e.tail_prob:.2f} | {'yes' if e.inside else 'no'} |")
+    return lines
+
+
+def _model_table(result: AuditResult) -> list[str]:
+    """The surviving noise model of each triad (SI, per axis)."""
+    lines = ["| triad | white sd per sample | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | wander between positions (sd) |",
+             "|---|---|---|---|---|---|---|"]
+    for t, m in result.extended_model.items():
+        scale = reference_magnitude(t, result.gravity_mps2)
+        gm = [f"{v * scale:.3g}" if v > 0 else "–" for v in m.gm_sigma_norm]
+        tau = [f"{v:.3g}" if s > 0 else "–" for s, v in zip(m.gm_sigma_norm, m.gm_tau_s)]
+        wander = [f"{v * scale:.3g}" if v > 0 else "–" for v in m.excess_sd_norm]
+        step = "none" if m.quant_step_si is None else _fmt(list(m.quant_step_si))
+        lines.append(f"| {t.value} ({UNIT[t]}) | {_fmt(list(m.white_sd_si))} | {_fmt(list(m.mean_noise_sd_si))} | {step} | "
+                     f"[{', '.join(gm)}] | [{', '.join(tau)}] | [{', '.join(wander)}] |")
+    return lines
+
+
 def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Path:
     """Write ``audit.md`` and its PNGs into ``out_dir``; returns the Markdown path."""
     d = Path(out_dir)
@@ -170,12 +214,20 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
         lines += [f"Positions: {result.n_positions}; Monte Carlo replicas: {result.replicas}.", ""]
         if data["baseline"]["ratio"] is not None and data["extended"]["ratio"] is not None:
             lines += [
-                f"Headline (accelerometer χ²/dof): baseline ratio {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}),"
-                f" extended ratio {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f}).", "",
+                f"Headline (accelerometer χ²/dof of the scalar equation per position): baseline ratio {data['baseline']['ratio']:.2f} "
+                f"(tail {data['baseline']['tail_prob']:.2f}), extended ratio {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f}).", "",
             ]
+        lines += ["## What the simulation gets wrong", ""] + _statistics_table(result) + [""]
         lines += ["## Named causes", ""]
-        lines += [f"- **{c['effect']}** ({c['triad']}{'' if c['axis'] is None else ' ' + c['axis']}): {c['evidence']}; params {c['params']}" for c in data["named_causes"]] or ["- none"]
-        lines += ["", "## Gain", ""] + [f"- {k}: {v:.4g}" for k, v in data["gain"].items()]
+        for c in data["named_causes"]:
+            params = ", ".join(f"{k} {_fmt(v)}" for k, v in c["params"].items())
+            lines.append(f"- **{c['effect']}** ({_where(c['triad'], c['axis'])}): {c['evidence']}. Fitted: {params}.")
+        if not data["named_causes"]:
+            lines.append("- none: the baseline explains the data")
+        lines += ["", "Not identifiable on this session:", ""]
+        lines += sorted({f"- {c['effect']} ({_where(c['triad'], c['axis'])}): {c['reason']}" for c in data["candidates"] if not c["identifiable"]}) or ["- (every candidate was tested)"]
+        lines += ["", "## Extended model (surviving noise per triad)", ""] + _model_table(result)
+        lines += ["", "## Gain", ""] + [f"- {k}: {_fmt(v)}" for k, v in data["gain"].items()]
         lines += ["", "## Plots", ""] + [f"![{Path(name).stem}]({name})\n" for name in written]
     path = d / "audit.md"
     path.write_text("\n".join(lines) + "\n")

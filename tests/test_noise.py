@@ -1,24 +1,90 @@
-"""Noise estimators on known noise: white level, Allan slope −½, quantization grid (M2)."""
+"""Noise estimators on known noise: white level, Allan slopes, noise for averages, quantization grid (M2)."""
 
 import numpy as np
+import pytest
+from scipy.signal import lfilter
 
-from estimators.noise import overlapping_allan_deviation, quantization_step, white_noise_sd
+from estimators.noise import batch_means_sd, overlapping_allan_deviation, quantization_step, sample_noise_sd, white_noise_sd
+
+RATE_HZ = 100.0
+
+
+def _adev_tol(n: int, m: np.ndarray) -> np.ndarray:
+    # Relative standard error of an overlapping ADEV ≈ 1/√(2·(N/m)·(2/3)) (IEEE Std 952, white noise); 4 of them as bound.
+    return 4.0 / np.sqrt(2.0 * n / m * 2.0 / 3.0)
 
 
 def test_white_noise_allan_falls_as_inverse_sqrt_tau():
     rng = np.random.default_rng(1)
     sd, n = 0.01, 40_000
     x = sd * rng.standard_normal((n, 3))
-    ad = overlapping_allan_deviation(x, 100.0, np.array([1, 10, 100]))
-    expected = sd / np.sqrt(np.array([1, 10, 100]))[:, None]
-    # Relative standard error of an overlapping ADEV ≈ 1/√(2·N/m·(2/3)); 4 of them as bound.
-    tol = 4.0 / np.sqrt(2.0 * n / np.array([1, 10, 100]) * 2.0 / 3.0)
-    assert np.all(np.abs(ad.adev / expected - 1.0) < tol[:, None])
+    m = np.array([1, 10, 100])
+    ad = overlapping_allan_deviation(x, RATE_HZ, m)
+    np.testing.assert_allclose(ad.tau_s, m / RATE_HZ)
+    assert np.all(np.abs(ad.adev / (sd / np.sqrt(m))[:, None] - 1.0) < _adev_tol(n, m)[:, None])
+    np.testing.assert_array_equal(ad.n_terms, n - 2 * m + 1)
     assert np.allclose(white_noise_sd(x), sd, rtol=4.0 / np.sqrt(n))
 
 
-def test_quantization_step_found_on_grid_and_not_off_it():
+def test_random_walk_allan_rises_as_sqrt_tau():
+    # Rate random walk K: σ_A(τ) = K·√(τ/3) (IEEE Std 952).
     rng = np.random.default_rng(2)
-    x = 0.0024 * np.round(0.01 * rng.standard_normal(5000) / 0.0024)
-    assert abs(quantization_step(x) - 0.0024) < 1e-12
+    k, n = 1e-3, 200_000
+    x = np.cumsum(k * np.sqrt(1.0 / RATE_HZ) * rng.standard_normal(n))
+    m = np.array([100, 400])
+    ad = overlapping_allan_deviation(x, RATE_HZ, m).adev[:, 0]
+    # A random walk's Allan variance estimate is far noisier than white noise's: a factor 1.6 either way.
+    ratio = ad / (k * np.sqrt(m / RATE_HZ / 3.0))
+    assert np.all((ratio > 1 / 1.6) & (ratio < 1.6)), ratio
+
+
+def test_default_cluster_sizes_are_log_spaced_and_stay_within_a_quarter_of_the_record():
+    ad = overlapping_allan_deviation(np.random.default_rng(3).standard_normal(1000), RATE_HZ)
+    m = np.round(ad.tau_s * RATE_HZ).astype(int)
+    assert m[0] == 1 and m[-1] <= 250 and np.all(np.diff(m) > 0)
+
+
+def test_sample_noise_sd_ignores_a_slow_wander_but_keeps_the_white_level():
+    rng = np.random.default_rng(4)
+    n, sd = 20_000, 0.01
+    slow = 0.05 * np.sin(2 * np.pi * 0.05 * np.arange(n) / RATE_HZ)  # 5× the noise, 20 s period
+    x = sd * rng.standard_normal(n) + slow
+    assert abs(sample_noise_sd(x, 50)[0] / sd - 1.0) < 4.0 / np.sqrt(n)
+    assert np.std(x) > 2.0 * sd  # the plain spread would not
+
+
+def test_batch_means_sd_is_the_level_at_which_averages_shrink():
+    # MA(1) noise x_k = e_k + θ e_{k−1}: per-sample variance (1+θ²)σ², averages shrink as (1+θ)²σ²/n.
+    rng = np.random.default_rng(5)
+    theta, sd = 0.6, 0.01
+    e = sd * rng.standard_normal((30, 2000))
+    records = [lfilter([1.0, theta], [1.0], r) for r in e]
+    got = batch_means_sd(records, 50)[0]
+    # 30 records × 39 batches of dof: relative sd of the estimate ≈ 1/√(2·1170); 4 of them.
+    assert abs(got / ((1.0 + theta) * sd) - 1.0) < 4.0 / np.sqrt(2 * 30 * 39)
+    assert abs(np.mean([sample_noise_sd(r, 50)[0] for r in records]) / (np.sqrt(1 + theta**2) * sd) - 1.0) < 0.02
+
+
+def test_quantization_step_found_on_an_offset_grid_and_not_off_it():
+    rng = np.random.default_rng(6)
+    step = 0.002418
+    counts = np.round(0.01 * rng.standard_normal(5000) / step) + 12_345
+    x = (counts - 32_768) * step  # raw counts minus a mid-scale offset, as a session reader converts them
+    assert abs(quantization_step(x) - step) < 1e-9
     assert quantization_step(0.01 * rng.standard_normal(5000)) is None
+    assert quantization_step(np.full(100, 9.81)) is None  # one level: no grid to read
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: overlapping_allan_deviation(np.zeros(2), RATE_HZ), "at least 3 samples"),
+        (lambda: white_noise_sd(np.zeros(2)), "at least 3 samples"),
+        (lambda: sample_noise_sd(np.zeros(10), 11), r"window must be within \[2, 10\]"),
+        (lambda: batch_means_sd([np.zeros(10)], 6), "no record holds two batches of 6 samples"),
+        (lambda: batch_means_sd([np.zeros(10)], 0), "batch must be at least 1"),
+    ],
+)
+def test_bad_input_is_a_clear_error(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()

@@ -5,7 +5,19 @@ Public entry points: :func:`run_audit` with :class:`AuditConfig`, and
 :func:`estimators.scalar.derive_lambda0`).
 """
 
-from .audit import DEFAULT_REPLICAS, AuditConfig, AuditResult, TriadBaseline, effective_noise_std_norm, find_candidates, fit_baseline, run_audit, same_session_spec
+from .audit import (
+    DEFAULT_REPLICAS,
+    AuditConfig,
+    AuditResult,
+    TriadBaseline,
+    effective_noise_std_norm,
+    extend_model,
+    find_candidates,
+    fit_baseline,
+    fit_baselines,
+    run_audit,
+    same_session_spec,
+)
 from .candidates import CANDIDATE_NAMES, FAMILY_ALPHA, Candidate
 from .statistics import MIN_POSITIONS, Comparison, TriadCurves
 
@@ -21,8 +33,10 @@ __all__ = [
     "TriadBaseline",
     "TriadCurves",
     "effective_noise_std_norm",
+    "extend_model",
     "find_candidates",
     "fit_baseline",
+    "fit_baselines",
     "run_audit",
     "same_session_spec",
 ]

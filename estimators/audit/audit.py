@@ -3,31 +3,39 @@
 :func:`run_audit` is the whole procedure on one session:
 
 1. **Baseline** per triad: the nine parameters of the chain (M1, refined),
-   white noise from the within-position first differences
-   (:func:`estimators.noise.white_noise_sd`, quantization variance removed),
-   the quantization step when the output is on a grid (M2).
+   white noise from the per-sample spread within positions
+   (:func:`estimators.noise.sample_noise_sd`, quantization variance removed),
+   the quantization step when the output is on a grid (M2), and the noise
+   level at which averages shrink (:func:`estimators.noise.batch_means_sd`).
 2. **Simulate the same session**: the measured position directions (the
    accelerometer means), durations, transitions and rate, through
    :mod:`estimators.sim` with the fitted baseline; ``replicas`` Monte Carlo
    runs through the same chain (:mod:`estimators.audit.statistics`).
 3. **Compare**: ratio and tail probability per statistic, triad and axis.
-4. **Candidates** (:mod:`estimators.audit.candidates`) and the selection.
-5. **Extend** the simulator with the selected effects (fitted parameters),
-   simulate again, and the **gain**: held-out residuals of the calibration and
-   F0 false alarms on the measured data with λ0 from each noise model.
+4. **Candidates** (:mod:`estimators.audit.candidates`) and the selection,
+   after screening out disturbed positions.
+5. **Extend** the simulator with the selected effects at their fitted
+   parameters (:func:`extend_model`; a bias instability as a Gauss–Markov
+   bias per axis), simulate again, and the **gain**: held-out residuals of the
+   calibration and F0 false alarms on the measured data with λ0 from each
+   noise model.
+
+Replicas run one after another through the simulator and the whole chain
+(static detection included), each vectorized over its samples: the chain is
+what the statistics describe, so it must see every replica.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from estimators.chain import ChainConfig, ChainResult, run_chain
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad, reference_magnitude
-from estimators.noise import quantization_step, white_noise_sd
+from estimators.noise import batch_means_sd, quantization_step, sample_noise_sd
 from estimators.scalar import derive_lambda0, f0_batch
-from estimators.session import ImuSession
+from estimators.session import ImuSession, validate_session
 from estimators.sim import (
     Bias,
     BiasDrift,
@@ -41,6 +49,8 @@ from estimators.sim import (
     ScaleFactor,
     ScaleNonlinearity,
     SessionSpec,
+    TemperatureBias,
+    TemperatureScale,
     TriadErrorModel,
     WhiteNoise,
     multi_position_profile,
@@ -48,7 +58,17 @@ from estimators.sim import (
     tilt_sequence,
 )
 
-from .candidates import Candidate, _loo_rss, accel_candidates, gyro_candidates, temperature_reason
+from .candidates import (
+    Candidate,
+    accel_records,
+    count_tests,
+    disturbed_positions,
+    gyro_records,
+    mean_variance_factor,
+    temperature_reason,
+    variance_candidates,
+    variance_effects,
+)
 from .statistics import (
     MIN_POSITIONS,
     Comparison,
@@ -60,48 +80,75 @@ from .statistics import (
     scalar_residuals,
     static_mask,
     triad_curves,
+    subset_table,
     triad_statistics,
+    with_noise_cov,
 )
 
 DEFAULT_REPLICAS = 20
+SCREENING_ROUNDS = 3
+"""Rounds of the disturbed-position screening (each refits without the positions flagged so far)."""
+NOISE_WINDOW_S = 0.5
+"""Window of the baseline's noise levels, s (the chain's batch length): a sensor filter's short-lag
+correlation and any wander faster than this are noise the chain's batch-means covariance already
+holds; slower wander is what the candidates look for."""
 F0_FALSE_ALARM_PROB = 1.0e-3
 """Stated per-test false-alarm probability of the F0 gain check (1 s window means)."""
 
 
 @dataclass(frozen=True)
 class TriadBaseline:
-    """The fitted baseline of one triad.
+    """The fitted noise and error model of one triad (the baseline, or the extended model's surviving parameters).
 
     Attributes
     ----------
     params : (9,) ``[b, e, d]`` normalized (zeros but the bias for a gyro whose scalar is unobservable).
     white_sd_si : (3,) per-sample white noise before quantization, SI.
     quant_step_si : (3,) output grid step, SI, or None.
-    excess_sd_norm : (3,) extra bias standard deviation that does not average down (0 in the baseline).
+    rate_hz : the session's sample rate, Hz.
+    mean_noise_sd_si : (3,) the noise level at which averages shrink (:func:`estimators.noise.batch_means_sd`,
+        rounding included), SI: the candidates' reference for a position mean, ``diag(σ²)/n``.
+    excess_sd_norm : (3,) normalized sd of the bias wander between positions beyond white noise
+        (what a position's covariance lacks: :attr:`estimators.passport.TriadPassport.bias_instability_std`);
+        0 in the baseline.
+    gm_sigma_norm, gm_tau_s : (3,) the Gauss–Markov bias behind that wander (normalized sd, correlation
+        time in s); sd 0 where none was named.
     """
 
     params: np.ndarray
     white_sd_si: np.ndarray
     quant_step_si: np.ndarray | None
+    rate_hz: float
+    mean_noise_sd_si: np.ndarray
     excess_sd_norm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gm_sigma_norm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gm_tau_s: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     def to_dict(self) -> dict:
         return {
             "params": [float(v) for v in self.params],
             "white_sd_si": [float(v) for v in self.white_sd_si],
             "quant_step_si": None if self.quant_step_si is None else [float(v) for v in self.quant_step_si],
+            "rate_hz": float(self.rate_hz),
+            "mean_noise_sd_si": [float(v) for v in self.mean_noise_sd_si],
             "excess_sd_norm": [float(v) for v in self.excess_sd_norm],
+            "gm_sigma_norm": [float(v) for v in self.gm_sigma_norm],
+            "gm_tau_s": [float(v) for v in self.gm_tau_s],
         }
 
 
 def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: int) -> np.ndarray:
     """(3,) per-sample noise to give :func:`estimators.scalar.derive_lambda0` for windows of ``n_avg`` samples.
 
-    ``derive_lambda0`` divides the variance by ``n_avg``; a bias excess that does
-    not average down must survive that division: ``σ_eff² = σ_w² + n_avg·v``.
+    ``derive_lambda0`` divides the variance by ``n_avg`` (white noise). The
+    Gauss–Markov bias of the audited model averages down only as
+    ``σ²·V(T/τ)`` over a window of ``T = n_avg / rate`` (:func:`mean_variance_factor`),
+    so it enters as ``n_avg·σ²·V(T/τ)``: ``σ_eff² = σ_w² + n_avg·σ_gm²·V(T/τ)``.
     """
     white = baseline.white_sd_si / reference
-    return np.sqrt(white**2 + n_avg * baseline.excess_sd_norm**2)
+    window_s = n_avg / baseline.rate_hz
+    wander = np.array([s * s * float(mean_variance_factor(np.array([window_s]), float(t))[0]) for s, t in zip(baseline.gm_sigma_norm, baseline.gm_tau_s)])
+    return np.sqrt(white**2 + n_avg * wander)
 
 
 def _angles_from_cosines(d: np.ndarray) -> np.ndarray:
@@ -109,15 +156,28 @@ def _angles_from_cosines(d: np.ndarray) -> np.ndarray:
     return np.array([0.0, 0.0, 0.0, -d[0], -(d[2] - d[0] * d[1]), d[1]])
 
 
-def fit_baseline(session: ImuSession, chain: ChainResult, triad: Triad) -> TriadBaseline:
-    """Baseline model of ``triad`` (module docstring, step 1)."""
+def fit_baseline(session: ImuSession, chain: ChainResult, triad: Triad, *, window_s: float = NOISE_WINDOW_S) -> TriadBaseline:
+    """Baseline model of ``triad`` (module docstring, step 1).
+
+    White noise: the per-sample spread about a ``window_s`` moving mean
+    (:func:`estimators.noise.sample_noise_sd`), pooled over the positions, the
+    rounding variance ``q²/12`` removed; the level at which averages shrink
+    from ``window_s`` batch means (:func:`estimators.noise.batch_means_sd`); the
+    grid step from every static sample (:func:`estimators.noise.quantization_step`,
+    all three axes or none).
+    """
     x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
     spans = [(p.index_start, p.index_stop) for p in chain.positions]
-    # Pooled over positions (weighted by their differences): each position's own mean and wander drop out.
-    dof = np.array([b - a - 1 for a, b in spans], float)
-    sd = np.sqrt(np.sum([d * white_noise_sd(x[a:b]) ** 2 for d, (a, b) in zip(dof, spans)], axis=0) / dof.sum())
-    a, b = spans[0]
-    steps = [quantization_step(x[a:b, i]) for i in range(3)]
+    window = max(2, int(round(window_s * session.rate_hz)))
+    usable = [(a, b) for a, b in spans if b - a >= 2 * window]
+    if not usable:
+        raise ValueError(f"no position holds two {window_s} s windows: the white noise cannot be read")
+    # Pooled over positions, weighted by their sample counts: each position's own mean and slow wander drop out.
+    n = np.array([b - a for a, b in usable], float)
+    sd = np.sqrt(np.sum([k * sample_noise_sd(x[a:b], window) ** 2 for k, (a, b) in zip(n, usable)], axis=0) / n.sum())
+    mean_sd = batch_means_sd([x[a:b] for a, b in usable], window)
+    static = x[static_mask(x.shape[0], np.array(spans))]
+    steps = [quantization_step(static[:, i]) for i in range(3)]
     quant = None if any(s is None for s in steps) else np.array(steps, float)
     white = sd if quant is None else np.sqrt(np.clip(sd**2 - quant**2 / 12.0, (0.1 * sd) ** 2, None))
     est = chain.triads[triad].estimate
@@ -127,7 +187,7 @@ def fit_baseline(session: ImuSession, chain: ChainResult, triad: Triad) -> Triad
         ref = reference_magnitude(triad, chain.gravity_mps2)
         params = np.zeros(9)
         params[:3] = np.median([p.mean(triad) for p in chain.positions], axis=0) / ref
-    return TriadBaseline(params, white, quant)
+    return TriadBaseline(params, white, quant, session.rate_hz, mean_sd)
 
 
 def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
@@ -186,18 +246,6 @@ def replica_statistics(
     return stats, curves
 
 
-def gm_sigma_for_between(between_var: float, length_s: float, tau_s: float) -> float:
-    """Gauss–Markov standard deviation whose position means vary by ``between_var``.
-
-    For ``σ² e^{−|Δ|/τ}`` the mean over a position of length ``L`` varies by
-    ``σ² V``, ``V = 2(τ/L)²(L/τ − 1 + e^{−L/τ})``; ``τ`` is taken as the spacing
-    of the positions (the time scale the position residuals resolve).
-    """
-    x = length_s / tau_s
-    v = 2.0 / x**2 * (x - 1.0 + np.exp(-x))
-    return float(np.sqrt(between_var / v))
-
-
 @dataclass(frozen=True)
 class AuditConfig:
     """Settings of an audit: the chain, the replica count and the seed."""
@@ -217,6 +265,7 @@ class AuditResult:
 
     statements: list[str]
     n_positions: int
+    gravity_mps2: float
     baseline: dict[Triad, TriadBaseline] = field(default_factory=dict)
     extended_model: dict[Triad, TriadBaseline] = field(default_factory=dict)
     baseline_cmp: list[Comparison] = field(default_factory=list)
@@ -252,6 +301,7 @@ class AuditResult:
         return {
             "statements": self.statements,
             "n_positions": self.n_positions,
+            "gravity_mps2": self.gravity_mps2,
             "replicas": self.replicas,
             "baseline": block(self.baseline_cmp, self.baseline),
             "candidates": [c.to_dict() for c in self.candidates],
@@ -265,39 +315,93 @@ def _present(session: ImuSession) -> tuple[Triad, ...]:
     return tuple(t for t, a in ((Triad.ACCEL, session.accel_mps2), (Triad.GYRO, session.gyro_rps)) if a is not None)
 
 
-def find_candidates(session: ImuSession, chain: ChainResult, accel_baseline: TriadBaseline) -> list[Candidate]:
-    """Every candidate effect of :mod:`estimators.audit.candidates` fitted on a session with ≥ MIN_POSITIONS positions."""
+def fit_baselines(session: ImuSession, chain: ChainResult, *, window_s: float = NOISE_WINDOW_S) -> dict[Triad, TriadBaseline]:
+    """:func:`fit_baseline` of every triad the session has."""
+    return {t: fit_baseline(session, chain, t, window_s=window_s) for t in _present(session)}
+
+
+def quantization_candidate(triad: Triad, base: TriadBaseline) -> Candidate:
+    """The grid read by the baseline (M2): part of the baseline, reported with how much it matters."""
+    q = base.quant_step_si
+    if q is None:
+        return Candidate("quantization", triad, None, True, reason="output not on a grid")
+    share = q / np.sqrt(12.0) / np.maximum(base.white_sd_si, 1e-300)
+    return Candidate("quantization", triad, None, True, params={"step_si": [float(v) for v in q]}, in_baseline=True,
+                     reason=f"output on a grid of {', '.join(f'{v:.4g}' for v in q)} SI (M2), in the baseline; rounding sd is "
+                            f"{100 * float(np.max(share)):.0f} % of the white noise")
+
+
+def candidate_table(chain: ChainResult, session: ImuSession, triad: Triad, base: TriadBaseline):
+    """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages."""
+    x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
+    tab = position_table(chain, x, session.t_s, triad, session.temp_c)
+    return with_noise_cov(tab, base.mean_noise_sd_si / reference_magnitude(triad, chain.gravity_mps2))
+
+
+def find_candidates(session: ImuSession, chain: ChainResult, baselines: dict[Triad, TriadBaseline], *, batch_s: float = NOISE_WINDOW_S) -> list[Candidate]:
+    """Every candidate effect of :mod:`estimators.audit.candidates` on a session with ≥ MIN_POSITIONS positions.
+
+    ``session`` is the validated session the chain ran on (position spans index it);
+    ``batch_s`` the window of the baselines' noise for averages, s (what of a wander it already holds).
+    """
     if len(chain.positions) < MIN_POSITIONS:
         raise ValueError(f"candidates need at least {MIN_POSITIONS} static positions, got {len(chain.positions)}")
     g = chain.gravity_mps2
     triads = _present(session)
-    tab_a = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL)
-    params = accel_baseline.params
-    resid, sigma, jac, _ = scalar_residuals(params, tab_a)
-    n_tests = 12 + (15 if Triad.GYRO in triads else 0)
-    cands = accel_candidates(tab_a, params, jac, resid, sigma, n_tests)
-    if Triad.GYRO in triads:
-        tab_g = position_table(chain, session.gyro_rps, session.t_s, Triad.GYRO)
-        cands += gyro_candidates(tab_g, tab_a.mean * g, n_tests)
-    else:
+    gyro = Triad.GYRO in triads
+    tab_a = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
+    tab_g = candidate_table(chain, session, Triad.GYRO, baselines[Triad.GYRO]) if gyro else None
+    n = tab_a.n_samples.size
+    n_tests = count_tests(gyro, temperature_reason(tab_a) is None)
+    keep = np.ones(n, bool)
+    # Screen for disturbed positions, refit without them, until none is left (a few rounds at most).
+    for _ in range(SCREENING_ROUNDS):
+        cands, records, final = _fit_candidates(subset_table(tab_a, keep), None if tab_g is None else subset_table(tab_g, keep), baselines, g, n_tests, batch_s)
+        flagged = np.flatnonzero(keep)[disturbed_positions(records, final, int(keep.sum()), n_tests)]
+        if flagged.size == 0 or keep.sum() - flagged.size < MIN_POSITIONS:
+            break
+        keep[flagged] = False
+    if not keep.all():
+        cands = [_with_disturbed(c, tab_a, ~keep) if c.effect == "nonstatic_positions" else c for c in cands]
+    if not gyro:
         cands.append(Candidate("g_sensitivity", Triad.GYRO, None, False, reason="not identifiable: the session has no gyro triad"))
-    q = accel_baseline.quant_step_si
-    qsd = None if q is None else q / np.sqrt(12.0) / accel_baseline.white_sd_si
-    cands.append(
-        Candidate("quantization", Triad.ACCEL, None, q is not None, 0.0, float("inf"), 1.0,
-                  {} if q is None else {"step_si": [float(v) for v in q]}, False,
-                  "output not on a grid" if q is None else
-                  f"output on a grid of {q[0]:.4g} SI (M2); in the baseline; rounding sd is {100 * float(np.max(qsd)):.0f} % of the white noise")
-    )
+    cands += [quantization_candidate(t, baselines[t]) for t in triads]
     return cands
+
+
+def _fit_candidates(tab_a, tab_g, baselines: dict[Triad, TriadBaseline], g: float, n_tests: int, batch_s: float):
+    """Mean and variance candidates of both triads on the given tables; the records and the selected variance model."""
+    resid, sigma, jac, _ = scalar_residuals(baselines[Triad.ACCEL].params, tab_a)
+    acc = accel_records(tab_a, jac, resid, sigma, n_tests)
+    cands, records = list(acc.candidates), [acc.between, acc.halves]
+    if tab_g is not None:
+        gyr = gyro_records(tab_g, tab_a.mean * g, n_tests)
+        cands += gyr.candidates
+        records += [gyr.between, gyr.halves]
+    var_cands, final = variance_candidates(variance_effects(tab_g is not None), records, tab_a.duration_s, n_tests, batch_s)
+    return cands + var_cands, records, final
+
+
+def _with_disturbed(c: Candidate, tab_a, disturbed: np.ndarray) -> Candidate:
+    """``nonstatic_positions`` selected for the positions the screening took out (their times in the evidence)."""
+    t0 = tab_a.t_mid_s[disturbed] - 0.5 * tab_a.duration_s[disturbed]
+    where = ", ".join(f"#{k} ({t:.1f} s)" for k, t in zip(np.flatnonzero(disturbed), t0))
+    params = c.params | {"disturbed_positions": [int(k) for k in np.flatnonzero(disturbed)], "disturbed_t_start_s": [float(t) for t in t0]}
+    reason = (f"{int(disturbed.sum())} of {disturbed.size} positions move inside: their half-to-half differences lie beyond the fitted noise "
+              f"at the family-wise rate ({where}); left out of every other fit")
+    reason += f"; besides, {c.reason}" if c.selected else f"; no wobble common to every position (LR {c.lr:.1f}, threshold {c.threshold:.1f})"
+    return replace(c, identifiable=True, params=params, selected=True, reason=reason)
 
 
 def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
     """The audit of one session (module docstring). Never names a cause it could not test: see ``statements``."""
-    chain = run_chain(session, config.chain)
+    # The chain's position spans index the validated samples: every later step uses the same ones.
+    session, _ = validate_session(session, accel_limit_mps2=config.chain.accel_limit_mps2, gyro_limit_rps=config.chain.gyro_limit_rps)
+    chain_config = replace(config.chain, bias_instability_std=None)
+    chain = run_chain(session, chain_config)
     n = len(chain.positions)
     triads = _present(session)
-    res = AuditResult([], n, replicas=config.replicas)
+    res = AuditResult([], n, chain.gravity_mps2, replicas=config.replicas)
     if Triad.ACCEL not in triads:
         res.statements.append("no accelerometer triad: position directions and the scalar equation are unknown; nothing can be concluded")
         return res
@@ -311,94 +415,94 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         return res
     if Triad.GYRO not in triads:
         res.statements.append("single triad (no gyro): gyro effects (g_sensitivity) are not identifiable")
-    temp_reason = temperature_reason(position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL))
+    tab_a = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL, session.temp_c)
+    temp_reason = temperature_reason(tab_a)
     if temp_reason is not None:
         res.statements.append(f"temperature effects (temperature_bias, temperature_scale) are {temp_reason}")
-    res.baseline = {t: fit_baseline(session, chain, t) for t in triads}
-    g = config.chain.gravity_mps2
+    if chain.triads[Triad.ACCEL].estimate.params is None:
+        res.statements.append(f"the accelerometer parameters are not observable ({chain.triads[Triad.ACCEL].estimate.reason}): no cause can be concluded")
+        return res
+    res.baseline = fit_baselines(session, chain)
+    g = chain.gravity_mps2
     model = ErrorModel(
         accel=triad_model(res.baseline[Triad.ACCEL], g),
         gyro=triad_model(res.baseline[Triad.GYRO], EARTH_RATE_RPS) if Triad.GYRO in triads else TriadErrorModel(),
     )
-    spec = same_session_spec(chain, session, model)
     for t in triads:
         x = session.accel_mps2 if t is Triad.ACCEL else session.gyro_rps
         res.measured_stats[t] = triad_statistics(chain, x, session.t_s, t, session.rate_hz)
         res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
-    reps, res.replica_curves["baseline"] = replica_statistics(spec, config.chain, triads, config.replicas, config.seed)
+    spec = same_session_spec(chain, session, model)
+    reps, res.replica_curves["baseline"] = replica_statistics(spec, chain_config, triads, config.replicas, config.seed)
     res.replica_stats["baseline"] = reps
     res.baseline_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], reps[t])]
 
-    tab_a = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL)
-    resid, sigma, jac, _ = scalar_residuals(res.baseline[Triad.ACCEL].params, tab_a)
-    cands = find_candidates(session, chain, res.baseline[Triad.ACCEL])
-    res.candidates = cands
-
-    # Extension
-    ext_model, ext_base = _extend(model, res.baseline, cands, tab_a, g)
+    res.candidates = find_candidates(session, chain, res.baseline)
+    ext_model, res.extended_model = extend_model(model, res.baseline, res.candidates, tab_a, g)
     res.extension = [{"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params} for c in res.named]
     if res.named:
-        ext_reps, ext_curves = replica_statistics(same_session_spec(chain, session, ext_model), config.chain, triads, config.replicas, config.seed + 1)
-        head = res.measured_stats[Triad.ACCEL].get("chi2_per_dof")
-        sims = [r["chi2_per_dof"] for r in ext_reps[Triad.ACCEL] if "chi2_per_dof" in r]
-        if any(c.effect == "bias_instability" and c.triad is Triad.ACCEL for c in res.named) and head is not None and sims:
-            # The position-level excess is a moment of the residuals, not of the sampled process:
-            # one simulated-moment step matches the headline's excess (χ²/dof − 1) by scaling it.
-            scale = float(np.sqrt(max(head - 1.0, 0.0) / max(float(np.median(sims)) - 1.0, 1e-6)))
-            ext_model, ext_base = _extend(model, res.baseline, cands, tab_a, g, scale)
-            res.extension.append({"effect": "bias_instability", "triad": "accel", "axis": None, "params": {"simulated_moment_scale": scale}})
-            ext_reps, ext_curves = replica_statistics(same_session_spec(chain, session, ext_model), config.chain, triads, config.replicas, config.seed + 2)
+        ext_reps, res.replica_curves["extended"] = replica_statistics(
+            same_session_spec(chain, session, ext_model), chain_config, triads, config.replicas, config.seed + 1
+        )
         res.replica_stats["extended"] = ext_reps
-        res.replica_curves["extended"] = ext_curves
         res.extended_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], ext_reps[t])]
     else:
         res.extended_cmp = res.baseline_cmp
-    res.extended_model = ext_base
-    res.gain = _gain(session, chain, tab_a, res, sigma, jac, resid, g)
+    res.gain = _gain(session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g)
     return res
 
 
-def _extend(model: ErrorModel, baseline: dict, cands: list[Candidate], tab_a, g: float, accel_excess_scale: float = 1.0):
-    """The error model with the selected effects and the surviving noise parameters per triad.
+def extend_model(model: ErrorModel, baseline: dict[Triad, TriadBaseline], cands: list[Candidate], tab_a, g: float) -> tuple[ErrorModel, dict[Triad, TriadBaseline]]:
+    """The simulator's error model with every selected effect at its fitted parameters, and the surviving noise per triad.
 
-    ``accel_excess_scale`` multiplies the accelerometers' fitted excess (the
-    simulated-moment refinement of :func:`run_audit`).
+    Physical units of the simulator (:mod:`estimators.sim.errors`) from the
+    candidates' normalized fits: a bias instability becomes a Gauss–Markov bias
+    per axis; temperature polynomials refer to the session's mean temperature.
     """
     ext = model
     base = dict(baseline)
-    drift = {Triad.ACCEL: np.zeros(3), Triad.GYRO: np.zeros(3)}
+    drift = {t: np.zeros(3) for t in Triad}
+    temp_bias = {t: np.zeros(3) for t in Triad}
+    temp_scale = np.zeros(3)
     k2, k3 = np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
+    excess = {t: np.zeros(3) for t in Triad}
+    gm_sigma = {t: np.zeros(3) for t in Triad}
+    gm_tau = {t: np.ones(3) for t in Triad}
     for c in cands:
         if not c.selected:
             continue
         i = None if c.axis is None else AXES.index(c.axis)
         ref = g if c.triad is Triad.ACCEL else EARTH_RATE_RPS
         if c.effect == "bias_instability":
-            excess = np.zeros(3)
-            if i is None:
-                excess[:] = c.params["excess_sd_norm"] * accel_excess_scale
-            else:
-                excess[i] = c.params["excess_sd_norm"]
-            old = base[c.triad]
-            base[c.triad] = TriadBaseline(old.params, old.white_sd_si, old.quant_step_si, np.maximum(old.excess_sd_norm, excess))
+            excess[c.triad][i] = c.params["between_sd_norm"]
+            gm_sigma[c.triad][i] = c.params["gm_sigma_norm"]
+            gm_tau[c.triad][i] = c.params["gm_tau_s"]
         elif c.effect == "bias_drift":
             drift[c.triad][i] = c.params["rate_norm_per_s"] * g if c.triad is Triad.ACCEL else c.params["rate_rps_per_s"]
+        elif c.effect == "temperature_bias":
+            temp_bias[c.triad][i] = c.params["coef_norm_per_c"] * g if c.triad is Triad.ACCEL else c.params["coef_rps_per_c"]
+        elif c.effect == "temperature_scale":
+            temp_scale[i] = c.params["coef_per_c"]
         elif c.effect == "scale_nonlinearity":
             k2[i], k3[i] = c.params["k2_norm"] / g, c.params["k3_norm"] / g**2
         elif c.effect == "g_sensitivity":
             gsens[i] = [c.params[f"g{a}_rps_per_mps2"] for a in AXES]
-        elif c.effect == "nonstatic_positions":
-            ext = ext.with_effect(NonstaticPositions(angle_rms_rad=c.params["angle_rms_rad"]))
-    length_s = float(np.median(tab_a.duration_s))
-    tau_s = float(np.median(np.diff(tab_a.t_mid_s)))
-    for t, b in base.items():
-        if np.any(b.excess_sd_norm > 0):
-            ref = g if t is Triad.ACCEL else EARTH_RATE_RPS
-            sigma = [gm_sigma_for_between(float(v) ** 2, length_s, tau_s) * ref for v in b.excess_sd_norm]
-            ext = ext.with_effect(BiasInstability(gm_sigma_si=sigma, gm_tau_s=np.full(3, tau_s)), t)
+        elif c.effect == "nonstatic_positions" and c.params["angle_rms_rad"] > 0:
+            # Disturbed single positions are not simulated: the simulator moves every position or none.
+            ext = ext.with_effect(NonstaticPositions(angle_rms_rad=c.params["angle_rms_rad"], band_hz=tuple(c.params["band_hz"])))
+    t_ref = float(np.mean(tab_a.temp_c)) if tab_a.temp_c is not None else 20.0
+    for t, b in list(base.items()):
+        ref = g if t is Triad.ACCEL else EARTH_RATE_RPS
+        base[t] = replace(b, excess_sd_norm=excess[t], gm_sigma_norm=gm_sigma[t], gm_tau_s=gm_tau[t])
+        if np.any(gm_sigma[t] > 0):
+            ext = ext.with_effect(BiasInstability(gm_sigma_si=gm_sigma[t] * ref, gm_tau_s=gm_tau[t]), t)
         if np.any(drift[t]):
             ext = ext.with_effect(BiasDrift(drift[t][:, None]), t)
+        if np.any(temp_bias[t]):
+            ext = ext.with_effect(TemperatureBias(temp_bias[t][:, None], t_ref_c=t_ref), t)
+    if np.any(temp_scale):
+        ext = ext.with_effect(TemperatureScale(temp_scale[:, None], t_ref_c=t_ref), Triad.ACCEL)
     if np.any(k2) or np.any(k3):
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
     if np.any(gsens):
@@ -406,21 +510,32 @@ def _extend(model: ErrorModel, baseline: dict, cands: list[Candidate], tab_a, g:
     return ext, base
 
 
-def _gain(session: ImuSession, chain: ChainResult, tab_a, res: AuditResult, sigma, jac, resid, g: float) -> dict:
-    """Held-out residual of the calibration and F0 false alarms, baseline versus extended (step 5)."""
+def _gain(session: ImuSession, tab_a, res: AuditResult, g: float) -> dict:
+    """Held-out residual of the calibration and F0 false alarms, baseline versus extended (step 5).
+
+    ``tab_a`` is the accelerometer table of :func:`candidate_table` (the noise reference the excess is fitted against).
+
+    Held-out: each position's residual when the nine parameters are fitted
+    without it (exact leave-one-out of the weighted least squares), over the sd
+    each noise model predicts for it; the mean square is ≈ 1 for a model that
+    states the calibration's real uncertainty. F0: the share of 1 s windows of
+    the measured static data that fail with λ0 derived from each model.
+    """
     base = res.baseline[Triad.ACCEL]
     ext = res.extended_model.get(Triad.ACCEL, base)
-    v = float(np.max(ext.excess_sd_norm)) ** 2
+    resid, sigma, jac, _ = scalar_residuals(base.params, tab_a)
     out = {}
-    for name, var in (("baseline", sigma**2), ("extended", sigma**2 + v)):
+    for name, model in (("baseline", base), ("extended", ext)):
+        var = sigma**2 + jac[:, :3] ** 2 @ model.excess_sd_norm**2
         w = 1.0 / np.sqrt(var)
-        _, _, coef = _loo_rss(jac * w[:, None], resid * w)
-        q, _ = np.linalg.qr(jac * w[:, None])
+        a = jac * w[:, None]
+        q, _ = np.linalg.qr(a)
+        coef, *_ = np.linalg.lstsq(a, resid * w, rcond=None)
         h = np.einsum("ij,ij->i", q, q)
-        e = resid - jac @ coef
-        loo = e / np.clip(1.0 - h, 1e-9, None)
+        loo = (resid - jac @ coef) / np.clip(1.0 - h, 1e-9, None)
         out[f"heldout_rms_norm_{name}"] = float(np.sqrt(np.mean(loo**2)))
-        out[f"heldout_chi2_{name}"] = float(np.mean(loo**2 / var))
+        # The held-out residual's variance is the datum's plus the prediction's: var / (1 − h).
+        out[f"heldout_chi2_{name}"] = float(np.mean(loo**2 * (1.0 - h) / var))
     n_avg = f0_window_samples(session.rate_hz)
     mask = static_mask(session.n_samples, tab_a.spans)
     for name, model in (("baseline", base), ("extended", ext)):

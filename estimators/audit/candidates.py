@@ -1,43 +1,79 @@
 """Candidate effects fitted at the position level, and the selection criterion (issue 4, step 4).
 
-Criterion. An effect is selected when two tests agree:
+Data. Two position-level records carry everything the candidates need:
 
-1. **Held-out positions**: the leave-one-position-out residual (exact for
-   linear least squares through the hat matrix, ``e_k / (1 − h_kk)``) must be
-   smaller with the effect than without it;
-2. **Likelihood ratio** ``LR`` above its quantile at a family-wise
-   false-naming rate of :data:`FAMILY_ALPHA` split over the candidates tried
-   (Bonferroni): for mean effects the exact F test (the residual scale is
-   estimated, ``n − p − k`` degrees of freedom; the χ² limit is far too
-   liberal in the tail at 20–40 positions), for variance effects χ² with one
-   degree of freedom (conservative at the boundary ``v = 0``).
+* the **scalar residual** of the baseline fit per position (accelerometers,
+  exact M1 equation, its predicted sigma from the position covariance), or the
+  **position mean** per axis (gyros: a MEMS gyro's scalar is not observable
+  against the Earth rate, which enters as an extra variance ``Ω²/3`` per axis);
+* the **half-to-half difference** of each position's mean (first half minus
+  second half; its predicted covariance is ``4×`` the covariance of the mean).
 
-Why both: the held-out criterion alone behaves like AIC and names a spurious
-one-parameter effect about 15 % of the time; BIC's ``ln n`` penalty is about
-6 % per candidate at 38 positions, i.e. ~40 % over a dozen candidates. The
+Criterion. An effect is selected when its test passes at a stated family-wise
+false-naming rate :data:`FAMILY_ALPHA`, split over the candidates actually
+tried (Bonferroni):
+
+* **mean effects** (deterministic regressors: drift, temperature,
+  non-linearity, g-sensitivity) by greedy forward selection: the exact F test
+  written as ``LR = n ln(RSS₀/RSS₁)`` (the residual scale is estimated,
+  ``n − p − k`` degrees of freedom; the χ² limit is far too liberal in the tail
+  at 20–40 positions), **and** the leave-one-position-out residual (exact
+  through the hat matrix, ``e_k/(1 − h_kk)``) must shrink: a held-out check no
+  bigger model passes for free. The weights carry the variance excess left
+  after the chosen effects, iterated to a fixed point (:func:`_means_with_excess`);
+* **variance effects** (bias instability, motion inside positions) by greedy
+  forward selection on the likelihood ratio of a variance-component model
+  (:func:`fit_variance`, :func:`select_variance`), against χ² with as many
+  degrees of freedom as components (conservative at the boundary ``θ = 0``,
+  where the null law is a χ² mixture).
+
+Disturbed positions. Motion in a few positions (a hand on the unit) is not a
+wander of every position: after the fits, a position whose half-to-half
+differences lie beyond the fitted model at the family-wise rate split over
+tests and positions is flagged (:func:`disturbed_positions`), left out, and
+everything is refitted (``nonstatic_positions`` then names the positions).
+
+Reference noise. The variance of a position mean is taken as ``diag(σ²)/n``
+with ``σ`` the baseline's noise for averages (batch means of the chain's batch
+length, pooled over the session: :func:`estimators.audit.statistics.with_noise_cov`),
+not the chain's per-position batch-means covariance: that one scatters by tens
+of percent (ten batches in a 5 s position) and is pooled over the three axes,
+so one axis' wander would inflate the others'.
+
+Why not the held-out criterion alone: it behaves like AIC and names a spurious
+one-parameter effect about 15 % of the time; BIC's ``ln n`` penalty is about 6 %
+per candidate at 38 positions, i.e. ~40 % over a dozen candidates. The
 Bonferroni quantile states the false-naming rate the audit promises. The
-``score`` of a candidate is ``LR − threshold`` (selected when > 0 and the
-held-out residual improves).
+``score`` of a candidate is ``LR − threshold``.
 
-Effects (``y`` the baseline scalar residual of M1 per position, accelerometers;
-gyro candidates use the gyro position means, since a MEMS gyro's scalar is not
-observable against the Earth rate):
+Effects (``J`` = ∂f/∂params of the exact scalar equation, ``u`` the unit
+direction of gravity in the sensor axes, ``ΔT`` temperature about its mean):
 
-* ``bias_drift``: per axis, ``∂f/∂b_i·(t_k − t_0)`` (accel), ``t_k`` on a gyro mean;
-* ``temperature_bias`` / ``temperature_scale``: per axis, ``∂f/∂b_i·ΔT_k`` /
-  ``∂f/∂e_i·ΔT_k`` (M3); gyro: ``ΔT_k`` on the mean;
-* ``scale_nonlinearity``: per axis, ``∂f/∂e_i·[ã_i, ã_i²]`` (M3's K2, K3: ``y_i(1 + K2 y_i + K3 y_i²)``);
-* ``g_sensitivity``: per gyro axis, the mean on ``[1, f_x, f_y, f_z]`` (M4);
-* ``bias_instability``: a variance that does not average down: residual
-  variance ``σ_k² + v`` against ``σ_k²`` (accel); gyro per axis likewise on
-  the means;
-* ``nonstatic_positions``: motion inside positions turns the sensed direction,
-  so it adds half-to-half differences *perpendicular* to gravity; tested as
-  extra perpendicular variance beyond an isotropic (sensor) excess, the latter
-  measured along gravity (where a small turn changes nothing to first order);
+* ``bias_drift``: per axis, ``J_b_i·(t_k − t̄)`` (accel), ``t_k`` on a gyro mean;
+* ``temperature_bias`` / ``temperature_scale``: per axis, ``J_b_i·ΔT_k`` /
+  ``J_e_i·ΔT_k`` (M3); gyro: ``ΔT_k`` on the mean; only with a temperature
+  span of at least :data:`MIN_TEMP_SPAN_C`;
+* ``scale_nonlinearity``: per axis, ``J_e_i·[ã_i, ã_i²]`` (M3's K2, K3);
+* ``g_sensitivity``: per gyro axis, the mean on the specific force ``[f_x, f_y, f_z]`` (M4),
+  after the vertical Earth rate ``c·Ω·u_i`` with ``|c| ≤ 1`` (:func:`vertical_earth_rate`);
+* ``bias_instability``: per sensor axis, bias wander that does not average
+  down. Two variance components: ``w_i`` on the half-to-half differences along
+  sensor axis ``i`` (wander inside a position) and ``v_i`` on the scalar
+  residuals with weight ``J_b_i²`` (wander between positions; the scalar
+  residual sees axis ``i`` through ``u_i²``, so the varied orientations tell
+  the axes apart); 2 degrees of freedom;
+* ``nonstatic_positions``: motion inside a position turns the sensed
+  direction, so it adds half-to-half variance *perpendicular to gravity*
+  (``p (I − u uᵀ)``) and leaves the norm (the scalar residual) alone, and the
+  gyros see the turning rates on every axis (``q I`` on their halves); tested
+  against the sensor-axis components above, which do not rotate with the unit;
 * ``quantization``: read from the output grid (:func:`estimators.noise.quantization_step`), part of the baseline;
 * ``gravity_mismatch``: a wrong local g is a common scale error of the three
   accelerometers, absorbed by ``e_x, e_y, e_z``: identifiable only against a passport.
+
+For a selected ``bias_instability`` the extension needs a process: a
+Gauss–Markov bias per axis whose two moments (inside and between positions)
+match the data, fitted by :func:`fit_gauss_markov` on the same likelihood.
 """
 
 from __future__ import annotations
@@ -45,7 +81,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 from scipy.stats import chi2
 from scipy.stats import f as f_dist
 
@@ -58,6 +93,14 @@ FAMILY_ALPHA = 0.01
 
 MIN_TEMP_SPAN_C = 2.0
 """Temperature span below which temperature effects are not identifiable, °C."""
+
+GM_MIN_TAU_WINDOWS = 1.0
+"""Shortest correlation time of a fitted wander, in noise windows: anything faster is in the noise
+reference itself (noise colour), and a Gauss–Markov fit pushed there would trade it for a per-sample
+variance the data do not have."""
+
+EARTH_RATE_VAR_NORM = 1.0 / 3.0
+"""Variance of the Earth rate on one gyro axis of unknown heading, in units of Ω² (normalized)."""
 
 CANDIDATE_NAMES = (
     "bias_instability",
@@ -81,10 +124,11 @@ class Candidate:
     effect, triad, axis : what and where (axis None for a triad-level effect).
     identifiable : False when the data cannot tell (``reason`` says why).
     lr : likelihood-ratio statistic; threshold : its selection quantile.
-    cv_ratio : held-out residual with / without the effect (< 1: better).
-    params : fitted parameters (normalized units named in the keys).
+    cv_ratio : held-out residual with / without the effect (< 1: better; 1 for variance effects).
+    params : fitted parameters (units in the keys; ``_norm``: a fraction of the triad's reference).
     selected : the criterion's verdict.
     reason : one line of evidence or why not identifiable.
+    in_baseline : the effect is part of the baseline fit (quantization on a grid), so it is not a cause.
     """
 
     effect: str
@@ -97,6 +141,7 @@ class Candidate:
     params: dict = field(default_factory=dict)
     selected: bool = False
     reason: str = ""
+    in_baseline: bool = False
 
     @property
     def score(self) -> float:
@@ -114,8 +159,12 @@ class Candidate:
             "cv_ratio": float(self.cv_ratio),
             "params": self.params,
             "selected": self.selected,
+            "in_baseline": self.in_baseline,
             "reason": self.reason,
         }
+
+
+# --- mean effects ------------------------------------------------------------
 
 
 def _loo_rss(a: np.ndarray, z: np.ndarray) -> tuple[float, float, np.ndarray]:
@@ -144,21 +193,6 @@ def mean_test(base: np.ndarray, extra: np.ndarray, z: np.ndarray) -> tuple[float
     se = np.sqrt(np.sum(rinv**2, axis=1))
     k = base.shape[1]
     return lr, loo1 / loo0, coef[k:], se[k:]
-
-
-def excess_variance(r: np.ndarray, var0: np.ndarray) -> tuple[float, float]:
-    """ML extra variance ``v ≥ 0`` of ``r ~ N(0, var0 + v)`` and its likelihood ratio against ``v = 0``."""
-
-    def nll(v):
-        s = var0 + v
-        return 0.5 * np.sum(np.log(s) + r * r / s)
-
-    top = max(float(np.mean(r * r)) * 4.0, 1e-30)
-    # The tolerance must be relative: normalized variances are ~1e-8, far below the default absolute 1e-5.
-    v = float(minimize_scalar(nll, bounds=(0.0, top), method="bounded", options={"xatol": 1e-6 * top}).x)
-    if nll(0.0) <= nll(v):
-        v = 0.0
-    return v, float(max(0.0, 2.0 * (nll(0.0) - nll(v))))
 
 
 @dataclass(frozen=True)
@@ -200,19 +234,188 @@ def forward_select(base: np.ndarray, z: np.ndarray, regs: dict, n_tests: int) ->
     return tests
 
 
-def excess_after(base: np.ndarray, chosen: np.ndarray, z: np.ndarray, var0: np.ndarray) -> tuple[float, float]:
-    """Extra variance (and its LR) of the residual left after the baseline and the chosen mean effects.
+def leverage_residual(design: np.ndarray, data: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Residual of ``data ≈ design θ`` (weights ``1/sd``), in data units, each over ``√(1 − h_kk)``.
 
-    ``base`` (n, p), ``chosen`` (n, k) and ``z`` are weighted by ``1/√var0``; each
-    residual is divided by ``√(1 − h)`` (its leverage) so the fitted columns do
-    not pass for a deficit of variance.
+    Dividing by the leverage keeps the fitted columns from passing for a
+    deficit of variance in the variance-component fits that follow.
     """
-    a = np.hstack([base, chosen])
+    a = design / sd[:, None]
+    z = data / sd
     q, _ = np.linalg.qr(a)
     coef, *_ = np.linalg.lstsq(a, z, rcond=None)
     h = np.einsum("ij,ij->i", q, q)
-    r = (z - a @ coef) * np.sqrt(var0) / np.sqrt(np.clip(1.0 - h, 1e-3, None))
-    return excess_variance(r, var0)
+    return (z - a @ coef) * sd / np.sqrt(np.clip(1.0 - h, 1e-3, None))
+
+
+def _threshold(k: int, n_tests: int) -> float:
+    return float(chi2.isf(FAMILY_ALPHA / max(n_tests, 1), k))
+
+
+def _threshold_mean(k: int, n: int, p: int, n_tests: int) -> float:
+    """LR threshold of a mean effect: the exact F test (scale estimated from ``n − p − k`` dof) written as ``n ln(RSS0/RSS1)``."""
+    dof = n - p - k
+    if dof < 1:
+        return float("inf")
+    crit = float(f_dist.isf(FAMILY_ALPHA / max(n_tests, 1), k, dof))
+    return float(n * np.log1p(k * crit / dof))
+
+
+# --- variance components -----------------------------------------------------
+
+
+@dataclass(frozen=True)
+class VarianceData:
+    """Vectors ``y_k ~ N(0, s0_k + Σ_j θ_j A_jk)`` for a variance-component fit.
+
+    Attributes
+    ----------
+    y : (n, q) data (normalized units); s0 : (n, q, q) their known covariance;
+    comps : (m, n, q, q) the component matrices ``A_jk`` (one per parameter ``θ_j``);
+    rows : (n,) index of each datum in the position table.
+    """
+
+    y: np.ndarray
+    s0: np.ndarray
+    comps: np.ndarray
+    rows: np.ndarray
+
+    @classmethod
+    def finite(cls, y: np.ndarray, s0: np.ndarray, comps: np.ndarray) -> "VarianceData":
+        """The rows of ``y`` (n, q), ``s0`` (n, q, q), ``comps`` (m, n, q, q) whose data are finite."""
+        ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(s0), axis=(1, 2))
+        return cls(y[ok], s0[ok], comps[:, ok], np.flatnonzero(ok))
+
+    def subset(self, keep: np.ndarray) -> "VarianceData":
+        """The same data with only the components ``keep`` (bool (m,))."""
+        return VarianceData(self.y, self.s0, self.comps[np.asarray(keep, bool)], self.rows)
+
+    def with_fixed(self, theta: np.ndarray, fixed: np.ndarray) -> "VarianceData":
+        """Components ``fixed`` (bool (m,)) folded into ``s0`` at ``theta``; the rest stay free."""
+        fixed = np.asarray(fixed, bool)
+        s0 = self.s0 + np.einsum("j,jkab->kab", np.asarray(theta, float)[fixed], self.comps[fixed])
+        return VarianceData(self.y, s0, self.comps[~fixed], self.rows)
+
+    def scaled(self, weight: np.ndarray) -> "VarianceData":
+        """The single free component multiplied per position by ``weight`` (indexed by table row)."""
+        return VarianceData(self.y, self.s0, self.comps * np.asarray(weight, float)[self.rows][None, :, None, None], self.rows)
+
+
+def _nll_score(theta: np.ndarray, data: list[VarianceData]) -> tuple[float, np.ndarray, np.ndarray]:
+    """``½ Σ_k [ln det S_k + y_kᵀ S_k⁻¹ y_k]`` over every dataset, its gradient in ``θ`` and the Fisher information.
+
+    Gradient ``½ Σ_k [tr(S⁻¹A_j) − yᵀS⁻¹A_jS⁻¹y]``; information ``½ Σ_k tr(S⁻¹A_j S⁻¹A_l)``.
+    """
+    m = theta.size
+    nll, grad, info = 0.0, np.zeros(m), np.zeros((m, m))
+    for d in data:
+        s = d.s0 + np.einsum("j,jkab->kab", theta, d.comps)
+        sol = np.linalg.solve(s, d.y[..., None])[..., 0]
+        _, logdet = np.linalg.slogdet(s)
+        nll += 0.5 * float(np.sum(logdet) + np.einsum("ka,ka->", d.y, sol))
+        s_inv_a = np.linalg.solve(s[None], d.comps)
+        grad += 0.5 * (np.einsum("jkaa->j", s_inv_a) - np.einsum("ka,jkab,kb->j", sol, d.comps, sol))
+        info += 0.5 * np.einsum("jkab,lkba->jl", s_inv_a, s_inv_a)
+    return nll, grad, info
+
+
+def fit_variance(data: list[VarianceData], *, max_iter: int = 100) -> tuple[np.ndarray, float]:
+    """Maximum-likelihood ``θ ≥ 0`` shared by ``data`` (:class:`VarianceData`), and the minimum negative log-likelihood.
+
+    Projected Fisher scoring, the classic variance-component iteration: from
+    ``θ = 0``, a Newton step with the Fisher information on the components not
+    held at the bound (a component at 0 whose gradient pushes below 0 stays
+    there), projected onto ``θ ≥ 0``, halved until the likelihood improves;
+    stops when a step changes the likelihood by less than 1e-9.
+    """
+    m = data[0].comps.shape[0]
+    theta = np.zeros(m)
+    nll, grad, info = _nll_score(theta, data)
+    for _ in range(max_iter if m else 0):
+        free = (theta > 0.0) | (grad < 0.0)
+        if not free.any():
+            break
+        step = np.zeros(m)
+        f = np.flatnonzero(free)
+        # A tiny ridge keeps a component the data cannot see (zero information) from a singular solve.
+        sub = info[np.ix_(f, f)] + 1e-12 * np.trace(info) * np.eye(f.size) / m
+        step[f] = np.linalg.solve(sub, -grad[f])
+        t = 1.0
+        while t > 1e-6:
+            cand = np.maximum(theta + t * step, 0.0)
+            c_nll, c_grad, c_info = _nll_score(cand, data)
+            if c_nll <= nll:
+                break
+            t *= 0.5
+        else:
+            break
+        done = nll - c_nll < 1e-9
+        theta, nll, grad, info = cand, c_nll, c_grad, c_info
+        if done:
+            break
+    return theta, nll
+
+
+def variance_se_at_zero(d: VarianceData, j: int) -> float:
+    """Fisher standard error of ``θ_j`` at ``θ = 0``: ``1/√(½ Σ_k tr(S0⁻¹A_jk S0⁻¹A_jk))`` (the detection scale of a variance effect)."""
+    m = np.linalg.solve(d.s0, d.comps[j])
+    info = 0.5 * float(np.einsum("kab,kba->", m, m))
+    return float(1.0 / np.sqrt(info)) if info > 0 else float("inf")
+
+
+# --- Gauss–Markov process behind a bias instability --------------------------
+
+
+def mean_variance_factor(length_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """``V(L/τ) = 2(τ/L)²(L/τ − 1 + e^{−L/τ})``: variance of a length-L mean of a unit Gauss–Markov process."""
+    x = np.asarray(length_s, float) / tau_s
+    return np.where(x < 1e-6, 1.0, 2.0 / np.maximum(x, 1e-6) ** 2 * (x - 1.0 + np.exp(-x)))
+
+
+def gauss_markov_moments(length_s: np.ndarray, tau_s: float, batch_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per unit variance of a Gauss–Markov bias (correlation time ``τ``): its excess over the chain's covariance.
+
+    Returns (between, halves), each (n,):
+
+    * between: variance of the position mean, ``V(L/τ)``;
+    * halves: variance of the half-to-half difference,
+      ``2 [V(h/τ) − (τ/h)² (1 − e^{−h/τ})²]`` with ``h = L/2``;
+
+    both less what the noise reference (batch means of ``batch_s``,
+    :func:`estimators.noise.batch_means_sd`) already holds of the process,
+    ``[V(b/τ) − V(L/τ)] / (n_b − 1)`` for the mean (×4 for the halves).
+    """
+    length = np.asarray(length_s, float)
+    half = 0.5 * length
+    adjacent = (tau_s / half) ** 2 * (1.0 - np.exp(-half / tau_s)) ** 2
+    nb = np.maximum(np.floor(length / batch_s), 2.0)
+    held = np.clip((mean_variance_factor(np.full_like(length, batch_s), tau_s) - mean_variance_factor(length, tau_s)) / (nb - 1.0), 0.0, None)
+    between = np.clip(mean_variance_factor(length, tau_s) - held, 0.0, None)
+    halves = np.clip(2.0 * (mean_variance_factor(half, tau_s) - adjacent) - 4.0 * held, 0.0, None)
+    return between, halves
+
+
+def fit_gauss_markov(between: VarianceData, halves: VarianceData, length_s: np.ndarray, batch_s: float) -> tuple[float, float]:
+    """(σ², τ_s) of the Gauss–Markov bias of one axis that best explains both records.
+
+    ``between`` and ``halves`` carry one free component each: the axis' weight
+    per position for a unit excess that is the same at every position (the
+    other components already folded into ``s0``). For a Gauss–Markov bias the
+    excess of position ``k`` is ``σ²`` times :func:`gauss_markov_moments` of its
+    length. The time constant is profiled on a log grid from
+    :data:`GM_MIN_TAU_WINDOWS` noise windows to 30 position lengths; σ² is the
+    likelihood maximum at each.
+    """
+    best = (0.0, 1.0, np.inf)
+    for tau in np.geomspace(GM_MIN_TAU_WINDOWS * batch_s, 30.0 * float(np.max(length_s)), 41):
+        b_w, h_w = gauss_markov_moments(length_s, float(tau), batch_s)
+        theta, nll = fit_variance([between.scaled(b_w), halves.scaled(h_w)])
+        if nll < best[2]:
+            best = (float(theta[0]), float(tau), nll)
+    return best[0], best[1]
+
+
+# --- the candidates of each triad ---------------------------------------------
 
 
 def not_identifiable(effect: str, triad: Triad, axis: str | None, reason: str) -> Candidate:
@@ -229,122 +432,359 @@ def temperature_reason(tab: PositionTable) -> str | None:
     return None
 
 
-def _threshold(k: int, n_tests: int) -> float:
-    return float(chi2.isf(FAMILY_ALPHA / max(n_tests, 1), k))
+def count_tests(has_gyro: bool, temperature: bool) -> int:
+    """Candidates tried (the Bonferroni split): per accelerometer axis drift, non-linearity,
+    instability (+ two temperature effects); nonstatic positions; per gyro axis drift,
+    g-sensitivity, instability (+ temperature bias)."""
+    accel = 3 * (3 + (2 if temperature else 0)) + 1
+    gyro = 3 * (3 + (1 if temperature else 0)) if has_gyro else 0
+    return accel + gyro
 
 
-def _threshold_mean(k: int, n: int, p: int, n_tests: int) -> float:
-    """LR threshold of a mean effect: the exact F test (scale estimated from ``n − p − k`` dof) written as ``n ln(RSS0/RSS1)``."""
-    dof = n - p - k
-    if dof < 1:
-        return float("inf")
-    crit = float(f_dist.isf(FAMILY_ALPHA / max(n_tests, 1), k, dof))
-    return float(n * np.log1p(k * crit / dof))
+@dataclass(frozen=True)
+class _MeanEffect:
+    """A mean-structure candidate: its regressor on the position record and on the halves (per unit parameter)."""
+
+    name: str
+    axis: int
+    keys: tuple[str, ...]
+    reg: np.ndarray  # (n, k) on the residual (accel) or the mean (gyro)
+    halves: np.ndarray  # (n, k) first-half minus second-half change of axis ``axis`` per unit physical parameter
+    sign: float  # physical parameter = sign · regression coefficient
 
 
-def accel_candidates(tab: PositionTable, params: np.ndarray, jac: np.ndarray, residual: np.ndarray, sigma: np.ndarray, n_tests: int) -> list[Candidate]:
-    """Candidates of the accelerometer triad from the baseline fit (module docstring)."""
-    tri = Triad.ACCEL
-    out: list[Candidate] = []
-    var0 = sigma**2
-    # Weights of the mean tests carry a provisional excess so unexplained scatter cannot pass for structure.
-    v, _ = excess_after(jac / sigma[:, None], np.zeros((sigma.size, 0)), residual / sigma, var0)
-    w = 1.0 / np.sqrt(var0 + v)
-    base = jac * w[:, None]
-    z = residual * w
-    dt = tab.t_mid_s - tab.t_mid_s.mean()
-    temp_reason = temperature_reason(tab)
-    dtemp = None if temp_reason else tab.temp_c - tab.temp_c.mean()
-    regs, keys = {}, {}
-    for i, ax in enumerate(AXES):
-        regs[("bias_drift", ax)] = jac[:, [i]] * dt[:, None]
-        keys[("bias_drift", ax)] = ("rate_norm_per_s",)
-        regs[("scale_nonlinearity", ax)] = jac[:, [3 + i]] * np.column_stack([tab.mean[:, i], tab.mean[:, i] ** 2])
-        keys[("scale_nonlinearity", ax)] = ("k2_norm", "k3_norm")
-        if dtemp is not None:
-            regs[("temperature_bias", ax)] = jac[:, [i]] * dtemp[:, None]
-            keys[("temperature_bias", ax)] = ("coef_norm_per_c",)
-            regs[("temperature_scale", ax)] = jac[:, [3 + i]] * dtemp[:, None]
-            keys[("temperature_scale", ax)] = ("coef_per_c",)
-        else:
-            out += [not_identifiable(n, tri, ax, temp_reason) for n in ("temperature_bias", "temperature_scale")]
-    tests = forward_select(base, z, {k: x * w[:, None] for k, x in regs.items()}, n_tests)
-    chosen = []
-    for (name, ax), t in tests.items():
-        # The baseline residual is f(p) ≈ J δp + x θ with θ the effect; f = −(model error) → sign flips.
-        fitted = {k: float(-c) for k, c in zip(keys[(name, ax)], t.coef)} | {f"{k}_se": float(e) for k, e in zip(keys[(name, ax)], t.se)}
-        if t.selected:
-            chosen.append(regs[(name, ax)] / sigma[:, None])
-        out.append(Candidate(name, tri, ax, True, t.lr, t.threshold, t.cv_ratio, fitted, t.selected,
-                             f"position residuals follow the {name} regressor of axis {ax}: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}"))
-    # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
-    extra = np.hstack(chosen) if chosen else np.zeros((sigma.size, 0))
-    v, lr_v = excess_after(jac / sigma[:, None], extra, residual / sigma, var0)
-    thr1 = _threshold(1, n_tests)
-    out.insert(0, Candidate("bias_instability", tri, None, True, lr_v, thr1, 1.0, {"excess_sd_norm": float(np.sqrt(v))}, lr_v > thr1,
-                            f"scalar residual scatter exceeds the white prediction by an extra sd of {np.sqrt(v):.3g} (normalized) that does not average down"))
-    out.append(nonstatic_candidate(tab, n_tests))
-    out.append(not_identifiable("gravity_mismatch", tri, None,
-                                "not identifiable: a wrong local g is a common scale error absorbed by ex, ey, ez; needs a passport (known scale factors)"))
+def _mean_effects(tab: PositionTable, jac: np.ndarray | None, f_b_mps2: np.ndarray | None, axis: int) -> list[_MeanEffect]:
+    """Mean effects of one axis: accelerometer when ``jac`` is given (exact scalar residual), else gyro."""
+    n = tab.t_mid_s.size
+    dt = (tab.t_mid_s - tab.t_mid_s.mean())[:, None]
+    drift_halves = -0.5 * tab.duration_s[:, None]
+    temp = temperature_reason(tab) is None
+    dtemp = (tab.temp_c - tab.temp_c.mean())[:, None] if temp else None
+    th = tab.temp_halves_c[:, None] if temp else None
+    i = axis
+    if jac is not None:
+        # The baseline residual is f ≈ J δp − J_θ θ for an effect θ that the model lacks: the sign flips.
+        out = [
+            _MeanEffect("bias_drift", i, ("rate_norm_per_s",), jac[:, [i]] * dt, drift_halves, -1.0),
+            _MeanEffect("scale_nonlinearity", i, ("k2_norm", "k3_norm"), jac[:, [3 + i]] * np.column_stack([tab.mean[:, i], tab.mean[:, i] ** 2]), np.zeros((n, 2)), -1.0),
+        ]
+        if temp:
+            out += [
+                _MeanEffect("temperature_bias", i, ("coef_norm_per_c",), jac[:, [i]] * dtemp, th, -1.0),
+                _MeanEffect("temperature_scale", i, ("coef_per_c",), jac[:, [3 + i]] * dtemp, tab.mean[:, [i]] * th, -1.0),
+            ]
+        return out
+    # Gyro keys are in SI (rad/s): the regression runs on means normalized by Ω.
+    out = [
+        _MeanEffect("bias_drift", i, ("rate_rps_per_s",), dt, drift_halves, 1.0),
+        _MeanEffect("g_sensitivity", i, tuple(f"g{a}_rps_per_mps2" for a in AXES), f_b_mps2, np.zeros((n, 3)), 1.0),
+    ]
+    if temp:
+        out.append(_MeanEffect("temperature_bias", i, ("coef_rps_per_c",), dtemp, th, 1.0))
     return out
 
 
-def nonstatic_candidate(tab: PositionTable, n_tests: int) -> Candidate:
-    """Extra half-to-half variance perpendicular to gravity beyond an isotropic excess (module docstring)."""
+def _select_means(effects: list[_MeanEffect], base: np.ndarray, data: np.ndarray, sd: np.ndarray, n_tests: int, n_halves: int):
+    """Forward selection (weights ``1/sd``); returns the tests, the chosen columns and the chosen effects' halves means (n, n_halves)."""
+    w = 1.0 / sd
+    tests = forward_select(base * w[:, None], data * w, {k: e.reg * w[:, None] for k, e in enumerate(effects)}, n_tests)
+    chosen = [effects[k].reg for k, t in tests.items() if t.selected]
+    halves_mean = np.zeros((data.size, n_halves))
+    for k, t in tests.items():
+        if t.selected:
+            e = effects[k]
+            halves_mean[:, e.axis if n_halves == 3 else 0] += e.halves @ (e.sign * t.coef)
+    return tests, (np.hstack(chosen) if chosen else np.zeros((data.size, 0))), halves_mean
+
+
+MEAN_PASSES = 4
+"""Most passes of the mean selection with re-fitted weights (:func:`_means_with_excess`)."""
+
+
+def _means_with_excess(effects: list[_MeanEffect], base: np.ndarray, data: np.ndarray, var0: np.ndarray, excess_weight: np.ndarray,
+                       n_tests: int, n_halves: int):
+    """Mean selection whose weights carry the variance excess left after the chosen effects, iterated to a fixed point.
+
+    Unexplained scatter must not pass for structure (the weights carry the
+    excess), and a mean effect must not pass for scatter (the excess is fitted
+    after it): from white weights, select, fit the excess ``v`` (components
+    ``excess_weight`` (m, n)) on what is left, reselect with
+    ``sd² = var0 + vᵀ·excess_weight``; stop when the chosen set repeats.
+    Returns the tests, the chosen columns, their halves means and the final sd (n,).
+    """
+    comps = excess_weight[:, :, None, None]
+    sd, seen = np.sqrt(var0), None
+    for _ in range(MEAN_PASSES):
+        tests, chosen, halves_mean = _select_means(effects, base, data, sd, n_tests, n_halves)
+        keys = frozenset(k for k, t in tests.items() if t.selected)
+        r = leverage_residual(np.hstack([base, chosen]), data, sd)
+        v, _ = fit_variance([VarianceData.finite(r[:, None], var0[:, None, None], comps)])
+        sd = np.sqrt(var0 + v @ excess_weight)
+        if keys == seen:
+            break
+        seen = keys
+    return tests, chosen, halves_mean, sd
+
+
+def _mean_candidates(effects, tests, triad: Triad, to_si: float, what: str) -> list[Candidate]:
+    """One candidate per mean effect; ``to_si`` turns the fitted coefficients into the units of their keys."""
+    out = []
+    for k, t in tests.items():
+        e = effects[k]
+        ax = AXES[e.axis]
+        fitted = {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef)} | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se)}
+        out.append(Candidate(e.name, triad, ax, True, t.lr, t.threshold, t.cv_ratio, fitted, t.selected,
+                             f"{what} of axis {ax} follow the {e.name} regressor: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}"))
+    return out
+
+
+@dataclass(frozen=True)
+class VarianceEffect:
+    """A variance candidate: the components ``(record, component)`` it frees in the records of :func:`select_variance`."""
+
+    name: str
+    triad: Triad
+    axis: int | None
+    comps: tuple[tuple[int, int], ...]
+
+
+@dataclass(frozen=True)
+class _VarianceTest:
+    lrs: np.ndarray  # (records,) the likelihood ratio each record contributes
+    threshold: float
+    thetas: tuple[np.ndarray, ...]
+
+    @property
+    def lr(self) -> float:
+        return float(self.lrs.sum())
+
+
+def _fit_records(records: list[VarianceData], active: list[np.ndarray]) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+    """Every record fitted on its own with only its ``active`` components free (the others at zero)."""
+    thetas, nlls = [], []
+    for rec, act in zip(records, active):
+        th = np.zeros(act.size)
+        if rec.y.shape[0]:
+            th[act], nll = fit_variance([rec.subset(act)])
+        else:
+            nll = 0.0
+        thetas.append(th)
+        nlls.append(nll)
+    return tuple(thetas), np.array(nlls)
+
+
+def select_variance(effects: list[VarianceEffect], records: list[VarianceData], n_tests: int):
+    """Forward selection of variance effects over independent ``records``.
+
+    As for the mean effects: each remaining effect is tested (profile LR, χ²
+    with one degree of freedom per component it frees) against the components
+    already selected; the largest margin over its threshold joins; repeat. One
+    at a time, because effects overlap: a sensor-axis wander and a motion
+    perpendicular to gravity both load a horizontal axis; tested jointly, each
+    could hide behind the other. Returns (tests by index, selected indices,
+    final fitted components per record).
+    """
+    active = [np.zeros(r.comps.shape[0], bool) for r in records]
+    thetas, nlls = _fit_records(records, active)
+    tests: dict[int, _VarianceTest] = {}
+    selected: list[int] = []
+    remaining = list(range(len(effects)))
+    while remaining:
+        for k in remaining:
+            trial = [a.copy() for a in active]
+            for r, j in effects[k].comps:
+                trial[r][j] = True
+            th, nl = _fit_records(records, trial)
+            dof = sum(1 for r, _ in effects[k].comps if records[r].y.shape[0])
+            tests[k] = _VarianceTest(np.clip(2.0 * (nlls - nl), 0.0, None), _threshold(max(dof, 1), n_tests), th)
+        passing = [k for k in remaining if tests[k].lr > tests[k].threshold]
+        if not passing:
+            break
+        best = max(passing, key=lambda k: tests[k].lr - tests[k].threshold)
+        selected.append(best)
+        for r, j in effects[best].comps:
+            active[r][j] = True
+        thetas, nlls = tests[best].thetas, _fit_records(records, active)[1]
+        remaining.remove(best)
+    return tests, selected, thetas
+
+
+def variance_candidates(effects: list[VarianceEffect], records: list[VarianceData], duration_s: np.ndarray, n_tests: int, batch_s: float,
+                        gyro_to_si: float = EARTH_RATE_RPS) -> tuple[list[Candidate], tuple[np.ndarray, ...]]:
+    """The variance candidates of :func:`select_variance`, with a Gauss–Markov fit for each selected ``bias_instability``,
+    and the selected model's components per record.
+
+    A ``bias_instability`` frees ``((between record, i), (halves record, i))``;
+    ``nonstatic_positions`` the accelerometer halves' perpendicular component
+    (and the gyro halves' isotropic one).
+    """
+    tests, selected, final = select_variance(effects, records, n_tests)
+    out = []
+    for k, e in enumerate(effects):
+        t = tests[k]
+        th = final if k in selected else t.thetas
+        if e.name == "nonstatic_positions":
+            (ra, ja), *gyro = e.comps
+            p = float(th[ra][ja])
+            q = float(th[gyro[0][0]][gyro[0][1]]) if gyro else 0.0
+            # A slow wobble of rms θ about each body axis moves each perpendicular half mean by ~θ, their difference by ~√2 θ.
+            angle = float(np.sqrt(p / 2.0))
+            out.append(Candidate(e.name, e.triad, None, True, t.lr, t.threshold, 1.0,
+                                 {"perp_excess_sd_norm": float(np.sqrt(p)), "gyro_excess_sd_rps": float(np.sqrt(q) * gyro_to_si), "angle_rms_rad": angle,
+                                  "band_hz": list(wobble_band(duration_s))}, k in selected,
+                                 f"half-to-half differences perpendicular to gravity exceed the sensor-axis wander by sd {np.sqrt(p):.3g}"
+                                 f"{f' and the gyros turn by sd {np.sqrt(q) * gyro_to_si:.3g} rad/s' if gyro else ''}"
+                                 f" (~{angle:.2g} rad rms inside positions): LR {t.lr:.1f} (threshold {t.threshold:.1f})"))
+            continue
+        (rb, i), (rh, _) = e.comps
+        vb, vh = float(th[rb][i]), float(th[rh][i])
+        params = {"between_sd_norm": float(np.sqrt(vb)), "between_var_se_norm2": variance_se_at_zero(records[rb], i),
+                  "within_halves_sd_norm": float(np.sqrt(vh)), "lr_between": float(t.lrs[rb]), "lr_within": float(t.lrs[rh])}
+        if k in selected:
+            others_b = np.arange(final[rb].size) != i
+            others_h = np.arange(final[rh].size) != i
+            var, tau = fit_gauss_markov(records[rb].with_fixed(final[rb], others_b), records[rh].with_fixed(final[rh], others_h), duration_s, batch_s)
+            params |= {"gm_sigma_norm": float(np.sqrt(var)), "gm_tau_s": tau}
+        ax = AXES[i]
+        out.append(Candidate(e.name, e.triad, ax, True, t.lr, t.threshold, 1.0, params, k in selected,
+                             f"{e.triad.value} {ax} bias wanders by sd {np.sqrt(vb):.3g} between positions (LR {t.lrs[rb]:.1f}) and adds sd {np.sqrt(vh):.3g} "
+                             f"to the half-to-half differences (LR {t.lrs[rh]:.1f}), beyond white noise: LR {t.lr:.1f} (threshold {t.threshold:.1f})"))
+    return out, final
+
+
+def halves_chi2(records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per position (n table rows): χ² of its half-to-half differences under the fitted model, and its degrees of freedom.
+
+    The halves records are every second one of :func:`variance_effects`' order (accel, gyro).
+    """
+    chi, dof = np.zeros(n), np.zeros(n)
+    for rec, th in zip(records[1::2], thetas[1::2]):
+        if rec.y.shape[0] == 0:
+            continue
+        cov = rec.s0 + np.einsum("j,jkab->kab", th, rec.comps)
+        chi[rec.rows] += np.einsum("ka,ka->k", rec.y, np.linalg.solve(cov, rec.y[..., None])[..., 0])
+        dof[rec.rows] += rec.y.shape[1]
+    return chi, dof
+
+
+def disturbed_positions(records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int, n_tests: int) -> np.ndarray:
+    """Rows whose halves lie beyond the fitted model at the family-wise rate split over tests and positions (bool (n,)).
+
+    Motion in a few positions (a hand on the unit, a knock) is not a wander of
+    every position: its halves stand out against whatever the homogeneous
+    components explain. Bonferroni over :data:`FAMILY_ALPHA` / (tests × positions).
+    """
+    chi, dof = halves_chi2(records, thetas, n)
+    p = np.where(dof > 0, chi2.sf(chi, np.maximum(dof, 1)), 1.0)
+    return p < FAMILY_ALPHA / (max(n_tests, 1) * n)
+
+
+def wobble_band(duration_s: np.ndarray) -> tuple[float, float]:
+    """Band of a wobble the half-to-half differences resolve, Hz: periods from two position lengths to half of one."""
+    length = float(np.median(duration_s))
+    return 0.5 / length, 2.0 / length
+
+
+@dataclass(frozen=True)
+class TriadRecords:
+    """One triad after its mean effects: their candidates, and the two records its variance effects are tested on.
+
+    ``between`` (n, q): the scalar residual (accel, q = 1, components ``J_b_i²``) or the
+    gyro means' residuals (q = 3, components ``e_i e_iᵀ``); ``halves`` (n, 3): the
+    half-to-half differences less the selected mean effects' share, components
+    ``e_i e_iᵀ`` and a motion component (accel: ``I − u uᵀ``; gyro: ``I``).
+    """
+
+    candidates: list[Candidate]
+    between: VarianceData
+    halves: VarianceData
+
+
+def _halves_record(tab: PositionTable, halves_mean: np.ndarray, motion: np.ndarray) -> VarianceData:
+    n = tab.t_mid_s.size
+    comps = np.stack([np.broadcast_to(np.diag(np.eye(3)[i]), (n, 3, 3)) for i in range(3)] + [motion])
+    return VarianceData.finite(tab.halves - halves_mean, 4.0 * tab.cov, comps)
+
+
+def accel_records(tab: PositionTable, jac: np.ndarray, residual: np.ndarray, sigma: np.ndarray, n_tests: int) -> TriadRecords:
+    """Accelerometer mean candidates and variance records (module docstring).
+
+    Parameters
+    ----------
+    tab : the accelerometer :class:`PositionTable` (covariances from the baseline noise).
+    jac : (n, 9) ∂f/∂params of the exact scalar equation at the baseline; residual : (n,) f; sigma : (n,) its predicted sd.
+    n_tests : candidates tried (:func:`count_tests`).
+    """
+    tri = Triad.ACCEL
+    var0 = sigma**2
+    g_b2 = jac[:, :3] ** 2  # a bias wander of axis i moves f by ∂f/∂b_i ≈ −u_i
+    comps = g_b2.T[:, :, None, None]
+
+    def between(design, sd):
+        return VarianceData.finite(leverage_residual(design, residual, sd)[:, None], var0[:, None, None], comps)
+
+    effects = [e for i in range(3) for e in _mean_effects(tab, jac, None, i)]
+    tests, chosen, halves_mean, sd = _means_with_excess(effects, jac, residual, var0, g_b2.T, n_tests, 3)
+    out = _mean_candidates(effects, tests, tri, 1.0, "position residuals")
+    reason = temperature_reason(tab)
+    if reason is not None:
+        out += [not_identifiable(name, tri, ax, reason) for ax in AXES for name in ("temperature_bias", "temperature_scale")]
+    out.append(not_identifiable("gravity_mismatch", tri, None,
+                                "not identifiable: a wrong local g is a common scale error absorbed by ex, ey, ez; needs a passport (known scale factors)"))
     u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
-    helper = np.where(np.abs(u[:, [0]]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    p1 = np.cross(u, helper)
-    p1 /= np.linalg.norm(p1, axis=1, keepdims=True)
-    p2 = np.cross(u, p1)
-    comp, var0, perp = [], [], []
-    for basis, is_perp in ((u, False), (p1, True), (p2, True)):
-        comp.append(np.einsum("ki,ki->k", tab.halves, basis))
-        var0.append(4.0 * np.einsum("ki,kij,kj->k", basis, tab.cov, basis))
-        perp.append(np.full(len(u), is_perp))
-    d, v0, pp = np.concatenate(comp), np.concatenate(var0), np.concatenate(perp)
-    # A small turn leaves the component along gravity unchanged (second order): it alone measures the sensor excess.
-    iso, _ = excess_variance(d[~pp], v0[~pp])
-    extra, lr = excess_variance(d[pp], v0[pp] + iso)
-    thr = _threshold(1, n_tests)
-    angle = float(np.sqrt(extra / 2.0))
-    return Candidate("nonstatic_positions", Triad.ACCEL, None, True, lr, thr, 1.0,
-                     {"perp_excess_sd_norm": float(np.sqrt(extra)), "isotropic_excess_sd_norm": float(np.sqrt(iso)), "angle_rms_rad": angle},
-                     lr > thr,
-                     f"half-to-half differences perpendicular to gravity exceed the isotropic excess by sd {np.sqrt(extra):.3g} (normalized): LR {lr:.1f} (threshold {thr:.1f})")
+    perp = np.eye(3)[None] - np.einsum("ka,kb->kab", u, u)
+    # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
+    return TriadRecords(out, between(np.hstack([jac, chosen]), sd), _halves_record(tab, halves_mean, perp))
 
 
-def gyro_candidates(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> list[Candidate]:
-    """Gyro candidates on the position means (M4); the Earth rate enters as extra variance ``Ω²/3``."""
+def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> TriadRecords:
+    """Gyro mean candidates (M4, on the position means) and variance records; the Earth rate enters as :data:`EARTH_RATE_VAR_NORM`.
+
+    ``f_b_mps2`` (n, 3) is the specific force of each position (the accelerometer means), m/s².
+    """
     tri = Triad.GYRO
     out: list[Candidate] = []
-    dt = tab.t_mid_s - tab.t_mid_s.mean()
-    temp_reason = temperature_reason(tab)
-    thr1 = _threshold(1, n_tests)
+    n = tab.t_mid_s.size
+    reason = temperature_reason(tab)
+    ones = np.ones((n, 1))
+    resid, var0, halves_mean = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 3))
+    up = f_b_mps2 / np.linalg.norm(f_b_mps2, axis=1, keepdims=True)
     for i, ax in enumerate(AXES):
-        y = tab.mean[:, i]
-        var0 = tab.cov[:, i, i] + 1.0 / 3.0  # the Earth rate (normalized: 1) on an axis of unknown heading
-        w0 = 1.0 / np.sqrt(var0)
-        v, _ = excess_after(w0[:, None], np.zeros((y.size, 0)), y * w0, var0)
-        w = 1.0 / np.sqrt(var0 + v)
-        base = w[:, None]
-        regs = {"bias_drift": (dt[:, None], ("rate_rps_per_s",)), "g_sensitivity": (f_b_mps2, ("gx_rps_per_mps2", "gy_rps_per_mps2", "gz_rps_per_mps2"))}
-        if temp_reason is None:
-            regs["temperature_bias"] = ((tab.temp_c - tab.temp_c.mean())[:, None], ("coef_rps_per_c",))
-        tests = forward_select(base, y * w, {k: x * w[:, None] for k, (x, _) in regs.items()}, n_tests)
-        chosen = []
-        for name, t in tests.items():
-            keys = regs[name][1]
-            fitted = {k: float(c * EARTH_RATE_RPS) for k, c in zip(keys, t.coef)} | {f"{k}_se": float(e * EARTH_RATE_RPS) for k, e in zip(keys, t.se)}
-            if t.selected:
-                chosen.append(regs[name][0] * w0[:, None])
-            out.append(Candidate(name, tri, ax, True, t.lr, t.threshold, t.cv_ratio, fitted, t.selected,
-                                 f"gyro {ax} position means follow the {name} regressor: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}"))
-        extra = np.hstack(chosen) if chosen else np.zeros((y.size, 0))
-        v, lr_v = excess_after(w0[:, None], extra, y * w0, var0)
-        out.append(Candidate("bias_instability", tri, ax, True, lr_v, thr1, 1.0, {"excess_sd_norm": float(np.sqrt(v))}, lr_v > thr1,
-                             f"gyro {ax} position means scatter beyond noise and Earth rate by sd {np.sqrt(v):.3g} Ω"))
-        if temp_reason is not None:
-            out.append(not_identifiable("temperature_bias", tri, ax, temp_reason))
+        var0[:, i] = tab.cov[:, i, i] + EARTH_RATE_VAR_NORM
+        y = tab.mean[:, i] - vertical_earth_rate(tab.mean[:, i], up[:, i], var0[:, i]) * up[:, i]
+        effects = _mean_effects(tab, None, f_b_mps2, i)
+        tests, chosen, hm, sd = _means_with_excess(effects, ones, y, var0[:, i], np.ones((1, n)), n_tests, 1)
+        halves_mean[:, i] = hm[:, 0]
+        resid[:, i] = leverage_residual(np.hstack([ones, chosen]), y, sd)
+        out += _mean_candidates(effects, tests, tri, EARTH_RATE_RPS, f"gyro {ax} position means")
+        if reason is not None:
+            out.append(not_identifiable("temperature_bias", tri, ax, reason))
         out.append(not_identifiable("temperature_scale", tri, ax, "not identifiable: the gyro scale needs a known rate (the Earth rate is below a MEMS gyro's noise)"))
         out.append(not_identifiable("scale_nonlinearity", tri, ax, "not identifiable: static positions give the gyros only the Earth rate"))
+    diag = np.stack([np.broadcast_to(np.diag(np.eye(3)[i]), (n, 3, 3)) for i in range(3)])
+    between = VarianceData.finite(resid, np.einsum("ki,ij->kij", var0, np.eye(3)), diag)
+    return TriadRecords(out, between, _halves_record(tab, halves_mean, np.broadcast_to(np.eye(3), (n, 3, 3))))
+
+
+def vertical_earth_rate(mean_norm: np.ndarray, up_i: np.ndarray, var: np.ndarray) -> float:
+    """The vertical Earth rate's share ``c·u_i`` of one gyro axis' means, ``|c| ≤ 1`` (normalized by Ω).
+
+    The Earth rate's vertical part ``Ω sin φ · u`` follows the gravity direction
+    like a diagonal g-sensitivity of ``Ω sin φ / g``; the latitude is not known,
+    so ``c = sin φ`` is fitted (weighted least squares with an intercept) and
+    clipped to [−1, 1]: a diagonal g-sensitivity is named only beyond what the
+    Earth rate could be.
+    """
+    a = np.column_stack([np.ones_like(up_i), up_i]) / np.sqrt(var)[:, None]
+    coef, *_ = np.linalg.lstsq(a, mean_norm / np.sqrt(var), rcond=None)
+    return float(np.clip(coef[1], -1.0, 1.0))
+
+
+def variance_effects(has_gyro: bool) -> list[VarianceEffect]:
+    """``bias_instability`` per axis of each triad and ``nonstatic_positions``, over the records
+    ``[accel between, accel halves, gyro between, gyro halves]`` (the last two only with a gyro)."""
+    out = [VarianceEffect("bias_instability", Triad.ACCEL, i, ((0, i), (1, i))) for i in range(3)]
+    if has_gyro:
+        out += [VarianceEffect("bias_instability", Triad.GYRO, i, ((2, i), (3, i))) for i in range(3)]
+    out.append(VarianceEffect("nonstatic_positions", Triad.ACCEL, None, ((1, 3), (3, 3)) if has_gyro else ((1, 3),)))
     return out

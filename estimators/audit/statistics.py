@@ -15,7 +15,11 @@ the simulation reproduces the unit:
 * ``allan`` per axis: overlapping Allan deviation of the longest position at
   ``τ = L/8`` (:mod:`estimators.noise`);
 * ``param_scatter`` (accelerometers): the 9 estimates from the first and the
-  second half of the positions, ``mean((p₁ − p₂)² / (σ₁² + σ₂²))`` (≈ 1).
+  second half of the positions, ``mean((p₁ − p₂)² / (σ₁² + σ₂²))`` (≈ 1,
+  :func:`param_scatter`);
+* ``means_rms`` per axis (gyros): scatter of the position means about the
+  session mean over each mean's sd (a MEMS gyro's scalar is not observable;
+  this is where g-sensitivity and wander show).
 
 :func:`triad_curves` keeps, by the same rule for the measured session and every
 replica, the few curves the report plots (:class:`TriadCurves`): the
@@ -25,13 +29,13 @@ position and the distribution of the F0 statistic of 1 s window means.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from estimators.chain import ChainResult
 from estimators.conventions import AXES, Triad, reference_magnitude
-from estimators.ninepar import canonical_triad_matrix, ellipsoid_residual, estimate_triad, position_arrays
+from estimators.ninepar import canonical_triad_matrix, ellipsoid_residual, position_arrays
 from estimators.noise import overlapping_allan_deviation
 from estimators.scalar import F0Config, f0_batch
 
@@ -51,7 +55,9 @@ class PositionTable:
     t_mid_s : (n,) mid time of each position, s from the session start.
     temp_c : (n,) mean temperature, °C, or None.
     mean : (n, 3) normalized position means; cov : (n, 3, 3) covariance of those means.
-    halves : (n, 3) first-half minus second-half mean, normalized.
+    halves : (n, 3) first-half minus second-half mean, normalized; NaN for a position merged
+        from several intervals (its span holds the turn in between).
+    temp_halves_c : (n,) first-half minus second-half mean temperature, °C (NaN as for ``halves``), or None.
     n_samples : (n,) samples per position; duration_s : (n,) lengths, s.
     spans : (n, 2) sample index spans ``[start, stop)``.
     """
@@ -61,20 +67,29 @@ class PositionTable:
     mean: np.ndarray
     cov: np.ndarray
     halves: np.ndarray
+    temp_halves_c: np.ndarray | None
     n_samples: np.ndarray
     duration_s: np.ndarray
     spans: np.ndarray
 
 
-def position_table(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad) -> PositionTable:
-    """The :class:`PositionTable` of ``triad`` from a chain result and the session's samples ``x_si`` (N, 3)."""
+def position_table(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, temp_c: np.ndarray | None = None) -> PositionTable:
+    """The :class:`PositionTable` of ``triad`` from a chain result and the session's samples.
+
+    ``x_si`` (N, 3) are the triad's samples, SI; ``temp_c`` (N,) the session's temperature, °C, or None.
+    """
     ref = reference_magnitude(triad, chain.gravity_mps2)
     mean, cov = position_arrays(chain.positions, triad, ref)
     spans = np.array([[p.index_start, p.index_stop] for p in chain.positions], dtype=int).reshape(-1, 2)
-    halves = np.empty((len(spans), 3))
-    for k, (a, b) in enumerate(spans):
+    halves = np.full((len(spans), 3), np.nan)
+    temp_halves = None if temp_c is None else np.full(len(spans), np.nan)
+    for k, ((a, b), pos) in enumerate(zip(spans, chain.positions)):
+        if pos.n_intervals != 1:
+            continue
         h = (a + b) // 2
         halves[k] = (x_si[a:h].mean(axis=0) - x_si[h:b].mean(axis=0)) / ref
+        if temp_halves is not None:
+            temp_halves[k] = temp_c[a:h].mean() - temp_c[h:b].mean()
     temps = [p.temp_mean_c for p in chain.positions]
     temp = None if any(v is None for v in temps) or not temps else np.array(temps, float)
     return PositionTable(
@@ -83,10 +98,32 @@ def position_table(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad:
         mean=mean,
         cov=cov,
         halves=halves,
+        temp_halves_c=temp_halves if temp is not None else None,
         n_samples=np.array([p.n_samples for p in chain.positions], int),
         duration_s=np.array([p.duration_s for p in chain.positions]),
         spans=spans,
     )
+
+
+def with_noise_cov(tab: PositionTable, noise_sd_norm: np.ndarray) -> PositionTable:
+    """``tab`` with each position's covariance of the mean ``diag(σ²)/n`` from one noise level (3,), normalized.
+
+    The candidates' reference (:mod:`estimators.audit.candidates`): pooled over
+    the whole session it is precise, where the chain's per-position batch-means
+    covariance scatters by tens of percent (ten batches of a 5 s position) and
+    takes in part of a bias wander it is meant to reveal.
+    """
+    sd = np.asarray(noise_sd_norm, float).reshape(3)
+    cov = np.einsum("k,ij->kij", 1.0 / tab.n_samples, np.diag(sd**2))
+    return replace(tab, cov=cov)
+
+
+def subset_table(tab: PositionTable, keep: np.ndarray) -> PositionTable:
+    """The positions ``keep`` (bool (n,)) of ``tab``."""
+    k = np.asarray(keep, bool)
+    pick = lambda a: None if a is None else a[k]  # noqa: E731
+    return PositionTable(tab.t_mid_s[k], pick(tab.temp_c), tab.mean[k], tab.cov[k], tab.halves[k], pick(tab.temp_halves_c),
+                         tab.n_samples[k], tab.duration_s[k], tab.spans[k])
 
 
 def static_mask(n: int, spans: np.ndarray) -> np.ndarray:
@@ -113,6 +150,32 @@ def f0_config(params: np.ndarray, reference: float, lambda0: float, n_avg: int =
     return F0Config(lambda0=lambda0, reference=reference, bias_norm=tuple(params[:3]), matrix=canonical_triad_matrix(params), n_avg=n_avg)
 
 
+def param_scatter(params: np.ndarray, tab: PositionTable) -> float | None:
+    """``mean_j (p₁ − p₂)_j² / (σ₁² + σ₂²)_j`` of the 9 parameters fitted on the first and second half of the positions.
+
+    Each half is one Gauss–Newton step of the exact scalar equation (M1) from
+    the whole session's ``params``, weighted by the predicted sigma, with its
+    covariance ``(AᵀA)⁻¹`` (from the QR factor, no inverse of AᵀA): ≈ 1 when the
+    halves differ by noise only. A half whose geometry is poor still gives an
+    answer with a large covariance (the chain's observability gate would
+    refuse it, and the statistic would vanish exactly where it matters).
+    None when a half has fewer than ``MIN_POSITIONS`` positions.
+    """
+    f, sigma, jac, _ = scalar_residuals(params, tab)
+    half = f.size // 2
+    if half < MIN_POSITIONS:
+        return None
+    est, var = [], []
+    for sl in (slice(0, half), slice(half, None)):
+        a = jac[sl] / sigma[sl, None]
+        step, *_ = np.linalg.lstsq(a, -f[sl] / sigma[sl], rcond=None)
+        r = np.linalg.qr(a, mode="r")
+        r_inv = np.linalg.solve(r, np.eye(r.shape[0]))
+        est.append(step)
+        var.append(np.sum(r_inv**2, axis=1))
+    return float(np.mean((est[0] - est[1]) ** 2 / (var[0] + var[1])))
+
+
 def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float) -> dict[str, float]:
     """Flat ``{name: value}`` statistics of one triad (module docstring); absent ones are left out."""
     triad = Triad(triad)
@@ -121,7 +184,7 @@ def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, tria
         return out
     tab = position_table(chain, x_si, t_s, triad)
     sd_half = 2.0 * np.sqrt(np.einsum("kii->ki", tab.cov))
-    ok = sd_half > 0
+    ok = (sd_half > 0) & np.isfinite(tab.halves)
     for i, ax in enumerate(AXES):
         if ok[:, i].any():
             out[f"halves_rms_{ax}"] = float(np.sqrt(np.mean((tab.halves[ok[:, i], i] / sd_half[ok[:, i], i]) ** 2)))
@@ -141,11 +204,15 @@ def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, tria
         s = s[np.isfinite(s)]
         out["f0_sd"] = float(np.std(s))
         out["f0_q999"] = float(np.quantile(np.abs(s - np.mean(s)), 0.999))
-        half = len(chain.positions) // 2
-        parts = [estimate_triad(chain.positions[sl], triad, ref) for sl in (slice(0, half), slice(half, None))]
-        if all(p.params is not None for p in parts):
-            var = np.diag(parts[0].cov) + np.diag(parts[1].cov)
-            out["param_scatter"] = float(np.mean((parts[0].params - parts[1].params) ** 2 / var))
+        scatter = param_scatter(np.asarray(est.params, float), tab)
+        if scatter is not None:
+            out["param_scatter"] = scatter
+    if triad is Triad.GYRO:
+        # Between-position scatter of the gyro means about their session mean, over each mean's sd:
+        # a constant bias and the Earth rate give ≈ 1 (MEMS), g-sensitivity and wander more.
+        dev = (tab.mean - tab.mean.mean(axis=0)) / np.sqrt(np.einsum("kii->ki", tab.cov))
+        for i, ax in enumerate(AXES):
+            out[f"means_rms_{ax}"] = float(np.sqrt(np.mean(dev[:, i] ** 2)))
     return out
 
 

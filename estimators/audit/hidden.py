@@ -1,0 +1,250 @@
+"""Sessions with one hidden effect: the audit's own validation (issue 4, "Done means").
+
+A seeded generator builds an otherwise baseline session and hides exactly one
+effect in it (:data:`HIDDEN_KINDS`: effect and triad; the axis, sign and
+magnitude are the caller's or drawn from the seed). The audit passes a trial
+when the set it names is exactly ``{(effect, triad, axis)}``; on an effect-free
+session when it names nothing.
+
+Session. 27 random orientations (each ≥ 30° from the last) held 5 s, 3 s turns, 50 Hz, MEMS-like
+accelerometers (0.01 m/s² per sample) and gyros (2e-3 rad/s per sample) with
+random bias, scale and non-orthogonality, and a temperature cycle of 110 s
+between 20 and 40 °C — not monotone in time over the 213 s session, so a
+temperature effect and a time effect have different regressors.
+
+Magnitude. ``size`` counts the effect's own detection standard error on the
+effect-free session of the same seed (what the data can resolve):
+
+* mean effects (``bias_drift``, ``temperature_bias``, ``temperature_scale``,
+  ``scale_nonlinearity`` (K2), ``g_sensitivity`` (the diagonal term)): the
+  standard error of the candidate's coefficient in its weighted regression;
+* ``bias_instability``: the root of the test's expected evidence,
+  ``size² = E[LR] = Σ_k x_k − ln(1 + x_k)`` over the scalar residuals (or gyro
+  means) and the half-to-half differences, ``x_k`` the wander's share of each
+  datum's variance — for a one-parameter mean effect the same rule gives the
+  coefficient over its standard error. The Gauss–Markov correlation time is
+  drawn log-uniform in [1, 4] s and σ² solved from the size;
+* ``nonstatic_positions``: the wobble angle (rms per body axis, band 0.05–0.5
+  Hz) in units of the predicted sd of a perpendicular half-to-half difference
+  over √2 (the halves see only the slow part of the wobble: the size is
+  optimistic by a band-dependent factor);
+* ``quantization``: ten times the grid step over the white noise's sd (size
+  10: one count per sd; the grid is read exactly from the samples, whatever
+  its step: every size resolves; beyond ~30 a static output freezes on one
+  count, which the chain refuses).
+
+A hidden ``quantization`` is named by the baseline (it is part of it): a trial
+counts it named when the baseline found a grid on that triad.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import brentq
+
+from estimators.chain import ChainConfig, ChainResult, run_chain
+from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
+from estimators.session import ImuSession
+from estimators.sim import (
+    Bias,
+    BiasDrift,
+    BiasInstability,
+    CycleTemperature,
+    ErrorModel,
+    GSensitivity,
+    NonOrthogonality,
+    NonstaticPositions,
+    Quantization,
+    Rounding,
+    ScaleFactor,
+    ScaleNonlinearity,
+    TemperatureBias,
+    TemperatureScale,
+    TriadErrorModel,
+    WhiteNoise,
+    SessionSpec,
+    multi_position_profile,
+    random_attitudes,
+    simulate,
+)
+
+from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines
+from .candidates import EARTH_RATE_VAR_NORM, Candidate, gauss_markov_moments
+from .statistics import position_table, scalar_residuals
+
+GRAVITY_MPS2 = 9.80665
+RATE_HZ = 50.0
+HOLD_S = 5.0
+TURN_S = 3.0
+N_POSITIONS = 27
+MIN_TURN_DEG = 30.0
+ACCEL_SD_MPS2 = 0.01
+GYRO_SD_RPS = 2.0e-3
+WOBBLE_BAND_HZ = (0.05, 0.5)
+TEMPERATURE = CycleTemperature(20.0, 40.0, 110.0)
+
+HIDDEN_KINDS: tuple[tuple[str, Triad | None], ...] = (
+    ("bias_drift", Triad.ACCEL),
+    ("temperature_bias", Triad.ACCEL),
+    ("temperature_scale", Triad.ACCEL),
+    ("scale_nonlinearity", Triad.ACCEL),
+    ("bias_instability", Triad.ACCEL),
+    ("bias_drift", Triad.GYRO),
+    ("g_sensitivity", Triad.GYRO),
+    ("bias_instability", Triad.GYRO),
+    ("nonstatic_positions", Triad.ACCEL),
+    ("quantization", Triad.ACCEL),
+)
+"""What a trial can hide: (effect, triad). Temperature effects need the temperature cycle; gyro scale effects need a known rate."""
+
+_AXIS_FREE = ("nonstatic_positions", "quantization")
+_COEF_KEY = {
+    ("bias_drift", Triad.ACCEL): "rate_norm_per_s",
+    ("temperature_bias", Triad.ACCEL): "coef_norm_per_c",
+    ("temperature_scale", Triad.ACCEL): "coef_per_c",
+    ("scale_nonlinearity", Triad.ACCEL): "k2_norm",
+    ("bias_drift", Triad.GYRO): "rate_rps_per_s",
+}
+
+
+def baseline_model(rng: np.random.Generator) -> ErrorModel:
+    """A random effect-free unit: bias, scale, non-orthogonality and white noise (module docstring)."""
+    acc = TriadErrorModel((NonOrthogonality(rng.normal(0, 1e-3, 6)), ScaleFactor(rng.normal(0, 2e-3, 3)), Bias(rng.normal(0, 0.05, 3)),
+                           WhiteNoise.from_sample_sd(np.full(3, ACCEL_SD_MPS2), RATE_HZ)))
+    gyr = TriadErrorModel((Bias(rng.normal(0, 2e-3, 3)), WhiteNoise.from_sample_sd(np.full(3, GYRO_SD_RPS), RATE_HZ)))
+    return ErrorModel(accel=acc, gyro=gyr)
+
+
+def trial_attitudes(seed: int) -> np.ndarray:
+    """(N_POSITIONS, 3, 3) random attitudes, each at least :data:`MIN_TURN_DEG` from the one before.
+
+    A smaller turn is slow enough for the static detector to keep it inside one
+    position — a real ``nonstatic_positions`` case an effect-free session must not contain.
+    """
+    rng = np.random.default_rng(seed)
+    att = [random_attitudes(1, rng)[0]]
+    while len(att) < N_POSITIONS:
+        cand = random_attitudes(1, rng)[0]
+        turn = np.degrees(np.arccos(np.clip((np.trace(att[-1].T @ cand) - 1.0) / 2.0, -1.0, 1.0)))
+        if turn >= MIN_TURN_DEG:
+            att.append(cand)
+    return np.array(att)
+
+
+def session_of(model: ErrorModel, seed: int) -> tuple[ImuSession, ChainResult]:
+    """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain."""
+    profile = multi_position_profile(trial_attitudes(seed), static_s=HOLD_S, transition_s=TURN_S)
+    spec = SessionSpec(profile, model, rate_hz=RATE_HZ, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE)
+    s = simulate(spec, seed).session
+    return s, run_chain(s, ChainConfig(gravity_mps2=GRAVITY_MPS2))
+
+
+def named_effects(session: ImuSession, chain: ChainResult) -> set[tuple[str, Triad, str | None]]:
+    """What the audit names on a session: the selected candidates, and a grid the baseline found (quantization)."""
+    baselines = fit_baselines(session, chain)
+    named = {(c.effect, c.triad, c.axis) for c in find_candidates(session, chain, baselines) if c.selected}
+    return named | {("quantization", t, None) for t, b in baselines.items() if b.quant_step_si is not None}
+
+
+@dataclass(frozen=True)
+class HiddenEffect:
+    """One hidden effect and the model that carries it.
+
+    ``expected`` is what a perfect audit names; ``value`` the effect's parameter in the
+    simulator's units (the coefficient, σ of the Gauss–Markov bias, wobble angle or step).
+    """
+
+    effect: str
+    triad: Triad
+    axis: str | None
+    size: float
+    value: float
+    model: ErrorModel
+
+    @property
+    def expected(self) -> set[tuple[str, Triad, str | None]]:
+        return {(self.effect, self.triad, self.axis)}
+
+
+def _clean_candidate(session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str) -> Candidate:
+    baselines = fit_baselines(session, chain)
+    return next(c for c in find_candidates(session, chain, baselines) if c.effect == effect and c.triad is triad and c.axis == axis)
+
+
+def _gm_variance_for(size: float, tau_s: float, session: ImuSession, chain: ChainResult, triad: Triad, i: int) -> float:
+    """Normalized σ² of a Gauss–Markov bias on axis ``i`` whose expected evidence is ``size²`` (module docstring)."""
+    baselines = fit_baselines(session, chain)
+    tab = candidate_table(chain, session, triad, baselines[triad])
+    if triad is Triad.ACCEL:
+        _, sd, jac, _ = scalar_residuals(baselines[triad].params, tab)
+        weight, var0 = jac[:, i] ** 2, sd**2
+    else:
+        weight, var0 = np.ones(tab.n_samples.size), tab.cov[:, i, i] + EARTH_RATE_VAR_NORM
+    between, halves = gauss_markov_moments(tab.duration_s, tau_s, NOISE_WINDOW_S)
+    shares = np.concatenate([weight * between / var0, halves / (4.0 * tab.cov[:, i, i])])
+
+    def excess(log_var):
+        x = np.exp(log_var) * shares
+        return float(np.sum(x - np.log1p(x))) - size * size
+
+    top = np.log(1e4 * float(np.max(var0)))
+    return float(np.exp(brentq(excess, top - 60.0, top)))
+
+
+def hide(seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float = 1.0) -> HiddenEffect:
+    """The baseline model of ``seed`` with ``effect`` of ``size`` detection standard errors (module docstring) on ``axis``."""
+    model = baseline_model(np.random.default_rng(seed))
+    session, chain = session_of(model, seed)
+    if effect in _AXIS_FREE:
+        axis = None
+    if effect == "quantization":
+        step = 0.1 * size * ACCEL_SD_MPS2
+        return HiddenEffect(effect, triad, None, size, step, model.with_effect(Quantization(np.full(3, step), Rounding.NEAREST), triad))
+    if effect == "nonstatic_positions":
+        tab = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL)
+        sd_half = 2.0 * np.sqrt(np.median(np.einsum("kii->ki", tab.cov)))
+        angle = size * sd_half / np.sqrt(2.0)
+        return HiddenEffect(effect, triad, None, size, angle, model.with_effect(NonstaticPositions(angle_rms_rad=angle, band_hz=WOBBLE_BAND_HZ)))
+    i = AXES.index(axis)
+    cand = _clean_candidate(session, chain, effect, triad, axis)
+    ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS
+    if effect == "bias_instability":
+        tau = float(np.exp(np.random.default_rng([seed, 1]).uniform(np.log(1.0), np.log(4.0))))
+        var = _gm_variance_for(size, tau, session, chain, triad, i)
+        sigma = np.zeros(3)
+        sigma[i] = np.sqrt(var) * ref
+        return HiddenEffect(effect, triad, axis, size, float(sigma[i]), model.with_effect(BiasInstability(gm_sigma_si=sigma, gm_tau_s=np.full(3, tau)), triad))
+    key = f"g{axis}_rps_per_mps2" if effect == "g_sensitivity" else _COEF_KEY[(effect, triad)]
+    value = sign * size * cand.params[f"{key}_se"]
+    coef = np.zeros((3, 1))
+    if effect == "g_sensitivity":
+        gs = np.zeros((3, 3))
+        gs[i, i] = value
+        return HiddenEffect(effect, triad, axis, size, value, model.with_effect(GSensitivity(gs), triad))
+    if effect == "scale_nonlinearity":
+        k2 = np.zeros(3)
+        k2[i] = value / GRAVITY_MPS2
+        return HiddenEffect(effect, triad, axis, size, value, model.with_effect(ScaleNonlinearity(k2, np.zeros(3)), triad))
+    # Accelerometer coefficients are normalized by g (the scale one is relative already); gyro ones are in rad/s.
+    coef[i, 0] = value * (GRAVITY_MPS2 if triad is Triad.ACCEL and effect != "temperature_scale" else 1.0)
+    cls = {"bias_drift": BiasDrift, "temperature_bias": TemperatureBias, "temperature_scale": TemperatureScale}[effect]
+    return HiddenEffect(effect, triad, axis, size, value, model.with_effect(cls(coef), triad))
+
+
+def draw(seed: int, size: float, kind: tuple[str, Triad] | None = None) -> HiddenEffect:
+    """A hidden effect for trial ``seed``: kind (if not given), axis and sign drawn from the seed."""
+    rng = np.random.default_rng([seed, 2])
+    effect, triad = HIDDEN_KINDS[int(rng.integers(len(HIDDEN_KINDS)))] if kind is None else kind
+    return hide(seed, effect, triad, AXES[int(rng.integers(3))], size, float(rng.choice([-1.0, 1.0])))
+
+
+def trial(hidden: HiddenEffect, seed: int) -> bool:
+    """True when the audit names exactly the hidden effect on its session."""
+    return named_effects(*session_of(hidden.model, seed)) == hidden.expected
+
+
+def clean_trial(seed: int) -> bool:
+    """True when the audit names nothing on the effect-free session of ``seed``."""
+    return not named_effects(*session_of(baseline_model(np.random.default_rng(seed)), seed))
