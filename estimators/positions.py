@@ -64,11 +64,13 @@ import numpy as np
 from estimators.conventions import Triad
 from estimators.session import ImuSession
 from estimators.static_detector import (
+    FinalDecisions,
     RotationIntegrator,
     StaticDetection,
     StaticDetectorConfig,
     StaticInterval,
     StreamingStaticDetector,
+    SwitchedRing,
     direction_change_deg,
     is_new_orientation,
 )
@@ -561,8 +563,8 @@ class PositionAccumulator:
         self._trim = config.trim_samples(rate_hz)
         self._batch = config.batch_samples(rate_hz)
         self._ring_n = self.detector.window_samples + self._trim + 2
-        self._ring = [[0.0] * self._ring_n for _ in range(8)]  # t, ax, ay, az, gx, gy, gz, temp
-        self._ring_idx = [0] * self._ring_n
+        self._ring = SwitchedRing([[0.0] * self._ring_n for _ in range(8)])  # t, ax, ay, az, gx, gy, gz, temp
+        self._ring_idx = SwitchedRing([0] * self._ring_n, int)
         self._run_open = False
         self._run_count = 0
         self._sums = _RunSums()
@@ -580,20 +582,20 @@ class PositionAccumulator:
         det.update(t_s, ax, ay, az, gx, gy, gz)
         if det.n_accepted != before:
             p = before % self._ring_n
-            r = self._ring
+            r = self._ring.lists()
             r[0][p] = t_s
             if det.has_accel:
                 r[1][p], r[2][p], r[3][p] = ax, ay, az
             if det.has_gyro:
                 r[4][p], r[5][p], r[6][p] = gx, gy, gz
             r[7][p] = _NAN if temp_c is None else temp_c
-            self._ring_idx[p] = det.n_input - 1
+            self._ring_idx.lists()[p] = det.n_input - 1
         if det.fin_hi == det.fin_lo and det.closed_run is None and not det.fin_break:
             return None
         return self._after_detector()
 
     def update_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None,
-                     temp_c: np.ndarray | None = None) -> tuple[list[Position], list[tuple[int, int, int, bool]]]:
+                     temp_c: np.ndarray | None = None) -> tuple[list[Position], FinalDecisions]:
         """:meth:`update` over N samples: the same positions, rejections, decisions and state.
 
         Parameters
@@ -603,9 +605,9 @@ class PositionAccumulator:
         gyro_rps : (N, 3) angular rate, rad/s (None without gyros).
         temp_c : (N,) temperature, °C, NaN where unknown, or None.
 
-        Returns ``(positions, decisions)``: the positions completed, and per sample that
-        finalized detector decisions ``(fin_lo, fin_split, fin_hi, fin_break)`` as read
-        after :meth:`update`. The stretch of a batch after the detector's window is full
+        Returns ``(positions, decisions)``: the positions completed, and the detector
+        decisions that became final (:class:`~estimators.static_detector.FinalDecisions`,
+        the ``fin_*`` outputs of every :meth:`update` call joined). The stretch of a batch after the detector's window is full
         whose samples are all accepted into the open segment runs vectorized
         (:meth:`StreamingStaticDetector.update_batch`); a batch with a rejected sample or
         a time gap, and the first samples of a segment, go through :meth:`update`.
@@ -627,23 +629,24 @@ class PositionAccumulator:
         if temp.shape != (n,):
             raise ValueError(f"temp_c must have shape ({n},), got {temp.shape}")
         positions: list[Position] = []
-        decisions: list[tuple[int, int, int, bool]] = []
+        steps: list[tuple[int, int, int, bool]] = []
+        start = det.next_final
         i = 0
         while i < n and not det.steady():
-            self._update_row(t, accel, gyro, temp, i, positions, decisions)
+            self._update_row(t, accel, gyro, temp, i, positions, steps)
             i += 1
-        if i == n:
-            return positions, decisions
-        if n - i < _MIN_VECTOR or not det.clean_batch(t[i:], None if accel is None else accel[i:],
-                                                        None if gyro is None else gyro[i:]):
+        if i < n and (n - i < _MIN_VECTOR or not det.clean_batch(t[i:], None if accel is None else accel[i:],
+                                                                 None if gyro is None else gyro[i:])):
             for k in range(i, n):
-                self._update_row(t, accel, gyro, temp, k, positions, decisions)
-            return positions, decisions
-        self._steady_batch(t[i:], None if accel is None else accel[i:], None if gyro is None else gyro[i:], temp[i:],
-                           positions, decisions)
+                self._update_row(t, accel, gyro, temp, k, positions, steps)
+            i = n
+        decisions = FinalDecisions.from_steps(start, steps)
+        if i < n:
+            decisions = decisions.then(self._steady_batch(t[i:], None if accel is None else accel[i:],
+                                                          None if gyro is None else gyro[i:], temp[i:], positions))
         return positions, decisions
 
-    def _update_row(self, t, accel, gyro, temp, i, positions, decisions) -> None:
+    def _update_row(self, t, accel, gyro, temp, i, positions, steps) -> None:
         det = self.detector
         a = (0.0, 0.0, 0.0) if accel is None else accel[i].tolist()
         g = (0.0, 0.0, 0.0) if gyro is None else gyro[i].tolist()
@@ -652,9 +655,9 @@ class PositionAccumulator:
         if pos is not None:
             positions.append(pos)
         if det.fin_hi > det.fin_lo:
-            decisions.append((det.fin_lo, det.fin_split, det.fin_hi, det.fin_break))
+            steps.append((det.fin_lo, det.fin_split, det.fin_hi, det.fin_break))
 
-    def _steady_batch(self, t, accel, gyro, temp, positions, decisions) -> None:
+    def _steady_batch(self, t, accel, gyro, temp, positions) -> FinalDecisions:
         """Clean samples in the steady state: each finalizes one decision (detector's ``update_batch``)."""
         det = self.detector
         n = t.shape[0]
@@ -666,13 +669,13 @@ class PositionAccumulator:
         # Accepted samples c0 − rn … c0 + n − 1: the ring, then the batch (absent triads keep the ring's values).
         old = np.arange(c0 - rn, c0) % rn
         every = np.arange(c0 - rn, c0 + n) % rn
-        ring = np.asarray(self._ring)
+        ring = self._ring.array()
         cols = [np.concatenate([ring[0][old], t])]
         for o, x in ((0, accel), (3, gyro)):
             for k in range(3):
                 cols.append(ring[1 + o + k][every] if x is None else np.concatenate([ring[1 + o + k][old], x[:, k]]))
         cols.append(np.concatenate([ring[7][old], temp]))
-        idx = np.concatenate([np.asarray(self._ring_idx)[old], idx0 + np.arange(n)])
+        idx = np.concatenate([self._ring_idx.array()[old], idx0 + np.arange(n)])
         ext = _Extended(base=c0 - rn, cols=cols, idx=idx)
 
         j0 = c0 - w + 1  # decision finalized by the first sample
@@ -706,17 +709,13 @@ class PositionAccumulator:
                         positions.append(emitted)
                 if self._rot_active:
                     self._integrate_ext(ext, ja, jb)
-        lo = np.arange(j0, j0 + n)
-        decisions += zip(lo.tolist(), (lo + static).tolist(), (lo + 1).tolist(), [False] * n)
         # The ring keeps the last rn accepted samples (absent triads keep their old values).
         tail = np.arange(max(0, n - rn), n)
         pos = (c0 + tail) % rn
         rows = [0, *(1 + c for c in self._chans), 7]
-        ring_arr = np.asarray(self._ring)
-        ring_arr[np.ix_(rows, pos)] = np.vstack([cols[k][rn + tail] for k in rows])
-        idx_arr = np.asarray(self._ring_idx)
-        idx_arr[pos] = idx[rn + tail]
-        self._ring, self._ring_idx = ring_arr.tolist(), idx_arr.tolist()
+        self._ring.array()[np.ix_(rows, pos)] = np.vstack([cols[k][rn + tail] for k in rows])
+        self._ring_idx.array()[pos] = idx[rn + tail]
+        return FinalDecisions(j0, static, np.zeros(n, dtype=bool))
 
     def _first_sure(self, ext: "_Extended", lo: int, hi: int, ja: int, r0: int) -> int:
         """First static sample in ``[lo, hi)`` from which :meth:`_run_sure` holds (``hi`` if none).
@@ -810,7 +809,7 @@ class PositionAccumulator:
     def _integrate(self, c: int) -> None:
         rn = self._ring_n
         p, p0 = c % rn, (c - 1) % rn
-        r = self._ring
+        r = self._ring.lists()
         self._rot.add(r[4][p], r[5][p], r[6][p], r[0][p] - r[0][p0])
 
     def _static_sample(self, c: int) -> None:
@@ -836,18 +835,18 @@ class PositionAccumulator:
         """
         sm = self._sums
         return (sm.n >= self.config.min_samples
-                and self._ring[0][c % self._ring_n] - sm.t_first >= self.detector.config.min_static_s)
+                and self._ring.lists()[0][c % self._ring_n] - sm.t_first >= self.detector.config.min_static_s)
 
     def _add(self, c: int) -> None:
         p = c % self._ring_n
-        r = self._ring
+        r = self._ring.lists()
         sm = self._sums
         if sm.n == 0:
             sm.shift = [r[k][p] for k in range(1, 7)]
-            sm.start = self._ring_idx[p]
+            sm.start = self._ring_idx.lists()[p]
             sm.t_first = r[0][p]
         sm.n += 1
-        sm.stop = self._ring_idx[p] + 1
+        sm.stop = self._ring_idx.lists()[p] + 1
         sm.t_last = r[0][p]
         temp = r[7][p]
         if temp == temp:
@@ -947,8 +946,8 @@ class PositionAccumulator:
         return {
             "detector": self.detector.state_dict(),
             "config": {**asdict(self.config), "covariance": self.config.covariance.value},
-            "ring": [[None if v != v else v for v in ch] for ch in self._ring],
-            "ring_idx": list(self._ring_idx),
+            "ring": [[None if v != v else v for v in ch] for ch in self._ring.snapshot()],
+            "ring_idx": self._ring_idx.snapshot(),
             "run_open": self._run_open,
             "run_count": self._run_count,
             "sums": asdict(self._sums),
@@ -969,8 +968,8 @@ class PositionAccumulator:
             ring = [[_NAN if v is None else float(v) for v in ch] for ch in state["ring"]]
             if len(ring) != 8 or any(len(ch) != acc._ring_n for ch in ring) or len(state["ring_idx"]) != acc._ring_n:
                 raise ValueError(f"ring must hold 8 channels of {acc._ring_n} samples")
-            acc._ring = ring
-            acc._ring_idx = [int(v) for v in state["ring_idx"]]
+            acc._ring = SwitchedRing(ring)
+            acc._ring_idx = SwitchedRing([int(v) for v in state["ring_idx"]], int)
             acc._run_open = bool(state["run_open"])
             acc._run_count = int(state["run_count"])
             acc._sums = _RunSums(**state["sums"])

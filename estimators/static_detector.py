@@ -161,6 +161,92 @@ class StaticInterval:
         return self.t_end_s - self.t_start_s
 
 
+class SwitchedRing:
+    """Ring-buffer storage held as Python lists on the per-sample path and as a numpy array on the batch path.
+
+    A list element costs a third of a numpy scalar access per sample, while the
+    vectorized path needs arrays: the storage converts only when the caller
+    switches paths (a stream of large frames stays an array, a stream of single
+    samples stays lists), not on every frame. Values are float64 or int64 either
+    way, so both paths see the same bits.
+    """
+
+    __slots__ = ("_lists", "_array", "_dtype")
+
+    def __init__(self, values: list, dtype: type = float) -> None:
+        self._lists: list | None = values
+        self._array: np.ndarray | None = None
+        self._dtype = dtype
+
+    def lists(self) -> list:
+        """The values as (nested) lists, for element access; valid until :meth:`array` is called."""
+        if self._lists is None:
+            self._lists, self._array = self._array.tolist(), None
+        return self._lists
+
+    def array(self) -> np.ndarray:
+        """The values as an array, modified in place; valid until :meth:`lists` is called."""
+        if self._array is None:
+            self._array, self._lists = np.array(self._lists, dtype=self._dtype), None
+        return self._array
+
+    def snapshot(self) -> list:
+        """A copy as (nested) lists, without switching paths (checkpoints)."""
+        return self._array.tolist() if self._lists is None else np.array(self._lists, dtype=self._dtype).tolist()
+
+
+@dataclass(frozen=True)
+class FinalDecisions:
+    """Final static decisions of the consecutive accepted samples ``start, start + 1, …``.
+
+    What :class:`StreamingStaticDetector` finalizes over a stretch of input, as
+    arrays rather than one ``(fin_lo, fin_split, fin_hi, fin_break)`` step per
+    sample (the batch paths produce thousands per frame).
+
+    Attributes
+    ----------
+    start : accepted-sample number of the first decision.
+    static : (K,) bool, the final static flag of each sample.
+    brk : (K,) bool, a segment ends after that sample.
+    """
+
+    start: int
+    static: np.ndarray
+    brk: np.ndarray
+
+    @classmethod
+    def empty(cls, start: int) -> "FinalDecisions":
+        return cls(int(start), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
+
+    @classmethod
+    def from_steps(cls, start: int, steps: list[tuple[int, int, int, bool]]) -> "FinalDecisions":
+        """Join the per-call outputs ``(fin_lo, fin_split, fin_hi, fin_break)`` of consecutive calls (contiguous)."""
+        static, brk = [], []
+        end = int(start)
+        for lo, split, hi, b in steps:
+            if lo != end:
+                raise ValueError(f"decision steps are not contiguous: {lo} follows {end}")
+            static += [True] * (split - lo) + [False] * (hi - split)
+            brk += [False] * (hi - lo - 1) + [bool(b)]
+            end = hi
+        return cls(int(start), np.array(static, dtype=bool), np.array(brk, dtype=bool))
+
+    @property
+    def stop(self) -> int:
+        """One past the last decided sample."""
+        return self.start + self.static.size
+
+    def then(self, other: "FinalDecisions") -> "FinalDecisions":
+        """These decisions followed by ``other`` (which must start where these stop)."""
+        if other.start != self.stop:
+            raise ValueError(f"decisions are not contiguous: {other.start} follows {self.stop}")
+        if not other.static.size:
+            return self
+        if not self.static.size:
+            return other
+        return FinalDecisions(self.start, np.concatenate([self.static, other.static]), np.concatenate([self.brk, other.brk]))
+
+
 @dataclass(frozen=True)
 class StaticDetection:
     """Result of :func:`detect_static` on a session of N samples.
@@ -375,9 +461,9 @@ class StreamingStaticDetector:
         self._lim_g = config.gyro_std_rps**2 * (w - 1)
         self._lim_rate = None if config.gyro_rate_rps is None else (config.gyro_rate_rps * w) ** 2
         self.rejections = Rejections()
-        self._buf = [[0.0] * w for _ in range(6)]
-        self._t = [0.0] * w
-        self._idx = [0] * w
+        self._buf = SwitchedRing([[0.0] * w for _ in range(6)])
+        self._t = SwitchedRing([0.0] * w)
+        self._idx = SwitchedRing([0] * w, int)
         self._s = [0.0] * 6
         self._q = [0.0] * 6
         self._x0 = [0.0] * 6
@@ -426,8 +512,9 @@ class StreamingStaticDetector:
         self.n_accepted = c + 1
         w = self.window_samples
         pos = c % w
-        self._t[pos] = t_s
-        self._idx[pos] = self.n_input - 1
+        t_ring, idx_ring, buf = self._t.lists(), self._idx.lists(), self._buf.lists()
+        t_ring[pos] = t_s
+        idx_ring[pos] = self.n_input - 1
         n_before = c - self._seg_first  # samples of this segment already in the window
         full = n_before + 1 >= w
         pop = n_before >= w
@@ -435,7 +522,7 @@ class StreamingStaticDetector:
         quiet = True
         # The two triads are written out rather than looped over: this is the hot path.
         if ha:
-            b0, b1, b2 = self._buf[0], self._buf[1], self._buf[2]
+            b0, b1, b2 = buf[0], buf[1], buf[2]
             y0, y1, y2 = ax - x0[0], ay - x0[1], az - x0[2]
             if pop:
                 p0, p1, p2 = b0[pos], b1[pos], b2[pos]
@@ -452,7 +539,7 @@ class StreamingStaticDetector:
             q2 = q[2] = q[2] + y2 * y2 - p2 * p2
             quiet = (q0 + q1 + q2) - (s0 * s0 + s1 * s1 + s2 * s2) / w <= self._lim_a
         if hg:
-            b0, b1, b2 = self._buf[3], self._buf[4], self._buf[5]
+            b0, b1, b2 = buf[3], buf[4], buf[5]
             y0, y1, y2 = gx - x0[3], gy - x0[4], gz - x0[5]
             if pop:
                 p0, p1, p2 = b0[pos], b1[pos], b2[pos]
@@ -487,8 +574,8 @@ class StreamingStaticDetector:
             self.fin_split = j + 1
             if self._run_open:
                 jp = j % w
-                self._run_last_idx = self._idx[jp]
-                self._run_last_t = self._t[jp]
+                self._run_last_idx = idx_ring[jp]
+                self._run_last_t = t_ring[jp]
                 self._run_n += 1
             else:
                 self._run_add(j)
@@ -499,6 +586,17 @@ class StreamingStaticDetector:
             if not self.closed_run_short:
                 return self.closed_run
         return None
+
+    @property
+    def next_final(self) -> int:
+        """Accepted-sample number of the next decision to become final."""
+        return self._next_final
+
+    def last_step(self) -> FinalDecisions:
+        """The decisions finalized by the last call (``fin_lo`` … ``fin_hi``; empty when none)."""
+        if self.fin_hi == self.fin_lo:
+            return FinalDecisions.empty(self._next_final)
+        return FinalDecisions.from_steps(self.fin_lo, [(self.fin_lo, self.fin_split, self.fin_hi, self.fin_break)])
 
     def steady(self) -> bool:
         """A segment is open and its window full: the next clean sample finalizes exactly one decision."""
@@ -549,7 +647,8 @@ class StreamingStaticDetector:
         x = np.column_stack([v for v, present in ((accel_mps2, self.has_accel), (gyro_rps, self.has_gyro)) if present])
         y = x - np.asarray(self._x0)[chans]
         # y of the accepted samples c0 − W … c0 + n − 1 (the ring, then the batch), and their squares.
-        ext = np.concatenate([np.asarray(self._buf)[chans][:, old_pos].T, y])
+        buf = self._buf.array()
+        ext = np.concatenate([buf[chans][:, old_pos].T, y])
         ext2 = ext * ext
         e1, e2 = ext.T.tolist(), ext2.T.tolist()
         res = res_at.tolist()
@@ -588,9 +687,7 @@ class StreamingStaticDetector:
         self._s, self._q = s_arr.tolist(), q_arr.tolist()
         tail = np.arange(max(0, n - w), n)
         tail_pos = (c0 + tail) % w
-        buf = np.asarray(self._buf)
         buf[np.ix_(chans, tail_pos)] = y[tail].T
-        self._buf = buf.tolist()
 
         c = c0 + np.arange(n)
         j = c - w + 1
@@ -598,9 +695,10 @@ class StreamingStaticDetector:
         np.maximum(last_quiet, self._last_quiet, out=last_quiet)
         static = last_quiet >= j
         # Times and input indices of the accepted samples c0 − W … (ring, then the batch).
-        t_ext = np.concatenate([np.asarray(self._t)[old_pos], t_s])
+        t_ring, idx_ring = self._t.array(), self._idx.array()
+        t_ext = np.concatenate([t_ring[old_pos], t_s])
         idx_new = self.n_input + np.arange(n)
-        idx_ext = np.concatenate([np.asarray(self._idx)[old_pos], idx_new])
+        idx_ext = np.concatenate([idx_ring[old_pos], idx_new])
         closes = {}
         edges = np.flatnonzero(static[1:] != static[:-1]) + 1
         bounds = [0, *edges.tolist(), n]
@@ -619,9 +717,7 @@ class StreamingStaticDetector:
                 self._run_close()
                 closes[a] = (self.closed_run, self.closed_run_short)
 
-        t_ring, idx_ring = np.asarray(self._t), np.asarray(self._idx)
         t_ring[tail_pos], idx_ring[tail_pos] = t_s[tail], idx_new[tail]
-        self._t, self._idx = t_ring.tolist(), idx_ring.tolist()
         self.n_input += n
         self.n_accepted += n
         self._last_t = float(t_s[-1])
@@ -638,8 +734,9 @@ class StreamingStaticDetector:
 
     def _resum(self) -> None:
         """Recompute the running sums from the ring (once per W samples) so rounding cannot accumulate."""
+        buf = self._buf.lists()
         for ch in range(6):
-            b = self._buf[ch]
+            b = buf[ch]
             self._s[ch] = math.fsum(b)
             self._q[ch] = math.fsum(v * v for v in b)
 
@@ -665,13 +762,14 @@ class StreamingStaticDetector:
 
     def _run_add(self, j: int) -> None:
         pos = j % self.window_samples
+        t_ring, idx_ring = self._t.lists(), self._idx.lists()
         if not self._run_open:
             self._run_open = True
-            self._run_first_idx = self._idx[pos]
-            self._run_first_t = self._t[pos]
+            self._run_first_idx = idx_ring[pos]
+            self._run_first_t = t_ring[pos]
             self._run_n = 0
-        self._run_last_idx = self._idx[pos]
-        self._run_last_t = self._t[pos]
+        self._run_last_idx = idx_ring[pos]
+        self._run_last_t = t_ring[pos]
         self._run_n += 1
 
     def _run_close(self) -> None:
@@ -701,9 +799,9 @@ class StreamingStaticDetector:
             "rate_hz": self.rate_hz,
             "has_accel": self.has_accel,
             "has_gyro": self.has_gyro,
-            "buf": [list(b) for b in self._buf],
-            "t": list(self._t),
-            "idx": list(self._idx),
+            "buf": self._buf.snapshot(),
+            "t": self._t.snapshot(),
+            "idx": self._idx.snapshot(),
             "s": list(self._s),
             "q": list(self._q),
             "x0": list(self._x0),
@@ -734,7 +832,7 @@ class StreamingStaticDetector:
             idx = [int(v) for v in state["idx"]]
             if len(buf) != 6 or any(len(b) != w for b in buf) or len(t) != w or len(idx) != w:
                 raise ValueError(f"ring buffers must hold 6 channels of {w} samples")
-            det._buf, det._t, det._idx = buf, t, idx
+            det._buf, det._t, det._idx = SwitchedRing(buf), SwitchedRing(t), SwitchedRing(idx, int)
             det._s = [float(v) for v in state["s"]]
             det._q = [float(v) for v in state["q"]]
             det._x0 = [float(v) for v in state["x0"]]

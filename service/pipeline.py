@@ -59,7 +59,7 @@ from estimators.ninepar import RecursiveNineParam, canonical_triad_matrix
 from estimators.passport import Passport, TriadPassport
 from estimators.positions import Position, PositionAccumulator, PositionConfig
 from estimators.scalar import F0Config, F0State, derive_lambda0, f0_batch
-from estimators.static_detector import StaticDetectorConfig
+from estimators.static_detector import FinalDecisions, StaticDetectorConfig
 from estimators.stream_validity import CrossImuMonitor, CrossImuReport, StreamValidity, ValidityLimits
 from estimators.temperature import to_reference_temperature
 from protocols.events import Event, ImuState, ImuStatus, Predicate, Severity, Status, StreamCause, event_from_finding, make_event
@@ -219,25 +219,19 @@ class StaticGate:
         self._brk = np.zeros(0, dtype=bool)  # a segment ends after this sample
         self._next = 0  # next sample to release
 
-    def push(self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, decisions: list[tuple[int, int, int, bool]]):
-        """Buffer samples and decisions ``(lo, split, hi, break)``; returns ``(t, accel, gyro, static)`` released."""
+    def push(self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, decisions: FinalDecisions):
+        """Buffer samples and the decisions that became final; returns ``(t, accel, gyro, static)`` released."""
         if t_s.size:
             self._t = np.concatenate([self._t, t_s])
             self._x = np.concatenate([self._x, np.hstack([accel, gyro])])
         end = self._d0 + self._dec.size
-        flags: list[bool] = []
-        breaks: list[bool] = []
-        for lo, split, hi, brk in decisions:
-            if hi <= end:
-                continue
-            first = max(lo, end)
-            n_static = max(0, split - first)
-            flags += [True] * n_static + [False] * (hi - first - n_static)
-            breaks += [False] * (hi - end - 1) + [brk]
-            end = hi
-        if flags:
-            self._dec = np.concatenate([self._dec, np.array(flags, dtype=bool)])
-            self._brk = np.concatenate([self._brk, np.array(breaks, dtype=bool)])
+        # Decisions already held (a checkpoint taken mid-stream) are skipped; a gap would misplace every flag.
+        if decisions.start > end:
+            raise ValueError(f"static decisions skip samples {end}…{decisions.start - 1}")
+        skip = min(end - decisions.start, decisions.static.size)
+        if skip < decisions.static.size:
+            self._dec = np.concatenate([self._dec, decisions.static[skip:]])
+            self._brk = np.concatenate([self._brk, decisions.brk[skip:]])
         return self._release()
 
     def _release(self):
@@ -452,7 +446,7 @@ class ImuPipeline:
         events = self._f0_all(*self.gate.push(b.t_s, accel, gyro, decisions))
         return events + self._positions(positions)
 
-    def _feed(self, t_s, accel, gyro, temp) -> tuple[list[Position], list[tuple[int, int, int, bool]]]:
+    def _feed(self, t_s, accel, gyro, temp) -> tuple[list[Position], FinalDecisions]:
         """Static detector and positions over the batch: the per-sample results, vectorized where the stream is clean."""
         return self.accumulator.update_batch(t_s, accel, gyro, temp)
 
@@ -608,10 +602,8 @@ class ImuPipeline:
         if self.accumulator is None:
             return []
         positions = self.accumulator.flush()
-        det = self.accumulator.detector
-        decisions = [(det.fin_lo, det.fin_split, det.fin_hi, det.fin_break)] if det.fin_hi > det.fin_lo else []
         empty = np.zeros((0, 3))
-        return self._f0_all(*self.gate.push(np.zeros(0), empty, empty, decisions)) + self._positions(positions)
+        return self._f0_all(*self.gate.push(np.zeros(0), empty, empty, self.accumulator.detector.last_step())) + self._positions(positions)
 
     # ------------------------------------------------------------------ status and checkpoints
 
