@@ -11,9 +11,9 @@ Units: every parameter is normalized as in :mod:`estimators.conventions`
 in m/s² for the accelerometers, Ω in rad/s for the gyros); scale errors and
 cosines are dimensionless.
 
-Plain-dict schema, version 1
+Plain-dict schema, version 2
 ----------------------------
-``type`` = ``"ins.health.passport"``, ``schema_version`` = 1, ``unit_id``,
+``type`` = ``"ins.health.passport"``, ``schema_version`` = 2, ``unit_id``,
 ``sensor_model`` (str), ``sensor_ids`` (map str → str), ``created`` (ISO 8601
 date or date-time string, supplied by the caller), ``triads`` (map
 ``"accel"``/``"gyro"`` → triad map). A triad map: ``param_names`` (the nine
@@ -22,11 +22,23 @@ names, checked), ``reference`` (float), ``reference_kind``
 ``sigma`` (9 floats each), ``observable`` (9 bools), ``noise_std`` (3 floats:
 per-sample standard deviation of the normalized output per axis),
 ``sample_rate_hz``, ``quantization_step`` (3 floats, normalized, or null),
-``temperature`` (null or ``{reference_temp_c, bias_coeffs, scale_coeffs}``)
-and ``provenance`` (``{method, n_positions, confidence, ci_low, ci_high}``).
-Unknown keys, wrong shapes and non-finite numbers are rejected with the field
-and the received value; a newer schema version raises
+``temperature`` (null or ``{reference_temp_c, bias_coeffs, scale_coeffs,
+valid_min_c, valid_max_c}``, the last two the temperature range the model was
+fitted on, °C) and ``provenance`` (``{method, n_positions, confidence, ci_low,
+ci_high}``). Unknown keys, wrong shapes and non-finite numbers are rejected
+with the field and the received value; a newer schema version raises
 :class:`PassportVersionError`.
+
+Version 1 is version 2 without ``valid_min_c`` and ``valid_max_c``. It is still
+read, and written back unchanged: its temperature models load with no valid
+range (``valid_min_c = valid_max_c = None``), which means what version 1 did,
+compensation at any temperature. Rejecting those files would take the F0 check
+and the diagnosis away from every unit calibrated before the range existed,
+and a chamber run cannot be repeated on an installed unit; guessing a range
+would invent data. The service states in its status that such a model is
+unbounded (:mod:`service.pipeline`); to bound it, set ``schema_version`` to 2
+and add the lowest and highest chamber temperature of the fit to each
+``temperature`` map, or refit with ``ins-health passport temperature``.
 
 Default tolerance rule (``calibrate``)
 --------------------------------------
@@ -57,8 +69,10 @@ from estimators.ninepar import Estimate, Method
 from estimators.positions import Position
 
 PASSPORT_TYPE = "ins.health.passport"
-PASSPORT_SCHEMA_VERSION = 1
-SUPPORTED_PASSPORT_VERSIONS = (1,)
+PASSPORT_SCHEMA_VERSION = 2
+SUPPORTED_PASSPORT_VERSIONS = (1, 2)
+UNBOUNDED_TEMPERATURE_VERSION = 1
+"""The last schema whose temperature models carry no valid range (module docstring)."""
 
 
 class PassportError(ValueError):
@@ -134,42 +148,96 @@ class TemperatureModel:
     """Polynomial temperature model of bias and scale per axis (methods.md M3).
 
     ``b_i(t) = Σ_k bias_coeffs[i, k]·(t − reference_temp_c)^k`` (normalized) and
-    ``e_i(t) = Σ_k scale_coeffs[i, k]·(t − reference_temp_c)^k``.
+    ``e_i(t) = Σ_k scale_coeffs[i, k]·(t − reference_temp_c)^k``, valid for
+    ``valid_min_c ≤ t ≤ valid_max_c``: the temperatures of the chamber tests it
+    was fitted on. Outside them the polynomial is not evaluated
+    (:func:`estimators.temperature.model_errors` holds it at the nearer edge).
 
     Attributes
     ----------
-    reference_temp_c : temperature the polynomials are centred on, °C.
+    reference_temp_c : temperature the polynomials are centred on, °C (inside the range).
     bias_coeffs : (3, order+1) normalized bias coefficients, per °C^k.
     scale_coeffs : (3, order+1) relative scale-error coefficients, per °C^k.
+    valid_min_c, valid_max_c : the range the model was fitted on, °C (keyword-only);
+        both None only for a model read from a schema-1 passport, which recorded no
+        range (module docstring): then the polynomial is used at any temperature.
+
+    Raises
+    ------
+    PassportError
+        Non-finite values, wrong shapes, a range with ``valid_min_c ≥ valid_max_c``,
+        one bound without the other, or ``reference_temp_c`` outside the range.
     """
 
     reference_temp_c: float
     bias_coeffs: np.ndarray
     scale_coeffs: np.ndarray
+    valid_min_c: float | None = field(kw_only=True)
+    valid_max_c: float | None = field(kw_only=True)
 
     def __post_init__(self) -> None:
-        _finite(self.reference_temp_c, "temperature.reference_temp_c")
+        ref = _finite(self.reference_temp_c, "temperature.reference_temp_c")
         bias = np.asarray(self.bias_coeffs, dtype=float)
         if bias.ndim != 2 or bias.shape[0] != 3 or bias.shape[1] < 1:
             raise PassportError(f"temperature.bias_coeffs must have shape (3, order+1), got {np.shape(self.bias_coeffs)}: {_short(self.bias_coeffs)}")
         object.__setattr__(self, "bias_coeffs", _array(bias, bias.shape, "temperature.bias_coeffs"))
         object.__setattr__(self, "scale_coeffs", _array(self.scale_coeffs, bias.shape, "temperature.scale_coeffs"))
+        if self.valid_min_c is None and self.valid_max_c is None:
+            return
+        if self.valid_min_c is None or self.valid_max_c is None:
+            raise PassportError(f"temperature.valid_min_c and valid_max_c go together, got {self.valid_min_c!r} and {self.valid_max_c!r}")
+        lo = _finite(self.valid_min_c, "temperature.valid_min_c")
+        hi = _finite(self.valid_max_c, "temperature.valid_max_c")
+        if not lo < hi:
+            raise PassportError(f"temperature.valid_min_c must be below valid_max_c, got {lo!r} ≥ {hi!r}")
+        if not lo <= ref <= hi:
+            raise PassportError(f"temperature.reference_temp_c {ref!r} °C is outside the valid range {lo!r}…{hi!r} °C")
+        object.__setattr__(self, "valid_min_c", lo)
+        object.__setattr__(self, "valid_max_c", hi)
 
     @property
     def order(self) -> int:
         return self.bias_coeffs.shape[1] - 1
 
+    @property
+    def bounded(self) -> bool:
+        """False for a schema-1 model, which records no valid range."""
+        return self.valid_min_c is not None
+
+    def in_range(self, temp_c: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of ``temp_c`` (N,), °C, lie in the valid range (all, for an unbounded model)."""
+        t = np.asarray(temp_c, dtype=float).reshape(-1)
+        if not self.bounded:
+            return np.ones(t.shape, dtype=bool)
+        return (t >= self.valid_min_c) & (t <= self.valid_max_c)
+
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "reference_temp_c": float(self.reference_temp_c),
             "bias_coeffs": self.bias_coeffs.tolist(),
             "scale_coeffs": self.scale_coeffs.tolist(),
         }
+        if self.bounded:
+            out["valid_min_c"] = self.valid_min_c
+            out["valid_max_c"] = self.valid_max_c
+        return out
 
     @classmethod
-    def from_dict(cls, obj: Any) -> "TemperatureModel":
-        obj = _map(obj, "temperature", ("reference_temp_c", "bias_coeffs", "scale_coeffs"))
-        return cls(_number(obj["reference_temp_c"], "temperature.reference_temp_c"), obj["bias_coeffs"], obj["scale_coeffs"])
+    def from_dict(cls, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION) -> "TemperatureModel":
+        """The model of a passport of ``schema_version`` (1: no range keys, read unbounded; 2: the range is required)."""
+        keys = ("reference_temp_c", "bias_coeffs", "scale_coeffs")
+        if schema_version <= UNBOUNDED_TEMPERATURE_VERSION:
+            obj = _map(obj, "temperature", keys)
+            return cls(_number(obj["reference_temp_c"], "temperature.reference_temp_c"), obj["bias_coeffs"], obj["scale_coeffs"],
+                       valid_min_c=None, valid_max_c=None)  # fmt: skip
+        obj = _map(obj, "temperature", keys + ("valid_min_c", "valid_max_c"))
+        return cls(
+            _number(obj["reference_temp_c"], "temperature.reference_temp_c"),
+            obj["bias_coeffs"],
+            obj["scale_coeffs"],
+            valid_min_c=_number(obj["valid_min_c"], "temperature.valid_min_c"),
+            valid_max_c=_number(obj["valid_max_c"], "temperature.valid_max_c"),
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -361,7 +429,8 @@ class TriadPassport:
         }
 
     @classmethod
-    def from_dict(cls, triad: Triad, obj: Any) -> "TriadPassport":
+    def from_dict(cls, triad: Triad, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION) -> "TriadPassport":
+        """Validate and build one triad of a passport of ``schema_version`` (it decides the temperature map's keys)."""
         where = f"triads.{Triad(triad).value}"
         keys = ("param_names", "reference", "reference_kind", "nominal", "tolerance", "sigma", "observable", "noise_std",
                 "bias_instability_std", "sample_rate_hz", "quantization_step", "temperature", "provenance")  # fmt: skip
@@ -383,7 +452,7 @@ class TriadPassport:
             bias_instability_std=obj["bias_instability_std"],
             sample_rate_hz=_number(obj["sample_rate_hz"], f"{where}.sample_rate_hz"),
             quantization_step=obj["quantization_step"],
-            temperature=None if obj["temperature"] is None else TemperatureModel.from_dict(obj["temperature"]),
+            temperature=None if obj["temperature"] is None else TemperatureModel.from_dict(obj["temperature"], schema_version=schema_version),
             provenance=Provenance.from_dict(obj["provenance"]),
         )
 
@@ -399,7 +468,8 @@ class Passport:
     sensor_ids : per-sensor identities (e.g. serial numbers by triad), str → str.
     created : ISO 8601 date or date-time string given by the caller (estimators read no clock).
     triads : :class:`Triad` → :class:`TriadPassport` (at least one).
-    schema_version : :data:`PASSPORT_SCHEMA_VERSION`.
+    schema_version : one of :data:`SUPPORTED_PASSPORT_VERSIONS`, :data:`PASSPORT_SCHEMA_VERSION` by default;
+        a passport read from a schema-1 file keeps 1 and is written back as schema 1 (module docstring).
     """
 
     unit_id: str
@@ -430,6 +500,13 @@ class Passport:
             if not isinstance(value, TriadPassport) or value.triad is not triad:
                 raise PassportError(f"triads[{triad.value!r}] must be the TriadPassport of that triad, got {_short(value)}")
             triads[triad] = value
+            model = value.temperature
+            # The schema decides whether a temperature map has range keys: a mismatch could not be written back.
+            if model is not None and model.bounded != (self.schema_version > UNBOUNDED_TEMPERATURE_VERSION):
+                raise PassportError(
+                    f"triads[{triad.value!r}].temperature: a schema-{self.schema_version} passport needs a temperature model "
+                    + ("without a valid range (schema 1 has none)" if model.bounded else "with its valid range (valid_min_c, valid_max_c)")
+                )
         object.__setattr__(self, "sensor_ids", MappingProxyType(dict(self.sensor_ids)))
         object.__setattr__(self, "triads", MappingProxyType(triads))
 
@@ -460,7 +537,7 @@ class Passport:
         triads = {}
         for key, value in triads_obj.items():
             triad = _enum(Triad, key, "triads key")
-            triads[triad] = TriadPassport.from_dict(triad, value)
+            triads[triad] = TriadPassport.from_dict(triad, value, schema_version=obj["schema_version"])
         sensor_ids = obj["sensor_ids"]
         if not isinstance(sensor_ids, dict):
             raise PassportError(f"sensor_ids must be a map, got {_short(sensor_ids)}")

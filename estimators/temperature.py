@@ -36,6 +36,18 @@ points"). The order chosen is the *lowest* whose CR is within one standard
 error of the smallest CR (the one-standard-error rule of cross-validation):
 a higher order must earn its extra coefficients on held-out data by more than
 the criterion's own scatter.
+
+Valid range
+-----------
+The model records the lowest and highest test temperature it was fitted on
+(``TemperatureModel.valid_min_c``, ``valid_max_c``). Compensation evaluates it
+at the temperature clamped to that range, ``T_c = min(max(T, T_min), T_max)``:
+beyond its data a polynomial of degree up to 4 is unbounded (it grows as
+``(T − T_ref)^order`` and no test constrains the direction), while the value at
+the edge is the nearest thing the chamber measured, so it is the best the
+passport knows. Clamping does not make compensation exact out there; the
+service therefore also stops checking samples taken outside the range
+(:mod:`service.pipeline`).
 """
 
 from __future__ import annotations
@@ -167,13 +179,16 @@ def fit_temperature_model(
     gravity_mps2 : local g, m/s² (normalizes the bias in the model).
     orders : degrees to compare; an order is compared only if each held-out
         half has at least as many temperatures as it has coefficients.
-    reference_temp_c : T_ref of the polynomials, °C.
+    reference_temp_c : T_ref of the polynomials, °C, within the tested temperatures.
+
+    The model's valid range is ``[min(temp_c), max(temp_c)]`` (module docstring).
 
     Raises
     ------
     ValueError
-        Fewer than four temperatures, a shape mismatch, or no order that the
-        temperatures can support.
+        Fewer than four temperatures, a shape mismatch, ``reference_temp_c``
+        outside the tested temperatures, or no order that the temperatures can
+        support.
     """
     t = np.asarray(temp_c, dtype=float)
     if t.ndim != 1:
@@ -193,6 +208,12 @@ def fit_temperature_model(
         raise ValueError("the standard deviations of bias and scale error must be positive")
     if not gravity_mps2 > 0:
         raise ValueError(f"gravity_mps2 must be positive, got {gravity_mps2!r}")
+    t_min_c, t_max_c = float(t.min()), float(t.max())
+    if not t_min_c <= reference_temp_c <= t_max_c:
+        # The nominal values are the model at T_ref: outside the tests they would be an extrapolation.
+        raise ValueError(
+            f"reference_temp_c {reference_temp_c:g} °C is outside the tested temperatures {t_min_c:g}…{t_max_c:g} °C; choose one within them"
+        )
     values, std = _series(*arrays)
     order_idx = np.argsort(t, kind="stable")
     half_a, half_b = order_idx[0::2], order_idx[1::2]
@@ -238,7 +259,7 @@ def fit_temperature_model(
         coefs[s] = c * unscale
         covs[s] = cov * np.outer(unscale, unscale)
     g = float(gravity_mps2)
-    model = TemperatureModel(reference_temp_c=ref, bias_coeffs=coefs[:3] / g, scale_coeffs=coefs[3:])
+    model = TemperatureModel(reference_temp_c=ref, bias_coeffs=coefs[:3] / g, scale_coeffs=coefs[3:], valid_min_c=t_min_c, valid_max_c=t_max_c)
     return TemperatureFit(
         model=model,
         order=n,
@@ -250,9 +271,24 @@ def fit_temperature_model(
     )
 
 
+def clamp_to_range(model: TemperatureModel, temp_c: np.ndarray) -> np.ndarray:
+    """(N,) temperatures ``temp_c`` (N,), °C, clamped to the model's valid range (unchanged for an unbounded model).
+
+    Why clamp rather than extrapolate: module docstring, "Valid range".
+    """
+    t = np.asarray(temp_c, dtype=float).reshape(-1)
+    if not model.bounded:
+        return t
+    return np.clip(t, model.valid_min_c, model.valid_max_c)
+
+
 def model_errors(model: TemperatureModel, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalized bias ``b(T)`` (N, 3) and scale error ``e(T)`` (N, 3) of the model at ``temp_c`` (N,) °C."""
-    x = np.asarray(temp_c, dtype=float).reshape(-1) - model.reference_temp_c
+    """Normalized bias ``b(T)`` (N, 3) and scale error ``e(T)`` (N, 3) of the model at ``temp_c`` (N,) °C.
+
+    Outside the valid range the values at the nearer edge (:func:`clamp_to_range`): finite at any
+    temperature, and what compensation uses.
+    """
+    x = clamp_to_range(model, temp_c) - model.reference_temp_c
     powers = x[:, None] ** np.arange(model.order + 1)[None]
     return powers @ model.bias_coeffs.T, powers @ model.scale_coeffs.T
 
@@ -268,8 +304,9 @@ def _check_samples(accel_mps2: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarr
 def remove_temperature_errors(accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float) -> np.ndarray:
     """(N, 3) specific force with the modelled bias and scale error removed entirely (M3 compensation).
 
-    ``a = (a_meas − g·b(T)) / (1 + e(T))``. Used to measure the residual zero
-    and scale errors the model leaves.
+    ``a = (a_meas − g·b(T)) / (1 + e(T))``, ``T`` clamped to the valid range
+    (:func:`model_errors`). Used to measure the residual zero and scale errors
+    the model leaves.
     """
     a, t = _check_samples(accel_mps2, temp_c)
     b, e = model_errors(model, t)
@@ -282,7 +319,9 @@ def to_reference_temperature(accel_mps2: np.ndarray, temp_c: np.ndarray, model: 
     ``a_ref = (1 + e(T_ref))·(a_meas − g·b(T))/(1 + e(T)) + g·b(T_ref)``: the
     temperature-dependent part is removed and the passport's nominal bias and
     scale error (measured at ``T_ref``) stay in the data, so the diagnosis
-    against the passport remains valid at any temperature.
+    against the passport remains valid across the model's range. Outside it
+    ``T`` is clamped to the nearer edge (:func:`model_errors`, module docstring):
+    the result stays finite, but is only as good as the edge value.
     """
     a, t = _check_samples(accel_mps2, temp_c)
     b, e = model_errors(model, t)

@@ -23,7 +23,7 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 :class:`~estimators.conventions.Cause` or :class:`StreamCause` value),
 ``estimate``, ``nominal``, ``tolerance``, ``sigma`` (finite float or nil),
 ``unit`` (str, unit of those four numbers: ``"1"`` dimensionless, ``"s"``,
-``"m/s^2"``, ``"rad/s"``, ``"count"``), ``severity`` (str, lower-case
+``"m/s^2"``, ``"rad/s"``, ``"count"``, ``"degC"``), ``severity`` (str, lower-case
 :class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
 
 Status schema, version 1: ``type`` = ``"ins.health.status"``, ``v`` = 1,

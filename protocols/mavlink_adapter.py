@@ -243,7 +243,7 @@ _CAUSE_ABBREV = {
     StreamCause.TEMPERATURE_RANGE: "temp range",
     StreamCause.RECOVERED: "recovered",
 }
-_UNIT_ABBREV = {"1": "", "s": "s", "m/s^2": "m/s2", "rad/s": "rad/s", "count": ""}
+_UNIT_ABBREV = {"1": "", "s": "s", "m/s^2": "m/s2", "rad/s": "rad/s", "count": "", "degC": "C"}
 
 
 def alert_text(event: Event) -> str:

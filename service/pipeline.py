@@ -18,7 +18,15 @@ Per batch of samples, in this order (docs/architecture.md):
    triad has a temperature model (methods.md M3) the samples are brought to the
    passport's reference temperature
    (:func:`estimators.temperature.to_reference_temperature`) before anything
-   else sees them; the status says so.
+   else sees them; the status says so. Beyond the range the model was fitted on
+   the model is held at the nearer edge (not extrapolated), which leaves an
+   unmodelled error: a ``temperature`` event (cause ``temperature_range``) is
+   raised when a sample leaves the range and a ``recovered`` one when the
+   temperature is back inside by :data:`TEMPERATURE_HYSTERESIS_C`; F0 does not
+   test samples taken outside the range (``f0.<triad>.skipped_temperature``) and
+   positions whose mean temperature is outside do not enter the diagnosis
+   (``positions.skipped_temperature.<triad>``). A schema-1 passport's model has
+   no range: it is used at any temperature, and the status says so.
 4. **Static detection and positions**
    (:class:`estimators.positions.PositionAccumulator`, per sample), with the
    detector's thresholds raised to the unit's own noise at the stream's rate
@@ -73,6 +81,7 @@ SEVERITY: dict[Predicate, Severity] = {
     Predicate.TIMEOUT: Severity.WARNING,
     Predicate.ERROR_DENSITY: Severity.WARNING,
     Predicate.CROSS_IMU: Severity.WARNING,
+    Predicate.TEMPERATURE: Severity.WARNING,
 }
 """MAV_SEVERITY of each predicate's event: F0 says *that* a triad failed (warning); F1…F9 name the
 sensor and the cause (:data:`FINDING_SEVERITY`); a stuck axis is critical; recoveries are info."""
@@ -88,6 +97,10 @@ CLOCK_RESET_FRAMES = 3
 """Consecutive rejected frames forming a consistent new stream after which the source is taken to have restarted."""
 DETECTOR_NOISE_FACTOR = 3.0
 """Static detector thresholds at least this many times the unit's white-noise window spread."""
+TEMPERATURE_HYSTERESIS_C = 1.0
+"""The temperature must be back this far inside the model's range before the out-of-range event recovers
+(at most a quarter of the range): a unit resting at the edge would otherwise flicker in and out with the
+sensor's noise and quantization, one event pair each time."""
 F0_SHELL_LIMIT = 1.0
 """A triad whose λ0 exceeds this cannot fail F0 meaningfully (the shell is thicker than the unit
 sphere: a MEMS gyro against the Earth rate); F0 is then not run for it, and the status says why."""
@@ -135,6 +148,30 @@ class _TriadCheck:
     f0_failing: bool = False
     f0_fail_t_s: float | None = None
     active: dict[str, float] = field(default_factory=dict)  # predicate -> data time raised
+    temp_out_edge_c: float | None = None  # range edge crossed while the temperature event is raised, °C
+    # [first, last] sample times taken outside the temperature model's range that F0 has not seen yet:
+    # the static gate hands samples to F0 up to a window later than the frame that carried them.
+    temp_skip_s: list[list[float]] = field(default_factory=list)
+
+    def record_temperature_skip(self, t_s: np.ndarray, outside: np.ndarray) -> None:
+        """Note the samples (times ``t_s`` (N,), ascending) taken outside the temperature model's range (``outside`` (N,))."""
+        if self.temp_skip_s and t_s.size and t_s[0] <= self.temp_skip_s[-1][1]:
+            # Time went back: the source restarted (ImuPipeline._source_restart), the old stream is finished.
+            self.temp_skip_s.clear()
+        edges = np.diff(np.concatenate([[0], outside.astype(np.int8), [0]]))
+        first, last = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+        self.temp_skip_s += [[float(t_s[a]), float(t_s[b])] for a, b in zip(first, last)]
+
+    def take_temperature_skip(self, t_s: np.ndarray) -> np.ndarray:
+        """(N,) bool: which of the samples at ``t_s`` (N,), ascending, F0 must skip; forgets the spans F0 has passed."""
+        if not self.temp_skip_s or not t_s.size:
+            return np.zeros(t_s.shape, dtype=bool)
+        spans = np.array(self.temp_skip_s)
+        k = np.searchsorted(spans[:, 0], t_s, side="right") - 1
+        skip = (k >= 0) & (t_s <= spans[np.maximum(k, 0), 1])
+        # F0 sees the samples in time order, so spans ending by the last of these are done.
+        self.temp_skip_s = [s for s in self.temp_skip_s if s[1] > t_s[-1]]
+        return skip
 
 
 def _f0_config(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> tuple[F0Config | None, float, str]:
@@ -384,9 +421,9 @@ class ImuPipeline:
             self._setup(float(1.0 / np.median(np.diff(times))))
             batches, self._probe = self._probe, []
             for b in batches:
-                events += self._run(b)
+                events += self._temperature_range(b) + self._run(b)
             return events
-        return events + self._run(good)
+        return events + self._temperature_range(good) + self._run(good)
 
     def _jump_s(self) -> float:
         """A step forward in sample time larger than this is a time jump (data lost or a clock step)."""
@@ -466,10 +503,57 @@ class ImuPipeline:
                 self.temperature_compensated = True
         return out[Triad.ACCEL], out[Triad.GYRO]
 
+    def _temperature_range(self, b: SampleBatch) -> list[Event]:
+        """Each temperature model's range against the frame's temperatures (module docstring step 3).
+
+        Runs before the frame enters the chain: notes the samples F0 must skip, and raises one event
+        when a sample leaves the range, one ``recovered`` event at the first sample back inside by
+        :data:`TEMPERATURE_HYSTERESIS_C`. Sample by sample, so the events do not depend on the framing.
+        """
+        events: list[Event] = []
+        if b.temp_c is None:
+            return events
+        for triad, check in self.checks.items():
+            model = check.passport.temperature
+            if model is None or not model.bounded:
+                continue
+            lo, hi = model.valid_min_c, model.valid_max_c
+            outside = ~model.in_range(b.temp_c)
+            if check.f0 is not None:
+                check.record_temperature_skip(b.t_s, outside)
+            margin = min(TEMPERATURE_HYSTERESIS_C, 0.25 * (hi - lo))
+            back = (b.temp_c >= lo + margin) & (b.temp_c <= hi - margin)
+            i = 0
+            while True:
+                entering = check.temp_out_edge_c is None
+                hits = np.flatnonzero((outside if entering else back)[i:])
+                if not hits.size:
+                    break
+                i += int(hits[0])
+                t_s, temp_c = float(b.t_s[i]), float(b.temp_c[i])
+                where = f"{self.vehicle} IMU{self.imu} {_TRIAD_WORD[triad]}: temperature {temp_c:.1f} °C"
+                kw = dict(triad=triad, estimate=temp_c, nominal=model.reference_temp_c, unit="degC")
+                if entering:
+                    check.temp_out_edge_c = edge = hi if temp_c > hi else lo
+                    text = (f"{where} outside the passport model's {lo:g}…{hi:g} °C; compensation held at its "
+                            f"{edge:g} °C value, F0 and the diagnosis skip these samples [temperature]")
+                    events.append(self._event(t_s, Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE,
+                                              SEVERITY[Predicate.TEMPERATURE], tolerance=edge, text=text, **kw))
+                else:
+                    text = f"{where} back within the passport model's {lo:g}…{hi:g} °C [temperature]"
+                    events.append(self._event(t_s, Predicate.TEMPERATURE, StreamCause.RECOVERED, RECOVERED_SEVERITY,
+                                              tolerance=check.temp_out_edge_c, text=text, **kw))
+                    check.temp_out_edge_c = None
+                i += 1
+        return events
+
     def _f0(self, triad: Triad, check: _TriadCheck, t_s: np.ndarray, x: np.ndarray, static: np.ndarray) -> list[Event]:
         if check.f0 is None:
             return []
-        res = f0_batch(x, static, check.f0)
+        # Beyond the temperature model's range compensation is not exact (module docstring step 3): not tested.
+        hot = check.take_temperature_skip(t_s)
+        self._count(f"f0.{triad.value}.skipped_temperature", int(np.count_nonzero(hot & static)))
+        res = f0_batch(x, static & ~hot, check.f0)
         tested = res.state != F0State.NOT_APPLICABLE
         if not tested.any():
             return []
@@ -503,6 +587,10 @@ class ImuPipeline:
             self._count("positions")
             for triad, check in self.checks.items():
                 if check.estimator is None or pos.t_start_s < check.since_t_s or pos.mean(triad) is None:
+                    continue
+                model = check.passport.temperature
+                if model is not None and pos.temp_mean_c is not None and not model.in_range(pos.temp_mean_c)[0]:
+                    self._count(f"positions.skipped_temperature.{triad.value}")  # compensation not exact there
                     continue
                 ref = self.options.reference(triad)
                 try:
@@ -615,7 +703,7 @@ class ImuPipeline:
             return ImuState.NO_DATA
         if self.stale or any(c.f0_failing or c.active for c in self.checks.values()):
             return ImuState.FAULT
-        if self.error_dense:
+        if self.error_dense or any(c.temp_out_edge_c is not None for c in self.checks.values()):
             return ImuState.WARNING
         if self.rate_hz is None or self.n_positions < self.options.min_positions:
             return ImuState.STARTING
@@ -629,6 +717,11 @@ class ImuPipeline:
             parts.append(check.f0_note + (" FAILING" if check.f0_failing else ""))
             if check.active:
                 parts.append(f"{check.passport.triad.value} faults " + ",".join(sorted(check.active)))
+            model, name = check.passport.temperature, check.passport.triad.value
+            if model is not None and not model.bounded:
+                parts.append(f"{name} temperature model has no valid range (passport schema 1): used at any temperature")
+            elif check.temp_out_edge_c is not None:
+                parts.append(f"{name} beyond the temperature model's {model.valid_min_c:g}…{model.valid_max_c:g} °C: F0 and diagnosis skip samples there")
         if self.checks:
             with_model = any(c.passport.temperature is not None for c in self.checks.values())
             parts.append(
@@ -653,6 +746,7 @@ class ImuPipeline:
             "n_positions": self.n_positions,
             "stale": sorted(list(k) for k in self.stale),
             "error_dense": self.error_dense,
+            "temperature_compensated": self.temperature_compensated,
             "validity": self.validity.state_dict(),
             "accumulator": None if self.accumulator is None else self.accumulator.state_dict(),
             "gate": None if self.gate is None else self.gate.state_dict(),
@@ -664,6 +758,8 @@ class ImuPipeline:
                     "f0_fail_t_s": c.f0_fail_t_s,
                     "active": dict(c.active),
                     "estimator": None if c.estimator is None else c.estimator.state_dict(),
+                    "temp_out_edge_c": c.temp_out_edge_c,
+                    "temp_skip_s": [list(span) for span in c.temp_skip_s],
                 }
                 for t, c in self.checks.items()
             },
@@ -685,6 +781,7 @@ class ImuPipeline:
             self.n_positions = int(state["n_positions"])
             self.stale = {tuple(k) for k in state["stale"]}
             self.error_dense = bool(state["error_dense"])
+            self.temperature_compensated = bool(state.get("temperature_compensated", False))  # absent from older checkpoints
             self.validity = StreamValidity.from_state(state["validity"], limits=self.options.validity)
             self.counters = {str(k): int(v) for k, v in state["counters"].items()}
             for name, cs in state["checks"].items():
@@ -695,6 +792,10 @@ class ImuPipeline:
                 check.f0_failing = bool(cs["f0_failing"])
                 check.f0_fail_t_s = cs["f0_fail_t_s"]
                 check.active = {str(k): float(v) for k, v in cs["active"].items()}
+                # Absent from checkpoints written before the temperature range existed: in range, nothing to skip.
+                edge = cs.get("temp_out_edge_c")
+                check.temp_out_edge_c = None if edge is None else float(edge)
+                check.temp_skip_s = [[float(a), float(b)] for a, b in cs.get("temp_skip_s", [])]
                 if cs["estimator"] is not None and check.estimator is not None:
                     check.estimator = RecursiveNineParam.from_state_dict(cs["estimator"])
         except (KeyError, TypeError) as exc:

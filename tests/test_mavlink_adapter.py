@@ -117,6 +117,8 @@ ALL_EVENTS = [
                estimate=4.2e-4, tolerance=1e-4),
     make_event(vehicle="v1", imu=0, t_s=1.0, predicate="temperature", cause=StreamCause.TEMPERATURE_RANGE, severity=5, unit="weird-unit-xyz",
                estimate=-40.25, tolerance=-1.0e-200),
+    make_event(vehicle="v1", imu=3, t_s=1.0, predicate="temperature", cause=StreamCause.TEMPERATURE_RANGE, severity=4, triad="accel",
+               estimate=52.345, nominal=20.0, tolerance=40.0, unit="degC"),
 ]
 
 

@@ -53,7 +53,7 @@ def passport() -> Passport:
         grade={Triad.ACCEL: Grade.MEMS, Triad.GYRO: Grade.NAVIGATION},
         quantization_step={Triad.ACCEL: np.full(3, 2.44e-4)},
     )
-    temp = TemperatureModel(25.0, np.array([[1e-4, 2e-6, 0.0]] * 3), np.array([[0.0, 1e-5, -3e-8]] * 3))
+    temp = TemperatureModel(25.0, np.array([[1e-4, 2e-6, 0.0]] * 3), np.array([[0.0, 1e-5, -3e-8]] * 3), valid_min_c=-20.0, valid_max_c=60.0)
     triads = {**p.triads, Triad.ACCEL: dataclasses.replace(p.triads[Triad.ACCEL], temperature=temp)}
     return Passport(p.unit_id, p.sensor_model, p.sensor_ids, p.created, triads)
 
@@ -106,6 +106,60 @@ def test_dict_round_trip_is_exact(passport):
     back = Passport.from_dict(copy.deepcopy(d))
     assert back.to_dict() == d
     assert back.triads[Triad.ACCEL].temperature.order == 2
+
+
+def test_the_temperature_range_round_trips(passport):
+    d = passport.to_dict()
+    assert {k: d["triads"]["accel"]["temperature"][k] for k in ("valid_min_c", "valid_max_c")} == {"valid_min_c": -20.0, "valid_max_c": 60.0}
+    model = decode_passport(encode_passport(passport)).triads[Triad.ACCEL].temperature
+    assert (model.valid_min_c, model.valid_max_c, model.bounded) == (-20.0, 60.0, True)
+
+
+def _schema_1(passport: Passport) -> dict:
+    """The passport as a schema-1 file holds it: the same map without the temperature range."""
+    d = copy.deepcopy(passport.to_dict())
+    d["schema_version"] = 1
+    for key in ("valid_min_c", "valid_max_c"):
+        del d["triads"]["accel"]["temperature"][key]
+    return d
+
+
+def test_a_schema_1_passport_reads_with_an_unbounded_temperature_model_and_writes_back_unchanged(passport, tmp_path):
+    old = _schema_1(passport)
+    back = Passport.from_dict(copy.deepcopy(old))
+    model = back.triads[Triad.ACCEL].temperature
+    assert back.schema_version == 1 and not model.bounded and model.valid_min_c is None and model.valid_max_c is None
+    assert model.in_range([-1e3, 1e3]).all()
+    assert back.to_dict() == old
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(old))
+    assert read_passport_json(path).to_dict() == old
+    # A schema-1 file has no range keys, and a schema-2 file must have them.
+    with pytest.raises(PassportError, match=r"temperature has unknown field\(s\) \['valid_max_c', 'valid_min_c'\]"):
+        Passport.from_dict({**passport.to_dict(), "schema_version": 1})
+    with pytest.raises(PassportError, match=r"temperature lacks field\(s\) \['valid_min_c', 'valid_max_c'\]"):
+        Passport.from_dict({**old, "schema_version": 2})
+    # Built in memory, the same rule: the schema decides whether a temperature model carries a range.
+    with pytest.raises(PassportError, match="a schema-2 passport needs a temperature model with its valid range"):
+        Passport(back.unit_id, back.sensor_model, back.sensor_ids, back.created, back.triads)
+    with pytest.raises(PassportError, match="a schema-1 passport needs a temperature model without a valid range"):
+        dataclasses.replace(passport, schema_version=1)
+
+
+@pytest.mark.parametrize(
+    ("bounds", "match"),
+    [
+        ({"valid_min_c": 30.0, "valid_max_c": 30.0}, r"valid_min_c must be below valid_max_c, got 30\.0 ≥ 30\.0"),
+        ({"valid_min_c": 40.0, "valid_max_c": -10.0}, r"valid_min_c must be below valid_max_c, got 40\.0 ≥ -10\.0"),
+        ({"valid_min_c": 30.0, "valid_max_c": 60.0}, r"reference_temp_c 25\.0 °C is outside the valid range 30\.0…60\.0 °C"),
+        ({"valid_min_c": float("-inf"), "valid_max_c": 60.0}, r"valid_min_c must be finite, got -inf"),
+        ({"valid_min_c": -10.0, "valid_max_c": float("nan")}, r"valid_max_c must be finite, got nan"),
+        ({"valid_min_c": -10.0, "valid_max_c": None}, r"valid_min_c and valid_max_c go together, got -10\.0 and None"),
+    ],
+)
+def test_an_invalid_temperature_range_is_rejected(bounds, match):
+    with pytest.raises(PassportError, match=match):
+        TemperatureModel(25.0, np.zeros((3, 2)), np.zeros((3, 2)), **bounds)
 
 
 def test_json_file_round_trip_is_exact_and_atomic(passport, tmp_path):
@@ -164,6 +218,8 @@ def _mutated(passport: Passport, path: tuple, value) -> dict:
         (("triads", "accel", "reference"), -9.8, r"reference must be positive, got -9\.8"),
         (("triads", "accel", "noise_std"), [True, 1.0, 1.0], "must be numbers, got booleans"),
         (("triads", "accel", "temperature", "bias_coeffs"), [[1.0, 2.0]] * 2, r"bias_coeffs must have shape \(3, order\+1\), got \(2, 2\)"),
+        (("triads", "accel", "temperature", "valid_max_c"), None, r"temperature\.valid_max_c must be a number, got None"),
+        (("triads", "accel", "temperature", "valid_min_c"), 26.0, r"reference_temp_c 25\.0 °C is outside the valid range 26\.0…60\.0 °C"),
         (("triads", "accel", "provenance", "confidence"), 1.5, r"confidence must be in \(0, 1\), got 1\.5"),
         (("triads", "accel", "bias_instability_std"), [0.0, -1e-5, 0.0], r"bias_instability_std must not be negative"),
         (("triads", "accel", "provenance", "n_runs"), 0, r"n_runs must be a positive int, got 0"),

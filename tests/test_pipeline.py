@@ -10,7 +10,7 @@ import pytest
 
 from estimators.conventions import Triad
 from estimators.passport import TemperatureModel
-from estimators.sim import TemperatureBias, WarmupTemperature, simulate
+from estimators.sim import CycleTemperature, TemperatureBias, WarmupTemperature, simulate
 from protocols.events import ImuState, Predicate, Severity, StreamCause
 from service.checkpoint import decode_state, encode_state
 from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
@@ -198,13 +198,105 @@ def test_warm_up_is_compensated_with_the_passport_temperature_model():
         dataclasses.replace(spec, model=model, faults=(), temperature=WarmupTemperature(start_c=20.0, final_c=50.0, tau_s=15.0)), seed=3
     ).session
     tp = passport.triads[Triad.ACCEL]
-    tmodel = TemperatureModel(20.0, np.column_stack([tp.nominal[:3], np.full(3, k_mps2_per_c / tp.reference)]), np.zeros((3, 2)))
+    tmodel = TemperatureModel(
+        20.0, np.column_stack([tp.nominal[:3], np.full(3, k_mps2_per_c / tp.reference)]), np.zeros((3, 2)), valid_min_c=20.0, valid_max_c=50.0
+    )
     with_model = dataclasses.replace(passport, triads={Triad.ACCEL: dataclasses.replace(tp, temperature=tmodel)})
     frames = list(batches_of(warm, vehicle=V, imu=0, batch_samples=100))
     assert run_fleet(fleet_for(passport, g), frames)[0].predicate is Predicate.F0
     fleet = fleet_for(with_model, g)
     assert run_fleet(fleet, frames) == []
     assert "temperature-compensated (M3)" in fleet.status(V, service="t", now_unix_s=0.0).imus[0].detail
+
+
+CHAMBER_C = (10.0, 40.0)
+PEAK_C = 60.0
+BUMP_G = 1e-3
+
+
+@functools.lru_cache(maxsize=None)
+def beyond_the_chamber():
+    """A fault-free unit warming 20 → 60 → 20 °C (one cosine cycle over the session) whose bias follows 1 mG/°C
+    at every temperature, and its passport's quartic temperature model fitted in a 10…40 °C chamber.
+
+    The quartic is the unit's line plus ``BUMP_G·(((T − 25)/15)⁴ − (5/15)⁴)``: within 1 mg of the truth in the
+    chamber, but its extrapolation errs by 15 mg (F0's λ0) near 54.6 °C and by 29 mg at 60 °C.
+    Returns (frames, the session, passport with the 10…40 °C range, the same model as a schema-1 passport, g).
+    """
+    passport, g = calibrated()
+    clean = demo_scenario(fault_magnitude=0.0)
+    k_mps2_per_c = 1e-3 * 9.80665
+    model = clean.spec.model.with_effect(TemperatureBias(coef_si_per_c=((k_mps2_per_c,),) * 3), triad=Triad.ACCEL)
+    period_s = float(clean.session.t_s[-1] - clean.session.t_s[0])
+    warm = simulate(dataclasses.replace(clean.spec, model=model, temperature=CycleTemperature(20.0, PEAK_C, period_s)), seed=3).session
+    tp = passport.triads[Triad.ACCEL]
+    bias = np.zeros((3, 5))
+    bias[:, 0], bias[:, 1] = tp.nominal[:3], k_mps2_per_c / tp.reference
+    # ((T − 25)/15)⁴ in powers of (T − 20): (x − 5)⁴ / 15⁴, its value at T_ref removed so the nominal stays.
+    bias[:, 1:] += BUMP_G * np.array([-500.0, 150.0, -20.0, 1.0]) / 15.0**4
+
+    def with_model(schema_version, lo_c, hi_c):
+        tmodel = TemperatureModel(20.0, bias, np.zeros((3, 5)), valid_min_c=lo_c, valid_max_c=hi_c)
+        return dataclasses.replace(passport, triads={**passport.triads, Triad.ACCEL: dataclasses.replace(tp, temperature=tmodel)},
+                                   schema_version=schema_version)  # fmt: skip
+
+    frames = tuple(batches_of(warm, vehicle=V, imu=0, batch_samples=100))
+    return frames, warm, with_model(2, *CHAMBER_C), with_model(1, None, None), g
+
+
+def test_beyond_the_chamber_range_one_event_each_way_and_no_false_alarm():
+    """Warm-up out of the passport model's range and back: one temperature event, one recovery, no F0 or F1…F9."""
+    frames, warm, ranged, unbounded, g = beyond_the_chamber()
+    fleet = fleet_for(ranged, g)
+    events = run_fleet(fleet, frames)
+    assert kinds(events) == [(Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE), (Predicate.TEMPERATURE, StreamCause.RECOVERED)]
+    out, back = events
+    # Sample by sample: the first sample above 40 °C, then the first one back at or below 39 °C.
+    i = int(np.argmax(warm.temp_c > CHAMBER_C[1]))
+    j = i + int(np.argmax(warm.temp_c[i:] <= CHAMBER_C[1] - 1.0))
+    assert (out.t_s, out.estimate) == (warm.t_s[i], warm.temp_c[i]) and 40.0 < out.estimate < 40.01
+    assert (back.t_s, back.estimate) == (warm.t_s[j], warm.temp_c[j]) and 38.99 < back.estimate <= 39.0
+    assert out.triad is back.triad is Triad.ACCEL and out.unit == back.unit == "degC"
+    assert (out.tolerance, out.nominal, out.severity) == (40.0, 20.0, Severity.WARNING) and back.severity is Severity.INFO
+    assert out.text.startswith(f"{V} IMU0 accelerometer: temperature 40.0 °C outside the passport model's 10…40 °C")
+    assert back.text == f"{V} IMU0 accelerometer: temperature 39.0 °C back within the passport model's 10…40 °C [temperature]"
+    counters = fleet.status(V, service="t", now_unix_s=0.0).counters
+    assert counters["imu0.f0.accel.skipped_temperature"] > 3000 and counters["imu0.f0.accel.tests"] > 5000
+    assert counters["imu0.positions.skipped_temperature.accel"] > 5 and counters.get("imu0.f0.accel.fail", 0) == 0
+    # Deterministic: other framings give the same events, ids included.
+    rebatched = list(batches_of(warm, vehicle=V, imu=0, batch_samples=37))
+    assert [e.event_id for e in run_fleet(fleet_for(ranged, g), rebatched)] == [e.event_id for e in events]
+    # Not vacuous: the same polynomial without a range (a schema-1 passport, used at any temperature, as before)
+    # fails F0 beyond 50 °C and then the diagnosis, and raises no temperature event.
+    old = fleet_for(unbounded, g)
+    extrapolated = run_fleet(old, frames)
+    f0 = next(e for e in extrapolated if e.predicate is Predicate.F0)
+    assert f0.cause is StreamCause.OUT_OF_SHELL and abs(f0.estimate) > f0.tolerance
+    assert 50.0 < np.interp(f0.t_s, warm.t_s, warm.temp_c) < PEAK_C
+    assert Predicate.TEMPERATURE not in {e.predicate for e in extrapolated}
+    assert "accel temperature model has no valid range (passport schema 1)" in old.status(V, service="t", now_unix_s=0.0).imus[0].detail
+
+
+def test_the_temperature_range_state_survives_a_checkpoint():
+    """Checkpoint while beyond the range: the restored pipeline raises no second event and recovers once."""
+    frames, _, ranged, _, g = beyond_the_chamber()
+    cut = next(k for k, b in enumerate(frames) if b.t_s[0] > 60.0)
+    pipe = ImuPipeline(V, 0, passport=ranged, options=options(g))
+    before = [e for b in frames[:cut] for e in pipe.process(b, arrival_s=float(b.t_s[-1]))]
+    assert kinds(before) == [(Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE)]
+    status = pipe.status()
+    assert status.state is ImuState.WARNING and "accel beyond the temperature model's 10…40 °C: F0 and diagnosis skip samples there" in status.detail
+    twin = ImuPipeline(V, 0, passport=ranged, options=options(g))
+    twin.load_state(decode_state(encode_state(pipe.state_dict())))
+    check, twin_check = pipe.checks[Triad.ACCEL], twin.checks[Triad.ACCEL]
+    assert twin_check.temp_out_edge_c == check.temp_out_edge_c == 40.0
+    assert twin_check.temp_skip_s == check.temp_skip_s != []  # samples the static gate still holds
+    assert twin.status() == status
+    after = [e for b in frames[cut:] for e in twin.process(b, arrival_s=float(b.t_s[-1]))] + twin.finish()
+    rest = [e for b in frames[cut:] for e in pipe.process(b, arrival_s=float(b.t_s[-1]))] + pipe.finish()
+    assert kinds(after) == [(Predicate.TEMPERATURE, StreamCause.RECOVERED)]
+    assert [e.event_id for e in after] == [e.event_id for e in rest]
+    assert twin.counters == pipe.counters
 
 
 def test_cross_imu_names_the_outlier_and_quotes_its_scalar_check():

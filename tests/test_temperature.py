@@ -12,6 +12,7 @@ from estimators.temperature import (
     PAPER_SCALE_ERROR,
     PAPER_TEMPS_C,
     PAPER_ZERO_ERROR_G,
+    clamp_to_range,
     fit_temperature_model,
     group_temperatures,
     hidden_quartic_model,
@@ -74,6 +75,19 @@ def test_chamber_tests_select_order_4_and_compensate_beyond_the_papers_factors(c
         assert np.max(np.abs(z)) < 4.5 and 0.7 < z.std() < 1.3
 
 
+def test_the_fit_records_the_temperatures_it_was_fitted_on(chamber):
+    _, units = chamber
+    for series, fit in units:
+        assert (fit.model.valid_min_c, fit.model.valid_max_c) == (series.temp_c.min(), series.temp_c.max())
+        assert -45.5 < fit.model.valid_min_c < -44.5 and 74.5 < fit.model.valid_max_c < 75.5
+    series, _ = units[0]
+    with pytest.raises(ValueError, match=r"reference_temp_c 90 °C is outside the tested temperatures -4\d(\.\d+)?…7\d(\.\d+)? °C"):
+        fit_temperature_model(
+            series.temp_c, series.bias_mps2, series.scale_error, bias_std_mps2=series.bias_std_mps2, scale_std=series.scale_std,
+            gravity_mps2=G, reference_temp_c=90.0,
+        )
+
+
 def test_held_out_criterion_picks_the_order_that_training_residuals_cannot(chamber):
     _, units = chamber
     _, fit = units[0]
@@ -115,7 +129,9 @@ def test_a_quadratic_dependence_selects_order_2():
 
 def test_compensation_round_trips_and_keeps_the_passport_values_at_the_reference():
     rng = np.random.default_rng(2)
-    model = TemperatureModel(20.0, rng.normal(0, 1e-4, (3, 5)) * 1e-2 ** np.arange(5), rng.normal(0, 1e-3, (3, 5)) * 1e-2 ** np.arange(5))
+    model = TemperatureModel(
+        20.0, rng.normal(0, 1e-4, (3, 5)) * 1e-2 ** np.arange(5), rng.normal(0, 1e-3, (3, 5)) * 1e-2 ** np.arange(5), valid_min_c=-45.0, valid_max_c=75.0
+    )
     temps = rng.uniform(-45.0, 75.0, 200)
     true_f = rng.normal(0, 5.0, (200, 3))
     b, e = model_errors(model, temps)
@@ -151,3 +167,34 @@ def test_a_session_without_temperature_or_with_an_incomplete_test_is_refused():
     no_temp = [dataclasses.replace(p, temp_mean_c=None) for p in positions]
     with pytest.raises(ValueError, match="no temperature column"):
         temperature_series(no_temp, gravity_mps2=G)
+
+
+def _quartic(**bounds):
+    rng = np.random.default_rng(5)
+    return TemperatureModel(20.0, rng.normal(0, 1e-4, (3, 5)) * 1e-2 ** np.arange(5), rng.normal(0, 1e-3, (3, 5)) * 1e-2 ** np.arange(5), **bounds)
+
+
+def test_outside_its_range_the_model_is_held_at_the_nearer_edge():
+    model = _quartic(valid_min_c=-10.0, valid_max_c=50.0)
+    temps = np.array([-1e6, -273.15, -10.0, 20.0, 50.0, 85.0, 1e6])
+    np.testing.assert_array_equal(clamp_to_range(model, temps), [-10.0, -10.0, -10.0, 20.0, 50.0, 50.0, 50.0])
+    b, e = model_errors(model, temps)
+    b_edge, e_edge = model_errors(model, np.array([-10.0, 50.0]))
+    np.testing.assert_array_equal(b[:3], np.repeat(b_edge[:1], 3, axis=0))
+    np.testing.assert_array_equal(b[4:], np.repeat(b_edge[1:], 3, axis=0))
+    np.testing.assert_array_equal(e[4:], np.repeat(e_edge[1:], 3, axis=0))
+    # The compensated output far outside is finite and equal to the one at the edge.
+    f = np.tile([0.1, -0.2, 9.8], (temps.size, 1))
+    out = to_reference_temperature(f, temps, model, gravity_mps2=G)
+    assert np.all(np.isfinite(out))
+    np.testing.assert_array_equal(out[-1], out[4])
+    np.testing.assert_array_equal(remove_temperature_errors(f, temps, model, gravity_mps2=G)[0], remove_temperature_errors(f, temps, model, gravity_mps2=G)[2])
+    # What the clamp prevents: the polynomial itself at 1e6 °C (an unbounded, schema-1 model evaluates it).
+    b_raw, e_raw = model_errors(_quartic(valid_min_c=None, valid_max_c=None), temps)
+    assert np.max(np.abs(b_raw[-1])) > 1e6 and np.max(np.abs(e_raw[-1])) > 1e6
+    np.testing.assert_array_equal(b_raw[2:5], b[2:5])  # inside the range both are the polynomial
+
+
+def test_in_range_is_inclusive_and_all_true_without_a_range():
+    np.testing.assert_array_equal(_quartic(valid_min_c=-10.0, valid_max_c=50.0).in_range([-10.001, -10.0, 50.0, 50.001]), [False, True, True, False])
+    assert _quartic(valid_min_c=None, valid_max_c=None).in_range([-1e9, 1e9]).all()
