@@ -3,6 +3,8 @@
 import asyncio
 import os
 import re
+import select
+import time
 
 import numpy as np
 import pytest
@@ -259,3 +261,31 @@ def test_no_pymavlink_global_state_is_touched():
         peer.close()
     assert (os.environ.get("MAVLINK20"), mavutil.mavlink, mavutil.current_dialect) == before  # ... without the global switch
     assert link.connection.port.fileno() == -1  # the context closed the socket
+
+
+def test_serial_link_reads_imu_and_sends_alerts_through_a_pseudo_terminal():
+    """A serial device as the service opens it (pyserial under pymavlink), the autopilot on the other end of a pty."""
+    master, slave = os.openpty()
+    try:
+        with MavlinkLink(MavlinkSettings(device=os.ttyname(slave), vehicle="v3", baud=921600)) as link:
+            autopilot = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+            for k in range(3):
+                os.write(master, imu_message(ImuMessage.SCALED_IMU2, t_s=5.0 + 0.01 * k, accel_mps2=ACC, gyro_rps=GYR).pack(autopilot))
+            got = [link.recv_batch(WAIT_S) for _ in range(3)]
+            link.send_heartbeat()
+            event = _finding_event(severity=Severity.ERROR)
+            text = link.send_alert(event)
+            ground = mavlink2.MAVLink(None)
+            received, deadline = [], time.monotonic() + WAIT_S
+            while len(received) < 2 and time.monotonic() < deadline:
+                if select.select([master], [], [], 0.1)[0]:
+                    received += [m for m in ground.parse_buffer(os.read(master, 4096)) or []]
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert [(b.vehicle, b.imu, b.seq) for b in got] == [("v3", 1, 0), ("v3", 1, 1), ("v3", 1, 2)]
+    np.testing.assert_allclose(got[2].accel_mps2[0], ACC, atol=STANDARD_GRAVITY_MPS2 * 1e-3 / 2 + 1e-6, rtol=0)
+    assert [m.get_type() for m in received] == ["HEARTBEAT", "STATUSTEXT"]
+    heartbeat, alert = received
+    assert heartbeat.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER and heartbeat.get_srcComponent() == mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
+    assert alert.severity == int(Severity.ERROR) and alert.text == text
