@@ -28,6 +28,16 @@ run); every sample then carries the outcome of the last completed window of its
 run, and ``NOT_APPLICABLE`` until the first window of the run completes.
 
 λ0 is derived, not chosen: :func:`derive_lambda0`.
+
+Persistence
+-----------
+λ0 bounds the white noise of a resting unit. A knock on a resting vehicle (a
+hand on a hand-held unit, a door, a wheel chock) rings for a few milliseconds
+far outside any noise bound, while every sensor fault of M1's model (a zero
+signal, a scale factor or an axis that moved) stays. A failure is therefore
+declared where ``persist`` consecutive samples fail
+(:func:`persistent_failure`), dated at its first failing sample; ``persist = 1``
+is the bare predicate.
 """
 
 from __future__ import annotations
@@ -222,6 +232,34 @@ def f0_batch(x_si: np.ndarray, static: np.ndarray, config: F0Config) -> F0Result
     residual = np.where(tested, s, np.nan)
     n_tests = int(np.count_nonzero(tested))
     return F0Result(state, residual, n_tests, int(n_tests - np.count_nonzero(ok)), n_rejected)
+
+
+def persistent_failure(state: np.ndarray, run_in: int, persist: int) -> tuple[int, int]:
+    """Where F0's failure becomes persistent (module docstring, Persistence).
+
+    Parameters
+    ----------
+    state : (N,) :class:`F0State` values of consecutive samples (any other state breaks a run).
+    run_in : failing samples in a row just before these (carried across batches).
+    persist : failing samples in a row that make a failure (≥ 1).
+
+    Returns ``(k, run_out)``: the index of the sample that completes the first
+    run of ``persist`` failing samples (−1 if none; the run began at
+    ``k − persist + 1``, before this batch when that is negative), and the
+    failing samples in a row at the end of the batch. Cutting the samples into
+    batches anywhere gives the same failures.
+    """
+    if persist < 1 or run_in < 0:
+        raise ValueError(f"persist must be >= 1 and run_in >= 0, got {persist!r}, {run_in!r}")
+    fail = np.asarray(state) == _FAIL
+    n = fail.size
+    if n == 0:
+        return -1, int(run_in)
+    idx = np.arange(n)
+    last_break = np.maximum.accumulate(np.where(fail, -1, idx))
+    run = np.where(last_break < 0, idx + 1 + run_in, idx - last_break)
+    hits = np.flatnonzero(run >= persist)
+    return (int(hits[0]) if hits.size else -1), int(run[-1])
 
 
 def _f0_windows(u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F0Config, n_rejected: int) -> F0Result:

@@ -19,6 +19,7 @@ Sections
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -156,6 +157,9 @@ class PipelineSection:
     false_alarm_probability : per-sample false-alarm probability of F0 from which λ0 is derived
         with the passport's noise and tolerances (default 1e-9: at 1 kHz about one false alarm
         in 11 days of static data; :func:`estimators.scalar.derive_lambda0`).
+    f0_persistence_s : F0 is declared failed only after failing this long without a break (default
+        0.02 s, at least one sample): a knock on a resting vehicle rings for a few ms, a sensor fault
+        stays (:func:`estimators.scalar.persistent_failure`).
     min_positions : static positions needed before the nine-parameter diagnosis runs (default 9, M1).
     max_imus_per_vehicle : pipelines created per vehicle at most (default 4); more IMU indices are
         counted as ``unknown_imu`` (a flood of fake indices cannot exhaust memory).
@@ -164,6 +168,7 @@ class PipelineSection:
 
     queue_capacity: int = 256
     false_alarm_probability: float = 1e-9
+    f0_persistence_s: float = 0.02
     min_positions: int = 9
     max_imus_per_vehicle: int = 4
     max_vehicles: int = 256
@@ -329,6 +334,8 @@ def _check(cfg: ServiceConfig) -> None:
         _positive(f"[pipeline] {name}", getattr(p, name))
     if not 0.0 < p.false_alarm_probability < 0.5:
         raise ConfigError(f"[pipeline] false_alarm_probability must be in (0, 0.5), got {p.false_alarm_probability!r}")
+    if not (math.isfinite(p.f0_persistence_s) and 0.0 <= p.f0_persistence_s <= 1.0):
+        raise ConfigError(f"[pipeline] f0_persistence_s must be in [0, 1] s, got {p.f0_persistence_s!r}")
     if p.min_positions < 9:
         raise ConfigError(f"[pipeline] min_positions must be >= 9 (nine parameters, M1), got {p.min_positions}")
     g = cfg.site.local_gravity_mps2

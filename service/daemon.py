@@ -200,6 +200,7 @@ def pipeline_options(config: ServiceConfig) -> PipelineOptions:
         gravity_mps2=site.local_gravity_mps2,
         gravity_rel_err=rel_err,
         false_alarm_probability=config.pipeline.false_alarm_probability,
+        f0_persistence_s=config.pipeline.f0_persistence_s,
         diagnosis_false_alarm_probability=DEFAULT_FALSE_ALARM_PROB,
         min_positions=config.pipeline.min_positions,
         validity=config.validity,

@@ -37,7 +37,11 @@ Per batch of samples, in this order (docs/architecture.md):
    :class:`~estimators.scalar.F0Monitor`'s decisions), centred on the
    passport's nominal errors, λ0 from :func:`estimators.scalar.derive_lambda0`
    with the passport's noise and tolerances at the configured false-alarm
-   probability. The first FAIL raises an event. M1's flow "on failure, run the
+   probability. The first run of FAILs lasting ``f0_persistence_s`` without a
+   break (:func:`estimators.scalar.persistent_failure`) raises an event dated at
+   the run's first sample: a knock on the resting vehicle fails a few samples
+   and is only counted (``f0.<triad>.fail``); the measured Xsens session has one
+   such knock at 208.1 s. M1's flow "on failure, run the
    diagnosis" is implemented literally: the failed triad's recursive estimate
    restarts from the positions *after* the failure, so F1…F9 describe the
    faulty sensor, not an average of before and after.
@@ -66,7 +70,7 @@ from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Outcome, diagnose
 from estimators.ninepar import RecursiveNineParam, canonical_triad_matrix
 from estimators.passport import Passport, TriadPassport
 from estimators.positions import Position, PositionAccumulator, PositionConfig
-from estimators.scalar import F0Config, F0State, derive_lambda0, f0_batch
+from estimators.scalar import F0Config, derive_lambda0, f0_batch, persistent_failure
 from estimators.static_detector import FinalDecisions, StaticDetectorConfig
 from estimators.stream_validity import CrossImuMonitor, CrossImuReport, StreamValidity, ValidityLimits
 from estimators.temperature import to_reference_temperature
@@ -115,6 +119,9 @@ class PipelineOptions:
     gravity_mps2 : local gravity, the accelerometers' reference, m/s².
     gravity_rel_err : bound of its relative error (enters λ0, M1's reference term).
     false_alarm_probability : per-sample F0 false-alarm probability.
+    f0_persistence_s : how long F0 must fail without a break before it is declared, s
+        (:func:`estimators.scalar.persistent_failure`; at least one sample). A knock rings
+        for a few ms; a sensor fault stays.
     diagnosis_false_alarm_probability : per-diagnosis probability of a false F1…F9 (estimators.diagnosis).
     min_positions : positions before F1…F9 are evaluated.
     validity : stream-validity and cross-IMU limits.
@@ -125,6 +132,7 @@ class PipelineOptions:
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
     gravity_rel_err: float = 3.0e-3
     false_alarm_probability: float = 1.0e-9
+    f0_persistence_s: float = 0.02
     diagnosis_false_alarm_probability: float = DEFAULT_FALSE_ALARM_PROB
     min_positions: int = 9
     validity: ValidityLimits = ValidityLimits()
@@ -148,6 +156,8 @@ class _TriadCheck:
     f0_failing: bool = False
     f0_fail_t_s: float | None = None
     active: dict[str, float] = field(default_factory=dict)  # predicate -> data time raised
+    f0_run: int = 0  # F0 failures in a row at the end of the last batch
+    f0_run_onset: tuple[float, float] | None = None  # (t_s, residual) of that run's first sample
     temp_out_edge_c: float | None = None  # range edge crossed while the temperature event is raised, °C
     # [first, last] sample times taken outside the temperature model's range that F0 has not seen yet:
     # the static gate hands samples to F0 up to a window later than the frame that carried them.
@@ -332,6 +342,7 @@ class ImuPipeline:
         self.options = options
         self.validity = StreamValidity(limits=options.validity)
         self.rate_hz: float | None = None
+        self.f0_persist = 1
         self.accumulator: PositionAccumulator | None = None
         self.gate: StaticGate | None = None
         self.checks: dict[Triad, _TriadCheck] = {}
@@ -360,6 +371,7 @@ class ImuPipeline:
 
     def _setup(self, rate_hz: float) -> None:
         self.rate_hz = rate_hz
+        self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
         detector = detector_config(self.options.detector, self.passport, rate_hz)
         self.accumulator = PositionAccumulator(rate_hz=rate_hz, detector_config=detector, config=self.options.positions)
         self.gate = StaticGate(self.options.positions.trim_samples(rate_hz))
@@ -554,25 +566,25 @@ class ImuPipeline:
         hot = check.take_temperature_skip(t_s)
         self._count(f"f0.{triad.value}.skipped_temperature", int(np.count_nonzero(hot & static)))
         res = f0_batch(x, static & ~hot, check.f0)
-        tested = res.state != F0State.NOT_APPLICABLE
-        if not tested.any():
-            return []
         self._count(f"f0.{triad.value}.tests", res.n_tests)
         self._count(f"f0.{triad.value}.fail", res.n_fail)
+        k, run = persistent_failure(res.state, check.f0_run, self.f0_persist)
         events: list[Event] = []
-        states = res.state[tested]
-        times = t_s[tested]
-        resid = res.residual[tested]
-        j = int(np.flatnonzero(states == F0State.FAIL)[0]) if not check.f0_failing and res.n_fail else -1
-        if j >= 0:
-            check.f0_failing, check.f0_fail_t_s = True, float(times[j])
+        if k >= 0 and not check.f0_failing:
+            onset = k - self.f0_persist + 1
+            t_on, r_on = (float(t_s[onset]), float(res.residual[onset])) if onset >= 0 else check.f0_run_onset
+            check.f0_failing, check.f0_fail_t_s = True, t_on
             events.append(
                 self._event(
-                    float(times[j]), Predicate.F0, StreamCause.OUT_OF_SHELL, SEVERITY[Predicate.F0],
-                    triad=triad, estimate=float(resid[j]), nominal=0.0, tolerance=check.lambda0,
+                    t_on, Predicate.F0, StreamCause.OUT_OF_SHELL, SEVERITY[Predicate.F0],
+                    triad=triad, estimate=r_on, nominal=0.0, tolerance=check.lambda0,
                 )
             )  # fmt: skip
-            self._restart_diagnosis(check, float(times[j]))
+            self._restart_diagnosis(check, t_on)
+        if run and run <= t_s.size:
+            start = t_s.size - run
+            check.f0_run_onset = (float(t_s[start]), float(res.residual[start]))
+        check.f0_run = run
         return events
 
     def _restart_diagnosis(self, check: _TriadCheck, t_s: float) -> None:
@@ -758,6 +770,8 @@ class ImuPipeline:
                     "f0_fail_t_s": c.f0_fail_t_s,
                     "active": dict(c.active),
                     "estimator": None if c.estimator is None else c.estimator.state_dict(),
+                    "f0_run": c.f0_run,
+                    "f0_run_onset": None if c.f0_run_onset is None else list(c.f0_run_onset),
                     "temp_out_edge_c": c.temp_out_edge_c,
                     "temp_skip_s": [list(span) for span in c.temp_skip_s],
                 }
@@ -792,6 +806,10 @@ class ImuPipeline:
                 check.f0_failing = bool(cs["f0_failing"])
                 check.f0_fail_t_s = cs["f0_fail_t_s"]
                 check.active = {str(k): float(v) for k, v in cs["active"].items()}
+                # Absent from older checkpoints: no failure run in progress.
+                check.f0_run = int(cs.get("f0_run", 0))
+                onset = cs.get("f0_run_onset")
+                check.f0_run_onset = None if onset is None else (float(onset[0]), float(onset[1]))
                 # Absent from checkpoints written before the temperature range existed: in range, nothing to skip.
                 edge = cs.get("temp_out_edge_c")
                 check.temp_out_edge_c = None if edge is None else float(edge)

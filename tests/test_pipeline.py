@@ -328,3 +328,41 @@ def test_pipeline_state_round_trips_through_msgpack():
     assert twin.status() == pipe.status() and twin.n_positions == pipe.n_positions > 5
     with pytest.raises(ValueError, match="not a version-1 state of demo-uav IMU1"):
         ImuPipeline(V, 1, passport=passport, options=options(g)).load_state(state)
+
+
+def _knocked(session, times_s, amplitude_mps2):
+    """The session with a 10 ms ringing knock on the z accelerometer (+a, −a on two samples) at each time."""
+    accel = session.accel_mps2.copy()
+    for t in times_s:
+        i = int(np.searchsorted(session.t_s, t))
+        accel[i, 2] += amplitude_mps2
+        accel[i + 1, 2] -= amplitude_mps2
+    return dataclasses.replace(session, accel_mps2=accel)
+
+
+def test_a_knock_on_the_resting_unit_fails_single_samples_but_raises_no_f0():
+    """A knock rings for 10 ms at 200 Hz (2 samples); F0 must fail for 20 ms in a row (4 samples) to be declared."""
+    passport, g = calibrated()
+    clean = demo_scenario(fault_magnitude=0.0)
+    knocked = _knocked(clean.session, (clean.fault_s, clean.fault_s + 1.0), 0.3)  # 0.3 m/s² ≈ 20σ of the noise
+    fleet = fleet_for(passport, g)
+    assert run_fleet(fleet, batches_of(knocked, vehicle=V, imu=0, batch_samples=50)) == []
+    # The knocks were inside the static set and out of the shell: every one of their samples failed F0.
+    assert fleet.pipelines[(V, 0)].counters["f0.accel.fail"] == 4
+    # The bare predicate (one sample) declares the first knock a failure; the diagnosis then clears it.
+    bare = FleetProcessor(passports=lambda v, i: passport, options=dataclasses.replace(options(g), f0_persistence_s=0.0))
+    events = run_fleet(bare, batches_of(knocked, vehicle=V, imu=0, batch_samples=50))
+    assert kinds(events) == [(Predicate.F0, StreamCause.OUT_OF_SHELL), (Predicate.F0, StreamCause.RECOVERED)]
+    assert events[0].t_s == pytest.approx(clean.fault_s, abs=0.006)
+
+
+def test_a_persistent_failure_is_dated_at_its_first_failing_sample_across_frames():
+    """The fault's F0 event has the same time whatever the frame size, also when the run spans frames."""
+    passport, g = calibrated()
+    sc = faulty()
+    first = []
+    for size in (1, 3, 50, 1000):
+        events = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=size))
+        first.append(next(e for e in events if e.predicate is Predicate.F0))
+    assert len({(e.t_s, e.estimate, e.event_id) for e in first}) == 1
+    assert sc.fault_s <= first[0].t_s < sc.fault_s + 0.05 and first[0].estimate > first[0].tolerance

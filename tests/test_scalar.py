@@ -16,6 +16,7 @@ from estimators.scalar import (
     derive_lambda0,
     f0_batch,
     normalize,
+    persistent_failure,
     scalar_residual,
     triad_reference,
 )
@@ -350,3 +351,35 @@ def test_config_rejects_bad_values():
         F0Config(lambda0=1e-3, reference=G, n_avg=0)
     with pytest.raises(ValueError, match="static must be a bool array"):
         f0_batch(np.ones((3, 3)), np.ones(3), F0Config(lambda0=1e-3, reference=G))
+
+
+def _runs_brute(state, persist):
+    """Index of the sample completing the first `persist` FAILs in a row, by counting (the definition)."""
+    run = 0
+    for i, s in enumerate(state):
+        run = run + 1 if s == F0State.FAIL else 0
+        if run >= persist:
+            return i
+    return -1
+
+
+@pytest.mark.parametrize("persist", [1, 2, 4, 9])
+def test_persistent_failure_is_the_first_run_of_persist_failures_however_the_samples_are_cut(persist):
+    rng = np.random.default_rng(persist)
+    for _ in range(200):
+        state = rng.choice([F0State.OK, F0State.FAIL, F0State.NOT_APPLICABLE], size=int(rng.integers(1, 60)), p=[0.3, 0.55, 0.15])
+        state = state.astype(np.int8)
+        expected = _runs_brute(state, persist)
+        k, run = persistent_failure(state, 0, persist)
+        assert k == expected
+        tail = len(state) - 1 - max([i for i, s in enumerate(state) if s != F0State.FAIL], default=-1)
+        assert run == tail
+        cuts = np.unique(np.concatenate([[0, len(state)], rng.integers(0, len(state), 3)]))
+        run, found = 0, -1
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            k, run = persistent_failure(state[a:b], run, persist)
+            if found < 0 and k >= 0:
+                found = a + k
+        assert found == expected
+    with pytest.raises(ValueError):
+        persistent_failure(np.zeros(3, np.int8), 0, 0)
