@@ -327,17 +327,19 @@ class CrossImuReport:
 class CrossImuMonitor:
     """Bins each IMU's samples by sample time and compares complete bins across IMUs.
 
-    A bin is compared once every IMU seen in the last bins has moved past it;
-    an IMU that stopped sending does not hold the others back for more than
-    two bins (its timeout is reported by :class:`StreamValidity`). State: per
-    IMU one open bin (sums and count) and a few closed bin means.
+    A bin is compared once every live IMU has moved past it. An IMU is live
+    while its open bin lags the newest by at most two bins plus the span of the
+    longest last frame of any IMU: frames of one IMU after another (a replayed
+    4 Hz log comes in 25 s frames per IMU) still meet bin for bin, while an IMU
+    that stopped sending holds the others back by that much at most (its timeout
+    is reported by :class:`StreamValidity`). State: per IMU one open bin (sums
+    and count) and the closed bin means not compared yet.
     """
-
-    _KEEP_BINS = 4
 
     def __init__(self, *, limits: ValidityLimits = ValidityLimits()) -> None:
         self.limits = limits
         self._open: dict[int, list] = {}  # imu -> [bin index, n, accel sum (3,), gyro sum (3,)]
+        self._span: dict[int, int] = {}  # imu -> bins its last frame spanned
         self._closed: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
         self._streak: dict[int, int] = {}
         self._flagged: set[int] = set()
@@ -370,15 +372,20 @@ class CrossImuMonitor:
                 closed[cur[0]] = (cur[2] / cur[1], cur[3] / cur[1])
             cur = [b, int(counts[j]), sums_a[j].copy(), sums_g[j].copy()]
         self._open[imu] = cur
-        for old in [k for k in closed if k < cur[0] - self._KEEP_BINS]:
+        self._span[imu] = int(bins[-1] - bins[0]) + 1
+        for old in [k for k in closed if k < cur[0] - self._lag_bins() - 2]:
             del closed[old]
         return self._compare_ready()
+
+    def _lag_bins(self) -> int:
+        """How many bins an IMU may lag the newest and still be waited for (class docstring)."""
+        return 2 + max(self._span.values(), default=0)
 
     def _compare_ready(self) -> list[CrossImuReport]:
         if len(self._open) < 2:
             return []
         newest = max(o[0] for o in self._open.values())
-        live = [i for i, o in self._open.items() if o[0] >= newest - 2]
+        live = [i for i, o in self._open.items() if o[0] >= newest - self._lag_bins()]
         horizon = min(self._open[i][0] for i in live)  # every live IMU has closed the bins before it
         reports: list[CrossImuReport] = []
         candidates = sorted({b for i in live for b in self._closed.get(i, {}) if self._last_compared < b < horizon})
@@ -395,6 +402,9 @@ class CrossImuMonitor:
                 bin_start_s=b * self.limits.cross_imu_window_s,
             )
             reports.extend(self._persist(verdict))
+        for closed in self._closed.values():
+            for done in [k for k in closed if k <= self._last_compared]:
+                del closed[done]
         return reports
 
     def _persist(self, v: CrossImuVerdict) -> list[CrossImuReport]:

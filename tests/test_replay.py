@@ -15,7 +15,9 @@ from service.cli import main
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
 
-REAL_BIN = Path("/work/shared/data/logs/ardupilot-test.BIN")
+LOGS = Path(__file__).resolve().parents[2] / "shared" / "data" / "logs"
+REAL_BIN = LOGS / "ardupilot-test.BIN"
+REAL_TLOG = LOGS / "ardupilot-sitl-vtol.tlog"
 
 
 @functools.lru_cache(maxsize=None)
@@ -92,6 +94,25 @@ def test_real_ardupilot_dataflash_log_gives_a_deterministic_event_list(capsys):
     assert "(bin): samples IMU0 45, IMU1 45; left out none; 0 events" in fast[2]
     assert "imu0.samples.accepted 45" in fast[2] and "imu1.samples.accepted 45" in fast[2]
     assert "no passport given" in fast[2]
+
+
+def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_path):
+    """ArduPlane SITL VTOL flight (SOURCE.md): RAW_IMU as IMU0 and SCALED_IMU2 as IMU1, ~4 Hz over 208 s, no fault.
+
+    Stream checks only (no passport); the two IMUs agree within the cross-IMU limits all flight: no event.
+    Two RAW_IMU messages repeat their time stamp and are left out, counted.
+    """
+    fast = replay(capsys, REAL_TLOG, "--json")
+    again = replay(capsys, REAL_TLOG, "--json")
+    assert fast[0] == 0 and fast[1] == again[1] == [] and fast[2] == again[2]
+    assert "(tlog): samples IMU0 794, IMU1 795; left out time_not_increasing 2; 0 events" in fast[2]
+    assert "imu0.samples.accepted 794" in fast[2] and "imu1.samples.accepted 795" in fast[2]
+    # The comparison does run, bin for bin, on this log's 25 s frames: with limits below the IMUs' real differences it fires.
+    tight = tmp_path / "tight.toml"
+    tight.write_text("[validity]\ncross_imu_accel_mps2 = 0.01\ncross_imu_gyro_rps = 0.0005\n")
+    status, lines, _ = replay(capsys, REAL_TLOG, "--json", "--config", str(tight))
+    events = [event_from_json(line) for line in lines]
+    assert status == 0 and {e.predicate for e in events} == {Predicate.CROSS_IMU} and len(events) >= 4
 
 
 @pytest.mark.parametrize(

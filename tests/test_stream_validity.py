@@ -192,3 +192,23 @@ def test_cross_imu_monitor_does_not_wait_for_a_dead_imu():
                 a[:, 2] += 2.0
             reports.extend(mon.add(imu, t, a, g))
     assert {r.imu for r in reports if not r.consistent} == {0, 1}
+
+
+def test_cross_imu_monitor_compares_every_bin_when_each_imu_sends_long_frames():
+    """Two IMUs at 4 Hz in 25 s frames, one after the other (a replayed log): IMU 1 is off by 1 m/s² from 60 to 70 s."""
+    rng = np.random.default_rng(8)
+    mon = CrossImuMonitor(limits=ValidityLimits(cross_imu_persist_windows=4))
+    reports = []
+    for frame in range(6):
+        for imu in (0, 1):
+            t = frame * 25.0 + np.arange(100) * 0.25
+            a = np.tile([0.0, 0.0, -9.81], (100, 1)) + ACCEL_NOISE_MPS2 * rng.standard_normal((100, 3))
+            g = 1e-3 * rng.standard_normal((100, 3))
+            if imu == 1:
+                a[(t >= 60.0) & (t < 70.0), 0] += 1.0
+            reports.extend(mon.add(imu, t, a, g))
+    bad = [r for r in reports if not r.consistent]
+    good = [r for r in reports if r.consistent]
+    # Both IMUs disagree with the only other one: both flagged after the 4th bin (60.0, 60.5, 61.0, 61.5 s), both recover at 70 s.
+    assert sorted(r.imu for r in bad) == [0, 1] and {r.bin_start_s for r in bad} == {61.5}
+    assert sorted(r.imu for r in good) == [0, 1] and {r.bin_start_s for r in good} == {70.0}
