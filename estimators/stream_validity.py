@@ -373,7 +373,8 @@ class CrossImuMonitor:
             cur = [b, int(counts[j]), sums_a[j].copy(), sums_g[j].copy()]
         self._open[imu] = cur
         self._span[imu] = int(bins[-1] - bins[0]) + 1
-        for old in [k for k in closed if k < cur[0] - self._lag_bins() - 2]:
+        oldest_kept = cur[0] - self._lag_bins() - 2
+        for old in [k for k in closed if k < oldest_kept]:
             del closed[old]
         return self._compare_ready()
 
