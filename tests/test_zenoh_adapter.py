@@ -299,8 +299,9 @@ def test_matched_mode_acknowledges_when_a_subscriber_is_routed(pair):
         with EventReceiver(b, got.append, vehicles="v7", acknowledge=False):
             wait_until(lambda: pub.ready("v7"))
             assert pub.publish(_event(5.0, vehicle="v7")) is True
-            wait_until(lambda: len(got) == 1)
-        assert got[0].t_s == 5.0
+            wait_until(lambda: any(e.t_s == 5.0 for e in got))
+        # The unrouted put still goes out; it may reach the subscriber declared just after it (the outbox retries it anyway).
+        assert {e.t_s for e in got} <= {4.0, 5.0}
 
 
 def test_receiver_rejects_and_answers_bad_ack_queries(pair):
