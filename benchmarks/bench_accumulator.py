@@ -10,15 +10,17 @@ of three runs. Run: ``taskset -c 0 python benchmarks/bench_accumulator.py`` (one
 from __future__ import annotations
 
 import numpy as np
+from stopwatch import best_s
 
 from estimators.positions import PositionAccumulator
 from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
-from stopwatch import best_s
 
 
 def _per_sample(session, rate_hz: float) -> None:
     acc = PositionAccumulator(rate_hz=rate_hz)
-    rows = np.column_stack([session.t_s, session.accel_mps2, session.gyro_rps, session.temp_c]).tolist()
+    rows = np.column_stack(
+        [session.t_s, session.accel_mps2, session.gyro_rps, session.temp_c]
+    ).tolist()
     update = acc.update
     for t, ax, ay, az, gx, gy, gz, tc in rows:
         update(t, ax, ay, az, gx, gy, gz, tc)
@@ -35,15 +37,23 @@ def _batched(session, rate_hz: float, batch: int) -> None:
 
 def main() -> None:
     for rate_hz in (100.0, 400.0):
-        spec = multi_position_spec(grade=Grade.MEMS, n_positions=18, static_s=10.0, transition_s=3.0, rate_hz=rate_hz,
-                                   temperature=RampTemperature(20.0, 0.02))
+        spec = multi_position_spec(
+            grade=Grade.MEMS,
+            n_positions=18,
+            static_s=10.0,
+            transition_s=3.0,
+            rate_hz=rate_hz,
+            temperature=RampTemperature(20.0, 0.02),
+        )
         session = simulate(spec, seed=1).session
         n = session.n_samples
         per = n / best_s(lambda: _per_sample(session, rate_hz), 3)
         print(f"{rate_hz:5.0f} Hz, {n} samples: update        {per:12,.0f} samples/s")
         for batch in (10, 100, 1000, 10000):
             rate = n / best_s(lambda: _batched(session, rate_hz, batch), 3)
-            print(f"{rate_hz:5.0f} Hz, batches of {batch:5d}: update_batch {rate:12,.0f} samples/s  ({rate / per:5.1f}×)")
+            print(
+                f"{rate_hz:5.0f} Hz, batches of {batch:5d}: update_batch {rate:12,.0f} samples/s  ({rate / per:5.1f}×)"
+            )
 
 
 if __name__ == "__main__":

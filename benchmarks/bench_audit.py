@@ -39,13 +39,23 @@ def _timed(session, gravity, replicas: int) -> float:
 
 def wall_times(quick: bool) -> None:
     session = load_session(str(DATA)).session
-    print(f"Xsens session: {session.n_samples} samples, {session.t_s[-1] - session.t_s[0]:.0f} s, one core")
+    print(
+        f"Xsens session: {session.n_samples} samples, {session.t_s[-1] - session.t_s[0]:.0f} s, one core"
+    )
     for replicas in (5, 10) if quick else (5, 10, 20, 40):
         print(f"  full audit, {replicas:3d} replicas: {_timed(session, G_XSENS, replicas):6.1f} s")
     print("Simulated multi-position sessions (MEMS, 100 Hz, 10 s holds, 4 s turns), 10 replicas:")
     for n in (12, 24) if quick else (12, 24, 48, 96):
-        spec = multi_position_spec(grade=Grade.MEMS, n_positions=n, scheme=OrientationScheme.RANDOM, orientation_rng=np.random.default_rng(n),
-                                   static_s=10.0, transition_s=4.0, rate_hz=100.0, gravity_mps2=9.80665)
+        spec = multi_position_spec(
+            grade=Grade.MEMS,
+            n_positions=n,
+            scheme=OrientationScheme.RANDOM,
+            orientation_rng=np.random.default_rng(n),
+            static_s=10.0,
+            transition_s=4.0,
+            rate_hz=100.0,
+            gravity_mps2=9.80665,
+        )
         s = simulate(spec, n).session
         print(f"  {n:3d} positions, {s.n_samples:7d} samples: {_timed(s, 9.80665, 10):6.1f} s")
 
@@ -56,7 +66,9 @@ def _hit(args) -> bool:
 
 
 def hit_rates(trials: int, workers: int) -> None:
-    print(f"Hit rate (exactly the hidden effect named) against size in detection standard errors, {trials} trials each:")
+    print(
+        f"Hit rate (exactly the hidden effect named) against size in detection standard errors, {trials} trials each:"
+    )
     print("  " + "kind".ljust(34) + "".join(f"{s:>7.0f}" for s in SIZES))
     with ProcessPoolExecutor(workers) as pool:
         for k, kind in enumerate(HIDDEN_KINDS):
@@ -64,7 +76,11 @@ def hit_rates(trials: int, workers: int) -> None:
             for size in SIZES:
                 jobs = [(100_000 + 1000 * k + t, size, kind) for t in range(trials)]
                 rates.append(np.mean(list(pool.map(_hit, jobs))))
-            print("  " + f"{kind[0]} ({kind[1].value})".ljust(34) + "".join(f"{r:7.2f}" for r in rates))
+            print(
+                "  "
+                + f"{kind[0]} ({kind[1].value})".ljust(34)
+                + "".join(f"{r:7.2f}" for r in rates)
+            )
         clean = list(pool.map(clean_trial, range(200_000, 200_000 + 5 * trials)))
     print(f"  effect-free sessions naming nothing: {np.mean(clean):.3f} of {len(clean)}")
 
@@ -72,8 +88,12 @@ def hit_rates(trials: int, workers: int) -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer replica counts, lengths and trials")
-    ap.add_argument("--trials", type=int, default=None, help="trials per kind and size (default 40, quick 8)")
-    ap.add_argument("--workers", type=int, default=2, help="processes for the hit-rate sweep (default 2)")
+    ap.add_argument(
+        "--trials", type=int, default=None, help="trials per kind and size (default 40, quick 8)"
+    )
+    ap.add_argument(
+        "--workers", type=int, default=2, help="processes for the hit-rate sweep (default 2)"
+    )
     args = ap.parse_args()
     wall_times(args.quick)
     hit_rates(args.trials or (8 if args.quick else 40), args.workers)

@@ -9,22 +9,27 @@ to the batch size. Each figure is the best of five runs. Run:
 from __future__ import annotations
 
 import numpy as np
+from stopwatch import best_s
 
 from estimators.conventions import Triad
 from estimators.scalar import F0Config, F0Monitor, derive_lambda0, f0_batch, triad_reference
 from estimators.session import ImuSession
 from estimators.sim import Grade, multi_position_spec, simulate
 from estimators.static_detector import StreamingStaticDetector, detect_static
-from stopwatch import best_s
 
 
 def main() -> None:
-    sim = simulate(multi_position_spec(grade=Grade.MEMS, static_s=5.0, transition_s=3.0), seed=1).session
+    sim = simulate(
+        multi_position_spec(grade=Grade.MEMS, static_s=5.0, transition_s=3.0), seed=1
+    ).session
     g = triad_reference(Triad.ACCEL, latitude_deg=45.0)
     lam = derive_lambda0(noise_std_norm=sim.accel_mps2[:400].std(axis=0) / g, false_alarm_prob=1e-6)
     config = F0Config(lambda0=lam.lambda0, reference=g)
     compensated = F0Config(
-        lambda0=lam.lambda0, reference=g, bias_norm=(1e-3, -2e-3, 5e-4), matrix=np.eye(3) + 1e-3 * np.arange(9).reshape(3, 3)
+        lambda0=lam.lambda0,
+        reference=g,
+        bias_norm=(1e-3, -2e-3, 5e-4),
+        matrix=np.eye(3) + 1e-3 * np.arange(9).reshape(3, 3),
     )
 
     reps = int(np.ceil(2_000_000 / sim.n_samples))

@@ -14,9 +14,9 @@ import sys
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from stopwatch import best_s
 
 from protocols.mavlink_adapter import ImuMessage, MavlinkLink, MavlinkSettings, imu_message
-from stopwatch import best_s
 
 
 def _stream(kind: ImuMessage, n: int, rng: np.random.Generator) -> bytes:
@@ -24,7 +24,8 @@ def _stream(kind: ImuMessage, n: int, rng: np.random.Generator) -> bytes:
     acc = rng.normal([0.0, 0.0, -9.8], 0.05, (n, 3))
     gyr = rng.normal(0.0, 0.01, (n, 3))
     return b"".join(
-        imu_message(kind, t_s=k * 0.001, accel_mps2=acc[k], gyro_rps=gyr[k], temp_c=35.0).pack(mav) for k in range(n)
+        imu_message(kind, t_s=k * 0.001, accel_mps2=acc[k], gyro_rps=gyr[k], temp_c=35.0).pack(mav)
+        for k in range(n)
     )
 
 

@@ -19,6 +19,7 @@ Each figure is the best of three runs. Run: ``python benchmarks/bench_methods.py
 from __future__ import annotations
 
 import numpy as np
+from stopwatch import best_s
 
 from estimators.conventions import normal_gravity_mps2
 from estimators.sim import simulate
@@ -34,9 +35,21 @@ from estimators.sixpos import (
     six_position_spec,
     six_position_test,
 )
-from estimators.temperature import PAPER_TEMPS_C, fit_temperature_model, hidden_quartic_model, simulate_chamber, temperature_series
-from estimators.tilt import TiltBench, bench_session, run_from_session, runs_from_samples, simulate_samples, tilt_passport
-from stopwatch import best_s
+from estimators.temperature import (
+    PAPER_TEMPS_C,
+    fit_temperature_model,
+    hidden_quartic_model,
+    simulate_chamber,
+    temperature_series,
+)
+from estimators.tilt import (
+    TiltBench,
+    bench_session,
+    run_from_session,
+    runs_from_samples,
+    simulate_samples,
+    tilt_passport,
+)
 
 
 def _row(name: str, seconds: float, size: str) -> None:
@@ -53,27 +66,42 @@ def main() -> None:
     _row("M2 simulate the bench (whole pulses)", t, f"{n:,} samples")
     runs = runs_from_samples(bench, samples)
     t = best_s(lambda: tilt_passport(runs, gravity_mps2=bench.gravity_mps2), 3)
-    _row("M2 passport (5 runs: LS, stabilization, intervals)", t, f"{len(runs)} runs × {len(bench.angles_deg)} angles")
+    _row(
+        "M2 passport (5 runs: LS, stabilization, intervals)",
+        t,
+        f"{len(runs)} runs × {len(bench.angles_deg)} angles",
+    )
     sessions = [bench_session(bench, s, rng=np.random.default_rng(2)) for s in samples]
     angles = np.radians(bench.angles_deg)
 
     def from_sessions():
-        return tilt_passport([run_from_session(s, angles_rad=angles)[0] for s in sessions], gravity_mps2=bench.gravity_mps2)
+        return tilt_passport(
+            [run_from_session(s, angles_rad=angles)[0] for s in sessions],
+            gravity_mps2=bench.gravity_mps2,
+        )
 
     t = best_s(from_sessions, 3)
     _row("M2 passport from session samples", t, f"{sum(s.n_samples for s in sessions):,} samples")
 
     g = normal_gravity_mps2(45.0, 0.0)
-    chamber = simulate_chamber(hidden_quartic_model(gravity_mps2=g), PAPER_TEMPS_C, seed=1, static_s=20.0)
+    chamber = simulate_chamber(
+        hidden_quartic_model(gravity_mps2=g), PAPER_TEMPS_C, seed=1, static_s=20.0
+    )
     positions = session_positions(chamber)
     t = best_s(lambda: session_positions(chamber), 3)
     _row("M3 static positions of the chamber session", t, f"{chamber.n_samples:,} samples")
     series = temperature_series(positions, gravity_mps2=g)
     t = best_s(lambda: temperature_series(positions, gravity_mps2=g), 3)
     _row("M3 six-position tests at every temperature", t, f"{series.temp_c.size} temperatures")
+
     def gmdh():
         return fit_temperature_model(
-            series.temp_c, series.bias_mps2, series.scale_error, bias_std_mps2=series.bias_std_mps2, scale_std=series.scale_std, gravity_mps2=g
+            series.temp_c,
+            series.bias_mps2,
+            series.scale_error,
+            bias_std_mps2=series.bias_std_mps2,
+            scale_std=series.scale_std,
+            gravity_mps2=g,
         )
 
     fit = gmdh()
@@ -86,14 +114,18 @@ def main() -> None:
     pos6 = session_positions(six)
     t = best_s(lambda: session_positions(six), 3)
     _row("M4 static positions of a six-position session", t, f"{six.n_samples:,} samples")
-    t = best_s(lambda: six_position_test(pos6, gravity_mps2=g_site, latitude_deg=GUANGZHOU_LATITUDE_DEG), 3)
+    t = best_s(
+        lambda: six_position_test(pos6, gravity_mps2=g_site, latitude_deg=GUANGZHOU_LATITUDE_DEG), 3
+    )
     _row("M4 six-position accelerometer + gyro Bf/Bg fits", t, f"{len(pos6)} positions")
     profile = paper_rate_profile_rps()
     rate = simulate_rate_table(model, axis=0, profile_rps=profile, gravity_mps2=g_site, seed=1)
 
     def rate_fit():
         steps = find_rate_steps(rate.t_s, rate.gyro_rps, axis=0, profile_rps=profile)
-        return rate_table_fit(profile, steps.gyro_mean_rps, axis=0, gyro_var_rps=steps.gyro_var_rps[:, 0])
+        return rate_table_fit(
+            profile, steps.gyro_mean_rps, axis=0, gyro_var_rps=steps.gyro_var_rps[:, 0]
+        )
 
     t = best_s(rate_fit, 3)
     _row("M4 rate-table steps and fit", t, f"{rate.n_samples:,} samples, {profile.size} steps")

@@ -22,10 +22,11 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
+from stopwatch import median_s
 
-from estimators.conventions import EARTH_RATE_RPS, PARAM_NAMES, RPS_PER_DPH, Triad  # noqa: E402
-from estimators.ninepar import (  # noqa: E402
+from estimators.conventions import EARTH_RATE_RPS, PARAM_NAMES, RPS_PER_DPH, Triad
+from estimators.ninepar import (
     RecursiveNineParam,
     canonical_triad_matrix,
     cramer_rao_bound,
@@ -33,7 +34,6 @@ from estimators.ninepar import (  # noqa: E402
     estimate_refined,
     scheme_directions,
 )
-from stopwatch import median_s  # noqa: E402
 
 DEG_PER_H_NORM = RPS_PER_DPH / EARTH_RATE_RPS
 SEEDS = 2000
@@ -51,12 +51,16 @@ def _case(params: np.ndarray, n_positions: int, sigma_mean: float, seed: int):
 
 MEMS_ACCEL = np.array([3e-3, -2e-3, 4e-3, 2e-3, -4e-3, 6e-3, 1.2e-3, -0.8e-3, 0.5e-3])
 MEMS_ACCEL_SIGMA = 1e-3 / np.sqrt(1000.0)  # 1 mg per sample, 1000 samples per position
-NAV_GYRO = np.concatenate([np.array([0.01, -0.008, 0.012]) * DEG_PER_H_NORM, [2e-5, -1e-5, 3e-5, 2e-5, -3e-5, 1e-5]])
+NAV_GYRO = np.concatenate(
+    [np.array([0.01, -0.008, 0.012]) * DEG_PER_H_NORM, [2e-5, -1e-5, 3e-5, 2e-5, -3e-5, 1e-5]]
+)
 NAV_GYRO_SIGMA = 0.002 * 60.0 / np.sqrt(300.0) * DEG_PER_H_NORM  # 0.002 °/√h over 300 s
 
 
 def timing() -> None:
-    print("Time per re-estimation (MEMS accelerometer, median), ms; recursive: one more position after n")
+    print(
+        "Time per re-estimation (MEMS accelerometer, median), ms; recursive: one more position after n"
+    )
     print(f"{'positions':>10} {'linear':>10} {'refined':>10} {'recursive/pos':>14}")
     rng = np.random.default_rng(1)
     for n in (9, 18, 100):
@@ -65,11 +69,13 @@ def timing() -> None:
         t_lin = median_s(lambda: estimate_linear(means, cov, Triad.ACCEL), 50)
         t_ref = median_s(lambda: estimate_refined(means, cov, Triad.ACCEL), 50)
         rec = RecursiveNineParam(Triad.ACCEL, warmup_positions=min(n, 18))
-        for m, c in zip(means, cov):
+        for m, c in zip(means, cov, strict=True):
             rec.update(m, c)
         # Further positions revisit the scheme with fresh noise: 400 updates, one timed each.
         idx = np.arange(400) % n
-        stream = iter(zip(truth[idx] + rng.normal(0.0, MEMS_ACCEL_SIGMA, (400, 3)), cov[idx]))
+        stream = iter(
+            zip(truth[idx] + rng.normal(0.0, MEMS_ACCEL_SIGMA, (400, 3)), cov[idx], strict=True)
+        )
 
         def one_position() -> None:
             rec.update(*next(stream))
@@ -79,20 +85,28 @@ def timing() -> None:
         print(f"{n:>10} {1e3 * t_lin:>10.3f} {1e3 * t_ref:>10.3f} {1e3 * t_rec:>14.3f}")
 
 
-def efficiency(name: str, params: np.ndarray, sigma_mean: float, n_positions: int, *, seed: int = 11) -> None:
+def efficiency(
+    name: str, params: np.ndarray, sigma_mean: float, n_positions: int, *, seed: int = 11
+) -> None:
     truth, cov = _case(params, n_positions, sigma_mean, seed=7)
     crb = np.diag(cramer_rao_bound(truth, cov, params))
     rng = np.random.default_rng(seed)
     draws = truth + rng.normal(0.0, sigma_mean, (SEEDS, *truth.shape))
     err_lin = np.array([estimate_linear(m, cov, Triad.ACCEL).params - params for m in draws])
     err_ref = np.array([estimate_refined(m, cov, Triad.ACCEL).params - params for m in draws])
-    print(f"\nCRB/MSE, {name}, {n_positions} positions, {SEEDS} seeds (relative s.e. ≈ {np.sqrt(2.0 / SEEDS):.2f})")
+    print(
+        f"\nCRB/MSE, {name}, {n_positions} positions, {SEEDS} seeds (relative s.e. ≈ {np.sqrt(2.0 / SEEDS):.2f})"
+    )
     print(f"{'param':>6} {'sqrt(CRB)':>11} {'linear':>8} {'refined':>8} {'ref. bias/σ':>12}")
     for j, pname in enumerate(PARAM_NAMES):
         mse_lin, mse_ref = np.mean(err_lin[:, j] ** 2), np.mean(err_ref[:, j] ** 2)
         bias = err_ref[:, j].mean() / np.sqrt(crb[j])
-        print(f"{pname:>6} {np.sqrt(crb[j]):>11.3e} {crb[j] / mse_lin:>8.3f} {crb[j] / mse_ref:>8.3f} {bias:>12.3f}")
-    print(f"{'all':>6} {'':>11} {np.mean(crb / np.mean(err_lin**2, 0)):>8.3f} {np.mean(crb / np.mean(err_ref**2, 0)):>8.3f}")
+        print(
+            f"{pname:>6} {np.sqrt(crb[j]):>11.3e} {crb[j] / mse_lin:>8.3f} {crb[j] / mse_ref:>8.3f} {bias:>12.3f}"
+        )
+    print(
+        f"{'all':>6} {'':>11} {np.mean(crb / np.mean(err_lin**2, 0)):>8.3f} {np.mean(crb / np.mean(err_ref**2, 0)):>8.3f}"
+    )
 
 
 def recursive_vs_refined(n_positions: int, trials: int, warmup_positions: int) -> None:
@@ -117,7 +131,9 @@ def main() -> None:
     timing()
     efficiency("MEMS accelerometer (1 mg/sample, 1000 samples)", MEMS_ACCEL, MEMS_ACCEL_SIGMA, 18)
     efficiency("MEMS accelerometer (1 mg/sample, 1000 samples)", MEMS_ACCEL, MEMS_ACCEL_SIGMA, 9)
-    efficiency("navigation gyro against Ω (0.002 °/√h, 300 s)", NAV_GYRO, NAV_GYRO_SIGMA, 18, seed=13)
+    efficiency(
+        "navigation gyro against Ω (0.002 °/√h, 300 s)", NAV_GYRO, NAV_GYRO_SIGMA, 18, seed=13
+    )
     print()
     for warmup in (9, 18):
         for n in (30, 100):

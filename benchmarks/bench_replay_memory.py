@@ -26,8 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimators.sim import Hold, MotionProfile, SessionSpec, grade_error_model, simulate  # noqa: E402
 from estimators.sim import Grade as SimGrade  # noqa: E402
+from estimators.sim import Hold, MotionProfile, SessionSpec, grade_error_model, simulate  # noqa: E402
 from estimators.sim.motion import eighteen_position_attitudes  # noqa: E402
 from protocols.frames import SampleBatch  # noqa: E402
 from service.checkpoint import encode_state  # noqa: E402
@@ -47,7 +47,7 @@ def rss_mb() -> float:
 def minute(k: int):
     """Minute ``k`` of the hour: ten positions of the 18-position scheme (6 s, then 4 s each after 2 s turns), from 60 k s."""
     att = eighteen_position_attitudes(heading_rad=0.3 * k)
-    segments = [Hold(6.0)] + handling_segments(att[1:10], hold_s=4.0, turn_s=2.0)
+    segments = [Hold(6.0), *handling_segments(att[1:10], hold_s=4.0, turn_s=2.0)]
     spec = SessionSpec(MotionProfile(att[0], tuple(segments)), grade_error_model(SimGrade.MEMS), rate_hz=RATE_HZ,
                        latitude_deg=DEMO_LATITUDE_DEG, t0_s=60.0 * k)  # fmt: skip
     return simulate(spec, seed=100 + k).session
@@ -55,7 +55,10 @@ def minute(k: int):
 
 def main() -> None:
     passport, g = demo_passport()
-    fleet = FleetProcessor(passports=lambda v, i: passport, options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4))
+    fleet = FleetProcessor(
+        passports=lambda v, i: passport,
+        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+    )
     samples, events, seq = 0, 0, 0
     marks = []
     t0 = time.perf_counter()
@@ -78,10 +81,19 @@ def main() -> None:
     rss = np.array([r for _, r in marks])
     half = minutes > MINUTES / 2
     slope = np.polyfit(minutes[half], rss[half], 1)[0] * 60.0
-    print(f"one hour of 1 kHz data through the pipeline ({samples:,} samples, frames of {FRAME}, one IMU)")
-    print("  RSS by minutes of data: " + "  ".join(f"{m:.0f}: {r:.1f} MB" for m, r in marks if m % 10 == 0 or m == 1))
-    print(f"  slope over the second half hour: {slope:+.2f} MB per hour of data (flat: |slope| well under 1 MB/h)")
-    print(f"  peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.1f} MB; {pipe.n_positions} positions kept in the estimate, {events} events")
+    print(
+        f"one hour of 1 kHz data through the pipeline ({samples:,} samples, frames of {FRAME}, one IMU)"
+    )
+    print(
+        "  RSS by minutes of data: "
+        + "  ".join(f"{m:.0f}: {r:.1f} MB" for m, r in marks if m % 10 == 0 or m == 1)
+    )
+    print(
+        f"  slope over the second half hour: {slope:+.2f} MB per hour of data (flat: |slope| well under 1 MB/h)"
+    )
+    print(
+        f"  peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.1f} MB; {pipe.n_positions} positions kept in the estimate, {events} events"
+    )
     print(f"  per-IMU state (checkpoint, msgpack): {len(state) / 1024:.1f} kB")
     print(f"  wall {wall:.0f} s ({samples / wall / 1e3:.1f} k samples/s, simulation included)")
 

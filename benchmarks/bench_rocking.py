@@ -11,10 +11,17 @@ batches). Each figure is the best of three runs. Run:
 from __future__ import annotations
 
 import numpy as np
-
-from estimators.rocking import PAPER_DK, GyroUnit, StandSettings, estimate_scale_errors, paper_runs, simulate_run
-from estimators.strapdown import integrate_attitude
 from stopwatch import best_s
+
+from estimators.rocking import (
+    PAPER_DK,
+    GyroUnit,
+    StandSettings,
+    estimate_scale_errors,
+    paper_runs,
+    simulate_run,
+)
+from estimators.strapdown import integrate_attitude
 
 
 def main() -> None:
@@ -23,8 +30,10 @@ def main() -> None:
     n_samples = sum(s.n_samples for s in sessions)
     result = estimate_scale_errors(sessions, stand=StandSettings())
     t_method = best_s(lambda: estimate_scale_errors(sessions, stand=StandSettings()), 3)
-    print(f"rocking method, paper bench (3 runs, {n_samples} samples at 100 Hz): {t_method:.2f} s, "
-          f"{result.model.steps} Gauss–Newton steps")
+    print(
+        f"rocking method, paper bench (3 runs, {n_samples} samples at 100 Hz): {t_method:.2f} s, "
+        f"{result.model.steps} Gauss–Newton steps"
+    )
     for name, dk in (("model-based", result.dk), ("closed form", result.closed.dk)):
         print(f"  {name} δK error: " + ", ".join(f"{100 * v:+.3f} %" for v in dk / PAPER_DK - 1))
 
@@ -33,10 +42,14 @@ def main() -> None:
     w = rng.normal(0.0, 0.5, (n, 3))
     for coning in (True, False):
         dt = best_s(lambda: integrate_attitude(t, w, coning=coning), 3)
-        print(f"attitude integrator, one record of {n} samples, coning={coning}: {n / dt / 1e6:.2f} M samples/s")
+        print(
+            f"attitude integrator, one record of {n} samples, coning={coning}: {n / dt / 1e6:.2f} M samples/s"
+        )
     batch = rng.normal(0.0, 0.5, (16, 20_000, 3))
     dt = best_s(lambda: integrate_attitude(t[:20_000], batch), 3)
-    print(f"attitude integrator, batch of 16 x 20000 samples: {batch.shape[0] * batch.shape[1] / dt / 1e6:.2f} M samples/s")
+    print(
+        f"attitude integrator, batch of 16 x 20000 samples: {batch.shape[0] * batch.shape[1] / dt / 1e6:.2f} M samples/s"
+    )
 
 
 if __name__ == "__main__":

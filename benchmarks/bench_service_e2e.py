@@ -50,7 +50,15 @@ from estimators.conventions import Triad  # noqa: E402
 from estimators.session import ImuSession  # noqa: E402
 from estimators.sim import Fault, FaultKind, simulate, static_spec  # noqa: E402
 from protocols.frames import SampleBatch  # noqa: E402
-from protocols.zenoh_adapter import EventReceiver, FramePublisher, Mode, ZenohSettings, frame_key, subscribe_status, zenoh_config  # noqa: E402
+from protocols.zenoh_adapter import (  # noqa: E402
+    EventReceiver,
+    FramePublisher,
+    Mode,
+    ZenohSettings,
+    frame_key,
+    subscribe_status,
+    zenoh_config,
+)
 from protocols.zenoh_router import RouterProcess, free_local_port  # noqa: E402
 from service.demo import demo_passport  # noqa: E402
 from service.passport_store import PassportStore  # noqa: E402
@@ -81,7 +89,14 @@ def client(port: int) -> zenoh.Config:
 
 def frames_of(session: ImuSession, vehicle: str, size: int) -> list[SampleBatch]:
     return [
-        SampleBatch(vehicle, 0, k, session.t_s[i : i + size], session.accel_mps2[i : i + size], session.gyro_rps[i : i + size])
+        SampleBatch(
+            vehicle,
+            0,
+            k,
+            session.t_s[i : i + size],
+            session.accel_mps2[i : i + size],
+            session.gyro_rps[i : i + size],
+        )
         for k, i in enumerate(range(0, session.n_samples, size))
     ]
 
@@ -106,13 +121,23 @@ def wait_route(session: zenoh.Session, key: str) -> None:
 def main() -> None:
     passport, g = demo_passport()
     options = PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4)
-    rest = simulate(static_spec(duration_s=THROUGHPUT_SAMPLES / RATE_HZ, rate_hz=RATE_HZ, latitude_deg=45.0), seed=2).session
+    rest = simulate(
+        static_spec(duration_s=THROUGHPUT_SAMPLES / RATE_HZ, rate_hz=RATE_HZ, latitude_deg=45.0),
+        seed=2,
+    ).session
     trial_spec = static_spec(duration_s=4.0, rate_hz=RATE_HZ, latitude_deg=45.0)
-    trial = simulate(dataclasses.replace(trial_spec, faults=(Fault(FaultKind.STEP, Triad.ACCEL, 2, 1.5, 0.1),)), seed=3).session
+    trial = simulate(
+        dataclasses.replace(trial_spec, faults=(Fault(FaultKind.STEP, Triad.ACCEL, 2, 1.5, 0.1),)),
+        seed=3,
+    ).session
 
     # The frame whose processing raises the F0 event, from the same frames offline.
     offline = FleetProcessor(passports=lambda v, i: passport, options=options)
-    completing = next(k for k, b in enumerate(frames_of(trial, "probe", TRIAL_FRAME)) if offline.process(b, arrival_s=0.0))
+    completing = next(
+        k
+        for k, b in enumerate(frames_of(trial, "probe", TRIAL_FRAME))
+        if offline.process(b, arrival_s=0.0)
+    )
     alone = {}
     for size in THROUGHPUT_FRAMES:
         fleet = FleetProcessor(passports=lambda v, i: passport, options=options)
@@ -132,7 +157,7 @@ def main() -> None:
         config = tmp / "bench.toml"
         config.write_text(
             f'[service]\ndata_dir = "{tmp / "data"}"\npassport_dir = "{store.root}"\nstatus_period_s = 0.2\n'
-            f"[site]\ngravity_mps2 = {g!r}\n[zenoh]\nconnect = [\"tcp/127.0.0.1:{port}\"]\n"
+            f'[site]\ngravity_mps2 = {g!r}\n[zenoh]\nconnect = ["tcp/127.0.0.1:{port}"]\n'
             "[validity]\ntimeout_s = 600.0\n[pipeline]\nqueue_capacity = 4096\nmax_vehicles = 1000\n"
         )
         with RouterProcess(f"tcp/127.0.0.1:{port}"):
@@ -150,7 +175,9 @@ def main() -> None:
 
                     subscribe_status(ground, on_status)
                     received = {}
-                    EventReceiver(ground, lambda e: received.setdefault(e.vehicle, time.perf_counter()))
+                    EventReceiver(
+                        ground, lambda e: received.setdefault(e.vehicle, time.perf_counter())
+                    )
 
                     # Throughput.
                     rates = {}
@@ -158,26 +185,46 @@ def main() -> None:
                         name = f"rate-{size}"
                         frames = frames_of(rest, name, size)
                         wait_route(vehicle, frame_key(name, 0))
-                        with FramePublisher(vehicle, name, 0, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+                        with FramePublisher(
+                            vehicle, name, 0, congestion_control=zenoh.CongestionControl.BLOCK
+                        ) as pub:
                             t0 = time.perf_counter()
                             for k, b in enumerate(frames):
                                 ahead = k * size - IN_FLIGHT_SAMPLES
                                 if accepted.get(name, 0) < ahead:
-                                    wait(lambda: accepted.get(name, 0) >= ahead, 600.0, "the service to catch up")
+                                    wait(
+                                        lambda: accepted.get(name, 0) >= ahead,
+                                        600.0,
+                                        "the service to catch up",
+                                    )
                                 pub.publish(b)
                             t_pub = time.perf_counter() - t0
-                            wait(lambda: accepted.get(name, 0) >= rest.n_samples, 600.0, "the throughput stream")
+                            wait(
+                                lambda: accepted.get(name, 0) >= rest.n_samples,
+                                600.0,
+                                "the throughput stream",
+                            )
                             t_all = time.perf_counter() - t0
                         if dropped.get(name, 0):
-                            raise RuntimeError(f"the service dropped {dropped[name]} frames: the measurement is void")
+                            raise RuntimeError(
+                                f"the service dropped {dropped[name]} frames: the measurement is void"
+                            )
                         rates[size] = (rest.n_samples / t_all, t_pub, t_all)
 
                     # Transport floor: publish, echo by a bare client process, receive.
-                    echo = subprocess.Popen([sys.executable, "-c", ECHO, f"tcp/127.0.0.1:{port}"], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+                    echo = subprocess.Popen(
+                        [sys.executable, "-c", ECHO, f"tcp/127.0.0.1:{port}"],
+                        cwd=ROOT,
+                        stdout=subprocess.PIPE,
+                        text=True,
+                    )
                     try:
                         echo.stdout.readline()
                         pong, stamp = threading.Event(), [0.0]
-                        ground.declare_subscriber("bench/pong", lambda smp: (stamp.__setitem__(0, time.perf_counter()), pong.set()))
+                        ground.declare_subscriber(
+                            "bench/pong",
+                            lambda smp: (stamp.__setitem__(0, time.perf_counter()), pong.set()),
+                        )
                         ping = vehicle.declare_publisher("bench/ping")
                         wait(lambda: ping.matching_status.matching, 20.0, "the echo process")
                         floor_ms = []
@@ -198,7 +245,9 @@ def main() -> None:
                     for v in vehicles[1:]:
                         trial_frames = frames_of(trial, v, TRIAL_FRAME)
                         wait_route(vehicle, frame_key(v, 0))
-                        with FramePublisher(vehicle, v, 0, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+                        with FramePublisher(
+                            vehicle, v, 0, congestion_control=zenoh.CongestionControl.BLOCK
+                        ) as pub:
                             t_start = time.perf_counter()
                             for k, b in enumerate(trial_frames[: completing + 1]):
                                 # At the data rate: frame k is due when its last sample has been measured.
@@ -213,17 +262,31 @@ def main() -> None:
                 service.terminate()
                 service.wait(60)
     lat = np.array(lat_ms)
-    print("end to end through a Zenoh router on 127.0.0.1 (router, service and this script: 3 processes)")
+    print(
+        "end to end through a Zenoh router on 127.0.0.1 (router, service and this script: 3 processes)"
+    )
     print(f"  throughput, one IMU at 1 kHz, {rest.n_samples} samples (target >= 200 k samples/s):")
     for size, (rate, t_pub, t_all) in rates.items():
-        print(f"    frames of {size:5d}: {rate / 1e3:7.1f} k samples/s end to end (published in {t_pub:.2f} s, "
-              f"all accepted after {t_all:.2f} s); pipeline alone {alone[size] / 1e3:7.1f} k samples/s")
-    print(f"  latency, frame completing a fault -> event received ({TRIALS} trials, frames of {TRIAL_FRAME} at 1 kHz):")
-    print(f"    p50 {np.percentile(lat, 50):6.2f} ms   p99 {np.percentile(lat, 99):6.2f} ms   max {lat.max():6.2f} ms   (target p99 < 20 ms)")
-    print("    includes the pipeline on that frame, the outbox commit (SQLite WAL, fsync) and the acknowledged delivery")
+        print(
+            f"    frames of {size:5d}: {rate / 1e3:7.1f} k samples/s end to end (published in {t_pub:.2f} s, "
+            f"all accepted after {t_all:.2f} s); pipeline alone {alone[size] / 1e3:7.1f} k samples/s"
+        )
+    print(
+        f"  latency, frame completing a fault -> event received ({TRIALS} trials, frames of {TRIAL_FRAME} at 1 kHz):"
+    )
+    print(
+        f"    p50 {np.percentile(lat, 50):6.2f} ms   p99 {np.percentile(lat, 99):6.2f} ms   max {lat.max():6.2f} ms   (target p99 < 20 ms)"
+    )
+    print(
+        "    includes the pipeline on that frame, the outbox commit (SQLite WAL, fsync) and the acknowledged delivery"
+    )
     floor = np.array(floor_ms)
-    print(f"  transport floor, 2 kB published -> echoed by a bare Zenoh client -> received (same 4 hops, {ECHO_ROUNDS} rounds):")
-    print(f"    p50 {np.percentile(floor, 50):6.2f} ms   p99 {np.percentile(floor, 99):6.2f} ms   max {floor.max():6.2f} ms")
+    print(
+        f"  transport floor, 2 kB published -> echoed by a bare Zenoh client -> received (same 4 hops, {ECHO_ROUNDS} rounds):"
+    )
+    print(
+        f"    p50 {np.percentile(floor, 50):6.2f} ms   p99 {np.percentile(floor, 99):6.2f} ms   max {floor.max():6.2f} ms"
+    )
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ on ``sys.path``.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

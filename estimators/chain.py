@@ -15,9 +15,22 @@ import numpy as np
 
 from estimators.conventions import Triad, reference_magnitude
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Diagnosis, Finding, diagnose
-from estimators.ninepar import Estimate, Method, ellipsoid_residual, equation_sigma, estimate_triad, position_arrays
+from estimators.ninepar import (
+    Estimate,
+    Method,
+    ellipsoid_residual,
+    equation_sigma,
+    estimate_triad,
+    position_arrays,
+)
 from estimators.passport import Passport
-from estimators.positions import Position, PositionConfig, PositionRejection, PositionsResult, build_positions
+from estimators.positions import (
+    Position,
+    PositionConfig,
+    PositionRejection,
+    PositionsResult,
+    build_positions,
+)
 from estimators.session import ImuSession, Rejections, validate_session
 from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
 
@@ -50,11 +63,15 @@ class ChainConfig:
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.gravity_mps2) or not 9.7 < self.gravity_mps2 < 9.9:
-            raise ValueError(f"gravity_mps2 must be a local gravity value near 9.8 m/s², got {self.gravity_mps2!r}")
+            raise ValueError(
+                f"gravity_mps2 must be a local gravity value near 9.8 m/s², got {self.gravity_mps2!r}"
+            )
         for name in ("accel_limit_mps2", "gyro_limit_rps"):
             limit = getattr(self, name)
             if limit is not None and not (np.isfinite(limit) and limit > 0.0):
-                raise ValueError(f"{name} must be a positive full-scale range or None, got {limit!r}")
+                raise ValueError(
+                    f"{name} must be a positive full-scale range or None, got {limit!r}"
+                )
 
 
 @dataclass(frozen=True)
@@ -91,7 +108,9 @@ class ChainResult:
 
     @property
     def faults(self) -> tuple[Finding, ...]:
-        return tuple(f for r in self.triads.values() if r.diagnosis is not None for f in r.diagnosis.findings)
+        return tuple(
+            f for r in self.triads.values() if r.diagnosis is not None for f in r.diagnosis.findings
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: positions, estimates with standard deviations, predicates, faults."""
@@ -106,8 +125,12 @@ class ChainResult:
                 t.value: {
                     "estimate": r.estimate.to_dict(),
                     "residuals": None if r.residuals is None else [float(v) for v in r.residuals],
-                    "residual_sigma": None if r.residual_sigma is None else [float(v) for v in r.residual_sigma],
-                    "residual_rms": None if r.residuals is None else float(np.sqrt(np.mean(r.residuals**2))),
+                    "residual_sigma": None
+                    if r.residual_sigma is None
+                    else [float(v) for v in r.residual_sigma],
+                    "residual_rms": None
+                    if r.residuals is None
+                    else float(np.sqrt(np.mean(r.residuals**2))),
                     "predicates": None if r.diagnosis is None else r.diagnosis.to_dict(),
                     "diagnosed": r.diagnosis is not None,
                 }
@@ -119,17 +142,25 @@ class ChainResult:
 
 def present_triads(session: ImuSession) -> tuple[Triad, ...]:
     """The triads a session carries, accelerometers first."""
-    return tuple(t for t, a in ((Triad.ACCEL, session.accel_mps2), (Triad.GYRO, session.gyro_rps)) if a is not None)
+    return tuple(
+        t
+        for t, a in ((Triad.ACCEL, session.accel_mps2), (Triad.GYRO, session.gyro_rps))
+        if a is not None
+    )
 
 
-def run_chain(session: ImuSession, config: ChainConfig, passport: Passport | None = None) -> ChainResult:
+def run_chain(
+    session: ImuSession, config: ChainConfig, passport: Passport | None = None
+) -> ChainResult:
     """Static detection → positions → estimates → diagnosis (module docstring).
 
     Raises ``ValueError`` (a :class:`~estimators.session.SessionError`) when the
     session has no usable samples; a session without enough positions is not an
     error: its estimates say "not observable yet" and no predicate is evaluated.
     """
-    clean, rejected = validate_session(session, accel_limit_mps2=config.accel_limit_mps2, gyro_limit_rps=config.gyro_limit_rps)
+    clean, rejected = validate_session(
+        session, accel_limit_mps2=config.accel_limit_mps2, gyro_limit_rps=config.gyro_limit_rps
+    )
     detection = detect_static(clean, config=config.detector)
     found: PositionsResult = build_positions(clean, detection, config=config.positions)
     instability = config.bias_instability_std
@@ -146,14 +177,32 @@ def run_chain(session: ImuSession, config: ChainConfig, passport: Passport | Non
             residuals = ellipsoid_residual(est.params, mean)[0]
             sigma = equation_sigma(est.params, mean, cov)
         has_passport = passport is not None and triad in passport.triads
-        diag = None if not has_passport else diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
+        diag = (
+            None
+            if not has_passport
+            else diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
+        )
         triads[triad] = TriadResult(est, residuals, sigma, diag)
-    return ChainResult(session.n_samples, rejected, detection, positions, found.rejections, triads, config.gravity_mps2)
+    return ChainResult(
+        session.n_samples,
+        rejected,
+        detection,
+        positions,
+        found.rejections,
+        triads,
+        config.gravity_mps2,
+    )
 
 
-def _with_bias_instability(positions: tuple[Position, ...], std_norm: dict[Triad, np.ndarray], gravity_mps2: float) -> tuple[Position, ...]:
+def _with_bias_instability(
+    positions: tuple[Position, ...], std_norm: dict[Triad, np.ndarray], gravity_mps2: float
+) -> tuple[Position, ...]:
     """Positions whose mean covariances also carry the bias wander (it does not average down)."""
-    extra = {t: np.diag((np.asarray(s, float) * reference_magnitude(t, gravity_mps2)) ** 2) for t, s in std_norm.items() if np.any(s)}
+    extra = {
+        t: np.diag((np.asarray(s, float) * reference_magnitude(t, gravity_mps2)) ** 2)
+        for t, s in std_norm.items()
+        if np.any(s)
+    }
     if not extra:
         return positions
     out = []
@@ -165,4 +214,3 @@ def _with_bias_instability(positions: tuple[Position, ...], std_norm: dict[Triad
             fields["gyro_cov_rps"] = p.gyro_cov_rps + extra[Triad.GYRO]
         out.append(replace(p, **fields))
     return tuple(out)
-

@@ -53,7 +53,7 @@ Parameter vector order (everywhere: estimates, passports, predicates F1…F9)::
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
@@ -78,14 +78,14 @@ _WGS84_F = 1.0 / 298.257223563
 _WGS84_M = 0.00344978650684  # ω²a²b/GM
 
 
-class Triad(str, Enum):
+class Triad(StrEnum):
     """A sensor triad of the IMU."""
 
     ACCEL = "accel"
     GYRO = "gyro"
 
 
-class Grade(str, Enum):
+class Grade(StrEnum):
     """Sensor grade of an IMU: selects the passport's tolerance floors and the simulator's presets."""
 
     MEMS = "mems"
@@ -93,7 +93,7 @@ class Grade(str, Enum):
     NAVIGATION = "navigation"
 
 
-class Cause(str, Enum):
+class Cause(StrEnum):
     """What a failed predicate F1…F9 says is wrong (methods.md M1)."""
 
     ZERO_SIGNAL = "zero_signal"
@@ -136,7 +136,11 @@ def normal_gravity_mps2(latitude_deg: float, height_m: float = 0.0) -> float:
     s2 = np.sin(np.radians(latitude_deg)) ** 2
     gamma0 = _WGS84_GAMMA_E * (1.0 + _WGS84_K * s2) / np.sqrt(1.0 - _WGS84_E2 * s2)
     h = height_m
-    corr = 1.0 - 2.0 / _WGS84_A * (1.0 + _WGS84_F + _WGS84_M - 2.0 * _WGS84_F * s2) * h + 3.0 / _WGS84_A**2 * h * h
+    corr = (
+        1.0
+        - 2.0 / _WGS84_A * (1.0 + _WGS84_F + _WGS84_M - 2.0 * _WGS84_F * s2) * h
+        + 3.0 / _WGS84_A**2 * h * h
+    )
     return float(gamma0 * corr)
 
 
@@ -183,4 +187,10 @@ def triad_matrix(scale_err: np.ndarray, axes: np.ndarray) -> np.ndarray:
 
 def nine_params(bias_norm: np.ndarray, scale_err: np.ndarray, axes: np.ndarray) -> np.ndarray:
     """The true parameter vector ``[b, e, d]`` (order :data:`PARAM_NAMES`) of a triad."""
-    return np.concatenate([np.asarray(bias_norm, float).reshape(3), np.asarray(scale_err, float).reshape(3), observable_nonorth(axes)])
+    return np.concatenate(
+        [
+            np.asarray(bias_norm, float).reshape(3),
+            np.asarray(scale_err, float).reshape(3),
+            observable_nonorth(axes),
+        ]
+    )

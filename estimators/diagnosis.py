@@ -30,9 +30,10 @@ cosines are dimensionless and need no conversion.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from enum import Enum
-from typing import Any, Mapping
+from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from scipy.stats import norm
@@ -47,7 +48,7 @@ PREDICATES = tuple(f"F{j + 1}" for j in range(N_PARAMS))
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 
 
-class Outcome(str, Enum):
+class Outcome(StrEnum):
     """Outcome of one predicate."""
 
     PASS = "pass"
@@ -170,7 +171,12 @@ def critical_z(false_alarm_prob: float, n_tests: int) -> float:
     return float(norm.isf(false_alarm_prob / (2.0 * n_tests)))
 
 
-def diagnose(estimate: Estimate, passport: TriadPassport, *, false_alarm_prob: float = DEFAULT_FALSE_ALARM_PROB) -> Diagnosis:
+def diagnose(
+    estimate: Estimate,
+    passport: TriadPassport,
+    *,
+    false_alarm_prob: float = DEFAULT_FALSE_ALARM_PROB,
+) -> Diagnosis:
     """Evaluate F1…F9 of one triad (decision rule in the module docstring).
 
     Parameters
@@ -180,7 +186,9 @@ def diagnose(estimate: Estimate, passport: TriadPassport, *, false_alarm_prob: f
     false_alarm_prob : probability α that this diagnosis flags a healthy triad.
     """
     if estimate.triad is not passport.triad:
-        raise ValueError(f"estimate of the {estimate.triad.value} triad against the {passport.triad.value} passport")
+        raise ValueError(
+            f"estimate of the {estimate.triad.value} triad against the {passport.triad.value} passport"
+        )
     critical_z(false_alarm_prob, 1)  # validates α even when no predicate ends up evaluated
     nominal, tolerance, sigma_p = _in_estimate_units(passport, estimate.reference)
     skip = _skip_reasons(estimate, passport)
@@ -189,15 +197,31 @@ def diagnose(estimate: Estimate, passport: TriadPassport, *, false_alarm_prob: f
     results, findings = [], []
     for j in range(N_PARAMS):
         est, sigma = _opt(estimate.params, j), _opt(estimate.sigma, j)
-        common = dict(predicate=PREDICATES[j], estimate=est, nominal=float(nominal[j]), tolerance=float(tolerance[j]), sigma=sigma)
+        common = dict(
+            predicate=PREDICATES[j],
+            estimate=est,
+            nominal=float(nominal[j]),
+            tolerance=float(tolerance[j]),
+            sigma=sigma,
+        )
         if skip[j]:
-            results.append(PredicateResult(outcome=Outcome.NOT_EVALUATED, threshold=None, reason=skip[j], **common))
+            results.append(
+                PredicateResult(
+                    outcome=Outcome.NOT_EVALUATED, threshold=None, reason=skip[j], **common
+                )
+            )
             continue
         threshold = float(tolerance[j] + z * np.hypot(sigma, sigma_p[j]))
         failed = abs(est - nominal[j]) > threshold
-        results.append(PredicateResult(outcome=Outcome.FAIL if failed else Outcome.PASS, threshold=threshold, **common))
+        results.append(
+            PredicateResult(
+                outcome=Outcome.FAIL if failed else Outcome.PASS, threshold=threshold, **common
+            )
+        )
         if failed:
-            findings.append(Finding(triad=estimate.triad, axis=PARAM_AXIS[j], cause=PARAM_CAUSE[j], **common))
+            findings.append(
+                Finding(triad=estimate.triad, axis=PARAM_AXIS[j], cause=PARAM_CAUSE[j], **common)
+            )
     return Diagnosis(estimate.triad, false_alarm_prob, z, tuple(results), tuple(findings))
 
 
@@ -216,12 +240,18 @@ def diagnose_unit(
     for triad in sorted(estimates, key=lambda t: Triad(t).value):
         triad = Triad(triad)
         if triad not in passport.triads:
-            raise ValueError(f"the passport of unit {passport.unit_id!r} has no {triad.value} triad")
-        out.append(diagnose(estimates[triad], passport.triads[triad], false_alarm_prob=false_alarm_prob))
+            raise ValueError(
+                f"the passport of unit {passport.unit_id!r} has no {triad.value} triad"
+            )
+        out.append(
+            diagnose(estimates[triad], passport.triads[triad], false_alarm_prob=false_alarm_prob)
+        )
     return tuple(out)
 
 
-def _in_estimate_units(passport: TriadPassport, reference: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _in_estimate_units(
+    passport: TriadPassport, reference: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     factor = np.ones(N_PARAMS)
     if reference is not None:
         factor[0:3] = passport.reference / reference
@@ -234,7 +264,9 @@ def _skip_reasons(estimate: Estimate, passport: TriadPassport) -> list[str]:
     reasons = []
     for j in range(N_PARAMS):
         if not estimate.observable[j]:
-            reasons.append(f"{PARAM_NAMES[j]} not observable in this estimate (σ {estimate.sigma[j]:.3g})")
+            reasons.append(
+                f"{PARAM_NAMES[j]} not observable in this estimate (σ {estimate.sigma[j]:.3g})"
+            )
         elif not passport.observable[j]:
             reasons.append(f"{PARAM_NAMES[j]} has no resolved passport value")
         else:

@@ -96,9 +96,10 @@ fit to very noisy points can grow without bound); it is reported as
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
-from typing import Any, Sequence
+from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -118,7 +119,7 @@ PHYSICAL_MIN_AXES_EIGENVALUE = 0.1
 """Smallest eigenvalue of the cosine matrix ``C`` of a refined solution (1 for orthogonal axes, 0 for coplanar)."""
 
 
-class Method(str, Enum):
+class Method(StrEnum):
     """Which estimator produced an :class:`Estimate`."""
 
     LINEAR = "linear"
@@ -126,7 +127,7 @@ class Method(str, Enum):
     RECURSIVE = "recursive"
 
 
-class Verdict(str, Enum):
+class Verdict(StrEnum):
     """Whether the positions so far determine the nine parameters."""
 
     OBSERVABLE = "observable"
@@ -155,7 +156,9 @@ class ObservabilityRule:
         for name in ("fraction", "bias_range", "scale_range", "nonorth_range"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0.0:
-                raise ValueError(f"ObservabilityRule.{name} must be a positive finite number, got {value!r}")
+                raise ValueError(
+                    f"ObservabilityRule.{name} must be a positive finite number, got {value!r}"
+                )
 
     def max_sigma(self) -> np.ndarray:
         """(9,) largest standard deviation of each parameter that still counts as observable."""
@@ -184,7 +187,9 @@ class GeometryRule:
         for name in ("min_plane_spread", "noise_factor", "max_condition"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0.0:
-                raise ValueError(f"GeometryRule.{name} must be a positive finite number, got {value!r}")
+                raise ValueError(
+                    f"GeometryRule.{name} must be a positive finite number, got {value!r}"
+                )
 
 
 DEFAULT_OBSERVABILITY = ObservabilityRule()
@@ -299,7 +304,9 @@ def canonical_triad_matrix(params: np.ndarray) -> np.ndarray:
     return (1.0 + p[3:6]).reshape(3, 1) * np.linalg.cholesky(cosine_matrix(p))
 
 
-def ellipsoid_residual(params: np.ndarray, mean_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ellipsoid_residual(
+    params: np.ndarray, mean_norm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact scalar equation of each position and its derivatives (module docstring).
 
     ``f_k = ½(z_kᵀ C⁻¹ z_k − 1)``, ``z_k = D⁻¹(ã_k − b)``; zero for noise-free means.
@@ -336,7 +343,9 @@ def equation_sigma(params: np.ndarray, mean_norm: np.ndarray, cov_norm: np.ndarr
     return np.sqrt(np.einsum("ni,nij,nj->n", grad, cov_norm, grad))
 
 
-def cramer_rao_bound(mean_true_norm: np.ndarray, cov_norm: np.ndarray, params: np.ndarray) -> np.ndarray:
+def cramer_rao_bound(
+    mean_true_norm: np.ndarray, cov_norm: np.ndarray, params: np.ndarray
+) -> np.ndarray:
     """Cramér–Rao bound (9, 9) of the parameters for a position scheme and noise level.
 
     Model: ``ã_k = A u_k + b + n_k``, ``n_k ~ N(0, P_k)``, with the directions ``u_k``
@@ -382,7 +391,9 @@ def scheme_directions(n_positions: int) -> np.ndarray:
         ]
         return np.vstack([np.eye(3), -np.eye(3), np.array(edges)])
     if n_positions < MIN_POSITIONS:
-        raise ValueError(f"a scheme needs 6, or at least {MIN_POSITIONS} positions, got {n_positions}")
+        raise ValueError(
+            f"a scheme needs 6, or at least {MIN_POSITIONS} positions, got {n_positions}"
+        )
     k = np.arange(n_positions) + 0.5
     z = 1.0 - 2.0 * k / n_positions
     phi = np.pi * (1.0 + np.sqrt(5.0)) * k
@@ -413,10 +424,19 @@ _REFERENCE_WORDS = {
 """Per triad: symbol of the reference, its name, the sensor (for the reasons of the geometry check)."""
 
 
-def _check_geometry(mean: np.ndarray, cov: np.ndarray, rule: GeometryRule, triad: Triad) -> _Geometry:
+def _check_geometry(
+    mean: np.ndarray, cov: np.ndarray, rule: GeometryRule, triad: Triad
+) -> _Geometry:
     n = mean.shape[0]
     if n < MIN_POSITIONS:
-        return _Geometry(False, f"{n} positions; the nine parameters need at least {MIN_POSITIONS}", 0, np.inf, None, None)
+        return _Geometry(
+            False,
+            f"{n} positions; the nine parameters need at least {MIN_POSITIONS}",
+            0,
+            np.inf,
+            None,
+            None,
+        )
     centred = mean - mean.mean(axis=0)
     evals, evecs = np.linalg.eigh(centred.T @ centred / n)
     normal = evecs[:, 0]
@@ -441,7 +461,9 @@ def _check_geometry(mean: np.ndarray, cov: np.ndarray, rule: GeometryRule, triad
             )
         return _Geometry(False, reason, 0, np.inf, None, None)
     # Sphere |ã|² = 2cᵀã + k, linear in (c, k): defined once the means are not coplanar.
-    sol, *_ = np.linalg.lstsq(np.column_stack([2.0 * mean, np.ones(n)]), np.einsum("ij,ij->i", mean, mean), rcond=None)
+    sol, *_ = np.linalg.lstsq(
+        np.column_stack([2.0 * mean, np.ones(n)]), np.einsum("ij,ij->i", mean, mean), rcond=None
+    )
     centre = sol[:3]
     h = regressors(_unit_rows(mean - centre))
     gram = h.T @ h
@@ -467,7 +489,11 @@ def _rank_condition(gram: np.ndarray) -> tuple[int, float, str]:
     rank = int(np.sum(evals > tol))
     condition = float(top / evals[0]) if evals[0] > tol else float("inf")
     weak = evecs[:, 0]
-    names = [f"{PARAM_NAMES[j]} ({weak[j]:+.2f})" for j in np.argsort(-np.abs(weak)) if abs(weak[j]) > 0.3]
+    names = [
+        f"{PARAM_NAMES[j]} ({weak[j]:+.2f})"
+        for j in np.argsort(-np.abs(weak))
+        if abs(weak[j]) > 0.3
+    ]
     return rank, condition, " ".join(names)
 
 
@@ -501,7 +527,9 @@ def estimate_linear(
     if not geo.ok:
         return _not_observable(triad, Method.LINEAR, geo, mean.shape[0], reference)
     params, cov_p, chi2 = _linear_solve(mean, cov, np.zeros(3))
-    return _finish(triad, Method.LINEAR, params, cov_p, chi2, mean.shape[0], geo, observability, reference)
+    return _finish(
+        triad, Method.LINEAR, params, cov_p, chi2, mean.shape[0], geo, observability, reference
+    )
 
 
 def estimate_refined(
@@ -528,7 +556,9 @@ def estimate_refined(
     max_passes : reweighting passes (weights re-evaluated at the new estimate).
     """
     mean, cov = _check_positions(mean_norm, cov_norm)
-    return _refined(mean, cov, Triad(triad), Method.REFINED, reference, observability, geometry, max_passes)[0]
+    return _refined(
+        mean, cov, Triad(triad), Method.REFINED, reference, observability, geometry, max_passes
+    )[0]
 
 
 def _refined(
@@ -550,10 +580,14 @@ def _refined(
     if note:
         failed = _Geometry(False, note, geo.rank, geo.condition, geo.gram, geo.centre)
         return _not_observable(triad, method, failed, mean.shape[0], reference), failed
-    return _finish(triad, method, params, cov_p, chi2, mean.shape[0], geo, observability, reference), geo
+    return _finish(
+        triad, method, params, cov_p, chi2, mean.shape[0], geo, observability, reference
+    ), geo
 
 
-def position_arrays(positions: Sequence[Position], triad: Triad, reference: float) -> tuple[np.ndarray, np.ndarray]:
+def position_arrays(
+    positions: Sequence[Position], triad: Triad, reference: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalized means (n, 3) and covariances (n, 3, 3) of one triad from SI positions.
 
     Parameters
@@ -594,13 +628,24 @@ def estimate_triad(
     """
     method = Method(method)
     if method is Method.RECURSIVE:
-        raise ValueError("method 'recursive' is the streaming class RecursiveNineParam, not a batch function")
+        raise ValueError(
+            "method 'recursive' is the streaming class RecursiveNineParam, not a batch function"
+        )
     mean, cov = position_arrays(positions, triad, reference_mps2_or_rps)
     solver = estimate_linear if method is Method.LINEAR else estimate_refined
-    return solver(mean, cov, Triad(triad), reference=float(reference_mps2_or_rps), observability=observability, geometry=geometry)
+    return solver(
+        mean,
+        cov,
+        Triad(triad),
+        reference=float(reference_mps2_or_rps),
+        observability=observability,
+        geometry=geometry,
+    )
 
 
-def _linear_solve(mean: np.ndarray, cov: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _linear_solve(
+    mean: np.ndarray, cov: np.ndarray, centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Paper's weighted linear LS on the means taken about ``centre`` (bias = centre + estimate)."""
     rel = mean - centre
     y = scalar_residual(rel)
@@ -613,7 +658,9 @@ def _linear_solve(mean: np.ndarray, cov: np.ndarray, centre: np.ndarray) -> tupl
     return params, _cov_from_jacobian(hw), chi2
 
 
-def _refine(mean: np.ndarray, cov: np.ndarray, start: np.ndarray, max_passes: int) -> tuple[np.ndarray, np.ndarray, float, str]:
+def _refine(
+    mean: np.ndarray, cov: np.ndarray, start: np.ndarray, max_passes: int
+) -> tuple[np.ndarray, np.ndarray, float, str]:
     params = start.copy()
     for _ in range(max_passes):
         if not _physical(params):
@@ -621,9 +668,9 @@ def _refine(mean: np.ndarray, cov: np.ndarray, start: np.ndarray, max_passes: in
         sigma = equation_sigma(params, mean, cov)
         try:
             sol = least_squares(
-                lambda p: ellipsoid_residual(p, mean)[0] / sigma,
+                lambda p, sigma=sigma: ellipsoid_residual(p, mean)[0] / sigma,
                 params,
-                jac=lambda p: ellipsoid_residual(p, mean)[1] / sigma[:, None],
+                jac=lambda p, sigma=sigma: ellipsoid_residual(p, mean)[1] / sigma[:, None],
                 method="lm",
                 x_scale="jac",
                 xtol=1e-12,
@@ -640,9 +687,14 @@ def _refine(mean: np.ndarray, cov: np.ndarray, start: np.ndarray, max_passes: in
         if np.all(np.abs(step) <= 1e-4 * np.sqrt(np.diag(cov_p))):
             break
     if not _physical(params):
-        return params, np.full((N_PARAMS, N_PARAMS), np.inf), np.inf, (
-            "the fit left the physical domain (gain 1+e outside (0.1, 10) or sensitive axes nearly coplanar): "
-            f"{np.array2string(params, precision=3)}; the noise is too large for this scheme"
+        return (
+            params,
+            np.full((N_PARAMS, N_PARAMS), np.inf),
+            np.inf,
+            (
+                "the fit left the physical domain (gain 1+e outside (0.1, 10) or sensitive axes nearly coplanar): "
+                f"{np.array2string(params, precision=3)}; the noise is too large for this scheme"
+            ),
         )
     sigma = equation_sigma(params, mean, cov)
     f, jac, _ = ellipsoid_residual(params, mean)
@@ -674,9 +726,15 @@ def _judge(cov: np.ndarray, rule: ObservabilityRule) -> tuple[np.ndarray, Verdic
     observable = np.isfinite(sigma) & (sigma <= limit)
     if observable.all():
         return observable, Verdict.OBSERVABLE, "all nine parameters resolved"
-    names = ", ".join(f"{PARAM_NAMES[j]} (σ {sigma[j]:.3g} > {limit[j]:.3g})" for j in np.flatnonzero(~observable))
+    names = ", ".join(
+        f"{PARAM_NAMES[j]} (σ {sigma[j]:.3g} > {limit[j]:.3g})" for j in np.flatnonzero(~observable)
+    )
     verdict = Verdict.NOT_OBSERVABLE_YET if not observable.any() else Verdict.PARTIALLY_OBSERVABLE
-    return observable, verdict, f"not observable (σ above {rule.fraction:g} of the parameter's range): {names}"
+    return (
+        observable,
+        verdict,
+        f"not observable (σ above {rule.fraction:g} of the parameter's range): {names}",
+    )
 
 
 def _finish(
@@ -708,7 +766,9 @@ def _finish(
     )
 
 
-def _not_observable(triad: Triad, method: Method, geo: _Geometry, n: int, reference: float | None) -> Estimate:
+def _not_observable(
+    triad: Triad, method: Method, geo: _Geometry, n: int, reference: float | None
+) -> Estimate:
     return Estimate(
         triad=Triad(triad),
         method=method,
@@ -795,7 +855,9 @@ class RecursiveNineParam:
         max_iterations: int = 5,
     ) -> None:
         if not MIN_POSITIONS <= warmup_positions <= max_buffer:
-            raise ValueError(f"need {MIN_POSITIONS} ≤ warmup_positions ≤ max_buffer, got {warmup_positions!r} and {max_buffer!r}")
+            raise ValueError(
+                f"need {MIN_POSITIONS} ≤ warmup_positions ≤ max_buffer, got {warmup_positions!r} and {max_buffer!r}"
+            )
         if max_iterations < 1:
             raise ValueError(f"max_iterations must be at least 1, got {max_iterations!r}")
         self.triad = Triad(triad)
@@ -833,7 +895,10 @@ class RecursiveNineParam:
 
         Invalid input raises ``ValueError`` and leaves the state unchanged.
         """
-        mean, cov = _check_positions(np.asarray(mean_norm, dtype=float).reshape(1, -1), np.asarray(cov_norm, dtype=float)[None])
+        mean, cov = _check_positions(
+            np.asarray(mean_norm, dtype=float).reshape(1, -1),
+            np.asarray(cov_norm, dtype=float)[None],
+        )
         if not self._initialized:
             return self._buffer_position(mean[0], cov[0])
         return self._absorb(mean[0], cov[0])
@@ -845,13 +910,31 @@ class RecursiveNineParam:
         rank, condition, _ = _rank_condition(self._gram)
         geo = _Geometry(True, "", rank, condition, self._gram, None)
         params = self._kf.x[:, 0].copy()
-        return _finish(self.triad, Method.RECURSIVE, params, self._kf.P.copy(), self._chi2, self._n_positions, geo, self.observability, self.reference)
+        return _finish(
+            self.triad,
+            Method.RECURSIVE,
+            params,
+            self._kf.P.copy(),
+            self._chi2,
+            self._n_positions,
+            geo,
+            self.observability,
+            self.reference,
+        )
 
     def _warmup_estimate(self) -> tuple[Estimate, _Geometry]:
         n = len(self._buffer.means)
         means = np.array(self._buffer.means).reshape(n, 3)
         covs = np.array(self._buffer.covs).reshape(n, 3, 3)
-        return _refined(means, covs, self.triad, Method.RECURSIVE, self.reference, self.observability, self.geometry)
+        return _refined(
+            means,
+            covs,
+            self.triad,
+            Method.RECURSIVE,
+            self.reference,
+            self.observability,
+            self.geometry,
+        )
 
     def _buffer_position(self, mean: np.ndarray, cov: np.ndarray) -> RecursiveUpdate:
         buf = self._buffer
@@ -881,7 +964,7 @@ class RecursiveNineParam:
         x_i = x_prior
         innovation = innovation_var = None
         iterations = 0
-        for iterations in range(1, self.max_iterations + 1):
+        for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (the count reached is returned)
             f, df_dp, df_dm = ellipsoid_residual(x_i[:, 0], mean[None])
             r = float(df_dm[0] @ cov @ df_dm[0])
             h = df_dp  # (1, 9)
@@ -908,8 +991,17 @@ class RecursiveNineParam:
             "version": _STATE_VERSION,
             "triad": self.triad.value,
             "reference": self.reference,
-            "observability": [self.observability.fraction, self.observability.bias_range, self.observability.scale_range, self.observability.nonorth_range],
-            "geometry": [self.geometry.min_plane_spread, self.geometry.noise_factor, self.geometry.max_condition],
+            "observability": [
+                self.observability.fraction,
+                self.observability.bias_range,
+                self.observability.scale_range,
+                self.observability.nonorth_range,
+            ],
+            "geometry": [
+                self.geometry.min_plane_spread,
+                self.geometry.noise_factor,
+                self.geometry.max_condition,
+            ],
             "warmup_positions": self.warmup_positions,
             "max_buffer": self.max_buffer,
             "max_iterations": self.max_iterations,
@@ -925,12 +1017,16 @@ class RecursiveNineParam:
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict[str, Any]) -> "RecursiveNineParam":
+    def from_state_dict(cls, state: dict[str, Any]) -> RecursiveNineParam:
         """Rebuild a filter from :meth:`state_dict`; a malformed state raises ``ValueError``."""
         if not isinstance(state, dict) or state.get("kind") != _STATE_KIND:
-            raise ValueError(f"not a recursive nine-parameter state (kind {state.get('kind') if isinstance(state, dict) else type(state).__name__!r})")
+            raise ValueError(
+                f"not a recursive nine-parameter state (kind {state.get('kind') if isinstance(state, dict) else type(state).__name__!r})"
+            )
         if state.get("version") != _STATE_VERSION:
-            raise ValueError(f"recursive state version {state.get('version')!r} is not supported (this build reads {_STATE_VERSION})")
+            raise ValueError(
+                f"recursive state version {state.get('version')!r} is not supported (this build reads {_STATE_VERSION})"
+            )
         try:
             obj = cls(
                 Triad(state["triad"]),
@@ -947,7 +1043,11 @@ class RecursiveNineParam:
             means = [_state_array(m, (3,), "buffer_means") for m in state["buffer_means"]]
             covs = [_state_array(c, (3, 3), "buffer_covs") for c in state["buffer_covs"]]
             initialized = state["initialized"]
-            chi2, n_pos, n_drop = float(state["chi2"]), int(state["n_positions"]), int(state["n_dropped"])
+            chi2, n_pos, n_drop = (
+                float(state["chi2"]),
+                int(state["n_positions"]),
+                int(state["n_dropped"]),
+            )
         except KeyError as exc:
             raise ValueError(f"recursive state lacks field {exc.args[0]!r}") from None
         except TypeError as exc:
@@ -982,12 +1082,18 @@ def _check_positions(mean_norm: np.ndarray, cov_norm: np.ndarray) -> tuple[np.nd
     if mean.ndim != 2 or mean.shape[1] != 3:
         raise ValueError(f"position means must have shape (n, 3), got {mean.shape}")
     if cov.shape != (mean.shape[0], 3, 3):
-        raise ValueError(f"position covariances must have shape ({mean.shape[0]}, 3, 3), got {cov.shape}")
+        raise ValueError(
+            f"position covariances must have shape ({mean.shape[0]}, 3, 3), got {cov.shape}"
+        )
     bad = ~np.isfinite(mean).all(axis=1) | ~np.isfinite(cov).all(axis=(1, 2))
     if bad.any():
         k = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"position {k} has a non-finite mean or covariance: mean {mean[k].tolist()}")
-    asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * np.abs(cov).max(axis=(1, 2))
+        raise ValueError(
+            f"position {k} has a non-finite mean or covariance: mean {mean[k].tolist()}"
+        )
+    asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * np.abs(cov).max(
+        axis=(1, 2)
+    )
     if asym.any():
         k = int(np.flatnonzero(asym)[0])
         raise ValueError(f"position {k} covariance is not symmetric: {cov[k].tolist()}")
@@ -1013,7 +1119,9 @@ def _unit_rows(v: np.ndarray) -> np.ndarray:
 def _state_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape or not np.isfinite(arr).all():
-        raise ValueError(f"recursive state field {name!r} must be a finite array of shape {shape}, got {value!r}")
+        raise ValueError(
+            f"recursive state field {name!r} must be a finite array of shape {shape}, got {value!r}"
+        )
     return arr
 
 

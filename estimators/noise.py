@@ -28,14 +28,20 @@ class AllanDeviation:
     n_terms: np.ndarray
 
 
-def default_cluster_sizes(n_samples: int, *, per_octave: int = 2, max_fraction: float = 0.25) -> np.ndarray:
+def default_cluster_sizes(
+    n_samples: int, *, per_octave: int = 2, max_fraction: float = 0.25
+) -> np.ndarray:
     """Cluster sizes ``m`` (samples), log-spaced, from 1 to ``max_fraction · n_samples``."""
     top = max(1, int(n_samples * max_fraction))
-    m = np.unique(np.round(2.0 ** (np.arange(0, np.log2(top) + 1e-9, 1.0 / per_octave))).astype(int))
+    m = np.unique(
+        np.round(2.0 ** (np.arange(0, np.log2(top) + 1e-9, 1.0 / per_octave))).astype(int)
+    )
     return m[m <= top]
 
 
-def overlapping_allan_deviation(x: np.ndarray, rate_hz: float, cluster_sizes: np.ndarray | None = None) -> AllanDeviation:
+def overlapping_allan_deviation(
+    x: np.ndarray, rate_hz: float, cluster_sizes: np.ndarray | None = None
+) -> AllanDeviation:
     """Overlapping Allan deviation (IEEE Std 952, eq. of the overlapping estimator).
 
     ``σ²(τ) = 1 / (2 τ² (N − 2m)) Σ_k (θ_{k+2m} − 2θ_{k+m} + θ_k)²`` with

@@ -56,10 +56,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import Enum, StrEnum
 from types import MappingProxyType
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.stats import norm
@@ -83,7 +84,7 @@ class PassportVersionError(PassportError):
     """The passport's schema version is not one this build reads."""
 
 
-class ReferenceKind(str, Enum):
+class ReferenceKind(StrEnum):
     """What a triad was normalized by."""
 
     GRAVITY = "gravity_mps2"
@@ -135,7 +136,9 @@ class ToleranceRule:
         return np.maximum(self.k_sigma * _array(sigma, (N_PARAMS,), "sigma"), self.floor)
 
 
-def default_tolerance_rule(triad: Triad, grade: Grade, reference: float, *, k_sigma: float = 3.0) -> ToleranceRule:
+def default_tolerance_rule(
+    triad: Triad, grade: Grade, reference: float, *, k_sigma: float = 3.0
+) -> ToleranceRule:
     """The documented default rule for ``triad`` of ``grade``; ``reference`` in m/s² or rad/s normalizes the bias floor."""
     if not math.isfinite(reference) or reference <= 0.0:
         raise PassportError(f"reference must be a positive finite number, got {reference!r}")
@@ -179,19 +182,29 @@ class TemperatureModel:
         ref = _finite(self.reference_temp_c, "temperature.reference_temp_c")
         bias = np.asarray(self.bias_coeffs, dtype=float)
         if bias.ndim != 2 or bias.shape[0] != 3 or bias.shape[1] < 1:
-            raise PassportError(f"temperature.bias_coeffs must have shape (3, order+1), got {np.shape(self.bias_coeffs)}: {_short(self.bias_coeffs)}")
+            raise PassportError(
+                f"temperature.bias_coeffs must have shape (3, order+1), got {np.shape(self.bias_coeffs)}: {_short(self.bias_coeffs)}"
+            )
         object.__setattr__(self, "bias_coeffs", _array(bias, bias.shape, "temperature.bias_coeffs"))
-        object.__setattr__(self, "scale_coeffs", _array(self.scale_coeffs, bias.shape, "temperature.scale_coeffs"))
+        object.__setattr__(
+            self, "scale_coeffs", _array(self.scale_coeffs, bias.shape, "temperature.scale_coeffs")
+        )
         if self.valid_min_c is None and self.valid_max_c is None:
             return
         if self.valid_min_c is None or self.valid_max_c is None:
-            raise PassportError(f"temperature.valid_min_c and valid_max_c go together, got {self.valid_min_c!r} and {self.valid_max_c!r}")
+            raise PassportError(
+                f"temperature.valid_min_c and valid_max_c go together, got {self.valid_min_c!r} and {self.valid_max_c!r}"
+            )
         lo = _finite(self.valid_min_c, "temperature.valid_min_c")
         hi = _finite(self.valid_max_c, "temperature.valid_max_c")
         if not lo < hi:
-            raise PassportError(f"temperature.valid_min_c must be below valid_max_c, got {lo!r} ≥ {hi!r}")
+            raise PassportError(
+                f"temperature.valid_min_c must be below valid_max_c, got {lo!r} ≥ {hi!r}"
+            )
         if not lo <= ref <= hi:
-            raise PassportError(f"temperature.reference_temp_c {ref!r} °C is outside the valid range {lo!r}…{hi!r} °C")
+            raise PassportError(
+                f"temperature.reference_temp_c {ref!r} °C is outside the valid range {lo!r}…{hi!r} °C"
+            )
         object.__setattr__(self, "valid_min_c", lo)
         object.__setattr__(self, "valid_max_c", hi)
 
@@ -223,14 +236,16 @@ class TemperatureModel:
         return out
 
     @classmethod
-    def from_dict(cls, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION) -> "TemperatureModel":
+    def from_dict(
+        cls, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION
+    ) -> TemperatureModel:
         """The model of a passport of ``schema_version`` (1: no range keys, read unbounded; 2: the range is required)."""
         keys = ("reference_temp_c", "bias_coeffs", "scale_coeffs")
         if schema_version <= UNBOUNDED_TEMPERATURE_VERSION:
             obj = _map(obj, "temperature", keys)
             return cls(_number(obj["reference_temp_c"], "temperature.reference_temp_c"), obj["bias_coeffs"], obj["scale_coeffs"],
                        valid_min_c=None, valid_max_c=None)  # fmt: skip
-        obj = _map(obj, "temperature", keys + ("valid_min_c", "valid_max_c"))
+        obj = _map(obj, "temperature", (*keys, "valid_min_c", "valid_max_c"))
         return cls(
             _number(obj["reference_temp_c"], "temperature.reference_temp_c"),
             obj["bias_coeffs"],
@@ -269,23 +284,31 @@ class Provenance:
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", _enum(Method, self.method, "provenance.method"))
         if type(self.n_positions) is not int or self.n_positions < 0:
-            raise PassportError(f"provenance.n_positions must be a non-negative int, got {self.n_positions!r}")
+            raise PassportError(
+                f"provenance.n_positions must be a non-negative int, got {self.n_positions!r}"
+            )
         if not (isinstance(self.confidence, (int, float)) and 0.0 < self.confidence < 1.0):
             raise PassportError(f"provenance.confidence must be in (0, 1), got {self.confidence!r}")
         low = _array(self.ci_low, (N_PARAMS,), "provenance.ci_low")
         high = _array(self.ci_high, (N_PARAMS,), "provenance.ci_high")
         if np.any(low > high):
-            raise PassportError(f"provenance.ci_low must not exceed ci_high, got {low.tolist()} > {high.tolist()}")
+            raise PassportError(
+                f"provenance.ci_low must not exceed ci_high, got {low.tolist()} > {high.tolist()}"
+            )
         object.__setattr__(self, "ci_low", low)
         object.__setattr__(self, "ci_high", high)
         if not isinstance(self.procedure, str) or not self.procedure.strip():
-            raise PassportError(f"provenance.procedure must be a non-empty string, got {_short(self.procedure)}")
+            raise PassportError(
+                f"provenance.procedure must be a non-empty string, got {_short(self.procedure)}"
+            )
         if type(self.n_runs) is not int or self.n_runs < 1:
             raise PassportError(f"provenance.n_runs must be a positive int, got {self.n_runs!r}")
         if self.reproducible is not None:
             rep = np.asarray(self.reproducible)
             if rep.shape != (N_PARAMS,) or rep.dtype != bool:
-                raise PassportError(f"provenance.reproducible must be 9 booleans or null, got {_short(self.reproducible)}")
+                raise PassportError(
+                    f"provenance.reproducible must be 9 booleans or null, got {_short(self.reproducible)}"
+                )
             object.__setattr__(self, "reproducible", _readonly(rep.copy()))
 
     def to_dict(self) -> dict[str, Any]:
@@ -301,11 +324,28 @@ class Provenance:
         }
 
     @classmethod
-    def from_dict(cls, obj: Any) -> "Provenance":
-        obj = _map(obj, "provenance", ("method", "n_positions", "confidence", "ci_low", "ci_high", "procedure", "n_runs", "reproducible"))
+    def from_dict(cls, obj: Any) -> Provenance:
+        obj = _map(
+            obj,
+            "provenance",
+            (
+                "method",
+                "n_positions",
+                "confidence",
+                "ci_low",
+                "ci_high",
+                "procedure",
+                "n_runs",
+                "reproducible",
+            ),
+        )
         rep = obj["reproducible"]
-        if rep is not None and not (isinstance(rep, list) and all(isinstance(v, bool) for v in rep)):
-            raise PassportError(f"provenance.reproducible must be a list of booleans or null, got {_short(rep)}")
+        if rep is not None and not (
+            isinstance(rep, list) and all(isinstance(v, bool) for v in rep)
+        ):
+            raise PassportError(
+                f"provenance.reproducible must be a list of booleans or null, got {_short(rep)}"
+            )
         return cls(
             obj["method"],
             obj["n_positions"],
@@ -374,7 +414,9 @@ class TriadPassport:
         where = f"triads.{triad.value}"
         kind = _enum(ReferenceKind, self.reference_kind, f"{where}.reference_kind")
         if kind is not reference_kind(triad):
-            raise PassportError(f"{where}.reference_kind must be {reference_kind(triad).value!r} for the {triad.value} triad, got {kind.value!r}")
+            raise PassportError(
+                f"{where}.reference_kind must be {reference_kind(triad).value!r} for the {triad.value} triad, got {kind.value!r}"
+            )
         for name in ("reference", "sample_rate_hz"):
             value = _finite(getattr(self, name), f"{where}.{name}")
             if value <= 0.0:
@@ -384,26 +426,40 @@ class TriadPassport:
             "tolerance": _array(self.tolerance, (N_PARAMS,), f"{where}.tolerance"),
             "sigma": _array(self.sigma, (N_PARAMS,), f"{where}.sigma"),
             "noise_std": _array(self.noise_std, (3,), f"{where}.noise_std"),
-            "bias_instability_std": _array(self.bias_instability_std, (3,), f"{where}.bias_instability_std"),
+            "bias_instability_std": _array(
+                self.bias_instability_std, (3,), f"{where}.bias_instability_std"
+            ),
         }
         if np.any(arrays["tolerance"] <= 0.0):
-            raise PassportError(f"{where}.tolerance must be positive, got {arrays['tolerance'].tolist()}")
+            raise PassportError(
+                f"{where}.tolerance must be positive, got {arrays['tolerance'].tolist()}"
+            )
         for name in ("sigma", "noise_std", "bias_instability_std"):
             if np.any(arrays[name] < 0.0):
-                raise PassportError(f"{where}.{name} must not be negative, got {arrays[name].tolist()}")
+                raise PassportError(
+                    f"{where}.{name} must not be negative, got {arrays[name].tolist()}"
+                )
         obs = np.asarray(self.observable)
         if obs.shape != (N_PARAMS,) or obs.dtype != bool:
-            raise PassportError(f"{where}.observable must be {N_PARAMS} booleans, got {_short(self.observable)}")
+            raise PassportError(
+                f"{where}.observable must be {N_PARAMS} booleans, got {_short(self.observable)}"
+            )
         arrays["observable"] = _readonly(obs)
         if self.quantization_step is not None:
             step = _array(self.quantization_step, (3,), f"{where}.quantization_step")
             if np.any(step <= 0.0):
-                raise PassportError(f"{where}.quantization_step must be positive, got {step.tolist()}")
+                raise PassportError(
+                    f"{where}.quantization_step must be positive, got {step.tolist()}"
+                )
             arrays["quantization_step"] = step
         if self.temperature is not None and not isinstance(self.temperature, TemperatureModel):
-            raise PassportError(f"{where}.temperature must be a TemperatureModel or None, got {type(self.temperature).__name__}")
+            raise PassportError(
+                f"{where}.temperature must be a TemperatureModel or None, got {type(self.temperature).__name__}"
+            )
         if not isinstance(self.provenance, Provenance):
-            raise PassportError(f"{where}.provenance must be a Provenance, got {type(self.provenance).__name__}")
+            raise PassportError(
+                f"{where}.provenance must be a Provenance, got {type(self.provenance).__name__}"
+            )
         object.__setattr__(self, "triad", triad)
         object.__setattr__(self, "reference_kind", kind)
         object.__setattr__(self, "reference", float(self.reference))
@@ -423,23 +479,31 @@ class TriadPassport:
             "noise_std": self.noise_std.tolist(),
             "bias_instability_std": self.bias_instability_std.tolist(),
             "sample_rate_hz": self.sample_rate_hz,
-            "quantization_step": None if self.quantization_step is None else self.quantization_step.tolist(),
+            "quantization_step": None
+            if self.quantization_step is None
+            else self.quantization_step.tolist(),
             "temperature": None if self.temperature is None else self.temperature.to_dict(),
             "provenance": self.provenance.to_dict(),
         }
 
     @classmethod
-    def from_dict(cls, triad: Triad, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION) -> "TriadPassport":
+    def from_dict(
+        cls, triad: Triad, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION
+    ) -> TriadPassport:
         """Validate and build one triad of a passport of ``schema_version`` (it decides the temperature map's keys)."""
         where = f"triads.{Triad(triad).value}"
         keys = ("param_names", "reference", "reference_kind", "nominal", "tolerance", "sigma", "observable", "noise_std",
                 "bias_instability_std", "sample_rate_hz", "quantization_step", "temperature", "provenance")  # fmt: skip
         obj = _map(obj, where, keys)
         if obj["param_names"] != list(PARAM_NAMES):
-            raise PassportError(f"{where}.param_names must be {list(PARAM_NAMES)}, got {_short(obj['param_names'])}")
+            raise PassportError(
+                f"{where}.param_names must be {list(PARAM_NAMES)}, got {_short(obj['param_names'])}"
+            )
         observable = obj["observable"]
         if not isinstance(observable, list) or not all(isinstance(v, bool) for v in observable):
-            raise PassportError(f"{where}.observable must be a list of booleans, got {_short(observable)}")
+            raise PassportError(
+                f"{where}.observable must be a list of booleans, got {_short(observable)}"
+            )
         return cls(
             triad=triad,
             reference=_number(obj["reference"], f"{where}.reference"),
@@ -452,7 +516,9 @@ class TriadPassport:
             bias_instability_std=obj["bias_instability_std"],
             sample_rate_hz=_number(obj["sample_rate_hz"], f"{where}.sample_rate_hz"),
             quantization_step=obj["quantization_step"],
-            temperature=None if obj["temperature"] is None else TemperatureModel.from_dict(obj["temperature"], schema_version=schema_version),
+            temperature=None
+            if obj["temperature"] is None
+            else TemperatureModel.from_dict(obj["temperature"], schema_version=schema_version),
             provenance=Provenance.from_dict(obj["provenance"]),
         )
 
@@ -489,23 +555,37 @@ class Passport:
         try:
             _dt.datetime.fromisoformat(self.created)
         except ValueError:
-            raise PassportError(f"created must be an ISO 8601 date or date-time, got {self.created!r}") from None
-        if not isinstance(self.sensor_ids, Mapping) or not all(isinstance(k, str) and isinstance(v, str) for k, v in self.sensor_ids.items()):
-            raise PassportError(f"sensor_ids must map strings to strings, got {_short(self.sensor_ids)}")
+            raise PassportError(
+                f"created must be an ISO 8601 date or date-time, got {self.created!r}"
+            ) from None
+        if not isinstance(self.sensor_ids, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in self.sensor_ids.items()
+        ):
+            raise PassportError(
+                f"sensor_ids must map strings to strings, got {_short(self.sensor_ids)}"
+            )
         if not isinstance(self.triads, Mapping) or not self.triads:
             raise PassportError(f"triads must be a non-empty mapping, got {_short(self.triads)}")
         triads = {}
         for key, value in self.triads.items():
             triad = _enum(Triad, key, "triads key")
             if not isinstance(value, TriadPassport) or value.triad is not triad:
-                raise PassportError(f"triads[{triad.value!r}] must be the TriadPassport of that triad, got {_short(value)}")
+                raise PassportError(
+                    f"triads[{triad.value!r}] must be the TriadPassport of that triad, got {_short(value)}"
+                )
             triads[triad] = value
             model = value.temperature
             # The schema decides whether a temperature map has range keys: a mismatch could not be written back.
-            if model is not None and model.bounded != (self.schema_version > UNBOUNDED_TEMPERATURE_VERSION):
+            if model is not None and model.bounded != (
+                self.schema_version > UNBOUNDED_TEMPERATURE_VERSION
+            ):
                 raise PassportError(
                     f"triads[{triad.value!r}].temperature: a schema-{self.schema_version} passport needs a temperature model "
-                    + ("without a valid range (schema 1 has none)" if model.bounded else "with its valid range (valid_min_c, valid_max_c)")
+                    + (
+                        "without a valid range (schema 1 has none)"
+                        if model.bounded
+                        else "with its valid range (valid_min_c, valid_max_c)"
+                    )
                 )
         object.__setattr__(self, "sensor_ids", MappingProxyType(dict(self.sensor_ids)))
         object.__setattr__(self, "triads", MappingProxyType(triads))
@@ -519,25 +599,42 @@ class Passport:
             "sensor_model": self.sensor_model,
             "sensor_ids": dict(self.sensor_ids),
             "created": self.created,
-            "triads": {t.value: tp.to_dict() for t, tp in sorted(self.triads.items(), key=lambda kv: kv[0].value)},
+            "triads": {
+                t.value: tp.to_dict()
+                for t, tp in sorted(self.triads.items(), key=lambda kv: kv[0].value)
+            },
         }
 
     @classmethod
-    def from_dict(cls, obj: Any) -> "Passport":
+    def from_dict(cls, obj: Any) -> Passport:
         """Validate and build; raises :class:`PassportError` (or :class:`PassportVersionError`)."""
         if not isinstance(obj, dict):
             raise PassportError(f"a passport must be a map, got {type(obj).__name__}")
         if obj.get("type") != PASSPORT_TYPE:
             raise PassportError(f"type tag {_short(obj.get('type'))} is not {PASSPORT_TYPE!r}")
         _check_version(obj.get("schema_version"))
-        obj = _map(obj, "passport", ("type", "schema_version", "unit_id", "sensor_model", "sensor_ids", "created", "triads"))
+        obj = _map(
+            obj,
+            "passport",
+            (
+                "type",
+                "schema_version",
+                "unit_id",
+                "sensor_model",
+                "sensor_ids",
+                "created",
+                "triads",
+            ),
+        )
         triads_obj = obj["triads"]
         if not isinstance(triads_obj, dict):
             raise PassportError(f"triads must be a map, got {_short(triads_obj)}")
         triads = {}
         for key, value in triads_obj.items():
             triad = _enum(Triad, key, "triads key")
-            triads[triad] = TriadPassport.from_dict(triad, value, schema_version=obj["schema_version"])
+            triads[triad] = TriadPassport.from_dict(
+                triad, value, schema_version=obj["schema_version"]
+            )
         sensor_ids = obj["sensor_ids"]
         if not isinstance(sensor_ids, dict):
             raise PassportError(f"sensor_ids must be a map, got {_short(sensor_ids)}")
@@ -551,7 +648,9 @@ class Passport:
         )
 
 
-def per_sample_noise_std(positions: Sequence[Position], triad: Triad, reference: float) -> np.ndarray:
+def per_sample_noise_std(
+    positions: Sequence[Position], triad: Triad, reference: float
+) -> np.ndarray:
     """(3,) per-sample standard deviation of the normalized output per axis.
 
     Each position's covariance of the mean times its effective sample count
@@ -573,7 +672,9 @@ def per_sample_noise_std(positions: Sequence[Position], triad: Triad, reference:
         if cov is None:
             raise PassportError(f"position {k} has no {triad.value} covariance")
         n_eff = pos.accel_n_eff if triad is Triad.ACCEL else pos.gyro_n_eff
-        variances.append(np.diag(np.asarray(cov, dtype=float)) * (pos.n_samples if n_eff is None else n_eff))
+        variances.append(
+            np.diag(np.asarray(cov, dtype=float)) * (pos.n_samples if n_eff is None else n_eff)
+        )
     if not variances:
         raise PassportError("no positions to estimate the noise from")
     return np.sqrt(np.median(np.array(variances), axis=0)) / reference
@@ -620,11 +721,17 @@ def passport_from_estimates(
         if est.params is None or est.cov is None:
             raise PassportError(f"cannot build the {triad.value} passport: {est.reason}")
         if est.reference is None:
-            raise PassportError(f"the {triad.value} estimate does not record its reference (use estimate_triad or pass reference=)")
+            raise PassportError(
+                f"the {triad.value} estimate does not record its reference (use estimate_triad or pass reference=)"
+            )
         triad_grade = grade.get(triad) if isinstance(grade, Mapping) else grade
         if triad_grade is None or triad not in noise_std:
-            raise PassportError(f"the {triad.value} triad needs a grade and a noise_std to build its passport")
-        rule = (tolerance_rules or {}).get(triad) or default_tolerance_rule(triad, triad_grade, est.reference)
+            raise PassportError(
+                f"the {triad.value} triad needs a grade and a noise_std to build its passport"
+            )
+        rule = (tolerance_rules or {}).get(triad) or default_tolerance_rule(
+            triad, triad_grade, est.reference
+        )
         sigma = est.sigma
         triads[triad] = TriadPassport(
             triad=triad,
@@ -637,10 +744,24 @@ def passport_from_estimates(
             noise_std=noise_std[triad],
             sample_rate_hz=sample_rate_hz,
             quantization_step=None if quantization_step is None else quantization_step.get(triad),
-            bias_instability_std=np.zeros(3) if bias_instability_std is None else bias_instability_std.get(triad, np.zeros(3)),
-            provenance=Provenance(est.method, est.n_positions, confidence, est.params - z * sigma, est.params + z * sigma),
+            bias_instability_std=np.zeros(3)
+            if bias_instability_std is None
+            else bias_instability_std.get(triad, np.zeros(3)),
+            provenance=Provenance(
+                est.method,
+                est.n_positions,
+                confidence,
+                est.params - z * sigma,
+                est.params + z * sigma,
+            ),
         )
-    return Passport(unit_id=unit_id, sensor_model=sensor_model, sensor_ids=dict(sensor_ids), created=created, triads=triads)
+    return Passport(
+        unit_id=unit_id,
+        sensor_model=sensor_model,
+        sensor_ids=dict(sensor_ids),
+        created=created,
+        triads=triads,
+    )
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -676,9 +797,13 @@ def _array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     try:
         arr = np.array(value, dtype=float)
     except (TypeError, ValueError):
-        raise PassportError(f"{name} must be numbers of shape {shape}, got {_short(value)}") from None
+        raise PassportError(
+            f"{name} must be numbers of shape {shape}, got {_short(value)}"
+        ) from None
     if arr.shape != shape:
-        raise PassportError(f"{name} must have shape {shape}, got shape {arr.shape}: {_short(value)}")
+        raise PassportError(
+            f"{name} must have shape {shape}, got shape {arr.shape}: {_short(value)}"
+        )
     if _has_bool(value):
         raise PassportError(f"{name} must be numbers, got booleans: {_short(value)}")
     if not np.isfinite(arr).all():
@@ -716,7 +841,9 @@ def _enum(kind: type[Enum], value: Any, name: str):
     try:
         return kind(value)
     except ValueError:
-        raise PassportError(f"{name} is {_short(value)}, expected one of {[m.value for m in kind]}") from None
+        raise PassportError(
+            f"{name} is {_short(value)}, expected one of {[m.value for m in kind]}"
+        ) from None
 
 
 def _readonly(arr: np.ndarray) -> np.ndarray:
@@ -728,4 +855,3 @@ def _readonly(arr: np.ndarray) -> np.ndarray:
 def _short(value: Any, limit: int = 80) -> str:
     text = repr(value.tolist() if isinstance(value, np.ndarray) else value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
-

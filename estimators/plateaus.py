@@ -43,11 +43,13 @@ def find_plateaus(
     t = np.asarray(t_s, dtype=float)
     v = np.asarray(x, dtype=float)
     if t.ndim != 1 or v.shape != t.shape or t.size < 2:
-        raise ValueError(f"need matching (N,) times and values with N >= 2, got {t.shape} and {v.shape}")
+        raise ValueError(
+            f"need matching (N,) times and values with N >= 2, got {t.shape} and {v.shape}"
+        )
     if not min_step > 0:
         raise ValueError(f"min_step must be positive, got {min_step!r}")
     dt = float(np.median(np.diff(t)))
-    w = max(1, int(round(window_s / dt)))
+    w = max(1, round(window_s / dt))
     if t.size < 2 * w:
         return []
     c = np.concatenate([[0.0], np.cumsum(v)])
@@ -63,7 +65,7 @@ def find_plateaus(
     edges = np.diff(np.concatenate([[0], steady.astype(np.int8), [0]]))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     out = []
-    for a, b in zip(starts, stops):
+    for a, b in zip(starts, stops, strict=True):
         t_lo, t_hi = t[a] + trim_s, t[b - 1] - trim_s
         if t_hi - t_lo < min_duration_s:
             continue

@@ -55,9 +55,10 @@ since until then a following interval may still be merged into it.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import asdict, dataclass, field
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
@@ -129,8 +130,13 @@ class Position:
         return out
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Position":
-        arrays = {"accel_mean_mps2": (3,), "accel_cov_mps2": (3, 3), "gyro_mean_rps": (3,), "gyro_cov_rps": (3, 3)}
+    def from_dict(cls, data: dict) -> Position:
+        arrays = {
+            "accel_mean_mps2": (3,),
+            "accel_cov_mps2": (3, 3),
+            "gyro_mean_rps": (3,),
+            "gyro_cov_rps": (3, 3),
+        }
         kwargs = dict(data)
         try:
             for key, shape in arrays.items():
@@ -144,14 +150,14 @@ class Position:
             raise ValueError(f"invalid Position dict: {exc}") from None
 
 
-class CovarianceMethod(str, Enum):
+class CovarianceMethod(StrEnum):
     """How the covariance of a position's mean is estimated (module docstring)."""
 
     SAMPLE = "sample"
     BATCH_MEANS = "batch_means"
 
 
-class RejectReason(str, Enum):
+class RejectReason(StrEnum):
     """Why a static interval did not become a position of its own."""
 
     SHORT_INTERVAL = "short_interval"
@@ -182,10 +188,16 @@ class PositionRejection:
         return {**asdict(self), "reason": self.reason.value}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "PositionRejection":
+    def from_dict(cls, data: dict) -> PositionRejection:
         try:
-            return cls(RejectReason(data["reason"]), int(data["start"]), int(data["stop"]),
-                       float(data["t_start_s"]), float(data["t_end_s"]), str(data["detail"]))
+            return cls(
+                RejectReason(data["reason"]),
+                int(data["start"]),
+                int(data["stop"]),
+                float(data["t_start_s"]),
+                float(data["t_end_s"]),
+                str(data["detail"]),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"invalid PositionRejection dict: {exc}") from None
 
@@ -212,15 +224,19 @@ class PositionConfig:
             raise ValueError(f"trim_s must be finite and >= 0, got {self.trim_s!r}")
         if not (math.isfinite(self.batch_s) and self.batch_s > 0):
             raise ValueError(f"batch_s must be finite and > 0, got {self.batch_s!r}")
-        if isinstance(self.min_samples, bool) or not isinstance(self.min_samples, (int, np.integer)) or self.min_samples < 2:
+        if (
+            isinstance(self.min_samples, bool)
+            or not isinstance(self.min_samples, (int, np.integer))
+            or self.min_samples < 2
+        ):
             raise ValueError(f"min_samples must be an integer >= 2, got {self.min_samples!r}")
         object.__setattr__(self, "covariance", CovarianceMethod(self.covariance))
 
     def trim_samples(self, rate_hz: float) -> int:
-        return int(round(self.trim_s * rate_hz))
+        return round(self.trim_s * rate_hz)
 
     def batch_samples(self, rate_hz: float) -> int:
-        return max(1, int(round(self.batch_s * rate_hz)))
+        return max(1, round(self.batch_s * rate_hz))
 
 
 @dataclass(frozen=True)
@@ -257,13 +273,13 @@ class _Moments:
         d = mb - ma
         return n, ma + d * (nb / n), sa + sb + np.outer(d, d) * (na * nb / n)
 
-    def combine(self, other: "_Moments") -> "_Moments":
+    def combine(self, other: _Moments) -> _Moments:
         n, mean, m2 = self._pool(self.n, self.mean, self.m2, other.n, other.mean, other.m2)
         nb, bmean, bm2 = self._pool(self.nb, self.bmean, self.bm2, other.nb, other.bmean, other.bm2)
         return _Moments(n, mean, m2, nb, bmean, bm2)
 
     @classmethod
-    def of_samples(cls, y: np.ndarray, batch: int) -> "_Moments":
+    def of_samples(cls, y: np.ndarray, batch: int) -> _Moments:
         """Moments of the rows of ``y`` (n, 3); batches of ``batch`` consecutive rows, partial last one dropped."""
         n = y.shape[0]
         mean = y.mean(axis=0)
@@ -275,7 +291,7 @@ class _Moments:
         return cls(n, mean, d.T @ d, nb, bmean, bd.T @ bd)
 
     @classmethod
-    def of_sums(cls, shift, n, s, q, nb, bs, bq) -> "_Moments":
+    def of_sums(cls, shift, n, s, q, nb, bs, bq) -> _Moments:
         """From running sums of shifted samples ``y − shift``: ``s`` (3), ``q`` (6: xx xy xz yy yz zz), same for batch means."""
         shift = np.asarray(shift, dtype=float)
 
@@ -305,13 +321,25 @@ class _Moments:
         return sigma * (tau / self.n), self.n / tau
 
     def to_dict(self) -> dict:
-        return {"n": self.n, "mean": self.mean.tolist(), "m2": self.m2.tolist(),
-                "nb": self.nb, "bmean": self.bmean.tolist(), "bm2": self.bm2.tolist()}
+        return {
+            "n": self.n,
+            "mean": self.mean.tolist(),
+            "m2": self.m2.tolist(),
+            "nb": self.nb,
+            "bmean": self.bmean.tolist(),
+            "bm2": self.bm2.tolist(),
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "_Moments":
-        return cls(int(d["n"]), np.asarray(d["mean"], float).reshape(3), np.asarray(d["m2"], float).reshape(3, 3),
-                   int(d["nb"]), np.asarray(d["bmean"], float).reshape(3), np.asarray(d["bm2"], float).reshape(3, 3))
+    def from_dict(cls, d: dict) -> _Moments:
+        return cls(
+            int(d["n"]),
+            np.asarray(d["mean"], float).reshape(3),
+            np.asarray(d["m2"], float).reshape(3, 3),
+            int(d["nb"]),
+            np.asarray(d["bmean"], float).reshape(3),
+            np.asarray(d["bm2"], float).reshape(3, 3),
+        )
 
 
 @dataclass(frozen=True)
@@ -332,12 +360,17 @@ class _Group:
     def n(self) -> int:
         return (self.accel or self.gyro).n
 
-    def merge(self, other: "_Group") -> "_Group":
+    def merge(self, other: _Group) -> _Group:
         return _Group(
-            self.start, other.stop, self.t_start_s, other.t_end_s,
+            self.start,
+            other.stop,
+            self.t_start_s,
+            other.t_end_s,
             None if self.accel is None else self.accel.combine(other.accel),
             None if self.gyro is None else self.gyro.combine(other.gyro),
-            self.temp_sum + other.temp_sum, self.temp_n + other.temp_n, self.n_intervals + other.n_intervals,
+            self.temp_sum + other.temp_sum,
+            self.temp_n + other.temp_n,
+            self.n_intervals + other.n_intervals,
         )
 
     def position(self, config: PositionConfig, batch: int) -> Position:
@@ -350,48 +383,101 @@ class _Group:
         am, ac, an = triad(self.accel)
         gm, gc, gn = triad(self.gyro)
         return Position(
-            t_start_s=self.t_start_s, t_end_s=self.t_end_s, n_samples=self.n,
-            accel_mean_mps2=am, accel_cov_mps2=ac, gyro_mean_rps=gm, gyro_cov_rps=gc,
+            t_start_s=self.t_start_s,
+            t_end_s=self.t_end_s,
+            n_samples=self.n,
+            accel_mean_mps2=am,
+            accel_cov_mps2=ac,
+            gyro_mean_rps=gm,
+            gyro_cov_rps=gc,
             temp_mean_c=self.temp_sum / self.temp_n if self.temp_n else None,
-            index_start=self.start, index_stop=self.stop, n_intervals=self.n_intervals,
-            accel_n_eff=an, gyro_n_eff=gn,
+            index_start=self.start,
+            index_stop=self.stop,
+            n_intervals=self.n_intervals,
+            accel_n_eff=an,
+            gyro_n_eff=gn,
         )
 
     def to_dict(self) -> dict:
-        return {"start": self.start, "stop": self.stop, "t_start_s": self.t_start_s, "t_end_s": self.t_end_s,
-                "accel": None if self.accel is None else self.accel.to_dict(),
-                "gyro": None if self.gyro is None else self.gyro.to_dict(),
-                "temp_sum": self.temp_sum, "temp_n": self.temp_n, "n_intervals": self.n_intervals}
+        return {
+            "start": self.start,
+            "stop": self.stop,
+            "t_start_s": self.t_start_s,
+            "t_end_s": self.t_end_s,
+            "accel": None if self.accel is None else self.accel.to_dict(),
+            "gyro": None if self.gyro is None else self.gyro.to_dict(),
+            "temp_sum": self.temp_sum,
+            "temp_n": self.temp_n,
+            "n_intervals": self.n_intervals,
+        }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "_Group":
-        return cls(int(d["start"]), int(d["stop"]), float(d["t_start_s"]), float(d["t_end_s"]),
-                   None if d["accel"] is None else _Moments.from_dict(d["accel"]),
-                   None if d["gyro"] is None else _Moments.from_dict(d["gyro"]),
-                   float(d["temp_sum"]), int(d["temp_n"]), int(d["n_intervals"]))
+    def from_dict(cls, d: dict) -> _Group:
+        return cls(
+            int(d["start"]),
+            int(d["stop"]),
+            float(d["t_start_s"]),
+            float(d["t_end_s"]),
+            None if d["accel"] is None else _Moments.from_dict(d["accel"]),
+            None if d["gyro"] is None else _Moments.from_dict(d["gyro"]),
+            float(d["temp_sum"]),
+            int(d["temp_n"]),
+            int(d["n_intervals"]),
+        )
 
 
 def _short_rejection(run: StaticInterval, min_static_s: float) -> PositionRejection:
-    return PositionRejection(RejectReason.SHORT_INTERVAL, run.start, run.stop, run.t_start_s, run.t_end_s,
-                             f"static run of {run.duration_s:.3f} s < min_static_s {min_static_s:g} s")
+    return PositionRejection(
+        RejectReason.SHORT_INTERVAL,
+        run.start,
+        run.stop,
+        run.t_start_s,
+        run.t_end_s,
+        f"static run of {run.duration_s:.3f} s < min_static_s {min_static_s:g} s",
+    )
 
 
-def _few_rejection(run: StaticInterval, n_left: int, trim: int, min_samples: int) -> PositionRejection:
-    return PositionRejection(RejectReason.TOO_FEW_SAMPLES, run.start, run.stop, run.t_start_s, run.t_end_s,
-                             f"{n_left} samples left of {run.n_samples} after trimming {trim} per end < min_samples {min_samples}")
+def _few_rejection(
+    run: StaticInterval, n_left: int, trim: int, min_samples: int
+) -> PositionRejection:
+    return PositionRejection(
+        RejectReason.TOO_FEW_SAMPLES,
+        run.start,
+        run.stop,
+        run.t_start_s,
+        run.t_end_s,
+        f"{n_left} samples left of {run.n_samples} after trimming {trim} per end < min_samples {min_samples}",
+    )
 
 
-def _offer(det_config: StaticDetectorConfig, pending: _Group | None, group: _Group, rotation_deg: float | None):
+def _offer(
+    det_config: StaticDetectorConfig,
+    pending: _Group | None,
+    group: _Group,
+    rotation_deg: float | None,
+):
     """Merge ``group`` into ``pending`` or start a new position: ``(new pending, emitted or None, rejection or None)``."""
     if pending is None:
         return group, None, None
-    direction = None if group.accel is None else direction_change_deg(pending.accel.mean, group.accel.mean)
+    direction = (
+        None if group.accel is None else direction_change_deg(pending.accel.mean, group.accel.mean)
+    )
     if is_new_orientation(det_config, direction_deg=direction, rotation_deg=rotation_deg):
         return group, pending, None
-    parts = [f"{name} {v:.3f}°" for name, v in (("direction change", direction), ("rotation", rotation_deg)) if v is not None]
-    rej = PositionRejection(RejectReason.MERGED, group.start, group.stop, group.t_start_s, group.t_end_s,
-                            f"merged into the position from t={pending.t_start_s:.3f} s: {', '.join(parts)}"
-                            f" < {det_config.orientation_change_deg:g}°")
+    parts = [
+        f"{name} {v:.3f}°"
+        for name, v in (("direction change", direction), ("rotation", rotation_deg))
+        if v is not None
+    ]
+    rej = PositionRejection(
+        RejectReason.MERGED,
+        group.start,
+        group.stop,
+        group.t_start_s,
+        group.t_end_s,
+        f"merged into the position from t={pending.t_start_s:.3f} s: {', '.join(parts)}"
+        f" < {det_config.orientation_change_deg:g}°",
+    )
     return pending.merge(group), None, rej
 
 
@@ -399,7 +485,9 @@ def _offer(det_config: StaticDetectorConfig, pending: _Group | None, group: _Gro
 # Batch
 
 
-def build_positions(session: ImuSession, detection: StaticDetection, *, config: PositionConfig = PositionConfig()) -> PositionsResult:
+def build_positions(
+    session: ImuSession, detection: StaticDetection, *, config: PositionConfig = PositionConfig()
+) -> PositionsResult:
     """Positions of a session from its static detection (module docstring), in time order.
 
     Parameters
@@ -416,14 +504,18 @@ def build_positions(session: ImuSession, detection: StaticDetection, *, config: 
     gyro = None if session.gyro_rps is None else np.asarray(session.gyro_rps, dtype=float)
     temp = None if session.temp_c is None else np.asarray(session.temp_c, dtype=float)
     if detection.static.shape != t.shape:
-        raise ValueError(f"detection covers {detection.static.shape[0]} samples, the session has {t.shape[0]}")
+        raise ValueError(
+            f"detection covers {detection.static.shape[0]} samples, the session has {t.shape[0]}"
+        )
     det_cfg = detection.config
     rate = detection.rate_hz
     trim = config.trim_samples(rate)
     batch = config.batch_samples(rate)
     acc = detection.accepted
-    runs = sorted([(iv, False) for iv in detection.intervals] + [(iv, True) for iv in detection.short_runs],
-                  key=lambda r: r[0].start)
+    runs = sorted(
+        [(iv, False) for iv in detection.intervals] + [(iv, True) for iv in detection.short_runs],
+        key=lambda r: r[0].start,
+    )
 
     positions: list[Position] = []
     rejections: list[PositionRejection] = []
@@ -442,14 +534,20 @@ def build_positions(session: ImuSession, detection: StaticDetection, *, config: 
         temps = None if temp is None else temp[rows]
         finite_t = None if temps is None else temps[np.isfinite(temps)]
         group = _Group(
-            int(rows[0]), int(rows[-1]) + 1, float(t[rows[0]]), float(t[rows[-1]]),
+            int(rows[0]),
+            int(rows[-1]) + 1,
+            float(t[rows[0]]),
+            float(t[rows[-1]]),
             None if accel is None else _Moments.of_samples(accel[rows], batch),
             None if gyro is None else _Moments.of_samples(gyro[rows], batch),
-            0.0 if finite_t is None else float(finite_t.sum()), 0 if finite_t is None else int(finite_t.size),
+            0.0 if finite_t is None else float(finite_t.sum()),
+            0 if finite_t is None else int(finite_t.size),
         )
         rotation = None
         if gyro is not None and pending is not None:
-            rotation = _rotation_between(t, gyro, acc, detection.segment_start, pending.gyro.mean, last_run_end, first)
+            rotation = _rotation_between(
+                t, gyro, acc, detection.segment_start, pending.gyro.mean, last_run_end, first
+            )
         pending, emitted, rej = _offer(det_cfg, pending, group, rotation)
         if emitted is not None:
             positions.append(emitted.position(config, batch))
@@ -550,20 +648,34 @@ class PositionAccumulator:
         detector_config: StaticDetectorConfig = StaticDetectorConfig(),
         config: PositionConfig = PositionConfig(),
     ) -> None:
-        self.detector = StreamingStaticDetector(detector_config, rate_hz=rate_hz, has_accel=has_accel, has_gyro=has_gyro)
+        self.detector = StreamingStaticDetector(
+            detector_config, rate_hz=rate_hz, has_accel=has_accel, has_gyro=has_gyro
+        )
         self.config = config
         # Channel offsets (accel 0, gyro 3) of the triads present, fixed here so the per-sample path builds nothing.
         self._offsets = tuple(o for o, present in ((0, has_accel), (3, has_gyro)) if present)
         # The same as channel indices, and the (q index, channel, channel) of _add's products, for the batch path.
         self._chans = [o + i for o in self._offsets for i in range(3)]
-        prods = [(2 * o + kk, o + u, o + v) for o in self._offsets
-                 for kk, (u, v) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))]
+        prods = [
+            (2 * o + kk, o + u, o + v)
+            for o in self._offsets
+            for kk, (u, v) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)))
+        ]
         base = {ch: i for i, ch in enumerate(self._chans)}
-        self._pairs = tuple(np.array(v) for v in ([p[0] for p in prods], [base[p[1]] for p in prods], [base[p[2]] for p in prods]))
+        self._pairs = tuple(
+            np.array(v)
+            for v in (
+                [p[0] for p in prods],
+                [base[p[1]] for p in prods],
+                [base[p[2]] for p in prods],
+            )
+        )
         self._trim = config.trim_samples(rate_hz)
         self._batch = config.batch_samples(rate_hz)
         self._ring_n = self.detector.window_samples + self._trim + 2
-        self._ring = SwitchedRing([[0.0] * self._ring_n for _ in range(8)])  # t, ax, ay, az, gx, gy, gz, temp
+        self._ring = SwitchedRing(
+            [[0.0] * self._ring_n for _ in range(8)]
+        )  # t, ax, ay, az, gx, gy, gz, temp
         self._ring_idx = SwitchedRing([0] * self._ring_n, int)
         self._run_open = False
         self._run_count = 0
@@ -575,8 +687,17 @@ class PositionAccumulator:
 
     # -- per sample ---------------------------------------------------------
 
-    def update(self, t_s: float, ax: float, ay: float, az: float, gx: float, gy: float, gz: float,
-               temp_c: float | None = None) -> Position | None:
+    def update(
+        self,
+        t_s: float,
+        ax: float,
+        ay: float,
+        az: float,
+        gx: float,
+        gy: float,
+        gz: float,
+        temp_c: float | None = None,
+    ) -> Position | None:
         det = self.detector
         before = det.n_accepted
         det.update(t_s, ax, ay, az, gx, gy, gz)
@@ -594,8 +715,13 @@ class PositionAccumulator:
             return None
         return self._after_detector()
 
-    def update_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None,
-                     temp_c: np.ndarray | None = None) -> tuple[list[Position], FinalDecisions]:
+    def update_batch(
+        self,
+        t_s: np.ndarray,
+        accel_mps2: np.ndarray | None,
+        gyro_rps: np.ndarray | None,
+        temp_c: np.ndarray | None = None,
+    ) -> tuple[list[Position], FinalDecisions]:
         """:meth:`update` over N samples: the same positions, rejections, decisions and state.
 
         Parameters
@@ -616,10 +742,15 @@ class PositionAccumulator:
         t = np.asarray(t_s, dtype=float).reshape(-1)
         n = t.shape[0]
         triads = {}
-        for name, arr, present in (("accel_mps2", accel_mps2, det.has_accel), ("gyro_rps", gyro_rps, det.has_gyro)):
+        for name, arr, present in (
+            ("accel_mps2", accel_mps2, det.has_accel),
+            ("gyro_rps", gyro_rps, det.has_gyro),
+        ):
             if present:
                 if arr is None:
-                    raise ValueError(f"{name} is required: the accumulator was built with that triad")
+                    raise ValueError(
+                        f"{name} is required: the accumulator was built with that triad"
+                    )
                 triads[name] = np.asarray(arr, dtype=float)
                 if triads[name].shape != (n, 3):
                     raise ValueError(f"{name} must have shape ({n}, 3), got {triads[name].shape}")
@@ -635,15 +766,26 @@ class PositionAccumulator:
         while i < n and not det.steady():
             self._update_row(t, accel, gyro, temp, i, positions, steps)
             i += 1
-        if i < n and (n - i < _MIN_VECTOR or not det.clean_batch(t[i:], None if accel is None else accel[i:],
-                                                                 None if gyro is None else gyro[i:])):
+        if i < n and (
+            n - i < _MIN_VECTOR
+            or not det.clean_batch(
+                t[i:], None if accel is None else accel[i:], None if gyro is None else gyro[i:]
+            )
+        ):
             for k in range(i, n):
                 self._update_row(t, accel, gyro, temp, k, positions, steps)
             i = n
         decisions = FinalDecisions.from_steps(start, steps)
         if i < n:
-            decisions = decisions.then(self._steady_batch(t[i:], None if accel is None else accel[i:],
-                                                          None if gyro is None else gyro[i:], temp[i:], positions))
+            decisions = decisions.then(
+                self._steady_batch(
+                    t[i:],
+                    None if accel is None else accel[i:],
+                    None if gyro is None else gyro[i:],
+                    temp[i:],
+                    positions,
+                )
+            )
         return positions, decisions
 
     def _update_row(self, t, accel, gyro, temp, i, positions, steps) -> None:
@@ -673,7 +815,11 @@ class PositionAccumulator:
         cols = [np.concatenate([ring[0][old], t])]
         for o, x in ((0, accel), (3, gyro)):
             for k in range(3):
-                cols.append(ring[1 + o + k][every] if x is None else np.concatenate([ring[1 + o + k][old], x[:, k]]))
+                cols.append(
+                    ring[1 + o + k][every]
+                    if x is None
+                    else np.concatenate([ring[1 + o + k][old], x[:, k]])
+                )
         cols.append(np.concatenate([ring[7][old], temp]))
         idx = np.concatenate([self._ring_idx.array()[old], idx0 + np.arange(n)])
         ext = _Extended(base=c0 - rn, cols=cols, idx=idx)
@@ -681,7 +827,7 @@ class PositionAccumulator:
         j0 = c0 - w + 1  # decision finalized by the first sample
         edges = np.flatnonzero(static[1:] != static[:-1]) + 1
         bounds = [0, *edges.tolist(), n]
-        for a, b in zip(bounds[:-1], bounds[1:]):
+        for a, b in itertools.pairwise(bounds):
             ja, jb = j0 + a, j0 + b
             if static[a]:
                 if not self._run_open:
@@ -717,7 +863,7 @@ class PositionAccumulator:
         self._ring_idx.array()[pos] = idx[rn + tail]
         return FinalDecisions(j0, static, np.zeros(n, dtype=bool))
 
-    def _first_sure(self, ext: "_Extended", lo: int, hi: int, ja: int, r0: int) -> int:
+    def _first_sure(self, ext: _Extended, lo: int, hi: int, ja: int, r0: int) -> int:
         """First static sample in ``[lo, hi)`` from which :meth:`_run_sure` holds (``hi`` if none).
 
         The run holds ``r0`` samples before ``ja``; sample ``j`` is judged with the
@@ -735,11 +881,13 @@ class PositionAccumulator:
             if first_add >= hi:
                 return hi
             t_first = tt[first_add - self._trim - ext.base]
-        sure = (n_before >= self.config.min_samples) & (tt[lo - ext.base : hi - ext.base] - t_first >= self.detector.config.min_static_s)
+        sure = (n_before >= self.config.min_samples) & (
+            tt[lo - ext.base : hi - ext.base] - t_first >= self.detector.config.min_static_s
+        )
         k = int(np.argmax(sure))
         return lo + k if sure[k] else hi
 
-    def _integrate_ext(self, ext: "_Extended", lo: int, hi: int) -> None:
+    def _integrate_ext(self, ext: _Extended, lo: int, hi: int) -> None:
         """:meth:`_integrate` for accepted samples ``[lo, hi)`` from the extended arrays."""
         k0, k1 = lo - ext.base, hi - ext.base
         if k1 > k0:
@@ -747,7 +895,7 @@ class PositionAccumulator:
             gyro = np.column_stack([ext.cols[c][k0:k1] for c in (4, 5, 6)]).tolist()
             self._rot.add_many(gyro, (tt[k0:k1] - tt[k0 - 1 : k1 - 1]).tolist())
 
-    def _add_many(self, ext: "_Extended", lo: int, hi: int) -> None:
+    def _add_many(self, ext: _Extended, lo: int, hi: int) -> None:
         """:meth:`_add` for accepted samples ``[lo, hi)``: the same sequential sums, by ``cumsum``."""
         k0, k1 = lo - ext.base, hi - ext.base
         sm = self._sums
@@ -776,7 +924,9 @@ class PositionAccumulator:
         s_arr[chans] = _seq_sum_rows(s_arr[chans], y)
         q_arr[pairs[0]] = _seq_sum_rows(q_arr[pairs[0]], y[:, pairs[1]] * y[:, pairs[2]])
         first = _seq_sum_rows(part[chans], y[:head])
-        full = np.cumsum(y[head : head + n_full * bt].reshape(n_full, bt, len(chans)), axis=1)[:, -1, :]
+        full = np.cumsum(y[head : head + n_full * bt].reshape(n_full, bt, len(chans)), axis=1)[
+            :, -1, :
+        ]
         if done_first:
             means = np.vstack([first, full]) / bt
             part[chans] = _seq_sum_rows(np.zeros(len(chans)), y[m - tail :])
@@ -786,7 +936,13 @@ class PositionAccumulator:
         bs_arr, bq_arr = np.asarray(sm.bs), np.asarray(sm.bq)
         bs_arr[chans] = _seq_sum_rows(bs_arr[chans], means)
         bq_arr[pairs[0]] = _seq_sum_rows(bq_arr[pairs[0]], means[:, pairs[1]] * means[:, pairs[2]])
-        sm.s, sm.q, sm.part, sm.bs, sm.bq = s_arr.tolist(), q_arr.tolist(), part.tolist(), bs_arr.tolist(), bq_arr.tolist()
+        sm.s, sm.q, sm.part, sm.bs, sm.bq = (
+            s_arr.tolist(),
+            q_arr.tolist(),
+            part.tolist(),
+            bs_arr.tolist(),
+            bq_arr.tolist(),
+        )
         nb_new = int(done_first) + n_full
         sm.nb += nb_new
         sm.part_n = tail if done_first else sm.part_n + head
@@ -834,8 +990,11 @@ class PositionAccumulator:
         least ``t(c) − t(first kept sample)`` and already keeps ``min_samples``.
         """
         sm = self._sums
-        return (sm.n >= self.config.min_samples
-                and self._ring.lists()[0][c % self._ring_n] - sm.t_first >= self.detector.config.min_static_s)
+        return (
+            sm.n >= self.config.min_samples
+            and self._ring.lists()[0][c % self._ring_n] - sm.t_first
+            >= self.detector.config.min_static_s
+        )
 
     def _add(self, c: int) -> None:
         p = c % self._ring_n
@@ -872,7 +1031,11 @@ class PositionAccumulator:
             part[o + 1] += y1
             part[o + 2] += y2
             if batch_done:
-                m0, m1, m2 = part[o] / self._batch, part[o + 1] / self._batch, part[o + 2] / self._batch
+                m0, m1, m2 = (
+                    part[o] / self._batch,
+                    part[o + 1] / self._batch,
+                    part[o + 2] / self._batch,
+                )
                 part[o] = part[o + 1] = part[o + 2] = 0.0
                 bs, bq = sm.bs, sm.bq
                 bs[o] += m0
@@ -902,13 +1065,29 @@ class PositionAccumulator:
             return None
 
         def moments(o):
-            return _Moments.of_sums(sm.shift[o:o + 3], sm.n, sm.s[o:o + 3], sm.q[2 * o:2 * o + 6],
-                                    sm.nb, sm.bs[o:o + 3], sm.bq[2 * o:2 * o + 6])
+            return _Moments.of_sums(
+                sm.shift[o : o + 3],
+                sm.n,
+                sm.s[o : o + 3],
+                sm.q[2 * o : 2 * o + 6],
+                sm.nb,
+                sm.bs[o : o + 3],
+                sm.bq[2 * o : 2 * o + 6],
+            )
 
-        group = _Group(sm.start, sm.stop, sm.t_first, sm.t_last,
-                       moments(0) if det.has_accel else None, moments(3) if det.has_gyro else None,
-                       sm.temp_sum, sm.temp_n)
-        rotation = self._rot.mark_angle_deg if (self._pending is not None and self._rot_active) else None
+        group = _Group(
+            sm.start,
+            sm.stop,
+            sm.t_first,
+            sm.t_last,
+            moments(0) if det.has_accel else None,
+            moments(3) if det.has_gyro else None,
+            sm.temp_sum,
+            sm.temp_n,
+        )
+        rotation = (
+            self._rot.mark_angle_deg if (self._pending is not None and self._rot_active) else None
+        )
         if not det.has_gyro:
             rotation = None
         self._pending, emitted, rej = _offer(det.config, self._pending, group, rotation)
@@ -958,15 +1137,24 @@ class PositionAccumulator:
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> "PositionAccumulator":
+    def from_state_dict(cls, state: dict) -> PositionAccumulator:
         try:
             det = StreamingStaticDetector.from_state_dict(state["detector"])
             cfg = PositionConfig(**state["config"])
-            acc = cls(rate_hz=det.rate_hz, has_accel=det.has_accel, has_gyro=det.has_gyro,
-                      detector_config=det.config, config=cfg)
+            acc = cls(
+                rate_hz=det.rate_hz,
+                has_accel=det.has_accel,
+                has_gyro=det.has_gyro,
+                detector_config=det.config,
+                config=cfg,
+            )
             acc.detector = det
             ring = [[_NAN if v is None else float(v) for v in ch] for ch in state["ring"]]
-            if len(ring) != 8 or any(len(ch) != acc._ring_n for ch in ring) or len(state["ring_idx"]) != acc._ring_n:
+            if (
+                len(ring) != 8
+                or any(len(ch) != acc._ring_n for ch in ring)
+                or len(state["ring_idx"]) != acc._ring_n
+            ):
                 raise ValueError(f"ring must hold 8 channels of {acc._ring_n} samples")
             acc._ring = SwitchedRing(ring)
             acc._ring_idx = SwitchedRing([int(v) for v in state["ring_idx"]], int)

@@ -68,7 +68,13 @@ class LinearFit:
         return np.sqrt(np.diag(self.cov))
 
 
-def fit_linear(h: np.ndarray, y: np.ndarray, *, sigma_y: float | None = None, names: Sequence[str] | None = None) -> LinearFit:
+def fit_linear(
+    h: np.ndarray,
+    y: np.ndarray,
+    *,
+    sigma_y: float | None = None,
+    names: Sequence[str] | None = None,
+) -> LinearFit:
     """Least squares through a QR factorization (no normal equations, no inverse).
 
     Parameters
@@ -97,12 +103,16 @@ def fit_linear(h: np.ndarray, y: np.ndarray, *, sigma_y: float | None = None, na
     # to unit norm so the rank test below compares like with like.
     col = np.linalg.norm(h, axis=0)
     if np.any(col == 0.0):
-        raise ValueError(f"the equations do not involve {_name(names, int(np.flatnonzero(col == 0.0)[0]))}")
+        raise ValueError(
+            f"the equations do not involve {_name(names, int(np.flatnonzero(col == 0.0)[0]))}"
+        )
     q, r = scipy.linalg.qr(h / col, mode="economic")
     d = np.abs(np.diag(r))
     weak = d < _RANK_RTOL * d.max()
     if weak.any():
-        raise ValueError(f"the equations cannot separate {_name(names, int(np.flatnonzero(weak)[0]))} from the other unknowns")
+        raise ValueError(
+            f"the equations cannot separate {_name(names, int(np.flatnonzero(weak)[0]))} from the other unknowns"
+        )
     theta_scaled = scipy.linalg.solve_triangular(r, q.T @ y)
     values = theta_scaled / col
     resid = y - h @ values
@@ -150,7 +160,9 @@ class Stabilization:
     settled_at: np.ndarray
 
 
-def stabilization(h: np.ndarray, y: np.ndarray, *, level: float = 0.95, names: Sequence[str] | None = None) -> Stabilization:
+def stabilization(
+    h: np.ndarray, y: np.ndarray, *, level: float = 0.95, names: Sequence[str] | None = None
+) -> Stabilization:
     """Re-solve with the first ``m`` equations for ``m = P + 1 … M`` (M2 check 1).
 
     The paper's Fig. 1: estimates jump while few equations constrain them and
@@ -191,7 +203,7 @@ class RunEstimate:
     dof: float = np.inf
 
     @classmethod
-    def from_fit(cls, fit: LinearFit) -> "RunEstimate":
+    def from_fit(cls, fit: LinearFit) -> RunEstimate:
         return cls(values=fit.values, cov=fit.cov, dof=fit.dof)
 
 
@@ -249,10 +261,12 @@ class RunSpread:
 
     def not_reproducible(self) -> tuple[str, ...]:
         """Names of the parameters whose run intervals do not intersect."""
-        return tuple(n for n, ok in zip(self.names, self.reproducible) if not ok)
+        return tuple(n for n, ok in zip(self.names, self.reproducible, strict=True) if not ok)
 
 
-def run_spread(runs: Sequence[RunEstimate], *, names: Sequence[str], level: float = 0.95) -> RunSpread:
+def run_spread(
+    runs: Sequence[RunEstimate], *, names: Sequence[str], level: float = 0.95
+) -> RunSpread:
     """Per-run intervals, across-run statistics and their intersection (M2 checks 3–4).
 
     Parameters
@@ -266,7 +280,9 @@ def run_spread(runs: Sequence[RunEstimate], *, names: Sequence[str], level: floa
         raise ValueError(f"reproducibility needs at least 2 runs, got {len(runs)}")
     vals = np.array([np.asarray(r.values, dtype=float) for r in runs])
     if vals.ndim != 2 or vals.shape[1] != len(names):
-        raise ValueError(f"every run must estimate the {len(names)} parameters {names}, got shape {vals.shape}")
+        raise ValueError(
+            f"every run must estimate the {len(names)} parameters {names}, got shape {vals.shape}"
+        )
     std = np.array([np.sqrt(np.diag(np.asarray(r.cov, dtype=float))) for r in runs])
     if not np.all(std > 0.0):
         raise ValueError("every run needs a positive standard deviation for each parameter")
@@ -327,7 +343,13 @@ class TriadRuns:
     observable: np.ndarray
 
 
-def triad_runs(positions_per_run: Sequence[Sequence[Position]], triad: Triad, reference: float, *, level: float = 0.95) -> TriadRuns:
+def triad_runs(
+    positions_per_run: Sequence[Sequence[Position]],
+    triad: Triad,
+    reference: float,
+    *,
+    level: float = 0.95,
+) -> TriadRuns:
     """Estimate the nine parameters in every run (refined M1 estimator) and intersect the runs.
 
     Parameters
@@ -344,13 +366,29 @@ def triad_runs(positions_per_run: Sequence[Sequence[Position]], triad: Triad, re
             raise ValueError(f"run {k + 1}: {est.reason}")
         estimates.append(est)
         mean, _ = position_arrays(positions, triad, reference)
-        stabs.append(stabilization(regressors(mean), 0.5 * (np.einsum("ij,ij->i", mean, mean) - 1.0), level=level, names=PARAM_NAMES))
-    spread = run_spread([RunEstimate(e.params, e.cov) for e in estimates], names=PARAM_NAMES, level=level)
+        stabs.append(
+            stabilization(
+                regressors(mean),
+                0.5 * (np.einsum("ij,ij->i", mean, mean) - 1.0),
+                level=level,
+                names=PARAM_NAMES,
+            )
+        )
+    spread = run_spread(
+        [RunEstimate(e.params, e.cov) for e in estimates], names=PARAM_NAMES, level=level
+    )
     observable = np.logical_and.reduce([np.asarray(e.observable, dtype=bool) for e in estimates])
-    return TriadRuns(estimates=tuple(estimates), spread=spread, stabilizations=tuple(stabs), observable=observable)
+    return TriadRuns(
+        estimates=tuple(estimates),
+        spread=spread,
+        stabilizations=tuple(stabs),
+        observable=observable,
+    )
 
 
-def passport_from_runs(runs: TriadRuns, *, noise_std: np.ndarray, sample_rate_hz: float) -> TriadPassport:
+def passport_from_runs(
+    runs: TriadRuns, *, noise_std: np.ndarray, sample_rate_hz: float
+) -> TriadPassport:
     """A :class:`TriadPassport` whose values, intervals and tolerances come from the runs (M2 → M1).
 
     Nominal: the intersection value; confidence interval: the intersection;

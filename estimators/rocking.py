@@ -61,7 +61,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
@@ -113,7 +113,7 @@ class RockingError(ValueError):
     """A record cannot be used by the rocking method (the message says what is missing)."""
 
 
-class RockingPair(str, Enum):
+class RockingPair(StrEnum):
     """Which two angles rock; the third one drifts (M5 eqs. 1–3)."""
 
     ROLL_PITCH = "roll+pitch"
@@ -141,21 +141,31 @@ class RockingPair(str, Enum):
         return ANGLE_NAMES[self.drift_axis]
 
     @classmethod
-    def from_drift_axis(cls, axis: int) -> "RockingPair":
+    def from_drift_axis(cls, axis: int) -> RockingPair:
         return next(p for p in cls if p.drift_axis == axis)
 
 
-PAPER_PHASE_RAD = {RockingPair.ROLL_PITCH: np.pi / 2, RockingPair.ROLL_YAW: -np.pi / 2, RockingPair.PITCH_YAW: np.pi / 2}
+PAPER_PHASE_RAD = {
+    RockingPair.ROLL_PITCH: np.pi / 2,
+    RockingPair.ROLL_YAW: -np.pi / 2,
+    RockingPair.PITCH_YAW: np.pi / 2,
+}
 """``Δφ`` of the paper's three experiments: the roll+yaw run had yaw leading roll (−π/2)."""
 
 
 # --- the closed form (the paper) ---------------------------------------------
 
 
-def x_from_drift(drift_rps, amplitude_lead_rad, amplitude_lag_rad, frequency_hz, phase_rad) -> np.ndarray:
+def x_from_drift(
+    drift_rps, amplitude_lead_rad, amplitude_lag_rad, frequency_hz, phase_rad
+) -> np.ndarray:
     """``X = 2·Ḋ / (A_i A_j ν sin Δφ)`` (M5 eq. 4; ``ν = 2π f``; Ḋ with the static drift removed, rad/s)."""
     nu = 2.0 * np.pi * np.asarray(frequency_hz, float)
-    return 2.0 * np.asarray(drift_rps, float) / (np.asarray(amplitude_lead_rad) * np.asarray(amplitude_lag_rad) * nu * np.sin(phase_rad))
+    return (
+        2.0
+        * np.asarray(drift_rps, float)
+        / (np.asarray(amplitude_lead_rad) * np.asarray(amplitude_lag_rad) * nu * np.sin(phase_rad))
+    )
 
 
 def dk_from_x(x) -> np.ndarray:
@@ -185,7 +195,9 @@ def earth_rate_stand_rps(latitude_deg: float, heading_deg: float = 0.0) -> np.nd
     if not np.isfinite(heading_deg):
         raise ValueError(f"heading_deg must be finite, got {heading_deg!r}")
     lat, hdg = np.radians(latitude_deg), np.radians(heading_deg)
-    return EARTH_RATE_RPS * np.array([np.cos(lat) * np.cos(hdg), np.sin(lat), -np.cos(lat) * np.sin(hdg)])
+    return EARTH_RATE_RPS * np.array(
+        [np.cos(lat) * np.cos(hdg), np.sin(lat), -np.cos(lat) * np.sin(hdg)]
+    )
 
 
 @dataclass(frozen=True)
@@ -210,7 +222,9 @@ class GyroUnit:
                 raise ValueError(f"{name} must be {n} finite numbers, got {getattr(self, name)!r}")
             object.__setattr__(self, name, tuple(v.tolist()))
         if not (np.isfinite(self.arw_rad_per_sqrt_s) and self.arw_rad_per_sqrt_s >= 0.0):
-            raise ValueError(f"arw_rad_per_sqrt_s must be a non-negative number, got {self.arw_rad_per_sqrt_s!r}")
+            raise ValueError(
+                f"arw_rad_per_sqrt_s must be a non-negative number, got {self.arw_rad_per_sqrt_s!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -245,7 +259,9 @@ class RockingRun:
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
                 raise ValueError(f"{name} must be non-negative, got {getattr(self, name)!r}")
         if 2.0 * self.ramp_s > self.rocking_s:
-            raise ValueError(f"two ramps of {self.ramp_s} s do not fit in {self.rocking_s} s of rocking")
+            raise ValueError(
+                f"two ramps of {self.ramp_s} s do not fit in {self.rocking_s} s of rocking"
+            )
 
     @property
     def duration_s(self) -> float:
@@ -276,7 +292,12 @@ def paper_runs(
     number sets ``Δφ`` of all three runs.
     """
     return tuple(
-        RockingRun(pair, amplitude_rad, frequency_hz, PAPER_PHASE_RAD[pair] if phase_rad is None else phase_rad)
+        RockingRun(
+            pair,
+            amplitude_rad,
+            frequency_hz,
+            PAPER_PHASE_RAD[pair] if phase_rad is None else phase_rad,
+        )
         for pair in (RockingPair.ROLL_PITCH, RockingPair.ROLL_YAW, RockingPair.PITCH_YAW)
     )
 
@@ -322,18 +343,22 @@ def simulate_run(
     """
     if not (np.isfinite(rate_hz) and rate_hz > 0.0):
         raise ValueError(f"rate_hz must be positive, got {rate_hz!r}")
-    n = int(round(run.duration_s * rate_hz)) + 1
+    n = round(run.duration_s * rate_hz) + 1
     t = np.arange(n) / rate_hz
     t_on = run.static_before_s
     t_off = t_on + run.rocking_s
-    angles, rates = _sinusoid_angles(t, run.amplitudes_rad(), run.phases_rad(), run.frequency_hz, np.zeros(3), t_on)
+    angles, rates = _sinusoid_angles(
+        t, run.amplitudes_rad(), run.phases_rad(), run.frequency_hz, np.zeros(3), t_on
+    )
     # Raised-cosine envelope e(t): the stand starts and stops smoothly; d(e·s)/dt = e'·s + e·s'.
     if run.ramp_s > 0.0:
         up = np.clip((t - t_on) / run.ramp_s, 0.0, 1.0)
         down = np.clip((t_off - t) / run.ramp_s, 0.0, 1.0)
         x = np.minimum(up, down)
         env = 0.5 * (1.0 - np.cos(np.pi * x))
-        slope = np.where(up < down, 1.0, -1.0) * np.where((x > 0.0) & (x < 1.0), 0.5 * np.pi / run.ramp_s * np.sin(np.pi * x), 0.0)
+        slope = np.where(up < down, 1.0, -1.0) * np.where(
+            (x > 0.0) & (x < 1.0), 0.5 * np.pi / run.ramp_s * np.sin(np.pi * x), 0.0
+        )
     else:
         env = ((t >= t_on) & (t <= t_off)).astype(float)
         slope = np.zeros_like(t)
@@ -355,9 +380,15 @@ def simulate_runs(
     """Several runs recorded one after another as one record (arguments as :func:`simulate_run`)."""
     if not runs:
         raise ValueError("simulate_runs needs at least one run")
-    parts = [simulate_run(r, unit, rate_hz=rate_hz, earth_rate_rps=earth_rate_rps, rng=rng) for r in runs]
+    parts = [
+        simulate_run(r, unit, rate_hz=rate_hz, earth_rate_rps=earth_rate_rps, rng=rng) for r in runs
+    ]
     starts = np.cumsum([0.0] + [p.t_s[-1] + 1.0 / rate_hz for p in parts[:-1]])
-    return ImuSession(np.concatenate([p.t_s + t0 for p, t0 in zip(parts, starts)]), None, np.vstack([p.gyro_rps for p in parts]))
+    return ImuSession(
+        np.concatenate([p.t_s + t0 for p, t0 in zip(parts, starts, strict=True)]),
+        None,
+        np.vstack([p.gyro_rps for p in parts]),
+    )
 
 
 # --- finding the parts of a record ---------------------------------------------
@@ -381,7 +412,7 @@ class EpisodeSegments:
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """``[start, stop)`` of the runs of True in a boolean array."""
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
 
 
 def _peak_frequency_hz(t_s: np.ndarray, gyro_rps: np.ndarray) -> float:
@@ -427,12 +458,16 @@ def find_episodes(
     t = np.asarray(t_s, float)
     g = np.asarray(gyro_rps, float)
     if t.ndim != 1 or g.shape != (t.size, 3):
-        raise RockingError(f"a record needs t_s (N,) and gyro_rps (N, 3), got {t.shape} and {g.shape}")
+        raise RockingError(
+            f"a record needs t_s (N,) and gyro_rps (N, 3), got {t.shape} and {g.shape}"
+        )
     if t.size < 16 or t[-1] - t[0] < 2.0 * min_static_s:
-        raise RockingError(f"the record is too short ({t[-1] - t[0] if t.size else 0.0:.1f} s): it needs still parts of >= {min_static_s:g} s around the rocking")
+        raise RockingError(
+            f"the record is too short ({t[-1] - t[0] if t.size else 0.0:.1f} s): it needs still parts of >= {min_static_s:g} s around the rocking"
+        )
     dt = float(np.median(np.diff(t)))
     f0 = _peak_frequency_hz(t, g)
-    w = max(3, int(round(1.0 / (f0 * dt))))
+    w = max(3, round(1.0 / (f0 * dt)))
     # The raw rate magnitude, not its deviation from a median: rocking about two axes has a
     # rectified mean rate (½·A²·ν) that a median would carry into the still parts.
     magnitude_sq = np.sum(g**2, axis=1)
@@ -448,7 +483,9 @@ def find_episodes(
     episodes = []
     for a, b in _runs(env > _ROCKING_LEVEL * hi):
         level = np.median(env[a:b])
-        plateau = [(p + w, q - w) for p, q in _runs(np.abs(env[a:b] / level - 1.0) <= _PLATEAU_BAND)]
+        plateau = [
+            (p + w, q - w) for p, q in _runs(np.abs(env[a:b] / level - 1.0) <= _PLATEAU_BAND)
+        ]
         p, q = max(plateau, key=lambda r: r[1] - r[0]) if plateau else (0, 0)
         f_episode = _peak_frequency_hz(t[a:b], g[a:b]) if b - a >= 16 else f0
         n_periods = int(np.floor((q - p) * dt * f_episode))
@@ -456,14 +493,18 @@ def find_episodes(
             raise RockingError(
                 f"the rocking at {t[a]:.1f}–{t[b - 1]:.1f} s has {max(n_periods, 0)} steady periods; it needs >= {min_periods}"
             )
-        n_win = int(round(n_periods / (f_episode * dt)))
+        n_win = round(n_periods / (f_episode * dt))
         start = a + p + ((q - p) - n_win) // 2
         before = [s for s in still if s[1] <= a]
         after = [s for s in still if s[0] >= b]
         if not before:
-            raise RockingError(f"the rocking at {t[a]:.1f}–{t[b - 1]:.1f} s has no still part before it (needs >= {min_static_s:g} s)")
+            raise RockingError(
+                f"the rocking at {t[a]:.1f}–{t[b - 1]:.1f} s has no still part before it (needs >= {min_static_s:g} s)"
+            )
         if not after:
-            raise RockingError(f"the rocking at {t[a]:.1f}–{t[b - 1]:.1f} s has no still part after it (needs >= {min_static_s:g} s)")
+            raise RockingError(
+                f"the rocking at {t[a]:.1f}–{t[b - 1]:.1f} s has no still part after it (needs >= {min_static_s:g} s)"
+            )
         episodes.append(EpisodeSegments(before[-1], (start, start + n_win), after[0], f_episode))
     return episodes
 
@@ -498,7 +539,14 @@ class StandFit:
 
     def angles(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) stand angles and (N, 3) their rates at ``t_s``."""
-        return _sinusoid_angles(t_s, self.amplitude_rad, self.phase_rad, self.frequency_hz, self.offset_rad, self.t_ref_s)
+        return _sinusoid_angles(
+            t_s,
+            self.amplitude_rad,
+            self.phase_rad,
+            self.frequency_hz,
+            self.offset_rad,
+            self.t_ref_s,
+        )
 
 
 @dataclass(frozen=True)
@@ -559,7 +607,9 @@ class Episode:
     @property
     def static_durations_s(self) -> tuple[float, float]:
         before, _, after = self._slices()
-        return float(self.t_s[before][-1] - self.t_s[before][0]), float(self.t_s[after][-1] - self.t_s[after][0])
+        return float(self.t_s[before][-1] - self.t_s[before][0]), float(
+            self.t_s[after][-1] - self.t_s[after][0]
+        )
 
     def drift_variance_rps2(self, *, static_from_gyro_mean: bool = False) -> float:
         """Noise variance of :attr:`drift_rps` (or of the rocking drift against a gyro-mean bias), (rad/s)².
@@ -579,7 +629,9 @@ class Episode:
         return var + 1.2 * q_k * float(np.sum(ts**5) / np.sum(ts**3) ** 2)
 
 
-def _fit_columns(t_s: np.ndarray, t_ref_s: float, frequency_hz: float, n_harmonics: int) -> np.ndarray:
+def _fit_columns(
+    t_s: np.ndarray, t_ref_s: float, frequency_hz: float, n_harmonics: int
+) -> np.ndarray:
     """Design ``[1, t − t_ref, cos hν(t − t_ref), sin hν(t − t_ref) for h = 1…n]`` (N, 2 + 2n)."""
     tau = t_s - t_ref_s
     cols = [np.ones_like(tau), tau]
@@ -611,7 +663,9 @@ def drift_rates(t_s: np.ndarray, angles_rad: np.ndarray, frequency_hz: float) ->
     return coef[1].reshape(a.shape[:-1])
 
 
-def _static_drift(t_s: np.ndarray, angles_rad: np.ndarray, before: slice, after: slice) -> np.ndarray:
+def _static_drift(
+    t_s: np.ndarray, angles_rad: np.ndarray, before: slice, after: slice
+) -> np.ndarray:
     """(3,) common slope of the angles over both still parts (each with its own intercept)."""
     tb, ta = t_s[before], t_s[after]
     tc = 0.5 * (tb[0] + ta[-1])
@@ -623,7 +677,9 @@ def _static_drift(t_s: np.ndarray, angles_rad: np.ndarray, before: slice, after:
     return np.linalg.lstsq(design, y, rcond=None)[0][0]
 
 
-def _fit_stand(t_s: np.ndarray, angles_rad: np.ndarray, axes: list[int], f0_hz: float, *, search_lines: float) -> StandFit:
+def _fit_stand(
+    t_s: np.ndarray, angles_rad: np.ndarray, axes: list[int], f0_hz: float, *, search_lines: float
+) -> StandFit:
     """Common-frequency sinusoids on the rocking angles (variable projection over f, then the full Jacobian).
 
     The frequency is searched within ``f0_hz ± search_lines / span`` (``1/span``
@@ -637,7 +693,14 @@ def _fit_stand(t_s: np.ndarray, angles_rad: np.ndarray, axes: list[int], f0_hz: 
         design = _fit_columns(t_s, t_ref, f, 1)
         return float(np.linalg.lstsq(design, y, rcond=None)[1].sum())
 
-    f = float(minimize_scalar(cost, bounds=(f0_hz - half_width, f0_hz + half_width), method="bounded", options={"xatol": 1e-10}).x)
+    f = float(
+        minimize_scalar(
+            cost,
+            bounds=(f0_hz - half_width, f0_hz + half_width),
+            method="bounded",
+            options={"xatol": 1e-10},
+        ).x
+    )
     design = _fit_columns(t_s, t_ref, f, 1)
     coef, res = np.linalg.lstsq(design, y, rcond=None)[:2]
     n, m = y.shape
@@ -676,14 +739,18 @@ def _classify(amplitude_rad: np.ndarray, t_span: tuple[float, float]) -> Rocking
             "the method needs two axes rocking at the same frequency with a ±90° phase"
         )
     if a3 > _THIRD_AXIS_MAX * a2:
-        raise RockingError(f"{where} rocks all three angles; the method needs exactly two rocking and the third still")
+        raise RockingError(
+            f"{where} rocks all three angles; the method needs exactly two rocking and the third still"
+        )
     return RockingPair.from_drift_axis(int(order[2]))
 
 
 _ANGLE_WORDS = ("roll", "yaw", "pitch")
 
 
-def stand_attitude(t_s: np.ndarray, gyro_rps: np.ndarray, *, quat0=None, earth_rate_rps=None) -> np.ndarray:
+def stand_attitude(
+    t_s: np.ndarray, gyro_rps: np.ndarray, *, quat0=None, earth_rate_rps=None
+) -> np.ndarray:
     """(..., N, 4) attitude relative to the stand's rest axes from gyro output (..., N, 3).
 
     The strapdown integral is relative to inertial axes that coincide with the
@@ -747,24 +814,34 @@ def measure_episode(
     g = g if scale_err is None else g / (1.0 + np.asarray(scale_err, float))
     quat = stand_attitude(t, g, earth_rate_rps=earth_rate_rps)
     angles = euler_from_quat(quat)
-    before, win, after = slice(*local.static_before), slice(*local.window), slice(*local.static_after)
+    before, win, after = (
+        slice(*local.static_before),
+        slice(*local.window),
+        slice(*local.static_after),
+    )
     tw = t[win]
     span = (float(tw[0]), float(tw[-1]))
-    coarse = np.linalg.lstsq(_fit_columns(tw, tw.mean(), segments.frequency_hz, 1), angles[win], rcond=None)[0]
+    coarse = np.linalg.lstsq(
+        _fit_columns(tw, tw.mean(), segments.frequency_hz, 1), angles[win], rcond=None
+    )[0]
     pair = _classify(np.hypot(coarse[2], coarse[3]), span)
     axes = [pair.lead_axis, pair.lag_axis]
     if frequency_hz is None:
         stand = _fit_stand(tw, angles[win], axes, segments.frequency_hz, search_lines=0.5)
     else:
         stand = _fit_stand(tw, angles[win], axes, frequency_hz, search_lines=0.05)
-    dphi = float(np.angle(np.exp(1j * (stand.phase_rad[pair.lead_axis] - stand.phase_rad[pair.lag_axis]))))
+    dphi = float(
+        np.angle(np.exp(1j * (stand.phase_rad[pair.lead_axis] - stand.phase_rad[pair.lag_axis])))
+    )
     if abs(abs(dphi) - np.pi / 2) > phase_tolerance_rad:
         raise RockingError(
             f"the {pair.value} rocking at {span[0]:.1f}–{span[1]:.1f} s has a phase difference of {np.degrees(dphi):.1f}°, "
             f"not within {np.degrees(phase_tolerance_rad):.0f}° of ±90°"
         )
     still = np.concatenate([g_rec[before], g_rec[after]])
-    centred = np.concatenate([g_rec[before] - g_rec[before].mean(axis=0), g_rec[after] - g_rec[after].mean(axis=0)])
+    centred = np.concatenate(
+        [g_rec[before] - g_rec[before].mean(axis=0), g_rec[after] - g_rec[after].mean(axis=0)]
+    )
     dt = float(np.median(np.diff(t)))
     return Episode(
         pair=pair,
@@ -912,7 +989,9 @@ def closed_form(episodes: Sequence[Episode], stand: StandSettings | None = None)
         episode's fitted amplitudes and frequency with their fit uncertainty.
     """
     if [e.drift_axis for e in episodes] != [0, 1, 2]:
-        raise ValueError("closed_form needs the three episodes ordered by drift axis: pitch+yaw, roll+pitch, roll+yaw")
+        raise ValueError(
+            "closed_form needs the three episodes ordered by drift axis: pitch+yaw, roll+pitch, roll+yaw"
+        )
     amp = np.zeros((3, 2))
     freq = np.zeros(3)
     # Uncertain stand quantities p (relative σ): with settings, the amplitude of
@@ -926,7 +1005,9 @@ def closed_form(episodes: Sequence[Episode], stand: StandSettings | None = None)
             uses[k, [i, j, 3]] = 1.0
         else:
             amp[k], freq[k] = e.stand.amplitude_rad[[i, j]], e.stand.frequency_hz
-            sigma_p[3 * k : 3 * k + 3] = np.array([*e.stand.amplitude_sigma_rad[[i, j]], e.stand.frequency_sigma_hz]) / [*amp[k], freq[k]]
+            sigma_p[3 * k : 3 * k + 3] = np.array(
+                [*e.stand.amplitude_sigma_rad[[i, j]], e.stand.frequency_sigma_hz]
+            ) / [*amp[k], freq[k]]
             uses[k, 3 * k : 3 * k + 3] = 1.0
     if stand is not None:
         sigma_p[:] = [stand.amplitude_rel_sigma] * 3 + [stand.frequency_rel_sigma]
@@ -938,7 +1019,9 @@ def closed_form(episodes: Sequence[Episode], stand: StandSettings | None = None)
     var_noise = np.array([e.drift_variance_rps2() for e in episodes]) * dx_ddrift**2
     x_cov = sens @ np.diag(sigma_p**2) @ sens.T + np.diag(var_noise)
     to_dk = 0.5 * (np.ones((3, 3)) - np.eye(3))  # M5 eq. 5 as a matrix
-    return ClosedForm(x, x_cov, dk_from_x(x), to_dk @ x_cov @ to_dk.T, np.abs(to_dk @ sens) @ sigma_p, amp, freq)
+    return ClosedForm(
+        x, x_cov, dk_from_x(x), to_dk @ x_cov @ to_dk.T, np.abs(to_dk @ sens) @ sigma_p, amp, freq
+    )
 
 
 def _bias_estimate(episode: Episode, scale_err: np.ndarray, earth_rate_rps) -> np.ndarray:
@@ -947,7 +1030,9 @@ def _bias_estimate(episode: Episode, scale_err: np.ndarray, earth_rate_rps) -> n
     return episode.static_gyro_mean_rps - (1.0 + np.asarray(scale_err, float)) * omega_rest
 
 
-def _model_drift(episode: Episode, stand: StandFit, scale_err: np.ndarray, earth_rate_rps) -> np.ndarray:
+def _model_drift(
+    episode: Episode, stand: StandFit, scale_err: np.ndarray, earth_rate_rps
+) -> np.ndarray:
     """(B,) modelled rocking drift of the episode's drift axis for a batch of δK (B, 3), rad/s.
 
     The stand's fitted motion over the steady window, through ``(1 + δK)``, the
@@ -972,7 +1057,9 @@ def _order_by_drift_axis(episodes: Sequence[Episode]) -> tuple[Episode, Episode,
     missing = [RockingPair.from_drift_axis(k).value for k in range(3) if k not in by_axis]
     if missing:
         found = ", ".join(RockingPair.from_drift_axis(k).value for k in sorted(by_axis)) or "none"
-        raise RockingError(f"δK needs the three rocking pairs; the records hold {found} (missing: {', '.join(missing)})")
+        raise RockingError(
+            f"δK needs the three rocking pairs; the records hold {found} (missing: {', '.join(missing)})"
+        )
     return by_axis[0], by_axis[1], by_axis[2]
 
 
@@ -1010,8 +1097,18 @@ def estimate_scale_errors(
     for s in sessions:
         if s.gyro_rps is None:
             raise RockingError("a rocking record needs gyro samples (gx, gy, gz)")
-        for seg in find_episodes(s.t_s, s.gyro_rps, min_static_s=min_static_s, min_periods=min_periods):
-            found.append(measure_episode(s.t_s, s.gyro_rps, seg, earth_rate_rps=earth_rate_rps, phase_tolerance_rad=phase_tolerance_rad))
+        for seg in find_episodes(
+            s.t_s, s.gyro_rps, min_static_s=min_static_s, min_periods=min_periods
+        ):
+            found.append(
+                measure_episode(
+                    s.t_s,
+                    s.gyro_rps,
+                    seg,
+                    earth_rate_rps=earth_rate_rps,
+                    phase_tolerance_rad=phase_tolerance_rad,
+                )
+            )
     episodes = _order_by_drift_axis(found)
 
     def measure_all(dk, *, remove_bias: bool):
@@ -1041,14 +1138,21 @@ def estimate_scale_errors(
         # signal: the uncorrected attitude's amplitudes are off by δK themselves.
         fitted = measure_all(dk, remove_bias=True)
         trial = dk[None] + (batch if jac is None else batch[:1])
-        rows = np.array([_model_drift(e, f.stand, trial, earth_rate_rps) for e, f in zip(episodes, fitted)])
+        rows = np.array(
+            [
+                _model_drift(e, f.stand, trial, earth_rate_rps)
+                for e, f in zip(episodes, fitted, strict=True)
+            ]
+        )
         residual = measured - rows[:, 0]
         if jac is None:
             jac = (rows[:, 1:] - rows[:, :1]) / _FD_STEP
         if np.max(np.abs(delta)) < _GN_TOL:
             break
         if steps == max_steps:
-            raise RockingError(f"the model-based estimate did not converge in {max_steps} Gauss–Newton steps: the records do not fit the stand model")
+            raise RockingError(
+                f"the model-based estimate did not converge in {max_steps} Gauss–Newton steps: the records do not fit the stand model"
+            )
         delta = np.linalg.solve(jac, residual)
         dk = dk + delta
     sigma_r = np.sqrt([e.drift_variance_rps2(static_from_gyro_mean=True) for e in episodes])
@@ -1060,4 +1164,4 @@ def estimate_scale_errors(
 
 def _with_stand(episodes, corrected) -> tuple[Episode, Episode, Episode]:
     """The recorded episodes with the stand motion fitted on the corrected record (not biased by δK)."""
-    return tuple(replace(e, stand=c.stand) for e, c in zip(episodes, corrected))
+    return tuple(replace(e, stand=c.stand) for e, c in zip(episodes, corrected, strict=True))

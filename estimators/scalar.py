@@ -82,10 +82,14 @@ def triad_reference(
     if triad is Triad.GYRO:
         return reference_magnitude(triad, math.nan)
     if (gravity_mps2 is None) == (latitude_deg is None):
-        raise ValueError("give exactly one of gravity_mps2 or latitude_deg for the accelerometer reference")
+        raise ValueError(
+            "give exactly one of gravity_mps2 or latitude_deg for the accelerometer reference"
+        )
     if gravity_mps2 is not None:
         if not (math.isfinite(gravity_mps2) and 9.7 < gravity_mps2 < 9.9):
-            raise ValueError(f"gravity_mps2 must be a surface gravity within (9.7, 9.9), got {gravity_mps2!r}")
+            raise ValueError(
+                f"gravity_mps2 must be a surface gravity within (9.7, 9.9), got {gravity_mps2!r}"
+            )
         return reference_magnitude(triad, gravity_mps2)
     return reference_magnitude(triad, normal_gravity_mps2(latitude_deg, height_m))
 
@@ -132,7 +136,11 @@ class F0Config:
     lambda0: float
     reference: float
     bias_norm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    matrix: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    matrix: tuple[tuple[float, float, float], ...] = (
+        (1.0, 0.0, 0.0),
+        (0.0, 1.0, 0.0),
+        (0.0, 0.0, 1.0),
+    )
     n_avg: int = 1
 
     def __post_init__(self) -> None:
@@ -148,7 +156,11 @@ class F0Config:
             raise ValueError(f"matrix must be a finite 3x3 matrix, got {self.matrix!r}")
         if np.linalg.cond(a) > 1e6:
             raise ValueError(f"matrix is singular or nearly so (condition {np.linalg.cond(a):.3g})")
-        if isinstance(self.n_avg, bool) or not isinstance(self.n_avg, (int, np.integer)) or self.n_avg < 1:
+        if (
+            isinstance(self.n_avg, bool)
+            or not isinstance(self.n_avg, (int, np.integer))
+            or self.n_avg < 1
+        ):
             raise ValueError(f"n_avg must be an integer >= 1, got {self.n_avg!r}")
         object.__setattr__(self, "bias_norm", tuple(float(v) for v in b))
         object.__setattr__(self, "matrix", tuple(tuple(float(v) for v in row) for row in a))
@@ -157,7 +169,11 @@ class F0Config:
     @property
     def is_uncompensated(self) -> bool:
         """No nominal errors to remove (zero bias, identity matrix)."""
-        return self.bias_norm == (0.0, 0.0, 0.0) and self.matrix == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+        return self.bias_norm == (0.0, 0.0, 0.0) and self.matrix == (
+            (1.0, 0.0, 0.0),
+            (0.0, 1.0, 0.0),
+            (0.0, 0.0, 1.0),
+        )
 
     def affine(self) -> tuple[np.ndarray, np.ndarray]:
         """``(M, c)`` with ``u' = M x_si − c``: ``M = A⁻¹ / reference``, ``c = A⁻¹ b``.
@@ -209,7 +225,9 @@ def f0_batch(x_si: np.ndarray, static: np.ndarray, config: F0Config) -> F0Result
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"x_si must have shape (N, 3), got {x.shape}")
     if st.shape != (x.shape[0],) or st.dtype != bool:
-        raise ValueError(f"static must be a bool array of shape ({x.shape[0]},), got {st.dtype} {st.shape}")
+        raise ValueError(
+            f"static must be a bool array of shape ({x.shape[0]},), got {st.dtype} {st.shape}"
+        )
     m, c = config.affine()
     if config.n_avg == 1 and config.is_uncompensated:
         # Nothing to compensate: |x|²/ref² directly, without an (N, 3) temporary.
@@ -262,7 +280,9 @@ def persistent_failure(state: np.ndarray, run_in: int, persist: int) -> tuple[in
     return (int(hits[0]) if hits.size else -1), int(run[-1])
 
 
-def _f0_windows(u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F0Config, n_rejected: int) -> F0Result:
+def _f0_windows(
+    u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F0Config, n_rejected: int
+) -> F0Result:
     """The ``n_avg > 1`` form of :func:`f0_batch` (non-finite rows are skipped, not run breaks)."""
     n = u.shape[0]
     n_avg = config.n_avg
@@ -290,7 +310,9 @@ def _f0_windows(u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F
     residual = np.full(n, np.nan)
     state[rows] = state_v
     residual[rows] = res_v
-    return F0Result(state, residual, int(ends.size), int(ends.size - np.count_nonzero(wok)), n_rejected)
+    return F0Result(
+        state, residual, int(ends.size), int(ends.size - np.count_nonzero(wok)), n_rejected
+    )
 
 
 class F0Monitor:
@@ -303,8 +325,21 @@ class F0Monitor:
     """
 
     __slots__ = (
-        "config", "_m", "_c", "_lam", "_n_avg", "_sx", "_sy", "_sz", "_count", "_last",
-        "last_residual", "n_tests", "n_fail", "n_not_applicable", "n_rejected",
+        "_c",
+        "_count",
+        "_lam",
+        "_last",
+        "_m",
+        "_n_avg",
+        "_sx",
+        "_sy",
+        "_sz",
+        "config",
+        "last_residual",
+        "n_fail",
+        "n_not_applicable",
+        "n_rejected",
+        "n_tests",
     )
 
     def __init__(self, config: F0Config) -> None:
@@ -385,7 +420,7 @@ class F0Monitor:
         }
 
     @classmethod
-    def from_state_dict(cls, config: F0Config, state: dict) -> "F0Monitor":
+    def from_state_dict(cls, config: F0Config, state: dict) -> F0Monitor:
         mon = cls(config)
         try:
             mon._sx, mon._sy, mon._sz = (float(v) for v in state["window_sum"])
@@ -398,7 +433,9 @@ class F0Monitor:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"invalid F0Monitor state: {exc}") from None
         if not 0 <= mon._count < config.n_avg:
-            raise ValueError(f"invalid F0Monitor state: window_count {mon._count} outside [0, {config.n_avg})")
+            raise ValueError(
+                f"invalid F0Monitor state: window_count {mon._count} outside [0, {config.n_avg})"
+            )
         return mon
 
 
@@ -463,9 +500,15 @@ def _worst_first_order(tol: np.ndarray) -> float:
         th, ph = angles[..., 0], angles[..., 1]
         ux, uy, uz = np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)
         return (
-            tb[0] * ux + tb[1] * uy + tb[2] * uz
-            + te[0] * ux**2 + te[1] * uy**2 + te[2] * uz**2
-            + td[0] * ux * uy + td[1] * ux * uz + td[2] * uy * uz
+            tb[0] * ux
+            + tb[1] * uy
+            + tb[2] * uz
+            + te[0] * ux**2
+            + te[1] * uy**2
+            + te[2] * uz**2
+            + td[0] * ux * uy
+            + td[1] * ux * uz
+            + td[2] * uy * uz
         )
 
     g = np.linspace(0.0, 0.5 * np.pi, 61)
@@ -546,7 +589,9 @@ def derive_lambda0(
     """
     sig = np.asarray(noise_std_norm, dtype=float).reshape(-1)
     if sig.shape != (3,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
-        raise ValueError(f"noise_std_norm must be 3 finite positive numbers, got {noise_std_norm!r}")
+        raise ValueError(
+            f"noise_std_norm must be 3 finite positive numbers, got {noise_std_norm!r}"
+        )
     if not (0.0 < false_alarm_prob < 1.0):
         raise ValueError(f"false_alarm_prob must be in (0, 1), got {false_alarm_prob!r}")
     if isinstance(n_avg, bool) or not isinstance(n_avg, (int, np.integer)) or n_avg < 1:
@@ -555,9 +600,15 @@ def derive_lambda0(
     if quantization_norm is not None:
         q = np.asarray(quantization_norm, dtype=float).reshape(-1)
         if q.shape != (3,) or not np.all(np.isfinite(q)) or np.any(q < 0):
-            raise ValueError(f"quantization_norm must be 3 finite numbers >= 0, got {quantization_norm!r}")
+            raise ValueError(
+                f"quantization_norm must be 3 finite numbers >= 0, got {quantization_norm!r}"
+            )
         var = var + q**2 / 12.0
-    tol = np.zeros(9) if tolerance_norm is None else np.asarray(tolerance_norm, dtype=float).reshape(-1)
+    tol = (
+        np.zeros(9)
+        if tolerance_norm is None
+        else np.asarray(tolerance_norm, dtype=float).reshape(-1)
+    )
     if tol.shape != (9,) or not np.all(np.isfinite(tol)) or np.any(tol < 0):
         raise ValueError(f"tolerance_norm must be 9 finite numbers >= 0, got {tolerance_norm!r}")
     if not (math.isfinite(reference_rel_err) and 0.0 <= reference_rel_err < 1.0):
@@ -567,13 +618,19 @@ def derive_lambda0(
     hi = 10.0 * sigma + sigma**2
     while _noise_tail(hi, sigma) > false_alarm_prob:
         hi *= 2.0
-    x_p = optimize.brentq(lambda x: _noise_tail(x, sigma) - false_alarm_prob, 0.0, hi, xtol=1e-15, rtol=1e-12)
+    x_p = optimize.brentq(
+        lambda x: _noise_tail(x, sigma) - false_alarm_prob, 0.0, hi, xtol=1e-15, rtol=1e-12
+    )
 
     first = _worst_first_order(tol) if np.any(tol) else 0.0
     tb, te, td = tol[:3], tol[3:6], tol[6:]
     d_norm = math.sqrt(float(np.sum(te**2) + 0.5 * np.sum(td**2)))
     k_norm = math.sqrt(2.0 * float(np.sum(td**2)))
-    second = 0.5 * (d_norm + float(np.linalg.norm(tb))) ** 2 + 0.5 * float(te.max()) * k_norm + 0.125 * k_norm**2
+    second = (
+        0.5 * (d_norm + float(np.linalg.norm(tb))) ** 2
+        + 0.5 * float(te.max()) * k_norm
+        + 0.125 * k_norm**2
+    )
     ref = reference_rel_err + 0.5 * reference_rel_err**2
     return Lambda0(
         lambda0=float(x_p + first + second + ref),

@@ -44,10 +44,12 @@ class ImuSession:
             raise SessionError("a session needs at least two samples to have a rate")
         return float(1.0 / np.median(np.diff(self.t_s)))
 
-    def select(self, mask_or_slice) -> "ImuSession":
+    def select(self, mask_or_slice) -> ImuSession:
         """A sub-session (boolean mask or slice over samples)."""
         pick = lambda a: None if a is None else a[mask_or_slice]  # noqa: E731
-        return ImuSession(self.t_s[mask_or_slice], pick(self.accel_mps2), pick(self.gyro_rps), pick(self.temp_c))
+        return ImuSession(
+            self.t_s[mask_or_slice], pick(self.accel_mps2), pick(self.gyro_rps), pick(self.temp_c)
+        )
 
 
 @dataclass

@@ -27,6 +27,7 @@ the paper used 9.788 m/s² at Guangzhou; assuming 9.80665 instead scales every
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -94,10 +95,12 @@ def face_directions(accel_mean_mps2: np.ndarray) -> np.ndarray:
             f"position {int(bad[0])} is {np.degrees(tilt[bad[0]]):.0f}° from the nearest axis-up/down attitude "
             f"(six-position faces must be within {np.degrees(MAX_FACE_TILT_RAD):.0f}°)"
         )
-    present = {(int(i), float(s)) for i, s in zip(axis, sign)}
+    present = {(int(i), float(s)) for i, s in zip(axis, sign, strict=True)}
     missing = [_face_name(i, s) for i in range(3) for s in (1.0, -1.0) if (i, s) not in present]
     if missing:
-        raise ValueError(f"the six-position test needs every axis up and down; missing: {', '.join(missing)}")
+        raise ValueError(
+            f"the six-position test needs every axis up and down; missing: {', '.join(missing)}"
+        )
     up = np.zeros_like(a)
     up[np.arange(len(a)), axis] = sign
     return up
@@ -111,7 +114,9 @@ def _weighted_fit(h: np.ndarray, y: np.ndarray, var: np.ndarray | None, names) -
         raise ValueError("every position needs a positive variance of its mean")
     s = 1.0 / np.sqrt(var)
     fit = fit_linear(h * s[:, None], y * s, sigma_y=1.0, names=names)
-    return LinearFit(values=fit.values, cov=fit.cov, residuals=y - h @ fit.values, sigma=1.0, dof=fit.dof)
+    return LinearFit(
+        values=fit.values, cov=fit.cov, residuals=y - h @ fit.values, sigma=1.0, dof=fit.dof
+    )
 
 
 def _diag_var(cov: np.ndarray | None, k: int) -> np.ndarray | None:
@@ -172,7 +177,9 @@ class AccelSixPosition:
         meas = np.asarray(accel_mps2, dtype=float)
         a = (meas - self.bias_mps2) / (1.0 + self.scale_error)
         for _ in range(2):
-            a = (meas - self.bias_mps2 - a @ self.misalignment.T - self.quad_per_mps2 * a * a) / (1.0 + self.scale_error)
+            a = (meas - self.bias_mps2 - a @ self.misalignment.T - self.quad_per_mps2 * a * a) / (
+                1.0 + self.scale_error
+            )
         return a
 
 
@@ -197,7 +204,9 @@ def six_position_accel(
     meas = np.asarray(accel_mean_mps2, dtype=float)
     up = face_directions(meas) if up_b is None else np.asarray(up_b, dtype=float)
     if up.shape != meas.shape:
-        raise ValueError(f"up directions must have the shape of the means {meas.shape}, got {up.shape}")
+        raise ValueError(
+            f"up directions must have the shape of the means {meas.shape}, got {up.shape}"
+        )
     if not gravity_mps2 > 0:
         raise ValueError(f"gravity_mps2 must be positive, got {gravity_mps2!r}")
     k = meas.shape[0]
@@ -205,21 +214,23 @@ def six_position_accel(
         raise ValueError(f"the six-position test needs at least 6 positions, got {k}")
     var = _diag_var(accel_cov_mps2, k)
     if var is None and k < 7:
-        raise ValueError("with exactly six positions the noise cannot be estimated from residuals: give the covariances of the means")
+        raise ValueError(
+            "with exactly six positions the noise cannot be estimated from residuals: give the covariances of the means"
+        )
     a = float(gravity_mps2) * up
     values = np.zeros((3, 5))
     cov = np.zeros((3, 5, 5))
     resid = np.zeros((k, 3))
     for i in range(3):
-        j, l = [m for m in range(3) if m != i]
-        h = np.column_stack([np.ones(k), a[:, i], a[:, j], a[:, l], a[:, i] ** 2])
+        j, k2 = [m for m in range(3) if m != i]
+        h = np.column_stack([np.ones(k), a[:, i], a[:, j], a[:, k2], a[:, i] ** 2])
         names = [f"{n} ({AXES[i]})" for n in ACCEL_TERM_NAMES]
         fit = _weighted_fit(h, meas[:, i] - a[:, i], None if var is None else var[:, i], names)
         values[i], cov[i], resid[:, i] = fit.values, fit.cov, fit.residuals
     mis = np.zeros((3, 3))
     for i in range(3):
-        j, l = [m for m in range(3) if m != i]
-        mis[i, j], mis[i, l] = values[i, 2], values[i, 3]
+        j, k2 = [m for m in range(3) if m != i]
+        mis[i, j], mis[i, k2] = values[i, 2], values[i, 3]
     return AccelSixPosition(
         gravity_mps2=float(gravity_mps2),
         bias_mps2=values[:, 0],
@@ -289,13 +300,19 @@ def gyro_g_sensitivity(
     w = np.asarray(gyro_mean_rps, dtype=float)
     up = np.asarray(up_b, dtype=float)
     if w.ndim != 2 or w.shape[1] != 3 or up.shape != w.shape:
-        raise ValueError(f"gyro means and up directions must both have shape (K, 3), got {w.shape} and {up.shape}")
+        raise ValueError(
+            f"gyro means and up directions must both have shape (K, 3), got {w.shape} and {up.shape}"
+        )
     if latitude_deg is not None and earth_rate_b_rps is not None:
-        raise ValueError("give the latitude (vertical Earth rate) or the full Earth rate per position, not both")
+        raise ValueError(
+            "give the latitude (vertical Earth rate) or the full Earth rate per position, not both"
+        )
     k = w.shape[0]
     var = _diag_var(gyro_cov_rps, k)
     if var is None and k < 5:
-        raise ValueError(f"estimating Bf and Bg with the noise from residuals needs at least 5 positions, got {k}")
+        raise ValueError(
+            f"estimating Bf and Bg with the noise from residuals needs at least 5 positions, got {k}"
+        )
     if latitude_deg is not None:
         w = w - EARTH_RATE_RPS * np.sin(np.radians(latitude_deg)) * up
     if earth_rate_b_rps is not None:
@@ -328,7 +345,7 @@ def paper_rate_profile_rps(*, max_dps: float = 200.0, step_dps: float = 20.0) ->
     """
     if not (step_dps > 0 and max_dps >= step_dps):
         raise ValueError(f"need 0 < step_dps <= max_dps, got step {step_dps!r}, max {max_dps!r}")
-    n = int(round(max_dps / step_dps))
+    n = round(max_dps / step_dps)
     up = np.arange(0, n + 1) * step_dps
     down = np.arange(n - 1, -n - 1, -1) * step_dps
     return np.radians(np.concatenate([up, down]))
@@ -365,7 +382,11 @@ class RateTableFit:
 
 
 def rate_table_fit(
-    table_rate_rps: np.ndarray, gyro_mean_rps: np.ndarray, *, axis: int, gyro_var_rps: np.ndarray | None = None
+    table_rate_rps: np.ndarray,
+    gyro_mean_rps: np.ndarray,
+    *,
+    axis: int,
+    gyro_var_rps: np.ndarray | None = None,
 ) -> RateTableFit:
     """Scale factor of gyro ``axis`` by a linear fit over the rate steps (M4).
 
@@ -382,13 +403,24 @@ def rate_table_fit(
     if axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
     if r.ndim != 1 or w.shape != (r.size, 3):
-        raise ValueError(f"need table rates (K,) and gyro means (K, 3), got {r.shape} and {w.shape}")
+        raise ValueError(
+            f"need table rates (K,) and gyro means (K, 3), got {r.shape} and {w.shape}"
+        )
     distinct = np.unique(np.round(r, 9)).size
     if distinct < 3:
-        raise ValueError(f"the rate-table fit needs at least 3 different table rates, got {distinct}")
+        raise ValueError(
+            f"the rate-table fit needs at least 3 different table rates, got {distinct}"
+        )
     h = np.column_stack([np.ones(r.size), r])
-    fit = _weighted_fit(h, w[:, axis] - r, None if gyro_var_rps is None else np.asarray(gyro_var_rps, float), ("bias", "scale factor"))
-    cross = np.array([fit_linear(h, w[:, i]).values[1] if i != axis else 1.0 + fit.values[1] for i in range(3)])
+    fit = _weighted_fit(
+        h,
+        w[:, axis] - r,
+        None if gyro_var_rps is None else np.asarray(gyro_var_rps, float),
+        ("bias", "scale factor"),
+    )
+    cross = np.array(
+        [fit_linear(h, w[:, i]).values[1] if i != axis else 1.0 + fit.values[1] for i in range(3)]
+    )
     return RateTableFit(
         axis=int(axis),
         scale_error=float(fit.values[1]),
@@ -411,7 +443,12 @@ class RateSteps:
 
 
 def find_rate_steps(
-    t_s: np.ndarray, gyro_rps: np.ndarray, *, axis: int, profile_rps: np.ndarray, min_hold_s: float = 5.0
+    t_s: np.ndarray,
+    gyro_rps: np.ndarray,
+    *,
+    axis: int,
+    profile_rps: np.ndarray,
+    min_hold_s: float = 5.0,
 ) -> RateSteps:
     """The constant-rate steps of a rate-table record, matched in time order to ``profile_rps``.
 
@@ -441,12 +478,12 @@ def find_rate_steps(
     return RateSteps(slices=tuple(slices), gyro_mean_rps=mean, gyro_var_rps=var)
 
 
-
-
 def _robust_noise(x: np.ndarray) -> float:
     """Largest per-axis per-sample noise of (N, 3) samples from the median absolute first difference (robust to turns)."""
     d = np.diff(x, axis=0)
-    return float(np.max(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2.0)))
+    return float(
+        np.max(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2.0))
+    )
 
 
 def session_positions(session: ImuSession, *, min_static_s: float = 5.0) -> tuple[Position, ...]:
@@ -458,9 +495,19 @@ def session_positions(session: ImuSession, *, min_static_s: float = 5.0) -> tupl
     shorter than ``min_static_s`` are not positions.
     """
     defaults = StaticDetectorConfig()
-    accel_std = defaults.accel_std_mps2 if session.accel_mps2 is None else max(defaults.accel_std_mps2, 3.0 * np.sqrt(3.0) * _robust_noise(session.accel_mps2))
-    gyro_std = defaults.gyro_std_rps if session.gyro_rps is None else max(defaults.gyro_std_rps, 3.0 * np.sqrt(3.0) * _robust_noise(session.gyro_rps))
-    config = StaticDetectorConfig(accel_std_mps2=accel_std, gyro_std_rps=gyro_std, min_static_s=min_static_s)
+    accel_std = (
+        defaults.accel_std_mps2
+        if session.accel_mps2 is None
+        else max(defaults.accel_std_mps2, 3.0 * np.sqrt(3.0) * _robust_noise(session.accel_mps2))
+    )
+    gyro_std = (
+        defaults.gyro_std_rps
+        if session.gyro_rps is None
+        else max(defaults.gyro_std_rps, 3.0 * np.sqrt(3.0) * _robust_noise(session.gyro_rps))
+    )
+    config = StaticDetectorConfig(
+        accel_std_mps2=accel_std, gyro_std_rps=gyro_std, min_static_s=min_static_s
+    )
     return build_positions(session, detect_static(session, config=config)).positions
 
 
@@ -502,7 +549,9 @@ GUANGZHOU_LATITUDE_DEG = 23.13
 GUANGZHOU_HEIGHT_M = 20.0
 """Where the paper's tests ran; normal gravity there is 9.788 m/s² (the paper's value)."""
 
-SIX_FACES_UP_B = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [0, 0, 1.0], [0, 0, -1.0]])
+SIX_FACES_UP_B = np.array(
+    [[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [0, 0, 1.0], [0, 0, -1.0]]
+)
 """Body-frame up direction of the six positions in the paper's order (x up, x down, y up, …)."""
 
 _DEG = np.pi / 180.0
@@ -528,7 +577,11 @@ def adis_like_model(*, quantization: bool = True) -> ErrorModel:
     gyro = [
         ScaleFactor((4.0e-3, -6.0e-3, 5.0e-3)),
         Bias((0.2 * _DEG, -0.3 * _DEG, 0.1 * _DEG)),
-        GSensitivity(np.array([[0.03, 0.01, -0.02], [-0.01, 0.05, 0.02], [0.02, -0.03, 0.04]]) * _DEG / STANDARD_GRAVITY_MPS2),
+        GSensitivity(
+            np.array([[0.03, 0.01, -0.02], [-0.01, 0.05, 0.02], [0.02, -0.03, 0.04]])
+            * _DEG
+            / STANDARD_GRAVITY_MPS2
+        ),
         WhiteNoise((0.05 * _DEG,) * 3),
     ]
     if quantization:
@@ -550,7 +603,14 @@ def six_position_spec(
     """The paper's six-position test as a simulator spec: each axis up then down, 1 min at 100 Hz."""
     attitudes = np.array([attitude_with_up(u) for u in SIX_FACES_UP_B])
     profile = multi_position_profile(attitudes, static_s=static_s, transition_s=transition_s)
-    return SessionSpec(profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, height_m=height_m, temperature=temperature)
+    return SessionSpec(
+        profile,
+        model,
+        rate_hz=rate_hz,
+        latitude_deg=latitude_deg,
+        height_m=height_m,
+        temperature=temperature,
+    )
 
 
 def _effect(chain: TriadErrorModel, name: str, default):
@@ -565,7 +625,9 @@ def quantizer_offset(chain: TriadErrorModel) -> np.ndarray:
         return np.zeros(3)
     if q.rounding is Rounding.FLOOR:
         return -0.5 * np.array(q.step_si)
-    raise ValueError("a truncating converter's half-step offset depends on the sign of each reading: no constant bias to state")
+    raise ValueError(
+        "a truncating converter's half-step offset depends on the sign of each reading: no constant bias to state"
+    )
 
 
 def accel_truth(model: ErrorModel) -> np.ndarray:
@@ -628,11 +690,15 @@ def simulate_rate_table(
     if axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
     if prof.ndim != 1 or prof.size < 1:
-        raise ValueError(f"profile_rps must be a non-empty 1-D array of rates, got shape {prof.shape}")
+        raise ValueError(
+            f"profile_rps must be a non-empty 1-D array of rates, got shape {prof.shape}"
+        )
     up_b = np.eye(3)[axis]
     segments = [Spin(hold_s, prof[0], up_b)]
-    for a, b in zip(prof[:-1], prof[1:]):
+    for a, b in itertools.pairwise(prof):
         segments += [Spin(ramp_s, a, up_b, end_rate_rps=b), Spin(hold_s, b, up_b)]
     profile = MotionProfile(attitude_with_up(up_b), tuple(segments))
-    spec = SessionSpec(profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, gravity_mps2=gravity_mps2)
+    spec = SessionSpec(
+        profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, gravity_mps2=gravity_mps2
+    )
     return simulate(spec, seed).session

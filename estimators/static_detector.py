@@ -59,6 +59,7 @@ projections. :mod:`estimators.positions` applies the rule to its positions.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import asdict, dataclass, replace
 
@@ -101,9 +102,15 @@ class StaticDetectorConfig:
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
         if not (math.isfinite(self.min_static_s) and self.min_static_s >= 0):
             raise ValueError(f"min_static_s must be finite and >= 0, got {self.min_static_s!r}")
-        if self.gyro_rate_rps is not None and not (math.isfinite(self.gyro_rate_rps) and self.gyro_rate_rps > 0):
-            raise ValueError(f"gyro_rate_rps must be finite and > 0 or None, got {self.gyro_rate_rps!r}")
-        if self.max_gap_s is not None and not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+        if self.gyro_rate_rps is not None and not (
+            math.isfinite(self.gyro_rate_rps) and self.gyro_rate_rps > 0
+        ):
+            raise ValueError(
+                f"gyro_rate_rps must be finite and > 0 or None, got {self.gyro_rate_rps!r}"
+            )
+        if self.max_gap_s is not None and not (
+            math.isfinite(self.max_gap_s) and self.max_gap_s > 0
+        ):
             raise ValueError(f"max_gap_s must be finite and > 0 or None, got {self.max_gap_s!r}")
 
     @classmethod
@@ -113,8 +120,8 @@ class StaticDetectorConfig:
         accel_noise_mps2: float | None = None,
         gyro_noise_rps: float | None = None,
         factor: float = 3.0,
-        base: "StaticDetectorConfig | None" = None,
-    ) -> "StaticDetectorConfig":
+        base: StaticDetectorConfig | None = None,
+    ) -> StaticDetectorConfig:
         """``base`` (default: the defaults) with thresholds at ``factor`` times the white-noise window spread ``σ·√3``.
 
         ``accel_noise_mps2``, ``gyro_noise_rps`` are per-axis, per-sample standard
@@ -133,7 +140,7 @@ class StaticDetectorConfig:
         """W, samples per window at ``rate_hz`` (at least 2)."""
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"rate_hz must be finite and > 0, got {rate_hz!r}")
-        return max(2, int(round(self.window_s * rate_hz)))
+        return max(2, round(self.window_s * rate_hz))
 
     def gap_limit_s(self, rate_hz: float) -> float:
         return self.max_gap_s if self.max_gap_s is not None else 5.0 / rate_hz
@@ -171,7 +178,7 @@ class SwitchedRing:
     way, so both paths see the same bits.
     """
 
-    __slots__ = ("_lists", "_array", "_dtype")
+    __slots__ = ("_array", "_dtype", "_lists")
 
     def __init__(self, values: list, dtype: type = float) -> None:
         self._lists: list | None = values
@@ -192,7 +199,11 @@ class SwitchedRing:
 
     def snapshot(self) -> list:
         """A copy as (nested) lists, without switching paths (checkpoints)."""
-        return self._array.tolist() if self._lists is None else np.array(self._lists, dtype=self._dtype).tolist()
+        return (
+            self._array.tolist()
+            if self._lists is None
+            else np.array(self._lists, dtype=self._dtype).tolist()
+        )
 
 
 @dataclass(frozen=True)
@@ -215,11 +226,11 @@ class FinalDecisions:
     brk: np.ndarray
 
     @classmethod
-    def empty(cls, start: int) -> "FinalDecisions":
+    def empty(cls, start: int) -> FinalDecisions:
         return cls(int(start), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool))
 
     @classmethod
-    def from_steps(cls, start: int, steps: list[tuple[int, int, int, bool]]) -> "FinalDecisions":
+    def from_steps(cls, start: int, steps: list[tuple[int, int, int, bool]]) -> FinalDecisions:
         """Join the per-call outputs ``(fin_lo, fin_split, fin_hi, fin_break)`` of consecutive calls (contiguous)."""
         static, brk = [], []
         end = int(start)
@@ -236,7 +247,7 @@ class FinalDecisions:
         """One past the last decided sample."""
         return self.start + self.static.size
 
-    def then(self, other: "FinalDecisions") -> "FinalDecisions":
+    def then(self, other: FinalDecisions) -> FinalDecisions:
         """These decisions followed by ``other`` (which must start where these stop)."""
         if other.start != self.stop:
             raise ValueError(f"decisions are not contiguous: {other.start} follows {self.stop}")
@@ -244,7 +255,11 @@ class FinalDecisions:
             return self
         if not self.static.size:
             return other
-        return FinalDecisions(self.start, np.concatenate([self.static, other.static]), np.concatenate([self.brk, other.brk]))
+        return FinalDecisions(
+            self.start,
+            np.concatenate([self.static, other.static]),
+            np.concatenate([self.brk, other.brk]),
+        )
 
 
 @dataclass(frozen=True)
@@ -303,7 +318,9 @@ _CHUNK = 16384
 """Windows per block of :func:`_window_dev2`: the block's arrays stay in cache."""
 
 
-def _window_dev2(x: np.ndarray, w: int, *, mean_norm2: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+def _window_dev2(
+    x: np.ndarray, w: int, *, mean_norm2: bool = False
+) -> tuple[np.ndarray, np.ndarray | None]:
     """(M − W + 1,) summed squared deviations from the mean of the windows of ``w`` rows of ``x`` (M, 3).
 
     With ``mean_norm2`` also the squared norm of each window's mean (else None).
@@ -391,7 +408,7 @@ def detect_static(
                 ok &= mean2 <= rate * rate
         quiet[w - 1 :] = ok
         # A window must lie in one segment: the first W − 1 samples of each segment end no full window.
-        for s0, ln in zip(starts[1:].tolist(), lengths[1:].tolist()):
+        for s0, ln in zip(starts[1:].tolist(), lengths[1:].tolist(), strict=True):
             quiet[s0 : s0 + min(ln, w - 1)] = False
     # Union of quiet windows: sample j is static iff a quiet window ends in [j, j + W − 1].
     cq = np.empty(m + w, dtype=np.int64)
@@ -409,12 +426,16 @@ def detect_static(
     firsts = np.flatnonzero(static_k & (~prev | seg_start))
     lasts = np.flatnonzero(static_k & (~nxt | nxt_break))
     intervals, short_runs = [], []
-    for f, last in zip(firsts.tolist(), lasts.tolist()):
-        iv = StaticInterval(int(acc[f]), int(acc[last]) + 1, float(tk[f]), float(tk[last]), last - f + 1)
+    for f, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
+        iv = StaticInterval(
+            int(acc[f]), int(acc[last]) + 1, float(tk[f]), float(tk[last]), last - f + 1
+        )
         (intervals if iv.duration_s >= config.min_static_s else short_runs).append(iv)
     static = np.zeros(n, dtype=bool)
     static[acc] = static_k
-    return StaticDetection(static, acc, seg_start, tuple(intervals), tuple(short_runs), rej, config, float(rate_hz))
+    return StaticDetection(
+        static, acc, seg_start, tuple(intervals), tuple(short_runs), rej, config, float(rate_hz)
+    )
 
 
 class StreamingStaticDetector:
@@ -489,7 +510,9 @@ class StreamingStaticDetector:
         self.closed_run: StaticInterval | None = None
         self.closed_run_short = False
 
-    def update(self, t_s: float, ax: float, ay: float, az: float, gx: float, gy: float, gz: float) -> StaticInterval | None:
+    def update(
+        self, t_s: float, ax: float, ay: float, az: float, gx: float, gy: float, gz: float
+    ) -> StaticInterval | None:
         self.fin_lo = self.fin_split = self.fin_hi = self._next_final
         self.fin_break = self.closed_run_short = False
         self.closed_run = None
@@ -506,7 +529,9 @@ class StreamingStaticDetector:
         if not self._seg_open or t_s - last_t > self._gap_s:
             if self._seg_open:
                 self._end_segment()
-            self._start_segment((ax, ay, az) if ha else (0.0, 0.0, 0.0), (gx, gy, gz) if hg else (0.0, 0.0, 0.0))
+            self._start_segment(
+                (ax, ay, az) if ha else (0.0, 0.0, 0.0), (gx, gy, gz) if hg else (0.0, 0.0, 0.0)
+            )
         self._last_t = t_s
         c = self.n_accepted
         self.n_accepted = c + 1
@@ -561,7 +586,11 @@ class StreamingStaticDetector:
                 quiet = quiet and r0 * r0 + r1 * r1 + r2 * r2 <= self._lim_rate
         if not full:
             # A run closed by a time gap comes out here.
-            return self.closed_run if (self.closed_run is not None and not self.closed_run_short) else None
+            return (
+                self.closed_run
+                if (self.closed_run is not None and not self.closed_run_short)
+                else None
+            )
         if pos == w - 1:
             self._resum()
         self.static_now = quiet
@@ -596,13 +625,17 @@ class StreamingStaticDetector:
         """The decisions finalized by the last call (``fin_lo`` … ``fin_hi``; empty when none)."""
         if self.fin_hi == self.fin_lo:
             return FinalDecisions.empty(self._next_final)
-        return FinalDecisions.from_steps(self.fin_lo, [(self.fin_lo, self.fin_split, self.fin_hi, self.fin_break)])
+        return FinalDecisions.from_steps(
+            self.fin_lo, [(self.fin_lo, self.fin_split, self.fin_hi, self.fin_break)]
+        )
 
     def steady(self) -> bool:
         """A segment is open and its window full: the next clean sample finalizes exactly one decision."""
         return self._seg_open and self.n_accepted - self._seg_first >= self.window_samples
 
-    def clean_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None) -> bool:
+    def clean_batch(
+        self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None
+    ) -> bool:
         """Whether every sample of the batch would be accepted into the open segment (no rejection, no gap).
 
         The finiteness check is :meth:`update`'s (``t + Σaccel + Σgyro`` finite), elementwise in the same order.
@@ -623,7 +656,9 @@ class StreamingStaticDetector:
         dt = np.diff(t_s, prepend=self._last_t)
         return bool(np.all(dt > 0.0) and not np.any(dt > self._gap_s))
 
-    def update_batch(self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None):
+    def update_batch(
+        self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None
+    ):
         """:meth:`update` over a clean batch in the steady state (:meth:`steady`, :meth:`clean_batch`), vectorized.
 
         Returns ``(static (N,) bool, closes)``: sample ``i`` finalizes the decision of
@@ -644,7 +679,13 @@ class StreamingStaticDetector:
         old_pos = np.arange(c0 - w, c0) % w
         chans = ([0, 1, 2] if self.has_accel else []) + ([3, 4, 5] if self.has_gyro else [])
         nc = len(chans)
-        x = np.column_stack([v for v, present in ((accel_mps2, self.has_accel), (gyro_rps, self.has_gyro)) if present])
+        x = np.column_stack(
+            [
+                v
+                for v, present in ((accel_mps2, self.has_accel), (gyro_rps, self.has_gyro))
+                if present
+            ]
+        )
         y = x - np.asarray(self._x0)[chans]
         # y of the accepted samples c0 − W … c0 + n − 1 (the ring, then the batch), and their squares.
         buf = self._buf.array()
@@ -702,7 +743,7 @@ class StreamingStaticDetector:
         closes = {}
         edges = np.flatnonzero(static[1:] != static[:-1]) + 1
         bounds = [0, *edges.tolist(), n]
-        for a, b in zip(bounds[:-1], bounds[1:]):
+        for a, b in itertools.pairwise(bounds):
             if static[a]:
                 if not self._run_open:
                     # Sample j of batch sample a sits at a + 1 in the extended arrays.
@@ -729,7 +770,9 @@ class StreamingStaticDetector:
         self.fin_split = jl + 1 if static[-1] else jl
         self.fin_break = False
         last_close = closes.get(n - 1)
-        self.closed_run, self.closed_run_short = last_close if last_close is not None else (None, False)
+        self.closed_run, self.closed_run_short = (
+            last_close if last_close is not None else (None, False)
+        )
         return static, closes
 
     def _resum(self) -> None:
@@ -776,7 +819,13 @@ class StreamingStaticDetector:
         if not self._run_open:
             return
         self._run_open = False
-        iv = StaticInterval(self._run_first_idx, self._run_last_idx + 1, self._run_first_t, self._run_last_t, self._run_n)
+        iv = StaticInterval(
+            self._run_first_idx,
+            self._run_last_idx + 1,
+            self._run_first_t,
+            self._run_last_t,
+            self._run_n,
+        )
         self.closed_run = iv
         self.closed_run_short = iv.duration_s < self.config.min_static_s
 
@@ -790,7 +839,9 @@ class StreamingStaticDetector:
             self._end_segment()
             self._seg_open = False
         self.static_now = False
-        return self.closed_run if (self.closed_run is not None and not self.closed_run_short) else None
+        return (
+            self.closed_run if (self.closed_run is not None and not self.closed_run_short) else None
+        )
 
     def state_dict(self) -> dict:
         """Plain JSON-able state (config, rate and everything of the window) for checkpoints."""
@@ -812,13 +863,20 @@ class StreamingStaticDetector:
             "seg_first": self._seg_first,
             "last_quiet": self._last_quiet,
             "next_final": self._next_final,
-            "run": [self._run_open, self._run_first_idx, self._run_first_t, self._run_last_idx, self._run_last_t, self._run_n],
+            "run": [
+                self._run_open,
+                self._run_first_idx,
+                self._run_first_t,
+                self._run_last_idx,
+                self._run_last_t,
+                self._run_n,
+            ],
             "static_now": self.static_now,
             "rejections": dict(self.rejections.counts),
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> "StreamingStaticDetector":
+    def from_state_dict(cls, state: dict) -> StreamingStaticDetector:
         try:
             det = cls(
                 StaticDetectorConfig(**state["config"]),
@@ -872,7 +930,7 @@ class RotationIntegrator:
     gyro output of the last static position (zero signal plus Earth rate).
     """
 
-    __slots__ = ("bias_rps", "q", "mark")
+    __slots__ = ("bias_rps", "mark", "q")
 
     def __init__(self, bias_rps=(0.0, 0.0, 0.0)) -> None:
         self.reset(bias_rps)
@@ -890,7 +948,7 @@ class RotationIntegrator:
         bx, by, bz = self.bias_rps
         w, x, y, z = self.q
         sin, cos, sqrt = math.sin, math.cos, math.sqrt
-        for (wx, wy, wz), dt_s in zip(rates_rps, dts_s):
+        for (wx, wy, wz), dt_s in zip(rates_rps, dts_s, strict=True):
             rx, ry, rz = (wx - bx) * dt_s, (wy - by) * dt_s, (wz - bz) * dt_s
             th = sqrt(rx * rx + ry * ry + rz * rz)
             half = 0.5 * th
@@ -926,7 +984,7 @@ class RotationIntegrator:
         return {"bias_rps": list(self.bias_rps), "q": list(self.q), "mark": list(self.mark)}
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> "RotationIntegrator":
+    def from_state_dict(cls, state: dict) -> RotationIntegrator:
         try:
             r = cls(state["bias_rps"])
             r.q = tuple(float(v) for v in state["q"])
@@ -934,11 +992,15 @@ class RotationIntegrator:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"invalid RotationIntegrator state: {exc}") from None
         if len(r.q) != 4 or len(r.mark) != 4 or len(r.bias_rps) != 3:
-            raise ValueError("invalid RotationIntegrator state: q and mark need 4 numbers, bias_rps 3")
+            raise ValueError(
+                "invalid RotationIntegrator state: q and mark need 4 numbers, bias_rps 3"
+            )
         return r
 
 
-def is_new_orientation(config: StaticDetectorConfig, *, direction_deg: float | None, rotation_deg: float | None) -> bool:
+def is_new_orientation(
+    config: StaticDetectorConfig, *, direction_deg: float | None, rotation_deg: float | None
+) -> bool:
     """Whether a static interval is a new position (module docstring, "Orientation changes").
 
     ``direction_deg`` : angle between the mean specific forces (None without accelerometers);

@@ -87,14 +87,18 @@ def quat_from_rotvec(rotvec_rad: np.ndarray) -> np.ndarray:
     phi = np.asarray(rotvec_rad, float)
     angle = np.linalg.norm(phi, axis=-1, keepdims=True)
     # sin(a/2)/a = ½·sinc(a/2π) stays finite at a = 0 (numpy's sinc is sin(πx)/(πx)).
-    return np.concatenate([0.5 * np.sinc(angle / (2.0 * np.pi)) * phi, np.cos(0.5 * angle)], axis=-1)
+    return np.concatenate(
+        [0.5 * np.sinc(angle / (2.0 * np.pi)) * phi, np.cos(0.5 * angle)], axis=-1
+    )
 
 
 def _check_rates(t_s: np.ndarray, gyro_rps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t = np.asarray(t_s, dtype=float)
     w = np.asarray(gyro_rps, dtype=float)
     if t.ndim != 1 or t.size < MIN_SAMPLES:
-        raise ValueError(f"t_s must be 1-D with at least {MIN_SAMPLES} samples, got shape {t.shape}")
+        raise ValueError(
+            f"t_s must be 1-D with at least {MIN_SAMPLES} samples, got shape {t.shape}"
+        )
     if w.ndim < 2 or w.shape[-2:] != (t.size, 3):
         raise ValueError(f"gyro_rps must have shape (..., {t.size}, 3), got {w.shape}")
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(w))):
@@ -105,7 +109,9 @@ def _check_rates(t_s: np.ndarray, gyro_rps: np.ndarray) -> tuple[np.ndarray, np.
 
 
 # Weights of the uniform-step case (h = 1): interior, first and last interval.
-_UNIFORM_WEIGHTS = np.array([[-1.0, 13.0, 13.0, -1.0], [9.0, 19.0, -5.0, 1.0], [1.0, -5.0, 19.0, 9.0]]) / 24.0
+_UNIFORM_WEIGHTS = (
+    np.array([[-1.0, 13.0, 13.0, -1.0], [9.0, 19.0, -5.0, 1.0], [1.0, -5.0, 19.0, 9.0]]) / 24.0
+)
 
 
 def _interval_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -138,12 +144,16 @@ def _interval_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         basis = np.ones_like(gauss)
         for other in range(4):
             if other != m:
-                basis *= (gauss - nodes[:, other, None]) / (nodes[:, m, None] - nodes[:, other, None])
+                basis *= (gauss - nodes[:, other, None]) / (
+                    nodes[:, m, None] - nodes[:, other, None]
+                )
         weights[:, m] = 0.5 * h * basis.sum(axis=1)
     return start, weights
 
 
-def rotation_increments(t_s: np.ndarray, gyro_rps: np.ndarray, *, coning: bool = True) -> np.ndarray:
+def rotation_increments(
+    t_s: np.ndarray, gyro_rps: np.ndarray, *, coning: bool = True
+) -> np.ndarray:
     """Rotation vectors of the sample intervals (module docstring: cubic increments + coning term).
 
     Parameters
@@ -190,9 +200,9 @@ def _cumulative_product(quats: np.ndarray) -> np.ndarray:
     """
     n = quats.shape[-2]
     n_blocks = -(-n // _SCAN_BLOCK)
-    padded = np.broadcast_to(IDENTITY_QUAT, quats.shape[:-2] + (n_blocks * _SCAN_BLOCK, 4)).copy()
+    padded = np.broadcast_to(IDENTITY_QUAT, (*quats.shape[:-2], n_blocks * _SCAN_BLOCK, 4)).copy()
     padded[..., :n, :] = quats
-    inner = _inclusive_scan(padded.reshape(quats.shape[:-2] + (n_blocks, _SCAN_BLOCK, 4)))
+    inner = _inclusive_scan(padded.reshape((*quats.shape[:-2], n_blocks, _SCAN_BLOCK, 4)))
     totals = _inclusive_scan(inner[..., :, -1, :])
     inner[..., 1:, :, :] = quat_multiply(totals[..., :-1, None, :], inner[..., 1:, :, :])
     return inner.reshape(padded.shape)[..., :n, :]
@@ -220,9 +230,15 @@ def integrate_attitude(
     """
     phi = rotation_increments(t_s, gyro_rps, coning=coning)
     q0 = IDENTITY_QUAT if quat0 is None else np.asarray(quat0, dtype=float)
-    if q0.shape[-1] != 4 or not np.all(np.isfinite(q0)) or np.any(np.linalg.norm(q0, axis=-1) == 0.0):
-        raise ValueError(f"quat0 must be finite non-zero quaternion(s) of shape (..., 4), got shape {q0.shape}")
-    q0 = np.broadcast_to(q0 / np.linalg.norm(q0, axis=-1, keepdims=True), phi.shape[:-2] + (4,))
+    if (
+        q0.shape[-1] != 4
+        or not np.all(np.isfinite(q0))
+        or np.any(np.linalg.norm(q0, axis=-1) == 0.0)
+    ):
+        raise ValueError(
+            f"quat0 must be finite non-zero quaternion(s) of shape (..., 4), got shape {q0.shape}"
+        )
+    q0 = np.broadcast_to(q0 / np.linalg.norm(q0, axis=-1, keepdims=True), (*phi.shape[:-2], 4))
     steps = np.concatenate([q0[..., None, :], quat_from_rotvec(phi)], axis=-2)
     q = _cumulative_product(steps)
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
@@ -233,7 +249,7 @@ def quat_from_euler(angles_rad: np.ndarray) -> np.ndarray:
     a = np.asarray(angles_rad, dtype=float)
     flat = a.reshape(-1, 3)
     q = Rotation.from_euler(EULER_SEQUENCE, flat[:, [1, 2, 0]]).as_quat()
-    return q.reshape(a.shape[:-1] + (4,))
+    return q.reshape((*a.shape[:-1], 4))
 
 
 def euler_from_quat(quat: np.ndarray, *, unwrap: bool = True) -> np.ndarray:
@@ -244,7 +260,7 @@ def euler_from_quat(quat: np.ndarray, *, unwrap: bool = True) -> np.ndarray:
     """
     q = np.asarray(quat, dtype=float)
     ypr = Rotation.from_quat(q.reshape(-1, 4)).as_euler(EULER_SEQUENCE)
-    angles = ypr[:, [2, 0, 1]].reshape(q.shape[:-1] + (3,))
+    angles = ypr[:, [2, 0, 1]].reshape((*q.shape[:-1], 3))
     return np.unwrap(angles, axis=-2) if unwrap and angles.ndim >= 2 else angles
 
 
@@ -283,4 +299,4 @@ def rotate_to_body(quat: np.ndarray, vec_ref: np.ndarray) -> np.ndarray:
     """(..., 3) a reference-frame vector ``(3,)`` seen in the body frame: ``C_rbᵀ v``."""
     q = np.asarray(quat, dtype=float)
     flat = Rotation.from_quat(q.reshape(-1, 4)).apply(np.asarray(vec_ref, float), inverse=True)
-    return flat.reshape(q.shape[:-1] + (3,))
+    return flat.reshape((*q.shape[:-1], 3))

@@ -58,11 +58,20 @@ class ValidityLimits:
     cross_imu_persist_windows: int = 4
 
     def __post_init__(self) -> None:
-        for name in ("timeout_s", "cross_imu_accel_mps2", "cross_imu_gyro_rps", "cross_imu_window_s"):
+        for name in (
+            "timeout_s",
+            "cross_imu_accel_mps2",
+            "cross_imu_gyro_rps",
+            "cross_imu_window_s",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
-        for name, least in (("stale_run_samples", 2), ("error_window_samples", 2), ("cross_imu_persist_windows", 1)):
+        for name, least in (
+            ("stale_run_samples", 2),
+            ("error_window_samples", 2),
+            ("cross_imu_persist_windows", 1),
+        ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
@@ -141,7 +150,9 @@ def run_lengths(values: np.ndarray, prev_value: np.ndarray, prev_run: np.ndarray
     reset = values != before
     idx = np.arange(n)[:, None]
     last_reset = np.maximum.accumulate(np.where(reset, idx, -1), axis=0)
-    return np.where(last_reset >= 0, idx - last_reset + 1, prev_run[None, :] + idx + 1).astype(np.int64)
+    return np.where(last_reset >= 0, idx - last_reset + 1, prev_run[None, :] + idx + 1).astype(
+        np.int64
+    )
 
 
 class StreamValidity:
@@ -178,7 +189,12 @@ class StreamValidity:
         t_s : (N,) sample times, s (optional): then each change carries the time of its sample.
         """
         bad = np.asarray(bad, dtype=bool).reshape(-1)
-        values = np.hstack([np.asarray(accel_mps2, float).reshape(-1, 3), np.asarray(gyro_rps, float).reshape(-1, 3)])
+        values = np.hstack(
+            [
+                np.asarray(accel_mps2, float).reshape(-1, 3),
+                np.asarray(gyro_rps, float).reshape(-1, 3),
+            ]
+        )
         if values.shape[0] != bad.size:
             raise ValueError(f"bad has {bad.size} flags for {values.shape[0]} samples")
         self._last_arrival_s = float(arrival_s)
@@ -193,12 +209,18 @@ class StreamValidity:
             t_good = None if t_s is None else np.asarray(t_s, float).reshape(-1)[~bad]
             prev_run = np.vstack([self._run[None, :], runs[:-1]])
             prev_val = np.vstack([self._last_value[None, :], good[:-1]])
-            for k, ax in zip(*np.nonzero(over != before)):
+            for k, ax in zip(*np.nonzero(over != before), strict=True):
                 rising = bool(over[k, ax])
                 run = int(runs[k, ax]) if rising else int(prev_run[k, ax])
                 value = float(good[k, ax]) if rising else float(prev_val[k, ax])
                 t = None if t_good is None else float(t_good[k])
-                changes.append((int(k), int(ax), StaleChange(names[ax][0], names[ax][1], rising, run, value, t)))
+                changes.append(
+                    (
+                        int(k),
+                        int(ax),
+                        StaleChange(names[ax][0], names[ax][1], rising, run, value, t),
+                    )
+                )
             self._last_value = good[-1].copy()
             self._run = runs[-1].copy()
         density, peak = self._push_errors(bad)
@@ -214,7 +236,9 @@ class StreamValidity:
         """Account ``n_samples`` samples lost in frames the decoder rejected (they count as errors)."""
         flags = np.ones(int(n_samples), dtype=bool)
         density, peak = self._push_errors(flags)
-        return ValidityReport(self.stale_axes(), (), density, peak, peak > self.limits.error_density_max)
+        return ValidityReport(
+            self.stale_axes(), (), density, peak, peak > self.limits.error_density_max
+        )
 
     def _push_errors(self, bad: np.ndarray) -> tuple[float, float]:
         w = self.limits.error_window_samples
@@ -240,7 +264,10 @@ class StreamValidity:
 
     def timed_out(self, now_s: float) -> bool:
         """True when no batch arrived within ``timeout_s`` before ``now_s`` (False before the first)."""
-        return self._last_arrival_s is not None and now_s - self._last_arrival_s > self.limits.timeout_s
+        return (
+            self._last_arrival_s is not None
+            and now_s - self._last_arrival_s > self.limits.timeout_s
+        )
 
     def state_dict(self) -> dict:
         return {
@@ -250,7 +277,9 @@ class StreamValidity:
         }
 
     @classmethod
-    def from_state(cls, state: dict, *, limits: ValidityLimits = ValidityLimits()) -> "StreamValidity":
+    def from_state(
+        cls, state: dict, *, limits: ValidityLimits = ValidityLimits()
+    ) -> StreamValidity:
         """Restore from :meth:`state_dict` (a ring of another window length restarts the density count)."""
         out = cls(limits=limits)
         out._last_value = np.asarray(state["last_value"], float).reshape(6).copy()
@@ -301,7 +330,9 @@ def compare_imus(
     g = np.asarray(gyro_mean_rps, float).reshape(-1, 3)
     k = len(imus)
     if k < 2 or a.shape[0] != k or g.shape[0] != k:
-        raise ValueError(f"need K >= 2 IMUs with (K, 3) means, got {k} indices, {a.shape} and {g.shape}")
+        raise ValueError(
+            f"need K >= 2 IMUs with (K, 3) means, got {k} indices, {a.shape} and {g.shape}"
+        )
     if k == 2:
         da = np.full(2, np.abs(a[0] - a[1]).max())
         dg = np.full(2, np.abs(g[0] - g[1]).max())
@@ -309,7 +340,13 @@ def compare_imus(
         da = np.abs(a - np.median(a, axis=0)).max(axis=1)
         dg = np.abs(g - np.median(g, axis=0)).max(axis=1)
     bad = (da > limits.cross_imu_accel_mps2) | (dg > limits.cross_imu_gyro_rps)
-    return CrossImuVerdict(float(bin_start_s), tuple(int(i) for i in imus), da, dg, tuple(int(imus[i]) for i in np.flatnonzero(bad)))
+    return CrossImuVerdict(
+        float(bin_start_s),
+        tuple(int(i) for i in imus),
+        da,
+        dg,
+        tuple(int(imus[i]) for i in np.flatnonzero(bad)),
+    )
 
 
 @dataclass(frozen=True)
@@ -345,7 +382,9 @@ class CrossImuMonitor:
         self._flagged: set[int] = set()
         self._last_compared = -(2**62)
 
-    def add(self, imu: int, t_s: np.ndarray, accel_mps2: np.ndarray, gyro_rps: np.ndarray) -> list[CrossImuReport]:
+    def add(
+        self, imu: int, t_s: np.ndarray, accel_mps2: np.ndarray, gyro_rps: np.ndarray
+    ) -> list[CrossImuReport]:
         """Add one IMU's good samples (sample time, SI); returns the reports of newly compared bins."""
         t = np.asarray(t_s, float).reshape(-1)
         if t.size == 0:
@@ -387,9 +426,13 @@ class CrossImuMonitor:
             return []
         newest = max(o[0] for o in self._open.values())
         live = [i for i, o in self._open.items() if o[0] >= newest - self._lag_bins()]
-        horizon = min(self._open[i][0] for i in live)  # every live IMU has closed the bins before it
+        horizon = min(
+            self._open[i][0] for i in live
+        )  # every live IMU has closed the bins before it
         reports: list[CrossImuReport] = []
-        candidates = sorted({b for i in live for b in self._closed.get(i, {}) if self._last_compared < b < horizon})
+        candidates = sorted(
+            {b for i in live for b in self._closed.get(i, {}) if self._last_compared < b < horizon}
+        )
         for b in candidates:
             have = [i for i in sorted(live) if b in self._closed.get(i, {})]
             self._last_compared = b
@@ -414,14 +457,35 @@ class CrossImuMonitor:
             others = tuple(i for i in v.imus if i != imu)
             if imu in v.disagreeing:
                 self._streak[imu] = self._streak.get(imu, 0) + 1
-                if self._streak[imu] >= self.limits.cross_imu_persist_windows and imu not in self._flagged:
+                if (
+                    self._streak[imu] >= self.limits.cross_imu_persist_windows
+                    and imu not in self._flagged
+                ):
                     self._flagged.add(imu)
-                    out.append(CrossImuReport(imu, others, float(v.accel_dev_mps2[j]), float(v.gyro_dev_rps[j]), v.bin_start_s, False))
+                    out.append(
+                        CrossImuReport(
+                            imu,
+                            others,
+                            float(v.accel_dev_mps2[j]),
+                            float(v.gyro_dev_rps[j]),
+                            v.bin_start_s,
+                            False,
+                        )
+                    )
             else:
                 self._streak[imu] = 0
                 if imu in self._flagged:
                     self._flagged.discard(imu)
-                    out.append(CrossImuReport(imu, others, float(v.accel_dev_mps2[j]), float(v.gyro_dev_rps[j]), v.bin_start_s, True))
+                    out.append(
+                        CrossImuReport(
+                            imu,
+                            others,
+                            float(v.accel_dev_mps2[j]),
+                            float(v.gyro_dev_rps[j]),
+                            v.bin_start_s,
+                            True,
+                        )
+                    )
         return out
 
     @property

@@ -146,7 +146,9 @@ def _series(bias_mps2, scale_error, bias_std_mps2, scale_std):
     return np.hstack([bias_mps2, scale_error]), np.hstack([bias_std_mps2, scale_std])
 
 
-def _normalized_sq_errors(temp_c, values, std, train, test, ref_c, half_span_c, order) -> np.ndarray:
+def _normalized_sq_errors(
+    temp_c, values, std, train, test, ref_c, half_span_c, order
+) -> np.ndarray:
     """(n_test·6,) squared prediction errors at ``test`` of the fit on ``train``, over their variance."""
     h_train = _vander(temp_c[train], ref_c, half_span_c, order)
     h_test = _vander(temp_c[test], ref_c, half_span_c, order)
@@ -193,8 +195,12 @@ def fit_temperature_model(
     t = np.asarray(temp_c, dtype=float)
     if t.ndim != 1:
         raise ValueError(f"temp_c must be a (T,) array, got shape {t.shape}")
-    arrays = [np.asarray(a, dtype=float) for a in (bias_mps2, scale_error, bias_std_mps2, scale_std)]
-    for name, a in zip(("bias_mps2", "scale_error", "bias_std_mps2", "scale_std"), arrays):
+    arrays = [
+        np.asarray(a, dtype=float) for a in (bias_mps2, scale_error, bias_std_mps2, scale_std)
+    ]
+    for name, a in zip(
+        ("bias_mps2", "scale_error", "bias_std_mps2", "scale_std"), arrays, strict=True
+    ):
         if a.shape != (t.size, 3):
             raise ValueError(f"{name} must have shape ({t.size}, 3), got {a.shape}")
         if not np.all(np.isfinite(a)):
@@ -219,7 +225,11 @@ def fit_temperature_model(
     half_a, half_b = order_idx[0::2], order_idx[1::2]
     ref = float(reference_temp_c)
     span = float(max(np.max(np.abs(t - ref)), 1e-9))
-    usable = [n for n in sorted(set(int(o) for o in orders)) if n >= 0 and min(half_a.size, half_b.size) > n]
+    usable = [
+        n
+        for n in sorted(set(int(o) for o in orders))
+        if n >= 0 and min(half_a.size, half_b.size) > n
+    ]
     if not usable:
         raise ValueError(
             f"{t.size} temperatures cannot compare orders {tuple(orders)}: each held-out half needs at least as many temperatures as coefficients"
@@ -234,9 +244,25 @@ def fit_temperature_model(
         )
         h_all = _vander(t, ref, span, n)
         train = np.mean(
-            [np.mean(((values[:, s] - h_all @ _fit_series(h_all, values[:, s], std[:, s])[0]) / std[:, s]) ** 2) for s in range(6)]
+            [
+                np.mean(
+                    (
+                        (values[:, s] - h_all @ _fit_series(h_all, values[:, s], std[:, s])[0])
+                        / std[:, s]
+                    )
+                    ** 2
+                )
+                for s in range(6)
+            ]
         )
-        scores.append(OrderScore(order=n, regularity=float(errs.mean()), regularity_se=float(errs.std(ddof=1) / np.sqrt(errs.size)), training=float(train)))
+        scores.append(
+            OrderScore(
+                order=n,
+                regularity=float(errs.mean()),
+                regularity_se=float(errs.std(ddof=1) / np.sqrt(errs.size)),
+                training=float(train),
+            )
+        )
     best = min(scores, key=lambda s: s.regularity)
     chosen = next(s for s in scores if s.regularity <= best.regularity + best.regularity_se)
     lower = [s for s in scores if s.order < chosen.order]
@@ -259,7 +285,13 @@ def fit_temperature_model(
         coefs[s] = c * unscale
         covs[s] = cov * np.outer(unscale, unscale)
     g = float(gravity_mps2)
-    model = TemperatureModel(reference_temp_c=ref, bias_coeffs=coefs[:3] / g, scale_coeffs=coefs[3:], valid_min_c=t_min_c, valid_max_c=t_max_c)
+    model = TemperatureModel(
+        reference_temp_c=ref,
+        bias_coeffs=coefs[:3] / g,
+        scale_coeffs=coefs[3:],
+        valid_min_c=t_min_c,
+        valid_max_c=t_max_c,
+    )
     return TemperatureFit(
         model=model,
         order=n,
@@ -301,7 +333,9 @@ def _check_samples(accel_mps2: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarr
     return a, t
 
 
-def remove_temperature_errors(accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float) -> np.ndarray:
+def remove_temperature_errors(
+    accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float
+) -> np.ndarray:
     """(N, 3) specific force with the modelled bias and scale error removed entirely (M3 compensation).
 
     ``a = (a_meas − g·b(T)) / (1 + e(T))``, ``T`` clamped to the valid range
@@ -313,7 +347,9 @@ def remove_temperature_errors(accel_mps2: np.ndarray, temp_c: np.ndarray, model:
     return (a - gravity_mps2 * b) / (1.0 + e)
 
 
-def to_reference_temperature(accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float) -> np.ndarray:
+def to_reference_temperature(
+    accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float
+) -> np.ndarray:
     """(N, 3) output as the unit would give it at ``T_ref`` (what the service applies).
 
     ``a_ref = (1 + e(T_ref))·(a_meas − g·b(T))/(1 + e(T)) + g·b(T_ref)``: the
@@ -368,7 +404,9 @@ class TemperatureSeries:
     tests: tuple[AccelSixPosition, ...]
 
 
-def temperature_series(positions: Sequence[Position], *, gravity_mps2: float, tolerance_c: float = 2.0) -> TemperatureSeries:
+def temperature_series(
+    positions: Sequence[Position], *, gravity_mps2: float, tolerance_c: float = 2.0
+) -> TemperatureSeries:
     """Group static positions by temperature and run the six-position test in each group (M3 input).
 
     Positions without a temperature are an error: the temperature model needs
@@ -377,14 +415,18 @@ def temperature_series(positions: Sequence[Position], *, gravity_mps2: float, to
     """
     positions = tuple(positions)
     if not positions:
-        raise ValueError("no static positions: the temperature model needs six-position tests at several temperatures")
+        raise ValueError(
+            "no static positions: the temperature model needs six-position tests at several temperatures"
+        )
     if any(p.temp_mean_c is None for p in positions):
-        raise ValueError("the session has no temperature column: the temperature model needs the temperature of each position")
+        raise ValueError(
+            "the session has no temperature column: the temperature model needs the temperature of each position"
+        )
     temps = np.array([p.temp_mean_c for p in positions])
     labels = group_temperatures(temps, tolerance_c=tolerance_c)
     rows = []
     for label in range(int(labels.max()) + 1):
-        group = [p for p, lab in zip(positions, labels) if lab == label]
+        group = [p for p, lab in zip(positions, labels, strict=True) if lab == label]
         t_mean = float(np.mean([p.temp_mean_c for p in group]))
         mean = np.array([p.accel_mean_mps2 for p in group])
         cov = np.array([p.accel_cov_mps2 for p in group])
@@ -421,14 +463,18 @@ _SCALE_SHAPES = np.array([[0.6, -0.4, -0.5, 0.8], [-0.3, 0.9, 0.2, -0.7], [0.4, 
 _SHAPE_SPAN_C = 55.0
 
 
-def _scaled_coefs(shapes: np.ndarray, peak: float, t_ref_c: float, temps_c: np.ndarray) -> np.ndarray:
+def _scaled_coefs(
+    shapes: np.ndarray, peak: float, t_ref_c: float, temps_c: np.ndarray
+) -> np.ndarray:
     x = (np.asarray(temps_c) - t_ref_c) / _SHAPE_SPAN_C
     values = (x[:, None, None] ** np.arange(1, 5)[None, None] * shapes[None]).sum(-1)
     coefs = shapes / np.max(np.abs(values), axis=0)[:, None] * peak
     return coefs / _SHAPE_SPAN_C ** np.arange(1, 5)[None]
 
 
-def hidden_quartic_model(*, gravity_mps2: float, t_ref_c: float = DEFAULT_REFERENCE_TEMP_C) -> ErrorModel:
+def hidden_quartic_model(
+    *, gravity_mps2: float, t_ref_c: float = DEFAULT_REFERENCE_TEMP_C
+) -> ErrorModel:
     """A pendulous accelerometer triad with a 4th-degree temperature dependence sized like the paper's (M3).
 
     Over −45…+75 °C the temperature part of the bias peaks at 0.0013 g and the
@@ -466,7 +512,10 @@ def temperature_truth(model: ErrorModel, temp_c: np.ndarray) -> tuple[np.ndarray
         if effect is None:
             return np.zeros((t.size, 3))
         c = np.asarray(getattr(effect, attr))
-        return ((t - effect.t_ref_c)[:, None, None] ** np.arange(1, c.shape[1] + 1)[None, None] * c[None]).sum(-1)
+        return (
+            (t - effect.t_ref_c)[:, None, None] ** np.arange(1, c.shape[1] + 1)[None, None]
+            * c[None]
+        ).sum(-1)
 
     bias = chain.find("bias")
     scale = chain.find("scale_factor")
@@ -497,9 +546,13 @@ def simulate_chamber(
     """
     ss = np.random.SeedSequence(seed)
     parts, t0 = [], 0.0
-    for temp, child in zip(temps_c, ss.spawn(len(temps_c))):
+    for temp, child in zip(temps_c, ss.spawn(len(temps_c)), strict=True):
         spec = six_position_spec(
-            model, static_s=static_s, rate_hz=rate_hz, latitude_deg=latitude_deg, height_m=height_m,
+            model,
+            static_s=static_s,
+            rate_hz=rate_hz,
+            latitude_deg=latitude_deg,
+            height_m=height_m,
             temperature=ConstantTemperature(float(temp)),
         )
         res = simulate(spec, np.random.default_rng(child))

@@ -34,15 +34,30 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
 from estimators.conventions import AXES, N_PARAMS, STANDARD_GRAVITY_MPS2, Triad, normal_gravity_mps2
 from estimators.ninepar import Method
-from estimators.passport import Grade, Provenance, TriadPassport, default_tolerance_rule, reference_kind
+from estimators.passport import (
+    Grade,
+    Provenance,
+    TriadPassport,
+    default_tolerance_rule,
+    reference_kind,
+)
 from estimators.plateaus import find_plateaus
-from estimators.repeatability import LinearFit, RunEstimate, RunSpread, Stabilization, fit_linear, run_spread, stabilization, t_quantile
+from estimators.repeatability import (
+    LinearFit,
+    RunEstimate,
+    RunSpread,
+    Stabilization,
+    fit_linear,
+    run_spread,
+    stabilization,
+    t_quantile,
+)
 from estimators.session import ImuSession
 from estimators.sim.errors import Quantization, Rounding, half_pulse_correction
 
@@ -58,7 +73,7 @@ KHARKIV_GRAVITY_MPS2 = normal_gravity_mps2(50.0, 150.0)
 """Normal gravity at the paper's laboratory (Kharkiv, 50.0° N, about 150 m), m/s²."""
 
 
-class HalfPulse(str, Enum):
+class HalfPulse(StrEnum):
     """Whether the averaged counts get the half-pulse correction of M2 eq. 3."""
 
     APPLY = "apply"
@@ -69,7 +84,9 @@ def nominal_scale(counts_up: float, counts_down: float, gravity_mps2: float) -> 
     """``k0 = 2g / (N↑ − N↓)`` (M2 eq. 7), m/s² per pulse, from averaged raw counts."""
     span = float(counts_up) - float(counts_down)
     if not span > 0:
-        raise ValueError(f"the axis-up count ({counts_up:g}) must exceed the axis-down count ({counts_down:g}): is the axis reversed?")
+        raise ValueError(
+            f"the axis-up count ({counts_up:g}) must exceed the axis-down count ({counts_down:g}): is the axis reversed?"
+        )
     return 2.0 * float(gravity_mps2) / span
 
 
@@ -98,19 +115,30 @@ class TiltRun:
     def __post_init__(self):
         a = np.asarray(self.angles_rad, dtype=float)
         n = np.asarray(self.counts_mean, dtype=float)
-        if a.ndim != 1 or n.shape != a.shape or np.shape(self.counts_std) != a.shape or np.shape(self.n_samples) != a.shape:
+        if (
+            a.ndim != 1
+            or n.shape != a.shape
+            or np.shape(self.counts_std) != a.shape
+            or np.shape(self.n_samples) != a.shape
+        ):
             raise ValueError(
                 f"angles, counts, their spread and sample numbers must be (M,) arrays of one length, got "
                 f"{a.shape}, {n.shape}, {np.shape(self.counts_std)}, {np.shape(self.n_samples)}"
             )
         if a.size < MIN_ANGLES:
-            raise ValueError(f"a tilt run needs at least {MIN_ANGLES} angles (3 unknowns δa, δα, Δk and the noise level), got {a.size}")
+            raise ValueError(
+                f"a tilt run needs at least {MIN_ANGLES} angles (3 unknowns δa, δα, Δk and the noise level), got {a.size}"
+            )
         distinct = np.unique(np.round(a, 9)).size
         if distinct < 3:
-            raise ValueError(f"a tilt run needs at least 3 different angles to separate δa, δα and Δk, got {distinct}")
+            raise ValueError(
+                f"a tilt run needs at least 3 different angles to separate δa, δα and Δk, got {distinct}"
+            )
         if np.any(np.abs(a) >= np.pi / 2):
             raise ValueError("table angles must lie within (−90°, 90°)")
-        if not (np.all(np.isfinite(n)) and np.isfinite(self.counts_up) and np.isfinite(self.counts_down)):
+        if not (
+            np.all(np.isfinite(n)) and np.isfinite(self.counts_up) and np.isfinite(self.counts_down)
+        ):
             raise ValueError("tilt counts must be finite")
         object.__setattr__(self, "angles_rad", a)
         object.__setattr__(self, "counts_mean", n)
@@ -125,7 +153,9 @@ class TiltRun:
         return half_pulse_correction(self.counts_mean, self.rounding)
 
 
-def tilt_equations(run: TiltRun, k0_mps2: float, gravity_mps2: float, *, correction: HalfPulse = HalfPulse.APPLY) -> tuple[np.ndarray, np.ndarray]:
+def tilt_equations(
+    run: TiltRun, k0_mps2: float, gravity_mps2: float, *, correction: HalfPulse = HalfPulse.APPLY
+) -> tuple[np.ndarray, np.ndarray]:
     """The design ``H`` (M, 3) and right-hand side ``y`` (M,), m/s², of M2 eq. 6."""
     a = run.angles_rad
     g = float(gravity_mps2)
@@ -133,7 +163,9 @@ def tilt_equations(run: TiltRun, k0_mps2: float, gravity_mps2: float, *, correct
     return h, run.corrected(correction) * k0_mps2 - g * np.sin(a)
 
 
-def modelled_counts(angles_rad: np.ndarray, params: np.ndarray, k0_mps2: float, gravity_mps2: float) -> np.ndarray:
+def modelled_counts(
+    angles_rad: np.ndarray, params: np.ndarray, k0_mps2: float, gravity_mps2: float
+) -> np.ndarray:
     """Noise-free (unquantized) counts ``(g sin(α + δα) + δa) / (k0 (1 + Δk))`` of M2 eq. 3, pulses."""
     da, dalpha, dk = np.asarray(params, dtype=float)
     return (gravity_mps2 * np.sin(np.asarray(angles_rad) + dalpha) + da) / (k0_mps2 * (1.0 + dk))
@@ -156,13 +188,24 @@ class TiltFit:
 
 
 def fit_run(
-    run: TiltRun, k0_mps2: float, gravity_mps2: float, *, correction: HalfPulse = HalfPulse.APPLY, level: float = 0.95
+    run: TiltRun,
+    k0_mps2: float,
+    gravity_mps2: float,
+    *,
+    correction: HalfPulse = HalfPulse.APPLY,
+    level: float = 0.95,
 ) -> TiltFit:
     """Least squares of M2 eq. 6 for one run; the noise level comes from the residuals."""
     h, y = tilt_equations(run, k0_mps2, gravity_mps2, correction=correction)
     fit = fit_linear(h, y, names=TILT_PARAM_SYMBOLS)
-    resid = run.corrected(correction) - modelled_counts(run.angles_rad, fit.values, k0_mps2, gravity_mps2)
-    return TiltFit(fit=fit, residuals_pulses=resid, stabilization=stabilization(h, y, level=level, names=TILT_PARAM_SYMBOLS))
+    resid = run.corrected(correction) - modelled_counts(
+        run.angles_rad, fit.values, k0_mps2, gravity_mps2
+    )
+    return TiltFit(
+        fit=fit,
+        residuals_pulses=resid,
+        stabilization=stabilization(h, y, level=level, names=TILT_PARAM_SYMBOLS),
+    )
 
 
 @dataclass(frozen=True)
@@ -210,7 +253,11 @@ class TiltPassportResult:
 
 
 def tilt_passport(
-    runs: Sequence[TiltRun], *, gravity_mps2: float, correction: HalfPulse = HalfPulse.APPLY, level: float = 0.95
+    runs: Sequence[TiltRun],
+    *,
+    gravity_mps2: float,
+    correction: HalfPulse = HalfPulse.APPLY,
+    level: float = 0.95,
 ) -> TiltPassportResult:
     """Passport of one accelerometer axis from repeated tilt runs (M2 steps 2–4).
 
@@ -221,11 +268,17 @@ def tilt_passport(
     """
     runs = tuple(runs)
     if len(runs) < 2:
-        raise ValueError(f"the tilt passport needs at least 2 runs to check reproducibility, got {len(runs)}")
+        raise ValueError(
+            f"the tilt passport needs at least 2 runs to check reproducibility, got {len(runs)}"
+        )
     g = float(gravity_mps2)
-    k0 = nominal_scale(np.mean([r.counts_up for r in runs]), np.mean([r.counts_down for r in runs]), g)
+    k0 = nominal_scale(
+        np.mean([r.counts_up for r in runs]), np.mean([r.counts_down for r in runs]), g
+    )
     fits = tuple(fit_run(r, k0, g, correction=correction, level=level) for r in runs)
-    spread = run_spread([RunEstimate.from_fit(f.fit) for f in fits], names=TILT_PARAM_NAMES, level=level)
+    spread = run_spread(
+        [RunEstimate.from_fit(f.fit) for f in fits], names=TILT_PARAM_NAMES, level=level
+    )
 
     def rms(parts):
         v = np.concatenate(parts)
@@ -233,10 +286,17 @@ def tilt_passport(
 
     nominal = [g * np.sin(r.angles_rad) / k0 for r in runs]
     errors = TiltErrors(
-        raw=rms([r.counts_mean - n for r, n in zip(runs, nominal)]),
-        half_pulse=rms([r.corrected(HalfPulse.APPLY) - n for r, n in zip(runs, nominal)]),
+        raw=rms([r.counts_mean - n for r, n in zip(runs, nominal, strict=True)]),
+        half_pulse=rms(
+            [r.corrected(HalfPulse.APPLY) - n for r, n in zip(runs, nominal, strict=True)]
+        ),
         in_run=rms([f.residuals_pulses for f in fits]),
-        passport=rms([r.corrected(correction) - modelled_counts(r.angles_rad, spread.value, k0, g) for r in runs]),
+        passport=rms(
+            [
+                r.corrected(correction) - modelled_counts(r.angles_rad, spread.value, k0, g)
+                for r in runs
+            ]
+        ),
     )
     return TiltPassportResult(
         gravity_mps2=g,
@@ -250,7 +310,9 @@ def tilt_passport(
     )
 
 
-def half_pulse_bias(runs: Sequence[TiltRun], *, gravity_mps2: float, level: float = 0.95) -> np.ndarray:
+def half_pulse_bias(
+    runs: Sequence[TiltRun], *, gravity_mps2: float, level: float = 0.95
+) -> np.ndarray:
     """(3,) passport values without the half-pulse correction minus those with it (``[δa, δα, Δk]``).
 
     What M2 eq. 3 protects against: with every angle on one side of zero the
@@ -258,7 +320,9 @@ def half_pulse_bias(runs: Sequence[TiltRun], *, gravity_mps2: float, level: floa
     a truncating converter); with angles of both signs it is an odd step that
     also biases ``Δk``.
     """
-    with_it = tilt_passport(runs, gravity_mps2=gravity_mps2, correction=HalfPulse.APPLY, level=level)
+    with_it = tilt_passport(
+        runs, gravity_mps2=gravity_mps2, correction=HalfPulse.APPLY, level=level
+    )
     without = tilt_passport(runs, gravity_mps2=gravity_mps2, correction=HalfPulse.OMIT, level=level)
     return without.spread.value - with_it.spread.value
 
@@ -303,9 +367,14 @@ def tilt_triad_passport(
     e_lo, e_hi = sorted((e_of(sp.common_upper[2]), e_of(sp.common_lower[2])))
     b_lo, b_hi = b_of(sp.common_lower[0], dk), b_of(sp.common_upper[0], dk)
     if not sp.reproducible[2]:
-        e_lo, e_hi = sorted((e_of(sp.value[2] + sp.tolerance[2]), e_of(sp.value[2] - sp.tolerance[2])))
+        e_lo, e_hi = sorted(
+            (e_of(sp.value[2] + sp.tolerance[2]), e_of(sp.value[2] - sp.tolerance[2]))
+        )
     if not sp.reproducible[0]:
-        b_lo, b_hi = b_of(sp.value[0] - sp.tolerance[0], dk), b_of(sp.value[0] + sp.tolerance[0], dk)
+        b_lo, b_hi = (
+            b_of(sp.value[0] - sp.tolerance[0], dk),
+            b_of(sp.value[0] + sp.tolerance[0], dk),
+        )
     nominal = np.zeros(N_PARAMS)
     nominal[axis], nominal[3 + axis] = b_of(sp.value[0], dk), e_of(dk)
     rule = default_tolerance_rule(Triad.ACCEL, grade, g)
@@ -400,7 +469,9 @@ class TiltBench:
                 raise ValueError(f"TiltBench.{name} must be positive, got {getattr(self, name)!r}")
         for name in ("turn_on_sigma_mps2", "noise_mps2", "setting_sigma_rad"):
             if not getattr(self, name) >= 0:
-                raise ValueError(f"TiltBench.{name} must be non-negative, got {getattr(self, name)!r}")
+                raise ValueError(
+                    f"TiltBench.{name} must be non-negative, got {getattr(self, name)!r}"
+                )
         object.__setattr__(self, "angles_deg", tuple(float(a) for a in self.angles_deg))
         object.__setattr__(self, "rounding", Rounding(self.rounding))
         if self.n_runs < 1:
@@ -408,11 +479,11 @@ class TiltBench:
 
     @property
     def samples_per_angle(self) -> int:
-        return max(1, int(round(self.average_s * self.rate_hz)))
+        return max(1, round(self.average_s * self.rate_hz))
 
     @property
     def samples_updown(self) -> int:
-        return max(1, int(round(self.updown_s * self.rate_hz)))
+        return max(1, round(self.updown_s * self.rate_hz))
 
     @property
     def true_scale_error(self) -> float:
@@ -473,11 +544,17 @@ def simulate_samples(bench: TiltBench, rng: np.random.Generator) -> list[TiltSam
     out = []
     for _ in range(bench.n_runs):
         da = bench.zero_offset_mps2 + bench.turn_on_sigma_mps2 * rng.standard_normal()
-        true_rad = set_rad + bench.misalignment_rad + bench.setting_sigma_rad * rng.standard_normal(set_rad.size)
+        true_rad = (
+            set_rad
+            + bench.misalignment_rad
+            + bench.setting_sigma_rad * rng.standard_normal(set_rad.size)
+        )
 
-        def pulses(specific_force_mps2, n):
+        def pulses(specific_force_mps2, n, da=da):
             f = np.asarray(specific_force_mps2, dtype=float)[..., None]
-            return _whole_pulses(quantizer, f + da + bench.noise_mps2 * rng.standard_normal(f.shape[:-1] + (n,)))
+            return _whole_pulses(
+                quantizer, f + da + bench.noise_mps2 * rng.standard_normal((*f.shape[:-1], n))
+            )
 
         out.append(
             TiltSamples(
@@ -518,7 +595,9 @@ TRANSITION_S = 2.0
 """Time the simulated table takes between two settings, s."""
 
 
-def bench_session(bench: TiltBench, samples: TiltSamples, *, axis: int = 0, rng: np.random.Generator) -> ImuSession:
+def bench_session(
+    bench: TiltBench, samples: TiltSamples, *, axis: int = 0, rng: np.random.Generator
+) -> ImuSession:
     """One simulated run as session samples: the axis column is ``counts · lsb``, the others zero.
 
     Order of the protocol: axis up, axis down, then the angles; between two
@@ -526,7 +605,7 @@ def bench_session(bench: TiltBench, samples: TiltSamples, *, axis: int = 0, rng:
     along a straight angle ramp, which the plateau finder must skip).
     """
     quantizer = Quantization(step_si=(bench.pulse_mps2,) * 3, rounding=bench.rounding)
-    n_move = max(1, int(round(TRANSITION_S * bench.rate_hz)))
+    n_move = max(1, round(TRANSITION_S * bench.rate_hz))
     setpoints = np.radians(np.concatenate([[90.0, -90.0], bench.angles_deg]))
     holds = [samples.up, samples.down, *samples.angles]
     parts = []
@@ -534,7 +613,11 @@ def bench_session(bench: TiltBench, samples: TiltSamples, *, axis: int = 0, rng:
         parts.append(hold)
         if k + 1 < len(holds):
             ramp = np.linspace(setpoints[k], setpoints[k + 1], n_move + 2)[1:-1]
-            x = bench.gravity_mps2 * np.sin(ramp) + samples.zero_offset_mps2 + bench.noise_mps2 * rng.standard_normal(n_move)
+            x = (
+                bench.gravity_mps2 * np.sin(ramp)
+                + samples.zero_offset_mps2
+                + bench.noise_mps2 * rng.standard_normal(n_move)
+            )
             parts.append(_whole_pulses(quantizer, x))
     counts = np.concatenate(parts)
     accel = np.zeros((counts.size, 3))

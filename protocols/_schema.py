@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import re
-from enum import Enum
+from enum import Enum, StrEnum
 from functools import lru_cache
 from typing import Any
 
@@ -27,7 +27,7 @@ VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
 MAX_IMU_INDEX = 255
 
 
-class Reason(str, Enum):
+class Reason(StrEnum):
     """Why a message was rejected (stable names: they are status counters)."""
 
     TOO_LARGE = "too_large"
@@ -81,7 +81,9 @@ def unpack_map(data: bytes, *, error: type[SchemaError], max_bytes: int) -> dict
     return obj
 
 
-def check_header(obj: dict[str, Any], *, type_tag: str, versions: tuple[int, ...], error: type[SchemaError]) -> int:
+def check_header(
+    obj: dict[str, Any], *, type_tag: str, versions: tuple[int, ...], error: type[SchemaError]
+) -> int:
     """Check the type tag and schema version; return the version."""
     tag = obj.get("type")
     if tag != type_tag:
@@ -96,7 +98,14 @@ def check_header(obj: dict[str, Any], *, type_tag: str, versions: tuple[int, ...
     return version
 
 
-def field(obj: dict[str, Any], name: str, kinds: type | tuple[type, ...], *, error: type[SchemaError], optional: bool = False) -> Any:
+def field(
+    obj: dict[str, Any],
+    name: str,
+    kinds: type | tuple[type, ...],
+    *,
+    error: type[SchemaError],
+    optional: bool = False,
+) -> Any:
     """Field ``name`` of ``obj`` checked against ``kinds``; ``None`` allowed iff ``optional``.
 
     ``bool`` is never accepted where an ``int`` or ``float`` is expected (msgpack
@@ -110,13 +119,20 @@ def field(obj: dict[str, Any], name: str, kinds: type | tuple[type, ...], *, err
     if value is None and optional:
         return None
     if isinstance(value, bool) and bool not in (kinds if isinstance(kinds, tuple) else (kinds,)):
-        raise error(Reason.WRONG_TYPE, f"field {name!r} must be {_kind_names(kinds)}, got bool {value!r}")
+        raise error(
+            Reason.WRONG_TYPE, f"field {name!r} must be {_kind_names(kinds)}, got bool {value!r}"
+        )
     if not isinstance(value, kinds):
-        raise error(Reason.WRONG_TYPE, f"field {name!r} must be {_kind_names(kinds)}, got {type(value).__name__} {_short(value)}")
+        raise error(
+            Reason.WRONG_TYPE,
+            f"field {name!r} must be {_kind_names(kinds)}, got {type(value).__name__} {_short(value)}",
+        )
     return value
 
 
-def float_field(obj: dict[str, Any], name: str, *, error: type[SchemaError], optional: bool = False) -> float | None:
+def float_field(
+    obj: dict[str, Any], name: str, *, error: type[SchemaError], optional: bool = False
+) -> float | None:
     """A finite number (int or float on the wire) as ``float``."""
     value = field(obj, name, (int, float), error=error, optional=optional)
     if value is None:
@@ -137,7 +153,10 @@ def check_vehicle(vehicle: str, *, error: type[SchemaError]) -> str:
     if not isinstance(vehicle, str):
         raise error(Reason.WRONG_TYPE, f"vehicle must be str, got {type(vehicle).__name__}")
     if not _valid_vehicle(vehicle):
-        raise error(Reason.BAD_VALUE, f"vehicle id {_short(vehicle)} must match {VEHICLE_ID_PATTERN.pattern}")
+        raise error(
+            Reason.BAD_VALUE,
+            f"vehicle id {_short(vehicle)} must match {VEHICLE_ID_PATTERN.pattern}",
+        )
     return vehicle
 
 
@@ -150,7 +169,14 @@ def check_imu(imu: int, *, error: type[SchemaError]) -> int:
     return imu
 
 
-def enum_field(obj: dict[str, Any], name: str, enums: tuple[type[Enum], ...], *, error: type[SchemaError], optional: bool = False):
+def enum_field(
+    obj: dict[str, Any],
+    name: str,
+    enums: tuple[type[Enum], ...],
+    *,
+    error: type[SchemaError],
+    optional: bool = False,
+):
     """A string field parsed as the first of ``enums`` that has that value."""
     value = field(obj, name, str, error=error, optional=optional)
     if value is None:
@@ -158,7 +184,9 @@ def enum_field(obj: dict[str, Any], name: str, enums: tuple[type[Enum], ...], *,
     member = first_enum(value, enums)
     if member is None:
         allowed = sorted(m.value for kind in enums for m in kind)
-        raise error(Reason.BAD_VALUE, f"field {name!r} is {_short(value)}, expected one of {allowed}")
+        raise error(
+            Reason.BAD_VALUE, f"field {name!r} is {_short(value)}, expected one of {allowed}"
+        )
     return member
 
 

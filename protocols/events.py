@@ -38,10 +38,12 @@ import hashlib
 import json
 import math
 import struct
-from dataclasses import dataclass, field as dc_field, replace
-from enum import Enum, IntEnum
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from dataclasses import field as dc_field
+from enum import Enum, IntEnum, StrEnum
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 
@@ -72,7 +74,7 @@ SUPPORTED_STATUS_VERSIONS = (1,)
 MAX_EVENT_BYTES = 64 * 1024
 MAX_STATUS_BYTES = MAX_MESSAGE_BYTES
 MAX_TEXT_CHARS = 1000
-EVENT_AXES = AXES + ("xy", "xz", "yz")
+EVENT_AXES = (*AXES, "xy", "xz", "yz")
 """Valid ``axis`` values: one sensor axis, or an axis pair for non-orthogonality (conventions.PARAM_AXIS)."""
 
 
@@ -93,7 +95,7 @@ class Severity(IntEnum):
     DEBUG = 7
 
 
-class Predicate(str, Enum):
+class Predicate(StrEnum):
     """Which check failed: F0…F9 of methods.md M1, or a stream-validity check."""
 
     F0 = "F0"
@@ -113,7 +115,7 @@ class Predicate(str, Enum):
     TEMPERATURE = "temperature"
 
     @classmethod
-    def parse(cls, value: Any) -> "Predicate":
+    def parse(cls, value: Any) -> Predicate:
         """Accept a :class:`Predicate`, its string value, an ``int`` j (→ ``Fj``) or any Enum holding one of those."""
         if isinstance(value, Enum) and not isinstance(value, Predicate):
             value = value.value
@@ -122,10 +124,13 @@ class Predicate(str, Enum):
         try:
             return cls(value)
         except ValueError:
-            raise EventError(Reason.BAD_VALUE, f"unknown predicate {value!r}; expected one of {[p.value for p in cls]}") from None
+            raise EventError(
+                Reason.BAD_VALUE,
+                f"unknown predicate {value!r}; expected one of {[p.value for p in cls]}",
+            ) from None
 
 
-class StreamCause(str, Enum):
+class StreamCause(StrEnum):
     """Causes named by F0 and the stream-validity checks (the M1 diagnosis uses :class:`~estimators.conventions.Cause`)."""
 
     OUT_OF_SHELL = "out_of_shell"
@@ -176,9 +181,20 @@ class Event:
     def __post_init__(self) -> None:
         check_vehicle(self.vehicle, error=EventError)
         check_imu(self.imu, error=EventError)
-        if not (isinstance(self.event_id, str) and len(self.event_id) == 32 and all(c in "0123456789abcdef" for c in self.event_id)):
-            raise EventError(Reason.BAD_VALUE, f"event id must be 32 lower-case hex digits, got {self.event_id!r}")
-        if isinstance(self.t_s, bool) or not isinstance(self.t_s, (int, float)) or not math.isfinite(self.t_s):
+        if not (
+            isinstance(self.event_id, str)
+            and len(self.event_id) == 32
+            and all(c in "0123456789abcdef" for c in self.event_id)
+        ):
+            raise EventError(
+                Reason.BAD_VALUE,
+                f"event id must be 32 lower-case hex digits, got {self.event_id!r}",
+            )
+        if (
+            isinstance(self.t_s, bool)
+            or not isinstance(self.t_s, (int, float))
+            or not math.isfinite(self.t_s)
+        ):
             raise EventError(Reason.BAD_VALUE, f"t_s must be a finite number, got {self.t_s!r}")
         object.__setattr__(self, "t_s", float(self.t_s))
         object.__setattr__(self, "predicate", Predicate.parse(self.predicate))
@@ -187,16 +203,27 @@ class Event:
         if self.triad is not None:
             object.__setattr__(self, "triad", Triad(self.triad))
         if self.axis is not None and self.axis not in EVENT_AXES:
-            raise EventError(Reason.BAD_VALUE, f"axis must be one of {EVENT_AXES} or None, got {self.axis!r}")
+            raise EventError(
+                Reason.BAD_VALUE, f"axis must be one of {EVENT_AXES} or None, got {self.axis!r}"
+            )
         for name in ("estimate", "nominal", "tolerance", "sigma"):
             value = getattr(self, name)
             if value is None:
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise EventError(Reason.NON_FINITE if isinstance(value, float) else Reason.WRONG_TYPE, f"{name} must be a finite number or None, got {value!r}")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+            ):
+                raise EventError(
+                    Reason.NON_FINITE if isinstance(value, float) else Reason.WRONG_TYPE,
+                    f"{name} must be a finite number or None, got {value!r}",
+                )
             object.__setattr__(self, name, float(value))
         if not isinstance(self.text, str) or len(self.text) > MAX_TEXT_CHARS:
-            raise EventError(Reason.BAD_VALUE, f"text must be a str of at most {MAX_TEXT_CHARS} characters")
+            raise EventError(
+                Reason.BAD_VALUE, f"text must be a str of at most {MAX_TEXT_CHARS} characters"
+            )
         if not isinstance(self.unit, str) or len(self.unit) > 16:
             raise EventError(Reason.BAD_VALUE, f"unit must be a short str, got {self.unit!r}")
 
@@ -206,7 +233,16 @@ class Event:
         return None if self.triad is None else self.triad.value
 
 
-def event_id(*, vehicle: str, imu: int, predicate: Predicate, triad: Triad | None, axis: str | None, cause: EventCause, t_s: float) -> str:
+def event_id(
+    *,
+    vehicle: str,
+    imu: int,
+    predicate: Predicate,
+    triad: Triad | None,
+    axis: str | None,
+    cause: EventCause,
+    t_s: float,
+) -> str:
     """The stable id of a detection (module docstring): 32 hex digits."""
     key = msgpack.packb(
         [
@@ -249,12 +285,32 @@ def make_event(
     predicate = Predicate.parse(predicate)
     cause = _parse_cause(cause)
     triad = None if triad is None else Triad(triad)
-    eid = event_id(vehicle=vehicle, imu=imu, predicate=predicate, triad=triad, axis=axis, cause=cause, t_s=t_s)
-    event = Event(eid, vehicle, imu, t_s, predicate, triad, axis, cause, estimate, nominal, tolerance, sigma, unit, Severity(severity), text or "")
+    eid = event_id(
+        vehicle=vehicle, imu=imu, predicate=predicate, triad=triad, axis=axis, cause=cause, t_s=t_s
+    )
+    event = Event(
+        eid,
+        vehicle,
+        imu,
+        t_s,
+        predicate,
+        triad,
+        axis,
+        cause,
+        estimate,
+        nominal,
+        tolerance,
+        sigma,
+        unit,
+        Severity(severity),
+        text or "",
+    )
     return event if text is not None else replace(event, text=describe(event))
 
 
-def event_from_finding(finding: Finding, *, vehicle: str, imu: int, t_s: float, severity: Severity = Severity.ERROR) -> Event:
+def event_from_finding(
+    finding: Finding, *, vehicle: str, imu: int, t_s: float, severity: Severity = Severity.ERROR
+) -> Event:
     """An event for a failed predicate F1…F9 of the M1 diagnosis (``estimators.diagnosis.Finding``).
 
     The numbers of a finding are normalized parameters (dimensionless, methods.md
@@ -314,7 +370,11 @@ def describe(event: Event) -> str:
         what += f" {event.estimate:.3g}{unit}"
     extra = [
         f"{name} {value:.3g}"
-        for name, value in (("nominal", event.nominal), ("tolerance", event.tolerance), ("sigma", event.sigma))
+        for name, value in (
+            ("nominal", event.nominal),
+            ("tolerance", event.tolerance),
+            ("sigma", event.sigma),
+        )
         if value is not None
     ]
     if extra:
@@ -359,7 +419,10 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
     err = {"error": EventError}
     severity_name = field(obj, "severity", str, **err)
     if severity_name.upper() not in Severity.__members__ or severity_name != severity_name.lower():
-        raise EventError(Reason.BAD_VALUE, f"severity {severity_name!r} is not one of {[s.name.lower() for s in Severity]}")
+        raise EventError(
+            Reason.BAD_VALUE,
+            f"severity {severity_name!r} is not one of {[s.name.lower() for s in Severity]}",
+        )
     axis = field(obj, "axis", str, optional=True, **err)
     if axis is not None and axis not in EVENT_AXES:
         raise EventError(Reason.BAD_VALUE, f"axis {axis!r} is not one of {EVENT_AXES}")
@@ -381,10 +444,19 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
         text=field(obj, "text", str, **err),
     )
     expected = event_id(
-        vehicle=event.vehicle, imu=event.imu, predicate=event.predicate, triad=event.triad, axis=event.axis, cause=event.cause, t_s=event.t_s
+        vehicle=event.vehicle,
+        imu=event.imu,
+        predicate=event.predicate,
+        triad=event.triad,
+        axis=event.axis,
+        cause=event.cause,
+        t_s=event.t_s,
     )
     if event.event_id != expected:
-        raise EventError(Reason.BAD_VALUE, f"event id {event.event_id} does not match its fields (expected {expected})")
+        raise EventError(
+            Reason.BAD_VALUE,
+            f"event id {event.event_id} does not match its fields (expected {expected})",
+        )
     return event
 
 
@@ -408,7 +480,9 @@ def event_from_json(text: str) -> Event:
     if not isinstance(text, str):
         raise EventError(Reason.WRONG_TYPE, f"expected str, got {type(text).__name__}")
     if len(text) > MAX_EVENT_BYTES:
-        raise EventError(Reason.TOO_LARGE, f"{len(text)} characters exceeds the limit of {MAX_EVENT_BYTES}")
+        raise EventError(
+            Reason.TOO_LARGE, f"{len(text)} characters exceeds the limit of {MAX_EVENT_BYTES}"
+        )
     try:
         obj = json.loads(text, parse_constant=_reject_constant)
     except EventError:
@@ -433,13 +507,15 @@ def _parse_severity(value: Any) -> Severity:
     try:
         return Severity(value)
     except ValueError:
-        raise EventError(Reason.BAD_VALUE, f"severity must be a MAV_SEVERITY value 0..7, got {value!r}") from None
+        raise EventError(
+            Reason.BAD_VALUE, f"severity must be a MAV_SEVERITY value 0..7, got {value!r}"
+        ) from None
 
 
 # --------------------------------------------------------------------------- status
 
 
-class ImuState(str, Enum):
+class ImuState(StrEnum):
     """Health state of one IMU as the status topic reports it."""
 
     STARTING = "starting"
@@ -502,10 +578,15 @@ class Status:
     def __post_init__(self) -> None:
         check_vehicle(self.vehicle, error=EventError)
         if not isinstance(self.service, str) or not self.service:
-            raise EventError(Reason.BAD_VALUE, f"service must be a non-empty str, got {self.service!r}")
+            raise EventError(
+                Reason.BAD_VALUE, f"service must be a non-empty str, got {self.service!r}"
+            )
         for name, value in self.counters.items():
             if not isinstance(name, str) or type(value) is not int or value < 0:
-                raise EventError(Reason.BAD_VALUE, f"counter {name!r} must be a str name with an int >= 0, got {value!r}")
+                raise EventError(
+                    Reason.BAD_VALUE,
+                    f"counter {name!r} must be a str name with an int >= 0, got {value!r}",
+                )
         object.__setattr__(self, "counters", MappingProxyType(dict(self.counters)))
         object.__setattr__(self, "imus", tuple(self.imus))
 
@@ -521,7 +602,14 @@ def encode_status(status: Status) -> bytes:
             "t_s": float(status.t_s),
             "counters": dict(status.counters),
             "imus": [
-                {"imu": s.imu, "state": s.state.value, "samples": s.samples, "last_t_s": s.last_t_s, "positions": s.positions, "detail": s.detail}
+                {
+                    "imu": s.imu,
+                    "state": s.state.value,
+                    "samples": s.samples,
+                    "last_t_s": s.last_t_s,
+                    "positions": s.positions,
+                    "detail": s.detail,
+                }
                 for s in status.imus
             ],
         },
@@ -537,7 +625,9 @@ def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
     imus = []
     for item in field(obj, "imus", list, **err):
         if not isinstance(item, dict):
-            raise EventError(Reason.WRONG_TYPE, f"each imus entry must be a map, got {type(item).__name__}")
+            raise EventError(
+                Reason.WRONG_TYPE, f"each imus entry must be a map, got {type(item).__name__}"
+            )
         imus.append(
             ImuStatus(
                 imu=field(item, "imu", int, **err),

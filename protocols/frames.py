@@ -44,9 +44,10 @@ frames (duplicated or out-of-order ``seq``, time jumps) is the pipeline's job.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from dataclasses import dataclass
-from enum import Enum
-from typing import Iterable, Self
+from enum import StrEnum
+from typing import Self
 
 import msgpack
 import numpy as np
@@ -77,7 +78,7 @@ class FrameError(SchemaError):
     """A frame that cannot be used; ``reason`` (:class:`~protocols._schema.Reason`) says why."""
 
 
-class SampleDtype(str, Enum):
+class SampleDtype(StrEnum):
     """Element type of the accel/gyro/temp arrays on the wire."""
 
     F64 = "<f8"
@@ -120,7 +121,10 @@ class SampleBatch:
         t = _frozen_f64(self.t_s, "t_s")
         n = t.shape[0]
         if t.ndim != 1 or not 1 <= n <= MAX_SAMPLES:
-            raise FrameError(Reason.WRONG_LENGTH, f"t_s must have shape (N,) with 1 <= N <= {MAX_SAMPLES}, got {t.shape}")
+            raise FrameError(
+                Reason.WRONG_LENGTH,
+                f"t_s must have shape (N,) with 1 <= N <= {MAX_SAMPLES}, got {t.shape}",
+            )
         object.__setattr__(self, "t_s", t)
         for name, shape in (("accel_mps2", (n, 3)), ("gyro_rps", (n, 3)), ("temp_c", (n,))):
             value = getattr(self, name)
@@ -128,7 +132,9 @@ class SampleBatch:
                 continue
             arr = _frozen_f64(value, name)
             if arr.shape != shape:
-                raise FrameError(Reason.WRONG_LENGTH, f"{name} must have shape {shape}, got {arr.shape}")
+                raise FrameError(
+                    Reason.WRONG_LENGTH, f"{name} must have shape {shape}, got {arr.shape}"
+                )
             object.__setattr__(self, name, arr)
 
     @property
@@ -189,7 +195,9 @@ class BatchSource(ABC):
 
 def _frozen_f64(value, name: str) -> np.ndarray:
     if isinstance(value, (str, bytes)) or value is None:
-        raise FrameError(Reason.WRONG_TYPE, f"{name} must be a numeric array, got {type(value).__name__}")
+        raise FrameError(
+            Reason.WRONG_TYPE, f"{name} must be a numeric array, got {type(value).__name__}"
+        )
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -212,7 +220,9 @@ def concat_batches(batches: Iterable[SampleBatch]) -> ImuSession:
         raise ValueError("no batches to join")
     ids = {(b.vehicle, b.imu) for b in batches}
     if len(ids) != 1:
-        raise ValueError(f"batches of several IMUs cannot be joined into one session: {sorted(ids)}")
+        raise ValueError(
+            f"batches of several IMUs cannot be joined into one session: {sorted(ids)}"
+        )
     with_temp = all(b.temp_c is not None for b in batches)
     return ImuSession(
         np.concatenate([b.t_s for b in batches]),
@@ -242,7 +252,9 @@ def encode_frame(batch: SampleBatch, *, dtype: SampleDtype = SampleDtype.F64) ->
             "t_s": batch.t_s.astype("<f8", copy=False).tobytes(),
             "accel_mps2": batch.accel_mps2.astype(dt.value, copy=False).tobytes(),
             "gyro_rps": batch.gyro_rps.astype(dt.value, copy=False).tobytes(),
-            "temp_c": None if batch.temp_c is None else batch.temp_c.astype(dt.value, copy=False).tobytes(),
+            "temp_c": None
+            if batch.temp_c is None
+            else batch.temp_c.astype(dt.value, copy=False).tobytes(),
         },
         use_bin_type=True,
     )
@@ -272,7 +284,9 @@ def decode_frame(data: bytes, *, max_bytes: int = MAX_FRAME_BYTES) -> SampleBatc
     try:
         dtype = SampleDtype(dtype_text)
     except ValueError:
-        raise FrameError(Reason.BAD_VALUE, f"dtype {dtype_text!r} is not one of {[d.value for d in SampleDtype]}") from None
+        raise FrameError(
+            Reason.BAD_VALUE, f"dtype {dtype_text!r} is not one of {[d.value for d in SampleDtype]}"
+        ) from None
 
     t_s = _array(obj, "t_s", SampleDtype.F64, (n,))
     arrays = {
@@ -282,13 +296,19 @@ def decode_frame(data: bytes, *, max_bytes: int = MAX_FRAME_BYTES) -> SampleBatc
     }
     for name, arr in (("t_s", t_s), *arrays.items()):
         if arr is not None and not np.isfinite(arr).all():
-            raise FrameError(Reason.NON_FINITE, f"{name} holds {int((~np.isfinite(arr)).sum())} NaN/Inf value(s)")
+            raise FrameError(
+                Reason.NON_FINITE, f"{name} holds {int((~np.isfinite(arr)).sum())} NaN/Inf value(s)"
+            )
     if n > 1 and not (np.diff(t_s) > 0).all():
         raise FrameError(Reason.TIME_NOT_INCREASING, "t_s must strictly increase within a frame")
-    return SampleBatch(vehicle, imu, seq, t_s, arrays["accel_mps2"], arrays["gyro_rps"], arrays["temp_c"])
+    return SampleBatch(
+        vehicle, imu, seq, t_s, arrays["accel_mps2"], arrays["gyro_rps"], arrays["temp_c"]
+    )
 
 
-def _array(obj: dict, name: str, dtype: SampleDtype, shape: tuple[int, ...], *, optional: bool = False) -> np.ndarray | None:
+def _array(
+    obj: dict, name: str, dtype: SampleDtype, shape: tuple[int, ...], *, optional: bool = False
+) -> np.ndarray | None:
     raw = field(obj, name, bytes, error=FrameError, optional=optional)
     if raw is None:
         return None
@@ -296,7 +316,8 @@ def _array(obj: dict, name: str, dtype: SampleDtype, shape: tuple[int, ...], *, 
     expected = item * int(np.prod(shape))
     if len(raw) != expected:
         raise FrameError(
-            Reason.WRONG_LENGTH, f"{name} has {len(raw)} bytes, expected {expected} for shape {shape} of {dtype.value}"
+            Reason.WRONG_LENGTH,
+            f"{name} has {len(raw)} bytes, expected {expected} for shape {shape} of {dtype.value}",
         )
     arr = np.frombuffer(raw, dtype=dtype.value).reshape(shape)
     # frombuffer on bytes is already read-only; float32 (or a big-endian host) needs a new array.

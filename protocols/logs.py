@@ -34,7 +34,7 @@ import os
 import struct
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +58,7 @@ _DF_HEAD = b"\xa3\x95"
 _DF_FMT_ID = 0x80
 
 
-class LogFormat(str, Enum):
+class LogFormat(StrEnum):
     TLOG = "tlog"
     DATAFLASH_BIN = "bin"
     DATAFLASH_TEXT = "log"
@@ -79,7 +79,9 @@ def detect_format(path: str | os.PathLike) -> LogFormat:
     # A tlog record: 8-byte stamp, then a MAVLink 1 (0xFE) or 2 (0xFD) start byte.
     if len(head) > 8 and head[8] in (0xFE, 0xFD):
         return LogFormat.TLOG
-    raise ValueError(f"{path}: not a MAVLink .tlog or a DataFlash .bin/.log (first bytes {head[:12].hex()})")
+    raise ValueError(
+        f"{path}: not a MAVLink .tlog or a DataFlash .bin/.log (first bytes {head[:12].hex()})"
+    )
 
 
 @dataclass
@@ -144,7 +146,9 @@ class LogReader:
     def __iter__(self) -> Iterator[SampleBatch]:
         self.stats = LogStats()
         buffers: dict[int, _Buffer] = {}
-        samples = self._tlog_samples() if self.format is LogFormat.TLOG else self._dataflash_samples()
+        samples = (
+            self._tlog_samples() if self.format is LogFormat.TLOG else self._dataflash_samples()
+        )
         for kind, imu, t_s, acc, gyr, temp in samples:
             self.stats.messages[kind] = self.stats.messages.get(kind, 0) + 1
             buf = buffers.setdefault(imu, _Buffer())
@@ -169,7 +173,15 @@ class LogReader:
     def _emit(self, imu: int, buf: _Buffer) -> Iterator[SampleBatch]:
         # Temperature only when every sample has one: a batch is all or nothing.
         temps = None if any(t is None for t in buf.temp_c) else np.array(buf.temp_c)
-        batch = SampleBatch(self.vehicle, imu, buf.seq, np.array(buf.t_s), np.array(buf.accel_mps2), np.array(buf.gyro_rps), temps)
+        batch = SampleBatch(
+            self.vehicle,
+            imu,
+            buf.seq,
+            np.array(buf.t_s),
+            np.array(buf.accel_mps2),
+            np.array(buf.gyro_rps),
+            temps,
+        )
         buf.seq += 1
         buf.t_s, buf.accel_mps2, buf.gyro_rps, buf.temp_c = [], [], [], []
         yield batch
@@ -188,7 +200,11 @@ class LogReader:
             conn.close()
 
     def _dataflash_samples(self):
-        reader_cls = DFReader.DFReader_binary if self.format is LogFormat.DATAFLASH_BIN else DFReader.DFReader_text
+        reader_cls = (
+            DFReader.DFReader_binary
+            if self.format is LogFormat.DATAFLASH_BIN
+            else DFReader.DFReader_text
+        )
         reader = reader_cls(str(self.path))
         try:
             while (msg := reader.recv_match(type=list(DATAFLASH_IMU_NAMES))) is not None:
@@ -197,7 +213,14 @@ class LogReader:
                 imu = int(msg.I) if "I" in fields else DATAFLASH_IMU_NAMES.index(name)
                 t_s = msg.TimeUS * 1e-6 if "TimeUS" in fields else msg.TimeMS * 1e-3
                 temp = float(msg.T) if "T" in fields else None
-                yield name, imu, t_s, (msg.AccX, msg.AccY, msg.AccZ), (msg.GyrX, msg.GyrY, msg.GyrZ), temp
+                yield (
+                    name,
+                    imu,
+                    t_s,
+                    (msg.AccX, msg.AccY, msg.AccZ),
+                    (msg.GyrX, msg.GyrY, msg.GyrZ),
+                    temp,
+                )
         finally:
             reader.close()
 
@@ -224,7 +247,11 @@ def _merged_rows(sessions: Mapping[int, ImuSession]) -> list[tuple[float, int, i
     return rows
 
 
-DEFAULT_TLOG_MESSAGES: Mapping[int, ImuMessage] = {0: ImuMessage.RAW_IMU, 1: ImuMessage.SCALED_IMU2, 2: ImuMessage.SCALED_IMU3}
+DEFAULT_TLOG_MESSAGES: Mapping[int, ImuMessage] = {
+    0: ImuMessage.RAW_IMU,
+    1: ImuMessage.SCALED_IMU2,
+    2: ImuMessage.SCALED_IMU3,
+}
 """What ArduPilot streams per IMU (RAW_SENSORS): the default of :func:`write_tlog`."""
 
 
@@ -245,9 +272,16 @@ def write_tlog(
     ``wall_start_s + t_s``. Integer messages quantize to their counts.
     """
     for imu, kind in ((imu, ImuMessage(messages[imu])) for imu in sessions):
-        if kind not in (ImuMessage.RAW_IMU, ImuMessage.HIGHRES_IMU) and imu != DEFAULT_IMU_INDEX[kind]:
-            raise ValueError(f"{kind.value} carries IMU {DEFAULT_IMU_INDEX[kind]} only, not IMU {imu}")
-    mav = mavlink2.MAVLink(None, srcSystem=source_system, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1)
+        if (
+            kind not in (ImuMessage.RAW_IMU, ImuMessage.HIGHRES_IMU)
+            and imu != DEFAULT_IMU_INDEX[kind]
+        ):
+            raise ValueError(
+                f"{kind.value} carries IMU {DEFAULT_IMU_INDEX[kind]} only, not IMU {imu}"
+            )
+    mav = mavlink2.MAVLink(
+        None, srcSystem=source_system, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1
+    )
     with open(path, "wb") as fh:
         rows = _merged_rows(sessions)
         for t_s, imu, k in rows:
@@ -255,10 +289,15 @@ def write_tlog(
             kind = messages[imu]
             base = DEFAULT_IMU_INDEX[kind]
             msg = imu_message(
-                kind, t_s=t_s, accel_mps2=s.accel_mps2[k], gyro_rps=s.gyro_rps[k],
-                temp_c=None if s.temp_c is None else float(s.temp_c[k]), imu_id=imu - base, raw_scale=raw_scale,
+                kind,
+                t_s=t_s,
+                accel_mps2=s.accel_mps2[k],
+                gyro_rps=s.gyro_rps[k],
+                temp_c=None if s.temp_c is None else float(s.temp_c[k]),
+                imu_id=imu - base,
+                raw_scale=raw_scale,
             )
-            fh.write(struct.pack(">Q", int(round((wall_start_s + t_s) * 1e6))) + msg.pack(mav))
+            fh.write(struct.pack(">Q", round((wall_start_s + t_s) * 1e6)) + msg.pack(mav))
     return len(rows)
 
 
@@ -271,7 +310,9 @@ class _DfFormat:
 
     @property
     def struct(self) -> struct.Struct:
-        return struct.Struct("<" + self.fmt.replace("n", "4s").replace("N", "16s").replace("Z", "64s"))
+        return struct.Struct(
+            "<" + self.fmt.replace("n", "4s").replace("N", "16s").replace("Z", "64s")
+        )
 
     @property
     def length(self) -> int:
@@ -281,7 +322,9 @@ class _DfFormat:
 _FMT_OF_FMT = _DfFormat(_DF_FMT_ID, "FMT", "BBnNZ", ("Type", "Length", "Name", "Format", "Columns"))
 
 
-def _dataflash_plan(sessions: Mapping[int, ImuSession], legacy_names: bool) -> tuple[list[_DfFormat], dict[int, _DfFormat]]:
+def _dataflash_plan(
+    sessions: Mapping[int, ImuSession], legacy_names: bool
+) -> tuple[list[_DfFormat], dict[int, _DfFormat]]:
     """Message formats, and the format of each IMU, for the DataFlash writers.
 
     Current ArduPilot: one ``IMU`` message with instance ``I`` (``QBffffff[f]``).
@@ -292,20 +335,29 @@ def _dataflash_plan(sessions: Mapping[int, ImuSession], legacy_names: bool) -> t
     data_cols = ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ") + (("T",) if with_temp else ())
     if legacy_names:
         if not set(sessions) <= {0, 1, 2}:
-            raise ValueError(f"legacy IMU/IMU2/IMU3 names hold IMU indices 0..2 only, got {sorted(sessions)}")
+            raise ValueError(
+                f"legacy IMU/IMU2/IMU3 names hold IMU indices 0..2 only, got {sorted(sessions)}"
+            )
         per_imu = {
-            imu: _DfFormat(_DF_FMT_ID + 1 + imu, DATAFLASH_IMU_NAMES[imu], "Q" + "f" * len(data_cols), ("TimeUS",) + data_cols)
+            imu: _DfFormat(
+                _DF_FMT_ID + 1 + imu,
+                DATAFLASH_IMU_NAMES[imu],
+                "Q" + "f" * len(data_cols),
+                ("TimeUS", *data_cols),
+            )
             for imu in sorted(sessions)
         }
         return [_FMT_OF_FMT, *per_imu.values()], per_imu
-    imu_fmt = _DfFormat(_DF_FMT_ID + 1, "IMU", "QB" + "f" * len(data_cols), ("TimeUS", "I") + data_cols)
+    imu_fmt = _DfFormat(
+        _DF_FMT_ID + 1, "IMU", "QB" + "f" * len(data_cols), ("TimeUS", "I", *data_cols)
+    )
     return [_FMT_OF_FMT, imu_fmt], {imu: imu_fmt for imu in sessions}
 
 
 def _dataflash_records(sessions: Mapping[int, ImuSession], per_imu: Mapping[int, _DfFormat]):
     for t_s, imu, k in _merged_rows(sessions):
         s, f = sessions[imu], per_imu[imu]
-        values: list = [int(round(t_s * 1e6))]
+        values: list = [round(t_s * 1e6)]
         if "I" in f.columns:
             values.append(imu)
         values += [float(v) for v in s.gyro_rps[k]] + [float(v) for v in s.accel_mps2[k]]
@@ -314,7 +366,9 @@ def _dataflash_records(sessions: Mapping[int, ImuSession], per_imu: Mapping[int,
         yield f, values
 
 
-def write_dataflash_bin(path: str | os.PathLike, sessions: Mapping[int, ImuSession], *, legacy_names: bool = False) -> int:
+def write_dataflash_bin(
+    path: str | os.PathLike, sessions: Mapping[int, ImuSession], *, legacy_names: bool = False
+) -> int:
     """Write IMU sessions as a binary DataFlash log; returns the number of IMU messages.
 
     Layout: every message is ``A3 95 <type id>`` and its packed fields
@@ -329,7 +383,9 @@ def write_dataflash_bin(path: str | os.PathLike, sessions: Mapping[int, ImuSessi
     n = 0
     with open(path, "wb") as fh:
         for f in formats:
-            payload = _FMT_OF_FMT.struct.pack(f.type_id, f.length, f.name.encode(), f.fmt.encode(), ",".join(f.columns).encode())
+            payload = _FMT_OF_FMT.struct.pack(
+                f.type_id, f.length, f.name.encode(), f.fmt.encode(), ",".join(f.columns).encode()
+            )
             fh.write(_DF_HEAD + bytes([_DF_FMT_ID]) + payload)
         for f, values in _dataflash_records(sessions, per_imu):
             fh.write(_DF_HEAD + bytes([f.type_id]) + f.struct.pack(*values))
@@ -337,7 +393,9 @@ def write_dataflash_bin(path: str | os.PathLike, sessions: Mapping[int, ImuSessi
     return n
 
 
-def write_dataflash_text(path: str | os.PathLike, sessions: Mapping[int, ImuSession], *, legacy_names: bool = False) -> int:
+def write_dataflash_text(
+    path: str | os.PathLike, sessions: Mapping[int, ImuSession], *, legacy_names: bool = False
+) -> int:
     """Write IMU sessions as a text DataFlash log (``FMT`` lines, then one line per message); returns IMU messages.
 
     Same formats as :func:`write_dataflash_bin`; values are written with

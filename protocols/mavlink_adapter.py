@@ -41,7 +41,7 @@ import asyncio
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -57,7 +57,7 @@ STATUSTEXT_MAX_CHARS = 50
 """Characters of one STATUSTEXT (the MAVLink field; ground stations show one message per line)."""
 
 
-class ImuMessage(str, Enum):
+class ImuMessage(StrEnum):
     """The MAVLink messages read as IMU samples."""
 
     RAW_IMU = "RAW_IMU"
@@ -105,7 +105,12 @@ class ImuSample:
     temp_c: float | None
 
 
-def decode_imu_message(msg, *, raw_scale: ImuScale = RAW_IMU_ARDUPILOT, imu_index: Mapping[ImuMessage, int] = DEFAULT_IMU_INDEX) -> ImuSample | None:
+def decode_imu_message(
+    msg,
+    *,
+    raw_scale: ImuScale = RAW_IMU_ARDUPILOT,
+    imu_index: Mapping[ImuMessage, int] = DEFAULT_IMU_INDEX,
+) -> ImuSample | None:
     """SI sample of a RAW_IMU / SCALED_IMU* / HIGHRES_IMU message; ``None`` for other messages.
 
     ``msg`` is a pymavlink message object (live link or log). Units: module table.
@@ -148,14 +153,30 @@ def sample_to_batch(sample: ImuSample, *, vehicle: str, seq: int) -> SampleBatch
     row = np.array([[sample.t_s, *sample.accel_mps2, *sample.gyro_rps, temp]])
     # One read-only row, viewed as the batch's arrays: SampleBatch then keeps the views without copying.
     row.flags.writeable = False
-    return SampleBatch(vehicle, sample.imu, seq, row[:, 0], row[:, 1:4], row[:, 4:7], None if sample.temp_c is None else row[:, 7])
+    return SampleBatch(
+        vehicle,
+        sample.imu,
+        seq,
+        row[:, 0],
+        row[:, 1:4],
+        row[:, 4:7],
+        None if sample.temp_c is None else row[:, 7],
+    )
 
 
 # --------------------------------------------------------------------------- out: typed builders
 
 
-def imu_message(kind: ImuMessage, *, t_s: float, accel_mps2, gyro_rps, temp_c: float | None = None, imu_id: int = 0,
-                raw_scale: ImuScale = RAW_IMU_ARDUPILOT):
+def imu_message(
+    kind: ImuMessage,
+    *,
+    t_s: float,
+    accel_mps2,
+    gyro_rps,
+    temp_c: float | None = None,
+    imu_id: int = 0,
+    raw_scale: ImuScale = RAW_IMU_ARDUPILOT,
+):
     """Build an IMU message from SI values (the inverse of :func:`decode_imu_message`; a simulated autopilot).
 
     Integer messages round to the nearest count; ``imu_id`` goes into the
@@ -166,29 +187,54 @@ def imu_message(kind: ImuMessage, *, t_s: float, accel_mps2, gyro_rps, temp_c: f
     g = [float(v) for v in np.asarray(gyro_rps, float).reshape(3)]
     if kind is ImuMessage.HIGHRES_IMU:
         return mavlink2.MAVLink_highres_imu_message(
-            time_usec=int(round(t_s * 1e6)), xacc=a[0], yacc=a[1], zacc=a[2], xgyro=g[0], ygyro=g[1], zgyro=g[2],
-            xmag=0.0, ymag=0.0, zmag=0.0, abs_pressure=0.0, diff_pressure=0.0, pressure_alt=0.0,
+            time_usec=round(t_s * 1e6),
+            xacc=a[0],
+            yacc=a[1],
+            zacc=a[2],
+            xgyro=g[0],
+            ygyro=g[1],
+            zgyro=g[2],
+            xmag=0.0,
+            ymag=0.0,
+            zmag=0.0,
+            abs_pressure=0.0,
+            diff_pressure=0.0,
+            pressure_alt=0.0,
             temperature=0.0 if temp_c is None else float(temp_c),
-            fields_updated=0b111111 | (0 if temp_c is None else _HIGHRES_TEMPERATURE_BIT), id=int(imu_id),
+            fields_updated=0b111111 | (0 if temp_c is None else _HIGHRES_TEMPERATURE_BIT),
+            id=int(imu_id),
         )
     scale = raw_scale if kind is ImuMessage.RAW_IMU else MILLI_UNITS
     ia = [_count(v / scale.accel_mps2_per_lsb) for v in a]
     ig = [_count(v / scale.gyro_rps_per_lsb) for v in g]
     it = 0 if temp_c is None else (_count(temp_c / scale.temp_c_per_lsb) or 1)
-    common = dict(xacc=ia[0], yacc=ia[1], zacc=ia[2], xgyro=ig[0], ygyro=ig[1], zgyro=ig[2], xmag=0, ymag=0, zmag=0, temperature=it)
+    common = dict(
+        xacc=ia[0],
+        yacc=ia[1],
+        zacc=ia[2],
+        xgyro=ig[0],
+        ygyro=ig[1],
+        zgyro=ig[2],
+        xmag=0,
+        ymag=0,
+        zmag=0,
+        temperature=it,
+    )
     if kind is ImuMessage.RAW_IMU:
-        return mavlink2.MAVLink_raw_imu_message(time_usec=int(round(t_s * 1e6)), id=int(imu_id), **common)
+        return mavlink2.MAVLink_raw_imu_message(
+            time_usec=round(t_s * 1e6), id=int(imu_id), **common
+        )
     cls = {
         ImuMessage.SCALED_IMU: mavlink2.MAVLink_scaled_imu_message,
         ImuMessage.SCALED_IMU2: mavlink2.MAVLink_scaled_imu2_message,
         ImuMessage.SCALED_IMU3: mavlink2.MAVLink_scaled_imu3_message,
     }[kind]
-    return cls(time_boot_ms=int(round(t_s * 1e3)), **common)
+    return cls(time_boot_ms=round(t_s * 1e3), **common)
 
 
 def _count(value: float) -> int:
     """Nearest int16 count; out of range is an error (a saturated field would lie)."""
-    n = int(round(value))
+    n = round(value)
     if not -32768 <= n <= 32767:
         raise ValueError(f"{value:.1f} counts do not fit the int16 field of the message")
     return n
@@ -216,7 +262,11 @@ def statustext_messages(text: str, *, severity: Severity, chunk_id: int = 0) -> 
     """
     data = text.encode("ascii", "replace")
     if len(data) <= STATUSTEXT_MAX_CHARS:
-        return [mavlink2.MAVLink_statustext_message(severity=int(Severity(severity)), text=data, id=0, chunk_seq=0)]
+        return [
+            mavlink2.MAVLink_statustext_message(
+                severity=int(Severity(severity)), text=data, id=0, chunk_seq=0
+            )
+        ]
     if not 1 <= chunk_id <= 65535:
         raise ValueError(f"a long text needs a chunk_id in 1..65535, got {chunk_id}")
     pieces = [data[i : i + STATUSTEXT_MAX_CHARS] for i in range(0, len(data), STATUSTEXT_MAX_CHARS)]
@@ -225,7 +275,9 @@ def statustext_messages(text: str, *, severity: Severity, chunk_id: int = 0) -> 
     if len(pieces) > 256:
         raise ValueError(f"text of {len(data)} characters needs more than 256 chunks")
     return [
-        mavlink2.MAVLink_statustext_message(severity=int(Severity(severity)), text=p, id=chunk_id, chunk_seq=i)
+        mavlink2.MAVLink_statustext_message(
+            severity=int(Severity(severity)), text=p, id=chunk_id, chunk_seq=i
+        )
         for i, p in enumerate(pieces)
     ]
 
@@ -265,7 +317,11 @@ def alert_text(event: Event) -> str:
     for digits in (3, 2, 1):
         number = "" if event.estimate is None else f" {event.estimate:.{digits}g}{unit}"
         limit = "" if event.tolerance is None else f" lim {event.tolerance:.{digits}g}"
-        for candidate in (f"{head}{number}{limit} {event.predicate.value}", f"{head}{number}{limit}", f"{head}{number}"):
+        for candidate in (
+            f"{head}{number}{limit} {event.predicate.value}",
+            f"{head}{number}{limit}",
+            f"{head}{number}",
+        ):
             if len(candidate) <= STATUSTEXT_MAX_CHARS:
                 return candidate
     return f"{head}{number}"[:STATUSTEXT_MAX_CHARS]
@@ -282,7 +338,9 @@ class AlertRateLimiter:
 
     def __init__(self, *, min_interval_s: float = 10.0, max_per_s: float = 1.0):
         if min_interval_s < 0 or max_per_s <= 0:
-            raise ValueError(f"need min_interval_s >= 0 and max_per_s > 0, got {min_interval_s}, {max_per_s}")
+            raise ValueError(
+                f"need min_interval_s >= 0 and max_per_s > 0, got {min_interval_s}, {max_per_s}"
+            )
         self._interval_s = float(min_interval_s)
         self._rate = float(max_per_s)
         self._tokens = float(max_per_s)
@@ -352,11 +410,23 @@ class MavlinkSettings:
                 raise ValueError(f"{name} must be in 0..255, got {value}")
         object.__setattr__(self, "messages", tuple(ImuMessage(m) for m in self.messages))
 
-    _KEYS = ("device", "vehicle", "baud", "source_system", "source_component", "autopilot_system", "messages",
-             "imu_index", "raw_scale", "signing_key_hex", "signing_link_id", "accept_unsigned")
+    _KEYS = (
+        "device",
+        "vehicle",
+        "baud",
+        "source_system",
+        "source_component",
+        "autopilot_system",
+        "messages",
+        "imu_index",
+        "raw_scale",
+        "signing_key_hex",
+        "signing_link_id",
+        "accept_unsigned",
+    )
 
     @classmethod
-    def from_dict(cls, table: Mapping[str, Any]) -> "MavlinkSettings":
+    def from_dict(cls, table: Mapping[str, Any]) -> MavlinkSettings:
         """From a plain dict: as the attributes, with ``signing_key_hex`` (64 hex digits) for the key,
         ``raw_scale`` as ``{accel_mps2_per_lsb, gyro_rps_per_lsb, temp_c_per_lsb}`` and
         ``imu_index`` as ``{"SCALED_IMU2": 1, ...}``. Errors are ``ValueError`` naming the key."""
@@ -366,15 +436,32 @@ class MavlinkSettings:
         for name in ("device", "vehicle"):
             if not isinstance(table.get(name), str) or not table[name]:
                 raise ValueError(f"mavlink {name} must be a non-empty string")
-        kw: dict[str, Any] = {k: table[k] for k in ("device", "vehicle", "baud", "source_system", "source_component",
-                                                    "autopilot_system", "signing_link_id", "accept_unsigned") if k in table}
+        kw: dict[str, Any] = {
+            k: table[k]
+            for k in (
+                "device",
+                "vehicle",
+                "baud",
+                "source_system",
+                "source_component",
+                "autopilot_system",
+                "signing_link_id",
+                "accept_unsigned",
+            )
+            if k in table
+        }
         try:
             if "messages" in table:
                 kw["messages"] = tuple(ImuMessage(m) for m in table["messages"])
             if "imu_index" in table:
-                kw["imu_index"] = {**DEFAULT_IMU_INDEX, **{ImuMessage(k): int(v) for k, v in table["imu_index"].items()}}
+                kw["imu_index"] = {
+                    **DEFAULT_IMU_INDEX,
+                    **{ImuMessage(k): int(v) for k, v in table["imu_index"].items()},
+                }
         except ValueError as exc:
-            raise ValueError(f"mavlink messages/imu_index: {exc}; known: {[m.value for m in ImuMessage]}") from None
+            raise ValueError(
+                f"mavlink messages/imu_index: {exc}; known: {[m.value for m in ImuMessage]}"
+            ) from None
         if "raw_scale" in table:
             kw["raw_scale"] = ImuScale(**{k: float(v) for k, v in table["raw_scale"].items()})
         if "signing_key_hex" in table:
@@ -410,7 +497,10 @@ class MavlinkLink:
     def __init__(self, settings: MavlinkSettings):
         self.settings = settings
         self._conn = mavutil.mavlink_connection(
-            settings.device, baud=settings.baud, source_system=settings.source_system, source_component=settings.source_component
+            settings.device,
+            baud=settings.baud,
+            source_system=settings.source_system,
+            source_component=settings.source_component,
         )
         use_mavlink2(self._conn)
         if settings.signing_key is not None:
@@ -418,7 +508,9 @@ class MavlinkLink:
                 settings.signing_key,
                 sign_outgoing=True,
                 link_id=settings.signing_link_id,
-                allow_unsigned_callback=(lambda mav, msg_id: True) if settings.accept_unsigned else None,
+                allow_unsigned_callback=(lambda mav, msg_id: True)
+                if settings.accept_unsigned
+                else None,
             )
         self._types = [m.value for m in settings.messages]
         self._seq: dict[int, int] = {}
@@ -441,17 +533,24 @@ class MavlinkLink:
     def to_batch(self, msg) -> SampleBatch | None:
         """Convert one received IMU message (counted); ``None`` if it is from another system or unusable."""
         self.counters.messages += 1
-        if self.settings.autopilot_system is not None and msg.get_srcSystem() != self.settings.autopilot_system:
+        if (
+            self.settings.autopilot_system is not None
+            and msg.get_srcSystem() != self.settings.autopilot_system
+        ):
             self.counters.ignored_system += 1
             return None
-        sample = decode_imu_message(msg, raw_scale=self.settings.raw_scale, imu_index=self.settings.imu_index)
+        sample = decode_imu_message(
+            msg, raw_scale=self.settings.raw_scale, imu_index=self.settings.imu_index
+        )
         if sample is None:
             return None
         seq = self._seq.get(sample.imu, 0)
         try:
             batch = sample_to_batch(sample, vehicle=self.settings.vehicle, seq=seq)
         except FrameError as exc:
-            self.counters.rejected[exc.reason.value] = self.counters.rejected.get(exc.reason.value, 0) + 1
+            self.counters.rejected[exc.reason.value] = (
+                self.counters.rejected.get(exc.reason.value, 0) + 1
+            )
             return None
         self._seq[sample.imu] = seq + 1
         kind = msg.get_type()
@@ -489,7 +588,7 @@ class MavlinkLink:
     def close(self) -> None:
         self._conn.close()
 
-    def __enter__(self) -> "MavlinkLink":
+    def __enter__(self) -> MavlinkLink:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -498,10 +597,14 @@ class MavlinkLink:
 
 def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:
     """Give a pymavlink connection its own MAVLink 2 ``ardupilotmega`` parser/encoder (module docstring)."""
-    conn.mav = mavlink2.MAVLink(conn, srcSystem=conn.source_system, srcComponent=conn.source_component)
+    conn.mav = mavlink2.MAVLink(
+        conn, srcSystem=conn.source_system, srcComponent=conn.source_component
+    )
     conn.mav.robust_parsing = True
     conn.WIRE_PROTOCOL_VERSION = mavlink2.WIRE_PROTOCOL_VERSION
-    conn.first_byte = False  # pymavlink's auto-switch would rewrite os.environ and the global dialect
+    conn.first_byte = (
+        False  # pymavlink's auto-switch would rewrite os.environ and the global dialect
+    )
     return conn
 
 
@@ -514,12 +617,23 @@ class MavlinkSource(BatchSource):
     ``await source.get()``; create it inside the running loop (or pass ``loop``).
     """
 
-    def __init__(self, link: MavlinkLink, *, capacity: int = 4096, poll_s: float = 0.1, loop: asyncio.AbstractEventLoop | None = None):
+    def __init__(
+        self,
+        link: MavlinkLink,
+        *,
+        capacity: int = 4096,
+        poll_s: float = 0.1,
+        loop: asyncio.AbstractEventLoop | None = None,
+    ):
         self.link = link
-        self._ring: ThreadToAsyncRing[SampleBatch] = ThreadToAsyncRing(capacity, loop or asyncio.get_running_loop())
+        self._ring: ThreadToAsyncRing[SampleBatch] = ThreadToAsyncRing(
+            capacity, loop or asyncio.get_running_loop()
+        )
         self._stop = threading.Event()
         self._poll_s = float(poll_s)
-        self._thread = threading.Thread(target=self._run, name=f"mavlink-{link.settings.device}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
+        )
         self._thread.start()
 
     def _run(self) -> None:

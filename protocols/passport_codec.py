@@ -31,7 +31,9 @@ class PassportCodecError(SchemaError):
 
 def write_passport_json(passport: Passport, path: str | os.PathLike[str]) -> None:
     """Write ``passport`` as indented JSON to ``path`` atomically (temp file + ``os.replace``)."""
-    atomic_write_bytes(path, (json.dumps(passport.to_dict(), indent=2, allow_nan=False) + "\n").encode("utf-8"))
+    atomic_write_bytes(
+        path, (json.dumps(passport.to_dict(), indent=2, allow_nan=False) + "\n").encode("utf-8")
+    )
 
 
 def read_passport_json(path: str | os.PathLike[str]) -> Passport:
@@ -39,12 +41,16 @@ def read_passport_json(path: str | os.PathLike[str]) -> Passport:
     source = Path(path)
     size = source.stat().st_size
     if size > MAX_PASSPORT_BYTES:
-        raise PassportError(f"{source}: {size} bytes exceeds the passport limit of {MAX_PASSPORT_BYTES}")
+        raise PassportError(
+            f"{source}: {size} bytes exceeds the passport limit of {MAX_PASSPORT_BYTES}"
+        )
     text = source.read_text(encoding="utf-8")
     try:
         obj = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
-        raise PassportError(f"{source}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+        raise PassportError(
+            f"{source}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})"
+        ) from None
     except ValueError as exc:
         raise PassportError(f"{source}: {exc}") from None
     try:

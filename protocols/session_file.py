@@ -79,10 +79,14 @@ def _read_text(path: Path) -> str:
     try:
         return path.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise SessionFileError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from None
+        raise SessionFileError(
+            f"{path}: not a text file ({exc.reason} at byte {exc.start})"
+        ) from None
 
 
-def _parse_rows(path: Path, rows: list[tuple[int, str]], names: tuple[str, ...], delimiter: str | None) -> np.ndarray:
+def _parse_rows(
+    path: Path, rows: list[tuple[int, str]], names: tuple[str, ...], delimiter: str | None
+) -> np.ndarray:
     """(R, len(names)) floats from ``rows`` of (line number, text).
 
     numpy parses the whole table at once; only when that fails is the table
@@ -91,7 +95,9 @@ def _parse_rows(path: Path, rows: list[tuple[int, str]], names: tuple[str, ...],
     if not rows:
         return np.empty((0, len(names)))
     try:
-        data = np.loadtxt([text for _, text in rows], delimiter=delimiter, comments=None, ndmin=2, dtype=float)
+        data = np.loadtxt(
+            [text for _, text in rows], delimiter=delimiter, comments=None, ndmin=2, dtype=float
+        )
         if data.shape[1] == len(names):
             return data
     except ValueError:
@@ -102,11 +108,13 @@ def _parse_rows(path: Path, rows: list[tuple[int, str]], names: tuple[str, ...],
             raise SessionFileError(
                 f"{path}: line {lineno}: expected {len(names)} fields ({','.join(names)}), got {len(fields)}"
             )
-        for name, value in zip(names, fields):
+        for name, value in zip(names, fields, strict=True):
             try:
                 float(value)
             except ValueError:
-                raise SessionFileError(f"{path}: line {lineno}, column {name!r}: not a number: {value.strip()!r}") from None
+                raise SessionFileError(
+                    f"{path}: line {lineno}, column {name!r}: not a number: {value.strip()!r}"
+                ) from None
     raise SessionFileError(f"{path}: the numeric table cannot be parsed")
 
 
@@ -142,7 +150,9 @@ def _gravity_from(metadata: dict[str, str], path: Path) -> float | None:
     try:
         g = float(metadata[GRAVITY_KEY])
     except ValueError:
-        raise SessionFileError(f"{path}: comment {GRAVITY_KEY} is not a number: {metadata[GRAVITY_KEY]!r}") from None
+        raise SessionFileError(
+            f"{path}: comment {GRAVITY_KEY} is not a number: {metadata[GRAVITY_KEY]!r}"
+        ) from None
     if not (math.isfinite(g) and g > 0):
         raise SessionFileError(f"{path}: comment {GRAVITY_KEY} must be positive, got {g!r}")
     return g
@@ -160,7 +170,9 @@ def _check_header(path: Path, lineno: int, names: list[str]) -> None:
     expected = "t,ax,ay,az,gx,gy,gz[,temp]"
     for n in names:
         if n not in CSV_COLUMNS:
-            raise SessionFileError(f"{path}: line {lineno}: unknown column {n!r} (expected {expected})")
+            raise SessionFileError(
+                f"{path}: line {lineno}: unknown column {n!r} (expected {expected})"
+            )
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise SessionFileError(f"{path}: line {lineno}: duplicate column {dup[0]!r}")
@@ -170,9 +182,13 @@ def _check_header(path: Path, lineno: int, names: list[str]) -> None:
         present = [c for c in triad if c in names]
         if present and len(present) < 3:
             missing = next(c for c in triad if c not in names)
-            raise SessionFileError(f"{path}: line {lineno}: missing column {missing!r} (expected {expected})")
+            raise SessionFileError(
+                f"{path}: line {lineno}: missing column {missing!r} (expected {expected})"
+            )
     if not any(c in names for c in ACCEL_COLUMNS + GYRO_COLUMNS):
-        raise SessionFileError(f"{path}: line {lineno}: missing columns ax,ay,az and gx,gy,gz (expected {expected})")
+        raise SessionFileError(
+            f"{path}: line {lineno}: missing columns ax,ay,az and gx,gy,gz (expected {expected})"
+        )
 
 
 def read_csv_session(path: str | os.PathLike) -> LoadedSession:
@@ -197,13 +213,22 @@ def read_csv_session(path: str | os.PathLike) -> LoadedSession:
     def triad(cols):
         return np.column_stack([col[c] for c in cols]) if cols[0] in col else None
 
-    session = ImuSession(col["t"].copy(), triad(ACCEL_COLUMNS), triad(GYRO_COLUMNS), col["temp"].copy() if "temp" in col else None)
+    session = ImuSession(
+        col["t"].copy(),
+        triad(ACCEL_COLUMNS),
+        triad(GYRO_COLUMNS),
+        col["temp"].copy() if "temp" in col else None,
+    )
     meta = _metadata(comments)
     return LoadedSession(session, _gravity_from(meta, path), meta, str(path))
 
 
 def write_csv_session(
-    path: str | os.PathLike, session: ImuSession, *, metadata: dict[str, object] | None = None, comments: tuple[str, ...] = ()
+    path: str | os.PathLike,
+    session: ImuSession,
+    *,
+    metadata: dict[str, object] | None = None,
+    comments: tuple[str, ...] = (),
 ) -> Path:
     """Write ``session`` as a CSV session file; returns the path.
 
@@ -295,7 +320,9 @@ def load_xsens_sidecar(path: str | os.PathLike | None = None) -> XsensNominal:
     except tomllib.TOMLDecodeError as exc:
         raise SessionFileError(f"{where}: not valid TOML: {exc}") from None
     if doc.get("format") != XSENS_SIDECAR_FORMAT:
-        raise SessionFileError(f"{where}: format must be {XSENS_SIDECAR_FORMAT!r}, got {doc.get('format')!r}")
+        raise SessionFileError(
+            f"{where}: format must be {XSENS_SIDECAR_FORMAT!r}, got {doc.get('format')!r}"
+        )
     if doc.get("version") != XSENS_SIDECAR_VERSION:
         raise SessionFileError(
             f"{where}: unknown sidecar version {doc.get('version')!r} (this reader knows version {XSENS_SIDECAR_VERSION})"
@@ -303,8 +330,14 @@ def load_xsens_sidecar(path: str | os.PathLike | None = None) -> XsensNominal:
     scales = {}
     for triad in ("accel", "gyro"):
         table = doc.get(triad)
-        if not isinstance(table, dict) or "offset_counts" not in table or "scale_si_per_count" not in table:
-            raise SessionFileError(f"{where}: needs a [{triad}] table with offset_counts and scale_si_per_count")
+        if (
+            not isinstance(table, dict)
+            or "offset_counts" not in table
+            or "scale_si_per_count" not in table
+        ):
+            raise SessionFileError(
+                f"{where}: needs a [{triad}] table with offset_counts and scale_si_per_count"
+            )
         try:
             scales[triad] = CountScale(table["offset_counts"], table["scale_si_per_count"])
         except (ValueError, TypeError) as exc:
@@ -323,7 +356,10 @@ def _read_count_file(path: Path) -> np.ndarray:
 
 
 def read_xsens_pair(
-    accel_path: str | os.PathLike, gyro_path: str | os.PathLike, *, nominal: XsensNominal | None = None
+    accel_path: str | os.PathLike,
+    gyro_path: str | os.PathLike,
+    *,
+    nominal: XsensNominal | None = None,
 ) -> LoadedSession:
     """Read the two-file raw-count format; ``nominal`` defaults to the packaged sidecar."""
     nominal = load_xsens_sidecar() if nominal is None else nominal
@@ -331,14 +367,18 @@ def read_xsens_pair(
     acc = _read_count_file(accel_path)
     gyr = _read_count_file(gyro_path)
     if acc.shape[0] != gyr.shape[0]:
-        raise SessionFileError(f"{accel_path} has {acc.shape[0]} samples but {gyro_path} has {gyr.shape[0]}: not a pair")
+        raise SessionFileError(
+            f"{accel_path} has {acc.shape[0]} samples but {gyro_path} has {gyr.shape[0]}: not a pair"
+        )
     differ = np.flatnonzero(acc[:, 0] != gyr[:, 0])
     if differ.size:
         k = int(differ[0])
         raise SessionFileError(
             f"{accel_path} and {gyro_path}: time stamps differ at sample {k + 1} ({float(acc[k, 0])!r} vs {float(gyr[k, 0])!r}): not a pair"
         )
-    session = ImuSession(acc[:, 0].copy(), nominal.accel.to_si(acc[:, 1:]), nominal.gyro.to_si(gyr[:, 1:]), None)
+    session = ImuSession(
+        acc[:, 0].copy(), nominal.accel.to_si(acc[:, 1:]), nominal.gyro.to_si(gyr[:, 1:]), None
+    )
     meta = {"sidecar": nominal.source}
     return LoadedSession(session, nominal.gravity_mps2, meta, f"{accel_path} + {gyro_path}")
 
@@ -349,7 +389,11 @@ def find_xsens_pair(directory: Path) -> tuple[Path, Path, Path | None]:
     The pair is the one data file whose name contains ``acc`` and the one whose
     name contains ``gyr``.
     """
-    files = sorted(p for p in directory.iterdir() if p.is_file() and p.suffix.lower() not in (".md", ".txt", ".toml"))
+    files = sorted(
+        p
+        for p in directory.iterdir()
+        if p.is_file() and p.suffix.lower() not in (".md", ".txt", ".toml")
+    )
     accs = [p for p in files if "acc" in p.name.lower()]
     gyrs = [p for p in files if "gyr" in p.name.lower()]
     if len(accs) != 1 or len(gyrs) != 1:

@@ -68,16 +68,39 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
 import zenoh
 
 from protocols._handoff import ThreadToAsyncRing
-from protocols._schema import MAX_IMU_INDEX, VEHICLE_ID_PATTERN, Reason, SchemaError, check_imu, check_vehicle
-from protocols.events import Event, EventError, Status, decode_event, decode_status, encode_event, encode_status
-from protocols.frames import MAX_FRAME_BYTES, BatchSource, FrameError, SampleBatch, SampleDtype, decode_frame, encode_frame
+from protocols._schema import (
+    MAX_IMU_INDEX,
+    VEHICLE_ID_PATTERN,
+    Reason,
+    SchemaError,
+    check_imu,
+    check_vehicle,
+)
+from protocols.events import (
+    Event,
+    EventError,
+    Status,
+    decode_event,
+    decode_status,
+    encode_event,
+    encode_status,
+)
+from protocols.frames import (
+    MAX_FRAME_BYTES,
+    BatchSource,
+    FrameError,
+    SampleBatch,
+    SampleDtype,
+    decode_frame,
+    encode_frame,
+)
 
 ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
@@ -118,7 +141,13 @@ def frame_selectors(vehicles: Iterable[str] | None = None) -> tuple[str, ...]:
 def parse_frame_key(key: str) -> tuple[str, int]:
     """``(vehicle, imu)`` of a concrete frame key; raises :class:`~protocols.frames.FrameError` (``key_mismatch``) otherwise."""
     parts = str(key).split("/")
-    if len(parts) != 4 or parts[0] != ROOT or parts[2] != "imu" or not parts[3].isdigit() or int(parts[3]) > MAX_IMU_INDEX:
+    if (
+        len(parts) != 4
+        or parts[0] != ROOT
+        or parts[2] != "imu"
+        or not parts[3].isdigit()
+        or int(parts[3]) > MAX_IMU_INDEX
+    ):
         raise FrameError(Reason.KEY_MISMATCH, f"{key!r} is not a frame key ins/<vehicle>/imu/<n>")
     if not VEHICLE_ID_PATTERN.match(parts[1]):
         raise FrameError(Reason.KEY_MISMATCH, f"{key!r} does not name a valid vehicle id")
@@ -128,7 +157,7 @@ def parse_frame_key(key: str) -> tuple[str, int]:
 # --------------------------------------------------------------------------- config
 
 
-class Mode(str, Enum):
+class Mode(StrEnum):
     PEER = "peer"
     CLIENT = "client"
     ROUTER = "router"
@@ -161,10 +190,19 @@ class ZenohSettings:
     access_control: Mapping[str, Any] | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)
 
-    _KEYS = ("mode", "connect", "listen", "multicast_scouting", "connect_timeout_s", "tls", "access_control", "extra")
+    _KEYS = (
+        "mode",
+        "connect",
+        "listen",
+        "multicast_scouting",
+        "connect_timeout_s",
+        "tls",
+        "access_control",
+        "extra",
+    )
 
     @classmethod
-    def from_dict(cls, table: Mapping[str, Any]) -> "ZenohSettings":
+    def from_dict(cls, table: Mapping[str, Any]) -> ZenohSettings:
         """Validate a plain dict (e.g. a TOML table); unknown keys are a ``ValueError`` naming them."""
         unknown = sorted(set(table) - set(cls._KEYS))
         if unknown:
@@ -172,16 +210,24 @@ class ZenohSettings:
         try:
             mode = Mode(table.get("mode", Mode.PEER.value))
         except ValueError:
-            raise ValueError(f"zenoh mode must be one of {[m.value for m in Mode]}, got {table.get('mode')!r}") from None
+            raise ValueError(
+                f"zenoh mode must be one of {[m.value for m in Mode]}, got {table.get('mode')!r}"
+            ) from None
         endpoints = {}
         for name in ("connect", "listen"):
             value = table.get(name, ())
             if isinstance(value, str) or not all(isinstance(e, str) and "/" in e for e in value):
-                raise ValueError(f"zenoh {name} must be a list of endpoints like 'tcp/127.0.0.1:7447', got {value!r}")
+                raise ValueError(
+                    f"zenoh {name} must be a list of endpoints like 'tcp/127.0.0.1:7447', got {value!r}"
+                )
             endpoints[name] = tuple(value)
         timeout = table.get("connect_timeout_s")
-        if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout < 0):
-            raise ValueError(f"zenoh connect_timeout_s must be a number >= 0 or absent, got {timeout!r}")
+        if timeout is not None and (
+            isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout < 0
+        ):
+            raise ValueError(
+                f"zenoh connect_timeout_s must be a number >= 0 or absent, got {timeout!r}"
+            )
         for name in ("tls", "access_control", "extra"):
             if table.get(name) is not None and not isinstance(table[name], Mapping):
                 raise ValueError(f"zenoh {name} must be a table, got {type(table[name]).__name__}")
@@ -212,7 +258,9 @@ def zenoh_config(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Config:
         entries["connect/endpoints"] = list(settings.connect)
         # Keep trying instead of failing the service when the router is late.
         entries["connect/exit_on_failure"] = False
-        entries["connect/timeout_ms"] = -1 if settings.connect_timeout_s is None else int(settings.connect_timeout_s * 1000)
+        entries["connect/timeout_ms"] = (
+            -1 if settings.connect_timeout_s is None else int(settings.connect_timeout_s * 1000)
+        )
     if settings.listen:
         entries["listen/endpoints"] = list(settings.listen)
     if settings.tls is not None:
@@ -243,7 +291,9 @@ def open_session(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Session:
 
 
 @contextmanager
-def open_router(listen_endpoint: str, *, extra: Mapping[str, Any] | None = None) -> Iterator[zenoh.Session]:
+def open_router(
+    listen_endpoint: str, *, extra: Mapping[str, Any] | None = None
+) -> Iterator[zenoh.Session]:
     """An in-process Zenoh router listening on ``listen_endpoint`` (e.g. ``tcp/127.0.0.1:7447``).
 
     Multicast scouting is off; closing the context closes the router.
@@ -275,8 +325,14 @@ class SourceCounters:
 
     def as_dict(self, prefix: str = "frames") -> dict[str, int]:
         """Flat counters for the status topic: ``frames.received``, ``frames.rejected.non_finite``, …"""
-        out = {f"{prefix}.received": self.received, f"{prefix}.accepted": self.accepted, f"{prefix}.dropped_overload": self.dropped_overload}
-        out.update({f"{prefix}.rejected.{reason}": n for reason, n in sorted(self.rejected.items())})
+        out = {
+            f"{prefix}.received": self.received,
+            f"{prefix}.accepted": self.accepted,
+            f"{prefix}.dropped_overload": self.dropped_overload,
+        }
+        out.update(
+            {f"{prefix}.rejected.{reason}": n for reason, n in sorted(self.rejected.items())}
+        )
         return out
 
 
@@ -310,7 +366,9 @@ class FrameSource(BatchSource):
         on_reject: Callable[[str, FrameError], None] | None = None,
         loop: asyncio.AbstractEventLoop | None = None,
     ):
-        self._ring: ThreadToAsyncRing[tuple[str, bytes]] = ThreadToAsyncRing(capacity, loop or asyncio.get_running_loop())
+        self._ring: ThreadToAsyncRing[tuple[str, bytes]] = ThreadToAsyncRing(
+            capacity, loop or asyncio.get_running_loop()
+        )
         self._max_bytes = int(max_frame_bytes)
         self._on_reject = on_reject
         self._accepted = 0
@@ -322,7 +380,9 @@ class FrameSource(BatchSource):
 
     @property
     def counters(self) -> SourceCounters:
-        return SourceCounters(self._ring.put_count, self._accepted, self._ring.dropped, dict(self._rejected))
+        return SourceCounters(
+            self._ring.put_count, self._accepted, self._ring.dropped, dict(self._rejected)
+        )
 
     async def get(self) -> SampleBatch:
         """The next valid frame (waits; rejected frames are counted and skipped); ``EOFError`` after :meth:`close`."""
@@ -343,7 +403,10 @@ class FrameSource(BatchSource):
         try:
             batch = decode_frame(payload, max_bytes=self._max_bytes)
             if parse_frame_key(key) != (batch.vehicle, batch.imu):
-                raise FrameError(Reason.KEY_MISMATCH, f"frame of {batch.vehicle}/imu {batch.imu} published on {key}")
+                raise FrameError(
+                    Reason.KEY_MISMATCH,
+                    f"frame of {batch.vehicle}/imu {batch.imu} published on {key}",
+                )
         except FrameError as exc:
             self._rejected[exc.reason.value] = self._rejected.get(exc.reason.value, 0) + 1
             if self._on_reject is not None:
@@ -389,7 +452,9 @@ class FramePublisher:
         if batch_samples < 1:
             raise ValueError(f"batch_samples must be >= 1, got {batch_samples}")
         self.vehicle, self.imu = vehicle, imu
-        self._publisher = session.declare_publisher(frame_key(vehicle, imu), congestion_control=congestion_control)
+        self._publisher = session.declare_publisher(
+            frame_key(vehicle, imu), congestion_control=congestion_control
+        )
         self._batch = int(batch_samples)
         self._dtype = SampleDtype(dtype)
         self.seq = int(first_seq)
@@ -403,8 +468,12 @@ class FramePublisher:
         a = np.asarray(accel_mps2, dtype=float).reshape(-1, 3)
         g = np.asarray(gyro_rps, dtype=float).reshape(-1, 3)
         tc = None if temp_c is None else np.atleast_1d(np.asarray(temp_c, dtype=float))
-        if not (a.shape[0] == g.shape[0] == t.shape[0] and (tc is None or tc.shape[0] == t.shape[0])):
-            raise ValueError(f"sample counts differ: t_s {t.shape[0]}, accel {a.shape[0]}, gyro {g.shape[0]}")
+        if not (
+            a.shape[0] == g.shape[0] == t.shape[0] and (tc is None or tc.shape[0] == t.shape[0])
+        ):
+            raise ValueError(
+                f"sample counts differ: t_s {t.shape[0]}, accel {a.shape[0]}, gyro {g.shape[0]}"
+            )
         if self._parts and (self._parts[0][3] is None) != (tc is None):
             raise ValueError("temperature must be given for every sample of a frame or for none")
         self._parts.append((t, a, g, tc))
@@ -416,9 +485,23 @@ class FramePublisher:
         n_full = self._buffered // self._batch
         for k in range(n_full):
             cut = slice(k * self._batch, (k + 1) * self._batch)
-            self.publish(SampleBatch(self.vehicle, self.imu, self.seq, t[cut], a[cut], g[cut], None if tc is None else tc[cut]))
+            self.publish(
+                SampleBatch(
+                    self.vehicle,
+                    self.imu,
+                    self.seq,
+                    t[cut],
+                    a[cut],
+                    g[cut],
+                    None if tc is None else tc[cut],
+                )
+            )
         rest = slice(n_full * self._batch, None)
-        self._parts = [(t[rest], a[rest], g[rest], None if tc is None else tc[rest])] if self._buffered % self._batch else []
+        self._parts = (
+            [(t[rest], a[rest], g[rest], None if tc is None else tc[rest])]
+            if self._buffered % self._batch
+            else []
+        )
         self._buffered %= self._batch
         return n_full
 
@@ -433,7 +516,12 @@ class FramePublisher:
 
     def _joined(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         t, a, g = (np.concatenate([p[i] for p in self._parts]) for i in range(3))
-        return t, a, g, None if self._parts[0][3] is None else np.concatenate([p[3] for p in self._parts])
+        return (
+            t,
+            a,
+            g,
+            None if self._parts[0][3] is None else np.concatenate([p[3] for p in self._parts]),
+        )
 
     @property
     def matched(self) -> bool:
@@ -450,7 +538,7 @@ class FramePublisher:
         self.flush()
         self._publisher.undeclare()
 
-    def __enter__(self) -> "FramePublisher":
+    def __enter__(self) -> FramePublisher:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -460,7 +548,7 @@ class FramePublisher:
 # ---------------------------------------------------------------------- events out
 
 
-class AckMode(str, Enum):
+class AckMode(StrEnum):
     """What makes :meth:`EventPublisher.publish` return True (module docstring)."""
 
     RECEIVER = "receiver"
@@ -474,9 +562,18 @@ class EventPublisher:
     call it from a worker thread (``asyncio.to_thread``) in a service.
     """
 
-    def __init__(self, session: zenoh.Session, *, ack: AckMode = AckMode.RECEIVER, ack_timeout_s: float = 1.0, min_acks: int = 1):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        *,
+        ack: AckMode = AckMode.RECEIVER,
+        ack_timeout_s: float = 1.0,
+        min_acks: int = 1,
+    ):
         if min_acks < 1 or ack_timeout_s <= 0:
-            raise ValueError(f"need min_acks >= 1 and ack_timeout_s > 0, got {min_acks}, {ack_timeout_s}")
+            raise ValueError(
+                f"need min_acks >= 1 and ack_timeout_s > 0, got {min_acks}, {ack_timeout_s}"
+            )
         self._session = session
         self._ack = AckMode(ack)
         self._timeout_s = float(ack_timeout_s)
@@ -525,7 +622,11 @@ class EventPublisher:
         if self._ack is AckMode.MATCHED:
             return _matching(pub)
         expected = event.event_id.encode()
-        acks = sum(1 for reply in querier.get(payload=payload) if reply.ok is not None and reply.ok.payload.to_bytes() == expected)
+        acks = sum(
+            1
+            for reply in querier.get(payload=payload)
+            if reply.ok is not None and reply.ok.payload.to_bytes() == expected
+        )
         return acks >= self._min_acks
 
     def close(self) -> None:
@@ -535,7 +636,7 @@ class EventPublisher:
                 querier.undeclare()
             self._entities.clear()
 
-    def __enter__(self) -> "EventPublisher":
+    def __enter__(self) -> EventPublisher:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -572,9 +673,13 @@ class EventReceiver:
         self.received = 0
         self.duplicates = 0
         self.rejected: dict[str, int] = {}
-        self._entities = [session.declare_subscriber(f"{ROOT}/{vehicles}/health/events", self._on_sample)]
+        self._entities = [
+            session.declare_subscriber(f"{ROOT}/{vehicles}/health/events", self._on_sample)
+        ]
         if acknowledge:
-            self._entities.append(session.declare_queryable(f"{ROOT}/{vehicles}/health/ack", self._on_query))
+            self._entities.append(
+                session.declare_queryable(f"{ROOT}/{vehicles}/health/ack", self._on_query)
+            )
 
     def _accept(self, payload: bytes) -> Event:
         event = decode_event(payload)
@@ -624,7 +729,7 @@ class EventReceiver:
             entity.undeclare()
         self._entities = []
 
-    def __enter__(self) -> "EventReceiver":
+    def __enter__(self) -> EventReceiver:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -648,7 +753,9 @@ class StatusPublisher:
     def publish(self, status: Status) -> None:
         pub = self._publishers.get(status.vehicle)
         if pub is None:
-            pub = self._session.declare_publisher(status_key(status.vehicle), congestion_control=zenoh.CongestionControl.DROP)
+            pub = self._session.declare_publisher(
+                status_key(status.vehicle), congestion_control=zenoh.CongestionControl.DROP
+            )
             self._publishers[status.vehicle] = pub
         pub.put(encode_status(status))
 
@@ -657,15 +764,20 @@ class StatusPublisher:
             pub.undeclare()
         self._publishers.clear()
 
-    def __enter__(self) -> "StatusPublisher":
+    def __enter__(self) -> StatusPublisher:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
 
 
-def subscribe_status(session: zenoh.Session, on_status: Callable[[Status], None], *, vehicles: str = "*",
-                     on_reject: Callable[[EventError], None] | None = None) -> zenoh.Subscriber:
+def subscribe_status(
+    session: zenoh.Session,
+    on_status: Callable[[Status], None],
+    *,
+    vehicles: str = "*",
+    on_reject: Callable[[EventError], None] | None = None,
+) -> zenoh.Subscriber:
     """Subscribe to status messages (``ins/<vehicles>/health/status``); undecodable ones go to ``on_reject``.
 
     Returns the subscriber (undeclare it, or use it as a context manager, to stop).

@@ -40,7 +40,7 @@ class RouterProcess:
         self._timeout_s = float(ready_timeout_s)
         self._proc: subprocess.Popen | None = None
 
-    def start(self) -> "RouterProcess":
+    def start(self) -> RouterProcess:
         if self.running:
             raise RuntimeError("the router is already running")
         self._proc = subprocess.Popen(
@@ -54,7 +54,9 @@ class RouterProcess:
         line = self._proc.stdout.readline().strip() if ready else ""
         if line != f"ready {self.endpoint}":
             self.kill()
-            raise RuntimeError(f"zenoh router on {self.endpoint} did not become ready (got {line!r})")
+            raise RuntimeError(
+                f"zenoh router on {self.endpoint} did not become ready (got {line!r})"
+            )
         return self
 
     @property
@@ -84,7 +86,7 @@ class RouterProcess:
         self._proc = None
         return status
 
-    def __enter__(self) -> "RouterProcess":
+    def __enter__(self) -> RouterProcess:
         return self.start()
 
     def __exit__(self, *exc) -> None:
@@ -92,9 +94,13 @@ class RouterProcess:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m protocols.zenoh_router", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m protocols.zenoh_router", description=__doc__.splitlines()[0]
+    )
     parser.add_argument("--listen", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
-    parser.add_argument("--stdin", action="store_true", help="also stop when stdin reaches end of file")
+    parser.add_argument(
+        "--stdin", action="store_true", help="also stop when stdin reaches end of file"
+    )
     args = parser.parse_args(argv)
     done = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -7,11 +7,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from estimators.audit import AuditResult  # noqa: E402
-from estimators.conventions import AXES, Triad, reference_magnitude  # noqa: E402
+from estimators.audit import AuditResult
+from estimators.conventions import AXES, Triad, reference_magnitude
 
 MODELS = (("baseline", "C0"), ("extended", "C1"))
 UNIT = {Triad.ACCEL: "m/s²", Triad.GYRO: "rad/s"}
@@ -21,7 +21,11 @@ PLOTS = ("residuals.png", "allan.png", "f0_histogram.png", "statistics.png", "he
 
 def _simulated(result: AuditResult) -> list[tuple[str, str, dict]]:
     """(model, colour, {Triad: [TriadCurves per replica]}) of the simulations the audit ran."""
-    return [(name, colour, result.replica_curves[name]) for name, colour in MODELS if name in result.replica_curves]
+    return [
+        (name, colour, result.replica_curves[name])
+        for name, colour in MODELS
+        if name in result.replica_curves
+    ]
 
 
 def _band(curves: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -41,10 +45,22 @@ def _residual_plot(result: AuditResult, path: Path) -> bool:
     fig, ax = plt.subplots(figsize=(8, 3.6))
     # Extended first: the wider band goes underneath the baseline's.
     for name, colour, curves in reversed(_simulated(result)):
-        same = [c.residual_norm for c in curves[Triad.ACCEL] if c.residual_norm is not None and c.residual_norm.size == meas.size]
+        same = [
+            c.residual_norm
+            for c in curves[Triad.ACCEL]
+            if c.residual_norm is not None and c.residual_norm.size == meas.size
+        ]
         band = _band(same)
         if band is not None:
-            ax.fill_between(k, band[1], band[2], color=colour, alpha=0.8 if name == "baseline" else 0.4, step="mid", label=f"{name} simulation, 5–95 % of {len(same)} replicas")
+            ax.fill_between(
+                k,
+                band[1],
+                band[2],
+                color=colour,
+                alpha=0.8 if name == "baseline" else 0.4,
+                step="mid",
+                label=f"{name} simulation, 5–95 % of {len(same)} replicas",
+            )
     ax.plot(k, meas, "ko-", ms=3, lw=0.8, label="measured")
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel("position (in time order)")
@@ -59,19 +75,32 @@ def _residual_plot(result: AuditResult, path: Path) -> bool:
 
 def _allan_plot(result: AuditResult, path: Path) -> bool:
     """Allan deviation of the longest position per triad and axis: measured, each model's median and 5–95 % band."""
-    triads = [t for t in (Triad.ACCEL, Triad.GYRO) if t in result.measured_curves and result.measured_curves[t].allan_tau_s.size]
+    triads = [
+        t
+        for t in (Triad.ACCEL, Triad.GYRO)
+        if t in result.measured_curves and result.measured_curves[t].allan_tau_s.size
+    ]
     if not triads:
         return False
     fig, axes = plt.subplots(len(triads), 3, figsize=(10, 3.0 * len(triads)), squeeze=False)
-    for row, t in zip(axes, triads):
+    for row, t in zip(axes, triads, strict=True):
         meas = result.measured_curves[t]
         for i, ax in enumerate(row):
             for name, colour, curves in _simulated(result):
                 m = min([meas.allan_tau_s.size] + [c.allan_tau_s.size for c in curves[t]])
                 band = _band([c.allan_si[:m, i] for c in curves[t]])
                 if band is not None:
-                    ax.fill_between(meas.allan_tau_s[:m], band[1], band[2], color=colour, alpha=0.3, label=f"{name}: 5–95 %")
-                    ax.plot(meas.allan_tau_s[:m], band[0], color=colour, lw=1.2, label=f"{name}: median")
+                    ax.fill_between(
+                        meas.allan_tau_s[:m],
+                        band[1],
+                        band[2],
+                        color=colour,
+                        alpha=0.3,
+                        label=f"{name}: 5–95 %",
+                    )
+                    ax.plot(
+                        meas.allan_tau_s[:m], band[0], color=colour, lw=1.2, label=f"{name}: median"
+                    )
             ax.plot(meas.allan_tau_s, meas.allan_si[:, i], "k.-", lw=1, label="measured")
             ax.set_xscale("log")
             ax.set_yscale("log")
@@ -92,19 +121,41 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
     meas = result.measured_curves[Triad.ACCEL].f0_window
     if meas is None or meas.size == 0:
         return False
-    pooled = {name: np.concatenate([c.f0_window for c in curves[Triad.ACCEL] if c.f0_window is not None] or [np.zeros(0)])
-              for name, _, curves in _simulated(result)}
+    pooled = {
+        name: np.concatenate(
+            [c.f0_window for c in curves[Triad.ACCEL] if c.f0_window is not None] or [np.zeros(0)]
+        )
+        for name, _, curves in _simulated(result)
+    }
     lam = {name: result.gain.get(f"f0_lambda0_{name}") for name, _ in MODELS}
-    top = max([float(np.max(np.abs(v))) for v in (meas, *pooled.values()) if v.size] + [v for v in lam.values() if v])
+    top = max(
+        [float(np.max(np.abs(v))) for v in (meas, *pooled.values()) if v.size]
+        + [v for v in lam.values() if v]
+    )
     edges = np.linspace(-1.05 * top, 1.05 * top, 41)
     fig, ax = plt.subplots(figsize=(7, 3.6))
     for name, colour in MODELS:
         if pooled.get(name, np.zeros(0)).size:
-            ax.hist(pooled[name], bins=edges, density=True, histtype="step", lw=1.5, color=colour, label=f"{name} simulation ({result.replicas} replicas)")
+            ax.hist(
+                pooled[name],
+                bins=edges,
+                density=True,
+                histtype="step",
+                lw=1.5,
+                color=colour,
+                label=f"{name} simulation ({result.replicas} replicas)",
+            )
         if lam[name]:
             ax.axvline(lam[name], color=colour, ls="--", lw=1, label=f"λ0 from the {name} model")
             ax.axvline(-lam[name], color=colour, ls="--", lw=1)
-    ax.hist(meas, bins=edges, density=True, color="k", alpha=0.35, label=f"measured ({meas.size} windows)")
+    ax.hist(
+        meas,
+        bins=edges,
+        density=True,
+        color="k",
+        alpha=0.35,
+        label=f"measured ({meas.size} windows)",
+    )
     ax.set_yscale("log")
     window = result.gain.get("f0_window_samples")
     ax.set_xlabel(f"F0 statistic s = ½(|ã|² − 1) of {window}-sample window means (normalized, –)")
@@ -120,13 +171,23 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
 def _stat_plot(result: AuditResult, path: Path) -> bool:
     """Measured / median-simulated ratio of every statistic, baseline and extended, with the replicas' 5–95 % band."""
     fig, ax = plt.subplots(figsize=(9, 4))
-    for k, (name, cmp, mark) in enumerate((("baseline", result.baseline_cmp, "o"), ("extended", result.extended_cmp, "s"))):
-        labels = [f"{c.triad.value} {c.statistic}{'' if c.axis is None else ' ' + c.axis}" for c in cmp]
+    for k, (name, cmp, mark) in enumerate(
+        (("baseline", result.baseline_cmp, "o"), ("extended", result.extended_cmp, "s"))
+    ):
+        labels = [
+            f"{c.triad.value} {c.statistic}{'' if c.axis is None else ' ' + c.axis}" for c in cmp
+        ]
         x = np.arange(len(cmp)) + 0.2 * k
         lo = [c.simulated_p05 / c.simulated_median for c in cmp]
         hi = [c.simulated_p95 / c.simulated_median for c in cmp]
         ax.vlines(x, lo, hi, color=f"C{k}", alpha=0.4, lw=6)
-        ax.plot(x, [c.ratio for c in cmp], mark, color=f"C{k}", label=f"{name}: measured / simulated median (bar: replicas 5–95 %)")
+        ax.plot(
+            x,
+            [c.ratio for c in cmp],
+            mark,
+            color=f"C{k}",
+            label=f"{name}: measured / simulated median (bar: replicas 5–95 %)",
+        )
     ax.set_xticks(np.arange(len(labels)), labels, rotation=70, fontsize=7)
     ax.set_yscale("log")
     ax.axhline(1.0, color="k", lw=0.5)
@@ -143,7 +204,11 @@ def _headline_plot(result: AuditResult, path: Path) -> bool:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for name, k in (("baseline", 0), ("extended", 1)):
         reps = result.replica_stats.get(name, {})
-        vals = [r["chi2_per_dof"] for r in reps.get(next(iter(reps), None), []) if "chi2_per_dof" in r] if reps else []
+        vals = (
+            [r["chi2_per_dof"] for r in reps.get(next(iter(reps), None), []) if "chi2_per_dof" in r]
+            if reps
+            else []
+        )
         if vals:
             ax.hist(vals, bins=12, alpha=0.5, color=f"C{k}", label=f"{name} replicas")
     head = result.headline(result.baseline_cmp)
@@ -178,27 +243,37 @@ def _where(triad: str, axis: str | None) -> str:
 def _statistics_table(result: AuditResult) -> list[str]:
     """Measured statistics against both simulations: ratio (measured / median) and tail (replicas ≥ measured)."""
     ext = {(c.triad, c.statistic, c.axis): c for c in result.extended_cmp}
-    lines = ["| triad | statistic | axis | measured | baseline ratio | baseline tail | extended ratio | extended tail | extended inside 5–95 % |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| triad | statistic | axis | measured | baseline ratio | baseline tail | extended ratio | extended tail | extended inside 5–95 % |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for c in result.baseline_cmp:
         e = ext.get((c.triad, c.statistic, c.axis), c)
-        lines.append(f"| {c.triad.value} | {c.statistic} | {c.axis or ''} | {c.measured:.3g} | {c.ratio:.2f} | {c.tail_prob:.2f} | "
-                     f"{e.ratio:.2f} | {e.tail_prob:.2f} | {'yes' if e.inside else 'no'} |")
+        lines.append(
+            f"| {c.triad.value} | {c.statistic} | {c.axis or ''} | {c.measured:.3g} | {c.ratio:.2f} | {c.tail_prob:.2f} | "
+            f"{e.ratio:.2f} | {e.tail_prob:.2f} | {'yes' if e.inside else 'no'} |"
+        )
     return lines
 
 
 def _model_table(result: AuditResult) -> list[str]:
     """The surviving noise model of each triad (SI, per axis)."""
-    lines = ["| triad | white sd per sample | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | wander between positions (sd) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| triad | white sd per sample | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | wander between positions (sd) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for t, m in result.extended_model.items():
         scale = reference_magnitude(t, result.gravity_mps2)
         gm = [f"{v * scale:.3g}" if v > 0 else "–" for v in m.gm_sigma_norm]
-        tau = [f"{v:.3g}" if s > 0 else "–" for s, v in zip(m.gm_sigma_norm, m.gm_tau_s)]
+        tau = [
+            f"{v:.3g}" if s > 0 else "–" for s, v in zip(m.gm_sigma_norm, m.gm_tau_s, strict=True)
+        ]
         wander = [f"{v * scale:.3g}" if v > 0 else "–" for v in m.excess_sd_norm]
         step = "none" if m.quant_step_si is None else _fmt(list(m.quant_step_si))
-        lines.append(f"| {t.value} ({UNIT[t]}) | {_fmt(list(m.white_sd_si))} | {_fmt(list(m.mean_noise_sd_si))} | {step} | "
-                     f"[{', '.join(gm)}] | [{', '.join(tau)}] | [{', '.join(wander)}] |")
+        lines.append(
+            f"| {t.value} ({UNIT[t]}) | {_fmt(list(m.white_sd_si))} | {_fmt(list(m.mean_noise_sd_si))} | {step} | "
+            f"[{', '.join(gm)}] | [{', '.join(tau)}] | [{', '.join(wander)}] |"
+        )
     return lines
 
 
@@ -209,24 +284,41 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
     lines = [f"# Model audit: {title}", ""]
     lines += [f"- {s}" for s in result.statements] + ([""] if result.statements else [])
     if result.baseline_cmp:
-        written = [name for name, plot in zip(PLOTS, (_residual_plot, _allan_plot, _f0_plot, _stat_plot, _headline_plot)) if plot(result, d / name)]
+        written = [
+            name
+            for name, plot in zip(
+                PLOTS,
+                (_residual_plot, _allan_plot, _f0_plot, _stat_plot, _headline_plot),
+                strict=False,
+            )
+            if plot(result, d / name)
+        ]
         data = result.to_dict()
         lines += [f"Positions: {result.n_positions}; Monte Carlo replicas: {result.replicas}.", ""]
         if data["baseline"]["ratio"] is not None and data["extended"]["ratio"] is not None:
             lines += [
                 f"Headline (accelerometer χ²/dof of the scalar equation per position): baseline ratio {data['baseline']['ratio']:.2f} "
-                f"(tail {data['baseline']['tail_prob']:.2f}), extended ratio {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f}).", "",
+                f"(tail {data['baseline']['tail_prob']:.2f}), extended ratio {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f}).",
+                "",
             ]
-        lines += ["## What the simulation gets wrong", ""] + _statistics_table(result) + [""]
+        lines += ["## What the simulation gets wrong", "", *_statistics_table(result), ""]
         lines += ["## Named causes", ""]
         for c in data["named_causes"]:
             params = ", ".join(f"{k} {_fmt(v)}" for k, v in c["params"].items())
-            lines.append(f"- **{c['effect']}** ({_where(c['triad'], c['axis'])}): {c['evidence']}. Fitted: {params}.")
+            lines.append(
+                f"- **{c['effect']}** ({_where(c['triad'], c['axis'])}): {c['evidence']}. Fitted: {params}."
+            )
         if not data["named_causes"]:
             lines.append("- none: the baseline explains the data")
         lines += ["", "Not identifiable on this session:", ""]
-        lines += sorted({f"- {c['effect']} ({_where(c['triad'], c['axis'])}): {c['reason']}" for c in data["candidates"] if not c["identifiable"]}) or ["- (every candidate was tested)"]
-        lines += ["", "## Extended model (surviving noise per triad)", ""] + _model_table(result)
+        lines += sorted(
+            {
+                f"- {c['effect']} ({_where(c['triad'], c['axis'])}): {c['reason']}"
+                for c in data["candidates"]
+                if not c["identifiable"]
+            }
+        ) or ["- (every candidate was tested)"]
+        lines += ["", "## Extended model (surviving noise per triad)", "", *_model_table(result)]
         lines += ["", "## Gain", ""] + [f"- {k}: {_fmt(v)}" for k, v in data["gain"].items()]
         lines += ["", "## Plots", ""] + [f"![{Path(name).stem}]({name})\n" for name in written]
     path = d / "audit.md"

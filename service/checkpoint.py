@@ -102,7 +102,9 @@ class CheckpointStore:
         """Replace the checkpoint of ``key`` atomically."""
         self.save_many({key: state}, now_unix_s=now_unix_s)
 
-    def save_many(self, states: dict[str, dict[str, Any]], *, now_unix_s: float | None = None) -> None:
+    def save_many(
+        self, states: dict[str, dict[str, Any]], *, now_unix_s: float | None = None
+    ) -> None:
         """Replace several checkpoints in one transaction (all or none)."""
         self.save_encoded({k: encode_state(s) for k, s in states.items()}, now_unix_s=now_unix_s)
 
@@ -144,7 +146,10 @@ class CheckpointStore:
 
     def keys(self) -> list[str]:
         with self._lock:
-            return [r[0] for r in self._db.execute("SELECT key FROM checkpoints ORDER BY key").fetchall()]
+            return [
+                r[0]
+                for r in self._db.execute("SELECT key FROM checkpoints ORDER BY key").fetchall()
+            ]
 
     def delete(self, key: str) -> None:
         with self._lock:
@@ -154,7 +159,7 @@ class CheckpointStore:
         with self._lock:
             self._db.close()
 
-    def __enter__(self) -> "CheckpointStore":
+    def __enter__(self) -> CheckpointStore:
         return self
 
     def __exit__(self, *exc) -> None:

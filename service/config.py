@@ -239,11 +239,15 @@ def _coerce(where: str, kind: Any, value: Any, base_dir: Path) -> Any:
         try:
             return kind(value)
         except ValueError:
-            raise ConfigError(f"{where} must be one of {[m.value for m in kind]}, got {value!r}") from None
+            raise ConfigError(
+                f"{where} must be one of {[m.value for m in kind]}, got {value!r}"
+            ) from None
     raise ConfigError(f"{where}: unsupported option type {kind!r}")
 
 
-def _split_section(name: str, cls: type, raw: Any, base_dir: Path, nested: str, parse, defaults: dict[str, Any]):
+def _split_section(
+    name: str, cls: type, raw: Any, base_dir: Path, nested: str, parse, defaults: dict[str, Any]
+):
     """A section whose own keys are fields of ``cls`` and whose other keys configure a transport (``nested``)."""
     if not isinstance(raw, dict):
         raise ConfigError(f"[{name}] must be a table, got {raw!r}")
@@ -262,12 +266,16 @@ def _zenoh_section(raw: Any, base_dir: Path) -> ZenohSection:
     defaults: dict[str, Any] = {"mode": Mode.CLIENT.value}
     if mode == Mode.CLIENT.value:
         defaults["connect"] = list(DEFAULT_ZENOH_SESSION.connect)
-    return _split_section("zenoh", ZenohSection, raw, base_dir, "session", ZenohSettings.from_dict, defaults)
+    return _split_section(
+        "zenoh", ZenohSection, raw, base_dir, "session", ZenohSettings.from_dict, defaults
+    )
 
 
 def _mavlink_section(raw: Any, base_dir: Path) -> MavlinkSection:
     defaults = {"device": DEFAULT_MAVLINK_LINK.device, "vehicle": DEFAULT_MAVLINK_LINK.vehicle}
-    return _split_section("mavlink", MavlinkSection, raw, base_dir, "link", MavlinkSettings.from_dict, defaults)
+    return _split_section(
+        "mavlink", MavlinkSection, raw, base_dir, "link", MavlinkSettings.from_dict, defaults
+    )
 
 
 _NESTED = {"zenoh": _zenoh_section, "mavlink": _mavlink_section}
@@ -280,7 +288,10 @@ def _build_section(section: str, cls: type, raw: Any, base_dir: Path) -> Any:
     unknown = sorted(set(raw) - {f.name for f in dataclasses.fields(cls)})
     if unknown:
         raise ConfigError(f"[{section}] has unknown keys {unknown}; known: {sorted(hints)}")
-    values = {name: _coerce(f"[{section}] {name}", hints[name], value, base_dir) for name, value in raw.items()}
+    values = {
+        name: _coerce(f"[{section}] {name}", hints[name], value, base_dir)
+        for name, value in raw.items()
+    }
     try:
         return cls(**values)
     except ValueError as exc:
@@ -294,7 +305,9 @@ def config_from_dict(raw: dict[str, Any], *, base_dir: Path | None = None) -> Se
     if unknown:
         raise ConfigError(f"unknown sections {unknown}; known: {sorted(_SECTIONS)}")
     parts = {
-        name: _NESTED[name](raw[name], base) if name in _NESTED else _build_section(name, cls, raw[name], base)
+        name: _NESTED[name](raw[name], base)
+        if name in _NESTED
+        else _build_section(name, cls, raw[name], base)
         for name, cls in _SECTIONS.items()
         if name in raw
     }
@@ -333,14 +346,22 @@ def _check(cfg: ServiceConfig) -> None:
     for name in ("queue_capacity", "max_imus_per_vehicle", "max_vehicles"):
         _positive(f"[pipeline] {name}", getattr(p, name))
     if not 0.0 < p.false_alarm_probability < 0.5:
-        raise ConfigError(f"[pipeline] false_alarm_probability must be in (0, 0.5), got {p.false_alarm_probability!r}")
+        raise ConfigError(
+            f"[pipeline] false_alarm_probability must be in (0, 0.5), got {p.false_alarm_probability!r}"
+        )
     if not (math.isfinite(p.f0_persistence_s) and 0.0 <= p.f0_persistence_s <= 1.0):
-        raise ConfigError(f"[pipeline] f0_persistence_s must be in [0, 1] s, got {p.f0_persistence_s!r}")
+        raise ConfigError(
+            f"[pipeline] f0_persistence_s must be in [0, 1] s, got {p.f0_persistence_s!r}"
+        )
     if p.min_positions < 9:
-        raise ConfigError(f"[pipeline] min_positions must be >= 9 (nine parameters, M1), got {p.min_positions}")
+        raise ConfigError(
+            f"[pipeline] min_positions must be >= 9 (nine parameters, M1), got {p.min_positions}"
+        )
     g = cfg.site.local_gravity_mps2
     if not 9.7 < g < 9.9:
-        raise ConfigError(f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)")
+        raise ConfigError(
+            f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)"
+        )
     for name in ("alert_min_interval_s", "alert_max_per_s", "heartbeat_period_s"):
         _positive(f"[mavlink] {name}", getattr(m, name))
     try:
@@ -348,8 +369,14 @@ def _check(cfg: ServiceConfig) -> None:
     except SchemaError as exc:
         raise ConfigError(f"[mavlink] vehicle: {exc}") from None
     if not z.enabled and not m.enabled:
-        raise ConfigError("neither [zenoh] nor [mavlink] is enabled: the service would have no input")
+        raise ConfigError(
+            "neither [zenoh] nor [mavlink] is enabled: the service would have no input"
+        )
     if z.enabled and not z.frames_key.startswith("ins/"):
-        raise ConfigError(f"[zenoh] frames_key must be under 'ins/' (ins/<vehicle>/imu/<n>), got {z.frames_key!r}")
+        raise ConfigError(
+            f"[zenoh] frames_key must be under 'ins/' (ins/<vehicle>/imu/<n>), got {z.frames_key!r}"
+        )
     if not z.ack_timeout_s > 0 or z.min_acks < 1:
-        raise ConfigError(f"[zenoh] needs ack_timeout_s > 0 and min_acks >= 1, got {z.ack_timeout_s!r} and {z.min_acks!r}")
+        raise ConfigError(
+            f"[zenoh] needs ack_timeout_s > 0 and min_acks >= 1, got {z.ack_timeout_s!r} and {z.min_acks!r}"
+        )

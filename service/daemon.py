@@ -41,8 +41,9 @@ import contextlib
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol, TextIO
+from typing import Protocol, TextIO
 
 import numpy as np
 import zenoh
@@ -53,7 +54,14 @@ from protocols._schema import SchemaError
 from protocols.events import Event, EventError, decode_event, encode_event
 from protocols.frames import FrameError, SampleBatch
 from protocols.mavlink_adapter import MavlinkLink, MavlinkSource
-from protocols.zenoh_adapter import AckMode, EventPublisher, FrameSource, StatusPublisher, open_session, parse_frame_key
+from protocols.zenoh_adapter import (
+    AckMode,
+    EventPublisher,
+    FrameSource,
+    StatusPublisher,
+    open_session,
+    parse_frame_key,
+)
 from service.checkpoint import CheckpointError, CheckpointStore, encode_state
 from service.config import ServiceConfig
 from service.outbox import Outbox
@@ -82,8 +90,12 @@ class ZenohEventSink:
 
     name = "zenoh"
 
-    def __init__(self, session: zenoh.Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
-        self._publisher = EventPublisher(session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks)
+    def __init__(
+        self, session: zenoh.Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int
+    ):
+        self._publisher = EventPublisher(
+            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
+        )
 
     async def deliver(self, event: Event) -> bool:
         # publish() blocks up to the acknowledgement timeout: keep it off the loop.
@@ -105,7 +117,9 @@ class AlertPolicy:
 
     def __init__(self, *, min_interval_s: float, max_per_s: float):
         if not (min_interval_s > 0 and max_per_s > 0):
-            raise ValueError(f"need min_interval_s > 0 and max_per_s > 0, got {min_interval_s!r}, {max_per_s!r}")
+            raise ValueError(
+                f"need min_interval_s > 0 and max_per_s > 0, got {min_interval_s!r}, {max_per_s!r}"
+            )
         self.min_interval_s = float(min_interval_s)
         self.period_s = 1.0 / float(max_per_s)
         self._next_s = -math.inf
@@ -176,7 +190,11 @@ class Coalescer:
         for key, group in groups.items():
             seq = self._seq.get(key, 0)
             self._seq[key] = seq + 1
-            temps = None if any(b.temp_c is None for b in group) else np.concatenate([b.temp_c for b in group])
+            temps = (
+                None
+                if any(b.temp_c is None for b in group)
+                else np.concatenate([b.temp_c for b in group])
+            )
             out.append(
                 SampleBatch(
                     key[0], key[1], seq, np.concatenate([b.t_s for b in group]),
@@ -312,7 +330,7 @@ class Service:
     def _process(self, batch: SampleBatch) -> None:
         try:
             events = self.fleet.process(batch, arrival_s=self._clock())
-        except Exception as exc:  # noqa: BLE001 - a defect on one unit's frame must not stop every unit's intake
+        except Exception as exc:
             self.fleet.count_service("pipeline.errors")
             kind = f"{type(exc).__name__}: {exc}"
             if kind not in self._reported:
@@ -342,7 +360,7 @@ class Service:
             while len(group) < COALESCE_MAX and (left := deadline - loop.time()) > 0:
                 try:
                     group.append(await asyncio.wait_for(source.get(), left))
-                except (asyncio.TimeoutError, EOFError):
+                except (TimeoutError, EOFError):
                     break
             for batch in coalescer.join(group):
                 self._process(batch)
@@ -362,7 +380,9 @@ class Service:
         self.fleet.count_service(f"delivery.{name}.errors")
         if kind not in self._reported:
             self._reported.add(kind)
-            self._say(f"ins-health: sending on {kind} (retrying; counted as delivery.{name}.errors)")
+            self._say(
+                f"ins-health: sending on {kind} (retrying; counted as delivery.{name}.errors)"
+            )
 
     async def _deliver(self, sink: EventSink, wake: asyncio.Event, stop: asyncio.Event) -> None:
         retry_s = self.config.service.delivery_retry_s
@@ -397,7 +417,11 @@ class Service:
                 await _wait_any(stop, None, timeout_s=retry_s)
 
     async def _publish_status(self) -> None:
-        extra = {f"service.{k}": v for k, v in self.source.counters.as_dict("frames").items()} if self.source else {}
+        extra = (
+            {f"service.{k}": v for k, v in self.source.counters.as_dict("frames").items()}
+            if self.source
+            else {}
+        )
         if self.mavlink_sink is not None:
             link = self.mavlink_sink.link.counters
             extra["service.mavlink.messages"] = link.messages
@@ -414,7 +438,11 @@ class Service:
         extra.update({f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()})
         now = time.time()
         for vehicle in self.fleet.vehicles():
-            self._status_pub.publish(self.fleet.status(vehicle, service=self.config.service.name, now_unix_s=now, extra=extra))
+            self._status_pub.publish(
+                self.fleet.status(
+                    vehicle, service=self.config.service.name, now_unix_s=now, extra=extra
+                )
+            )
             # One vehicle at a time: frames waiting behind a large fleet's status are not held up.
             await asyncio.sleep(0)
 
@@ -429,7 +457,9 @@ class Service:
         """Write the state of every pipeline that changed since the last checkpoint (one transaction)."""
         payloads = {}
         for vehicle, imu in self.fleet.changed_keys():
-            payloads[f"{vehicle}/{imu}"] = encode_state(self.fleet.pipelines[(vehicle, imu)].state_dict())
+            payloads[f"{vehicle}/{imu}"] = encode_state(
+                self.fleet.pipelines[(vehicle, imu)].state_dict()
+            )
             # One pipeline at a time, so frames keep flowing while a large fleet is saved.
             await asyncio.sleep(0)
         if payloads:
@@ -456,31 +486,61 @@ class Service:
                 vehicle, imu = key.rsplit("/", 1)
                 self.fleet.admit(vehicle, int(imu))
             if cfg.zenoh.enabled:
-                session = resources.enter_context(await asyncio.to_thread(open_session, cfg.zenoh.session))
-                zsink = ZenohEventSink(session, ack=cfg.zenoh.event_ack, ack_timeout_s=cfg.zenoh.ack_timeout_s, min_acks=cfg.zenoh.min_acks)
+                session = resources.enter_context(
+                    await asyncio.to_thread(open_session, cfg.zenoh.session)
+                )
+                zsink = ZenohEventSink(
+                    session,
+                    ack=cfg.zenoh.event_ack,
+                    ack_timeout_s=cfg.zenoh.ack_timeout_s,
+                    min_acks=cfg.zenoh.min_acks,
+                )
                 resources.callback(zsink.close)
                 self.sinks.append(zsink)
                 self._status_pub = resources.enter_context(StatusPublisher(session))
-                self.source = FrameSource(session, (cfg.zenoh.frames_key,), capacity=cfg.pipeline.queue_capacity, on_reject=self._on_reject)
+                self.source = FrameSource(
+                    session,
+                    (cfg.zenoh.frames_key,),
+                    capacity=cfg.pipeline.queue_capacity,
+                    on_reject=self._on_reject,
+                )
                 resources.callback(self.source.close)
             if cfg.mavlink.enabled:
-                link = resources.enter_context(await asyncio.to_thread(MavlinkLink, cfg.mavlink.link))
-                policy = AlertPolicy(min_interval_s=cfg.mavlink.alert_min_interval_s, max_per_s=cfg.mavlink.alert_max_per_s)
+                link = resources.enter_context(
+                    await asyncio.to_thread(MavlinkLink, cfg.mavlink.link)
+                )
+                policy = AlertPolicy(
+                    min_interval_s=cfg.mavlink.alert_min_interval_s,
+                    max_per_s=cfg.mavlink.alert_max_per_s,
+                )
                 self.mavlink_sink = MavlinkAlertSink(link, policy=policy, clock=self._clock)
                 self.sinks.append(self.mavlink_sink)
-                self.mavlink_source = MavlinkSource(link, capacity=cfg.pipeline.queue_capacity * COALESCE_MAX)
+                self.mavlink_source = MavlinkSource(
+                    link, capacity=cfg.pipeline.queue_capacity * COALESCE_MAX
+                )
                 resources.callback(self.mavlink_source.close)
             self._wake = _Wake({s.name: asyncio.Event() for s in self.sinks})
             for ev in self._wake.events.values():
                 ev.set()  # deliver what a previous run left in the outbox
             drain = asyncio.Event()
-            tasks = [asyncio.create_task(self._deliver(s, self._wake.events[s.name], drain), name=f"deliver-{s.name}") for s in self.sinks]
+            tasks = [
+                asyncio.create_task(
+                    self._deliver(s, self._wake.events[s.name], drain), name=f"deliver-{s.name}"
+                )
+                for s in self.sinks
+            ]
             tasks.append(asyncio.create_task(self._status(stop), name="status"))
             tasks.append(asyncio.create_task(self._checkpoints(stop), name="checkpoints"))
             inputs = [asyncio.create_task(self._frames(), name="frames")] if self.source else []
             if self.mavlink_sink is not None:
-                tasks.append(asyncio.create_task(self._heartbeat(self.mavlink_sink, stop), name="heartbeat"))
-                inputs.append(asyncio.create_task(self._mavlink_frames(self.mavlink_source), name="mavlink-frames"))
+                tasks.append(
+                    asyncio.create_task(self._heartbeat(self.mavlink_sink, stop), name="heartbeat")
+                )
+                inputs.append(
+                    asyncio.create_task(
+                        self._mavlink_frames(self.mavlink_source), name="mavlink-frames"
+                    )
+                )
             if ready is not None:
                 ready.set()
             await stop.wait()
@@ -491,7 +551,9 @@ class Service:
         names = [ZenohEventSink.name] if self.config.zenoh.enabled else []
         return names + ([MavlinkAlertSink.name] if self.config.mavlink.enabled else [])
 
-    async def _drain(self, inputs: list[asyncio.Task], tasks: list[asyncio.Task], drain: asyncio.Event) -> None:
+    async def _drain(
+        self, inputs: list[asyncio.Task], tasks: list[asyncio.Task], drain: asyncio.Event
+    ) -> None:
         if self.source is not None:
             self.source.close()
         if self.mavlink_source is not None:
@@ -503,20 +565,32 @@ class Service:
         drain.set()
         self._wake.set()
         deliveries = [t for t in tasks if t.get_name().startswith("deliver-")]
-        done, pending = await asyncio.wait(deliveries, timeout=DRAIN_TIMEOUT_S) if deliveries else (set(), set())
+        _done, pending = (
+            await asyncio.wait(deliveries, timeout=DRAIN_TIMEOUT_S)
+            if deliveries
+            else (set(), set())
+        )
         for t in list(pending) + [t for t in tasks if t not in deliveries]:
             t.cancel()
-        for t, result in zip(tasks, await asyncio.gather(*tasks, return_exceptions=True)):
+        for t, result in zip(
+            tasks, await asyncio.gather(*tasks, return_exceptions=True), strict=True
+        ):
             if isinstance(result, Exception):
-                self._say(f"ins-health: task {t.get_name()} ended with {type(result).__name__}: {result}")
+                self._say(
+                    f"ins-health: task {t.get_name()} ended with {type(result).__name__}: {result}"
+                )
         left = sum(self.outbox.counts().pending_by_sink.values())
         if left:
-            self._say(f"ins-health: {left} event deliveries still pending; they are sent at the next start")
+            self._say(
+                f"ins-health: {left} event deliveries still pending; they are sent at the next start"
+            )
 
 
 async def _wait_any(a: asyncio.Event, b: asyncio.Event | None, *, timeout_s: float | None) -> None:
     """Wait until ``a`` or ``b`` is set, or ``timeout_s`` passes."""
-    waits = [asyncio.create_task(a.wait())] + ([asyncio.create_task(b.wait())] if b is not None else [])
+    waits = [asyncio.create_task(a.wait())] + (
+        [asyncio.create_task(b.wait())] if b is not None else []
+    )
     try:
         await asyncio.wait(waits, timeout=timeout_s, return_when=asyncio.FIRST_COMPLETED)
     finally:

@@ -42,11 +42,30 @@ from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import Triad
 from estimators.passport import Grade, Passport, passport_from_estimates, per_sample_noise_std
 from estimators.session import ImuSession
-from estimators.sim import Fault, FaultKind, Fly, Hold, MotionProfile, SessionSpec, Turn, grade_error_model, simulate
+from estimators.sim import (
+    Fault,
+    FaultKind,
+    Fly,
+    Hold,
+    MotionProfile,
+    SessionSpec,
+    Turn,
+    grade_error_model,
+    simulate,
+)
 from estimators.sim import Grade as SimGrade
 from estimators.sim.motion import eighteen_position_attitudes
 from protocols.events import Predicate
-from protocols.zenoh_adapter import EventReceiver, FramePublisher, Mode, ZenohSettings, frame_key, open_router, subscribe_status, zenoh_config
+from protocols.zenoh_adapter import (
+    EventReceiver,
+    FramePublisher,
+    Mode,
+    ZenohSettings,
+    frame_key,
+    open_router,
+    subscribe_status,
+    zenoh_config,
+)
 from protocols.zenoh_router import free_local_port
 from service.config import config_from_dict
 from service.daemon import Service
@@ -62,7 +81,9 @@ DEMO_FAULT_MAGNITUDE = 0.03
 """The demo's fault: a +3 % step of the z accelerometer's scale-factor error (parameter ``ez``)."""
 
 
-def calibrate_passport(session: ImuSession, *, unit_id: str, grade: Grade, gravity_mps2: float, created: str) -> Passport:
+def calibrate_passport(
+    session: ImuSession, *, unit_id: str, grade: Grade, gravity_mps2: float, created: str
+) -> Passport:
     """A passport from a fault-free multi-position session: the offline chain (:func:`estimators.chain.run_chain`,
     refined M1 estimate) and the default tolerance rule, as ``ins-health calibrate`` does.
 
@@ -78,7 +99,9 @@ def calibrate_passport(session: ImuSession, *, unit_id: str, grade: Grade, gravi
         sensor_model="simulated MEMS IMU",
         sensor_ids={},
         created=created,
-        noise_std={t: per_sample_noise_std(result.positions, t, e.reference) for t, e in estimates.items()},
+        noise_std={
+            t: per_sample_noise_std(result.positions, t, e.reference) for t, e in estimates.items()
+        },
         sample_rate_hz=session.rate_hz,
         grade=grade,
     )
@@ -120,10 +143,14 @@ def demo_scenario(
     """
     att = eighteen_position_attitudes()
     level = att[0]
-    first = [Hold(3.0)] + handling_segments(att[1:n_positions], hold_s=hold_s, turn_s=turn_s)
+    first = [Hold(3.0), *handling_segments(att[1:n_positions], hold_s=hold_s, turn_s=turn_s)]
     to_level = [Turn(level, turn_s), Hold(3.0)]
     flight = [Fly(12.0), Hold(5.0)]
-    second = handling_segments(att[1:n_positions], hold_s=hold_s, turn_s=turn_s) + [Turn(level, turn_s), Hold(3.0)]
+    second = [
+        *handling_segments(att[1:n_positions], hold_s=hold_s, turn_s=turn_s),
+        Turn(level, turn_s),
+        Hold(3.0),
+    ]
     segments = first + to_level + flight + second
     durations = np.cumsum([0.0] + [s.duration_s for s in segments])
     i_fly = len(first) + len(to_level)
@@ -134,25 +161,47 @@ def demo_scenario(
         grade_error_model(SimGrade.MEMS),
         rate_hz=DEMO_RATE_HZ,
         latitude_deg=DEMO_LATITUDE_DEG,
-        faults=(Fault(FaultKind.STEP, Triad.ACCEL, fault_index, fault_s, fault_magnitude),) if fault_magnitude else (),
+        faults=(Fault(FaultKind.STEP, Triad.ACCEL, fault_index, fault_s, fault_magnitude),)
+        if fault_magnitude
+        else (),
     )
     res = simulate(spec, seed=seed)
     return DemoScenario(
-        res.session, spec, float(flight_start), float(landing), float(fault_s), float(durations[i_fly + 2]), res.truth.accel_params.copy()
+        res.session,
+        spec,
+        float(flight_start),
+        float(landing),
+        float(fault_s),
+        float(durations[i_fly + 2]),
+        res.truth.accel_params.copy(),
     )
 
 
 def demo_passport(*, seed: int = 11) -> tuple[Passport, float]:
     """The demo unit's passport from its own fault-free 18-position session; also the local g used."""
     spec = SessionSpec(
-        MotionProfile(eighteen_position_attitudes()[0], tuple([Hold(4.0)] + handling_segments(eighteen_position_attitudes()[1:], hold_s=4.0, turn_s=1.5))),
+        MotionProfile(
+            eighteen_position_attitudes()[0],
+            tuple(
+                [
+                    Hold(4.0),
+                    *handling_segments(eighteen_position_attitudes()[1:], hold_s=4.0, turn_s=1.5),
+                ]
+            ),
+        ),
         grade_error_model(SimGrade.MEMS),
         rate_hz=DEMO_RATE_HZ,
         latitude_deg=DEMO_LATITUDE_DEG,
     )
     res = simulate(spec, seed=seed)
     g = res.spec.assumed_gravity_mps2
-    passport = calibrate_passport(res.session, unit_id=f"{DEMO_VEHICLE}-imu0", grade=Grade.MEMS, gravity_mps2=g, created=dt.date(2024, 1, 1).isoformat())
+    passport = calibrate_passport(
+        res.session,
+        unit_id=f"{DEMO_VEHICLE}-imu0",
+        grade=Grade.MEMS,
+        gravity_mps2=g,
+        created=dt.date(2024, 1, 1).isoformat(),
+    )
     return passport, g
 
 
@@ -209,10 +258,14 @@ class DemoResult:
     named: bool
 
 
-async def run_demo(*, out: TextIO = sys.stdout, speed: float = DEFAULT_SPEED, seed: int = 7) -> DemoResult:
+async def run_demo(
+    *, out: TextIO = sys.stdout, speed: float = DEFAULT_SPEED, seed: int = 7
+) -> DemoResult:
     """The demo (module docstring); prints as it goes and returns what it saw."""
     screen = _Screen(out)
-    screen.line("ins-health demo: a Zenoh router, a simulated vehicle and the service, all on 127.0.0.1")
+    screen.line(
+        "ins-health demo: a Zenoh router, a simulated vehicle and the service, all on 127.0.0.1"
+    )
     passport, g = demo_passport()
     sc = demo_scenario(seed=seed)
     tp = passport.triads[Triad.ACCEL]
@@ -239,7 +292,12 @@ async def run_demo(*, out: TextIO = sys.stdout, speed: float = DEFAULT_SPEED, se
         PassportStore(Path(tmp) / "passports").put(DEMO_VEHICLE, 0, passport)
         config = config_from_dict(
             {
-                "service": {"name": "demo", "data_dir": str(Path(tmp) / "data"), "passport_dir": str(Path(tmp) / "passports"), "status_period_s": 0.25},
+                "service": {
+                    "name": "demo",
+                    "data_dir": str(Path(tmp) / "data"),
+                    "passport_dir": str(Path(tmp) / "passports"),
+                    "status_period_s": 0.25,
+                },
                 "site": {"gravity_mps2": g},
                 "zenoh": {"connect": [endpoint]},
                 "validity": {"timeout_s": 5.0},
@@ -254,7 +312,10 @@ async def run_demo(*, out: TextIO = sys.stdout, speed: float = DEFAULT_SPEED, se
             events.append(event)
             screen.line(f"[{event.t_s:7.2f} s] {event.severity.name:<8s} {event.text}")
 
-        with zenoh.open(zenoh_client_config(port)) as ground, zenoh.open(zenoh_client_config(port)) as vehicle:
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
             receiver = EventReceiver(ground, on_event)
             status_sub = subscribe_status(ground, lambda s: latest.__setitem__("status", s))
             await _wait_route(vehicle, frame_key(DEMO_VEHICLE, 0))
@@ -262,17 +323,23 @@ async def run_demo(*, out: TextIO = sys.stdout, speed: float = DEFAULT_SPEED, se
             with FramePublisher(vehicle, DEMO_VEHICLE, 0, batch_samples=DEMO_FRAME_SAMPLES) as pub:
                 s = sc.session
                 for k in range(n_frames):
-                    sl = slice(k * DEMO_FRAME_SAMPLES, min(s.n_samples, (k + 1) * DEMO_FRAME_SAMPLES))
+                    sl = slice(
+                        k * DEMO_FRAME_SAMPLES, min(s.n_samples, (k + 1) * DEMO_FRAME_SAMPLES)
+                    )
                     t_end = float(s.t_s[sl][-1])
                     delay = (t_end - float(s.t_s[0])) / speed - (time.monotonic() - wall0)
                     if delay > 0:
                         await asyncio.sleep(delay)
                     pub.add(s.t_s[sl], s.accel_mps2[sl], s.gyro_rps[sl])
                     if k % 10 == 0:
-                        screen.progress(_progress_text(sc, t_end, latest.get("status")), milestone=k % 500 == 0)
+                        screen.progress(
+                            _progress_text(sc, t_end, latest.get("status")), milestone=k % 500 == 0
+                        )
             # The last frames are in; give the service a moment to diagnose and deliver.
             deadline = time.monotonic() + 10.0
-            while time.monotonic() < deadline and not any(e.predicate is Predicate.F6 for e in events):
+            while time.monotonic() < deadline and not any(
+                e.predicate is Predicate.F6 for e in events
+            ):
                 await asyncio.sleep(0.1)
             screen.progress(_progress_text(sc, float(sc.session.t_s[-1]), latest.get("status")))
             screen.end_progress()
@@ -315,12 +382,18 @@ def _summary(screen: _Screen, sc: DemoScenario, events: list) -> DemoResult:
     truth = sc.truth_accel[DEMO_FAULT_INDEX] + DEMO_FAULT_MAGNITUDE
     screen.line("")
     if f0 is not None:
-        screen.line(f"detected: F0 at {f0.t_s:.2f} s, {f0.t_s - sc.fault_s:.2f} s after the fault started (the unit was resting after landing)")
+        screen.line(
+            f"detected: F0 at {f0.t_s:.2f} s, {f0.t_s - sc.fault_s:.2f} s after the fault started (the unit was resting after landing)"
+        )
     if named is not None:
         screen.line(
             f"named: accelerometer z, scale factor error {named.estimate:.4f} ± {named.sigma:.4f} (simulator truth {truth:.4f}), "
             f"at {named.t_s:.1f} s, once the post-flight handling had given the diagnosis its 9 positions"
         )
     if f0 is None or named is None:
-        screen.line("the fault was NOT " + ("detected" if f0 is None else "named") + " — this is a failure of the demo")
+        screen.line(
+            "the fault was NOT "
+            + ("detected" if f0 is None else "named")
+            + " — this is a failure of the demo"
+        )
     return DemoResult(tuple(events), f0 is not None, named is not None)

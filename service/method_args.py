@@ -33,13 +33,39 @@ def add_method_command(subparsers, name: str, *, help: str, doc: str, dest: str,
 
 def add_gravity_options(p: argparse.ArgumentParser) -> None:
     """Local gravity, with the option names of the other session commands (``calibrate``, ``simulate``)."""
-    g = p.add_argument_group("local gravity (first that applies: --gravity, --latitude/--height, the file's gravity_mps2)")
-    g.add_argument("--gravity", dest="gravity_mps2", type=float, metavar="MPS2", help="local gravity magnitude, m/s²")
-    g.add_argument("--latitude", dest="latitude_deg", type=float, metavar="DEG", help="geodetic latitude of the bench, degrees (WGS-84 normal gravity)")
-    g.add_argument("--height", dest="height_m", type=float, default=0.0, metavar="M", help="height above the ellipsoid, m (default 0)")
+    g = p.add_argument_group(
+        "local gravity (first that applies: --gravity, --latitude/--height, the file's gravity_mps2)"
+    )
+    g.add_argument(
+        "--gravity",
+        dest="gravity_mps2",
+        type=float,
+        metavar="MPS2",
+        help="local gravity magnitude, m/s²",
+    )
+    g.add_argument(
+        "--latitude",
+        dest="latitude_deg",
+        type=float,
+        metavar="DEG",
+        help="geodetic latitude of the bench, degrees (WGS-84 normal gravity)",
+    )
+    g.add_argument(
+        "--height",
+        dest="height_m",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="height above the ellipsoid, m (default 0)",
+    )
 
 
-def gravity_from(args: argparse.Namespace, *, file_gravity_mps2: float | None = None, default_mps2: float | None = None) -> float:
+def gravity_from(
+    args: argparse.Namespace,
+    *,
+    file_gravity_mps2: float | None = None,
+    default_mps2: float | None = None,
+) -> float:
     """Local gravity: ``--gravity``, else normal gravity at ``--latitude``, else the file's, else ``default``.
 
     Without any of them the command refuses: M4's point is that the standard
@@ -47,7 +73,9 @@ def gravity_from(args: argparse.Namespace, *, file_gravity_mps2: float | None = 
     """
     if args.gravity_mps2 is not None:
         if not (math.isfinite(args.gravity_mps2) and 9.7 < args.gravity_mps2 < 9.9):
-            raise UsageError(f"--gravity must be a local gravity near 9.8 m/s², got {args.gravity_mps2!r}")
+            raise UsageError(
+                f"--gravity must be a local gravity near 9.8 m/s², got {args.gravity_mps2!r}"
+            )
         return float(args.gravity_mps2)
     if args.latitude_deg is not None:
         return normal_gravity_mps2(args.latitude_deg, args.height_m)
@@ -55,7 +83,9 @@ def gravity_from(args: argparse.Namespace, *, file_gravity_mps2: float | None = 
         return float(file_gravity_mps2)
     if default_mps2 is not None:
         return float(default_mps2)
-    raise UsageError("the method needs the local gravity: give --latitude (and --height) or --gravity")
+    raise UsageError(
+        "the method needs the local gravity: give --latitude (and --height) or --gravity"
+    )
 
 
 def load_valid(path: Path) -> tuple[LoadedSession, ImuSession, Rejections]:
@@ -75,7 +105,9 @@ def rejected_text(rejected: dict[str, int]) -> str:
     """A report line with the samples validation dropped, or nothing when none were."""
     if not rejected:
         return ""
-    return "\nsamples rejected by validation: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))
+    return "\nsamples rejected by validation: " + ", ".join(
+        f"{reason} {n}" for reason, n in sorted(rejected.items())
+    )
 
 
 def parse_angles_deg(text: str) -> np.ndarray:
@@ -85,11 +117,13 @@ def parse_angles_deg(text: str) -> np.ndarray:
             start, stop, step = (float(v) for v in text.split(":"))
             if step == 0 or (stop - start) / step < 0:
                 raise ValueError
-            n = int(math.floor((stop - start) / step + 1e-9)) + 1
+            n = math.floor((stop - start) / step + 1e-9) + 1
             return start + step * np.arange(n)
         return np.array([float(v) for v in text.split(",") if v.strip()])
     except ValueError:
-        raise UsageError(f"--angles-deg must be START:STOP:STEP or a comma list of degrees, got {text!r}") from None
+        raise UsageError(
+            f"--angles-deg must be START:STOP:STEP or a comma list of degrees, got {text!r}"
+        ) from None
 
 
 def axis_index(name: str) -> int:
@@ -99,9 +133,13 @@ def axis_index(name: str) -> int:
 def add_passport_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, help="passport JSON file to write")
     p.add_argument("--report", type=Path, help="also write the full report as JSON")
-    p.add_argument("--unit-id", default="unit", help="identity of the unit in the passport (default 'unit')")
+    p.add_argument(
+        "--unit-id", default="unit", help="identity of the unit in the passport (default 'unit')"
+    )
     p.add_argument("--sensor-model", default="", help="sensor model name for the passport")
-    p.add_argument("--json", action="store_true", help="print the report as one JSON object instead of text")
+    p.add_argument(
+        "--json", action="store_true", help="print the report as one JSON object instead of text"
+    )
 
 
 def write_passport(args: argparse.Namespace, triad_passport: TriadPassport) -> Passport:

@@ -11,12 +11,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from estimators.sixpos import RateTableFit  # noqa: E402
-from estimators.temperature import TemperatureFit, TemperatureSeries, model_errors  # noqa: E402
-from estimators.tilt import TiltPassportResult, TiltRun  # noqa: E402
+from estimators.sixpos import RateTableFit
+from estimators.temperature import TemperatureFit, TemperatureSeries, model_errors
+from estimators.tilt import TiltPassportResult, TiltRun
 
 _ARCMIN = np.pi / 180.0 / 60.0
 _DPI = 72
@@ -28,7 +28,9 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_tilt(result: TiltPassportResult, runs: list[TiltRun], path: Path, *, truth: np.ndarray | None = None) -> None:
+def plot_tilt(
+    result: TiltPassportResult, runs: list[TiltRun], path: Path, *, truth: np.ndarray | None = None
+) -> None:
     """Stabilization of run 1, residuals of every run, per-run intervals and their intersection (M2 checks 1–4).
 
     ``truth`` (3,) ``[δa, δα, Δk]`` of a simulated bench is drawn on the interval panels.
@@ -53,8 +55,10 @@ def plot_tilt(result: TiltPassportResult, runs: list[TiltRun], path: Path, *, tr
         if j == 0:
             a.legend(fontsize=7)
     a = ax[1, 0]
-    for i, (f, r) in enumerate(zip(result.fits, runs)):
-        a.plot(np.degrees(r.angles_rad), f.residuals_pulses, ".-", ms=3, lw=0.6, label=f"run {i + 1}")
+    for i, (f, r) in enumerate(zip(result.fits, runs, strict=True)):
+        a.plot(
+            np.degrees(r.angles_rad), f.residuals_pulses, ".-", ms=3, lw=0.6, label=f"run {i + 1}"
+        )
     a.axhline(0, color="k", lw=0.5)
     a.set_xlabel("table angle, deg")
     a.set_title("measured − modelled, pulse", fontsize=9)
@@ -62,15 +66,28 @@ def plot_tilt(result: TiltPassportResult, runs: list[TiltRun], path: Path, *, tr
     for col, j in ((1, 0), (2, 2)):
         a = ax[1, col]
         y = np.arange(sp.n_runs) + 1
-        a.errorbar(sp.values[:, j] * unit[j], y, xerr=(sp.upper[:, j] - sp.values[:, j]) * unit[j], fmt="ko", ms=3, capsize=2)
+        a.errorbar(
+            sp.values[:, j] * unit[j],
+            y,
+            xerr=(sp.upper[:, j] - sp.values[:, j]) * unit[j],
+            fmt="ko",
+            ms=3,
+            capsize=2,
+        )
         if sp.reproducible[j]:
-            a.axvspan(sp.common_lower[j] * unit[j], sp.common_upper[j] * unit[j], color="tab:green", alpha=0.3, label="intersection")
+            a.axvspan(
+                sp.common_lower[j] * unit[j],
+                sp.common_upper[j] * unit[j],
+                color="tab:green",
+                alpha=0.3,
+                label="intersection",
+            )
         a.axvline(sp.value[j] * unit[j], color="tab:green", lw=1, label="passport value")
         if truth is not None:
             a.axvline(truth[j] * unit[j], color="tab:red", ls="--", lw=1, label="simulated truth")
         a.set_yticks(y)
         a.set_ylabel("run")
-        a.set_title(f"{int(round(sp.level * 100))} % intervals: {labels[j]}", fontsize=9)
+        a.set_title(f"{round(sp.level * 100)} % intervals: {labels[j]}", fontsize=9)
         a.legend(fontsize=7)
     _save(fig, path)
 
@@ -79,7 +96,9 @@ def plot_temperature(fit: TemperatureFit, series: TemperatureSeries, path: Path)
     """Held-out vs training criterion per order, and the bias and scale error with the selected model (M3)."""
     fig, ax = plt.subplots(1, 3, figsize=(10, 3.4))
     orders = [s.order for s in fit.scores]
-    ax[0].semilogy(orders, [s.regularity for s in fit.scores], "o-", label="held-out (GMDH regularity)")
+    ax[0].semilogy(
+        orders, [s.regularity for s in fit.scores], "o-", label="held-out (GMDH regularity)"
+    )
     ax[0].semilogy(orders, [s.training for s in fit.scores], "s--", label="training residual")
     ax[0].axvline(fit.order, color="tab:green", ls=":", label=f"selected: {fit.order}")
     ax[0].set_xlabel("polynomial order")
@@ -89,7 +108,14 @@ def plot_temperature(fit: TemperatureFit, series: TemperatureSeries, path: Path)
     b, e = model_errors(fit.model, t)
     g = fit.gravity_mps2
     for i, c in enumerate(("tab:blue", "tab:orange", "tab:red")):
-        ax[1].plot(series.temp_c, series.bias_mps2[:, i] / g * 1e3, "o", ms=3, color=c, label=f"{'xyz'[i]} measured")
+        ax[1].plot(
+            series.temp_c,
+            series.bias_mps2[:, i] / g * 1e3,
+            "o",
+            ms=3,
+            color=c,
+            label=f"{'xyz'[i]} measured",
+        )
         ax[1].plot(t, b[:, i] * 1e3, "-", lw=1, color=c)
         ax[2].plot(series.temp_c, series.scale_error[:, i] * 100, "o", ms=3, color=c)
         ax[2].plot(t, e[:, i] * 100, "-", lw=1, color=c)
@@ -105,8 +131,19 @@ def plot_rate_table(fit: RateTableFit, path: Path) -> None:
     """Gyro output minus table rate on every step, and the residuals of the straight-line fit (M4)."""
     fig, ax = plt.subplots(1, 2, figsize=(8, 3.2))
     r = np.degrees(fit.table_rate_rps)
-    ax[0].plot(r, np.degrees(fit.residuals_rps + fit.bias_rps + fit.scale_error * fit.table_rate_rps), "ko", ms=3)
-    ax[0].plot(r, np.degrees(fit.bias_rps + fit.scale_error * fit.table_rate_rps), "-", color="tab:blue", label=f"fit: S = {fit.scale_error * 100:.3f} %")
+    ax[0].plot(
+        r,
+        np.degrees(fit.residuals_rps + fit.bias_rps + fit.scale_error * fit.table_rate_rps),
+        "ko",
+        ms=3,
+    )
+    ax[0].plot(
+        r,
+        np.degrees(fit.bias_rps + fit.scale_error * fit.table_rate_rps),
+        "-",
+        color="tab:blue",
+        label=f"fit: S = {fit.scale_error * 100:.3f} %",
+    )
     ax[0].set_xlabel("table rate, °/s")
     ax[0].set_ylabel("gyro − table, °/s")
     ax[0].legend(fontsize=8)

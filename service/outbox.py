@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import sqlite3
 import threading
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS events (
@@ -79,7 +79,9 @@ class Outbox:
     releases the file.
     """
 
-    def __init__(self, path: str | Path, *, sinks: Sequence[str], retain_delivered: int = 10_000) -> None:
+    def __init__(
+        self, path: str | Path, *, sinks: Sequence[str], retain_delivered: int = 10_000
+    ) -> None:
         if not sinks:
             raise ValueError("an outbox needs at least one sink")
         if retain_delivered < 0:
@@ -96,7 +98,9 @@ class Outbox:
         self._db.executescript(_SCHEMA)
         row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
         if row is None:
-            self._db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(OUTBOX_SCHEMA_VERSION),))
+            self._db.execute(
+                "INSERT INTO meta VALUES ('schema_version', ?)", (str(OUTBOX_SCHEMA_VERSION),)
+            )
         elif int(row[0]) != OUTBOX_SCHEMA_VERSION:
             self._db.close()
             raise OutboxError(
@@ -135,7 +139,8 @@ class Outbox:
                         new += 1
                         seq = cur.lastrowid
                         self._db.executemany(
-                            "INSERT INTO pending (seq, sink) VALUES (?, ?)", [(seq, s) for s in self._sinks]
+                            "INSERT INTO pending (seq, sink) VALUES (?, ?)",
+                            [(seq, s) for s in self._sinks],
                         )
                 self._db.execute("COMMIT")
             except BaseException:
@@ -157,7 +162,9 @@ class Outbox:
     def stored(self, *, limit: int = 1000) -> list[PendingEvent]:
         """The retained events (delivered or not), oldest first; ``attempts`` is 0 here."""
         with self._lock:
-            rows = self._db.execute("SELECT seq, id, vehicle, payload FROM events ORDER BY seq LIMIT ?", (int(limit),)).fetchall()
+            rows = self._db.execute(
+                "SELECT seq, id, vehicle, payload FROM events ORDER BY seq LIMIT ?", (int(limit),)
+            ).fetchall()
         return [PendingEvent(int(q), i, v, bytes(p), 0) for q, i, v, p in rows]
 
     def ack(self, sink: str, seqs: Iterable[int]) -> None:
@@ -181,7 +188,8 @@ class Outbox:
         self._check_sink(sink)
         with self._lock:
             self._db.executemany(
-                "UPDATE pending SET attempts = attempts + 1 WHERE sink = ? AND seq = ?", [(sink, int(s)) for s in seqs]
+                "UPDATE pending SET attempts = attempts + 1 WHERE sink = ? AND seq = ?",
+                [(sink, int(s)) for s in seqs],
             )
 
     def _prune_locked(self) -> None:
@@ -195,19 +203,24 @@ class Outbox:
     def contains(self, event_id: str) -> bool:
         """Whether an event with this id was ever stored (and not yet pruned)."""
         with self._lock:
-            return self._db.execute("SELECT 1 FROM events WHERE id = ?", (event_id,)).fetchone() is not None
+            return (
+                self._db.execute("SELECT 1 FROM events WHERE id = ?", (event_id,)).fetchone()
+                is not None
+            )
 
     def counts(self) -> OutboxCounts:
         with self._lock:
             stored = self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]
-            rows = dict(self._db.execute("SELECT sink, COUNT(*) FROM pending GROUP BY sink").fetchall())
+            rows = dict(
+                self._db.execute("SELECT sink, COUNT(*) FROM pending GROUP BY sink").fetchall()
+            )
         return OutboxCounts(int(stored), {s: int(rows.get(s, 0)) for s in self._sinks})
 
     def close(self) -> None:
         with self._lock:
             self._db.close()
 
-    def __enter__(self) -> "Outbox":
+    def __enter__(self) -> Outbox:
         return self
 
     def __exit__(self, *exc) -> None:

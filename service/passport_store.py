@@ -94,7 +94,9 @@ class PassportStore:
             "passport": body,
         }
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(path, (json.dumps(entry, indent=2, allow_nan=False) + "\n").encode("utf-8"))
+        atomic_write_bytes(
+            path, (json.dumps(entry, indent=2, allow_nan=False) + "\n").encode("utf-8")
+        )
         return path
 
     def get(self, vehicle: str, imu: int) -> Passport:
@@ -117,13 +119,21 @@ class PassportStore:
         if not isinstance(entry, dict):
             raise fail(f"corrupt: top level must be an object, got {type(entry).__name__}")
         if entry.get("type") != ENTRY_TYPE:
-            hint = " (a bare passport file: add it with `ins-health store put`)" if entry.get("type") == "ins.health.passport" else ""
+            hint = (
+                " (a bare passport file: add it with `ins-health store put`)"
+                if entry.get("type") == "ins.health.passport"
+                else ""
+            )
             raise fail(f"not a passport-store entry: type {entry.get('type')!r}{hint}")
         version = entry.get("entry_version")
         if type(version) is not int or version not in SUPPORTED_ENTRY_VERSIONS:
-            raise fail(f"entry version {version!r} is not supported (this build reads {list(SUPPORTED_ENTRY_VERSIONS)})")
+            raise fail(
+                f"entry version {version!r} is not supported (this build reads {list(SUPPORTED_ENTRY_VERSIONS)})"
+            )
         if entry.get("vehicle") != vehicle or entry.get("imu") != imu:
-            raise fail(f"entry is for {entry.get('vehicle')!r} IMU{entry.get('imu')!r}: filed under the wrong unit")
+            raise fail(
+                f"entry is for {entry.get('vehicle')!r} IMU{entry.get('imu')!r}: filed under the wrong unit"
+            )
         body = entry.get("passport")
         if not isinstance(body, dict):
             raise fail("corrupt: the entry has no passport object")
@@ -132,7 +142,9 @@ class PassportStore:
         except ValueError as exc:
             raise fail(f"corrupt: {exc}") from None
         if digest != entry.get("sha256"):
-            raise fail(f"checksum mismatch (stored {str(entry.get('sha256'))[:12]}…, content {digest[:12]}…): the file was altered")
+            raise fail(
+                f"checksum mismatch (stored {str(entry.get('sha256'))[:12]}…, content {digest[:12]}…): the file was altered"
+            )
         try:
             return Passport.from_dict(body)
         except PassportError as exc:

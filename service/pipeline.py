@@ -60,21 +60,43 @@ events whose ids the outbox already holds.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from estimators.conventions import EARTH_RATE_RPS, PARAM_AXIS, PARAM_CAUSE, STANDARD_GRAVITY_MPS2, Triad
+from estimators.conventions import (
+    EARTH_RATE_RPS,
+    PARAM_AXIS,
+    PARAM_CAUSE,
+    STANDARD_GRAVITY_MPS2,
+    Triad,
+)
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Outcome, diagnose
 from estimators.ninepar import RecursiveNineParam, canonical_triad_matrix
 from estimators.passport import Passport, TriadPassport
 from estimators.positions import Position, PositionAccumulator, PositionConfig
 from estimators.scalar import F0Config, derive_lambda0, f0_batch, persistent_failure
 from estimators.static_detector import FinalDecisions, StaticDetectorConfig
-from estimators.stream_validity import CrossImuMonitor, CrossImuReport, StreamValidity, ValidityLimits
+from estimators.stream_validity import (
+    CrossImuMonitor,
+    CrossImuReport,
+    StreamValidity,
+    ValidityLimits,
+)
 from estimators.temperature import to_reference_temperature
-from protocols.events import Event, ImuState, ImuStatus, Predicate, Severity, Status, StreamCause, event_from_finding, make_event
+from protocols.events import (
+    Event,
+    ImuState,
+    ImuStatus,
+    Predicate,
+    Severity,
+    Status,
+    StreamCause,
+    event_from_finding,
+    make_event,
+)
 from protocols.frames import SampleBatch
 
 PIPELINE_STATE_VERSION = 1
@@ -158,7 +180,9 @@ class _TriadCheck:
     active: dict[str, float] = field(default_factory=dict)  # predicate -> data time raised
     f0_run: int = 0  # F0 failures in a row at the end of the last batch
     f0_run_onset: tuple[float, float] | None = None  # (t_s, residual) of that run's first sample
-    temp_out_edge_c: float | None = None  # range edge crossed while the temperature event is raised, °C
+    temp_out_edge_c: float | None = (
+        None  # range edge crossed while the temperature event is raised, °C
+    )
     # [first, last] sample times taken outside the temperature model's range that F0 has not seen yet:
     # the static gate hands samples to F0 up to a window later than the frame that carried them.
     temp_skip_s: list[list[float]] = field(default_factory=list)
@@ -170,7 +194,9 @@ class _TriadCheck:
             self.temp_skip_s.clear()
         edges = np.diff(np.concatenate([[0], outside.astype(np.int8), [0]]))
         first, last = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
-        self.temp_skip_s += [[float(t_s[a]), float(t_s[b])] for a, b in zip(first, last)]
+        self.temp_skip_s += [
+            [float(t_s[a]), float(t_s[b])] for a, b in zip(first, last, strict=True)
+        ]
 
     def take_temperature_skip(self, t_s: np.ndarray) -> np.ndarray:
         """(N,) bool: which of the samples at ``t_s`` (N,), ascending, F0 must skip; forgets the spans F0 has passed."""
@@ -184,7 +210,9 @@ class _TriadCheck:
         return skip
 
 
-def _f0_config(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> tuple[F0Config | None, float, str]:
+def _f0_config(
+    tp: TriadPassport, options: PipelineOptions, rate_hz: float
+) -> tuple[F0Config | None, float, str]:
     """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5)."""
     ref = options.reference(tp.triad)
     # Per-sample white noise scales with the square root of the rate it is sampled at; the
@@ -204,12 +232,23 @@ def _f0_config(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> t
         reference_rel_err=options.gravity_rel_err if tp.triad is Triad.ACCEL else 0.0,
     )
     if lam.lambda0 > F0_SHELL_LIMIT:
-        return None, lam.lambda0, f"F0 {tp.triad.value}: not resolvable (λ0 {lam.lambda0:.3g} > {F0_SHELL_LIMIT:g})"
-    cfg = F0Config(lambda0=lam.lambda0, reference=ref, bias_norm=tuple(nominal[:3]), matrix=canonical_triad_matrix(nominal))
+        return (
+            None,
+            lam.lambda0,
+            f"F0 {tp.triad.value}: not resolvable (λ0 {lam.lambda0:.3g} > {F0_SHELL_LIMIT:g})",
+        )
+    cfg = F0Config(
+        lambda0=lam.lambda0,
+        reference=ref,
+        bias_norm=tuple(nominal[:3]),
+        matrix=canonical_triad_matrix(nominal),
+    )
     return cfg, lam.lambda0, f"F0 {tp.triad.value}: λ0 {lam.lambda0:.3g}"
 
 
-def detector_config(base: StaticDetectorConfig, passport: Passport | None, rate_hz: float) -> StaticDetectorConfig:
+def detector_config(
+    base: StaticDetectorConfig, passport: Passport | None, rate_hz: float
+) -> StaticDetectorConfig:
     """The static detector's thresholds for this unit at this rate.
 
     A quiet window's spread is about ``√3·σ`` for per-axis white noise σ, and σ grows with the
@@ -222,9 +261,14 @@ def detector_config(base: StaticDetectorConfig, passport: Passport | None, rate_
         return base
     noise = {}
     for triad, tp in passport.triads.items():
-        noise[triad] = float(tp.noise_std.max() * tp.reference * math.sqrt(rate_hz / tp.sample_rate_hz))
+        noise[triad] = float(
+            tp.noise_std.max() * tp.reference * math.sqrt(rate_hz / tp.sample_rate_hz)
+        )
     scaled = StaticDetectorConfig.from_noise(
-        accel_noise_mps2=noise.get(Triad.ACCEL), gyro_noise_rps=noise.get(Triad.GYRO), factor=DETECTOR_NOISE_FACTOR, base=base
+        accel_noise_mps2=noise.get(Triad.ACCEL),
+        gyro_noise_rps=noise.get(Triad.GYRO),
+        factor=DETECTOR_NOISE_FACTOR,
+        base=base,
     )
     return replace(
         base,
@@ -304,7 +348,11 @@ class StaticGate:
         # Keep the samples not released and the decisions the next windows still look back on.
         self._t, self._x, self._c0 = self._t[i1:], self._x[i1:], upto
         keep_from = max(0, upto - m - d0)
-        self._dec, self._brk, self._d0 = self._dec[keep_from:], self._brk[keep_from:], d0 + keep_from
+        self._dec, self._brk, self._d0 = (
+            self._dec[keep_from:],
+            self._brk[keep_from:],
+            d0 + keep_from,
+        )
         return t, x[:, :3], x[:, 3:], static
 
     def state_dict(self) -> dict[str, Any]:
@@ -312,7 +360,7 @@ class StaticGate:
                 "dec": self._dec, "brk": self._brk, "next": self._next}  # fmt: skip
 
     @classmethod
-    def from_state(cls, state: dict[str, Any]) -> "StaticGate":
+    def from_state(cls, state: dict[str, Any]) -> StaticGate:
         gate = cls(int(state["margin"]))
         gate._c0, gate._d0, gate._next = int(state["c0"]), int(state["d0"]), int(state["next"])
         gate._t = np.asarray(state["t"], float).reshape(-1)
@@ -335,7 +383,15 @@ class ImuPipeline:
     options : shared options.
     """
 
-    def __init__(self, vehicle: str, imu: int, *, passport: Passport | None, options: PipelineOptions, passport_note: str = ""):
+    def __init__(
+        self,
+        vehicle: str,
+        imu: int,
+        *,
+        passport: Passport | None,
+        options: PipelineOptions,
+        passport_note: str = "",
+    ):
         self.vehicle, self.imu = vehicle, imu
         self.passport = passport
         self.passport_note = passport_note
@@ -367,13 +423,23 @@ class ImuPipeline:
             self.counters[name] = self.counters.get(name, 0) + int(n)
 
     def _event(self, t_s: float, predicate: Predicate, cause, severity: Severity, **kw) -> Event:
-        return make_event(vehicle=self.vehicle, imu=self.imu, t_s=t_s, predicate=predicate, cause=cause, severity=severity, **kw)
+        return make_event(
+            vehicle=self.vehicle,
+            imu=self.imu,
+            t_s=t_s,
+            predicate=predicate,
+            cause=cause,
+            severity=severity,
+            **kw,
+        )
 
     def _setup(self, rate_hz: float) -> None:
         self.rate_hz = rate_hz
         self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
         detector = detector_config(self.options.detector, self.passport, rate_hz)
-        self.accumulator = PositionAccumulator(rate_hz=rate_hz, detector_config=detector, config=self.options.positions)
+        self.accumulator = PositionAccumulator(
+            rate_hz=rate_hz, detector_config=detector, config=self.options.positions
+        )
         self.gate = StaticGate(self.options.positions.trim_samples(rate_hz))
         if self.passport is None:
             return
@@ -386,7 +452,9 @@ class ImuPipeline:
     def reject_frame(self, reason: str) -> list[Event]:
         """A frame of this IMU that the decoder rejected: counted, and its samples enter the error density."""
         self._count(f"frames.rejected.{reason}")
-        return self._validity_events(self.validity.record_rejected(self.last_batch_n), self.last_t_s or 0.0)
+        return self._validity_events(
+            self.validity.record_rejected(self.last_batch_n), self.last_t_s or 0.0
+        )
 
     def process(self, batch: SampleBatch, *, arrival_s: float) -> list[Event]:
         """Run one frame through the chain; returns the events it raised (module docstring).
@@ -397,12 +465,22 @@ class ImuPipeline:
         events: list[Event] = []
         if self.timed_out:
             self.timed_out = False
-            events.append(self._event(float(batch.t_s[0]), Predicate.TIMEOUT, StreamCause.RECOVERED, RECOVERED_SEVERITY, unit="s"))
+            events.append(
+                self._event(
+                    float(batch.t_s[0]),
+                    Predicate.TIMEOUT,
+                    StreamCause.RECOVERED,
+                    RECOVERED_SEVERITY,
+                    unit="s",
+                )
+            )
         problem = self._order_problem(batch)
         if problem is not None:
             if not self._restarted(batch):
                 self._count(problem)
-                return events + self._validity_events(self.validity.record_rejected(batch.n_samples), self.last_t_s or 0.0)
+                return events + self._validity_events(
+                    self.validity.record_rejected(batch.n_samples), self.last_t_s or 0.0
+                )
             events += self._source_restart()
         self._restart_probe = []
         if self.last_seq is not None and batch.seq > self.last_seq + 1:
@@ -413,7 +491,13 @@ class ImuPipeline:
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
         self._count("samples.rejected.out_of_order_or_non_finite", int((~keep).sum()))
-        report = self.validity.update(accel_mps2=batch.accel_mps2, gyro_rps=batch.gyro_rps, bad=~keep, arrival_s=arrival_s, t_s=batch.t_s)
+        report = self.validity.update(
+            accel_mps2=batch.accel_mps2,
+            gyro_rps=batch.gyro_rps,
+            bad=~keep,
+            arrival_s=arrival_s,
+            t_s=batch.t_s,
+        )
         t_k = batch.t_s[keep]
         events += self._validity_events(report, float(t_k[-1]))
         good = batch if keep.all() else SampleBatch(
@@ -444,11 +528,17 @@ class ImuPipeline:
     def _ordered(self, batch: SampleBatch) -> np.ndarray:
         """(N,) samples that are finite and later than every sample before them (this frame and the last accepted)."""
         t = batch.t_s
-        finite = np.isfinite(t) & np.isfinite(batch.accel_mps2).all(axis=1) & np.isfinite(batch.gyro_rps).all(axis=1)
+        finite = (
+            np.isfinite(t)
+            & np.isfinite(batch.accel_mps2).all(axis=1)
+            & np.isfinite(batch.gyro_rps).all(axis=1)
+        )
         if batch.temp_c is not None:
             finite &= np.isfinite(batch.temp_c)
         start = -math.inf if self.last_t_s is None else self.last_t_s
-        prev_max = np.maximum.accumulate(np.concatenate([[start], np.where(finite, t, -math.inf)[:-1]]))
+        prev_max = np.maximum.accumulate(
+            np.concatenate([[start], np.where(finite, t, -math.inf)[:-1]])
+        )
         return finite & (t > prev_max)
 
     def _order_problem(self, batch: SampleBatch) -> str | None:
@@ -470,7 +560,12 @@ class ImuPipeline:
         """
         probe = self._restart_probe
         t0, t1 = float(batch.t_s[0]), float(batch.t_s[-1])
-        if probe and batch.seq == probe[-1][0] + 1 and t0 > probe[-1][2] and np.all(np.diff(batch.t_s) > 0):
+        if (
+            probe
+            and batch.seq == probe[-1][0] + 1
+            and t0 > probe[-1][2]
+            and np.all(np.diff(batch.t_s) > 0)
+        ):
             probe.append((batch.seq, t0, t1))
         else:
             self._restart_probe = probe = [(batch.seq, t0, t1)]
@@ -499,19 +594,27 @@ class ImuPipeline:
         """Static detector and positions over the batch: the per-sample results, vectorized where the stream is clean."""
         return self.accumulator.update_batch(t_s, accel, gyro, temp)
 
-    def _f0_all(self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, static: np.ndarray) -> list[Event]:
+    def _f0_all(
+        self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, static: np.ndarray
+    ) -> list[Event]:
         events: list[Event] = []
         if t_s.size:
             for triad, check in self.checks.items():
-                events += self._f0(triad, check, t_s, accel if triad is Triad.ACCEL else gyro, static)
+                events += self._f0(
+                    triad, check, t_s, accel if triad is Triad.ACCEL else gyro, static
+                )
         return events
 
-    def _temperature(self, accel: np.ndarray, gyro: np.ndarray, temp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _temperature(
+        self, accel: np.ndarray, gyro: np.ndarray, temp: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         out = {Triad.ACCEL: accel, Triad.GYRO: gyro}
         for triad, check in self.checks.items():
             model = check.passport.temperature
             if model is not None:
-                out[triad] = to_reference_temperature(out[triad], temp, model, gravity_mps2=check.passport.reference)
+                out[triad] = to_reference_temperature(
+                    out[triad], temp, model, gravity_mps2=check.passport.reference
+                )
                 self.temperature_compensated = True
         return out[Triad.ACCEL], out[Triad.GYRO]
 
@@ -547,19 +650,43 @@ class ImuPipeline:
                 kw = dict(triad=triad, estimate=temp_c, nominal=model.reference_temp_c, unit="degC")
                 if entering:
                     check.temp_out_edge_c = edge = hi if temp_c > hi else lo
-                    text = (f"{where} outside the passport model's {lo:g}…{hi:g} °C; compensation held at its "
-                            f"{edge:g} °C value, F0 and the diagnosis skip these samples [temperature]")
-                    events.append(self._event(t_s, Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE,
-                                              SEVERITY[Predicate.TEMPERATURE], tolerance=edge, text=text, **kw))
+                    text = (
+                        f"{where} outside the passport model's {lo:g}…{hi:g} °C; compensation held at its "
+                        f"{edge:g} °C value, F0 and the diagnosis skip these samples [temperature]"
+                    )
+                    events.append(
+                        self._event(
+                            t_s,
+                            Predicate.TEMPERATURE,
+                            StreamCause.TEMPERATURE_RANGE,
+                            SEVERITY[Predicate.TEMPERATURE],
+                            tolerance=edge,
+                            text=text,
+                            **kw,
+                        )
+                    )
                 else:
-                    text = f"{where} back within the passport model's {lo:g}…{hi:g} °C [temperature]"
-                    events.append(self._event(t_s, Predicate.TEMPERATURE, StreamCause.RECOVERED, RECOVERED_SEVERITY,
-                                              tolerance=check.temp_out_edge_c, text=text, **kw))
+                    text = (
+                        f"{where} back within the passport model's {lo:g}…{hi:g} °C [temperature]"
+                    )
+                    events.append(
+                        self._event(
+                            t_s,
+                            Predicate.TEMPERATURE,
+                            StreamCause.RECOVERED,
+                            RECOVERED_SEVERITY,
+                            tolerance=check.temp_out_edge_c,
+                            text=text,
+                            **kw,
+                        )
+                    )
                     check.temp_out_edge_c = None
                 i += 1
         return events
 
-    def _f0(self, triad: Triad, check: _TriadCheck, t_s: np.ndarray, x: np.ndarray, static: np.ndarray) -> list[Event]:
+    def _f0(
+        self, triad: Triad, check: _TriadCheck, t_s: np.ndarray, x: np.ndarray, static: np.ndarray
+    ) -> list[Event]:
         if check.f0 is None:
             return []
         # Beyond the temperature model's range compensation is not exact (module docstring step 3): not tested.
@@ -572,7 +699,11 @@ class ImuPipeline:
         events: list[Event] = []
         if k >= 0 and not check.f0_failing:
             onset = k - self.f0_persist + 1
-            t_on, r_on = (float(t_s[onset]), float(res.residual[onset])) if onset >= 0 else check.f0_run_onset
+            t_on, r_on = (
+                (float(t_s[onset]), float(res.residual[onset]))
+                if onset >= 0
+                else check.f0_run_onset
+            )
             check.f0_failing, check.f0_fail_t_s = True, t_on
             events.append(
                 self._event(
@@ -598,16 +729,29 @@ class ImuPipeline:
             self.n_positions += 1
             self._count("positions")
             for triad, check in self.checks.items():
-                if check.estimator is None or pos.t_start_s < check.since_t_s or pos.mean(triad) is None:
+                if (
+                    check.estimator is None
+                    or pos.t_start_s < check.since_t_s
+                    or pos.mean(triad) is None
+                ):
                     continue
                 model = check.passport.temperature
-                if model is not None and pos.temp_mean_c is not None and not model.in_range(pos.temp_mean_c)[0]:
-                    self._count(f"positions.skipped_temperature.{triad.value}")  # compensation not exact there
+                if (
+                    model is not None
+                    and pos.temp_mean_c is not None
+                    and not model.in_range(pos.temp_mean_c)[0]
+                ):
+                    self._count(
+                        f"positions.skipped_temperature.{triad.value}"
+                    )  # compensation not exact there
                     continue
                 ref = self.options.reference(triad)
                 try:
                     # The bias wander does not average down within a position (audited model).
-                    check.estimator.update(pos.mean(triad) / ref, (pos.cov(triad) + check.passport.position_cov_floor()) / ref**2)
+                    check.estimator.update(
+                        pos.mean(triad) / ref,
+                        (pos.cov(triad) + check.passport.position_cov_floor()) / ref**2,
+                    )
                 except ValueError:
                     self._count(f"positions.rejected.{triad.value}")
                     continue
@@ -618,12 +762,24 @@ class ImuPipeline:
         est = check.estimator
         if est.n_positions < self.options.min_positions:
             return []
-        diag = diagnose(est.estimate(), check.passport, false_alarm_prob=self.options.diagnosis_false_alarm_probability)
+        diag = diagnose(
+            est.estimate(),
+            check.passport,
+            false_alarm_prob=self.options.diagnosis_false_alarm_probability,
+        )
         events: list[Event] = []
         for finding in diag.findings:
             if finding.predicate not in check.active:
                 check.active[finding.predicate] = t_s
-                events.append(event_from_finding(finding, vehicle=self.vehicle, imu=self.imu, t_s=t_s, severity=FINDING_SEVERITY))
+                events.append(
+                    event_from_finding(
+                        finding,
+                        vehicle=self.vehicle,
+                        imu=self.imu,
+                        t_s=t_s,
+                        severity=FINDING_SEVERITY,
+                    )
+                )
         for result in diag.results:
             if result.outcome is Outcome.PASS and result.predicate in check.active:
                 del check.active[result.predicate]
@@ -681,7 +837,15 @@ class ImuPipeline:
             )  # fmt: skip
         elif self.error_dense and report.error_density <= 0.5 * limits.error_density_max:
             self.error_dense = False
-            events.append(self._event(t_s, Predicate.ERROR_DENSITY, StreamCause.RECOVERED, RECOVERED_SEVERITY, estimate=report.error_density))
+            events.append(
+                self._event(
+                    t_s,
+                    Predicate.ERROR_DENSITY,
+                    StreamCause.RECOVERED,
+                    RECOVERED_SEVERITY,
+                    estimate=report.error_density,
+                )
+            )
         return events
 
     # ------------------------------------------------------------------ time and end of data
@@ -693,7 +857,16 @@ class ImuPipeline:
         self.timed_out = True
         limit = self.options.validity.timeout_s
         t_s = (self.last_t_s or 0.0) + limit
-        events = [self._event(t_s, Predicate.TIMEOUT, StreamCause.NO_DATA, SEVERITY[Predicate.TIMEOUT], tolerance=limit, unit="s")]
+        events = [
+            self._event(
+                t_s,
+                Predicate.TIMEOUT,
+                StreamCause.NO_DATA,
+                SEVERITY[Predicate.TIMEOUT],
+                tolerance=limit,
+                unit="s",
+            )
+        ]
         # The data stopped: the pending position is complete, let it count.
         return events + self.finish()
 
@@ -703,7 +876,9 @@ class ImuPipeline:
             return []
         positions = self.accumulator.flush()
         empty = np.zeros((0, 3))
-        return self._f0_all(*self.gate.push(np.zeros(0), empty, empty, self.accumulator.detector.last_step())) + self._positions(positions)
+        return self._f0_all(
+            *self.gate.push(np.zeros(0), empty, empty, self.accumulator.detector.last_step())
+        ) + self._positions(positions)
 
     # ------------------------------------------------------------------ status and checkpoints
 
@@ -728,12 +903,18 @@ class ImuPipeline:
         for check in self.checks.values():
             parts.append(check.f0_note + (" FAILING" if check.f0_failing else ""))
             if check.active:
-                parts.append(f"{check.passport.triad.value} faults " + ",".join(sorted(check.active)))
+                parts.append(
+                    f"{check.passport.triad.value} faults " + ",".join(sorted(check.active))
+                )
             model, name = check.passport.temperature, check.passport.triad.value
             if model is not None and not model.bounded:
-                parts.append(f"{name} temperature model has no valid range (passport schema 1): used at any temperature")
+                parts.append(
+                    f"{name} temperature model has no valid range (passport schema 1): used at any temperature"
+                )
             elif check.temp_out_edge_c is not None:
-                parts.append(f"{name} beyond the temperature model's {model.valid_min_c:g}…{model.valid_max_c:g} °C: F0 and diagnosis skip samples there")
+                parts.append(
+                    f"{name} beyond the temperature model's {model.valid_min_c:g}…{model.valid_max_c:g} °C: F0 and diagnosis skip samples there"
+                )
         if self.checks:
             with_model = any(c.passport.temperature is not None for c in self.checks.values())
             parts.append(
@@ -742,7 +923,14 @@ class ImuPipeline:
             )  # fmt: skip
         if self.stale:
             parts.append("stale " + ",".join(f"{t}.{a}" for t, a in sorted(self.stale)))
-        return ImuStatus(self.imu, self.state, self.n_samples, self.last_t_s, self.n_positions, "; ".join(parts)[:500])
+        return ImuStatus(
+            self.imu,
+            self.state,
+            self.n_samples,
+            self.last_t_s,
+            self.n_positions,
+            "; ".join(parts)[:500],
+        )
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume after a restart (positions and estimates included)."""
@@ -781,8 +969,14 @@ class ImuPipeline:
 
     def load_state(self, state: dict[str, Any]) -> None:
         """Resume from :meth:`state_dict` (raises ``ValueError`` for another unit or version; then start fresh)."""
-        if state.get("version") != PIPELINE_STATE_VERSION or state.get("vehicle") != self.vehicle or state.get("imu") != self.imu:
-            raise ValueError(f"checkpoint is not a version-{PIPELINE_STATE_VERSION} state of {self.vehicle} IMU{self.imu}")
+        if (
+            state.get("version") != PIPELINE_STATE_VERSION
+            or state.get("vehicle") != self.vehicle
+            or state.get("imu") != self.imu
+        ):
+            raise ValueError(
+                f"checkpoint is not a version-{PIPELINE_STATE_VERSION} state of {self.vehicle} IMU{self.imu}"
+            )
         try:
             if state["rate_hz"] is not None:
                 self._setup(float(state["rate_hz"]))
@@ -795,8 +989,12 @@ class ImuPipeline:
             self.n_positions = int(state["n_positions"])
             self.stale = {tuple(k) for k in state["stale"]}
             self.error_dense = bool(state["error_dense"])
-            self.temperature_compensated = bool(state.get("temperature_compensated", False))  # absent from older checkpoints
-            self.validity = StreamValidity.from_state(state["validity"], limits=self.options.validity)
+            self.temperature_compensated = bool(
+                state.get("temperature_compensated", False)
+            )  # absent from older checkpoints
+            self.validity = StreamValidity.from_state(
+                state["validity"], limits=self.options.validity
+            )
             self.counters = {str(k): int(v) for k, v in state["counters"].items()}
             for name, cs in state["checks"].items():
                 check = self.checks.get(Triad(name))
@@ -817,21 +1015,35 @@ class ImuPipeline:
                 if cs["estimator"] is not None and check.estimator is not None:
                     check.estimator = RecursiveNineParam.from_state_dict(cs["estimator"])
         except (KeyError, TypeError) as exc:
-            raise ValueError(f"checkpoint of {self.vehicle} IMU{self.imu} is incomplete: {exc}") from None
+            raise ValueError(
+                f"checkpoint of {self.vehicle} IMU{self.imu} is incomplete: {exc}"
+            ) from None
 
 
 PassportLookup = Callable[[str, int], Passport]
 """``(vehicle, imu) -> Passport``; raises ``ValueError`` (e.g. ``PassportStoreError``) with the reason."""
 
 
-def _cross_imu_event(vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str) -> Event:
+def _cross_imu_event(
+    vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str
+) -> Event:
     t_s = report.bin_start_s + limits.cross_imu_window_s
     accel_ratio = report.accel_dev_mps2 / limits.cross_imu_accel_mps2
     gyro_ratio = report.gyro_dev_rps / limits.cross_imu_gyro_rps
     if accel_ratio >= gyro_ratio:
-        triad, value, limit, unit = Triad.ACCEL, report.accel_dev_mps2, limits.cross_imu_accel_mps2, "m/s^2"
+        triad, value, limit, unit = (
+            Triad.ACCEL,
+            report.accel_dev_mps2,
+            limits.cross_imu_accel_mps2,
+            "m/s^2",
+        )
     else:
-        triad, value, limit, unit = Triad.GYRO, report.gyro_dev_rps, limits.cross_imu_gyro_rps, "rad/s"
+        triad, value, limit, unit = (
+            Triad.GYRO,
+            report.gyro_dev_rps,
+            limits.cross_imu_gyro_rps,
+            "rad/s",
+        )
     others = ",".join(f"IMU{i}" for i in report.others)
     if report.consistent:
         text = f"{vehicle} IMU{report.imu}: agrees again with {others} [cross_imu]"
@@ -916,7 +1128,9 @@ class FleetProcessor:
             passport, note = None, str(exc)
             if self._on_passport_error is not None:
                 self._on_passport_error(vehicle, imu, note)
-        pipe = ImuPipeline(vehicle, imu, passport=passport, options=self.options, passport_note=note)
+        pipe = ImuPipeline(
+            vehicle, imu, passport=passport, options=self.options, passport_note=note
+        )
         if self._restore is not None:
             state = self._restore(vehicle, imu)
             if state is not None:
@@ -924,7 +1138,9 @@ class FleetProcessor:
                     pipe.load_state(state)
                     self.count_vehicle(vehicle, "checkpoints.restored")
                 except ValueError:
-                    pipe = ImuPipeline(vehicle, imu, passport=passport, options=self.options, passport_note=note)
+                    pipe = ImuPipeline(
+                        vehicle, imu, passport=passport, options=self.options, passport_note=note
+                    )
                     self.count_vehicle(vehicle, "checkpoints.discarded")
         self.pipelines[(vehicle, imu)] = pipe
         self._imu_count[vehicle] = self._imu_count.get(vehicle, 0) + 1
@@ -940,9 +1156,18 @@ class FleetProcessor:
         good = pipe.accepted
         # Cross-IMU consistency needs a second IMU on the vehicle; until one appears there is nothing to compare.
         if good is not None and self._imu_count.get(batch.vehicle, 0) > 1:
-            reports = self.cross[batch.vehicle].add(batch.imu, good.t_s, good.accel_mps2, good.gyro_rps)
+            reports = self.cross[batch.vehicle].add(
+                batch.imu, good.t_s, good.accel_mps2, good.gyro_rps
+            )
             for r in reports:
-                events.append(_cross_imu_event(batch.vehicle, r, self.options.validity, self._scalar_note(batch.vehicle, r.imu)))
+                events.append(
+                    _cross_imu_event(
+                        batch.vehicle,
+                        r,
+                        self.options.validity,
+                        self._scalar_note(batch.vehicle, r.imu),
+                    )
+                )
         return events
 
     def _scalar_note(self, vehicle: str, imu: int) -> str:
@@ -950,7 +1175,9 @@ class FleetProcessor:
         if pipe is None:
             return ""
         notes = [f"F0 {t.value} failing" for t, c in pipe.checks.items() if c.f0_failing]
-        notes += [f"{t.value} {','.join(sorted(c.active))}" for t, c in pipe.checks.items() if c.active]
+        notes += [
+            f"{t.value} {','.join(sorted(c.active))}" for t, c in pipe.checks.items() if c.active
+        ]
         return "; ".join(notes) if notes else "F0 passing"
 
     def reject(self, vehicle: str | None, imu: int | None, reason: str) -> list[Event]:
@@ -984,7 +1211,9 @@ class FleetProcessor:
     def vehicles(self) -> list[str]:
         return sorted(self.vehicle_counters)
 
-    def status(self, vehicle: str, *, service: str, now_unix_s: float, extra: dict[str, int] | None = None) -> Status:
+    def status(
+        self, vehicle: str, *, service: str, now_unix_s: float, extra: dict[str, int] | None = None
+    ) -> Status:
         """The status message of one vehicle (its pipelines, its counters, the service-wide counters)."""
         counters: dict[str, int] = {}
         for (v, _), pipe in sorted(self.pipelines.items()):
@@ -995,7 +1224,9 @@ class FleetProcessor:
         counters.update({f"service.{k}": v for k, v in self.service_counters.items()})
         counters.update(extra or {})
         imus = tuple(p.status() for (v, _), p in sorted(self.pipelines.items()) if v == vehicle)
-        return Status(vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus)
+        return Status(
+            vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus
+        )
 
     def state_dicts(self, *, changed_only: bool = False) -> dict[str, dict[str, Any]]:
         """Checkpoint states keyed ``"<vehicle>/<imu>"`` (see :meth:`changed_keys` for ``changed_only``)."""
@@ -1011,4 +1242,3 @@ class FleetProcessor:
                 self._saved[key] = mark
                 out.append(key)
         return out
-

@@ -37,19 +37,68 @@ class SessionInput:
 
 def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     """SESSION (CSV file, Xsens raw-count pair or its folder) and the local gravity."""
-    parser.add_argument("session", metavar="SESSION", help="CSV session file (t,ax,ay,az,gx,gy,gz[,temp]), or the accelerometer file / folder of an Xsens raw-count pair")
-    parser.add_argument("--gyro-file", metavar="PATH", help="gyro file of an Xsens raw-count pair (SESSION is then its accelerometer file)")
-    parser.add_argument("--sidecar", metavar="TOML", help="nominal scale (SI per count) and offset (counts) of a raw-count pair; default: the packaged Xsens MTi sidecar")
-    g = parser.add_argument_group("local gravity (first that applies: --gravity, --latitude/--height, the file's own value, WGS-84 at 45°)")
+    parser.add_argument(
+        "session",
+        metavar="SESSION",
+        help="CSV session file (t,ax,ay,az,gx,gy,gz[,temp]), or the accelerometer file / folder of an Xsens raw-count pair",
+    )
+    parser.add_argument(
+        "--gyro-file",
+        metavar="PATH",
+        help="gyro file of an Xsens raw-count pair (SESSION is then its accelerometer file)",
+    )
+    parser.add_argument(
+        "--sidecar",
+        metavar="TOML",
+        help="nominal scale (SI per count) and offset (counts) of a raw-count pair; default: the packaged Xsens MTi sidecar",
+    )
+    g = parser.add_argument_group(
+        "local gravity (first that applies: --gravity, --latitude/--height, the file's own value, WGS-84 at 45°)"
+    )
     g.add_argument("--gravity", type=float, metavar="MPS2", help="local gravity magnitude, m/s²")
-    g.add_argument("--latitude", type=float, metavar="DEG", help="geodetic latitude, degrees (WGS-84 normal gravity)")
-    g.add_argument("--height", type=float, default=0.0, metavar="M", help="height above the ellipsoid, metres (default 0)")
-    r = parser.add_argument_group("full-scale ranges (a sample with any axis at or beyond its range is saturated: rejected and counted)")
-    r.add_argument("--accel-range", type=float, metavar="MPS2", help="accelerometer full scale, m/s² (default: not checked)")
-    r.add_argument("--gyro-range", type=float, metavar="RPS", help="gyro full scale, rad/s (default: not checked)")
-    n = parser.add_argument_group("static detection (default thresholds suit MEMS units: 0.05 m/s², 0.02 rad/s window spread)")
-    n.add_argument("--accel-noise", type=float, metavar="MPS2", help="per-sample white noise of each accelerometer, m/s²: threshold at 3× its window spread")
-    n.add_argument("--gyro-noise", type=float, metavar="RPS", help="per-sample white noise of each gyro, rad/s (navigation-grade gyros need it): threshold at 3× its window spread")
+    g.add_argument(
+        "--latitude",
+        type=float,
+        metavar="DEG",
+        help="geodetic latitude, degrees (WGS-84 normal gravity)",
+    )
+    g.add_argument(
+        "--height",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="height above the ellipsoid, metres (default 0)",
+    )
+    r = parser.add_argument_group(
+        "full-scale ranges (a sample with any axis at or beyond its range is saturated: rejected and counted)"
+    )
+    r.add_argument(
+        "--accel-range",
+        type=float,
+        metavar="MPS2",
+        help="accelerometer full scale, m/s² (default: not checked)",
+    )
+    r.add_argument(
+        "--gyro-range",
+        type=float,
+        metavar="RPS",
+        help="gyro full scale, rad/s (default: not checked)",
+    )
+    n = parser.add_argument_group(
+        "static detection (default thresholds suit MEMS units: 0.05 m/s², 0.02 rad/s window spread)"
+    )
+    n.add_argument(
+        "--accel-noise",
+        type=float,
+        metavar="MPS2",
+        help="per-sample white noise of each accelerometer, m/s²: threshold at 3× its window spread",
+    )
+    n.add_argument(
+        "--gyro-noise",
+        type=float,
+        metavar="RPS",
+        help="per-sample white noise of each gyro, rad/s (navigation-grade gyros need it): threshold at 3× its window spread",
+    )
 
 
 def load_session_input(args: argparse.Namespace) -> SessionInput:
@@ -58,13 +107,23 @@ def load_session_input(args: argparse.Namespace) -> SessionInput:
     if args.gravity is not None:
         gravity, source = args.gravity, "--gravity"
     elif args.latitude is not None:
-        gravity, source = normal_gravity_mps2(args.latitude, args.height), f"WGS-84 at {args.latitude}° {args.height} m"
+        gravity, source = (
+            normal_gravity_mps2(args.latitude, args.height),
+            f"WGS-84 at {args.latitude}° {args.height} m",
+        )
     elif loaded.gravity_mps2 is not None:
         gravity, source = loaded.gravity_mps2, "session file"
     else:
-        gravity, source = normal_gravity_mps2(DEFAULT_LATITUDE_DEG, 0.0), f"WGS-84 at {DEFAULT_LATITUDE_DEG}° (default)"
+        gravity, source = (
+            normal_gravity_mps2(DEFAULT_LATITUDE_DEG, 0.0),
+            f"WGS-84 at {DEFAULT_LATITUDE_DEG}° (default)",
+        )
     for name, noise in (("--accel-noise", args.accel_noise), ("--gyro-noise", args.gyro_noise)):
         if noise is not None and not (math.isfinite(noise) and noise > 0.0):
             raise UsageError(f"{name} must be a positive noise level, got {noise!r}")
-    detector = StaticDetectorConfig.from_noise(accel_noise_mps2=args.accel_noise, gyro_noise_rps=args.gyro_noise)
-    return SessionInput(loaded.session, float(gravity), source, args.accel_range, args.gyro_range, detector)
+    detector = StaticDetectorConfig.from_noise(
+        accel_noise_mps2=args.accel_noise, gyro_noise_rps=args.gyro_noise
+    )
+    return SessionInput(
+        loaded.session, float(gravity), source, args.accel_range, args.gyro_range, detector
+    )

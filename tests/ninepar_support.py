@@ -11,7 +11,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from estimators.conventions import EARTH_RATE_RPS, RPS_PER_DPH, Triad, nine_params, sensor_axes, triad_matrix
+from estimators.conventions import (
+    EARTH_RATE_RPS,
+    RPS_PER_DPH,
+    Triad,
+    nine_params,
+    sensor_axes,
+    triad_matrix,
+)
 from estimators.ninepar import scheme_directions
 
 DEG_PER_H_NORM = RPS_PER_DPH / EARTH_RATE_RPS
@@ -48,10 +55,12 @@ class TriadCase:
     def draw(self, rng: np.random.Generator, trials: int) -> np.ndarray:
         """(trials, n, 3) noisy means, all trials in one vectorized draw."""
         chol = np.linalg.cholesky(self.cov)
-        noise = np.einsum("nij,tnj->tni", chol, rng.standard_normal((trials, *self.directions.shape)))
+        noise = np.einsum(
+            "nij,tnj->tni", chol, rng.standard_normal((trials, *self.directions.shape))
+        )
         return self.means_true + noise
 
-    def with_fault(self, j: int, delta: float) -> "TriadCase":
+    def with_fault(self, j: int, delta: float) -> TriadCase:
         """The same triad with parameter ``j`` (PARAM_NAMES order) moved by about ``delta``."""
         if j < 3:
             return replace(self, bias=self.bias + delta * np.eye(3)[j])
@@ -106,7 +115,9 @@ def nav_gyro(rng: np.random.Generator, n_positions: int = 18) -> TriadCase:
     )
 
 
-def mems_gyro(rng: np.random.Generator, *, seconds_per_position: float, n_positions: int = 18) -> TriadCase:
+def mems_gyro(
+    rng: np.random.Generator, *, seconds_per_position: float, n_positions: int = 18
+) -> TriadCase:
     """MEMS gyro against Ω: bias ~0.01 rad/s (≈ 140 Ω), noise 0.005 °/s/√Hz averaged over the position."""
     sigma_dps = 0.005 / np.sqrt(seconds_per_position)
     return TriadCase(
@@ -119,7 +130,9 @@ def mems_gyro(rng: np.random.Generator, *, seconds_per_position: float, n_positi
     )
 
 
-def single_axis_directions(axis: np.ndarray, n_positions: int, *, cone_deg: float = 90.0) -> np.ndarray:
+def single_axis_directions(
+    axis: np.ndarray, n_positions: int, *, cone_deg: float = 90.0
+) -> np.ndarray:
     """Directions reached by turning the unit about one ``axis``: a circle at ``cone_deg`` from it."""
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     a = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -127,5 +140,6 @@ def single_axis_directions(axis: np.ndarray, n_positions: int, *, cone_deg: floa
     c = np.cross(axis, a)
     phi = 2.0 * np.pi * np.arange(n_positions) / n_positions
     cone = np.radians(cone_deg)
-    return np.cos(cone) * axis + np.sin(cone) * (np.outer(np.cos(phi), a) + np.outer(np.sin(phi), c))
-
+    return np.cos(cone) * axis + np.sin(cone) * (
+        np.outer(np.cos(phi), a) + np.outer(np.sin(phi), c)
+    )

@@ -7,8 +7,8 @@ import json
 import socket
 import threading
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Callable, Iterator
 
 import numpy as np
 import zenoh
@@ -55,7 +55,9 @@ def zenoh_router(port: int | None = None) -> Iterator[int]:
         session.close()
 
 
-def wait_until(predicate: Callable[[], bool], *, timeout_s: float, what: str | Callable[[], str]) -> None:
+def wait_until(
+    predicate: Callable[[], bool], *, timeout_s: float, what: str | Callable[[], str]
+) -> None:
     """Poll ``predicate`` until it holds; fail with ``what`` (a text, or a function giving one) after ``timeout_s``.
 
     The wait is on a condition, not a fixed delay: it returns as soon as the
@@ -65,7 +67,9 @@ def wait_until(predicate: Callable[[], bool], *, timeout_s: float, what: str | C
     tick = threading.Event()
     while not predicate():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what() if callable(what) else what}")
+            raise AssertionError(
+                f"timed out after {timeout_s} s waiting for {what() if callable(what) else what}"
+            )
         tick.wait(0.01)
 
 
@@ -75,7 +79,12 @@ def batches_of(session, *, vehicle: str, imu: int, batch_samples: int, first_seq
     for k, start in enumerate(range(0, n, batch_samples)):
         sl = slice(start, min(n, start + batch_samples))
         yield SampleBatch(
-            vehicle, imu, first_seq + k, session.t_s[sl], session.accel_mps2[sl], session.gyro_rps[sl],
+            vehicle,
+            imu,
+            first_seq + k,
+            session.t_s[sl],
+            session.accel_mps2[sl],
+            session.gyro_rps[sl],
             None if session.temp_c is None else session.temp_c[sl],
         )
 
@@ -110,7 +119,9 @@ class ServiceThread:
             self._stop = asyncio.Event()
             ready = asyncio.Event()
             task = asyncio.create_task(self.service.run(self._stop, ready=ready))
-            await asyncio.wait([task, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED)
+            await asyncio.wait(
+                [task, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED
+            )
             self._ready.set()
             await task
 
@@ -122,7 +133,7 @@ class ServiceThread:
         finally:
             self._loop.close()
 
-    def __enter__(self) -> "ServiceThread":
+    def __enter__(self) -> ServiceThread:
         self._thread.start()
         if not self._ready.wait(30.0):
             raise AssertionError("the service did not start within 30 s")
@@ -161,15 +172,24 @@ def wait_subscribed(session, key: str, *, timeout_s: float = 10.0) -> None:
     """Wait until some subscriber matches ``key`` (the service declared its frame subscription)."""
     pub = session.declare_publisher(key)
     try:
-        wait_until(lambda: pub.matching_status.matching, timeout_s=timeout_s, what=f"a subscriber on {key}")
+        wait_until(
+            lambda: pub.matching_status.matching, timeout_s=timeout_s, what=f"a subscriber on {key}"
+        )
     finally:
         pub.undeclare()
 
 
-def service_config(tmp_path, *, port: int | None, passport_dir, name: str = "ins-health", **sections):
+def service_config(
+    tmp_path, *, port: int | None, passport_dir, name: str = "ins-health", **sections
+):
     """A ServiceConfig for tests: data under ``tmp_path``, Zenoh client of the router on ``port`` (None: no Zenoh)."""
     raw = {
-        "service": {"name": name, "data_dir": str(tmp_path / name), "passport_dir": str(passport_dir), "status_period_s": 0.2},
+        "service": {
+            "name": name,
+            "data_dir": str(tmp_path / name),
+            "passport_dir": str(passport_dir),
+            "status_period_s": 0.2,
+        },
         "zenoh": {"enabled": False} if port is None else {"connect": [f"tcp/127.0.0.1:{port}"]},
     }
     for section, values in sections.items():
@@ -211,6 +231,12 @@ def mavlink_packets(session, kind, *, imu_id: int = 0, start_s: float = -1e9) ->
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1)
     out = []
     for k in range(int(np.searchsorted(session.t_s, start_s)), session.n_samples):
-        msg = imu_message(kind, t_s=float(session.t_s[k]), accel_mps2=session.accel_mps2[k], gyro_rps=session.gyro_rps[k], imu_id=imu_id)
+        msg = imu_message(
+            kind,
+            t_s=float(session.t_s[k]),
+            accel_mps2=session.accel_mps2[k],
+            gyro_rps=session.gyro_rps[k],
+            imu_id=imu_id,
+        )
         out.append(msg.pack(mav))
     return out

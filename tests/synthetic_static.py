@@ -86,14 +86,18 @@ def build_scene(
     t_next = 0.0
     k_rest = 0
     for seg in segments:
-        n = int(round(seg.duration_s * rate_hz))
+        n = round(seg.duration_s * rate_hz)
         if isinstance(seg, Gap):
             t_next += seg.duration_s
             continue
         t = t_next + dt * np.arange(n)
         t_next = t[-1] + dt
         if isinstance(seg, Rotate):
-            axis = up if seg.axis_b is None else np.asarray(seg.axis_b, float) / np.linalg.norm(seg.axis_b)
+            axis = (
+                up
+                if seg.axis_b is None
+                else np.asarray(seg.axis_b, float) / np.linalg.norm(seg.axis_b)
+            )
             big = np.radians(seg.angle_deg)
             tau = (np.arange(n) + 1) / n
             if seg.constant_rate:
@@ -125,12 +129,17 @@ def build_scene(
     accel = G_MPS2 * f + np.concatenate(extra_accel) + _noise(rng, n_all, accel_noise_mps2, phi)
     gyro = np.concatenate(w_parts) + _noise(rng, n_all, gyro_noise_rps, phi)
     temp = None if temp_c is None else temp_c + 0.1 * rng.standard_normal(n_all)
-    return Scene(ImuSession(t, accel, gyro, temp), np.concatenate(rest_parts), np.concatenate(idx_parts), f)
+    return Scene(
+        ImuSession(t, accel, gyro, temp), np.concatenate(rest_parts), np.concatenate(idx_parts), f
+    )
 
 
 def tumble(n_rest: int, *, rest_s: float, turn_s: float = 2.0, rng: np.random.Generator) -> list:
     """``n_rest`` rests joined by turns of 40–140° about random body axes."""
     segs = [Rest(rest_s)]
     for _ in range(n_rest - 1):
-        segs += [Rotate(turn_s, tuple(rng.standard_normal(3)), float(rng.uniform(40.0, 140.0))), Rest(rest_s)]
+        segs += [
+            Rotate(turn_s, tuple(rng.standard_normal(3)), float(rng.uniform(40.0, 140.0))),
+            Rest(rest_s),
+        ]
     return segs

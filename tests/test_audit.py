@@ -11,15 +11,44 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from estimators.audit import MIN_POSITIONS, AuditConfig, effective_noise_std_norm, find_candidates, fit_baselines, run_audit
+from estimators.audit import (
+    MIN_POSITIONS,
+    AuditConfig,
+    effective_noise_std_norm,
+    find_candidates,
+    fit_baselines,
+    run_audit,
+)
 from estimators.audit.audit import TriadBaseline
-from estimators.audit.candidates import VarianceData, fit_variance, gauss_markov_moments, mean_variance_factor, variance_se_at_zero
-from estimators.audit.hidden import HIDDEN_KINDS, baseline_model, clean_trial, draw, hide, named_effects, session_of, trial
+from estimators.audit.candidates import (
+    VarianceData,
+    fit_variance,
+    gauss_markov_moments,
+    mean_variance_factor,
+    variance_se_at_zero,
+)
+from estimators.audit.hidden import (
+    HIDDEN_KINDS,
+    baseline_model,
+    clean_trial,
+    draw,
+    hide,
+    named_effects,
+    session_of,
+    trial,
+)
 from estimators.audit.statistics import position_table
 from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import Triad
 from estimators.session import ImuSession
-from estimators.sim import BiasDrift, ConstantTemperature, Grade, OrientationScheme, multi_position_spec, simulate
+from estimators.sim import (
+    BiasDrift,
+    ConstantTemperature,
+    Grade,
+    OrientationScheme,
+    multi_position_spec,
+    simulate,
+)
 from protocols.session_file import write_csv_session
 from service.audit_report import PLOTS
 from service.cli import main
@@ -45,7 +74,9 @@ def test_variance_components_recover_known_excesses_within_their_fisher_errors()
     y = rng.standard_normal(n) * np.sqrt(s0 + theta @ a)
     d = VarianceData(y[:, None], s0[:, None, None], a[:, :, None, None], np.arange(n))
     est, _ = fit_variance([d])
-    at_truth = VarianceData(y[:, None], (s0 + theta @ a)[:, None, None], a[:, :, None, None], np.arange(n))
+    at_truth = VarianceData(
+        y[:, None], (s0 + theta @ a)[:, None, None], a[:, :, None, None], np.arange(n)
+    )
     se = np.array([variance_se_at_zero(at_truth, j) for j in range(2)])
     assert np.all(np.abs(est - theta) < 4.0 * se), (est, se)
 
@@ -54,7 +85,12 @@ def test_variance_components_stay_at_zero_without_an_excess():
     rng = np.random.default_rng(2)
     n = 2000
     s0 = rng.uniform(0.5, 1.5, n)
-    d = VarianceData((rng.standard_normal(n) * np.sqrt(s0))[:, None], s0[:, None, None], np.ones((1, n, 1, 1)), np.arange(n))
+    d = VarianceData(
+        (rng.standard_normal(n) * np.sqrt(s0))[:, None],
+        s0[:, None, None],
+        np.ones((1, n, 1, 1)),
+        np.arange(n),
+    )
     est, _ = fit_variance([d])
     assert est[0] < 4.0 * variance_se_at_zero(d, 0)
 
@@ -65,8 +101,12 @@ def test_gauss_markov_moments_match_a_simulated_process():
     rate, tau, length = 50.0, 2.0, 6.0
     n = int(length * rate)
     phi = np.exp(-1.0 / (rate * tau))
-    x = lfilter([1.0], [1.0, -phi], np.sqrt(1 - phi**2) * rng.standard_normal((4000, 10 * n)), axis=1)[:, -n:]
-    between, halves = gauss_markov_moments(np.array([length]), tau, batch_s=1e-9)  # no batch holds any of it
+    x = lfilter(
+        [1.0], [1.0, -phi], np.sqrt(1 - phi**2) * rng.standard_normal((4000, 10 * n)), axis=1
+    )[:, -n:]
+    between, halves = gauss_markov_moments(
+        np.array([length]), tau, batch_s=1e-9
+    )  # no batch holds any of it
     half = n // 2
     diff = x[:, :half].mean(axis=1) - x[:, half:].mean(axis=1)
     assert abs(np.var(x.mean(axis=1)) / between[0] - 1.0) < 4.0 * np.sqrt(2.0 / 4000)
@@ -77,8 +117,15 @@ def test_gauss_markov_moments_match_a_simulated_process():
 def test_effective_noise_keeps_a_wander_that_does_not_average_down():
     white = TriadBaseline(np.zeros(9), np.full(3, 0.01), None, 100.0, np.full(3, 0.01))
     np.testing.assert_allclose(effective_noise_std_norm(white, G, 100), 0.01 / G)
-    wander = TriadBaseline(np.zeros(9), np.full(3, 0.01), None, 100.0, np.full(3, 0.01),
-                           gm_sigma_norm=np.array([0.0, 0.0, 2e-4]), gm_tau_s=np.array([1.0, 1.0, 2.0]))
+    wander = TriadBaseline(
+        np.zeros(9),
+        np.full(3, 0.01),
+        None,
+        100.0,
+        np.full(3, 0.01),
+        gm_sigma_norm=np.array([0.0, 0.0, 2e-4]),
+        gm_tau_s=np.array([1.0, 1.0, 2.0]),
+    )
     got = effective_noise_std_norm(wander, G, 100)
     # A 1 s window mean of the τ = 2 s bias keeps V(0.5) of its variance: n·σ²·V on top of the white variance.
     v = 2.0 / 0.5**2 * (0.5 - 1.0 + np.exp(-0.5))
@@ -89,7 +136,9 @@ def test_effective_noise_keeps_a_wander_that_does_not_average_down():
 
 
 def _mems_session(n_positions: int, seed: int, **kw) -> ImuSession:
-    spec = multi_position_spec(grade=Grade.MEMS, n_positions=n_positions, static_s=6.0, rate_hz=50.0, gravity_mps2=G, **kw)
+    spec = multi_position_spec(
+        grade=Grade.MEMS, n_positions=n_positions, static_s=6.0, rate_hz=50.0, gravity_mps2=G, **kw
+    )
     return simulate(spec, seed).session
 
 
@@ -103,29 +152,48 @@ def test_too_few_positions_names_nothing():
 def test_no_static_interval_names_nothing():
     rng = np.random.default_rng(4)
     t = np.arange(2000) / 50.0
-    moving = np.column_stack([np.sin(t), np.cos(t), np.sin(0.3 * t)]) * 5.0 + rng.standard_normal((2000, 3))
-    res = run_audit(ImuSession(t, moving, 0.5 * rng.standard_normal((2000, 3))), AuditConfig(ChainConfig(gravity_mps2=G), replicas=5))
+    moving = np.column_stack([np.sin(t), np.cos(t), np.sin(0.3 * t)]) * 5.0 + rng.standard_normal(
+        (2000, 3)
+    )
+    res = run_audit(
+        ImuSession(t, moving, 0.5 * rng.standard_normal((2000, 3))),
+        AuditConfig(ChainConfig(gravity_mps2=G), replicas=5),
+    )
     assert res.n_positions == 0 and res.named == [] and res.candidates == []
-    assert res.statements == ["no static interval found: the scalar equation has nothing to test; no statistic, no candidate, no cause can be concluded"]
+    assert res.statements == [
+        "no static interval found: the scalar equation has nothing to test; no statistic, no candidate, no cause can be concluded"
+    ]
 
 
 def test_constant_temperature_makes_temperature_effects_not_identifiable_with_the_reason():
-    res = run_audit(_mems_session(18, 6, temperature=ConstantTemperature(25.0)), AuditConfig(ChainConfig(gravity_mps2=G), replicas=5))
+    res = run_audit(
+        _mems_session(18, 6, temperature=ConstantTemperature(25.0)),
+        AuditConfig(ChainConfig(gravity_mps2=G), replicas=5),
+    )
     temp = [c for c in res.candidates if c.effect.startswith("temperature")]
-    assert {(c.effect, c.triad) for c in temp} == {(e, t) for e in ("temperature_bias", "temperature_scale") for t in (Triad.ACCEL, Triad.GYRO)}
+    assert {(c.effect, c.triad) for c in temp} == {
+        (e, t) for e in ("temperature_bias", "temperature_scale") for t in (Triad.ACCEL, Triad.GYRO)
+    }
     assert all(not c.identifiable and not c.selected for c in temp)
     # A gyro's temperature scale is out of reach anyway (no known rate); every other one for the constant temperature.
     by_span = [c for c in temp if not (c.triad is Triad.GYRO and c.effect == "temperature_scale")]
     assert len(by_span) == 9 and all("temperature spans 0.00 °C" in c.reason for c in by_span)
     assert not any(c.effect.startswith("temperature") for c in res.named)
-    assert any(m.startswith("temperature effects") and "not identifiable" in m for m in res.statements)
+    assert any(
+        m.startswith("temperature effects") and "not identifiable" in m for m in res.statements
+    )
 
 
 def test_gyro_only_session_concludes_nothing_and_says_why():
     s = _mems_session(18, 8)
-    res = run_audit(ImuSession(s.t_s, None, s.gyro_rps), AuditConfig(ChainConfig(gravity_mps2=G), replicas=5))
+    res = run_audit(
+        ImuSession(s.t_s, None, s.gyro_rps), AuditConfig(ChainConfig(gravity_mps2=G), replicas=5)
+    )
     assert res.named == [] and res.candidates == [] and res.baseline_cmp == []
-    assert "no accelerometer triad" in res.statements[0] and "nothing can be concluded" in res.statements[0]
+    assert (
+        "no accelerometer triad" in res.statements[0]
+        and "nothing can be concluded" in res.statements[0]
+    )
 
 
 def test_candidates_on_too_few_positions_are_refused():
@@ -137,13 +205,19 @@ def test_candidates_on_too_few_positions_are_refused():
 
 def test_single_triad_and_no_temperature_are_stated_not_absent():
     s = _mems_session(18, 5)
-    res = run_audit(ImuSession(s.t_s, s.accel_mps2, None), AuditConfig(ChainConfig(gravity_mps2=G), replicas=5))
+    res = run_audit(
+        ImuSession(s.t_s, s.accel_mps2, None), AuditConfig(ChainConfig(gravity_mps2=G), replicas=5)
+    )
     assert any("single triad" in m for m in res.statements)
     g_sens = [c for c in res.candidates if c.effect == "g_sensitivity"]
     assert g_sens and not g_sens[0].identifiable and "no gyro" in g_sens[0].reason
     temp = [c for c in res.candidates if c.effect.startswith("temperature")]
     assert temp and all(not c.identifiable and "no temperature" in c.reason for c in temp)
-    assert all(not c.identifiable and "passport" in c.reason for c in res.candidates if c.effect == "gravity_mismatch")
+    assert all(
+        not c.identifiable and "passport" in c.reason
+        for c in res.candidates
+        if c.effect == "gravity_mismatch"
+    )
     assert not any(c.triad is Triad.GYRO and c.selected for c in res.candidates)
 
 
@@ -157,7 +231,9 @@ def test_hidden_effect_at_resolvable_size_is_named_and_nothing_else():
         seed = 5000 + t
         size = float(np.random.default_rng([seed, 3]).uniform(*RESOLVABLE))
         hits.append(trial(draw(seed, size, HIDDEN_KINDS[t % len(HIDDEN_KINDS)]), seed))
-    assert np.mean(hits) >= 0.95, f"hit rate {np.mean(hits):.3f}: misses at trials {[t for t, h in enumerate(hits) if not h]}"
+    assert np.mean(hits) >= 0.95, (
+        f"hit rate {np.mean(hits):.3f}: misses at trials {[t for t, h in enumerate(hits) if not h]}"
+    )
 
 
 def test_effect_free_sessions_name_nothing():
@@ -172,7 +248,11 @@ def test_temperature_and_time_effects_are_told_apart():
     steps = np.diff(tab.temp_c)
     assert np.any(steps > 0) and np.any(steps < 0)
     assert abs(np.corrcoef(tab.t_mid_s, tab.temp_c)[0, 1]) < 0.5
-    for effect, triad in (("bias_drift", Triad.ACCEL), ("temperature_bias", Triad.ACCEL), ("bias_drift", Triad.GYRO)):
+    for effect, triad in (
+        ("bias_drift", Triad.ACCEL),
+        ("temperature_bias", Triad.ACCEL),
+        ("bias_drift", Triad.GYRO),
+    ):
         h = hide(5100, effect, triad, "y", 10.0)
         assert named_effects(*session_of(h.model, 5100)) == {(effect, triad, "y")}
 
@@ -183,12 +263,36 @@ def test_temperature_and_time_effects_are_told_apart():
 def test_report_writes_the_plots_the_markdown_shows(tmp_path, capsys):
     rng = np.random.default_rng(11)
     # An obvious drift, so the extended model exists and its bands are drawn too.
-    model = baseline_model(rng).with_effect(BiasDrift(np.array([[0.0], [0.0], [2e-4]])), Triad.ACCEL)
-    spec = multi_position_spec(model=model, n_positions=16, scheme=OrientationScheme.RANDOM, orientation_rng=rng, static_s=5.0,
-                               transition_s=3.0, rate_hz=50.0, gravity_mps2=G)
+    model = baseline_model(rng).with_effect(
+        BiasDrift(np.array([[0.0], [0.0], [2e-4]])), Triad.ACCEL
+    )
+    spec = multi_position_spec(
+        model=model,
+        n_positions=16,
+        scheme=OrientationScheme.RANDOM,
+        orientation_rng=rng,
+        static_s=5.0,
+        transition_s=3.0,
+        rate_hz=50.0,
+        gravity_mps2=G,
+    )
     write_csv_session(tmp_path / "s.csv", simulate(spec, 11).session)
     out = tmp_path / "report"
-    assert main(["audit", str(tmp_path / "s.csv"), "--gravity", str(G), "--replicas", "5", "--report", str(out)]) == 0
+    assert (
+        main(
+            [
+                "audit",
+                str(tmp_path / "s.csv"),
+                "--gravity",
+                str(G),
+                "--replicas",
+                "5",
+                "--report",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "CAUSE bias_drift accel z" in capsys.readouterr().out
     md = (out / "audit.md").read_text()
     shown = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
@@ -199,7 +303,21 @@ def test_report_writes_the_plots_the_markdown_shows(tmp_path, capsys):
 
 def test_report_of_an_unusable_session_states_why_and_draws_nothing(tmp_path):
     write_csv_session(tmp_path / "s.csv", _mems_session(6, 3))
-    assert main(["audit", str(tmp_path / "s.csv"), "--gravity", str(G), "--replicas", "5", "--report", str(tmp_path / "r")]) == 0
+    assert (
+        main(
+            [
+                "audit",
+                str(tmp_path / "s.csv"),
+                "--gravity",
+                str(G),
+                "--replicas",
+                "5",
+                "--report",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 0
+    )
     md = (tmp_path / "r" / "audit.md").read_text()
     assert "no cause can be concluded" in md and ".png" not in md
     assert not list((tmp_path / "r").glob("*.png"))

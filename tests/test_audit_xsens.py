@@ -15,10 +15,15 @@ G_XSENS = 9.81744  # SOURCE.md: the local gravity the original authors used
 
 @pytest.fixture(scope="module")
 def audit():
-    return run_audit(load_session(str(DATA)).session, AuditConfig(ChainConfig(gravity_mps2=G_XSENS), replicas=10, seed=0))
+    return run_audit(
+        load_session(str(DATA)).session,
+        AuditConfig(ChainConfig(gravity_mps2=G_XSENS), replicas=10, seed=0),
+    )
 
 
-def test_xsens_causes_are_accelerometer_wander_gyro_g_sensitivity_and_three_disturbed_positions(audit):
+def test_xsens_causes_are_accelerometer_wander_gyro_g_sensitivity_and_three_disturbed_positions(
+    audit,
+):
     named = {(c.effect, c.triad, c.axis) for c in audit.named}
     assert {("bias_instability", Triad.ACCEL, "y"), ("bias_instability", Triad.ACCEL, "z")} <= named
     assert {("g_sensitivity", Triad.GYRO, ax) for ax in "xyz"} <= named
@@ -27,7 +32,11 @@ def test_xsens_causes_are_accelerometer_wander_gyro_g_sensitivity_and_three_dist
     assert nonstatic.params["disturbed_positions"] == [10, 13, 26]
     # What the data rules out: no deterministic drift, no non-linearity; temperature and gravity cannot be told.
     assert not any(c.effect in ("bias_drift", "scale_nonlinearity") for c in audit.named)
-    assert all(not c.identifiable for c in audit.candidates if c.effect in ("temperature_bias", "temperature_scale", "gravity_mismatch"))
+    assert all(
+        not c.identifiable
+        for c in audit.candidates
+        if c.effect in ("temperature_bias", "temperature_scale", "gravity_mismatch")
+    )
 
 
 def test_xsens_headline_moves_inside_the_extended_models_own_spread(audit):

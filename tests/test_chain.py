@@ -14,7 +14,14 @@ from estimators.conventions import PARAM_AXIS, PARAM_CAUSE, Triad
 from estimators.ninepar import Verdict
 from estimators.passport import Grade, passport_from_estimates, per_sample_noise_std
 from estimators.session import SessionError
-from estimators.sim import Fault, FaultKind, Rounding, grade_error_model, multi_position_spec, simulate
+from estimators.sim import (
+    Fault,
+    FaultKind,
+    Rounding,
+    grade_error_model,
+    multi_position_spec,
+    simulate,
+)
 from estimators.static_detector import StaticDetectorConfig
 
 GRAVITY_45_MPS2 = 9.806197769  # the simulator's default: WGS-84 at 45°, 0 m
@@ -65,9 +72,18 @@ def test_navigation_gyro_calibration_is_consistent_with_the_reported_covariance(
     for seed in range(20):
         model = grade_error_model(Grade.NAVIGATION, rng=np.random.default_rng(2000 + seed))
         res = simulate(multi_position_spec(model=model), seed=seed)
-        noise_mps2, noise_rps = (float(model.triad(t).find("white_noise").sample_sd(res.spec.rate_hz).max()) for t in Triad)
-        detector = StaticDetectorConfig.from_noise(accel_noise_mps2=noise_mps2, gyro_noise_rps=noise_rps)
-        est = run_chain(res.session, ChainConfig(gravity_mps2=GRAVITY_45_MPS2, detector=detector)).triads[Triad.GYRO].estimate
+        noise_mps2, noise_rps = (
+            float(model.triad(t).find("white_noise").sample_sd(res.spec.rate_hz).max())
+            for t in Triad
+        )
+        detector = StaticDetectorConfig.from_noise(
+            accel_noise_mps2=noise_mps2, gyro_noise_rps=noise_rps
+        )
+        est = (
+            run_chain(res.session, ChainConfig(gravity_mps2=GRAVITY_45_MPS2, detector=detector))
+            .triads[Triad.GYRO]
+            .estimate
+        )
         assert est.verdict is Verdict.OBSERVABLE and est.n_positions == 18
         z.append((est.params - _effective_params(model, Triad.GYRO, res.truth)) / est.sigma)
     _assert_consistent(np.array(z))
@@ -106,8 +122,12 @@ def test_each_single_parameter_fault_at_five_tolerances_is_isolated(calibrated_u
     tol = passport.triads[Triad.ACCEL].tolerance[param]
     for seed, sign in ((100 + param, 1.0), (200 + param, -1.0)):
         fault = Fault(FaultKind.STEP, Triad.ACCEL, param, 0.0, sign * 5.0 * tol)
-        chain = _chain(simulate(multi_position_spec(model=model, faults=(fault,)), seed=seed).session, passport)
-        assert [(f.triad, f.axis, f.cause) for f in chain.faults] == [(Triad.ACCEL, PARAM_AXIS[param], PARAM_CAUSE[param])]
+        chain = _chain(
+            simulate(multi_position_spec(model=model, faults=(fault,)), seed=seed).session, passport
+        )
+        assert [(f.triad, f.axis, f.cause) for f in chain.faults] == [
+            (Triad.ACCEL, PARAM_AXIS[param], PARAM_CAUSE[param])
+        ]
 
 
 def test_mems_gyro_is_reported_not_observable_rather_than_estimated():
@@ -115,12 +135,17 @@ def test_mems_gyro_is_reported_not_observable_rather_than_estimated():
     est = _chain(res.session).triads[Triad.GYRO].estimate
     assert not est.observable.any() and est.params is None
     # The cause is the noise of 20 s gyro means against Ω, not the (two-axis) position scheme.
-    assert "Earth rate is not resolvable by this gyro" in est.reason and "rotation axes" not in est.reason
+    assert (
+        "Earth rate is not resolvable by this gyro" in est.reason
+        and "rotation axes" not in est.reason
+    )
 
 
 def test_too_few_positions_give_not_observable_yet_and_no_predicates(calibrated_unit):
     model, passport = calibrated_unit
-    chain = _chain(simulate(multi_position_spec(model=model, n_positions=6), seed=5).session, passport)
+    chain = _chain(
+        simulate(multi_position_spec(model=model, n_positions=6), seed=5).session, passport
+    )
     r = chain.triads[Triad.ACCEL]
     assert r.estimate.params is None and "nine" in r.estimate.reason
     assert r.diagnosis.n_evaluated == 0 and chain.faults == ()

@@ -13,7 +13,9 @@ from service.checkpoint import CheckpointError, CheckpointStore, decode_state, e
 def test_state_round_trip_keeps_dtype_shape_and_values():
     rng = np.random.default_rng(0)
     state = {
-        "positions": [{"mean": rng.standard_normal(3), "cov": rng.standard_normal((3, 3)), "n": 1000}],
+        "positions": [
+            {"mean": rng.standard_normal(3), "cov": rng.standard_normal((3, 3)), "n": 1000}
+        ],
         "flags": np.array([True, False]),
         "counts": np.arange(6, dtype=np.int64).reshape(2, 3),
         "f32": np.float32(1.5),
@@ -24,7 +26,12 @@ def test_state_round_trip_keeps_dtype_shape_and_values():
     back = decode_state(encode_state(state))
     np.testing.assert_array_equal(back["positions"][0]["mean"], state["positions"][0]["mean"])
     assert back["positions"][0]["cov"].shape == (3, 3) and back["counts"].dtype == np.int64
-    assert back["flags"].dtype == bool and back["f32"] == 1.5 and back["none"] is None and back["pair"] == [1, 2.5]
+    assert (
+        back["flags"].dtype == bool
+        and back["f32"] == 1.5
+        and back["none"] is None
+        and back["pair"] == [1, 2.5]
+    )
     assert back["counts"].flags.writeable  # a restored estimator may update its arrays in place
 
 

@@ -23,25 +23,67 @@ def drift_csv(tmp_path_factory):
 
 
 def test_json_has_the_issue_keys_and_names_the_hidden_drift(drift_csv, capsys):
-    assert main(["audit", str(drift_csv), "--gravity", str(GRAVITY_MPS2), "--json", "--replicas", "5", "--seed", "3"]) == 0
+    assert (
+        main(
+            [
+                "audit",
+                str(drift_csv),
+                "--gravity",
+                str(GRAVITY_MPS2),
+                "--json",
+                "--replicas",
+                "5",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert {"baseline", "candidates", "named_causes", "extended", "gain"} <= set(out)
     assert out["replicas"] == 5
     for block in ("baseline", "extended"):
         assert out[block]["headline"] == "chi2_per_dof" and np.isfinite(out[block]["ratio"])
-        assert all({"statistic", "triad", "axis", "measured", "ratio", "tail_prob"} <= set(s) for s in out[block]["statistics"])
-    assert all({"effect", "triad", "axis", "score", "selected"} <= set(c) for c in out["candidates"])
+        assert all(
+            {"statistic", "triad", "axis", "measured", "ratio", "tail_prob"} <= set(s)
+            for s in out[block]["statistics"]
+        )
+    assert all(
+        {"effect", "triad", "axis", "score", "selected"} <= set(c) for c in out["candidates"]
+    )
     assert {c["effect"] for c in out["candidates"]} == set(CANDIDATE_NAMES)
-    assert [(c["effect"], c["triad"], c["axis"]) for c in out["named_causes"]] == [("bias_drift", "accel", "y")]
+    assert [(c["effect"], c["triad"], c["axis"]) for c in out["named_causes"]] == [
+        ("bias_drift", "accel", "y")
+    ]
     assert out["named_causes"][0]["evidence"]
     assert [e["effect"] for e in out["extended"]["effects_added"]] == ["bias_drift"]
-    assert {"heldout_chi2_baseline", "heldout_chi2_extended", "f0_false_alarm_rate_baseline", "f0_false_alarm_rate_extended"} <= set(out["gain"])
+    assert {
+        "heldout_chi2_baseline",
+        "heldout_chi2_extended",
+        "f0_false_alarm_rate_baseline",
+        "f0_false_alarm_rate_extended",
+    } <= set(out["gain"])
 
 
 def test_the_seed_makes_the_replicas_reproducible(drift_csv, capsys):
     runs = []
     for _ in range(2):
-        assert main(["audit", str(drift_csv), "--gravity", str(GRAVITY_MPS2), "--json", "--replicas", "5", "--seed", "9"]) == 0
+        assert (
+            main(
+                [
+                    "audit",
+                    str(drift_csv),
+                    "--gravity",
+                    str(GRAVITY_MPS2),
+                    "--json",
+                    "--replicas",
+                    "5",
+                    "--seed",
+                    "9",
+                ]
+            )
+            == 0
+        )
         runs.append(json.loads(capsys.readouterr().out)["baseline"]["statistics"])
     assert runs[0] == runs[1]
 
@@ -67,8 +109,23 @@ def test_a_missing_or_empty_file_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_an_effect_free_session_names_nothing(tmp_path, capsys):
-    write_csv_session(tmp_path / "clean.csv", session_of(baseline_model(np.random.default_rng(7001)), 7001)[0])
-    assert main(["audit", str(tmp_path / "clean.csv"), "--gravity", str(GRAVITY_MPS2), "--json", "--replicas", "5"]) == 0
+    write_csv_session(
+        tmp_path / "clean.csv", session_of(baseline_model(np.random.default_rng(7001)), 7001)[0]
+    )
+    assert (
+        main(
+            [
+                "audit",
+                str(tmp_path / "clean.csv"),
+                "--gravity",
+                str(GRAVITY_MPS2),
+                "--json",
+                "--replicas",
+                "5",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["named_causes"] == [] and out["extended"]["effects_added"] == []
     assert out["extended"]["ratio"] == out["baseline"]["ratio"]

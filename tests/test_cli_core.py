@@ -20,10 +20,16 @@ def unit_files(tmp_path_factory):
     d = tmp_path_factory.mktemp("unit")
     model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
     write_csv_session(d / "clean.csv", simulate(multi_position_spec(model=model), seed=30).session)
-    assert main(["calibrate", str(d / "clean.csv"), "--out", str(d / "pp.json"), "--latitude", "45"]) == 0
+    assert (
+        main(["calibrate", str(d / "clean.csv"), "--out", str(d / "pp.json"), "--latitude", "45"])
+        == 0
+    )
     tol = read_passport_json(d / "pp.json").triads[Triad.ACCEL].tolerance[4]
     fault = Fault(FaultKind.STEP, Triad.ACCEL, 4, 0.0, 5.0 * tol)
-    write_csv_session(d / "faulty.csv", simulate(multi_position_spec(model=model, faults=(fault,)), seed=31).session)
+    write_csv_session(
+        d / "faulty.csv",
+        simulate(multi_position_spec(model=model, faults=(fault,)), seed=31).session,
+    )
     return d
 
 
@@ -42,25 +48,45 @@ def test_calibrate_writes_a_passport_of_the_resolvable_triads(unit_files):
 
 
 def test_diagnose_json_names_the_fault(unit_files, capsys):
-    out = _diagnose_json(capsys, str(unit_files / "faulty.csv"), "--passport", str(unit_files / "pp.json"))
+    out = _diagnose_json(
+        capsys, str(unit_files / "faulty.csv"), "--passport", str(unit_files / "pp.json")
+    )
     assert len(out["positions"]) == 18
     accel = out["triads"]["accel"]
     assert len(accel["estimate"]["params"]) == len(accel["estimate"]["sigma"]) == 9
     assert [p["outcome"] for p in accel["predicates"]["predicates"]].count("fail") == 1
-    assert [(f["triad"], f["axis"], f["cause"]) for f in out["faults"]] == [("accel", "y", "scale_factor")]
-    assert set(out["faults"][0]) >= {"triad", "axis", "cause", "estimate", "nominal", "tolerance", "sigma"}
+    assert [(f["triad"], f["axis"], f["cause"]) for f in out["faults"]] == [
+        ("accel", "y", "scale_factor")
+    ]
+    assert set(out["faults"][0]) >= {
+        "triad",
+        "axis",
+        "cause",
+        "estimate",
+        "nominal",
+        "tolerance",
+        "sigma",
+    }
 
 
 def test_diagnose_of_the_clean_session_has_no_fault(unit_files, capsys):
-    out = _diagnose_json(capsys, str(unit_files / "clean.csv"), "--passport", str(unit_files / "pp.json"))
+    out = _diagnose_json(
+        capsys, str(unit_files / "clean.csv"), "--passport", str(unit_files / "pp.json")
+    )
     assert out["faults"] == []
 
 
 @pytest.mark.parametrize(
     ("content", "reason"),
-    [("", "empty"), ("t,ax,ay\n0,1,2\n", "missing"), ("t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,x\n", "line 2")],
+    [
+        ("", "empty"),
+        ("t,ax,ay\n0,1,2\n", "missing"),
+        ("t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,x\n", "line 2"),
+    ],
 )
-def test_unusable_input_exits_2_with_a_one_line_reason(unit_files, tmp_path, capsys, content, reason):
+def test_unusable_input_exits_2_with_a_one_line_reason(
+    unit_files, tmp_path, capsys, content, reason
+):
     bad = tmp_path / "bad.csv"
     bad.write_text(content)
     capsys.readouterr()
@@ -69,7 +95,9 @@ def test_unusable_input_exits_2_with_a_one_line_reason(unit_files, tmp_path, cap
     assert len(err.splitlines()) == 1 and reason in err.lower()
 
 
-def test_saturated_samples_are_rejected_and_counted_given_the_full_scale(unit_files, tmp_path, capsys):
+def test_saturated_samples_are_rejected_and_counted_given_the_full_scale(
+    unit_files, tmp_path, capsys
+):
     # A ±2 g accelerometer that sat on its rail for 25 samples inside the third position.
     full_scale = 2.0 * 9.80665
     model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
@@ -105,13 +133,19 @@ def test_a_navigation_grade_gyro_calibrates_once_the_detector_knows_its_noise(tm
 
 
 def test_missing_passport_exits_2(unit_files, tmp_path, capsys):
-    assert main(["diagnose", str(unit_files / "clean.csv"), "--passport", str(tmp_path / "none.json")]) == 2
+    assert (
+        main(["diagnose", str(unit_files / "clean.csv"), "--passport", str(tmp_path / "none.json")])
+        == 2
+    )
     assert "none.json" in capsys.readouterr().err
 
 
 def test_xsens_session_calibrates_from_its_38_positions(tmp_path, capsys):
     # SOURCE.md: a ~50 s initial static interval and ~37 short positions.
-    assert main(["calibrate", str(XSENS), "--out", str(tmp_path / "xs.json"), "--json", "--no-audit"]) == 0
+    assert (
+        main(["calibrate", str(XSENS), "--out", str(tmp_path / "xs.json"), "--json", "--no-audit"])
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert len(out["positions"]) == 38
     first = out["positions"][0]
@@ -126,10 +160,28 @@ def test_xsens_session_calibrates_from_its_38_positions(tmp_path, capsys):
     assert set(read_passport_json(tmp_path / "xs.json").triads) == {Triad.ACCEL}
 
 
-def test_audited_calibration_of_xsens_carries_the_bias_instability_that_explains_its_residuals(tmp_path, capsys):
+def test_audited_calibration_of_xsens_carries_the_bias_instability_that_explains_its_residuals(
+    tmp_path, capsys
+):
     # docs/audit-xsens.md: the white-noise model leaves χ²/dof ≈ 8.6; the audited wander brings it near 1.
-    assert main(["calibrate", str(XSENS), "--out", str(tmp_path / "xs.json"), "--audit", "--replicas", "5", "--json"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(XSENS),
+                "--out",
+                str(tmp_path / "xs.json"),
+                "--audit",
+                "--replicas",
+                "5",
+                "--json",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["triads"]["accel"]["estimate"]["chi2_per_dof"] < 2.0
     tp = read_passport_json(tmp_path / "xs.json").triads[Triad.ACCEL]
-    assert tp.bias_instability_std.max() > 5e-5  # ≈ 0.1 mg of wander on at least one axis (docs/audit-xsens.md)
+    assert (
+        tp.bias_instability_std.max() > 5e-5
+    )  # ≈ 0.1 mg of wander on at least one axis (docs/audit-xsens.md)

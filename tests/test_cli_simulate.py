@@ -32,7 +32,9 @@ def test_default_run_writes_the_library_session_and_a_one_line_summary(tmp_path,
     assert loaded.metadata["grade"] == "mems" and loaded.metadata["seed"] == "3"
 
 
-def test_config_file_with_temperature_faults_and_effects_and_command_line_override(tmp_path, capsys):
+def test_config_file_with_temperature_faults_and_effects_and_command_line_override(
+    tmp_path, capsys
+):
     cfg = tmp_path / "sim.toml"
     cfg.write_text(
         """
@@ -72,7 +74,19 @@ delta_mps2 = 0.002
 """
     )
     out, truth_path = tmp_path / "s.csv", tmp_path / "truth.json"
-    status, err = _run(capsys, "--out", out, "--config", cfg, "--truth", truth_path, "--seed", 5, "--fault", "stuck:gyro:z:40:0:5")
+    status, err = _run(
+        capsys,
+        "--out",
+        out,
+        "--config",
+        cfg,
+        "--truth",
+        truth_path,
+        "--seed",
+        5,
+        "--fault",
+        "stuck:gyro:z:40:0:5",
+    )
     assert status == 0, err
     s = load_session(out).session
     assert s.temp_c is not None and 14.9 < s.temp_c.min() and s.temp_c.max() < 35.1
@@ -83,7 +97,9 @@ delta_mps2 = 0.002
     assert [f["kind"] for f in truth["faults"]] == ["step", "stuck"]
     assert truth["faults"][0]["target"] == "ey" and truth["faults"][1]["duration_s"] == 5.0
     assert list(truth["accel_params"]) == list(PARAM_NAMES)
-    assert "temperature_bias" in truth["effects"]["accel"] and truth["effects"]["environment"] == ["gravity_mismatch"]
+    assert "temperature_bias" in truth["effects"]["accel"] and truth["effects"]["environment"] == [
+        "gravity_mismatch"
+    ]
     assert len(truth["static_intervals_s"]) == 10
     # The stuck gyro axis is constant from 40 s for 5 s, and only there.
     z = s.gyro_rps[:, 2]
@@ -94,8 +110,14 @@ delta_mps2 = 0.002
 @pytest.mark.parametrize(
     ("args", "library"),
     [
-        (["--profile", "static", "--duration-s", 12, "--grade", "navigation"], lambda: static_spec(duration_s=12.0, grade=Grade.NAVIGATION)),
-        (["--profile", "flight", "--duration-s", 20, "--rest-s", 3], lambda: flight_spec(fly=Fly(20.0), rest_s=3.0)),
+        (
+            ["--profile", "static", "--duration-s", 12, "--grade", "navigation"],
+            lambda: static_spec(duration_s=12.0, grade=Grade.NAVIGATION),
+        ),
+        (
+            ["--profile", "flight", "--duration-s", 20, "--rest-s", 3],
+            lambda: flight_spec(fly=Fly(20.0), rest_s=3.0),
+        ),
     ],
     ids=["static", "flight"],
 )
@@ -112,7 +134,20 @@ def test_other_profiles(tmp_path, capsys, args, library):
 def test_random_errors_draw_from_the_grade(tmp_path, capsys):
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     for path, seed in ((a, 1), (b, 2)):
-        status, err = _run(capsys, "--out", tmp_path / "x.csv", "--static-s", 2, "--positions", 9, "--random-errors", "--seed", seed, "--truth", path)
+        status, err = _run(
+            capsys,
+            "--out",
+            tmp_path / "x.csv",
+            "--static-s",
+            2,
+            "--positions",
+            9,
+            "--random-errors",
+            "--seed",
+            seed,
+            "--truth",
+            path,
+        )
         assert status == 0, err
     assert json.loads(a.read_text())["accel_params"] != json.loads(b.read_text())["accel_params"]
 
@@ -125,12 +160,20 @@ def test_random_errors_draw_from_the_grade(tmp_path, capsys):
         (["--fault", "step:accel:q9:10:1"], None, "fault index for step must be 0-8"),
         (["--fault", "stuck:gyro:x:10:1:-1"], None, "duration_s must be positive"),
         (["--temperature", "sauna"], None, "temperature kind must be one of"),
-        (["--temperature", "cycle:peak=40"], None, "temperature cycle: .*unexpected keyword argument 'peak'"),
+        (
+            ["--temperature", "cycle:peak=40"],
+            None,
+            "temperature cycle: .*unexpected keyword argument 'peak'",
+        ),
         (["--positions", 19], None, "1 to 18 positions"),
         ([], "grade = 'consumer'\n", "grade must be one of"),
         ([], "[[effects]]\nname = 'magic'\ntriad = 'accel'\n", "unknown effect 'magic'"),
         ([], "[[effects]]\nname = 'bias'\n", "effect bias triad must be one of"),
-        ([], "[[effects]]\nname = 'g_sensitivity'\ntriad = 'accel'\n", "does not apply to the accel triad"),
+        (
+            [],
+            "[[effects]]\nname = 'g_sensitivity'\ntriad = 'accel'\n",
+            "does not apply to the accel triad",
+        ),
         ([], "[profile]\nkind = 'orbit'\n", "profile kind must be one of"),
         ([], "seed = [\n", "not valid TOML"),
     ],

@@ -18,7 +18,9 @@ def test_empty_document_gives_the_documented_defaults(tmp_path):
     cfg = config_from_dict({}, base_dir=tmp_path)
     assert cfg == ServiceConfig()
     assert cfg.site.local_gravity_mps2 == STANDARD_GRAVITY_MPS2
-    assert cfg.zenoh.session.mode is Mode.CLIENT and cfg.zenoh.session.connect == ("tcp/127.0.0.1:7447",)
+    assert cfg.zenoh.session.mode is Mode.CLIENT and cfg.zenoh.session.connect == (
+        "tcp/127.0.0.1:7447",
+    )
     assert cfg.zenoh.frames_key == "ins/*/imu/*" and cfg.zenoh.event_ack is AckMode.RECEIVER
     assert cfg.pipeline.false_alarm_probability == 1e-9 and cfg.pipeline.min_positions == 9
     assert cfg.validity.cross_imu_accel_mps2 == 0.75
@@ -44,10 +46,14 @@ device = "udpin:127.0.0.1:0"
 signing_key_hex = "%s"
 [validity]
 stale_run_samples = 50
-""" % ("ab" * 32)
+"""
+        % ("ab" * 32)
     )
     cfg = load_config(path)
-    assert cfg.service.data_dir == tmp_path / "state" and cfg.outbox_path == tmp_path / "state" / "outbox.sqlite"
+    assert (
+        cfg.service.data_dir == tmp_path / "state"
+        and cfg.outbox_path == tmp_path / "state" / "outbox.sqlite"
+    )
     assert cfg.service.vehicles == ("v1", "v2") and cfg.service.status_period_s == 2.0
     assert cfg.site.local_gravity_mps2 == pytest.approx(normal_gravity_mps2(45.0))
     assert cfg.zenoh.session.mode is Mode.PEER and cfg.zenoh.session.listen == ("tcp/127.0.0.1:0",)
@@ -74,7 +80,10 @@ stale_run_samples = 50
         ({"zenoh": {"frames_key": "imu/**"}}, r"frames_key must be under 'ins/'"),
         ({"zenoh": {"enabled": False}}, r"neither \[zenoh\] nor \[mavlink\]"),
         ({"site": {"gravity_mps2": 1.62}}, r"not a value on the Earth"),
-        ({"mavlink": {"signing_key_hex": "abcd"}}, r"\[mavlink\] a MAVLink 2 signing key has 32 bytes"),
+        (
+            {"mavlink": {"signing_key_hex": "abcd"}},
+            r"\[mavlink\] a MAVLink 2 signing key has 32 bytes",
+        ),
         ({"mavlink": {"source_component": 300}}, r"\[mavlink\] source_component must be in 0..255"),
         ({"mavlink": {"vehicle": "a/b"}}, r"\[mavlink\] vehicle"),
         ({"mavlink": {"alert_max_per_s": 0}}, r"alert_max_per_s must be > 0"),
@@ -89,7 +98,7 @@ def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
 def test_invalid_toml_names_the_file(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text("[service\n")
-    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+    with pytest.raises(ConfigError, match=r"bad\.toml: not valid TOML"):
         load_config(path)
 
 
@@ -98,7 +107,12 @@ def test_every_option_is_documented_in_the_example():
     text = (Path(__file__).parents[1] / "deploy" / "ins-health.toml").read_text()
     shown = tomllib.loads(text)
     # Commented-out options count as shown: strip one leading "# " from each line and parse again.
-    uncommented = tomllib.loads("\n".join(line[2:] if line.startswith("# ") and "=" in line else line for line in text.splitlines()))
+    uncommented = tomllib.loads(
+        "\n".join(
+            line[2:] if line.startswith("# ") and "=" in line else line
+            for line in text.splitlines()
+        )
+    )
     cfg = ServiceConfig()
     for section in dataclasses.fields(cfg):
         names = {f.name for f in dataclasses.fields(getattr(cfg, section.name))}
@@ -106,5 +120,8 @@ def test_every_option_is_documented_in_the_example():
             names = (names - {"session"}) | set(ZenohSettings._KEYS)
         if section.name == "mavlink":
             names = (names - {"link"}) | set(MavlinkSettings._KEYS)
-        assert names <= set(uncommented.get(section.name, {})), (section.name, names - set(uncommented.get(section.name, {})))
+        assert names <= set(uncommented.get(section.name, {})), (
+            section.name,
+            names - set(uncommented.get(section.name, {})),
+        )
     assert set(shown) == {f.name for f in dataclasses.fields(cfg)}

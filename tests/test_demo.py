@@ -21,10 +21,21 @@ def test_demo_detects_and_names_the_injected_fault():
     result = asyncio.run(run_demo(out=out, speed=40.0))
     text = out.getvalue()
     assert result.detected and result.named
-    assert [(e.predicate, e.severity) for e in result.events] == [(Predicate.F0, Severity.WARNING), (Predicate.F6, Severity.ERROR)]
-    assert "passport: calibrated from the unit's own fault-free 18-position handling session" in text
-    assert "router: tcp/127.0.0.1:" in text and "progress: t =  117.0 / 117.0 s  post-flight handling" in text
-    assert "demo-uav IMU0 accelerometer z: scale factor error" in text and "named: accelerometer z, scale factor error" in text
+    assert [(e.predicate, e.severity) for e in result.events] == [
+        (Predicate.F0, Severity.WARNING),
+        (Predicate.F6, Severity.ERROR),
+    ]
+    assert (
+        "passport: calibrated from the unit's own fault-free 18-position handling session" in text
+    )
+    assert (
+        "router: tcp/127.0.0.1:" in text
+        and "progress: t =  117.0 / 117.0 s  post-flight handling" in text
+    )
+    assert (
+        "demo-uav IMU0 accelerometer z: scale factor error" in text
+        and "named: accelerometer z, scale factor error" in text
+    )
 
 
 def test_demo_passport_is_the_units_own_calibration():

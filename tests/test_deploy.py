@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from service_support import free_tcp_port, zenoh_client_config
 
 from service.cli import build_parser
 from service.config import config_from_dict, load_config
-from service_support import free_tcp_port, zenoh_client_config
 
 DEPLOY = Path(__file__).parents[1] / "deploy"
 FILES = sorted(p for p in DEPLOY.iterdir() if p.is_file())
@@ -32,7 +32,11 @@ def check_json5(path: Path) -> None:
     assert json.loads(conf.get_json("mode")) == "router"
     port = free_tcp_port()
     conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    with zenoh.open(conf), zenoh.open(zenoh_client_config(port)) as pub_s, zenoh.open(zenoh_client_config(port)) as sub_s:
+    with (
+        zenoh.open(conf),
+        zenoh.open(zenoh_client_config(port)) as pub_s,
+        zenoh.open(zenoh_client_config(port)) as sub_s,
+    ):
         got = threading.Event()
         denied = []
         sub_s.declare_subscriber("ins/*/health/events", lambda s: got.set())
@@ -76,5 +80,7 @@ CHECKS = {".toml": check_toml, ".json5": check_json5, ".service": check_unit, ".
 
 @pytest.mark.parametrize("path", FILES, ids=[p.name for p in FILES])
 def test_deploy_file_loads(path):
-    assert path.suffix in CHECKS, f"no loader for {path.name}: every file in deploy/ must be checked"
+    assert path.suffix in CHECKS, (
+        f"no loader for {path.name}: every file in deploy/ must be checked"
+    )
     CHECKS[path.suffix](path)

@@ -6,18 +6,28 @@ import json
 
 import numpy as np
 import pytest
+from ninepar_support import TriadCase, mems_accel, mems_gyro, nav_accel, nav_gyro
 from scipy.stats import binom
 
 from estimators.conventions import EARTH_RATE_RPS, N_PARAMS, PARAM_AXIS, PARAM_CAUSE, Cause, Triad
 from estimators.diagnosis import PREDICATES, Outcome, critical_z, diagnose, diagnose_unit
 from estimators.ninepar import Estimate, Method, Verdict, estimate_refined
-from estimators.passport import Grade, Passport, Provenance, ReferenceKind, TriadPassport, passport_from_estimates
-from ninepar_support import TriadCase, mems_accel, mems_gyro, nav_accel, nav_gyro
+from estimators.passport import (
+    Grade,
+    Passport,
+    Provenance,
+    ReferenceKind,
+    TriadPassport,
+    passport_from_estimates,
+)
 
 GRAVITY_MPS2 = 9.80665
 REFERENCE = {Triad.ACCEL: GRAVITY_MPS2, Triad.GYRO: EARTH_RATE_RPS}
 UNITS = {
-    Grade.MEMS: {Triad.ACCEL: mems_accel, Triad.GYRO: lambda rng: mems_gyro(rng, seconds_per_position=300.0)},
+    Grade.MEMS: {
+        Triad.ACCEL: mems_accel,
+        Triad.GYRO: lambda rng: mems_gyro(rng, seconds_per_position=300.0),
+    },
     Grade.NAVIGATION: {Triad.ACCEL: nav_accel, Triad.GYRO: nav_gyro},
 }
 TRIALS = 10
@@ -27,7 +37,10 @@ def _calibrated_unit(grade: Grade, seed: int) -> tuple[dict[Triad, TriadCase], P
     """True triads of a unit and the passport of one fault-free calibration run (default tolerance rule)."""
     rng = np.random.default_rng(seed)
     cases = {t: make(rng) for t, make in UNITS[grade].items()}
-    estimates = {t: estimate_refined(c.draw(rng, 1)[0], c.cov, t, reference=REFERENCE[t]) for t, c in cases.items()}
+    estimates = {
+        t: estimate_refined(c.draw(rng, 1)[0], c.cov, t, reference=REFERENCE[t])
+        for t, c in cases.items()
+    }
     passport = passport_from_estimates(
         estimates,
         unit_id=f"synthetic-{grade.value}",
@@ -45,7 +58,10 @@ def _run(cases: dict[Triad, TriadCase], passport: Passport, rng: np.random.Gener
     """Diagnoses of ``trials`` fresh sessions of every triad."""
     draws = {t: c.draw(rng, trials) for t, c in cases.items()}
     for i in range(trials):
-        estimates = {t: estimate_refined(draws[t][i], c.cov, t, reference=REFERENCE[t]) for t, c in cases.items()}
+        estimates = {
+            t: estimate_refined(draws[t][i], c.cov, t, reference=REFERENCE[t])
+            for t, c in cases.items()
+        }
         yield diagnose_unit(estimates, passport)
 
 
@@ -55,7 +71,9 @@ def _fault_cases():
             # A MEMS gyro against Ω resolves only its biases (test_ninepar): faults there.
             params = range(3) if (grade, triad) == (Grade.MEMS, Triad.GYRO) else range(N_PARAMS)
             for j in params:
-                yield pytest.param(grade, triad, j, id=f"{grade.value}-{triad.value}-{PREDICATES[j]}")
+                yield pytest.param(
+                    grade, triad, j, id=f"{grade.value}-{triad.value}-{PREDICATES[j]}"
+                )
 
 
 @pytest.mark.parametrize(("grade", "triad", "j"), list(_fault_cases()))
@@ -69,7 +87,9 @@ def test_a_single_parameter_fault_at_five_tolerances_is_isolated(grade, triad, j
     rng = np.random.default_rng(200 + j)
     for diagnoses in _run({**cases, triad: faulty}, passport, rng, TRIALS):
         findings = [f for d in diagnoses for f in d.findings]
-        assert [(f.predicate, f.triad, f.axis, f.cause) for f in findings] == [(PREDICATES[j], triad, PARAM_AXIS[j], PARAM_CAUSE[j])]
+        assert [(f.predicate, f.triad, f.axis, f.cause) for f in findings] == [
+            (PREDICATES[j], triad, PARAM_AXIS[j], PARAM_CAUSE[j])
+        ]
         f = findings[0]
         assert abs(f.estimate - f.nominal) > f.tolerance and f.sigma > 0.0
 
@@ -111,7 +131,9 @@ def test_false_alarm_rate_of_one_diagnosis_is_at_most_the_stated_probability():
     assert binom.ppf(1e-5, trials, alpha / 2) <= alarms <= binom.isf(1e-5, trials, alpha)
 
 
-def _triad_passport(nominal, *, tolerance, sigma, observable=None, triad=Triad.ACCEL, reference=GRAVITY_MPS2) -> TriadPassport:
+def _triad_passport(
+    nominal, *, tolerance, sigma, observable=None, triad=Triad.ACCEL, reference=GRAVITY_MPS2
+) -> TriadPassport:
     nominal = np.asarray(nominal, float)
     kind = ReferenceKind.GRAVITY if triad is Triad.ACCEL else ReferenceKind.EARTH_RATE
     return TriadPassport(
@@ -160,21 +182,53 @@ def test_decision_rule_combines_tolerance_and_uncertainty():
     assert [r.outcome for r in d.results[:3]] == [Outcome.PASS, Outcome.FAIL, Outcome.PASS]
     assert d.results[1].threshold == pytest.approx(lam + z * s)
     (f,) = d.findings
-    assert (f.predicate, f.triad, f.axis, f.cause, f.nominal, f.tolerance, f.sigma) == ("F2", Triad.ACCEL, "y", Cause.ZERO_SIGNAL, 0.0, lam, sigma)
+    assert (f.predicate, f.triad, f.axis, f.cause, f.nominal, f.tolerance, f.sigma) == (
+        "F2",
+        Triad.ACCEL,
+        "y",
+        Cause.ZERO_SIGNAL,
+        0.0,
+        lam,
+        sigma,
+    )
 
 
 def test_predicates_without_an_observable_estimate_or_passport_value_are_not_evaluated():
-    tp = _triad_passport(np.zeros(9), tolerance=np.full(9, 1e-3), sigma=np.zeros(9), observable=[True] * 8 + [False])
+    tp = _triad_passport(
+        np.zeros(9), tolerance=np.full(9, 1e-3), sigma=np.zeros(9), observable=[True] * 8 + [False]
+    )
     far = np.full(9, 1.0)
     d = diagnose(_estimate(far, 1e-5, observable=[False] + [True] * 8), tp)
-    assert d.results[0].outcome is Outcome.NOT_EVALUATED and "bx not observable" in d.results[0].reason
-    assert d.results[8].outcome is Outcome.NOT_EVALUATED and "no resolved passport value" in d.results[8].reason
+    assert (
+        d.results[0].outcome is Outcome.NOT_EVALUATED and "bx not observable" in d.results[0].reason
+    )
+    assert (
+        d.results[8].outcome is Outcome.NOT_EVALUATED
+        and "no resolved passport value" in d.results[8].reason
+    )
     assert [f.predicate for f in d.findings] == list(PREDICATES[1:8])
     assert d.z == pytest.approx(critical_z(1e-3, 7))
 
-    none = Estimate(Triad.ACCEL, Method.REFINED, Verdict.NOT_OBSERVABLE_YET, "4 positions", 4, None, None, np.zeros(9, bool), 0, np.inf, None, 0)
+    none = Estimate(
+        Triad.ACCEL,
+        Method.REFINED,
+        Verdict.NOT_OBSERVABLE_YET,
+        "4 positions",
+        4,
+        None,
+        None,
+        np.zeros(9, bool),
+        0,
+        np.inf,
+        None,
+        0,
+    )
     d = diagnose(none, tp)
-    assert d.findings == () and d.z is None and all(r.outcome is Outcome.NOT_EVALUATED for r in d.results)
+    assert (
+        d.findings == ()
+        and d.z is None
+        and all(r.outcome is Outcome.NOT_EVALUATED for r in d.results)
+    )
     assert "no estimate: 4 positions" in d.results[0].reason
     json.dumps(d.to_dict(), allow_nan=False)
 
@@ -182,7 +236,12 @@ def test_predicates_without_an_observable_estimate_or_passport_value_are_not_eva
 def test_passport_biases_are_converted_to_the_estimates_reference():
     # A passport made where g = 9.80 used where g = 9.78: the same bias in m/s² is a larger normalized bias.
     bias_mps2 = 0.05
-    tp = _triad_passport([bias_mps2 / 9.80] + [0.0] * 8, tolerance=np.full(9, 1e-6), sigma=np.zeros(9), reference=9.80)
+    tp = _triad_passport(
+        [bias_mps2 / 9.80] + [0.0] * 8,
+        tolerance=np.full(9, 1e-6),
+        sigma=np.zeros(9),
+        reference=9.80,
+    )
     est = _estimate([bias_mps2 / 9.78] + [0.0] * 8, 1e-7, reference=9.78)
     assert diagnose(est, tp).findings == ()
     # Without the reference the normalized biases differ by 1.04e-5 > λ + zσ ≈ 1.4e-6.

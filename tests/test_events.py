@@ -30,7 +30,6 @@ from protocols.events import (
     make_event,
 )
 
-
 FINDING = Finding("F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR, 2.1e-3, 0.0, 1.0e-3, 1.0e-4)
 
 
@@ -54,8 +53,15 @@ def test_id_is_stable_and_depends_on_every_identifying_field():
         _event(imu=0).event_id,
         _event(t_s=125.25 + 1e-9).event_id,
         event_from_finding(replace(FINDING, axis="x"), vehicle="v1", imu=1, t_s=125.25).event_id,
-        event_from_finding(replace(FINDING, predicate="F2", cause=Cause.ZERO_SIGNAL), vehicle="v1", imu=1, t_s=125.25).event_id,
-        event_from_finding(replace(FINDING, triad=Triad.GYRO), vehicle="v1", imu=1, t_s=125.25).event_id,
+        event_from_finding(
+            replace(FINDING, predicate="F2", cause=Cause.ZERO_SIGNAL),
+            vehicle="v1",
+            imu=1,
+            t_s=125.25,
+        ).event_id,
+        event_from_finding(
+            replace(FINDING, triad=Triad.GYRO), vehicle="v1", imu=1, t_s=125.25
+        ).event_id,
     }
     assert e.event_id not in others and len(others) == 6
     # Numbers and severity describe the detection; they do not make a new one.
@@ -64,35 +70,90 @@ def test_id_is_stable_and_depends_on_every_identifying_field():
 
 def test_finding_maps_onto_event_fields():
     e = _event()
-    assert (e.predicate, e.triad, e.axis, e.cause) == (Predicate.F5, Triad.ACCEL, "y", Cause.SCALE_FACTOR)
-    assert (e.estimate, e.nominal, e.tolerance, e.sigma, e.unit) == (2.1e-3, 0.0, 1.0e-3, 1.0e-4, "1")
+    assert (e.predicate, e.triad, e.axis, e.cause) == (
+        Predicate.F5,
+        Triad.ACCEL,
+        "y",
+        Cause.SCALE_FACTOR,
+    )
+    assert (e.estimate, e.nominal, e.tolerance, e.sigma, e.unit) == (
+        2.1e-3,
+        0.0,
+        1.0e-3,
+        1.0e-4,
+        "1",
+    )
     assert e.severity is Severity.ERROR
     # The text names the instance, the sensor, the cause and the number.
-    assert e.text == "v1 IMU1 accelerometer y: scale factor error 0.0021 (nominal 0, tolerance 0.001, sigma 0.0001) [F5]"
+    assert (
+        e.text
+        == "v1 IMU1 accelerometer y: scale factor error 0.0021 (nominal 0, tolerance 0.001, sigma 0.0001) [F5]"
+    )
 
 
 @pytest.mark.parametrize("predicate", [5, "F5", Predicate.F5])
 def test_predicate_given_as_int_string_or_enum(predicate):
-    assert event_from_finding(replace(FINDING, predicate=predicate), vehicle="v1", imu=1, t_s=125.25) == _event()
+    assert (
+        event_from_finding(replace(FINDING, predicate=predicate), vehicle="v1", imu=1, t_s=125.25)
+        == _event()
+    )
 
 
 def test_generic_constructor_for_stream_validity():
     e = make_event(
-        vehicle="v1", imu=2, t_s=40.0, predicate="timeout", cause=StreamCause.NO_DATA,
-        severity=Severity.CRITICAL, estimate=0.75, tolerance=0.2, unit="s",
+        vehicle="v1",
+        imu=2,
+        t_s=40.0,
+        predicate="timeout",
+        cause=StreamCause.NO_DATA,
+        severity=Severity.CRITICAL,
+        estimate=0.75,
+        tolerance=0.2,
+        unit="s",
     )
     assert e.triad is None and e.axis is None
     assert e.text == "v1 IMU2: no samples 0.75 s (tolerance 0.2) [timeout]"
-    stale = make_event(vehicle="v1", imu=0, t_s=3.0, predicate=Predicate.STALE, cause="stuck_value",
-                       severity=Severity.WARNING, triad="gyro", axis="z", estimate=400, unit="count", text="custom")
+    stale = make_event(
+        vehicle="v1",
+        imu=0,
+        t_s=3.0,
+        predicate=Predicate.STALE,
+        cause="stuck_value",
+        severity=Severity.WARNING,
+        triad="gyro",
+        axis="z",
+        estimate=400,
+        unit="count",
+        text="custom",
+    )
     assert stale.text == "custom" and stale.estimate == 400.0 and isinstance(stale.estimate, float)
 
 
-@pytest.mark.parametrize("e", [
-    _event(),
-    make_event(vehicle="v9", imu=0, t_s=1.0, predicate="F0", cause="out_of_shell", severity=4, triad="accel", estimate=0.05, tolerance=0.01),
-    make_event(vehicle="v9", imu=0, t_s=2.0, predicate="cross_imu", cause="disagreement", severity=Severity.WARNING),
-])
+@pytest.mark.parametrize(
+    "e",
+    [
+        _event(),
+        make_event(
+            vehicle="v9",
+            imu=0,
+            t_s=1.0,
+            predicate="F0",
+            cause="out_of_shell",
+            severity=4,
+            triad="accel",
+            estimate=0.05,
+            tolerance=0.01,
+        ),
+        make_event(
+            vehicle="v9",
+            imu=0,
+            t_s=2.0,
+            predicate="cross_imu",
+            cause="disagreement",
+            severity=Severity.WARNING,
+        ),
+    ],
+)
 def test_msgpack_and_json_round_trips(e):
     assert decode_event(encode_event(e)) == e
     line = event_to_json(e)
@@ -134,22 +195,28 @@ def test_bad_events_rejected_with_reason(case):
     assert info.value.reason is reason, str(info.value)
 
 
-@pytest.mark.parametrize("data,reason", [
-    (b"\x93\x01", Reason.MALFORMED),
-    (msgpack.packb("just a string"), Reason.NOT_A_MAP),
-    (b"\x80" + b"\x00" * 70_000, Reason.TOO_LARGE),
-])
+@pytest.mark.parametrize(
+    "data,reason",
+    [
+        (b"\x93\x01", Reason.MALFORMED),
+        (msgpack.packb("just a string"), Reason.NOT_A_MAP),
+        (b"\x80" + b"\x00" * 70_000, Reason.TOO_LARGE),
+    ],
+)
 def test_bad_event_bytes(data, reason):
     with pytest.raises(EventError) as info:
         decode_event(data)
     assert info.value.reason is reason
 
 
-@pytest.mark.parametrize("text,reason", [
-    ("{not json", Reason.MALFORMED),
-    ('{"t_s": NaN}', Reason.NON_FINITE),
-    ("[1, 2]", Reason.NOT_A_MAP),
-])
+@pytest.mark.parametrize(
+    "text,reason",
+    [
+        ("{not json", Reason.MALFORMED),
+        ('{"t_s": NaN}', Reason.NON_FINITE),
+        ("[1, 2]", Reason.NOT_A_MAP),
+    ],
+)
 def test_bad_json_lines(text, reason):
     with pytest.raises(EventError) as info:
         event_from_json(text)
@@ -158,9 +225,14 @@ def test_bad_json_lines(text, reason):
 
 def test_status_round_trip_and_validation():
     st = Status(
-        vehicle="v1", service="svc-a", t_s=1.7e9,
+        vehicle="v1",
+        service="svc-a",
+        t_s=1.7e9,
         counters={"frames": 10, "rejected.non_finite": 2, "dropped": 0},
-        imus=(ImuStatus(0, ImuState.OK, samples=2000, last_t_s=10.0, positions=4), ImuStatus(1, "no_data")),
+        imus=(
+            ImuStatus(0, ImuState.OK, samples=2000, last_t_s=10.0, positions=4),
+            ImuStatus(1, "no_data"),
+        ),
     )
     out = decode_status(encode_status(st))
     assert out == st and out.imus[1].state is ImuState.NO_DATA and out.imus[1].last_t_s is None
@@ -177,7 +249,17 @@ def test_status_round_trip_and_validation():
 
 def test_event_construction_rejects_non_finite_numbers():
     with pytest.raises(EventError, match="estimate must be a finite number"):
-        make_event(vehicle="v1", imu=0, t_s=0.0, predicate="F0", cause="out_of_shell", severity=4, estimate=float("inf"))
+        make_event(
+            vehicle="v1",
+            imu=0,
+            t_s=0.0,
+            predicate="F0",
+            cause="out_of_shell",
+            severity=4,
+            estimate=float("inf"),
+        )
     with pytest.raises(EventError, match="t_s must be a finite number"):
-        make_event(vehicle="v1", imu=0, t_s=float("nan"), predicate="F0", cause="out_of_shell", severity=4)
+        make_event(
+            vehicle="v1", imu=0, t_s=float("nan"), predicate="F0", cause="out_of_shell", severity=4
+        )
     assert isinstance(_event(), Event)

@@ -22,7 +22,9 @@ def _batch(n=50, *, seed=0, temp=True, seq=7, vehicle="uav-01.a", imu=2):
     t = 1000.0 + np.arange(n) * 0.005
     acc = rng.normal([0.0, 0.0, 9.81], 0.02, size=(n, 3))
     gyr = rng.normal(0.0, 1e-3, size=(n, 3))
-    return SampleBatch(vehicle, imu, seq, t, acc, gyr, 25.0 + rng.normal(0, 0.1, n) if temp else None)
+    return SampleBatch(
+        vehicle, imu, seq, t, acc, gyr, 25.0 + rng.normal(0, 0.1, n) if temp else None
+    )
 
 
 def _raw(batch, **override):
@@ -99,15 +101,38 @@ BAD = {
     "n too large": (lambda: _raw(_batch(), n=MAX_SAMPLES + 1), Reason.BAD_VALUE),
     "n disagrees with arrays": (lambda: _raw(_batch(n=50), n=49), Reason.WRONG_LENGTH),
     "accel as list": (lambda: _raw(_batch(), accel_mps2=[1.0, 2.0]), Reason.WRONG_TYPE),
-    "gyro short by one byte": (lambda: _raw(_batch(), gyro_rps=encode_and_get(_batch(), "gyro_rps")[:-1]), Reason.WRONG_LENGTH),
+    "gyro short by one byte": (
+        lambda: _raw(_batch(), gyro_rps=encode_and_get(_batch(), "gyro_rps")[:-1]),
+        Reason.WRONG_LENGTH,
+    ),
     "unknown dtype": (lambda: _raw(_batch(), dtype=">f2"), Reason.BAD_VALUE),
     "temp of wrong length": (lambda: _raw(_batch(), temp_c=b"\x00" * 8), Reason.WRONG_LENGTH),
-    "time going back": (lambda: encode_frame(_with(_batch(), t_s=lambda t: t[::-1])), Reason.TIME_NOT_INCREASING),
-    "duplicate time": (lambda: encode_frame(_with(_batch(), t_s=lambda t: np.repeat(t[:25], 2))), Reason.TIME_NOT_INCREASING),
-    "NaN accel": (lambda: encode_frame(_with(_batch(), accel_mps2=lambda a: _put(a, (3, 1), np.nan))), Reason.NON_FINITE),
-    "Inf gyro": (lambda: encode_frame(_with(_batch(), gyro_rps=lambda a: _put(a, (0, 2), -np.inf))), Reason.NON_FINITE),
-    "NaN time": (lambda: encode_frame(_with(_batch(), t_s=lambda a: _put(a, (4,), np.nan))), Reason.NON_FINITE),
-    "Inf temp f32": (lambda: encode_frame(_with(_batch(), temp_c=lambda a: _put(a, (1,), np.inf)), dtype=SampleDtype.F32), Reason.NON_FINITE),
+    "time going back": (
+        lambda: encode_frame(_with(_batch(), t_s=lambda t: t[::-1])),
+        Reason.TIME_NOT_INCREASING,
+    ),
+    "duplicate time": (
+        lambda: encode_frame(_with(_batch(), t_s=lambda t: np.repeat(t[:25], 2))),
+        Reason.TIME_NOT_INCREASING,
+    ),
+    "NaN accel": (
+        lambda: encode_frame(_with(_batch(), accel_mps2=lambda a: _put(a, (3, 1), np.nan))),
+        Reason.NON_FINITE,
+    ),
+    "Inf gyro": (
+        lambda: encode_frame(_with(_batch(), gyro_rps=lambda a: _put(a, (0, 2), -np.inf))),
+        Reason.NON_FINITE,
+    ),
+    "NaN time": (
+        lambda: encode_frame(_with(_batch(), t_s=lambda a: _put(a, (4,), np.nan))),
+        Reason.NON_FINITE,
+    ),
+    "Inf temp f32": (
+        lambda: encode_frame(
+            _with(_batch(), temp_c=lambda a: _put(a, (1,), np.inf)), dtype=SampleDtype.F32
+        ),
+        Reason.NON_FINITE,
+    ),
     "not bytes": ("a string", Reason.WRONG_TYPE),
 }
 
@@ -142,13 +167,17 @@ def test_bad_frames_are_rejected_with_their_reason(case):
 def test_oversized_frame_rejected_before_unpacking():
     data = encode_frame(_batch(n=5000))  # 5000 * 64 bytes = 320 kB
     assert decode_frame(data).n_samples == 5000
-    with pytest.raises(FrameError, match=r"too_large: \d+ bytes exceeds the limit of 100000") as info:
+    with pytest.raises(
+        FrameError, match=r"too_large: \d+ bytes exceeds the limit of 100000"
+    ) as info:
         decode_frame(data, max_bytes=100_000)
     assert info.value.reason is Reason.TOO_LARGE
 
 
 def test_unknown_version_error_gives_a_hint():
-    with pytest.raises(FrameError, match=r"version 2 is not supported \(this build reads \[1\]\); upgrade"):
+    with pytest.raises(
+        FrameError, match=r"version 2 is not supported \(this build reads \[1\]\); upgrade"
+    ):
         decode_frame(_raw(_batch(), v=2))
 
 

@@ -41,7 +41,9 @@ def test_real_dataflash_log_two_imus_with_temperature():
     np.testing.assert_allclose(imu0.accel_mps2[0], [0.41619188, 0.46917608, -9.78099442], rtol=1e-7)
     np.testing.assert_allclose(imu0.gyro_rps[0], [-0.11657085, 0.00964673, -0.00366144], rtol=1e-6)
     np.testing.assert_allclose(imu1.accel_mps2[0], [0.387851, 0.52207196, -9.67627525], rtol=1e-6)
-    assert imu0.temp_c[0] == pytest.approx(44.4232826) and imu1.temp_c[0] == pytest.approx(39.9229507)
+    assert imu0.temp_c[0] == pytest.approx(44.4232826) and imu1.temp_c[0] == pytest.approx(
+        39.9229507
+    )
     # Specific force magnitude near g (the vehicle is not quite still in this second).
     assert np.linalg.norm(imu0.accel_mps2, axis=1).mean() == pytest.approx(9.93140, abs=1e-5)
 
@@ -62,9 +64,13 @@ def test_real_tlog_counts_and_an_out_of_order_record(real_tlog):
     assert sessions[0].rate_hz == pytest.approx(4.17, abs=0.01)
     assert sessions[0].t_s[0] == pytest.approx(608.582234)
     # RAW_IMU (ArduPilot: mG, mrad/s): xacc 33, zacc -999, zgyro -231.
-    np.testing.assert_allclose(sessions[0].accel_mps2[0], np.array([33, -10, -999]) * STANDARD_GRAVITY_MPS2 / 1000)
+    np.testing.assert_allclose(
+        sessions[0].accel_mps2[0], np.array([33, -10, -999]) * STANDARD_GRAVITY_MPS2 / 1000
+    )
     np.testing.assert_allclose(sessions[0].gyro_rps[0], [-0.009, 0.003, -0.231])
-    assert sessions[0].temp_c is None and sessions[1].temp_c is None  # temperature field 0: not provided
+    assert (
+        sessions[0].temp_c is None and sessions[1].temp_c is None
+    )  # temperature field 0: not provided
 
 
 def test_reading_is_deterministic_and_batches_stay_interleaved(real_tlog):
@@ -121,7 +127,9 @@ def test_dataflash_text_round_trip_is_exact(tmp_path, legacy):
     assert detect_format(path) is LogFormat.DATAFLASH_TEXT
     back, _ = read_log_sessions(path)
     for imu, s in sessions.items():
-        np.testing.assert_allclose(back[imu].t_s, s.t_s, atol=0.5e-6, rtol=0)  # TimeUS is an integer µs
+        np.testing.assert_allclose(
+            back[imu].t_s, s.t_s, atol=0.5e-6, rtol=0
+        )  # TimeUS is an integer µs
         np.testing.assert_array_equal(back[imu].accel_mps2, s.accel_mps2)
         np.testing.assert_array_equal(back[imu].gyro_rps, s.gyro_rps)
         assert back[imu].temp_c is None
@@ -137,12 +145,19 @@ def test_tlog_round_trip_quantized_as_the_messages_are(tmp_path):
     for imu, s in sessions.items():
         time_quantum = 1e-6 if imu == 0 else 1e-3  # RAW_IMU: time_usec; SCALED_IMU*: time_boot_ms
         np.testing.assert_allclose(back[imu].t_s, s.t_s, atol=time_quantum / 2 + 1e-9, rtol=0)
-        np.testing.assert_allclose(back[imu].accel_mps2, s.accel_mps2, atol=half_mg * (1 + 1e-9), rtol=0)
-        np.testing.assert_allclose(back[imu].gyro_rps, s.gyro_rps, atol=half_mrad * (1 + 1e-9), rtol=0)
+        np.testing.assert_allclose(
+            back[imu].accel_mps2, s.accel_mps2, atol=half_mg * (1 + 1e-9), rtol=0
+        )
+        np.testing.assert_allclose(
+            back[imu].gyro_rps, s.gyro_rps, atol=half_mrad * (1 + 1e-9), rtol=0
+        )
         np.testing.assert_allclose(back[imu].temp_c, s.temp_c, atol=0.005 + 1e-9)
     # Every record is an 8-byte big-endian µs wall stamp + one MAVLink 2 packet.
     data = path.read_bytes()
-    assert int.from_bytes(data[:8], "big") == round((1.7e9 + sessions[0].t_s[0]) * 1e6) and data[8] == 0xFD
+    assert (
+        int.from_bytes(data[:8], "big") == round((1.7e9 + sessions[0].t_s[0]) * 1e6)
+        and data[8] == 0xFD
+    )
 
 
 def test_reading_a_tlog_leaves_pymavlink_global_state_alone(tmp_path):
@@ -182,17 +197,22 @@ def test_non_finite_and_repeated_samples_are_dropped_and_counted(tmp_path):
 def test_unreadable_files_are_clear_errors(tmp_path):
     junk = tmp_path / "junk.bin"
     junk.write_bytes(b"this is not a log at all, just some text")
-    with pytest.raises(ValueError, match="not a MAVLink .tlog or a DataFlash"):
+    with pytest.raises(ValueError, match=r"not a MAVLink \.tlog or a DataFlash"):
         LogReader(junk)
     with pytest.raises(ValueError, match="no such log file"):
         LogReader(tmp_path / "missing.tlog")
     with pytest.raises(ValueError, match="batch_samples"):
         LogReader(REAL_BIN, batch_samples=0)
     with pytest.raises(ValueError, match="SCALED_IMU2 carries IMU 1 only, not IMU 0"):
-        write_tlog(tmp_path / "x.tlog", _sessions(n=2, imus=(0,)), messages={0: ImuMessage.SCALED_IMU2})
+        write_tlog(
+            tmp_path / "x.tlog", _sessions(n=2, imus=(0,)), messages={0: ImuMessage.SCALED_IMU2}
+        )
 
 
-@pytest.mark.parametrize("name,writer", [("cut.bin", write_dataflash_bin), ("cut.tlog", write_tlog), ("cut.log", write_dataflash_text)])
+@pytest.mark.parametrize(
+    "name,writer",
+    [("cut.bin", write_dataflash_bin), ("cut.tlog", write_tlog), ("cut.log", write_dataflash_text)],
+)
 def test_truncated_logs_give_what_they_hold(tmp_path, name, writer):
     sessions = _sessions(n=100, imus=(0, 1))
     path = tmp_path / name
@@ -200,7 +220,7 @@ def test_truncated_logs_give_what_they_hold(tmp_path, name, writer):
     size = os.path.getsize(path)
     with open(path, "r+b") as fh:
         fh.truncate(size * 2 // 3 + 5)  # mid-record
-    back, stats = read_log_sessions(path)
+    back, _stats = read_log_sessions(path)
     kept = sum(s.n_samples for s in back.values())
     assert 120 <= kept < 200  # about two thirds survive, the cut record does not
     for imu, s in back.items():

@@ -7,6 +7,7 @@ import re
 
 import numpy as np
 import pytest
+from ninepar_support import TriadCase, mems_accel, mems_gyro, nav_gyro, single_axis_directions
 from scipy.stats import binom, chi2
 
 from estimators.conventions import N_PARAMS, PARAM_NAMES, STANDARD_GRAVITY_MPS2, Triad
@@ -26,19 +27,22 @@ from estimators.ninepar import (
     scheme_directions,
 )
 from estimators.positions import Position
-from ninepar_support import TriadCase, mems_accel, mems_gyro, nav_gyro, single_axis_directions
 
 P_MISS_3SIGMA = 2.0 * 0.0013498980316301  # P(|N(0,1)| > 3)
 TAIL = 1.0e-5  # probability with which each statistical bound below may be exceeded by chance
 
 
-def _monte_carlo(case: TriadCase, trials: int, seed: int) -> tuple[np.ndarray, np.ndarray, list[Estimate]]:
+def _monte_carlo(
+    case: TriadCase, trials: int, seed: int
+) -> tuple[np.ndarray, np.ndarray, list[Estimate]]:
     """Normalized errors (trials, 9), NEES (trials,) and the estimates of the refined estimator."""
     means = case.draw(np.random.default_rng(seed), trials)
     estimates = [estimate_refined(m, case.cov, case.triad) for m in means]
     errors = np.array([e.params - case.params for e in estimates])
     z = errors / np.array([e.sigma for e in estimates])
-    nees = np.array([err @ np.linalg.solve(e.cov, err) for err, e in zip(errors, estimates)])
+    nees = np.array(
+        [err @ np.linalg.solve(e.cov, err) for err, e in zip(errors, estimates, strict=True)]
+    )
     return z, nees, estimates
 
 
@@ -49,8 +53,13 @@ def _assert_consistent(z: np.ndarray, nees: np.ndarray) -> None:
     # 3σ coverage: the miss count is binomial(n, 0.27 %); bound at the 1e-5 upper tail.
     assert misses <= binom.isf(TAIL, n, P_MISS_3SIGMA), f"{misses} of {n} errors beyond 3σ"
     # NEES: the sum over trials is χ²(9·trials) when the covariance is right (both sides).
-    low, high = chi2.ppf(TAIL, N_PARAMS * trials) / trials, chi2.isf(TAIL, N_PARAMS * trials) / trials
-    assert low <= nees.mean() <= high, f"mean NEES {nees.mean():.3f} outside [{low:.3f}, {high:.3f}]"
+    low, high = (
+        chi2.ppf(TAIL, N_PARAMS * trials) / trials,
+        chi2.isf(TAIL, N_PARAMS * trials) / trials,
+    )
+    assert low <= nees.mean() <= high, (
+        f"mean NEES {nees.mean():.3f} outside [{low:.3f}, {high:.3f}]"
+    )
 
 
 def test_regressors_are_the_m1_row():
@@ -88,14 +97,32 @@ def test_noise_free_positions_give_the_true_parameters_exactly():
 def test_jacobian_of_the_refined_residual_matches_finite_differences():
     rng = np.random.default_rng(5)
     params = np.concatenate([rng.normal(0, 0.1, 3), rng.normal(0, 0.05, 3), rng.normal(0, 0.05, 3)])
-    means = scheme_directions(18) @ canonical_triad_matrix(params).T + params[:3] + rng.normal(0, 0.01, (18, 3))
+    means = (
+        scheme_directions(18) @ canonical_triad_matrix(params).T
+        + params[:3]
+        + rng.normal(0, 0.01, (18, 3))
+    )
     _, df_dp, df_dm = ellipsoid_residual(params, means)
     h = 1e-6
     num_p = np.column_stack(
-        [(ellipsoid_residual(params + h * e, means)[0] - ellipsoid_residual(params - h * e, means)[0]) / (2 * h) for e in np.eye(9)]
+        [
+            (
+                ellipsoid_residual(params + h * e, means)[0]
+                - ellipsoid_residual(params - h * e, means)[0]
+            )
+            / (2 * h)
+            for e in np.eye(9)
+        ]
     )
     num_m = np.column_stack(
-        [(ellipsoid_residual(params, means + h * e)[0] - ellipsoid_residual(params, means - h * e)[0]) / (2 * h) for e in np.eye(3)]
+        [
+            (
+                ellipsoid_residual(params, means + h * e)[0]
+                - ellipsoid_residual(params, means - h * e)[0]
+            )
+            / (2 * h)
+            for e in np.eye(3)
+        ]
     )
     # Central differences: truncation ~h²·f''' and rounding ~eps/h, both below 1e-8 here.
     np.testing.assert_allclose(df_dp, num_p, rtol=0, atol=1e-8)
@@ -106,8 +133,12 @@ def test_cramer_rao_bound_equals_the_full_nuisance_parameter_fisher_matrix():
     # Independent derivation: measurements ã_k = A(θ) u(α_k, β_k) + b with the two angles of
     # every direction as nuisance parameters, numerical Jacobian, Schur complement.
     rng = np.random.default_rng(6)
-    params = np.concatenate([rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3)])
-    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))  # keeps every direction away from the angle poles
+    params = np.concatenate(
+        [rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3), rng.normal(0, 0.01, 3)]
+    )
+    rot, _ = np.linalg.qr(
+        rng.normal(size=(3, 3))
+    )  # keeps every direction away from the angle poles
     u = scheme_directions(18) @ rot.T
     n = u.shape[0]
     angles = np.column_stack([np.arctan2(u[:, 1], u[:, 0]), np.arcsin(u[:, 2])])
@@ -115,12 +146,20 @@ def test_cramer_rao_bound_equals_the_full_nuisance_parameter_fisher_matrix():
 
     def model(x: np.ndarray) -> np.ndarray:
         th, ang = x[:9], x[9:].reshape(n, 2)
-        dirs = np.column_stack([np.cos(ang[:, 1]) * np.cos(ang[:, 0]), np.cos(ang[:, 1]) * np.sin(ang[:, 0]), np.sin(ang[:, 1])])
+        dirs = np.column_stack(
+            [
+                np.cos(ang[:, 1]) * np.cos(ang[:, 0]),
+                np.cos(ang[:, 1]) * np.sin(ang[:, 0]),
+                np.sin(ang[:, 1]),
+            ]
+        )
         return (dirs @ canonical_triad_matrix(th).T + th[:3]).ravel()
 
     x0 = np.concatenate([params, angles.ravel()])
     h = 1e-6
-    jac = np.column_stack([(model(x0 + h * e) - model(x0 - h * e)) / (2 * h) for e in np.eye(x0.size)])
+    jac = np.column_stack(
+        [(model(x0 + h * e) - model(x0 - h * e)) / (2 * h) for e in np.eye(x0.size)]
+    )
     weight = np.zeros((3 * n, 3 * n))
     for k in range(n):
         weight[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] = np.linalg.inv(cov[k])
@@ -154,7 +193,9 @@ def test_mems_gyro_with_short_positions_is_not_observable_and_says_so():
     est = estimate_refined(case.draw(np.random.default_rng(15), 1)[0], case.cov, case.triad)
     assert est.verdict is Verdict.NOT_OBSERVABLE_YET
     assert est.params is None and est.cov is None and not est.observable.any()
-    noise = float(re.search(r"the position means' noise \(([0-9.]+) Ω along the normal", est.reason).group(1))
+    noise = float(
+        re.search(r"the position means' noise \(([0-9.]+) Ω along the normal", est.reason).group(1)
+    )
     assert 3.0 * noise >= 1.0 / np.sqrt(3.0)
     assert "too large against the reference to tell the positions' geometry" in est.reason
     assert "Earth rate is not resolvable by this gyro" in est.reason
@@ -183,7 +224,9 @@ def test_mems_gyro_with_long_positions_resolves_its_bias_only():
     est = estimate_refined(case.draw(np.random.default_rng(17), 1)[0], case.cov, case.triad)
     assert est.verdict is Verdict.PARTIALLY_OBSERVABLE
     np.testing.assert_array_equal(est.observable, [True] * 3 + [False] * 6)
-    assert all(name in est.reason for name in PARAM_NAMES[3:]) and not any(f"{n} (" in est.reason for n in PARAM_NAMES[:3])
+    assert all(name in est.reason for name in PARAM_NAMES[3:]) and not any(
+        f"{n} (" in est.reason for n in PARAM_NAMES[:3]
+    )
     assert np.all(np.abs(est.params[:3] - case.params[:3]) <= 5.0 * est.sigma[:3])
 
 
@@ -195,10 +238,19 @@ def test_fewer_than_nine_positions_are_not_observable_yet(n):
     assert f"{n} positions; the nine parameters need at least 9" in est.reason
 
 
-@pytest.mark.parametrize(("axis", "cone_deg"), [([1, 0, 0], 90.0), ([1, 2, 3], 60.0), ([0, 0, 1], 20.0)])
+@pytest.mark.parametrize(
+    ("axis", "cone_deg"), [([1, 0, 0], 90.0), ([1, 2, 3], 60.0), ([0, 0, 1], 20.0)]
+)
 def test_rotation_about_a_single_axis_is_not_observable_yet(axis, cone_deg):
     base = mems_accel(np.random.default_rng(21))
-    case = TriadCase(base.triad, base.bias, base.scale, base.angles, single_axis_directions(axis, 18, cone_deg=cone_deg), base.cov)
+    case = TriadCase(
+        base.triad,
+        base.bias,
+        base.scale,
+        base.angles,
+        single_axis_directions(axis, 18, cone_deg=cone_deg),
+        base.cov,
+    )
     for method in (estimate_linear, estimate_refined):
         est = method(case.draw(np.random.default_rng(22), 1)[0], case.cov, case.triad)
         assert est.verdict is Verdict.NOT_OBSERVABLE_YET and est.params is None
@@ -207,13 +259,18 @@ def test_rotation_about_a_single_axis_is_not_observable_yet(axis, cone_deg):
 
 def test_two_separate_rotation_circles_and_the_six_position_test_are_rejected_by_conditioning():
     base = mems_accel(np.random.default_rng(23))
-    two_circles = np.vstack([single_axis_directions([1, 0, 0], 9), single_axis_directions([1, 1, 1], 9)])
+    two_circles = np.vstack(
+        [single_axis_directions([1, 0, 0], 9), single_axis_directions([1, 1, 1], 9)]
+    )
     for dirs, weakest in ((two_circles, ""), (scheme_directions(6), "d")):
         cov = np.repeat(base.cov[:1], len(dirs), axis=0)
         case = TriadCase(base.triad, base.bias, base.scale, base.angles, dirs, cov)
         means = case.draw(np.random.default_rng(24), 1)[0]
         if len(dirs) < 9:  # the six positions twice: enough equations, still no cross products
-            means, cov = np.vstack([means, case.draw(np.random.default_rng(25), 1)[0]]), np.vstack([cov, cov])
+            means, cov = (
+                np.vstack([means, case.draw(np.random.default_rng(25), 1)[0]]),
+                np.vstack([cov, cov]),
+            )
         est = estimate_refined(means, cov, case.triad)
         assert est.verdict is Verdict.NOT_OBSERVABLE_YET and est.params is None
         assert "condition number of HᵀH" in est.reason and f"least excited: {weakest}" in est.reason
@@ -237,7 +294,9 @@ def test_recursive_form_tracks_the_refined_batch_estimate():
             assert np.max(np.abs(est.params - batch.params) / batch.sigma) < 0.01
             np.testing.assert_allclose(est.sigma, batch.sigma, rtol=0.01)
             recursive = [u for u in updates if u.nis is not None]
-            assert len(recursive) == n_positions - rec.warmup_positions and all(u.iterations >= 1 for u in recursive)
+            assert len(recursive) == n_positions - rec.warmup_positions and all(
+                u.iterations >= 1 for u in recursive
+            )
 
 
 def test_recursive_innovations_are_chi_square_distributed():
@@ -246,7 +305,11 @@ def test_recursive_innovations_are_chi_square_distributed():
     nis = []
     for means in case.draw(rng, 10):
         rec = RecursiveNineParam(case.triad)
-        nis += [u.nis for u in (rec.update(m, c) for m, c in zip(means, case.cov)) if u.nis is not None]
+        nis += [
+            u.nis
+            for u in (rec.update(m, c) for m, c in zip(means, case.cov, strict=True))
+            if u.nis is not None
+        ]
     nis = np.array(nis)
     assert chi2.ppf(TAIL, nis.size) <= nis.sum() <= chi2.isf(TAIL, nis.size)
 
@@ -275,7 +338,11 @@ def test_recursive_form_before_initialization_and_with_bad_input():
     for k in range(5):
         assert not rec.update(case.means_true[k], case.cov[k]).initialized
     est = rec.estimate()
-    assert est.verdict is Verdict.NOT_OBSERVABLE_YET and est.params is None and "5 positions" in est.reason
+    assert (
+        est.verdict is Verdict.NOT_OBSERVABLE_YET
+        and est.params is None
+        and "5 positions" in est.reason
+    )
     with pytest.raises(ValueError, match="non-finite"):
         rec.update([np.nan, 0.0, 1.0], case.cov[0])
     with pytest.raises(ValueError, match="not positive definite"):
@@ -292,9 +359,11 @@ def test_recursive_form_before_initialization_and_with_bad_input():
 def test_recursive_buffer_is_bounded_while_the_geometry_stays_degenerate():
     base = mems_accel(np.random.default_rng(34))
     dirs = single_axis_directions([0, 1, 0], 40)
-    case = TriadCase(base.triad, base.bias, base.scale, base.angles, dirs, np.repeat(base.cov[:1], 40, axis=0))
+    case = TriadCase(
+        base.triad, base.bias, base.scale, base.angles, dirs, np.repeat(base.cov[:1], 40, axis=0)
+    )
     rec = RecursiveNineParam(case.triad, warmup_positions=9, max_buffer=16)
-    for m, c in zip(case.means_true, case.cov):
+    for m, c in zip(case.means_true, case.cov, strict=True):
         rec.update(m, c)
     assert rec.n_positions == 16 and rec.n_dropped == 24
     assert "fewer than two rotation axes" in rec.estimate().reason
@@ -305,11 +374,14 @@ def test_estimate_triad_normalizes_si_positions():
     g = 9.79
     means = case.draw(np.random.default_rng(41), 1)[0]
     positions = [
-        Position(float(k), k + 10.0, 1000, m * g, c * g * g, None, None, 20.0) for k, (m, c) in enumerate(zip(means, case.cov))
+        Position(float(k), k + 10.0, 1000, m * g, c * g * g, None, None, 20.0)
+        for k, (m, c) in enumerate(zip(means, case.cov, strict=True))
     ]
     est = estimate_triad(positions, Triad.ACCEL, g)
     ref = estimate_refined(means, case.cov, case.triad)
-    np.testing.assert_allclose(est.params, ref.params, rtol=0, atol=1e-9 * np.max(ref.sigma) + 1e-15)
+    np.testing.assert_allclose(
+        est.params, ref.params, rtol=0, atol=1e-9 * np.max(ref.sigma) + 1e-15
+    )
     assert est.reference == g and est.method is Method.REFINED
     assert estimate_triad(positions, Triad.ACCEL, g, method=Method.LINEAR).method is Method.LINEAR
     with pytest.raises(ValueError, match="position 0 has no gyro"):
@@ -324,7 +396,9 @@ def test_bad_positions_are_rejected_with_the_offending_value():
     means[3, 1] = np.inf
     with pytest.raises(ValueError, match=r"position 3 has a non-finite mean"):
         estimate_refined(means, case.cov, case.triad)
-    with pytest.raises(ValueError, match=r"covariances must have shape \(18, 3, 3\), got \(17, 3, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"covariances must have shape \(18, 3, 3\), got \(17, 3, 3\)"
+    ):
         estimate_linear(case.means_true, case.cov[:17], case.triad)
     asym = case.cov.copy()
     asym[2, 0, 1] = 1e-9
@@ -345,13 +419,22 @@ def test_equation_sigma_is_the_propagated_noise_of_the_scalar_equation():
 def test_estimate_to_dict_is_strict_json():
     case = mems_accel(np.random.default_rng(45))
     est = estimate_triad(
-        [Position(0.0, 1.0, 1000, m * STANDARD_GRAVITY_MPS2, c * STANDARD_GRAVITY_MPS2**2, None, None) for m, c in zip(case.means_true, case.cov)],
+        [
+            Position(
+                0.0, 1.0, 1000, m * STANDARD_GRAVITY_MPS2, c * STANDARD_GRAVITY_MPS2**2, None, None
+            )
+            for m, c in zip(case.means_true, case.cov, strict=True)
+        ],
         Triad.ACCEL,
         STANDARD_GRAVITY_MPS2,
     )
     text = json.dumps(est.to_dict(), allow_nan=False)
     back = json.loads(text)
-    assert back["verdict"] == "observable" and back["param_names"] == list(PARAM_NAMES) and len(back["sigma"]) == 9
+    assert (
+        back["verdict"] == "observable"
+        and back["param_names"] == list(PARAM_NAMES)
+        and len(back["sigma"]) == 9
+    )
     missing = estimate_refined(case.means_true[:3], case.cov[:3], case.triad).to_dict()
     assert missing["params"] is None and missing["condition_number"] is None
     json.dumps(missing, allow_nan=False)

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from estimators.noise import batch_means_sd, overlapping_allan_deviation, quantization_step, sample_noise_sd, white_noise_sd
+from estimators.noise import (
+    batch_means_sd,
+    overlapping_allan_deviation,
+    quantization_step,
+    sample_noise_sd,
+    white_noise_sd,
+)
 
 RATE_HZ = 100.0
 
@@ -62,14 +68,22 @@ def test_batch_means_sd_is_the_level_at_which_averages_shrink():
     got = batch_means_sd(records, 50)[0]
     # 30 records × 39 batches of dof: relative sd of the estimate ≈ 1/√(2·1170); 4 of them.
     assert abs(got / ((1.0 + theta) * sd) - 1.0) < 4.0 / np.sqrt(2 * 30 * 39)
-    assert abs(np.mean([sample_noise_sd(r, 50)[0] for r in records]) / (np.sqrt(1 + theta**2) * sd) - 1.0) < 0.02
+    assert (
+        abs(
+            np.mean([sample_noise_sd(r, 50)[0] for r in records]) / (np.sqrt(1 + theta**2) * sd)
+            - 1.0
+        )
+        < 0.02
+    )
 
 
 def test_quantization_step_found_on_an_offset_grid_and_not_off_it():
     rng = np.random.default_rng(6)
     step = 0.002418
     counts = np.round(0.01 * rng.standard_normal(5000) / step) + 12_345
-    x = (counts - 32_768) * step  # raw counts minus a mid-scale offset, as a session reader converts them
+    x = (
+        counts - 32_768
+    ) * step  # raw counts minus a mid-scale offset, as a session reader converts them
     assert abs(quantization_step(x) - step) < 1e-9
     assert quantization_step(0.01 * rng.standard_normal(5000)) is None
     assert quantization_step(np.full(100, 9.81)) is None  # one level: no grid to read

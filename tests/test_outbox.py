@@ -22,7 +22,10 @@ def test_put_is_idempotent_by_id_and_pending_is_per_sink(tmp_path):
     with Outbox(tmp_path / "o.sqlite", sinks=("zenoh", "mavlink")) as ob:
         assert ob.put("a" * 32, "v1", b"A")
         assert not ob.put("a" * 32, "v1", b"A-again")  # same id: not stored twice
-        assert ob.put_many([("b" * 32, "v1", b"B"), ("a" * 32, "v1", b"A"), ("c" * 32, "v2", b"C")]) == 2
+        assert (
+            ob.put_many([("b" * 32, "v1", b"B"), ("a" * 32, "v1", b"A"), ("c" * 32, "v2", b"C")])
+            == 2
+        )
         assert ids(ob.pending("zenoh")) == ["a" * 32, "b" * 32, "c" * 32]
         assert ob.pending("zenoh")[0].payload == b"A"
         ob.ack("zenoh", [e.seq for e in ob.pending("zenoh", limit=2)])
@@ -44,7 +47,9 @@ def test_pending_survives_reopen_and_acked_is_not_resent(tmp_path):
         pend = ob.pending("zenoh")
         assert ids(pend) == [f"{3:032x}", f"{4:032x}"]
         assert [e.attempts for e in pend] == [1, 1]
-        assert not ob.put(f"{0:032x}", "v1", b"\x00")  # still known by id: a re-detection is not re-sent
+        assert not ob.put(
+            f"{0:032x}", "v1", b"\x00"
+        )  # still known by id: a re-detection is not re-sent
 
 
 def test_delivered_events_are_pruned_beyond_retention(tmp_path):
@@ -71,6 +76,7 @@ def test_schema_version_mismatch_is_a_clear_error(tmp_path):
 
 def test_concurrent_writers_from_threads(tmp_path):
     with Outbox(tmp_path / "o.sqlite", sinks=("s",)) as ob:
+
         def write(t):
             for k in range(50):
                 ob.put(f"{t:016x}{k:016x}", "v", b"p")
@@ -98,7 +104,12 @@ while True:
 def test_kill_9_while_writing_keeps_every_committed_event(tmp_path):
     """A writer is SIGKILLed mid-stream: every event it reported as stored is there, the file opens cleanly."""
     path = tmp_path / "o.sqlite"
-    proc = subprocess.Popen([sys.executable, "-c", _WRITER, str(path)], stdout=subprocess.PIPE, text=True, cwd=os.getcwd())
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _WRITER, str(path)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=os.getcwd(),
+    )
     reported = -1
     for line in proc.stdout:
         reported = int(line)

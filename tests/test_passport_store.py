@@ -13,7 +13,7 @@ from service.demo import demo_passport
 from service.passport_store import PassportStore, PassportStoreError, passport_checksum
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def passport():
     return demo_passport()[0]
 
@@ -41,12 +41,26 @@ def corrupt(path, edit):
 @pytest.mark.parametrize(
     "damage, reason",
     [
-        (lambda p: p.write_text('{"type": "ins.health.passport-entry", '), "corrupt: not valid JSON"),
+        (
+            lambda p: p.write_text('{"type": "ins.health.passport-entry", '),
+            "corrupt: not valid JSON",
+        ),
         (lambda p: p.write_bytes(b"\xff\xfe\x00garbage"), "corrupt: not valid JSON"),
-        (lambda p: corrupt(p, lambda e: e["passport"]["triads"]["accel"]["nominal"].__setitem__(0, 0.5)), "checksum mismatch"),
-        (lambda p: corrupt(p, lambda e: e.__setitem__("entry_version", 7)), "entry version 7 is not supported"),
+        (
+            lambda p: corrupt(
+                p, lambda e: e["passport"]["triads"]["accel"]["nominal"].__setitem__(0, 0.5)
+            ),
+            "checksum mismatch",
+        ),
+        (
+            lambda p: corrupt(p, lambda e: e.__setitem__("entry_version", 7)),
+            "entry version 7 is not supported",
+        ),
         (lambda p: corrupt(p, lambda e: e.__setitem__("imu", 5)), "filed under the wrong unit"),
-        (lambda p: corrupt(p, lambda e: e.__setitem__("type", "ins.health.passport")), "a bare passport file"),
+        (
+            lambda p: corrupt(p, lambda e: e.__setitem__("type", "ins.health.passport")),
+            "a bare passport file",
+        ),
     ],
 )
 def test_a_damaged_entry_is_a_clear_error_for_that_unit_only(tmp_path, damage, reason):

@@ -7,6 +7,7 @@ import functools
 
 import numpy as np
 import pytest
+from service_support import batches_of, run_fleet
 
 from estimators.conventions import Triad
 from estimators.passport import TemperatureModel
@@ -15,17 +16,16 @@ from protocols.events import ImuState, Predicate, Severity, StreamCause
 from service.checkpoint import decode_state, encode_state
 from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
 from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
-from service_support import batches_of, run_fleet
 
 V = DEMO_VEHICLE
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def calibrated():
     return demo_passport()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def faulty():
     return demo_scenario()
 
@@ -46,11 +46,20 @@ def test_fault_is_detected_by_f0_and_named_by_the_diagnosis():
     """+3 % scale factor on the z accelerometer after landing: F0 at the onset, then F6 (ez) and nothing else."""
     passport, g = calibrated()
     sc = faulty()
-    events = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=50))
-    assert kinds(events) == [(Predicate.F0, StreamCause.OUT_OF_SHELL), (Predicate.F6, "scale_factor")]
+    events = run_fleet(
+        fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=50)
+    )
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
     f0, f6 = events
     # F0 is tested on the final, eroded static decisions: the unit rests level when the fault starts.
-    assert sc.fault_s <= f0.t_s < sc.fault_s + 0.05 and f0.triad is Triad.ACCEL and f0.severity is Severity.WARNING
+    assert (
+        sc.fault_s <= f0.t_s < sc.fault_s + 0.05
+        and f0.triad is Triad.ACCEL
+        and f0.severity is Severity.WARNING
+    )
     assert f0.estimate > f0.tolerance
     assert f6.triad is Triad.ACCEL and f6.axis == "z" and f6.severity is Severity.ERROR
     assert f6.t_s > sc.handling2_start_s
@@ -67,15 +76,22 @@ def test_fault_free_unit_raises_nothing_and_reaches_ok():
     assert events == []
     status = fleet.status(V, service="t", now_unix_s=0.0)
     assert status.imus[0].state is ImuState.OK and status.imus[0].positions >= 20
-    assert status.counters.get("imu0.f0.accel.fail", 0) == 0 and status.counters["imu0.f0.accel.tests"] > 5000
+    assert (
+        status.counters.get("imu0.f0.accel.fail", 0) == 0
+        and status.counters["imu0.f0.accel.tests"] > 5000
+    )
 
 
 def test_same_batches_give_the_same_event_ids_whatever_the_frame_size():
     """Event ids derive from data time: replaying the same data (even batched differently) gives the same ids."""
     passport, g = calibrated()
     sc = faulty()
-    a = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=50))
-    b = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=333))
+    a = run_fleet(
+        fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=50)
+    )
+    b = run_fleet(
+        fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=333)
+    )
     assert [e.event_id for e in a] == [e.event_id for e in b]
 
 
@@ -103,11 +119,11 @@ def test_frame_order_problems_are_counted_and_state_stays_sane():
     frames = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=100))[:60]
     fleet = fleet_for(passport, g)
     late = frames[10]
-    jumbled = frames[:12] + [frames[11], late] + frames[12:20]
+    jumbled = [*frames[:12], frames[11], late, *frames[12:20]]
     # A frame whose samples go back in time with a fresh seq, then a forward time jump of 10 s.
     back = dataclasses.replace(frames[20], seq=20, t_s=frames[20].t_s - 5.0)
     jump = [dataclasses.replace(b, t_s=b.t_s + 10.0) for b in frames[21:30]]
-    run_fleet(fleet, jumbled + [back] + jump, finish=False)
+    run_fleet(fleet, [*jumbled, back, *jump], finish=False)
     c = fleet.status(V, service="t", now_unix_s=0.0).counters
     assert c["imu0.frames.duplicate"] == 1 and c["imu0.frames.out_of_order"] == 1
     assert c["imu0.frames.rejected.no_new_samples"] == 1 and c["imu0.time_jumps"] == 1
@@ -139,7 +155,9 @@ def test_stuck_gyro_is_a_critical_stale_event_naming_the_axis():
     k0 = int(np.searchsorted(s.t_s, 20.0))
     gyro[k0 : k0 + 400, 1] = gyro[k0, 1]  # 2 s at 200 Hz
     session = dataclasses.replace(s, gyro_rps=gyro)
-    events = run_fleet(fleet_for(passport, g), list(batches_of(session, vehicle=V, imu=0, batch_samples=50))[:600])
+    events = run_fleet(
+        fleet_for(passport, g), list(batches_of(session, vehicle=V, imu=0, batch_samples=50))[:600]
+    )
     stale = [e for e in events if e.predicate is Predicate.STALE]
     assert [(e.cause, e.triad, e.axis) for e in stale] == [
         (StreamCause.STUCK_VALUE, Triad.GYRO, "y"),
@@ -169,7 +187,11 @@ def test_missing_passport_runs_the_stream_checks_only_and_says_why():
         raise ValueError(f"passport of {v} IMU{i}: missing")
 
     fleet = FleetProcessor(passports=lookup, on_passport_error=lambda v, i, m: errors.append(m))
-    run_fleet(fleet, list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))[:50], finish=False)
+    run_fleet(
+        fleet,
+        list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))[:50],
+        finish=False,
+    )
     st = fleet.status(V, service="t", now_unix_s=0.0).imus[0]
     assert st.state is ImuState.NO_PASSPORT and "missing" in st.detail
     assert errors == [f"passport of {V} IMU0: missing"]
@@ -193,20 +215,37 @@ def test_warm_up_is_compensated_with_the_passport_temperature_model():
     sc = faulty()
     k_mps2_per_c = 1e-3 * 9.80665
     spec = sc.spec
-    model = spec.model.with_effect(TemperatureBias(coef_si_per_c=((k_mps2_per_c,),) * 3), triad=Triad.ACCEL)
+    model = spec.model.with_effect(
+        TemperatureBias(coef_si_per_c=((k_mps2_per_c,),) * 3), triad=Triad.ACCEL
+    )
     warm = simulate(
-        dataclasses.replace(spec, model=model, faults=(), temperature=WarmupTemperature(start_c=20.0, final_c=50.0, tau_s=15.0)), seed=3
+        dataclasses.replace(
+            spec,
+            model=model,
+            faults=(),
+            temperature=WarmupTemperature(start_c=20.0, final_c=50.0, tau_s=15.0),
+        ),
+        seed=3,
     ).session
     tp = passport.triads[Triad.ACCEL]
     tmodel = TemperatureModel(
-        20.0, np.column_stack([tp.nominal[:3], np.full(3, k_mps2_per_c / tp.reference)]), np.zeros((3, 2)), valid_min_c=20.0, valid_max_c=50.0
+        20.0,
+        np.column_stack([tp.nominal[:3], np.full(3, k_mps2_per_c / tp.reference)]),
+        np.zeros((3, 2)),
+        valid_min_c=20.0,
+        valid_max_c=50.0,
     )
-    with_model = dataclasses.replace(passport, triads={Triad.ACCEL: dataclasses.replace(tp, temperature=tmodel)})
+    with_model = dataclasses.replace(
+        passport, triads={Triad.ACCEL: dataclasses.replace(tp, temperature=tmodel)}
+    )
     frames = list(batches_of(warm, vehicle=V, imu=0, batch_samples=100))
     assert run_fleet(fleet_for(passport, g), frames)[0].predicate is Predicate.F0
     fleet = fleet_for(with_model, g)
     assert run_fleet(fleet, frames) == []
-    assert "temperature-compensated (M3)" in fleet.status(V, service="t", now_unix_s=0.0).imus[0].detail
+    assert (
+        "temperature-compensated (M3)"
+        in fleet.status(V, service="t", now_unix_s=0.0).imus[0].detail
+    )
 
 
 CHAMBER_C = (10.0, 40.0)
@@ -214,7 +253,7 @@ PEAK_C = 60.0
 BUMP_G = 1e-3
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def beyond_the_chamber():
     """A fault-free unit warming 20 → 60 → 20 °C (one cosine cycle over the session) whose bias follows 1 mG/°C
     at every temperature, and its passport's quartic temperature model fitted in a 10…40 °C chamber.
@@ -226,9 +265,16 @@ def beyond_the_chamber():
     passport, g = calibrated()
     clean = demo_scenario(fault_magnitude=0.0)
     k_mps2_per_c = 1e-3 * 9.80665
-    model = clean.spec.model.with_effect(TemperatureBias(coef_si_per_c=((k_mps2_per_c,),) * 3), triad=Triad.ACCEL)
+    model = clean.spec.model.with_effect(
+        TemperatureBias(coef_si_per_c=((k_mps2_per_c,),) * 3), triad=Triad.ACCEL
+    )
     period_s = float(clean.session.t_s[-1] - clean.session.t_s[0])
-    warm = simulate(dataclasses.replace(clean.spec, model=model, temperature=CycleTemperature(20.0, PEAK_C, period_s)), seed=3).session
+    warm = simulate(
+        dataclasses.replace(
+            clean.spec, model=model, temperature=CycleTemperature(20.0, PEAK_C, period_s)
+        ),
+        seed=3,
+    ).session
     tp = passport.triads[Triad.ACCEL]
     bias = np.zeros((3, 5))
     bias[:, 0], bias[:, 1] = tp.nominal[:3], k_mps2_per_c / tp.reference
@@ -249,23 +295,46 @@ def test_beyond_the_chamber_range_one_event_each_way_and_no_false_alarm():
     frames, warm, ranged, unbounded, g = beyond_the_chamber()
     fleet = fleet_for(ranged, g)
     events = run_fleet(fleet, frames)
-    assert kinds(events) == [(Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE), (Predicate.TEMPERATURE, StreamCause.RECOVERED)]
+    assert kinds(events) == [
+        (Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE),
+        (Predicate.TEMPERATURE, StreamCause.RECOVERED),
+    ]
     out, back = events
     # Sample by sample: the first sample above 40 °C, then the first one back at or below 39 °C.
     i = int(np.argmax(warm.temp_c > CHAMBER_C[1]))
     j = i + int(np.argmax(warm.temp_c[i:] <= CHAMBER_C[1] - 1.0))
     assert (out.t_s, out.estimate) == (warm.t_s[i], warm.temp_c[i]) and 40.0 < out.estimate < 40.01
-    assert (back.t_s, back.estimate) == (warm.t_s[j], warm.temp_c[j]) and 38.99 < back.estimate <= 39.0
+    assert (back.t_s, back.estimate) == (
+        warm.t_s[j],
+        warm.temp_c[j],
+    ) and 38.99 < back.estimate <= 39.0
     assert out.triad is back.triad is Triad.ACCEL and out.unit == back.unit == "degC"
-    assert (out.tolerance, out.nominal, out.severity) == (40.0, 20.0, Severity.WARNING) and back.severity is Severity.INFO
-    assert out.text.startswith(f"{V} IMU0 accelerometer: temperature 40.0 °C outside the passport model's 10…40 °C")
-    assert back.text == f"{V} IMU0 accelerometer: temperature 39.0 °C back within the passport model's 10…40 °C [temperature]"
+    assert (out.tolerance, out.nominal, out.severity) == (
+        40.0,
+        20.0,
+        Severity.WARNING,
+    ) and back.severity is Severity.INFO
+    assert out.text.startswith(
+        f"{V} IMU0 accelerometer: temperature 40.0 °C outside the passport model's 10…40 °C"
+    )
+    assert (
+        back.text
+        == f"{V} IMU0 accelerometer: temperature 39.0 °C back within the passport model's 10…40 °C [temperature]"
+    )
     counters = fleet.status(V, service="t", now_unix_s=0.0).counters
-    assert counters["imu0.f0.accel.skipped_temperature"] > 3000 and counters["imu0.f0.accel.tests"] > 5000
-    assert counters["imu0.positions.skipped_temperature.accel"] > 5 and counters.get("imu0.f0.accel.fail", 0) == 0
+    assert (
+        counters["imu0.f0.accel.skipped_temperature"] > 3000
+        and counters["imu0.f0.accel.tests"] > 5000
+    )
+    assert (
+        counters["imu0.positions.skipped_temperature.accel"] > 5
+        and counters.get("imu0.f0.accel.fail", 0) == 0
+    )
     # Deterministic: other framings give the same events, ids included.
     rebatched = list(batches_of(warm, vehicle=V, imu=0, batch_samples=37))
-    assert [e.event_id for e in run_fleet(fleet_for(ranged, g), rebatched)] == [e.event_id for e in events]
+    assert [e.event_id for e in run_fleet(fleet_for(ranged, g), rebatched)] == [
+        e.event_id for e in events
+    ]
     # Not vacuous: the same polynomial without a range (a schema-1 passport, used at any temperature, as before)
     # fails F0 beyond 50 °C and then the diagnosis, and raises no temperature event.
     old = fleet_for(unbounded, g)
@@ -274,7 +343,10 @@ def test_beyond_the_chamber_range_one_event_each_way_and_no_false_alarm():
     assert f0.cause is StreamCause.OUT_OF_SHELL and abs(f0.estimate) > f0.tolerance
     assert 50.0 < np.interp(f0.t_s, warm.t_s, warm.temp_c) < PEAK_C
     assert Predicate.TEMPERATURE not in {e.predicate for e in extrapolated}
-    assert "accel temperature model has no valid range (passport schema 1)" in old.status(V, service="t", now_unix_s=0.0).imus[0].detail
+    assert (
+        "accel temperature model has no valid range (passport schema 1)"
+        in old.status(V, service="t", now_unix_s=0.0).imus[0].detail
+    )
 
 
 def test_the_temperature_range_state_survives_a_checkpoint():
@@ -285,15 +357,23 @@ def test_the_temperature_range_state_survives_a_checkpoint():
     before = [e for b in frames[:cut] for e in pipe.process(b, arrival_s=float(b.t_s[-1]))]
     assert kinds(before) == [(Predicate.TEMPERATURE, StreamCause.TEMPERATURE_RANGE)]
     status = pipe.status()
-    assert status.state is ImuState.WARNING and "accel beyond the temperature model's 10…40 °C: F0 and diagnosis skip samples there" in status.detail
+    assert (
+        status.state is ImuState.WARNING
+        and "accel beyond the temperature model's 10…40 °C: F0 and diagnosis skip samples there"
+        in status.detail
+    )
     twin = ImuPipeline(V, 0, passport=ranged, options=options(g))
     twin.load_state(decode_state(encode_state(pipe.state_dict())))
     check, twin_check = pipe.checks[Triad.ACCEL], twin.checks[Triad.ACCEL]
     assert twin_check.temp_out_edge_c == check.temp_out_edge_c == 40.0
     assert twin_check.temp_skip_s == check.temp_skip_s != []  # samples the static gate still holds
     assert twin.status() == status
-    after = [e for b in frames[cut:] for e in twin.process(b, arrival_s=float(b.t_s[-1]))] + twin.finish()
-    rest = [e for b in frames[cut:] for e in pipe.process(b, arrival_s=float(b.t_s[-1]))] + pipe.finish()
+    after = [
+        e for b in frames[cut:] for e in twin.process(b, arrival_s=float(b.t_s[-1]))
+    ] + twin.finish()
+    rest = [
+        e for b in frames[cut:] for e in pipe.process(b, arrival_s=float(b.t_s[-1]))
+    ] + pipe.finish()
     assert kinds(after) == [(Predicate.TEMPERATURE, StreamCause.RECOVERED)]
     assert [e.event_id for e in after] == [e.event_id for e in rest]
     assert twin.counters == pipe.counters
@@ -306,12 +386,18 @@ def test_cross_imu_names_the_outlier_and_quotes_its_scalar_check():
     bad = demo_scenario(fault_index=2, fault_magnitude=0.1)
     fleet = fleet_for(passport, g)
     streams = {0: clean.session, 1: clean.session, 2: bad.session}
-    frames = {i: list(batches_of(s, vehicle=V, imu=i, batch_samples=100)) for i, s in streams.items()}
+    frames = {
+        i: list(batches_of(s, vehicle=V, imu=i, batch_samples=100)) for i, s in streams.items()
+    }
     events = []
     for k in range(len(frames[0])):
         for i in range(3):
             events += fleet.process(frames[i][k], arrival_s=float(frames[i][k].t_s[-1]))
-    cross = [e for e in events if e.predicate is Predicate.CROSS_IMU and e.cause is StreamCause.DISAGREEMENT]
+    cross = [
+        e
+        for e in events
+        if e.predicate is Predicate.CROSS_IMU and e.cause is StreamCause.DISAGREEMENT
+    ]
     assert cross and {e.imu for e in cross} == {2}
     assert "disagrees with IMU0,IMU1" in cross[0].text and "F0 accel failing" in cross[0].text
     assert cross[0].t_s > bad.fault_s and cross[0].unit == "m/s^2"
@@ -344,15 +430,23 @@ def test_a_knock_on_the_resting_unit_fails_single_samples_but_raises_no_f0():
     """A knock rings for 10 ms at 200 Hz (2 samples); F0 must fail for 20 ms in a row (4 samples) to be declared."""
     passport, g = calibrated()
     clean = demo_scenario(fault_magnitude=0.0)
-    knocked = _knocked(clean.session, (clean.fault_s, clean.fault_s + 1.0), 0.3)  # 0.3 m/s² ≈ 20σ of the noise
+    knocked = _knocked(
+        clean.session, (clean.fault_s, clean.fault_s + 1.0), 0.3
+    )  # 0.3 m/s² ≈ 20σ of the noise
     fleet = fleet_for(passport, g)
     assert run_fleet(fleet, batches_of(knocked, vehicle=V, imu=0, batch_samples=50)) == []
     # The knocks were inside the static set and out of the shell: every one of their samples failed F0.
     assert fleet.pipelines[(V, 0)].counters["f0.accel.fail"] == 4
     # The bare predicate (one sample) declares the first knock a failure; the diagnosis then clears it.
-    bare = FleetProcessor(passports=lambda v, i: passport, options=dataclasses.replace(options(g), f0_persistence_s=0.0))
+    bare = FleetProcessor(
+        passports=lambda v, i: passport,
+        options=dataclasses.replace(options(g), f0_persistence_s=0.0),
+    )
     events = run_fleet(bare, batches_of(knocked, vehicle=V, imu=0, batch_samples=50))
-    assert kinds(events) == [(Predicate.F0, StreamCause.OUT_OF_SHELL), (Predicate.F0, StreamCause.RECOVERED)]
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F0, StreamCause.RECOVERED),
+    ]
     assert events[0].t_s == pytest.approx(clean.fault_s, abs=0.006)
 
 
@@ -362,7 +456,9 @@ def test_a_persistent_failure_is_dated_at_its_first_failing_sample_across_frames
     sc = faulty()
     first = []
     for size in (1, 3, 50, 1000):
-        events = run_fleet(fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=size))
+        events = run_fleet(
+            fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=size)
+        )
         first.append(next(e for e in events if e.predicate is Predicate.F0))
     assert len({(e.t_s, e.estimate, e.event_id) for e in first}) == 1
     assert sc.fault_s <= first[0].t_s < sc.fault_s + 0.05 and first[0].estimate > first[0].tolerance

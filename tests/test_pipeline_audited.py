@@ -14,12 +14,16 @@ RATE_HZ = 200.0
 
 
 def _accel_lambda0(passport, g):
-    _, lambda0, _ = _f0_config(passport.triads[Triad.ACCEL], PipelineOptions(gravity_mps2=g), RATE_HZ)
+    _, lambda0, _ = _f0_config(
+        passport.triads[Triad.ACCEL], PipelineOptions(gravity_mps2=g), RATE_HZ
+    )
     return lambda0
 
 
 def _with_wander(passport, wander_norm):
-    tp = dataclasses.replace(passport.triads[Triad.ACCEL], bias_instability_std=np.full(3, wander_norm))
+    tp = dataclasses.replace(
+        passport.triads[Triad.ACCEL], bias_instability_std=np.full(3, wander_norm)
+    )
     return dataclasses.replace(passport, triads={**passport.triads, Triad.ACCEL: tp})
 
 

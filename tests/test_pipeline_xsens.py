@@ -35,15 +35,24 @@ def _run(session, passport, options):
     events = []
     for k, i in enumerate(range(0, session.n_samples, FRAME)):
         sl = slice(i, i + FRAME)
-        events += fleet.process(SampleBatch("xsens", 0, k, session.t_s[sl], session.accel_mps2[sl], session.gyro_rps[sl]), arrival_s=0.0)
+        events += fleet.process(
+            SampleBatch(
+                "xsens", 0, k, session.t_s[sl], session.accel_mps2[sl], session.gyro_rps[sl]
+            ),
+            arrival_s=0.0,
+        )
     return events + fleet.finish(), fleet.pipelines[("xsens", 0)]
 
 
 def test_the_unit_on_its_own_calibration_session_raises_nothing(unit):
     session, passport = unit
-    events, pipe = _run(session, passport, PipelineOptions(gravity_mps2=G_XSENS, gravity_rel_err=1e-4))
+    events, pipe = _run(
+        session, passport, PipelineOptions(gravity_mps2=G_XSENS, gravity_rel_err=1e-4)
+    )
     assert events == []
-    assert pipe.n_positions == 38 and set(pipe.checks) == {Triad.ACCEL}  # the MEMS gyros cannot be calibrated against Ω
+    assert pipe.n_positions == 38 and set(pipe.checks) == {
+        Triad.ACCEL
+    }  # the MEMS gyros cannot be calibrated against Ω
     # Every static sample was tested; the knock is the one sample out of the shell.
     assert pipe.counters["f0.accel.tests"] == 34882 and pipe.counters["f0.accel.fail"] == 1
 
@@ -52,6 +61,12 @@ def test_the_bare_predicate_calls_the_knock_a_failure_which_the_diagnosis_then_c
     session, passport = unit
     options = PipelineOptions(gravity_mps2=G_XSENS, gravity_rel_err=1e-4, f0_persistence_s=0.0)
     events, _ = _run(session, passport, options)
-    assert [(e.predicate, e.cause) for e in events] == [(Predicate.F0, StreamCause.OUT_OF_SHELL), (Predicate.F0, StreamCause.RECOVERED)]
-    assert events[0].t_s == pytest.approx(208.109, abs=1e-3) and events[0].estimate > events[0].tolerance
+    assert [(e.predicate, e.cause) for e in events] == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F0, StreamCause.RECOVERED),
+    ]
+    assert (
+        events[0].t_s == pytest.approx(208.109, abs=1e-3)
+        and events[0].estimate > events[0].tolerance
+    )
     assert "9 parameters within tolerance" in events[1].text

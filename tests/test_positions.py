@@ -1,5 +1,6 @@
 """Positions from static intervals: averages with an honest covariance, rejects and merges (methods.md M1)."""
 
+import itertools
 import json
 from dataclasses import replace
 
@@ -8,8 +9,6 @@ import pytest
 from scipy import stats
 from synthetic_static import G_MPS2, Bump, Gap, Rest, Rotate, build_scene, tumble
 
-from estimators.session import ImuSession
-from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
 from estimators.positions import (
     CovarianceMethod,
     Position,
@@ -18,12 +17,19 @@ from estimators.positions import (
     RejectReason,
     build_positions,
 )
+from estimators.session import ImuSession
+from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
 from estimators.static_detector import FinalDecisions, StaticDetectorConfig, detect_static
 
 
 def _stream(session: ImuSession, *, rate_hz: float, state_at: int | None = None, **options):
     """Positions and rejections from a PositionAccumulator fed sample by sample (optionally checkpointed)."""
-    acc = PositionAccumulator(rate_hz=rate_hz, has_accel=session.accel_mps2 is not None, has_gyro=session.gyro_rps is not None, **options)
+    acc = PositionAccumulator(
+        rate_hz=rate_hz,
+        has_accel=session.accel_mps2 is not None,
+        has_gyro=session.gyro_rps is not None,
+        **options,
+    )
     n = session.n_samples
     zeros = [[0.0, 0.0, 0.0]] * n
     accel = zeros if session.accel_mps2 is None else session.accel_mps2.tolist()
@@ -42,10 +48,25 @@ def _stream(session: ImuSession, *, rate_hz: float, state_at: int | None = None,
 
 def _assert_same_positions(got, expected):
     assert len(got) == len(expected)
-    for p, q in zip(got, expected):
-        for name in ("t_start_s", "t_end_s", "n_samples", "index_start", "index_stop", "n_intervals"):
+    for p, q in zip(got, expected, strict=True):
+        for name in (
+            "t_start_s",
+            "t_end_s",
+            "n_samples",
+            "index_start",
+            "index_stop",
+            "n_intervals",
+        ):
             assert getattr(p, name) == getattr(q, name), name
-        for name in ("accel_mean_mps2", "gyro_mean_rps", "accel_cov_mps2", "gyro_cov_rps", "temp_mean_c", "accel_n_eff", "gyro_n_eff"):
+        for name in (
+            "accel_mean_mps2",
+            "gyro_mean_rps",
+            "accel_cov_mps2",
+            "gyro_cov_rps",
+            "temp_mean_c",
+            "accel_n_eff",
+            "gyro_n_eff",
+        ):
             a, b = getattr(p, name), getattr(q, name)
             assert (a is None) == (b is None), name
             if a is not None:
@@ -57,25 +78,44 @@ def _assert_same_positions(got, expected):
 
 
 def test_means_of_a_simulated_unit_are_consistent_with_their_covariance():
-    spec = multi_position_spec(grade=Grade.MEMS, n_positions=18, static_s=5.0, transition_s=3.0, temperature=RampTemperature(20.0, 0.02))
+    spec = multi_position_spec(
+        grade=Grade.MEMS,
+        n_positions=18,
+        static_s=5.0,
+        transition_s=3.0,
+        temperature=RampTemperature(20.0, 0.02),
+    )
     noisy = simulate(spec, seed=3)
     m = spec.model
-    quiet = replace(m, accel=m.accel.without("white_noise").without("quantization"), gyro=m.gyro.without("white_noise").without("quantization"))
-    clean = simulate(replace(spec, model=quiet), seed=3)  # same motion: the seeds of the streams are per effect
+    quiet = replace(
+        m,
+        accel=m.accel.without("white_noise").without("quantization"),
+        gyro=m.gyro.without("white_noise").without("quantization"),
+    )
+    clean = simulate(
+        replace(spec, model=quiet), seed=3
+    )  # same motion: the seeds of the streams are per effect
     res = build_positions(noisy.session, detect_static(noisy.session))
     assert len(res.positions) == 18 and res.rejections == ()
     chi2, dof = 0.0, 0
-    for pos, (t0, t1) in zip(res.positions, noisy.truth.static_intervals_s):
+    for pos, (t0, t1) in zip(res.positions, noisy.truth.static_intervals_s, strict=True):
         # The truth is the noise-free output in the middle of the true rest, so leakage of the
         # turns into the trimmed interval would show; M2's Entier reads half a count low.
         mid = int(np.searchsorted(noisy.session.t_s, 0.5 * (t0 + t1)))
-        for triad, mean, cov in (("accel", pos.accel_mean_mps2, pos.accel_cov_mps2), ("gyro", pos.gyro_mean_rps, pos.gyro_cov_rps)):
+        for triad, mean, cov in (
+            ("accel", pos.accel_mean_mps2, pos.accel_cov_mps2),
+            ("gyro", pos.gyro_mean_rps, pos.gyro_cov_rps),
+        ):
             step = np.array(m.triad(triad).find("quantization").step_si)
-            truth = (clean.session.accel_mps2 if triad == "accel" else clean.session.gyro_rps)[mid] - 0.5 * step
+            truth = (clean.session.accel_mps2 if triad == "accel" else clean.session.gyro_rps)[
+                mid
+            ] - 0.5 * step
             d = mean - truth
             chi2 += d @ np.linalg.solve(cov, d)
             dof += 3
-        assert pos.temp_mean_c == pytest.approx(noisy.session.temp_c[pos.index_start : pos.index_stop].mean())
+        assert pos.temp_mean_c == pytest.approx(
+            noisy.session.temp_c[pos.index_start : pos.index_stop].mean()
+        )
     # Batch means never shrink the covariance (τ̂ ≥ 1): χ² may sit a little low, never high.
     assert stats.chi2.ppf(1e-4, dof) < chi2 < stats.chi2.ppf(1 - 1e-4, dof)
 
@@ -88,7 +128,9 @@ def test_batch_means_cover_correlated_noise_where_the_sample_covariance_does_not
     coverage = {}
     for method in CovarianceMethod:
         # Batches of 2 s are 200 samples ≫ the 19-sample correlation time.
-        res = build_positions(scene.session, det, config=PositionConfig(batch_s=2.0, covariance=method))
+        res = build_positions(
+            scene.session, det, config=PositionConfig(batch_s=2.0, covariance=method)
+        )
         assert len(res.positions) == 100
         z = []
         for pos in res.positions:
@@ -111,12 +153,20 @@ def test_batch_means_cover_correlated_noise_where_the_sample_covariance_does_not
 
 def _scene_segments():
     return [
-        Rest(5.0), Bump(0.6), Rest(4.0),  # a bump splits one position: merged
+        Rest(5.0),
+        Bump(0.6),
+        Rest(4.0),  # a bump splits one position: merged
         # The union of quiet windows reaches ~0.25 s into the slow ends of each turn:
-        Rotate(2.0, (1, 0, 0), 90.0), Rest(0.3),  # a run of 0.6–0.8 s: too short for an interval
-        Rotate(2.0, (0, 0, 1), 60.0), Rest(0.8),  # 1.1–1.4 s: an interval, < 100 samples once trimmed
-        Rotate(2.0, (1, 1, 0), 80.0), Rest(4.0), Gap(2.0), Rest(3.0),  # same direction across a gap
-        Rotate(2.0, None, 90.0), Rest(3.0),  # heading change: same specific force, new position
+        Rotate(2.0, (1, 0, 0), 90.0),
+        Rest(0.3),  # a run of 0.6–0.8 s: too short for an interval
+        Rotate(2.0, (0, 0, 1), 60.0),
+        Rest(0.8),  # 1.1–1.4 s: an interval, < 100 samples once trimmed
+        Rotate(2.0, (1, 1, 0), 80.0),
+        Rest(4.0),
+        Gap(2.0),
+        Rest(3.0),  # same direction across a gap
+        Rotate(2.0, None, 90.0),
+        Rest(3.0),  # heading change: same specific force, new position
     ]
 
 
@@ -141,20 +191,29 @@ def test_short_sparse_and_duplicate_intervals_are_recorded_with_their_reason():
     ]
     t = scene.session.t_s
     # Each record spans the rest it stands for (rests 1, 2, 3, 5 of the scene).
-    for rec, k in zip(res.rejections, (1, 2, 3, 5)):
+    for rec, k in zip(res.rejections, (1, 2, 3, 5), strict=True):
         rest_t = t[scene.rest_index == k]
         assert rec.t_start_s <= rest_t[rest_t.size // 2] <= rec.t_end_s
     assert res.rejections[1].t_end_s - res.rejections[1].t_start_s < 1.0
-    assert "rotation" in res.rejections[0].detail and "rotation" not in res.rejections[3].detail  # gap: rotation unknown
+    assert (
+        "rotation" in res.rejections[0].detail and "rotation" not in res.rejections[3].detail
+    )  # gap: rotation unknown
     # Merged: both intervals minus 0.3 s (30 samples) at each of their four ends.
     first, (iv0, iv1) = res.positions[0], det.intervals[:2]
     assert first.n_samples == iv0.n_samples + iv1.n_samples - 4 * 30
-    assert first.t_start_s == pytest.approx(iv0.t_start_s + 0.3) and first.t_end_s == pytest.approx(iv1.t_end_s - 0.3)
-    np.testing.assert_allclose(first.accel_mean_mps2, G_MPS2 * scene.up_b[0], atol=5 * 0.01 / np.sqrt(first.n_samples))
+    assert first.t_start_s == pytest.approx(iv0.t_start_s + 0.3) and first.t_end_s == pytest.approx(
+        iv1.t_end_s - 0.3
+    )
+    np.testing.assert_allclose(
+        first.accel_mean_mps2, G_MPS2 * scene.up_b[0], atol=5 * 0.01 / np.sqrt(first.n_samples)
+    )
     assert first.temp_mean_c == pytest.approx(25.0, abs=0.05)
     # The heading change leaves the specific force alone; the gyros saw it.
     m1, m2 = res.positions[1].accel_mean_mps2, res.positions[2].accel_mean_mps2
-    assert np.degrees(np.arccos(np.clip(m1 @ m2 / np.linalg.norm(m1) / np.linalg.norm(m2), -1, 1))) < 0.5
+    assert (
+        np.degrees(np.arccos(np.clip(m1 @ m2 / np.linalg.norm(m1) / np.linalg.norm(m2), -1, 1)))
+        < 0.5
+    )
 
 
 def test_streaming_accumulator_gives_the_batch_positions_through_a_checkpoint():
@@ -162,7 +221,9 @@ def test_streaming_accumulator_gives_the_batch_positions_through_a_checkpoint():
     scene = _scene(rng)
     s = scene.session
     temp = s.temp_c.copy()
-    temp[rng.choice(temp.size, 50, replace=False)] = np.nan  # unknown temperature: the sample still counts
+    temp[rng.choice(temp.size, 50, replace=False)] = (
+        np.nan
+    )  # unknown temperature: the sample still counts
     accel = s.accel_mps2.copy()
     accel[[100, 2000, 2001]] = np.nan  # bad samples: counted, skipped
     session = ImuSession(s.t_s, accel, s.gyro_rps, temp)
@@ -186,7 +247,9 @@ def test_streaming_accumulator_gives_the_batch_positions_through_a_checkpoint():
 def test_one_triad_merges_by_what_it_can_see(triads, n_intervals):
     rng = np.random.default_rng(1)
     s = _scene(rng).session
-    session = ImuSession(s.t_s, s.accel_mps2 if triads == "accel" else None, s.gyro_rps if triads == "gyro" else None)
+    session = ImuSession(
+        s.t_s, s.accel_mps2 if triads == "accel" else None, s.gyro_rps if triads == "gyro" else None
+    )
     det = detect_static(session)
     res = build_positions(session, det, config=CFG)
     assert [p.n_intervals for p in res.positions] == n_intervals
@@ -225,8 +288,14 @@ def _per_sample(acc: PositionAccumulator, s):
     """Positions and per-sample decisions of ``update`` (the service's loop)."""
     n = s.t_s.size
     zeros = np.zeros((n, 3))
-    rows = np.column_stack([s.t_s, zeros if s.accel_mps2 is None else s.accel_mps2, zeros if s.gyro_rps is None else s.gyro_rps,
-                            np.full(n, np.nan) if s.temp_c is None else s.temp_c]).tolist()
+    rows = np.column_stack(
+        [
+            s.t_s,
+            zeros if s.accel_mps2 is None else s.accel_mps2,
+            zeros if s.gyro_rps is None else s.gyro_rps,
+            np.full(n, np.nan) if s.temp_c is None else s.temp_c,
+        ]
+    ).tolist()
     out, steps = [], []
     det = acc.detector
     for t, ax, ay, az, gx, gy, gz, tc in rows:
@@ -240,7 +309,7 @@ def _per_sample(acc: PositionAccumulator, s):
 
 def _batched(acc: PositionAccumulator, s, cuts):
     out, decisions = [], FinalDecisions.empty(0)
-    for a, b in zip(cuts[:-1], cuts[1:]):
+    for a, b in itertools.pairwise(cuts):
         part = [None if v is None else v[a:b] for v in (s.accel_mps2, s.gyro_rps, s.temp_c)]
         p, d = acc.update_batch(s.t_s[a:b], *part)
         out += p
@@ -256,7 +325,9 @@ def _assert_identical(p: Position, q: Position):
 
 def _messy(rng):
     """The scene of _scene plus tumbles, with NaN/Inf values, repeated time stamps and unknown temperatures."""
-    s = build_scene(_scene_segments() + tumble(4, rest_s=3.0, rng=rng), rng=rng, temp_c=25.0).session
+    s = build_scene(
+        _scene_segments() + tumble(4, rest_s=3.0, rng=rng), rng=rng, temp_c=25.0
+    ).session
     t, accel, gyro, temp = s.t_s.copy(), s.accel_mps2.copy(), s.gyro_rps.copy(), s.temp_c.copy()
     accel[rng.choice(t.size, 8, replace=False), 1] = np.nan
     gyro[rng.choice(t.size, 4, replace=False), 2] = np.inf
@@ -269,18 +340,29 @@ def _messy(rng):
 @pytest.mark.parametrize("case", ["clean", "messy", "sim400", "accel", "gyro", "rate_bound"])
 def test_update_batch_equals_update_bit_for_bit_for_any_cut(case):
     rng = np.random.default_rng(7)
-    s = build_scene(_scene_segments() + tumble(4, rest_s=3.0, rng=rng), rng=rng, temp_c=25.0).session
+    s = build_scene(
+        _scene_segments() + tumble(4, rest_s=3.0, rng=rng), rng=rng, temp_c=25.0
+    ).session
     rate, options = 100.0, {"config": CFG}
     if case == "messy":
         s = _messy(rng)
     elif case == "sim400":
-        s = simulate(multi_position_spec(grade=Grade.MEMS, n_positions=5, static_s=3.0, transition_s=2.0, rate_hz=400.0), 3).session
+        s = simulate(
+            multi_position_spec(
+                grade=Grade.MEMS, n_positions=5, static_s=3.0, transition_s=2.0, rate_hz=400.0
+            ),
+            3,
+        ).session
         rate, options = 400.0, {}
     elif case in ("accel", "gyro"):
-        s = ImuSession(s.t_s, s.accel_mps2 if case == "accel" else None, s.gyro_rps if case == "gyro" else None)
+        s = ImuSession(
+            s.t_s, s.accel_mps2 if case == "accel" else None, s.gyro_rps if case == "gyro" else None
+        )
     elif case == "rate_bound":
         options["detector_config"] = StaticDetectorConfig(gyro_rate_rps=0.05)
-    kw = dict(rate_hz=rate, has_accel=s.accel_mps2 is not None, has_gyro=s.gyro_rps is not None, **options)
+    kw = dict(
+        rate_hz=rate, has_accel=s.accel_mps2 is not None, has_gyro=s.gyro_rps is not None, **options
+    )
     ref = PositionAccumulator(**kw)
     expected, expected_decisions = _per_sample(ref, s)
     ref_state = json.dumps(ref.state_dict())
@@ -289,13 +371,17 @@ def test_update_batch_equals_update_bit_for_bit_for_any_cut(case):
     assert len(expected) + len(ref_flush) >= 3
     for sizes in ((1, 9), (60, 400), (300, 3000)):
         n = s.t_s.size
-        cuts = np.unique(np.concatenate([[0, n], np.cumsum(rng.integers(*sizes, size=n // sizes[0] + 1))]))
+        cuts = np.unique(
+            np.concatenate([[0, n], np.cumsum(rng.integers(*sizes, size=n // sizes[0] + 1))])
+        )
         cuts = cuts[cuts <= n]
         acc = PositionAccumulator(**kw)
         got, decisions = _batched(acc, s, cuts)
-        assert np.array_equal(decisions.static, expected_decisions.static) and np.array_equal(decisions.brk, expected_decisions.brk)
+        assert np.array_equal(decisions.static, expected_decisions.static) and np.array_equal(
+            decisions.brk, expected_decisions.brk
+        )
         assert len(got) == len(expected)
-        for p, q in zip(got, expected):
+        for p, q in zip(got, expected, strict=True):
             _assert_identical(p, q)
         assert json.dumps(acc.state_dict()) == ref_state
         for p, q in zip(acc.flush(), ref_flush, strict=True):
@@ -316,7 +402,7 @@ def test_update_batch_checkpoints_mid_stream_and_rejects_bad_shapes():
     acc = PositionAccumulator.from_state_dict(json.loads(json.dumps(acc.state_dict())))
     got += acc.update_batch(s.t_s[777:], s.accel_mps2[777:], s.gyro_rps[777:])[0] + acc.flush()
     assert len(got) == len(expected) == 3
-    for p, q in zip(got, expected):
+    for p, q in zip(got, expected, strict=True):
         _assert_identical(p, q)
     with pytest.raises(ValueError, match="gyro_rps is required"):
         acc.update_batch(s.t_s[:5], s.accel_mps2[:5], None)

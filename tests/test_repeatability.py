@@ -25,7 +25,9 @@ def test_fit_linear_matches_the_hand_solution_of_a_straight_line():
     fit = fit_linear(h, 1.0 + 2.0 * x, sigma_y=0.5)
     np.testing.assert_allclose(fit.values, [1.0, 2.0], atol=1e-12)
     # HᵀH = [[4, 6], [6, 14]], det 20 → inverse [[14, −6], [−6, 4]] / 20.
-    np.testing.assert_allclose(fit.cov, 0.25 * np.array([[14.0, -6.0], [-6.0, 4.0]]) / 20.0, rtol=1e-12)
+    np.testing.assert_allclose(
+        fit.cov, 0.25 * np.array([[14.0, -6.0], [-6.0, 4.0]]) / 20.0, rtol=1e-12
+    )
     assert fit.dof == np.inf
 
 
@@ -72,9 +74,14 @@ def test_stabilization_ends_at_the_full_fit_and_waits_for_a_level_change():
 def test_run_spread_intersects_hand_made_intervals():
     # Known σ (dof inf): 95 % half-width 1.96σ. Runs at 0 and 1 with σ = 1/1.96 give [−1, 1] and [0, 2].
     s = 1.0 / scipy.stats.norm.ppf(0.975)
-    runs = [RunEstimate(np.array([0.0]), np.array([[s * s]])), RunEstimate(np.array([1.0]), np.array([[s * s]]))]
+    runs = [
+        RunEstimate(np.array([0.0]), np.array([[s * s]])),
+        RunEstimate(np.array([1.0]), np.array([[s * s]])),
+    ]
     sp = run_spread(runs, names=("p",))
-    np.testing.assert_allclose([sp.common_lower[0], sp.common_upper[0], sp.value[0]], [0.0, 1.0, 0.5], atol=1e-12)
+    np.testing.assert_allclose(
+        [sp.common_lower[0], sp.common_upper[0], sp.value[0]], [0.0, 1.0, 0.5], atol=1e-12
+    )
     assert sp.all_reproducible
     # Every run interval lies in value ± tolerance: [−1, 2] about 0.5 needs 1.5.
     assert sp.tolerance[0] == pytest.approx(1.5)
@@ -82,7 +89,10 @@ def test_run_spread_intersects_hand_made_intervals():
 
 
 def test_run_spread_flags_disjoint_runs_and_their_chi_square():
-    runs = [RunEstimate(np.array([0.0, 0.0]), np.eye(2) * 0.01), RunEstimate(np.array([1.0, 0.01]), np.eye(2) * 0.01)]
+    runs = [
+        RunEstimate(np.array([0.0, 0.0]), np.eye(2) * 0.01),
+        RunEstimate(np.array([1.0, 0.01]), np.eye(2) * 0.01),
+    ]
     sp = run_spread(runs, names=("moved", "kept"))
     assert sp.not_reproducible() == ("moved",)
     assert sp.value[0] == pytest.approx(0.5)  # weighted mean where the intervals do not meet
@@ -101,7 +111,10 @@ def _sessions(n_runs, faults_in_run=None, seed=20):
     out = []
     for k in range(n_runs):
         faults = faults_in_run if k == n_runs - 1 and faults_in_run else ()
-        res = simulate(multi_position_spec(grade=Grade.MEMS, static_s=6.0, transition_s=3.0, faults=faults), seed + k)
+        res = simulate(
+            multi_position_spec(grade=Grade.MEMS, static_s=6.0, transition_s=3.0, faults=faults),
+            seed + k,
+        )
         out.append(res)
     return out
 
@@ -117,10 +130,14 @@ def test_triad_passport_from_clean_runs_holds_the_truth_within_its_tolerances(cl
     runs = triad_runs(positions, Triad.ACCEL, g)
     tp = passport_from_runs(runs, noise_std=np.full(3, 1e-3), sample_rate_hz=100.0)
     truth = clean_runs[0].truth.accel_params.copy()
-    truth[:3] += quantizer_offset(clean_runs[0].truth.model.accel) / g  # the output's bias includes the rounding offset
+    truth[:3] += (
+        quantizer_offset(clean_runs[0].truth.model.accel) / g
+    )  # the output's bias includes the rounding offset
     assert runs.spread.all_reproducible and tp.observable.all()
     assert np.all(np.abs(tp.nominal - truth) <= tp.tolerance)
-    assert np.all(tp.provenance.ci_low <= tp.nominal) and np.all(tp.nominal <= tp.provenance.ci_high)
+    assert np.all(tp.provenance.ci_low <= tp.nominal) and np.all(
+        tp.nominal <= tp.provenance.ci_high
+    )
     assert tp.provenance.n_runs == 3 and tp.provenance.reproducible.all()
     assert [st.n_equations[-1] for st in runs.stabilizations] == [18, 18, 18]
 

@@ -20,7 +20,7 @@ REAL_BIN = LOGS / "ardupilot-test.BIN"
 REAL_TLOG = LOGS / "ardupilot-sitl-vtol.tlog"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def flight():
     """From take-off on: the flight, the landing, the +3 % z scale-factor fault, the post-flight handling.
 
@@ -45,39 +45,63 @@ def passport_file(tmp_path):
     return path
 
 
-@pytest.mark.parametrize("writer, suffix, imus", [(write_tlog, "tlog", 1), (write_dataflash_bin, "bin", 2), (write_dataflash_text, "log", 1)])
-def test_log_of_a_faulty_flight_gives_the_expected_events(writer, suffix, imus, tmp_path, capsys, passport_file):
-    passport, g, faulty, faulty_part, clean_part = flight()
+@pytest.mark.parametrize(
+    "writer, suffix, imus",
+    [(write_tlog, "tlog", 1), (write_dataflash_bin, "bin", 2), (write_dataflash_text, "log", 1)],
+)
+def test_log_of_a_faulty_flight_gives_the_expected_events(
+    writer, suffix, imus, tmp_path, capsys, passport_file
+):
+    _passport, g, faulty, faulty_part, clean_part = flight()
     log = tmp_path / f"flight.{suffix}"
     writer(log, {0: faulty_part, 1: clean_part} if imus == 2 else {0: faulty_part})
     status, lines, err = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
     assert status == 0
     events = [event_from_json(line) for line in lines]
-    assert [(e.imu, e.predicate, e.triad, e.axis) for e in events] == [(0, Predicate.F0, Triad.ACCEL, None), (0, Predicate.F6, Triad.ACCEL, "z")]
+    assert [(e.imu, e.predicate, e.triad, e.axis) for e in events] == [
+        (0, Predicate.F0, Triad.ACCEL, None),
+        (0, Predicate.F6, Triad.ACCEL, "z"),
+    ]
     f0, f6 = events
     assert faulty.fault_s <= f0.t_s < faulty.fault_s + 0.05
     assert abs(f6.estimate - (faulty.truth_accel[5] + 0.03)) < 4 * f6.sigma
     n = faulty_part.n_samples
-    assert f"({suffix})" in err and ("samples IMU0 %d, IMU1 %d;" % (n, n) if imus == 2 else "samples IMU0 %d;" % n) in err
+    assert (
+        f"({suffix})" in err
+        and (f"samples IMU0 {n}, IMU1 {n};" if imus == 2 else f"samples IMU0 {n};") in err
+    )
 
 
 def test_the_same_log_always_gives_the_same_events(tmp_path, capsys, passport_file):
-    passport, g, faulty, *_ = flight()
+    _passport, g, faulty, *_ = flight()
     log = tmp_path / "landing.bin"
-    write_dataflash_bin(log, {0: faulty.session.select((faulty.session.t_s > faulty.landing_s) & (faulty.session.t_s < faulty.fault_s + 3))})
+    write_dataflash_bin(
+        log,
+        {
+            0: faulty.session.select(
+                (faulty.session.t_s > faulty.landing_s) & (faulty.session.t_s < faulty.fault_s + 3)
+            )
+        },
+    )
     first = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
     second = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
-    assert first[1] == second[1] and [event_from_json(line).predicate for line in first[1]] == [Predicate.F0]
+    assert first[1] == second[1] and [event_from_json(line).predicate for line in first[1]] == [
+        Predicate.F0
+    ]
 
 
 def test_passport_store_and_human_output(tmp_path, capsys):
-    passport, g, faulty, faulty_part, _ = flight()
+    passport, g, _faulty, faulty_part, _ = flight()
     log = tmp_path / "flight.bin"
     write_dataflash_bin(log, {0: faulty_part})
     PassportStore(tmp_path / "store").put("uav-9", 0, passport)
-    status, lines, err = replay(capsys, log, "--passport-dir", tmp_path / "store", "--vehicle", "uav-9", "--gravity", g)
+    status, lines, _err = replay(
+        capsys, log, "--passport-dir", tmp_path / "store", "--vehicle", "uav-9", "--gravity", g
+    )
     assert status == 0 and len(lines) == 2
-    assert "WARNING" in lines[0] and "uav-9 IMU0 accelerometer: output off the unit sphere" in lines[0]
+    assert (
+        "WARNING" in lines[0] and "uav-9 IMU0 accelerometer: output off the unit sphere" in lines[0]
+    )
     assert "ERROR" in lines[1] and "uav-9 IMU0 accelerometer z: scale factor error" in lines[1]
 
 
@@ -112,7 +136,9 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     tight.write_text("[validity]\ncross_imu_accel_mps2 = 0.01\ncross_imu_gyro_rps = 0.0005\n")
     status, lines, _ = replay(capsys, REAL_TLOG, "--json", "--config", str(tight))
     events = [event_from_json(line) for line in lines]
-    assert status == 0 and {e.predicate for e in events} == {Predicate.CROSS_IMU} and len(events) >= 4
+    assert (
+        status == 0 and {e.predicate for e in events} == {Predicate.CROSS_IMU} and len(events) >= 4
+    )
 
 
 @pytest.mark.parametrize(

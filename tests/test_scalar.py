@@ -1,5 +1,6 @@
 """F0, the scalar shell test of methods.md M1, and its derived threshold λ0."""
 
+import itertools
 import json
 import math
 
@@ -7,7 +8,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from estimators.conventions import EARTH_RATE_RPS, Triad, normal_gravity_mps2, sensor_axes, triad_matrix
+from estimators.conventions import (
+    EARTH_RATE_RPS,
+    Triad,
+    normal_gravity_mps2,
+    sensor_axes,
+    triad_matrix,
+)
 from estimators.scalar import (
     F0Config,
     F0Monitor,
@@ -51,7 +58,9 @@ def test_residual_pins_the_shape():
 
 def test_reference_is_configured_or_normal_gravity_and_earth_rate_for_gyros():
     assert triad_reference(Triad.ACCEL, gravity_mps2=9.81744) == 9.81744
-    assert triad_reference(Triad.ACCEL, latitude_deg=45.0, height_m=100.0) == normal_gravity_mps2(45.0, 100.0)
+    assert triad_reference(Triad.ACCEL, latitude_deg=45.0, height_m=100.0) == normal_gravity_mps2(
+        45.0, 100.0
+    )
     assert triad_reference(Triad.GYRO) == EARTH_RATE_RPS
     with pytest.raises(ValueError, match="exactly one"):
         triad_reference(Triad.ACCEL)
@@ -129,7 +138,9 @@ def test_tolerance_bound_holds_for_every_unit_and_orientation():
         e = rng.normal(0, 5e-3, 3)
         axes = sensor_axes(rng.normal(0, 3e-3, 6))
         d = np.array([axes[0] @ axes[1], axes[0] @ axes[2], axes[1] @ axes[2]])
-        lam = derive_lambda0(noise_std_norm=[1e-6] * 3, false_alarm_prob=0.5, tolerance_norm=np.abs(np.r_[b, e, d]))
+        lam = derive_lambda0(
+            noise_std_norm=[1e-6] * 3, false_alarm_prob=0.5, tolerance_norm=np.abs(np.r_[b, e, d])
+        )
         s = scalar_residual(u @ triad_matrix(e, axes).T + b)
         bound = lam.tolerance_first_order + lam.tolerance_second_order
         assert np.max(np.abs(s)) <= bound
@@ -204,10 +215,13 @@ def test_quantization_term_keeps_the_false_alarm_rate_bounded():
     rng = np.random.default_rng(9)
     u = _unit([0.3, -0.4, 1.0])
     x_norm = q * np.round((u + q * rng.standard_normal((n, 3))) / q)
-    lo, hi = _binomial_bounds(n, p)
+    _lo, hi = _binomial_bounds(n, p)
     with_q = derive_lambda0(noise_std_norm=[q] * 3, quantization_norm=[q] * 3, false_alarm_prob=p)
     without_q = derive_lambda0(noise_std_norm=[q] * 3, false_alarm_prob=p)
-    fails = [f0_batch(G * x_norm, np.ones(n, bool), F0Config(lambda0=lam.lambda0, reference=G)).n_fail for lam in (with_q, without_q)]
+    fails = [
+        f0_batch(G * x_norm, np.ones(n, bool), F0Config(lambda0=lam.lambda0, reference=G)).n_fail
+        for lam in (with_q, without_q)
+    ]
     assert fails[0] <= hi
     assert fails[1] > hi
 
@@ -238,7 +252,9 @@ def _compensation_of(truth, spec):
     g = truth.gravity_true_mps2
     q = model.find("quantization").step_si
     bias = np.array(model.find("bias").bias_si) - 0.5 * np.array(q)
-    a = triad_matrix(np.array(model.find("scale_factor").scale_err), model.find("non_orthogonality").axes)
+    a = triad_matrix(
+        np.array(model.find("scale_factor").scale_err), model.find("non_orthogonality").axes
+    )
     noise = model.find("white_noise").sample_sd(spec.rate_hz)
     return g, bias / g, a, np.array(noise) / g, np.array(q) / g
 
@@ -251,7 +267,11 @@ def test_simulated_bias_step_is_flagged_at_onset_with_the_streaming_detector():
     lam = derive_lambda0(noise_std_norm=noise, quantization_norm=q, false_alarm_prob=1e-6)
     step = lam.lambda0 + 8 * lam.noise_std
     up_axis = int(np.argmax(np.abs(truth0.specific_force_b_mps2[0])))
-    spec = static_spec(duration_s=40.0, grade=Grade.MEMS, faults=(Fault(FaultKind.STEP, Triad.ACCEL, up_axis, 20.0, step),))
+    spec = static_spec(
+        duration_s=40.0,
+        grade=Grade.MEMS,
+        faults=(Fault(FaultKind.STEP, Triad.ACCEL, up_axis, 20.0, step),),
+    )
     sim = simulate(spec, seed=4)
     onset = int(np.searchsorted(sim.session.t_s, 20.0))
     cfg = F0Config(lambda0=lam.lambda0, reference=g, bias_norm=b, matrix=a)
@@ -259,8 +279,15 @@ def test_simulated_bias_step_is_flagged_at_onset_with_the_streaming_detector():
     det = StreamingStaticDetector(rate_hz=sim.spec.rate_hz)
     mon = F0Monitor(cfg)
     states = []
-    for t, (ax, ay, az), (gx, gy, gz) in zip(sim.session.t_s.tolist(), sim.session.accel_mps2.tolist(), sim.session.gyro_rps.tolist()):
-        states.append(mon.check(ax, ay, az, det.static_now))  # the static verdict before this sample
+    for t, (ax, ay, az), (gx, gy, gz) in zip(
+        sim.session.t_s.tolist(),
+        sim.session.accel_mps2.tolist(),
+        sim.session.gyro_rps.tolist(),
+        strict=False,
+    ):
+        states.append(
+            mon.check(ax, ay, az, det.static_now)
+        )  # the static verdict before this sample
         det.update(t, ax, ay, az, gx, gy, gz)
     states = np.array(states, np.int8)
     assert states[onset] == F0State.FAIL
@@ -314,10 +341,18 @@ def test_monitor_gives_the_batch_decisions_and_counts_bad_samples(n_avg):
     rng = np.random.default_rng(30 + n_avg)
     x, static = _messy_stream(rng)
     lam = derive_lambda0(noise_std_norm=[2e-3] * 3, false_alarm_prob=0.05, n_avg=n_avg)
-    cfg = F0Config(lambda0=lam.lambda0, reference=G, bias_norm=(1e-3, 0, -1e-3), matrix=np.eye(3) * 1.001, n_avg=n_avg)
+    cfg = F0Config(
+        lambda0=lam.lambda0,
+        reference=G,
+        bias_norm=(1e-3, 0, -1e-3),
+        matrix=np.eye(3) * 1.001,
+        n_avg=n_avg,
+    )
     res = f0_batch(x, static, cfg)
     mon = F0Monitor(cfg)
-    states = np.array([mon.check(*row, bool(s)) for row, s in zip(x.tolist(), static)], np.int8)
+    states = np.array(
+        [mon.check(*row, bool(s)) for row, s in zip(x.tolist(), static, strict=True)], np.int8
+    )
     np.testing.assert_array_equal(states, res.state)
     bad = ~np.isfinite(x).all(axis=1)
     assert mon.n_rejected == res.n_rejected == bad.sum()
@@ -331,11 +366,16 @@ def test_monitor_checkpoint_round_trip_mid_window():
     x, static = _messy_stream(rng)
     cfg = F0Config(lambda0=3e-3, reference=G, n_avg=5)
     whole = F0Monitor(cfg)
-    expected = [whole.check(*row, bool(s)) for row, s in zip(x.tolist(), static)]
+    expected = [whole.check(*row, bool(s)) for row, s in zip(x.tolist(), static, strict=True)]
     first = F0Monitor(cfg)
-    got = [first.check(*row, bool(s)) for row, s in zip(x[:1503].tolist(), static[:1503])]
+    got = [
+        first.check(*row, bool(s)) for row, s in zip(x[:1503].tolist(), static[:1503], strict=True)
+    ]
     resumed = F0Monitor.from_state_dict(cfg, json.loads(json.dumps(first.state_dict())))
-    got += [resumed.check(*row, bool(s)) for row, s in zip(x[1503:].tolist(), static[1503:])]
+    got += [
+        resumed.check(*row, bool(s))
+        for row, s in zip(x[1503:].tolist(), static[1503:], strict=True)
+    ]
     assert got == expected
     assert resumed.state_dict() == whole.state_dict()
     with pytest.raises(ValueError, match="invalid F0Monitor state"):
@@ -364,19 +404,27 @@ def _runs_brute(state, persist):
 
 
 @pytest.mark.parametrize("persist", [1, 2, 4, 9])
-def test_persistent_failure_is_the_first_run_of_persist_failures_however_the_samples_are_cut(persist):
+def test_persistent_failure_is_the_first_run_of_persist_failures_however_the_samples_are_cut(
+    persist,
+):
     rng = np.random.default_rng(persist)
     for _ in range(200):
-        state = rng.choice([F0State.OK, F0State.FAIL, F0State.NOT_APPLICABLE], size=int(rng.integers(1, 60)), p=[0.3, 0.55, 0.15])
+        state = rng.choice(
+            [F0State.OK, F0State.FAIL, F0State.NOT_APPLICABLE],
+            size=int(rng.integers(1, 60)),
+            p=[0.3, 0.55, 0.15],
+        )
         state = state.astype(np.int8)
         expected = _runs_brute(state, persist)
         k, run = persistent_failure(state, 0, persist)
         assert k == expected
-        tail = len(state) - 1 - max([i for i, s in enumerate(state) if s != F0State.FAIL], default=-1)
+        tail = (
+            len(state) - 1 - max([i for i, s in enumerate(state) if s != F0State.FAIL], default=-1)
+        )
         assert run == tail
         cuts = np.unique(np.concatenate([[0, len(state)], rng.integers(0, len(state), 3)]))
         run, found = 0, -1
-        for a, b in zip(cuts[:-1], cuts[1:]):
+        for a, b in itertools.pairwise(cuts):
             k, run = persistent_failure(state[a:b], run, persist)
             if found < 0 and k >= 0:
                 found = a + k

@@ -15,15 +15,6 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
-
-from protocols.events import Predicate
-from protocols.frames import SampleBatch, encode_frame
-from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key, subscribe_status
-from protocols.zenoh_router import RouterProcess
-from service.checkpoint import CheckpointStore
-from service.demo import demo_passport, demo_scenario
-from service.passport_store import PassportStore
-from service.pipeline import FleetProcessor, PipelineOptions
 from service_support import (
     EventStream,
     ServiceThread,
@@ -37,11 +28,20 @@ from service_support import (
     zenoh_router,
 )
 
+from protocols.events import Predicate
+from protocols.frames import SampleBatch, encode_frame
+from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key, subscribe_status
+from protocols.zenoh_router import RouterProcess
+from service.checkpoint import CheckpointStore
+from service.demo import demo_passport, demo_scenario
+from service.passport_store import PassportStore
+from service.pipeline import FleetProcessor, PipelineOptions
+
 pytestmark = pytest.mark.network
 ROOT = Path(__file__).parents[1]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unit():
     passport, g = demo_passport()
     return passport, g, demo_scenario()
@@ -49,7 +49,10 @@ def unit():
 
 def offline_fleet():
     passport, g, _ = unit()
-    return FleetProcessor(passports=lambda v, i: passport, options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4))
+    return FleetProcessor(
+        passports=lambda v, i: passport,
+        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+    )
 
 
 def put_store(tmp_path, keys) -> Path:
@@ -82,7 +85,12 @@ class Statuses:
 
 
 def publish_blocking(session, batches) -> None:
-    with FramePublisher(session, batches[0].vehicle, batches[0].imu, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+    with FramePublisher(
+        session,
+        batches[0].vehicle,
+        batches[0].imu,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    ) as pub:
         for b in batches:
             pub.publish(b)
 
@@ -124,7 +132,7 @@ def write_config(tmp_path, port: int, passports: Path) -> Path:
         f"""
 [service]
 name = "onboard"
-data_dir = "{tmp_path / 'data'}"
+data_dir = "{tmp_path / "data"}"
 passport_dir = "{passports}"
 status_period_s = 0.2
 checkpoint_period_s = 0.2
@@ -141,7 +149,9 @@ timeout_s = 600.0
     return path
 
 
-def test_kill_9_between_outbox_and_delivery_then_restart_delivers_every_event_exactly_once(tmp_path):
+def test_kill_9_between_outbox_and_delivery_then_restart_delivers_every_event_exactly_once(
+    tmp_path,
+):
     """No receiver acknowledges while the service runs, so its events wait in the outbox; it is SIGKILLed,
     a receiver comes up, the service restarts: each event arrives once, and the positions survived."""
     v = "uav-k"
@@ -149,14 +159,21 @@ def test_kill_9_between_outbox_and_delivery_then_restart_delivers_every_event_ex
     want = [e.event_id for e in run_fleet(offline_fleet(), frames, finish=False)]
     with zenoh_router() as port:
         config = write_config(tmp_path, port, put_store(tmp_path, [(v, 0)]))
-        with zenoh.open(zenoh_client_config(port)) as ground, zenoh.open(zenoh_client_config(port)) as vehicle:
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
             status = Statuses(ground)
             first = ServiceProcess(config)
             try:
                 wait_subscribed(vehicle, frame_key(v, 0))
                 publish_blocking(vehicle, frames)
                 total = sum(b.n_samples for b in frames)
-                wait_until(lambda: status.counter(v, "imu0.samples.accepted") == total, timeout_s=60, what="every sample processed")
+                wait_until(
+                    lambda: status.counter(v, "imu0.samples.accepted") == total,
+                    timeout_s=60,
+                    what="every sample processed",
+                )
                 wait_until(lambda: status.counter(v, "service.outbox.pending.zenoh") == len(want), timeout_s=30,
                            what=lambda: f"the events held (status {status.get(v)})")  # fmt: skip
                 checkpoints = CheckpointStore(tmp_path / "data" / "checkpoints.sqlite")
@@ -172,7 +189,11 @@ def test_kill_9_between_outbox_and_delivery_then_restart_delivers_every_event_ex
             with EventReceiver(ground, lambda e: got.append(e.event_id)):
                 second = ServiceProcess(config)
                 try:
-                    wait_until(lambda: len(got) == len(want), timeout_s=60, what="the held events after the restart")
+                    wait_until(
+                        lambda: len(got) == len(want),
+                        timeout_s=60,
+                        what="the held events after the restart",
+                    )
                     wait_until(lambda: status.counter(v, "service.outbox.pending.zenoh") == 0 and status.get(v).imus,
                                timeout_s=30, what="an empty outbox")  # fmt: skip
                     restored = status.get(v).imus[0]
@@ -208,10 +229,17 @@ def test_router_stopped_and_restarted_during_a_run(tmp_path):
                            timeout_s=60, what="the F0 event held in the outbox")  # fmt: skip
             router.stop()
             router.start()
-            with zenoh.open(zenoh_client_config(port)) as ground, zenoh.open(zenoh_client_config(port)) as vehicle:
+            with (
+                zenoh.open(zenoh_client_config(port)) as ground,
+                zenoh.open(zenoh_client_config(port)) as vehicle,
+            ):
                 got = []
                 with EventReceiver(ground, lambda e: got.append(e.event_id)):
-                    wait_until(lambda: got == want, timeout_s=60, what="the held event after the router restart")
+                    wait_until(
+                        lambda: got == want,
+                        timeout_s=60,
+                        what="the held event after the router restart",
+                    )
                 wait_subscribed(vehicle, frame_key(v, 0), timeout_s=30)
                 publish_blocking(vehicle, after)
                 total = sum(b.n_samples for b in before + after)
@@ -235,12 +263,19 @@ def test_bad_input_is_counted_and_reported_and_the_diagnosis_is_intact(tmp_path)
     good = list(batches_of(sc.session, vehicle=v, imu=0, batch_samples=100))
     # A time jump: everything after frame 10 comes 10 s later.
     good = good[:10] + [dataclasses.replace(b, t_s=b.t_s + 10.0) for b in good[10:]]
-    nan = dataclasses.replace(good[3], accel_mps2=np.where(np.arange(300).reshape(100, 3) == 7, np.nan, good[3].accel_mps2))
+    nan = dataclasses.replace(
+        good[3],
+        accel_mps2=np.where(np.arange(300).reshape(100, 3) == 7, np.nan, good[3].accel_mps2),
+    )
     bad = {
         "malformed": b"\xc1\x00not msgpack",
-        "missing_field": msgpack.packb({k: val for k, val in _frame_map(good[0]).items() if k != "gyro_rps"}),
+        "missing_field": msgpack.packb(
+            {k: val for k, val in _frame_map(good[0]).items() if k != "gyro_rps"}
+        ),
         "wrong_type": msgpack.packb({**_frame_map(good[0]), "imu": "zero"}),
-        "wrong_length": msgpack.packb({**_frame_map(good[0]), "accel_mps2": _frame_map(good[0])["accel_mps2"][:-8]}),
+        "wrong_length": msgpack.packb(
+            {**_frame_map(good[0]), "accel_mps2": _frame_map(good[0])["accel_mps2"][:-8]}
+        ),
         "non_finite": encode_frame(nan),
         "key_mismatch": encode_frame(dataclasses.replace(good[0], imu=3)),
     }
@@ -252,45 +287,81 @@ def test_bad_input_is_counted_and_reported_and_the_diagnosis_is_intact(tmp_path)
     offline = offline_fleet()
     want = []
     for item in script:
-        want += offline.process(item[1], arrival_s=0.0) if item[0] == "frame" else offline.reject(v, 0, item[1])
+        want += (
+            offline.process(item[1], arrival_s=0.0)
+            if item[0] == "frame"
+            else offline.reject(v, 0, item[1])
+        )
     with zenoh_router() as port:
         cfg = service_config(tmp_path, port=port, passport_dir=put_store(tmp_path, [(v, 0), (v, 1)]), site={"gravity_mps2": unit()[1]},
                              service={"vehicles": [v]}, validity={"timeout_s": 600.0}, pipeline={"queue_capacity": 8})  # fmt: skip
-        with ServiceThread(cfg) as svc, zenoh.open(zenoh_client_config(port)) as vehicle, zenoh.open(zenoh_client_config(port)) as ground:
+        with (
+            ServiceThread(cfg) as svc,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+            zenoh.open(zenoh_client_config(port)) as ground,
+        ):
             status = Statuses(ground)
             got = []
             with EventReceiver(ground, lambda e: got.append(e.event_id) if e.imu == 0 else None):
                 # A flood on IMU1 first: small frames, far faster than the service takes them.
                 wait_subscribed(vehicle, frame_key(v, 1))
-                flood = [dataclasses.replace(b, imu=1, seq=k) for k, b in enumerate(batches_of(sc.session, vehicle=v, imu=1, batch_samples=5))][:2400]
+                flood = [
+                    dataclasses.replace(b, imu=1, seq=k)
+                    for k, b in enumerate(batches_of(sc.session, vehicle=v, imu=1, batch_samples=5))
+                ][:2400]
                 publish_blocking(vehicle, flood)
                 stranger = next(batches_of(sc.session, vehicle="stranger", imu=0, batch_samples=10))
                 vehicle.put(frame_key("stranger", 0), encode_frame(stranger))
-                wait_until(lambda: status.counter(v, "service.frames.unknown_vehicle") == 1, timeout_s=30, what="the stranger counted")
+                wait_until(
+                    lambda: status.counter(v, "service.frames.unknown_vehicle") == 1,
+                    timeout_s=30,
+                    what="the stranger counted",
+                )
                 # The IMU0 stream at a pace the service keeps up with (the queue holds 8 frames):
                 # a few frames, then wait until the queue is empty.
-                with FramePublisher(vehicle, v, 0, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+                with FramePublisher(
+                    vehicle, v, 0, congestion_control=zenoh.CongestionControl.BLOCK
+                ) as pub:
                     for k, item in enumerate(script):
                         if item[0] == "frame":
                             pub.publish(item[1])
                         else:
-                            vehicle.put(frame_key(v, 0), item[2], congestion_control=zenoh.CongestionControl.BLOCK)
+                            vehicle.put(
+                                frame_key(v, 0),
+                                item[2],
+                                congestion_control=zenoh.CongestionControl.BLOCK,
+                            )
                         if k % 4 == 3:
                             sent = len(flood) + 2 + k
                             wait_until(lambda: svc.call(lambda: svc.service.source.counters.received) >= sent
                                        and svc.call(lambda: svc.service.source.queued) == 0, timeout_s=30, what="the queue to drain")  # fmt: skip
                 wait_until(lambda: len(got) >= len(want), timeout_s=60, what="the events of IMU0")
                 accepted = sum(b.n_samples for b in good)
-                wait_until(lambda: status.counter(v, "imu0.samples.accepted") == accepted, timeout_s=30, what="a status after the stream")
+                wait_until(
+                    lambda: status.counter(v, "imu0.samples.accepted") == accepted,
+                    timeout_s=30,
+                    what="a status after the stream",
+                )
                 st = status.get(v)
             assert svc.call(lambda: svc.service.fleet.pipelines[(v, 0)].n_samples) == accepted
     assert got == [e.event_id for e in want]
     assert {Predicate.F0, Predicate.F6} <= {e.predicate for e in want}
     c = st.counters
-    for reason in ("malformed", "missing_field", "wrong_type", "wrong_length", "non_finite", "key_mismatch"):
+    for reason in (
+        "malformed",
+        "missing_field",
+        "wrong_type",
+        "wrong_length",
+        "non_finite",
+        "key_mismatch",
+    ):
         assert c[f"service.frames.rejected.{reason}"] == 1, reason
     assert c["imu0.frames.rejected.non_finite"] == 1 and c["imu0.frames.rejected.key_mismatch"] == 1
-    assert c["imu0.frames.duplicate"] == 1 and c["imu0.frames.out_of_order"] == 1 and c["imu0.time_jumps"] == 1
+    assert (
+        c["imu0.frames.duplicate"] == 1
+        and c["imu0.frames.out_of_order"] == 1
+        and c["imu0.time_jumps"] == 1
+    )
     assert c["service.frames.unknown_vehicle"] == 1
     assert c["service.frames.dropped_overload"] > 0
     assert c["imu1.frames.accepted"] + c["service.frames.dropped_overload"] == len(flood)

@@ -10,14 +10,6 @@ import pytest
 import zenoh
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-
-from estimators.conventions import Triad
-from protocols.events import Predicate, Severity, decode_event
-from protocols.frames import SampleBatch
-from protocols.mavlink_adapter import ImuMessage, alert_text, decode_imu_message, use_mavlink2
-from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key
-from service.demo import demo_passport, demo_scenario
-from service.passport_store import PassportStore
 from service_support import (
     ServiceThread,
     free_tcp_port,
@@ -30,11 +22,19 @@ from service_support import (
     zenoh_router,
 )
 
+from estimators.conventions import Triad
+from protocols.events import Predicate, Severity, decode_event
+from protocols.frames import SampleBatch
+from protocols.mavlink_adapter import ImuMessage, alert_text, decode_imu_message, use_mavlink2
+from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key
+from service.demo import demo_passport, demo_scenario
+from service.passport_store import PassportStore
+
 pytestmark = pytest.mark.network
 QUIET = {"timeout_s": 60.0}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unit():
     passport, g = demo_passport()
     sc = demo_scenario()
@@ -57,7 +57,7 @@ def decoded(packets: list[bytes]) -> list:
 
 def test_statustext_alerts_reach_a_udp_peer_with_their_severity(tmp_path):
     """An autopilot-side peer streams SCALED_IMU over UDP; it gets HEARTBEATs and the F0 (warning) and F6 (error) alerts."""
-    passport, g, sc, start = unit()
+    _passport, g, sc, start = unit()
     port = free_udp_port()
     cfg = service_config(
         tmp_path, port=None, passport_dir=store(tmp_path, [("mav1", 0)]), site={"gravity_mps2": g}, validity=QUIET,
@@ -65,15 +65,25 @@ def test_statustext_alerts_reach_a_udp_peer_with_their_severity(tmp_path):
     )  # fmt: skip
     packets = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start)
     with ServiceThread(cfg) as svc:
-        peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1))
+        peer = use_mavlink2(
+            mavutil.mavlink_connection(
+                f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+            )
+        )
         try:
             received = lambda: svc.call(lambda: svc.service.mavlink_sink.link.counters.messages)  # noqa: E731
             # 20 messages per datagram; at most 50 datagrams in flight, so the socket buffer never overflows.
             for k in range(0, len(packets), 20):
                 if k % 1000 == 0:
-                    wait_until(lambda: k - received() <= 1000, timeout_s=30, what="the service reading the stream")
+                    wait_until(
+                        lambda: k - received() <= 1000,
+                        timeout_s=30,
+                        what="the service reading the stream",
+                    )
                 peer.write(b"".join(packets[k : k + 20]))
-            wait_until(lambda: received() == len(packets), timeout_s=30, what="every IMU message read")
+            wait_until(
+                lambda: received() == len(packets), timeout_s=30, what="every IMU message read"
+            )
             texts, heartbeat = [], None
             while len(texts) < 2:
                 msg = peer.recv_match(type=["STATUSTEXT", "HEARTBEAT"], blocking=True, timeout=30)
@@ -86,7 +96,10 @@ def test_statustext_alerts_reach_a_udp_peer_with_their_severity(tmp_path):
             peer.close()
         stored = stored_events(svc)
     assert [e.predicate for e in stored] == [Predicate.F0, Predicate.F6]
-    assert texts == [(int(Severity.WARNING), alert_text(stored[0])), (int(Severity.ERROR), alert_text(stored[1]))]
+    assert texts == [
+        (int(Severity.WARNING), alert_text(stored[0])),
+        (int(Severity.ERROR), alert_text(stored[1])),
+    ]
     assert texts[1][1].startswith("IMU0 ACC Z scale") and len(texts[1][1]) <= 50
     assert heartbeat is not None and heartbeat.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
     assert heartbeat.get_srcComponent() == mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
@@ -99,7 +112,7 @@ def stored_events(svc) -> list:
 def test_alerts_are_rate_limited_while_every_event_is_kept(tmp_path):
     """The y gyro sticks and frees itself five times in 5 s: ten events are stored, two STATUSTEXT go out
     (the first 'stuck' and the first 'recovered'); the eight repeats are suppressed on MAVLink only."""
-    passport, g, sc, start = unit()
+    _passport, g, sc, _start = unit()
     port = free_udp_port()
     cfg = service_config(
         tmp_path, port=None, passport_dir=store(tmp_path, [("mav1", 0)]), site={"gravity_mps2": g}, validity=QUIET,
@@ -113,29 +126,46 @@ def test_alerts_are_rate_limited_while_every_event_is_kept(tmp_path):
     flapping = type(s)(s.t_s[k0 : k0 + 1000], s.accel_mps2[k0 : k0 + 1000], gyro, None)
     packets = mavlink_packets(flapping, ImuMessage.HIGHRES_IMU)
     with ServiceThread(cfg) as svc:
-        peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1))
+        peer = use_mavlink2(
+            mavutil.mavlink_connection(
+                f"udpout:127.0.0.1:{port}", source_system=1, source_component=1
+            )
+        )
         try:
             for k in range(0, len(packets), 20):
                 peer.write(b"".join(packets[k : k + 20]))
-            wait_until(lambda: svc.call(lambda: svc.service.events_stored) >= 9, timeout_s=30, what="the stale events")
+            wait_until(
+                lambda: svc.call(lambda: svc.service.events_stored) >= 9,
+                timeout_s=30,
+                what="the stale events",
+            )
             wait_until(lambda: svc.call(lambda: svc.service.outbox.counts().pending_by_sink["mavlink"]) == 0,
                        timeout_s=30, what="the alert sink to go through the events")  # fmt: skip
             texts = []
-            while (msg := peer.recv_match(type="STATUSTEXT", blocking=True, timeout=0.5)) is not None:
+            while (
+                msg := peer.recv_match(type="STATUSTEXT", blocking=True, timeout=0.5)
+            ) is not None:
                 texts.append(msg.text)
         finally:
             peer.close()
         policy = svc.call(lambda: svc.service.mavlink_sink.policy)
         stored = stored_events(svc)
-    assert [e.predicate for e in stored] == [Predicate.STALE] * len(stored) and len(stored) in (9, 10)
-    assert texts == [alert_text(stored[0]), alert_text(stored[1])] and "stuck" in texts[0] and "recovered" in texts[1]
+    assert [e.predicate for e in stored] == [Predicate.STALE] * len(stored) and len(stored) in (
+        9,
+        10,
+    )
+    assert (
+        texts == [alert_text(stored[0]), alert_text(stored[1])]
+        and "stuck" in texts[0]
+        and "recovered" in texts[1]
+    )
     assert policy.suppressed == len(stored) - 2
 
 
 def test_raw_scaled_and_highres_input_give_the_diagnosis_of_equivalent_zenoh_frames(tmp_path):
     """The same samples as RAW_IMU, SCALED_IMU2 and HIGHRES_IMU over TCP (vehicle mav1, IMUs 0, 1, 2) and as
     Zenoh frames of the values the service decodes from them (vehicle zen1): the same events, number for number."""
-    passport, g, sc, start = unit()
+    _passport, g, sc, start = unit()
     kinds = {0: ImuMessage.RAW_IMU, 1: ImuMessage.SCALED_IMU2, 2: ImuMessage.HIGHRES_IMU}
     packets = {i: mavlink_packets(sc.session, kind, start_s=start) for i, kind in kinds.items()}
     mav_port = free_tcp_port()
@@ -148,16 +178,24 @@ def test_raw_scaled_and_highres_input_give_the_diagnosis_of_equivalent_zenoh_fra
                 "messages": [k.value for k in kinds.values()], "imu_index": {k.value: i for i, k in kinds.items()},
             },
         )  # fmt: skip
-        with ServiceThread(cfg) as svc, zenoh.open(zenoh_client_config(zport)) as vehicle, zenoh.open(zenoh_client_config(zport)) as ground:
+        with (
+            ServiceThread(cfg) as svc,
+            zenoh.open(zenoh_client_config(zport)) as vehicle,
+            zenoh.open(zenoh_client_config(zport)) as ground,
+        ):
             got = []
             with EventReceiver(ground, lambda e: got.append(e)):
                 with socket.create_connection(("127.0.0.1", mav_port), timeout=10) as tcp:
                     # Interleave the three IMUs sample by sample, as an autopilot does.
-                    tcp.sendall(b"".join(p for row in zip(*packets.values()) for p in row))
+                    tcp.sendall(
+                        b"".join(p for row in zip(*packets.values(), strict=True) for p in row)
+                    )
                     for imu in kinds:
                         samples = decoded(packets[imu])
                         wait_subscribed(vehicle, frame_key("zen1", imu))
-                        with FramePublisher(vehicle, "zen1", imu, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+                        with FramePublisher(
+                            vehicle, "zen1", imu, congestion_control=zenoh.CongestionControl.BLOCK
+                        ) as pub:
                             for k in range(0, len(samples), 100):
                                 part = samples[k : k + 100]
                                 pub.publish(
@@ -171,5 +209,7 @@ def test_raw_scaled_and_highres_input_give_the_diagnosis_of_equivalent_zenoh_fra
     mav = sorted(key(e) for e in got if e.vehicle == "mav1")
     zen = sorted(key(e) for e in got if e.vehicle == "zen1")
     assert mav == zen and len(mav) == 6
-    assert {(i, p) for i, p, *_ in mav} == {(i, p) for i in kinds for p in (Predicate.F0, Predicate.F6)}
+    assert {(i, p) for i, p, *_ in mav} == {
+        (i, p) for i in kinds for p in (Predicate.F0, Predicate.F6)
+    }
     assert all(t is Triad.ACCEL for _, _, t, *_ in mav)

@@ -7,12 +7,6 @@ import threading
 
 import pytest
 import zenoh
-
-from protocols.events import ImuState, Predicate
-from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key, subscribe_status
-from service.demo import demo_passport, demo_scenario
-from service.passport_store import PassportStore
-from service.pipeline import FleetProcessor, PipelineOptions
 from service_support import (
     EventStream,
     ServiceThread,
@@ -25,11 +19,17 @@ from service_support import (
     zenoh_router,
 )
 
+from protocols.events import ImuState, Predicate
+from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key, subscribe_status
+from service.demo import demo_passport, demo_scenario
+from service.passport_store import PassportStore
+from service.pipeline import FleetProcessor, PipelineOptions
+
 pytestmark = pytest.mark.network
 QUIET = {"timeout_s": 60.0}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unit():
     passport, g = demo_passport()
     return passport, g, demo_scenario()
@@ -37,8 +37,11 @@ def unit():
 
 def expected_events(vehicle: str, *, until_s: float | None = None) -> list:
     """What the pipeline gives offline for the same frames (the service must say the same)."""
-    passport, g, sc = unit()
-    fleet = FleetProcessor(passports=lambda v, i: passport, options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4))
+    passport, g, _sc = unit()
+    fleet = FleetProcessor(
+        passports=lambda v, i: passport,
+        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+    )
     return run_fleet(fleet, frames(vehicle, until_s=until_s), finish=False)
 
 
@@ -58,7 +61,12 @@ def store_with(tmp_path, vehicles):
 
 def publish(session, batches) -> None:
     """Publish frames losslessly (BLOCK: a burst must not be shed the way a live vehicle's frames may be)."""
-    with FramePublisher(session, batches[0].vehicle, batches[0].imu, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+    with FramePublisher(
+        session,
+        batches[0].vehicle,
+        batches[0].imu,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    ) as pub:
         for b in batches:
             pub.publish(b)
 
@@ -68,13 +76,25 @@ def test_frames_published_by_one_session_are_diagnosed_and_events_arrive_at_anot
     g = unit()[1]
     with zenoh_router() as port:
         # A long timeout: the end of the stream must not add a timeout event while the test looks.
-        cfg = service_config(tmp_path, port=port, passport_dir=store_with(tmp_path, [v]), site={"gravity_mps2": g}, validity=QUIET)
-        with ServiceThread(cfg), zenoh.open(zenoh_client_config(port)) as vehicle, zenoh.open(zenoh_client_config(port)) as ground:
+        cfg = service_config(
+            tmp_path,
+            port=port,
+            passport_dir=store_with(tmp_path, [v]),
+            site={"gravity_mps2": g},
+            validity=QUIET,
+        )
+        with (
+            ServiceThread(cfg),
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+            zenoh.open(zenoh_client_config(port)) as ground,
+        ):
             got, statuses = [], []
             lock = threading.Lock()
             wire = EventStream(ground)
             with EventReceiver(ground, lambda e: got.append(e)):
-                subscribe_status(ground, lambda s: (lock.acquire(), statuses.append(s), lock.release()))
+                subscribe_status(
+                    ground, lambda s: (lock.acquire(), statuses.append(s), lock.release())
+                )
                 wait_subscribed(vehicle, frame_key(v, 0))
                 publish(vehicle, frames(v))
                 want = expected_events(v)
@@ -82,12 +102,17 @@ def test_frames_published_by_one_session_are_diagnosed_and_events_arrive_at_anot
                 assert [e.event_id for e in got] == [e.event_id for e in want]
                 assert [e.predicate for e in got] == [Predicate.F0, Predicate.F6]
                 # Each event was put on the wire once (acknowledged on the first try).
-                wait_until(lambda: len(wire.snapshot()) >= 2, timeout_s=10, what="the events on the wire")
+                wait_until(
+                    lambda: len(wire.snapshot()) >= 2, timeout_s=10, what="the events on the wire"
+                )
                 assert wire.snapshot() == [e.event_id for e in want]
 
                 def settled():
                     with lock:
-                        return any(s.counters.get("imu0.samples.accepted") == unit()[2].session.n_samples for s in statuses)
+                        return any(
+                            s.counters.get("imu0.samples.accepted") == unit()[2].session.n_samples
+                            for s in statuses
+                        )
 
                 wait_until(settled, timeout_s=30, what="a status with every sample counted")
             with lock:
@@ -103,11 +128,30 @@ def test_two_instances_share_a_fleet_by_key_expression(tmp_path):
     until = unit()[2].fault_s + 2.0
     with zenoh_router() as port:
         root = store_with(tmp_path, vehicles)
-        cfg_a = service_config(tmp_path, port=port, passport_dir=root, name="svc-a", site={"gravity_mps2": g}, validity=QUIET, zenoh={"frames_key": "ins/alpha-$*/imu/*"})
-        cfg_b = service_config(tmp_path, port=port, passport_dir=root, name="svc-b", site={"gravity_mps2": g}, validity=QUIET, zenoh={"frames_key": "ins/bravo-$*/imu/*"})
-        with ServiceThread(cfg_a) as a, ServiceThread(cfg_b) as b, zenoh.open(zenoh_client_config(port)) as vehicle, zenoh.open(
-            zenoh_client_config(port)
-        ) as ground:
+        cfg_a = service_config(
+            tmp_path,
+            port=port,
+            passport_dir=root,
+            name="svc-a",
+            site={"gravity_mps2": g},
+            validity=QUIET,
+            zenoh={"frames_key": "ins/alpha-$*/imu/*"},
+        )
+        cfg_b = service_config(
+            tmp_path,
+            port=port,
+            passport_dir=root,
+            name="svc-b",
+            site={"gravity_mps2": g},
+            validity=QUIET,
+            zenoh={"frames_key": "ins/bravo-$*/imu/*"},
+        )
+        with (
+            ServiceThread(cfg_a) as a,
+            ServiceThread(cfg_b) as b,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+            zenoh.open(zenoh_client_config(port)) as ground,
+        ):
             got = []
             wire = EventStream(ground)
             with EventReceiver(ground, lambda e: got.append(e)):
@@ -115,10 +159,17 @@ def test_two_instances_share_a_fleet_by_key_expression(tmp_path):
                     wait_subscribed(vehicle, frame_key(v, 0))
                     publish(vehicle, frames(v, until_s=until))
                 want = {e.event_id for v in vehicles for e in expected_events(v, until_s=until)}
-                wait_until(lambda: len(got) >= len(want), timeout_s=60, what="the events of both vehicles")
+                wait_until(
+                    lambda: len(got) >= len(want), timeout_s=60, what="the events of both vehicles"
+                )
                 assert {e.event_id for e in got} == want and len(got) == len(want) == 2
-                wait_until(lambda: len(wire.snapshot()) >= 2, timeout_s=10, what="the events on the wire")
+                wait_until(
+                    lambda: len(wire.snapshot()) >= 2, timeout_s=10, what="the events on the wire"
+                )
                 assert sorted(wire.snapshot()) == sorted(want)
             assert a.call(lambda: sorted(a.service.fleet.pipelines)) == [("alpha-1", 0)]
             assert b.call(lambda: sorted(b.service.fleet.pipelines)) == [("bravo-1", 0)]
-            assert a.call(lambda: a.service.events_stored) == 1 and b.call(lambda: b.service.events_stored) == 1
+            assert (
+                a.call(lambda: a.service.events_stored) == 1
+                and b.call(lambda: b.service.events_stored) == 1
+            )

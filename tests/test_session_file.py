@@ -19,7 +19,9 @@ from protocols.session_file import (
     write_csv_session,
 )
 
-XSENS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
+XSENS_DIR = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
+)
 
 
 def _write(tmp_path, text, name="s.csv"):
@@ -32,8 +34,17 @@ def _write(tmp_path, text, name="s.csv"):
 
 
 def test_csv_round_trip_is_exact(tmp_path):
-    res = simulate(multi_position_spec(grade=Grade.MEMS, static_s=3.0, n_positions=9, temperature=CycleTemperature()), 2)
-    p = write_csv_session(tmp_path / "a.csv", res.session, metadata={"gravity_mps2": res.truth.gravity_mps2, "seed": 2})
+    res = simulate(
+        multi_position_spec(
+            grade=Grade.MEMS, static_s=3.0, n_positions=9, temperature=CycleTemperature()
+        ),
+        2,
+    )
+    p = write_csv_session(
+        tmp_path / "a.csv",
+        res.session,
+        metadata={"gravity_mps2": res.truth.gravity_mps2, "seed": 2},
+    )
     loaded = load_session(p)
     s = loaded.session
     for name in ("t_s", "accel_mps2", "gyro_rps", "temp_c"):
@@ -66,7 +77,10 @@ def test_columns_in_any_order_with_comments_blank_lines_and_spaces(tmp_path):
 
 
 def test_nan_and_inf_are_passed_to_validation_which_counts_them(tmp_path):
-    p = _write(tmp_path, "t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,nan,0,9.8,0,0,0\n0.02,0,0,9.8,inf,0,0\n0.03,0,0,9.8,0,0,-Inf\n0.04,0,0,9.8,0,0,0\n")
+    p = _write(
+        tmp_path,
+        "t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,nan,0,9.8,0,0,0\n0.02,0,0,9.8,inf,0,0\n0.03,0,0,9.8,0,0,-Inf\n0.04,0,0,9.8,0,0,0\n",
+    )
     s = read_session(p)
     assert s.n_samples == 5  # the reader drops nothing
     out, rej = validate_session(s)
@@ -84,9 +98,18 @@ def test_nan_and_inf_are_passed_to_validation_which_counts_them(tmp_path):
         ("t,temp\n0,20\n", "missing columns ax,ay,az and gx,gy,gz"),
         ("t,ax,ay,az,tmp\n0,0,0,9.8,20\n", r"unknown column 'tmp'"),
         ("t,ax,ay,az,ax\n0,0,0,9.8,1\n", r"duplicate column 'ax'"),
-        ("#c\nt,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,0,0,9.8,abc,0,0\n", r"line 4, column 'gx': not a number: 'abc'"),
-        ("t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,0,0,9.8,,0,0\n", r"line 3, column 'gx': not a number: ''"),
-        ("t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,0,0,9.8,0,0\n", r"line 3: expected 7 fields \(t,ax,ay,az,gx,gy,gz\), got 6"),
+        (
+            "#c\nt,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,0,0,9.8,abc,0,0\n",
+            r"line 4, column 'gx': not a number: 'abc'",
+        ),
+        (
+            "t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,0,0,9.8,,0,0\n",
+            r"line 3, column 'gx': not a number: ''",
+        ),
+        (
+            "t,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n0.01,0,0,9.8,0,0\n",
+            r"line 3: expected 7 fields \(t,ax,ay,az,gx,gy,gz\), got 6",
+        ),
         ("t,ax,ay,az\n0,0,0,9.8\n0.01,0,0,9.8,1\n", r"line 3: expected 4 fields"),
         ("0.01 33000 33100 36000\n", "looks like one file of a raw-count pair"),
     ],
@@ -169,7 +192,10 @@ def test_bad_raw_count_pairs_are_clear_errors(tmp_path, gyr_rows, match):
     [
         ('format = "ins-health/xsens-nominal"\nversion = 2\n', "unknown sidecar version 2"),
         ('format = "other"\nversion = 1\n', "format must be 'ins-health/xsens-nominal'"),
-        ('format = "ins-health/xsens-nominal"\nversion = 1\n[accel]\noffset_counts = 0\n', r"needs a \[accel\] table"),
+        (
+            'format = "ins-health/xsens-nominal"\nversion = 1\n[accel]\noffset_counts = 0\n',
+            r"needs a \[accel\] table",
+        ),
         (
             'format = "ins-health/xsens-nominal"\nversion = 1\n[accel]\noffset_counts = 0\nscale_si_per_count = 0\n'
             "[gyro]\noffset_counts = 0\nscale_si_per_count = 1\n",

@@ -41,10 +41,10 @@ from estimators.sim import (
     TriadErrorModel,
     WarmupTemperature,
     WhiteNoise,
+    effect_params,
     eighteen_position_attitudes,
     flight_spec,
     grade_error_model,
-    effect_params,
     half_pulse_correction,
     make_effect,
     multi_position_spec,
@@ -57,7 +57,9 @@ G_ANGLES = (1e-3, -2e-3, 1.5e-3, 0.5e-3, -1e-3, 2e-3)
 
 
 def _linear_model(bias_si, scale=(2e-3, -1e-3, 3e-3), angles=G_ANGLES, extra=()):
-    return TriadErrorModel((NonOrthogonality(angles), ScaleFactor(scale), Bias(bias_si)) + tuple(extra))
+    return TriadErrorModel(
+        (NonOrthogonality(angles), ScaleFactor(scale), Bias(bias_si), *tuple(extra))
+    )
 
 
 def _exact_residual(y, ref, params):
@@ -79,14 +81,20 @@ def _short_mp(model, **kw):
 
 
 def test_same_seed_gives_identical_arrays_and_another_seed_does_not():
-    spec = multi_position_spec(grade=Grade.MEMS, static_s=5.0, faults=(Fault(FaultKind.NOISE_BURST, Triad.GYRO, 1, 30.0, 0.01, 5.0),))
+    spec = multi_position_spec(
+        grade=Grade.MEMS,
+        static_s=5.0,
+        faults=(Fault(FaultKind.NOISE_BURST, Triad.GYRO, 1, 30.0, 0.01, 5.0),),
+    )
     a, b, c = simulate(spec, 11), simulate(spec, 11), simulate(spec, 12)
     for name in ("t_s", "accel_mps2", "gyro_rps"):
         np.testing.assert_array_equal(getattr(a.session, name), getattr(b.session, name))
     np.testing.assert_array_equal(a.truth.mat_nb, b.truth.mat_nb)
     assert not np.array_equal(a.session.accel_mps2, c.session.accel_mps2)
     g1, g2 = np.random.default_rng(5), np.random.default_rng(5)
-    np.testing.assert_array_equal(simulate(spec, g1).session.gyro_rps, simulate(spec, g2).session.gyro_rps)
+    np.testing.assert_array_equal(
+        simulate(spec, g1).session.gyro_rps, simulate(spec, g2).session.gyro_rps
+    )
 
 
 def test_adding_an_effect_leaves_the_other_noise_streams_unchanged():
@@ -116,11 +124,23 @@ def test_static_truth_is_gravity_up_and_earth_rate():
     assert st.sum() > 0.5 * st.size
     # The up axis reads +g (conventions.py) and the gyro sees Ω projected.
     up_b = tr.mat_nb[st][:, 2, :]
-    np.testing.assert_allclose(tr.specific_force_b_mps2[st], tr.gravity_true_mps2 * up_b, atol=1e-12)
-    np.testing.assert_allclose(np.linalg.norm(res.session.gyro_rps[st], axis=1), EARTH_RATE_RPS, rtol=1e-12)
-    omega_n = EARTH_RATE_RPS * np.array([0.0, math.cos(math.radians(lat)), math.sin(math.radians(lat))])
-    np.testing.assert_allclose(np.einsum("nij,nj->ni", tr.mat_nb[st], res.session.gyro_rps[st]), np.tile(omega_n, (st.sum(), 1)), atol=1e-18)
-    np.testing.assert_allclose(np.linalg.norm(res.session.accel_mps2[st], axis=1), tr.gravity_true_mps2, rtol=1e-14)
+    np.testing.assert_allclose(
+        tr.specific_force_b_mps2[st], tr.gravity_true_mps2 * up_b, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.linalg.norm(res.session.gyro_rps[st], axis=1), EARTH_RATE_RPS, rtol=1e-12
+    )
+    omega_n = EARTH_RATE_RPS * np.array(
+        [0.0, math.cos(math.radians(lat)), math.sin(math.radians(lat))]
+    )
+    np.testing.assert_allclose(
+        np.einsum("nij,nj->ni", tr.mat_nb[st], res.session.gyro_rps[st]),
+        np.tile(omega_n, (st.sum(), 1)),
+        atol=1e-18,
+    )
+    np.testing.assert_allclose(
+        np.linalg.norm(res.session.accel_mps2[st], axis=1), tr.gravity_true_mps2, rtol=1e-14
+    )
 
 
 def test_static_specific_force_magnitude_is_g_within_noise():
@@ -137,22 +157,37 @@ def test_static_specific_force_magnitude_is_g_within_noise():
 
 def test_nine_params_of_the_truth_are_exact():
     """Noise-free static outputs lie exactly on the ellipsoid that the truth's nine parameters define."""
-    model = ErrorModel(accel=_linear_model((0.03, -0.02, 0.05)), gyro=_linear_model((2e-6, -1e-6, 3e-6)))
+    model = ErrorModel(
+        accel=_linear_model((0.03, -0.02, 0.05)), gyro=_linear_model((2e-6, -1e-6, 3e-6))
+    )
     res = simulate(_short_mp(model), 1)
     tr, st = res.truth, res.truth.static
-    assert np.abs(_exact_residual(res.session.accel_mps2[st], tr.gravity_true_mps2, tr.accel_params)).max() < 1e-12
-    assert np.abs(_exact_residual(res.session.gyro_rps[st], EARTH_RATE_RPS, tr.gyro_params)).max() < 1e-10
+    assert (
+        np.abs(
+            _exact_residual(res.session.accel_mps2[st], tr.gravity_true_mps2, tr.accel_params)
+        ).max()
+        < 1e-12
+    )
+    assert (
+        np.abs(_exact_residual(res.session.gyro_rps[st], EARTH_RATE_RPS, tr.gyro_params)).max()
+        < 1e-10
+    )
     # Perturbing any one parameter breaks the relation by far more than round-off.
     for j in range(N_PARAMS):
         p = tr.accel_params.copy()
         p[j] += 1e-4
-        assert np.abs(_exact_residual(res.session.accel_mps2[st], tr.gravity_true_mps2, p)).max() > 1e-6
+        assert (
+            np.abs(_exact_residual(res.session.accel_mps2[st], tr.gravity_true_mps2, p)).max()
+            > 1e-6
+        )
 
 
 def _integrate(tr):
     """Attitude from the body rates with the trapezoid rotation vector (second-order accurate)."""
     dt = np.diff(tr.t_s)[:, None]
-    inc = Rotation.from_rotvec(0.5 * (tr.rate_nb_b_rps[:-1] + tr.rate_nb_b_rps[1:]) * dt).as_matrix()
+    inc = Rotation.from_rotvec(
+        0.5 * (tr.rate_nb_b_rps[:-1] + tr.rate_nb_b_rps[1:]) * dt
+    ).as_matrix()
     out = np.empty_like(tr.mat_nb)
     out[0] = tr.mat_nb[0]
     for k in range(inc.shape[0]):
@@ -163,8 +198,14 @@ def _integrate(tr):
 @pytest.mark.parametrize(
     "make",
     [
-        lambda rate: _short_mp(NOISE_FREE.with_effect(NonstaticPositions(angle_rms_rad=1e-3)), rate_hz=rate, static_s=4.0),
-        lambda rate: flight_spec(model=NOISE_FREE, fly=Fly(40.0, vibration_rad=0.0), rest_s=2.0, rate_hz=rate),
+        lambda rate: _short_mp(
+            NOISE_FREE.with_effect(NonstaticPositions(angle_rms_rad=1e-3)),
+            rate_hz=rate,
+            static_s=4.0,
+        ),
+        lambda rate: flight_spec(
+            model=NOISE_FREE, fly=Fly(40.0, vibration_rad=0.0), rest_s=2.0, rate_hz=rate
+        ),
     ],
     ids=["multiposition_with_wobble", "flight"],
 )
@@ -183,7 +224,12 @@ def test_flight_moves_and_ends_at_rest_where_it_started():
     tr = res.truth
     moving = ~tr.static
     assert np.abs(tr.rate_nb_b_rps[moving]).max() > 0.1
-    assert np.abs(np.linalg.norm(tr.specific_force_b_mps2[moving], axis=1) - tr.gravity_true_mps2).max() > 0.5
+    assert (
+        np.abs(
+            np.linalg.norm(tr.specific_force_b_mps2[moving], axis=1) - tr.gravity_true_mps2
+        ).max()
+        > 0.5
+    )
     np.testing.assert_allclose(tr.mat_nb[-1], tr.mat_nb[0], atol=1e-12)
     assert len(tr.static_intervals_s) == 2
 
@@ -193,14 +239,24 @@ def test_a_spin_turns_at_its_rate_about_its_axis():
     # vector exact: integrating the rate reproduces the attitude to round-off
     # (a rate inconsistent with the attitude would leave a visible angle).
     axis = np.array([1.0, 2.0, 2.0]) / 3.0
-    segments = (Spin(2.0, 0.0, axis, end_rate_rps=1.5), Spin(4.0, 1.5, axis), Spin(2.0, 1.5, axis, end_rate_rps=-0.5))
-    tr = simulate(SessionSpec(MotionProfile(np.eye(3), segments), NOISE_FREE, rate_hz=100.0), 0).truth
+    segments = (
+        Spin(2.0, 0.0, axis, end_rate_rps=1.5),
+        Spin(4.0, 1.5, axis),
+        Spin(2.0, 1.5, axis, end_rate_rps=-0.5),
+    )
+    tr = simulate(
+        SessionSpec(MotionProfile(np.eye(3), segments), NOISE_FREE, rate_hz=100.0), 0
+    ).truth
     assert _integrate(tr) < 1e-9
-    np.testing.assert_allclose(tr.rate_nb_b_rps, np.outer(tr.rate_nb_b_rps @ axis, axis), atol=1e-15)
+    np.testing.assert_allclose(
+        tr.rate_nb_b_rps, np.outer(tr.rate_nb_b_rps @ axis, axis), atol=1e-15
+    )
     np.testing.assert_allclose(tr.rate_nb_b_rps[200:600] @ axis, 1.5, rtol=1e-15)
     # Angle at the last sample (τ = 1.99 s into the last ramp): 1.5 + 6 + 1.5·1.99 − 1.99²/2 rad.
     angle = 7.5 + 1.5 * 1.99 - 0.5 * 1.99**2
-    np.testing.assert_allclose(tr.mat_nb[-1], Rotation.from_rotvec(angle * axis).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        tr.mat_nb[-1], Rotation.from_rotvec(angle * axis).as_matrix(), atol=1e-12
+    )
     assert not tr.static.any()
     with pytest.raises(ValueError, match="axis_b"):
         Spin(1.0, 0.1, (0.0, 0.0, 0.0))
@@ -214,7 +270,9 @@ def test_eighteen_positions_span_two_axes_with_hand_sized_turns():
     for i in range(3):
         assert up_b[:, i].max() > 0.99 and up_b[:, i].min() < -0.99
     # Every prefix of nine or more positions is well conditioned for M1's H.
-    h = np.column_stack([up_b, up_b**2, up_b[:, 0] * up_b[:, 1], up_b[:, 0] * up_b[:, 2], up_b[:, 1] * up_b[:, 2]])
+    h = np.column_stack(
+        [up_b, up_b**2, up_b[:, 0] * up_b[:, 1], up_b[:, 0] * up_b[:, 2], up_b[:, 1] * up_b[:, 2]]
+    )
     assert max(np.linalg.cond(h[:n]) for n in range(9, 19)) < 5.0
     angles = Rotation.from_matrix(np.swapaxes(att[:-1], 1, 2) @ att[1:]).magnitude()
     assert math.pi / 4 - 1e-9 <= angles.min() and angles.max() <= math.pi / 2 + 1e-9
@@ -226,8 +284,12 @@ def test_eighteen_positions_span_two_axes_with_hand_sized_turns():
 def test_random_orientations_need_a_generator_and_are_seeded():
     with pytest.raises(ValueError, match="Generator"):
         multi_position_spec(n_positions=9, scheme=OrientationScheme.RANDOM)
-    a = multi_position_spec(n_positions=9, scheme=OrientationScheme.RANDOM, orientation_rng=np.random.default_rng(1))
-    b = multi_position_spec(n_positions=9, scheme=OrientationScheme.RANDOM, orientation_rng=np.random.default_rng(1))
+    a = multi_position_spec(
+        n_positions=9, scheme=OrientationScheme.RANDOM, orientation_rng=np.random.default_rng(1)
+    )
+    b = multi_position_spec(
+        n_positions=9, scheme=OrientationScheme.RANDOM, orientation_rng=np.random.default_rng(1)
+    )
     assert a.profile == b.profile
     assert len(a.profile.segments) == 17
 
@@ -235,10 +297,28 @@ def test_random_orientations_need_a_generator_and_are_seeded():
 # --- effects ----------------------------------------------------------------------
 
 
-def _static_error(effects, *, triad=Triad.ACCEL, duration_s=20.0, temperature=None, rate_hz=100.0, seed=0, mat_nb=None):
+def _static_error(
+    effects,
+    *,
+    triad=Triad.ACCEL,
+    duration_s=20.0,
+    temperature=None,
+    rate_hz=100.0,
+    seed=0,
+    mat_nb=None,
+):
     tm = TriadErrorModel(tuple(effects))
     model = ErrorModel(accel=tm) if triad is Triad.ACCEL else ErrorModel(gyro=tm)
-    res = simulate(static_spec(duration_s=duration_s, model=model, temperature=temperature, rate_hz=rate_hz, mat_nb=mat_nb), seed)
+    res = simulate(
+        static_spec(
+            duration_s=duration_s,
+            model=model,
+            temperature=temperature,
+            rate_hz=rate_hz,
+            mat_nb=mat_nb,
+        ),
+        seed,
+    )
     tr = res.truth
     y = res.session.accel_mps2 if triad is Triad.ACCEL else res.session.gyro_rps
     x = tr.specific_force_b_mps2 if triad is Triad.ACCEL else tr.rate_ib_b_rps
@@ -259,11 +339,17 @@ def test_white_noise_density_scales_with_the_rate():
 
 
 @pytest.mark.parametrize("rounding", list(Rounding))
-def test_quantized_output_lies_on_the_grid_and_the_half_pulse_correction_removes_its_offset(rounding):
+def test_quantized_output_lies_on_the_grid_and_the_half_pulse_correction_removes_its_offset(
+    rounding,
+):
     step = 0.01
     sd = 2 * step  # noise above one count makes the rounding error uniform (M2)
     tilted = Rotation.from_rotvec([0.3, -0.5, 0.0]).as_matrix()  # axes read + and − values
-    res, y, x = _static_error([WhiteNoise.from_sample_sd(sd, 100.0), Quantization((step,) * 3, rounding)], duration_s=200.0, mat_nb=tilted)
+    _res, y, x = _static_error(
+        [WhiteNoise.from_sample_sd(sd, 100.0), Quantization((step,) * 3, rounding)],
+        duration_s=200.0,
+        mat_nb=tilted,
+    )
     counts = y / step
     np.testing.assert_allclose(counts, np.round(counts), atol=1e-9)
     mean_counts = counts.mean(axis=0)
@@ -271,7 +357,9 @@ def test_quantized_output_lies_on_the_grid_and_the_half_pulse_correction_removes
     # Bound: noise and rounding error of the mean, in counts.
     bound = 5.0 * math.sqrt(sd**2 / step**2 + 1 / 12) / math.sqrt(n)
     truth_counts = x[0] / step
-    np.testing.assert_allclose(half_pulse_correction(mean_counts, rounding), truth_counts, atol=bound)
+    np.testing.assert_allclose(
+        half_pulse_correction(mean_counts, rounding), truth_counts, atol=bound
+    )
     if rounding is not Rounding.NEAREST:
         assert np.abs(mean_counts - truth_counts).min() > 0.4  # uncorrected: half a count off
 
@@ -280,9 +368,13 @@ def test_bias_scale_and_nonlinearity_act_as_documented():
     k2, k3 = np.array([1e-3, -2e-3, 0.5e-3]), np.array([1e-5, 2e-5, -3e-5])
     tilted = Rotation.from_rotvec([0.4, 0.7, 0.1]).as_matrix()
     _, y, x = _static_error(
-        [ScaleNonlinearity(k2, k3), ScaleFactor((1e-3, 2e-3, -1e-3)), Bias((0.01, -0.02, 0.03))], duration_s=1.0, mat_nb=tilted
+        [ScaleNonlinearity(k2, k3), ScaleFactor((1e-3, 2e-3, -1e-3)), Bias((0.01, -0.02, 0.03))],
+        duration_s=1.0,
+        mat_nb=tilted,
     )
-    expected = (x + k2 * x**2 + k3 * x**3) * (1 + np.array([1e-3, 2e-3, -1e-3])) + np.array([0.01, -0.02, 0.03])
+    expected = (x + k2 * x**2 + k3 * x**3) * (1 + np.array([1e-3, 2e-3, -1e-3])) + np.array(
+        [0.01, -0.02, 0.03]
+    )
     np.testing.assert_allclose(y, expected, rtol=0, atol=1e-13)
 
 
@@ -290,7 +382,11 @@ def test_temperature_effects_follow_their_polynomials_on_a_non_monotone_profile(
     temp = CycleTemperature(base_c=20.0, peak_c=40.0, period_s=60.0)
     dbias = np.array([[1e-3, 1e-5], [-2e-3, 0.0], [0.0, 3e-5]])
     dscale = np.array([[1e-4], [-2e-4], [5e-5]])
-    res, y, x = _static_error([TemperatureScale(dscale, t_ref_c=25.0), TemperatureBias(dbias, t_ref_c=25.0)], duration_s=60.0, temperature=temp)
+    res, y, x = _static_error(
+        [TemperatureScale(dscale, t_ref_c=25.0), TemperatureBias(dbias, t_ref_c=25.0)],
+        duration_s=60.0,
+        temperature=temp,
+    )
     t_c = res.session.temp_c
     assert t_c.max() - t_c.min() > 19.0 and np.argmax(t_c) not in (0, t_c.size - 1)  # up then down
     dt = (t_c - 25.0)[:, None]
@@ -320,7 +416,11 @@ def test_g_sensitivity_is_gyro_bias_proportional_to_specific_force():
 
 def test_gauss_markov_bias_has_its_variance_and_correlation_time():
     sigma, tau = 2e-3, 0.5
-    _, y, x = _static_error([BiasInstability(gm_sigma_si=(sigma,) * 3, gm_tau_s=(tau,) * 3)], duration_s=600.0, rate_hz=20.0)
+    _, y, x = _static_error(
+        [BiasInstability(gm_sigma_si=(sigma,) * 3, gm_tau_s=(tau,) * 3)],
+        duration_s=600.0,
+        rate_hz=20.0,
+    )
     beta = y - x
     phi = math.exp(-1 / 20.0 / tau)
     lag1 = (beta[1:] * beta[:-1]).mean(axis=0) / (beta**2).mean(axis=0)
@@ -347,7 +447,9 @@ def test_flicker_bias_has_a_flat_allan_deviation_at_the_ieee_floor():
     b = 1e-3
     est = []
     for seed in range(4):
-        _, y, x = _static_error([BiasInstability(flicker_si=(b,) * 3)], duration_s=2000.0, rate_hz=10.0, seed=seed)
+        _, y, x = _static_error(
+            [BiasInstability(flicker_si=(b,) * 3)], duration_s=2000.0, rate_hz=10.0, seed=seed
+        )
         est += [[_allan_var(col, m) for m in (10, 40, 100)] for col in (y - x).T]
     adev = np.sqrt(np.mean(est, axis=0))
     # Floor B·√(2 ln2 / π) for τ from 1 s to 10 s. Twelve 2000 s records give the
@@ -371,12 +473,16 @@ def test_nonstatic_positions_move_the_unit_inside_positions_without_changing_g()
     tr = res.truth
     st = tr.static
     # Pure rotation: |f| stays g; the direction wanders by about the RMS angle.
-    np.testing.assert_allclose(np.linalg.norm(res.session.accel_mps2[st], axis=1), tr.gravity_true_mps2, rtol=1e-13)
+    np.testing.assert_allclose(
+        np.linalg.norm(res.session.accel_mps2[st], axis=1), tr.gravity_true_mps2, rtol=1e-13
+    )
     spread = []
     for j in range(len(tr.static_intervals_s)):
         a = res.session.accel_mps2[tr.position_index == j]
         u = a / np.linalg.norm(a, axis=1, keepdims=True)
-        spread.append(np.arccos(np.clip(u @ u.mean(axis=0) / np.linalg.norm(u.mean(axis=0)), -1, 1)).max())
+        spread.append(
+            np.arccos(np.clip(u @ u.mean(axis=0) / np.linalg.norm(u.mean(axis=0)), -1, 1)).max()
+        )
     assert 0.3 * rms < np.median(spread) < 10 * rms
 
 
@@ -386,7 +492,12 @@ def test_model_order_and_names_are_enforced():
     with pytest.raises(ValueError, match="once"):
         TriadErrorModel((Bias((0.0,) * 3), Bias((1.0,) * 3)))
     m = TriadErrorModel((NonOrthogonality(), Bias((0.0,) * 3), WhiteNoise()))
-    assert m.with_effect(ScaleFactor((1e-3,) * 3)).names == ("non_orthogonality", "scale_factor", "bias", "white_noise")
+    assert m.with_effect(ScaleFactor((1e-3,) * 3)).names == (
+        "non_orthogonality",
+        "scale_factor",
+        "bias",
+        "white_noise",
+    )
     assert m.with_effect(Bias((1.0,) * 3)).find("bias").bias_si == (1.0, 1.0, 1.0)
     assert m.without("bias").names == ("non_orthogonality", "white_noise")
     with pytest.raises(ValueError, match="needs the triad"):
@@ -401,7 +512,9 @@ def test_model_order_and_names_are_enforced():
 def test_grades_put_earth_rate_below_mems_gyro_bias_and_above_navigation_noise():
     mems, nav = GRADES[Grade.MEMS], GRADES[Grade.NAVIGATION]
     assert mems.gyro.bias_sd_si > 100 * EARTH_RATE_RPS
-    assert mems.accel.noise_density_si * 10.0 == pytest.approx(1e-3 * 9.80665)  # 1 mg per sample at 100 Hz
+    assert mems.accel.noise_density_si * 10.0 == pytest.approx(
+        1e-3 * 9.80665
+    )  # 1 mg per sample at 100 Hz
     assert nav.gyro.bias_sd_si < 1e-3 * EARTH_RATE_RPS
     # A minute of navigation-grade gyro data resolves Ω to about 1e-3 of itself.
     assert nav.gyro.noise_density_si / math.sqrt(60.0) < 1.5e-3 * EARTH_RATE_RPS
@@ -418,7 +531,9 @@ def test_grades_put_earth_rate_below_mems_gyro_bias_and_above_navigation_noise()
 def test_a_mems_session_passes_validation_within_its_range():
     res = simulate(multi_position_spec(grade=Grade.MEMS, static_s=5.0), 1)
     spec = GRADES[Grade.MEMS]
-    out, rej = validate_session(res.session, accel_limit_mps2=spec.accel.range_si, gyro_limit_rps=spec.gyro.range_si)
+    out, rej = validate_session(
+        res.session, accel_limit_mps2=spec.accel.range_si, gyro_limit_rps=spec.gyro.range_si
+    )
     assert rej.total == 0 and out.n_samples == res.session.n_samples
 
 
@@ -444,8 +559,16 @@ def test_a_step_in_any_parameter_appears_at_its_time(triad, index):
     fault = Fault(FaultKind.STEP, triad, index, t0, mag)
     clean, faulty = _paired([fault])
     t = clean.session.t_s
-    y0, y1 = (clean.session.accel_mps2, faulty.session.accel_mps2) if triad is Triad.ACCEL else (clean.session.gyro_rps, faulty.session.gyro_rps)
-    other = (clean.session.gyro_rps, faulty.session.gyro_rps) if triad is Triad.ACCEL else (clean.session.accel_mps2, faulty.session.accel_mps2)
+    y0, y1 = (
+        (clean.session.accel_mps2, faulty.session.accel_mps2)
+        if triad is Triad.ACCEL
+        else (clean.session.gyro_rps, faulty.session.gyro_rps)
+    )
+    other = (
+        (clean.session.gyro_rps, faulty.session.gyro_rps)
+        if triad is Triad.ACCEL
+        else (clean.session.accel_mps2, faulty.session.accel_mps2)
+    )
     np.testing.assert_array_equal(other[0], other[1])
     np.testing.assert_array_equal(y0[t < t0], y1[t < t0])
     assert np.abs(y1[t >= t0] - y0[t >= t0]).max() > 0
@@ -457,13 +580,21 @@ def test_a_step_in_any_parameter_appears_at_its_time(triad, index):
 
 
 def test_parameter_faults_keep_the_exact_ellipsoid_with_the_faulted_parameters():
-    model = ErrorModel(accel=_linear_model((0.02, -0.01, 0.03)), gyro=_linear_model((1e-6, 0.0, 0.0)))
-    faults = [Fault(FaultKind.STEP, Triad.ACCEL, 6, 40.0, 3e-3), Fault(FaultKind.RAMP, Triad.ACCEL, 4, 60.0, 1e-3, 30.0)]
+    model = ErrorModel(
+        accel=_linear_model((0.02, -0.01, 0.03)), gyro=_linear_model((1e-6, 0.0, 0.0))
+    )
+    faults = [
+        Fault(FaultKind.STEP, Triad.ACCEL, 6, 40.0, 3e-3),
+        Fault(FaultKind.RAMP, Triad.ACCEL, 4, 60.0, 1e-3, 30.0),
+    ]
     _, res = _paired(faults, model=model)
     tr, st = res.truth, res.truth.static
     y = res.session.accel_mps2
     params = tr.params_at(Triad.ACCEL, tr.t_s)
-    resid = [_exact_residual(y[k : k + 1], tr.gravity_true_mps2, params[k])[0] for k in np.flatnonzero(st)[::50]]
+    resid = [
+        _exact_residual(y[k : k + 1], tr.gravity_true_mps2, params[k])[0]
+        for k in np.flatnonzero(st)[::50]
+    ]
     assert np.abs(resid).max() < 1e-12
     after = st & (tr.t_s > 100.0)
     assert np.abs(_exact_residual(y[after], tr.gravity_true_mps2, tr.accel_params)).max() > 1e-3
@@ -521,7 +652,12 @@ def test_faults_are_validated_and_need_their_effect():
         Fault(FaultKind.SATURATION, Triad.GYRO, 0, 0.0, 0.0)
     no_bias = ErrorModel(accel=TriadErrorModel((WhiteNoise((1e-3,) * 3),)))
     with pytest.raises(ValueError, match="needs a 'bias' effect"):
-        simulate(static_spec(duration_s=1.0, model=no_bias, faults=(Fault("step", "accel", 1, 0.0, 1e-3),)), 0)
+        simulate(
+            static_spec(
+                duration_s=1.0, model=no_bias, faults=(Fault("step", "accel", 1, 0.0, 1e-3),)
+            ),
+            0,
+        )
     assert Fault("step", "gyro", 7, 0.0, 1e-3).target == "d2"
 
 
@@ -556,7 +692,12 @@ def test_every_audit_effect_exists_by_name_and_round_trips_through_plain_paramet
 def test_positions_and_turns_may_have_their_own_lengths():
     att = eighteen_position_attitudes()[:4]
     res = simulate(
-        multi_position_spec(model=NOISE_FREE, n_positions=4, static_s=np.array([3.0, 5.0, 2.0, 4.0]), transition_s=np.array([1.0, 2.0, 3.0])),
+        multi_position_spec(
+            model=NOISE_FREE,
+            n_positions=4,
+            static_s=np.array([3.0, 5.0, 2.0, 4.0]),
+            transition_s=np.array([1.0, 2.0, 3.0]),
+        ),
         0,
     )
     iv = res.truth.static_intervals_s

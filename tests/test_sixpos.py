@@ -40,20 +40,35 @@ def _model_means(values, g, up=SIX_FACES_UP_B):
     return out
 
 
-TERMS = np.array([[0.03, 3e-3, -1e-3, 8e-4, 1.2e-4], [-0.05, -4e-3, 6e-4, 1.3e-3, -8e-5], [0.08, 5e-3, -9e-4, 7e-4, 1.5e-4]])
+TERMS = np.array(
+    [
+        [0.03, 3e-3, -1e-3, 8e-4, 1.2e-4],
+        [-0.05, -4e-3, 6e-4, 1.3e-3, -8e-5],
+        [0.08, 5e-3, -9e-4, 7e-4, 1.5e-4],
+    ]
+)
 
 
 def test_six_exact_positions_give_back_the_terms():
-    est = six_position_accel(_model_means(TERMS, G_LOCAL), gravity_mps2=G_LOCAL, accel_cov_mps2=np.tile(np.eye(3) * 1e-10, (6, 1, 1)))
+    est = six_position_accel(
+        _model_means(TERMS, G_LOCAL),
+        gravity_mps2=G_LOCAL,
+        accel_cov_mps2=np.tile(np.eye(3) * 1e-10, (6, 1, 1)),
+    )
     np.testing.assert_allclose(est.values, TERMS, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(est.residuals_mps2, 0.0, atol=1e-12)
 
 
 def test_gyro_g_sensitivity_is_the_papers_sum_and_difference():
     # Gyro x reads m1 with the x axis up and m2 with it down: Bf = (m1 + m2)/2, Bgx = (m1 − m2)/(2g).
-    bf, bg = np.array([0.01, -0.02, 0.005]), np.array([[1e-4, 2e-5, -3e-5], [-2e-5, 3e-4, 1e-5], [4e-5, -1e-5, 2e-4]])
+    bf, bg = (
+        np.array([0.01, -0.02, 0.005]),
+        np.array([[1e-4, 2e-5, -3e-5], [-2e-5, 3e-4, 1e-5], [4e-5, -1e-5, 2e-4]]),
+    )
     w = bf + (G_LOCAL * SIX_FACES_UP_B) @ bg.T
-    est = gyro_g_sensitivity(w, SIX_FACES_UP_B, gravity_mps2=G_LOCAL, gyro_cov_rps=np.tile(np.eye(3) * 1e-12, (6, 1, 1)))
+    est = gyro_g_sensitivity(
+        w, SIX_FACES_UP_B, gravity_mps2=G_LOCAL, gyro_cov_rps=np.tile(np.eye(3) * 1e-12, (6, 1, 1))
+    )
     m1, m2 = w[0, 0], w[1, 0]
     assert est.bias_rps[0] == pytest.approx((m1 + m2) / 2, abs=1e-15)
     assert est.g_sensitivity[0, 0] == pytest.approx((m1 - m2) / (2 * G_LOCAL), rel=1e-12)
@@ -69,7 +84,15 @@ def test_stated_uncertainty_holds_in_a_monte_carlo_of_position_means():
     std = six_position_accel(clean, gravity_mps2=G_LOCAL, accel_cov_mps2=cov).std
     z = np.array(
         [
-            (six_position_accel(clean + sigma * rng.standard_normal((6, 3)), gravity_mps2=G_LOCAL, accel_cov_mps2=cov).values - TERMS) / std
+            (
+                six_position_accel(
+                    clean + sigma * rng.standard_normal((6, 3)),
+                    gravity_mps2=G_LOCAL,
+                    accel_cov_mps2=cov,
+                ).values
+                - TERMS
+            )
+            / std
             for _ in range(400)
         ]
     )
@@ -88,7 +111,12 @@ def simulated_tests():
         res = simulate(six_position_spec(model, static_s=20.0), seed)
         positions = session_positions(res.session)
         # The Earth rate each position saw, from the simulated attitudes (the fixture's headings are known).
-        er = np.array([res.truth.mat_nb[p.index_start].T @ earth_rate_n_rps(GUANGZHOU_LATITUDE_DEG) for p in positions])
+        er = np.array(
+            [
+                res.truth.mat_nb[p.index_start].T @ earth_rate_n_rps(GUANGZHOU_LATITUDE_DEG)
+                for p in positions
+            ]
+        )
         out.append((positions, er))
     return model, out
 
@@ -104,10 +132,19 @@ def test_simulated_sessions_recover_every_term_within_the_stated_uncertainty(sim
         z_acc.append((res.accel.values - acc_true) / res.accel.std)
         up = face_directions(np.array([p.accel_mean_mps2 for p in positions]))
         gyr = gyro_g_sensitivity(
-            np.array([p.gyro_mean_rps for p in positions]), up, gravity_mps2=G_LOCAL,
-            gyro_cov_rps=np.array([p.gyro_cov_rps for p in positions]), earth_rate_b_rps=er,
+            np.array([p.gyro_mean_rps for p in positions]),
+            up,
+            gravity_mps2=G_LOCAL,
+            gyro_cov_rps=np.array([p.gyro_cov_rps for p in positions]),
+            earth_rate_b_rps=er,
         )
-        z_gyr.append((np.column_stack([gyr.bias_rps, gyr.g_sensitivity]) - np.column_stack([bf_true, bg_true])) / gyr.std)
+        z_gyr.append(
+            (
+                np.column_stack([gyr.bias_rps, gyr.g_sensitivity])
+                - np.column_stack([bf_true, bg_true])
+            )
+            / gyr.std
+        )
     z = np.concatenate([np.ravel(z_acc), np.ravel(z_gyr)])
     # 216 normalized errors: none beyond 4.5 σ (chance of one: 0.15 %), spread about 1.
     assert np.max(np.abs(z)) < 4.5
@@ -153,11 +190,21 @@ def test_rate_table_recovers_the_scale_factor_within_its_uncertainty():
     slopes = rate_table_truth(model)
     z = []
     for axis, seed in ((0, 1), (1, 2), (2, 3)):
-        session = simulate_rate_table(model, axis=axis, profile_rps=profile, hold_s=6.0, gravity_mps2=G_LOCAL, seed=seed)
-        steps = find_rate_steps(session.t_s, session.gyro_rps, axis=axis, profile_rps=profile, min_hold_s=3.0)
-        fit = rate_table_fit(profile, steps.gyro_mean_rps, axis=axis, gyro_var_rps=steps.gyro_var_rps[:, axis])
+        session = simulate_rate_table(
+            model, axis=axis, profile_rps=profile, hold_s=6.0, gravity_mps2=G_LOCAL, seed=seed
+        )
+        steps = find_rate_steps(
+            session.t_s, session.gyro_rps, axis=axis, profile_rps=profile, min_hold_s=3.0
+        )
+        fit = rate_table_fit(
+            profile, steps.gyro_mean_rps, axis=axis, gyro_var_rps=steps.gyro_var_rps[:, axis]
+        )
         z.append((fit.scale_error - (slopes[axis, axis] - 1.0)) / fit.scale_error_std)
-        np.testing.assert_allclose(fit.cross_coupling[[i for i in range(3) if i != axis]], 0.0, atol=5 * fit.scale_error_std)
+        np.testing.assert_allclose(
+            fit.cross_coupling[[i for i in range(3) if i != axis]],
+            0.0,
+            atol=5 * fit.scale_error_std,
+        )
         assert fit.nonlinearity < 1e-3
     assert np.max(np.abs(z)) < 4.0
 
@@ -165,8 +212,10 @@ def test_rate_table_recovers_the_scale_factor_within_its_uncertainty():
 def test_a_rate_record_that_does_not_match_the_profile_says_so():
     model = adis_like_model()
     profile = paper_rate_profile_rps()
-    session = simulate_rate_table(model, axis=0, profile_rps=profile[:12], hold_s=6.0, gravity_mps2=G_LOCAL, seed=5)
-    with pytest.raises(ValueError, match="found 12 constant-rate steps .* the profile has 31"):
+    session = simulate_rate_table(
+        model, axis=0, profile_rps=profile[:12], hold_s=6.0, gravity_mps2=G_LOCAL, seed=5
+    )
+    with pytest.raises(ValueError, match=r"found 12 constant-rate steps .* the profile has 31"):
         find_rate_steps(session.t_s, session.gyro_rps, axis=0, profile_rps=profile, min_hold_s=3.0)
     with pytest.raises(ValueError, match="at least 3 different table rates"):
         rate_table_fit(np.array([0.1, 0.1, -0.1]), np.zeros((3, 3)), axis=0)

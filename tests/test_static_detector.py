@@ -24,9 +24,20 @@ from protocols.session_file import read_session
 XSENS = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 
 
-def _stream(session: ImuSession, *, config=StaticDetectorConfig(), rate_hz: float, state_at: int | None = None):
+def _stream(
+    session: ImuSession,
+    *,
+    config=StaticDetectorConfig(),
+    rate_hz: float,
+    state_at: int | None = None,
+):
     """Feed a session sample by sample: (static mask over input rows, intervals, detector)."""
-    det = StreamingStaticDetector(config, rate_hz=rate_hz, has_accel=session.accel_mps2 is not None, has_gyro=session.gyro_rps is not None)
+    det = StreamingStaticDetector(
+        config,
+        rate_hz=rate_hz,
+        has_accel=session.accel_mps2 is not None,
+        has_gyro=session.gyro_rps is not None,
+    )
     n = session.n_samples
     zeros = [[0.0, 0.0, 0.0]] * n
     accel = zeros if session.accel_mps2 is None else session.accel_mps2.tolist()
@@ -63,7 +74,7 @@ def test_finds_every_simulated_position_and_covers_it(mems_session):
     det = detect_static(session)
     assert len(det.intervals) == len(truth.static_intervals_s) == 18
     assert det.short_runs == ()
-    for iv, (t0, t1) in zip(det.intervals, truth.static_intervals_s):
+    for iv, (t0, t1) in zip(det.intervals, truth.static_intervals_s, strict=True):
         # Every window inside a true rest is quiet (its spread is ~1/3 of the threshold),
         # so the union of quiet windows contains the whole rest.
         assert iv.t_start_s <= t0 and iv.t_end_s >= t1
@@ -93,7 +104,11 @@ def test_streaming_gives_the_batch_decisions_on_messy_data(mems_session):
     np.testing.assert_array_equal(static, batch.static)
     assert intervals == list(batch.intervals)
     n_bad = int((~np.isfinite(np.hstack([accel, gyro])).all(axis=1))[keep].sum())
-    assert det.rejections.counts == batch.rejections.counts == {"non_finite": n_bad, "non_monotonic_time": 2}
+    assert (
+        det.rejections.counts
+        == batch.rejections.counts
+        == {"non_finite": n_bad, "non_monotonic_time": 2}
+    )
     assert len(batch.intervals) == 19
     assert [iv.t_end_s for iv in batch.intervals][2] == t[1799]
     assert [iv.t_start_s for iv in batch.intervals][3] == t[1900]
@@ -124,7 +139,7 @@ def test_one_triad_is_enough(mems_session):
         np.testing.assert_array_equal(static, det.static)
         assert intervals == list(det.intervals)
         # One triad alone is no stricter than both.
-        for iv, ref in zip(det.intervals, full):
+        for iv, ref in zip(det.intervals, full, strict=True):
             assert iv.t_start_s <= ref.t_start_s and iv.t_end_s >= ref.t_end_s
     with pytest.raises(ValueError, match="neither"):
         detect_static(ImuSession(s.t_s, None, None))
@@ -147,7 +162,9 @@ def test_xsens_session_has_its_initial_rest_and_37_positions():
 
 def test_constant_rate_turn_about_the_vertical_needs_the_mean_rate_bound():
     rng = np.random.default_rng(2)
-    scene = build_scene([Rest(5.0), Rotate(10.0, (0, 0, 1), 90.0, constant_rate=True), Rest(5.0)], rng=rng)
+    scene = build_scene(
+        [Rest(5.0), Rotate(10.0, (0, 0, 1), 90.0, constant_rate=True), Rest(5.0)], rng=rng
+    )
     plain = detect_static(scene.session)
     # Variance only: the turn (0.157 rad/s, constant) looks static — a documented blind spot.
     assert len(plain.intervals) == 1
@@ -169,7 +186,9 @@ def test_short_runs_are_reported_apart():
 
 
 def test_from_noise_sets_thresholds_at_a_multiple_of_the_white_noise_spread():
-    cfg = StaticDetectorConfig.from_noise(accel_noise_mps2=0.01, gyro_noise_rps=0.001, base=StaticDetectorConfig(window_s=1.0))
+    cfg = StaticDetectorConfig.from_noise(
+        accel_noise_mps2=0.01, gyro_noise_rps=0.001, base=StaticDetectorConfig(window_s=1.0)
+    )
     assert cfg.accel_std_mps2 == pytest.approx(3 * math.sqrt(3) * 0.01)
     assert cfg.gyro_std_rps == pytest.approx(3 * math.sqrt(3) * 0.001)
     assert cfg.window_s == 1.0
@@ -187,7 +206,9 @@ def test_from_noise_sets_thresholds_at_a_multiple_of_the_white_noise_spread():
 def test_direction_change_is_exact_at_small_and_right_angles():
     assert direction_change_deg([0, 0, 9.8], [9.8, 0, 0]) == pytest.approx(90.0)
     tiny = 1e-7  # rad: arccos of the dot product would lose it entirely
-    assert direction_change_deg([0, 0, 1], [0, math.sin(tiny), math.cos(tiny)]) == pytest.approx(math.degrees(tiny), rel=1e-9)
+    assert direction_change_deg([0, 0, 1], [0, math.sin(tiny), math.cos(tiny)]) == pytest.approx(
+        math.degrees(tiny), rel=1e-9
+    )
 
 
 def test_rotation_integrator_composes_like_rotation_matrices():
@@ -215,7 +236,9 @@ def test_rotation_integrator_composes_like_rotation_matrices():
 def test_new_orientation_needs_a_change_in_any_available_measure():
     cfg = StaticDetectorConfig(orientation_change_deg=1.0)
     assert not is_new_orientation(cfg, direction_deg=0.5, rotation_deg=0.5)
-    assert is_new_orientation(cfg, direction_deg=0.5, rotation_deg=90.0)  # a turn about the vertical
+    assert is_new_orientation(
+        cfg, direction_deg=0.5, rotation_deg=90.0
+    )  # a turn about the vertical
     assert is_new_orientation(cfg, direction_deg=30.0, rotation_deg=None)
     assert not is_new_orientation(cfg, direction_deg=None, rotation_deg=0.2)
     assert is_new_orientation(cfg, direction_deg=None, rotation_deg=None)
@@ -223,7 +246,9 @@ def test_new_orientation_needs_a_change_in_any_available_measure():
 
 def test_gaps_split_segments_and_windows_never_span_them():
     rng = np.random.default_rng(9)
-    scene = build_scene([Rest(3.0), Gap(2.0), Rest(3.0)] + tumble(3, rest_s=3.0, rng=rng)[1:], rng=rng)
+    scene = build_scene(
+        [Rest(3.0), Gap(2.0), Rest(3.0), *tumble(3, rest_s=3.0, rng=rng)[1:]], rng=rng
+    )
     det = detect_static(scene.session)
     assert len(det.intervals) == 4
     assert det.segment_start.sum() == 2
@@ -259,7 +284,12 @@ def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
                 closed += 1
         assert static.tolist() == expected
         assert json.dumps(det.state_dict()) == json.dumps(ref.state_dict())
-        assert (det.fin_lo, det.fin_split, det.fin_hi, det.static_now) == (ref.fin_lo, ref.fin_split, ref.fin_hi, ref.static_now)
+        assert (det.fin_lo, det.fin_split, det.fin_hi, det.static_now) == (
+            ref.fin_lo,
+            ref.fin_split,
+            ref.fin_hi,
+            ref.static_now,
+        )
         i = sl.stop
         if i == t.size:
             break
@@ -268,4 +298,6 @@ def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
     bad = accel[:3].copy()
     bad[1, 0] = np.nan
     assert not det.clean_batch(t[-1] + np.array([0.01, 0.02, 0.03]), bad, gyro[:3])
-    assert not det.clean_batch(t[-1] + np.array([0.01, 1.0]), accel[:2], gyro[:2])  # a gap ends the segment
+    assert not det.clean_batch(
+        t[-1] + np.array([0.01, 1.0]), accel[:2], gyro[:2]
+    )  # a gap ends the segment

@@ -42,12 +42,16 @@ def test_rotation_about_a_fixed_axis_has_the_cubic_rules_error():
     assert np.max(_angle_between(truth, q)) == pytest.approx(predicted, rel=0.05)
 
 
-def _classic_coning(beta_rad: float, cone_rps: float, rate_hz: float, duration_s: float, *, coning: bool) -> float:
+def _classic_coning(
+    beta_rad: float, cone_rps: float, rate_hz: float, duration_s: float, *, coning: bool
+) -> float:
     """Drift rate (rad/s) of the integrated attitude against the exact classic coning attitude."""
     t = np.arange(0.0, duration_s + 0.5 / rate_hz, 1.0 / rate_hz)
     s, c = np.sin(beta_rad / 2), np.cos(beta_rad / 2)
     # Truth: rotation vector of fixed length β turning in the x-y plane; its body rate in closed form.
-    truth = np.column_stack([s * np.cos(cone_rps * t), s * np.sin(cone_rps * t), np.zeros_like(t), np.full_like(t, c)])
+    truth = np.column_stack(
+        [s * np.cos(cone_rps * t), s * np.sin(cone_rps * t), np.zeros_like(t), np.full_like(t, c)]
+    )
     w = np.column_stack(
         [
             -cone_rps * np.sin(beta_rad) * np.sin(cone_rps * t),
@@ -62,7 +66,11 @@ def _classic_coning(beta_rad: float, cone_rps: float, rate_hz: float, duration_s
 def test_coning_correction_removes_the_coning_drift():
     beta, cone = np.radians(2.0), 2 * np.pi * 5.0
     rectified = cone * (1.0 - np.cos(beta))  # the mean body rate the attitude must cancel
-    drift = {(fs, con): _classic_coning(beta, cone, fs, 10.0, coning=con) for fs in (100.0, 200.0) for con in (False, True)}
+    drift = {
+        (fs, con): _classic_coning(beta, cone, fs, 10.0, coning=con)
+        for fs in (100.0, 200.0)
+        for con in (False, True)
+    }
     for fs in (100.0, 200.0):
         # Without the correction the algorithm drifts by rectified·(Ωh)²/6 to first order in (Ωh)².
         predicted = rectified * (cone / fs) ** 2 / 6.0
@@ -80,10 +88,14 @@ def test_euler_angles_round_trip_and_follow_the_papers_axes():
     back = euler_from_quat(quat_from_euler(angles), unwrap=False)
     np.testing.assert_allclose(back, angles, atol=1e-12)
     # Yaw alone turns the forward axis X about the vertical Y towards −Z (right-hand rule about Y).
-    x_fwd = Rotation.from_quat(quat_from_euler(np.array([0.0, np.pi / 2, 0.0]))).apply([1.0, 0.0, 0.0])
+    x_fwd = Rotation.from_quat(quat_from_euler(np.array([0.0, np.pi / 2, 0.0]))).apply(
+        [1.0, 0.0, 0.0]
+    )
     np.testing.assert_allclose(x_fwd, [0.0, 0.0, -1.0], atol=1e-15)
     # Pitch alone lifts the nose: X turns towards Y (up).
-    x_fwd = Rotation.from_quat(quat_from_euler(np.array([0.0, 0.0, np.pi / 2]))).apply([1.0, 0.0, 0.0])
+    x_fwd = Rotation.from_quat(quat_from_euler(np.array([0.0, 0.0, np.pi / 2]))).apply(
+        [1.0, 0.0, 0.0]
+    )
     np.testing.assert_allclose(x_fwd, [0.0, 1.0, 0.0], atol=1e-15)
 
 
@@ -118,7 +130,11 @@ def test_a_batch_integrates_like_its_members():
 def test_quaternion_helpers_agree_with_scipy():
     rng = np.random.default_rng(4)
     p, q = Rotation.random(5, random_state=rng), Rotation.random(5, random_state=rng)
-    np.testing.assert_allclose(np.abs(np.sum(quat_multiply(p.as_quat(), q.as_quat()) * (p * q).as_quat(), axis=1)), 1.0, atol=1e-14)
+    np.testing.assert_allclose(
+        np.abs(np.sum(quat_multiply(p.as_quat(), q.as_quat()) * (p * q).as_quat(), axis=1)),
+        1.0,
+        atol=1e-14,
+    )
     v = np.array([0.1, 9.8, -0.3])
     np.testing.assert_allclose(rotate_to_body(p.as_quat(), v), p.inv().apply(v), atol=1e-13)
 

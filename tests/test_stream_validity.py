@@ -21,7 +21,9 @@ GYRO_NOISE_RPS = 1e-3
 
 def static_samples(rng: np.random.Generator, n: int, *, t0_s: float = 0.0):
     t = t0_s + np.arange(n) / RATE_HZ
-    accel = np.array([0.0, 0.0, STANDARD_GRAVITY_MPS2]) + ACCEL_NOISE_MPS2 * rng.standard_normal((n, 3))
+    accel = np.array([0.0, 0.0, STANDARD_GRAVITY_MPS2]) + ACCEL_NOISE_MPS2 * rng.standard_normal(
+        (n, 3)
+    )
     gyro = GYRO_NOISE_RPS * rng.standard_normal((n, 3))
     return t, accel, gyro
 
@@ -52,7 +54,11 @@ def test_noisy_stream_is_never_stale_and_stuck_gyro_is_named():
     _, a, g = static_samples(rng, 100)
     g[:, 2] = 0.0123
     rep = sv.update(accel_mps2=a, gyro_rps=g, bad=np.zeros(100, bool), arrival_s=10.1)
-    assert rep.changes == () and [s.axis for s in rep.stale] == ["z"] and rep.stale[0].run_samples == 600
+    assert (
+        rep.changes == ()
+        and [s.axis for s in rep.stale] == ["z"]
+        and rep.stale[0].run_samples == 600
+    )
 
 
 def test_run_spanning_batches_and_bad_samples_do_not_break_it():
@@ -95,12 +101,29 @@ def test_every_change_inside_one_batch_is_reported_in_time_order():
     a[:150, 0] = 0.5
     a[200:350, 0] = 0.7
     g[300:420, 2] = 0.001
-    whole = StreamValidity().update(accel_mps2=a, gyro_rps=g, bad=np.zeros(600, bool), arrival_s=0.0, t_s=t)
+    whole = StreamValidity().update(
+        accel_mps2=a, gyro_rps=g, bad=np.zeros(600, bool), arrival_s=0.0, t_s=t
+    )
     one = StreamValidity()
-    singles = [c for k in range(600) for c in one.update(accel_mps2=a[k : k + 1], gyro_rps=g[k : k + 1], bad=np.zeros(1, bool), arrival_s=0.0, t_s=t[k : k + 1]).changes]
+    singles = [
+        c
+        for k in range(600)
+        for c in one.update(
+            accel_mps2=a[k : k + 1],
+            gyro_rps=g[k : k + 1],
+            bad=np.zeros(1, bool),
+            arrival_s=0.0,
+            t_s=t[k : k + 1],
+        ).changes
+    ]
     assert whole.changes == tuple(singles)
     assert [(c.axis, c.stale, c.t_s) for c in whole.changes] == [
-        ("x", True, t[99]), ("x", False, t[150]), ("x", True, t[299]), ("x", False, t[350]), ("z", True, t[399]), ("z", False, t[420]),
+        ("x", True, t[99]),
+        ("x", False, t[150]),
+        ("x", True, t[299]),
+        ("x", False, t[350]),
+        ("z", True, t[399]),
+        ("z", False, t[420]),
     ]
     assert whole.changes[1].run_samples == 150 and whole.changes[3].value == 0.7
 
@@ -108,7 +131,12 @@ def test_every_change_inside_one_batch_is_reported_in_time_order():
 def test_timeout_uses_the_arrival_clock():
     sv = StreamValidity(limits=ValidityLimits(timeout_s=0.5))
     assert not sv.timed_out(100.0)  # nothing arrived yet: not a timeout but "no data"
-    sv.update(accel_mps2=np.zeros((1, 3)), gyro_rps=np.zeros((1, 3)), bad=np.zeros(1, bool), arrival_s=10.0)
+    sv.update(
+        accel_mps2=np.zeros((1, 3)),
+        gyro_rps=np.zeros((1, 3)),
+        bad=np.zeros(1, bool),
+        arrival_s=10.0,
+    )
     assert not sv.timed_out(10.5) and sv.timed_out(10.51)
 
 
@@ -149,9 +177,13 @@ def test_compare_three_imus_names_the_outlier_only():
 
 
 def test_compare_two_imus_flags_the_pair():
-    v = compare_imus((0, 1), np.array([[0, 0, 9.8], [0, 0.8, 9.8]]), np.zeros((2, 3)), limits=ValidityLimits())
+    v = compare_imus(
+        (0, 1), np.array([[0, 0, 9.8], [0, 0.8, 9.8]]), np.zeros((2, 3)), limits=ValidityLimits()
+    )
     assert v.disagreeing == (0, 1)
-    v = compare_imus((0, 1), np.array([[0, 0, 9.8], [0, 0.6, 9.8]]), np.zeros((2, 3)), limits=ValidityLimits())
+    v = compare_imus(
+        (0, 1), np.array([[0, 0, 9.8], [0, 0.6, 9.8]]), np.zeros((2, 3)), limits=ValidityLimits()
+    )
     assert v.disagreeing == ()
 
 
@@ -202,7 +234,9 @@ def test_cross_imu_monitor_compares_every_bin_when_each_imu_sends_long_frames():
     for frame in range(6):
         for imu in (0, 1):
             t = frame * 25.0 + np.arange(100) * 0.25
-            a = np.tile([0.0, 0.0, -9.81], (100, 1)) + ACCEL_NOISE_MPS2 * rng.standard_normal((100, 3))
+            a = np.tile([0.0, 0.0, -9.81], (100, 1)) + ACCEL_NOISE_MPS2 * rng.standard_normal(
+                (100, 3)
+            )
             g = 1e-3 * rng.standard_normal((100, 3))
             if imu == 1:
                 a[(t >= 60.0) & (t < 70.0), 0] += 1.0

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from protocols._schema import SchemaError
 from protocols.events import ImuState, ImuStatus, Severity, Status, encode_event, make_event
 from protocols.frames import FrameError, SampleBatch, SampleDtype, encode_frame
 from protocols.zenoh_adapter import (
@@ -30,7 +31,6 @@ from protocols.zenoh_adapter import (
     zenoh_config,
 )
 from protocols.zenoh_router import RouterProcess, free_local_port
-from protocols._schema import SchemaError
 
 pytestmark = pytest.mark.network
 WAIT_S = 10.0
@@ -63,21 +63,32 @@ def pair(router):
 
 
 def _event(t_s=1.0, vehicle="v1"):
-    return make_event(vehicle=vehicle, imu=0, t_s=t_s, predicate="F0", cause="out_of_shell", severity=Severity.WARNING,
-                      triad="accel", estimate=0.05, tolerance=0.01)
+    return make_event(
+        vehicle=vehicle,
+        imu=0,
+        t_s=t_s,
+        predicate="F0",
+        cause="out_of_shell",
+        severity=Severity.WARNING,
+        triad="accel",
+        estimate=0.05,
+        tolerance=0.01,
+    )
 
 
 # ------------------------------------------------------------------ config and keys
 
 
 def test_config_from_plain_dict_passes_security_fields_through():
-    settings = ZenohSettings.from_dict({
-        "mode": "client",
-        "connect": ["tls/router.local:7447"],
-        "tls": {"root_ca_certificate": "/etc/ins/ca.pem", "enable_mtls": True},
-        "access_control": {"enabled": True, "default_permission": "deny"},
-        "extra": {"scouting/gossip/enabled": False},
-    })
+    settings = ZenohSettings.from_dict(
+        {
+            "mode": "client",
+            "connect": ["tls/router.local:7447"],
+            "tls": {"root_ca_certificate": "/etc/ins/ca.pem", "enable_mtls": True},
+            "access_control": {"enabled": True, "default_permission": "deny"},
+            "extra": {"scouting/gossip/enabled": False},
+        }
+    )
     cfg = zenoh_config(settings)
     get = lambda key: json.loads(cfg.get_json(key))  # noqa: E731
     assert get("mode") == "client"
@@ -90,15 +101,18 @@ def test_config_from_plain_dict_passes_security_fields_through():
     assert settings.mode is Mode.CLIENT
 
 
-@pytest.mark.parametrize("table,match", [
-    ({"mode": "satellite"}, "mode must be one of"),
-    ({"connect": "tcp/127.0.0.1:7447"}, "connect must be a list"),
-    ({"listen": ["nowhere"]}, "listen must be a list of endpoints"),
-    ({"colour": "blue"}, r"unknown zenoh setting\(s\) \['colour'\]"),
-    ({"connect_timeout_s": -1}, "connect_timeout_s must be"),
-    ({"multicast_scouting": "yes"}, "multicast_scouting must be true or false"),
-    ({"extra": {"no/such/key": 1}}, "zenoh rejects configuration no/such/key"),
-])
+@pytest.mark.parametrize(
+    "table,match",
+    [
+        ({"mode": "satellite"}, "mode must be one of"),
+        ({"connect": "tcp/127.0.0.1:7447"}, "connect must be a list"),
+        ({"listen": ["nowhere"]}, "listen must be a list of endpoints"),
+        ({"colour": "blue"}, r"unknown zenoh setting\(s\) \['colour'\]"),
+        ({"connect_timeout_s": -1}, "connect_timeout_s must be"),
+        ({"multicast_scouting": "yes"}, "multicast_scouting must be true or false"),
+        ({"extra": {"no/such/key": 1}}, "zenoh rejects configuration no/such/key"),
+    ],
+)
 def test_bad_settings_are_one_line_value_errors(table, match):
     with pytest.raises(ValueError, match=match):
         zenoh_config(table)
@@ -109,7 +123,13 @@ def test_keys():
     assert parse_frame_key("ins/uav-1/imu/2") == ("uav-1", 2)
     assert frame_selectors() == ("ins/*/imu/*",)
     assert frame_selectors(["a", "b"]) == ("ins/a/imu/*", "ins/b/imu/*")
-    for bad in ("ins/uav-1/imu/x", "ins/uav-1/health/events", "ins/a/b/imu/1", "ins/uav-1/imu/256", "ins/u$*/imu/1"):
+    for bad in (
+        "ins/uav-1/imu/x",
+        "ins/uav-1/health/events",
+        "ins/a/b/imu/1",
+        "ins/uav-1/imu/256",
+        "ins/u$*/imu/1",
+    ):
         with pytest.raises(FrameError, match="key_mismatch"):
             parse_frame_key(bad)
     with pytest.raises(SchemaError, match="vehicle id"):
@@ -176,7 +196,12 @@ def test_bad_frames_are_counted_by_reason_and_the_source_keeps_going(pair):
     rejects = []
 
     async def run():
-        with FrameSource(b, ["ins/v2/imu/*"], max_frame_bytes=1_000, on_reject=lambda k, e: rejects.append((k, e.reason.value))) as source:
+        with FrameSource(
+            b,
+            ["ins/v2/imu/*"],
+            max_frame_bytes=1_000,
+            on_reject=lambda k, e: rejects.append((k, e.reason.value)),
+        ) as source:
             probe = a.declare_publisher("ins/v2/imu/0")
             wait_until(lambda: probe.matching_status.matching)
             for key, payload in bad:
@@ -189,7 +214,13 @@ def test_bad_frames_are_counted_by_reason_and_the_source_keeps_going(pair):
     out, counters = asyncio.run(run())
     assert out == good
     assert counters.rejected == {
-        "malformed": 1, "unknown_version": 1, "wrong_type": 1, "wrong_length": 1, "non_finite": 1, "key_mismatch": 1, "too_large": 1,
+        "malformed": 1,
+        "unknown_version": 1,
+        "wrong_type": 1,
+        "wrong_length": 1,
+        "non_finite": 1,
+        "key_mismatch": 1,
+        "too_large": 1,
     }
     assert counters.received == 8 and counters.accepted == 1
     assert counters.as_dict()["frames.rejected.key_mismatch"] == 1
@@ -202,7 +233,9 @@ def test_flood_beyond_capacity_drops_oldest_and_counts(pair):
 
     async def run():
         with FrameSource(b, ["ins/v3/imu/*"], capacity=capacity) as source:
-            with FramePublisher(a, "v3", 0, batch_samples=1, congestion_control=zenoh.CongestionControl.BLOCK) as pub:
+            with FramePublisher(
+                a, "v3", 0, batch_samples=1, congestion_control=zenoh.CongestionControl.BLOCK
+            ) as pub:
                 wait_until(lambda: pub.matched)
                 t, acc, gyr, _ = _samples(n_frames)
                 pub.add(t, acc, gyr)
@@ -223,18 +256,30 @@ def test_subscriptions_split_a_fleet_by_key_expression(pair):
     vehicles = ["fleetA-1", "fleetA-2", "fleetB-1"]
 
     async def run():
-        with FrameSource(b, ["ins/fleetA-$*/imu/*"]) as fleet_a, FrameSource(b, ["ins/fleetB-1/imu/*"]) as fleet_b, FrameSource(b) as everyone:
+        with (
+            FrameSource(b, ["ins/fleetA-$*/imu/*"]) as fleet_a,
+            FrameSource(b, ["ins/fleetB-1/imu/*"]) as fleet_b,
+            FrameSource(b) as everyone,
+        ):
             pubs = [FramePublisher(a, v, 0, batch_samples=1) for v in vehicles]
             for pub in pubs:
                 wait_until(lambda: pub.matched)
                 pub.add(0.0, [0, 0, 9.8], [0, 0, 0])
                 pub.close()
-            wait_until(lambda: everyone.counters.received == 3 and fleet_a.counters.received == 2 and fleet_b.counters.received == 1)
+            wait_until(
+                lambda: (
+                    everyone.counters.received == 3
+                    and fleet_a.counters.received == 2
+                    and fleet_b.counters.received == 1
+                )
+            )
             drain = lambda s: sorted(x.vehicle for x in iter(s.get_nowait, None))  # noqa: E731
             return drain(fleet_a), drain(fleet_b), drain(everyone)
 
     got_a, got_b, got_all = asyncio.run(run())
-    assert got_a == ["fleetA-1", "fleetA-2"] and got_b == ["fleetB-1"] and got_all == sorted(vehicles)
+    assert (
+        got_a == ["fleetA-1", "fleetA-2"] and got_b == ["fleetB-1"] and got_all == sorted(vehicles)
+    )
 
 
 def test_float32_frames_through_zenoh(pair):
@@ -242,7 +287,10 @@ def test_float32_frames_through_zenoh(pair):
     t, acc, gyr, _ = _samples(20)
 
     async def run():
-        with FrameSource(b, ["ins/v4/imu/*"]) as source, FramePublisher(a, "v4", 1, batch_samples=20, dtype=SampleDtype.F32) as pub:
+        with (
+            FrameSource(b, ["ins/v4/imu/*"]) as source,
+            FramePublisher(a, "v4", 1, batch_samples=20, dtype=SampleDtype.F32) as pub,
+        ):
             wait_until(lambda: pub.matched)
             pub.add(t, acc, gyr)
             return await asyncio.wait_for(source.get(), WAIT_S)
@@ -267,7 +315,10 @@ def test_source_close_ends_iteration():
 def test_event_acknowledged_end_to_end_once_per_id(pair):
     a, b = pair
     got = []
-    with EventReceiver(b, got.append, vehicles="v1") as receiver, EventPublisher(a, ack_timeout_s=WAIT_S) as pub:
+    with (
+        EventReceiver(b, got.append, vehicles="v1") as receiver,
+        EventPublisher(a, ack_timeout_s=WAIT_S) as pub,
+    ):
         e1, e2 = _event(1.0), _event(2.0)
         wait_until(lambda: pub.ready("v1"))
         assert pub.publish(e1) is True
@@ -282,13 +333,15 @@ def test_event_acknowledged_end_to_end_once_per_id(pair):
 def test_event_without_an_acknowledging_receiver_is_not_acknowledged(pair):
     a, b = pair
     passive = []
-    with EventReceiver(b, passive.append, acknowledge=False) as receiver, EventPublisher(a, ack_timeout_s=0.2) as pub, \
-            EventPublisher(a, ack=AckMode.MATCHED) as probe:
+    with (
+        EventReceiver(b, passive.append, acknowledge=False) as receiver,
+        EventPublisher(a, ack_timeout_s=0.2) as pub,
+        EventPublisher(a, ack=AckMode.MATCHED) as probe,
+    ):
         wait_until(lambda: probe.ready("v1"))  # the plain subscriber is routed ...
         assert not pub.ready("v1")  # ... but nobody acknowledges
         assert pub.publish(_event(3.0)) is False  # nobody confirmed it: the outbox must retry
         wait_until(lambda: receiver.received == 1)  # the put still reached the plain subscriber
-
 
 
 def test_matched_mode_acknowledges_when_a_subscriber_is_routed(pair):
@@ -319,8 +372,17 @@ def test_receiver_rejects_and_answers_bad_ack_queries(pair):
 def test_status_round_trip(pair):
     a, b = pair
     got, done = [], threading.Event()
-    st = Status(vehicle="v1", service="svc", t_s=1.7e9, counters={"frames.accepted": 3}, imus=(ImuStatus(0, ImuState.OK, samples=300),))
-    with subscribe_status(b, lambda s: (got.append(s), done.set()), vehicles="v1"), StatusPublisher(a) as pub:
+    st = Status(
+        vehicle="v1",
+        service="svc",
+        t_s=1.7e9,
+        counters={"frames.accepted": 3},
+        imus=(ImuStatus(0, ImuState.OK, samples=300),),
+    )
+    with (
+        subscribe_status(b, lambda s: (got.append(s), done.set()), vehicles="v1"),
+        StatusPublisher(a) as pub,
+    ):
         # Status is periodic and may be dropped: publish until one arrives.
         wait_until(lambda: pub.publish(st) or done.is_set())
     assert got[0] == st
@@ -332,12 +394,17 @@ def test_router_restart_events_held_then_delivered():
     router = RouterProcess(endpoint).start()
     try:
         with client(endpoint) as service, client(endpoint) as ground:
-            with EventReceiver(ground, got.append), EventPublisher(service, ack_timeout_s=1.0) as pub:
+            with (
+                EventReceiver(ground, got.append),
+                EventPublisher(service, ack_timeout_s=1.0) as pub,
+            ):
                 wait_until(lambda: pub.ready("v1"))
                 assert pub.publish(_event(10.0))
                 router.kill()
                 held = _event(11.0)
-                assert pub.publish(held) is False  # router down: not acknowledged, the caller keeps it
+                assert (
+                    pub.publish(held) is False
+                )  # router down: not acknowledged, the caller keeps it
                 router.start()
                 # Both clients reconnect by themselves; the held event then goes through.
                 wait_until(lambda: pub.publish(held), timeout_s=30.0)

@@ -79,8 +79,8 @@ from .statistics import (
     position_table,
     scalar_residuals,
     static_mask,
-    triad_curves,
     subset_table,
+    triad_curves,
     triad_statistics,
     with_noise_cov,
 )
@@ -128,7 +128,9 @@ class TriadBaseline:
         return {
             "params": [float(v) for v in self.params],
             "white_sd_si": [float(v) for v in self.white_sd_si],
-            "quant_step_si": None if self.quant_step_si is None else [float(v) for v in self.quant_step_si],
+            "quant_step_si": None
+            if self.quant_step_si is None
+            else [float(v) for v in self.quant_step_si],
             "rate_hz": float(self.rate_hz),
             "mean_noise_sd_si": [float(v) for v in self.mean_noise_sd_si],
             "excess_sd_norm": [float(v) for v in self.excess_sd_norm],
@@ -147,7 +149,12 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
     """
     white = baseline.white_sd_si / reference
     window_s = n_avg / baseline.rate_hz
-    wander = np.array([s * s * float(mean_variance_factor(np.array([window_s]), float(t))[0]) for s, t in zip(baseline.gm_sigma_norm, baseline.gm_tau_s)])
+    wander = np.array(
+        [
+            s * s * float(mean_variance_factor(np.array([window_s]), float(t))[0])
+            for s, t in zip(baseline.gm_sigma_norm, baseline.gm_tau_s, strict=True)
+        ]
+    )
     return np.sqrt(white**2 + n_avg * wander)
 
 
@@ -156,7 +163,9 @@ def _angles_from_cosines(d: np.ndarray) -> np.ndarray:
     return np.array([0.0, 0.0, 0.0, -d[0], -(d[2] - d[0] * d[1]), d[1]])
 
 
-def fit_baseline(session: ImuSession, chain: ChainResult, triad: Triad, *, window_s: float = NOISE_WINDOW_S) -> TriadBaseline:
+def fit_baseline(
+    session: ImuSession, chain: ChainResult, triad: Triad, *, window_s: float = NOISE_WINDOW_S
+) -> TriadBaseline:
     """Baseline model of ``triad`` (module docstring, step 1).
 
     White noise: the per-sample spread about a ``window_s`` moving mean
@@ -168,18 +177,28 @@ def fit_baseline(session: ImuSession, chain: ChainResult, triad: Triad, *, windo
     """
     x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
     spans = [(p.index_start, p.index_stop) for p in chain.positions]
-    window = max(2, int(round(window_s * session.rate_hz)))
+    window = max(2, round(window_s * session.rate_hz))
     usable = [(a, b) for a, b in spans if b - a >= 2 * window]
     if not usable:
-        raise ValueError(f"no position holds two {window_s} s windows: the white noise cannot be read")
+        raise ValueError(
+            f"no position holds two {window_s} s windows: the white noise cannot be read"
+        )
     # Pooled over positions, weighted by their sample counts: each position's own mean and slow wander drop out.
     n = np.array([b - a for a, b in usable], float)
-    sd = np.sqrt(np.sum([k * sample_noise_sd(x[a:b], window) ** 2 for k, (a, b) in zip(n, usable)], axis=0) / n.sum())
+    sd = np.sqrt(
+        np.sum(
+            [k * sample_noise_sd(x[a:b], window) ** 2 for k, (a, b) in zip(n, usable, strict=True)],
+            axis=0,
+        )
+        / n.sum()
+    )
     mean_sd = batch_means_sd([x[a:b] for a, b in usable], window)
     static = x[static_mask(x.shape[0], np.array(spans))]
     steps = [quantization_step(static[:, i]) for i in range(3)]
     quant = None if any(s is None for s in steps) else np.array(steps, float)
-    white = sd if quant is None else np.sqrt(np.clip(sd**2 - quant**2 / 12.0, (0.1 * sd) ** 2, None))
+    white = (
+        sd if quant is None else np.sqrt(np.clip(sd**2 - quant**2 / 12.0, (0.1 * sd) ** 2, None))
+    )
     est = chain.triads[triad].estimate
     if est.params is not None:
         params = np.array(est.params, float)
@@ -193,7 +212,11 @@ def fit_baseline(session: ImuSession, chain: ChainResult, triad: Triad, *, windo
 def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
     """The simulator chain of a baseline (non-orthogonality, scale, bias, white noise, quantization)."""
     p = base.params
-    effects = [NonOrthogonality(_angles_from_cosines(p[6:9])), ScaleFactor(p[3:6]), Bias(p[:3] * reference)]
+    effects = [
+        NonOrthogonality(_angles_from_cosines(p[6:9])),
+        ScaleFactor(p[3:6]),
+        Bias(p[:3] * reference),
+    ]
     effects.append(WhiteNoise.from_sample_sd(base.white_sd_si, 1.0))
     if base.quant_step_si is not None:
         effects.append(Quantization(base.quant_step_si, Rounding.NEAREST))
@@ -210,12 +233,24 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
     up = np.array([p.accel_mean_mps2 for p in chain.positions], float)
     trim = 2.0 * 0.25
     hold = np.array([p.duration_s for p in chain.positions]) + trim
-    gaps = np.array([b.t_start_s - a.t_end_s for a, b in zip(chain.positions[:-1], chain.positions[1:])]) - trim
-    profile = multi_position_profile(tilt_sequence(up), static_s=hold, transition_s=np.clip(gaps, 0.5, None))
+    gaps = (
+        np.array(
+            [
+                b.t_start_s - a.t_end_s
+                for a, b in zip(chain.positions[:-1], chain.positions[1:], strict=True)
+            ]
+        )
+        - trim
+    )
+    profile = multi_position_profile(
+        tilt_sequence(up), static_s=hold, transition_s=np.clip(gaps, 0.5, None)
+    )
     # White noise density is per √Hz: scale the per-sample level to the session's rate.
     rate = session.rate_hz
     model = ErrorModel(
-        accel=_at_rate(model.accel, rate), gyro=_at_rate(model.gyro, rate), environment=model.environment
+        accel=_at_rate(model.accel, rate),
+        gyro=_at_rate(model.gyro, rate),
+        environment=model.environment,
     )
     return SessionSpec(profile, model, rate_hz=rate, gravity_mps2=chain.gravity_mps2)
 
@@ -305,17 +340,35 @@ class AuditResult:
             "replicas": self.replicas,
             "baseline": block(self.baseline_cmp, self.baseline),
             "candidates": [c.to_dict() for c in self.candidates],
-            "named_causes": [{"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "evidence": c.reason, "params": c.params} for c in self.named],
-            "extended": {**block(self.extended_cmp, self.extended_model), "effects_added": self.extension},
+            "named_causes": [
+                {
+                    "effect": c.effect,
+                    "triad": c.triad.value,
+                    "axis": c.axis,
+                    "evidence": c.reason,
+                    "params": c.params,
+                }
+                for c in self.named
+            ],
+            "extended": {
+                **block(self.extended_cmp, self.extended_model),
+                "effects_added": self.extension,
+            },
             "gain": self.gain,
         }
 
 
 def _present(session: ImuSession) -> tuple[Triad, ...]:
-    return tuple(t for t, a in ((Triad.ACCEL, session.accel_mps2), (Triad.GYRO, session.gyro_rps)) if a is not None)
+    return tuple(
+        t
+        for t, a in ((Triad.ACCEL, session.accel_mps2), (Triad.GYRO, session.gyro_rps))
+        if a is not None
+    )
 
 
-def fit_baselines(session: ImuSession, chain: ChainResult, *, window_s: float = NOISE_WINDOW_S) -> dict[Triad, TriadBaseline]:
+def fit_baselines(
+    session: ImuSession, chain: ChainResult, *, window_s: float = NOISE_WINDOW_S
+) -> dict[Triad, TriadBaseline]:
     """:func:`fit_baseline` of every triad the session has."""
     return {t: fit_baseline(session, chain, t, window_s=window_s) for t in _present(session)}
 
@@ -326,26 +379,43 @@ def quantization_candidate(triad: Triad, base: TriadBaseline) -> Candidate:
     if q is None:
         return Candidate("quantization", triad, None, True, reason="output not on a grid")
     share = q / np.sqrt(12.0) / np.maximum(base.white_sd_si, 1e-300)
-    return Candidate("quantization", triad, None, True, params={"step_si": [float(v) for v in q]}, in_baseline=True,
-                     reason=f"output on a grid of {', '.join(f'{v:.4g}' for v in q)} SI (M2), in the baseline; rounding sd is "
-                            f"{100 * float(np.max(share)):.0f} % of the white noise")
+    return Candidate(
+        "quantization",
+        triad,
+        None,
+        True,
+        params={"step_si": [float(v) for v in q]},
+        in_baseline=True,
+        reason=f"output on a grid of {', '.join(f'{v:.4g}' for v in q)} SI (M2), in the baseline; rounding sd is "
+        f"{100 * float(np.max(share)):.0f} % of the white noise",
+    )
 
 
 def candidate_table(chain: ChainResult, session: ImuSession, triad: Triad, base: TriadBaseline):
     """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages."""
     x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
     tab = position_table(chain, x, session.t_s, triad, session.temp_c)
-    return with_noise_cov(tab, base.mean_noise_sd_si / reference_magnitude(triad, chain.gravity_mps2))
+    return with_noise_cov(
+        tab, base.mean_noise_sd_si / reference_magnitude(triad, chain.gravity_mps2)
+    )
 
 
-def find_candidates(session: ImuSession, chain: ChainResult, baselines: dict[Triad, TriadBaseline], *, batch_s: float = NOISE_WINDOW_S) -> list[Candidate]:
+def find_candidates(
+    session: ImuSession,
+    chain: ChainResult,
+    baselines: dict[Triad, TriadBaseline],
+    *,
+    batch_s: float = NOISE_WINDOW_S,
+) -> list[Candidate]:
     """Every candidate effect of :mod:`estimators.audit.candidates` on a session with ≥ MIN_POSITIONS positions.
 
     ``session`` is the validated session the chain ran on (position spans index it);
     ``batch_s`` the window of the baselines' noise for averages, s (what of a wander it already holds).
     """
     if len(chain.positions) < MIN_POSITIONS:
-        raise ValueError(f"candidates need at least {MIN_POSITIONS} static positions, got {len(chain.positions)}")
+        raise ValueError(
+            f"candidates need at least {MIN_POSITIONS} static positions, got {len(chain.positions)}"
+        )
     g = chain.gravity_mps2
     triads = _present(session)
     gyro = Triad.GYRO in triads
@@ -356,20 +426,42 @@ def find_candidates(session: ImuSession, chain: ChainResult, baselines: dict[Tri
     keep = np.ones(n, bool)
     # Screen for disturbed positions, refit without them, until none is left (a few rounds at most).
     for _ in range(SCREENING_ROUNDS):
-        cands, records, final = _fit_candidates(subset_table(tab_a, keep), None if tab_g is None else subset_table(tab_g, keep), baselines, g, n_tests, batch_s)
-        flagged = np.flatnonzero(keep)[disturbed_positions(records, final, int(keep.sum()), n_tests)]
+        cands, records, final = _fit_candidates(
+            subset_table(tab_a, keep),
+            None if tab_g is None else subset_table(tab_g, keep),
+            baselines,
+            g,
+            n_tests,
+            batch_s,
+        )
+        flagged = np.flatnonzero(keep)[
+            disturbed_positions(records, final, int(keep.sum()), n_tests)
+        ]
         if flagged.size == 0 or keep.sum() - flagged.size < MIN_POSITIONS:
             break
         keep[flagged] = False
     if not keep.all():
-        cands = [_with_disturbed(c, tab_a, ~keep) if c.effect == "nonstatic_positions" else c for c in cands]
+        cands = [
+            _with_disturbed(c, tab_a, ~keep) if c.effect == "nonstatic_positions" else c
+            for c in cands
+        ]
     if not gyro:
-        cands.append(Candidate("g_sensitivity", Triad.GYRO, None, False, reason="not identifiable: the session has no gyro triad"))
+        cands.append(
+            Candidate(
+                "g_sensitivity",
+                Triad.GYRO,
+                None,
+                False,
+                reason="not identifiable: the session has no gyro triad",
+            )
+        )
     cands += [quantization_candidate(t, baselines[t]) for t in triads]
     return cands
 
 
-def _fit_candidates(tab_a, tab_g, baselines: dict[Triad, TriadBaseline], g: float, n_tests: int, batch_s: float):
+def _fit_candidates(
+    tab_a, tab_g, baselines: dict[Triad, TriadBaseline], g: float, n_tests: int, batch_s: float
+):
     """Mean and variance candidates of both triads on the given tables; the records and the selected variance model."""
     resid, sigma, jac, _ = scalar_residuals(baselines[Triad.ACCEL].params, tab_a)
     acc = accel_records(tab_a, jac, resid, sigma, n_tests)
@@ -378,35 +470,56 @@ def _fit_candidates(tab_a, tab_g, baselines: dict[Triad, TriadBaseline], g: floa
         gyr = gyro_records(tab_g, tab_a.mean * g, n_tests)
         cands += gyr.candidates
         records += [gyr.between, gyr.halves]
-    var_cands, final = variance_candidates(variance_effects(tab_g is not None), records, tab_a.duration_s, n_tests, batch_s)
+    var_cands, final = variance_candidates(
+        variance_effects(tab_g is not None), records, tab_a.duration_s, n_tests, batch_s
+    )
     return cands + var_cands, records, final
 
 
 def _with_disturbed(c: Candidate, tab_a, disturbed: np.ndarray) -> Candidate:
     """``nonstatic_positions`` selected for the positions the screening took out (their times in the evidence)."""
     t0 = tab_a.t_mid_s[disturbed] - 0.5 * tab_a.duration_s[disturbed]
-    where = ", ".join(f"#{k} ({t:.1f} s)" for k, t in zip(np.flatnonzero(disturbed), t0))
-    params = c.params | {"disturbed_positions": [int(k) for k in np.flatnonzero(disturbed)], "disturbed_t_start_s": [float(t) for t in t0]}
-    reason = (f"{int(disturbed.sum())} of {disturbed.size} positions move inside: their half-to-half differences lie beyond the fitted noise "
-              f"at the family-wise rate ({where}); left out of every other fit")
-    reason += f"; besides, {c.reason}" if c.selected else f"; no wobble common to every position (LR {c.lr:.1f}, threshold {c.threshold:.1f})"
+    where = ", ".join(
+        f"#{k} ({t:.1f} s)" for k, t in zip(np.flatnonzero(disturbed), t0, strict=True)
+    )
+    params = c.params | {
+        "disturbed_positions": [int(k) for k in np.flatnonzero(disturbed)],
+        "disturbed_t_start_s": [float(t) for t in t0],
+    }
+    reason = (
+        f"{int(disturbed.sum())} of {disturbed.size} positions move inside: their half-to-half differences lie beyond the fitted noise "
+        f"at the family-wise rate ({where}); left out of every other fit"
+    )
+    reason += (
+        f"; besides, {c.reason}"
+        if c.selected
+        else f"; no wobble common to every position (LR {c.lr:.1f}, threshold {c.threshold:.1f})"
+    )
     return replace(c, identifiable=True, params=params, selected=True, reason=reason)
 
 
 def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
     """The audit of one session (module docstring). Never names a cause it could not test: see ``statements``."""
     # The chain's position spans index the validated samples: every later step uses the same ones.
-    session, _ = validate_session(session, accel_limit_mps2=config.chain.accel_limit_mps2, gyro_limit_rps=config.chain.gyro_limit_rps)
+    session, _ = validate_session(
+        session,
+        accel_limit_mps2=config.chain.accel_limit_mps2,
+        gyro_limit_rps=config.chain.gyro_limit_rps,
+    )
     chain_config = replace(config.chain, bias_instability_std=None)
     chain = run_chain(session, chain_config)
     n = len(chain.positions)
     triads = _present(session)
     res = AuditResult([], n, chain.gravity_mps2, replicas=config.replicas)
     if Triad.ACCEL not in triads:
-        res.statements.append("no accelerometer triad: position directions and the scalar equation are unknown; nothing can be concluded")
+        res.statements.append(
+            "no accelerometer triad: position directions and the scalar equation are unknown; nothing can be concluded"
+        )
         return res
     if n == 0:
-        res.statements.append("no static interval found: the scalar equation has nothing to test; no statistic, no candidate, no cause can be concluded")
+        res.statements.append(
+            "no static interval found: the scalar equation has nothing to test; no statistic, no candidate, no cause can be concluded"
+        )
         return res
     if n < MIN_POSITIONS:
         res.statements.append(
@@ -414,45 +527,68 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         )
         return res
     if Triad.GYRO not in triads:
-        res.statements.append("single triad (no gyro): gyro effects (g_sensitivity) are not identifiable")
+        res.statements.append(
+            "single triad (no gyro): gyro effects (g_sensitivity) are not identifiable"
+        )
     tab_a = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL, session.temp_c)
     temp_reason = temperature_reason(tab_a)
     if temp_reason is not None:
-        res.statements.append(f"temperature effects (temperature_bias, temperature_scale) are {temp_reason}")
+        res.statements.append(
+            f"temperature effects (temperature_bias, temperature_scale) are {temp_reason}"
+        )
     if chain.triads[Triad.ACCEL].estimate.params is None:
-        res.statements.append(f"the accelerometer parameters are not observable ({chain.triads[Triad.ACCEL].estimate.reason}): no cause can be concluded")
+        res.statements.append(
+            f"the accelerometer parameters are not observable ({chain.triads[Triad.ACCEL].estimate.reason}): no cause can be concluded"
+        )
         return res
     res.baseline = fit_baselines(session, chain)
     g = chain.gravity_mps2
     model = ErrorModel(
         accel=triad_model(res.baseline[Triad.ACCEL], g),
-        gyro=triad_model(res.baseline[Triad.GYRO], EARTH_RATE_RPS) if Triad.GYRO in triads else TriadErrorModel(),
+        gyro=triad_model(res.baseline[Triad.GYRO], EARTH_RATE_RPS)
+        if Triad.GYRO in triads
+        else TriadErrorModel(),
     )
     for t in triads:
         x = session.accel_mps2 if t is Triad.ACCEL else session.gyro_rps
         res.measured_stats[t] = triad_statistics(chain, x, session.t_s, t, session.rate_hz)
         res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
     spec = same_session_spec(chain, session, model)
-    reps, res.replica_curves["baseline"] = replica_statistics(spec, chain_config, triads, config.replicas, config.seed)
+    reps, res.replica_curves["baseline"] = replica_statistics(
+        spec, chain_config, triads, config.replicas, config.seed
+    )
     res.replica_stats["baseline"] = reps
     res.baseline_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], reps[t])]
 
     res.candidates = find_candidates(session, chain, res.baseline)
     ext_model, res.extended_model = extend_model(model, res.baseline, res.candidates, tab_a, g)
-    res.extension = [{"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params} for c in res.named]
+    res.extension = [
+        {"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params}
+        for c in res.named
+    ]
     if res.named:
         ext_reps, res.replica_curves["extended"] = replica_statistics(
-            same_session_spec(chain, session, ext_model), chain_config, triads, config.replicas, config.seed + 1
+            same_session_spec(chain, session, ext_model),
+            chain_config,
+            triads,
+            config.replicas,
+            config.seed + 1,
         )
         res.replica_stats["extended"] = ext_reps
-        res.extended_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], ext_reps[t])]
+        res.extended_cmp = [
+            c for t in triads for c in compare(t, res.measured_stats[t], ext_reps[t])
+        ]
     else:
         res.extended_cmp = res.baseline_cmp
-    res.gain = _gain(session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g)
+    res.gain = _gain(
+        session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g
+    )
     return res
 
 
-def extend_model(model: ErrorModel, baseline: dict[Triad, TriadBaseline], cands: list[Candidate], tab_a, g: float) -> tuple[ErrorModel, dict[Triad, TriadBaseline]]:
+def extend_model(
+    model: ErrorModel, baseline: dict[Triad, TriadBaseline], cands: list[Candidate], tab_a, g: float
+) -> tuple[ErrorModel, dict[Triad, TriadBaseline]]:
     """The simulator's error model with every selected effect at its fitted parameters, and the surviving noise per triad.
 
     Physical units of the simulator (:mod:`estimators.sim.errors`) from the
@@ -479,9 +615,17 @@ def extend_model(model: ErrorModel, baseline: dict[Triad, TriadBaseline], cands:
             gm_sigma[c.triad][i] = c.params["gm_sigma_norm"]
             gm_tau[c.triad][i] = c.params["gm_tau_s"]
         elif c.effect == "bias_drift":
-            drift[c.triad][i] = c.params["rate_norm_per_s"] * g if c.triad is Triad.ACCEL else c.params["rate_rps_per_s"]
+            drift[c.triad][i] = (
+                c.params["rate_norm_per_s"] * g
+                if c.triad is Triad.ACCEL
+                else c.params["rate_rps_per_s"]
+            )
         elif c.effect == "temperature_bias":
-            temp_bias[c.triad][i] = c.params["coef_norm_per_c"] * g if c.triad is Triad.ACCEL else c.params["coef_rps_per_c"]
+            temp_bias[c.triad][i] = (
+                c.params["coef_norm_per_c"] * g
+                if c.triad is Triad.ACCEL
+                else c.params["coef_rps_per_c"]
+            )
         elif c.effect == "temperature_scale":
             temp_scale[i] = c.params["coef_per_c"]
         elif c.effect == "scale_nonlinearity":
@@ -490,13 +634,21 @@ def extend_model(model: ErrorModel, baseline: dict[Triad, TriadBaseline], cands:
             gsens[i] = [c.params[f"g{a}_rps_per_mps2"] for a in AXES]
         elif c.effect == "nonstatic_positions" and c.params["angle_rms_rad"] > 0:
             # Disturbed single positions are not simulated: the simulator moves every position or none.
-            ext = ext.with_effect(NonstaticPositions(angle_rms_rad=c.params["angle_rms_rad"], band_hz=tuple(c.params["band_hz"])))
+            ext = ext.with_effect(
+                NonstaticPositions(
+                    angle_rms_rad=c.params["angle_rms_rad"], band_hz=tuple(c.params["band_hz"])
+                )
+            )
     t_ref = float(np.mean(tab_a.temp_c)) if tab_a.temp_c is not None else 20.0
     for t, b in list(base.items()):
         ref = g if t is Triad.ACCEL else EARTH_RATE_RPS
-        base[t] = replace(b, excess_sd_norm=excess[t], gm_sigma_norm=gm_sigma[t], gm_tau_s=gm_tau[t])
+        base[t] = replace(
+            b, excess_sd_norm=excess[t], gm_sigma_norm=gm_sigma[t], gm_tau_s=gm_tau[t]
+        )
         if np.any(gm_sigma[t] > 0):
-            ext = ext.with_effect(BiasInstability(gm_sigma_si=gm_sigma[t] * ref, gm_tau_s=gm_tau[t]), t)
+            ext = ext.with_effect(
+                BiasInstability(gm_sigma_si=gm_sigma[t] * ref, gm_tau_s=gm_tau[t]), t
+            )
         if np.any(drift[t]):
             ext = ext.with_effect(BiasDrift(drift[t][:, None]), t)
         if np.any(temp_bias[t]):
@@ -540,8 +692,12 @@ def _gain(session: ImuSession, tab_a, res: AuditResult, g: float) -> dict:
     mask = static_mask(session.n_samples, tab_a.spans)
     for name, model in (("baseline", base), ("extended", ext)):
         std = effective_noise_std_norm(model, g, n_avg)
-        lam = derive_lambda0(noise_std_norm=std, false_alarm_prob=F0_FALSE_ALARM_PROB,
-                             quantization_norm=None if model.quant_step_si is None else model.quant_step_si / g, n_avg=n_avg)
+        lam = derive_lambda0(
+            noise_std_norm=std,
+            false_alarm_prob=F0_FALSE_ALARM_PROB,
+            quantization_norm=None if model.quant_step_si is None else model.quant_step_si / g,
+            n_avg=n_avg,
+        )
         r = f0_batch(session.accel_mps2, mask, f0_config(base.params, g, lam.lambda0, n_avg))
         out[f"f0_lambda0_{name}"] = float(lam.lambda0)
         out[f"f0_false_alarm_rate_{name}"] = float(r.n_fail / max(r.n_tests, 1))

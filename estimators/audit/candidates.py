@@ -177,7 +177,9 @@ def _loo_rss(a: np.ndarray, z: np.ndarray) -> tuple[float, float, np.ndarray]:
     return float(e @ e), float(loo @ loo), coef
 
 
-def mean_test(base: np.ndarray, extra: np.ndarray, z: np.ndarray) -> tuple[float, float, np.ndarray, np.ndarray]:
+def mean_test(
+    base: np.ndarray, extra: np.ndarray, z: np.ndarray
+) -> tuple[float, float, np.ndarray, np.ndarray]:
     """Likelihood ratio (common scale free), held-out ratio, the extra coefficients and their standard errors.
 
     ``base`` (n, p) and ``extra`` (n, k) are already weighted regressors, ``z`` (n,) the weighted data.
@@ -222,8 +224,17 @@ def forward_select(base: np.ndarray, z: np.ndarray, regs: dict, n_tests: int) ->
     while remaining:
         for key in remaining:
             lr, cv, coef, se = mean_test(current, regs[key], z)
-            tests[key] = MeanTest(lr, _threshold_mean(regs[key].shape[1], z.size, current.shape[1], n_tests), cv, coef, se, False)
-        passing = [k for k in remaining if tests[k].lr > tests[k].threshold and tests[k].cv_ratio < 1.0]
+            tests[key] = MeanTest(
+                lr,
+                _threshold_mean(regs[key].shape[1], z.size, current.shape[1], n_tests),
+                cv,
+                coef,
+                se,
+                False,
+            )
+        passing = [
+            k for k in remaining if tests[k].lr > tests[k].threshold and tests[k].cv_ratio < 1.0
+        ]
         if not passing:
             break
         best = max(passing, key=lambda k: tests[k].lr - tests[k].threshold)
@@ -281,24 +292,29 @@ class VarianceData:
     rows: np.ndarray
 
     @classmethod
-    def finite(cls, y: np.ndarray, s0: np.ndarray, comps: np.ndarray) -> "VarianceData":
+    def finite(cls, y: np.ndarray, s0: np.ndarray, comps: np.ndarray) -> VarianceData:
         """The rows of ``y`` (n, q), ``s0`` (n, q, q), ``comps`` (m, n, q, q) whose data are finite."""
         ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(s0), axis=(1, 2))
         return cls(y[ok], s0[ok], comps[:, ok], np.flatnonzero(ok))
 
-    def subset(self, keep: np.ndarray) -> "VarianceData":
+    def subset(self, keep: np.ndarray) -> VarianceData:
         """The same data with only the components ``keep`` (bool (m,))."""
         return VarianceData(self.y, self.s0, self.comps[np.asarray(keep, bool)], self.rows)
 
-    def with_fixed(self, theta: np.ndarray, fixed: np.ndarray) -> "VarianceData":
+    def with_fixed(self, theta: np.ndarray, fixed: np.ndarray) -> VarianceData:
         """Components ``fixed`` (bool (m,)) folded into ``s0`` at ``theta``; the rest stay free."""
         fixed = np.asarray(fixed, bool)
         s0 = self.s0 + np.einsum("j,jkab->kab", np.asarray(theta, float)[fixed], self.comps[fixed])
         return VarianceData(self.y, s0, self.comps[~fixed], self.rows)
 
-    def scaled(self, weight: np.ndarray) -> "VarianceData":
+    def scaled(self, weight: np.ndarray) -> VarianceData:
         """The single free component multiplied per position by ``weight`` (indexed by table row)."""
-        return VarianceData(self.y, self.s0, self.comps * np.asarray(weight, float)[self.rows][None, :, None, None], self.rows)
+        return VarianceData(
+            self.y,
+            self.s0,
+            self.comps * np.asarray(weight, float)[self.rows][None, :, None, None],
+            self.rows,
+        )
 
 
 def _nll_score(theta: np.ndarray, data: list[VarianceData]) -> tuple[float, np.ndarray, np.ndarray]:
@@ -314,7 +330,9 @@ def _nll_score(theta: np.ndarray, data: list[VarianceData]) -> tuple[float, np.n
         _, logdet = np.linalg.slogdet(s)
         nll += 0.5 * float(np.sum(logdet) + np.einsum("ka,ka->", d.y, sol))
         s_inv_a = np.linalg.solve(s[None], d.comps)
-        grad += 0.5 * (np.einsum("jkaa->j", s_inv_a) - np.einsum("ka,jkab,kb->j", sol, d.comps, sol))
+        grad += 0.5 * (
+            np.einsum("jkaa->j", s_inv_a) - np.einsum("ka,jkab,kb->j", sol, d.comps, sol)
+        )
         info += 0.5 * np.einsum("jkab,lkba->jl", s_inv_a, s_inv_a)
     return nll, grad, info
 
@@ -372,7 +390,9 @@ def mean_variance_factor(length_s: np.ndarray, tau_s: float) -> np.ndarray:
     return np.where(x < 1e-6, 1.0, 2.0 / np.maximum(x, 1e-6) ** 2 * (x - 1.0 + np.exp(-x)))
 
 
-def gauss_markov_moments(length_s: np.ndarray, tau_s: float, batch_s: float) -> tuple[np.ndarray, np.ndarray]:
+def gauss_markov_moments(
+    length_s: np.ndarray, tau_s: float, batch_s: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Per unit variance of a Gauss–Markov bias (correlation time ``τ``): its excess over the chain's covariance.
 
     Returns (between, halves), each (n,):
@@ -389,13 +409,23 @@ def gauss_markov_moments(length_s: np.ndarray, tau_s: float, batch_s: float) -> 
     half = 0.5 * length
     adjacent = (tau_s / half) ** 2 * (1.0 - np.exp(-half / tau_s)) ** 2
     nb = np.maximum(np.floor(length / batch_s), 2.0)
-    held = np.clip((mean_variance_factor(np.full_like(length, batch_s), tau_s) - mean_variance_factor(length, tau_s)) / (nb - 1.0), 0.0, None)
+    held = np.clip(
+        (
+            mean_variance_factor(np.full_like(length, batch_s), tau_s)
+            - mean_variance_factor(length, tau_s)
+        )
+        / (nb - 1.0),
+        0.0,
+        None,
+    )
     between = np.clip(mean_variance_factor(length, tau_s) - held, 0.0, None)
     halves = np.clip(2.0 * (mean_variance_factor(half, tau_s) - adjacent) - 4.0 * held, 0.0, None)
     return between, halves
 
 
-def fit_gauss_markov(between: VarianceData, halves: VarianceData, length_s: np.ndarray, batch_s: float) -> tuple[float, float]:
+def fit_gauss_markov(
+    between: VarianceData, halves: VarianceData, length_s: np.ndarray, batch_s: float
+) -> tuple[float, float]:
     """(σ², τ_s) of the Gauss–Markov bias of one axis that best explains both records.
 
     ``between`` and ``halves`` carry one free component each: the axis' weight
@@ -449,11 +479,15 @@ class _MeanEffect:
     axis: int
     keys: tuple[str, ...]
     reg: np.ndarray  # (n, k) on the residual (accel) or the mean (gyro)
-    halves: np.ndarray  # (n, k) first-half minus second-half change of axis ``axis`` per unit physical parameter
+    halves: (
+        np.ndarray
+    )  # (n, k) first-half minus second-half change of axis ``axis`` per unit physical parameter
     sign: float  # physical parameter = sign · regression coefficient
 
 
-def _mean_effects(tab: PositionTable, jac: np.ndarray | None, f_b_mps2: np.ndarray | None, axis: int) -> list[_MeanEffect]:
+def _mean_effects(
+    tab: PositionTable, jac: np.ndarray | None, f_b_mps2: np.ndarray | None, axis: int
+) -> list[_MeanEffect]:
     """Mean effects of one axis: accelerometer when ``jac`` is given (exact scalar residual), else gyro."""
     n = tab.t_mid_s.size
     dt = (tab.t_mid_s - tab.t_mid_s.mean())[:, None]
@@ -465,29 +499,63 @@ def _mean_effects(tab: PositionTable, jac: np.ndarray | None, f_b_mps2: np.ndarr
     if jac is not None:
         # The baseline residual is f ≈ J δp − J_θ θ for an effect θ that the model lacks: the sign flips.
         out = [
-            _MeanEffect("bias_drift", i, ("rate_norm_per_s",), jac[:, [i]] * dt, drift_halves, -1.0),
-            _MeanEffect("scale_nonlinearity", i, ("k2_norm", "k3_norm"), jac[:, [3 + i]] * np.column_stack([tab.mean[:, i], tab.mean[:, i] ** 2]), np.zeros((n, 2)), -1.0),
+            _MeanEffect(
+                "bias_drift", i, ("rate_norm_per_s",), jac[:, [i]] * dt, drift_halves, -1.0
+            ),
+            _MeanEffect(
+                "scale_nonlinearity",
+                i,
+                ("k2_norm", "k3_norm"),
+                jac[:, [3 + i]] * np.column_stack([tab.mean[:, i], tab.mean[:, i] ** 2]),
+                np.zeros((n, 2)),
+                -1.0,
+            ),
         ]
         if temp:
             out += [
-                _MeanEffect("temperature_bias", i, ("coef_norm_per_c",), jac[:, [i]] * dtemp, th, -1.0),
-                _MeanEffect("temperature_scale", i, ("coef_per_c",), jac[:, [3 + i]] * dtemp, tab.mean[:, [i]] * th, -1.0),
+                _MeanEffect(
+                    "temperature_bias", i, ("coef_norm_per_c",), jac[:, [i]] * dtemp, th, -1.0
+                ),
+                _MeanEffect(
+                    "temperature_scale",
+                    i,
+                    ("coef_per_c",),
+                    jac[:, [3 + i]] * dtemp,
+                    tab.mean[:, [i]] * th,
+                    -1.0,
+                ),
             ]
         return out
     # Gyro keys are in SI (rad/s): the regression runs on means normalized by Ω.
     out = [
         _MeanEffect("bias_drift", i, ("rate_rps_per_s",), dt, drift_halves, 1.0),
-        _MeanEffect("g_sensitivity", i, tuple(f"g{a}_rps_per_mps2" for a in AXES), f_b_mps2, np.zeros((n, 3)), 1.0),
+        _MeanEffect(
+            "g_sensitivity",
+            i,
+            tuple(f"g{a}_rps_per_mps2" for a in AXES),
+            f_b_mps2,
+            np.zeros((n, 3)),
+            1.0,
+        ),
     ]
     if temp:
         out.append(_MeanEffect("temperature_bias", i, ("coef_rps_per_c",), dtemp, th, 1.0))
     return out
 
 
-def _select_means(effects: list[_MeanEffect], base: np.ndarray, data: np.ndarray, sd: np.ndarray, n_tests: int, n_halves: int):
+def _select_means(
+    effects: list[_MeanEffect],
+    base: np.ndarray,
+    data: np.ndarray,
+    sd: np.ndarray,
+    n_tests: int,
+    n_halves: int,
+):
     """Forward selection (weights ``1/sd``); returns the tests, the chosen columns and the chosen effects' halves means (n, n_halves)."""
     w = 1.0 / sd
-    tests = forward_select(base * w[:, None], data * w, {k: e.reg * w[:, None] for k, e in enumerate(effects)}, n_tests)
+    tests = forward_select(
+        base * w[:, None], data * w, {k: e.reg * w[:, None] for k, e in enumerate(effects)}, n_tests
+    )
     chosen = [effects[k].reg for k, t in tests.items() if t.selected]
     halves_mean = np.zeros((data.size, n_halves))
     for k, t in tests.items():
@@ -501,8 +569,15 @@ MEAN_PASSES = 4
 """Most passes of the mean selection with re-fitted weights (:func:`_means_with_excess`)."""
 
 
-def _means_with_excess(effects: list[_MeanEffect], base: np.ndarray, data: np.ndarray, var0: np.ndarray, excess_weight: np.ndarray,
-                       n_tests: int, n_halves: int):
+def _means_with_excess(
+    effects: list[_MeanEffect],
+    base: np.ndarray,
+    data: np.ndarray,
+    var0: np.ndarray,
+    excess_weight: np.ndarray,
+    n_tests: int,
+    n_halves: int,
+):
     """Mean selection whose weights carry the variance excess left after the chosen effects, iterated to a fixed point.
 
     Unexplained scatter must not pass for structure (the weights carry the
@@ -532,9 +607,23 @@ def _mean_candidates(effects, tests, triad: Triad, to_si: float, what: str) -> l
     for k, t in tests.items():
         e = effects[k]
         ax = AXES[e.axis]
-        fitted = {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef)} | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se)}
-        out.append(Candidate(e.name, triad, ax, True, t.lr, t.threshold, t.cv_ratio, fitted, t.selected,
-                             f"{what} of axis {ax} follow the {e.name} regressor: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}"))
+        fitted = {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)} | {
+            f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)
+        }
+        out.append(
+            Candidate(
+                e.name,
+                triad,
+                ax,
+                True,
+                t.lr,
+                t.threshold,
+                t.cv_ratio,
+                fitted,
+                t.selected,
+                f"{what} of axis {ax} follow the {e.name} regressor: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}",
+            )
+        )
     return out
 
 
@@ -559,10 +648,12 @@ class _VarianceTest:
         return float(self.lrs.sum())
 
 
-def _fit_records(records: list[VarianceData], active: list[np.ndarray]) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+def _fit_records(
+    records: list[VarianceData], active: list[np.ndarray]
+) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
     """Every record fitted on its own with only its ``active`` components free (the others at zero)."""
     thetas, nlls = [], []
-    for rec, act in zip(records, active):
+    for rec, act in zip(records, active, strict=True):
         th = np.zeros(act.size)
         if rec.y.shape[0]:
             th[act], nll = fit_variance([rec.subset(act)])
@@ -596,7 +687,9 @@ def select_variance(effects: list[VarianceEffect], records: list[VarianceData], 
                 trial[r][j] = True
             th, nl = _fit_records(records, trial)
             dof = sum(1 for r, _ in effects[k].comps if records[r].y.shape[0])
-            tests[k] = _VarianceTest(np.clip(2.0 * (nlls - nl), 0.0, None), _threshold(max(dof, 1), n_tests), th)
+            tests[k] = _VarianceTest(
+                np.clip(2.0 * (nlls - nl), 0.0, None), _threshold(max(dof, 1), n_tests), th
+            )
         passing = [k for k in remaining if tests[k].lr > tests[k].threshold]
         if not passing:
             break
@@ -609,8 +702,14 @@ def select_variance(effects: list[VarianceEffect], records: list[VarianceData], 
     return tests, selected, thetas
 
 
-def variance_candidates(effects: list[VarianceEffect], records: list[VarianceData], duration_s: np.ndarray, n_tests: int, batch_s: float,
-                        gyro_to_si: float = EARTH_RATE_RPS) -> tuple[list[Candidate], tuple[np.ndarray, ...]]:
+def variance_candidates(
+    effects: list[VarianceEffect],
+    records: list[VarianceData],
+    duration_s: np.ndarray,
+    n_tests: int,
+    batch_s: float,
+    gyro_to_si: float = EARTH_RATE_RPS,
+) -> tuple[list[Candidate], tuple[np.ndarray, ...]]:
     """The variance candidates of :func:`select_variance`, with a Gauss–Markov fit for each selected ``bias_instability``,
     and the selected model's components per record.
 
@@ -629,45 +728,88 @@ def variance_candidates(effects: list[VarianceEffect], records: list[VarianceDat
             q = float(th[gyro[0][0]][gyro[0][1]]) if gyro else 0.0
             # A slow wobble of rms θ about each body axis moves each perpendicular half mean by ~θ, their difference by ~√2 θ.
             angle = float(np.sqrt(p / 2.0))
-            out.append(Candidate(e.name, e.triad, None, True, t.lr, t.threshold, 1.0,
-                                 {"perp_excess_sd_norm": float(np.sqrt(p)), "gyro_excess_sd_rps": float(np.sqrt(q) * gyro_to_si), "angle_rms_rad": angle,
-                                  "band_hz": list(wobble_band(duration_s))}, k in selected,
-                                 f"half-to-half differences perpendicular to gravity exceed the sensor-axis wander by sd {np.sqrt(p):.3g}"
-                                 f"{f' and the gyros turn by sd {np.sqrt(q) * gyro_to_si:.3g} rad/s' if gyro else ''}"
-                                 f" (~{angle:.2g} rad rms inside positions): LR {t.lr:.1f} (threshold {t.threshold:.1f})"))
+            out.append(
+                Candidate(
+                    e.name,
+                    e.triad,
+                    None,
+                    True,
+                    t.lr,
+                    t.threshold,
+                    1.0,
+                    {
+                        "perp_excess_sd_norm": float(np.sqrt(p)),
+                        "gyro_excess_sd_rps": float(np.sqrt(q) * gyro_to_si),
+                        "angle_rms_rad": angle,
+                        "band_hz": list(wobble_band(duration_s)),
+                    },
+                    k in selected,
+                    f"half-to-half differences perpendicular to gravity exceed the sensor-axis wander by sd {np.sqrt(p):.3g}"
+                    f"{f' and the gyros turn by sd {np.sqrt(q) * gyro_to_si:.3g} rad/s' if gyro else ''}"
+                    f" (~{angle:.2g} rad rms inside positions): LR {t.lr:.1f} (threshold {t.threshold:.1f})",
+                )
+            )
             continue
         (rb, i), (rh, _) = e.comps
         vb, vh = float(th[rb][i]), float(th[rh][i])
-        params = {"between_sd_norm": float(np.sqrt(vb)), "between_var_se_norm2": variance_se_at_zero(records[rb], i),
-                  "within_halves_sd_norm": float(np.sqrt(vh)), "lr_between": float(t.lrs[rb]), "lr_within": float(t.lrs[rh])}
+        params = {
+            "between_sd_norm": float(np.sqrt(vb)),
+            "between_var_se_norm2": variance_se_at_zero(records[rb], i),
+            "within_halves_sd_norm": float(np.sqrt(vh)),
+            "lr_between": float(t.lrs[rb]),
+            "lr_within": float(t.lrs[rh]),
+        }
         if k in selected:
             others_b = np.arange(final[rb].size) != i
             others_h = np.arange(final[rh].size) != i
-            var, tau = fit_gauss_markov(records[rb].with_fixed(final[rb], others_b), records[rh].with_fixed(final[rh], others_h), duration_s, batch_s)
+            var, tau = fit_gauss_markov(
+                records[rb].with_fixed(final[rb], others_b),
+                records[rh].with_fixed(final[rh], others_h),
+                duration_s,
+                batch_s,
+            )
             params |= {"gm_sigma_norm": float(np.sqrt(var)), "gm_tau_s": tau}
         ax = AXES[i]
-        out.append(Candidate(e.name, e.triad, ax, True, t.lr, t.threshold, 1.0, params, k in selected,
-                             f"{e.triad.value} {ax} bias wanders by sd {np.sqrt(vb):.3g} between positions (LR {t.lrs[rb]:.1f}) and adds sd {np.sqrt(vh):.3g} "
-                             f"to the half-to-half differences (LR {t.lrs[rh]:.1f}), beyond white noise: LR {t.lr:.1f} (threshold {t.threshold:.1f})"))
+        out.append(
+            Candidate(
+                e.name,
+                e.triad,
+                ax,
+                True,
+                t.lr,
+                t.threshold,
+                1.0,
+                params,
+                k in selected,
+                f"{e.triad.value} {ax} bias wanders by sd {np.sqrt(vb):.3g} between positions (LR {t.lrs[rb]:.1f}) and adds sd {np.sqrt(vh):.3g} "
+                f"to the half-to-half differences (LR {t.lrs[rh]:.1f}), beyond white noise: LR {t.lr:.1f} (threshold {t.threshold:.1f})",
+            )
+        )
     return out, final
 
 
-def halves_chi2(records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int) -> tuple[np.ndarray, np.ndarray]:
+def halves_chi2(
+    records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Per position (n table rows): χ² of its half-to-half differences under the fitted model, and its degrees of freedom.
 
     The halves records are every second one of :func:`variance_effects`' order (accel, gyro).
     """
     chi, dof = np.zeros(n), np.zeros(n)
-    for rec, th in zip(records[1::2], thetas[1::2]):
+    for rec, th in zip(records[1::2], thetas[1::2], strict=True):
         if rec.y.shape[0] == 0:
             continue
         cov = rec.s0 + np.einsum("j,jkab->kab", th, rec.comps)
-        chi[rec.rows] += np.einsum("ka,ka->k", rec.y, np.linalg.solve(cov, rec.y[..., None])[..., 0])
+        chi[rec.rows] += np.einsum(
+            "ka,ka->k", rec.y, np.linalg.solve(cov, rec.y[..., None])[..., 0]
+        )
         dof[rec.rows] += rec.y.shape[1]
     return chi, dof
 
 
-def disturbed_positions(records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int, n_tests: int) -> np.ndarray:
+def disturbed_positions(
+    records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int, n_tests: int
+) -> np.ndarray:
     """Rows whose halves lie beyond the fitted model at the family-wise rate split over tests and positions (bool (n,)).
 
     Motion in a few positions (a hand on the unit, a knock) is not a wander of
@@ -702,11 +844,15 @@ class TriadRecords:
 
 def _halves_record(tab: PositionTable, halves_mean: np.ndarray, motion: np.ndarray) -> VarianceData:
     n = tab.t_mid_s.size
-    comps = np.stack([np.broadcast_to(np.diag(np.eye(3)[i]), (n, 3, 3)) for i in range(3)] + [motion])
+    comps = np.stack(
+        [np.broadcast_to(np.diag(np.eye(3)[i]), (n, 3, 3)) for i in range(3)] + [motion]
+    )
     return VarianceData.finite(tab.halves - halves_mean, 4.0 * tab.cov, comps)
 
 
-def accel_records(tab: PositionTable, jac: np.ndarray, residual: np.ndarray, sigma: np.ndarray, n_tests: int) -> TriadRecords:
+def accel_records(
+    tab: PositionTable, jac: np.ndarray, residual: np.ndarray, sigma: np.ndarray, n_tests: int
+) -> TriadRecords:
     """Accelerometer mean candidates and variance records (module docstring).
 
     Parameters
@@ -721,20 +867,36 @@ def accel_records(tab: PositionTable, jac: np.ndarray, residual: np.ndarray, sig
     comps = g_b2.T[:, :, None, None]
 
     def between(design, sd):
-        return VarianceData.finite(leverage_residual(design, residual, sd)[:, None], var0[:, None, None], comps)
+        return VarianceData.finite(
+            leverage_residual(design, residual, sd)[:, None], var0[:, None, None], comps
+        )
 
     effects = [e for i in range(3) for e in _mean_effects(tab, jac, None, i)]
-    tests, chosen, halves_mean, sd = _means_with_excess(effects, jac, residual, var0, g_b2.T, n_tests, 3)
+    tests, chosen, halves_mean, sd = _means_with_excess(
+        effects, jac, residual, var0, g_b2.T, n_tests, 3
+    )
     out = _mean_candidates(effects, tests, tri, 1.0, "position residuals")
     reason = temperature_reason(tab)
     if reason is not None:
-        out += [not_identifiable(name, tri, ax, reason) for ax in AXES for name in ("temperature_bias", "temperature_scale")]
-    out.append(not_identifiable("gravity_mismatch", tri, None,
-                                "not identifiable: a wrong local g is a common scale error absorbed by ex, ey, ez; needs a passport (known scale factors)"))
+        out += [
+            not_identifiable(name, tri, ax, reason)
+            for ax in AXES
+            for name in ("temperature_bias", "temperature_scale")
+        ]
+    out.append(
+        not_identifiable(
+            "gravity_mismatch",
+            tri,
+            None,
+            "not identifiable: a wrong local g is a common scale error absorbed by ex, ey, ez; needs a passport (known scale factors)",
+        )
+    )
     u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
     perp = np.eye(3)[None] - np.einsum("ka,kb->kab", u, u)
     # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
-    return TriadRecords(out, between(np.hstack([jac, chosen]), sd), _halves_record(tab, halves_mean, perp))
+    return TriadRecords(
+        out, between(np.hstack([jac, chosen]), sd), _halves_record(tab, halves_mean, perp)
+    )
 
 
 def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> TriadRecords:
@@ -753,17 +915,35 @@ def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> Tria
         var0[:, i] = tab.cov[:, i, i] + EARTH_RATE_VAR_NORM
         y = tab.mean[:, i] - vertical_earth_rate(tab.mean[:, i], up[:, i], var0[:, i]) * up[:, i]
         effects = _mean_effects(tab, None, f_b_mps2, i)
-        tests, chosen, hm, sd = _means_with_excess(effects, ones, y, var0[:, i], np.ones((1, n)), n_tests, 1)
+        tests, chosen, hm, sd = _means_with_excess(
+            effects, ones, y, var0[:, i], np.ones((1, n)), n_tests, 1
+        )
         halves_mean[:, i] = hm[:, 0]
         resid[:, i] = leverage_residual(np.hstack([ones, chosen]), y, sd)
         out += _mean_candidates(effects, tests, tri, EARTH_RATE_RPS, f"gyro {ax} position means")
         if reason is not None:
             out.append(not_identifiable("temperature_bias", tri, ax, reason))
-        out.append(not_identifiable("temperature_scale", tri, ax, "not identifiable: the gyro scale needs a known rate (the Earth rate is below a MEMS gyro's noise)"))
-        out.append(not_identifiable("scale_nonlinearity", tri, ax, "not identifiable: static positions give the gyros only the Earth rate"))
+        out.append(
+            not_identifiable(
+                "temperature_scale",
+                tri,
+                ax,
+                "not identifiable: the gyro scale needs a known rate (the Earth rate is below a MEMS gyro's noise)",
+            )
+        )
+        out.append(
+            not_identifiable(
+                "scale_nonlinearity",
+                tri,
+                ax,
+                "not identifiable: static positions give the gyros only the Earth rate",
+            )
+        )
     diag = np.stack([np.broadcast_to(np.diag(np.eye(3)[i]), (n, 3, 3)) for i in range(3)])
     between = VarianceData.finite(resid, np.einsum("ki,ij->kij", var0, np.eye(3)), diag)
-    return TriadRecords(out, between, _halves_record(tab, halves_mean, np.broadcast_to(np.eye(3), (n, 3, 3))))
+    return TriadRecords(
+        out, between, _halves_record(tab, halves_mean, np.broadcast_to(np.eye(3), (n, 3, 3)))
+    )
 
 
 def vertical_earth_rate(mean_norm: np.ndarray, up_i: np.ndarray, var: np.ndarray) -> float:
@@ -785,6 +965,12 @@ def variance_effects(has_gyro: bool) -> list[VarianceEffect]:
     ``[accel between, accel halves, gyro between, gyro halves]`` (the last two only with a gyro)."""
     out = [VarianceEffect("bias_instability", Triad.ACCEL, i, ((0, i), (1, i))) for i in range(3)]
     if has_gyro:
-        out += [VarianceEffect("bias_instability", Triad.GYRO, i, ((2, i), (3, i))) for i in range(3)]
-    out.append(VarianceEffect("nonstatic_positions", Triad.ACCEL, None, ((1, 3), (3, 3)) if has_gyro else ((1, 3),)))
+        out += [
+            VarianceEffect("bias_instability", Triad.GYRO, i, ((2, i), (3, i))) for i in range(3)
+        ]
+    out.append(
+        VarianceEffect(
+            "nonstatic_positions", Triad.ACCEL, None, ((1, 3), (3, 3)) if has_gyro else ((1, 3),)
+        )
+    )
     return out

@@ -60,11 +60,11 @@ from estimators.sim import (
     Rounding,
     ScaleFactor,
     ScaleNonlinearity,
+    SessionSpec,
     TemperatureBias,
     TemperatureScale,
     TriadErrorModel,
     WhiteNoise,
-    SessionSpec,
     multi_position_profile,
     random_attitudes,
     simulate,
@@ -111,9 +111,17 @@ _COEF_KEY = {
 
 def baseline_model(rng: np.random.Generator) -> ErrorModel:
     """A random effect-free unit: bias, scale, non-orthogonality and white noise (module docstring)."""
-    acc = TriadErrorModel((NonOrthogonality(rng.normal(0, 1e-3, 6)), ScaleFactor(rng.normal(0, 2e-3, 3)), Bias(rng.normal(0, 0.05, 3)),
-                           WhiteNoise.from_sample_sd(np.full(3, ACCEL_SD_MPS2), RATE_HZ)))
-    gyr = TriadErrorModel((Bias(rng.normal(0, 2e-3, 3)), WhiteNoise.from_sample_sd(np.full(3, GYRO_SD_RPS), RATE_HZ)))
+    acc = TriadErrorModel(
+        (
+            NonOrthogonality(rng.normal(0, 1e-3, 6)),
+            ScaleFactor(rng.normal(0, 2e-3, 3)),
+            Bias(rng.normal(0, 0.05, 3)),
+            WhiteNoise.from_sample_sd(np.full(3, ACCEL_SD_MPS2), RATE_HZ),
+        )
+    )
+    gyr = TriadErrorModel(
+        (Bias(rng.normal(0, 2e-3, 3)), WhiteNoise.from_sample_sd(np.full(3, GYRO_SD_RPS), RATE_HZ))
+    )
     return ErrorModel(accel=acc, gyro=gyr)
 
 
@@ -136,7 +144,9 @@ def trial_attitudes(seed: int) -> np.ndarray:
 def session_of(model: ErrorModel, seed: int) -> tuple[ImuSession, ChainResult]:
     """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain."""
     profile = multi_position_profile(trial_attitudes(seed), static_s=HOLD_S, transition_s=TURN_S)
-    spec = SessionSpec(profile, model, rate_hz=RATE_HZ, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE)
+    spec = SessionSpec(
+        profile, model, rate_hz=RATE_HZ, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
+    )
     s = simulate(spec, seed).session
     return s, run_chain(s, ChainConfig(gravity_mps2=GRAVITY_MPS2))
 
@@ -144,8 +154,14 @@ def session_of(model: ErrorModel, seed: int) -> tuple[ImuSession, ChainResult]:
 def named_effects(session: ImuSession, chain: ChainResult) -> set[tuple[str, Triad, str | None]]:
     """What the audit names on a session: the selected candidates, and a grid the baseline found (quantization)."""
     baselines = fit_baselines(session, chain)
-    named = {(c.effect, c.triad, c.axis) for c in find_candidates(session, chain, baselines) if c.selected}
-    return named | {("quantization", t, None) for t, b in baselines.items() if b.quant_step_si is not None}
+    named = {
+        (c.effect, c.triad, c.axis)
+        for c in find_candidates(session, chain, baselines)
+        if c.selected
+    }
+    return named | {
+        ("quantization", t, None) for t, b in baselines.items() if b.quant_step_si is not None
+    }
 
 
 @dataclass(frozen=True)
@@ -168,12 +184,20 @@ class HiddenEffect:
         return {(self.effect, self.triad, self.axis)}
 
 
-def _clean_candidate(session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str) -> Candidate:
+def _clean_candidate(
+    session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str
+) -> Candidate:
     baselines = fit_baselines(session, chain)
-    return next(c for c in find_candidates(session, chain, baselines) if c.effect == effect and c.triad is triad and c.axis == axis)
+    return next(
+        c
+        for c in find_candidates(session, chain, baselines)
+        if c.effect == effect and c.triad is triad and c.axis == axis
+    )
 
 
-def _gm_variance_for(size: float, tau_s: float, session: ImuSession, chain: ChainResult, triad: Triad, i: int) -> float:
+def _gm_variance_for(
+    size: float, tau_s: float, session: ImuSession, chain: ChainResult, triad: Triad, i: int
+) -> float:
     """Normalized σ² of a Gauss–Markov bias on axis ``i`` whose expected evidence is ``size²`` (module docstring)."""
     baselines = fit_baselines(session, chain)
     tab = candidate_table(chain, session, triad, baselines[triad])
@@ -193,7 +217,9 @@ def _gm_variance_for(size: float, tau_s: float, session: ImuSession, chain: Chai
     return float(np.exp(brentq(excess, top - 60.0, top)))
 
 
-def hide(seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float = 1.0) -> HiddenEffect:
+def hide(
+    seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float = 1.0
+) -> HiddenEffect:
     """The baseline model of ``seed`` with ``effect`` of ``size`` detection standard errors (module docstring) on ``axis``."""
     model = baseline_model(np.random.default_rng(seed))
     session, chain = session_of(model, seed)
@@ -201,12 +227,26 @@ def hide(seed: int, effect: str, triad: Triad, axis: str | None, size: float, si
         axis = None
     if effect == "quantization":
         step = 0.1 * size * ACCEL_SD_MPS2
-        return HiddenEffect(effect, triad, None, size, step, model.with_effect(Quantization(np.full(3, step), Rounding.NEAREST), triad))
+        return HiddenEffect(
+            effect,
+            triad,
+            None,
+            size,
+            step,
+            model.with_effect(Quantization(np.full(3, step), Rounding.NEAREST), triad),
+        )
     if effect == "nonstatic_positions":
         tab = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL)
         sd_half = 2.0 * np.sqrt(np.median(np.einsum("kii->ki", tab.cov)))
         angle = size * sd_half / np.sqrt(2.0)
-        return HiddenEffect(effect, triad, None, size, angle, model.with_effect(NonstaticPositions(angle_rms_rad=angle, band_hz=WOBBLE_BAND_HZ)))
+        return HiddenEffect(
+            effect,
+            triad,
+            None,
+            size,
+            angle,
+            model.with_effect(NonstaticPositions(angle_rms_rad=angle, band_hz=WOBBLE_BAND_HZ)),
+        )
     i = AXES.index(axis)
     cand = _clean_candidate(session, chain, effect, triad, axis)
     ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS
@@ -215,21 +255,43 @@ def hide(seed: int, effect: str, triad: Triad, axis: str | None, size: float, si
         var = _gm_variance_for(size, tau, session, chain, triad, i)
         sigma = np.zeros(3)
         sigma[i] = np.sqrt(var) * ref
-        return HiddenEffect(effect, triad, axis, size, float(sigma[i]), model.with_effect(BiasInstability(gm_sigma_si=sigma, gm_tau_s=np.full(3, tau)), triad))
+        return HiddenEffect(
+            effect,
+            triad,
+            axis,
+            size,
+            float(sigma[i]),
+            model.with_effect(BiasInstability(gm_sigma_si=sigma, gm_tau_s=np.full(3, tau)), triad),
+        )
     key = f"g{axis}_rps_per_mps2" if effect == "g_sensitivity" else _COEF_KEY[(effect, triad)]
     value = sign * size * cand.params[f"{key}_se"]
     coef = np.zeros((3, 1))
     if effect == "g_sensitivity":
         gs = np.zeros((3, 3))
         gs[i, i] = value
-        return HiddenEffect(effect, triad, axis, size, value, model.with_effect(GSensitivity(gs), triad))
+        return HiddenEffect(
+            effect, triad, axis, size, value, model.with_effect(GSensitivity(gs), triad)
+        )
     if effect == "scale_nonlinearity":
         k2 = np.zeros(3)
         k2[i] = value / GRAVITY_MPS2
-        return HiddenEffect(effect, triad, axis, size, value, model.with_effect(ScaleNonlinearity(k2, np.zeros(3)), triad))
+        return HiddenEffect(
+            effect,
+            triad,
+            axis,
+            size,
+            value,
+            model.with_effect(ScaleNonlinearity(k2, np.zeros(3)), triad),
+        )
     # Accelerometer coefficients are normalized by g (the scale one is relative already); gyro ones are in rad/s.
-    coef[i, 0] = value * (GRAVITY_MPS2 if triad is Triad.ACCEL and effect != "temperature_scale" else 1.0)
-    cls = {"bias_drift": BiasDrift, "temperature_bias": TemperatureBias, "temperature_scale": TemperatureScale}[effect]
+    coef[i, 0] = value * (
+        GRAVITY_MPS2 if triad is Triad.ACCEL and effect != "temperature_scale" else 1.0
+    )
+    cls = {
+        "bias_drift": BiasDrift,
+        "temperature_bias": TemperatureBias,
+        "temperature_scale": TemperatureScale,
+    }[effect]
     return HiddenEffect(effect, triad, axis, size, value, model.with_effect(cls(coef), triad))
 
 
@@ -237,7 +299,9 @@ def draw(seed: int, size: float, kind: tuple[str, Triad] | None = None) -> Hidde
     """A hidden effect for trial ``seed``: kind (if not given), axis and sign drawn from the seed."""
     rng = np.random.default_rng([seed, 2])
     effect, triad = HIDDEN_KINDS[int(rng.integers(len(HIDDEN_KINDS)))] if kind is None else kind
-    return hide(seed, effect, triad, AXES[int(rng.integers(3))], size, float(rng.choice([-1.0, 1.0])))
+    return hide(
+        seed, effect, triad, AXES[int(rng.integers(3))], size, float(rng.choice([-1.0, 1.0]))
+    )
 
 
 def trial(hidden: HiddenEffect, seed: int) -> bool:

@@ -73,17 +73,25 @@ class PositionTable:
     spans: np.ndarray
 
 
-def position_table(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, temp_c: np.ndarray | None = None) -> PositionTable:
+def position_table(
+    chain: ChainResult,
+    x_si: np.ndarray,
+    t_s: np.ndarray,
+    triad: Triad,
+    temp_c: np.ndarray | None = None,
+) -> PositionTable:
     """The :class:`PositionTable` of ``triad`` from a chain result and the session's samples.
 
     ``x_si`` (N, 3) are the triad's samples, SI; ``temp_c`` (N,) the session's temperature, °C, or None.
     """
     ref = reference_magnitude(triad, chain.gravity_mps2)
     mean, cov = position_arrays(chain.positions, triad, ref)
-    spans = np.array([[p.index_start, p.index_stop] for p in chain.positions], dtype=int).reshape(-1, 2)
+    spans = np.array([[p.index_start, p.index_stop] for p in chain.positions], dtype=int).reshape(
+        -1, 2
+    )
     halves = np.full((len(spans), 3), np.nan)
     temp_halves = None if temp_c is None else np.full(len(spans), np.nan)
-    for k, ((a, b), pos) in enumerate(zip(spans, chain.positions)):
+    for k, ((a, b), pos) in enumerate(zip(spans, chain.positions, strict=True)):
         if pos.n_intervals != 1:
             continue
         h = (a + b) // 2
@@ -93,7 +101,8 @@ def position_table(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad:
     temps = [p.temp_mean_c for p in chain.positions]
     temp = None if any(v is None for v in temps) or not temps else np.array(temps, float)
     return PositionTable(
-        t_mid_s=np.array([0.5 * (p.t_start_s + p.t_end_s) for p in chain.positions]) - float(t_s[0]),
+        t_mid_s=np.array([0.5 * (p.t_start_s + p.t_end_s) for p in chain.positions])
+        - float(t_s[0]),
         temp_c=temp,
         mean=mean,
         cov=cov,
@@ -122,8 +131,17 @@ def subset_table(tab: PositionTable, keep: np.ndarray) -> PositionTable:
     """The positions ``keep`` (bool (n,)) of ``tab``."""
     k = np.asarray(keep, bool)
     pick = lambda a: None if a is None else a[k]  # noqa: E731
-    return PositionTable(tab.t_mid_s[k], pick(tab.temp_c), tab.mean[k], tab.cov[k], tab.halves[k], pick(tab.temp_halves_c),
-                         tab.n_samples[k], tab.duration_s[k], tab.spans[k])
+    return PositionTable(
+        tab.t_mid_s[k],
+        pick(tab.temp_c),
+        tab.mean[k],
+        tab.cov[k],
+        tab.halves[k],
+        pick(tab.temp_halves_c),
+        tab.n_samples[k],
+        tab.duration_s[k],
+        tab.spans[k],
+    )
 
 
 def static_mask(n: int, spans: np.ndarray) -> np.ndarray:
@@ -142,12 +160,18 @@ def longest_span(tab: PositionTable) -> tuple[int, int]:
 
 def f0_window_samples(rate_hz: float) -> int:
     """Samples of the F0 window the audit tests with: 1 s of data (at least one sample)."""
-    return max(1, int(round(rate_hz)))
+    return max(1, round(rate_hz))
 
 
 def f0_config(params: np.ndarray, reference: float, lambda0: float, n_avg: int = 1) -> F0Config:
     """F0 settings that compensate the estimated nine parameters (M1)."""
-    return F0Config(lambda0=lambda0, reference=reference, bias_norm=tuple(params[:3]), matrix=canonical_triad_matrix(params), n_avg=n_avg)
+    return F0Config(
+        lambda0=lambda0,
+        reference=reference,
+        bias_norm=tuple(params[:3]),
+        matrix=canonical_triad_matrix(params),
+        n_avg=n_avg,
+    )
 
 
 def param_scatter(params: np.ndarray, tab: PositionTable) -> float | None:
@@ -176,7 +200,9 @@ def param_scatter(params: np.ndarray, tab: PositionTable) -> float | None:
     return float(np.mean((est[0] - est[1]) ** 2 / (var[0] + var[1])))
 
 
-def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float) -> dict[str, float]:
+def triad_statistics(
+    chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float
+) -> dict[str, float]:
     """Flat ``{name: value}`` statistics of one triad (module docstring); absent ones are left out."""
     triad = Triad(triad)
     out: dict[str, float] = {}
@@ -187,7 +213,9 @@ def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, tria
     ok = (sd_half > 0) & np.isfinite(tab.halves)
     for i, ax in enumerate(AXES):
         if ok[:, i].any():
-            out[f"halves_rms_{ax}"] = float(np.sqrt(np.mean((tab.halves[ok[:, i], i] / sd_half[ok[:, i], i]) ** 2)))
+            out[f"halves_rms_{ax}"] = float(
+                np.sqrt(np.mean((tab.halves[ok[:, i], i] / sd_half[ok[:, i], i]) ** 2))
+            )
     a, b = longest_span(tab)
     first = x_si[a:b]
     if first.shape[0] >= 16:
@@ -200,7 +228,9 @@ def triad_statistics(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, tria
         if est.chi2_per_dof is not None:
             out["chi2_per_dof"] = float(est.chi2_per_dof)
         ref = reference_magnitude(triad, chain.gravity_mps2)
-        s = f0_batch(x_si, static_mask(x_si.shape[0], tab.spans), f0_config(est.params, ref, 1.0)).residual
+        s = f0_batch(
+            x_si, static_mask(x_si.shape[0], tab.spans), f0_config(est.params, ref, 1.0)
+        ).residual
         s = s[np.isfinite(s)]
         out["f0_sd"] = float(np.std(s))
         out["f0_q999"] = float(np.quantile(np.abs(s - np.mean(s)), 0.999))
@@ -237,7 +267,9 @@ class TriadCurves:
     f0_window: np.ndarray | None
 
 
-def triad_curves(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float) -> TriadCurves:
+def triad_curves(
+    chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float
+) -> TriadCurves:
     """The :class:`TriadCurves` of one triad of a session (module docstring)."""
     triad = Triad(triad)
     tab = position_table(chain, x_si, t_s, triad)
@@ -252,7 +284,11 @@ def triad_curves(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: T
         return TriadCurves(None, tau, adev, None)
     f, sigma, _, _ = scalar_residuals(np.asarray(est.params, float), tab)
     ref = reference_magnitude(triad, chain.gravity_mps2)
-    s = f0_batch(x_si, static_mask(x_si.shape[0], tab.spans), f0_config(est.params, ref, 1.0, f0_window_samples(rate_hz))).residual
+    s = f0_batch(
+        x_si,
+        static_mask(x_si.shape[0], tab.spans),
+        f0_config(est.params, ref, 1.0, f0_window_samples(rate_hz)),
+    ).residual
     # Every static row carries its run's last completed window: a window's value starts where it changes.
     first = np.concatenate([[True], s[1:] != s[:-1]])
     s = np.sort(s[first & np.isfinite(s)])
@@ -261,7 +297,9 @@ def triad_curves(chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: T
     return TriadCurves(f / sigma, tau, adev, s)
 
 
-def scalar_residuals(params: np.ndarray, tab: PositionTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def scalar_residuals(
+    params: np.ndarray, tab: PositionTable
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact scalar equation per position (M1): residual, its sigma, ∂f/∂params (n, 9), ∂f/∂ã (n, 3)."""
     f, jac, grad = ellipsoid_residual(params, tab.mean)
     sigma = np.sqrt(np.einsum("ni,nij,nj->n", grad, tab.cov, grad))
@@ -307,7 +345,9 @@ class Comparison:
         }
 
 
-def compare(triad: Triad, measured: dict[str, float], replicas: list[dict[str, float]]) -> list[Comparison]:
+def compare(
+    triad: Triad, measured: dict[str, float], replicas: list[dict[str, float]]
+) -> list[Comparison]:
     """Measured statistics against the replicas' distributions (names present in both)."""
     out = []
     for name, value in measured.items():
@@ -320,8 +360,15 @@ def compare(triad: Triad, measured: dict[str, float], replicas: list[dict[str, f
         base = name if axis is None else name.rsplit("_", 1)[0]
         out.append(
             Comparison(
-                base, triad, axis, float(value), med, float(np.quantile(sims, 0.05)), float(np.quantile(sims, 0.95)),
-                float(value / med) if med != 0 else float("inf"), above,
+                base,
+                triad,
+                axis,
+                float(value),
+                med,
+                float(np.quantile(sims, 0.05)),
+                float(np.quantile(sims, 0.95)),
+                float(value / med) if med != 0 else float("inf"),
+                above,
             )
         )
     return out

@@ -58,9 +58,21 @@ from .motion import (
     static_profile,
     tilt_sequence,
 )
-from .scenarios import OrientationScheme, flight_spec, multi_position_spec, position_attitudes, static_spec
+from .scenarios import (
+    OrientationScheme,
+    flight_spec,
+    multi_position_spec,
+    position_attitudes,
+    static_spec,
+)
 from .session import SessionSpec, SimResult, Truth, earth_rate_n_rps, simulate
-from .temperature import ConstantTemperature, CycleTemperature, RampTemperature, TemperatureProfile, WarmupTemperature
+from .temperature import (
+    ConstantTemperature,
+    CycleTemperature,
+    RampTemperature,
+    TemperatureProfile,
+    WarmupTemperature,
+)
 
 __all__ = [
     "EFFECTS",

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass, field, fields, replace
-from enum import Enum
+from enum import Enum, StrEnum
 from typing import ClassVar
 
 import numpy as np
@@ -113,7 +113,9 @@ def _poly_coefs(value, name: str):
     if a.ndim == 1:
         a = np.broadcast_to(a, (3, a.size))
     if a.ndim != 2 or a.shape[0] != 3 or a.shape[1] < 1:
-        raise ValueError(f"{name} must have shape (3, n) or (n,) with n >= 1, got {np.shape(value)}")
+        raise ValueError(
+            f"{name} must have shape (3, n) or (n,) with n >= 1, got {np.shape(value)}"
+        )
     return _floats(a, a.shape, name)
 
 
@@ -172,7 +174,9 @@ class NonOrthogonality(Effect):
             gram_f[:, j, i] += rows[:, col]
         lam, vec = np.linalg.eigh(gram_f)
         if np.any(lam <= 0):
-            raise ValueError("a non-orthogonality fault makes the sensitive axes linearly dependent")
+            raise ValueError(
+                "a non-orthogonality fault makes the sensitive axes linearly dependent"
+            )
         lam0, vec0 = np.linalg.eigh(gram)
         inv_sqrt = (vec0 / np.sqrt(lam0)) @ vec0.T
         s_f = (vec * np.sqrt(lam)[:, None, :]) @ np.swapaxes(vec, 1, 2) @ inv_sqrt @ s
@@ -361,7 +365,9 @@ class GSensitivity(Effect):
     triads: ClassVar[tuple[Triad, ...]] = (Triad.GYRO,)
 
     def __post_init__(self):
-        object.__setattr__(self, "coef_rps_per_mps2", _floats(self.coef_rps_per_mps2, (3, 3), "coef_rps_per_mps2"))
+        object.__setattr__(
+            self, "coef_rps_per_mps2", _floats(self.coef_rps_per_mps2, (3, 3), "coef_rps_per_mps2")
+        )
 
     def apply(self, y, ctx):
         return y + ctx.specific_force_b_mps2 @ np.array(self.coef_rps_per_mps2).T
@@ -380,12 +386,18 @@ class WhiteNoise(Effect):
     stage: ClassVar[int] = 40
 
     def __post_init__(self):
-        object.__setattr__(self, "density_si_per_sqrt_hz", _floats(self.density_si_per_sqrt_hz, (3,), "density_si_per_sqrt_hz"))
+        object.__setattr__(
+            self,
+            "density_si_per_sqrt_hz",
+            _floats(self.density_si_per_sqrt_hz, (3,), "density_si_per_sqrt_hz"),
+        )
         if min(self.density_si_per_sqrt_hz) < 0:
-            raise ValueError(f"noise density must be non-negative, got {self.density_si_per_sqrt_hz!r}")
+            raise ValueError(
+                f"noise density must be non-negative, got {self.density_si_per_sqrt_hz!r}"
+            )
 
     @classmethod
-    def from_sample_sd(cls, sd_si, rate_hz: float) -> "WhiteNoise":
+    def from_sample_sd(cls, sd_si, rate_hz: float) -> WhiteNoise:
         """The noise whose per-sample standard deviation at ``rate_hz`` is ``sd_si``."""
         return cls(np.asarray(sd_si, float) / np.sqrt(rate_hz))
 
@@ -397,7 +409,7 @@ class WhiteNoise(Effect):
         return y + self.sample_sd(ctx.rate_hz) * ctx.rng.standard_normal(y.shape)
 
 
-class Rounding(str, Enum):
+class Rounding(StrEnum):
     """How a converter turns ``signal / k`` into a whole number of counts."""
 
     FLOOR = "floor"
@@ -529,11 +541,15 @@ class NonstaticPositions(EnvironmentEffect):
             idx = np.flatnonzero(motion.position_index == j)
             tau = (idx - idx[0]) * dt
             length = idx.size * dt
-            amp, freq, phase = random_sinusoids(rng, 3, self.n_components, self.angle_rms_rad, self.band_hz)
+            amp, freq, phase = random_sinusoids(
+                rng, 3, self.n_components, self.angle_rms_rad, self.band_hz
+            )
             dev, dev_rate = angle_excursion(tau, length, self.ramp_s, amp, freq, phase)
             mat[idx] = mat[idx] @ dev
             rate[idx] += dev_rate
-            aamp, afreq, aphase = random_sinusoids(rng, 3, self.n_components, self.accel_rms_mps2, self.band_hz)
+            aamp, afreq, aphase = random_sinusoids(
+                rng, 3, self.n_components, self.accel_rms_mps2, self.band_hz
+            )
             acc[idx] += displacement_accel(tau, length, self.ramp_s, aamp, afreq, aphase)
         return replace(motion, mat_nb=mat, rate_nb_b_rps=rate, accel_n_mps2=acc)
 
@@ -570,7 +586,9 @@ def make_effect(name: str, params: dict) -> Effect | EnvironmentEffect:
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(params) - known)
     if unknown:
-        raise ValueError(f"effect {name}: unknown parameter {unknown[0]!r} (known: {', '.join(sorted(known))})")
+        raise ValueError(
+            f"effect {name}: unknown parameter {unknown[0]!r} (known: {', '.join(sorted(known))})"
+        )
     return cls(**params)
 
 
@@ -620,13 +638,13 @@ class TriadErrorModel:
         """The effect called ``name``, or None."""
         return next((e for e in self.effects if e.name == name), None)
 
-    def with_effect(self, effect: Effect) -> "TriadErrorModel":
+    def with_effect(self, effect: Effect) -> TriadErrorModel:
         """A model with ``effect`` added at its stage, replacing one of the same name."""
         kept = [e for e in self.effects if e.name != effect.name]
         at = next((k for k, e in enumerate(kept) if e.stage > effect.stage), len(kept))
-        return TriadErrorModel(tuple(kept[:at]) + (effect,) + tuple(kept[at:]))
+        return TriadErrorModel((*tuple(kept[:at]), effect, *tuple(kept[at:])))
 
-    def without(self, name: str) -> "TriadErrorModel":
+    def without(self, name: str) -> TriadErrorModel:
         """A model without the effect called ``name`` (unchanged if absent)."""
         return TriadErrorModel(tuple(e for e in self.effects if e.name != name))
 
@@ -670,14 +688,16 @@ class ErrorModel:
     def triad(self, triad: Triad) -> TriadErrorModel:
         return self.accel if Triad(triad) is Triad.ACCEL else self.gyro
 
-    def with_effect(self, effect: Effect | EnvironmentEffect, triad: Triad | None = None) -> "ErrorModel":
+    def with_effect(
+        self, effect: Effect | EnvironmentEffect, triad: Triad | None = None
+    ) -> ErrorModel:
         """A model with ``effect`` added (replacing one of the same name).
 
         Environment effects need no triad; triad effects need ``triad``.
         """
         if isinstance(effect, EnvironmentEffect):
             kept = tuple(e for e in self.environment if e.name != effect.name)
-            return replace(self, environment=kept + (effect,))
+            return replace(self, environment=(*kept, effect))
         if triad is None:
             raise ValueError(f"effect {effect.name!r} needs the triad it applies to")
         if Triad(triad) is Triad.ACCEL:

@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
 from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
 
 
-class FaultKind(str, Enum):
+class FaultKind(StrEnum):
     """What a fault does (``magnitude`` unit in brackets)."""
 
     STEP = "step"
@@ -67,7 +67,9 @@ class Fault:
         object.__setattr__(self, "triad", Triad(self.triad))
         limit = N_PARAMS if self.kind in PARAMETER_FAULTS else 3
         if not isinstance(self.index, (int, np.integer)) or not 0 <= self.index < limit:
-            raise ValueError(f"{self.kind.value} fault index must be an integer in [0, {limit}), got {self.index!r}")
+            raise ValueError(
+                f"{self.kind.value} fault index must be an integer in [0, {limit}), got {self.index!r}"
+            )
         object.__setattr__(self, "index", int(self.index))
         if not np.isfinite(self.t_start_s):
             raise ValueError(f"fault t_start_s must be finite, got {self.t_start_s!r}")
@@ -78,7 +80,9 @@ class Fault:
         if self.kind is FaultKind.RAMP and not np.isfinite(self.duration_s):
             raise ValueError("a ramp fault needs a finite duration_s (its rise time)")
         if self.kind in (FaultKind.SATURATION, FaultKind.NOISE_BURST) and self.magnitude <= 0:
-            raise ValueError(f"{self.kind.value} fault magnitude must be positive, got {self.magnitude!r}")
+            raise ValueError(
+                f"{self.kind.value} fault magnitude must be positive, got {self.magnitude!r}"
+            )
 
     @property
     def target(self) -> str:
@@ -115,7 +119,9 @@ def param_deltas(faults: tuple[Fault, ...], triad: Triad, t_s: np.ndarray) -> np
     return out
 
 
-def add_noise_bursts(y: np.ndarray, faults: tuple[Fault, ...], t_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def add_noise_bursts(
+    y: np.ndarray, faults: tuple[Fault, ...], t_s: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
     """``y`` (N, 3) with the NOISE_BURST faults' extra noise added (a new array)."""
     out = y.copy()
     for f in faults:

@@ -21,7 +21,15 @@ import numpy as np
 
 from estimators.conventions import MPS2_PER_MG, RPS_PER_DPH, STANDARD_GRAVITY_MPS2, Grade
 
-from .errors import Bias, ErrorModel, NonOrthogonality, Quantization, ScaleFactor, TriadErrorModel, WhiteNoise
+from .errors import (
+    Bias,
+    ErrorModel,
+    NonOrthogonality,
+    Quantization,
+    ScaleFactor,
+    TriadErrorModel,
+    WhiteNoise,
+)
 
 _DEG = np.pi / 180.0
 
@@ -113,7 +121,9 @@ def _triad_model(g: TriadGrade, bias, scale, nonorth, *, quantization: bool) -> 
     return TriadErrorModel(tuple(effects))
 
 
-def grade_error_model(grade: Grade, *, rng: np.random.Generator | None = None, quantization: bool = True) -> ErrorModel:
+def grade_error_model(
+    grade: Grade, *, rng: np.random.Generator | None = None, quantization: bool = True
+) -> ErrorModel:
     """The baseline error model of ``grade``: non-orthogonality, scale, bias, white noise, quantization.
 
     With ``rng`` the bias, scale and non-orthogonality are drawn from zero-mean
@@ -122,7 +132,9 @@ def grade_error_model(grade: Grade, *, rng: np.random.Generator | None = None, q
     """
     grade = Grade(grade)
     if grade not in GRADES:
-        raise ValueError(f"no simulation preset for grade {grade.value!r} (presets: {', '.join(g.value for g in GRADES)})")
+        raise ValueError(
+            f"no simulation preset for grade {grade.value!r} (presets: {', '.join(g.value for g in GRADES)})"
+        )
     spec = GRADES[grade]
 
     def triad(g: TriadGrade) -> TriadErrorModel:
@@ -131,7 +143,11 @@ def grade_error_model(grade: Grade, *, rng: np.random.Generator | None = None, q
         else:
             draws = (rng.standard_normal(3), rng.standard_normal(3), rng.standard_normal(6))
         return _triad_model(
-            g, g.bias_sd_si * draws[0], g.scale_sd * draws[1], g.nonorth_sd_rad * draws[2], quantization=quantization
+            g,
+            g.bias_sd_si * draws[0],
+            g.scale_sd * draws[1],
+            g.nonorth_sd_rad * draws[2],
+            quantization=quantization,
         )
 
     return ErrorModel(accel=triad(spec.accel), gyro=triad(spec.gyro))

@@ -27,6 +27,7 @@ the integrator's error).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,7 +57,11 @@ class Turn:
 
     def __post_init__(self):
         m = np.asarray(self.to_mat_nb, dtype=float)
-        if m.shape != (3, 3) or not np.allclose(m @ m.T, np.eye(3), atol=1e-9) or np.linalg.det(m) <= 0:
+        if (
+            m.shape != (3, 3)
+            or not np.allclose(m @ m.T, np.eye(3), atol=1e-9)
+            or np.linalg.det(m) <= 0
+        ):
             raise ValueError(f"Turn.to_mat_nb must be a (3, 3) rotation matrix, got {m.tolist()!r}")
         object.__setattr__(self, "to_mat_nb", tuple(map(tuple, m)))
 
@@ -112,7 +117,9 @@ class Spin:
             raise ValueError(f"Spin.axis_b must be a non-zero finite 3-vector, got {self.axis_b!r}")
         end = self.rate_rps if self.end_rate_rps is None else self.end_rate_rps
         if not (np.isfinite(self.rate_rps) and np.isfinite(end)):
-            raise ValueError(f"Spin rates must be finite, got {self.rate_rps!r} and {self.end_rate_rps!r}")
+            raise ValueError(
+                f"Spin rates must be finite, got {self.rate_rps!r} and {self.end_rate_rps!r}"
+            )
         object.__setattr__(self, "axis_b", tuple(k / norm))
         object.__setattr__(self, "rate_rps", float(self.rate_rps))
         object.__setattr__(self, "end_rate_rps", float(end))
@@ -195,7 +202,9 @@ def min_jerk(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     )
 
 
-def fade_window(tau_s: np.ndarray, length_s: float, ramp_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fade_window(
+    tau_s: np.ndarray, length_s: float, ramp_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A window rising and falling with minimum-jerk ramps; value and derivatives in s.
 
     ``tau_s`` is the local time in ``[0, length_s]``; the ramps last
@@ -274,7 +283,9 @@ def random_sinusoids(rng: np.random.Generator, n_channels: int, n_components: in
         raise ValueError(f"a frequency band must satisfy 0 < low <= high, got {band_hz!r}")
     freq = np.exp(rng.uniform(np.log(lo), np.log(hi), (n_channels, n_components)))
     phase = rng.uniform(0.0, 2.0 * np.pi, (n_channels, n_components))
-    amp = np.broadcast_to(np.asarray(rms, float) * np.sqrt(2.0 / n_components), (n_channels,))[:, None]
+    amp = np.broadcast_to(np.asarray(rms, float) * np.sqrt(2.0 / n_components), (n_channels,))[
+        :, None
+    ]
     return np.repeat(amp, n_components, axis=1), freq, phase
 
 
@@ -356,11 +367,13 @@ def tilt_sequence(up_b: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
     u = np.asarray(up_b, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
     out = [attitude_with_up(u[0], heading_rad)]
-    for prev, nxt in zip(u[:-1], u[1:]):
+    for prev, nxt in itertools.pairwise(u):
         axis = np.cross(nxt, prev)
         sin_a = np.linalg.norm(axis)
         if sin_a < 1e-12 and prev @ nxt < 0:
-            raise ValueError("consecutive up directions must not be opposite (the tilt axis is undefined)")
+            raise ValueError(
+                "consecutive up directions must not be opposite (the tilt axis is undefined)"
+            )
         rot = np.zeros(3) if sin_a < 1e-12 else axis / sin_a * np.arctan2(sin_a, prev @ nxt)
         out.append(out[-1] @ Rotation.from_rotvec(rot).as_matrix())
     return np.array(out)
@@ -411,7 +424,7 @@ def multi_position_profile(
     if first_static_s is not None:
         holds[0] = first_static_s
     segments: list = [Hold(float(holds[0]))]
-    for m, turn_s, hold_s in zip(att[1:], turns, holds[1:]):
+    for m, turn_s, hold_s in zip(att[1:], turns, holds[1:], strict=True):
         segments += [Turn(m, float(turn_s)), Hold(float(hold_s))]
     return MotionProfile(att[0], tuple(segments))
 
@@ -423,17 +436,21 @@ def static_profile(duration_s: float, mat_nb: np.ndarray | None = None) -> Motio
 
 def flight_profile(fly: Fly, *, rest_s: float = 10.0, heading_rad: float = 0.0) -> MotionProfile:
     """Rest level, fly the segment ``fly``, rest again."""
-    return MotionProfile(attitude_with_up([0.0, 0.0, 1.0], heading_rad), (Hold(rest_s), fly, Hold(rest_s)))
+    return MotionProfile(
+        attitude_with_up([0.0, 0.0, 1.0], heading_rad), (Hold(rest_s), fly, Hold(rest_s))
+    )
 
 
 # --- sampling -------------------------------------------------------------------
 
 
 def _segment_counts(profile: MotionProfile, rate_hz: float) -> np.ndarray:
-    return np.array([max(1, int(round(s.duration_s * rate_hz))) for s in profile.segments])
+    return np.array([max(1, round(s.duration_s * rate_hz)) for s in profile.segments])
 
 
-def build_motion(profile: MotionProfile, rate_hz: float, rng: np.random.Generator, *, t0_s: float = 0.0) -> Motion:
+def build_motion(
+    profile: MotionProfile, rate_hz: float, rng: np.random.Generator, *, t0_s: float = 0.0
+) -> Motion:
     """Sample ``profile`` at ``rate_hz``; each segment lasts a whole number of samples.
 
     Sample ``k`` is at ``t0_s + k / rate_hz``. A segment's end attitude is the
@@ -452,7 +469,7 @@ def build_motion(profile: MotionProfile, rate_hz: float, rng: np.random.Generato
     current = np.array(profile.initial_mat_nb)
     start = 0
     n_hold = 0
-    for seg, cnt in zip(profile.segments, counts):
+    for seg, cnt in zip(profile.segments, counts, strict=True):
         sl = slice(start, start + cnt)
         tau = np.arange(cnt) * dt
         length = cnt * dt
@@ -476,18 +493,45 @@ def build_motion(profile: MotionProfile, rate_hz: float, rng: np.random.Generato
             angle = seg.rate_rps * tau + 0.5 * accel * tau**2
             mat[sl] = current @ Rotation.from_rotvec(np.outer(angle, axis)).as_matrix()
             rate[sl] = np.outer(seg.rate_rps + accel * tau, axis)
-            current = current @ Rotation.from_rotvec(0.5 * (seg.rate_rps + seg.end_rate_rps) * length * axis).as_matrix()
+            current = (
+                current
+                @ Rotation.from_rotvec(
+                    0.5 * (seg.rate_rps + seg.end_rate_rps) * length * axis
+                ).as_matrix()
+            )
         else:
-            amp, freq, phase = random_sinusoids(rng, 3, seg.n_components, [seg.attitude_amp_rad] * 2 + [seg.yaw_amp_rad], seg.maneuver_hz)
-            vamp, vfreq, vphase = random_sinusoids(rng, 3, seg.n_components, seg.vibration_rad, seg.vibration_hz)
+            amp, freq, phase = random_sinusoids(
+                rng,
+                3,
+                seg.n_components,
+                [seg.attitude_amp_rad] * 2 + [seg.yaw_amp_rad],
+                seg.maneuver_hz,
+            )
+            vamp, vfreq, vphase = random_sinusoids(
+                rng, 3, seg.n_components, seg.vibration_rad, seg.vibration_hz
+            )
             dev, rate[sl] = angle_excursion(
-                tau, length, seg.ramp_s, np.hstack([amp, vamp]), np.hstack([freq, vfreq]), np.hstack([phase, vphase])
+                tau,
+                length,
+                seg.ramp_s,
+                np.hstack([amp, vamp]),
+                np.hstack([freq, vfreq]),
+                np.hstack([phase, vphase]),
             )
             mat[sl] = current @ dev
-            aamp, afreq, aphase = random_sinusoids(rng, 3, seg.n_components, seg.accel_amp_mps2, seg.maneuver_hz)
-            bamp, bfreq, bphase = random_sinusoids(rng, 3, seg.n_components, seg.vibration_mps2, seg.vibration_hz)
+            aamp, afreq, aphase = random_sinusoids(
+                rng, 3, seg.n_components, seg.accel_amp_mps2, seg.maneuver_hz
+            )
+            bamp, bfreq, bphase = random_sinusoids(
+                rng, 3, seg.n_components, seg.vibration_mps2, seg.vibration_hz
+            )
             acc[sl] = displacement_accel(
-                tau, length, seg.ramp_s, np.hstack([aamp, bamp]), np.hstack([afreq, bfreq]), np.hstack([aphase, bphase])
+                tau,
+                length,
+                seg.ramp_s,
+                np.hstack([aamp, bamp]),
+                np.hstack([afreq, bfreq]),
+                np.hstack([aphase, bphase]),
             )
         start += cnt
     return Motion(t0_s + np.arange(n) * dt, mat, rate, acc, static, pos)

@@ -6,18 +6,26 @@ argument is keyword-only and has a typical default.
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
 from .errors import ErrorModel
 from .grades import Grade, grade_error_model
-from .motion import Fly, MotionProfile, eighteen_position_attitudes, flight_profile, multi_position_profile, random_attitudes, static_profile
+from .motion import (
+    Fly,
+    MotionProfile,
+    eighteen_position_attitudes,
+    flight_profile,
+    multi_position_profile,
+    random_attitudes,
+    static_profile,
+)
 from .session import SessionSpec
 from .temperature import TemperatureProfile
 
 
-class OrientationScheme(str, Enum):
+class OrientationScheme(StrEnum):
     """How the positions of a multi-position session are chosen."""
 
     EIGHTEEN = "eighteen"
@@ -27,7 +35,11 @@ class OrientationScheme(str, Enum):
 
 
 def position_attitudes(
-    n_positions: int, *, scheme: OrientationScheme = OrientationScheme.EIGHTEEN, heading_rad: float = 0.0, rng: np.random.Generator | None = None
+    n_positions: int,
+    *,
+    scheme: OrientationScheme = OrientationScheme.EIGHTEEN,
+    heading_rad: float = 0.0,
+    rng: np.random.Generator | None = None,
 ) -> np.ndarray:
     """(n, 3, 3) attitudes of ``n_positions`` positions.
 
@@ -45,7 +57,15 @@ def position_attitudes(
 
 
 def _spec(
-    profile: MotionProfile, grade: Grade, model: ErrorModel | None, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults
+    profile: MotionProfile,
+    grade: Grade,
+    model: ErrorModel | None,
+    rate_hz,
+    latitude_deg,
+    height_m,
+    gravity_mps2,
+    temperature,
+    faults,
 ) -> SessionSpec:
     """``profile`` as a :class:`SessionSpec`, with the grade's fixed preset unless ``model`` is given."""
     return SessionSpec(
@@ -85,9 +105,15 @@ def multi_position_spec(
     :func:`~estimators.sim.motion.multi_position_profile`. With the defaults: 18
     positions of 20 s, 4 s turns, 100 Hz: 428 s, 42,800 samples.
     """
-    att = position_attitudes(n_positions, scheme=scheme, heading_rad=heading_rad, rng=orientation_rng)
-    profile = multi_position_profile(att, static_s=static_s, transition_s=transition_s, first_static_s=first_static_s)
-    return _spec(profile, grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults)
+    att = position_attitudes(
+        n_positions, scheme=scheme, heading_rad=heading_rad, rng=orientation_rng
+    )
+    profile = multi_position_profile(
+        att, static_s=static_s, transition_s=transition_s, first_static_s=first_static_s
+    )
+    return _spec(
+        profile, grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults
+    )
 
 
 def static_spec(
@@ -104,7 +130,17 @@ def static_spec(
     faults: tuple = (),
 ) -> SessionSpec:
     """One long static interval (noise studies, Allan deviation, warm-up)."""
-    return _spec(static_profile(duration_s, mat_nb), grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults)
+    return _spec(
+        static_profile(duration_s, mat_nb),
+        grade,
+        model,
+        rate_hz,
+        latitude_deg,
+        height_m,
+        gravity_mps2,
+        temperature,
+        faults,
+    )
 
 
 def flight_spec(
@@ -121,4 +157,14 @@ def flight_spec(
     faults: tuple = (),
 ) -> SessionSpec:
     """Rest level, fly the :class:`~estimators.sim.motion.Fly` segment ``fly``, rest again."""
-    return _spec(flight_profile(fly, rest_s=rest_s), grade, model, rate_hz, latitude_deg, height_m, gravity_mps2, temperature, faults)
+    return _spec(
+        flight_profile(fly, rest_s=rest_s),
+        grade,
+        model,
+        rate_hz,
+        latitude_deg,
+        height_m,
+        gravity_mps2,
+        temperature,
+        faults,
+    )

@@ -26,11 +26,24 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimators.conventions import EARTH_RATE_RPS, N_PARAMS, Triad, normal_gravity_mps2, reference_magnitude
+from estimators.conventions import (
+    EARTH_RATE_RPS,
+    N_PARAMS,
+    Triad,
+    normal_gravity_mps2,
+    reference_magnitude,
+)
 from estimators.session import ImuSession
 
 from .errors import NOISE_BURST_STAGE, PARAMETER_EFFECT, EffectContext, ErrorModel
-from .faults import Fault, PARAMETER_FAULTS, add_noise_bursts, apply_output_faults, faults_of, param_deltas
+from .faults import (
+    PARAMETER_FAULTS,
+    Fault,
+    add_noise_bursts,
+    apply_output_faults,
+    faults_of,
+    param_deltas,
+)
 from .motion import Motion, MotionProfile, build_motion
 from .temperature import TemperatureProfile
 
@@ -69,7 +82,9 @@ class SessionSpec:
         for f in self.faults:
             if not isinstance(f, Fault):
                 raise ValueError(f"not a Fault: {f!r}")
-        if self.gravity_mps2 is not None and not (np.isfinite(self.gravity_mps2) and self.gravity_mps2 > 0):
+        if self.gravity_mps2 is not None and not (
+            np.isfinite(self.gravity_mps2) and self.gravity_mps2 > 0
+        ):
             raise ValueError(f"gravity_mps2 must be positive, got {self.gravity_mps2!r}")
         if not np.isfinite(self.rate_hz) or self.rate_hz <= 0:
             raise ValueError(f"rate_hz must be positive, got {self.rate_hz!r}")
@@ -158,7 +173,9 @@ class RandomStreams:
         elif isinstance(seed, (int, np.integer)) and seed >= 0:
             self.entropy = int(seed)
         else:
-            raise ValueError(f"seed must be a non-negative integer or a numpy Generator, got {seed!r}")
+            raise ValueError(
+                f"seed must be a non-negative integer or a numpy Generator, got {seed!r}"
+            )
 
     def rng(self, *keys: str) -> np.random.Generator:
         key = tuple(zlib.crc32(k.encode()) for k in keys)
@@ -182,7 +199,14 @@ def _check_fault_targets(model: ErrorModel, faults: tuple) -> None:
 
 
 def _sensor_output(
-    spec: SessionSpec, triad: Triad, x_b: np.ndarray, f_b: np.ndarray, t_s, temp_c, reference: float, streams: RandomStreams
+    spec: SessionSpec,
+    triad: Triad,
+    x_b: np.ndarray,
+    f_b: np.ndarray,
+    t_s,
+    temp_c,
+    reference: float,
+    streams: RandomStreams,
 ) -> np.ndarray:
     """(N, 3) output of ``triad`` for the true input ``x_b``: its effect chain, then its faults."""
     chain = spec.model.triad(triad)
@@ -194,7 +218,16 @@ def _sensor_output(
         if not bursts_done and effect.stage > NOISE_BURST_STAGE:
             y = add_noise_bursts(y, faults, t_s, streams.rng(triad.value, "noise_burst"))
             bursts_done = True
-        ctx = EffectContext(t_s, spec.rate_hz, triad, reference, f_b, temp_c, delta, streams.rng(triad.value, effect.name))
+        ctx = EffectContext(
+            t_s,
+            spec.rate_hz,
+            triad,
+            reference,
+            f_b,
+            temp_c,
+            delta,
+            streams.rng(triad.value, effect.name),
+        )
         y = effect.apply(y, ctx)
     if not bursts_done:
         y = add_noise_bursts(y, faults, t_s, streams.rng(triad.value, "noise_burst"))

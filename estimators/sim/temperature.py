@@ -61,7 +61,9 @@ class WarmupTemperature:
             raise ValueError(f"tau_s must be positive, got {self.tau_s!r}")
 
     def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
-        return self.final_c - (self.final_c - self.start_c) * np.exp(-np.asarray(t_s, float) / self.tau_s)
+        return self.final_c - (self.final_c - self.start_c) * np.exp(
+            -np.asarray(t_s, float) / self.tau_s
+        )
 
 
 @dataclass(frozen=True)

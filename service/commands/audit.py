@@ -19,10 +19,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Exit status 0; 2 with a one-line reason for unusable input.",
     )
     add_session_arguments(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object (baseline, candidates, named_causes, extended, gain)")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object (baseline, candidates, named_causes, extended, gain)",
+    )
     p.add_argument("--report", metavar="DIR", help="write audit.md and PNG plots into DIR")
-    p.add_argument("--replicas", type=int, default=DEFAULT_REPLICAS, metavar="N", help=f"Monte Carlo replicas (default {DEFAULT_REPLICAS})")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the replicas (default 0)")
+    p.add_argument(
+        "--replicas",
+        type=int,
+        default=DEFAULT_REPLICAS,
+        metavar="N",
+        help=f"Monte Carlo replicas (default {DEFAULT_REPLICAS})",
+    )
+    p.add_argument(
+        "--seed", type=int, default=0, metavar="S", help="seed of the replicas (default 0)"
+    )
     p.set_defaults(func=run)
 
 
@@ -30,7 +42,12 @@ def run(args: argparse.Namespace) -> int:
     if args.replicas < 5:
         raise UsageError(f"--replicas must be at least 5, got {args.replicas}")
     inp = load_session_input(args)
-    chain = ChainConfig(gravity_mps2=inp.gravity_mps2, detector=inp.detector, accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps)
+    chain = ChainConfig(
+        gravity_mps2=inp.gravity_mps2,
+        detector=inp.detector,
+        accel_limit_mps2=inp.accel_limit_mps2,
+        gyro_limit_rps=inp.gyro_limit_rps,
+    )
     result = run_audit(inp.session, AuditConfig(chain, replicas=args.replicas, seed=args.seed))
     if args.report:
         from service.audit_report import write_report
@@ -41,11 +58,15 @@ def run(args: argparse.Namespace) -> int:
         json.dump(data, sys.stdout, indent=1)
         print()
         return 0
-    print(f"{result.n_positions} positions, {result.replicas} replicas, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})")
+    print(
+        f"{result.n_positions} positions, {result.replicas} replicas, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})"
+    )
     for s in result.statements:
         print(f"  {s}")
     if data["baseline"]["ratio"] is not None:
-        print(f"  headline χ²/dof ratio: baseline {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}), extended {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f})")
+        print(
+            f"  headline χ²/dof ratio: baseline {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}), extended {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f})"
+        )
     for c in data["named_causes"]:
         print(f"  CAUSE {c['effect']} {c['triad']} {c['axis'] or ''}: {c['evidence']}")
     if not data["named_causes"]:

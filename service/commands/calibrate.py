@@ -27,11 +27,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Tolerances default to max(3σ of the calibration, a floor for the sensor grade) (estimators/passport.py).",
     )
     add_session_arguments(p)
-    p.add_argument("--out", required=True, metavar="PASSPORT.json", help="where to write the passport")
+    p.add_argument(
+        "--out", required=True, metavar="PASSPORT.json", help="where to write the passport"
+    )
     p.add_argument("--unit-id", help="identity of the unit (default: the session file's name)")
-    p.add_argument("--sensor-model", default="unknown", help="sensor model name recorded in the passport")
-    p.add_argument("--grade", choices=[g.value for g in Grade], default=Grade.MEMS.value, help="sensor grade for the tolerance floors (default mems)")
-    p.add_argument("--json", action="store_true", help="also print the full chain result as JSON on stdout")
+    p.add_argument(
+        "--sensor-model", default="unknown", help="sensor model name recorded in the passport"
+    )
+    p.add_argument(
+        "--grade",
+        choices=[g.value for g in Grade],
+        default=Grade.MEMS.value,
+        help="sensor grade for the tolerance floors (default mems)",
+    )
+    p.add_argument(
+        "--json", action="store_true", help="also print the full chain result as JSON on stdout"
+    )
     p.add_argument(
         "--audit",
         action=argparse.BooleanOptionalAction,
@@ -40,7 +51,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "instability that survives it into the passport, so the service's thresholds use the audited model "
         "(default: on; --no-audit keeps the white-noise model)",
     )
-    p.add_argument("--replicas", type=int, default=20, metavar="N", help="Monte Carlo replicas of the audit (default 20)")
+    p.add_argument(
+        "--replicas",
+        type=int,
+        default=20,
+        metavar="N",
+        help="Monte Carlo replicas of the audit (default 20)",
+    )
     p.set_defaults(func=run)
 
 
@@ -55,12 +72,17 @@ def run(args: argparse.Namespace) -> int:
     if args.audit:
         audit = run_audit(inp.session, AuditConfig(chain=config, replicas=args.replicas))
         instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
-        print(f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}", file=sys.stderr)
+        print(
+            f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}",
+            file=sys.stderr,
+        )
         result = run_chain(inp.session, replace(config, bias_instability_std=instability))
     estimates = {t: r.estimate for t, r in result.triads.items() if r.estimate.params is not None}
     if not estimates:
         reasons = "; ".join(f"{t.value}: {r.estimate.reason}" for t, r in result.triads.items())
-        raise UsageError(f"no triad could be calibrated from {len(result.positions)} positions ({reasons})")
+        raise UsageError(
+            f"no triad could be calibrated from {len(result.positions)} positions ({reasons})"
+        )
     passport = passport_from_estimates(
         estimates,
         unit_id=args.unit_id or Path(args.session).stem,
@@ -68,13 +90,18 @@ def run(args: argparse.Namespace) -> int:
         sensor_ids={},
         created=dt.date.today().isoformat(),
         # White noise from the positions before the audited wander is added to their covariances.
-        noise_std={t: per_sample_noise_std(white.positions, t, e.reference) for t, e in estimates.items()},
+        noise_std={
+            t: per_sample_noise_std(white.positions, t, e.reference) for t, e in estimates.items()
+        },
         sample_rate_hz=inp.session.rate_hz,
         grade=Grade(args.grade),
         bias_instability_std=instability,
     )
     write_passport_json(passport, args.out)
-    print(f"calibrate: {len(result.positions)} positions ({len(result.position_rejections)} intervals rejected or merged), g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})", file=sys.stderr)
+    print(
+        f"calibrate: {len(result.positions)} positions ({len(result.position_rejections)} intervals rejected or merged), g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})",
+        file=sys.stderr,
+    )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}", file=sys.stderr)
     for triad in (Triad.ACCEL, Triad.GYRO):

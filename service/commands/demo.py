@@ -17,7 +17,12 @@ def register(subparsers) -> None:
         help="run the self-contained demo (in-process Zenoh router, simulated vehicle, the service)",
         description="A simulated vehicle goes through ground handling, a short flight and a fault; the service finds and names it.",
     )
-    p.add_argument("--speed", type=float, default=DEFAULT_SPEED, help=f"simulated time per wall-clock second (default {DEFAULT_SPEED:g})")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=DEFAULT_SPEED,
+        help=f"simulated time per wall-clock second (default {DEFAULT_SPEED:g})",
+    )
     p.add_argument("--seed", type=int, default=7, help="seed of the simulated session (default 7)")
     p.set_defaults(func=run)
 

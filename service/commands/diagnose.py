@@ -20,8 +20,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_session_arguments(p)
     p.add_argument("--passport", required=True, metavar="PASSPORT.json", help="the unit's passport")
-    p.add_argument("--false-alarm", type=float, default=DEFAULT_FALSE_ALARM_PROB, metavar="P", help=f"per-triad false-alarm probability of F1…F9 (default {DEFAULT_FALSE_ALARM_PROB})")
-    p.add_argument("--json", action="store_true", help="print one JSON object (positions, estimates, predicates, faults)")
+    p.add_argument(
+        "--false-alarm",
+        type=float,
+        default=DEFAULT_FALSE_ALARM_PROB,
+        metavar="P",
+        help=f"per-triad false-alarm probability of F1…F9 (default {DEFAULT_FALSE_ALARM_PROB})",
+    )
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object (positions, estimates, predicates, faults)",
+    )
     p.set_defaults(func=run)
 
 
@@ -40,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
         json.dump(out, sys.stdout, indent=1)
         print()
         return 0
-    print(f"{passport.unit_id}: {len(result.positions)} positions, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})")
+    print(
+        f"{passport.unit_id}: {len(result.positions)} positions, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})"
+    )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}")
     for triad, r in result.triads.items():
@@ -49,5 +61,7 @@ def run(args: argparse.Namespace) -> int:
     if not result.faults:
         print("  no fault")
     for f in result.faults:
-        print(f"  FAULT {f.predicate}: {f.triad.value} {f.axis} {f.cause.value}: estimate {f.estimate:.4g} vs nominal {f.nominal:.4g} ± {f.tolerance:.3g} (σ {f.sigma:.2g})")
+        print(
+            f"  FAULT {f.predicate}: {f.triad.value} {f.axis} {f.cause.value}: estimate {f.estimate:.4g} vs nominal {f.nominal:.4g} ± {f.tolerance:.3g} (σ {f.sigma:.2g})"
+        )
     return 0

@@ -28,8 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from estimators.conventions import PARAM_NAMES, Grade, Triad
-from estimators.passport import Provenance, TriadPassport, default_tolerance_rule, per_sample_noise_std, reference_kind
 from estimators.ninepar import Method
+from estimators.passport import (
+    Provenance,
+    TriadPassport,
+    default_tolerance_rule,
+    per_sample_noise_std,
+    reference_kind,
+)
 from estimators.repeatability import passport_from_runs, t_quantile, triad_runs
 from estimators.sim import Rounding, multi_position_spec, simulate
 from estimators.sixpos import quantizer_offset, session_positions
@@ -77,39 +83,106 @@ _ARCMIN = np.pi / 180.0 / 60.0
 
 def register(subparsers) -> None:
     sub = add_method_command(
-        subparsers, "passport", doc=__doc__, dest="method", metavar="METHOD",
-        help="make a passport on a bench: tilt table (M2), repeated triad sessions, temperature model (M3)"
+        subparsers,
+        "passport",
+        doc=__doc__,
+        dest="method",
+        metavar="METHOD",
+        help="make a passport on a bench: tilt table (M2), repeated triad sessions, temperature model (M3)",
     )
 
     t = sub.add_parser("tilt", help="single-axis accelerometer on a tilt table (M2)")
-    _source_options(t, runs_default=5, session_help="CSV session file of one run (repeat the option for each run)")
+    _source_options(
+        t,
+        runs_default=5,
+        session_help="CSV session file of one run (repeat the option for each run)",
+    )
     t.add_argument("--axis", choices="xyz", default="x", help="the tested axis column (default x)")
-    t.add_argument("--angles-deg", help="table angles in measuring order, START:STOP:STEP or a list (default 5:64:1)")
-    t.add_argument("--hold-s", type=float, default=30.0, help="time held at each angle, s (default 30)")
-    t.add_argument("--lsb-mps2", type=float, help="pulse weight the logger wrote the CSV with (default: found from the data)")
-    t.add_argument("--rounding", choices=[r.value for r in Rounding], default=Rounding.TOWARD_ZERO.value,
-                   help="how the converter makes whole pulses (default toward_zero, the paper's)")
-    t.add_argument("--no-half-pulse", action="store_true", help="omit the half-pulse correction (to see the bias it removes)")
-    t.add_argument("--save-sessions", type=Path, help="with --simulate: write each run as DIR/run<N>.csv")
+    t.add_argument(
+        "--angles-deg",
+        help="table angles in measuring order, START:STOP:STEP or a list (default 5:64:1)",
+    )
+    t.add_argument(
+        "--hold-s", type=float, default=30.0, help="time held at each angle, s (default 30)"
+    )
+    t.add_argument(
+        "--lsb-mps2",
+        type=float,
+        help="pulse weight the logger wrote the CSV with (default: found from the data)",
+    )
+    t.add_argument(
+        "--rounding",
+        choices=[r.value for r in Rounding],
+        default=Rounding.TOWARD_ZERO.value,
+        help="how the converter makes whole pulses (default toward_zero, the paper's)",
+    )
+    t.add_argument(
+        "--no-half-pulse",
+        action="store_true",
+        help="omit the half-pulse correction (to see the bias it removes)",
+    )
+    t.add_argument(
+        "--save-sessions", type=Path, help="with --simulate: write each run as DIR/run<N>.csv"
+    )
     _common_options(t)
     t.set_defaults(func=run_tilt)
 
-    r = sub.add_parser("triad", help="accelerometer triad from repeated multi-position sessions (M1 with M2's checks)")
-    _source_options(r, runs_default=3, session_help="CSV multi-position session of one run (repeat for each run)")
-    r.add_argument("--save-sessions", type=Path, help="with --simulate: write each run as DIR/run<N>.csv")
+    r = sub.add_parser(
+        "triad",
+        help="accelerometer triad from repeated multi-position sessions (M1 with M2's checks)",
+    )
+    _source_options(
+        r,
+        runs_default=3,
+        session_help="CSV multi-position session of one run (repeat for each run)",
+    )
+    r.add_argument(
+        "--save-sessions", type=Path, help="with --simulate: write each run as DIR/run<N>.csv"
+    )
     _common_options(r)
     r.set_defaults(func=run_triad)
 
-    m = sub.add_parser("temperature", help="temperature model from six-position tests at many temperatures (M3)")
+    m = sub.add_parser(
+        "temperature", help="temperature model from six-position tests at many temperatures (M3)"
+    )
     src = m.add_mutually_exclusive_group(required=True)
-    src.add_argument("--session", type=Path, help="CSV session with a temp column: six-position tests at several temperatures")
-    src.add_argument("--simulate", action="store_true", help="simulate the paper's chamber: −45…+75 °C, hidden 4th-order dependence")
+    src.add_argument(
+        "--session",
+        type=Path,
+        help="CSV session with a temp column: six-position tests at several temperatures",
+    )
+    src.add_argument(
+        "--simulate",
+        action="store_true",
+        help="simulate the paper's chamber: −45…+75 °C, hidden 4th-order dependence",
+    )
     m.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
-    m.add_argument("--static-s", type=float, default=20.0, help="with --simulate: seconds per position (default 20)")
-    m.add_argument("--save-session", type=Path, help="with --simulate: write the chamber session as CSV")
-    m.add_argument("--orders", default=",".join(map(str, ORDERS)), help="polynomial orders to compare (default 1,2,3,4,5)")
-    m.add_argument("--reference-temp-c", type=float, default=DEFAULT_REFERENCE_TEMP_C, help="T_ref of the polynomials, °C (default 20)")
-    m.add_argument("--tolerance-c", type=float, default=2.0, help="positions within this of each other are one test temperature, °C")
+    m.add_argument(
+        "--static-s",
+        type=float,
+        default=20.0,
+        help="with --simulate: seconds per position (default 20)",
+    )
+    m.add_argument(
+        "--save-session", type=Path, help="with --simulate: write the chamber session as CSV"
+    )
+    m.add_argument(
+        "--orders",
+        default=",".join(map(str, ORDERS)),
+        help="polynomial orders to compare (default 1,2,3,4,5)",
+    )
+    m.add_argument(
+        "--reference-temp-c",
+        type=float,
+        default=DEFAULT_REFERENCE_TEMP_C,
+        help="T_ref of the polynomials, °C (default 20)",
+    )
+    m.add_argument(
+        "--tolerance-c",
+        type=float,
+        default=2.0,
+        help="positions within this of each other are one test temperature, °C",
+    )
     _common_options(m)
     m.set_defaults(func=run_temperature)
 
@@ -117,16 +190,30 @@ def register(subparsers) -> None:
 def _source_options(p: argparse.ArgumentParser, *, runs_default: int, session_help: str) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--session", type=Path, action="append", help=session_help)
-    src.add_argument("--simulate", action="store_true", help="simulate the bench instead of reading files")
-    p.add_argument("--runs", type=int, default=runs_default, help=f"with --simulate: number of runs (default {runs_default})")
+    src.add_argument(
+        "--simulate", action="store_true", help="simulate the bench instead of reading files"
+    )
+    p.add_argument(
+        "--runs",
+        type=int,
+        default=runs_default,
+        help=f"with --simulate: number of runs (default {runs_default})",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
 
 
 def _common_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--level", type=float, default=0.95, help="confidence level of the intervals (default 0.95)")
+    p.add_argument(
+        "--level", type=float, default=0.95, help="confidence level of the intervals (default 0.95)"
+    )
     add_gravity_options(p)
     add_passport_options(p)
-    p.add_argument("--grade", choices=[g.value for g in Grade], default=Grade.MEMS.value, help="grade for default tolerances (default mems)")
+    p.add_argument(
+        "--grade",
+        choices=[g.value for g in Grade],
+        default=Grade.MEMS.value,
+        help="grade for default tolerances (default mems)",
+    )
     p.add_argument("--plot", type=Path, help="write a PNG figure of the method's checks")
 
 
@@ -146,21 +233,32 @@ def run_tilt(args: argparse.Namespace) -> int:
     truth = None
     rejected: dict[str, int] = {}
     if args.simulate:
-        bench = TiltBench(n_runs=args.runs, rounding=Rounding(args.rounding), **({} if angles_deg is None else {"angles_deg": tuple(angles_deg)}))
+        bench = TiltBench(
+            n_runs=args.runs,
+            rounding=Rounding(args.rounding),
+            **({} if angles_deg is None else {"angles_deg": tuple(angles_deg)}),
+        )
         rng = np.random.default_rng(args.seed)
         samples = simulate_samples(bench, rng)
         runs = runs_from_samples(bench, samples)
         g = gravity_from(args, default_mps2=bench.gravity_mps2)
         lsb, rate_hz = bench.lsb_mps2, bench.rate_hz
-        truth = dict(zip(TILT_PARAM_NAMES, bench.true_params))
+        truth = dict(zip(TILT_PARAM_NAMES, bench.true_params, strict=True))
         if args.save_sessions is not None:
             args.save_sessions.mkdir(parents=True, exist_ok=True)
             for i, s in enumerate(samples):
                 write_csv_session(
                     args.save_sessions / f"run{i + 1}.csv",
                     bench_session(bench, s, axis=axis, rng=rng),
-                    metadata={"gravity_mps2": repr(bench.gravity_mps2), "rate_hz": bench.rate_hz, "method": "tilt", "run": i + 1},
-                    comments=(f"simulated tilt-table run {i + 1}: axis up, axis down, angles {bench.angles_deg[0]:g}..{bench.angles_deg[-1]:g} deg",),
+                    metadata={
+                        "gravity_mps2": repr(bench.gravity_mps2),
+                        "rate_hz": bench.rate_hz,
+                        "method": "tilt",
+                        "run": i + 1,
+                    },
+                    comments=(
+                        f"simulated tilt-table run {i + 1}: axis up, axis down, angles {bench.angles_deg[0]:g}..{bench.angles_deg[-1]:g} deg",
+                    ),
                 )
     else:
         angles = np.radians(np.arange(5.0, 65.0) if angles_deg is None else angles_deg)
@@ -170,7 +268,12 @@ def run_tilt(args: argparse.Namespace) -> int:
             add_rejections(rejected, dropped)
             try:
                 run, lsb = run_from_session(
-                    clean, angles_rad=angles, axis=axis, hold_s=args.hold_s, lsb_mps2=args.lsb_mps2, rounding=Rounding(args.rounding)
+                    clean,
+                    angles_rad=angles,
+                    axis=axis,
+                    hold_s=args.hold_s,
+                    lsb_mps2=args.lsb_mps2,
+                    rounding=Rounding(args.rounding),
                 )
             except ValueError as exc:
                 raise UsageError(f"{path}: {exc}") from None
@@ -179,36 +282,61 @@ def run_tilt(args: argparse.Namespace) -> int:
             gravities.append(loaded.gravity_mps2)
             rates.append(clean.rate_hz)
         if len(runs) < 2:
-            raise UsageError("the tilt passport needs at least 2 runs (give --session once per run) to check reproducibility")
+            raise UsageError(
+                "the tilt passport needs at least 2 runs (give --session once per run) to check reproducibility"
+            )
         if max(lsbs) - min(lsbs) > 1e-9 * max(lsbs):
-            raise UsageError(f"the runs were written with different pulse weights {sorted(set(lsbs))}: give --lsb-mps2")
+            raise UsageError(
+                f"the runs were written with different pulse weights {sorted(set(lsbs))}: give --lsb-mps2"
+            )
         lsb, rate_hz = lsbs[0], float(np.median(rates))
         g = gravity_from(args, file_gravity_mps2=gravities[0])
     result = tilt_passport(runs, gravity_mps2=g, correction=correction, level=args.level)
     bias = half_pulse_bias(runs, gravity_mps2=g, level=args.level)
-    tp = tilt_triad_passport(result, axis=axis, lsb_mps2=lsb, sample_rate_hz=rate_hz, grade=Grade(args.grade))
+    tp = tilt_triad_passport(
+        result, axis=axis, lsb_mps2=lsb, sample_rate_hz=rate_hz, grade=Grade(args.grade)
+    )
     write_passport(args, tp)
     if args.plot is not None:
         # matplotlib loads only when a figure is asked for: every command module is imported at CLI start.
         from service.method_plots import plot_tilt
 
-        plot_tilt(result, runs, args.plot, truth=None if truth is None else np.array(list(truth.values())))
-    report = {**_tilt_report(result, bias, tp, axis=axis, lsb=lsb, truth=truth), "rejected_samples": rejected}
+        plot_tilt(
+            result, runs, args.plot, truth=None if truth is None else np.array(list(truth.values()))
+        )
+    report = {
+        **_tilt_report(result, bias, tp, axis=axis, lsb=lsb, truth=truth),
+        "rejected_samples": rejected,
+    }
     emit(args, report, _tilt_text(result, bias, lsb, truth, args) + rejected_text(rejected))
     return 0 if result.spread.all_reproducible else 1
 
 
 def _spread_report(sp) -> dict:
     names = sp.names
-    per = lambda arr: dict(zip(names, arr))  # noqa: E731
+    per = lambda arr: dict(zip(names, arr, strict=True))  # noqa: E731
     return {
         "level": sp.level,
         "runs": [
-            {"value": per(sp.values[r]), "std": per(sp.std[r]), "ci_low": per(sp.lower[r]), "ci_high": per(sp.upper[r])}
+            {
+                "value": per(sp.values[r]),
+                "std": per(sp.std[r]),
+                "ci_low": per(sp.lower[r]),
+                "ci_high": per(sp.upper[r]),
+            }
             for r in range(sp.n_runs)
         ],
-        "across_runs": {"mean": per(sp.mean), "std": per(sp.spread), "mean_ci_low": per(sp.mean_lower), "mean_ci_high": per(sp.mean_upper)},
-        "intersection": {"low": per(sp.common_lower), "high": per(sp.common_upper), "non_empty": per(sp.reproducible)},
+        "across_runs": {
+            "mean": per(sp.mean),
+            "std": per(sp.spread),
+            "mean_ci_low": per(sp.mean_lower),
+            "mean_ci_high": per(sp.mean_upper),
+        },
+        "intersection": {
+            "low": per(sp.common_lower),
+            "high": per(sp.common_upper),
+            "non_empty": per(sp.reproducible),
+        },
         "passport_value": per(sp.value),
         "tolerance": per(sp.tolerance),
         "consistency_p_value": per(sp.p_value),
@@ -229,20 +357,38 @@ def _tilt_report(result, bias, tp: TriadPassport, *, axis: int, lsb: float, trut
         "half_pulse_correction": result.correction.value,
         "n_runs": result.spread.n_runs,
         "n_angles": [int(f.fit.residuals.size) for f in result.fits],
-        "settled_at": [dict(zip(TILT_PARAM_NAMES, f.stabilization.settled_at)) for f in result.fits],
-        "residual_rms_pulses": [float(np.sqrt(np.mean(f.residuals_pulses**2))) for f in result.fits],
+        "settled_at": [
+            dict(zip(TILT_PARAM_NAMES, f.stabilization.settled_at, strict=True))
+            for f in result.fits
+        ],
+        "residual_rms_pulses": [
+            float(np.sqrt(np.mean(f.residuals_pulses**2))) for f in result.fits
+        ],
         **_spread_report(result.spread),
-        "error_rms_pulses": {"raw": e.raw, "half_pulse": e.half_pulse, "in_run_fit": e.in_run, "passport": e.passport},
-        "without_half_pulse_minus_with": dict(zip(TILT_PARAM_NAMES, bias)),
-        "passport_axis": {"bias_norm": tp.nominal[axis], "scale_error": tp.nominal[3 + axis],
-                          "tolerance_bias_norm": tp.tolerance[axis], "tolerance_scale_error": tp.tolerance[3 + axis]},
+        "error_rms_pulses": {
+            "raw": e.raw,
+            "half_pulse": e.half_pulse,
+            "in_run_fit": e.in_run,
+            "passport": e.passport,
+        },
+        "without_half_pulse_minus_with": dict(zip(TILT_PARAM_NAMES, bias, strict=True)),
+        "passport_axis": {
+            "bias_norm": tp.nominal[axis],
+            "scale_error": tp.nominal[3 + axis],
+            "tolerance_bias_norm": tp.tolerance[axis],
+            "tolerance_scale_error": tp.tolerance[3 + axis],
+        },
         "truth": truth,
     }
 
 
 def _tilt_text(result, bias, lsb, truth, args) -> str:
     sp, k0 = result.spread, result.k0_mps2
-    fmt = (lambda v: f"{v * 1e3:+8.3f}", lambda v: f"{v / _ARCMIN:+7.3f}", lambda v: f"{v * 1e6:+8.1f}")
+    fmt = (
+        lambda v: f"{v * 1e3:+8.3f}",
+        lambda v: f"{v / _ARCMIN:+7.3f}",
+        lambda v: f"{v * 1e6:+8.1f}",
+    )
     head = "               δa [mm/s²]   δα [′]    Δk [ppm]"
     lines = [
         f"passport tilt: {sp.n_runs} runs × {result.fits[0].fit.residuals.size} angles, axis {args.axis}, g = {result.gravity_mps2:.5f} m/s²",
@@ -251,17 +397,25 @@ def _tilt_text(result, bias, lsb, truth, args) -> str:
     ]
     for r in range(sp.n_runs):
         vals = "  ".join(f(sp.values[r, j]) for j, f in enumerate(fmt))
-        half = "  ".join(f(sp.upper[r, j] - sp.values[r, j]).replace("+", "±") for j, f in enumerate(fmt))
+        half = "  ".join(
+            f(sp.upper[r, j] - sp.values[r, j]).replace("+", "±") for j, f in enumerate(fmt)
+        )
         lines.append(f"run {r + 1:<3}       {vals}   ({half})")
     lines.append(f"mean            {'  '.join(f(sp.mean[j]) for j, f in enumerate(fmt))}")
-    lines.append(f"std             {'  '.join(f(sp.spread[j]).replace('+', ' ') for j, f in enumerate(fmt))}")
+    lines.append(
+        f"std             {'  '.join(f(sp.spread[j]).replace('+', ' ') for j, f in enumerate(fmt))}"
+    )
     lines.append(f"intersection lo {'  '.join(f(sp.common_lower[j]) for j, f in enumerate(fmt))}")
     lines.append(f"intersection hi {'  '.join(f(sp.common_upper[j]) for j, f in enumerate(fmt))}")
     lines.append(f"passport value  {'  '.join(f(sp.value[j]) for j, f in enumerate(fmt))}")
     if truth is not None:
-        lines.append(f"simulated truth {'  '.join(f(truth[n]) for f, n in zip(fmt, TILT_PARAM_NAMES))}")
+        lines.append(
+            f"simulated truth {'  '.join(f(truth[n]) for f, n in zip(fmt, TILT_PARAM_NAMES, strict=True))}"
+        )
     lines.append(
-        "reproducible across runs: yes" if sp.all_reproducible else f"NOT reproducible across runs: {', '.join(sp.not_reproducible())}"
+        "reproducible across runs: yes"
+        if sp.all_reproducible
+        else f"NOT reproducible across runs: {', '.join(sp.not_reproducible())}"
     )
     e = result.errors
     lines.append(
@@ -290,7 +444,11 @@ def run_triad(args: argparse.Namespace) -> int:
             file_gravity = res.truth.gravity_mps2
             if args.save_sessions is not None:
                 args.save_sessions.mkdir(parents=True, exist_ok=True)
-                write_csv_session(args.save_sessions / f"run{i + 1}.csv", res.session, metadata={"gravity_mps2": repr(res.truth.gravity_mps2)})
+                write_csv_session(
+                    args.save_sessions / f"run{i + 1}.csv",
+                    res.session,
+                    metadata={"gravity_mps2": repr(res.truth.gravity_mps2)},
+                )
         # The simulator's truth excludes the converter's mean rounding offset, which
         # is part of the bias the data show.
         truth = res.truth.accel_params.copy()
@@ -303,7 +461,9 @@ def run_triad(args: argparse.Namespace) -> int:
             file_gravity = file_gravity or loaded.gravity_mps2
         truth = None
     if len(sessions) < 2:
-        raise UsageError("the triad passport needs at least 2 sessions (give --session once per run) to check reproducibility")
+        raise UsageError(
+            "the triad passport needs at least 2 sessions (give --session once per run) to check reproducibility"
+        )
     g = gravity_from(args, file_gravity_mps2=file_gravity)
     positions = []
     for name, session in sessions:
@@ -316,7 +476,9 @@ def run_triad(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     all_positions = [p for run in positions for p in run]
     tp = passport_from_runs(
-        runs, noise_std=per_sample_noise_std(all_positions, Triad.ACCEL, g), sample_rate_hz=float(np.median([s.rate_hz for _, s in sessions]))
+        runs,
+        noise_std=per_sample_noise_std(all_positions, Triad.ACCEL, g),
+        sample_rate_hz=float(np.median([s.rate_hz for _, s in sessions])),
     )
     write_passport(args, tp)
     sp = runs.spread
@@ -325,14 +487,19 @@ def run_triad(args: argparse.Namespace) -> int:
         "triad": "accel",
         "gravity_mps2": g,
         "n_positions": [e.n_positions for e in runs.estimates],
-        "settled_at": [dict(zip(PARAM_NAMES, s.settled_at)) for s in runs.stabilizations],
+        "settled_at": [
+            dict(zip(PARAM_NAMES, s.settled_at, strict=True)) for s in runs.stabilizations
+        ],
         **_spread_report(sp),
-        "observable": dict(zip(PARAM_NAMES, tp.observable)),
-        "truth": None if truth is None else dict(zip(PARAM_NAMES, truth)),
+        "observable": dict(zip(PARAM_NAMES, tp.observable, strict=True)),
+        "truth": None if truth is None else dict(zip(PARAM_NAMES, truth, strict=True)),
         "rejected_samples": rejected,
     }
-    lines = [f"passport triad: {sp.n_runs} runs, positions {report['n_positions']}, g = {g:.5f} m/s²",
-             "param      value        tolerance    intersection                 reproducible" + ("   truth" if truth is not None else "")]
+    lines = [
+        f"passport triad: {sp.n_runs} runs, positions {report['n_positions']}, g = {g:.5f} m/s²",
+        "param      value        tolerance    intersection                 reproducible"
+        + ("   truth" if truth is not None else ""),
+    ]
     for j, name in enumerate(PARAM_NAMES):
         row = f"{name:<6} {sp.value[j]:+.4e}  {sp.tolerance[j]:.3e}   [{sp.common_lower[j]:+.4e}, {sp.common_upper[j]:+.4e}]  {'yes' if sp.reproducible[j] else 'NO'}"
         lines.append(row + (f"   {truth[j]:+.4e}" if truth is not None else ""))
@@ -364,7 +531,12 @@ def run_temperature(args: argparse.Namespace) -> int:
         model = hidden_quartic_model(gravity_mps2=g, t_ref_c=args.reference_temp_c)
         session = simulate_chamber(model, PAPER_TEMPS_C, seed=args.seed, static_s=args.static_s)
         if args.save_session is not None:
-            write_csv_session(args.save_session, session, metadata={"gravity_mps2": repr(g)}, comments=("simulated chamber: six positions at -45..75 degC",))
+            write_csv_session(
+                args.save_session,
+                session,
+                metadata={"gravity_mps2": repr(g)},
+                comments=("simulated chamber: six positions at -45..75 degC",),
+            )
     else:
         loaded, session, dropped = load_valid(args.session)
         add_rejections(rejected, dropped)
@@ -374,10 +546,18 @@ def run_temperature(args: argparse.Namespace) -> int:
     positions = session_positions(session)
     series = temperature_series(positions, gravity_mps2=g, tolerance_c=args.tolerance_c)
     fit = fit_temperature_model(
-        series.temp_c, series.bias_mps2, series.scale_error, bias_std_mps2=series.bias_std_mps2, scale_std=series.scale_std,
-        gravity_mps2=g, orders=orders, reference_temp_c=args.reference_temp_c,
+        series.temp_c,
+        series.bias_mps2,
+        series.scale_error,
+        bias_std_mps2=series.bias_std_mps2,
+        scale_std=series.scale_std,
+        gravity_mps2=g,
+        orders=orders,
+        reference_temp_c=args.reference_temp_c,
     )
-    tp = _temperature_passport(fit, series, positions, g, Grade(args.grade), args.level, session.rate_hz)
+    tp = _temperature_passport(
+        fit, series, positions, g, Grade(args.grade), args.level, session.rate_hz
+    )
     write_passport(args, tp)
     if args.plot is not None:
         # matplotlib loads only when a figure is asked for (see run_tilt).
@@ -409,7 +589,15 @@ def run_temperature(args: argparse.Namespace) -> int:
         "method": "M3 temperature model",
         "gravity_mps2": g,
         "temperatures_c": series.temp_c,
-        "scores": [{"order": s.order, "heldout_criterion": s.regularity, "heldout_se": s.regularity_se, "training_criterion": s.training} for s in fit.scores],
+        "scores": [
+            {
+                "order": s.order,
+                "heldout_criterion": s.regularity,
+                "heldout_se": s.regularity_se,
+                "training_criterion": s.training,
+            }
+            for s in fit.scores
+        ],
         "order": fit.order,
         "reason": fit.reason,
         "model": fit.model.to_dict(),
@@ -417,11 +605,15 @@ def run_temperature(args: argparse.Namespace) -> int:
         "truth_max_errors": truth,
         "rejected_samples": rejected,
     }
-    lines = [f"passport temperature: {series.temp_c.size} test temperatures {series.temp_c.min():g}…{series.temp_c.max():g} °C, g = {g:.5f} m/s²",
-             "order   held-out criterion (±se)   training residual"]
+    lines = [
+        f"passport temperature: {series.temp_c.size} test temperatures {series.temp_c.min():g}…{series.temp_c.max():g} °C, g = {g:.5f} m/s²",
+        "order   held-out criterion (±se)   training residual",
+    ]
     for s in fit.scores:
         mark = "  ← selected" if s.order == fit.order else ""
-        lines.append(f"{s.order:>5}   {s.regularity:>12.4g} (±{s.regularity_se:.2g})   {s.training:>12.4g}{mark}")
+        lines.append(
+            f"{s.order:>5}   {s.regularity:>12.4g} (±{s.regularity_se:.2g})   {s.training:>12.4g}{mark}"
+        )
     lines.append(fit.reason)
     lines.append(
         f"measured: zero error {measured['zero_error_before_g']:.2e} g → {measured['zero_error_after_g']:.2e} g, "
@@ -438,14 +630,20 @@ def run_temperature(args: argparse.Namespace) -> int:
     return 0
 
 
-def _temperature_passport(fit, series, positions, g: float, grade: Grade, level: float, rate_hz: float) -> TriadPassport:
+def _temperature_passport(
+    fit, series, positions, g: float, grade: Grade, level: float, rate_hz: float
+) -> TriadPassport:
     """The accelerometer passport at T_ref: nominal bias and scale from the model's constant terms,
     non-orthogonality from the six-position tests (mean over temperatures), the temperature model attached."""
     nine = np.mean([t.nine_params() for t in series.tests], axis=0)
     nine[0:3] = fit.model.bias_coeffs[:, 0]
     nine[3:6] = fit.model.scale_coeffs[:, 0]
     sigma = np.concatenate(
-        [np.sqrt(fit.bias_cov[:, 0, 0]), np.sqrt(fit.scale_cov[:, 0, 0]), np.std([t.nine_params()[6:] for t in series.tests], axis=0)]
+        [
+            np.sqrt(fit.bias_cov[:, 0, 0]),
+            np.sqrt(fit.scale_cov[:, 0, 0]),
+            np.std([t.nine_params()[6:] for t in series.tests], axis=0),
+        ]
     )
     z = float(t_quantile(level, np.inf))
     rule = default_tolerance_rule(Triad.ACCEL, grade, g)
@@ -459,6 +657,13 @@ def _temperature_passport(fit, series, positions, g: float, grade: Grade, level:
         observable=np.ones(9, dtype=bool),
         noise_std=per_sample_noise_std(positions, Triad.ACCEL, g),
         sample_rate_hz=rate_hz,
-        provenance=Provenance(Method.LINEAR, len(positions), level, nine - z * sigma, nine + z * sigma, procedure="M3 temperature chamber, six-position tests"),
+        provenance=Provenance(
+            Method.LINEAR,
+            len(positions),
+            level,
+            nine - z * sigma,
+            nine + z * sigma,
+            procedure="M3 temperature chamber, six-position tests",
+        ),
         temperature=fit.model,
     )

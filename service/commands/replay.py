@@ -53,12 +53,30 @@ def register(subparsers) -> None:
     )
     p.add_argument("log", type=Path, metavar="LOG", help="a .tlog, .bin or .log file")
     p.add_argument("--json", action="store_true", help="one JSON event per line (the event schema)")
-    p.add_argument("--pace", choices=("fast", "recorded"), default="fast", help="as fast as possible (default) or at the recorded rate")
+    p.add_argument(
+        "--pace",
+        choices=("fast", "recorded"),
+        default="fast",
+        help="as fast as possible (default) or at the recorded rate",
+    )
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--passport", type=Path, metavar="FILE", help="passport JSON for every IMU of the log")
-    src.add_argument("--passport-dir", type=Path, metavar="DIR", help="passport store (<vehicle>/imu<n>.passport.json)")
-    p.add_argument("--vehicle", default="replay", help="vehicle id given to the log's IMUs (default 'replay')")
-    p.add_argument("--config", type=Path, help="service configuration whose [site], [pipeline] and [validity] apply")
+    src.add_argument(
+        "--passport", type=Path, metavar="FILE", help="passport JSON for every IMU of the log"
+    )
+    src.add_argument(
+        "--passport-dir",
+        type=Path,
+        metavar="DIR",
+        help="passport store (<vehicle>/imu<n>.passport.json)",
+    )
+    p.add_argument(
+        "--vehicle", default="replay", help="vehicle id given to the log's IMUs (default 'replay')"
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="service configuration whose [site], [pipeline] and [validity] apply",
+    )
     add_gravity_options(p)
     p.set_defaults(func=run)
 
@@ -66,9 +84,13 @@ def register(subparsers) -> None:
 def _config(args: argparse.Namespace) -> ServiceConfig:
     config = load_config(args.config) if args.config else ServiceConfig()
     if args.gravity_mps2 is not None or args.latitude_deg is not None:
-        site = SiteSection(gravity_mps2=args.gravity_mps2, latitude_deg=args.latitude_deg, height_m=args.height_m)
+        site = SiteSection(
+            gravity_mps2=args.gravity_mps2, latitude_deg=args.latitude_deg, height_m=args.height_m
+        )
         if not 9.7 < site.local_gravity_mps2 < 9.9:
-            raise UsageError(f"local gravity {site.local_gravity_mps2!r} m/s² is not a value on the Earth's surface")
+            raise UsageError(
+                f"local gravity {site.local_gravity_mps2!r} m/s² is not a value on the Earth's surface"
+            )
         config = dataclasses.replace(config, site=site)
     return config
 
@@ -86,7 +108,9 @@ def _lookup(args: argparse.Namespace):
     return none
 
 
-def replay_events(log: Path, *, fleet: FleetProcessor, vehicle: str, pace_recorded: bool = False, on_event=None) -> tuple[list[Event], LogReader]:
+def replay_events(
+    log: Path, *, fleet: FleetProcessor, vehicle: str, pace_recorded: bool = False, on_event=None
+) -> tuple[list[Event], LogReader]:
     """Run a log through ``fleet``; returns every event in order and the reader (with its statistics).
 
     Each frame is stamped with its last sample time as its arrival (the log's own clock).
@@ -123,14 +147,31 @@ def run(args: argparse.Namespace) -> int:
         max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
         on_passport_error=lambda v, i, msg: errors.append(f"{v} IMU{i}: {msg}"),
     )
-    printer = (lambda e: print(event_to_json(e), flush=True)) if args.json else (lambda e: print(human(e), flush=True))
-    events, reader = replay_events(args.log, fleet=fleet, vehicle=args.vehicle, pace_recorded=args.pace == "recorded", on_event=printer)
+    printer = (
+        (lambda e: print(event_to_json(e), flush=True))
+        if args.json
+        else (lambda e: print(human(e), flush=True))
+    )
+    events, reader = replay_events(
+        args.log,
+        fleet=fleet,
+        vehicle=args.vehicle,
+        pace_recorded=args.pace == "recorded",
+        on_event=printer,
+    )
     for line in errors:
         print(f"ins-health replay: {line}; stream checks only", file=sys.stderr)
     samples = ", ".join(f"IMU{i} {n}" for i, n in sorted(reader.stats.samples.items())) or "none"
     dropped = ", ".join(f"{k} {n}" for k, n in sorted(reader.stats.dropped.items())) or "none"
-    print(f"ins-health replay: {args.log.name} ({reader.format.value}): samples {samples}; left out {dropped}; {len(events)} events", file=sys.stderr)
+    print(
+        f"ins-health replay: {args.log.name} ({reader.format.value}): samples {samples}; left out {dropped}; {len(events)} events",
+        file=sys.stderr,
+    )
     for vehicle in fleet.vehicles():
         counters = fleet.status(vehicle, service="replay", now_unix_s=0.0).counters
-        print(f"ins-health replay: counters " + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())), file=sys.stderr)
+        print(
+            "ins-health replay: counters "
+            + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())),
+            file=sys.stderr,
+        )
     return 0

@@ -49,29 +49,98 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--log", nargs="+", type=Path, metavar="FILE", help="CSV record(s) of the three runs")
-    src.add_argument("--simulate", action="store_true", help="simulate the paper's stand and unit (12.2°, 0.53 Hz, its δK)")
+    src.add_argument(
+        "--log", nargs="+", type=Path, metavar="FILE", help="CSV record(s) of the three runs"
+    )
+    src.add_argument(
+        "--simulate",
+        action="store_true",
+        help="simulate the paper's stand and unit (12.2°, 0.53 Hz, its δK)",
+    )
     st = p.add_argument_group("stand")
-    st.add_argument("--amplitude-deg", type=float, help="stand amplitude setting, deg (simulate: 12.2; log: fitted if not given)")
-    st.add_argument("--frequency-hz", type=float, help="stand frequency setting, Hz (simulate: 0.53; log: fitted if not given)")
-    st.add_argument("--amplitude-rel-sigma", type=float, default=PAPER_REL_SIGMA, help="stated relative amplitude uncertainty (default 0.01)")
-    st.add_argument("--frequency-rel-sigma", type=float, default=PAPER_REL_SIGMA, help="stated relative frequency uncertainty (default 0.01)")
-    st.add_argument("--latitude", dest="latitude_deg", type=float, metavar="DEG", help="model the Earth rate at this latitude (default: not modelled)")
-    st.add_argument("--heading-deg", type=float, default=0.0, help="heading of the stand's X axis from north, deg (default 0)")
+    st.add_argument(
+        "--amplitude-deg",
+        type=float,
+        help="stand amplitude setting, deg (simulate: 12.2; log: fitted if not given)",
+    )
+    st.add_argument(
+        "--frequency-hz",
+        type=float,
+        help="stand frequency setting, Hz (simulate: 0.53; log: fitted if not given)",
+    )
+    st.add_argument(
+        "--amplitude-rel-sigma",
+        type=float,
+        default=PAPER_REL_SIGMA,
+        help="stated relative amplitude uncertainty (default 0.01)",
+    )
+    st.add_argument(
+        "--frequency-rel-sigma",
+        type=float,
+        default=PAPER_REL_SIGMA,
+        help="stated relative frequency uncertainty (default 0.01)",
+    )
+    st.add_argument(
+        "--latitude",
+        dest="latitude_deg",
+        type=float,
+        metavar="DEG",
+        help="model the Earth rate at this latitude (default: not modelled)",
+    )
+    st.add_argument(
+        "--heading-deg",
+        type=float,
+        default=0.0,
+        help="heading of the stand's X axis from north, deg (default 0)",
+    )
     sim = p.add_argument_group("simulation (--simulate)")
-    sim.add_argument("--dk", type=float, nargs=3, metavar=("DK1", "DK2", "DK3"), help="scale-factor errors of channels 1-3 (default: the paper's)")
-    sim.add_argument("--bias-deg-h", type=float, nargs=3, metavar=("B1", "B2", "B3"), help="gyro zero signals, deg/h (default 2 -30 5)")
-    sim.add_argument("--arw-deg-rth", type=float, help="angle random walk, deg/sqrt(h) (default 0.003)")
-    sim.add_argument("--phase-deg", type=float, help="phase difference of all three runs, deg (default: the paper's +90, -90, +90)")
+    sim.add_argument(
+        "--dk",
+        type=float,
+        nargs=3,
+        metavar=("DK1", "DK2", "DK3"),
+        help="scale-factor errors of channels 1-3 (default: the paper's)",
+    )
+    sim.add_argument(
+        "--bias-deg-h",
+        type=float,
+        nargs=3,
+        metavar=("B1", "B2", "B3"),
+        help="gyro zero signals, deg/h (default 2 -30 5)",
+    )
+    sim.add_argument(
+        "--arw-deg-rth", type=float, help="angle random walk, deg/sqrt(h) (default 0.003)"
+    )
+    sim.add_argument(
+        "--phase-deg",
+        type=float,
+        help="phase difference of all three runs, deg (default: the paper's +90, -90, +90)",
+    )
     sim.add_argument("--rate-hz", type=float, help="sample rate, Hz (default 100)")
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
-    sim.add_argument("--save-csv", type=Path, metavar="FILE", help="also write the simulated record (three runs in a row) as a CSV session file")
+    sim.add_argument(
+        "--save-csv",
+        type=Path,
+        metavar="FILE",
+        help="also write the simulated record (three runs in a row) as a CSV session file",
+    )
     out = p.add_argument_group("output")
-    out.add_argument("--k-nominal", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("K1H", "K2H", "K3H"),
-                     help="transfer coefficients used in the record, any unit (default 1 1 1: relative)")
+    out.add_argument(
+        "--k-nominal",
+        type=float,
+        nargs=3,
+        default=(1.0, 1.0, 1.0),
+        metavar=("K1H", "K2H", "K3H"),
+        help="transfer coefficients used in the record, any unit (default 1 1 1: relative)",
+    )
     out.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     out.add_argument("--report", type=Path, help="also write the report as JSON")
-    out.add_argument("--plot", type=Path, metavar="PNG", help="plot the drifting angles before and after the correction")
+    out.add_argument(
+        "--plot",
+        type=Path,
+        metavar="PNG",
+        help="plot the drifting angles before and after the correction",
+    )
     p.set_defaults(func=run)
 
 
@@ -83,11 +152,26 @@ def _stand_settings(args: argparse.Namespace) -> StandSettings | None:
     if amplitude_deg is None and frequency_hz is None:
         return None
     if amplitude_deg is None or frequency_hz is None:
-        raise UsageError("give both --amplitude-deg and --frequency-hz (the stand's settings) or neither (fitted from the record)")
-    return StandSettings(float(np.radians(amplitude_deg)), frequency_hz, args.amplitude_rel_sigma, args.frequency_rel_sigma)
+        raise UsageError(
+            "give both --amplitude-deg and --frequency-hz (the stand's settings) or neither (fitted from the record)"
+        )
+    return StandSettings(
+        float(np.radians(amplitude_deg)),
+        frequency_hz,
+        args.amplitude_rel_sigma,
+        args.frequency_rel_sigma,
+    )
 
 
-_SIMULATION_OPTIONS = ("dk", "bias_deg_h", "arw_deg_rth", "phase_deg", "rate_hz", "seed", "save_csv")
+_SIMULATION_OPTIONS = (
+    "dk",
+    "bias_deg_h",
+    "arw_deg_rth",
+    "phase_deg",
+    "rate_hz",
+    "seed",
+    "save_csv",
+)
 
 
 def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]:
@@ -99,8 +183,12 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
             raise UsageError(f"--rate-hz must be positive, got {rate_hz!r}")
         unit = GyroUnit(
             scale_err=PAPER_DK if args.dk is None else args.dk,
-            bias_rps=_DEFAULT_UNIT.bias_rps if args.bias_deg_h is None else np.asarray(args.bias_deg_h) * RPS_PER_DPH,
-            arw_rad_per_sqrt_s=_DEFAULT_UNIT.arw_rad_per_sqrt_s if args.arw_deg_rth is None else np.radians(args.arw_deg_rth) / 60.0,
+            bias_rps=_DEFAULT_UNIT.bias_rps
+            if args.bias_deg_h is None
+            else np.asarray(args.bias_deg_h) * RPS_PER_DPH,
+            arw_rad_per_sqrt_s=_DEFAULT_UNIT.arw_rad_per_sqrt_s
+            if args.arw_deg_rth is None
+            else np.radians(args.arw_deg_rth) / 60.0,
         )
         stand = _stand_settings(args)
         runs = paper_runs(
@@ -108,13 +196,31 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
             frequency_hz=stand.frequency_hz,
             phase_rad=None if args.phase_deg is None else float(np.radians(args.phase_deg)),
         )
-        session = simulate_runs(runs, unit, rate_hz=rate_hz, earth_rate_rps=earth_rate_rps, rng=np.random.default_rng(seed))
-        notes = [f"simulated: δK = {', '.join(f'{v:.7g}' for v in unit.scale_err)}, seed {seed}, {rate_hz:g} Hz"]
+        session = simulate_runs(
+            runs,
+            unit,
+            rate_hz=rate_hz,
+            earth_rate_rps=earth_rate_rps,
+            rng=np.random.default_rng(seed),
+        )
+        notes = [
+            f"simulated: δK = {', '.join(f'{v:.7g}' for v in unit.scale_err)}, seed {seed}, {rate_hz:g} Hz"
+        ]
         if args.save_csv is not None:
-            write_csv_session(args.save_csv, session, comments=("rocking record (methods.md M5): gyro in rad/s, X forward, Y up, Z right",))
+            write_csv_session(
+                args.save_csv,
+                session,
+                comments=(
+                    "rocking record (methods.md M5): gyro in rad/s, X forward, Y up, Z right",
+                ),
+            )
             notes.append(f"record written to {args.save_csv}")
         return [session], notes
-    given = [f"--{name.replace('_', '-')}" for name in _SIMULATION_OPTIONS if getattr(args, name) is not None]
+    given = [
+        f"--{name.replace('_', '-')}"
+        for name in _SIMULATION_OPTIONS
+        if getattr(args, name) is not None
+    ]
     if given:
         raise UsageError(f"{', '.join(given)} only apply to --simulate")
     sessions, notes = [], []
@@ -132,7 +238,7 @@ def report_of(result: RockingResult, k_nominal) -> dict:
     """The JSON report (also the source of the text output)."""
     x_sigma = np.sqrt(np.diag(result.closed.x_cov))
     drifts, runs = {}, {}
-    for e, c, f in zip(result.episodes, result.corrected, result.fitted):
+    for e, c, f in zip(result.episodes, result.corrected, result.fitted, strict=True):
         name, k = e.pair.x_name, e.drift_axis
         i, j = e.pair.lead_axis, e.pair.lag_axis
         drifts[name] = {
@@ -180,7 +286,9 @@ def _text(report: dict, notes: list[str], earth: bool) -> str:
     lines = [f"ins-health rocking (methods.md M5){'; Earth rate modelled' if earth else ''}"]
     lines += [f"  {n}" for n in notes]
     lines.append("")
-    lines.append("drift of the third angle, deg/h       static   rocking  rocking-static  after correction")
+    lines.append(
+        "drift of the third angle, deg/h       static   rocking  rocking-static  after correction"
+    )
     for name in ("psi", "theta", "gamma"):
         d, r = report["drift_deg_per_h"][name], report["runs"][name]
         lines.append(
@@ -196,14 +304,45 @@ def _text(report: dict, notes: list[str], earth: bool) -> str:
         else "fitted stand motion"
     )
     lines.append(f"X (M5 eq. 4, {used}):")
-    lines.append("  " + "   ".join(f"X{_SYMBOL[n]} = {report['X'][n]:.6f} ± {report['X_sigma'][n]:.6f}" for n in ("psi", "theta", "gamma")))
-    lines.append("δK, %                         channel 1 (X)        channel 2 (Y)        channel 3 (Z)")
-    lines.append("  closed form (M5 eq. 5)  " + "".join(f"  {100 * v:9.5f} ± {100 * s:8.5f}" for v, s in zip(report["dK_closed"], report["dK_closed_sigma"])))
-    lines.append("    worst case of the stand" + "".join(f"       ± {100 * b:8.5f}  " for b in report["dK_closed_bound"]))
-    lines.append("  model-based (dK)        " + "".join(f"  {100 * v:9.5f} ± {100 * s:8.5f}" for v, s in zip(report["dK"], report["dK_sigma"])))
+    lines.append(
+        "  "
+        + "   ".join(
+            f"X{_SYMBOL[n]} = {report['X'][n]:.6f} ± {report['X_sigma'][n]:.6f}"
+            for n in ("psi", "theta", "gamma")
+        )
+    )
+    lines.append(
+        "δK, %                         channel 1 (X)        channel 2 (Y)        channel 3 (Z)"
+    )
+    lines.append(
+        "  closed form (M5 eq. 5)  "
+        + "".join(
+            f"  {100 * v:9.5f} ± {100 * s:8.5f}"
+            for v, s in zip(report["dK_closed"], report["dK_closed_sigma"], strict=True)
+        )
+    )
+    lines.append(
+        "    worst case of the stand"
+        + "".join(f"       ± {100 * b:8.5f}  " for b in report["dK_closed_bound"])
+    )
+    lines.append(
+        "  model-based (dK)        "
+        + "".join(
+            f"  {100 * v:9.5f} ± {100 * s:8.5f}"
+            for v, s in zip(report["dK"], report["dK_sigma"], strict=True)
+        )
+    )
     lines.append(f"    Gauss–Newton steps: {report['gauss_newton_steps']}")
     lines.append("corrected coefficients K = K_H / (1 + δK) (M5 eq. 6):")
-    lines.append("  " + "   ".join(f"K{c + 1} = {k:.7g} (K{c + 1}H = {kh:.7g})" for c, (k, kh) in enumerate(zip(report["K_corrected"], report["K_nominal"]))))
+    lines.append(
+        "  "
+        + "   ".join(
+            f"K{c + 1} = {k:.7g} (K{c + 1}H = {kh:.7g})"
+            for c, (k, kh) in enumerate(
+                zip(report["K_corrected"], report["K_nominal"], strict=True)
+            )
+        )
+    )
     lines.append("stand motion fitted to the corrected records (what the model simulates):")
     for name in ("psi", "theta", "gamma"):
         r = report["runs"][name]
@@ -223,16 +362,27 @@ def plot_drifts(result: RockingResult, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(9.6, 3.0))
-    for a, k in zip(axes, (1, 2, 0)):  # ψ, θ, γ: the paper's order
+    for a, k in zip(axes, (1, 2, 0), strict=True):  # ψ, θ, γ: the paper's order
         e, c, f = result.episodes[k], result.corrected[k], result.fitted[k]
         step = max(1, e.t_s.size // 1500)
         t = e.t_s[::step] - e.t_s[0]
         win = e.t_s[slice(*e.segments.window)] - e.t_s[0]
         a.axvspan(win[0], win[-1], color="0.92", lw=0)
-        a.plot(t, np.degrees(e.drift_angle_rad[::step]), color="tab:red", lw=0.8, label="as recorded")
-        a.plot(t, np.degrees(c.drift_angle_rad[::step]), color="tab:blue", lw=0.8, label="K = K_H/(1+δK)")
+        a.plot(
+            t, np.degrees(e.drift_angle_rad[::step]), color="tab:red", lw=0.8, label="as recorded"
+        )
+        a.plot(
+            t,
+            np.degrees(c.drift_angle_rad[::step]),
+            color="tab:blue",
+            lw=0.8,
+            label="K = K_H/(1+δK)",
+        )
         name = e.pair.x_name
-        a.set_title(f"{_SYMBOL[name]} under {e.pair.value} (Δφ {np.degrees(f.phase_diff_rad):+.0f}°)", fontsize=9)
+        a.set_title(
+            f"{_SYMBOL[name]} under {e.pair.value} (Δφ {np.degrees(f.phase_diff_rad):+.0f}°)",
+            fontsize=9,
+        )
         a.set_xlabel("time, s", fontsize=8)
         a.tick_params(labelsize=7)
     axes[0].set_ylabel("computed angle, deg", fontsize=8)
@@ -243,7 +393,11 @@ def plot_drifts(result: RockingResult, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    earth = None if args.latitude_deg is None else earth_rate_stand_rps(args.latitude_deg, args.heading_deg)
+    earth = (
+        None
+        if args.latitude_deg is None
+        else earth_rate_stand_rps(args.latitude_deg, args.heading_deg)
+    )
     sessions, notes = _records(args, earth)
     result = estimate_scale_errors(sessions, stand=_stand_settings(args), earth_rate_rps=earth)
     report = report_of(result, args.k_nominal)

@@ -23,7 +23,9 @@ def register(subparsers) -> None:
         help="run the health-monitor daemon",
         description="Run the ins-health daemon: IMU frames in (Zenoh, MAVLink), fault events out (durable outbox).",
     )
-    p.add_argument("--config", required=True, help="service configuration, TOML (see deploy/ins-health.toml)")
+    p.add_argument(
+        "--config", required=True, help="service configuration, TOML (see deploy/ins-health.toml)"
+    )
     p.set_defaults(func=run)
 
 
@@ -35,7 +37,9 @@ async def serve(service: Service) -> None:
         loop.add_signal_handler(sig, stop.set)
     ready = asyncio.Event()
     runner = asyncio.create_task(service.run(stop, ready=ready))
-    await asyncio.wait([runner, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED)
+    await asyncio.wait(
+        [runner, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED
+    )
     if ready.is_set():
         print(f"ins-health: {service.config.service.name} running", file=sys.stderr, flush=True)
     await runner

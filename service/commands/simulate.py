@@ -92,8 +92,26 @@ TEMPERATURES = {
     "cycle": CycleTemperature,
 }
 # Command-line options that are keys of the [profile] table.
-PROFILE_KEYS = ("positions", "orientations", "static_s", "transition_s", "first_static_s", "heading_deg", "duration_s", "rest_s")
-TOP_KEYS = ("seed", "rate_hz", "grade", "random_errors", "quantization", "latitude_deg", "height_m", "gravity_mps2")
+PROFILE_KEYS = (
+    "positions",
+    "orientations",
+    "static_s",
+    "transition_s",
+    "first_static_s",
+    "heading_deg",
+    "duration_s",
+    "rest_s",
+)
+TOP_KEYS = (
+    "seed",
+    "rate_hz",
+    "grade",
+    "random_errors",
+    "quantization",
+    "latitude_deg",
+    "height_m",
+    "gravity_mps2",
+)
 
 
 def register(subparsers) -> None:
@@ -102,28 +120,93 @@ def register(subparsers) -> None:
         help="write a simulated IMU session (CSV)",
         description="Simulate an IMU session with known errors and faults and write it as a CSV session file.",
     )
-    p.add_argument("--out", required=True, type=Path, metavar="SESSION.csv", help="CSV session file to write")
-    p.add_argument("--config", type=Path, metavar="FILE.toml", help="TOML file with the options (command-line options win)")
-    p.add_argument("--truth", type=Path, metavar="FILE.json", help="also write the truth (parameters, positions, faults) as JSON")
+    p.add_argument(
+        "--out", required=True, type=Path, metavar="SESSION.csv", help="CSV session file to write"
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE.toml",
+        help="TOML file with the options (command-line options win)",
+    )
+    p.add_argument(
+        "--truth",
+        type=Path,
+        metavar="FILE.json",
+        help="also write the truth (parameters, positions, faults) as JSON",
+    )
     p.add_argument("--seed", type=int, help="random seed (default 0)")
     p.add_argument("--profile", choices=PROFILES, help="motion (default multiposition)")
     p.add_argument("--positions", type=int, help="number of static positions (default 18)")
-    p.add_argument("--orientations", choices=[s.value for s in OrientationScheme], help="position scheme (default eighteen)")
-    p.add_argument("--static-s", dest="static_s", type=float, help="length of each position, s (default 20)")
-    p.add_argument("--transition-s", dest="transition_s", type=float, help="length of each turn, s (default 4)")
-    p.add_argument("--first-static-s", dest="first_static_s", type=float, help="length of the first position, s")
-    p.add_argument("--heading-deg", dest="heading_deg", type=float, help="heading of the positions, degrees")
-    p.add_argument("--duration-s", dest="duration_s", type=float, help="length of a static or flight profile, s")
-    p.add_argument("--rest-s", dest="rest_s", type=float, help="rest before and after a flight, s (default 10)")
+    p.add_argument(
+        "--orientations",
+        choices=[s.value for s in OrientationScheme],
+        help="position scheme (default eighteen)",
+    )
+    p.add_argument(
+        "--static-s", dest="static_s", type=float, help="length of each position, s (default 20)"
+    )
+    p.add_argument(
+        "--transition-s", dest="transition_s", type=float, help="length of each turn, s (default 4)"
+    )
+    p.add_argument(
+        "--first-static-s",
+        dest="first_static_s",
+        type=float,
+        help="length of the first position, s",
+    )
+    p.add_argument(
+        "--heading-deg", dest="heading_deg", type=float, help="heading of the positions, degrees"
+    )
+    p.add_argument(
+        "--duration-s",
+        dest="duration_s",
+        type=float,
+        help="length of a static or flight profile, s",
+    )
+    p.add_argument(
+        "--rest-s", dest="rest_s", type=float, help="rest before and after a flight, s (default 10)"
+    )
     p.add_argument("--rate-hz", dest="rate_hz", type=float, help="sample rate, Hz (default 100)")
-    p.add_argument("--grade", choices=[g.value for g in GRADES], help="IMU grade preset (default mems)")
-    p.add_argument("--random-errors", dest="random_errors", action="store_const", const=True, help="draw the errors from the grade")
-    p.add_argument("--no-quantization", dest="quantization", action="store_const", const=False, help="no output quantization")
-    p.add_argument("--latitude", dest="latitude_deg", type=float, help="latitude, degrees (default 45)")
-    p.add_argument("--height", dest="height_m", type=float, help="height above the ellipsoid, m (default 0)")
-    p.add_argument("--gravity", dest="gravity_mps2", type=float, help="assumed local gravity, m/s² (default WGS-84)")
-    p.add_argument("--temperature", help="temperature profile KIND[:key=value,...], KIND in " + ", ".join(TEMPERATURES))
-    p.add_argument("--fault", action="append", default=[], help="KIND:TRIAD:INDEX:T_START_S:MAGNITUDE[:DURATION_S] (repeatable)")
+    p.add_argument(
+        "--grade", choices=[g.value for g in GRADES], help="IMU grade preset (default mems)"
+    )
+    p.add_argument(
+        "--random-errors",
+        dest="random_errors",
+        action="store_const",
+        const=True,
+        help="draw the errors from the grade",
+    )
+    p.add_argument(
+        "--no-quantization",
+        dest="quantization",
+        action="store_const",
+        const=False,
+        help="no output quantization",
+    )
+    p.add_argument(
+        "--latitude", dest="latitude_deg", type=float, help="latitude, degrees (default 45)"
+    )
+    p.add_argument(
+        "--height", dest="height_m", type=float, help="height above the ellipsoid, m (default 0)"
+    )
+    p.add_argument(
+        "--gravity",
+        dest="gravity_mps2",
+        type=float,
+        help="assumed local gravity, m/s² (default WGS-84)",
+    )
+    p.add_argument(
+        "--temperature",
+        help="temperature profile KIND[:key=value,...], KIND in " + ", ".join(TEMPERATURES),
+    )
+    p.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        help="KIND:TRIAD:INDEX:T_START_S:MAGNITUDE[:DURATION_S] (repeatable)",
+    )
     p.set_defaults(func=run)
 
 
@@ -160,9 +243,11 @@ def _temperature_table(text: str) -> dict:
 def _fault_table(text: str) -> dict:
     parts = text.split(":")
     if len(parts) not in (5, 6):
-        raise UsageError(f"--fault {text}: expected KIND:TRIAD:INDEX:T_START_S:MAGNITUDE[:DURATION_S]")
+        raise UsageError(
+            f"--fault {text}: expected KIND:TRIAD:INDEX:T_START_S:MAGNITUDE[:DURATION_S]"
+        )
     keys = ("kind", "triad", "index", "t_start_s", "magnitude", "duration_s")
-    table = dict(zip(keys, parts))
+    table = dict(zip(keys[: len(parts)], parts, strict=True))
     try:
         for k in ("t_start_s", "magnitude", "duration_s"):
             if k in table:
@@ -197,7 +282,9 @@ def _choice(value, enum, what):
     try:
         return enum(value)
     except ValueError:
-        raise UsageError(f"{what} must be one of {[e.value for e in enum]}, got {value!r}") from None
+        raise UsageError(
+            f"{what} must be one of {[e.value for e in enum]}, got {value!r}"
+        ) from None
 
 
 def _temperature(table: dict | None):
@@ -221,7 +308,9 @@ def _fault_index(kind: FaultKind, index) -> int:
     if s.isdigit():
         return int(s)
     if s not in names:
-        raise UsageError(f"fault index for {kind.value} must be 0-{len(names) - 1} or one of {list(names)}, got {index!r}")
+        raise UsageError(
+            f"fault index for {kind.value} must be 0-{len(names) - 1} or one of {list(names)}, got {index!r}"
+        )
     return names.index(s)
 
 
@@ -281,13 +370,19 @@ def spec_from_settings(cfg: dict):
             heading_rad=math.radians(float(prof.get("heading_deg", 0.0))),
             static_s=float(prof.get("static_s", 20.0)),
             transition_s=float(prof.get("transition_s", 4.0)),
-            first_static_s=None if prof.get("first_static_s") is None else float(prof["first_static_s"]),
+            first_static_s=None
+            if prof.get("first_static_s") is None
+            else float(prof["first_static_s"]),
             **common,
         )
     elif kind == "static":
         spec = static_spec(duration_s=float(prof.get("duration_s", 600.0)), **common)
     elif kind == "flight":
-        spec = flight_spec(fly=Fly(float(prof.get("duration_s", 120.0))), rest_s=float(prof.get("rest_s", 10.0)), **common)
+        spec = flight_spec(
+            fly=Fly(float(prof.get("duration_s", 120.0))),
+            rest_s=float(prof.get("rest_s", 10.0)),
+            **common,
+        )
     else:
         raise UsageError(f"profile kind must be one of {list(PROFILES)}, got {kind!r}")
     return spec, seed, grade
@@ -298,7 +393,7 @@ def truth_json(result, seed: int) -> dict:
     tr = result.truth
 
     def params(p):
-        return dict(zip(PARAM_NAMES, map(float, p)))
+        return dict(zip(PARAM_NAMES, map(float, p), strict=True))
 
     return {
         "seed": seed,
@@ -309,9 +404,19 @@ def truth_json(result, seed: int) -> dict:
         "accel_params": params(tr.accel_params),
         "gyro_params": params(tr.gyro_params),
         "static_intervals_s": tr.static_intervals_s.tolist(),
-        "effects": {"accel": list(tr.model.accel.names), "gyro": list(tr.model.gyro.names), "environment": [e.name for e in tr.model.environment]},
+        "effects": {
+            "accel": list(tr.model.accel.names),
+            "gyro": list(tr.model.gyro.names),
+            "environment": [e.name for e in tr.model.environment],
+        },
         "faults": [
-            {**asdict(f), "kind": f.kind.value, "triad": f.triad.value, "target": f.target, "duration_s": None if math.isinf(f.duration_s) else f.duration_s}
+            {
+                **asdict(f),
+                "kind": f.kind.value,
+                "triad": f.triad.value,
+                "target": f.target,
+                "duration_s": None if math.isinf(f.duration_s) else f.duration_s,
+            }
             for f in tr.faults
         ],
     }
@@ -335,7 +440,9 @@ def run(args: argparse.Namespace) -> int:
         comments=("simulated by ins-health simulate",),
     )
     if args.truth is not None:
-        args.truth.write_text(json.dumps(truth_json(result, seed), indent=2) + "\n", encoding="utf-8")
+        args.truth.write_text(
+            json.dumps(truth_json(result, seed), indent=2) + "\n", encoding="utf-8"
+        )
     n_pos = len(result.truth.static_intervals_s)
     print(
         f"simulate: wrote {args.out}: {s.n_samples} samples, {s.t_s[-1] - s.t_s[0]:.1f} s at {spec.rate_hz:g} Hz, "

@@ -47,25 +47,57 @@ from estimators.sixpos import (
 )
 from protocols.session_file import write_csv_session
 from service.cli import UsageError
-from service.method_args import add_gravity_options, add_method_command, axis_index, emit, gravity_from, load_valid, rejected_text
+from service.method_args import (
+    add_gravity_options,
+    add_method_command,
+    axis_index,
+    emit,
+    gravity_from,
+    load_valid,
+    rejected_text,
+)
 
 _DEG = np.pi / 180.0
 
 
 def register(subparsers) -> None:
     sub = add_method_command(
-        subparsers, "sixpos", doc=__doc__, dest="test", metavar="TEST", help="six-position accelerometer/gyro test and rate-table gyro scale factor (M4)"
+        subparsers,
+        "sixpos",
+        doc=__doc__,
+        dest="test",
+        metavar="TEST",
+        help="six-position accelerometer/gyro test and rate-table gyro scale factor (M4)",
     )
-    s = sub.add_parser("static", help="six positions: accelerometer scale, bias, misalignment, quadratic term; gyro Bf, Bg")
+    s = sub.add_parser(
+        "static",
+        help="six positions: accelerometer scale, bias, misalignment, quadratic term; gyro Bf, Bg",
+    )
     _source(s)
-    s.add_argument("--static-s", type=float, default=60.0, help="with --simulate: seconds per position (default 60, the paper's)")
+    s.add_argument(
+        "--static-s",
+        type=float,
+        default=60.0,
+        help="with --simulate: seconds per position (default 60, the paper's)",
+    )
     s.set_defaults(func=run_static)
-    r = sub.add_parser("rate", help="rate table: gyro scale factor by a straight-line fit over the rate steps")
+    r = sub.add_parser(
+        "rate", help="rate table: gyro scale factor by a straight-line fit over the rate steps"
+    )
     _source(r)
     r.add_argument("--axis", choices="xyz", required=True, help="the gyro on the table axis")
-    r.add_argument("--max-dps", type=float, default=200.0, help="largest table rate of the profile, °/s (default 200)")
-    r.add_argument("--step-dps", type=float, default=20.0, help="rate step of the profile, °/s (default 20)")
-    r.add_argument("--hold-s", type=float, default=10.0, help="time the table holds each rate, s (default 10)")
+    r.add_argument(
+        "--max-dps",
+        type=float,
+        default=200.0,
+        help="largest table rate of the profile, °/s (default 200)",
+    )
+    r.add_argument(
+        "--step-dps", type=float, default=20.0, help="rate step of the profile, °/s (default 20)"
+    )
+    r.add_argument(
+        "--hold-s", type=float, default=10.0, help="time the table holds each rate, s (default 10)"
+    )
     r.add_argument("--plot", type=Path, help="write a PNG of the fit and its residuals")
     r.set_defaults(func=run_rate)
 
@@ -73,7 +105,9 @@ def register(subparsers) -> None:
 def _source(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--session", type=Path, help="CSV session file")
-    src.add_argument("--simulate", action="store_true", help="simulate an ADIS16355-like unit at Guangzhou")
+    src.add_argument(
+        "--simulate", action="store_true", help="simulate an ADIS16355-like unit at Guangzhou"
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
     p.add_argument("--save-session", type=Path, help="with --simulate: write the session as CSV")
     add_gravity_options(p)
@@ -88,24 +122,41 @@ def _load(args, make_session):
         model = adis_like_model()
         session = make_session(model, g_site)
         if args.save_session is not None:
-            write_csv_session(args.save_session, session, metadata={"gravity_mps2": repr(g_site), "latitude_deg": GUANGZHOU_LATITUDE_DEG})
+            write_csv_session(
+                args.save_session,
+                session,
+                metadata={"gravity_mps2": repr(g_site), "latitude_deg": GUANGZHOU_LATITUDE_DEG},
+            )
         latitude = args.latitude_deg if args.latitude_deg is not None else GUANGZHOU_LATITUDE_DEG
         return session, gravity_from(args, default_mps2=g_site), latitude, model, {}
     loaded, clean, dropped = load_valid(args.session)
-    return clean, gravity_from(args, file_gravity_mps2=loaded.gravity_mps2), args.latitude_deg, None, dict(dropped.counts)
+    return (
+        clean,
+        gravity_from(args, file_gravity_mps2=loaded.gravity_mps2),
+        args.latitude_deg,
+        None,
+        dict(dropped.counts),
+    )
 
 
 def run_static(args: argparse.Namespace) -> int:
     session, g, latitude, model, rejected = _load(
-        args, lambda model, g_site: simulate(six_position_spec(model, static_s=args.static_s), args.seed).session
+        args,
+        lambda model, g_site: (
+            simulate(six_position_spec(model, static_s=args.static_s), args.seed).session
+        ),
     )
     if session.accel_mps2 is None:
-        raise UsageError("the session has no accelerometer columns: the six-position test needs them")
+        raise UsageError(
+            "the session has no accelerometer columns: the six-position test needs them"
+        )
     positions = session_positions(session)
     test = six_position_test(positions, gravity_mps2=g, latitude_deg=latitude)
     acc = test.accel
     standard = six_position_accel(
-        np.array([p.accel_mean_mps2 for p in positions]), gravity_mps2=STANDARD_GRAVITY_MPS2, accel_cov_mps2=np.array([p.accel_cov_mps2 for p in positions])
+        np.array([p.accel_mean_mps2 for p in positions]),
+        gravity_mps2=STANDARD_GRAVITY_MPS2,
+        accel_cov_mps2=np.array([p.accel_cov_mps2 for p in positions]),
     )
     shift = standard.scale_error - acc.scale_error
     report = {
@@ -130,7 +181,13 @@ def run_static(args: argparse.Namespace) -> int:
             "std": test.gyro.std,
             "earth_rate_removed": test.gyro.earth_rate_removed,
         },
-        "truth": None if model is None else {"accel": accel_truth(model), "gyro_bias_rps": gyro_truth(model)[0], "gyro_g_sensitivity": gyro_truth(model)[1]},
+        "truth": None
+        if model is None
+        else {
+            "accel": accel_truth(model),
+            "gyro_bias_rps": gyro_truth(model)[0],
+            "gyro_g_sensitivity": gyro_truth(model)[1],
+        },
         "rejected_samples": rejected,
     }
     lines = [
@@ -145,7 +202,13 @@ def run_static(args: argparse.Namespace) -> int:
         )
     if model is not None:
         tr = accel_truth(model)
-        lines.append("truth " + "  ".join(f"{'xyz'[i]}: b {tr[i, 0] / g * 1e3:+.3f} mg, S {tr[i, 1] * 100:+.4f} %, Q {tr[i, 4]:+.3e}" for i in range(3)))
+        lines.append(
+            "truth "
+            + "  ".join(
+                f"{'xyz'[i]}: b {tr[i, 0] / g * 1e3:+.3f} mg, S {tr[i, 1] * 100:+.4f} %, Q {tr[i, 4]:+.3e}"
+                for i in range(3)
+            )
+        )
     lines.append(
         f"with g = 9.80665 instead of {g:.5f} every scale error moves by {np.mean(shift) * 100:+.4f} % "
         f"(expected g/9.80665 − 1 = {(g / STANDARD_GRAVITY_MPS2 - 1) * 100:+.4f} %)"
@@ -155,11 +218,20 @@ def run_static(args: argparse.Namespace) -> int:
         lines.append("gyro  Bf [°/s]             Bg x, y, z [°/s per g]")
         for i in range(3):
             gs = gy.g_sensitivity[i] * g / _DEG
-            lines.append(f"{'xyz'[i]:<5} {gy.bias_rps[i] / _DEG:+.4f} ±{gy.std[i, 0] / _DEG:.4f}   " + "  ".join(f"{v:+.4f}" for v in gs)
-                         + f"   (±{gy.std[i, 1] * g / _DEG:.4f})")
+            lines.append(
+                f"{'xyz'[i]:<5} {gy.bias_rps[i] / _DEG:+.4f} ±{gy.std[i, 0] / _DEG:.4f}   "
+                + "  ".join(f"{v:+.4f}" for v in gs)
+                + f"   (±{gy.std[i, 1] * g / _DEG:.4f})"
+            )
         if model is not None:
             bf, bg = gyro_truth(model)
-            lines.append("truth " + "  ".join(f"{'xyz'[i]}: Bf {bf[i] / _DEG:+.4f}, Bg {', '.join(f'{v:+.4f}' for v in bg[i] * g / _DEG)}" for i in range(3)))
+            lines.append(
+                "truth "
+                + "  ".join(
+                    f"{'xyz'[i]}: Bf {bf[i] / _DEG:+.4f}, Bg {', '.join(f'{v:+.4f}' for v in bg[i] * g / _DEG)}"
+                    for i in range(3)
+                )
+            )
     emit(args, report, "\n".join(lines) + rejected_text(rejected))
     return 0
 
@@ -173,13 +245,22 @@ def run_rate(args: argparse.Namespace) -> int:
     session, _, _, model, rejected = _load(
         args,
         lambda model, g_site: simulate_rate_table(
-            model, axis=axis, profile_rps=profile, hold_s=args.hold_s, gravity_mps2=g_site, seed=args.seed
+            model,
+            axis=axis,
+            profile_rps=profile,
+            hold_s=args.hold_s,
+            gravity_mps2=g_site,
+            seed=args.seed,
         ),
     )
     if session.gyro_rps is None:
         raise UsageError("the session has no gyro columns: the rate-table test needs them")
-    steps = find_rate_steps(session.t_s, session.gyro_rps, axis=axis, profile_rps=profile, min_hold_s=0.5 * args.hold_s)
-    fit = rate_table_fit(profile, steps.gyro_mean_rps, axis=axis, gyro_var_rps=steps.gyro_var_rps[:, axis])
+    steps = find_rate_steps(
+        session.t_s, session.gyro_rps, axis=axis, profile_rps=profile, min_hold_s=0.5 * args.hold_s
+    )
+    fit = rate_table_fit(
+        profile, steps.gyro_mean_rps, axis=axis, gyro_var_rps=steps.gyro_var_rps[:, axis]
+    )
     if args.plot is not None:
         # matplotlib loads only when a figure is asked for: every command module is imported at CLI start.
         from service.method_plots import plot_rate_table
@@ -203,10 +284,14 @@ def run_rate(args: argparse.Namespace) -> int:
     lines = [
         f"sixpos rate: gyro {args.axis}, {profile.size} steps to ±{args.max_dps:g} °/s",
         f"scale error {fit.scale_error * 100:+.4f} % ± {fit.scale_error_std * 100:.4f} %, bias {fit.bias_rps / _DEG:+.4f} °/s",
-        "slopes of gyros x, y, z against the table rate: " + ", ".join(f"{v:+.5f}" for v in fit.cross_coupling),
+        "slopes of gyros x, y, z against the table rate: "
+        + ", ".join(f"{v:+.5f}" for v in fit.cross_coupling),
         f"nonlinearity (largest residual / full scale) {fit.nonlinearity * 100:.4f} %",
     ]
     if truth is not None:
-        lines.append("simulated truth of the slopes:                   " + ", ".join(f"{v:+.5f}" for v in truth))
+        lines.append(
+            "simulated truth of the slopes:                   "
+            + ", ".join(f"{v:+.5f}" for v in truth)
+        )
     emit(args, report, "\n".join(lines) + rejected_text(rejected))
     return 0

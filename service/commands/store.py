@@ -18,10 +18,14 @@ from service.passport_store import PassportStore
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("store", help="file passports into the daemon's passport store, or check it")
+    p = subparsers.add_parser(
+        "store", help="file passports into the daemon's passport store, or check it"
+    )
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     put = sub.add_parser("put", help="file a passport for (vehicle, IMU)")
-    put.add_argument("dir", type=Path, metavar="DIR", help="the passport store ([service] passport_dir)")
+    put.add_argument(
+        "dir", type=Path, metavar="DIR", help="the passport store ([service] passport_dir)"
+    )
     put.add_argument("vehicle", metavar="VEHICLE", help="vehicle id")
     put.add_argument("imu", type=int, metavar="IMU", help="IMU index on the vehicle")
     put.add_argument("passport", type=Path, metavar="PASSPORT.json", help="a passport file")
@@ -42,7 +46,9 @@ def run_check(args: argparse.Namespace) -> int:
     store = PassportStore(args.dir)
     scan = store.scan()
     for (vehicle, imu), passport in sorted(scan.passports.items()):
-        print(f"{vehicle} IMU{imu}: ok ({passport.unit_id}, triads {', '.join(sorted(t.value for t in passport.triads))})")
+        print(
+            f"{vehicle} IMU{imu}: ok ({passport.unit_id}, triads {', '.join(sorted(t.value for t in passport.triads))})"
+        )
     for key, err in sorted(scan.errors.items()):
         print(f"{key[0]} IMU{key[1]}: {err.reason}")
     if not scan.passports and not scan.errors:
