@@ -1,22 +1,21 @@
 """The conclusion of the audit on the real Xsens session (docs/audit-xsens.md)."""
 
-from pathlib import Path
-
 import pytest
+from real_data import XSENS, needs
 
 from estimators.audit import AuditConfig, run_audit
 from estimators.chain import ChainConfig
 from estimators.conventions import Triad
 from protocols.session_file import load_session
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
+pytestmark = needs(XSENS)
 G_XSENS = 9.81744  # SOURCE.md: the local gravity the original authors used
 
 
 @pytest.fixture(scope="module")
 def audit():
     return run_audit(
-        load_session(str(DATA)).session,
+        load_session(str(XSENS)).session,
         AuditConfig(ChainConfig(gravity_mps2=G_XSENS), replicas=10, seed=0),
     )
 

@@ -1,18 +1,16 @@
 """``ins-health calibrate`` and ``diagnose`` on session files, and the real Xsens session."""
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import XSENS, needs
 
 from estimators.conventions import Triad
 from estimators.sim import Fault, FaultKind, Grade, grade_error_model, multi_position_spec, simulate
 from protocols.passport_codec import read_passport_json
 from protocols.session_file import write_csv_session
 from service.cli import main
-
-XSENS = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 
 
 @pytest.fixture(scope="module")
@@ -140,6 +138,7 @@ def test_missing_passport_exits_2(unit_files, tmp_path, capsys):
     assert "none.json" in capsys.readouterr().err
 
 
+@needs(XSENS)
 def test_xsens_session_calibrates_from_its_38_positions(tmp_path, capsys):
     # SOURCE.md: a ~50 s initial static interval and ~37 short positions.
     assert (
@@ -160,6 +159,7 @@ def test_xsens_session_calibrates_from_its_38_positions(tmp_path, capsys):
     assert set(read_passport_json(tmp_path / "xs.json").triads) == {Triad.ACCEL}
 
 
+@needs(XSENS)
 def test_audited_calibration_of_xsens_carries_the_bias_instability_that_explains_its_residuals(
     tmp_path, capsys
 ):

@@ -5,6 +5,7 @@ import os
 import numpy as np
 import pytest
 from pymavlink import DFReader, mavutil
+from real_data import REAL_BIN, REAL_TLOG, needs
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2
 from estimators.session import ImuSession
@@ -20,14 +21,10 @@ from protocols.logs import (
 )
 from protocols.mavlink_adapter import ImuMessage
 
-DATA = "/work/shared/data/logs"
-REAL_BIN = f"{DATA}/ardupilot-test.BIN"
-REAL_TLOG = f"{DATA}/ardupilot-sitl-vtol.tlog"
-
-
 # ------------------------------------------------------------------ real logs
 
 
+@needs(REAL_BIN)
 def test_real_dataflash_log_two_imus_with_temperature():
     sessions, stats = read_log_sessions(REAL_BIN)
     assert stats.messages == {"IMU": 45, "IMU2": 45} and stats.dropped == {}
@@ -54,6 +51,7 @@ def real_tlog():
     return reader, list(reader), reader.stats
 
 
+@needs(REAL_TLOG)
 def test_real_tlog_counts_and_an_out_of_order_record(real_tlog):
     _, batches, stats = real_tlog
     sessions = {imu: concat_batches([b for b in batches if b.imu == imu]) for imu in (0, 1)}
@@ -73,6 +71,7 @@ def test_real_tlog_counts_and_an_out_of_order_record(real_tlog):
     )  # temperature field 0: not provided
 
 
+@needs(REAL_TLOG)
 def test_reading_is_deterministic_and_batches_stay_interleaved(real_tlog):
     reader, first, _ = real_tlog
     assert list(reader) == first
@@ -80,6 +79,8 @@ def test_reading_is_deterministic_and_batches_stay_interleaved(real_tlog):
     assert {b.vehicle for b in first} == {"vtol"} and all(b.n_samples == 100 for b in first[:14])
 
 
+@needs(REAL_BIN)
+@needs(REAL_TLOG)
 def test_detect_format_by_content():
     assert detect_format(REAL_BIN) is LogFormat.DATAFLASH_BIN
     assert detect_format(REAL_TLOG) is LogFormat.TLOG
@@ -202,7 +203,7 @@ def test_unreadable_files_are_clear_errors(tmp_path):
     with pytest.raises(ValueError, match="no such log file"):
         LogReader(tmp_path / "missing.tlog")
     with pytest.raises(ValueError, match="batch_samples"):
-        LogReader(REAL_BIN, batch_samples=0)
+        LogReader(junk, batch_samples=0)
     with pytest.raises(ValueError, match="SCALED_IMU2 carries IMU 1 only, not IMU 0"):
         write_tlog(
             tmp_path / "x.tlog", _sessions(n=2, imus=(0,)), messages={0: ImuMessage.SCALED_IMU2}

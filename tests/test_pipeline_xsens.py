@@ -6,9 +6,8 @@ and one position is knocked at 208.1 s (+0.17 m/s² on z for one sample, −0.17
 on the next-but-one: docs/audit-xsens.md flags that position as disturbed).
 """
 
-from pathlib import Path
-
 import pytest
+from real_data import XSENS, needs
 
 from estimators.conventions import Triad
 from protocols.events import Predicate, StreamCause
@@ -18,7 +17,7 @@ from protocols.session_file import load_session
 from service.cli import main
 from service.pipeline import FleetProcessor, PipelineOptions
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
+pytestmark = needs(XSENS)
 G_XSENS = 9.81744  # SOURCE.md: the local gravity the original authors used
 FRAME = 100  # 1 s at the session's 100 Hz
 
@@ -26,8 +25,8 @@ FRAME = 100  # 1 s at the session's 100 Hz
 @pytest.fixture(scope="module")
 def unit(tmp_path_factory):
     out = tmp_path_factory.mktemp("xsens") / "passport.json"
-    assert main(["calibrate", str(DATA), "--out", str(out), "--no-audit"]) == 0
-    return load_session(str(DATA)).session, read_passport_json(out)
+    assert main(["calibrate", str(XSENS), "--out", str(out), "--no-audit"]) == 0
+    return load_session(str(XSENS)).session, read_passport_json(out)
 
 
 def _run(session, passport, options):

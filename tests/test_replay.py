@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import functools
-from pathlib import Path
 
 import pytest
+from real_data import REAL_BIN, REAL_TLOG, needs
 
 from estimators.conventions import Triad
 from protocols.events import Predicate, event_from_json
@@ -14,10 +14,6 @@ from protocols.passport_codec import write_passport_json
 from service.cli import main
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
-
-LOGS = Path(__file__).resolve().parents[2] / "shared" / "data" / "logs"
-REAL_BIN = LOGS / "ardupilot-test.BIN"
-REAL_TLOG = LOGS / "ardupilot-sitl-vtol.tlog"
 
 
 @functools.cache
@@ -105,6 +101,7 @@ def test_passport_store_and_human_output(tmp_path, capsys):
     assert "ERROR" in lines[1] and "uav-9 IMU0 accelerometer z: scale factor error" in lines[1]
 
 
+@needs(REAL_BIN)
 def test_real_ardupilot_dataflash_log_gives_a_deterministic_event_list(capsys):
     """pymavlink's test.BIN: 45 samples of IMU and IMU2 over one second, on the ground, no fault.
 
@@ -120,6 +117,7 @@ def test_real_ardupilot_dataflash_log_gives_a_deterministic_event_list(capsys):
     assert "no passport given" in fast[2]
 
 
+@needs(REAL_TLOG)
 def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_path):
     """ArduPlane SITL VTOL flight (SOURCE.md): RAW_IMU as IMU0 and SCALED_IMU2 as IMU1, ~4 Hz over 208 s, no fault.
 
@@ -146,10 +144,14 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     [
         (["/nonexistent/flight.bin"], "no such log file"),
         ([__file__], "not a MAVLink .tlog or a DataFlash"),
-        ([str(REAL_BIN), "--passport", "/nonexistent.json"], "nonexistent.json"),
-        ([str(REAL_BIN), "--gravity", "3.7"], "gravity"),
+        (["LOG", "--passport", "/nonexistent.json"], "nonexistent.json"),
+        (["LOG", "--gravity", "3.7"], "gravity"),
     ],
 )
-def test_unusable_input_is_a_one_line_error(argv, match, capsys):
-    status, lines, err = replay(capsys, *argv)
+def test_unusable_input_is_a_one_line_error(argv, match, capsys, tmp_path):
+    """A readable log (LOG: one second of the demo flight) with an unusable option is refused the same way."""
+    log = tmp_path / "flight.bin"
+    session = flight()[3]
+    write_dataflash_bin(log, {0: session.select(session.t_s < session.t_s[0] + 1.0)})
+    status, lines, err = replay(capsys, *(str(log) if a == "LOG" else a for a in argv))
     assert status == 2 and match in err and lines == []

@@ -1,10 +1,10 @@
 """Session files: CSV round trip, the Xsens raw-count pair, and one-line errors for bad files."""
 
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import XSENS, needs
 from scipy.optimize import least_squares
 
 from estimators.session import ImuSession, SessionError, validate_session
@@ -17,10 +17,6 @@ from protocols.session_file import (
     read_session,
     read_xsens_pair,
     write_csv_session,
-)
-
-XSENS_DIR = (
-    Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 )
 
 
@@ -216,8 +212,9 @@ def test_a_directory_without_a_single_pair_is_an_error(tmp_path):
         read_session(tmp_path)
 
 
+@needs(XSENS)
 def test_the_measured_xsens_session_reads_with_nominal_scales_within_a_few_percent():
-    loaded = load_session(XSENS_DIR)
+    loaded = load_session(XSENS)
     s = loaded.session
     assert s.n_samples == 51175 and loaded.gravity_mps2 == 9.81744
     assert np.all(np.diff(s.t_s) > 0) and 99.0 < s.rate_hz < 101.0

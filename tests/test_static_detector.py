@@ -2,10 +2,10 @@
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_data import XSENS, needs
 from scipy.spatial.transform import Rotation
 from synthetic_static import Bump, Gap, Rest, Rotate, build_scene, tumble
 
@@ -20,8 +20,6 @@ from estimators.static_detector import (
     is_new_orientation,
 )
 from protocols.session_file import read_session
-
-XSENS = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 
 
 def _stream(
@@ -145,6 +143,7 @@ def test_one_triad_is_enough(mems_session):
         detect_static(ImuSession(s.t_s, None, None))
 
 
+@needs(XSENS)
 def test_xsens_session_has_its_initial_rest_and_37_positions():
     # SOURCE.md: about 50 s static, then about 37 short static positions, 100 Hz.
     session = read_session(XSENS)
