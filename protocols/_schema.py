@@ -14,7 +14,7 @@ import math
 import re
 from enum import Enum, StrEnum
 from functools import lru_cache
-from typing import Any
+from typing import Any, Literal, TypeVar, overload
 
 import msgpack
 
@@ -25,6 +25,9 @@ VEHICLE_ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$")
 """A vehicle id is one Zenoh key-expression chunk: no ``/``, wildcards, ``$``, ``?`` or ``#``; 1..64 characters."""
 
 MAX_IMU_INDEX = 255
+
+E = TypeVar("E", bound=Enum)
+F = TypeVar("F", bound=Enum)
 
 
 class Reason(StrEnum):
@@ -50,6 +53,12 @@ class SchemaError(ValueError):
     def __init__(self, reason: Reason, message: str):
         super().__init__(f"{reason.value}: {message}")
         self.reason = Reason(reason)
+
+
+def pack(obj: object) -> bytes:
+    """msgpack bytes of ``obj`` (strings as str, bytes as bin: what :func:`unpack_map` reads back)."""
+    data: bytes = msgpack.packb(obj, use_bin_type=True)
+    return data
 
 
 def unpack_map(data: bytes, *, error: type[SchemaError], max_bytes: int) -> dict[str, Any]:
@@ -130,6 +139,18 @@ def field(
     return value
 
 
+@overload
+def float_field(
+    obj: dict[str, Any], name: str, *, error: type[SchemaError], optional: Literal[False] = False
+) -> float: ...
+
+
+@overload
+def float_field(
+    obj: dict[str, Any], name: str, *, error: type[SchemaError], optional: bool
+) -> float | None: ...
+
+
 def float_field(
     obj: dict[str, Any], name: str, *, error: type[SchemaError], optional: bool = False
 ) -> float | None:
@@ -169,6 +190,39 @@ def check_imu(imu: int, *, error: type[SchemaError]) -> int:
     return imu
 
 
+@overload
+def enum_field(
+    obj: dict[str, Any],
+    name: str,
+    enums: tuple[type[E]],
+    *,
+    error: type[SchemaError],
+    optional: Literal[False] = False,
+) -> E: ...
+
+
+@overload
+def enum_field(
+    obj: dict[str, Any],
+    name: str,
+    enums: tuple[type[E]],
+    *,
+    error: type[SchemaError],
+    optional: bool,
+) -> E | None: ...
+
+
+@overload
+def enum_field(
+    obj: dict[str, Any],
+    name: str,
+    enums: tuple[type[E], type[F]],
+    *,
+    error: type[SchemaError],
+    optional: Literal[False] = False,
+) -> E | F: ...
+
+
 def enum_field(
     obj: dict[str, Any],
     name: str,
@@ -176,7 +230,7 @@ def enum_field(
     *,
     error: type[SchemaError],
     optional: bool = False,
-):
+) -> Enum | None:
     """A string field parsed as the first of ``enums`` that has that value."""
     value = field(obj, name, str, error=error, optional=optional)
     if value is None:
@@ -188,6 +242,18 @@ def enum_field(
             Reason.BAD_VALUE, f"field {name!r} is {_short(value)}, expected one of {allowed}"
         )
     return member
+
+
+@overload
+def first_enum(value: Any, enums: tuple[type[E]]) -> E | None: ...
+
+
+@overload
+def first_enum(value: Any, enums: tuple[type[E], type[F]]) -> E | F | None: ...
+
+
+@overload
+def first_enum(value: Any, enums: tuple[type[Enum], ...]) -> Enum | None: ...
 
 
 def first_enum(value: Any, enums: tuple[type[Enum], ...]) -> Enum | None:

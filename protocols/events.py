@@ -45,8 +45,6 @@ from enum import Enum, IntEnum, StrEnum
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
-import msgpack
-
 from estimators.conventions import AXES, Cause, Triad
 from protocols._schema import (
     MAX_MESSAGE_BYTES,
@@ -59,6 +57,7 @@ from protocols._schema import (
     field,
     first_enum,
     float_field,
+    pack,
     unpack_map,
 )
 
@@ -244,7 +243,7 @@ def event_id(
     t_s: float,
 ) -> str:
     """The stable id of a detection (module docstring): 32 hex digits."""
-    key = msgpack.packb(
+    key = pack(
         [
             EVENT_TYPE,
             vehicle,
@@ -254,8 +253,7 @@ def event_id(
             axis,
             _parse_cause(cause).value,
             struct.pack("<d", float(t_s)),
-        ],
-        use_bin_type=True,
+        ]
     )
     return hashlib.blake2b(key, digest_size=16).hexdigest()
 
@@ -416,32 +414,31 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
         raise EventError(Reason.NOT_A_MAP, f"an event must be a map, got {type(obj).__name__}")
     obj = dict(obj)
     check_header(obj, type_tag=EVENT_TYPE, versions=SUPPORTED_EVENT_VERSIONS, error=EventError)
-    err = {"error": EventError}
-    severity_name = field(obj, "severity", str, **err)
+    severity_name = field(obj, "severity", str, error=EventError)
     if severity_name.upper() not in Severity.__members__ or severity_name != severity_name.lower():
         raise EventError(
             Reason.BAD_VALUE,
             f"severity {severity_name!r} is not one of {[s.name.lower() for s in Severity]}",
         )
-    axis = field(obj, "axis", str, optional=True, **err)
+    axis = field(obj, "axis", str, optional=True, error=EventError)
     if axis is not None and axis not in EVENT_AXES:
         raise EventError(Reason.BAD_VALUE, f"axis {axis!r} is not one of {EVENT_AXES}")
     event = Event(
-        event_id=field(obj, "id", str, **err),
-        vehicle=check_vehicle(field(obj, "vehicle", str, **err), **err),
-        imu=check_imu(field(obj, "imu", int, **err), **err),
-        t_s=float_field(obj, "t_s", **err),
-        predicate=enum_field(obj, "predicate", (Predicate,), **err),
-        triad=enum_field(obj, "triad", (Triad,), optional=True, **err),
+        event_id=field(obj, "id", str, error=EventError),
+        vehicle=check_vehicle(field(obj, "vehicle", str, error=EventError), error=EventError),
+        imu=check_imu(field(obj, "imu", int, error=EventError), error=EventError),
+        t_s=float_field(obj, "t_s", error=EventError),
+        predicate=enum_field(obj, "predicate", (Predicate,), error=EventError),
+        triad=enum_field(obj, "triad", (Triad,), optional=True, error=EventError),
         axis=axis,
-        cause=enum_field(obj, "cause", (Cause, StreamCause), **err),
-        estimate=float_field(obj, "estimate", optional=True, **err),
-        nominal=float_field(obj, "nominal", optional=True, **err),
-        tolerance=float_field(obj, "tolerance", optional=True, **err),
-        sigma=float_field(obj, "sigma", optional=True, **err),
-        unit=field(obj, "unit", str, **err),
+        cause=enum_field(obj, "cause", (Cause, StreamCause), error=EventError),
+        estimate=float_field(obj, "estimate", optional=True, error=EventError),
+        nominal=float_field(obj, "nominal", optional=True, error=EventError),
+        tolerance=float_field(obj, "tolerance", optional=True, error=EventError),
+        sigma=float_field(obj, "sigma", optional=True, error=EventError),
+        unit=field(obj, "unit", str, error=EventError),
         severity=Severity[severity_name.upper()],
-        text=field(obj, "text", str, **err),
+        text=field(obj, "text", str, error=EventError),
     )
     expected = event_id(
         vehicle=event.vehicle,
@@ -462,7 +459,7 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
 
 def encode_event(event: Event) -> bytes:
     """msgpack bytes of an event (schema version :data:`EVENT_VERSION`)."""
-    return msgpack.packb(event_to_dict(event), use_bin_type=True)
+    return pack(event_to_dict(event))
 
 
 def decode_event(data: bytes, *, max_bytes: int = MAX_EVENT_BYTES) -> Event:
@@ -593,7 +590,7 @@ class Status:
 
 def encode_status(status: Status) -> bytes:
     """msgpack bytes of a status message (schema version :data:`STATUS_VERSION`)."""
-    return msgpack.packb(
+    return pack(
         {
             "type": STATUS_TYPE,
             "v": STATUS_VERSION,
@@ -612,36 +609,34 @@ def encode_status(status: Status) -> bytes:
                 }
                 for s in status.imus
             ],
-        },
-        use_bin_type=True,
+        }
     )
 
 
 def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
     """Decode and validate a status message; raises :class:`EventError` with a reason."""
-    err = {"error": EventError}
-    obj = unpack_map(data, max_bytes=max_bytes, **err)
-    check_header(obj, type_tag=STATUS_TYPE, versions=SUPPORTED_STATUS_VERSIONS, **err)
+    obj = unpack_map(data, max_bytes=max_bytes, error=EventError)
+    check_header(obj, type_tag=STATUS_TYPE, versions=SUPPORTED_STATUS_VERSIONS, error=EventError)
     imus = []
-    for item in field(obj, "imus", list, **err):
+    for item in field(obj, "imus", list, error=EventError):
         if not isinstance(item, dict):
             raise EventError(
                 Reason.WRONG_TYPE, f"each imus entry must be a map, got {type(item).__name__}"
             )
         imus.append(
             ImuStatus(
-                imu=field(item, "imu", int, **err),
-                state=enum_field(item, "state", (ImuState,), **err),
-                samples=field(item, "samples", int, **err),
-                last_t_s=float_field(item, "last_t_s", optional=True, **err),
-                positions=field(item, "positions", int, **err),
-                detail=field(item, "detail", str, **err),
+                imu=field(item, "imu", int, error=EventError),
+                state=enum_field(item, "state", (ImuState,), error=EventError),
+                samples=field(item, "samples", int, error=EventError),
+                last_t_s=float_field(item, "last_t_s", optional=True, error=EventError),
+                positions=field(item, "positions", int, error=EventError),
+                detail=field(item, "detail", str, error=EventError),
             )
         )
     return Status(
-        vehicle=field(obj, "vehicle", str, **err),
-        service=field(obj, "service", str, **err),
-        t_s=float_field(obj, "t_s", **err),
-        counters=field(obj, "counters", dict, **err),
+        vehicle=field(obj, "vehicle", str, error=EventError),
+        service=field(obj, "service", str, error=EventError),
+        t_s=float_field(obj, "t_s", error=EventError),
+        counters=field(obj, "counters", dict, error=EventError),
         imus=tuple(imus),
     )

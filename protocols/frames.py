@@ -47,9 +47,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Self
+from typing import Any, Literal, Self, overload
 
-import msgpack
 import numpy as np
 
 from estimators.session import ImuSession
@@ -61,6 +60,7 @@ from protocols._schema import (
     check_imu,
     check_vehicle,
     field,
+    pack,
     unpack_map,
 )
 
@@ -148,9 +148,10 @@ class SampleBatch:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, SampleBatch):
             return NotImplemented
-        same_temp = (self.temp_c is None) == (other.temp_c is None) and (
-            self.temp_c is None or np.array_equal(self.temp_c, other.temp_c)
-        )
+        if self.temp_c is None or other.temp_c is None:
+            same_temp = self.temp_c is None and other.temp_c is None
+        else:
+            same_temp = np.array_equal(self.temp_c, other.temp_c)
         return (
             (self.vehicle, self.imu, self.seq) == (other.vehicle, other.imu, other.seq)
             and np.array_equal(self.t_s, other.t_s)
@@ -189,11 +190,11 @@ class BatchSource(ABC):
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-def _frozen_f64(value, name: str) -> np.ndarray:
+def _frozen_f64(value: object, name: str) -> np.ndarray:
     if isinstance(value, (str, bytes)) or value is None:
         raise FrameError(
             Reason.WRONG_TYPE, f"{name} must be a numeric array, got {type(value).__name__}"
@@ -240,7 +241,7 @@ def encode_frame(batch: SampleBatch, *, dtype: SampleDtype = SampleDtype.F64) ->
     produce such frames through the ordinary path).
     """
     dt = SampleDtype(dtype)
-    return msgpack.packb(
+    return pack(
         {
             "type": FRAME_TYPE,
             "v": FRAME_VERSION,
@@ -255,8 +256,7 @@ def encode_frame(batch: SampleBatch, *, dtype: SampleDtype = SampleDtype.F64) ->
             "temp_c": None
             if batch.temp_c is None
             else batch.temp_c.astype(dt.value, copy=False).tobytes(),
-        },
-        use_bin_type=True,
+        }
     )
 
 
@@ -289,25 +289,43 @@ def decode_frame(data: bytes, *, max_bytes: int = MAX_FRAME_BYTES) -> SampleBatc
         ) from None
 
     t_s = _array(obj, "t_s", SampleDtype.F64, (n,))
-    arrays = {
-        "accel_mps2": _array(obj, "accel_mps2", dtype, (n, 3)),
-        "gyro_rps": _array(obj, "gyro_rps", dtype, (n, 3)),
-        "temp_c": _array(obj, "temp_c", dtype, (n,), optional=True),
-    }
-    for name, arr in (("t_s", t_s), *arrays.items()):
+    accel = _array(obj, "accel_mps2", dtype, (n, 3))
+    gyro = _array(obj, "gyro_rps", dtype, (n, 3))
+    temp = _array(obj, "temp_c", dtype, (n,), optional=True)
+    for name, arr in (("t_s", t_s), ("accel_mps2", accel), ("gyro_rps", gyro), ("temp_c", temp)):
         if arr is not None and not np.isfinite(arr).all():
             raise FrameError(
                 Reason.NON_FINITE, f"{name} holds {int((~np.isfinite(arr)).sum())} NaN/Inf value(s)"
             )
-    if n > 1 and not (np.diff(t_s) > 0).all():
+    if n > 1 and not np.all(np.diff(t_s) > 0):
         raise FrameError(Reason.TIME_NOT_INCREASING, "t_s must strictly increase within a frame")
-    return SampleBatch(
-        vehicle, imu, seq, t_s, arrays["accel_mps2"], arrays["gyro_rps"], arrays["temp_c"]
-    )
+    return SampleBatch(vehicle, imu, seq, t_s, accel, gyro, temp)
+
+
+@overload
+def _array(
+    obj: dict[str, Any],
+    name: str,
+    dtype: SampleDtype,
+    shape: tuple[int, ...],
+    *,
+    optional: Literal[False] = False,
+) -> np.ndarray: ...
+
+
+@overload
+def _array(
+    obj: dict[str, Any], name: str, dtype: SampleDtype, shape: tuple[int, ...], *, optional: bool
+) -> np.ndarray | None: ...
 
 
 def _array(
-    obj: dict, name: str, dtype: SampleDtype, shape: tuple[int, ...], *, optional: bool = False
+    obj: dict[str, Any],
+    name: str,
+    dtype: SampleDtype,
+    shape: tuple[int, ...],
+    *,
+    optional: bool = False,
 ) -> np.ndarray | None:
     raw = field(obj, name, bytes, error=FrameError, optional=optional)
     if raw is None:

@@ -42,15 +42,16 @@ import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
 from protocols._handoff import ThreadToAsyncRing
-from protocols.events import Event, Severity, StreamCause
+from protocols.events import Event, Predicate, Severity, StreamCause
 from protocols.frames import BatchSource, FrameError, SampleBatch
 
 STATUSTEXT_MAX_CHARS = 50
@@ -88,6 +89,9 @@ DEFAULT_IMU_INDEX: Mapping[ImuMessage, int] = {
     ImuMessage.SCALED_IMU3: 2,
     ImuMessage.HIGHRES_IMU: 0,
 }
+MavlinkMessage: TypeAlias = mavlink2.MAVLink_message
+"""Any message of the dialect (pymavlink ships no type stubs: to mypy this is ``Any``)."""
+
 _HIGHRES_TEMPERATURE_BIT = mavlink2.HIGHRES_IMU_UPDATED_TEMPERATURE
 
 
@@ -106,7 +110,7 @@ class ImuSample:
 
 
 def decode_imu_message(
-    msg,
+    msg: MavlinkMessage,
     *,
     raw_scale: ImuScale = RAW_IMU_ARDUPILOT,
     imu_index: Mapping[ImuMessage, int] = DEFAULT_IMU_INDEX,
@@ -171,12 +175,12 @@ def imu_message(
     kind: ImuMessage,
     *,
     t_s: float,
-    accel_mps2,
-    gyro_rps,
+    accel_mps2: ArrayLike,
+    gyro_rps: ArrayLike,
     temp_c: float | None = None,
     imu_id: int = 0,
     raw_scale: ImuScale = RAW_IMU_ARDUPILOT,
-):
+) -> MavlinkMessage:
     """Build an IMU message from SI values (the inverse of :func:`decode_imu_message`; a simulated autopilot).
 
     Integer messages round to the nearest count; ``imu_id`` goes into the
@@ -240,7 +244,7 @@ def _count(value: float) -> int:
     return n
 
 
-def heartbeat_message(*, system_status: int = mavlink2.MAV_STATE_ACTIVE):
+def heartbeat_message(*, system_status: int = mavlink2.MAV_STATE_ACTIVE) -> MavlinkMessage:
     """HEARTBEAT of an onboard computer component (MAV_TYPE_ONBOARD_CONTROLLER, no autopilot)."""
     return mavlink2.MAVLink_heartbeat_message(
         type=mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
@@ -252,7 +256,9 @@ def heartbeat_message(*, system_status: int = mavlink2.MAV_STATE_ACTIVE):
     )
 
 
-def statustext_messages(text: str, *, severity: Severity, chunk_id: int = 0) -> list:
+def statustext_messages(
+    text: str, *, severity: Severity, chunk_id: int = 0
+) -> list[MavlinkMessage]:
     """STATUSTEXT message(s) for ``text`` (ASCII; other characters become ``?``).
 
     Up to 50 characters: one message with ``id`` 0 (the MAVLink rule for a
@@ -345,7 +351,7 @@ class AlertRateLimiter:
         self._rate = float(max_per_s)
         self._tokens = float(max_per_s)
         self._last_s: float | None = None
-        self._last_by_key: dict[tuple, float] = {}
+        self._last_by_key: dict[tuple[str, int, Predicate, Triad | None, str | None], float] = {}
         self.suppressed = 0
 
     def allow(self, event: Event, now_s: float) -> bool:
@@ -530,7 +536,7 @@ class MavlinkLink:
             return None
         return self.to_batch(msg)
 
-    def to_batch(self, msg) -> SampleBatch | None:
+    def to_batch(self, msg: MavlinkMessage) -> SampleBatch | None:
         """Convert one received IMU message (counted); ``None`` if it is from another system or unusable."""
         self.counters.messages += 1
         if (
@@ -557,7 +563,7 @@ class MavlinkLink:
         self.counters.imu_samples[kind] = self.counters.imu_samples.get(kind, 0) + 1
         return batch
 
-    def send(self, msg) -> None:
+    def send(self, msg: MavlinkMessage) -> None:
         """Send a message built by one of the typed builders (signed if signing is configured)."""
         with self._send_lock:
             self._conn.mav.send(msg)
@@ -591,7 +597,7 @@ class MavlinkLink:
     def __enter__(self) -> MavlinkLink:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 

@@ -15,10 +15,8 @@ import json
 import os
 from pathlib import Path
 
-import msgpack
-
 from estimators.passport import Passport, PassportError
-from protocols._schema import MAX_MESSAGE_BYTES, SchemaError, unpack_map
+from protocols._schema import MAX_MESSAGE_BYTES, SchemaError, pack, unpack_map
 from protocols.atomic_file import atomic_write_bytes
 
 MAX_PASSPORT_BYTES = MAX_MESSAGE_BYTES
@@ -61,7 +59,7 @@ def read_passport_json(path: str | os.PathLike[str]) -> Passport:
 
 def encode_passport(passport: Passport) -> bytes:
     """msgpack bytes of :meth:`Passport.to_dict`."""
-    return msgpack.packb(passport.to_dict(), use_bin_type=True)
+    return pack(passport.to_dict())
 
 
 def decode_passport(data: bytes, *, max_bytes: int = MAX_PASSPORT_BYTES) -> Passport:

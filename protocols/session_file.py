@@ -191,7 +191,7 @@ def _check_header(path: Path, lineno: int, names: list[str]) -> None:
         )
 
 
-def read_csv_session(path: str | os.PathLike) -> LoadedSession:
+def read_csv_session(path: str | os.PathLike[str]) -> LoadedSession:
     """Read a CSV session file (format in the module docstring)."""
     path = Path(path)
     rows, comments = _split_lines(path, _read_text(path))
@@ -210,7 +210,7 @@ def read_csv_session(path: str | os.PathLike) -> LoadedSession:
     data = _parse_rows(path, rows[1:], tuple(names), ",")
     col = {n: data[:, k] for k, n in enumerate(names)}
 
-    def triad(cols):
+    def triad(cols: tuple[str, ...]) -> np.ndarray | None:
         return np.column_stack([col[c] for c in cols]) if cols[0] in col else None
 
     session = ImuSession(
@@ -224,7 +224,7 @@ def read_csv_session(path: str | os.PathLike) -> LoadedSession:
 
 
 def write_csv_session(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     session: ImuSession,
     *,
     metadata: dict[str, object] | None = None,
@@ -274,10 +274,10 @@ class CountScale:
     Both are (3,) per axis; the scale is in m/s² or rad/s per count.
     """
 
-    offset_counts: tuple
-    scale_si_per_count: tuple
+    offset_counts: tuple[float, ...]
+    scale_si_per_count: tuple[float, ...]
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("offset_counts", "scale_si_per_count"):
             a = np.broadcast_to(np.asarray(getattr(self, name), dtype=float), (3,))
             if not np.all(np.isfinite(a)):
@@ -287,7 +287,8 @@ class CountScale:
             raise ValueError("scale_si_per_count must not be zero")
 
     def to_si(self, counts: np.ndarray) -> np.ndarray:
-        return (counts - np.array(self.offset_counts)) * np.array(self.scale_si_per_count)
+        si: np.ndarray = (counts - np.array(self.offset_counts)) * np.array(self.scale_si_per_count)
+        return si
 
 
 @dataclass(frozen=True)
@@ -303,7 +304,7 @@ class XsensNominal:
 DEFAULT_XSENS_SIDECAR = "xsens_mti.toml"
 
 
-def load_xsens_sidecar(path: str | os.PathLike | None = None) -> XsensNominal:
+def load_xsens_sidecar(path: str | os.PathLike[str] | None = None) -> XsensNominal:
     """Read a TOML sidecar (``None``: the packaged default for IMU-TK's Xsens MTi).
 
     Keys: ``format = "ins-health/xsens-nominal"``, ``version = 1``, optional
@@ -356,8 +357,8 @@ def _read_count_file(path: Path) -> np.ndarray:
 
 
 def read_xsens_pair(
-    accel_path: str | os.PathLike,
-    gyro_path: str | os.PathLike,
+    accel_path: str | os.PathLike[str],
+    gyro_path: str | os.PathLike[str],
     *,
     nominal: XsensNominal | None = None,
 ) -> LoadedSession:
@@ -411,10 +412,10 @@ def find_xsens_pair(directory: Path) -> tuple[Path, Path, Path | None]:
 
 
 def load_session(
-    path: str | os.PathLike,
-    gyro_path: str | os.PathLike | None = None,
+    path: str | os.PathLike[str],
+    gyro_path: str | os.PathLike[str] | None = None,
     *,
-    sidecar: str | os.PathLike | None = None,
+    sidecar: str | os.PathLike[str] | None = None,
     nominal: XsensNominal | None = None,
 ) -> LoadedSession:
     """Read a session from what ``path`` is.
@@ -441,10 +442,10 @@ def load_session(
 
 
 def read_session(
-    path: str | os.PathLike,
-    gyro_path: str | os.PathLike | None = None,
+    path: str | os.PathLike[str],
+    gyro_path: str | os.PathLike[str] | None = None,
     *,
-    sidecar: str | os.PathLike | None = None,
+    sidecar: str | os.PathLike[str] | None = None,
     nominal: XsensNominal | None = None,
 ) -> ImuSession:
     """The :class:`ImuSession` of :func:`load_session` (same arguments)."""

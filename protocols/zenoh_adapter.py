@@ -69,10 +69,11 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import zenoh
+from numpy.typing import ArrayLike
 
 from protocols._handoff import ThreadToAsyncRing
 from protocols._schema import (
@@ -306,8 +307,15 @@ def open_router(
         session.close()
 
 
-def _matching(entity) -> bool:
-    status = entity.matching_status
+class _Declared(Protocol):
+    """A declared Zenoh entity (subscriber, queryable, publisher): undeclared when done."""
+
+    def undeclare(self) -> None: ...
+
+
+def _matching(entity: zenoh.Publisher | zenoh.Querier) -> bool:
+    # The stub says bool; zenoh 1.x returns a MatchingStatus carrying ``matching``.
+    status: object = entity.matching_status
     return bool(getattr(status, "matching", status))
 
 
@@ -462,7 +470,13 @@ class FramePublisher:
         self._buffered = 0
         self.frames_published = 0
 
-    def add(self, t_s, accel_mps2, gyro_rps, temp_c=None) -> int:
+    def add(
+        self,
+        t_s: ArrayLike,
+        accel_mps2: ArrayLike,
+        gyro_rps: ArrayLike,
+        temp_c: ArrayLike | None = None,
+    ) -> int:
         """Buffer samples (one: scalars and (3,) vectors; many: (N,), (N, 3)); returns frames published."""
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         a = np.asarray(accel_mps2, dtype=float).reshape(-1, 3)
@@ -541,7 +555,7 @@ class FramePublisher:
     def __enter__(self) -> FramePublisher:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -639,7 +653,7 @@ class EventPublisher:
     def __enter__(self) -> EventPublisher:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -673,7 +687,7 @@ class EventReceiver:
         self.received = 0
         self.duplicates = 0
         self.rejected: dict[str, int] = {}
-        self._entities = [
+        self._entities: list[_Declared] = [
             session.declare_subscriber(f"{ROOT}/{vehicles}/health/events", self._on_sample)
         ]
         if acknowledge:
@@ -732,7 +746,7 @@ class EventReceiver:
     def __enter__(self) -> EventReceiver:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -767,7 +781,7 @@ class StatusPublisher:
     def __enter__(self) -> StatusPublisher:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -777,7 +791,7 @@ def subscribe_status(
     *,
     vehicles: str = "*",
     on_reject: Callable[[EventError], None] | None = None,
-) -> zenoh.Subscriber:
+) -> zenoh.Subscriber[None]:
     """Subscribe to status messages (``ins/<vehicles>/health/status``); undecodable ones go to ``on_reject``.
 
     Returns the subscriber (undeclare it, or use it as a context manager, to stop).

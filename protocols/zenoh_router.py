@@ -38,20 +38,22 @@ class RouterProcess:
     def __init__(self, endpoint: str, *, ready_timeout_s: float = 20.0):
         self.endpoint = endpoint
         self._timeout_s = float(ready_timeout_s)
-        self._proc: subprocess.Popen | None = None
+        self._proc: subprocess.Popen[str] | None = None
 
     def start(self) -> RouterProcess:
         if self.running:
             raise RuntimeError("the router is already running")
-        self._proc = subprocess.Popen(
+        proc = self._proc = subprocess.Popen(
             [sys.executable, "-m", "protocols.zenoh_router", "--listen", self.endpoint, "--stdin"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
         )
-        ready, _, _ = select.select([self._proc.stdout], [], [], self._timeout_s)
-        line = self._proc.stdout.readline().strip() if ready else ""
+        if proc.stdout is None:
+            raise RuntimeError("the router's stdout is not a pipe")
+        ready, _, _ = select.select([proc.stdout], [], [], self._timeout_s)
+        line = proc.stdout.readline().strip() if ready else ""
         if line != f"ready {self.endpoint}":
             self.kill()
             raise RuntimeError(
@@ -82,14 +84,15 @@ class RouterProcess:
             self._proc.send_signal(sig)
         status = self._proc.wait(timeout=self._timeout_s)
         for stream in (self._proc.stdin, self._proc.stdout):
-            stream.close()
+            if stream is not None:
+                stream.close()
         self._proc = None
         return status
 
     def __enter__(self) -> RouterProcess:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
@@ -106,7 +109,12 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: done.set())
     if args.stdin:
-        threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+
+        def stop_at_eof() -> None:
+            sys.stdin.read()
+            done.set()
+
+        threading.Thread(target=stop_at_eof, daemon=True).start()
     with open_router(args.listen):
         print(f"ready {args.listen}", flush=True)
         # wait() with a timeout in a loop so the main thread stays responsive to signals.
