@@ -57,6 +57,8 @@ from enum import StrEnum
 
 import numpy as np
 
+from estimators._typing import FloatArray
+
 EARTH_RATE_RPS = 7.292115e-5
 """Earth rotation rate Ω (WGS-84), rad/s."""
 
@@ -149,7 +151,7 @@ def reference_magnitude(triad: Triad, gravity_mps2: float) -> float:
     return float(gravity_mps2) if Triad(triad) is Triad.ACCEL else EARTH_RATE_RPS
 
 
-def sensor_axes(nonorth_rad: np.ndarray) -> np.ndarray:
+def sensor_axes(nonorth_rad: FloatArray) -> FloatArray:
     """Unit sensitive axes of a triad from its six non-orthogonality angles.
 
     Parameters
@@ -169,10 +171,11 @@ def sensor_axes(nonorth_rad: np.ndarray) -> np.ndarray:
             [d_zy, -d_zx, 1.0],
         ]
     )
-    return s / np.linalg.norm(s, axis=1, keepdims=True)
+    axes: FloatArray = s / np.linalg.norm(s, axis=1, keepdims=True)
+    return axes
 
 
-def observable_nonorth(axes: np.ndarray) -> np.ndarray:
+def observable_nonorth(axes: FloatArray) -> FloatArray:
     """The three observable non-orthogonality parameters ``[d1, d2, d3]`` (cosines).
 
     ``axes`` is the (3, 3) matrix of unit sensitive axes from :func:`sensor_axes`.
@@ -180,12 +183,12 @@ def observable_nonorth(axes: np.ndarray) -> np.ndarray:
     return np.array([axes[0] @ axes[1], axes[0] @ axes[2], axes[1] @ axes[2]])
 
 
-def triad_matrix(scale_err: np.ndarray, axes: np.ndarray) -> np.ndarray:
+def triad_matrix(scale_err: FloatArray, axes: FloatArray) -> FloatArray:
     """The (3, 3) matrix ``A`` with rows ``(1 + e_i) s_iᵀ``: ``ã = A u + b``."""
     return (1.0 + np.asarray(scale_err, dtype=float).reshape(3, 1)) * axes
 
 
-def nine_params(bias_norm: np.ndarray, scale_err: np.ndarray, axes: np.ndarray) -> np.ndarray:
+def nine_params(bias_norm: FloatArray, scale_err: FloatArray, axes: FloatArray) -> FloatArray:
     """The true parameter vector ``[b, e, d]`` (order :data:`PARAM_NAMES`) of a triad."""
     return np.concatenate(
         [

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import norm
 
+from estimators._typing import FloatArray
 from estimators.conventions import N_PARAMS, PARAM_AXIS, PARAM_CAUSE, PARAM_NAMES, Cause, Triad
 from estimators.ninepar import Estimate
 from estimators.passport import Passport, TriadPassport
@@ -194,33 +195,52 @@ def diagnose(
     skip = _skip_reasons(estimate, passport)
     n_evaluated = sum(not reason for reason in skip)
     z = critical_z(false_alarm_prob, n_evaluated) if n_evaluated else None
-    results, findings = [], []
+    results: list[PredicateResult] = []
+    findings: list[Finding] = []
     for j in range(N_PARAMS):
+        predicate, nom, tol = PREDICATES[j], float(nominal[j]), float(tolerance[j])
         est, sigma = _opt(estimate.params, j), _opt(estimate.sigma, j)
-        common = dict(
-            predicate=PREDICATES[j],
-            estimate=est,
-            nominal=float(nominal[j]),
-            tolerance=float(tolerance[j]),
-            sigma=sigma,
-        )
         if skip[j]:
             results.append(
                 PredicateResult(
-                    outcome=Outcome.NOT_EVALUATED, threshold=None, reason=skip[j], **common
+                    predicate=predicate,
+                    outcome=Outcome.NOT_EVALUATED,
+                    estimate=est,
+                    nominal=nom,
+                    tolerance=tol,
+                    sigma=sigma,
+                    threshold=None,
+                    reason=skip[j],
                 )
             )
             continue
+        # Not skipped: the estimate has params (so sigma), and z exists (n_evaluated >= 1).
+        assert est is not None and sigma is not None and z is not None
         threshold = float(tolerance[j] + z * np.hypot(sigma, sigma_p[j]))
         failed = abs(est - nominal[j]) > threshold
         results.append(
             PredicateResult(
-                outcome=Outcome.FAIL if failed else Outcome.PASS, threshold=threshold, **common
+                predicate=predicate,
+                outcome=Outcome.FAIL if failed else Outcome.PASS,
+                estimate=est,
+                nominal=nom,
+                tolerance=tol,
+                sigma=sigma,
+                threshold=threshold,
             )
         )
         if failed:
             findings.append(
-                Finding(triad=estimate.triad, axis=PARAM_AXIS[j], cause=PARAM_CAUSE[j], **common)
+                Finding(
+                    predicate=predicate,
+                    triad=estimate.triad,
+                    axis=PARAM_AXIS[j],
+                    cause=PARAM_CAUSE[j],
+                    estimate=est,
+                    nominal=nom,
+                    tolerance=tol,
+                    sigma=sigma,
+                )
             )
     return Diagnosis(estimate.triad, false_alarm_prob, z, tuple(results), tuple(findings))
 
@@ -251,7 +271,7 @@ def diagnose_unit(
 
 def _in_estimate_units(
     passport: TriadPassport, reference: float | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     factor = np.ones(N_PARAMS)
     if reference is not None:
         factor[0:3] = passport.reference / reference
@@ -259,14 +279,13 @@ def _in_estimate_units(
 
 
 def _skip_reasons(estimate: Estimate, passport: TriadPassport) -> list[str]:
-    if estimate.params is None:
+    sigma = estimate.sigma
+    if estimate.params is None or sigma is None:
         return [f"no estimate: {estimate.reason}"] * N_PARAMS
     reasons = []
     for j in range(N_PARAMS):
         if not estimate.observable[j]:
-            reasons.append(
-                f"{PARAM_NAMES[j]} not observable in this estimate (σ {estimate.sigma[j]:.3g})"
-            )
+            reasons.append(f"{PARAM_NAMES[j]} not observable in this estimate (σ {sigma[j]:.3g})")
         elif not passport.observable[j]:
             reasons.append(f"{PARAM_NAMES[j]} has no resolved passport value")
         else:
@@ -274,5 +293,5 @@ def _skip_reasons(estimate: Estimate, passport: TriadPassport) -> list[str]:
     return reasons
 
 
-def _opt(values: np.ndarray | None, j: int) -> float | None:
+def _opt(values: FloatArray | None, j: int) -> float | None:
     return None if values is None else float(values[j])

@@ -105,6 +105,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.optimize import least_squares
 
+from estimators._typing import ArrayT, BoolArray, FloatArray
 from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
 from estimators.positions import Position
 from estimators.scalar import normalize, scalar_residual
@@ -160,7 +161,7 @@ class ObservabilityRule:
                     f"ObservabilityRule.{name} must be a positive finite number, got {value!r}"
                 )
 
-    def max_sigma(self) -> np.ndarray:
+    def max_sigma(self) -> FloatArray:
         """(9,) largest standard deviation of each parameter that still counts as observable."""
         ranges = np.repeat([self.bias_range, self.scale_range, self.nonorth_range], 3)
         return self.fraction * ranges
@@ -222,9 +223,9 @@ class Estimate:
     verdict: Verdict
     reason: str
     n_positions: int
-    params: np.ndarray | None
-    cov: np.ndarray | None
-    observable: np.ndarray
+    params: FloatArray | None
+    cov: FloatArray | None
+    observable: BoolArray
     rank: int
     condition: float
     chi2: float | None
@@ -232,7 +233,7 @@ class Estimate:
     reference: float | None = None
 
     @property
-    def sigma(self) -> np.ndarray | None:
+    def sigma(self) -> FloatArray | None:
         """(9,) standard deviations, or None without params."""
         return None if self.cov is None else np.sqrt(np.diag(self.cov))
 
@@ -269,7 +270,7 @@ class Estimate:
 # --------------------------------------------------------------------------- model
 
 
-def regressors(u: np.ndarray) -> np.ndarray:
+def regressors(u: FloatArray) -> FloatArray:
     """M1 regressor rows ``[gx gy gz gx² gy² gz² gx·gy gx·gz gy·gz]``.
 
     Parameters
@@ -287,13 +288,13 @@ def regressors(u: np.ndarray) -> np.ndarray:
     return np.column_stack([x, y, z, x * x, y * y, z * z, x * y, x * z, y * z])
 
 
-def cosine_matrix(params: np.ndarray) -> np.ndarray:
+def cosine_matrix(params: FloatArray) -> FloatArray:
     """(3, 3) Gram matrix ``C`` of the unit sensitive axes: unit diagonal, ``C12=d1, C13=d2, C23=d3``."""
     d1, d2, d3 = _as_params(params)[6:9]
     return np.array([[1.0, d1, d2], [d1, 1.0, d3], [d2, d3, 1.0]])
 
 
-def canonical_triad_matrix(params: np.ndarray) -> np.ndarray:
+def canonical_triad_matrix(params: FloatArray) -> FloatArray:
     """A triad matrix ``A`` (rows ``(1+e_i) s_iᵀ``) with the given nine parameters.
 
     The nine parameters fix ``A Aᵀ = D C D`` only; this picks the lower-triangular
@@ -305,8 +306,8 @@ def canonical_triad_matrix(params: np.ndarray) -> np.ndarray:
 
 
 def ellipsoid_residual(
-    params: np.ndarray, mean_norm: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    params: FloatArray, mean_norm: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Exact scalar equation of each position and its derivatives (module docstring).
 
     ``f_k = ½(z_kᵀ C⁻¹ z_k − 1)``, ``z_k = D⁻¹(ã_k − b)``; zero for noise-free means.
@@ -337,15 +338,16 @@ def ellipsoid_residual(
     return f, df_dp, w / scale
 
 
-def equation_sigma(params: np.ndarray, mean_norm: np.ndarray, cov_norm: np.ndarray) -> np.ndarray:
+def equation_sigma(params: FloatArray, mean_norm: FloatArray, cov_norm: FloatArray) -> FloatArray:
     """(n,) standard deviation of each ``f_k`` from the covariance of its mean: ``(∇ã fᵀ P ∇ã f)^½``."""
     _, _, grad = ellipsoid_residual(params, mean_norm)
-    return np.sqrt(np.einsum("ni,nij,nj->n", grad, cov_norm, grad))
+    var: FloatArray = np.einsum("ni,nij,nj->n", grad, cov_norm, grad)
+    return np.sqrt(var)
 
 
 def cramer_rao_bound(
-    mean_true_norm: np.ndarray, cov_norm: np.ndarray, params: np.ndarray
-) -> np.ndarray:
+    mean_true_norm: FloatArray, cov_norm: FloatArray, params: FloatArray
+) -> FloatArray:
     """Cramér–Rao bound (9, 9) of the parameters for a position scheme and noise level.
 
     Model: ``ã_k = A u_k + b + n_k``, ``n_k ~ N(0, P_k)``, with the directions ``u_k``
@@ -367,7 +369,7 @@ def cramer_rao_bound(
     return _cov_from_jacobian(jac / sigma[:, None])
 
 
-def scheme_directions(n_positions: int) -> np.ndarray:
+def scheme_directions(n_positions: int) -> FloatArray:
     """Unit reference directions ``u_k`` (n, 3) of a standard position scheme.
 
     * 6: the six-position test (each axis up and down, methods.md M4); does not
@@ -410,8 +412,8 @@ class _Geometry:
     reason: str
     rank: int
     condition: float
-    gram: np.ndarray | None  # HᵀH of the unit directions about the fitted centre
-    centre: np.ndarray | None  # best-fitting sphere centre, normalized
+    gram: FloatArray | None  # HᵀH of the unit directions about the fitted centre
+    centre: FloatArray | None  # best-fitting sphere centre, normalized
 
 
 MAX_PLANE_SPREAD = 1.0 / np.sqrt(3.0)
@@ -425,7 +427,7 @@ _REFERENCE_WORDS = {
 
 
 def _check_geometry(
-    mean: np.ndarray, cov: np.ndarray, rule: GeometryRule, triad: Triad
+    mean: FloatArray, cov: FloatArray, rule: GeometryRule, triad: Triad
 ) -> _Geometry:
     n = mean.shape[0]
     if n < MIN_POSITIONS:
@@ -481,7 +483,7 @@ def _check_geometry(
     return _Geometry(True, "", rank, condition, gram, centre)
 
 
-def _rank_condition(gram: np.ndarray) -> tuple[int, float, str]:
+def _rank_condition(gram: FloatArray) -> tuple[int, float, str]:
     """Rank, condition number and the least excited parameter combination of a 9x9 Gram matrix."""
     evals, evecs = np.linalg.eigh(gram)
     top = evals[-1]
@@ -501,8 +503,8 @@ def _rank_condition(gram: np.ndarray) -> tuple[int, float, str]:
 
 
 def estimate_linear(
-    mean_norm: np.ndarray,
-    cov_norm: np.ndarray,
+    mean_norm: FloatArray,
+    cov_norm: FloatArray,
     triad: Triad,
     *,
     reference: float | None = None,
@@ -533,8 +535,8 @@ def estimate_linear(
 
 
 def estimate_refined(
-    mean_norm: np.ndarray,
-    cov_norm: np.ndarray,
+    mean_norm: FloatArray,
+    cov_norm: FloatArray,
     triad: Triad,
     *,
     reference: float | None = None,
@@ -562,8 +564,8 @@ def estimate_refined(
 
 
 def _refined(
-    mean: np.ndarray,
-    cov: np.ndarray,
+    mean: FloatArray,
+    cov: FloatArray,
     triad: Triad,
     method: Method,
     reference: float | None,
@@ -575,6 +577,7 @@ def _refined(
     geo = _check_geometry(mean, cov, geometry, triad)
     if not geo.ok:
         return _not_observable(triad, method, geo, mean.shape[0], reference), geo
+    assert geo.centre is not None  # a geometry that is ok has its centre
     start, _, _ = _linear_solve(mean, cov, geo.centre)
     params, cov_p, chi2, note = _refine(mean, cov, start, max_passes)
     if note:
@@ -587,7 +590,7 @@ def _refined(
 
 def position_arrays(
     positions: Sequence[Position], triad: Triad, reference: float
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[FloatArray, FloatArray]:
     """Normalized means (n, 3) and covariances (n, 3, 3) of one triad from SI positions.
 
     Parameters
@@ -644,8 +647,8 @@ def estimate_triad(
 
 
 def _linear_solve(
-    mean: np.ndarray, cov: np.ndarray, centre: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, float]:
+    mean: FloatArray, cov: FloatArray, centre: FloatArray
+) -> tuple[FloatArray, FloatArray, float]:
     """Paper's weighted linear LS on the means taken about ``centre`` (bias = centre + estimate)."""
     rel = mean - centre
     y = scalar_residual(rel)
@@ -659,8 +662,8 @@ def _linear_solve(
 
 
 def _refine(
-    mean: np.ndarray, cov: np.ndarray, start: np.ndarray, max_passes: int
-) -> tuple[np.ndarray, np.ndarray, float, str]:
+    mean: FloatArray, cov: FloatArray, start: FloatArray, max_passes: int
+) -> tuple[FloatArray, FloatArray, float, str]:
     params = start.copy()
     for _ in range(max_passes):
         if not _physical(params):
@@ -701,7 +704,7 @@ def _refine(
     return params, _cov_from_jacobian(jac / sigma[:, None]), float(np.sum((f / sigma) ** 2)), ""
 
 
-def _physical(params: np.ndarray) -> bool:
+def _physical(params: FloatArray) -> bool:
     """Within the domain of a triad that still works (module docstring)."""
     if not np.all(np.isfinite(params)):
         return False
@@ -711,16 +714,16 @@ def _physical(params: np.ndarray) -> bool:
     return bool(np.linalg.eigvalsh(cosine_matrix(params))[0] > PHYSICAL_MIN_AXES_EIGENVALUE)
 
 
-def _cov_from_jacobian(jac_w: np.ndarray) -> np.ndarray:
+def _cov_from_jacobian(jac_w: FloatArray) -> FloatArray:
     """``(JᵀJ)⁻¹`` of a whitened Jacobian from its SVD, ``V S⁻² Vᵀ`` (no normal equations formed)."""
     _, s, vt = np.linalg.svd(jac_w, full_matrices=False)
     if s.size < N_PARAMS or s[-1] <= np.finfo(float).eps * s[0] * N_PARAMS:
         return np.full((N_PARAMS, N_PARAMS), np.inf)
-    cov = (vt.T / s**2) @ vt
+    cov: FloatArray = (vt.T / s**2) @ vt
     return 0.5 * (cov + cov.T)
 
 
-def _judge(cov: np.ndarray, rule: ObservabilityRule) -> tuple[np.ndarray, Verdict, str]:
+def _judge(cov: FloatArray, rule: ObservabilityRule) -> tuple[BoolArray, Verdict, str]:
     sigma = np.sqrt(np.diag(cov))
     limit = rule.max_sigma()
     observable = np.isfinite(sigma) & (sigma <= limit)
@@ -740,8 +743,8 @@ def _judge(cov: np.ndarray, rule: ObservabilityRule) -> tuple[np.ndarray, Verdic
 def _finish(
     triad: Triad,
     method: Method,
-    params: np.ndarray,
-    cov: np.ndarray,
+    params: FloatArray,
+    cov: FloatArray,
     chi2: float,
     n: int,
     geo: _Geometry,
@@ -815,8 +818,8 @@ _STATE_VERSION = 1
 
 @dataclass
 class _Buffer:
-    means: list[np.ndarray] = field(default_factory=list)
-    covs: list[np.ndarray] = field(default_factory=list)
+    means: list[FloatArray] = field(default_factory=list)
+    covs: list[FloatArray] = field(default_factory=list)
 
 
 class RecursiveNineParam:
@@ -890,7 +893,7 @@ class RecursiveNineParam:
         """Positions dropped from a full buffer while the geometry stayed degenerate."""
         return self._n_dropped
 
-    def update(self, mean_norm: np.ndarray, cov_norm: np.ndarray) -> RecursiveUpdate:
+    def update(self, mean_norm: FloatArray, cov_norm: FloatArray) -> RecursiveUpdate:
         """Add one position: normalized mean (3,) and covariance of that mean (3, 3).
 
         Invalid input raises ``ValueError`` and leaves the state unchanged.
@@ -936,7 +939,7 @@ class RecursiveNineParam:
             self.geometry,
         )
 
-    def _buffer_position(self, mean: np.ndarray, cov: np.ndarray) -> RecursiveUpdate:
+    def _buffer_position(self, mean: FloatArray, cov: FloatArray) -> RecursiveUpdate:
         buf = self._buffer
         buf.means.append(mean)
         buf.covs.append(cov)
@@ -951,6 +954,8 @@ class RecursiveNineParam:
         if est.params is None:
             return RecursiveUpdate(initialized=False)
         self._kf.x = est.params.reshape(-1, 1).copy()
+        # An estimate with params comes with its covariance, chi-square and a passed geometry.
+        assert est.cov is not None and est.chi2 is not None and geo.gram is not None
         self._kf.P = est.cov.copy()
         self._gram = geo.gram.copy()
         self._chi2 = float(est.chi2)
@@ -958,11 +963,12 @@ class RecursiveNineParam:
         self._initialized = True
         return RecursiveUpdate(initialized=True)
 
-    def _absorb(self, mean: np.ndarray, cov: np.ndarray) -> RecursiveUpdate:
+    def _absorb(self, mean: FloatArray, cov: FloatArray) -> RecursiveUpdate:
         kf = self._kf
         x_prior, p_prior = kf.x.copy(), kf.P.copy()
         x_i = x_prior
-        innovation = innovation_var = None
+        innovation: float | None = None
+        innovation_var: float | None = None
         iterations = 0
         for iterations in range(1, self.max_iterations + 1):  # noqa: B007 (the count reached is returned)
             f, df_dp, df_dm = ellipsoid_residual(x_i[:, 0], mean[None])
@@ -977,6 +983,8 @@ class RecursiveNineParam:
             x_i = kf.x.copy()
             if np.all(np.abs(step[:, 0]) <= 1e-4 * np.sqrt(np.diag(kf.P))):
                 break
+        # max_iterations >= 1: the first pass has set both.
+        assert innovation is not None and innovation_var is not None
         nis = innovation**2 / innovation_var
         self._chi2 += nis
         self._n_positions += 1
@@ -1068,14 +1076,14 @@ class RecursiveNineParam:
 # --------------------------------------------------------------------------- helpers
 
 
-def _as_params(params: np.ndarray) -> np.ndarray:
+def _as_params(params: FloatArray) -> FloatArray:
     p = np.asarray(params, dtype=float)
     if p.shape != (N_PARAMS,):
         raise ValueError(f"params must have shape ({N_PARAMS},), got {p.shape}")
     return p
 
 
-def _check_positions(mean_norm: np.ndarray, cov_norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check_positions(mean_norm: FloatArray, cov_norm: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Validated float copies of means (n, 3) and covariances (n, 3, 3): finite, symmetric, positive definite."""
     mean = np.array(mean_norm, dtype=float)
     cov = np.array(cov_norm, dtype=float)
@@ -1110,13 +1118,13 @@ def _check_positions(mean_norm: np.ndarray, cov_norm: np.ndarray) -> tuple[np.nd
     return mean, cov
 
 
-def _unit_rows(v: np.ndarray) -> np.ndarray:
+def _unit_rows(v: FloatArray) -> FloatArray:
     """Rows scaled to unit length (a zero row stays zero instead of becoming NaN)."""
-    norm = np.linalg.norm(v, axis=1, keepdims=True)
+    norm: FloatArray = np.linalg.norm(v, axis=1, keepdims=True)
     return v / np.maximum(norm, np.finfo(float).tiny)
 
 
-def _state_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+def _state_array(value: Any, shape: tuple[int, ...], name: str) -> FloatArray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != shape or not np.isfinite(arr).all():
         raise ValueError(
@@ -1125,8 +1133,8 @@ def _state_array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     return arr
 
 
-def _frozen(arr: np.ndarray) -> np.ndarray:
-    out = np.array(arr)
+def _frozen(arr: ArrayT) -> ArrayT:
+    out = arr.copy(order="K")
     out.setflags(write=False)
     return out
 

@@ -60,11 +60,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
 from types import MappingProxyType
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from scipy.stats import norm
 
+from estimators._typing import ArrayT, BoolArray, FloatArray
 from estimators.conventions import MPS2_PER_MG, N_PARAMS, PARAM_NAMES, RPS_PER_DPH, Grade, Triad
 from estimators.ninepar import Estimate, Method
 from estimators.positions import Position
@@ -120,7 +121,7 @@ class ToleranceRule:
     floor : (9,) smallest tolerance per parameter, normalized.
     """
 
-    floor: np.ndarray
+    floor: FloatArray
     k_sigma: float = 3.0
 
     def __post_init__(self) -> None:
@@ -131,7 +132,7 @@ class ToleranceRule:
             raise PassportError(f"ToleranceRule.k_sigma must be positive, got {self.k_sigma!r}")
         object.__setattr__(self, "floor", floor)
 
-    def tolerance(self, sigma: np.ndarray) -> np.ndarray:
+    def tolerance(self, sigma: FloatArray) -> FloatArray:
         """(9,) tolerances for calibration standard deviations ``sigma`` (9,)."""
         return np.maximum(self.k_sigma * _array(sigma, (N_PARAMS,), "sigma"), self.floor)
 
@@ -173,8 +174,8 @@ class TemperatureModel:
     """
 
     reference_temp_c: float
-    bias_coeffs: np.ndarray
-    scale_coeffs: np.ndarray
+    bias_coeffs: FloatArray
+    scale_coeffs: FloatArray
     valid_min_c: float | None = field(kw_only=True)
     valid_max_c: float | None = field(kw_only=True)
 
@@ -210,14 +211,14 @@ class TemperatureModel:
 
     @property
     def order(self) -> int:
-        return self.bias_coeffs.shape[1] - 1
+        return int(self.bias_coeffs.shape[1]) - 1
 
     @property
     def bounded(self) -> bool:
         """False for a schema-1 model, which records no valid range."""
         return self.valid_min_c is not None
 
-    def in_range(self, temp_c: np.ndarray) -> np.ndarray:
+    def in_range(self, temp_c: FloatArray) -> BoolArray:
         """(N,) bool: which of ``temp_c`` (N,), °C, lie in the valid range (all, for an unbounded model)."""
         t = np.asarray(temp_c, dtype=float).reshape(-1)
         if not self.bounded:
@@ -275,11 +276,11 @@ class Provenance:
     method: Method
     n_positions: int
     confidence: float
-    ci_low: np.ndarray
-    ci_high: np.ndarray
+    ci_low: FloatArray
+    ci_high: FloatArray
     procedure: str = "M1 multi-position"
     n_runs: int = 1
-    reproducible: np.ndarray | None = None
+    reproducible: BoolArray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", _enum(Method, self.method, "provenance.method"))
@@ -386,18 +387,18 @@ class TriadPassport:
     triad: Triad
     reference: float
     reference_kind: ReferenceKind
-    nominal: np.ndarray
-    tolerance: np.ndarray
-    sigma: np.ndarray
-    observable: np.ndarray
-    noise_std: np.ndarray
+    nominal: FloatArray
+    tolerance: FloatArray
+    sigma: FloatArray
+    observable: BoolArray
+    noise_std: FloatArray
     sample_rate_hz: float
     provenance: Provenance
-    quantization_step: np.ndarray | None = None
+    quantization_step: FloatArray | None = None
     temperature: TemperatureModel | None = None
-    bias_instability_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_instability_std: FloatArray = field(default_factory=lambda: np.zeros(3))
 
-    def effective_noise_std(self, n_avg: int = 1) -> np.ndarray:
+    def effective_noise_std(self, n_avg: int = 1) -> FloatArray:
         """(3,) per-sample normalized noise for windows of ``n_avg`` samples.
 
         :func:`estimators.scalar.derive_lambda0` divides the variance by ``n_avg``; the
@@ -405,7 +406,7 @@ class TriadPassport:
         """
         return np.sqrt(self.noise_std**2 + n_avg * self.bias_instability_std**2)
 
-    def position_cov_floor(self) -> np.ndarray:
+    def position_cov_floor(self) -> FloatArray:
         """(3, 3) covariance, in the triad's SI unit squared, that a position mean carries beyond its white noise."""
         return np.diag((self.bias_instability_std * self.reference) ** 2)
 
@@ -421,7 +422,7 @@ class TriadPassport:
             value = _finite(getattr(self, name), f"{where}.{name}")
             if value <= 0.0:
                 raise PassportError(f"{where}.{name} must be positive, got {value!r}")
-        arrays = {
+        arrays: dict[str, FloatArray | BoolArray] = {
             "nominal": _array(self.nominal, (N_PARAMS,), f"{where}.nominal"),
             "tolerance": _array(self.tolerance, (N_PARAMS,), f"{where}.tolerance"),
             "sigma": _array(self.sigma, (N_PARAMS,), f"{where}.sigma"),
@@ -464,8 +465,8 @@ class TriadPassport:
         object.__setattr__(self, "reference_kind", kind)
         object.__setattr__(self, "reference", float(self.reference))
         object.__setattr__(self, "sample_rate_hz", float(self.sample_rate_hz))
-        for name, value in arrays.items():
-            object.__setattr__(self, name, value)
+        for name, arr in arrays.items():
+            object.__setattr__(self, name, arr)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -650,7 +651,7 @@ class Passport:
 
 def per_sample_noise_std(
     positions: Sequence[Position], triad: Triad, reference: float
-) -> np.ndarray:
+) -> FloatArray:
     """(3,) per-sample standard deviation of the normalized output per axis.
 
     Each position's covariance of the mean times its effective sample count
@@ -687,13 +688,13 @@ def passport_from_estimates(
     sensor_model: str,
     sensor_ids: Mapping[str, str],
     created: str,
-    noise_std: Mapping[Triad, np.ndarray],
+    noise_std: Mapping[Triad, FloatArray],
     sample_rate_hz: float,
     grade: Grade | Mapping[Triad, Grade],
-    quantization_step: Mapping[Triad, np.ndarray] | None = None,
+    quantization_step: Mapping[Triad, FloatArray] | None = None,
     tolerance_rules: Mapping[Triad, ToleranceRule] | None = None,
     confidence: float = 0.95,
-    bias_instability_std: Mapping[Triad, np.ndarray] | None = None,
+    bias_instability_std: Mapping[Triad, FloatArray] | None = None,
 ) -> Passport:
     """A passport from calibration estimates of a fault-free session.
 
@@ -718,7 +719,8 @@ def passport_from_estimates(
     triads = {}
     for key, est in estimates.items():
         triad = Triad(key)
-        if est.params is None or est.cov is None:
+        sigma = est.sigma
+        if est.params is None or sigma is None:
             raise PassportError(f"cannot build the {triad.value} passport: {est.reason}")
         if est.reference is None:
             raise PassportError(
@@ -732,7 +734,6 @@ def passport_from_estimates(
         rule = (tolerance_rules or {}).get(triad) or default_tolerance_rule(
             triad, triad_grade, est.reference
         )
-        sigma = est.sigma
         triads[triad] = TriadPassport(
             triad=triad,
             reference=est.reference,
@@ -793,7 +794,7 @@ def _map(obj: Any, where: str, keys: tuple[str, ...]) -> dict[str, Any]:
     return obj
 
 
-def _array(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+def _array(value: Any, shape: tuple[int, ...], name: str) -> FloatArray:
     try:
         arr = np.array(value, dtype=float)
     except (TypeError, ValueError):
@@ -815,7 +816,7 @@ def _has_bool(value: Any) -> bool:
     if isinstance(value, (bool, np.bool_)):
         return True
     if isinstance(value, np.ndarray):
-        return value.dtype == bool
+        return bool(value.dtype == bool)
     if isinstance(value, (list, tuple)):
         return any(_has_bool(v) for v in value)
     return False
@@ -837,7 +838,10 @@ def _finite(value: Any, name: str) -> float:
     return out
 
 
-def _enum(kind: type[Enum], value: Any, name: str):
+_EnumT = TypeVar("_EnumT", bound=Enum)
+
+
+def _enum(kind: type[_EnumT], value: Any, name: str) -> _EnumT:
     try:
         return kind(value)
     except ValueError:
@@ -846,8 +850,8 @@ def _enum(kind: type[Enum], value: Any, name: str):
         ) from None
 
 
-def _readonly(arr: np.ndarray) -> np.ndarray:
-    out = np.array(arr)
+def _readonly(arr: ArrayT) -> ArrayT:
+    out = arr.copy(order="K")
     out.setflags(write=False)
     return out
 

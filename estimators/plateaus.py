@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from estimators._typing import FloatArray
+
 
 def find_plateaus(
-    t_s: np.ndarray,
-    x: np.ndarray,
+    t_s: FloatArray,
+    x: FloatArray,
     *,
     min_step: float,
     window_s: float = 1.0,

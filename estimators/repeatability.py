@@ -32,6 +32,7 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import PARAM_NAMES, Triad
 from estimators.ninepar import Estimate, Method, estimate_triad, position_arrays, regressors
 from estimators.passport import Provenance, TriadPassport, reference_kind
@@ -56,21 +57,21 @@ class LinearFit:
     dof : degrees of freedom of ``sigma`` (``M − P``, or ``inf`` when known).
     """
 
-    values: np.ndarray
-    cov: np.ndarray
-    residuals: np.ndarray
+    values: FloatArray
+    cov: FloatArray
+    residuals: FloatArray
     sigma: float
     dof: float
 
     @property
-    def std(self) -> np.ndarray:
+    def std(self) -> FloatArray:
         """(P,) standard deviations of the estimate."""
         return np.sqrt(np.diag(self.cov))
 
 
 def fit_linear(
-    h: np.ndarray,
-    y: np.ndarray,
+    h: FloatArray,
+    y: FloatArray,
     *,
     sigma_y: float | None = None,
     names: Sequence[str] | None = None,
@@ -134,7 +135,7 @@ def _name(names: Sequence[str] | None, j: int) -> str:
     return names[j] if names is not None else f"parameter {j}"
 
 
-def t_quantile(level: float, dof: float | np.ndarray) -> np.ndarray:
+def t_quantile(level: float, dof: float | FloatArray) -> FloatArray:
     """Two-sided Student-t factor for a confidence ``level`` (normal for infinite dof)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"confidence level must be in (0, 1), got {level!r}")
@@ -154,14 +155,14 @@ class Stabilization:
         the final estimate's confidence interval.
     """
 
-    n_equations: np.ndarray
-    values: np.ndarray
-    std: np.ndarray
-    settled_at: np.ndarray
+    n_equations: IntArray
+    values: FloatArray
+    std: FloatArray
+    settled_at: IntArray
 
 
 def stabilization(
-    h: np.ndarray, y: np.ndarray, *, level: float = 0.95, names: Sequence[str] | None = None
+    h: FloatArray, y: FloatArray, *, level: float = 0.95, names: Sequence[str] | None = None
 ) -> Stabilization:
     """Re-solve with the first ``m`` equations for ``m = P + 1 … M`` (M2 check 1).
 
@@ -198,8 +199,8 @@ def stabilization(
 class RunEstimate:
     """One run's estimate: values (P,), covariance (P, P), degrees of freedom of its noise level."""
 
-    values: np.ndarray
-    cov: np.ndarray
+    values: FloatArray
+    cov: FloatArray
     dof: float = np.inf
 
     @classmethod
@@ -234,22 +235,22 @@ class RunSpread:
 
     names: tuple[str, ...]
     level: float
-    values: np.ndarray
-    std: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    mean: np.ndarray
-    spread: np.ndarray
-    mean_lower: np.ndarray
-    mean_upper: np.ndarray
-    common_lower: np.ndarray
-    common_upper: np.ndarray
-    reproducible: np.ndarray
-    value: np.ndarray
-    tolerance: np.ndarray
-    chi2: np.ndarray
+    values: FloatArray
+    std: FloatArray
+    lower: FloatArray
+    upper: FloatArray
+    mean: FloatArray
+    spread: FloatArray
+    mean_lower: FloatArray
+    mean_upper: FloatArray
+    common_lower: FloatArray
+    common_upper: FloatArray
+    reproducible: BoolArray
+    value: FloatArray
+    tolerance: FloatArray
+    chi2: FloatArray
     chi2_dof: int
-    p_value: np.ndarray
+    p_value: FloatArray
 
     @property
     def n_runs(self) -> int:
@@ -340,7 +341,7 @@ class TriadRuns:
     estimates: tuple[Estimate, ...]
     spread: RunSpread
     stabilizations: tuple[Stabilization, ...]
-    observable: np.ndarray
+    observable: BoolArray
 
 
 def triad_runs(
@@ -359,12 +360,15 @@ def triad_runs(
     reference : local g (m/s²) or Ω (rad/s).
     level : confidence level of the per-run intervals.
     """
-    estimates, stabs = [], []
+    estimates: list[Estimate] = []
+    runs: list[RunEstimate] = []
+    stabs: list[Stabilization] = []
     for k, positions in enumerate(positions_per_run):
         est = estimate_triad(positions, triad, reference, method=Method.REFINED)
-        if est.params is None:
+        if est.params is None or est.cov is None:
             raise ValueError(f"run {k + 1}: {est.reason}")
         estimates.append(est)
+        runs.append(RunEstimate(est.params, est.cov))
         mean, _ = position_arrays(positions, triad, reference)
         stabs.append(
             stabilization(
@@ -374,9 +378,7 @@ def triad_runs(
                 names=PARAM_NAMES,
             )
         )
-    spread = run_spread(
-        [RunEstimate(e.params, e.cov) for e in estimates], names=PARAM_NAMES, level=level
-    )
+    spread = run_spread(runs, names=PARAM_NAMES, level=level)
     observable = np.logical_and.reduce([np.asarray(e.observable, dtype=bool) for e in estimates])
     return TriadRuns(
         estimates=tuple(estimates),
@@ -387,7 +389,7 @@ def triad_runs(
 
 
 def passport_from_runs(
-    runs: TriadRuns, *, noise_std: np.ndarray, sample_rate_hz: float
+    runs: TriadRuns, *, noise_std: FloatArray, sample_rate_hz: float
 ) -> TriadPassport:
     """A :class:`TriadPassport` whose values, intervals and tolerances come from the runs (M2 → M1).
 
@@ -403,6 +405,7 @@ def passport_from_runs(
     lo = np.where(sp.reproducible, sp.common_lower, sp.value - sp.tolerance)
     hi = np.where(sp.reproducible, sp.common_upper, sp.value + sp.tolerance)
     first = runs.estimates[0]
+    assert first.reference is not None  # triad_runs gives every estimate its reference
     return TriadPassport(
         triad=first.triad,
         reference=float(first.reference),

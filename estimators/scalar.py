@@ -45,10 +45,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import optimize, stats
 
+from estimators._typing import BoolArray, FloatArray, StateArray
 from estimators.conventions import Triad, normal_gravity_mps2, reference_magnitude
 
 
@@ -91,25 +94,27 @@ def triad_reference(
                 f"gravity_mps2 must be a surface gravity within (9.7, 9.9), got {gravity_mps2!r}"
             )
         return reference_magnitude(triad, gravity_mps2)
+    assert latitude_deg is not None  # exactly one of the two is given (checked above)
     return reference_magnitude(triad, normal_gravity_mps2(latitude_deg, height_m))
 
 
-def normalize(x_si: np.ndarray, reference: float) -> np.ndarray:
+def normalize(x_si: FloatArray, reference: float) -> FloatArray:
     """``x / reference`` as a new array (never in place): (N, 3) SI → (N, 3) dimensionless."""
     if not (math.isfinite(reference) and reference > 0.0):
         raise ValueError(f"reference must be finite and > 0, got {reference!r}")
     return np.asarray(x_si, dtype=float) / reference
 
 
-def scalar_residual(x_norm: np.ndarray) -> np.ndarray:
+def scalar_residual(x_norm: FloatArray) -> FloatArray:
     """``½(|x|² − 1)`` per row: (N, 3) normalized outputs → (N,) (methods.md M1, left side)."""
     x = np.asarray(x_norm, dtype=float)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"x_norm must have shape (N, 3), got {x.shape}")
-    return 0.5 * (np.einsum("ij,ij->i", x, x) - 1.0)
+    norm2: FloatArray = np.einsum("ij,ij->i", x, x)
+    return 0.5 * (norm2 - 1.0)
 
 
-def compensate(x_norm: np.ndarray, bias_norm: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+def compensate(x_norm: FloatArray, bias_norm: FloatArray, matrix: FloatArray) -> FloatArray:
     """``A⁻¹ (x − b)`` per row: the output with the passport's nominal errors removed.
 
     ``matrix`` is ``A`` of :func:`estimators.conventions.triad_matrix`; solved, not inverted.
@@ -175,7 +180,7 @@ class F0Config:
             (0.0, 0.0, 1.0),
         )
 
-    def affine(self) -> tuple[np.ndarray, np.ndarray]:
+    def affine(self) -> tuple[FloatArray, FloatArray]:
         """``(M, c)`` with ``u' = M x_si − c``: ``M = A⁻¹ / reference``, ``c = A⁻¹ b``.
 
         The 3×3 ``A`` is solved once against the identity and against ``b``; folding
@@ -201,14 +206,14 @@ class F0Result:
     n_rejected : non-finite samples (counted, never tested).
     """
 
-    state: np.ndarray
-    residual: np.ndarray
+    state: StateArray
+    residual: FloatArray
     n_tests: int
     n_fail: int
     n_rejected: int
 
 
-def f0_batch(x_si: np.ndarray, static: np.ndarray, config: F0Config) -> F0Result:
+def f0_batch(x_si: FloatArray, static: BoolArray, config: F0Config) -> F0Result:
     """F0 on N samples at once (methods.md M1, the predicate F0).
 
     Parameters
@@ -252,7 +257,7 @@ def f0_batch(x_si: np.ndarray, static: np.ndarray, config: F0Config) -> F0Result
     return F0Result(state, residual, n_tests, int(n_tests - np.count_nonzero(ok)), n_rejected)
 
 
-def persistent_failure(state: np.ndarray, run_in: int, persist: int) -> tuple[int, int]:
+def persistent_failure(state: StateArray, run_in: int, persist: int) -> tuple[int, int]:
     """Where F0's failure becomes persistent (module docstring, Persistence).
 
     Parameters
@@ -281,7 +286,7 @@ def persistent_failure(state: np.ndarray, run_in: int, persist: int) -> tuple[in
 
 
 def _f0_windows(
-    u: np.ndarray, static: np.ndarray, finite: np.ndarray, config: F0Config, n_rejected: int
+    u: FloatArray, static: BoolArray, finite: BoolArray, config: F0Config, n_rejected: int
 ) -> F0Result:
     """The ``n_avg > 1`` form of :func:`f0_batch` (non-finite rows are skipped, not run breaks)."""
     n = u.shape[0]
@@ -406,7 +411,7 @@ class F0Monitor:
             self.n_not_applicable += 1
         return self._last
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
         """Plain JSON-able state (counters and the open window) for checkpoints."""
         return {
             "window_sum": [self._sx, self._sy, self._sz],
@@ -420,7 +425,7 @@ class F0Monitor:
         }
 
     @classmethod
-    def from_state_dict(cls, config: F0Config, state: dict) -> F0Monitor:
+    def from_state_dict(cls, config: F0Config, state: dict[str, Any]) -> F0Monitor:
         mon = cls(config)
         try:
             mon._sx, mon._sy, mon._sz = (float(v) for v in state["window_sum"])
@@ -487,7 +492,7 @@ def _noise_tail(x: float, sigma: float) -> float:
     return float(stats.norm.sf((x - mean) / sd) + stats.norm.cdf((-x - mean) / sd))
 
 
-def _worst_first_order(tol: np.ndarray) -> float:
+def _worst_first_order(tol: FloatArray) -> float:
     """``max_{|u|=1} Σ tb_i|u_i| + Σ te_i u_i² + td1|u_x u_y| + td2|u_x u_z| + td3|u_y u_z|``.
 
     With free signs of the nine errors the worst ``|s|`` is this sum of absolute
@@ -496,10 +501,10 @@ def _worst_first_order(tol: np.ndarray) -> float:
     """
     tb, te, td = tol[:3], tol[3:6], tol[6:]
 
-    def value(angles: np.ndarray) -> np.ndarray:
+    def value(angles: FloatArray) -> FloatArray:
         th, ph = angles[..., 0], angles[..., 1]
         ux, uy, uz = np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)
-        return (
+        worst: FloatArray = (
             tb[0] * ux
             + tb[1] * uy
             + tb[2] * uz
@@ -510,6 +515,7 @@ def _worst_first_order(tol: np.ndarray) -> float:
             + td[1] * ux * uz
             + td[2] * uy * uz
         )
+        return worst
 
     g = np.linspace(0.0, 0.5 * np.pi, 61)
     grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1)
@@ -523,11 +529,11 @@ def _worst_first_order(tol: np.ndarray) -> float:
 
 def derive_lambda0(
     *,
-    noise_std_norm,
+    noise_std_norm: ArrayLike,
     false_alarm_prob: float,
-    quantization_norm=None,
+    quantization_norm: ArrayLike | None = None,
     n_avg: int = 1,
-    tolerance_norm=None,
+    tolerance_norm: ArrayLike | None = None,
     reference_rel_err: float = 0.0,
 ) -> Lambda0:
     """Derive F0's threshold λ0 from noise, tolerances and a false-alarm probability (methods.md M1).

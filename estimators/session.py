@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estimators._typing import BoolArray, FloatArray
+
 
 class SessionError(ValueError):
     """The session cannot be used at all (the message says why, in one line)."""
@@ -28,10 +30,10 @@ class ImuSession:
     temp_c : (N,) temperature, °C; or None.
     """
 
-    t_s: np.ndarray
-    accel_mps2: np.ndarray | None
-    gyro_rps: np.ndarray | None
-    temp_c: np.ndarray | None = None
+    t_s: FloatArray
+    accel_mps2: FloatArray | None
+    gyro_rps: FloatArray | None
+    temp_c: FloatArray | None = None
 
     @property
     def n_samples(self) -> int:
@@ -44,9 +46,12 @@ class ImuSession:
             raise SessionError("a session needs at least two samples to have a rate")
         return float(1.0 / np.median(np.diff(self.t_s)))
 
-    def select(self, mask_or_slice) -> ImuSession:
+    def select(self, mask_or_slice: BoolArray | slice) -> ImuSession:
         """A sub-session (boolean mask or slice over samples)."""
-        pick = lambda a: None if a is None else a[mask_or_slice]  # noqa: E731
+
+        def pick(a: FloatArray | None) -> FloatArray | None:
+            return None if a is None else a[mask_or_slice]
+
         return ImuSession(
             self.t_s[mask_or_slice], pick(self.accel_mps2), pick(self.gyro_rps), pick(self.temp_c)
         )
@@ -90,7 +95,7 @@ def validate_session(
         raise SessionError(f"t_s must be a non-empty 1-D array, got shape {t.shape}")
     if session.accel_mps2 is None and session.gyro_rps is None:
         raise SessionError("the session has neither accelerometer nor gyro samples")
-    arrays = {}
+    arrays: dict[str, FloatArray | None] = {}
     for name, arr, shape in (
         ("accel_mps2", session.accel_mps2, (t.size, 3)),
         ("gyro_rps", session.gyro_rps, (t.size, 3)),
@@ -107,16 +112,18 @@ def validate_session(
     rej = Rejections()
     finite = np.isfinite(t)
     for name in ("accel_mps2", "gyro_rps"):
-        if arrays[name] is not None:
-            finite &= np.isfinite(arrays[name]).all(axis=1)
+        triad = arrays[name]
+        if triad is not None:
+            finite &= np.isfinite(triad).all(axis=1)
     if arrays["temp_c"] is not None:
         finite &= np.isfinite(arrays["temp_c"])
     rej.add("non_finite", int((~finite).sum()))
     keep = finite.copy()
 
     for name, limit in (("accel_mps2", accel_limit_mps2), ("gyro_rps", gyro_limit_rps)):
-        if limit is not None and arrays[name] is not None:
-            sat = keep & (np.abs(arrays[name]) >= limit).any(axis=1)
+        triad = arrays[name]
+        if limit is not None and triad is not None:
+            sat = keep & (np.abs(triad) >= limit).any(axis=1)
             rej.add(f"saturated_{name.split('_')[0]}", int(sat.sum()))
             keep &= ~sat
 

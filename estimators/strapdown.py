@@ -47,6 +47,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from estimators._typing import FloatArray, IntArray
+
 EULER_SEQUENCE = "YZX"
 """scipy's intrinsic sequence of ``C_rb = R_Y(ψ) R_Z(θ) R_X(γ)`` (yaw, pitch, roll)."""
 
@@ -59,7 +61,7 @@ MIN_SAMPLES = 4
 IDENTITY_QUAT = np.array([0.0, 0.0, 0.0, 1.0])
 
 
-def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+def quat_multiply(p: FloatArray, q: FloatArray) -> FloatArray:
     """Hamilton product ``p ⊗ q`` of scalar-last quaternions, broadcast over leading axes.
 
     Parameters
@@ -82,7 +84,7 @@ def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def quat_from_rotvec(rotvec_rad: np.ndarray) -> np.ndarray:
+def quat_from_rotvec(rotvec_rad: FloatArray) -> FloatArray:
     """(..., 4) quaternions of rotation vectors ``(..., 3)`` (rad), exact for any angle."""
     phi = np.asarray(rotvec_rad, float)
     angle = np.linalg.norm(phi, axis=-1, keepdims=True)
@@ -92,7 +94,7 @@ def quat_from_rotvec(rotvec_rad: np.ndarray) -> np.ndarray:
     )
 
 
-def _check_rates(t_s: np.ndarray, gyro_rps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check_rates(t_s: FloatArray, gyro_rps: FloatArray) -> tuple[FloatArray, FloatArray]:
     t = np.asarray(t_s, dtype=float)
     w = np.asarray(gyro_rps, dtype=float)
     if t.ndim != 1 or t.size < MIN_SAMPLES:
@@ -114,7 +116,7 @@ _UNIFORM_WEIGHTS = (
 )
 
 
-def _interval_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _interval_weights(t: FloatArray) -> tuple[IntArray, FloatArray]:
     """Quadrature of each sample interval with the cubic through four neighbouring samples.
 
     Interval ``[t_k, t_{k+1}]`` uses samples ``s_k … s_k + 3`` with
@@ -152,8 +154,8 @@ def _interval_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotation_increments(
-    t_s: np.ndarray, gyro_rps: np.ndarray, *, coning: bool = True
-) -> np.ndarray:
+    t_s: FloatArray, gyro_rps: FloatArray, *, coning: bool = True
+) -> FloatArray:
     """Rotation vectors of the sample intervals (module docstring: cubic increments + coning term).
 
     Parameters
@@ -168,7 +170,9 @@ def rotation_increments(
     """
     t, w = _check_rates(t_s, gyro_rps)
     start, weights = _interval_weights(t)
-    dtheta = sum(weights[:, m, None] * w[..., start + m, :] for m in range(4))
+    dtheta = weights[:, 0, None] * w[..., start, :]
+    for m in range(1, 4):
+        dtheta = dtheta + weights[:, m, None] * w[..., start + m, :]
     if not coning:
         return dtheta
     cross = np.cross(dtheta[..., :-1, :], dtheta[..., 1:, :]) / 12.0
@@ -182,7 +186,7 @@ def rotation_increments(
 _SCAN_BLOCK = 16
 
 
-def _inclusive_scan(quats: np.ndarray) -> np.ndarray:
+def _inclusive_scan(quats: FloatArray) -> FloatArray:
     """Hillis–Steele scan ``q_0 ⊗ … ⊗ q_k`` along axis -2 in ⌈log2 n⌉ passes (order kept)."""
     out = quats.copy()
     n = out.shape[-2]
@@ -193,7 +197,7 @@ def _inclusive_scan(quats: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cumulative_product(quats: np.ndarray) -> np.ndarray:
+def _cumulative_product(quats: FloatArray) -> FloatArray:
     """``q_0 ⊗ q_1 ⊗ … ⊗ q_k`` along axis -2: scans inside blocks of 16, then across the block totals.
 
     About log2(16) + 2 passes over the samples instead of log2(N).
@@ -209,12 +213,12 @@ def _cumulative_product(quats: np.ndarray) -> np.ndarray:
 
 
 def integrate_attitude(
-    t_s: np.ndarray,
-    gyro_rps: np.ndarray,
+    t_s: FloatArray,
+    gyro_rps: FloatArray,
     *,
-    quat0: np.ndarray | None = None,
+    quat0: FloatArray | None = None,
     coning: bool = True,
-) -> np.ndarray:
+) -> FloatArray:
     """Attitude quaternions from body rates (methods.md M5; algorithm in the module docstring).
 
     Parameters
@@ -241,18 +245,19 @@ def integrate_attitude(
     q0 = np.broadcast_to(q0 / np.linalg.norm(q0, axis=-1, keepdims=True), (*phi.shape[:-2], 4))
     steps = np.concatenate([q0[..., None, :], quat_from_rotvec(phi)], axis=-2)
     q = _cumulative_product(steps)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+    unit: FloatArray = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return unit
 
 
-def quat_from_euler(angles_rad: np.ndarray) -> np.ndarray:
+def quat_from_euler(angles_rad: FloatArray) -> FloatArray:
     """(..., 4) quaternions of Euler angles ``(..., 3)`` in body-axis order ``[γ, ψ, θ]`` (rad)."""
     a = np.asarray(angles_rad, dtype=float)
     flat = a.reshape(-1, 3)
-    q = Rotation.from_euler(EULER_SEQUENCE, flat[:, [1, 2, 0]]).as_quat()
+    q: FloatArray = Rotation.from_euler(EULER_SEQUENCE, flat[:, [1, 2, 0]]).as_quat()
     return q.reshape((*a.shape[:-1], 4))
 
 
-def euler_from_quat(quat: np.ndarray, *, unwrap: bool = True) -> np.ndarray:
+def euler_from_quat(quat: FloatArray, *, unwrap: bool = True) -> FloatArray:
     """Euler angles ``[γ, ψ, θ]`` (rad, body-axis order) of quaternions ``(..., 4)``.
 
     With ``unwrap`` the angles are made continuous along axis -2 (time), so a
@@ -264,7 +269,7 @@ def euler_from_quat(quat: np.ndarray, *, unwrap: bool = True) -> np.ndarray:
     return np.unwrap(angles, axis=-2) if unwrap and angles.ndim >= 2 else angles
 
 
-def body_rate_from_euler(angles_rad: np.ndarray, angle_rates_rps: np.ndarray) -> np.ndarray:
+def body_rate_from_euler(angles_rad: FloatArray, angle_rates_rps: FloatArray) -> FloatArray:
     """Body angular rate of ``C_rb = R_Y(ψ) R_Z(θ) R_X(γ)`` from Euler angles and their rates.
 
     ``ω = γ̇·e_X + R_X(γ)ᵀ (θ̇·e_Z) + R_X(γ)ᵀ R_Z(θ)ᵀ (ψ̇·e_Y)``, i.e.::
@@ -295,8 +300,10 @@ def body_rate_from_euler(angles_rad: np.ndarray, angle_rates_rps: np.ndarray) ->
     )
 
 
-def rotate_to_body(quat: np.ndarray, vec_ref: np.ndarray) -> np.ndarray:
+def rotate_to_body(quat: FloatArray, vec_ref: FloatArray) -> FloatArray:
     """(..., 3) a reference-frame vector ``(3,)`` seen in the body frame: ``C_rbᵀ v``."""
     q = np.asarray(quat, dtype=float)
-    flat = Rotation.from_quat(q.reshape(-1, 4)).apply(np.asarray(vec_ref, float), inverse=True)
+    flat: FloatArray = Rotation.from_quat(q.reshape(-1, 4)).apply(
+        np.asarray(vec_ref, float), inverse=True
+    )
     return flat.reshape((*q.shape[:-1], 3))

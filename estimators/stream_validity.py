@@ -25,9 +25,11 @@ sample time ``t_s`` for the bins), state is small and fixed-size, and
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import AXES, Triad
 
 
@@ -131,7 +133,7 @@ def _axis_names() -> list[tuple[Triad, str]]:
     return [(Triad.ACCEL, a) for a in AXES] + [(Triad.GYRO, a) for a in AXES]
 
 
-def run_lengths(values: np.ndarray, prev_value: np.ndarray, prev_run: np.ndarray) -> np.ndarray:
+def run_lengths(values: FloatArray, prev_value: FloatArray, prev_run: IntArray) -> IntArray:
     """Length of the run of identical values ending at each sample, per column.
 
     Parameters
@@ -172,11 +174,11 @@ class StreamValidity:
     def update(
         self,
         *,
-        accel_mps2: np.ndarray,
-        gyro_rps: np.ndarray,
-        bad: np.ndarray,
+        accel_mps2: FloatArray,
+        gyro_rps: FloatArray,
+        bad: BoolArray,
         arrival_s: float,
-        t_s: np.ndarray | None = None,
+        t_s: FloatArray | None = None,
     ) -> ValidityReport:
         """Account one batch.
 
@@ -240,7 +242,7 @@ class StreamValidity:
             self.stale_axes(), (), density, peak, peak > self.limits.error_density_max
         )
 
-    def _push_errors(self, bad: np.ndarray) -> tuple[float, float]:
+    def _push_errors(self, bad: BoolArray) -> tuple[float, float]:
         w = self.limits.error_window_samples
         if bad.size == 0:
             d = float(self._ring.sum()) / w
@@ -269,7 +271,7 @@ class StreamValidity:
             and now_s - self._last_arrival_s > self.limits.timeout_s
         )
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
         return {
             "last_value": self._last_value.copy(),
             "run": self._run.copy(),
@@ -278,7 +280,7 @@ class StreamValidity:
 
     @classmethod
     def from_state(
-        cls, state: dict, *, limits: ValidityLimits = ValidityLimits()
+        cls, state: dict[str, Any], *, limits: ValidityLimits = ValidityLimits()
     ) -> StreamValidity:
         """Restore from :meth:`state_dict` (a ring of another window length restarts the density count)."""
         out = cls(limits=limits)
@@ -306,15 +308,15 @@ class CrossImuVerdict:
 
     bin_start_s: float
     imus: tuple[int, ...]
-    accel_dev_mps2: np.ndarray
-    gyro_dev_rps: np.ndarray
+    accel_dev_mps2: FloatArray
+    gyro_dev_rps: FloatArray
     disagreeing: tuple[int, ...]
 
 
 def compare_imus(
     imus: tuple[int, ...],
-    accel_mean_mps2: np.ndarray,
-    gyro_mean_rps: np.ndarray,
+    accel_mean_mps2: FloatArray,
+    gyro_mean_rps: FloatArray,
     *,
     limits: ValidityLimits,
     bin_start_s: float = 0.0,
@@ -361,6 +363,16 @@ class CrossImuReport:
     consistent: bool
 
 
+@dataclass
+class _OpenBin:
+    """The bin an IMU is still filling: its index, samples so far and their sums (SI)."""
+
+    index: int
+    n: int
+    accel_sum: FloatArray
+    gyro_sum: FloatArray
+
+
 class CrossImuMonitor:
     """Bins each IMU's samples by sample time and compares complete bins across IMUs.
 
@@ -375,15 +387,15 @@ class CrossImuMonitor:
 
     def __init__(self, *, limits: ValidityLimits = ValidityLimits()) -> None:
         self.limits = limits
-        self._open: dict[int, list] = {}  # imu -> [bin index, n, accel sum (3,), gyro sum (3,)]
+        self._open: dict[int, _OpenBin] = {}
         self._span: dict[int, int] = {}  # imu -> bins its last frame spanned
-        self._closed: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+        self._closed: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
         self._streak: dict[int, int] = {}
         self._flagged: set[int] = set()
         self._last_compared = -(2**62)
 
     def add(
-        self, imu: int, t_s: np.ndarray, accel_mps2: np.ndarray, gyro_rps: np.ndarray
+        self, imu: int, t_s: FloatArray, accel_mps2: FloatArray, gyro_rps: FloatArray
     ) -> list[CrossImuReport]:
         """Add one IMU's good samples (sample time, SI); returns the reports of newly compared bins."""
         t = np.asarray(t_s, float).reshape(-1)
@@ -402,17 +414,19 @@ class CrossImuMonitor:
         cur = self._open.get(imu)
         for j, b in enumerate(bins[starts]):
             b = int(b)
-            if cur is not None and cur[0] == b:
-                cur[1] += int(counts[j])
-                cur[2] = cur[2] + sums_a[j]
-                cur[3] = cur[3] + sums_g[j]
+            if cur is not None and cur.index == b:
+                cur.n += int(counts[j])
+                cur.accel_sum = cur.accel_sum + sums_a[j]
+                cur.gyro_sum = cur.gyro_sum + sums_g[j]
                 continue
-            if cur is not None and cur[0] < b:
-                closed[cur[0]] = (cur[2] / cur[1], cur[3] / cur[1])
-            cur = [b, int(counts[j]), sums_a[j].copy(), sums_g[j].copy()]
+            if cur is not None and cur.index < b:
+                closed[cur.index] = (cur.accel_sum / cur.n, cur.gyro_sum / cur.n)
+            cur = _OpenBin(b, int(counts[j]), sums_a[j].copy(), sums_g[j].copy())
+        # t is not empty: the loop ran at least once and left a bin open.
+        assert cur is not None
         self._open[imu] = cur
         self._span[imu] = int(bins[-1] - bins[0]) + 1
-        oldest_kept = cur[0] - self._lag_bins() - 2
+        oldest_kept = cur.index - self._lag_bins() - 2
         for old in [k for k in closed if k < oldest_kept]:
             del closed[old]
         return self._compare_ready()
@@ -424,11 +438,10 @@ class CrossImuMonitor:
     def _compare_ready(self) -> list[CrossImuReport]:
         if len(self._open) < 2:
             return []
-        newest = max(o[0] for o in self._open.values())
-        live = [i for i, o in self._open.items() if o[0] >= newest - self._lag_bins()]
-        horizon = min(
-            self._open[i][0] for i in live
-        )  # every live IMU has closed the bins before it
+        newest = max(o.index for o in self._open.values())
+        live = [i for i, o in self._open.items() if o.index >= newest - self._lag_bins()]
+        # Every live IMU has closed the bins before the horizon.
+        horizon = min(self._open[i].index for i in live)
         reports: list[CrossImuReport] = []
         candidates = sorted(
             {b for i in live for b in self._closed.get(i, {}) if self._last_compared < b < horizon}
