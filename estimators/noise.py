@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import brentq
 
 
 @dataclass(frozen=True)
@@ -164,3 +165,51 @@ def quantization_step(x: np.ndarray, *, rel_tol: float = 0.02, min_levels: int =
     if np.max(np.abs(k - np.round(k))) > rel_tol:
         return None
     return step
+
+
+ROUNDING_TERMS = 32
+"""Fourier terms of :func:`rounding_mean_var`: the k-th falls as ``e^{−4π²k²σ²/q²}/k²``, so 32 reach
+1e-5 of the sum even for noise-free input (σ = 0, where the sum is q²/12)."""
+
+
+def rounding_mean_var(white_sd: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """Variance of the rounding error that stays in a long average of ``round((μ + n)/q)·q`` (M2, no dithering).
+
+    With white noise ``n`` of sd ``σ`` before a grid of step ``q``, the mean
+    output of a position is ``μ + β(μ)`` with
+    ``β(μ) = Σ_k (−1)^k (q/πk) sin(2πkμ/q) e^{−2π²k²σ²/q²}`` — it does not
+    average down. Over positions whose true values ``μ`` fall anywhere on the
+    grid its variance is ``Σ_k q²/(2π²k²) e^{−4π²k²σ²/q²}`` (q²/12 at σ = 0;
+    negligible once σ ≳ q/2, where M2's half-pulse correction holds).
+    Floor (M2's Entier) and round-to-nearest differ by a half step, a constant
+    offset the bias takes in: the variance is the same.
+    """
+    s = np.asarray(white_sd, float)[..., None]
+    q = np.asarray(step, float)[..., None]
+    k = np.arange(1, ROUNDING_TERMS + 1, dtype=float)
+    terms = q**2 / (2.0 * np.pi**2 * k**2) * np.exp(-4.0 * np.pi**2 * k**2 * s**2 / q**2)
+    out: np.ndarray = np.sum(terms, axis=-1)
+    return out
+
+
+def dequantized_white_sd(quantized_sd: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """(k,) white sd before the grid from the within-position sd of grid output (inverse of Sheppard's rule, exact).
+
+    Pooled over positions at values spread over the grid, the output's
+    variance about each position's mean is ``σ² + q²/12 − R(σ)`` with ``R``
+    :func:`rounding_mean_var` (the part of the rounding error that stays in the
+    mean is not scatter about it); solved for ``σ`` (``σ² − R(σ)`` increases
+    from ``−q²/12`` at 0, so the root is unique in ``[0, s]``). Sheppard's
+    ``σ² = s² − q²/12`` is its limit for noise above about half a step.
+    """
+    s = np.asarray(quantized_sd, float)
+    q = np.asarray(step, float)
+    out = np.empty_like(s)
+    for i, (si, qi) in enumerate(zip(s.ravel(), np.broadcast_to(q, s.shape).ravel(), strict=True)):
+        target = si * si - qi * qi / 12.0
+
+        def gap(w: float, target: float = target, qi: float = qi) -> float:
+            return w * w - float(rounding_mean_var(np.array(w), np.array(qi))) - target
+
+        out.flat[i] = 0.0 if si <= 0.0 or gap(0.0) >= 0.0 else brentq(gap, 0.0, si, xtol=1e-12 * si)
+    return out

@@ -33,7 +33,13 @@ import numpy as np
 
 from estimators.chain import ChainConfig, ChainResult, run_chain
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad, reference_magnitude
-from estimators.noise import batch_means_sd, quantization_step, sample_noise_sd
+from estimators.noise import (
+    batch_means_sd,
+    dequantized_white_sd,
+    quantization_step,
+    rounding_mean_var,
+    sample_noise_sd,
+)
 from estimators.scalar import derive_lambda0, f0_batch
 from estimators.session import ImuSession, validate_session
 from estimators.sim import (
@@ -45,6 +51,7 @@ from estimators.sim import (
     NonOrthogonality,
     NonstaticPositions,
     Quantization,
+    RecordedTemperature,
     Rounding,
     ScaleFactor,
     ScaleNonlinearity,
@@ -136,7 +143,15 @@ class TriadBaseline:
             "excess_sd_norm": [float(v) for v in self.excess_sd_norm],
             "gm_sigma_norm": [float(v) for v in self.gm_sigma_norm],
             "gm_tau_s": [float(v) for v in self.gm_tau_s],
+            "rounding_mean_sd_si": [float(v) for v in np.sqrt(self.rounding_mean_var_si)],
         }
+
+    @property
+    def rounding_mean_var_si(self) -> np.ndarray:
+        """(3,) variance of the rounding error a position mean keeps on the grid (zeros off a grid), SI²."""
+        if self.quant_step_si is None:
+            return np.zeros(3)
+        return rounding_mean_var(self.white_sd_si, self.quant_step_si)
 
 
 def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: int) -> np.ndarray:
@@ -173,7 +188,9 @@ def fit_baseline(
     rounding variance ``q²/12`` removed; the level at which averages shrink
     from ``window_s`` batch means (:func:`estimators.noise.batch_means_sd`); the
     grid step from every static sample (:func:`estimators.noise.quantization_step`,
-    all three axes or none).
+    all three axes or none). On a grid the white noise is the level before it
+    (:func:`estimators.noise.dequantized_white_sd`, exact also below one step,
+    where Sheppard's ``q²/12`` is not).
     """
     x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
     spans = [(p.index_start, p.index_stop) for p in chain.positions]
@@ -196,9 +213,7 @@ def fit_baseline(
     static = x[static_mask(x.shape[0], np.array(spans))]
     steps = [quantization_step(static[:, i]) for i in range(3)]
     quant = None if any(s is None for s in steps) else np.array(steps, float)
-    white = (
-        sd if quant is None else np.sqrt(np.clip(sd**2 - quant**2 / 12.0, (0.1 * sd) ** 2, None))
-    )
+    white = sd if quant is None else dequantized_white_sd(sd, quant)
     est = chain.triads[triad].estimate
     if est.params is not None:
         params = np.array(est.params, float)
@@ -242,9 +257,8 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
         )
         - trim
     )
-    profile = multi_position_profile(
-        tilt_sequence(up), static_s=hold, transition_s=np.clip(gaps, 0.5, None)
-    )
+    turns = np.clip(gaps, 0.5, None)
+    profile = multi_position_profile(tilt_sequence(up), static_s=hold, transition_s=turns)
     # White noise density is per √Hz: scale the per-sample level to the session's rate.
     rate = session.rate_hz
     model = ErrorModel(
@@ -252,7 +266,41 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
         gyro=_at_rate(model.gyro, rate),
         environment=model.environment,
     )
-    return SessionSpec(profile, model, rate_hz=rate, gravity_mps2=chain.gravity_mps2)
+    return SessionSpec(
+        profile,
+        model,
+        rate_hz=rate,
+        gravity_mps2=chain.gravity_mps2,
+        temperature=replayed_temperature(chain, session, hold, turns),
+    )
+
+
+def replayed_temperature(
+    chain: ChainResult, session: ImuSession, hold_s: np.ndarray, turn_s: np.ndarray
+) -> RecordedTemperature | None:
+    """The session's temperature record on the simulated timeline, or None without one (issue 13).
+
+    The simulated session holds each position as long as the measured one but
+    its turns may differ (clipped, and nothing before the first position): the
+    measured times are mapped piecewise linearly, each simulated hold onto its
+    measured hold, so every simulated position sees the temperatures its
+    measured twin saw — a temperature effect re-simulated on the record lands
+    on the same positions with the same regressor.
+    """
+    if session.temp_c is None:
+        return None
+    start_sim = np.concatenate([[0.0], np.cumsum(hold_s[:-1] + turn_s)])
+    start_meas = np.array([p.t_start_s for p in chain.positions]) - 0.5 * (
+        hold_s - np.array([p.duration_s for p in chain.positions])
+    )
+    knots_meas = np.column_stack([start_meas, start_meas + hold_s]).ravel()
+    knots_sim = np.column_stack([start_sim, start_sim + hold_s]).ravel()
+    # Overlapping measured holds (turns shorter than the trims) would fold time back: keep each new maximum
+    # (the simulated knots always increase: holds are positive, turns at least 0.5 s).
+    keep = knots_meas > np.maximum.accumulate(np.concatenate([[-np.inf], knots_meas[:-1]]))
+    t_sim = np.interp(session.t_s, knots_meas[keep], knots_sim[keep])
+    inside = np.concatenate([[True], np.diff(t_sim) > 0])
+    return RecordedTemperature(t_sim[inside], session.temp_c[inside])
 
 
 def _at_rate(chain: TriadErrorModel, rate_hz: float) -> TriadErrorModel:
@@ -373,31 +421,55 @@ def fit_baselines(
     return {t: fit_baseline(session, chain, t, window_s=window_s) for t in _present(session)}
 
 
-def quantization_candidate(triad: Triad, base: TriadBaseline) -> Candidate:
-    """The grid read by the baseline (M2): part of the baseline, reported with how much it matters."""
+def quantization_candidate(triad: Triad, base: TriadBaseline, n_typical: float) -> Candidate:
+    """The grid read by the baseline (M2): part of the baseline, named with its step and what it does to the means.
+
+    ``n_typical`` is a typical position's sample count. Below about half a step
+    of noise (M2's ``Entier`` without dithering) every position mean keeps a
+    rounding error that does not average down (:func:`estimators.noise.rounding_mean_var`):
+    the baseline's replicas reproduce it with the exact quantizer and the
+    candidates expect it, so it is the grid's doing and no other effect's.
+    Above that, M2's half-pulse correction holds: the rounding's mean offset
+    is a constant (half a step for ``Entier``), which the bias takes in.
+    """
     q = base.quant_step_si
     if q is None:
         return Candidate("quantization", triad, None, True, reason="output not on a grid")
     share = q / np.sqrt(12.0) / np.maximum(base.white_sd_si, 1e-300)
+    kept = np.sqrt(base.rounding_mean_var_si)
+    ratio = kept / (base.mean_noise_sd_si / np.sqrt(n_typical))
+    half_pulse = bool(np.all(base.white_sd_si >= 0.5 * q))
+    how = (
+        "noise ≥ ½ step: M2's half-pulse correction holds (a constant offset, in the bias)"
+        if half_pulse
+        else f"noise below ½ step: each position mean keeps a rounding error of sd up to {float(np.max(kept)):.3g} SI "
+        f"({float(np.max(ratio)):.2g}× a mean's noise), reproduced by the exact quantizer and expected by the candidates"
+    )
     return Candidate(
         "quantization",
         triad,
         None,
         True,
-        params={"step_si": [float(v) for v in q]},
+        params={
+            "step_si": [float(v) for v in q],
+            "white_over_step": [float(v) for v in base.white_sd_si / q],
+            "rounding_mean_sd_si": [float(v) for v in kept],
+            "rounding_over_mean_noise": [float(v) for v in ratio],
+            "half_pulse_correction_holds": half_pulse,
+        },
         in_baseline=True,
         reason=f"output on a grid of {', '.join(f'{v:.4g}' for v in q)} SI (M2), in the baseline; rounding sd is "
-        f"{100 * float(np.max(share)):.0f} % of the white noise",
+        f"{100 * float(np.max(share)):.0f} % of the white noise; {how}",
     )
 
 
 def candidate_table(chain: ChainResult, session: ImuSession, triad: Triad, base: TriadBaseline):
-    """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages."""
+    """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages
+    and the rounding variance the baseline's grid leaves in every mean."""
     x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
     tab = position_table(chain, x, session.t_s, triad, session.temp_c)
-    return with_noise_cov(
-        tab, base.mean_noise_sd_si / reference_magnitude(triad, chain.gravity_mps2)
-    )
+    ref = reference_magnitude(triad, chain.gravity_mps2)
+    return with_noise_cov(tab, base.mean_noise_sd_si / ref, base.rounding_mean_var_si / ref**2)
 
 
 def find_candidates(
@@ -455,7 +527,8 @@ def find_candidates(
                 reason="not identifiable: the session has no gyro triad",
             )
         )
-    cands += [quantization_candidate(t, baselines[t]) for t in triads]
+    n_typical = float(np.median(tab_a.n_samples))
+    cands += [quantization_candidate(t, baselines[t], n_typical) for t in triads]
     return cands
 
 

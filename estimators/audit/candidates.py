@@ -912,7 +912,7 @@ def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> Tria
     resid, var0, halves_mean = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 3))
     up = f_b_mps2 / np.linalg.norm(f_b_mps2, axis=1, keepdims=True)
     for i, ax in enumerate(AXES):
-        var0[:, i] = tab.cov[:, i, i] + EARTH_RATE_VAR_NORM
+        var0[:, i] = tab.cov[:, i, i] + tab.grid_var[i] + EARTH_RATE_VAR_NORM
         y = tab.mean[:, i] - vertical_earth_rate(tab.mean[:, i], up[:, i], var0[:, i]) * up[:, i]
         effects = _mean_effects(tab, None, f_b_mps2, i)
         tests, chosen, hm, sd = _means_with_excess(

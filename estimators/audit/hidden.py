@@ -99,6 +99,13 @@ HIDDEN_KINDS: tuple[tuple[str, Triad | None], ...] = (
 )
 """What a trial can hide: (effect, triad). Temperature effects need the temperature cycle; gyro scale effects need a known rate."""
 
+TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
+    ("temperature_bias", Triad.ACCEL),
+    ("temperature_scale", Triad.ACCEL),
+    ("temperature_bias", Triad.GYRO),
+)
+"""The temperature class of issue 13: named on the session's record, re-simulated on it."""
+
 _AXIS_FREE = ("nonstatic_positions", "quantization")
 _COEF_KEY = {
     ("bias_drift", Triad.ACCEL): "rate_norm_per_s",
@@ -106,6 +113,7 @@ _COEF_KEY = {
     ("temperature_scale", Triad.ACCEL): "coef_per_c",
     ("scale_nonlinearity", Triad.ACCEL): "k2_norm",
     ("bias_drift", Triad.GYRO): "rate_rps_per_s",
+    ("temperature_bias", Triad.GYRO): "coef_rps_per_c",
 }
 
 
@@ -141,13 +149,21 @@ def trial_attitudes(seed: int) -> np.ndarray:
     return np.array(att)
 
 
-def session_of(model: ErrorModel, seed: int) -> tuple[ImuSession, ChainResult]:
-    """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain."""
+def session_of(
+    model: ErrorModel, seed: int, *, temperature: bool = True
+) -> tuple[ImuSession, ChainResult]:
+    """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain.
+
+    ``temperature=False`` drops the temperature column (the unit is still on the same cycle: a
+    temperature effect is then in the data but nothing can name it).
+    """
     profile = multi_position_profile(trial_attitudes(seed), static_s=HOLD_S, transition_s=TURN_S)
     spec = SessionSpec(
         profile, model, rate_hz=RATE_HZ, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
     )
     s = simulate(spec, seed).session
+    if not temperature:
+        s = ImuSession(s.t_s, s.accel_mps2, s.gyro_rps)
     return s, run_chain(s, ChainConfig(gravity_mps2=GRAVITY_MPS2))
 
 
@@ -205,7 +221,10 @@ def _gm_variance_for(
         _, sd, jac, _ = scalar_residuals(baselines[triad].params, tab)
         weight, var0 = jac[:, i] ** 2, sd**2
     else:
-        weight, var0 = np.ones(tab.n_samples.size), tab.cov[:, i, i] + EARTH_RATE_VAR_NORM
+        weight, var0 = (
+            np.ones(tab.n_samples.size),
+            tab.cov[:, i, i] + tab.grid_var[i] + EARTH_RATE_VAR_NORM,
+        )
     between, halves = gauss_markov_moments(tab.duration_s, tau_s, NOISE_WINDOW_S)
     shares = np.concatenate([weight * between / var0, halves / (4.0 * tab.cov[:, i, i])])
 
@@ -304,11 +323,13 @@ def draw(seed: int, size: float, kind: tuple[str, Triad] | None = None) -> Hidde
     )
 
 
-def trial(hidden: HiddenEffect, seed: int) -> bool:
-    """True when the audit names exactly the hidden effect on its session."""
-    return named_effects(*session_of(hidden.model, seed)) == hidden.expected
+def trial(hidden: HiddenEffect, seed: int, *, temperature: bool = True) -> bool:
+    """True when the audit names exactly the hidden effect on its session (with or without its temperature column)."""
+    got = named_effects(*session_of(hidden.model, seed, temperature=temperature))
+    return got == hidden.expected
 
 
-def clean_trial(seed: int) -> bool:
+def clean_trial(seed: int, *, temperature: bool = True) -> bool:
     """True when the audit names nothing on the effect-free session of ``seed``."""
-    return not named_effects(*session_of(baseline_model(np.random.default_rng(seed)), seed))
+    model = baseline_model(np.random.default_rng(seed))
+    return not named_effects(*session_of(model, seed, temperature=temperature))

@@ -29,7 +29,7 @@ position and the distribution of the F0 statistic of 1 s window means.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -60,6 +60,9 @@ class PositionTable:
     temp_halves_c : (n,) first-half minus second-half mean temperature, °C (NaN as for ``halves``), or None.
     n_samples : (n,) samples per position; duration_s : (n,) lengths, s.
     spans : (n, 2) sample index spans ``[start, stop)``.
+    grid_var : (3,) normalized variance of the rounding error every position mean keeps on a coarse
+        grid (:func:`estimators.noise.rounding_mean_var`): in the means, not in ``cov`` (it does not
+        average down, and both halves of a position share it, so their difference does not see it).
     """
 
     t_mid_s: np.ndarray
@@ -71,6 +74,7 @@ class PositionTable:
     n_samples: np.ndarray
     duration_s: np.ndarray
     spans: np.ndarray
+    grid_var: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def position_table(
@@ -114,8 +118,11 @@ def position_table(
     )
 
 
-def with_noise_cov(tab: PositionTable, noise_sd_norm: np.ndarray) -> PositionTable:
-    """``tab`` with each position's covariance of the mean ``diag(σ²)/n`` from one noise level (3,), normalized.
+def with_noise_cov(
+    tab: PositionTable, noise_sd_norm: np.ndarray, grid_var_norm: np.ndarray | None = None
+) -> PositionTable:
+    """``tab`` with each position's covariance of the mean ``diag(σ²)/n`` from one noise level (3,), normalized,
+    and the rounding variance its means keep on a coarse grid (``grid_var_norm`` (3,), :attr:`PositionTable.grid_var`).
 
     The candidates' reference (:mod:`estimators.audit.candidates`): pooled over
     the whole session it is precise, where the chain's per-position batch-means
@@ -124,7 +131,8 @@ def with_noise_cov(tab: PositionTable, noise_sd_norm: np.ndarray) -> PositionTab
     """
     sd = np.asarray(noise_sd_norm, float).reshape(3)
     cov = np.einsum("k,ij->kij", 1.0 / tab.n_samples, np.diag(sd**2))
-    return replace(tab, cov=cov)
+    grid = np.zeros(3) if grid_var_norm is None else np.asarray(grid_var_norm, float).reshape(3)
+    return replace(tab, cov=cov, grid_var=grid)
 
 
 def subset_table(tab: PositionTable, keep: np.ndarray) -> PositionTable:
@@ -141,6 +149,7 @@ def subset_table(tab: PositionTable, keep: np.ndarray) -> PositionTable:
         tab.n_samples[k],
         tab.duration_s[k],
         tab.spans[k],
+        tab.grid_var,
     )
 
 
@@ -300,9 +309,14 @@ def triad_curves(
 def scalar_residuals(
     params: np.ndarray, tab: PositionTable
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Exact scalar equation per position (M1): residual, its sigma, ∂f/∂params (n, 9), ∂f/∂ã (n, 3)."""
+    """Exact scalar equation per position (M1): residual, its sigma, ∂f/∂params (n, 9), ∂f/∂ã (n, 3).
+
+    The sigma holds the mean's noise and the rounding error a coarse grid leaves in it (``tab.grid_var``).
+    """
     f, jac, grad = ellipsoid_residual(params, tab.mean)
-    sigma = np.sqrt(np.einsum("ni,nij,nj->n", grad, tab.cov, grad))
+    sigma = np.sqrt(
+        np.einsum("ni,nij,nj->n", grad, tab.cov, grad) + np.einsum("ni,i->n", grad**2, tab.grid_var)
+    )
     return f, sigma, jac, grad
 
 

@@ -70,6 +70,7 @@ from .temperature import (
     ConstantTemperature,
     CycleTemperature,
     RampTemperature,
+    RecordedTemperature,
     TemperatureProfile,
     WarmupTemperature,
 )
@@ -101,6 +102,7 @@ __all__ = [
     "OrientationScheme",
     "Quantization",
     "RampTemperature",
+    "RecordedTemperature",
     "Rounding",
     "ScaleFactor",
     "ScaleNonlinearity",

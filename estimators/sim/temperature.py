@@ -3,7 +3,9 @@
 Each profile is a frozen dataclass with ``temp_c(t_s)``: time ``t_s`` (N,) in
 seconds from the session start → temperature (N,) in °C. A profile that is not
 monotone in time (:class:`CycleTemperature`) is what separates temperature
-effects from time effects (issue 4).
+effects from time effects (issue 4). :class:`RecordedTemperature` replays a
+measured record (the model audit re-simulates a session on its own thermal
+history, issue 13).
 """
 
 from __future__ import annotations
@@ -88,4 +90,41 @@ class CycleTemperature:
         return self.base_c + (self.peak_c - self.base_c) * 0.5 * (1.0 - np.cos(phase))
 
 
-TemperatureProfile = ConstantTemperature | RampTemperature | WarmupTemperature | CycleTemperature
+@dataclass(frozen=True, eq=False)
+class RecordedTemperature:
+    """A measured temperature record replayed: linear interpolation of ``temp_c`` (K,) at ``t_s`` (K,).
+
+    ``t_s`` is time from the session start, s, strictly increasing; before the
+    first and after the last time the record holds its end value (no
+    extrapolation of a thermal history nobody measured).
+    """
+
+    t_s: np.ndarray
+    temp_c: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_s, float)
+        temp = np.asarray(self.temp_c, float)
+        if t.ndim != 1 or t.shape != temp.shape or t.size < 1:
+            raise ValueError(
+                f"t_s and temp_c must be two equal non-empty 1-D arrays, got shapes {t.shape} and {temp.shape}"
+            )
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(temp))):
+            raise ValueError("a temperature record must be finite")
+        if np.any(np.diff(t) <= 0):
+            raise ValueError("the times of a temperature record must be strictly increasing")
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "temp_c", temp)
+
+    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+        out: np.ndarray = np.interp(np.asarray(t_s, float), self.t_s, self.temp_c)
+        return out
+
+
+TemperatureProfile = (
+    ConstantTemperature
+    | RampTemperature
+    | WarmupTemperature
+    | CycleTemperature
+    | RecordedTemperature
+)
