@@ -1,17 +1,62 @@
-"""The ``ins-health`` console command."""
+"""The ``ins-health`` console command.
+
+Starting it stays cheap (``benchmarks/bench_startup.py``): this module and each
+command's ``register`` import only the standard library, numpy and modules that
+import nothing heavier; a command imports scipy, matplotlib, zenoh or pymavlink
+inside the function that runs it (``tests/test_cli_startup.py`` checks it).
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
+from pathlib import Path
+from typing import Any
 
 from service import commands
+
+OUTPUTS = "_outputs"
+"""Namespace attribute listing the ``(dest, flag)`` of the options that name a file to write."""
 
 
 class UsageError(Exception):
     """Unusable input to a command: reported as one line on stderr, exit status 2."""
+
+
+class _Version(argparse.Action):
+    """``--version``: the installed package's version, read only when asked (importlib.metadata is not free)."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: Any) -> None:
+        from importlib.metadata import version
+
+        print(f"{parser.prog} {version('ins-health')}")
+        parser.exit()
+
+
+def add_output(parser: argparse._ActionsContainer, *flags: str, **kwargs: Any) -> argparse.Action:
+    """Add an option naming a file the command writes (a ``Path``).
+
+    :func:`main` checks that its folder exists before the command starts, so a
+    typo in a folder fails at once, not after the work.
+    """
+    action = parser.add_argument(*flags, type=Path, **kwargs)
+    known = parser.get_default(OUTPUTS) or ()
+    parser.set_defaults(**{OUTPUTS: (*known, (action.dest, action.option_strings[0]))})
+    return action
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Raise :class:`UsageError` if an output file of ``args`` (see :func:`add_output`) is in a missing folder."""
+    for dest, flag in getattr(args, OUTPUTS, ()):
+        path = getattr(args, dest)
+        if path is not None and not path.parent.is_dir():
+            raise UsageError(f"{flag} {path}: the folder {path.parent} does not exist")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -19,20 +64,42 @@ def build_parser() -> argparse.ArgumentParser:
         prog="ins-health",
         description="Streaming fault detection for strapdown IMUs (scalar method).",
     )
+    parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for mod in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         importlib.import_module(f"{commands.__name__}.{mod.name}").register(sub)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        check_outputs(args)
         return int(args.func(args) or 0)
+    except BrokenPipeError:
+        raise
     except (UsageError, ValueError, OSError) as exc:
         print(f"ins-health {args.command}: {exc}", file=sys.stderr)
         return 2
 
 
+def main(argv: list[str] | None = None) -> int:
+    try:
+        try:
+            return _run(argv)
+        finally:
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # The reader of stdout has gone (``| head``): not an error worth a word. Python's
+        # recipe (docs: signal, "Note on SIGPIPE"): point stdout at devnull so that the
+        # flush at exit does not fail again, and exit 1.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    # ``python -m service.cli`` runs this file as __main__: call the main of the imported
+    # module, whose UsageError is the one the commands raise.
+    from service.cli import main as _main
+
+    sys.exit(_main())

@@ -12,16 +12,17 @@ import datetime as dt
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimators.conventions import normal_gravity_mps2
-from estimators.passport import Passport, TriadPassport
 from estimators.session import ImuSession, Rejections, validate_session
-from protocols.passport_codec import write_passport_json
 from protocols.session_file import LoadedSession, load_session
-from service.cli import UsageError
+from service.cli import UsageError, add_output
+
+if TYPE_CHECKING:
+    from estimators.passport import Passport, TriadPassport
 
 
 def add_method_command(subparsers, name: str, *, help: str, doc: str, dest: str, metavar: str):
@@ -131,8 +132,8 @@ def axis_index(name: str) -> int:
 
 
 def add_passport_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", type=Path, help="passport JSON file to write")
-    p.add_argument("--report", type=Path, help="also write the full report as JSON")
+    add_output(p, "--out", help="passport JSON file to write")
+    add_output(p, "--report", help="also write the full report as JSON")
     p.add_argument(
         "--unit-id", default="unit", help="identity of the unit in the passport (default 'unit')"
     )
@@ -144,6 +145,10 @@ def add_passport_options(p: argparse.ArgumentParser) -> None:
 
 def write_passport(args: argparse.Namespace, triad_passport: TriadPassport) -> Passport:
     """Wrap one triad passport with the identity options and write it to ``--out`` (if given)."""
+    # Imported here, as the commands' heavy modules are: the CLI parser loads this module.
+    from estimators.passport import Passport
+    from protocols.passport_codec import write_passport_json
+
     passport = Passport(
         unit_id=args.unit_id,
         sensor_model=args.sensor_model,

@@ -1,4 +1,4 @@
-"""Figures of the bench methods (M2 tilt, M3 temperature, M4 rate table), matplotlib Agg.
+"""Figures of the bench methods (M2 tilt and triad, M3 temperature, M4 rate table), matplotlib Agg.
 
 One small PNG per method: what ``--plot FILE`` of the commands writes and what
 ``docs/methods/`` shows.
@@ -13,7 +13,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
 
+from estimators.conventions import PARAM_NAMES
+from estimators.repeatability import RunSpread
 from estimators.sixpos import RateTableFit
 from estimators.temperature import TemperatureFit, TemperatureSeries, model_errors
 from estimators.tilt import TiltPassportResult, TiltRun
@@ -64,32 +67,74 @@ def plot_tilt(
     a.set_title("measured − modelled, pulse", fontsize=9)
     a.legend(fontsize=6, ncol=2)
     for col, j in ((1, 0), (2, 2)):
-        a = ax[1, col]
-        y = np.arange(sp.n_runs) + 1
-        a.errorbar(
-            sp.values[:, j] * unit[j],
-            y,
-            xerr=(sp.upper[:, j] - sp.values[:, j]) * unit[j],
-            fmt="ko",
-            ms=3,
-            capsize=2,
+        _interval_panel(
+            ax[1, col],
+            sp,
+            j,
+            scale=unit[j],
+            label=labels[j],
+            truth=None if truth is None else truth[j],
         )
-        if sp.reproducible[j]:
-            a.axvspan(
-                sp.common_lower[j] * unit[j],
-                sp.common_upper[j] * unit[j],
-                color="tab:green",
-                alpha=0.3,
-                label="intersection",
-            )
-        a.axvline(sp.value[j] * unit[j], color="tab:green", lw=1, label="passport value")
-        if truth is not None:
-            a.axvline(truth[j] * unit[j], color="tab:red", ls="--", lw=1, label="simulated truth")
-        a.set_yticks(y)
-        a.set_ylabel("run")
-        a.set_title(f"{round(sp.level * 100)} % intervals: {labels[j]}", fontsize=9)
-        a.legend(fontsize=7)
     _save(fig, path)
+
+
+def plot_triad(spread: RunSpread, path: Path, *, truth: np.ndarray | None = None) -> None:
+    """Per-run intervals of the nine parameters of a triad, their intersection and the passport value (M2's checks on M1's estimates).
+
+    ``spread`` over the runs, parameters in ``PARAM_NAMES`` order; ``truth`` (9,) of a simulated unit.
+    """
+    fig, ax = plt.subplots(3, 3, figsize=(10, 7.2))
+    # Display units: zero signals in mg (normalized by g), scale errors in ppm, cosines in mrad.
+    scales, units = (1e3, 1e6, 1e3), ("mg", "ppm", "mrad")
+    for j, name in enumerate(PARAM_NAMES):
+        _interval_panel(
+            ax[j // 3, j % 3],
+            spread,
+            j,
+            scale=scales[j // 3],
+            label=f"{name}, {units[j // 3]}",
+            truth=None if truth is None else truth[j],
+            legend=j == 0,
+        )
+    _save(fig, path)
+
+
+def _interval_panel(
+    a: Axes,
+    sp: RunSpread,
+    j: int,
+    *,
+    scale: float,
+    label: str,
+    truth: float | None,
+    legend: bool = True,
+) -> None:
+    """Parameter ``j`` of every run with its interval, their intersection and the passport value."""
+    y = np.arange(sp.n_runs) + 1
+    a.errorbar(
+        sp.values[:, j] * scale,
+        y,
+        xerr=(sp.upper[:, j] - sp.values[:, j]) * scale,
+        fmt="ko",
+        ms=3,
+        capsize=2,
+    )
+    if sp.reproducible[j]:
+        a.axvspan(
+            sp.common_lower[j] * scale,
+            sp.common_upper[j] * scale,
+            color="tab:green",
+            alpha=0.3,
+            label="intersection",
+        )
+    a.axvline(sp.value[j] * scale, color="tab:green", lw=1, label="passport value")
+    if truth is not None:
+        a.axvline(truth * scale, color="tab:red", ls="--", lw=1, label="simulated truth")
+    a.set_yticks(y)
+    a.set_ylabel("run")
+    a.set_title(f"{round(sp.level * 100)} % intervals: {label}", fontsize=9)
+    if legend:
+        a.legend(fontsize=7)
 
 
 def plot_temperature(fit: TemperatureFit, series: TemperatureSeries, path: Path) -> None:

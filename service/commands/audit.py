@@ -6,10 +6,12 @@ import argparse
 import json
 import sys
 
-from estimators.audit import DEFAULT_REPLICAS, AuditConfig, run_audit
-from estimators.chain import ChainConfig
 from service.cli import UsageError
 from service.session_args import add_session_arguments, load_session_input
+
+DEFAULT_REPLICAS = 20
+"""estimators.audit.DEFAULT_REPLICAS, stated here so that the parser does not load scipy
+(tests/test_cli_startup.py checks they agree)."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -39,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.audit import AuditConfig, run_audit
+    from estimators.chain import ChainConfig
+
     if args.replicas < 5:
         raise UsageError(f"--replicas must be at least 5, got {args.replicas}")
     inp = load_session_input(args)

@@ -9,13 +9,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from estimators.audit import AuditConfig, run_audit
-from estimators.chain import ChainConfig, run_chain
-from estimators.conventions import Triad
-from estimators.ninepar import Verdict
-from estimators.passport import Grade, passport_from_estimates, per_sample_noise_std
-from protocols.passport_codec import write_passport_json
-from service.cli import UsageError
+from estimators.conventions import Grade, Triad
+from service.cli import UsageError, add_output
 from service.session_args import add_session_arguments, load_session_input
 
 
@@ -27,8 +22,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Tolerances default to max(3σ of the calibration, a floor for the sensor grade) (estimators/passport.py).",
     )
     add_session_arguments(p)
-    p.add_argument(
-        "--out", required=True, metavar="PASSPORT.json", help="where to write the passport"
+    add_output(
+        p, "--out", required=True, metavar="PASSPORT.json", help="where to write the passport"
     )
     p.add_argument("--unit-id", help="identity of the unit (default: the session file's name)")
     p.add_argument(
@@ -62,6 +57,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.audit import AuditConfig, run_audit
+    from estimators.chain import ChainConfig, run_chain
+    from estimators.ninepar import Verdict
+    from estimators.passport import passport_from_estimates, per_sample_noise_std
+    from protocols.passport_codec import write_passport_json
+
     inp = load_session_input(args)
     config = ChainConfig(
         gravity_mps2=inp.gravity_mps2, detector=inp.detector,

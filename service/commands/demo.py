@@ -6,9 +6,10 @@ Exit status 0 when the injected fault was detected and named, 1 otherwise.
 from __future__ import annotations
 
 import argparse
-import asyncio
 
-from service.demo import DEFAULT_SPEED, run_demo
+DEFAULT_SPEED = 5.0
+"""service.demo.DEFAULT_SPEED, stated here so that the parser does not load zenoh
+(tests/test_cli_startup.py checks they agree)."""
 
 
 def register(subparsers) -> None:
@@ -28,6 +29,10 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from service.demo import run_demo
+
     if not 0.5 <= args.speed <= 100:
         raise ValueError(f"--speed must be within 0.5..100, got {args.speed!r}")
     result = asyncio.run(run_demo(speed=args.speed, seed=args.seed))

@@ -6,10 +6,11 @@ import argparse
 import json
 import sys
 
-from estimators.chain import ChainConfig, run_chain
-from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
-from protocols.passport_codec import read_passport_json
 from service.session_args import add_session_arguments, load_session_input
+
+DEFAULT_FALSE_ALARM_PROB = 1.0e-3
+"""estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
+scipy (tests/test_cli_startup.py checks they agree)."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -36,6 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.chain import ChainConfig, run_chain
+    from protocols.passport_codec import read_passport_json
+
     passport = read_passport_json(args.passport)
     inp = load_session_input(args)
     config = ChainConfig(

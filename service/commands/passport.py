@@ -24,46 +24,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estimators.conventions import PARAM_NAMES, Grade, Triad
-from estimators.ninepar import Method
-from estimators.passport import (
-    Provenance,
-    TriadPassport,
-    default_tolerance_rule,
-    per_sample_noise_std,
-    reference_kind,
-)
-from estimators.repeatability import passport_from_runs, t_quantile, triad_runs
-from estimators.sim import Rounding, multi_position_spec, simulate
-from estimators.sixpos import quantizer_offset, session_positions
-from estimators.temperature import (
-    DEFAULT_REFERENCE_TEMP_C,
-    ORDERS,
-    PAPER_TEMPS_C,
-    fit_temperature_model,
-    hidden_quartic_model,
-    model_errors,
-    simulate_chamber,
-    temperature_series,
-    temperature_truth,
-)
-from estimators.tilt import (
-    TILT_PARAM_NAMES,
-    HalfPulse,
-    TiltBench,
-    bench_session,
-    half_pulse_bias,
-    run_from_session,
-    runs_from_samples,
-    simulate_samples,
-    tilt_passport,
-    tilt_triad_passport,
-)
-from protocols.session_file import write_csv_session
-from service.cli import UsageError
+from service.cli import UsageError, add_output
 from service.method_args import (
     add_gravity_options,
     add_method_command,
@@ -77,6 +43,17 @@ from service.method_args import (
     rejected_text,
     write_passport,
 )
+
+if TYPE_CHECKING:
+    from estimators.passport import TriadPassport
+
+# The estimators' defaults the parser shows, stated here so that it does not load scipy
+# (tests/test_cli_startup.py checks they agree with estimators.sim and estimators.temperature).
+ROUNDINGS = ("floor", "toward_zero", "nearest")
+"""The values of estimators.sim.Rounding."""
+DEFAULT_ROUNDING = "toward_zero"
+ORDERS = (1, 2, 3, 4, 5)
+DEFAULT_REFERENCE_TEMP_C = 20.0
 
 _ARCMIN = np.pi / 180.0 / 60.0
 
@@ -112,8 +89,8 @@ def register(subparsers) -> None:
     )
     t.add_argument(
         "--rounding",
-        choices=[r.value for r in Rounding],
-        default=Rounding.TOWARD_ZERO.value,
+        choices=ROUNDINGS,
+        default=DEFAULT_ROUNDING,
         help="how the converter makes whole pulses (default toward_zero, the paper's)",
     )
     t.add_argument(
@@ -163,9 +140,7 @@ def register(subparsers) -> None:
         default=20.0,
         help="with --simulate: seconds per position (default 20)",
     )
-    m.add_argument(
-        "--save-session", type=Path, help="with --simulate: write the chamber session as CSV"
-    )
+    add_output(m, "--save-session", help="with --simulate: write the chamber session as CSV")
     m.add_argument(
         "--orders",
         default=",".join(map(str, ORDERS)),
@@ -214,7 +189,7 @@ def _common_options(p: argparse.ArgumentParser) -> None:
         default=Grade.MEMS.value,
         help="grade for default tolerances (default mems)",
     )
-    p.add_argument("--plot", type=Path, help="write a PNG figure of the method's checks")
+    add_output(p, "--plot", help="write a PNG figure of the method's checks")
 
 
 def _check_runs(args) -> None:
@@ -226,6 +201,21 @@ def _check_runs(args) -> None:
 
 
 def run_tilt(args: argparse.Namespace) -> int:
+    from estimators.sim import Rounding
+    from estimators.tilt import (
+        TILT_PARAM_NAMES,
+        HalfPulse,
+        TiltBench,
+        bench_session,
+        half_pulse_bias,
+        run_from_session,
+        runs_from_samples,
+        simulate_samples,
+        tilt_passport,
+        tilt_triad_passport,
+    )
+    from protocols.session_file import write_csv_session
+
     _check_runs(args)
     axis = axis_index(args.axis)
     angles_deg = None if args.angles_deg is None else parse_angles_deg(args.angles_deg)
@@ -298,7 +288,6 @@ def run_tilt(args: argparse.Namespace) -> int:
     )
     write_passport(args, tp)
     if args.plot is not None:
-        # matplotlib loads only when a figure is asked for: every command module is imported at CLI start.
         from service.method_plots import plot_tilt
 
         plot_tilt(
@@ -346,6 +335,8 @@ def _spread_report(sp) -> dict:
 
 
 def _tilt_report(result, bias, tp: TriadPassport, *, axis: int, lsb: float, truth) -> dict:
+    from estimators.tilt import TILT_PARAM_NAMES
+
     e = result.errors
     return {
         "method": "M2 tilt table",
@@ -383,6 +374,8 @@ def _tilt_report(result, bias, tp: TriadPassport, *, axis: int, lsb: float, trut
 
 
 def _tilt_text(result, bias, lsb, truth, args) -> str:
+    from estimators.tilt import TILT_PARAM_NAMES
+
     sp, k0 = result.spread, result.k0_mps2
     fmt = (
         lambda v: f"{v * 1e3:+8.3f}",
@@ -434,6 +427,12 @@ def _tilt_text(result, bias, lsb, truth, args) -> str:
 
 
 def run_triad(args: argparse.Namespace) -> int:
+    from estimators.passport import per_sample_noise_std
+    from estimators.repeatability import passport_from_runs, triad_runs
+    from estimators.sim import multi_position_spec, simulate
+    from estimators.sixpos import quantizer_offset, session_positions
+    from protocols.session_file import write_csv_session
+
     _check_runs(args)
     sessions, file_gravity = [], None
     rejected: dict[str, int] = {}
@@ -482,6 +481,10 @@ def run_triad(args: argparse.Namespace) -> int:
     )
     write_passport(args, tp)
     sp = runs.spread
+    if args.plot is not None:
+        from service.method_plots import plot_triad
+
+        plot_triad(sp, args.plot, truth=truth)
     report = {
         "method": "M1 nine parameters from repeated sessions, M2 reproducibility",
         "triad": "accel",
@@ -523,6 +526,18 @@ def _orders(text: str) -> tuple[int, ...]:
 
 
 def run_temperature(args: argparse.Namespace) -> int:
+    from estimators.sixpos import session_positions
+    from estimators.temperature import (
+        PAPER_TEMPS_C,
+        fit_temperature_model,
+        hidden_quartic_model,
+        model_errors,
+        simulate_chamber,
+        temperature_series,
+        temperature_truth,
+    )
+    from protocols.session_file import write_csv_session
+
     orders = _orders(args.orders)
     model = None
     rejected: dict[str, int] = {}
@@ -560,7 +575,6 @@ def run_temperature(args: argparse.Namespace) -> int:
     )
     write_passport(args, tp)
     if args.plot is not None:
-        # matplotlib loads only when a figure is asked for (see run_tilt).
         from service.method_plots import plot_temperature
 
         plot_temperature(fit, series, args.plot)
@@ -635,6 +649,16 @@ def _temperature_passport(
 ) -> TriadPassport:
     """The accelerometer passport at T_ref: nominal bias and scale from the model's constant terms,
     non-orthogonality from the six-position tests (mean over temperatures), the temperature model attached."""
+    from estimators.ninepar import Method
+    from estimators.passport import (
+        Provenance,
+        TriadPassport,
+        default_tolerance_rule,
+        per_sample_noise_std,
+        reference_kind,
+    )
+    from estimators.repeatability import t_quantile
+
     nine = np.mean([t.nine_params() for t in series.tests], axis=0)
     nine[0:3] = fit.model.bias_coeffs[:, 0]
     nine[3:6] = fit.model.scale_coeffs[:, 0]

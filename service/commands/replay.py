@@ -30,17 +30,17 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from estimators.passport import Passport
-from protocols.events import Event, event_to_json
-from protocols.logs import LogReader
-from protocols.passport_codec import read_passport_json
 from service.cli import UsageError
-from service.config import ServiceConfig, SiteSection, load_config
-from service.daemon import pipeline_options
 from service.method_args import add_gravity_options
-from service.passport_store import PassportStore
-from service.pipeline import FleetProcessor
+
+if TYPE_CHECKING:
+    from estimators.passport import Passport
+    from protocols.events import Event
+    from protocols.logs import LogReader
+    from service.config import ServiceConfig
+    from service.pipeline import FleetProcessor
 
 REPLAY_BATCH_SAMPLES = 100
 
@@ -82,6 +82,8 @@ def register(subparsers) -> None:
 
 
 def _config(args: argparse.Namespace) -> ServiceConfig:
+    from service.config import ServiceConfig, SiteSection, load_config
+
     config = load_config(args.config) if args.config else ServiceConfig()
     if args.gravity_mps2 is not None or args.latitude_deg is not None:
         site = SiteSection(
@@ -96,6 +98,9 @@ def _config(args: argparse.Namespace) -> ServiceConfig:
 
 
 def _lookup(args: argparse.Namespace):
+    from protocols.passport_codec import read_passport_json
+    from service.passport_store import PassportStore
+
     if args.passport is not None:
         passport: Passport = read_passport_json(args.passport)
         return lambda vehicle, imu: passport
@@ -115,6 +120,8 @@ def replay_events(
 
     Each frame is stamped with its last sample time as its arrival (the log's own clock).
     """
+    from protocols.logs import LogReader
+
     reader = LogReader(log, vehicle=vehicle, batch_samples=REPLAY_BATCH_SAMPLES)
     events: list[Event] = []
     emit = events.append if on_event is None else (lambda e: (events.append(e), on_event(e)))
@@ -139,6 +146,10 @@ def human(event: Event) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from protocols.events import event_to_json
+    from service.daemon import pipeline_options
+    from service.pipeline import FleetProcessor
+
     config = _config(args)
     errors: list[str] = []
     fleet = FleetProcessor(

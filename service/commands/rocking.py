@@ -14,31 +14,21 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estimators.conventions import RPS_PER_DPH
-from estimators.rocking import (
-    PAPER_AMPLITUDE_RAD,
-    PAPER_DK,
-    PAPER_FREQUENCY_HZ,
-    PAPER_REL_SIGMA,
-    GyroUnit,
-    RockingResult,
-    StandSettings,
-    earth_rate_stand_rps,
-    estimate_scale_errors,
-    paper_runs,
-    simulate_runs,
-)
-from estimators.session import validate_session
-from estimators.strapdown import ANGLE_NAMES
-from protocols.session_file import read_session, write_csv_session
-from service.cli import UsageError
+from service.cli import UsageError, add_output
 from service.method_args import emit
 
+if TYPE_CHECKING:
+    from estimators.rocking import RockingResult, StandSettings
+
 _SYMBOL = {"gamma": "γ", "psi": "ψ", "theta": "θ"}
-_DEFAULT_UNIT = GyroUnit()
+PAPER_REL_SIGMA = 0.01
+"""estimators.rocking.PAPER_REL_SIGMA, stated here so that the parser does not load scipy
+(tests/test_cli_startup.py checks they agree)."""
 
 
 def register(subparsers) -> None:
@@ -118,9 +108,9 @@ def register(subparsers) -> None:
     )
     sim.add_argument("--rate-hz", type=float, help="sample rate, Hz (default 100)")
     sim.add_argument("--seed", type=int, help="random seed (default 0)")
-    sim.add_argument(
+    add_output(
+        sim,
         "--save-csv",
-        type=Path,
         metavar="FILE",
         help="also write the simulated record (three runs in a row) as a CSV session file",
     )
@@ -134,10 +124,10 @@ def register(subparsers) -> None:
         help="transfer coefficients used in the record, any unit (default 1 1 1: relative)",
     )
     out.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    out.add_argument("--report", type=Path, help="also write the report as JSON")
-    out.add_argument(
+    add_output(out, "--report", help="also write the report as JSON")
+    add_output(
+        out,
         "--plot",
-        type=Path,
         metavar="PNG",
         help="plot the drifting angles before and after the correction",
     )
@@ -145,6 +135,8 @@ def register(subparsers) -> None:
 
 
 def _stand_settings(args: argparse.Namespace) -> StandSettings | None:
+    from estimators.rocking import PAPER_AMPLITUDE_RAD, PAPER_FREQUENCY_HZ, StandSettings
+
     amplitude_deg, frequency_hz = args.amplitude_deg, args.frequency_hz
     if args.simulate:
         amplitude_deg = np.degrees(PAPER_AMPLITUDE_RAD) if amplitude_deg is None else amplitude_deg
@@ -176,6 +168,10 @@ _SIMULATION_OPTIONS = (
 
 def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]:
     """The sessions to analyse and notes on how they were obtained."""
+    from estimators.rocking import PAPER_DK, GyroUnit, paper_runs, simulate_runs
+    from estimators.session import validate_session
+    from protocols.session_file import read_session, write_csv_session
+
     if args.simulate:
         rate_hz = 100.0 if args.rate_hz is None else args.rate_hz
         seed = 0 if args.seed is None else args.seed
@@ -183,10 +179,10 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
             raise UsageError(f"--rate-hz must be positive, got {rate_hz!r}")
         unit = GyroUnit(
             scale_err=PAPER_DK if args.dk is None else args.dk,
-            bias_rps=_DEFAULT_UNIT.bias_rps
+            bias_rps=GyroUnit().bias_rps
             if args.bias_deg_h is None
             else np.asarray(args.bias_deg_h) * RPS_PER_DPH,
-            arw_rad_per_sqrt_s=_DEFAULT_UNIT.arw_rad_per_sqrt_s
+            arw_rad_per_sqrt_s=GyroUnit().arw_rad_per_sqrt_s
             if args.arw_deg_rth is None
             else np.radians(args.arw_deg_rth) / 60.0,
         )
@@ -236,6 +232,8 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
 
 def report_of(result: RockingResult, k_nominal) -> dict:
     """The JSON report (also the source of the text output)."""
+    from estimators.strapdown import ANGLE_NAMES
+
     x_sigma = np.sqrt(np.diag(result.closed.x_cov))
     drifts, runs = {}, {}
     for e, c, f in zip(result.episodes, result.corrected, result.fitted, strict=True):
@@ -355,7 +353,6 @@ def _text(report: dict, notes: list[str], earth: bool) -> str:
 
 def plot_drifts(result: RockingResult, path: Path) -> None:
     """The third angle of each run as recorded and after the correction (the paper's Figs. 1 and 2)."""
-    # Imported here: the CLI loads every command module, and only --plot needs matplotlib.
     import matplotlib
 
     matplotlib.use("Agg")
@@ -393,6 +390,8 @@ def plot_drifts(result: RockingResult, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.rocking import earth_rate_stand_rps, estimate_scale_errors
+
     earth = (
         None
         if args.latitude_deg is None

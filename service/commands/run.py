@@ -9,12 +9,12 @@ seconds; whatever is still undelivered is sent by the next start. Exit status
 from __future__ import annotations
 
 import argparse
-import asyncio
 import signal
 import sys
+from typing import TYPE_CHECKING
 
-from service.config import load_config
-from service.daemon import Service
+if TYPE_CHECKING:
+    from service.daemon import Service
 
 
 def register(subparsers) -> None:
@@ -31,6 +31,8 @@ def register(subparsers) -> None:
 
 async def serve(service: Service) -> None:
     """Run ``service`` until SIGTERM or SIGINT."""
+    import asyncio
+
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -52,6 +54,11 @@ pipeline; a 1 ms interval bounds that wait, which is most of the fault-to-event 
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from service.config import load_config
+    from service.daemon import Service
+
     config = load_config(args.config)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     asyncio.run(serve(Service(config)))

@@ -57,40 +57,24 @@ import sys
 import tomllib
 from dataclasses import asdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from estimators.conventions import PARAM_NAMES, Triad
-from estimators.sim import (
-    GRADES,
-    ConstantTemperature,
-    CycleTemperature,
-    EnvironmentEffect,
-    Fault,
-    FaultKind,
-    Fly,
-    Grade,
-    OrientationScheme,
-    RampTemperature,
-    WarmupTemperature,
-    flight_spec,
-    grade_error_model,
-    make_effect,
-    multi_position_spec,
-    simulate,
-    static_spec,
-)
-from estimators.sim.faults import PARAMETER_FAULTS
-from protocols.session_file import write_csv_session
-from service.cli import UsageError
+from estimators.conventions import PARAM_NAMES, Grade, Triad
+from service.cli import UsageError, add_output
+
+if TYPE_CHECKING:
+    from estimators.sim import Fault, FaultKind
 
 PROFILES = ("multiposition", "static", "flight")
-TEMPERATURES = {
-    "constant": ConstantTemperature,
-    "ramp": RampTemperature,
-    "warmup": WarmupTemperature,
-    "cycle": CycleTemperature,
-}
+# The simulator's names the parser shows, stated here so that it does not load scipy
+# (tests/test_cli_startup.py checks they agree with estimators.sim).
+TEMPERATURE_KINDS = ("constant", "ramp", "warmup", "cycle")
+ORIENTATIONS = ("eighteen", "random")
+"""The values of estimators.sim.OrientationScheme."""
+GRADES = ("mems", "navigation")
+"""The grades estimators.sim.GRADES has presets for."""
 # Command-line options that are keys of the [profile] table.
 PROFILE_KEYS = (
     "positions",
@@ -120,18 +104,16 @@ def register(subparsers) -> None:
         help="write a simulated IMU session (CSV)",
         description="Simulate an IMU session with known errors and faults and write it as a CSV session file.",
     )
-    p.add_argument(
-        "--out", required=True, type=Path, metavar="SESSION.csv", help="CSV session file to write"
-    )
+    add_output(p, "--out", required=True, metavar="SESSION.csv", help="CSV session file to write")
     p.add_argument(
         "--config",
         type=Path,
         metavar="FILE.toml",
         help="TOML file with the options (command-line options win)",
     )
-    p.add_argument(
+    add_output(
+        p,
         "--truth",
-        type=Path,
         metavar="FILE.json",
         help="also write the truth (parameters, positions, faults) as JSON",
     )
@@ -140,7 +122,7 @@ def register(subparsers) -> None:
     p.add_argument("--positions", type=int, help="number of static positions (default 18)")
     p.add_argument(
         "--orientations",
-        choices=[s.value for s in OrientationScheme],
+        choices=ORIENTATIONS,
         help="position scheme (default eighteen)",
     )
     p.add_argument(
@@ -168,9 +150,7 @@ def register(subparsers) -> None:
         "--rest-s", dest="rest_s", type=float, help="rest before and after a flight, s (default 10)"
     )
     p.add_argument("--rate-hz", dest="rate_hz", type=float, help="sample rate, Hz (default 100)")
-    p.add_argument(
-        "--grade", choices=[g.value for g in GRADES], help="IMU grade preset (default mems)"
-    )
+    p.add_argument("--grade", choices=GRADES, help="IMU grade preset (default mems)")
     p.add_argument(
         "--random-errors",
         dest="random_errors",
@@ -199,7 +179,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--temperature",
-        help="temperature profile KIND[:key=value,...], KIND in " + ", ".join(TEMPERATURES),
+        help="temperature profile KIND[:key=value,...], KIND in " + ", ".join(TEMPERATURE_KINDS),
     )
     p.add_argument(
         "--fault",
@@ -288,19 +268,35 @@ def _choice(value, enum, what):
 
 
 def _temperature(table: dict | None):
+    from estimators.sim import (
+        ConstantTemperature,
+        CycleTemperature,
+        RampTemperature,
+        WarmupTemperature,
+    )
+
     if table is None:
         return None
     table = dict(table)
     kind = table.pop("kind", None)
-    if kind not in TEMPERATURES:
-        raise UsageError(f"temperature kind must be one of {list(TEMPERATURES)}, got {kind!r}")
+    profiles = dict(
+        zip(
+            TEMPERATURE_KINDS,
+            (ConstantTemperature, RampTemperature, WarmupTemperature, CycleTemperature),
+            strict=True,
+        )
+    )
+    if kind not in profiles:
+        raise UsageError(f"temperature kind must be one of {list(profiles)}, got {kind!r}")
     try:
-        return TEMPERATURES[kind](**table)
+        return profiles[kind](**table)
     except TypeError as exc:
         raise UsageError(f"temperature {kind}: {exc}") from None
 
 
 def _fault_index(kind: FaultKind, index) -> int:
+    from estimators.sim.faults import PARAMETER_FAULTS
+
     if isinstance(index, int):
         return index
     names = PARAM_NAMES if kind in PARAMETER_FAULTS else ("x", "y", "z")
@@ -315,6 +311,8 @@ def _fault_index(kind: FaultKind, index) -> int:
 
 
 def _fault(table: dict) -> Fault:
+    from estimators.sim import Fault, FaultKind
+
     kind = _choice(table.get("kind"), FaultKind, "fault kind")
     try:
         return Fault(
@@ -330,6 +328,8 @@ def _fault(table: dict) -> Fault:
 
 
 def _model(cfg: dict, seed: int):
+    from estimators.sim import EnvironmentEffect, grade_error_model, make_effect
+
     grade = _choice(cfg.get("grade", "mems"), Grade, "grade")
     rng = np.random.default_rng([seed, 1]) if cfg.get("random_errors", False) else None
     model = grade_error_model(grade, rng=rng, quantization=bool(cfg.get("quantization", True)))
@@ -346,6 +346,8 @@ def _model(cfg: dict, seed: int):
 
 def spec_from_settings(cfg: dict):
     """(SessionSpec, seed, grade) from the merged settings."""
+    from estimators.sim import Fly, OrientationScheme, flight_spec, multi_position_spec, static_spec
+
     seed = int(cfg.get("seed", 0))
     if seed < 0:
         raise UsageError(f"seed must be non-negative, got {seed}")
@@ -423,6 +425,9 @@ def truth_json(result, seed: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.sim import simulate
+    from protocols.session_file import write_csv_session
+
     spec, seed, grade = spec_from_settings(settings_from(args))
     result = simulate(spec, seed)
     s = result.session

@@ -27,26 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
-from estimators.sim import simulate
-from estimators.sixpos import (
-    ACCEL_TERM_NAMES,
-    GUANGZHOU_HEIGHT_M,
-    GUANGZHOU_LATITUDE_DEG,
-    accel_truth,
-    adis_like_model,
-    find_rate_steps,
-    gyro_truth,
-    paper_rate_profile_rps,
-    rate_table_fit,
-    rate_table_truth,
-    session_positions,
-    simulate_rate_table,
-    six_position_accel,
-    six_position_spec,
-    six_position_test,
-)
-from protocols.session_file import write_csv_session
-from service.cli import UsageError
+from service.cli import UsageError, add_output
 from service.method_args import (
     add_gravity_options,
     add_method_command,
@@ -98,7 +79,7 @@ def register(subparsers) -> None:
     r.add_argument(
         "--hold-s", type=float, default=10.0, help="time the table holds each rate, s (default 10)"
     )
-    r.add_argument("--plot", type=Path, help="write a PNG of the fit and its residuals")
+    add_output(r, "--plot", help="write a PNG of the fit and its residuals")
     r.set_defaults(func=run_rate)
 
 
@@ -109,14 +90,17 @@ def _source(p: argparse.ArgumentParser) -> None:
         "--simulate", action="store_true", help="simulate an ADIS16355-like unit at Guangzhou"
     )
     p.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
-    p.add_argument("--save-session", type=Path, help="with --simulate: write the session as CSV")
+    add_output(p, "--save-session", help="with --simulate: write the session as CSV")
     add_gravity_options(p)
-    p.add_argument("--report", type=Path, help="also write the report as JSON")
+    add_output(p, "--report", help="also write the report as JSON")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
 
 
 def _load(args, make_session):
     """(session, local gravity, latitude or None, simulator model or None, rejected samples by reason)."""
+    from estimators.sixpos import GUANGZHOU_HEIGHT_M, GUANGZHOU_LATITUDE_DEG, adis_like_model
+    from protocols.session_file import write_csv_session
+
     if args.simulate:
         g_site = normal_gravity_mps2(GUANGZHOU_LATITUDE_DEG, GUANGZHOU_HEIGHT_M)
         model = adis_like_model()
@@ -140,6 +124,17 @@ def _load(args, make_session):
 
 
 def run_static(args: argparse.Namespace) -> int:
+    from estimators.sim import simulate
+    from estimators.sixpos import (
+        ACCEL_TERM_NAMES,
+        accel_truth,
+        gyro_truth,
+        session_positions,
+        six_position_accel,
+        six_position_spec,
+        six_position_test,
+    )
+
     session, g, latitude, model, rejected = _load(
         args,
         lambda model, g_site: (
@@ -237,6 +232,14 @@ def run_static(args: argparse.Namespace) -> int:
 
 
 def run_rate(args: argparse.Namespace) -> int:
+    from estimators.sixpos import (
+        find_rate_steps,
+        paper_rate_profile_rps,
+        rate_table_fit,
+        rate_table_truth,
+        simulate_rate_table,
+    )
+
     axis = axis_index(args.axis)
     try:
         profile = paper_rate_profile_rps(max_dps=args.max_dps, step_dps=args.step_dps)
@@ -262,7 +265,6 @@ def run_rate(args: argparse.Namespace) -> int:
         profile, steps.gyro_mean_rps, axis=axis, gyro_var_rps=steps.gyro_var_rps[:, axis]
     )
     if args.plot is not None:
-        # matplotlib loads only when a figure is asked for: every command module is imported at CLI start.
         from service.method_plots import plot_rate_table
 
         plot_rate_table(fit, args.plot)

@@ -1,11 +1,13 @@
 """``ins-health store put|check``: the daemon's passport store (service/passport_store.py).
 
-* ``put DIR VEHICLE IMU PASSPORT.json`` — validate a passport file (e.g. from
-  ``ins-health calibrate``) and file it for (vehicle, IMU) as a checksummed,
-  versioned entry, written atomically.
+* ``put DIR VEHICLE IMU PASSPORT.json [--replace]`` — validate a passport file
+  (e.g. from ``ins-health calibrate``) and file it for (vehicle, IMU) as a
+  checksummed, versioned entry, written atomically. A unit that already has an
+  entry keeps it unless ``--replace`` is given (exit status 2 otherwise).
 * ``check DIR`` — load every entry and report each unit as ``ok`` or with the
   reason it is unusable (missing, corrupt, checksum, version, filed under the
-  wrong unit). Exit status 0 if all are usable, 1 if any is not.
+  wrong unit). Exit status 0 if all are usable, 1 if any is not, 2 if DIR is
+  not a folder.
 """
 
 from __future__ import annotations
@@ -13,8 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from protocols.passport_codec import read_passport_json
-from service.passport_store import PassportStore
+from service.cli import UsageError
 
 
 def register(subparsers) -> None:
@@ -29,6 +30,9 @@ def register(subparsers) -> None:
     put.add_argument("vehicle", metavar="VEHICLE", help="vehicle id")
     put.add_argument("imu", type=int, metavar="IMU", help="IMU index on the vehicle")
     put.add_argument("passport", type=Path, metavar="PASSPORT.json", help="a passport file")
+    put.add_argument(
+        "--replace", action="store_true", help="overwrite the unit's entry if it has one"
+    )
     put.set_defaults(func=run_put)
     check = sub.add_parser("check", help="load every entry and report the unusable ones")
     check.add_argument("dir", type=Path, metavar="DIR", help="the passport store")
@@ -36,15 +40,29 @@ def register(subparsers) -> None:
 
 
 def run_put(args: argparse.Namespace) -> int:
+    from protocols.passport_codec import read_passport_json
+    from service.passport_store import PassportStore
+
     passport = read_passport_json(args.passport)
-    path = PassportStore(args.dir).put(args.vehicle, args.imu, passport)
-    print(f"{args.vehicle} IMU{args.imu}: {passport.unit_id} filed as {path}")
+    store = PassportStore(args.dir)
+    existing = store.path_for(args.vehicle, args.imu)
+    replaced = existing.exists()
+    if replaced and not args.replace:
+        raise UsageError(
+            f"{args.vehicle} IMU{args.imu} already has an entry ({existing}): give --replace to overwrite it"
+        )
+    path = store.put(args.vehicle, args.imu, passport)
+    note = " (replaced the previous entry)" if replaced else ""
+    print(f"{args.vehicle} IMU{args.imu}: {passport.unit_id} filed as {path}{note}")
     return 0
 
 
 def run_check(args: argparse.Namespace) -> int:
-    store = PassportStore(args.dir)
-    scan = store.scan()
+    from service.passport_store import PassportStore
+
+    if not args.dir.is_dir():
+        raise UsageError(f"{args.dir}: no such folder (the passport store is a folder)")
+    scan = PassportStore(args.dir).scan()
     for (vehicle, imu), passport in sorted(scan.passports.items()):
         print(
             f"{vehicle} IMU{imu}: ok ({passport.unit_id}, triads {', '.join(sorted(t.value for t in passport.triads))})"

@@ -1,0 +1,111 @@
+"""What ``ins-health`` loads to start: the parser imports no heavy module, and the defaults it states agree with the library's.
+
+The time itself is measured by ``benchmarks/bench_startup.py``; here only the
+import structure is checked, in a fresh interpreter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from importlib.metadata import version
+from pathlib import Path
+
+import pytest
+
+from service.cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+HEAVY = ("scipy", "matplotlib", "zenoh", "pymavlink", "filterpy")
+
+LOADED_BY_THE_PARSER = """
+import json, sys
+from service.cli import build_parser
+build_parser()
+print(json.dumps(sorted({name.split(".")[0] for name in sys.modules})))
+"""
+
+
+def test_building_the_parser_imports_no_heavy_module():
+    out = subprocess.run(
+        [sys.executable, "-c", LOADED_BY_THE_PARSER],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    loaded = set(json.loads(out))
+    # The probe sees imports at all: the parser does load the commands' own light modules.
+    assert {"service", "argparse", "numpy"} <= loaded
+    assert loaded.isdisjoint(HEAVY), sorted(loaded & set(HEAVY))
+
+
+def _leaves(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
+    """(command path, parser) of every command that runs (the leaves of the sub-command tree)."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield path, parser
+        return
+    for name, child in subs[0].choices.items():
+        yield from _leaves(child, (*path, name))
+
+
+def _action(path: tuple[str, ...], dest: str) -> argparse.Action:
+    leaf = dict(_leaves(build_parser()))[path]
+    (action,) = [a for a in leaf._actions if a.dest == dest]
+    return action
+
+
+def test_the_defaults_the_parser_states_are_the_library_s():
+    from estimators.audit import DEFAULT_REPLICAS
+    from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
+    from estimators.rocking import PAPER_REL_SIGMA
+    from estimators.sim import GRADES, OrientationScheme, Rounding
+    from estimators.temperature import DEFAULT_REFERENCE_TEMP_C, ORDERS
+    from service.demo import DEFAULT_SPEED
+
+    assert _action(("audit",), "replicas").default == DEFAULT_REPLICAS
+    assert _action(("diagnose",), "false_alarm").default == DEFAULT_FALSE_ALARM_PROB
+    assert _action(("demo",), "speed").default == DEFAULT_SPEED
+    assert _action(("rocking",), "amplitude_rel_sigma").default == PAPER_REL_SIGMA
+    assert _action(("rocking",), "frequency_rel_sigma").default == PAPER_REL_SIGMA
+    rounding = _action(("passport", "tilt"), "rounding")
+    assert list(rounding.choices) == [r.value for r in Rounding]
+    assert rounding.default == Rounding.TOWARD_ZERO.value
+    temperature = ("passport", "temperature")
+    assert _action(temperature, "orders").default == ",".join(map(str, ORDERS))
+    assert _action(temperature, "reference_temp_c").default == DEFAULT_REFERENCE_TEMP_C
+    assert list(_action(("simulate",), "grade").choices) == [g.value for g in GRADES]
+    assert list(_action(("simulate",), "orientations").choices) == [
+        s.value for s in OrientationScheme
+    ]
+
+
+FILE_OUTPUTS = {"--out", "--plot", "--truth", "--save-session", "--save-csv", "--report"}
+
+
+@pytest.mark.parametrize("path", [p for p, _ in _leaves(build_parser())], ids=" ".join)
+def test_every_option_naming_a_file_to_write_is_checked_before_the_work(path):
+    leaf = dict(_leaves(build_parser()))[path]
+    writes = {
+        a.option_strings[0]
+        for a in leaf._actions
+        if a.option_strings and a.option_strings[0] in FILE_OUTPUTS
+    }
+    # audit --report names a folder, which the report creates.
+    writes -= {"--report"} if path == ("audit",) else set()
+    checked = {flag for _, flag in leaf.get_default("_outputs") or ()}
+    assert writes == checked
+
+
+def test_version_is_the_installed_package_s():
+    out = subprocess.run(
+        [sys.executable, "-m", "service.cli", "--version"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert out == f"ins-health {version('ins-health')}\n"
