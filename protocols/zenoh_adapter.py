@@ -293,13 +293,19 @@ def open_session(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Session:
 
 @contextmanager
 def open_router(
-    listen_endpoint: str, *, extra: Mapping[str, Any] | None = None
+    listen_endpoint: str,
+    *,
+    connect: Sequence[str] = (),
+    extra: Mapping[str, Any] | None = None,
 ) -> Iterator[zenoh.Session]:
     """An in-process Zenoh router listening on ``listen_endpoint`` (e.g. ``tcp/127.0.0.1:7447``).
 
+    ``connect`` lists other routers' endpoints to mesh with (SCALING.md).
     Multicast scouting is off; closing the context closes the router.
     """
-    settings = ZenohSettings(mode=Mode.ROUTER, listen=(listen_endpoint,), extra=dict(extra or {}))
+    settings = ZenohSettings(
+        mode=Mode.ROUTER, listen=(listen_endpoint,), connect=tuple(connect), extra=dict(extra or {})
+    )
     session = open_session(settings)
     try:
         yield session

@@ -1,5 +1,7 @@
 """A Zenoh router as its own process: ``python -m protocols.zenoh_router --listen tcp/127.0.0.1:PORT``.
 
+``--connect ENDPOINT`` (repeatable) meshes it with other routers.
+
 The process prints one line ``ready <endpoint>`` on stdout once it listens,
 and runs until SIGTERM or SIGINT (or its stdin closes, when ``--stdin`` is
 given, so a parent that dies takes its router with it). Tests that must stop
@@ -16,6 +18,7 @@ import socket
 import subprocess
 import sys
 import threading
+from collections.abc import Sequence
 
 from protocols.zenoh_adapter import open_router
 
@@ -35,8 +38,11 @@ class RouterProcess:
     starts it again on the same endpoint.
     """
 
-    def __init__(self, endpoint: str, *, ready_timeout_s: float = 20.0):
+    def __init__(
+        self, endpoint: str, *, connect: Sequence[str] = (), ready_timeout_s: float = 20.0
+    ):
         self.endpoint = endpoint
+        self.connect = tuple(connect)
         self._timeout_s = float(ready_timeout_s)
         self._proc: subprocess.Popen[str] | None = None
 
@@ -44,7 +50,8 @@ class RouterProcess:
         if self.running:
             raise RuntimeError("the router is already running")
         proc = self._proc = subprocess.Popen(
-            [sys.executable, "-m", "protocols.zenoh_router", "--listen", self.endpoint, "--stdin"],
+            [sys.executable, "-m", "protocols.zenoh_router", "--listen", self.endpoint, "--stdin"]
+            + [arg for peer in self.connect for arg in ("--connect", peer)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -102,6 +109,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--listen", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
     parser.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        help="another router's endpoint to mesh with (repeatable)",
+    )
+    parser.add_argument(
         "--stdin", action="store_true", help="also stop when stdin reaches end of file"
     )
     args = parser.parse_args(argv)
@@ -115,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
             done.set()
 
         threading.Thread(target=stop_at_eof, daemon=True).start()
-    with open_router(args.listen):
+    with open_router(args.listen, connect=args.connect):
         print(f"ready {args.listen}", flush=True)
         # wait() with a timeout in a loop so the main thread stays responsive to signals.
         while not done.wait(timeout=0.5):
