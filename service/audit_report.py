@@ -132,7 +132,7 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
         [float(np.max(np.abs(v))) for v in (meas, *pooled.values()) if v.size]
         + [v for v in lam.values() if v]
     )
-    edges = np.linspace(-1.05 * top, 1.05 * top, 41)
+    edges = np.linspace(-1.05 * top, 1.05 * top, 41).tolist()
     fig, ax = plt.subplots(figsize=(7, 3.6))
     for name, colour in MODELS:
         if pooled.get(name, np.zeros(0)).size:
@@ -145,9 +145,10 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
                 color=colour,
                 label=f"{name} simulation ({result.replicas} replicas)",
             )
-        if lam[name]:
-            ax.axvline(lam[name], color=colour, ls="--", lw=1, label=f"λ0 from the {name} model")
-            ax.axvline(-lam[name], color=colour, ls="--", lw=1)
+        lam0 = lam[name]
+        if lam0:
+            ax.axvline(lam0, color=colour, ls="--", lw=1, label=f"λ0 from the {name} model")
+            ax.axvline(-lam0, color=colour, ls="--", lw=1)
     ax.hist(
         meas,
         bins=edges,

@@ -66,7 +66,8 @@ def _ext_hook(code: int, data: bytes) -> Any:
 
 def encode_state(state: dict[str, Any]) -> bytes:
     """msgpack bytes of a state dict (numpy arrays kept with dtype and shape)."""
-    return msgpack.packb(state, default=_default, use_bin_type=True, strict_types=False)
+    payload: bytes = msgpack.packb(state, default=_default, use_bin_type=True, strict_types=False)
+    return payload
 
 
 def decode_state(payload: bytes) -> dict[str, Any]:
@@ -162,5 +163,5 @@ class CheckpointStore:
     def __enter__(self) -> CheckpointStore:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -22,6 +22,7 @@ import dataclasses
 import math
 import tomllib
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -246,8 +247,14 @@ def _coerce(where: str, kind: Any, value: Any, base_dir: Path) -> Any:
 
 
 def _split_section(
-    name: str, cls: type, raw: Any, base_dir: Path, nested: str, parse, defaults: dict[str, Any]
-):
+    name: str,
+    cls: type,
+    raw: Any,
+    base_dir: Path,
+    nested: str,
+    parse: Callable[[dict[str, Any]], object],
+    defaults: dict[str, Any],
+) -> Any:
     """A section whose own keys are fields of ``cls`` and whose other keys configure a transport (``nested``)."""
     if not isinstance(raw, dict):
         raise ConfigError(f"[{name}] must be a table, got {raw!r}")
@@ -304,7 +311,7 @@ def config_from_dict(raw: dict[str, Any], *, base_dir: Path | None = None) -> Se
     unknown = sorted(set(raw) - set(_SECTIONS))
     if unknown:
         raise ConfigError(f"unknown sections {unknown}; known: {sorted(_SECTIONS)}")
-    parts = {
+    parts: dict[str, Any] = {
         name: _NESTED[name](raw[name], base)
         if name in _NESTED
         else _build_section(name, cls, raw[name], base)

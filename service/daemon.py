@@ -43,15 +43,23 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, TextIO
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 import zenoh
 
+from estimators.conventions import Triad
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from protocols._schema import SchemaError
-from protocols.events import Event, EventError, decode_event, encode_event
+from protocols.events import (
+    Event,
+    EventCause,
+    EventError,
+    Predicate,
+    decode_event,
+    encode_event,
+)
 from protocols.frames import FrameError, SampleBatch
 from protocols.mavlink_adapter import MavlinkLink, MavlinkSource
 from protocols.zenoh_adapter import (
@@ -123,7 +131,9 @@ class AlertPolicy:
         self.min_interval_s = float(min_interval_s)
         self.period_s = 1.0 / float(max_per_s)
         self._next_s = -math.inf
-        self._last: dict[tuple, float] = {}
+        self._last: dict[
+            tuple[str, int, Predicate, Triad | None, str | None, EventCause], float
+        ] = {}
         self.suppressed = 0
         self.deferred = 0
 
@@ -236,6 +246,15 @@ class _Wake:
             e.set()
 
 
+@dataclass
+class _Run:
+    """What :meth:`Service.run` opens before any frame is taken, for its whole duration."""
+
+    outbox: Outbox
+    checkpoints: CheckpointStore
+    wake: _Wake
+
+
 class Service:
     """The ins-health daemon (module docstring).
 
@@ -266,16 +285,29 @@ class Service:
             max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
             on_passport_error=self._passport_error,
         )
-        self.outbox: Outbox | None = None
-        self.checkpoints: CheckpointStore | None = None
+        self._run: _Run | None = None
         self.source: FrameSource | None = None
         self.sinks: list[EventSink] = []
         self._status_pub: StatusPublisher | None = None
         self.mavlink_sink: MavlinkAlertSink | None = None
         self.mavlink_source: MavlinkSource | None = None
-        self._wake: _Wake | None = None
         self._reported: set[str] = set()
         self.events_stored = 0
+
+    @property
+    def outbox(self) -> Outbox | None:
+        """The outbox, once :meth:`run` has opened it."""
+        return None if self._run is None else self._run.outbox
+
+    @property
+    def checkpoints(self) -> CheckpointStore | None:
+        """The checkpoint store, once :meth:`run` has opened it."""
+        return None if self._run is None else self._run.checkpoints
+
+    def _running(self) -> _Run:
+        if self._run is None:
+            raise RuntimeError("the service is not running (Service.run opens the outbox)")
+        return self._run
 
     def _say(self, text: str) -> None:
         print(text, file=self._log if self._log is not None else sys.stderr, flush=True)
@@ -291,9 +323,9 @@ class Service:
     def _passport_error(self, vehicle: str, imu: int, message: str) -> None:
         self._say(f"ins-health: {message}; {vehicle} IMU{imu} runs the stream checks only")
 
-    def _restore(self, vehicle: str, imu: int) -> dict | None:
+    def _restore(self, vehicle: str, imu: int) -> dict[str, Any] | None:
         try:
-            cp = self.checkpoints.load(f"{vehicle}/{imu}")
+            cp = self._running().checkpoints.load(f"{vehicle}/{imu}")
         except CheckpointError as exc:
             self._say(f"ins-health: {exc}; {vehicle} IMU{imu} starts fresh")
             return None
@@ -315,10 +347,11 @@ class Service:
     def _store(self, events: list[Event]) -> None:
         if not events:
             return
-        new = self.outbox.put_many((e.event_id, e.vehicle, encode_event(e)) for e in events)
+        run = self._running()
+        new = run.outbox.put_many((e.event_id, e.vehicle, encode_event(e)) for e in events)
         self.events_stored += new
         if new:
-            self._wake.set()
+            run.wake.set()
 
     def _on_reject(self, key: str, error: FrameError) -> None:
         try:
@@ -342,8 +375,8 @@ class Service:
             return
         self._store(events)
 
-    async def _frames(self) -> None:
-        async for batch in self.source:
+    async def _frames(self, source: FrameSource) -> None:
+        async for batch in source:
             self._process(batch)
             # Let the delivery and status tasks run between frames.
             await asyncio.sleep(0)
@@ -386,15 +419,17 @@ class Service:
 
     async def _deliver(self, sink: EventSink, wake: asyncio.Event, stop: asyncio.Event) -> None:
         retry_s = self.config.service.delivery_retry_s
+        outbox = self._running().outbox
         while True:
-            pending = self.outbox.pending(sink.name, limit=64)
+            pending = outbox.pending(sink.name, limit=64)
             if not pending:
                 if stop.is_set():
                     return
                 await _wait_any(wake, stop, timeout_s=None)
                 wake.clear()
                 continue
-            acked, refused = [], None
+            acked: list[int] = []
+            refused = None
             for p in pending:
                 try:
                     ok = await sink.deliver(decode_event(p.payload))
@@ -408,21 +443,21 @@ class Service:
                     refused = p
                     break
                 acked.append(p.seq)
-            self.outbox.ack(sink.name, acked)
+            outbox.ack(sink.name, acked)
             if refused is not None:
-                self.outbox.record_attempt(sink.name, [refused.seq])
+                outbox.record_attempt(sink.name, [refused.seq])
                 self.fleet.count_service(f"delivery.{sink.name}.retries")
                 if stop.is_set():
                     return
                 await _wait_any(stop, None, timeout_s=retry_s)
 
-    async def _publish_status(self) -> None:
+    async def _publish_status(self, publisher: StatusPublisher) -> None:
         extra = (
             {f"service.{k}": v for k, v in self.source.counters.as_dict("frames").items()}
             if self.source
             else {}
         )
-        if self.mavlink_sink is not None:
+        if self.mavlink_sink is not None and self.mavlink_source is not None:
             link = self.mavlink_sink.link.counters
             extra["service.mavlink.messages"] = link.messages
             extra.update({f"service.mavlink.samples.{k}": n for k, n in link.imu_samples.items()})
@@ -433,12 +468,12 @@ class Service:
             extra["service.mavlink.alerts_deferred"] = self.mavlink_sink.policy.deferred
             extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
             extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
-        counts = self.outbox.counts()
+        counts = self._running().outbox.counts()
         extra["service.outbox.stored"] = counts.stored
         extra.update({f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()})
         now = time.time()
         for vehicle in self.fleet.vehicles():
-            self._status_pub.publish(
+            publisher.publish(
                 self.fleet.status(
                     vehicle, service=self.config.service.name, now_unix_s=now, extra=extra
                 )
@@ -450,7 +485,7 @@ class Service:
         while not stop.is_set():
             self._store(self.fleet.tick(self._clock()))
             if self._status_pub is not None:
-                await self._publish_status()
+                await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
 
     async def checkpoint(self) -> None:
@@ -463,7 +498,7 @@ class Service:
             # One pipeline at a time, so frames keep flowing while a large fleet is saved.
             await asyncio.sleep(0)
         if payloads:
-            self.checkpoints.save_encoded(payloads)
+            self._running().checkpoints.save_encoded(payloads)
 
     async def _checkpoints(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -476,12 +511,16 @@ class Service:
         """Run until ``stop`` is set, then drain (module docstring). ``ready`` is set once frames are accepted."""
         cfg = self.config
         with contextlib.ExitStack() as resources:
+            names = self.sink_names()
             # Closed in reverse order on the way out, whatever happened in between.
-            self.outbox = resources.enter_context(Outbox(cfg.outbox_path, sinks=self.sink_names()))
-            self.checkpoints = resources.enter_context(CheckpointStore(cfg.checkpoint_path))
+            run = self._run = _Run(
+                resources.enter_context(Outbox(cfg.outbox_path, sinks=names)),
+                resources.enter_context(CheckpointStore(cfg.checkpoint_path)),
+                _Wake({name: asyncio.Event() for name in names}),
+            )
             self.fleet.set_restore(self._restore)
             self._startup_scan()
-            for key in self.checkpoints.keys():
+            for key in run.checkpoints.keys():
                 # Units seen before the restart come back with their positions before their first frame.
                 vehicle, imu = key.rsplit("/", 1)
                 self.fleet.admit(vehicle, int(imu))
@@ -519,20 +558,20 @@ class Service:
                     link, capacity=cfg.pipeline.queue_capacity * COALESCE_MAX
                 )
                 resources.callback(self.mavlink_source.close)
-            self._wake = _Wake({s.name: asyncio.Event() for s in self.sinks})
-            for ev in self._wake.events.values():
-                ev.set()  # deliver what a previous run left in the outbox
+            run.wake.set()  # deliver what a previous run left in the outbox
             drain = asyncio.Event()
             tasks = [
                 asyncio.create_task(
-                    self._deliver(s, self._wake.events[s.name], drain), name=f"deliver-{s.name}"
+                    self._deliver(s, run.wake.events[s.name], drain), name=f"deliver-{s.name}"
                 )
                 for s in self.sinks
             ]
             tasks.append(asyncio.create_task(self._status(stop), name="status"))
             tasks.append(asyncio.create_task(self._checkpoints(stop), name="checkpoints"))
-            inputs = [asyncio.create_task(self._frames(), name="frames")] if self.source else []
-            if self.mavlink_sink is not None:
+            inputs = []
+            if self.source is not None:
+                inputs.append(asyncio.create_task(self._frames(self.source), name="frames"))
+            if self.mavlink_sink is not None and self.mavlink_source is not None:
                 tasks.append(
                     asyncio.create_task(self._heartbeat(self.mavlink_sink, stop), name="heartbeat")
                 )
@@ -552,7 +591,10 @@ class Service:
         return names + ([MavlinkAlertSink.name] if self.config.mavlink.enabled else [])
 
     async def _drain(
-        self, inputs: list[asyncio.Task], tasks: list[asyncio.Task], drain: asyncio.Event
+        self,
+        inputs: list[asyncio.Task[None]],
+        tasks: list[asyncio.Task[None]],
+        drain: asyncio.Event,
     ) -> None:
         if self.source is not None:
             self.source.close()
@@ -563,7 +605,8 @@ class Service:
             await task
         await self.checkpoint()
         drain.set()
-        self._wake.set()
+        run = self._running()
+        run.wake.set()
         deliveries = [t for t in tasks if t.get_name().startswith("deliver-")]
         _done, pending = (
             await asyncio.wait(deliveries, timeout=DRAIN_TIMEOUT_S)
@@ -579,7 +622,7 @@ class Service:
                 self._say(
                     f"ins-health: task {t.get_name()} ended with {type(result).__name__}: {result}"
                 )
-        left = sum(self.outbox.counts().pending_by_sink.values())
+        left = sum(run.outbox.counts().pending_by_sink.values())
         if left:
             self._say(
                 f"ins-health: {left} event deliveries still pending; they are sent at the next start"

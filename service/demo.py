@@ -39,8 +39,8 @@ import numpy as np
 import zenoh
 
 from estimators.chain import ChainConfig, run_chain
-from estimators.conventions import Triad
-from estimators.passport import Grade, Passport, passport_from_estimates, per_sample_noise_std
+from estimators.conventions import Grade, Triad, reference_magnitude
+from estimators.passport import Passport, passport_from_estimates, per_sample_noise_std
 from estimators.session import ImuSession
 from estimators.sim import (
     Fault,
@@ -100,7 +100,8 @@ def calibrate_passport(
         sensor_ids={},
         created=created,
         noise_std={
-            t: per_sample_noise_std(result.positions, t, e.reference) for t, e in estimates.items()
+            t: per_sample_noise_std(result.positions, t, reference_magnitude(t, gravity_mps2))
+            for t in estimates
         },
         sample_rate_hz=session.rate_hz,
         grade=grade,
@@ -322,6 +323,9 @@ async def run_demo(
             wall0 = time.monotonic()
             with FramePublisher(vehicle, DEMO_VEHICLE, 0, batch_samples=DEMO_FRAME_SAMPLES) as pub:
                 s = sc.session
+                accel, gyro = s.accel_mps2, s.gyro_rps
+                if accel is None or gyro is None:
+                    raise ValueError("the demo session must hold both triads")
                 for k in range(n_frames):
                     sl = slice(
                         k * DEMO_FRAME_SAMPLES, min(s.n_samples, (k + 1) * DEMO_FRAME_SAMPLES)
@@ -330,7 +334,7 @@ async def run_demo(
                     delay = (t_end - float(s.t_s[0])) / speed - (time.monotonic() - wall0)
                     if delay > 0:
                         await asyncio.sleep(delay)
-                    pub.add(s.t_s[sl], s.accel_mps2[sl], s.gyro_rps[sl])
+                    pub.add(s.t_s[sl], accel[sl], gyro[sl])
                     if k % 10 == 0:
                         screen.progress(
                             _progress_text(sc, t_end, latest.get("status")), milestone=k % 500 == 0

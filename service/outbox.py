@@ -170,13 +170,13 @@ class Outbox:
     def ack(self, sink: str, seqs: Iterable[int]) -> None:
         """Mark events delivered to ``sink`` (they will not be sent to it again)."""
         self._check_sink(sink)
-        seqs = [(sink, int(s)) for s in seqs]
-        if not seqs:
+        rows = [(sink, int(s)) for s in seqs]
+        if not rows:
             return
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", seqs)
+                self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", rows)
                 self._prune_locked()
                 self._db.execute("COMMIT")
             except BaseException:
@@ -223,5 +223,5 @@ class Outbox:
     def __enter__(self) -> Outbox:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

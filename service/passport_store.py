@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -152,7 +153,7 @@ class PassportStore:
 
     def keys(self) -> list[tuple[str, int]]:
         """Every (vehicle, IMU) with an entry file, sorted."""
-        out = []
+        out: list[tuple[str, int]] = []
         if not self.root.is_dir():
             return out
         for vdir in sorted(p for p in self.root.iterdir() if p.is_dir()):
@@ -162,7 +163,7 @@ class PassportStore:
                     out.append((vdir.name, int(m.group(1))))
         return out
 
-    def scan(self, expected: list[tuple[str, int]] = ()) -> StoreScan:
+    def scan(self, expected: Iterable[tuple[str, int]] = ()) -> StoreScan:
         """Load every entry (and report each ``expected`` unit that has none)."""
         scan = StoreScan()
         for key in sorted(set(self.keys()) | set(expected)):

@@ -84,10 +84,12 @@ from estimators.stream_validity import (
     CrossImuReport,
     StreamValidity,
     ValidityLimits,
+    ValidityReport,
 )
 from estimators.temperature import to_reference_temperature
 from protocols.events import (
     Event,
+    EventCause,
     ImuState,
     ImuStatus,
     Predicate,
@@ -241,7 +243,7 @@ def _f0_config(
         lambda0=lam.lambda0,
         reference=ref,
         bias_norm=tuple(nominal[:3]),
-        matrix=canonical_triad_matrix(nominal),
+        matrix=tuple(map(tuple, canonical_triad_matrix(nominal))),
     )
     return cfg, lam.lambda0, f"F0 {tp.triad.value}: λ0 {lam.lambda0:.3g}"
 
@@ -310,7 +312,9 @@ class StaticGate:
         self._brk = np.zeros(0, dtype=bool)  # a segment ends after this sample
         self._next = 0  # next sample to release
 
-    def push(self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, decisions: FinalDecisions):
+    def push(
+        self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, decisions: FinalDecisions
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Buffer samples and the decisions that became final; returns ``(t, accel, gyro, static)`` released."""
         if t_s.size:
             self._t = np.concatenate([self._t, t_s])
@@ -325,7 +329,7 @@ class StaticGate:
             self._brk = np.concatenate([self._brk, decisions.brk[skip:]])
         return self._release()
 
-    def _release(self):
+    def _release(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         m, d0 = self.margin, self._d0
         end = d0 + self._dec.size
         upto = end - m
@@ -372,6 +376,15 @@ class StaticGate:
         return gate
 
 
+@dataclass
+class _Detection:
+    """What an :class:`ImuPipeline` builds once the sample rate is known (it sets the detector's window)."""
+
+    rate_hz: float
+    accumulator: PositionAccumulator
+    gate: StaticGate
+
+
 class ImuPipeline:
     """The streaming chain of one IMU (module docstring). Small state: see :meth:`state_dict`.
 
@@ -397,10 +410,8 @@ class ImuPipeline:
         self.passport_note = passport_note
         self.options = options
         self.validity = StreamValidity(limits=options.validity)
-        self.rate_hz: float | None = None
+        self.detection: _Detection | None = None
         self.f0_persist = 1
-        self.accumulator: PositionAccumulator | None = None
-        self.gate: StaticGate | None = None
         self.checks: dict[Triad, _TriadCheck] = {}
         self._probe: list[SampleBatch] = []
         self.last_seq: int | None = None
@@ -422,7 +433,9 @@ class ImuPipeline:
         if n:
             self.counters[name] = self.counters.get(name, 0) + int(n)
 
-    def _event(self, t_s: float, predicate: Predicate, cause, severity: Severity, **kw) -> Event:
+    def _event(
+        self, t_s: float, predicate: Predicate, cause: EventCause, severity: Severity, **kw: Any
+    ) -> Event:
         return make_event(
             vehicle=self.vehicle,
             imu=self.imu,
@@ -433,19 +446,23 @@ class ImuPipeline:
             **kw,
         )
 
-    def _setup(self, rate_hz: float) -> None:
-        self.rate_hz = rate_hz
+    def _setup(self, rate_hz: float) -> _Detection:
         self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
         detector = detector_config(self.options.detector, self.passport, rate_hz)
-        self.accumulator = PositionAccumulator(
-            rate_hz=rate_hz, detector_config=detector, config=self.options.positions
+        self.detection = _Detection(
+            rate_hz,
+            PositionAccumulator(
+                rate_hz=rate_hz, detector_config=detector, config=self.options.positions
+            ),
+            StaticGate(self.options.positions.trim_samples(rate_hz)),
         )
-        self.gate = StaticGate(self.options.positions.trim_samples(rate_hz))
-        if self.passport is None:
-            return
-        for triad, tp in self.passport.triads.items():
-            cfg, lam, note = _f0_config(tp, self.options, rate_hz)
-            self.checks[triad] = _TriadCheck(tp, cfg, lam, note, _new_estimator(tp, self.options))
+        if self.passport is not None:
+            for triad, tp in self.passport.triads.items():
+                cfg, lam, note = _f0_config(tp, self.options, rate_hz)
+                self.checks[triad] = _TriadCheck(
+                    tp, cfg, lam, note, _new_estimator(tp, self.options)
+                )
+        return self.detection
 
     # ------------------------------------------------------------------ input
 
@@ -509,21 +526,21 @@ class ImuPipeline:
         self.last_batch_n = batch.n_samples
         self.n_samples += int(t_k.size)
         self._count("samples.accepted", int(t_k.size))
-        if self.rate_hz is None:
+        if self.detection is None:
             self._probe.append(good)
             if sum(b.n_samples for b in self._probe) < RATE_PROBE_SAMPLES:
                 return events
             times = np.concatenate([b.t_s for b in self._probe])
-            self._setup(float(1.0 / np.median(np.diff(times))))
+            det = self._setup(float(1.0 / np.median(np.diff(times))))
             batches, self._probe = self._probe, []
             for b in batches:
-                events += self._temperature_range(b) + self._run(b)
+                events += self._temperature_range(b) + self._run(det, b)
             return events
-        return events + self._temperature_range(good) + self._run(good)
+        return events + self._temperature_range(good) + self._run(self.detection, good)
 
     def _jump_s(self) -> float:
         """A step forward in sample time larger than this is a time jump (data lost or a clock step)."""
-        return TIME_JUMP_PERIODS / self.rate_hz if self.rate_hz else 1.0
+        return TIME_JUMP_PERIODS / self.detection.rate_hz if self.detection else 1.0
 
     def _ordered(self, batch: SampleBatch) -> np.ndarray:
         """(N,) samples that are finite and later than every sample before them (this frame and the last accepted)."""
@@ -581,18 +598,15 @@ class ImuPipeline:
 
     # ------------------------------------------------------------------ the chain
 
-    def _run(self, b: SampleBatch) -> list[Event]:
+    def _run(self, det: _Detection, b: SampleBatch) -> list[Event]:
         accel, gyro = b.accel_mps2, b.gyro_rps
         temp = b.temp_c
         if temp is not None and self.checks:
             accel, gyro = self._temperature(accel, gyro, temp)
-        positions, decisions = self._feed(b.t_s, accel, gyro, temp)
-        events = self._f0_all(*self.gate.push(b.t_s, accel, gyro, decisions))
+        # Static detector and positions over the batch: the per-sample results, vectorized where the stream is clean.
+        positions, decisions = det.accumulator.update_batch(b.t_s, accel, gyro, temp)
+        events = self._f0_all(*det.gate.push(b.t_s, accel, gyro, decisions))
         return events + self._positions(positions)
-
-    def _feed(self, t_s, accel, gyro, temp) -> tuple[list[Position], FinalDecisions]:
-        """Static detector and positions over the batch: the per-sample results, vectorized where the stream is clean."""
-        return self.accumulator.update_batch(t_s, accel, gyro, temp)
 
     def _f0_all(
         self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, static: np.ndarray
@@ -630,9 +644,11 @@ class ImuPipeline:
             return events
         for triad, check in self.checks.items():
             model = check.passport.temperature
-            if model is None or not model.bounded:
+            if model is None:
                 continue
             lo, hi = model.valid_min_c, model.valid_max_c
+            if lo is None or hi is None:  # a schema-1 model: no range to leave
+                continue
             outside = ~model.in_range(b.temp_c)
             if check.f0 is not None:
                 check.record_temperature_skip(b.t_s, outside)
@@ -699,11 +715,15 @@ class ImuPipeline:
         events: list[Event] = []
         if k >= 0 and not check.f0_failing:
             onset = k - self.f0_persist + 1
-            t_on, r_on = (
-                (float(t_s[onset]), float(res.residual[onset]))
-                if onset >= 0
-                else check.f0_run_onset
-            )
+            if onset >= 0:
+                t_on, r_on = float(t_s[onset]), float(res.residual[onset])
+            elif check.f0_run_onset is not None:
+                t_on, r_on = check.f0_run_onset
+            else:
+                raise ValueError(
+                    f"{self.vehicle} IMU{self.imu} {triad.value}: an F0 failure run carried over "
+                    "from the last batch has no recorded onset"
+                )
             check.f0_failing, check.f0_fail_t_s = True, t_on
             events.append(
                 self._event(
@@ -729,17 +749,15 @@ class ImuPipeline:
             self.n_positions += 1
             self._count("positions")
             for triad, check in self.checks.items():
-                if (
-                    check.estimator is None
-                    or pos.t_start_s < check.since_t_s
-                    or pos.mean(triad) is None
-                ):
+                est = check.estimator
+                mean, cov = pos.mean(triad), pos.cov(triad)
+                if est is None or pos.t_start_s < check.since_t_s or mean is None or cov is None:
                     continue
                 model = check.passport.temperature
                 if (
                     model is not None
                     and pos.temp_mean_c is not None
-                    and not model.in_range(pos.temp_mean_c)[0]
+                    and not model.in_range(np.array([pos.temp_mean_c]))[0]
                 ):
                     self._count(
                         f"positions.skipped_temperature.{triad.value}"
@@ -748,18 +766,16 @@ class ImuPipeline:
                 ref = self.options.reference(triad)
                 try:
                     # The bias wander does not average down within a position (audited model).
-                    check.estimator.update(
-                        pos.mean(triad) / ref,
-                        (pos.cov(triad) + check.passport.position_cov_floor()) / ref**2,
-                    )
+                    est.update(mean / ref, (cov + check.passport.position_cov_floor()) / ref**2)
                 except ValueError:
                     self._count(f"positions.rejected.{triad.value}")
                     continue
-                events += self._diagnose(triad, check, pos.t_end_s)
+                events += self._diagnose(triad, check, est, pos.t_end_s)
         return events
 
-    def _diagnose(self, triad: Triad, check: _TriadCheck, t_s: float) -> list[Event]:
-        est = check.estimator
+    def _diagnose(
+        self, triad: Triad, check: _TriadCheck, est: RecursiveNineParam, t_s: float
+    ) -> list[Event]:
         if est.n_positions < self.options.min_positions:
             return []
         diag = diagnose(
@@ -805,7 +821,7 @@ class ImuPipeline:
             )  # fmt: skip
         return events
 
-    def _validity_events(self, report, t_s: float) -> list[Event]:
+    def _validity_events(self, report: ValidityReport, t_s: float) -> list[Event]:
         events: list[Event] = []
         limits = self.options.validity
         for c in report.changes:
@@ -872,12 +888,13 @@ class ImuPipeline:
 
     def finish(self) -> list[Event]:
         """End of data: finalize the static detector and diagnose the positions still pending."""
-        if self.accumulator is None:
+        det = self.detection
+        if det is None:
             return []
-        positions = self.accumulator.flush()
+        positions = det.accumulator.flush()
         empty = np.zeros((0, 3))
         return self._f0_all(
-            *self.gate.push(np.zeros(0), empty, empty, self.accumulator.detector.last_step())
+            *det.gate.push(np.zeros(0), empty, empty, det.accumulator.detector.last_step())
         ) + self._positions(positions)
 
     # ------------------------------------------------------------------ status and checkpoints
@@ -892,7 +909,7 @@ class ImuPipeline:
             return ImuState.FAULT
         if self.error_dense or any(c.temp_out_edge_c is not None for c in self.checks.values()):
             return ImuState.WARNING
-        if self.rate_hz is None or self.n_positions < self.options.min_positions:
+        if self.detection is None or self.n_positions < self.options.min_positions:
             return ImuState.STARTING
         return ImuState.OK
 
@@ -911,7 +928,7 @@ class ImuPipeline:
                 parts.append(
                     f"{name} temperature model has no valid range (passport schema 1): used at any temperature"
                 )
-            elif check.temp_out_edge_c is not None:
+            elif model is not None and check.temp_out_edge_c is not None:
                 parts.append(
                     f"{name} beyond the temperature model's {model.valid_min_c:g}…{model.valid_max_c:g} °C: F0 and diagnosis skip samples there"
                 )
@@ -934,11 +951,12 @@ class ImuPipeline:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume after a restart (positions and estimates included)."""
+        det = self.detection
         return {
             "version": PIPELINE_STATE_VERSION,
             "vehicle": self.vehicle,
             "imu": self.imu,
-            "rate_hz": self.rate_hz,
+            "rate_hz": None if det is None else det.rate_hz,
             "last_seq": self.last_seq,
             "last_t_s": self.last_t_s,
             "last_batch_n": self.last_batch_n,
@@ -948,8 +966,8 @@ class ImuPipeline:
             "error_dense": self.error_dense,
             "temperature_compensated": self.temperature_compensated,
             "validity": self.validity.state_dict(),
-            "accumulator": None if self.accumulator is None else self.accumulator.state_dict(),
-            "gate": None if self.gate is None else self.gate.state_dict(),
+            "accumulator": None if det is None else det.accumulator.state_dict(),
+            "gate": None if det is None else det.gate.state_dict(),
             "counters": dict(self.counters),
             "checks": {
                 t.value: {
@@ -979,9 +997,9 @@ class ImuPipeline:
             )
         try:
             if state["rate_hz"] is not None:
-                self._setup(float(state["rate_hz"]))
-                self.accumulator = PositionAccumulator.from_state_dict(state["accumulator"])
-                self.gate = StaticGate.from_state(state["gate"])
+                det = self._setup(float(state["rate_hz"]))
+                det.accumulator = PositionAccumulator.from_state_dict(state["accumulator"])
+                det.gate = StaticGate.from_state(state["gate"])
             self.last_seq = state["last_seq"]
             self.last_t_s = state["last_t_s"]
             self.last_batch_n = int(state["last_batch_n"])
@@ -1089,11 +1107,12 @@ class FleetProcessor:
         self.cross: dict[str, CrossImuMonitor] = {}
         self.vehicle_counters: dict[str, dict[str, int]] = {}
         self.service_counters: dict[str, int] = {}
-        self._restore: Callable[[str, int], dict | None] | None = None
-        self._saved: dict[tuple[str, int], tuple] = {}
+        self._restore: Callable[[str, int], dict[str, Any] | None] | None = None
+        # (samples, counts, timed out) of each pipeline at the last checkpoint (changed_keys).
+        self._saved: dict[tuple[str, int], tuple[int, int, bool]] = {}
         self._imu_count: dict[str, int] = {}
 
-    def set_restore(self, load: Callable[[str, int], dict | None]) -> None:
+    def set_restore(self, load: Callable[[str, int], dict[str, Any] | None]) -> None:
         """Where new pipelines take their checkpointed state from (``None``: start fresh)."""
         self._restore = load
 
