@@ -7,6 +7,7 @@ import json
 import socket
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -99,6 +100,10 @@ def run_fleet(fleet, batches, *, finish: bool = True) -> list:
     return events
 
 
+STOP_TIMEOUT_S = 60.0
+"""How long a stopped service may take to drain and write its checkpoints (the unit's TimeoutStopSec is 20 s)."""
+
+
 class ServiceThread:
     """An in-process :class:`service.daemon.Service` on its own event loop in a thread (a context manager).
 
@@ -163,7 +168,11 @@ class ServiceThread:
     def __exit__(self, *exc) -> None:
         if self._thread.is_alive():
             self._loop.call_soon_threadsafe(self._stop.set)
-            self._thread.join(60.0)
+            self._thread.join(STOP_TIMEOUT_S)
+        if self._thread.is_alive() and exc[0] is None:
+            raise AssertionError(
+                f"the service did not stop within {STOP_TIMEOUT_S} s of the stop request"
+            )
         if self._error is not None and exc[0] is None:
             raise self._error
 
@@ -240,3 +249,30 @@ def mavlink_packets(session, kind, *, imu_id: int = 0, start_s: float = -1e9) ->
         )
         out.append(msg.pack(mav))
     return out
+
+
+def receive_until(
+    conn, types: list[str], done: Callable[[list], bool], *, timeout_s: float, what: str
+) -> list:
+    """MAVLink messages of ``types`` from a pymavlink connection until ``done(messages)`` holds.
+
+    ``timeout_s`` is a deadline for the whole wait, not an idle timeout: a peer
+    that keeps sending other matching messages (heartbeats) cannot extend it.
+    """
+    deadline = time.monotonic() + timeout_s
+    got: list = []
+    while not done(got):
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise AssertionError(
+                f"timed out after {timeout_s} s waiting for {what}; got {dict(Counter(m.get_type() for m in got))}"
+            )
+        msg = conn.recv_match(type=types, blocking=True, timeout=min(left, 0.5))
+        if msg is not None:
+            got.append(msg)
+    return got
+
+
+def of_type(messages: list, kind: str) -> list:
+    """The MAVLink messages of one type, in arrival order."""
+    return [m for m in messages if m.get_type() == kind]

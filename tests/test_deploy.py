@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import configparser
 import json
+import queue
 import re
 import shlex
-import threading
 import tomllib
 from pathlib import Path
 
 import pytest
 import zenoh
-from service_support import free_tcp_port, zenoh_client_config
+from service_support import free_tcp_port, wait_until, zenoh_client_config
 
 from service.cli import build_parser
 from service.config import config_from_dict, load_config
@@ -37,19 +37,21 @@ def check_json5(path: Path) -> None:
         zenoh.open(zenoh_client_config(port)) as pub_s,
         zenoh.open(zenoh_client_config(port)) as sub_s,
     ):
-        got = threading.Event()
-        denied = []
-        sub_s.declare_subscriber("ins/*/health/events", lambda s: got.set())
-        sub_s.declare_subscriber("other/**", lambda s: denied.append(s))
+        allowed, denied = queue.Queue(), queue.Queue()
+        sub_s.declare_subscriber("ins/*/health/events", lambda s: allowed.put(s.payload.to_bytes()))
+        sub_s.declare_subscriber("other/**", lambda s: denied.put(s.payload.to_bytes()))
         pub = pub_s.declare_publisher("ins/v1/health/events")
         other = pub_s.declare_publisher("other/x")
-        for _ in range(500):
-            if pub.matching_status.matching:
-                break
-            got.wait(0.01)
+        wait_until(lambda: pub.matching_status.matching, timeout_s=5.0, what="a route for ins/**")
         pub.put(b"event")
-        assert got.wait(5.0)
-        assert not other.matching_status.matching and denied == []
+        assert allowed.get(timeout=5.0) == b"event"
+        # The denied key is published too; the allowed put that follows it on the same
+        # session and link arrives after it would have, so its arrival ends the wait.
+        other.put(b"must not pass")
+        pub.put(b"after")
+        assert allowed.get(timeout=5.0) == b"after"
+        assert denied.empty(), f"other/x was routed: {denied.get()!r}"
+        assert not other.matching_status.matching
 
 
 def check_unit(path: Path) -> None:

@@ -75,18 +75,27 @@ def test_schema_version_mismatch_is_a_clear_error(tmp_path):
 
 
 def test_concurrent_writers_from_threads(tmp_path):
+    """Four threads put 50 events each through one outbox: all 200 are stored, none raised or hung."""
+    errors: list[BaseException] = []
+
     with Outbox(tmp_path / "o.sqlite", sinks=("s",)) as ob:
 
         def write(t):
-            for k in range(50):
-                ob.put(f"{t:016x}{k:016x}", "v", b"p")
+            try:
+                for k in range(50):
+                    ob.put(f"{t:016x}{k:016x}", "v", b"p")
+            except BaseException as exc:
+                errors.append(exc)
 
         threads = [threading.Thread(target=write, args=(t,)) for t in range(4)]
         for th in threads:
             th.start()
         for th in threads:
             th.join(timeout=30)
-        assert ob.counts().stored == 200 and len(ob.pending("s", limit=1000)) == 200
+        assert not any(th.is_alive() for th in threads), "a writer thread did not finish in 30 s"
+        assert errors == []
+        expected = sorted(f"{t:016x}{k:016x}" for t in range(4) for k in range(50))
+        assert ob.counts().stored == 200 and sorted(ids(ob.pending("s", limit=1000))) == expected
 
 
 _WRITER = r"""
@@ -101,6 +110,10 @@ while True:
 """
 
 
+KILL_AFTER = 200
+"""The writer is killed once it has reported this many stored events (and one more)."""
+
+
 def test_kill_9_while_writing_keeps_every_committed_event(tmp_path):
     """A writer is SIGKILLed mid-stream: every event it reported as stored is there, the file opens cleanly."""
     path = tmp_path / "o.sqlite"
@@ -113,10 +126,12 @@ def test_kill_9_while_writing_keeps_every_committed_event(tmp_path):
     reported = -1
     for line in proc.stdout:
         reported = int(line)
-        if reported >= 200:
+        if reported >= KILL_AFTER:
             break
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=10)
+    # The kill must land mid-stream: a writer that died or stopped early proves nothing.
+    assert reported == KILL_AFTER, f"the writer stopped after reporting {reported} events"
     with Outbox(path, sinks=("s",)) as ob:
         got = ids(ob.pending("s", limit=100_000))
     assert got[: reported + 1] == [f"{k:032x}" for k in range(reported + 1)]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -15,6 +16,8 @@ from service_support import (
     free_tcp_port,
     free_udp_port,
     mavlink_packets,
+    of_type,
+    receive_until,
     service_config,
     wait_subscribed,
     wait_until,
@@ -84,14 +87,15 @@ def test_statustext_alerts_reach_a_udp_peer_with_their_severity(tmp_path):
             wait_until(
                 lambda: received() == len(packets), timeout_s=30, what="every IMU message read"
             )
-            texts, heartbeat = [], None
-            while len(texts) < 2:
-                msg = peer.recv_match(type=["STATUSTEXT", "HEARTBEAT"], blocking=True, timeout=30)
-                assert msg is not None, "no STATUSTEXT within 30 s"
-                if msg.get_type() == "HEARTBEAT":
-                    heartbeat = msg
-                else:
-                    texts.append((msg.severity, msg.text))
+            got = receive_until(
+                peer,
+                ["STATUSTEXT", "HEARTBEAT"],
+                lambda msgs: len(of_type(msgs, "STATUSTEXT")) >= 2 and of_type(msgs, "HEARTBEAT"),
+                timeout_s=30,
+                what="two STATUSTEXT and a HEARTBEAT",
+            )
+            texts = [(m.severity, m.text) for m in of_type(got, "STATUSTEXT")]
+            heartbeat = of_type(got, "HEARTBEAT")[0]
         finally:
             peer.close()
         stored = stored_events(svc)
@@ -101,7 +105,7 @@ def test_statustext_alerts_reach_a_udp_peer_with_their_severity(tmp_path):
         (int(Severity.ERROR), alert_text(stored[1])),
     ]
     assert texts[1][1].startswith("IMU0 ACC Z scale") and len(texts[1][1]) <= 50
-    assert heartbeat is not None and heartbeat.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
+    assert heartbeat.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
     assert heartbeat.get_srcComponent() == mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
 
 
@@ -141,11 +145,14 @@ def test_alerts_are_rate_limited_while_every_event_is_kept(tmp_path):
             )
             wait_until(lambda: svc.call(lambda: svc.service.outbox.counts().pending_by_sink["mavlink"]) == 0,
                        timeout_s=30, what="the alert sink to go through the events")  # fmt: skip
+            # Every alert was sent before this point: read until the link is quiet, within a deadline.
+            deadline = time.monotonic() + 30
             texts = []
             while (
                 msg := peer.recv_match(type="STATUSTEXT", blocking=True, timeout=0.5)
             ) is not None:
                 texts.append(msg.text)
+                assert time.monotonic() < deadline, f"STATUSTEXT still coming after 30 s: {texts}"
         finally:
             peer.close()
         policy = svc.call(lambda: svc.service.mavlink_sink.policy)
