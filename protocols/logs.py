@@ -29,13 +29,13 @@ is in the docstring) and the tests read it back with pymavlink's ``DFReader``.
 
 from __future__ import annotations
 
-import math
 import os
 import struct
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pymavlink import DFReader, mavutil
@@ -52,58 +52,129 @@ from protocols.mavlink_adapter import (
     imu_message,
     use_mavlink2,
 )
+from protocols.ulog import ULOG_MAGIC, ImuRows, UlogImuStream, session_triads
 
 DATAFLASH_IMU_NAMES = ("IMU", "IMU2", "IMU3")
 _DF_HEAD = b"\xa3\x95"
 _DF_FMT_ID = 0x80
+_TEXT_HEAD_BYTES = 4096
+"""How far into a text DataFlash log its first ``FMT`` line may be (after the firmware's header lines)."""
+_FLUSH_MESSAGES = 256
+"""pymavlink messages of one IMU gathered before they are handed on as one block of rows."""
 
 
 class LogFormat(StrEnum):
     TLOG = "tlog"
     DATAFLASH_BIN = "bin"
     DATAFLASH_TEXT = "log"
+    ULOG = "ulg"
 
 
-def detect_format(path: str | os.PathLike) -> LogFormat:
-    """The format of a log file, from its first bytes (the extension is only a tie-breaker).
+class NoImuDataError(ValueError):
+    """A readable log that holds no IMU data; the message names what it holds."""
 
-    Raises ``ValueError`` for a file that is none of the three.
+
+def detect_format(path: str | os.PathLike[str]) -> LogFormat:
+    """The format of a log file, from its content (never from the extension).
+
+    ULog by its magic bytes; binary DataFlash by its message header ``A3 95``; text
+    DataFlash by an ``FMT,`` line within the first :data:`_TEXT_HEAD_BYTES` of a text
+    file (firmware writes header lines such as its name and free RAM first, CRLF or
+    LF); a tlog by a MAVLink 1 or 2 start byte after the first 8-byte time stamp.
+    Raises ``ValueError`` for a file that is none of these.
     """
     path = Path(path)
     with open(path, "rb") as fh:
-        head = fh.read(64)
+        head = fh.read(_TEXT_HEAD_BYTES)
+    if head.startswith(ULOG_MAGIC):
+        return LogFormat.ULOG
     if head.startswith(_DF_HEAD):
         return LogFormat.DATAFLASH_BIN
-    if head.lstrip().startswith(b"FMT,"):
-        return LogFormat.DATAFLASH_TEXT
+    first_fmt = head.find(b"FMT,")
+    if first_fmt >= 0 and (first_fmt == 0 or head[first_fmt - 1] in b"\r\n"):
+        before = head[:first_fmt]
+        if all(32 <= c < 127 or c in b"\r\n\t" for c in before):
+            return LogFormat.DATAFLASH_TEXT
     # A tlog record: 8-byte stamp, then a MAVLink 1 (0xFE) or 2 (0xFD) start byte.
     if len(head) > 8 and head[8] in (0xFE, 0xFD):
         return LogFormat.TLOG
     raise ValueError(
-        f"{path}: not a MAVLink .tlog or a DataFlash .bin/.log (first bytes {head[:12].hex()})"
+        f"{path}: not a MAVLink .tlog, a DataFlash .bin/.log or a PX4 ULog (first bytes {head[:12].hex()})"
     )
 
 
 @dataclass
 class LogStats:
-    """What a :class:`LogReader` read and left out."""
+    """What a :class:`LogReader` read and left out.
+
+    ``messages``: IMU messages (or topics) read, by kind; ``samples``: samples kept per IMU;
+    ``dropped``: samples left out, by reason; ``sources``: the message or topic of each IMU;
+    ``clipped``: clipped samples per IMU (ULog: samples with a clipping flag; DataFlash: the
+    growth of ``VIBE``'s clip counters over the log; absent when the log does not say);
+    ``held``: every message type (topic instance) of the log with its count; ``skipped``:
+    IMU instances not replayed and why.
+    """
 
     messages: dict[str, int] = field(default_factory=dict)
     samples: dict[int, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)
+    sources: dict[int, str] = field(default_factory=dict)
+    clipped: dict[int, int] = field(default_factory=dict)
+    held: dict[str, int] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
 
-    def _drop(self, reason: str) -> None:
-        self.dropped[reason] = self.dropped.get(reason, 0) + 1
+    def _drop(self, reason: str, n: int = 1) -> None:
+        if n:
+            self.dropped[reason] = self.dropped.get(reason, 0) + n
+
+    def holds(self) -> str:
+        """What the log holds, for a message: message types (topics) with their counts."""
+        held = (
+            ", ".join(f"{k} {n}" for k, n in sorted(self.held.items()) if n) or "nothing readable"
+        )
+        skipped = "; ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
+        return held + (f"; left out: {skipped}" if skipped else "")
 
 
 @dataclass
 class _Buffer:
-    t_s: list[float] = field(default_factory=list)
-    accel_mps2: list[tuple[float, float, float]] = field(default_factory=list)
-    gyro_rps: list[tuple[float, float, float]] = field(default_factory=list)
-    temp_c: list[float | None] = field(default_factory=list)
+    parts: list[ImuRows] = field(default_factory=list)
+    n: int = 0
     seq: int = 0
     last_t_s: float = -np.inf
+
+
+_Sample = tuple[
+    str, int, float, tuple[float, float, float], tuple[float, float, float], float | None
+]
+
+
+def _rows_from_samples(samples: Iterator[_Sample], flush: int) -> Iterator[ImuRows]:
+    """Blocks of rows from per-message samples, one IMU's block each time it has ``flush`` messages."""
+    pending: dict[int, list[_Sample]] = {}
+    for s in samples:
+        block = pending.setdefault(s[1], [])
+        block.append(s)
+        if len(block) >= flush:
+            yield _block(block)
+            pending[s[1]] = []
+    for imu in sorted(pending):
+        if pending[imu]:
+            yield _block(pending[imu])
+
+
+def _block(block: list[_Sample]) -> ImuRows:
+    kinds = {s[0] for s in block}
+    temps = [s[5] for s in block]
+    return ImuRows(
+        block[0][0] if len(kinds) == 1 else "/".join(sorted(kinds)),
+        block[0][1],
+        np.array([s[2] for s in block], dtype=float),
+        np.array([s[3] for s in block], dtype=float),
+        np.array([s[4] for s in block], dtype=float),
+        None if any(t is None for t in temps) else np.array(temps, dtype=float),
+        np.zeros(len(block), dtype=bool),
+    )
 
 
 class LogReader:
@@ -118,12 +189,14 @@ class LogReader:
     raw_scale, imu_index : MAVLink settings (:mod:`protocols.mavlink_adapter`), tlog only.
 
     After iterating, :attr:`stats` holds the counts. Iterating again reads the
-    file again and gives the same batches.
+    file again and gives the same batches. A log with no IMU data raises
+    :class:`NoImuDataError` at the end of the iteration, naming what it holds.
+    :attr:`fraction_read` follows the reading (0 … 1) for progress lines.
     """
 
     def __init__(
         self,
-        path: str | os.PathLike,
+        path: str | os.PathLike[str],
         *,
         vehicle: str = "replay",
         batch_samples: int = 1000,
@@ -141,75 +214,125 @@ class LogReader:
         self._batch = int(batch_samples)
         self._raw_scale = raw_scale
         self._imu_index = imu_index
+        self._ulog = UlogImuStream(self.path) if self.format is LogFormat.ULOG else None
         self.stats = LogStats()
+        self._fraction: Callable[[], float] = lambda: 0.0
+
+    @property
+    def fraction_read(self) -> float:
+        return float(self._fraction())
 
     def __iter__(self) -> Iterator[SampleBatch]:
         self.stats = LogStats()
         buffers: dict[int, _Buffer] = {}
+        for rows in self._rows():
+            stats = self.stats
+            n = rows.t_s.size
+            stats.messages[rows.kind] = stats.messages.get(rows.kind, 0) + n
+            stats.sources.setdefault(rows.imu, rows.kind)
+            buf = buffers.setdefault(rows.imu, _Buffer())
+            finite = (
+                np.isfinite(rows.t_s)
+                & np.isfinite(rows.accel_mps2).all(axis=1)
+                & np.isfinite(rows.gyro_rps).all(axis=1)
+            )
+            if rows.temp_c is not None:
+                finite &= np.isfinite(rows.temp_c)
+            stats._drop("non_finite", int(n - finite.sum()))
+            prev = np.maximum.accumulate(
+                np.concatenate([[buf.last_t_s], np.where(finite, rows.t_s, -np.inf)[:-1]])
+            )
+            keep = finite & (rows.t_s > prev)
+            stats._drop("time_not_increasing", int(finite.sum() - keep.sum()))
+            if not keep.any():
+                continue
+            kept = _select(rows, keep)
+            buf.last_t_s = float(kept.t_s[-1])
+            buf.parts.append(kept)
+            buf.n += kept.t_s.size
+            stats.samples[rows.imu] = stats.samples.get(rows.imu, 0) + kept.t_s.size
+            if self.format is LogFormat.ULOG:
+                stats.clipped[rows.imu] = stats.clipped.get(rows.imu, 0) + int(kept.clipped.sum())
+            while buf.n >= self._batch:
+                yield self._emit(rows.imu, buf, self._batch)
+        for imu in sorted(buffers):
+            while buffers[imu].n:
+                yield self._emit(imu, buffers[imu], buffers[imu].n)
+        if not self.stats.samples:
+            what = (
+                "topics sensor_combined, sensor_accel+sensor_gyro, vehicle_imu"
+                if self.format is LogFormat.ULOG
+                else "messages IMU, IMU2, IMU3"
+                if self.format is not LogFormat.TLOG
+                else "messages " + ", ".join(m.value for m in ImuMessage)
+            )
+            raise NoImuDataError(
+                f"{self.path}: no IMU data ({what}); the log holds {self.stats.holds()}"
+            )
+
+    def _rows(self) -> Iterator[ImuRows]:
+        if self._ulog is not None:
+            ulog = self._ulog
+            self._fraction = lambda: ulog.fraction_read
+            yield from ulog
+            self.stats.held = {k: n for k, n in ulog.contents.topics.items() if n}
+            self.stats.skipped = dict(ulog.contents.skipped)
+            if ulog.contents.corrupt_messages:
+                self.stats._drop("corrupt_messages", ulog.contents.corrupt_messages)
+            return
         samples = (
             self._tlog_samples() if self.format is LogFormat.TLOG else self._dataflash_samples()
         )
-        for kind, imu, t_s, acc, gyr, temp in samples:
-            self.stats.messages[kind] = self.stats.messages.get(kind, 0) + 1
-            buf = buffers.setdefault(imu, _Buffer())
-            if not all(map(math.isfinite, (t_s, *acc, *gyr, 0.0 if temp is None else temp))):
-                self.stats._drop("non_finite")
-                continue
-            if t_s <= buf.last_t_s:
-                self.stats._drop("time_not_increasing")
-                continue
-            buf.last_t_s = t_s
-            buf.t_s.append(t_s)
-            buf.accel_mps2.append(acc)
-            buf.gyro_rps.append(gyr)
-            buf.temp_c.append(temp)
-            self.stats.samples[imu] = self.stats.samples.get(imu, 0) + 1
-            if len(buf.t_s) == self._batch:
-                yield from self._emit(imu, buf)
-        for imu in sorted(buffers):
-            if buffers[imu].t_s:
-                yield from self._emit(imu, buffers[imu])
+        yield from _rows_from_samples(samples, min(self._batch, _FLUSH_MESSAGES))
 
-    def _emit(self, imu: int, buf: _Buffer) -> Iterator[SampleBatch]:
-        # Temperature only when every sample has one: a batch is all or nothing.
-        temps = None if any(t is None for t in buf.temp_c) else np.array(buf.temp_c)
+    def _emit(self, imu: int, buf: _Buffer, n: int) -> SampleBatch:
+        rows = _concat(buf.parts)
+        head = _select(rows, slice(0, n))
+        rest = _select(rows, slice(n, None))
+        buf.parts, buf.n = ([rest] if rest.t_s.size else []), rest.t_s.size
         batch = SampleBatch(
-            self.vehicle,
-            imu,
-            buf.seq,
-            np.array(buf.t_s),
-            np.array(buf.accel_mps2),
-            np.array(buf.gyro_rps),
-            temps,
+            self.vehicle, imu, buf.seq, head.t_s, head.accel_mps2, head.gyro_rps, head.temp_c
         )
         buf.seq += 1
-        buf.t_s, buf.accel_mps2, buf.gyro_rps, buf.temp_c = [], [], [], []
-        yield batch
+        return batch
 
-    def _tlog_samples(self):
+    def _tlog_samples(self) -> Iterator[_Sample]:
         # mavlogfile reads sequentially (flat memory) and, unlike mavutil.mavlink_connection's
         # mmap reader, parses nothing before use_mavlink2 has given it its own MAVLink 2 parser.
         conn = use_mavlink2(mavutil.mavlogfile(str(self.path), notimestamps=False))
+        size = max(os.path.getsize(self.path), 1)
+        self._fraction = lambda: conn.f.tell() / size
+        types = {m.value for m in ImuMessage}
+        held = self.stats.held
         try:
-            types = [m.value for m in ImuMessage]
-            while (msg := conn.recv_match(type=types)) is not None:
+            while (msg := conn.recv_msg()) is not None:
+                kind = msg.get_type()
+                held[kind] = held.get(kind, 0) + 1
+                if kind not in types:
+                    continue
                 s = decode_imu_message(msg, raw_scale=self._raw_scale, imu_index=self._imu_index)
                 if s is not None:
-                    yield msg.get_type(), s.imu, s.t_s, s.accel_mps2, s.gyro_rps, s.temp_c
+                    yield kind, s.imu, s.t_s, s.accel_mps2, s.gyro_rps, s.temp_c
         finally:
             conn.close()
 
-    def _dataflash_samples(self):
+    def _dataflash_samples(self) -> Iterator[_Sample]:
         reader_cls = (
             DFReader.DFReader_binary
             if self.format is LogFormat.DATAFLASH_BIN
             else DFReader.DFReader_text
         )
         reader = reader_cls(str(self.path))
+        self._fraction = lambda: reader.offset / max(reader.data_len, 1)
+        self.stats.held = _dataflash_counts(reader)
+        clip: dict[int, list[float]] = {}
         try:
-            while (msg := reader.recv_match(type=list(DATAFLASH_IMU_NAMES))) is not None:
+            while (msg := reader.recv_match(type=[*DATAFLASH_IMU_NAMES, "VIBE"])) is not None:
                 name = msg.get_type()
                 fields = msg.get_fieldnames()
+                if name == "VIBE":
+                    _note_clipping(msg, fields, clip)
+                    continue
                 imu = int(msg.I) if "I" in fields else DATAFLASH_IMU_NAMES.index(name)
                 t_s = msg.TimeUS * 1e-6 if "TimeUS" in fields else msg.TimeMS * 1e-3
                 temp = float(msg.T) if "T" in fields else None
@@ -223,9 +346,63 @@ class LogReader:
                 )
         finally:
             reader.close()
+        self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
 
 
-def read_log_sessions(path: str | os.PathLike, **options) -> tuple[dict[int, ImuSession], LogStats]:
+def _dataflash_counts(reader: Any) -> dict[str, int]:
+    """Messages per type of a DataFlash log, from the index pymavlink builds when it opens it."""
+    counts = reader.counts
+    if isinstance(counts, dict):  # text logs: by name
+        return {str(k): int(n) for k, n in counts.items() if n}
+    return {
+        str(reader.id_to_name[i]): int(n)
+        for i, n in enumerate(counts)
+        if n and i in reader.id_to_name
+    }
+
+
+def _note_clipping(msg: Any, fields: list[str], clip: dict[int, list[float]]) -> None:
+    """First and last value of VIBE's cumulative clip counters per IMU (``Clip0..2``, or ``IMU`` + ``Clip``)."""
+    if "Clip" in fields:
+        counters = {int(getattr(msg, "IMU", 0)): float(msg.Clip)}
+    else:
+        counters = {k: float(getattr(msg, f"Clip{k}")) for k in range(3) if f"Clip{k}" in fields}
+    for imu, value in counters.items():
+        clip.setdefault(imu, [value, value])[1] = value
+
+
+def _select(rows: ImuRows, index: np.ndarray | slice) -> ImuRows:
+    return ImuRows(
+        rows.kind,
+        rows.imu,
+        rows.t_s[index],
+        rows.accel_mps2[index],
+        rows.gyro_rps[index],
+        None if rows.temp_c is None else rows.temp_c[index],
+        rows.clipped[index],
+    )
+
+
+def _concat(parts: list[ImuRows]) -> ImuRows:
+    if len(parts) == 1:
+        return parts[0]
+    # Temperature only when every sample has one: a batch is all or nothing.
+    temps = [p.temp_c for p in parts if p.temp_c is not None]
+    temp_c = np.concatenate(temps) if len(temps) == len(parts) else None
+    return ImuRows(
+        parts[0].kind,
+        parts[0].imu,
+        np.concatenate([p.t_s for p in parts]),
+        np.concatenate([p.accel_mps2 for p in parts]),
+        np.concatenate([p.gyro_rps for p in parts]),
+        temp_c,
+        np.concatenate([p.clipped for p in parts]),
+    )
+
+
+def read_log_sessions(
+    path: str | os.PathLike[str], **options: Any
+) -> tuple[dict[int, ImuSession], LogStats]:
     """Every IMU of a log as one :class:`~estimators.session.ImuSession` (IMU index → session), and the stats.
 
     ``options`` are those of :class:`LogReader`.
@@ -256,7 +433,7 @@ DEFAULT_TLOG_MESSAGES: Mapping[int, ImuMessage] = {
 
 
 def write_tlog(
-    path: str | os.PathLike,
+    path: str | os.PathLike[str],
     sessions: Mapping[int, ImuSession],
     *,
     messages: Mapping[int, ImuMessage] = DEFAULT_TLOG_MESSAGES,
@@ -286,13 +463,14 @@ def write_tlog(
         rows = _merged_rows(sessions)
         for t_s, imu, k in rows:
             s = sessions[imu]
+            acc, gyr = session_triads(s)
             kind = messages[imu]
             base = DEFAULT_IMU_INDEX[kind]
             msg = imu_message(
                 kind,
                 t_s=t_s,
-                accel_mps2=s.accel_mps2[k],
-                gyro_rps=s.gyro_rps[k],
+                accel_mps2=acc[k],
+                gyro_rps=gyr[k],
                 temp_c=None if s.temp_c is None else float(s.temp_c[k]),
                 imu_id=imu - base,
                 raw_scale=raw_scale,
@@ -354,20 +532,23 @@ def _dataflash_plan(
     return [_FMT_OF_FMT, imu_fmt], {imu: imu_fmt for imu in sessions}
 
 
-def _dataflash_records(sessions: Mapping[int, ImuSession], per_imu: Mapping[int, _DfFormat]):
+def _dataflash_records(
+    sessions: Mapping[int, ImuSession], per_imu: Mapping[int, _DfFormat]
+) -> Iterator[tuple[_DfFormat, list[float]]]:
     for t_s, imu, k in _merged_rows(sessions):
         s, f = sessions[imu], per_imu[imu]
-        values: list = [round(t_s * 1e6)]
+        acc, gyr = session_triads(s)
+        values: list[float] = [round(t_s * 1e6)]
         if "I" in f.columns:
             values.append(imu)
-        values += [float(v) for v in s.gyro_rps[k]] + [float(v) for v in s.accel_mps2[k]]
-        if "T" in f.columns:
+        values += [float(v) for v in gyr[k]] + [float(v) for v in acc[k]]
+        if "T" in f.columns and s.temp_c is not None:
             values.append(float(s.temp_c[k]))
         yield f, values
 
 
 def write_dataflash_bin(
-    path: str | os.PathLike, sessions: Mapping[int, ImuSession], *, legacy_names: bool = False
+    path: str | os.PathLike[str], sessions: Mapping[int, ImuSession], *, legacy_names: bool = False
 ) -> int:
     """Write IMU sessions as a binary DataFlash log; returns the number of IMU messages.
 
@@ -394,7 +575,7 @@ def write_dataflash_bin(
 
 
 def write_dataflash_text(
-    path: str | os.PathLike, sessions: Mapping[int, ImuSession], *, legacy_names: bool = False
+    path: str | os.PathLike[str], sessions: Mapping[int, ImuSession], *, legacy_names: bool = False
 ) -> int:
     """Write IMU sessions as a text DataFlash log (``FMT`` lines, then one line per message); returns IMU messages.
 

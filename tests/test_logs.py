@@ -5,14 +5,16 @@ import os
 import numpy as np
 import pytest
 from pymavlink import DFReader, mavutil
-from real_data import REAL_BIN, REAL_TLOG, needs
+from real_data import LOGS, REAL_BIN, REAL_TLOG, needs
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2
 from estimators.session import ImuSession
 from protocols.frames import concat_batches
 from protocols.logs import (
+    DATAFLASH_IMU_NAMES,
     LogFormat,
     LogReader,
+    NoImuDataError,
     detect_format,
     read_log_sessions,
     write_dataflash_bin,
@@ -20,6 +22,8 @@ from protocols.logs import (
     write_tlog,
 )
 from protocols.mavlink_adapter import ImuMessage
+
+REAL_COPTER31 = LOGS / "ardupilot-copter31-no-imu.log"
 
 # ------------------------------------------------------------------ real logs
 
@@ -198,7 +202,9 @@ def test_non_finite_and_repeated_samples_are_dropped_and_counted(tmp_path):
 def test_unreadable_files_are_clear_errors(tmp_path):
     junk = tmp_path / "junk.bin"
     junk.write_bytes(b"this is not a log at all, just some text")
-    with pytest.raises(ValueError, match=r"not a MAVLink \.tlog or a DataFlash"):
+    with pytest.raises(
+        ValueError, match=r"not a MAVLink \.tlog, a DataFlash \.bin/\.log or a PX4 ULog"
+    ):
         LogReader(junk)
     with pytest.raises(ValueError, match="no such log file"):
         LogReader(tmp_path / "missing.tlog")
@@ -241,3 +247,101 @@ def test_old_dataflash_text_with_time_in_ms_and_no_temperature(tmp_path):
     np.testing.assert_array_equal(back[1].t_s, [1.0, 1.02])
     np.testing.assert_array_equal(back[1].accel_mps2[:, 2], [-9.8, -9.7])
     assert back[1].temp_c is None
+
+
+# ------------------------------------------------------------------ text DataFlash as firmware writes it
+
+
+def _firmware_text_log(sessions, *, header, crlf, time_field, instance_field):
+    """A text DataFlash log the way ArduCopter writes one (header lines, CRLF, TimeMS), built line by line."""
+    lines = ["9", "", "ArduCopter V3.1 (5c6503e2)", "Free RAM: 1044", "APM 2"] if header else []
+    lines.append("FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns")
+    lines.append("FMT, 129, 23, PARM, Nf, Name,Value")
+    ms = time_field == "TimeMS"
+    tfmt = "I" if ms else "Q"
+    cols = "GyrX,GyrY,GyrZ,AccX,AccY,AccZ"
+    if instance_field:
+        lines.append(f"FMT, 130, 40, IMU, {tfmt}Bffffff, {time_field},I,{cols}")
+    else:
+        for k in sorted(sessions):
+            lines.append(
+                f"FMT, {130 + k}, 40, {DATAFLASH_IMU_NAMES[k]}, {tfmt}ffffff, {time_field},{cols}"
+            )
+    lines.append("PARM, INS_GYRO_FILTER, 20")
+    rows = sorted((float(t), imu, k) for imu, s in sessions.items() for k, t in enumerate(s.t_s))
+    for t, imu, k in rows:
+        s = sessions[imu]
+        stamp = round(t * 1e3) if ms else round(t * 1e6)
+        name = "IMU" if instance_field else DATAFLASH_IMU_NAMES[imu]
+        values = [
+            stamp,
+            *([imu] if instance_field else []),
+            *map(float, [*s.gyro_rps[k], *s.accel_mps2[k]]),
+        ]
+        lines.append(", ".join([name, *map(repr, values)]))
+    return ("\r\n" if crlf else "\n").join(lines) + ("\r\n" if crlf else "\n")
+
+
+@pytest.mark.parametrize(
+    "header, crlf, time_field, imus, instance_field",
+    [
+        (True, True, "TimeMS", (0,), False),
+        (True, False, "TimeUS", (0, 1), False),
+        (False, True, "TimeUS", (0, 1, 2), False),
+        (True, True, "TimeUS", (0, 1, 2), True),
+        (False, False, "TimeMS", (0, 1), True),
+    ],
+    ids=["hdr-crlf-ms-1", "hdr-lf-us-2", "crlf-us-3", "hdr-crlf-us-3-I", "lf-ms-2-I"],
+)
+def test_text_dataflash_as_firmware_writes_it(
+    tmp_path, header, crlf, time_field, imus, instance_field
+):
+    sessions = _sessions(n=60, rate_hz=50.0, temp=False, imus=imus)
+    # TimeMS logs hold whole milliseconds: put the samples on them.
+    sessions = {
+        i: ImuSession(np.round(s.t_s, 3), s.accel_mps2, s.gyro_rps, None)
+        for i, s in sessions.items()
+    }
+    path = tmp_path / "flight.txt"  # the extension says nothing: the content decides
+    path.write_bytes(
+        _firmware_text_log(
+            sessions, header=header, crlf=crlf, time_field=time_field, instance_field=instance_field
+        ).encode()
+    )
+    assert detect_format(path) is LogFormat.DATAFLASH_TEXT
+    back, stats = read_log_sessions(path)
+    assert sorted(back) == list(imus) and stats.dropped == {}
+    assert stats.held["PARM"] == 1 and stats.held["FMT"] >= 3
+    for imu, s in sessions.items():
+        np.testing.assert_allclose(back[imu].t_s, s.t_s, atol=1e-9, rtol=0)
+        np.testing.assert_array_equal(back[imu].accel_mps2, s.accel_mps2)
+        np.testing.assert_array_equal(back[imu].gyro_rps, s.gyro_rps)
+
+
+@needs(REAL_COPTER31)
+def test_real_copter31_text_log_says_no_imu_data_and_what_it_holds():
+    assert detect_format(REAL_COPTER31) is LogFormat.DATAFLASH_TEXT
+    with pytest.raises(NoImuDataError, match="no IMU data") as info:
+        read_log_sessions(REAL_COPTER31)
+    text = str(info.value)
+    for held in (
+        "ATT 1100",
+        "CTUN 1100",
+        "MOT 1100",
+        "GPS 551",
+        "PARM 298",
+        "MODE 151",
+        "CURR 110",
+    ):
+        assert held in text
+    assert (
+        "IMU " not in text.split("the log holds")[1]
+    )  # its FMT defines IMU, but no IMU row is there
+
+
+@needs(REAL_BIN)
+def test_real_bin_clip_counters_and_what_it_holds():
+    _, stats = read_log_sessions(REAL_BIN)
+    assert stats.sources == {0: "IMU", 1: "IMU2"}
+    assert stats.held["VIBE"] == 23 and stats.held["PARM"] == 809 and stats.held["IMU"] == 45
+    assert stats.clipped == {0: 0, 1: 0, 2: 0}  # VIBE Clip0..2 did not move in this second

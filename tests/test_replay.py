@@ -5,15 +5,19 @@ from __future__ import annotations
 import functools
 
 import pytest
-from real_data import REAL_BIN, REAL_TLOG, needs
+from real_data import LOGS, REAL_BIN, REAL_TLOG, needs
 
 from estimators.conventions import Triad
 from protocols.events import Predicate, event_from_json
 from protocols.logs import write_dataflash_bin, write_dataflash_text, write_tlog
 from protocols.passport_codec import write_passport_json
+from protocols.ulog import write_ulog
 from service.cli import main
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
+
+REAL_ULOG = LOGS / "px4-events.ulg"
+REAL_COPTER31 = LOGS / "ardupilot-copter31-no-imu.log"
 
 
 @functools.cache
@@ -43,7 +47,12 @@ def passport_file(tmp_path):
 
 @pytest.mark.parametrize(
     "writer, suffix, imus",
-    [(write_tlog, "tlog", 1), (write_dataflash_bin, "bin", 2), (write_dataflash_text, "log", 1)],
+    [
+        (write_tlog, "tlog", 1),
+        (write_dataflash_bin, "bin", 2),
+        (write_dataflash_text, "log", 1),
+        (write_ulog, "ulg", 2),
+    ],
 )
 def test_log_of_a_faulty_flight_gives_the_expected_events(
     writer, suffix, imus, tmp_path, capsys, passport_file
@@ -139,11 +148,28 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     )
 
 
+@needs(REAL_ULOG)
+def test_real_px4_ulog_replays_its_primary_imu(capsys):
+    """PX4 SITL flight (SOURCE.md): sensor_combined at 250 Hz; the per-instance topics (1–2 Hz) are left out."""
+    status, lines, err = replay(capsys, REAL_ULOG, "--json")
+    assert status == 0 and lines == []
+    assert "(ulg): samples IMU0 7783; left out none; 0 events" in err
+
+
+@needs(REAL_COPTER31)
+def test_real_copter31_log_without_imu_data_says_what_it_holds(capsys):
+    status, lines, err = replay(capsys, REAL_COPTER31)
+    assert status == 2 and lines == [] and len(err.splitlines()) == 1
+    assert (
+        "no IMU data (messages IMU, IMU2, IMU3)" in err and "ATT 1100" in err and "CTUN 1100" in err
+    )
+
+
 @pytest.mark.parametrize(
     "argv, match",
     [
         (["/nonexistent/flight.bin"], "no such log file"),
-        ([__file__], "not a MAVLink .tlog or a DataFlash"),
+        ([__file__], "not a MAVLink .tlog, a DataFlash .bin/.log or a PX4 ULog"),
         (["LOG", "--passport", "/nonexistent.json"], "nonexistent.json"),
         (["LOG", "--gravity", "3.7"], "gravity"),
     ],

@@ -1,7 +1,9 @@
 """``ins-health replay LOG [--json] [--pace recorded|fast] [--passport FILE | --passport-dir DIR]``.
 
-Reads a MAVLink telemetry log (``.tlog``) or an ArduPilot DataFlash log
-(``.bin``, ``.log``; IMU/IMU2/IMU3 with temperature) with
+Reads a MAVLink telemetry log (``.tlog``), an ArduPilot DataFlash log (binary
+``.bin`` or text ``.log`` as the firmware writes it; IMU/IMU2/IMU3 with
+temperature) or a PX4 ULog (``sensor_combined`` and the per-instance IMU topics
+logged at a useful rate), recognised by content, with
 :class:`protocols.logs.LogReader` and runs it through the daemon's pipeline
 (:class:`service.pipeline.FleetProcessor`), printing the events: as a person
 reads them, or with ``--json`` one JSON object per line
@@ -19,7 +21,8 @@ checks run alone. Options of a service configuration (``--config``: ``[site]``,
 ``[pipeline]``, ``[validity]``) apply as in the daemon; ``--gravity`` or ``--latitude``
 (``--height``) override its site.
 
-Exit status 0 whatever the events; 2 for an unusable log, passport or option.
+Exit status 0 whatever the events; 2 for an unusable log, passport or option, and
+for a log without IMU data (the message names what the log holds).
 A summary goes to stderr.
 """
 
@@ -43,15 +46,18 @@ if TYPE_CHECKING:
     from service.pipeline import FleetProcessor
 
 REPLAY_BATCH_SAMPLES = 100
+REPLAY_MAX_IMUS = 16
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "replay",
-        help="run a logged flight (.tlog, DataFlash .bin/.log) through the pipeline and print the events",
+        help="run a logged flight (.tlog, DataFlash .bin/.log, PX4 .ulg) through the pipeline and print the events",
         description="Replay a log through the same pipeline as the daemon; the same log always gives the same events.",
     )
-    p.add_argument("log", type=Path, metavar="LOG", help="a .tlog, .bin or .log file")
+    p.add_argument(
+        "log", type=Path, metavar="LOG", help="a .tlog, DataFlash .bin/.log or ULog .ulg file"
+    )
     p.add_argument("--json", action="store_true", help="one JSON event per line (the event schema)")
     p.add_argument(
         "--pace",
@@ -155,7 +161,8 @@ def run(args: argparse.Namespace) -> int:
     fleet = FleetProcessor(
         passports=_lookup(args),
         options=pipeline_options(config),
-        max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
+        # A log's IMUs are all wanted (a ULog numbers its instances up to 8, protocols.ulog).
+        max_imus_per_vehicle=max(config.pipeline.max_imus_per_vehicle, REPLAY_MAX_IMUS),
         on_passport_error=lambda v, i, msg: errors.append(f"{v} IMU{i}: {msg}"),
     )
     printer = (
