@@ -56,7 +56,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from estimators._typing import FloatArray, IntArray
 from estimators.passport import TemperatureModel
 from estimators.positions import Position
 from estimators.repeatability import fit_linear
@@ -125,30 +127,39 @@ class TemperatureFit:
     scores: tuple[OrderScore, ...]
     reason: str
     gravity_mps2: float
-    bias_cov: np.ndarray
-    scale_cov: np.ndarray
+    bias_cov: FloatArray
+    scale_cov: FloatArray
 
 
-def _vander(temp_c: np.ndarray, ref_c: float, half_span_c: float, order: int) -> np.ndarray:
+def _vander(temp_c: FloatArray, ref_c: float, half_span_c: float, order: int) -> FloatArray:
     """(N, order+1) powers of the scaled temperature ``(T − T_ref)/half_span`` (well conditioned)."""
     x = (np.asarray(temp_c, dtype=float) - ref_c) / half_span_c
     return x[:, None] ** np.arange(order + 1)[None]
 
 
-def _fit_series(h: np.ndarray, y: np.ndarray, std: np.ndarray):
+def _fit_series(h: FloatArray, y: FloatArray, std: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Weighted polynomial fit of one series; returns (coefficients, covariance) in scaled powers."""
     fit = fit_linear(h / std[:, None], y / std, sigma_y=1.0)
     return fit.values, fit.cov
 
 
-def _series(bias_mps2, scale_error, bias_std_mps2, scale_std):
+def _series(
+    bias_mps2: FloatArray, scale_error: FloatArray, bias_std_mps2: FloatArray, scale_std: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """(T, 6) values and standard deviations: bias x, y, z then scale x, y, z."""
     return np.hstack([bias_mps2, scale_error]), np.hstack([bias_std_mps2, scale_std])
 
 
 def _normalized_sq_errors(
-    temp_c, values, std, train, test, ref_c, half_span_c, order
-) -> np.ndarray:
+    temp_c: FloatArray,
+    values: FloatArray,
+    std: FloatArray,
+    train: IntArray,
+    test: IntArray,
+    ref_c: float,
+    half_span_c: float,
+    order: int,
+) -> FloatArray:
     """(n_test·6,) squared prediction errors at ``test`` of the fit on ``train``, over their variance."""
     h_train = _vander(temp_c[train], ref_c, half_span_c, order)
     h_test = _vander(temp_c[test], ref_c, half_span_c, order)
@@ -160,12 +171,12 @@ def _normalized_sq_errors(
 
 
 def fit_temperature_model(
-    temp_c: np.ndarray,
-    bias_mps2: np.ndarray,
-    scale_error: np.ndarray,
+    temp_c: FloatArray,
+    bias_mps2: FloatArray,
+    scale_error: FloatArray,
     *,
-    bias_std_mps2: np.ndarray,
-    scale_std: np.ndarray,
+    bias_std_mps2: FloatArray,
+    scale_std: FloatArray,
     gravity_mps2: float,
     orders: Sequence[int] = ORDERS,
     reference_temp_c: float = DEFAULT_REFERENCE_TEMP_C,
@@ -303,7 +314,7 @@ def fit_temperature_model(
     )
 
 
-def clamp_to_range(model: TemperatureModel, temp_c: np.ndarray) -> np.ndarray:
+def clamp_to_range(model: TemperatureModel, temp_c: FloatArray) -> FloatArray:
     """(N,) temperatures ``temp_c`` (N,), °C, clamped to the model's valid range (unchanged for an unbounded model).
 
     Why clamp rather than extrapolate: module docstring, "Valid range".
@@ -311,10 +322,11 @@ def clamp_to_range(model: TemperatureModel, temp_c: np.ndarray) -> np.ndarray:
     t = np.asarray(temp_c, dtype=float).reshape(-1)
     if not model.bounded:
         return t
-    return np.clip(t, model.valid_min_c, model.valid_max_c)
+    clamped: FloatArray = np.clip(t, model.valid_min_c, model.valid_max_c)
+    return clamped
 
 
-def model_errors(model: TemperatureModel, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def model_errors(model: TemperatureModel, temp_c: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Normalized bias ``b(T)`` (N, 3) and scale error ``e(T)`` (N, 3) of the model at ``temp_c`` (N,) °C.
 
     Outside the valid range the values at the nearer edge (:func:`clamp_to_range`): finite at any
@@ -325,7 +337,7 @@ def model_errors(model: TemperatureModel, temp_c: np.ndarray) -> tuple[np.ndarra
     return powers @ model.bias_coeffs.T, powers @ model.scale_coeffs.T
 
 
-def _check_samples(accel_mps2: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check_samples(accel_mps2: FloatArray, temp_c: FloatArray) -> tuple[FloatArray, FloatArray]:
     a = np.asarray(accel_mps2, dtype=float)
     t = np.asarray(temp_c, dtype=float)
     if a.ndim != 2 or a.shape[1] != 3 or t.shape != (a.shape[0],):
@@ -334,8 +346,8 @@ def _check_samples(accel_mps2: np.ndarray, temp_c: np.ndarray) -> tuple[np.ndarr
 
 
 def remove_temperature_errors(
-    accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float
-) -> np.ndarray:
+    accel_mps2: FloatArray, temp_c: FloatArray, model: TemperatureModel, *, gravity_mps2: float
+) -> FloatArray:
     """(N, 3) specific force with the modelled bias and scale error removed entirely (M3 compensation).
 
     ``a = (a_meas − g·b(T)) / (1 + e(T))``, ``T`` clamped to the valid range
@@ -348,8 +360,8 @@ def remove_temperature_errors(
 
 
 def to_reference_temperature(
-    accel_mps2: np.ndarray, temp_c: np.ndarray, model: TemperatureModel, *, gravity_mps2: float
-) -> np.ndarray:
+    accel_mps2: FloatArray, temp_c: FloatArray, model: TemperatureModel, *, gravity_mps2: float
+) -> FloatArray:
     """(N, 3) output as the unit would give it at ``T_ref`` (what the service applies).
 
     ``a_ref = (1 + e(T_ref))·(a_meas − g·b(T))/(1 + e(T)) + g·b(T_ref)``: the
@@ -365,7 +377,7 @@ def to_reference_temperature(
     return (1.0 + e_ref) * (a - gravity_mps2 * b) / (1.0 + e) + gravity_mps2 * b_ref
 
 
-def group_temperatures(temp_c: np.ndarray, *, tolerance_c: float = 2.0) -> np.ndarray:
+def group_temperatures(temp_c: FloatArray, *, tolerance_c: float = 2.0) -> FloatArray:
     """(K,) group label of each value of ``temp_c`` (K,): sorted values closer than ``tolerance_c`` join a group.
 
     Labels count up with temperature. Used to collect the six positions
@@ -396,11 +408,11 @@ class TemperatureSeries:
     tests : (T,) the six-position results.
     """
 
-    temp_c: np.ndarray
-    bias_mps2: np.ndarray
-    scale_error: np.ndarray
-    bias_std_mps2: np.ndarray
-    scale_std: np.ndarray
+    temp_c: FloatArray
+    bias_mps2: FloatArray
+    scale_error: FloatArray
+    bias_std_mps2: FloatArray
+    scale_std: FloatArray
     tests: tuple[AccelSixPosition, ...]
 
 
@@ -464,11 +476,11 @@ _SHAPE_SPAN_C = 55.0
 
 
 def _scaled_coefs(
-    shapes: np.ndarray, peak: float, t_ref_c: float, temps_c: np.ndarray
-) -> np.ndarray:
+    shapes: FloatArray, peak: float, t_ref_c: float, temps_c: FloatArray
+) -> FloatArray:
     x = (np.asarray(temps_c) - t_ref_c) / _SHAPE_SPAN_C
     values = (x[:, None, None] ** np.arange(1, 5)[None, None] * shapes[None]).sum(-1)
-    coefs = shapes / np.max(np.abs(values), axis=0)[:, None] * peak
+    coefs: FloatArray = shapes / np.max(np.abs(values), axis=0)[:, None] * peak
     return coefs / _SHAPE_SPAN_C ** np.arange(1, 5)[None]
 
 
@@ -499,7 +511,7 @@ def hidden_quartic_model(
     return ErrorModel(accel=accel, gyro=gyro)
 
 
-def temperature_truth(model: ErrorModel, temp_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def temperature_truth(model: ErrorModel, temp_c: FloatArray) -> tuple[FloatArray, FloatArray]:
     """True bias (N, 3), m/s², and six-position scale error (N, 3) of a simulator model at ``temp_c`` (N,).
 
     ``b(T) = b0 + Σ d_j (T − T_ref)^j`` and ``S(T) = (1 + e0)(1 + Σ k_j (T − T_ref)^j)·s_ii − 1``
@@ -508,23 +520,34 @@ def temperature_truth(model: ErrorModel, temp_c: np.ndarray) -> tuple[np.ndarray
     chain = model.accel
     t = np.asarray(temp_c, dtype=float).reshape(-1)
 
-    def poly(effect, attr):
-        if effect is None:
-            return np.zeros((t.size, 3))
-        c = np.asarray(getattr(effect, attr))
-        return (
-            (t - effect.t_ref_c)[:, None, None] ** np.arange(1, c.shape[1] + 1)[None, None]
-            * c[None]
-        ).sum(-1)
+    def poly(coefs: ArrayLike, t_ref_c: float) -> FloatArray:
+        c = np.asarray(coefs, dtype=np.float64)
+        powers: FloatArray = (t - t_ref_c)[:, None, None] ** np.arange(1, c.shape[1] + 1)[
+            None, None
+        ]
+        values: FloatArray = (powers * c[None]).sum(-1)
+        return values
 
-    bias = chain.find("bias")
-    scale = chain.find("scale_factor")
-    nonorth = chain.find("non_orthogonality")
+    bias = chain.find(Bias)
+    scale = chain.find(ScaleFactor)
+    nonorth = chain.find(NonOrthogonality)
+    temp_bias = chain.find(TemperatureBias)
+    temp_scale = chain.find(TemperatureScale)
     b0 = np.zeros(3) if bias is None else np.array(bias.bias_si)
     e0 = np.zeros(3) if scale is None else np.array(scale.scale_err)
     s_ii = np.ones(3) if nonorth is None else np.diag(nonorth.axes)
-    b = b0 + poly(chain.find("temperature_bias"), "coef_si_per_c")
-    e = (1.0 + e0) * (1.0 + poly(chain.find("temperature_scale"), "coef_per_c")) * s_ii - 1.0
+    d_t = (
+        np.zeros((t.size, 3))
+        if temp_bias is None
+        else poly(temp_bias.coef_si_per_c, temp_bias.t_ref_c)
+    )
+    k_t = (
+        np.zeros((t.size, 3))
+        if temp_scale is None
+        else poly(temp_scale.coef_per_c, temp_scale.t_ref_c)
+    )
+    b = b0 + d_t
+    e = (1.0 + e0) * (1.0 + k_t) * s_ii - 1.0
     return b, e
 
 

@@ -37,11 +37,19 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from estimators.conventions import AXES, N_PARAMS, STANDARD_GRAVITY_MPS2, Triad, normal_gravity_mps2
+from estimators._typing import FloatArray, IntArray
+from estimators.conventions import (
+    AXES,
+    N_PARAMS,
+    STANDARD_GRAVITY_MPS2,
+    Grade,
+    Triad,
+    normal_gravity_mps2,
+)
 from estimators.ninepar import Method
 from estimators.passport import (
-    Grade,
     Provenance,
     TriadPassport,
     default_tolerance_rule,
@@ -104,15 +112,15 @@ class TiltRun:
     rounding : how the converter makes whole pulses (selects the half-pulse correction).
     """
 
-    angles_rad: np.ndarray
-    counts_mean: np.ndarray
-    counts_std: np.ndarray
-    n_samples: np.ndarray
+    angles_rad: FloatArray
+    counts_mean: FloatArray
+    counts_std: FloatArray
+    n_samples: IntArray
     counts_up: float
     counts_down: float
     rounding: Rounding = Rounding.TOWARD_ZERO
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         a = np.asarray(self.angles_rad, dtype=float)
         n = np.asarray(self.counts_mean, dtype=float)
         if (
@@ -146,7 +154,7 @@ class TiltRun:
         object.__setattr__(self, "n_samples", np.asarray(self.n_samples, dtype=int))
         object.__setattr__(self, "rounding", Rounding(self.rounding))
 
-    def corrected(self, correction: HalfPulse) -> np.ndarray:
+    def corrected(self, correction: HalfPulse) -> FloatArray:
         """(M,) averaged counts with the converter's half-pulse correction (M2 eq. 3), or raw with OMIT."""
         if HalfPulse(correction) is HalfPulse.OMIT:
             return self.counts_mean
@@ -155,7 +163,7 @@ class TiltRun:
 
 def tilt_equations(
     run: TiltRun, k0_mps2: float, gravity_mps2: float, *, correction: HalfPulse = HalfPulse.APPLY
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[FloatArray, FloatArray]:
     """The design ``H`` (M, 3) and right-hand side ``y`` (M,), m/s², of M2 eq. 6."""
     a = run.angles_rad
     g = float(gravity_mps2)
@@ -164,11 +172,14 @@ def tilt_equations(
 
 
 def modelled_counts(
-    angles_rad: np.ndarray, params: np.ndarray, k0_mps2: float, gravity_mps2: float
-) -> np.ndarray:
+    angles_rad: FloatArray, params: FloatArray, k0_mps2: float, gravity_mps2: float
+) -> FloatArray:
     """Noise-free (unquantized) counts ``(g sin(α + δα) + δa) / (k0 (1 + Δk))`` of M2 eq. 3, pulses."""
     da, dalpha, dk = np.asarray(params, dtype=float)
-    return (gravity_mps2 * np.sin(np.asarray(angles_rad) + dalpha) + da) / (k0_mps2 * (1.0 + dk))
+    counts: FloatArray = (gravity_mps2 * np.sin(np.asarray(angles_rad) + dalpha) + da) / (
+        k0_mps2 * (1.0 + dk)
+    )
+    return counts
 
 
 @dataclass(frozen=True)
@@ -183,7 +194,7 @@ class TiltFit:
     """
 
     fit: LinearFit
-    residuals_pulses: np.ndarray
+    residuals_pulses: FloatArray
     stabilization: Stabilization
 
 
@@ -273,14 +284,16 @@ def tilt_passport(
         )
     g = float(gravity_mps2)
     k0 = nominal_scale(
-        np.mean([r.counts_up for r in runs]), np.mean([r.counts_down for r in runs]), g
+        float(np.mean([r.counts_up for r in runs])),
+        float(np.mean([r.counts_down for r in runs])),
+        g,
     )
     fits = tuple(fit_run(r, k0, g, correction=correction, level=level) for r in runs)
     spread = run_spread(
         [RunEstimate.from_fit(f.fit) for f in fits], names=TILT_PARAM_NAMES, level=level
     )
 
-    def rms(parts):
+    def rms(parts: list[FloatArray]) -> float:
         v = np.concatenate(parts)
         return float(np.sqrt(np.mean(v * v)))
 
@@ -312,7 +325,7 @@ def tilt_passport(
 
 def half_pulse_bias(
     runs: Sequence[TiltRun], *, gravity_mps2: float, level: float = 0.95
-) -> np.ndarray:
+) -> FloatArray:
     """(3,) passport values without the half-pulse correction minus those with it (``[δa, δα, Δk]``).
 
     What M2 eq. 3 protects against: with every angle on one side of zero the
@@ -357,11 +370,11 @@ def tilt_triad_passport(
     g, k0 = result.gravity_mps2, result.k0_mps2
     z = float(t_quantile(sp.level, np.inf))
 
-    def e_of(dk):
-        return lsb_mps2 / (k0 * (1.0 + dk)) - 1.0
+    def e_of(dk: float) -> float:
+        return float(lsb_mps2 / (k0 * (1.0 + dk)) - 1.0)
 
-    def b_of(da, dk):
-        return da * (lsb_mps2 / (k0 * (1.0 + dk))) / g
+    def b_of(da: float, dk: float) -> float:
+        return float(da * (lsb_mps2 / (k0 * (1.0 + dk))) / g)
 
     dk = float(sp.value[2])
     e_lo, e_hi = sorted((e_of(sp.common_upper[2]), e_of(sp.common_lower[2])))
@@ -463,7 +476,7 @@ class TiltBench:
     updown_s: float = 60.0
     n_runs: int = 5
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("gravity_mps2", "pulse_mps2", "lsb_mps2", "rate_hz", "average_s", "updown_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"TiltBench.{name} must be positive, got {getattr(self, name)!r}")
@@ -498,10 +511,10 @@ class TiltBench:
         exact = np.array([g / k, -g / k])
         offset = half_pulse_correction(exact, self.rounding) - exact
         k0 = 2.0 * g / (2.0 * g / k - (offset[0] - offset[1]))
-        return k / k0 - 1.0
+        return float(k / k0 - 1.0)
 
     @property
-    def true_params(self) -> np.ndarray:
+    def true_params(self) -> FloatArray:
         """(3,) ``[δa, δα, Δk]`` that the method should recover (Δk as :attr:`true_scale_error`)."""
         return np.array([self.zero_offset_mps2, self.misalignment_rad, self.true_scale_error])
 
@@ -513,13 +526,13 @@ class TiltSamples:
     ``zero_offset_mps2`` is the run's true zero offset (with its turn-on part).
     """
 
-    up: np.ndarray
-    down: np.ndarray
-    angles: np.ndarray
+    up: FloatArray
+    down: FloatArray
+    angles: FloatArray
     zero_offset_mps2: float
 
 
-def _whole_pulses(quantizer: Quantization, x_mps2: np.ndarray) -> np.ndarray:
+def _whole_pulses(quantizer: Quantization, x_mps2: FloatArray) -> FloatArray:
     """Counts of any-shaped ``x_mps2`` through the simulator's quantizer (same step on its three axes).
 
     The quantizer works on (N, 3) triad samples; one axis's samples are packed
@@ -550,7 +563,7 @@ def simulate_samples(bench: TiltBench, rng: np.random.Generator) -> list[TiltSam
             + bench.setting_sigma_rad * rng.standard_normal(set_rad.size)
         )
 
-        def pulses(specific_force_mps2, n, da=da):
+        def pulses(specific_force_mps2: ArrayLike, n: int, da: float = da) -> FloatArray:
             f = np.asarray(specific_force_mps2, dtype=float)[..., None]
             return _whole_pulses(
                 quantizer, f + da + bench.noise_mps2 * rng.standard_normal((*f.shape[:-1], n))
@@ -626,7 +639,7 @@ def bench_session(
     return ImuSession(t, accel, None, None)
 
 
-def detect_lsb(values: np.ndarray) -> float:
+def detect_lsb(values: FloatArray) -> float:
     """The pulse weight of a quantized channel: the smallest step between its distinct values.
 
     Raises ValueError if the values are not whole multiples of that step.
@@ -648,7 +661,7 @@ def detect_lsb(values: np.ndarray) -> float:
 def run_from_session(
     session: ImuSession,
     *,
-    angles_rad: np.ndarray,
+    angles_rad: FloatArray,
     axis: int = 0,
     hold_s: float = 30.0,
     lsb_mps2: float | None = None,

@@ -15,6 +15,8 @@ Modules: :mod:`~estimators.sim.motion` (true motion), :mod:`~estimators.sim.erro
 :mod:`~estimators.sim.session` (:func:`simulate`).
 """
 
+from estimators.conventions import Grade
+
 from .errors import (
     EFFECTS,
     Bias,
@@ -41,7 +43,7 @@ from .errors import (
     make_effect,
 )
 from .faults import Fault, FaultKind
-from .grades import GRADES, Grade, GradeSpec, TriadGrade, grade_error_model
+from .grades import GRADES, GradeSpec, TriadGrade, grade_error_model
 from .motion import (
     Fly,
     Hold,

@@ -45,11 +45,13 @@ from __future__ import annotations
 import abc
 from dataclasses import dataclass, field, fields, replace
 from enum import Enum, StrEnum
-from typing import ClassVar
+from typing import Any, ClassVar, TypeAlias, TypeVar, overload
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.signal import fftconvolve, lfilter
 
+from estimators._typing import FloatArray
 from estimators.conventions import Triad, nine_params, sensor_axes
 
 from .motion import Motion, angle_excursion, displacement_accel, random_sinusoids
@@ -74,40 +76,57 @@ class EffectContext:
     rng : this effect's own random stream.
     """
 
-    t_s: np.ndarray
+    t_s: FloatArray
     rate_hz: float
     triad: Triad
     reference: float
-    specific_force_b_mps2: np.ndarray
-    temp_c: np.ndarray | None
-    param_delta: np.ndarray | None
+    specific_force_b_mps2: FloatArray
+    temp_c: FloatArray | None
+    param_delta: FloatArray | None
     rng: np.random.Generator
 
-    def delta(self, cols: slice) -> np.ndarray | None:
+    def delta(self, cols: slice) -> FloatArray | None:
         """(N, k) fault changes of parameters ``cols``, or None if they never change."""
         if self.param_delta is None:
             return None
         d = self.param_delta[:, cols]
         return d if np.any(d) else None
 
-    def temperature(self, effect: str) -> np.ndarray:
+    def temperature(self, effect: str) -> FloatArray:
         if self.temp_c is None:
             raise ValueError(f"effect {effect!r} needs a temperature profile in the session spec")
         return self.temp_c
 
 
-def _floats(value, shape: tuple[int, ...], name: str):
-    """``value`` broadcast to ``shape`` as nested tuples of finite floats (hashable, frozen)."""
+Floats: TypeAlias = tuple[float, ...]
+"""A vector parameter of an effect, stored as a tuple of floats (hashable, frozen)."""
+
+FloatRows: TypeAlias = tuple[Floats, ...]
+"""A matrix parameter of an effect (rows of floats)."""
+
+
+def _finite(value: ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
+    """``value`` broadcast to ``shape``, all finite."""
     try:
         a = np.broadcast_to(np.asarray(value, dtype=float), shape)
     except ValueError:
         raise ValueError(f"{name} must broadcast to shape {shape}, got {np.shape(value)}") from None
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be finite, got {a.tolist()!r}")
-    return tuple(map(tuple, a)) if a.ndim == 2 else tuple(a.tolist())
+    return a
 
 
-def _poly_coefs(value, name: str):
+def _floats(value: ArrayLike, n: int, name: str) -> Floats:
+    """``value`` broadcast to ``(n,)`` as a tuple of finite floats."""
+    return tuple(_finite(value, (n,), name).tolist())
+
+
+def _float_rows(value: ArrayLike, shape: tuple[int, int], name: str) -> FloatRows:
+    """``value`` broadcast to ``shape`` as a tuple of rows of finite floats."""
+    return tuple(tuple(row) for row in _finite(value, shape, name).tolist())
+
+
+def _poly_coefs(value: ArrayLike, name: str) -> FloatRows:
     """(3, n) per-axis polynomial coefficients of powers 1…n, n ≥ 1."""
     a = np.asarray(value, dtype=float)
     if a.ndim == 1:
@@ -116,16 +135,18 @@ def _poly_coefs(value, name: str):
         raise ValueError(
             f"{name} must have shape (3, n) or (n,) with n >= 1, got {np.shape(value)}"
         )
-    return _floats(a, a.shape, name)
+    return _float_rows(a, (3, a.shape[1]), name)
 
 
-def _poly(coefs, x: np.ndarray) -> np.ndarray:
+def _poly(coefs: ArrayLike, x: FloatArray) -> FloatArray:
     """(N, 3) ``Σ_j c_ij x^j`` for j = 1…n (no constant term)."""
     c = np.asarray(coefs)
     powers = x[:, None] ** np.arange(1, c.shape[1] + 1)[None]
-    return powers @ c.T
+    out: FloatArray = powers @ c.T
+    return out
 
 
+@dataclass(frozen=True)
 class Effect(abc.ABC):
     """One named term of a triad's error model (see the module docstring)."""
 
@@ -134,8 +155,11 @@ class Effect(abc.ABC):
     triads: ClassVar[tuple[Triad, ...]] = (Triad.ACCEL, Triad.GYRO)
 
     @abc.abstractmethod
-    def apply(self, y: np.ndarray, ctx: EffectContext) -> np.ndarray:
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         """The signal (N, 3) after this effect; never modifies ``y`` in place."""
+
+
+_EffectT = TypeVar("_EffectT", bound=Effect)
 
 
 @dataclass(frozen=True)
@@ -148,18 +172,18 @@ class NonOrthogonality(Effect):
     ``S' → S`` as the change vanishes).
     """
 
-    angles_rad: tuple = (0.0,) * 6
+    angles_rad: ArrayLike = (0.0,) * 6
     name: ClassVar[str] = "non_orthogonality"
     stage: ClassVar[int] = 0
 
-    def __post_init__(self):
-        object.__setattr__(self, "angles_rad", _floats(self.angles_rad, (6,), "angles_rad"))
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "angles_rad", _floats(self.angles_rad, 6, "angles_rad"))
 
     @property
-    def axes(self) -> np.ndarray:
-        return sensor_axes(np.array(self.angles_rad))
+    def axes(self) -> FloatArray:
+        return sensor_axes(np.array(self.angles_rad, dtype=np.float64))
 
-    def apply(self, y, ctx):
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         s = self.axes
         out = y @ s.T
         d = ctx.delta(slice(6, 9))
@@ -188,32 +212,36 @@ class NonOrthogonality(Effect):
 class ScaleNonlinearity(Effect):
     """``y_i += K2_i y_i² + K3_i y_i³`` (M3); K2 in 1/SI, K3 in 1/SI² of the triad's unit."""
 
-    k2_per_si: tuple = (0.0,) * 3
-    k3_per_si2: tuple = (0.0,) * 3
+    k2_per_si: ArrayLike = (0.0,) * 3
+    k3_per_si2: ArrayLike = (0.0,) * 3
     name: ClassVar[str] = "scale_nonlinearity"
     stage: ClassVar[int] = 10
 
-    def __post_init__(self):
-        object.__setattr__(self, "k2_per_si", _floats(self.k2_per_si, (3,), "k2_per_si"))
-        object.__setattr__(self, "k3_per_si2", _floats(self.k3_per_si2, (3,), "k3_per_si2"))
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "k2_per_si", _floats(self.k2_per_si, 3, "k2_per_si"))
+        object.__setattr__(self, "k3_per_si2", _floats(self.k3_per_si2, 3, "k3_per_si2"))
 
-    def apply(self, y, ctx):
-        return y + np.array(self.k2_per_si) * y**2 + np.array(self.k3_per_si2) * y**3
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        return (
+            y
+            + np.array(self.k2_per_si, dtype=np.float64) * y**2
+            + np.array(self.k3_per_si2, dtype=np.float64) * y**3
+        )
 
 
 @dataclass(frozen=True)
 class ScaleFactor(Effect):
     """``y_i *= 1 + e_i`` with the relative scale-factor errors ``e`` (3,)."""
 
-    scale_err: tuple = (0.0,) * 3
+    scale_err: ArrayLike = (0.0,) * 3
     name: ClassVar[str] = "scale_factor"
     stage: ClassVar[int] = 20
 
-    def __post_init__(self):
-        object.__setattr__(self, "scale_err", _floats(self.scale_err, (3,), "scale_err"))
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scale_err", _floats(self.scale_err, 3, "scale_err"))
 
-    def apply(self, y, ctx):
-        e = np.array(self.scale_err)
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        e = np.array(self.scale_err, dtype=np.float64)
         d = ctx.delta(slice(3, 6))
         return y * (1.0 + (e if d is None else e + d))
 
@@ -225,15 +253,15 @@ class TemperatureScale(Effect):
     ``coef_per_c`` (3, n): relative scale change per °C^j.
     """
 
-    coef_per_c: tuple = ((0.0,),) * 3
+    coef_per_c: ArrayLike = ((0.0,),) * 3
     t_ref_c: float = 20.0
     name: ClassVar[str] = "temperature_scale"
     stage: ClassVar[int] = 25
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "coef_per_c", _poly_coefs(self.coef_per_c, "coef_per_c"))
 
-    def apply(self, y, ctx):
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         return y * (1.0 + _poly(self.coef_per_c, ctx.temperature(self.name) - self.t_ref_c))
 
 
@@ -245,15 +273,15 @@ class Bias(Effect):
     adds ``Δb·reference``.
     """
 
-    bias_si: tuple = (0.0,) * 3
+    bias_si: ArrayLike = (0.0,) * 3
     name: ClassVar[str] = "bias"
     stage: ClassVar[int] = 30
 
-    def __post_init__(self):
-        object.__setattr__(self, "bias_si", _floats(self.bias_si, (3,), "bias_si"))
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "bias_si", _floats(self.bias_si, 3, "bias_si"))
 
-    def apply(self, y, ctx):
-        b = np.array(self.bias_si)
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        b = np.array(self.bias_si, dtype=np.float64)
         d = ctx.delta(slice(0, 3))
         return y + (b if d is None else b + d * ctx.reference)
 
@@ -265,14 +293,14 @@ class BiasDrift(Effect):
     ``coef_si_per_s`` (3, n): SI per s^j; ``t_0`` is the first sample's time.
     """
 
-    coef_si_per_s: tuple = ((0.0,),) * 3
+    coef_si_per_s: ArrayLike = ((0.0,),) * 3
     name: ClassVar[str] = "bias_drift"
     stage: ClassVar[int] = 31
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "coef_si_per_s", _poly_coefs(self.coef_si_per_s, "coef_si_per_s"))
 
-    def apply(self, y, ctx):
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         return y + _poly(self.coef_si_per_s, ctx.t_s - ctx.t_s[0])
 
 
@@ -283,15 +311,15 @@ class TemperatureBias(Effect):
     ``coef_si_per_c`` (3, n): SI per °C^j.
     """
 
-    coef_si_per_c: tuple = ((0.0,),) * 3
+    coef_si_per_c: ArrayLike = ((0.0,),) * 3
     t_ref_c: float = 20.0
     name: ClassVar[str] = "temperature_bias"
     stage: ClassVar[int] = 32
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "coef_si_per_c", _poly_coefs(self.coef_si_per_c, "coef_si_per_c"))
 
-    def apply(self, y, ctx):
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         return y + _poly(self.coef_si_per_c, ctx.temperature(self.name) - self.t_ref_c)
 
 
@@ -312,38 +340,44 @@ class BiasInstability(Effect):
       two-sided PSD ``B² Δt`` into ``B² / (2π f)`` below Nyquist; it starts at 0.
     """
 
-    gm_sigma_si: tuple = (0.0,) * 3
-    gm_tau_s: tuple = (100.0,) * 3
-    random_walk_si_per_sqrt_s: tuple = (0.0,) * 3
-    flicker_si: tuple = (0.0,) * 3
+    gm_sigma_si: ArrayLike = (0.0,) * 3
+    gm_tau_s: ArrayLike = (100.0,) * 3
+    random_walk_si_per_sqrt_s: ArrayLike = (0.0,) * 3
+    flicker_si: ArrayLike = (0.0,) * 3
     name: ClassVar[str] = "bias_instability"
     stage: ClassVar[int] = 33
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for f in ("gm_sigma_si", "gm_tau_s", "random_walk_si_per_sqrt_s", "flicker_si"):
-            object.__setattr__(self, f, _floats(getattr(self, f), (3,), f))
-            if min(getattr(self, f)) < 0:
-                raise ValueError(f"{f} must be non-negative, got {getattr(self, f)!r}")
-        if min(self.gm_tau_s) <= 0:
+            values = _floats(getattr(self, f), 3, f)
+            object.__setattr__(self, f, values)
+            if min(values) < 0:
+                raise ValueError(f"{f} must be non-negative, got {values!r}")
+        if np.min(self.gm_tau_s) <= 0:
             raise ValueError(f"gm_tau_s must be positive, got {self.gm_tau_s!r}")
 
-    def apply(self, y, ctx):
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         n = y.shape[0]
         dt = 1.0 / ctx.rate_hz
         beta = np.zeros_like(y)
         white = ctx.rng.standard_normal((3, 3, n))
         start = ctx.rng.standard_normal(3)
-        flicker = np.array(self.flicker_si)
+        flicker = np.array(self.flicker_si, dtype=np.float64)
+        gm_sigma, gm_tau = (
+            np.array(self.gm_sigma_si, dtype=np.float64),
+            np.array(self.gm_tau_s, dtype=np.float64),
+        )
+        random_walk = np.array(self.random_walk_si_per_sqrt_s, dtype=np.float64)
         if flicker.any():
             kasdin = np.cumprod(np.concatenate([[1.0], (np.arange(1, n) - 0.5) / np.arange(1, n)]))
             beta += fftconvolve(flicker[:, None] * white[2], kasdin[None, :], axes=1)[:, :n].T
         for i in range(3):
-            sigma, tau = self.gm_sigma_si[i], self.gm_tau_s[i]
+            sigma, tau = float(gm_sigma[i]), float(gm_tau[i])
             if sigma > 0:
                 phi = np.exp(-dt / tau)
                 w = sigma * np.sqrt(1.0 - phi * phi) * white[0, i]
                 beta[:, i] += lfilter([1.0], [1.0, -phi], w, zi=[phi * sigma * start[i]])[0]
-            k = self.random_walk_si_per_sqrt_s[i]
+            k = float(random_walk[i])
             if k > 0:
                 steps = k * np.sqrt(dt) * white[1, i]
                 steps[0] = 0.0
@@ -359,18 +393,20 @@ class GSensitivity(Effect):
     in rad/s per m/s².
     """
 
-    coef_rps_per_mps2: tuple = ((0.0,) * 3,) * 3
+    coef_rps_per_mps2: ArrayLike = ((0.0,) * 3,) * 3
     name: ClassVar[str] = "g_sensitivity"
     stage: ClassVar[int] = 34
     triads: ClassVar[tuple[Triad, ...]] = (Triad.GYRO,)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(
-            self, "coef_rps_per_mps2", _floats(self.coef_rps_per_mps2, (3, 3), "coef_rps_per_mps2")
+            self,
+            "coef_rps_per_mps2",
+            _float_rows(self.coef_rps_per_mps2, (3, 3), "coef_rps_per_mps2"),
         )
 
-    def apply(self, y, ctx):
-        return y + ctx.specific_force_b_mps2 @ np.array(self.coef_rps_per_mps2).T
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        return y + ctx.specific_force_b_mps2 @ np.array(self.coef_rps_per_mps2, dtype=np.float64).T
 
 
 @dataclass(frozen=True)
@@ -381,31 +417,26 @@ class WhiteNoise(Effect):
     the angle random walk).
     """
 
-    density_si_per_sqrt_hz: tuple = (0.0,) * 3
+    density_si_per_sqrt_hz: ArrayLike = (0.0,) * 3
     name: ClassVar[str] = "white_noise"
     stage: ClassVar[int] = 40
 
-    def __post_init__(self):
-        object.__setattr__(
-            self,
-            "density_si_per_sqrt_hz",
-            _floats(self.density_si_per_sqrt_hz, (3,), "density_si_per_sqrt_hz"),
-        )
-        if min(self.density_si_per_sqrt_hz) < 0:
-            raise ValueError(
-                f"noise density must be non-negative, got {self.density_si_per_sqrt_hz!r}"
-            )
+    def __post_init__(self) -> None:
+        density = _floats(self.density_si_per_sqrt_hz, 3, "density_si_per_sqrt_hz")
+        object.__setattr__(self, "density_si_per_sqrt_hz", density)
+        if min(density) < 0:
+            raise ValueError(f"noise density must be non-negative, got {density!r}")
 
     @classmethod
-    def from_sample_sd(cls, sd_si, rate_hz: float) -> WhiteNoise:
+    def from_sample_sd(cls, sd_si: ArrayLike, rate_hz: float) -> WhiteNoise:
         """The noise whose per-sample standard deviation at ``rate_hz`` is ``sd_si``."""
         return cls(np.asarray(sd_si, float) / np.sqrt(rate_hz))
 
-    def sample_sd(self, rate_hz: float) -> np.ndarray:
+    def sample_sd(self, rate_hz: float) -> FloatArray:
         """(3,) per-sample standard deviation at ``rate_hz``, SI."""
-        return np.array(self.density_si_per_sqrt_hz) * np.sqrt(rate_hz)
+        return np.array(self.density_si_per_sqrt_hz, dtype=np.float64) * float(np.sqrt(rate_hz))
 
-    def apply(self, y, ctx):
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         return y + self.sample_sd(ctx.rate_hz) * ctx.rng.standard_normal(y.shape)
 
 
@@ -420,14 +451,14 @@ class Rounding(StrEnum):
     """Round half to even: no mean offset."""
 
 
-def half_pulse_correction(mean_counts: np.ndarray, rounding: Rounding) -> np.ndarray:
+def half_pulse_correction(mean_counts: FloatArray, rounding: Rounding) -> FloatArray:
     """Averaged counts → unbiased ``signal / k`` (M2: ``N̂ + 0.5·sign N̂`` for a signed counter).
 
     Valid when the noise before quantization is at least about one count (the
     rounding error is then uniform); for FLOOR the correction is ``+½`` for
     either sign, for TOWARD_ZERO it is M2's ``+½·sign(N̂)``, for NEAREST none.
     """
-    n = np.asarray(mean_counts, float)
+    n = np.asarray(mean_counts, dtype=np.float64)
     r = Rounding(rounding)
     if r is Rounding.FLOOR:
         return n + 0.5
@@ -446,33 +477,35 @@ class Quantization(Effect):
     removes the mean rounding offset from averaged counts.
     """
 
-    step_si: tuple = (1.0,) * 3
+    step_si: ArrayLike = (1.0,) * 3
     rounding: Rounding = Rounding.FLOOR
     name: ClassVar[str] = "quantization"
     stage: ClassVar[int] = 50
 
-    def __post_init__(self):
-        object.__setattr__(self, "step_si", _floats(self.step_si, (3,), "step_si"))
+    def __post_init__(self) -> None:
+        step = _floats(self.step_si, 3, "step_si")
+        object.__setattr__(self, "step_si", step)
         object.__setattr__(self, "rounding", Rounding(self.rounding))
-        if min(self.step_si) <= 0:
-            raise ValueError(f"quantization step_si must be positive, got {self.step_si!r}")
+        if min(step) <= 0:
+            raise ValueError(f"quantization step_si must be positive, got {step!r}")
 
-    def counts(self, y: np.ndarray) -> np.ndarray:
+    def counts(self, y: FloatArray) -> FloatArray:
         """(N, 3) whole counts of the signal ``y`` (SI)."""
-        v = y / np.array(self.step_si)
+        v: FloatArray = y / np.array(self.step_si, dtype=np.float64)
         if self.rounding is Rounding.FLOOR:
             return np.floor(v)
         if self.rounding is Rounding.TOWARD_ZERO:
             return np.trunc(v)
         return np.round(v)
 
-    def apply(self, y, ctx):
-        return self.counts(y) * np.array(self.step_si)
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        return self.counts(y) * np.array(self.step_si, dtype=np.float64)
 
 
 # --- environment effects (change the truth, not a sensor) ----------------------
 
 
+@dataclass(frozen=True)
 class EnvironmentEffect(abc.ABC):
     """An effect on the true motion or site rather than on one triad."""
 
@@ -500,7 +533,7 @@ class GravityMismatch(EnvironmentEffect):
     delta_mps2: float = 0.0
     name: ClassVar[str] = "gravity_mismatch"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not np.isfinite(self.delta_mps2):
             raise ValueError(f"delta_mps2 must be finite, got {self.delta_mps2!r}")
 
@@ -522,15 +555,15 @@ class NonstaticPositions(EnvironmentEffect):
 
     angle_rms_rad: float = 1.0e-4
     accel_rms_mps2: float = 0.0
-    band_hz: tuple = (0.1, 5.0)
+    band_hz: Floats = (0.1, 5.0)
     n_components: int = 4
     ramp_s: float = 0.5
     name: ClassVar[str] = "nonstatic_positions"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (self.angle_rms_rad >= 0 and self.accel_rms_mps2 >= 0):
             raise ValueError(f"nonstatic_positions amplitudes must be non-negative, got {self!r}")
-        object.__setattr__(self, "band_hz", _floats(self.band_hz, (2,), "band_hz"))
+        object.__setattr__(self, "band_hz", _floats(self.band_hz, 2, "band_hz"))
 
     def perturb(self, motion: Motion, rng: np.random.Generator) -> Motion:
         mat = motion.mat_nb.copy()
@@ -554,7 +587,7 @@ class NonstaticPositions(EnvironmentEffect):
         return replace(motion, mat_nb=mat, rate_nb_b_rps=rate, accel_n_mps2=acc)
 
 
-EFFECTS: dict[str, type] = {
+EFFECTS: dict[str, type[Effect] | type[EnvironmentEffect]] = {
     cls.name: cls
     for cls in (
         NonOrthogonality,
@@ -575,7 +608,7 @@ EFFECTS: dict[str, type] = {
 """Every effect class by its name (the names of the model audit, issue 4)."""
 
 
-def make_effect(name: str, params: dict) -> Effect | EnvironmentEffect:
+def make_effect(name: str, params: dict[str, Any]) -> Effect | EnvironmentEffect:
     """The effect called ``name`` with ``params`` (its dataclass fields; lists for arrays).
 
     The inverse of :func:`effect_params`. Unknown names or fields are a ``ValueError``.
@@ -592,10 +625,10 @@ def make_effect(name: str, params: dict) -> Effect | EnvironmentEffect:
     return cls(**params)
 
 
-def effect_params(effect: Effect | EnvironmentEffect) -> dict:
+def effect_params(effect: Effect | EnvironmentEffect) -> dict[str, Any]:
     """The parameters of ``effect`` as plain JSON/TOML types (tuples become lists, enums their value)."""
 
-    def plain(v):
+    def plain(v: Any) -> Any:
         if isinstance(v, Enum):
             return v.value
         if isinstance(v, tuple):
@@ -615,9 +648,9 @@ PARAMETER_EFFECT = {0: Bias, 1: ScaleFactor, 2: NonOrthogonality}
 class TriadErrorModel:
     """The ordered effects of one triad (stages non-decreasing, names unique)."""
 
-    effects: tuple = ()
+    effects: tuple[Effect, ...] = ()
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         effs = tuple(self.effects)
         for e in effs:
             if not isinstance(e, Effect):
@@ -634,9 +667,14 @@ class TriadErrorModel:
     def names(self) -> tuple[str, ...]:
         return tuple(e.name for e in self.effects)
 
-    def find(self, name: str) -> Effect | None:
-        """The effect called ``name``, or None."""
-        return next((e for e in self.effects if e.name == name), None)
+    @overload
+    def find(self, name: type[_EffectT]) -> _EffectT | None: ...
+    @overload
+    def find(self, name: str) -> Effect | None: ...
+    def find(self, name: type[_EffectT] | str) -> _EffectT | Effect | None:
+        """The effect of class ``name`` (typed) or called ``name``, or None."""
+        key = name if isinstance(name, str) else name.name
+        return next((e for e in self.effects if e.name == key), None)
 
     def with_effect(self, effect: Effect) -> TriadErrorModel:
         """A model with ``effect`` added at its stage, replacing one of the same name."""
@@ -648,14 +686,14 @@ class TriadErrorModel:
         """A model without the effect called ``name`` (unchanged if absent)."""
         return TriadErrorModel(tuple(e for e in self.effects if e.name != name))
 
-    def nine_params(self, reference: float) -> np.ndarray:
+    def nine_params(self, reference: float) -> FloatArray:
         """(9,) the exact ``[b, e, d]`` of :mod:`estimators.conventions` (absent effects are zero).
 
         ``reference`` is the triad's true scalar reference (g in m/s² or Ω in rad/s).
         """
-        bias = self.find("bias")
-        scale = self.find("scale_factor")
-        nonorth = self.find("non_orthogonality")
+        bias = self.find(Bias)
+        scale = self.find(ScaleFactor)
+        nonorth = self.find(NonOrthogonality)
         return nine_params(
             np.zeros(3) if bias is None else np.array(bias.bias_si) / reference,
             np.zeros(3) if scale is None else np.array(scale.scale_err),
@@ -669,17 +707,17 @@ class ErrorModel:
 
     accel: TriadErrorModel = field(default_factory=TriadErrorModel)
     gyro: TriadErrorModel = field(default_factory=TriadErrorModel)
-    environment: tuple = ()
+    environment: tuple[EnvironmentEffect, ...] = ()
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for triad in Triad:
             for e in self.triad(triad).effects:
                 if triad not in e.triads:
                     raise ValueError(f"effect {e.name!r} does not apply to the {triad.value} triad")
         env = tuple(self.environment)
-        for e in env:
-            if not isinstance(e, EnvironmentEffect):
-                raise ValueError(f"not an environment effect: {e!r}")
+        for env_effect in env:
+            if not isinstance(env_effect, EnvironmentEffect):
+                raise ValueError(f"not an environment effect: {env_effect!r}")
         names = [e.name for e in env]
         if len(set(names)) != len(names):
             raise ValueError(f"each environment effect may appear once, got {names}")

@@ -20,6 +20,7 @@ from enum import StrEnum
 
 import numpy as np
 
+from estimators._typing import BoolArray, FloatArray
 from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
 
 
@@ -62,7 +63,7 @@ class Fault:
     magnitude: float
     duration_s: float = math.inf
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "kind", FaultKind(self.kind))
         object.__setattr__(self, "triad", Triad(self.triad))
         limit = N_PARAMS if self.kind in PARAMETER_FAULTS else 3
@@ -89,14 +90,14 @@ class Fault:
         """The parameter name (STEP/RAMP) or axis name hit."""
         return PARAM_NAMES[self.index] if self.kind in PARAMETER_FAULTS else "xyz"[self.index]
 
-    def active(self, t_s: np.ndarray) -> np.ndarray:
+    def active(self, t_s: FloatArray) -> BoolArray:
         """(N,) True where the fault acts (a RAMP holds its end value after the rise)."""
         t = np.asarray(t_s, float)
         if self.kind is FaultKind.RAMP:
             return t >= self.t_start_s
         return (t >= self.t_start_s) & (t < self.t_start_s + self.duration_s)
 
-    def profile(self, t_s: np.ndarray) -> np.ndarray:
+    def profile(self, t_s: FloatArray) -> FloatArray:
         """(N,) size of the fault at each time (0 where inactive)."""
         t = np.asarray(t_s, float)
         if self.kind is FaultKind.RAMP:
@@ -108,7 +109,7 @@ def faults_of(faults: tuple[Fault, ...], triad: Triad) -> tuple[Fault, ...]:
     return tuple(f for f in faults if f.triad is Triad(triad))
 
 
-def param_deltas(faults: tuple[Fault, ...], triad: Triad, t_s: np.ndarray) -> np.ndarray | None:
+def param_deltas(faults: tuple[Fault, ...], triad: Triad, t_s: FloatArray) -> FloatArray | None:
     """(N, 9) change of the nine parameters of ``triad`` at each sample, or None without parameter faults."""
     mine = [f for f in faults_of(faults, triad) if f.kind in PARAMETER_FAULTS]
     if not mine:
@@ -120,8 +121,8 @@ def param_deltas(faults: tuple[Fault, ...], triad: Triad, t_s: np.ndarray) -> np
 
 
 def add_noise_bursts(
-    y: np.ndarray, faults: tuple[Fault, ...], t_s: np.ndarray, rng: np.random.Generator
-) -> np.ndarray:
+    y: FloatArray, faults: tuple[Fault, ...], t_s: FloatArray, rng: np.random.Generator
+) -> FloatArray:
     """``y`` (N, 3) with the NOISE_BURST faults' extra noise added (a new array)."""
     out = y.copy()
     for f in faults:
@@ -131,7 +132,7 @@ def add_noise_bursts(
     return out
 
 
-def apply_output_faults(y: np.ndarray, faults: tuple[Fault, ...], t_s: np.ndarray) -> np.ndarray:
+def apply_output_faults(y: FloatArray, faults: tuple[Fault, ...], t_s: FloatArray) -> FloatArray:
     """``y`` (N, 3) with STUCK and SATURATION faults applied, in the order given (a new array).
 
     A stuck axis holds the last output before onset (the first sample's if the

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimators._typing import FloatArray
 from estimators.conventions import MPS2_PER_MG, RPS_PER_DPH, STANDARD_GRAVITY_MPS2, Grade
 
 from .errors import (
@@ -109,7 +110,9 @@ _SCALE_PATTERN = np.array([0.8, -0.5, 1.1])
 _NONORTH_PATTERN = np.array([0.5, -1.0, 0.8, 0.3, -0.6, 1.2])
 
 
-def _triad_model(g: TriadGrade, bias, scale, nonorth, *, quantization: bool) -> TriadErrorModel:
+def _triad_model(
+    g: TriadGrade, bias: FloatArray, scale: FloatArray, nonorth: FloatArray, *, quantization: bool
+) -> TriadErrorModel:
     effects = [
         NonOrthogonality(nonorth),
         ScaleFactor(scale),

@@ -28,10 +28,14 @@ the integrator's error).
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
+
+from estimators._typing import BoolArray, FloatArray, IntArray
 
 _UP_N = np.array([0.0, 0.0, 1.0])
 
@@ -52,10 +56,10 @@ class Turn:
     of the rotation ``mat_nb(start)ᵀ·to_mat_nb``.
     """
 
-    to_mat_nb: tuple
+    to_mat_nb: ArrayLike
     duration_s: float
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         m = np.asarray(self.to_mat_nb, dtype=float)
         if (
             m.shape != (3, 3)
@@ -86,10 +90,10 @@ class Fly:
     attitude_amp_rad: float = 0.25
     yaw_amp_rad: float = 0.8
     accel_amp_mps2: float = 2.0
-    maneuver_hz: tuple = (0.05, 0.5)
+    maneuver_hz: tuple[float, float] = (0.05, 0.5)
     vibration_mps2: float = 0.5
     vibration_rad: float = 2.0e-4
-    vibration_hz: tuple = (20.0, 45.0)
+    vibration_hz: tuple[float, float] = (20.0, 45.0)
     n_components: int = 3
     ramp_s: float = 2.0
 
@@ -107,10 +111,10 @@ class Spin:
 
     duration_s: float
     rate_rps: float
-    axis_b: tuple = (0.0, 0.0, 1.0)
+    axis_b: ArrayLike = (0.0, 0.0, 1.0)
     end_rate_rps: float | None = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         k = np.asarray(self.axis_b, dtype=float)
         norm = np.linalg.norm(k) if k.shape == (3,) else 0.0
         if not np.isfinite(norm) or norm == 0.0:
@@ -132,10 +136,10 @@ Segment = Hold | Turn | Fly | Spin
 class MotionProfile:
     """An initial attitude ``initial_mat_nb`` (3, 3) and the ordered segments."""
 
-    initial_mat_nb: tuple
-    segments: tuple = field(default_factory=tuple)
+    initial_mat_nb: ArrayLike
+    segments: tuple[Segment, ...] = field(default_factory=tuple)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         m = np.asarray(self.initial_mat_nb, dtype=float)
         if m.shape != (3, 3) or not np.allclose(m @ m.T, np.eye(3), atol=1e-9):
             raise ValueError(f"initial_mat_nb must be a (3, 3) rotation matrix, got {m.tolist()!r}")
@@ -169,15 +173,15 @@ class Motion:
     position_index : (N,) index of the :class:`Hold` segment (0, 1, …), −1 elsewhere.
     """
 
-    t_s: np.ndarray
-    mat_nb: np.ndarray
-    rate_nb_b_rps: np.ndarray
-    accel_n_mps2: np.ndarray
-    static: np.ndarray
-    position_index: np.ndarray
+    t_s: FloatArray
+    mat_nb: FloatArray
+    rate_nb_b_rps: FloatArray
+    accel_n_mps2: FloatArray
+    static: BoolArray
+    position_index: IntArray
 
     @property
-    def static_intervals_s(self) -> np.ndarray:
+    def static_intervals_s(self) -> FloatArray:
         """(K, 2) first and last sample time of each :class:`Hold` segment, s."""
         idx = self.position_index
         k = int(idx.max()) + 1 if idx.size else 0
@@ -191,7 +195,7 @@ class Motion:
 # --- analytic building blocks -------------------------------------------------
 
 
-def min_jerk(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def min_jerk(s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Minimum-jerk ramp on ``s ∈ [0, 1]`` and its first two derivatives in ``s``."""
     s = np.clip(s, 0.0, 1.0)
     s2 = s * s
@@ -203,8 +207,8 @@ def min_jerk(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def fade_window(
-    tau_s: np.ndarray, length_s: float, ramp_s: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    tau_s: FloatArray, length_s: float, ramp_s: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """A window rising and falling with minimum-jerk ramps; value and derivatives in s.
 
     ``tau_s`` is the local time in ``[0, length_s]``; the ramps last
@@ -221,7 +225,9 @@ def fade_window(
     return w, w1, w2
 
 
-def sinusoid_sum(tau_s: np.ndarray, amp: np.ndarray, freq_hz: np.ndarray, phase_rad: np.ndarray):
+def sinusoid_sum(
+    tau_s: FloatArray, amp: FloatArray, freq_hz: FloatArray, phase_rad: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``Σ_m amp_m sin(2π f_m τ + p_m)`` per channel, with first and second time derivatives.
 
     ``amp``, ``freq_hz``, ``phase_rad`` have shape (C, M) for C channels of M
@@ -234,7 +240,7 @@ def sinusoid_sum(tau_s: np.ndarray, amp: np.ndarray, freq_hz: np.ndarray, phase_
     return (a * s).sum(-1), (a * w * c).sum(-1), (-a * w * w * s).sum(-1)
 
 
-def euler_zyx_matrix(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+def euler_zyx_matrix(roll: FloatArray, pitch: FloatArray, yaw: FloatArray) -> FloatArray:
     """(N, 3, 3) ``Rz(yaw)·Ry(pitch)·Rx(roll)``."""
     sf, cf = np.sin(roll), np.cos(roll)
     st, ct = np.sin(pitch), np.cos(pitch)
@@ -249,7 +255,13 @@ def euler_zyx_matrix(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np
     )
 
 
-def euler_zyx_body_rate(roll, pitch, roll_rate, pitch_rate, yaw_rate) -> np.ndarray:
+def euler_zyx_body_rate(
+    roll: FloatArray,
+    pitch: FloatArray,
+    roll_rate: FloatArray,
+    pitch_rate: FloatArray,
+    yaw_rate: FloatArray,
+) -> FloatArray:
     """(N, 3) body rate of ``Rz(ψ)·Ry(θ)·Rx(φ)`` from the Euler angle rates.
 
     ``p = φ' − ψ' sinθ``, ``q = θ' cosφ + ψ' cosθ sinφ``, ``r = −θ' sinφ + ψ' cosθ cosφ``.
@@ -265,7 +277,14 @@ def euler_zyx_body_rate(roll, pitch, roll_rate, pitch_rate, yaw_rate) -> np.ndar
     )
 
 
-def windowed_excursion(tau_s, length_s, ramp_s, amp, freq_hz, phase_rad):
+def windowed_excursion(
+    tau_s: FloatArray,
+    length_s: float,
+    ramp_s: float,
+    amp: FloatArray,
+    freq_hz: FloatArray,
+    phase_rad: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``w(τ)·s(τ)`` and its first two derivatives, (N, C) each (see :func:`fade_window`)."""
     w, w1, w2 = fade_window(tau_s, length_s, ramp_s)
     s, s1, s2 = sinusoid_sum(tau_s, amp, freq_hz, phase_rad)
@@ -273,7 +292,13 @@ def windowed_excursion(tau_s, length_s, ramp_s, amp, freq_hz, phase_rad):
     return w * s, w1 * s + w * s1, w2 * s + 2.0 * w1 * s1 + w * s2
 
 
-def random_sinusoids(rng: np.random.Generator, n_channels: int, n_components: int, rms, band_hz):
+def random_sinusoids(
+    rng: np.random.Generator,
+    n_channels: int,
+    n_components: int,
+    rms: ArrayLike,
+    band_hz: Sequence[float],
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Amplitudes, frequencies and phases of ``n_components`` sinusoids per channel.
 
     Frequencies are log-uniform in ``band_hz``; each channel's total RMS is ``rms``.
@@ -289,7 +314,14 @@ def random_sinusoids(rng: np.random.Generator, n_channels: int, n_components: in
     return np.repeat(amp, n_components, axis=1), freq, phase
 
 
-def angle_excursion(tau_s, length_s, ramp_s, amp, freq_hz, phase_rad):
+def angle_excursion(
+    tau_s: FloatArray,
+    length_s: float,
+    ramp_s: float,
+    amp: FloatArray,
+    freq_hz: FloatArray,
+    phase_rad: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
     """Attitude deviation ``Rz(ψ)Ry(θ)Rx(φ)`` and its body rate from windowed sinusoids.
 
     Channels of ``amp`` etc. are (roll, pitch, yaw). Returns ((N, 3, 3), (N, 3)).
@@ -300,7 +332,14 @@ def angle_excursion(tau_s, length_s, ramp_s, amp, freq_hz, phase_rad):
     return mat, rate
 
 
-def displacement_accel(tau_s, length_s, ramp_s, accel_amp, freq_hz, phase_rad):
+def displacement_accel(
+    tau_s: FloatArray,
+    length_s: float,
+    ramp_s: float,
+    accel_amp: FloatArray,
+    freq_hz: FloatArray,
+    phase_rad: FloatArray,
+) -> FloatArray:
     """(N, C) acceleration of a windowed sinusoidal displacement.
 
     The displacement amplitudes are ``accel_amp / (2πf)²`` so the plateau
@@ -314,7 +353,7 @@ def displacement_accel(tau_s, length_s, ramp_s, accel_amp, freq_hz, phase_rad):
 # --- orientation schemes ------------------------------------------------------
 
 
-def attitude_with_up(up_b: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
+def attitude_with_up(up_b: ArrayLike, heading_rad: float = 0.0) -> FloatArray:
     """(3, 3) ``mat_nb`` whose body-frame up direction is ``up_b``.
 
     The smallest rotation taking ``up_b`` to the navigation up axis, followed by
@@ -329,7 +368,8 @@ def attitude_with_up(up_b: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
         base = np.eye(3) if cos_a > 0 else Rotation.from_rotvec([np.pi, 0.0, 0.0]).as_matrix()
     else:
         base = Rotation.from_rotvec(axis / sin_a * np.arctan2(sin_a, cos_a)).as_matrix()
-    return Rotation.from_rotvec([0.0, 0.0, heading_rad]).as_matrix() @ base
+    heading: FloatArray = Rotation.from_rotvec([0.0, 0.0, heading_rad]).as_matrix()
+    return heading @ base
 
 
 # An order of the 18 directions (indices into the construction below) found by
@@ -340,7 +380,7 @@ def attitude_with_up(up_b: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
 _EIGHTEEN_ORDER = (4, 9, 1, 2, 15, 17, 7, 10, 11, 5, 8, 6, 14, 12, 16, 0, 3, 13)
 
 
-def eighteen_position_up_vectors() -> np.ndarray:
+def eighteen_position_up_vectors() -> FloatArray:
     """(18, 3) body-frame up directions: the 6 axis-up/down and the 12 between two axes at 45°.
 
     Ordered as a path from +z in which consecutive directions are 45° to 90°
@@ -357,7 +397,7 @@ def eighteen_position_up_vectors() -> np.ndarray:
     return np.array(dirs)[list(_EIGHTEEN_ORDER)]
 
 
-def tilt_sequence(up_b: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
+def tilt_sequence(up_b: FloatArray, heading_rad: float = 0.0) -> FloatArray:
     """(P, 3, 3) attitudes with body-frame up directions ``up_b`` (P, 3), reached by tilts.
 
     The first attitude is :func:`attitude_with_up` of ``up_b[0]``; each next
@@ -379,7 +419,7 @@ def tilt_sequence(up_b: np.ndarray, heading_rad: float = 0.0) -> np.ndarray:
     return np.array(out)
 
 
-def eighteen_position_attitudes(heading_rad: float = 0.0) -> np.ndarray:
+def eighteen_position_attitudes(heading_rad: float = 0.0) -> FloatArray:
     """(18, 3, 3) attitudes of the 18-position scheme, reached by tilts of 45° to 90°.
 
     See :func:`eighteen_position_up_vectors` and :func:`tilt_sequence`;
@@ -388,18 +428,19 @@ def eighteen_position_attitudes(heading_rad: float = 0.0) -> np.ndarray:
     return tilt_sequence(eighteen_position_up_vectors(), heading_rad)
 
 
-def random_attitudes(n: int, rng: np.random.Generator) -> np.ndarray:
+def random_attitudes(n: int, rng: np.random.Generator) -> FloatArray:
     """(n, 3, 3) attitudes drawn uniformly over the rotation group."""
     if n < 1:
         raise ValueError(f"need at least one attitude, got n={n}")
-    return Rotation.random(n, random_state=rng).as_matrix().reshape(n, 3, 3)
+    mats: FloatArray = Rotation.random(n, random_state=rng).as_matrix()
+    return mats.reshape(n, 3, 3)
 
 
 def multi_position_profile(
-    attitudes_nb: np.ndarray,
+    attitudes_nb: FloatArray,
     *,
-    static_s: float | np.ndarray = 20.0,
-    transition_s: float | np.ndarray = 4.0,
+    static_s: float | FloatArray = 20.0,
+    transition_s: float | FloatArray = 4.0,
     first_static_s: float | None = None,
 ) -> MotionProfile:
     """Hold each attitude of ``attitudes_nb`` (P, 3, 3) in turn, with minimum-jerk turns between.
@@ -423,13 +464,13 @@ def multi_position_profile(
         ) from None
     if first_static_s is not None:
         holds[0] = first_static_s
-    segments: list = [Hold(float(holds[0]))]
+    segments: list[Segment] = [Hold(float(holds[0]))]
     for m, turn_s, hold_s in zip(att[1:], turns, holds[1:], strict=True):
         segments += [Turn(m, float(turn_s)), Hold(float(hold_s))]
     return MotionProfile(att[0], tuple(segments))
 
 
-def static_profile(duration_s: float, mat_nb: np.ndarray | None = None) -> MotionProfile:
+def static_profile(duration_s: float, mat_nb: FloatArray | None = None) -> MotionProfile:
     """One long static interval in ``mat_nb`` (default: body axes = ENU)."""
     return MotionProfile(np.eye(3) if mat_nb is None else mat_nb, (Hold(duration_s),))
 
@@ -444,7 +485,7 @@ def flight_profile(fly: Fly, *, rest_s: float = 10.0, heading_rad: float = 0.0) 
 # --- sampling -------------------------------------------------------------------
 
 
-def _segment_counts(profile: MotionProfile, rate_hz: float) -> np.ndarray:
+def _segment_counts(profile: MotionProfile, rate_hz: float) -> IntArray:
     return np.array([max(1, round(s.duration_s * rate_hz)) for s in profile.segments])
 
 
@@ -488,6 +529,7 @@ def build_motion(
             rate[sl] = np.outer(theta * s1 / length, axis)
             current = target
         elif isinstance(seg, Spin):
+            assert seg.end_rate_rps is not None  # Spin.__post_init__ sets it
             axis = np.array(seg.axis_b)
             accel = (seg.end_rate_rps - seg.rate_rps) / length
             angle = seg.rate_rps * tau + 0.5 * accel * tau**2
@@ -534,4 +576,4 @@ def build_motion(
                 np.hstack([aphase, bphase]),
             )
         start += cnt
-    return Motion(t0_s + np.arange(n) * dt, mat, rate, acc, static, pos)
+    return Motion(t0_s + np.arange(n, dtype=np.float64) * dt, mat, rate, acc, static, pos)

@@ -6,12 +6,17 @@ argument is keyword-only and has a typical default.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from enum import StrEnum
 
 import numpy as np
 
+from estimators._typing import FloatArray
+from estimators.conventions import Grade
+
 from .errors import ErrorModel
-from .grades import Grade, grade_error_model
+from .faults import Fault
+from .grades import grade_error_model
 from .motion import (
     Fly,
     MotionProfile,
@@ -40,7 +45,7 @@ def position_attitudes(
     scheme: OrientationScheme = OrientationScheme.EIGHTEEN,
     heading_rad: float = 0.0,
     rng: np.random.Generator | None = None,
-) -> np.ndarray:
+) -> FloatArray:
     """(n, 3, 3) attitudes of ``n_positions`` positions.
 
     EIGHTEEN allows up to 18 positions, with ``heading_rad`` about the up axis;
@@ -60,12 +65,12 @@ def _spec(
     profile: MotionProfile,
     grade: Grade,
     model: ErrorModel | None,
-    rate_hz,
-    latitude_deg,
-    height_m,
-    gravity_mps2,
-    temperature,
-    faults,
+    rate_hz: float,
+    latitude_deg: float,
+    height_m: float,
+    gravity_mps2: float | None,
+    temperature: TemperatureProfile | None,
+    faults: Sequence[Fault],
 ) -> SessionSpec:
     """``profile`` as a :class:`SessionSpec`, with the grade's fixed preset unless ``model`` is given."""
     return SessionSpec(
@@ -88,15 +93,15 @@ def multi_position_spec(
     scheme: OrientationScheme = OrientationScheme.EIGHTEEN,
     orientation_rng: np.random.Generator | None = None,
     heading_rad: float = 0.0,
-    static_s: float | np.ndarray = 20.0,
-    transition_s: float | np.ndarray = 4.0,
+    static_s: float | FloatArray = 20.0,
+    transition_s: float | FloatArray = 4.0,
     first_static_s: float | None = None,
     rate_hz: float = 100.0,
     latitude_deg: float = 45.0,
     height_m: float = 0.0,
     gravity_mps2: float | None = None,
     temperature: TemperatureProfile | None = None,
-    faults: tuple = (),
+    faults: Sequence[Fault] = (),
 ) -> SessionSpec:
     """A multi-position session (methods.md M1's diagnosis geometry).
 
@@ -121,13 +126,13 @@ def static_spec(
     duration_s: float = 600.0,
     grade: Grade = Grade.MEMS,
     model: ErrorModel | None = None,
-    mat_nb: np.ndarray | None = None,
+    mat_nb: FloatArray | None = None,
     rate_hz: float = 100.0,
     latitude_deg: float = 45.0,
     height_m: float = 0.0,
     gravity_mps2: float | None = None,
     temperature: TemperatureProfile | None = None,
-    faults: tuple = (),
+    faults: Sequence[Fault] = (),
 ) -> SessionSpec:
     """One long static interval (noise studies, Allan deviation, warm-up)."""
     return _spec(
@@ -154,7 +159,7 @@ def flight_spec(
     height_m: float = 0.0,
     gravity_mps2: float | None = None,
     temperature: TemperatureProfile | None = None,
-    faults: tuple = (),
+    faults: Sequence[Fault] = (),
 ) -> SessionSpec:
     """Rest level, fly the :class:`~estimators.sim.motion.Fly` segment ``fly``, rest again."""
     return _spec(

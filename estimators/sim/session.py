@@ -25,7 +25,9 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import (
     EARTH_RATE_RPS,
     N_PARAMS,
@@ -74,10 +76,10 @@ class SessionSpec:
     height_m: float = 0.0
     gravity_mps2: float | None = None
     temperature: TemperatureProfile | None = None
-    faults: tuple = ()
+    faults: tuple[Fault, ...] = ()
     t0_s: float = 0.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "faults", tuple(self.faults))
         for f in self.faults:
             if not isinstance(f, Fault):
@@ -120,28 +122,28 @@ class Truth:
     model : the error model used.
     """
 
-    t_s: np.ndarray
-    mat_nb: np.ndarray
-    rate_nb_b_rps: np.ndarray
-    rate_ib_b_rps: np.ndarray
-    specific_force_b_mps2: np.ndarray
-    static: np.ndarray
-    position_index: np.ndarray
-    static_intervals_s: np.ndarray
-    temp_c: np.ndarray | None
-    accel_params: np.ndarray
-    gyro_params: np.ndarray
+    t_s: FloatArray
+    mat_nb: FloatArray
+    rate_nb_b_rps: FloatArray
+    rate_ib_b_rps: FloatArray
+    specific_force_b_mps2: FloatArray
+    static: BoolArray
+    position_index: IntArray
+    static_intervals_s: FloatArray
+    temp_c: FloatArray | None
+    accel_params: FloatArray
+    gyro_params: FloatArray
     gravity_mps2: float
     gravity_true_mps2: float
     latitude_deg: float
-    faults: tuple
+    faults: tuple[Fault, ...]
     model: ErrorModel
 
-    def params(self, triad: Triad) -> np.ndarray:
+    def params(self, triad: Triad) -> FloatArray:
         """(9,) the triad's true parameters before any fault."""
         return self.accel_params if Triad(triad) is Triad.ACCEL else self.gyro_params
 
-    def params_at(self, triad: Triad, t_s) -> np.ndarray:
+    def params_at(self, triad: Triad, t_s: ArrayLike) -> FloatArray:
         """(N, 9) (or (9,) for a scalar time) true parameters including parameter faults."""
         t = np.atleast_1d(np.asarray(t_s, float))
         delta = param_deltas(self.faults, triad, t)
@@ -182,13 +184,13 @@ class RandomStreams:
         return np.random.default_rng(np.random.SeedSequence(self.entropy, spawn_key=key))
 
 
-def earth_rate_n_rps(latitude_deg: float) -> np.ndarray:
+def earth_rate_n_rps(latitude_deg: float) -> FloatArray:
     """(3,) Earth rate in ENU at ``latitude_deg``, rad/s."""
     phi = np.radians(latitude_deg)
     return EARTH_RATE_RPS * np.array([0.0, np.cos(phi), np.sin(phi)])
 
 
-def _check_fault_targets(model: ErrorModel, faults: tuple) -> None:
+def _check_fault_targets(model: ErrorModel, faults: tuple[Fault, ...]) -> None:
     for f in faults:
         if f.kind in PARAMETER_FAULTS:
             needed = PARAMETER_EFFECT[f.index // 3]
@@ -201,13 +203,13 @@ def _check_fault_targets(model: ErrorModel, faults: tuple) -> None:
 def _sensor_output(
     spec: SessionSpec,
     triad: Triad,
-    x_b: np.ndarray,
-    f_b: np.ndarray,
-    t_s,
-    temp_c,
+    x_b: FloatArray,
+    f_b: FloatArray,
+    t_s: FloatArray,
+    temp_c: FloatArray | None,
     reference: float,
     streams: RandomStreams,
-) -> np.ndarray:
+) -> FloatArray:
     """(N, 3) output of ``triad`` for the true input ``x_b``: its effect chain, then its faults."""
     chain = spec.model.triad(triad)
     faults = faults_of(spec.faults, triad)

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimators._typing import FloatArray
+
 
 def _finite(name: str, value: float) -> None:
     if not np.isfinite(value):
@@ -26,10 +28,10 @@ class ConstantTemperature:
 
     temp_c: float = 20.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _finite("temp_c", self.temp_c)
 
-    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+    def temp_c_at(self, t_s: FloatArray) -> FloatArray:
         return np.full(np.shape(t_s), float(self.temp_c))
 
 
@@ -40,11 +42,11 @@ class RampTemperature:
     start_c: float = 20.0
     rate_c_per_s: float = 0.01
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _finite("start_c", self.start_c)
         _finite("rate_c_per_s", self.rate_c_per_s)
 
-    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+    def temp_c_at(self, t_s: FloatArray) -> FloatArray:
         return self.start_c + self.rate_c_per_s * np.asarray(t_s, float)
 
 
@@ -56,13 +58,13 @@ class WarmupTemperature:
     final_c: float = 35.0
     tau_s: float = 300.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _finite("start_c", self.start_c)
         _finite("final_c", self.final_c)
         if not np.isfinite(self.tau_s) or self.tau_s <= 0:
             raise ValueError(f"tau_s must be positive, got {self.tau_s!r}")
 
-    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+    def temp_c_at(self, t_s: FloatArray) -> FloatArray:
         return self.final_c - (self.final_c - self.start_c) * np.exp(
             -np.asarray(t_s, float) / self.tau_s
         )
@@ -79,13 +81,13 @@ class CycleTemperature:
     peak_c: float = 40.0
     period_s: float = 600.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         _finite("base_c", self.base_c)
         _finite("peak_c", self.peak_c)
         if not np.isfinite(self.period_s) or self.period_s <= 0:
             raise ValueError(f"period_s must be positive, got {self.period_s!r}")
 
-    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
+    def temp_c_at(self, t_s: FloatArray) -> FloatArray:
         phase = 2.0 * np.pi * np.asarray(t_s, float) / self.period_s
         return self.base_c + (self.peak_c - self.base_c) * 0.5 * (1.0 - np.cos(phase))
 
