@@ -296,6 +296,10 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
         ]
         data = result.to_dict()
         lines += [f"Positions: {result.n_positions}; Monte Carlo replicas: {result.replicas}.", ""]
+        lines += [
+            f"- {triad} candidates on the `{p['path']}` path: {p['reason']}"
+            for triad, p in data["grade_paths"].items()
+        ] + [""]
         if data["baseline"]["ratio"] is not None and data["extended"]["ratio"] is not None:
             lines += [
                 f"Headline (accelerometer χ²/dof of the scalar equation per position): baseline ratio {data['baseline']['ratio']:.2f} "

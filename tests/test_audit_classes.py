@@ -1,7 +1,9 @@
-"""The audit's classes of issue 13: temperature records, coarse quantization (and, per triad, the grade path).
+"""The audit's classes of issue 13: temperature records, coarse quantization, navigation-grade gyros, grade paths.
 
 Hidden-effect trials of :mod:`estimators.audit.hidden` at 8–10 detection standard errors:
-40 seeded trials per class, the right effect and only it in at least 39.
+40 seeded trials per class, the right effect and only it in at least 39. Each class's 40 trials
+alternate MEMS and navigation grade and (where the class allows) sessions with and without the
+temperature column; benchmarks/bench_audit.py gives the hit rate of each grade on its own.
 """
 
 import numpy as np
@@ -10,8 +12,8 @@ import pytest
 from estimators.audit import AuditConfig, run_audit
 from estimators.audit.audit import fit_baselines, same_session_spec, triad_model
 from estimators.audit.hidden import (
-    ACCEL_SD_MPS2,
     TEMPERATURE_KINDS,
+    TRIAL_UNITS,
     baseline_model,
     clean_trial,
     draw,
@@ -19,12 +21,13 @@ from estimators.audit.hidden import (
     named_effects,
     session_of,
     trial,
+    trial_chain_config,
 )
 from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import Triad
 from estimators.noise import dequantized_white_sd, rounding_mean_var
 from estimators.session import ImuSession
-from estimators.sim import ErrorModel, RecordedTemperature, simulate
+from estimators.sim import ErrorModel, Grade, RecordedTemperature, simulate
 
 G = 9.80665
 DETECTION = (8.0, 10.0)
@@ -38,6 +41,10 @@ axis and the chain refuses its covariance."""
 
 def _size(seed: int, bounds: tuple[float, float]) -> float:
     return float(np.random.default_rng([seed, 3]).uniform(*bounds))
+
+
+def _grade(t: int) -> Grade:
+    return (Grade.MEMS, Grade.NAVIGATION)[t % 2]
 
 
 # --- (1) a measured temperature record, replayed ---------------------------------------
@@ -80,16 +87,18 @@ def test_a_named_temperature_effect_is_re_simulated_on_the_record():
 
 
 def test_temperature_effects_are_named_from_the_record():
+    # MEMS: accelerometer bias and scale, gyro bias; navigation grade: the gyro scale too (a known rate).
     hits = []
     for t in range(TRIALS):
-        seed = 8000 + t
-        kind = TEMPERATURE_KINDS[t % len(TEMPERATURE_KINDS)]
-        hits.append(trial(draw(seed, _size(seed, DETECTION), kind), seed))
+        seed, grade = 8000 + t, _grade(t)
+        kinds = TEMPERATURE_KINDS + ((("temperature_scale", Triad.GYRO),) if t % 2 else ())
+        kind = kinds[(t // 2) % len(kinds)]
+        hits.append(trial(draw(seed, _size(seed, DETECTION), kind, grade), seed))
     assert sum(hits) >= REQUIRED, [t for t, h in enumerate(hits) if not h]
 
 
-def test_a_session_with_temperature_and_no_effect_names_nothing():
-    clean = [clean_trial(8100 + k) for k in range(TRIALS)]
+def test_effect_free_sessions_of_both_grades_name_nothing_with_or_without_temperature():
+    clean = [clean_trial(8100 + k, temperature=k % 4 < 2, grade=_grade(k)) for k in range(TRIALS)]
     assert sum(clean) >= REQUIRED, [k for k, c in enumerate(clean) if not c]
 
 
@@ -114,10 +123,10 @@ def test_rounding_variance_of_a_mean_matches_the_exact_quantizer():
 def test_coarse_quantization_is_named_and_nothing_else():
     hits = []
     for t in range(TRIALS):
-        seed = 8200 + t
-        h = hide(seed, "quantization", Triad.ACCEL, None, _size(seed, COARSE))
-        assert h.value > 2.4 * ACCEL_SD_MPS2
-        hits.append(trial(h, seed, temperature=t % 2 == 0))
+        seed, grade = 8200 + t, _grade(t)
+        h = hide(seed, "quantization", Triad.ACCEL, None, _size(seed, COARSE), grade=grade)
+        assert h.value > 2.4 * TRIAL_UNITS[grade].accel_sd_mps2
+        hits.append(trial(h, seed, temperature=t % 4 < 2))
     assert sum(hits) >= REQUIRED, [t for t, h in enumerate(hits) if not h]
 
 
@@ -132,3 +141,38 @@ def test_the_quantization_candidate_states_the_step_and_the_kept_rounding():
     assert not q.params["half_pulse_correction_holds"]
     assert min(q.params["rounding_over_mean_noise"]) > 1.0
     assert "noise below ½ step" in q.reason
+
+
+# --- (2) navigation-grade gyros, and (5) the path each triad took ----------------------
+
+EARTH_RATE_KINDS = (
+    ("g_sensitivity", Triad.GYRO),
+    ("bias_drift", Triad.GYRO),
+    ("temperature_bias", Triad.GYRO),
+    ("temperature_scale", Triad.GYRO),
+)
+
+
+def test_navigation_grade_gyro_effects_are_named_against_the_earth_rate():
+    # The Earth rate's projection (unknown heading) is ~300× a position mean's noise here: regressing the
+    # means on the specific force (the MEMS path) names nothing at these sizes.
+    hits = []
+    for t in range(TRIALS):
+        seed = 8400 + t
+        kind = EARTH_RATE_KINDS[t % len(EARTH_RATE_KINDS)]
+        h = draw(seed, _size(seed, DETECTION), kind, Grade.NAVIGATION)
+        hits.append(trial(h, seed, temperature=kind[0].startswith("temperature") or t % 8 < 4))
+    assert sum(hits) >= REQUIRED, [t for t, h in enumerate(hits) if not h]
+
+
+def test_each_triad_states_its_grade_path_and_why():
+    paths = {}
+    for grade in (Grade.MEMS, Grade.NAVIGATION):
+        s, _ = session_of(baseline_model(np.random.default_rng(2), grade), 8500, grade=grade)
+        res = run_audit(s, AuditConfig(trial_chain_config(grade), replicas=5))
+        data = res.to_dict()
+        paths[grade] = {t: p["path"] for t, p in data["grade_paths"].items()}
+        assert all(p["reason"] for p in data["grade_paths"].values())
+        assert res.named == []
+    assert paths[Grade.MEMS] == {"accel": "gravity_scalar", "gyro": "earth_rate_as_noise"}
+    assert paths[Grade.NAVIGATION] == {"accel": "gravity_scalar", "gyro": "earth_rate_scalar"}

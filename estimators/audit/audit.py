@@ -33,6 +33,7 @@ import numpy as np
 
 from estimators.chain import ChainConfig, ChainResult, run_chain
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad, reference_magnitude
+from estimators.ninepar import Verdict
 from estimators.noise import (
     batch_means_sd,
     dequantized_white_sd,
@@ -70,6 +71,7 @@ from .candidates import (
     accel_records,
     count_tests,
     disturbed_positions,
+    earth_rate_records,
     gyro_records,
     mean_variance_factor,
     temperature_reason,
@@ -120,6 +122,9 @@ class TriadBaseline:
         0 in the baseline.
     gm_sigma_norm, gm_tau_s : (3,) the Gauss–Markov bias behind that wander (normalized sd, correlation
         time in s); sd 0 where none was named.
+    scalar_resolved : the chain resolved all nine parameters against the triad's reference (always for
+        the accelerometers the audit goes on with; for a gyro, navigation grade: :func:`grade_path`).
+    resolution_reason : the chain's observability verdict, one line.
     """
 
     params: np.ndarray
@@ -130,6 +135,8 @@ class TriadBaseline:
     excess_sd_norm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     gm_sigma_norm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     gm_tau_s: np.ndarray = field(default_factory=lambda: np.ones(3))
+    scalar_resolved: bool = True
+    resolution_reason: str = ""
 
     def to_dict(self) -> dict:
         return {
@@ -221,7 +228,51 @@ def fit_baseline(
         ref = reference_magnitude(triad, chain.gravity_mps2)
         params = np.zeros(9)
         params[:3] = np.median([p.mean(triad) for p in chain.positions], axis=0) / ref
-    return TriadBaseline(params, white, quant, session.rate_hz, mean_sd)
+    resolved = est.params is not None and est.verdict is Verdict.OBSERVABLE
+    return TriadBaseline(
+        params,
+        white,
+        quant,
+        session.rate_hz,
+        mean_sd,
+        scalar_resolved=resolved,
+        resolution_reason=est.reason,
+    )
+
+
+def grade_path(
+    triad: Triad, base: TriadBaseline, n_typical: float, reference: float
+) -> dict[str, str | float]:
+    """Which candidate path a triad took and why (issue 13): the audit JSON's ``grade_paths``.
+
+    * ``gravity_scalar`` (accelerometers): effects on the exact scalar residual of M1;
+    * ``earth_rate_scalar`` (a gyro that resolves the Earth rate, navigation grade): effects on
+      ``|ω − b − G f| = Ω``, the heading of each position eliminated
+      (:func:`estimators.audit.candidates.earth_rate_records`);
+    * ``earth_rate_as_noise`` (a MEMS gyro): position means regressed per axis, the Earth rate's
+      unknown horizontal projection an extra variance ``Ω²/3`` (:func:`estimators.audit.candidates.gyro_records`).
+
+    ``n_typical``: a typical position's sample count; ``reference``: g or Ω.
+    """
+    noise = float(np.max(base.mean_noise_sd_si) / np.sqrt(n_typical) / reference)
+    where = (
+        f"a position mean's noise is {noise:.2g} of the reference; chain: {base.resolution_reason}"
+    )
+    if triad is Triad.ACCEL:
+        return {"path": "gravity_scalar", "mean_noise_over_reference": noise, "reason": where}
+    if base.scalar_resolved:
+        return {
+            "path": "earth_rate_scalar",
+            "mean_noise_over_reference": noise,
+            "reason": "the Earth rate is resolved (navigation grade): effects on |ω − b − G f| = Ω, "
+            f"each position's heading eliminated; {where}",
+        }
+    return {
+        "path": "earth_rate_as_noise",
+        "mean_noise_over_reference": noise,
+        "reason": "the Earth rate is not resolved (MEMS): position means per axis, its unknown projection "
+        f"a variance Ω²/3; {where}",
+    }
 
 
 def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
@@ -361,6 +412,7 @@ class AuditResult:
     replica_curves: dict = field(default_factory=dict)
     measured_curves: dict = field(default_factory=dict)
     extension: list[dict] = field(default_factory=list)
+    grade_paths: dict[Triad, dict[str, str | float]] = field(default_factory=dict)
 
     @property
     def named(self) -> list[Candidate]:
@@ -384,6 +436,7 @@ class AuditResult:
         return {
             "statements": self.statements,
             "n_positions": self.n_positions,
+            "grade_paths": {t.value: p for t, p in self.grade_paths.items()},
             "gravity_mps2": self.gravity_mps2,
             "replicas": self.replicas,
             "baseline": block(self.baseline_cmp, self.baseline),
@@ -494,7 +547,11 @@ def find_candidates(
     tab_a = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
     tab_g = candidate_table(chain, session, Triad.GYRO, baselines[Triad.GYRO]) if gyro else None
     n = tab_a.n_samples.size
-    n_tests = count_tests(gyro, temperature_reason(tab_a) is None)
+    n_tests = count_tests(
+        gyro,
+        temperature_reason(tab_a) is None,
+        gyro and baselines[Triad.GYRO].scalar_resolved,
+    )
     keep = np.ones(n, bool)
     # Screen for disturbed positions, refit without them, until none is left (a few rounds at most).
     for _ in range(SCREENING_ROUNDS):
@@ -540,7 +597,12 @@ def _fit_candidates(
     acc = accel_records(tab_a, jac, resid, sigma, n_tests)
     cands, records = list(acc.candidates), [acc.between, acc.halves]
     if tab_g is not None:
-        gyr = gyro_records(tab_g, tab_a.mean * g, n_tests)
+        base_g = baselines[Triad.GYRO]
+        if base_g.scalar_resolved:
+            r_g, s_g, j_g, _ = scalar_residuals(base_g.params, tab_g)
+            gyr = earth_rate_records(tab_g, j_g, r_g, s_g, tab_a.mean * g, n_tests)
+        else:
+            gyr = gyro_records(tab_g, tab_a.mean * g, n_tests)
         cands += gyr.candidates
         records += [gyr.between, gyr.halves]
     var_cands, final = variance_candidates(
@@ -616,6 +678,10 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         return res
     res.baseline = fit_baselines(session, chain)
     g = chain.gravity_mps2
+    n_typical = float(np.median([p.n_samples for p in chain.positions]))
+    res.grade_paths = {
+        t: grade_path(t, b, n_typical, reference_magnitude(t, g)) for t, b in res.baseline.items()
+    }
     model = ErrorModel(
         accel=triad_model(res.baseline[Triad.ACCEL], g),
         gyro=triad_model(res.baseline[Triad.GYRO], EARTH_RATE_RPS)
@@ -672,7 +738,7 @@ def extend_model(
     base = dict(baseline)
     drift = {t: np.zeros(3) for t in Triad}
     temp_bias = {t: np.zeros(3) for t in Triad}
-    temp_scale = np.zeros(3)
+    temp_scale = {t: np.zeros(3) for t in Triad}
     k2, k3 = np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
     excess = {t: np.zeros(3) for t in Triad}
@@ -700,7 +766,7 @@ def extend_model(
                 else c.params["coef_rps_per_c"]
             )
         elif c.effect == "temperature_scale":
-            temp_scale[i] = c.params["coef_per_c"]
+            temp_scale[c.triad][i] = c.params["coef_per_c"]
         elif c.effect == "scale_nonlinearity":
             k2[i], k3[i] = c.params["k2_norm"] / g, c.params["k3_norm"] / g**2
         elif c.effect == "g_sensitivity":
@@ -726,8 +792,8 @@ def extend_model(
             ext = ext.with_effect(BiasDrift(drift[t][:, None]), t)
         if np.any(temp_bias[t]):
             ext = ext.with_effect(TemperatureBias(temp_bias[t][:, None], t_ref_c=t_ref), t)
-    if np.any(temp_scale):
-        ext = ext.with_effect(TemperatureScale(temp_scale[:, None], t_ref_c=t_ref), Triad.ACCEL)
+        if np.any(temp_scale[t]):
+            ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
     if np.any(k2) or np.any(k3):
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
     if np.any(gsens):

@@ -462,12 +462,14 @@ def temperature_reason(tab: PositionTable) -> str | None:
     return None
 
 
-def count_tests(has_gyro: bool, temperature: bool) -> int:
+def count_tests(has_gyro: bool, temperature: bool, earth_rate: bool = False) -> int:
     """Candidates tried (the Bonferroni split): per accelerometer axis drift, non-linearity,
     instability (+ two temperature effects); nonstatic positions; per gyro axis drift,
-    g-sensitivity, instability (+ temperature bias)."""
+    g-sensitivity, instability (+ temperature bias, and temperature scale when the gyro
+    resolves the Earth rate: ``earth_rate``)."""
     accel = 3 * (3 + (2 if temperature else 0)) + 1
-    gyro = 3 * (3 + (1 if temperature else 0)) if has_gyro else 0
+    gyro_temp = (2 if earth_rate else 1) if temperature else 0
+    gyro = 3 * (3 + gyro_temp) if has_gyro else 0
     return accel + gyro
 
 
@@ -850,6 +852,38 @@ def _halves_record(tab: PositionTable, halves_mean: np.ndarray, motion: np.ndarr
     return VarianceData.finite(tab.halves - halves_mean, 4.0 * tab.cov, comps)
 
 
+def _scalar_records(
+    tab: PositionTable,
+    effects: list[_MeanEffect],
+    jac: np.ndarray,
+    residual: np.ndarray,
+    sigma: np.ndarray,
+    n_tests: int,
+    triad: Triad,
+    to_si: float,
+    motion: np.ndarray,
+) -> tuple[list[Candidate], VarianceData, VarianceData]:
+    """Mean candidates on the exact scalar residual of one triad, then its two variance records.
+
+    ``motion`` (n, 3, 3) is the halves' motion component (accel: perpendicular to gravity; gyro: isotropic).
+    """
+    var0 = sigma**2
+    g_b2 = (
+        jac[:, :3] ** 2
+    )  # a bias wander of axis i moves f by ∂f/∂b_i (≈ −u_i for the accelerometers)
+    tests, chosen, halves_mean, sd = _means_with_excess(
+        effects, jac, residual, var0, g_b2.T, n_tests, 3
+    )
+    out = _mean_candidates(effects, tests, triad, to_si, f"{triad.value} scalar residuals")
+    # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
+    between = VarianceData.finite(
+        leverage_residual(np.hstack([jac, chosen]), residual, sd)[:, None],
+        var0[:, None, None],
+        g_b2.T[:, :, None, None],
+    )
+    return out, between, _halves_record(tab, halves_mean, motion)
+
+
 def accel_records(
     tab: PositionTable, jac: np.ndarray, residual: np.ndarray, sigma: np.ndarray, n_tests: int
 ) -> TriadRecords:
@@ -862,20 +896,12 @@ def accel_records(
     n_tests : candidates tried (:func:`count_tests`).
     """
     tri = Triad.ACCEL
-    var0 = sigma**2
-    g_b2 = jac[:, :3] ** 2  # a bias wander of axis i moves f by ∂f/∂b_i ≈ −u_i
-    comps = g_b2.T[:, :, None, None]
-
-    def between(design, sd):
-        return VarianceData.finite(
-            leverage_residual(design, residual, sd)[:, None], var0[:, None, None], comps
-        )
-
     effects = [e for i in range(3) for e in _mean_effects(tab, jac, None, i)]
-    tests, chosen, halves_mean, sd = _means_with_excess(
-        effects, jac, residual, var0, g_b2.T, n_tests, 3
+    u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
+    perp = np.eye(3)[None] - np.einsum("ka,kb->kab", u, u)
+    out, between, halves = _scalar_records(
+        tab, effects, jac, residual, sigma, n_tests, tri, 1.0, perp
     )
-    out = _mean_candidates(effects, tests, tri, 1.0, "position residuals")
     reason = temperature_reason(tab)
     if reason is not None:
         out += [
@@ -891,12 +917,117 @@ def accel_records(
             "not identifiable: a wrong local g is a common scale error absorbed by ex, ey, ez; needs a passport (known scale factors)",
         )
     )
-    u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
-    perp = np.eye(3)[None] - np.einsum("ka,kb->kab", u, u)
-    # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
-    return TriadRecords(
-        out, between(np.hstack([jac, chosen]), sd), _halves_record(tab, halves_mean, perp)
+    return TriadRecords(out, between, halves)
+
+
+def earth_rate_records(
+    tab: PositionTable,
+    jac: np.ndarray,
+    residual: np.ndarray,
+    sigma: np.ndarray,
+    f_b_mps2: np.ndarray,
+    n_tests: int,
+) -> TriadRecords:
+    """Gyro candidates of the navigation-grade path: the exact scalar equation ``|ω − b − G f| = Ω`` (M1, M4).
+
+    When the position means resolve the Earth rate, its projection on each
+    axis is a large, position-dependent signal whose horizontal part depends
+    on the unknown heading: regressing the means on the specific force (the
+    MEMS path) drowns a g-sensitivity in it. The norm of the compensated rate
+    does not depend on the heading (one nuisance angle per position
+    eliminated): each effect enters the baseline's scalar residual through
+    ``∂f/∂b_i`` (the Earth rate's direction on axis ``i``) times its
+    regressor — ``t`` (drift), ``f`` (g-sensitivity, three columns), ``ΔT``
+    (temperature bias) — or through ``∂f/∂e_i·ΔT`` (temperature scale: the
+    Earth rate is a known rate). Bias instability is the wander of the
+    scalar residual along ``(∂f/∂b_i)²`` and of the half-to-half differences,
+    as for the accelerometers. What this gives up: the component of an effect
+    perpendicular to the Earth rate (the heading takes it in).
+
+    Parameters
+    ----------
+    tab : the gyro :class:`PositionTable` normalized by Ω (covariances from the baseline noise).
+    jac, residual, sigma : the gyro's exact scalar equation at its baseline (:func:`estimators.audit.statistics.scalar_residuals`).
+    f_b_mps2 : (n, 3) specific force of each position (the accelerometer means), m/s².
+    n_tests : candidates tried (:func:`count_tests`).
+    """
+    tri = Triad.GYRO
+    effects = [e for i in range(3) for e in _earth_rate_effects(tab, jac, f_b_mps2, i)]
+    n = tab.t_mid_s.size
+    out, between, halves = _scalar_records(
+        tab,
+        effects,
+        jac,
+        residual,
+        sigma,
+        n_tests,
+        tri,
+        EARTH_RATE_RPS,
+        np.broadcast_to(np.eye(3), (n, 3, 3)),
     )
+    reason = temperature_reason(tab)
+    for ax in AXES:
+        if reason is not None:
+            out += [
+                not_identifiable(e, tri, ax, reason)
+                for e in ("temperature_bias", "temperature_scale")
+            ]
+        out.append(
+            not_identifiable(
+                "scale_nonlinearity",
+                tri,
+                ax,
+                "not identifiable: static positions give the gyros only the Earth rate (one magnitude)",
+            )
+        )
+    return TriadRecords(out, between, halves)
+
+
+def _earth_rate_effects(
+    tab: PositionTable, jac: np.ndarray, f_b_mps2: np.ndarray, i: int
+) -> list[_MeanEffect]:
+    """Mean effects of gyro axis ``i`` on the scalar residual (:func:`earth_rate_records`).
+
+    The keys are SI (rad/s): the coefficients are normalized by Ω and turned
+    into SI by ×Ω, so the dimensionless temperature scale enters with its
+    regressor (and halves) multiplied by Ω.
+    """
+    n = tab.t_mid_s.size
+    dt = (tab.t_mid_s - tab.t_mid_s.mean())[:, None]
+    out = [
+        _MeanEffect(
+            "bias_drift",
+            i,
+            ("rate_rps_per_s",),
+            jac[:, [i]] * dt,
+            -0.5 * tab.duration_s[:, None],
+            -1.0,
+        ),
+        _MeanEffect(
+            "g_sensitivity",
+            i,
+            tuple(f"g{a}_rps_per_mps2" for a in AXES),
+            jac[:, [i]] * f_b_mps2,
+            np.zeros((n, 3)),
+            -1.0,
+        ),
+    ]
+    if temperature_reason(tab) is None:
+        assert tab.temp_c is not None and tab.temp_halves_c is not None
+        dtemp = (tab.temp_c - tab.temp_c.mean())[:, None]
+        th = tab.temp_halves_c[:, None]
+        out += [
+            _MeanEffect("temperature_bias", i, ("coef_rps_per_c",), jac[:, [i]] * dtemp, th, -1.0),
+            _MeanEffect(
+                "temperature_scale",
+                i,
+                ("coef_per_c",),
+                jac[:, [3 + i]] * dtemp * EARTH_RATE_RPS,
+                tab.mean[:, [i]] * th * EARTH_RATE_RPS,
+                -1.0,
+            ),
+        ]
+    return out
 
 
 def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> TriadRecords:

@@ -39,7 +39,7 @@ counts it named when the baseline found a grid on that triad.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import brentq
@@ -52,7 +52,9 @@ from estimators.sim import (
     BiasDrift,
     BiasInstability,
     CycleTemperature,
+    Effect,
     ErrorModel,
+    Grade,
     GSensitivity,
     NonOrthogonality,
     NonstaticPositions,
@@ -69,6 +71,7 @@ from estimators.sim import (
     random_attitudes,
     simulate,
 )
+from estimators.static_detector import StaticDetectorConfig
 
 from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines
 from .candidates import EARTH_RATE_VAR_NORM, Candidate, gauss_markov_moments
@@ -114,21 +117,53 @@ _COEF_KEY = {
     ("scale_nonlinearity", Triad.ACCEL): "k2_norm",
     ("bias_drift", Triad.GYRO): "rate_rps_per_s",
     ("temperature_bias", Triad.GYRO): "coef_rps_per_c",
+    ("temperature_scale", Triad.GYRO): "coef_per_c",
 }
 
 
-def baseline_model(rng: np.random.Generator) -> ErrorModel:
-    """A random effect-free unit: bias, scale, non-orthogonality and white noise (module docstring)."""
+@dataclass(frozen=True)
+class TrialUnit:
+    """The sd of a trial unit's random errors and its white noise per sample (SI)."""
+
+    accel_sd_mps2: float
+    gyro_sd_rps: float
+    accel_bias_mps2: float
+    accel_scale: float
+    accel_nonorth_rad: float
+    gyro_bias_rps: float
+    gyro_scale: float
+    gyro_nonorth_rad: float
+
+
+TRIAL_UNITS = {
+    Grade.MEMS: TrialUnit(ACCEL_SD_MPS2, GYRO_SD_RPS, 0.05, 2e-3, 1e-3, 2e-3, 0.0, 0.0),
+    # estimators.sim.grades' navigation preset at 50 Hz: 0.01 mg/√Hz, 0.002 °/√h.
+    Grade.NAVIGATION: TrialUnit(7.0e-4, 4.1e-6, 2.5e-4, 5e-5, 2e-5, 5e-8, 1e-5, 1e-5),
+}
+"""Trial units per grade. A MEMS gyro's scalar is far below its noise (bias only); a navigation-grade
+gyro resolves the Earth rate to ~0.4 % per position, so its scale and axes matter (M1)."""
+
+
+def baseline_model(rng: np.random.Generator, grade: Grade = Grade.MEMS) -> ErrorModel:
+    """A random effect-free unit of ``grade``: bias, scale, non-orthogonality and white noise (module docstring)."""
+    u = TRIAL_UNITS[grade]
     acc = TriadErrorModel(
         (
-            NonOrthogonality(rng.normal(0, 1e-3, 6)),
-            ScaleFactor(rng.normal(0, 2e-3, 3)),
-            Bias(rng.normal(0, 0.05, 3)),
-            WhiteNoise.from_sample_sd(np.full(3, ACCEL_SD_MPS2), RATE_HZ),
+            NonOrthogonality(rng.normal(0, u.accel_nonorth_rad, 6)),
+            ScaleFactor(rng.normal(0, u.accel_scale, 3)),
+            Bias(rng.normal(0, u.accel_bias_mps2, 3)),
+            WhiteNoise.from_sample_sd(np.full(3, u.accel_sd_mps2), RATE_HZ),
         )
     )
+    gyro_errors: tuple[Effect, ...] = (Bias(rng.normal(0, u.gyro_bias_rps, 3)),)
+    if grade is not Grade.MEMS:
+        gyro_errors = (
+            NonOrthogonality(rng.normal(0, u.gyro_nonorth_rad, 6)),
+            ScaleFactor(rng.normal(0, u.gyro_scale, 3)),
+            *gyro_errors,
+        )
     gyr = TriadErrorModel(
-        (Bias(rng.normal(0, 2e-3, 3)), WhiteNoise.from_sample_sd(np.full(3, GYRO_SD_RPS), RATE_HZ))
+        (*gyro_errors, WhiteNoise.from_sample_sd(np.full(3, u.gyro_sd_rps), RATE_HZ))
     )
     return ErrorModel(accel=acc, gyro=gyr)
 
@@ -149,8 +184,20 @@ def trial_attitudes(seed: int) -> np.ndarray:
     return np.array(att)
 
 
+def trial_chain_config(grade: Grade) -> ChainConfig:
+    """The chain of a trial: the default static detector for MEMS; at navigation grade one sized by the
+    unit's noise (the MEMS thresholds would take the slow ends of the turns for rest)."""
+    if grade is Grade.MEMS:
+        return ChainConfig(gravity_mps2=GRAVITY_MPS2)
+    u = TRIAL_UNITS[grade]
+    detector = StaticDetectorConfig.from_noise(
+        accel_noise_mps2=u.accel_sd_mps2, gyro_noise_rps=u.gyro_sd_rps
+    )
+    return ChainConfig(gravity_mps2=GRAVITY_MPS2, detector=detector)
+
+
 def session_of(
-    model: ErrorModel, seed: int, *, temperature: bool = True
+    model: ErrorModel, seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS
 ) -> tuple[ImuSession, ChainResult]:
     """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain.
 
@@ -164,7 +211,7 @@ def session_of(
     s = simulate(spec, seed).session
     if not temperature:
         s = ImuSession(s.t_s, s.accel_mps2, s.gyro_rps)
-    return s, run_chain(s, ChainConfig(gravity_mps2=GRAVITY_MPS2))
+    return s, run_chain(s, trial_chain_config(grade))
 
 
 def named_effects(session: ImuSession, chain: ChainResult) -> set[tuple[str, Triad, str | None]]:
@@ -194,6 +241,7 @@ class HiddenEffect:
     size: float
     value: float
     model: ErrorModel
+    grade: Grade = Grade.MEMS
 
     @property
     def expected(self) -> set[tuple[str, Triad, str | None]]:
@@ -217,7 +265,7 @@ def _gm_variance_for(
     """Normalized σ² of a Gauss–Markov bias on axis ``i`` whose expected evidence is ``size²`` (module docstring)."""
     baselines = fit_baselines(session, chain)
     tab = candidate_table(chain, session, triad, baselines[triad])
-    if triad is Triad.ACCEL:
+    if triad is Triad.ACCEL or baselines[triad].scalar_resolved:
         _, sd, jac, _ = scalar_residuals(baselines[triad].params, tab)
         weight, var0 = jac[:, i] ** 2, sd**2
     else:
@@ -237,15 +285,27 @@ def _gm_variance_for(
 
 
 def hide(
-    seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float = 1.0
+    seed: int,
+    effect: str,
+    triad: Triad,
+    axis: str | None,
+    size: float,
+    sign: float = 1.0,
+    grade: Grade = Grade.MEMS,
 ) -> HiddenEffect:
     """The baseline model of ``seed`` with ``effect`` of ``size`` detection standard errors (module docstring) on ``axis``."""
-    model = baseline_model(np.random.default_rng(seed))
-    session, chain = session_of(model, seed)
+    return replace(_hide(seed, effect, triad, axis, size, sign, grade), grade=grade)
+
+
+def _hide(
+    seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float, grade: Grade
+) -> HiddenEffect:
+    model = baseline_model(np.random.default_rng(seed), grade)
+    session, chain = session_of(model, seed, grade=grade)
     if effect in _AXIS_FREE:
         axis = None
     if effect == "quantization":
-        step = 0.1 * size * ACCEL_SD_MPS2
+        step = 0.1 * size * TRIAL_UNITS[grade].accel_sd_mps2
         return HiddenEffect(
             effect,
             triad,
@@ -314,22 +374,32 @@ def hide(
     return HiddenEffect(effect, triad, axis, size, value, model.with_effect(cls(coef), triad))
 
 
-def draw(seed: int, size: float, kind: tuple[str, Triad] | None = None) -> HiddenEffect:
+def draw(
+    seed: int, size: float, kind: tuple[str, Triad] | None = None, grade: Grade = Grade.MEMS
+) -> HiddenEffect:
     """A hidden effect for trial ``seed``: kind (if not given), axis and sign drawn from the seed."""
     rng = np.random.default_rng([seed, 2])
     effect, triad = HIDDEN_KINDS[int(rng.integers(len(HIDDEN_KINDS)))] if kind is None else kind
     return hide(
-        seed, effect, triad, AXES[int(rng.integers(3))], size, float(rng.choice([-1.0, 1.0]))
+        seed,
+        effect,
+        triad,
+        AXES[int(rng.integers(3))],
+        size,
+        float(rng.choice([-1.0, 1.0])),
+        grade,
     )
 
 
 def trial(hidden: HiddenEffect, seed: int, *, temperature: bool = True) -> bool:
     """True when the audit names exactly the hidden effect on its session (with or without its temperature column)."""
-    got = named_effects(*session_of(hidden.model, seed, temperature=temperature))
+    got = named_effects(
+        *session_of(hidden.model, seed, temperature=temperature, grade=hidden.grade)
+    )
     return got == hidden.expected
 
 
-def clean_trial(seed: int, *, temperature: bool = True) -> bool:
+def clean_trial(seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS) -> bool:
     """True when the audit names nothing on the effect-free session of ``seed``."""
-    model = baseline_model(np.random.default_rng(seed))
-    return not named_effects(*session_of(model, seed, temperature=temperature))
+    model = baseline_model(np.random.default_rng(seed), grade)
+    return not named_effects(*session_of(model, seed, temperature=temperature, grade=grade))

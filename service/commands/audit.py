@@ -24,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json",
         action="store_true",
-        help="print one JSON object (baseline, candidates, named_causes, extended, gain)",
+        help="print one JSON object (grade_paths, baseline, candidates, named_causes, extended, gain)",
     )
     p.add_argument("--report", metavar="DIR", help="write audit.md and PNG plots into DIR")
     p.add_argument(
@@ -68,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
     )
     for s in result.statements:
         print(f"  {s}")
+    for triad, path in data["grade_paths"].items():
+        print(f"  {triad} path {path['path']}: {path['reason']}")
     if data["baseline"]["ratio"] is not None:
         print(
             f"  headline χ²/dof ratio: baseline {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}), extended {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f})"
