@@ -34,6 +34,9 @@ from estimators.positions import (
 from estimators.session import ImuSession, Rejections, validate_session
 from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
 
+FOREIGN_PASSPORT_MIN_FAILED = 4
+"""Failed predicates (and more than half of the evaluated ones) that suggest the passport is another unit's."""
+
 
 @dataclass(frozen=True)
 class ChainConfig:
@@ -93,6 +96,23 @@ class TriadResult:
     residual_sigma: np.ndarray | None
     diagnosis: Diagnosis | None
 
+    @property
+    def diagnosed(self) -> bool:
+        """At least one of F1…F9 was evaluated: the data allowed a diagnosis of this triad."""
+        return self.diagnosis is not None and self.diagnosis.n_evaluated > 0
+
+    @property
+    def reason(self) -> str:
+        """Why the triad was not diagnosed ("" when it was): no passport, or the estimate's reason
+        (too few positions, geometry, noise against the reference), or nothing observable in both."""
+        if self.diagnosed:
+            return ""
+        if self.diagnosis is None:
+            return "no passport for this triad"
+        if self.estimate.params is None:
+            return self.estimate.reason
+        return f"no parameter is resolved by both this session and the passport ({self.estimate.reason})"
+
 
 @dataclass(frozen=True)
 class ChainResult:
@@ -105,12 +125,38 @@ class ChainResult:
     position_rejections: tuple[PositionRejection, ...]
     triads: dict[Triad, TriadResult]
     gravity_mps2: float
+    session: ImuSession | None = None
+    """The validated samples the chain ran on."""
 
     @property
     def faults(self) -> tuple[Finding, ...]:
         return tuple(
             f for r in self.triads.values() if r.diagnosis is not None for f in r.diagnosis.findings
         )
+
+    @property
+    def diagnosed(self) -> bool:
+        """Some triad was diagnosed: "no fault" then means the data were looked at."""
+        return any(r.diagnosed for r in self.triads.values())
+
+    @property
+    def reason(self) -> str:
+        """Why nothing was diagnosed, per triad ("" when something was)."""
+        if self.diagnosed:
+            return ""
+        return "; ".join(f"{t.value}: {r.reason}" for t, r in self.triads.items())
+
+    def predicate_counts(self) -> tuple[int, int]:
+        """(failed, evaluated) predicates over all triads."""
+        diags = [r.diagnosis for r in self.triads.values() if r.diagnosis is not None]
+        return sum(len(d.findings) for d in diags), sum(d.n_evaluated for d in diags)
+
+    @property
+    def passport_of_another_unit(self) -> bool:
+        """Most predicates fail at once (:data:`FOREIGN_PASSPORT_MIN_FAILED`, more than half of
+        those evaluated): a unit rarely breaks that way, a passport of another unit always does."""
+        failed, evaluated = self.predicate_counts()
+        return failed >= FOREIGN_PASSPORT_MIN_FAILED and 2 * failed > evaluated
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: positions, estimates with standard deviations, predicates, faults."""
@@ -132,11 +178,15 @@ class ChainResult:
                     if r.residuals is None
                     else float(np.sqrt(np.mean(r.residuals**2))),
                     "predicates": None if r.diagnosis is None else r.diagnosis.to_dict(),
-                    "diagnosed": r.diagnosis is not None,
+                    "diagnosed": r.diagnosed,
+                    "reason": r.reason,
                 }
                 for t, r in self.triads.items()
             },
             "faults": [f.to_dict() for f in self.faults],
+            "diagnosed": self.diagnosed,
+            "reason": self.reason,
+            "passport_of_another_unit": self.passport_of_another_unit,
         }
 
 
@@ -191,6 +241,7 @@ def run_chain(
         found.rejections,
         triads,
         config.gravity_mps2,
+        clean,
     )
 
 

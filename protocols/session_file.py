@@ -11,7 +11,12 @@ sample a line::
     0.00,0.0012,-0.0031,9.8071,0.0001,-0.0002,0.0000,21.5
 
 ``t`` in s, ``ax ay az`` specific force in m/s², ``gx gy gz`` angular rate in
-rad/s, ``temp`` in °C (optional). Columns may come in any order; a file may
+rad/s, ``temp`` in °C (optional), unless the file says otherwise with
+``# accel_unit = g`` (``m/s2``, ``g``, ``mg``), ``# gyro_unit = deg/s``
+(``rad/s``, ``deg/s``) or ``# time_unit = ms`` (``s``, ``ms``, ``us``) comment
+lines, or the caller declares the units (:class:`SessionUnits`; a declaration
+overrides the file's). Values are converted to SI here, once
+(``g`` = 9.80665 m/s², the unit a data sheet means). Columns may come in any order; a file may
 hold one triad only (all three of its columns). Blank lines are skipped.
 ``nan``/``inf`` values are passed through: :func:`estimators.session.validate_session`
 counts and drops them — this reader never drops a row.
@@ -25,6 +30,24 @@ documents where its numbers come from.
 
 Every problem with a file is a :class:`SessionFileError` (a ``ValueError``)
 whose one-line message names the file, the line and the column.
+
+Plausibility of the units (:func:`check_units`)
+-----------------------------------------------
+A file in the wrong units gives no positions or nonsense, so the values are
+checked against what the declared units make them, and a session that only
+makes sense in another unit is refused with one line naming that unit:
+
+* accelerometers: the median of ``|a|`` over the session must lie in
+  ``[5, 20] m/s²`` (a calibration or flight session rests or moves about
+  ``g``); a median near 1 is ``g``, near 1000 ``mg``;
+* gyros: declared rad/s, a median ``|ω|`` above 5 rad/s (290 °/s: faster on
+  average than rate tables and flights turn) or a 99.5th percentile above
+  20 rad/s (1150 °/s, beyond what vehicles and fixtures turn at) looks like
+  deg/s. A deg/s session whose turns never exceed about 20 °/s cannot be told
+  from a rad/s one by its values and passes; a rad/s session declared deg/s
+  is not detected either (its rates only look small);
+* time: the median sample interval must lie in ``[10 µs, 1 s]`` (100 kHz …
+  1 Hz); a larger one looks like ms or µs.
 """
 
 from __future__ import annotations
@@ -33,12 +56,14 @@ import io
 import math
 import os
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
+from estimators.conventions import STANDARD_GRAVITY_MPS2
 from estimators.session import ImuSession, SessionError
 from protocols.atomic_file import atomic_write_bytes
 
@@ -54,6 +79,95 @@ class SessionFileError(SessionError):
     """A session file cannot be read; the message names file, line and column."""
 
 
+class UnitsError(SessionFileError):
+    """The values of a session are implausible in their declared units; the message names the likely unit."""
+
+
+class AccelUnit(StrEnum):
+    MPS2 = "m/s2"
+    G = "g"
+    MG = "mg"
+
+
+class GyroUnit(StrEnum):
+    RPS = "rad/s"
+    DPS = "deg/s"
+
+
+class TimeUnit(StrEnum):
+    S = "s"
+    MS = "ms"
+    US = "us"
+
+
+SI_PER_UNIT: dict[StrEnum, float] = {
+    AccelUnit.MPS2: 1.0,
+    AccelUnit.G: STANDARD_GRAVITY_MPS2,
+    AccelUnit.MG: STANDARD_GRAVITY_MPS2 * 1e-3,
+    GyroUnit.RPS: 1.0,
+    GyroUnit.DPS: math.pi / 180.0,
+    TimeUnit.S: 1.0,
+    TimeUnit.MS: 1e-3,
+    TimeUnit.US: 1e-6,
+}
+"""Factor from each unit to SI (m/s², rad/s, s)."""
+
+UNIT_KEYS = {"accel": "accel_unit", "gyro": "gyro_unit", "time": "time_unit"}
+"""The ``# key = value`` comment of a CSV file that declares each unit."""
+
+_UNIT_OPTION = {"accel": "--accel-unit", "gyro": "--gyro-unit", "time": "--time-unit"}
+_UNIT_WORD = {"accel": "accelerometer", "gyro": "gyro", "time": "time"}
+
+
+@dataclass(frozen=True)
+class SessionUnits:
+    """Units of a session file's columns; None: not declared (the file's comment, else SI)."""
+
+    accel: AccelUnit | None = None
+    gyro: GyroUnit | None = None
+    time: TimeUnit | None = None
+
+    def __post_init__(self) -> None:
+        for name, kind in (("accel", AccelUnit), ("gyro", GyroUnit), ("time", TimeUnit)):
+            value = getattr(self, name)
+            if value is not None:
+                try:
+                    object.__setattr__(self, name, kind(value))
+                except ValueError:
+                    choices = ", ".join(u.value for u in kind)
+                    raise SessionFileError(
+                        f"unknown {_UNIT_WORD[name]} unit {value!r} (one of {choices})"
+                    ) from None
+
+    def over(self, other: SessionUnits) -> SessionUnits:
+        """These units where declared, else ``other``'s."""
+        return SessionUnits(
+            self.accel or other.accel, self.gyro or other.gyro, self.time or other.time
+        )
+
+    def resolved(self) -> SessionUnits:
+        """Undeclared units as SI."""
+        return self.over(SessionUnits(AccelUnit.MPS2, GyroUnit.RPS, TimeUnit.S))
+
+    def to_si(self, session: ImuSession) -> ImuSession:
+        """A new session in SI (the input arrays are not modified)."""
+        u = self.resolved()
+
+        def scaled(x: np.ndarray | None, unit: StrEnum | None) -> np.ndarray | None:
+            return None if x is None or unit is None else x * SI_PER_UNIT[unit]
+
+        return replace(
+            session,
+            t_s=session.t_s * SI_PER_UNIT[u.time or TimeUnit.S],
+            accel_mps2=scaled(session.accel_mps2, u.accel),
+            gyro_rps=scaled(session.gyro_rps, u.gyro),
+        )
+
+    def to_dict(self) -> dict[str, str]:
+        u = self.resolved()
+        return {k: str(getattr(u, k)) for k in UNIT_KEYS}
+
+
 @dataclass(frozen=True)
 class LoadedSession:
     """A session read from files, with what the files say about it.
@@ -64,12 +178,14 @@ class LoadedSession:
     gravity_mps2 : local gravity stated by the file or sidecar, m/s², or None.
     metadata : ``key = value`` comment lines of a CSV file (strings).
     source : the file or files read.
+    units : the units the columns were read in (converted to SI in ``session``).
     """
 
     session: ImuSession
     gravity_mps2: float | None
     metadata: dict[str, str] = field(default_factory=dict)
     source: str = ""
+    units: SessionUnits = field(default_factory=lambda: SessionUnits().resolved())
 
 
 # --- generic numeric table ---------------------------------------------------
@@ -191,8 +307,23 @@ def _check_header(path: Path, lineno: int, names: list[str]) -> None:
         )
 
 
-def read_csv_session(path: str | os.PathLike[str]) -> LoadedSession:
-    """Read a CSV session file (format in the module docstring)."""
+def _file_units(metadata: dict[str, str], path: Path) -> SessionUnits:
+    declared = [metadata.get(UNIT_KEYS[k]) for k in ("accel", "gyro", "time")]
+    try:
+        return SessionUnits(*(None if v is None else v for v in declared))  # type: ignore[arg-type]
+    except SessionFileError as exc:
+        raise SessionFileError(f"{path}: comment {exc}") from None
+
+
+def read_csv_session(
+    path: str | os.PathLike[str], *, units: SessionUnits = SessionUnits()
+) -> LoadedSession:
+    """Read a CSV session file (format in the module docstring) and convert it to SI.
+
+    ``units`` declares the columns' units; where it leaves one None the file's
+    ``# <triad>_unit = …`` comment applies, else SI. The units used are in
+    ``LoadedSession.units``; call :func:`check_units` to refuse implausible ones.
+    """
     path = Path(path)
     rows, comments = _split_lines(path, _read_text(path))
     if not rows:
@@ -220,7 +351,8 @@ def read_csv_session(path: str | os.PathLike[str]) -> LoadedSession:
         col["temp"].copy() if "temp" in col else None,
     )
     meta = _metadata(comments)
-    return LoadedSession(session, _gravity_from(meta, path), meta, str(path))
+    used = units.over(_file_units(meta, path)).resolved()
+    return LoadedSession(used.to_si(session), _gravity_from(meta, path), meta, str(path), used)
 
 
 def write_csv_session(
@@ -417,6 +549,7 @@ def load_session(
     *,
     sidecar: str | os.PathLike[str] | None = None,
     nominal: XsensNominal | None = None,
+    units: SessionUnits = SessionUnits(),
 ) -> LoadedSession:
     """Read a session from what ``path`` is.
 
@@ -427,18 +560,24 @@ def load_session(
 
     The nominal conversion of a pair is ``nominal`` if given, else the
     ``sidecar`` file, else the directory's sidecar, else the packaged default.
+    ``units`` declares the units of a CSV file's columns (a raw-count pair is
+    converted by its sidecar: declaring units for it is an error).
     """
     path = Path(path)
     if gyro_path is None and path.is_dir():
         path, gyro_path, found = find_xsens_pair(path)
         sidecar = sidecar if sidecar is not None else found
     if gyro_path is not None:
+        if units != SessionUnits():
+            raise SessionFileError(
+                f"{path}: a raw-count pair is converted by its sidecar; units cannot be declared for it"
+            )
         if nominal is None:
             nominal = load_xsens_sidecar(sidecar)
         return read_xsens_pair(path, gyro_path, nominal=nominal)
     if not path.exists():
         raise FileNotFoundError(f"no such session file: {path}")
-    return read_csv_session(path)
+    return read_csv_session(path, units=units)
 
 
 def read_session(
@@ -450,3 +589,71 @@ def read_session(
 ) -> ImuSession:
     """The :class:`ImuSession` of :func:`load_session` (same arguments)."""
     return load_session(path, gyro_path, sidecar=sidecar, nominal=nominal).session
+
+
+# --- plausibility of the units -------------------------------------------------
+
+ACCEL_MEDIAN_RANGE_MPS2 = (5.0, 20.0)
+GYRO_MEDIAN_LIMIT_RPS = 5.0
+GYRO_P995_LIMIT_RPS = 20.0
+SAMPLE_INTERVAL_RANGE_S = (1e-5, 1.0)
+"""The rules of the module docstring, "Plausibility of the units"."""
+
+
+def _plausible(kind: str, raw: float, unit: StrEnum) -> bool:
+    si = raw * SI_PER_UNIT[unit]
+    if kind == "accel":
+        return ACCEL_MEDIAN_RANGE_MPS2[0] <= si <= ACCEL_MEDIAN_RANGE_MPS2[1]
+    return SAMPLE_INTERVAL_RANGE_S[0] <= si <= SAMPLE_INTERVAL_RANGE_S[1]
+
+
+def _refuse(kind: str, declared: StrEnum, looks: StrEnum | None, what: str) -> UnitsError:
+    word = _UNIT_WORD[kind]
+    if looks is None:
+        return UnitsError(
+            f"units: the {word} values are implausible in {declared} ({what}) and in every other unit"
+        )
+    return UnitsError(
+        f"units: the {word} values look like {looks}, not {declared} ({what}; "
+        f"use {_UNIT_OPTION[kind]} {looks} or a '# {UNIT_KEYS[kind]} = {looks}' line)"
+    )
+
+
+def check_units(session: ImuSession, units: SessionUnits) -> None:
+    """Refuse a session (SI, read in ``units``) whose values only make sense in other units.
+
+    Raises :class:`UnitsError` with one line naming the unit the data look like
+    (rules in the module docstring). Non-finite samples are ignored.
+    """
+    used = units.resolved()
+    a = session.accel_mps2
+    if a is not None and used.accel is not None:
+        norm = np.linalg.norm(a, axis=1)
+        norm = norm[np.isfinite(norm)]
+        if norm.size:
+            raw = float(np.median(norm)) / SI_PER_UNIT[used.accel]
+            if not _plausible("accel", raw, used.accel):
+                looks = next((u for u in AccelUnit if _plausible("accel", raw, u)), None)
+                raise _refuse("accel", used.accel, looks, f"median |a| {raw:.4g} {used.accel}")
+    w = session.gyro_rps
+    if w is not None and used.gyro is GyroUnit.RPS:
+        rate = np.linalg.norm(w, axis=1)
+        rate = rate[np.isfinite(rate)]
+        if rate.size:
+            med, p995 = (float(v) for v in np.percentile(rate, [50.0, 99.5]))
+            if med > GYRO_MEDIAN_LIMIT_RPS or p995 > GYRO_P995_LIMIT_RPS:
+                raise _refuse(
+                    "gyro",
+                    GyroUnit.RPS,
+                    GyroUnit.DPS,
+                    f"median |ω| {med:.3g} rad/s, 99.5th percentile {p995:.3g} rad/s",
+                )
+    dt = np.diff(session.t_s)
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    if dt.size and used.time is not None:
+        raw = float(np.median(dt)) / SI_PER_UNIT[used.time]
+        if not _plausible("time", raw, used.time):
+            looks_t = next((u for u in TimeUnit if _plausible("time", raw, u)), None)
+            raise _refuse(
+                "time", used.time, looks_t, f"median sample interval {raw:.4g} {used.time}"
+            )

@@ -9,7 +9,15 @@ from dataclasses import dataclass
 from estimators.conventions import normal_gravity_mps2
 from estimators.session import ImuSession
 from estimators.static_detector import StaticDetectorConfig
-from protocols.session_file import load_session
+from protocols.session_file import (
+    AccelUnit,
+    GyroUnit,
+    LoadedSession,
+    SessionUnits,
+    TimeUnit,
+    check_units,
+    load_session,
+)
 from service.cli import UsageError
 
 DEFAULT_LATITUDE_DEG = 45.0
@@ -52,6 +60,7 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="TOML",
         help="nominal scale (SI per count) and offset (counts) of a raw-count pair; default: the packaged Xsens MTi sidecar",
     )
+    add_unit_arguments(parser)
     g = parser.add_argument_group(
         "local gravity (first that applies: --gravity, --latitude/--height, the file's own value, WGS-84 at 45°)"
     )
@@ -101,9 +110,38 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_unit_arguments(parser: argparse.ArgumentParser) -> None:
+    """--accel-unit, --gyro-unit, --time-unit: the units of a CSV session's columns."""
+    u = parser.add_argument_group(
+        "units of a CSV session's columns (default: the file's '# accel_unit = g' style comments, else SI); "
+        "values implausible in their units are refused with the unit they look like"
+    )
+    for name, kind, what in (
+        ("accel", AccelUnit, "specific force"),
+        ("gyro", GyroUnit, "angular rate"),
+        ("time", TimeUnit, "time stamps"),
+    ):
+        u.add_argument(
+            f"--{name}-unit",
+            choices=[k.value for k in kind],
+            metavar="UNIT",
+            help=f"unit of the {what} columns ({', '.join(k.value for k in kind)})",
+        )
+
+
+def load_units_checked(
+    path: str, gyro_file: str | None, sidecar: str | None, args: argparse.Namespace
+) -> LoadedSession:
+    """The session in SI, refused with one line when its values are implausible in their units."""
+    declared = SessionUnits(args.accel_unit, args.gyro_unit, args.time_unit)
+    loaded = load_session(path, gyro_file, sidecar=sidecar, units=declared)
+    check_units(loaded.session, loaded.units)
+    return loaded
+
+
 def load_session_input(args: argparse.Namespace) -> SessionInput:
     """Read the session and settle the local gravity (the rule in the argument group's title)."""
-    loaded = load_session(args.session, args.gyro_file, sidecar=args.sidecar)
+    loaded = load_units_checked(args.session, args.gyro_file, args.sidecar, args)
     if args.gravity is not None:
         gravity, source = args.gravity, "--gravity"
     elif args.latitude is not None:

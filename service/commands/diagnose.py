@@ -1,23 +1,37 @@
-"""``ins-health diagnose SESSION --passport PASSPORT.json [--json]``: the offline chain of methods.md M1."""
+"""``ins-health diagnose SESSION --passport PASSPORT.json [--json]``: the offline chain of methods.md M1.
+
+Exit status: 0 the session was diagnosed (with or without faults); 2 unusable
+input (one line on stderr); 3 the data do not allow a diagnosis (no triad had
+a predicate F1…F9 it could evaluate: too few positions, their geometry, or
+noise against the reference), said as ``NOT DIAGNOSED: …`` with the reasons.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING, Any
 
 from service.session_args import add_session_arguments, load_session_input
+
+if TYPE_CHECKING:
+    from estimators.chain import ChainConfig, ChainResult
+    from estimators.passport import Passport
 
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 """estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
 scipy (tests/test_cli_startup.py checks they agree)."""
 
+EXIT_NOT_DIAGNOSED = 3
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="static detection → positions → estimates → predicates F1…F9 against a passport",
-        description="Exit status 0 with or without faults; 2 with a one-line reason for unusable input.",
+        description="Exit status 0: diagnosed, with or without faults; 2: unusable input (one-line reason); "
+        "3: the data do not allow a diagnosis (NOT DIAGNOSED and why).",
     )
     add_session_arguments(p)
     p.add_argument("--passport", required=True, metavar="PASSPORT.json", help="the unit's passport")
@@ -31,9 +45,49 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--json",
         action="store_true",
-        help="print one JSON object (positions, estimates, predicates, faults)",
+        help="print one JSON object (positions, estimates, predicates, faults, F0, diagnosed/reason)",
     )
     p.set_defaults(func=run)
+
+
+def f0_report(
+    result: ChainResult, passport: Passport, config: ChainConfig
+) -> dict[str, dict[str, Any]]:
+    """F0 on every static sample against the passport, as the service runs it (service.pipeline).
+
+    Per triad: static samples tested, how many leave the shell, the first such
+    time and the worst ``|½(|ã|²−1)|``; or why F0 is not run for the triad.
+    """
+    import numpy as np
+
+    from estimators.scalar import f0_batch
+    from service.pipeline import PipelineOptions, _f0_config
+
+    clean = result.session
+    if clean is None:
+        raise ValueError("the chain result does not carry its session")
+    options = PipelineOptions(gravity_mps2=config.gravity_mps2)
+    out: dict[str, dict[str, Any]] = {}
+    for triad, tp in passport.triads.items():
+        x = clean.accel_mps2 if triad.value == "accel" else clean.gyro_rps
+        if x is None:
+            continue
+        cfg, lambda0, note = _f0_config(tp, options, clean.rate_hz)
+        if cfg is None:
+            out[triad.value] = {"run": False, "lambda0": lambda0, "note": note}
+            continue
+        f0 = f0_batch(x, result.detection.static, cfg)
+        failed = np.flatnonzero(f0.state == 0)
+        out[triad.value] = {
+            "run": True,
+            "lambda0": lambda0,
+            "tested": f0.n_tests,
+            "failed": int(failed.size),
+            "first_fail_t_s": float(clean.t_s[failed[0]]) if failed.size else None,
+            "worst": float(np.nanmax(np.abs(f0.residual[failed]))) if failed.size else None,
+            "note": note,
+        }
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,25 +101,50 @@ def run(args: argparse.Namespace) -> int:
         accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
     )  # fmt: skip
     result = run_chain(inp.session, config, passport)
+    f0 = f0_report(result, passport, config)
+    status = 0 if result.diagnosed else EXIT_NOT_DIAGNOSED
     if args.json:
         out = result.to_dict()
         out["unit_id"] = passport.unit_id
         out["gravity_source"] = inp.gravity_source
+        out["f0"] = f0
         json.dump(out, sys.stdout, indent=1)
         print()
-        return 0
+        return status
     print(
         f"{passport.unit_id}: {len(result.positions)} positions, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})"
     )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}")
     for triad, r in result.triads.items():
-        note = "" if r.diagnosis is not None else " (no passport for this triad: not diagnosed)"
-        print(f"  {triad.value}: {r.estimate.verdict.value} — {r.estimate.reason}{note}")
+        state = "diagnosed" if r.diagnosed else f"NOT DIAGNOSED: {r.reason}"
+        print(f"  {triad.value}: {r.estimate.verdict.value} — {r.estimate.reason}; {state}")
+    for name, f in f0.items():
+        if not f["run"]:
+            print(f"  F0 {name}: not run ({f['note']})")
+        elif f["failed"]:
+            print(
+                f"  F0 {name}: {f['failed']} of {f['tested']} static samples leave the shell (λ0 {f['lambda0']:.3g}); "
+                f"first at {f['first_fail_t_s']:.3f} s, worst |½(|ã|²−1)| {f['worst']:.3g}"
+            )
+        else:
+            print(
+                f"  F0 {name}: {f['tested']} static samples inside the shell (λ0 {f['lambda0']:.3g})"
+            )
+    if not result.diagnosed:
+        print(f"NOT DIAGNOSED: {result.reason}")
+        return status
     if not result.faults:
         print("  no fault")
-    for f in result.faults:
+    for fault in result.faults:
         print(
-            f"  FAULT {f.predicate}: {f.triad.value} {f.axis} {f.cause.value}: estimate {f.estimate:.4g} vs nominal {f.nominal:.4g} ± {f.tolerance:.3g} (σ {f.sigma:.2g})"
+            f"  FAULT {fault.predicate}: {fault.triad.value} {fault.axis} {fault.cause.value}: estimate {fault.estimate:.4g} "
+            f"vs nominal {fault.nominal:.4g} ± {fault.tolerance:.3g} (σ {fault.sigma:.2g})"
         )
-    return 0
+    if result.passport_of_another_unit:
+        failed, evaluated = result.predicate_counts()
+        print(
+            f"  hint: {failed} of {evaluated} predicates fail at once: the passport is probably not this unit's "
+            f"(passport of {passport.unit_id!r})"
+        )
+    return status

@@ -34,9 +34,9 @@ from service.method_args import (
     axis_index,
     emit,
     gravity_from,
-    load_valid,
     rejected_text,
 )
+from service.session_args import add_unit_arguments, load_units_checked
 
 _DEG = np.pi / 180.0
 
@@ -89,6 +89,7 @@ def _source(p: argparse.ArgumentParser) -> None:
     src.add_argument(
         "--simulate", action="store_true", help="simulate an ADIS16355-like unit at Guangzhou"
     )
+    add_unit_arguments(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
     add_output(p, "--save-session", help="with --simulate: write the session as CSV")
     add_gravity_options(p)
@@ -113,7 +114,10 @@ def _load(args, make_session):
             )
         latitude = args.latitude_deg if args.latitude_deg is not None else GUANGZHOU_LATITUDE_DEG
         return session, gravity_from(args, default_mps2=g_site), latitude, model, {}
-    loaded, clean, dropped = load_valid(args.session)
+    from estimators.session import validate_session
+
+    loaded = load_units_checked(args.session, None, None, args)
+    clean, dropped = validate_session(loaded.session)
     return (
         clean,
         gravity_from(args, file_gravity_mps2=loaded.gravity_mps2),

@@ -1,0 +1,157 @@
+"""Units at the edge (refused with the unit named) and "not diagnosed" is not "no fault" (exit 3)."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from estimators.conventions import STANDARD_GRAVITY_MPS2
+from estimators.sim import Grade, grade_error_model, multi_position_spec, simulate
+from protocols.session_file import (
+    SessionFileError,
+    SessionUnits,
+    UnitsError,
+    check_units,
+    read_csv_session,
+    write_csv_session,
+)
+from service.cli import main
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("units")
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(5))
+    session = simulate(multi_position_spec(model=model, static_s=8.0), seed=50).session
+    write_csv_session(d / "si.csv", session)
+    assert main(["calibrate", str(d / "si.csv"), "--out", str(d / "pp.json"), "--no-audit"]) == 0
+    short = simulate(multi_position_spec(model=model, n_positions=3, static_s=8.0), seed=51)
+    write_csv_session(d / "three.csv", short.session)
+    foreign = grade_error_model(Grade.MEMS, rng=np.random.default_rng(6))
+    other = simulate(multi_position_spec(model=foreign, static_s=8.0), seed=52).session
+    write_csv_session(d / "other.csv", other)
+    return d, session
+
+
+def _variants(session):
+    """(name, session in other units, metadata comment or None, CLI option, what the refusal names)."""
+    return [
+        ("accel_g", replace(session, accel_mps2=session.accel_mps2 / STANDARD_GRAVITY_MPS2),
+         {"accel_unit": "g"}, ["--accel-unit", "g"], "look like g, not m/s2"),
+        ("accel_mg", replace(session, accel_mps2=session.accel_mps2 / STANDARD_GRAVITY_MPS2 * 1e3),
+         {"accel_unit": "mg"}, ["--accel-unit", "mg"], "look like mg, not m/s2"),
+        ("gyro_dps", replace(session, gyro_rps=np.degrees(session.gyro_rps)),
+         {"gyro_unit": "deg/s"}, ["--gyro-unit", "deg/s"], "look like deg/s, not rad/s"),
+        ("time_ms", replace(session, t_s=session.t_s * 1e3),
+         {"time_unit": "ms"}, ["--time-unit", "ms"], "look like ms, not s"),
+        ("time_us", replace(session, t_s=session.t_s * 1e6),
+         {"time_unit": "us"}, ["--time-unit", "us"], "look like us, not s"),
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize("case", range(5))
+@pytest.mark.parametrize("command", ["calibrate", "diagnose", "audit"])
+def test_a_session_in_other_units_is_refused_with_the_unit_named(
+    files, tmp_path, capsys, case, command
+):
+    d, session = files
+    name, other, _, _, named = _variants(session)[case]
+    path = tmp_path / f"{name}.csv"
+    write_csv_session(path, other)
+    extra = {
+        "calibrate": ["--out", str(tmp_path / "x.json")],
+        "diagnose": ["--passport", str(d / "pp.json")],
+        "audit": [],
+    }
+    capsys.readouterr()
+    assert main([command, str(path), *extra[command]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and named in err, err
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_declared_units_option_or_comment_read_the_same_samples(files, tmp_path, case):
+    _, session = files
+    name, other, meta, _, _ = _variants(session)[case]
+    commented = tmp_path / f"{name}_comment.csv"
+    write_csv_session(commented, other, metadata=meta)
+    plain = tmp_path / f"{name}.csv"
+    write_csv_session(plain, other)
+    by_comment = read_csv_session(commented)
+    key, unit = next(iter(meta.items()))
+    by_option = read_csv_session(plain, units=SessionUnits(**{key.removesuffix("_unit"): unit}))
+    for loaded in (by_comment, by_option):
+        check_units(loaded.session, loaded.units)
+        np.testing.assert_allclose(loaded.session.t_s, session.t_s, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(loaded.session.accel_mps2, session.accel_mps2, rtol=1e-12)
+        np.testing.assert_allclose(loaded.session.gyro_rps, session.gyro_rps, rtol=1e-12)
+
+
+def test_declared_units_on_the_command_line_are_used(files, tmp_path):
+    _, session = files
+    path = tmp_path / "g.csv"
+    write_csv_session(path, replace(session, accel_mps2=session.accel_mps2 / STANDARD_GRAVITY_MPS2))
+    out = tmp_path / "g.json"
+    assert main(["calibrate", str(path), "--out", str(out), "--no-audit", "--accel-unit", "g"]) == 0
+
+
+def test_si_declared_for_si_data_is_accepted_and_a_wrong_declaration_refused(files):
+    _, session = files
+    check_units(session, SessionUnits())
+    read_as_g = SessionUnits(accel="g").to_si(session)  # an SI file declared to be in g
+    with pytest.raises(UnitsError, match="accelerometer values look like m/s2, not g"):
+        check_units(read_as_g, SessionUnits(accel="g"))
+    with pytest.raises(SessionFileError, match="unknown gyro unit 'rpm'"):
+        SessionUnits(gyro="rpm")
+
+
+def test_a_diagnosable_fault_free_session_exits_0_with_no_fault(files, capsys):
+    d, _ = files
+    capsys.readouterr()
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
+    out = capsys.readouterr().out
+    assert "no fault" in out
+    assert not any(line.startswith("NOT DIAGNOSED") for line in out.splitlines())
+
+
+def test_too_few_positions_is_not_diagnosed_exit_3_with_the_reason(files, capsys):
+    d, _ = files
+    capsys.readouterr()
+    assert main(["diagnose", str(d / "three.csv"), "--passport", str(d / "pp.json")]) == 3
+    out = capsys.readouterr().out
+    assert "no fault" not in out
+    assert "NOT DIAGNOSED: accel: 3 positions; the nine parameters need at least 9" in out
+    assert main(["diagnose", str(d / "three.csv"), "--passport", str(d / "pp.json"), "--json"]) == 3
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["diagnosed"] is False and "3 positions" in doc["reason"]
+    assert doc["triads"]["accel"]["diagnosed"] is False
+    assert doc["triads"]["gyro"]["reason"] == "no passport for this triad"
+
+
+def test_diagnose_runs_f0_against_the_passport(files, capsys):
+    d, _ = files
+    capsys.readouterr()
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["diagnosed"] is True and doc["reason"] == ""
+    f0 = doc["f0"]["accel"]
+    assert f0["run"] and f0["tested"] > 10_000 and f0["failed"] == 0
+    # Another unit's samples leave this unit's shell.
+    assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json"), "--json"]) == 0
+    other = json.loads(capsys.readouterr().out)["f0"]["accel"]
+    assert (
+        other["failed"] > 0
+        and other["first_fail_t_s"] is not None
+        and other["worst"] > other["lambda0"]
+    )
+
+
+def test_a_passport_of_another_unit_is_named(files, capsys):
+    d, _ = files
+    capsys.readouterr()
+    assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json")]) == 0
+    out = capsys.readouterr().out
+    assert "the passport is probably not this unit's" in out
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
+    assert "probably not this unit's" not in capsys.readouterr().out
