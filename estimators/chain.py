@@ -13,14 +13,19 @@ from typing import Any
 
 import numpy as np
 
-from estimators.conventions import Triad, reference_magnitude
+from estimators.conventions import N_PARAMS, Triad, reference_magnitude
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Diagnosis, Finding, diagnose
 from estimators.ninepar import (
+    SOURCE_SCALAR,
+    SOURCE_VECTOR,
     Estimate,
     Method,
+    Verdict,
     ellipsoid_residual,
     equation_sigma,
+    estimate_refined,
     estimate_triad,
+    judged_estimate,
     position_arrays,
 )
 from estimators.passport import Passport
@@ -32,6 +37,14 @@ from estimators.positions import (
     build_positions,
 )
 from estimators.session import ImuSession, Rejections, validate_session
+from estimators.sixpos import (
+    FULL_TURN_RAD,
+    FullTurn,
+    face_positions,
+    find_full_turns,
+    gyro_nine_from_turns,
+    six_position_accel,
+)
 from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
 
 FOREIGN_PASSPORT_MIN_FAILED = 4
@@ -265,3 +278,156 @@ def _with_bias_instability(
             fields["gyro_cov_rps"] = p.gyro_cov_rps + extra[Triad.GYRO]
         out.append(replace(p, **fields))
     return tuple(out)
+
+
+# --------------------------------------------------------------------------- the best passport
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What ``calibrate`` puts in a passport (:func:`calibration_estimates`).
+
+    Attributes
+    ----------
+    estimates : per triad with at least one observable parameter, the estimate
+        (``sources`` says how each parameter was obtained).
+    turns : the full turns found (and used for the gyros).
+    """
+
+    estimates: dict[Triad, Estimate]
+    turns: tuple[FullTurn, ...]
+
+
+def calibration_estimates(result: ChainResult, *, turn_rad: float = FULL_TURN_RAD) -> Calibration:
+    """The best estimate of each triad the session allows (docs/methods.md, "M4 into the passport").
+
+    M1's fit where it resolves all nine parameters. Otherwise the six-position
+    vector fit (accelerometers, when the positions hold all six faces) or the
+    static means and full turns of ``turn_rad`` (gyros) supply what it does not:
+    alone when M1's geometry fails, else for the parameters M1 leaves
+    unobservable, M1's value kept for the others. A triad with no observable
+    parameter is left out.
+    """
+    if result.session is None:
+        raise ValueError("the chain result does not carry its session")
+    turns = find_full_turns(result.session, result.detection.intervals, turn_rad=turn_rad)
+    out: dict[Triad, Estimate] = {}
+    for triad, r in result.triads.items():
+        est = r.estimate
+        if est.verdict is Verdict.OBSERVABLE:
+            out[triad] = replace(est, sources=(SOURCE_SCALAR,) * N_PARAMS)
+            continue
+        reference = reference_magnitude(triad, result.gravity_mps2)
+        alt = (
+            _accel_vector(result.positions, est, result.gravity_mps2)
+            if triad is Triad.ACCEL
+            else _gyro_turns(turns, result.positions, est, reference, turn_rad)
+        )
+        best = est if alt is None else alt
+        if best.params is not None and np.any(best.observable):
+            out[triad] = (
+                best
+                if best.sources is not None
+                else replace(best, sources=(SOURCE_SCALAR,) * N_PARAMS)
+            )
+    return Calibration(out, turns)
+
+
+def _accel_vector(
+    positions: tuple[Position, ...], scalar: Estimate, gravity_mps2: float
+) -> Estimate | None:
+    """M1's estimate completed (or replaced) by the six-position vector fit, one covariance.
+
+    The combination ``θ(m)`` (M1's refined fit for the parameters it resolves, the
+    vector fit for the rest) is a function of the position means ``m``; its
+    covariance is ``Σ_k J_k P_k J_kᵀ`` with ``J_k`` its Jacobian by central
+    differences and ``P_k`` the covariance of mean ``k`` (the two fits share data,
+    so their cross-covariance is in it).
+    """
+    faces = face_positions(positions)
+    if faces is None:
+        return None
+    index = [positions.index(p) for p in faces]
+    mean, cov = position_arrays(positions, Triad.ACCEL, gravity_mps2)
+    keep = (
+        np.zeros(N_PARAMS, dtype=bool)
+        if scalar.params is None
+        else np.asarray(scalar.observable, dtype=bool)
+    )
+
+    def combined(m: np.ndarray) -> np.ndarray:
+        fit = six_position_accel(
+            m[index] * gravity_mps2,
+            gravity_mps2=gravity_mps2,
+            accel_cov_mps2=cov[index] * gravity_mps2**2,
+            quadratic=False,
+        )
+        vector = fit.nine_params()
+        if not keep.any():
+            return vector
+        refined = estimate_refined(m, cov, Triad.ACCEL, reference=gravity_mps2)
+        if refined.params is None:
+            raise ValueError(f"M1's fit failed under a perturbation of the means: {refined.reason}")
+        return np.where(keep, refined.params, vector)
+
+    params = combined(mean)
+    used = positions if keep.any() else faces
+    rows = range(len(positions)) if keep.any() else index
+    total = np.zeros((N_PARAMS, N_PARAMS))
+    for k in rows:
+        jac = np.zeros((N_PARAMS, 3))
+        for a in range(3):
+            h = 0.1 * float(np.sqrt(cov[k, a, a]))
+            step = np.zeros_like(mean)
+            step[k, a] = h
+            jac[:, a] = (combined(mean + step) - combined(mean - step)) / (2.0 * h)
+        total += jac @ cov[k] @ jac.T
+    sources = tuple(SOURCE_SCALAR if keep[j] else SOURCE_VECTOR for j in range(N_PARAMS))
+    return judged_estimate(
+        Triad.ACCEL,
+        Method.COMBINED if keep.any() else Method.SIX_POSITION,
+        params,
+        0.5 * (total + total.T),
+        n_positions=len(used),
+        reference=gravity_mps2,
+        sources=sources,
+    )
+
+
+def _gyro_turns(
+    turns: tuple[FullTurn, ...],
+    positions: tuple[Position, ...],
+    scalar: Estimate,
+    reference: float,
+    turn_rad: float,
+) -> Estimate | None:
+    """M1's gyro estimate completed (or replaced) by the full turns and the static means.
+
+    The turns' integrals and the static means M1 uses are different data, so the
+    two blocks of the covariance are taken as independent.
+    """
+    if not turns:
+        return None
+    params, cov, known, sources = gyro_nine_from_turns(
+        turns, positions, turn_rad=turn_rad, reference_rps=reference
+    )
+    keep = (
+        np.zeros(N_PARAMS, dtype=bool)
+        if scalar.params is None or scalar.cov is None
+        else np.asarray(scalar.observable, dtype=bool)
+    )
+    if keep.any() and scalar.params is not None and scalar.cov is not None:
+        params = np.where(keep, scalar.params, params)
+        cov = np.where(np.outer(keep, keep), scalar.cov, np.where(np.outer(~keep, ~keep), cov, 0.0))
+        known = known | keep
+        sources = tuple(SOURCE_SCALAR if keep[j] else sources[j] for j in range(N_PARAMS))
+    return judged_estimate(
+        Triad.GYRO,
+        Method.COMBINED if keep.any() else Method.SIX_POSITION,
+        params,
+        cov,
+        n_positions=len(positions),
+        reference=reference,
+        sources=sources,
+        known=known,
+    )

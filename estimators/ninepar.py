@@ -110,6 +110,13 @@ from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
 from estimators.positions import Position
 from estimators.scalar import normalize, scalar_residual
 
+SOURCE_SCALAR = "M1 scalar fit"
+SOURCE_VECTOR = "M4 six-position vector fit"
+SOURCE_STATIC_MEANS = "M4 mean of the static positions"
+SOURCE_TURNS = "M4 full turns"
+SOURCE_NONE = "not determined"
+"""How a parameter of an :class:`Estimate` was obtained (``Estimate.sources``)."""
+
 MIN_POSITIONS = N_PARAMS
 """Nine unknowns need at least nine scalar equations (methods.md M1: n ≥ 9)."""
 
@@ -126,6 +133,8 @@ class Method(StrEnum):
     LINEAR = "linear"
     REFINED = "refined"
     RECURSIVE = "recursive"
+    SIX_POSITION = "six_position"
+    COMBINED = "combined"
 
 
 class Verdict(StrEnum):
@@ -216,6 +225,8 @@ class Estimate:
     chi2 : sum of squared normalized residuals at the solution (None without params).
     dof : degrees of freedom of ``chi2``: ``n_positions − 9`` (may be 0).
     reference : the value the means were normalized by, m/s² (accel) or rad/s (gyro), if known.
+    sources : (9,) how each parameter was obtained (e.g. "M1 scalar fit", "M4 six-position
+        vector fit", "M4 full turns"), or None: all by ``method``.
     """
 
     triad: Triad
@@ -231,6 +242,7 @@ class Estimate:
     chi2: float | None
     dof: int
     reference: float | None = None
+    sources: tuple[str, ...] | None = None
 
     @property
     def sigma(self) -> FloatArray | None:
@@ -264,6 +276,7 @@ class Estimate:
             "chi2": _finite_or_none(self.chi2),
             "dof": self.dof,
             "chi2_per_dof": _finite_or_none(self.chi2_per_dof),
+            "sources": None if self.sources is None else list(self.sources),
         }
 
 
@@ -766,6 +779,48 @@ def _finish(
         chi2=chi2,
         dof=n - N_PARAMS,
         reference=reference,
+    )
+
+
+def judged_estimate(
+    triad: Triad,
+    method: Method,
+    params: np.ndarray,
+    cov: np.ndarray,
+    *,
+    n_positions: int,
+    reference: float,
+    sources: tuple[str, ...],
+    observability: ObservabilityRule = DEFAULT_OBSERVABILITY,
+    known: np.ndarray | None = None,
+) -> Estimate:
+    """An estimate made by another method than M1's fit (the six-position vector fit, full
+    turns, or a combination), with the same per-parameter precision rule.
+
+    ``known`` (9,) bool marks the parameters the method determines at all (default: all);
+    the others are not observable whatever their covariance says.
+    """
+    observable, verdict, reason = _judge(cov, observability)
+    if known is not None and not np.all(known):
+        observable = observable & np.asarray(known, dtype=bool)
+        verdict = Verdict.PARTIALLY_OBSERVABLE if observable.any() else Verdict.NOT_OBSERVABLE_YET
+        missing = " ".join(PARAM_NAMES[j] for j in np.flatnonzero(~np.asarray(known)))
+        reason = f"{reason}; not determined by {method.value}: {missing}"
+    return Estimate(
+        triad=Triad(triad),
+        method=method,
+        verdict=verdict,
+        reason=reason,
+        n_positions=n_positions,
+        params=_frozen(np.asarray(params, dtype=float)),
+        cov=_frozen(np.asarray(cov, dtype=float)),
+        observable=_frozen(observable),
+        rank=N_PARAMS,
+        condition=float("nan"),
+        chi2=None,
+        dof=0,
+        reference=float(reference),
+        sources=tuple(sources),
     )
 
 

@@ -11,9 +11,9 @@ Units: every parameter is normalized as in :mod:`estimators.conventions`
 in m/s² for the accelerometers, Ω in rad/s for the gyros); scale errors and
 cosines are dimensionless.
 
-Plain-dict schema, version 2
+Plain-dict schema, version 3
 ----------------------------
-``type`` = ``"ins.health.passport"``, ``schema_version`` = 2, ``unit_id``,
+``type`` = ``"ins.health.passport"``, ``schema_version`` = 3, ``unit_id``,
 ``sensor_model`` (str), ``sensor_ids`` (map str → str), ``created`` (ISO 8601
 date or date-time string, supplied by the caller), ``triads`` (map
 ``"accel"``/``"gyro"`` → triad map). A triad map: ``param_names`` (the nine
@@ -25,11 +25,15 @@ per-sample standard deviation of the normalized output per axis),
 ``temperature`` (null or ``{reference_temp_c, bias_coeffs, scale_coeffs,
 valid_min_c, valid_max_c}``, the last two the temperature range the model was
 fitted on, °C) and ``provenance`` (``{method, n_positions, confidence, ci_low,
-ci_high}``). Unknown keys, wrong shapes and non-finite numbers are rejected
+ci_high, procedure, n_runs, reproducible}`` and, from version 3, an optional
+``param_sources``: 9 strings saying how each parameter was obtained — M1's
+scalar fit, the M4 six-position vector fit, M4 full turns, the mean of the
+static positions, or "not determined"). Unknown keys, wrong shapes and non-finite numbers are rejected
 with the field and the received value; a newer schema version raises
 :class:`PassportVersionError`.
 
-Version 1 is version 2 without ``valid_min_c`` and ``valid_max_c``. It is still
+Version 2 is version 3 without ``param_sources``; it is read and written back
+unchanged. Version 1 is version 2 without ``valid_min_c`` and ``valid_max_c``. It is still
 read, and written back unchanged: its temperature models load with no valid
 range (``valid_min_c = valid_max_c = None``), which means what version 1 did,
 compensation at any temperature. Rejecting those files would take the F0 check
@@ -67,14 +71,16 @@ from scipy.stats import norm
 
 from estimators._typing import ArrayT, BoolArray, FloatArray
 from estimators.conventions import MPS2_PER_MG, N_PARAMS, PARAM_NAMES, RPS_PER_DPH, Grade, Triad
-from estimators.ninepar import Estimate, Method
+from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method
 from estimators.positions import Position
 
 PASSPORT_TYPE = "ins.health.passport"
-PASSPORT_SCHEMA_VERSION = 2
-SUPPORTED_PASSPORT_VERSIONS = (1, 2)
+PASSPORT_SCHEMA_VERSION = 3
+SUPPORTED_PASSPORT_VERSIONS = (1, 2, 3)
 UNBOUNDED_TEMPERATURE_VERSION = 1
 """The last schema whose temperature models carry no valid range (module docstring)."""
+PARAM_SOURCES_VERSION = 3
+"""The first schema whose provenance may say how each parameter was obtained (``param_sources``)."""
 
 
 class PassportError(ValueError):
@@ -271,6 +277,8 @@ class Provenance:
     n_runs : independent runs behind the values (M2's reproducibility check needs ≥ 2).
     reproducible : (9,) bool, the parameters whose run intervals intersect
         (M2), or None when only one run was made.
+    param_sources : (9,) how each parameter was obtained (``Estimate.sources``: M1's
+        scalar fit, the M4 six-position vector fit, M4 full turns, …), or None (schema ≥ 3).
     """
 
     method: Method
@@ -281,9 +289,21 @@ class Provenance:
     procedure: str = "M1 multi-position"
     n_runs: int = 1
     reproducible: BoolArray | None = None
+    param_sources: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", _enum(Method, self.method, "provenance.method"))
+        if self.param_sources is not None:
+            src = self.param_sources
+            if not (
+                isinstance(src, (list, tuple))
+                and len(src) == N_PARAMS
+                and all(isinstance(v, str) and v.strip() for v in src)
+            ):
+                raise PassportError(
+                    f"provenance.param_sources must be {N_PARAMS} non-empty strings or null, got {_short(src)}"
+                )
+            object.__setattr__(self, "param_sources", tuple(src))
         if type(self.n_positions) is not int or self.n_positions < 0:
             raise PassportError(
                 f"provenance.n_positions must be a non-negative int, got {self.n_positions!r}"
@@ -322,24 +342,15 @@ class Provenance:
             "procedure": self.procedure,
             "n_runs": self.n_runs,
             "reproducible": None if self.reproducible is None else self.reproducible.tolist(),
-        }
+        } | ({} if self.param_sources is None else {"param_sources": list(self.param_sources)})
 
     @classmethod
-    def from_dict(cls, obj: Any) -> Provenance:
-        obj = _map(
-            obj,
-            "provenance",
-            (
-                "method",
-                "n_positions",
-                "confidence",
-                "ci_low",
-                "ci_high",
-                "procedure",
-                "n_runs",
-                "reproducible",
-            ),
-        )
+    def from_dict(cls, obj: Any, *, schema_version: int = PASSPORT_SCHEMA_VERSION) -> Provenance:
+        keys: tuple[str, ...] = ("method", "n_positions", "confidence", "ci_low", "ci_high", "procedure", "n_runs", "reproducible")  # fmt: skip
+        if schema_version >= PARAM_SOURCES_VERSION and isinstance(obj, dict):
+            keys += ("param_sources",)
+            obj = {"param_sources": None, **obj}
+        obj = _map(obj, "provenance", keys)
         rep = obj["reproducible"]
         if rep is not None and not (
             isinstance(rep, list) and all(isinstance(v, bool) for v in rep)
@@ -356,6 +367,7 @@ class Provenance:
             obj["procedure"],
             obj["n_runs"],
             None if rep is None else np.array(rep, dtype=bool),
+            obj.get("param_sources"),
         )
 
 
@@ -520,7 +532,7 @@ class TriadPassport:
             temperature=None
             if obj["temperature"] is None
             else TemperatureModel.from_dict(obj["temperature"], schema_version=schema_version),
-            provenance=Provenance.from_dict(obj["provenance"]),
+            provenance=Provenance.from_dict(obj["provenance"], schema_version=schema_version),
         )
 
 
@@ -575,6 +587,14 @@ class Passport:
                     f"triads[{triad.value!r}] must be the TriadPassport of that triad, got {_short(value)}"
                 )
             triads[triad] = value
+            if (
+                value.provenance.param_sources is not None
+                and self.schema_version < PARAM_SOURCES_VERSION
+            ):
+                raise PassportError(
+                    f"triads[{triad.value!r}].provenance.param_sources needs schema {PARAM_SOURCES_VERSION}, "
+                    f"this passport is schema {self.schema_version}"
+                )
             model = value.temperature
             # The schema decides whether a temperature map has range keys: a mismatch could not be written back.
             if model is not None and model.bounded != (
@@ -754,6 +774,8 @@ def passport_from_estimates(
                 confidence,
                 est.params - z * sigma,
                 est.params + z * sigma,
+                procedure=_procedure(est),
+                param_sources=est.sources,
             ),
         )
     return Passport(
@@ -763,6 +785,13 @@ def passport_from_estimates(
         created=created,
         triads=triads,
     )
+
+
+def _procedure(est: Estimate) -> str:
+    """The provenance's procedure: M1 multi-position, or the methods that supplied the parameters."""
+    if est.sources is None or set(est.sources) <= {SOURCE_SCALAR}:
+        return "M1 multi-position"
+    return " + ".join(dict.fromkeys(s for s in est.sources if s != SOURCE_NONE))
 
 
 # --------------------------------------------------------------------------- validation helpers

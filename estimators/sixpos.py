@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Grade, nine_params
+from estimators.ninepar import SOURCE_NONE, SOURCE_STATIC_MEANS, SOURCE_TURNS
 from estimators.plateaus import find_plateaus
 from estimators.positions import Position, build_positions
 from estimators.repeatability import LinearFit, fit_linear
@@ -43,6 +44,7 @@ from estimators.sim import (
     Bias,
     ErrorModel,
     GSensitivity,
+    Hold,
     MotionProfile,
     NonOrthogonality,
     Quantization,
@@ -53,12 +55,13 @@ from estimators.sim import (
     Spin,
     TemperatureProfile,
     TriadErrorModel,
+    Turn,
     WhiteNoise,
     attitude_with_up,
     multi_position_profile,
     simulate,
 )
-from estimators.static_detector import StaticDetectorConfig, detect_static
+from estimators.static_detector import StaticDetectorConfig, StaticInterval, detect_static
 
 ACCEL_TERM_NAMES = ("bias_mps2", "scale_error", "misalign_1", "misalign_2", "quad_per_mps2")
 """Per-axis parameter order of :class:`AccelSixPosition` (``misalign_1/2``: the other axes in x, y, z order)."""
@@ -163,10 +166,34 @@ class AccelSixPosition:
         return np.column_stack([self.bias_mps2, self.scale_error, others, self.quad_per_mps2])
 
     def nine_params(self) -> np.ndarray:
-        """The triad's ``[b/g, e, d]`` (conventions order): rows ``[1, M_ij, M_ik]`` normalized give the axes."""
-        rows = np.eye(3) + self.misalignment
-        axes = rows / np.linalg.norm(rows, axis=1, keepdims=True)
-        return nine_params(self.bias_mps2 / self.gravity_mps2, self.scale_error, axes)
+        """The triad's ``[b/g, e, d]`` (conventions order), :func:`vector_to_nine` of this fit."""
+        return vector_to_nine(
+            self.bias_mps2, self.scale_error, self.misalignment, self.gravity_mps2
+        )
+
+    def nine_params_cov(self) -> np.ndarray:
+        """(9, 9) covariance of :meth:`nine_params`: ``J Σ Jᵀ`` with ``J`` the Jacobian of the
+        mapping (central differences) and ``Σ`` the fit's per-axis covariances."""
+        theta = self.values[:, :4].reshape(12)
+        sigma = np.zeros((12, 12))
+        for i in range(3):
+            sigma[4 * i : 4 * i + 4, 4 * i : 4 * i + 4] = self.cov[i, :4, :4]
+        step = np.maximum(np.sqrt(np.diag(sigma)), 1e-9) * 1e-3
+        jac = np.zeros((9, 12))
+        for m in range(12):
+            d = np.zeros(12)
+            d[m] = step[m]
+            jac[:, m] = (self._nine_of(theta + d) - self._nine_of(theta - d)) / (2.0 * step[m])
+        cov = jac @ sigma @ jac.T
+        return np.asarray(0.5 * (cov + cov.T))
+
+    def _nine_of(self, theta: np.ndarray) -> np.ndarray:
+        v = theta.reshape(3, 4)
+        mis = np.zeros((3, 3))
+        for i in range(3):
+            j, k = [m for m in range(3) if m != i]
+            mis[i, j], mis[i, k] = v[i, 2], v[i, 3]
+        return vector_to_nine(v[:, 0], v[:, 1], mis, self.gravity_mps2)
 
     def correct(self, accel_mps2: np.ndarray) -> np.ndarray:
         """(N, 3) specific force with the model inverted (quadratic and coupling by two fixed-point passes).
@@ -183,12 +210,33 @@ class AccelSixPosition:
         return a
 
 
+def vector_to_nine(
+    bias_mps2: np.ndarray, scale_error: np.ndarray, misalignment: np.ndarray, gravity_mps2: float
+) -> np.ndarray:
+    """The passport's nine parameters ``[b, e, d]`` of a six-position vector fit (docs/methods.md M4 → M1).
+
+    Row ``i`` of the triad matrix is ``r_i = (1 + S_i)·e_i + Σ_j M_ij·e_j``, and M1's
+    model is ``ã = A u + b`` with rows ``(1 + e_i)·s_iᵀ`` (``s_i`` unit), so exactly
+    ``b_i = bias_i / g``, ``1 + e_i = |r_i|``, ``s_i = r_i / |r_i|`` and
+    ``d1 = s_x·s_y``, ``d2 = s_x·s_z``, ``d3 = s_y·s_z``; to first order
+    ``e_i = S_i`` and ``d1 = M_xy + M_yx`` etc. The cosines do not depend on how
+    the fixture's frame is turned against the sensor's. ``Q`` has no place in the
+    linear model (fit it at 0 for a passport).
+    """
+    rows = np.diag(1.0 + np.asarray(scale_error, dtype=float)) + np.asarray(misalignment, float)
+    norms = np.linalg.norm(rows, axis=1)
+    return nine_params(
+        np.asarray(bias_mps2, float) / gravity_mps2, norms - 1.0, rows / norms[:, None]
+    )
+
+
 def six_position_accel(
     accel_mean_mps2: np.ndarray,
     *,
     gravity_mps2: float,
     accel_cov_mps2: np.ndarray | None = None,
     up_b: np.ndarray | None = None,
+    quadratic: bool = True,
 ) -> AccelSixPosition:
     """Scale, bias, misalignment and quadratic term of each accelerometer (M4, the paper's eq. 7).
 
@@ -200,6 +248,8 @@ def six_position_accel(
         the noise from the residuals (needs more than six positions).
     up_b : (K, 3) body-frame up direction of each position; None takes the
         nearest ``±e_i`` (:func:`face_directions`).
+    quadratic : fit ``Q``; False fixes it at 0 (the passport's linear model, methods.md M1:
+        two residual degrees of freedom per axis instead of one). Its row of ``cov`` is then 0.
     """
     meas = np.asarray(accel_mean_mps2, dtype=float)
     up = face_directions(meas) if up_b is None else np.asarray(up_b, dtype=float)
@@ -213,7 +263,7 @@ def six_position_accel(
     if k < 6:
         raise ValueError(f"the six-position test needs at least 6 positions, got {k}")
     var = _diag_var(accel_cov_mps2, k)
-    if var is None and k < 7:
+    if var is None and k < (7 if quadratic else 6):
         raise ValueError(
             "with exactly six positions the noise cannot be estimated from residuals: give the covariances of the means"
         )
@@ -221,12 +271,13 @@ def six_position_accel(
     values = np.zeros((3, 5))
     cov = np.zeros((3, 5, 5))
     resid = np.zeros((k, 3))
+    terms = 5 if quadratic else 4
     for i in range(3):
         j, k2 = [m for m in range(3) if m != i]
-        h = np.column_stack([np.ones(k), a[:, i], a[:, j], a[:, k2], a[:, i] ** 2])
-        names = [f"{n} ({AXES[i]})" for n in ACCEL_TERM_NAMES]
+        h = np.column_stack([np.ones(k), a[:, i], a[:, j], a[:, k2], a[:, i] ** 2])[:, :terms]
+        names = [f"{n} ({AXES[i]})" for n in ACCEL_TERM_NAMES[:terms]]
         fit = _weighted_fit(h, meas[:, i] - a[:, i], None if var is None else var[:, i], names)
-        values[i], cov[i], resid[:, i] = fit.values, fit.cov, fit.residuals
+        values[i, :terms], cov[i, :terms, :terms], resid[:, i] = fit.values, fit.cov, fit.residuals
     mis = np.zeros((3, 3))
     for i in range(3):
         j, k2 = [m for m in range(3) if m != i]
@@ -702,3 +753,243 @@ def simulate_rate_table(
         profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, gravity_mps2=gravity_mps2
     )
     return simulate(spec, seed).session
+
+
+# --- the passport's nine parameters from six faces and full turns -------------------------------
+
+FULL_TURN_RAD = 2.0 * np.pi
+TURN_ANGLE_TOLERANCE = 0.1
+"""A turn counts when its integrated angle is within this fraction of the stated one."""
+MAX_TURN_AXIS_TILT_RAD = np.radians(15.0)
+"""…and its integrated rotation vector lies within this angle of a body axis."""
+TURN_MARGIN_S = 1.0
+"""A turn is integrated from this far inside the rests on either side (at most half of each)."""
+UNKNOWN_SIGMA = (10.0, 1.0, 1.0)
+"""Standard deviation written for a parameter a method does not determine (bias, scale, cosine):
+ten times the observability range, so the precision rule can never call it observable."""
+
+
+def face_positions(positions: Sequence[Position]) -> tuple[Position, ...] | None:
+    """The positions within :data:`MAX_FACE_TILT_RAD` of an axis-up/down attitude, or None
+    unless all six faces are among them."""
+    near = []
+    for p in positions:
+        a = p.accel_mean_mps2
+        if a is None:
+            continue
+        norm = float(np.linalg.norm(a))
+        if norm > 0.0 and np.max(np.abs(a)) / norm >= np.cos(MAX_FACE_TILT_RAD):
+            near.append(p)
+    if not near:
+        return None
+    try:
+        face_directions(np.array([p.accel_mean_mps2 for p in near]))
+    except ValueError:
+        return None
+    return tuple(near)
+
+
+def accel_vector_nine(
+    positions: Sequence[Position], *, gravity_mps2: float
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The passport's nine accelerometer parameters from the six faces among ``positions``
+    (linear six-position fit, :func:`vector_to_nine`), with their (9, 9) covariance and the
+    number of positions used; None without all six faces."""
+    faces = face_positions(positions)
+    if faces is None:
+        return None
+    fit = six_position_accel(
+        np.array([p.accel_mean_mps2 for p in faces]),
+        gravity_mps2=gravity_mps2,
+        accel_cov_mps2=np.array([p.accel_cov_mps2 for p in faces]),
+        quadratic=False,
+    )
+    return fit.nine_params(), fit.nine_params_cov(), len(faces)
+
+
+@dataclass(frozen=True)
+class FullTurn:
+    """A turn found between two static intervals (M4; the gyro calibration of Ferraris et al.).
+
+    Attributes
+    ----------
+    axis : body axis turned about (0, 1, 2); sign : +1 or −1, the sense of the turn.
+    t_start_s, t_end_s : the last static sample before and the first after, s.
+    integral_rad : (3,) ``∫(ω − b) dt`` over the turn, ``b`` the mean rate of the rest on both sides.
+    integral_var : (3,) its variance from the white noise, the uncertainty of ``b`` and the
+        Earth rate turning with the unit, rad².
+    """
+
+    axis: int
+    sign: float
+    t_start_s: float
+    t_end_s: float
+    integral_rad: np.ndarray
+    integral_var: np.ndarray
+
+    @property
+    def angle_rad(self) -> float:
+        return float(np.linalg.norm(self.integral_rad))
+
+
+def find_full_turns(
+    session: ImuSession,
+    intervals: Sequence[StaticInterval],
+    *,
+    turn_rad: float = FULL_TURN_RAD,
+) -> tuple[FullTurn, ...]:
+    """The turns of ``turn_rad`` about one body axis between consecutive static intervals.
+
+    From :data:`TURN_MARGIN_S` before the end of one interval to as far after the
+    start of the next (at most half of each) the gyro output, less the mean rate
+    of the rest of both intervals, is integrated (trapezoid); the stretch
+    is a turn when the angle is within :data:`TURN_ANGLE_TOLERANCE` of
+    ``turn_rad`` and the rotation vector within :data:`MAX_TURN_AXIS_TILT_RAD`
+    of a body axis (whose sign gives the sense). A stretch with a time gap
+    (more than five sample periods) is not integrated.
+    """
+    if session.gyro_rps is None or not turn_rad > 0:
+        return ()
+    t, w = np.asarray(session.t_s, float), np.asarray(session.gyro_rps, float)
+    gap = 5.0 / session.rate_hz
+    turns = []
+    margin = round(TURN_MARGIN_S * session.rate_hz)
+    for a, b in itertools.pairwise(intervals):
+        # The detector calls the first and last few samples of a turn static: integrate from
+        # inside the rests, and take the zero signal from the rests beyond that.
+        lo = max(a.stop - 1 - margin, (a.start + a.stop) // 2)
+        hi = min(b.start + margin, (b.start + b.stop) // 2)
+        tt = t[lo : hi + 1]
+        if tt.size < 3 or np.any(np.diff(tt) > gap):
+            continue
+        rest = np.concatenate([w[a.start : lo], w[hi + 1 : b.stop]])
+        bias = rest.mean(axis=0)
+        var = rest.var(axis=0, ddof=1)
+        rate = w[lo : hi + 1] - bias
+        integral = np.sum(0.5 * (rate[1:] + rate[:-1]) * np.diff(tt)[:, None], axis=0)
+        angle = float(np.linalg.norm(integral))
+        if abs(angle - turn_rad) > TURN_ANGLE_TOLERANCE * turn_rad:
+            continue
+        axis = int(np.argmax(np.abs(integral)))
+        if abs(integral[axis]) < np.cos(MAX_TURN_AXIS_TILT_RAD) * angle:
+            continue
+        span = float(tt[-1] - tt[0])
+        moving = float(t[b.start] - t[a.stop - 1])
+        # White noise integrates to a random walk (σ²·dt per step); the bias error grows with the
+        # span. The Earth rate, part of the rests' mean, turns with the unit while it moves: up to
+        # Ω per second of turning across the turn axis (heading unknown), a third of it along.
+        earth = np.full(3, (EARTH_RATE_RPS * moving) ** 2)
+        earth[axis] /= 3.0
+        integral_var = var * (span / session.rate_hz) + (var / rest.shape[0]) * span**2 + earth
+        turns.append(
+            FullTurn(
+                axis,
+                float(np.sign(integral[axis])),
+                float(tt[0]),
+                float(tt[-1]),
+                integral,
+                integral_var,
+            )
+        )
+    return tuple(turns)
+
+
+def gyro_nine_from_turns(
+    turns: Sequence[FullTurn],
+    positions: Sequence[Position],
+    *,
+    turn_rad: float = FULL_TURN_RAD,
+    reference_rps: float = EARTH_RATE_RPS,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """The gyro triad's nine parameters from full turns and static means (docs/methods.md M4 → M1).
+
+    A turn by ``θ`` about body axis ``j`` integrates to ``K·θ·k_j`` (``K`` the gyro
+    triad matrix, rows ``(1 + e_i) s_iᵀ``), so ``K``'s column ``j`` is the mean of
+    ``sign·integral/θ`` over the turns about ``j``. Then ``1 + e_i = |K_i|`` and
+    ``d`` the cosines of the normalized rows (:func:`vector_to_nine`'s mapping);
+    ``e_i`` needs the turn about ``i``, ``d_ij`` the turns about ``i`` and ``j``
+    (first order: ``e_i = K_ii − 1``, ``d_ij = K_ij + K_ji``, which gives the
+    covariance). The zero signals are the mean gyro output of the static
+    positions, with the Earth rate's projection — unknown without the headings —
+    counted as an error of ``Ω/√3`` per axis.
+
+    Returns ``(params (9,), cov (9, 9), known (9,) bool, sources (9,))``, biases
+    normalized by ``reference_rps``; parameters without their turns are 0 with
+    :data:`UNKNOWN_SIGMA`.
+    """
+    means = np.array([p.gyro_mean_rps for p in positions if p.gyro_mean_rps is not None])
+    covs = np.array([p.gyro_cov_rps for p in positions if p.gyro_cov_rps is not None])
+    k_mat = np.eye(3)
+    col_var = np.zeros((3, 3))
+    have = np.zeros(3, dtype=bool)
+    for j in range(3):
+        about = [tr for tr in turns if tr.axis == j]
+        if about:
+            have[j] = True
+            k_mat[:, j] = np.mean([tr.sign * tr.integral_rad for tr in about], axis=0) / turn_rad
+            col_var[:, j] = (
+                np.sum([tr.integral_var for tr in about], axis=0) / (len(about) * turn_rad) ** 2
+            )
+    params = np.zeros(9)
+    var = np.zeros(9)
+    known = np.zeros(9, dtype=bool)
+    if means.size:
+        params[:3] = means.mean(axis=0) / reference_rps
+        noise = np.diagonal(covs, axis1=1, axis2=2).sum(axis=0) / means.shape[0] ** 2
+        var[:3] = noise / reference_rps**2 + (EARTH_RATE_RPS / reference_rps) ** 2 / 3.0
+        known[:3] = True
+    else:
+        var[:3] = UNKNOWN_SIGMA[0] ** 2
+    rows = np.where(have[None, :], k_mat, np.eye(3))
+    nine = vector_to_nine(np.zeros(3), np.zeros(3), rows - np.eye(3), 1.0)
+    pairs = ((0, 1), (0, 2), (1, 2))
+    for i in range(3):
+        known[3 + i] = bool(have[i])
+        params[3 + i] = nine[3 + i] if have[i] else 0.0
+        var[3 + i] = col_var[i, i] if have[i] else UNKNOWN_SIGMA[1] ** 2
+    for m, (i, j) in enumerate(pairs):
+        known[6 + m] = bool(have[i] and have[j])
+        params[6 + m] = nine[6 + m] if known[6 + m] else 0.0
+        var[6 + m] = col_var[i, j] + col_var[j, i] if known[6 + m] else UNKNOWN_SIGMA[2] ** 2
+    sources = tuple(
+        [SOURCE_STATIC_MEANS if known[0] else SOURCE_NONE] * 3
+        + [SOURCE_TURNS if known[j] else SOURCE_NONE for j in range(3, 9)]
+    )
+    return params, np.diag(var), known, sources
+
+
+def ferraris_spec(
+    model: ErrorModel,
+    *,
+    static_s: float = 10.0,
+    transition_s: float = 4.0,
+    turn_s: float = 6.0,
+    turns: bool = True,
+    rate_hz: float = 100.0,
+    latitude_deg: float = 45.0,
+    height_m: float = 0.0,
+) -> SessionSpec:
+    """A six-position session as users record it for Ferraris-type tools (imucal, ArduPilot, PX4):
+    each axis up, then down, held ``static_s``; with ``turns`` a full turn about each axis
+    while it points up (rate ramped up and down over a third of ``turn_s`` each), then the
+    same face again."""
+    up = SIX_FACES_UP_B
+    segments: list[Hold | Turn | Spin] = [Hold(static_s)]
+    for k in range(6):
+        if k:
+            face = tuple(map(tuple, attitude_with_up(up[k])))
+            segments += [Turn(face, transition_s), Hold(static_s)]
+        if turns and k % 2 == 0:
+            rate = FULL_TURN_RAD / (2.0 / 3.0 * turn_s)
+            ramp = turn_s / 3.0
+            axis = tuple(up[k])
+            segments += [
+                Spin(ramp, 0.0, axis, end_rate_rps=rate),
+                Spin(ramp, rate, axis),
+                Spin(ramp, rate, axis, end_rate_rps=0.0),
+                Hold(static_s),
+            ]
+    profile = MotionProfile(tuple(map(tuple, attitude_with_up(up[0]))), tuple(segments))
+    return SessionSpec(
+        profile, model, rate_hz=rate_hz, latitude_deg=latitude_deg, height_m=height_m
+    )

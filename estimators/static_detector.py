@@ -37,7 +37,44 @@ spread of the measured Xsens MTi session (0.015 m/s², 0.0075 rad/s, see
 ``shared/data/measured/xsens-multiposition``), so a quiet window is missed with
 negligible probability while the hand motion between positions (window spreads
 of 0.3 … 5 m/s²) is far above. Set them from a unit's noise with
-:meth:`StaticDetectorConfig.from_noise`.
+:meth:`StaticDetectorConfig.from_noise`, or from the session's own noise with
+:meth:`StaticDetectorConfig.from_session` (what the offline commands do).
+
+Thresholds from the session
+---------------------------
+:meth:`StaticDetectorConfig.from_session` cuts each triad's samples into whole
+non-overlapping windows of W samples and takes their spreads. The static
+windows form the low mode of that distribution: the windows whose spread is at
+most ``2 ×`` the 10th percentile of all spreads are its *quiet* windows (robust
+to the moving parts as long as at least ~20 % of the session rests), and their
+median spread ``s̃`` is the triad's typical static spread. Then
+
+* spread threshold ``= 3·s̃`` (floors 1e-4 m/s², 1e-5 rad/s for noise-free
+  simulations). For white noise the spread of a static window has
+  ``3(W − 1)`` degrees of freedom and is within ±20 % of ``s̃`` with
+  probability far above 1 − 1e-6, so 3× misses no static window; a unit ten
+  times noisier gets a threshold ten times larger without a flag;
+* mean-rate bound ``|ω̄ − c| ≤ max(3·s̃_gyro/√W, 0.01 rad/s)`` with ``c`` the
+  per-axis median of the quiet windows' mean rates (the gyros' zero signal):
+  three times the noise of a window mean, floored above the Earth rate's change
+  between positions and a MEMS gyro's g-sensitivity. It is what separates a
+  slow turn from rest when the noise is so large (30× a MEMS unit) that the
+  spread of a turning window stays under the spread threshold.
+
+On the measured Xsens session this gives 0.040 m/s², 0.022 rad/s and a bound of
+0.01 rad/s about its zero signal: the same 38 positions as the fixed defaults.
+
+Orientation jumps
+-----------------
+Two neighbouring static samples belong to one static run only if one quiet
+window holds both. In a continuous recording this is implied; where the data
+jump between two samples (static parts cut out and joined, a log that lost a
+whole turn with uniform time stamps) every window holding both samples has the
+jump inside it and is not quiet, so the run ends at the jump even though the
+samples on either side are static. A jump the noise can explain leaves some
+window quiet and does not end the run. The streaming detector gives the same
+static flags but does not split runs at jumps: a live stream that loses samples
+has a time gap, which starts a new segment.
 
 The streaming form (:class:`StreamingStaticDetector`) gives the same decisions
 as the batch form (:func:`detect_static`): whether sample ``j`` is static is
@@ -67,6 +104,28 @@ import numpy as np
 
 from estimators.session import ImuSession, Rejections
 
+SESSION_NOISE_FACTOR = 3.0
+"""Thresholds from the session: this many times the typical spread of its quiet windows."""
+LOW_QUANTILE = 0.1
+LOW_MODE_FACTOR = 2.0
+"""The quiet windows: spreads up to LOW_MODE_FACTOR times the LOW_QUANTILE quantile of all spreads."""
+SPREAD_FLOOR_MPS2 = 1e-4
+SPREAD_FLOOR_RPS = 1e-5
+"""Smallest derived spread thresholds (a noise-free, quantized simulation has zero spread)."""
+RATE_BOUND_FLOOR_RPS = 0.01
+"""Smallest derived mean-rate bound: above the Earth rate's change between positions (2Ω ≈ 1.5e-4
+rad/s) and a MEMS gyro's g-sensitivity (≈ 1e-3 rad/s), below any hand or fixture turn (≳ 0.1 rad/s)."""
+
+
+def _block_spreads(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Spreads (root of the summed per-axis variances) and means (K, 3) of the K whole
+    non-overlapping windows of ``w`` rows of ``x`` (N, 3); non-finite windows are left out."""
+    k = x.shape[0] // w
+    blocks = x[: k * w].reshape(k, w, 3)
+    finite = np.all(np.isfinite(blocks), axis=(1, 2))
+    blocks = blocks[finite]
+    return np.sqrt(blocks.var(axis=1, ddof=1).sum(axis=1)), blocks.mean(axis=1)
+
 
 @dataclass(frozen=True)
 class StaticDetectorConfig:
@@ -79,6 +138,8 @@ class StaticDetectorConfig:
     gyro_std_rps : largest window spread of a static gyro triad, rad/s (default 0.02).
     gyro_rate_rps : largest norm of a static window's mean angular rate, rad/s, or None
         (default: no bound; see the module docstring).
+    gyro_rate_centre_rps : (3,) rate the mean-rate bound is centred on, rad/s (default 0:
+        the bound applies to ``|ω̄|``; :meth:`from_session` centres it on the zero signal).
     min_static_s : shortest static interval, s (default 1.0); shorter runs are reported apart.
     max_gap_s : a larger time step between accepted samples starts a new segment, s
         (default None: five nominal sample periods).
@@ -91,6 +152,7 @@ class StaticDetectorConfig:
     accel_std_mps2: float = 0.05
     gyro_std_rps: float = 0.02
     gyro_rate_rps: float | None = None
+    gyro_rate_centre_rps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     min_static_s: float = 1.0
     max_gap_s: float | None = None
     orientation_change_deg: float = 1.0
@@ -100,6 +162,12 @@ class StaticDetectorConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+        centre = tuple(float(v) for v in self.gyro_rate_centre_rps)
+        if len(centre) != 3 or not all(math.isfinite(v) for v in centre):
+            raise ValueError(
+                f"gyro_rate_centre_rps must be 3 finite rates, got {self.gyro_rate_centre_rps!r}"
+            )
+        object.__setattr__(self, "gyro_rate_centre_rps", centre)
         if not (math.isfinite(self.min_static_s) and self.min_static_s >= 0):
             raise ValueError(f"min_static_s must be finite and >= 0, got {self.min_static_s!r}")
         if self.gyro_rate_rps is not None and not (
@@ -134,6 +202,40 @@ class StaticDetectorConfig:
             out = replace(out, accel_std_mps2=factor * math.sqrt(3.0) * accel_noise_mps2)
         if gyro_noise_rps is not None:
             out = replace(out, gyro_std_rps=factor * math.sqrt(3.0) * gyro_noise_rps)
+        return out
+
+    @classmethod
+    def from_session(
+        cls,
+        session: ImuSession,
+        *,
+        factor: float = SESSION_NOISE_FACTOR,
+        base: StaticDetectorConfig | None = None,
+    ) -> StaticDetectorConfig:
+        """``base`` with thresholds derived from the session's own noise (module docstring,
+        "Thresholds from the session"): spreads at ``factor`` times the typical spread of the
+        quiet windows, and a mean-rate bound about the gyros' zero signal."""
+        out = cls() if base is None else base
+        w = out.window_samples(session.rate_hz)
+        quiet_means = None
+        rate_bound = RATE_BOUND_FLOOR_RPS
+        for x, is_gyro in ((session.accel_mps2, False), (session.gyro_rps, True)):
+            if x is None:
+                continue
+            spread, means = _block_spreads(np.asarray(x, dtype=float), w)
+            if spread.size == 0:
+                continue
+            low = spread <= LOW_MODE_FACTOR * np.quantile(spread, LOW_QUANTILE)
+            typical = float(np.median(spread[low]))
+            if is_gyro:
+                out = replace(out, gyro_std_rps=max(factor * typical, SPREAD_FLOOR_RPS))
+                quiet_means = means[low]
+                rate_bound = max(factor * typical / math.sqrt(w), RATE_BOUND_FLOOR_RPS)
+            else:
+                out = replace(out, accel_std_mps2=max(factor * typical, SPREAD_FLOOR_MPS2))
+        if quiet_means is not None and quiet_means.size:
+            cx, cy, cz = (float(v) for v in np.median(quiet_means, axis=0))
+            out = replace(out, gyro_rate_rps=rate_bound, gyro_rate_centre_rps=(cx, cy, cz))
         return out
 
     def window_samples(self, rate_hz: float) -> int:
@@ -319,11 +421,12 @@ _CHUNK = 16384
 
 
 def _window_dev2(
-    x: np.ndarray, w: int, *, mean_norm2: bool = False
+    x: np.ndarray, w: int, *, mean_norm2: bool = False, centre: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """(M − W + 1,) summed squared deviations from the mean of the windows of ``w`` rows of ``x`` (M, 3).
 
-    With ``mean_norm2`` also the squared norm of each window's mean (else None).
+    With ``mean_norm2`` also the squared norm of each window's mean minus ``centre``
+    (3,) (default 0) (else None).
 
     Entry ``i`` is the window of rows ``i … i + w − 1``: ``Σ_axes Σ (y − ȳ)²``
     from running sums of ``y`` and ``|y|²``. The rows are processed in blocks
@@ -346,8 +449,8 @@ def _window_dev2(
         np.cumsum(np.einsum("ij,ij->i", y, y), out=c2[1:])
         s1 = c1[w:] - c1[:-w]
         out[i0:i1] = (c2[w:] - c2[:-w]) - np.einsum("ij,ij->i", s1, s1) / w
-        if mean_norm2:
-            mean = s1 / w + x[i0]
+        if mean2 is not None:
+            mean = s1 / w + (x[i0] if centre is None else x[i0] - centre)
             mean2[i0:i1] = np.einsum("ij,ij->i", mean, mean)
     return out, mean2
 
@@ -402,7 +505,12 @@ def detect_static(
     if m >= w:
         ok = np.ones(m - w + 1, dtype=bool)
         for a, thr, rate in checks:
-            dev2, mean2 = _window_dev2(a if everything else a[acc], w, mean_norm2=rate is not None)
+            dev2, mean2 = _window_dev2(
+                a if everything else a[acc],
+                w,
+                mean_norm2=rate is not None,
+                centre=np.asarray(config.gyro_rate_centre_rps),
+            )
             ok &= dev2 <= thr * thr * (w - 1)
             if rate is not None:
                 ok &= mean2 <= rate * rate
@@ -416,6 +524,11 @@ def detect_static(
     np.cumsum(quiet, out=cq[1 : m + 1])
     cq[m + 1 :] = cq[m]
     static_k = cq[w : m + w] > cq[:m]
+    # Neighbouring static samples j, j + 1 are one run only if a quiet window holds both, i.e.
+    # ends in [j + 1, j + W − 1]: else the data jump between them (module docstring).
+    linked = np.zeros(m, dtype=bool)
+    if m > 1:
+        linked[:-1] = cq[w : m + w - 1] > cq[1:m]
 
     prev = np.zeros(m, dtype=bool)
     prev[1:] = static_k[:-1]
@@ -423,8 +536,10 @@ def detect_static(
     nxt[:-1] = static_k[1:]
     nxt_break = np.ones(m, dtype=bool)
     nxt_break[:-1] = seg_start[1:]
-    firsts = np.flatnonzero(static_k & (~prev | seg_start))
-    lasts = np.flatnonzero(static_k & (~nxt | nxt_break))
+    jump_before = np.zeros(m, dtype=bool)
+    jump_before[1:] = ~linked[:-1]
+    firsts = np.flatnonzero(static_k & (~prev | seg_start | jump_before))
+    lasts = np.flatnonzero(static_k & (~nxt | nxt_break | ~linked))
     intervals, short_runs = [], []
     for f, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
         iv = StaticInterval(
@@ -481,6 +596,7 @@ class StreamingStaticDetector:
         self._lim_a = config.accel_std_mps2**2 * (w - 1)
         self._lim_g = config.gyro_std_rps**2 * (w - 1)
         self._lim_rate = None if config.gyro_rate_rps is None else (config.gyro_rate_rps * w) ** 2
+        self._rate_c = [w * c for c in config.gyro_rate_centre_rps]
         self.rejections = Rejections()
         self._buf = SwitchedRing([[0.0] * w for _ in range(6)])
         self._t = SwitchedRing([0.0] * w)
@@ -581,8 +697,11 @@ class StreamingStaticDetector:
             q2 = q[5] = q[5] + y2 * y2 - p2 * p2
             quiet = quiet and (q0 + q1 + q2) - (s0 * s0 + s1 * s1 + s2 * s2) / w <= self._lim_g
             if self._lim_rate is not None and full:
-                # Window sum of the rates, unshifted: Σω = Σy + W·x0.
-                r0, r1, r2 = s0 + w * x0[3], s1 + w * x0[4], s2 + w * x0[5]
+                # Window sum of the rates about the centre, unshifted: Σ(ω − c) = Σy + W·x0 − W·c.
+                rc = self._rate_c
+                r0 = s0 + w * x0[3] - rc[0]
+                r1 = s1 + w * x0[4] - rc[1]
+                r2 = s2 + w * x0[5] - rc[2]
                 quiet = quiet and r0 * r0 + r1 * r1 + r2 * r2 <= self._lim_rate
         if not full:
             # A run closed by a time gap comes out here.
@@ -719,8 +838,10 @@ class StreamingStaticDetector:
             quiet &= (q0 + q1 + q2) - (s0 * s0 + s1 * s1 + s2 * s2) / w <= lim
         if self.has_gyro and self._lim_rate is not None:
             s0, s1, s2 = sums[nc - 3 : nc]
-            x0 = self._x0
-            r0, r1, r2 = s0 + w * x0[3], s1 + w * x0[4], s2 + w * x0[5]
+            x0, rc = self._x0, self._rate_c
+            r0 = s0 + w * x0[3] - rc[0]
+            r1 = s1 + w * x0[4] - rc[1]
+            r2 = s2 + w * x0[5] - rc[2]
             quiet &= r0 * r0 + r1 * r1 + r2 * r2 <= self._lim_rate
         final = starts[:, -1] if res and res[-1] == n - 1 else sums[:, -1]
         s_arr, q_arr = np.asarray(self._s), np.asarray(self._q)

@@ -32,7 +32,7 @@ class SessionInput:
     session : the samples, SI.
     gravity_mps2, gravity_source : local gravity, m/s², and where it came from.
     accel_limit_mps2, gyro_limit_rps : full-scale ranges (saturation check), or None.
-    detector : static-detector thresholds (from the stated noise, else the defaults).
+    detector : static-detector thresholds (from the stated noise, else from the session's own).
     """
 
     session: ImuSession
@@ -94,7 +94,8 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
         help="gyro full scale, rad/s (default: not checked)",
     )
     n = parser.add_argument_group(
-        "static detection (default thresholds suit MEMS units: 0.05 m/s², 0.02 rad/s window spread)"
+        "static detection (default: thresholds from the session's own noise, estimators/static_detector.py; "
+        "a stated noise overrides its triad's)"
     )
     n.add_argument(
         "--accel-noise",
@@ -160,7 +161,9 @@ def load_session_input(args: argparse.Namespace) -> SessionInput:
         if noise is not None and not (math.isfinite(noise) and noise > 0.0):
             raise UsageError(f"{name} must be a positive noise level, got {noise!r}")
     detector = StaticDetectorConfig.from_noise(
-        accel_noise_mps2=args.accel_noise, gyro_noise_rps=args.gyro_noise
+        accel_noise_mps2=args.accel_noise,
+        gyro_noise_rps=args.gyro_noise,
+        base=StaticDetectorConfig.from_session(loaded.session),
     )
     return SessionInput(
         loaded.session, float(gravity), source, args.accel_range, args.gyro_range, detector

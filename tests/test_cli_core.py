@@ -111,16 +111,17 @@ def test_saturated_samples_are_rejected_and_counted_given_the_full_scale(
     assert "accel_limit_mps2 must be a positive full-scale range" in capsys.readouterr().err
 
 
-def test_a_navigation_grade_gyro_calibrates_once_the_detector_knows_its_noise(tmp_path, capsys):
-    # The default thresholds (MEMS) let the slow end of each turn into the positions, which a gyro
-    # that resolves Ω sees; stating the unit's per-sample noise sets them at 3× its window spread.
+def test_a_navigation_grade_gyro_calibrates_with_thresholds_from_its_own_noise(tmp_path, capsys):
+    # Fixed MEMS thresholds would let the slow end of each turn into the positions, which a gyro
+    # that resolves Ω sees; the session's own noise (or the stated one) sets them at 3× its spread.
     model = grade_error_model(Grade.NAVIGATION, rng=np.random.default_rng(4))
     res = simulate(multi_position_spec(model=model), seed=33)
     write_csv_session(tmp_path / "nav.csv", res.session)
     noise = {t: model.triad(t).find("white_noise").sample_sd(res.spec.rate_hz).max() for t in Triad}
     argv = ["calibrate", str(tmp_path / "nav.csv"), "--grade", "navigation", "--latitude", "45"]
     assert main([*argv, "--out", str(tmp_path / "default.json")]) == 0
-    assert set(read_passport_json(tmp_path / "default.json").triads) == {Triad.ACCEL}
+    derived = read_passport_json(tmp_path / "default.json").triads[Triad.GYRO]
+    assert derived.observable.all() and derived.provenance.n_positions == 18
     noise_args = ["--accel-noise", str(noise[Triad.ACCEL]), "--gyro-noise", str(noise[Triad.GYRO])]
     assert main([*argv, "--out", str(tmp_path / "nav.json"), *noise_args]) == 0
     gyro = read_passport_json(tmp_path / "nav.json").triads[Triad.GYRO]

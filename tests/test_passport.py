@@ -196,7 +196,8 @@ def test_a_schema_1_passport_reads_with_an_unbounded_temperature_model_and_write
         Passport.from_dict({**old, "schema_version": 2})
     # Built in memory, the same rule: the schema decides whether a temperature model carries a range.
     with pytest.raises(
-        PassportError, match="a schema-2 passport needs a temperature model with its valid range"
+        PassportError,
+        match=f"a schema-{PASSPORT_SCHEMA_VERSION} passport needs a temperature model with its valid range",
     ):
         Passport(back.unit_id, back.sensor_model, back.sensor_ids, back.created, back.triads)
     with pytest.raises(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -47,6 +48,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default: on; --no-audit keeps the white-noise model)",
     )
     p.add_argument(
+        "--turn-deg",
+        type=float,
+        default=360.0,
+        metavar="DEG",
+        help="angle of the turns about one axis between two rests that calibrate the gyros' scale factors and "
+        "misalignment (default 360: full turns, as Ferraris-type sessions have)",
+    )
+    p.add_argument(
         "--replicas",
         type=int,
         default=20,
@@ -57,9 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimators.audit import AuditConfig, run_audit
-    from estimators.chain import ChainConfig, run_chain
-    from estimators.ninepar import Verdict
+    from estimators.chain import ChainConfig, calibration_estimates, run_chain
+    from estimators.conventions import PARAM_NAMES
+    from estimators.ninepar import SOURCE_SCALAR, Verdict
     from estimators.passport import passport_from_estimates, per_sample_noise_std
     from protocols.passport_codec import write_passport_json
 
@@ -70,7 +79,11 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     result = white = run_chain(inp.session, config)
     instability = None
+    if not (math.isfinite(args.turn_deg) and args.turn_deg > 0):
+        raise UsageError(f"--turn-deg must be a positive angle, got {args.turn_deg!r}")
     if args.audit:
+        from estimators.audit import AuditConfig, run_audit
+
         audit = run_audit(inp.session, AuditConfig(chain=config, replicas=args.replicas))
         instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
         print(
@@ -78,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         result = run_chain(inp.session, replace(config, bias_instability_std=instability))
-    estimates = {t: r.estimate for t, r in result.triads.items() if r.estimate.params is not None}
+    cal = calibration_estimates(result, turn_rad=math.radians(args.turn_deg))
+    estimates = cal.estimates
     if not estimates:
         reasons = "; ".join(f"{t.value}: {r.estimate.reason}" for t, r in result.triads.items())
         raise UsageError(
@@ -105,17 +119,37 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}", file=sys.stderr)
+    if cal.turns:
+        print(
+            "  turns: "
+            + ", ".join(
+                f"{'+' if tr.sign > 0 else '-'}{'xyz'[tr.axis]} at {tr.t_start_s:.1f} s"
+                for tr in cal.turns
+            ),
+            file=sys.stderr,
+        )
     for triad in (Triad.ACCEL, Triad.GYRO):
         r = result.triads.get(triad)
         if r is None:
             continue
         est = r.estimate
-        line = f"  {triad.value}: {est.verdict.value}"
+        line = f"  {triad.value}: M1 fit {est.verdict.value}"
         if r.residuals is not None:
             line += f", residual rms {float((r.residuals**2).mean() ** 0.5):.3g} (normalized), chi2/dof {est.chi2_per_dof or float('nan'):.2f}"
         if est.verdict is not Verdict.OBSERVABLE:
             line += f" — {est.reason}"
         print(line, file=sys.stderr)
+        written = estimates.get(triad)
+        if written is None:
+            print(
+                f"  {triad.value}: not in the passport (no parameter observable)", file=sys.stderr
+            )
+        elif written.sources is not None and set(written.sources) != {SOURCE_SCALAR}:
+            by_source: dict[str, list[str]] = {}
+            for name, src, ok in zip(PARAM_NAMES, written.sources, written.observable, strict=True):
+                by_source.setdefault(src, []).append(name if ok else f"{name} (not observable)")
+            parts = "; ".join(f"{' '.join(v)} from {k}" for k, v in by_source.items())
+            print(f"  {triad.value} in the passport: {parts}", file=sys.stderr)
     print(f"  passport written to {args.out}", file=sys.stderr)
     if args.json:
         json.dump(result.to_dict(), sys.stdout, indent=1)

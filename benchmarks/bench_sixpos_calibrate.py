@@ -1,0 +1,159 @@
+"""``calibrate`` of a six-position session with full turns (about 10,000 samples) next to imucal.
+
+The session is a simulated MEMS unit (``estimators.sixpos.ferraris_spec``: six faces of
+6 s, 4 s turns between them, a 6 s full turn about each axis; 100 Hz), written as a CSV
+session file. Timed, medians of ``N`` interleaved runs (default 7):
+
+* whole process: ``ins-health calibrate S.csv --out P.json`` with ``--no-audit`` and with
+  the default audit (20 Monte Carlo replicas), against a process that reads the same CSV
+  with pandas and runs imucal's Ferraris calibration on regions given to it (imucal needs
+  them marked by hand; here the simulator's truth marks them, so its figure leaves out the
+  marking that ins-health does itself);
+* in-process: read → static detection → positions → M1 fit → six-position vector fit and
+  full turns → passport, against imucal's ``FerrarisCalibration.compute`` on the regions.
+
+The goal (issue 11) is a whole process no slower than imucal's.
+Run: ``python benchmarks/bench_sixpos_calibrate.py [N]`` (needs the test extra: imucal).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from stopwatch import median_s
+
+from estimators.chain import ChainConfig, calibration_estimates, run_chain
+from estimators.conventions import Grade
+from estimators.passport import passport_from_estimates, per_sample_noise_std
+from estimators.sim import grade_error_model, simulate
+from estimators.sixpos import ferraris_spec
+from estimators.static_detector import StaticDetectorConfig
+from protocols.session_file import read_csv_session, write_csv_session
+
+ROOT = Path(__file__).resolve().parents[1]
+
+IMUCAL_SCRIPT = """
+import json, sys
+import numpy as np
+import pandas as pd
+from imucal import FerrarisCalibration, ferraris_regions_from_section_list
+data = pd.read_csv(sys.argv[1], comment="#")
+data = data.rename(columns={"ax": "acc_x", "ay": "acc_y", "az": "acc_z",
+                            "gx": "gyr_x", "gy": "gyr_y", "gz": "gyr_z"})
+sections = pd.DataFrame(json.loads(sys.argv[2])).set_index("part")
+regions = ferraris_regions_from_section_list(data, sections)
+cal = FerrarisCalibration(grav=float(sys.argv[3]), expected_angle=2 * np.pi).compute(
+    regions, 100.0, from_acc_unit="m/s^2", from_gyr_unit="rad/s")
+print(np.diag(cal.K_a))
+"""
+
+
+def _sections(res) -> list[dict]:
+    """imucal's section list (start, end sample) from the simulator's truth."""
+    holds = res.truth.static_intervals_s
+    t = res.session.t_s
+    idx = lambda v: int(np.searchsorted(t, v))  # noqa: E731
+    names = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
+    rows = [
+        {"part": n, "start": idx(holds[i][0]), "end": idx(holds[i][1])}
+        for n, i in zip(names, (0, 2, 3, 5, 6, 8), strict=True)
+    ]
+    rows += [
+        {"part": f"{a}_rot", "start": idx(holds[i][1]), "end": idx(holds[i + 1][0]) + 1}
+        for a, i in zip("xyz", (0, 3, 6), strict=True)
+    ]
+    return rows
+
+
+def _calibrate_in_process(path: Path) -> None:
+    loaded = read_csv_session(path)
+    session = loaded.session
+    g = loaded.gravity_mps2
+    result = run_chain(
+        session, ChainConfig(gravity_mps2=g, detector=StaticDetectorConfig.from_session(session))
+    )
+    cal = calibration_estimates(result)
+    passport_from_estimates(
+        cal.estimates,
+        unit_id="bench",
+        sensor_model="sim",
+        sensor_ids={},
+        created="2026-01-01",
+        noise_std={
+            t: per_sample_noise_std(result.positions, t, e.reference)
+            for t, e in cal.estimates.items()
+        },
+        sample_rate_hz=session.rate_hz,
+        grade=Grade.MEMS,
+    )
+
+
+def _wall_s(argv: list[str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
+    return time.perf_counter() - t0
+
+
+def main(n: int = 7) -> int:
+    import imucal
+    import pandas as pd
+
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    res = simulate(ferraris_spec(model, static_s=6.0, transition_s=4.0, turn_s=6.0), seed=1)
+    g = res.truth.gravity_mps2
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "six.csv"
+        write_csv_session(path, res.session, metadata={"gravity_mps2": repr(g)})
+        sections = _sections(res)
+        cli = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
+        commands = {
+            "ins-health calibrate --no-audit": [*cli, "calibrate", str(path), "--out", str(Path(tmp) / "a.json"), "--no-audit"],
+            "ins-health calibrate (audit)": [*cli, "calibrate", str(path), "--out", str(Path(tmp) / "b.json")],
+            "imucal Ferraris (pandas CSV)": [sys.executable, "-c", IMUCAL_SCRIPT, str(path), json.dumps(sections), repr(g)],
+        }  # fmt: skip
+        for argv in commands.values():
+            _wall_s(argv)
+        runs: dict[str, list[float]] = {k: [] for k in commands}
+        for _ in range(n):
+            for name, argv in commands.items():
+                runs[name].append(_wall_s(argv))
+        print(
+            f"six-position session with full turns: {res.session.n_samples} samples, "
+            f"{res.session.t_s[-1]:.0f} s at {res.spec.rate_hz:g} Hz"
+        )
+        print(f"whole process, median of {n} interleaved runs")
+        for name, v in runs.items():
+            print(f"  {name:<34} {np.median(v) * 1e3:8.1f} ms")
+
+        data = pd.read_csv(path, comment="#").rename(
+            columns={"ax": "acc_x", "ay": "acc_y", "az": "acc_z", "gx": "gyr_x", "gy": "gyr_y", "gz": "gyr_z"}
+        )  # fmt: skip
+        regions = imucal.ferraris_regions_from_section_list(
+            data, pd.DataFrame(sections).set_index("part")
+        )
+        ferraris = imucal.FerrarisCalibration(grav=g, expected_angle=2 * np.pi)
+        ours = median_s(lambda: _calibrate_in_process(path), n)
+        theirs = median_s(
+            lambda: ferraris.compute(regions, 100.0, from_acc_unit="m/s^2", from_gyr_unit="rad/s"),
+            n,
+        )
+        print(f"in-process, median of {n}")
+        print(f"  {'ins-health (read → passport)':<34} {ours * 1e3:8.1f} ms")
+        print(f"  {'imucal compute (regions given)':<34} {theirs * 1e3:8.1f} ms")
+        whole = np.median(runs["ins-health calibrate --no-audit"])
+        other = np.median(runs["imucal Ferraris (pandas CSV)"])
+        print(
+            f"  goal: whole process (--no-audit) no slower than imucal's: "
+            f"{'met' if whole <= other else 'NOT met'} ({whole / other:.2f}×)"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(*(int(a) for a in sys.argv[1:2])))

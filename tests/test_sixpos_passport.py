@@ -1,0 +1,220 @@
+"""The sessions people record for other tools: six faces (with and without full turns), noisier
+units, joined static parts and lost turns, calibrated into the passport (issue 11)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from estimators.chain import ChainConfig, calibration_estimates, run_chain
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
+from estimators.ninepar import SOURCE_TURNS, SOURCE_VECTOR, Method
+from estimators.passport import Passport, PassportError, passport_from_estimates
+from estimators.positions import build_positions
+from estimators.session import ImuSession
+from estimators.sim import (
+    ErrorModel,
+    Grade,
+    TriadErrorModel,
+    WhiteNoise,
+    grade_error_model,
+    simulate,
+)
+from estimators.sixpos import ferraris_spec, quantizer_offset
+from estimators.static_detector import StaticDetectorConfig, detect_static
+from protocols.passport_codec import read_passport_json
+from protocols.session_file import write_csv_session
+from service.cli import main
+
+MODEL = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+
+
+def _noisier(model: ErrorModel, k: float) -> ErrorModel:
+    def triad(chain: TriadErrorModel) -> TriadErrorModel:
+        return TriadErrorModel(
+            tuple(
+                WhiteNoise(tuple(np.array(e.density_si_per_sqrt_hz) * k))
+                if isinstance(e, WhiteNoise)
+                else e
+                for e in chain.effects
+            )
+        )
+
+    return ErrorModel(accel=triad(model.accel), gyro=triad(model.gyro))
+
+
+def _calibrate(session, gravity_mps2):
+    config = ChainConfig(
+        gravity_mps2=gravity_mps2, detector=StaticDetectorConfig.from_session(session)
+    )
+    result = run_chain(session, config)
+    return result, calibration_estimates(result)
+
+
+def _truth(res, triad):
+    """True nine parameters as the output's user sees them (a FLOOR quantizer's half step is bias)."""
+    truth = res.truth.params(triad).copy()
+    chain = res.truth.model.triad(triad)
+    truth[:3] += quantizer_offset(chain) / res.truth.reference(triad)
+    return truth
+
+
+def test_six_faces_and_full_turns_recover_the_passport_within_its_covariance_over_seeds():
+    z_accel, z_gyro = [], []
+    for seed in range(16):
+        res = simulate(ferraris_spec(MODEL, static_s=8.0), seed=100 + seed)
+        result, cal = _calibrate(res.session, res.truth.gravity_mps2)
+        assert len(result.positions) == 6 and len(cal.turns) == 3
+        acc, gyr = cal.estimates[Triad.ACCEL], cal.estimates[Triad.GYRO]
+        assert acc.method is Method.SIX_POSITION and acc.sources[6:] == (SOURCE_VECTOR,) * 3
+        assert acc.observable.all()
+        assert gyr.sources[3:] == (SOURCE_TURNS,) * 6 and gyr.observable[3:].all()
+        z_accel.append((acc.params - _truth(res, Triad.ACCEL)) / acc.sigma)
+        z_gyro.append((gyr.params[3:] - _truth(res, Triad.GYRO)[3:]) / gyr.sigma[3:])
+    for z in (np.array(z_accel), np.array(z_gyro)):
+        # Normalized errors: mean square at most 1 within its sampling spread (χ²₁₆/16 < 2.5 with
+        # probability 0.999), and the stated σ not more than about 3× too large.
+        ms = np.mean(z**2, axis=0)
+        assert np.all(ms < 2.5) and np.all(ms > 0.1), ms
+        assert np.max(np.abs(z)) < 4.5
+
+
+def test_six_faces_without_turns_give_the_accelerometers_and_no_gyro_passport(tmp_path, capsys):
+    res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=7)
+    _, cal = _calibrate(res.session, res.truth.gravity_mps2)
+    assert set(cal.estimates) == {Triad.ACCEL} and not cal.turns
+    path = tmp_path / "six.csv"
+    write_csv_session(path, res.session, metadata={"gravity_mps2": res.truth.gravity_mps2})
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "p.json"), "--no-audit"]) == 0
+    passport = read_passport_json(tmp_path / "p.json")
+    assert set(passport.triads) == {Triad.ACCEL} and passport.schema_version == 3
+    prov = passport.triads[Triad.ACCEL].provenance
+    assert prov.param_sources == (SOURCE_VECTOR,) * 9 and prov.method is Method.SIX_POSITION
+    assert "from M4 six-position vector fit" in capsys.readouterr().err
+
+
+def test_calibrate_writes_the_gyro_from_full_turns_and_turn_deg_says_which(tmp_path):
+    res = simulate(ferraris_spec(MODEL, static_s=8.0), seed=8)
+    path = tmp_path / "ferraris.csv"
+    write_csv_session(path, res.session, metadata={"gravity_mps2": res.truth.gravity_mps2})
+    assert main(["calibrate", str(path), "--out", str(tmp_path / "p.json"), "--no-audit"]) == 0
+    gyro = read_passport_json(tmp_path / "p.json").triads[Triad.GYRO]
+    assert gyro.provenance.param_sources[3:] == (SOURCE_TURNS,) * 6
+    assert gyro.observable[3:].all() and not gyro.observable[:3].any()
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert doc["triads"]["gyro"]["provenance"]["param_sources"][5] == SOURCE_TURNS
+    # Declared half turns: the full turns no longer count, the face flips (±x about y, ±y and
+    # ±z about x) do; no flip is about z, so e_z is not determined.
+    argv = ["calibrate", str(path), "--out", str(tmp_path / "q.json"), "--no-audit"]
+    assert main([*argv, "--turn-deg", "180"]) == 0
+    half = read_passport_json(tmp_path / "q.json").triads[Triad.GYRO]
+    assert half.observable[3:5].all() and not half.observable[5]
+    assert main([*argv, "--turn-deg", "-5"]) == 2
+
+
+def test_param_sources_need_schema_3():
+    res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=9)
+    _, cal = _calibrate(res.session, res.truth.gravity_mps2)
+    est = cal.estimates[Triad.ACCEL]
+    passport = passport_from_estimates(
+        cal.estimates,
+        unit_id="u",
+        sensor_model="m",
+        sensor_ids={},
+        created="2026-01-01",
+        noise_std={Triad.ACCEL: np.full(3, 1e-3)},
+        sample_rate_hz=100.0,
+        grade=Grade.MEMS,
+    )
+    back = Passport.from_dict(passport.to_dict())
+    assert back.triads[Triad.ACCEL].provenance.param_sources == est.sources
+    with pytest.raises(PassportError, match=r"unknown field\(s\) \['param_sources'\]"):
+        Passport.from_dict({**passport.to_dict(), "schema_version": 2})
+    with pytest.raises(PassportError, match="param_sources needs schema 3"):
+        dataclasses.replace(passport, schema_version=2)
+
+
+def _positions(session):
+    det = detect_static(session, config=StaticDetectorConfig.from_session(session))
+    return build_positions(session, det).positions
+
+
+def _true_holds(res):
+    return res.truth.static_intervals_s
+
+
+@pytest.mark.parametrize("noise", [1.0, 10.0, 30.0])
+def test_the_same_positions_at_1_10_and_30_times_the_noise_without_options(noise):
+    res = simulate(ferraris_spec(_noisier(MODEL, noise), turns=False, static_s=8.0), seed=11)
+    positions = _positions(res.session)
+    holds = _true_holds(res)
+    assert len(positions) == len(holds) == 6
+    for p, (t0, t1) in zip(positions, holds, strict=True):
+        # Within the hold, up to 0.15 s into a 4 s turn (< 0.05°, under the noise of the mean's
+        # direction at 30×).
+        assert t0 - 0.15 <= p.t_start_s and p.t_end_s <= t1 + 0.15, (p.t_start_s, t0, t1)
+
+
+def test_fixed_default_thresholds_lose_the_noisy_unit():
+    # What the derived thresholds fix: the defaults see no static window at 10× MEMS noise.
+    res = simulate(ferraris_spec(_noisier(MODEL, 10.0), turns=False, static_s=8.0), seed=11)
+    assert len(detect_static(res.session).intervals) == 0
+
+
+def _joined(res, keep):
+    s = res.session
+    n = int(np.count_nonzero(keep))
+    t = s.t_s[0] + np.arange(n) / res.spec.rate_hz
+    return ImuSession(t, s.accel_mps2[keep], s.gyro_rps[keep])
+
+
+def _assert_faces(positions, res):
+    assert len(positions) == 6
+    truth = res.truth
+    for p, (t0, t1) in zip(positions, truth.static_intervals_s, strict=True):
+        inside = (truth.t_s >= t0) & (truth.t_s <= t1)
+        true_f = truth.specific_force_b_mps2[inside].mean(axis=0)
+        assert (
+            np.degrees(
+                np.arccos(
+                    p.accel_mean_mps2
+                    @ true_f
+                    / np.linalg.norm(p.accel_mean_mps2)
+                    / np.linalg.norm(true_f)
+                )
+            )
+            < 1.0
+        )
+
+
+def test_static_parts_joined_without_transitions_give_the_six_positions():
+    res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=12)
+    joined = _joined(res, res.truth.static)
+    # One continuous run for the old rule (the union of quiet windows spans the jumps).
+    assert len(detect_static(joined).intervals) == 6
+    positions = _positions(joined)
+    # Map the joined times back: the k-th position is the k-th hold.
+    assert len(positions) == 6
+    for p, (t0, t1) in zip(positions, res.truth.static_intervals_s, strict=True):
+        held = t1 - t0
+        assert p.t_end_s - p.t_start_s > 0.5 * held
+
+
+def test_a_turn_lost_from_the_log_ends_the_position_with_or_without_a_time_gap():
+    res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=13)
+    truth = res.truth
+    t_end_hold, t_next = truth.static_intervals_s[2][1], truth.static_intervals_s[3][0]
+    lost = (truth.t_s > t_end_hold) & (truth.t_s < t_next)
+    s = res.session
+    with_gap = ImuSession(s.t_s[~lost], s.accel_mps2[~lost], s.gyro_rps[~lost])
+    _assert_faces(_positions(with_gap), res)
+    restamped = _joined(res, ~lost)
+    positions = _positions(restamped)
+    assert len(positions) == 6
+    assert len(build_positions(restamped, detect_static(restamped)).positions) == 6
+
+
+def test_units_of_g_need_no_rescaling_of_the_thresholds():
+    res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=14)
+    assert STANDARD_GRAVITY_MPS2 > 9.8 and len(_positions(res.session)) == 6
