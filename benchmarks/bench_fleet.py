@@ -249,9 +249,6 @@ def publisher_main(spec_path: str) -> None:
             marks[mark] = now
     last = time.monotonic()
     cpu = time.process_time() - cpu0
-    for p in pubs:
-        p.undeclare()
-    session.close()
     result = {
         "samples": samples,
         "frames": len(schedule),
@@ -261,6 +258,11 @@ def publisher_main(spec_path: str) -> None:
         "marks": marks,
     }
     print(json.dumps(result), flush=True)
+    # Closing the session at once could discard frames still in its send queue.
+    sys.stdin.readline()
+    for p in pubs:
+        p.undeclare()
+    session.close()
 
 
 # ---------------------------------------------------------------------- the run
@@ -444,8 +446,6 @@ def run(setup: Setup, unit: tuple[Passport, float] | None = None) -> Row:
             for p in publishers:
                 tell(p, f"go {t0!r}")
             results = [json.loads(hear(p)) for p in publishers]
-            for p in publishers:
-                p.wait(30)
             published = sum(r["samples"] for r in results)
             t_first = min(r["first"] for r in results)
             t_last = max(r["last"] for r in results)
@@ -457,7 +457,8 @@ def run(setup: Setup, unit: tuple[Passport, float] | None = None) -> Row:
                 600.0,
             )
             t_accepted = ground.progress_s
-            wall = time.monotonic() - t0
+            # Up to the last progress: a stalled run's idle wait is not part of its CPU load.
+            wall = max(t_accepted, t_last) - t0
             cpu = {pid: (cpu_seconds(pid) - c) / wall for pid, c in cpu0.items()}
             marks = {v: t for r in results for v, t in r["marks"].items()}
             wait_for(
@@ -466,6 +467,9 @@ def run(setup: Setup, unit: tuple[Passport, float] | None = None) -> Row:
             )
             # Anything late or extra has had its chance to arrive.
             time.sleep(2 * STATUS_PERIOD_S)
+            for p in publishers:
+                tell(p, "bye")
+                p.wait(30)
             with ground.lock:
                 got = {v: list(ev) for v, ev in ground.events.items()}
                 status = {v: dict(s) for v, s in ground.status.items()}
@@ -502,8 +506,12 @@ def run(setup: Setup, unit: tuple[Passport, float] | None = None) -> Row:
         s: sum(st["accepted"] for st in status.values() if st["service"] == s) for s in services
     }
     # Service-wide counters ride on every vehicle's status: one reading per instance.
-    dropped = {st["service"]: st["dropped"] for st in status.values()}
-    received = {st["service"]: st["received"] for st in status.values()}
+    dropped = {
+        s: max(st["dropped"] for st in status.values() if st["service"] == s) for s in services
+    }
+    received = {
+        s: max(st["received"] for st in status.values() if st["service"] == s) for s in services
+    }
     frames_published = sum(r["frames"] for r in results)
     drops = sum(dropped.values()) + max(0, frames_published - sum(received.values()))
     span = max(t_accepted - t_first, t_last - t_first, 1e-9)
