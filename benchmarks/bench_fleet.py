@@ -44,6 +44,10 @@ One row per configuration:
   application exactly once, no other event arrived, and each vehicle's status
   came from one instance only (``yes``/``no``).
 
+``--state [IMUS ...]``: the CPU cost of one status period (every vehicle's
+status built and encoded) and of a checkpoint (all IMUs changed, one, none)
+with hundreds of IMUs in one instance, in this process.
+
 ``--sweep``: for each frame size, one instance with doubling IMU counts until
 it stops keeping up (drops, or a lag above :data:`KEEP_UP_LAG_S`), then 2, 4, …
 instances up to half the cores (at least 2) at half that load each, with one
@@ -58,6 +62,7 @@ configuration with ``--vehicles --imus --instances --routers --frame``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -103,6 +108,8 @@ SWEEP_FRAMES = {1000: 48, 100: 24, 20: 12}
 """Frame size → IMUs of the first (single-instance) sweep row; doubled until it stops keeping up."""
 SWEEP_DOUBLINGS = 4
 IMUS_PER_VEHICLE = 3
+STATE_IMUS = (30, 300, 900)
+"""IMU counts of the status and checkpoint cost measurement (``--state``, and after ``--sweep``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -469,7 +476,11 @@ def run(setup: Setup, unit: tuple[Passport, float] | None = None) -> Row:
             time.sleep(2 * STATUS_PERIOD_S)
             for p in publishers:
                 tell(p, "bye")
-                p.wait(30)
+            for p in publishers:
+                # A lagging instance may still hold frames in the session's queue: the
+                # finally below ends a publisher that does not close in time.
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    p.wait(60)
             with ground.lock:
                 got = {v: list(ev) for v, ev in ground.events.items()}
                 status = {v: dict(s) for v, s in ground.status.items()}
@@ -529,6 +540,62 @@ def run(setup: Setup, unit: tuple[Passport, float] | None = None) -> Row:
         latency_ms=np.array(latency),
         exactly_once=not problems,
         problems=problems,
+    )
+
+
+# ---------------------------------------------------------------------- status and checkpoints
+
+
+def state_cost(n_imus: int, unit: tuple[Passport, float]) -> str:
+    """One status period and one checkpoint of ``n_imus`` IMUs in one instance, as the daemon does them (CPU ms).
+
+    In this process (no transport): every IMU has taken 2 s of frames of 1000;
+    then the status of every vehicle (built and encoded), a checkpoint of all
+    of them, and a checkpoint after one IMU took one more frame.
+    """
+    from protocols.events import encode_status
+    from service.checkpoint import CheckpointStore, encode_state
+    from service.pipeline import FleetProcessor, PipelineOptions
+
+    passport, g = unit
+    fleet = FleetProcessor(
+        passports=lambda v, i: passport,
+        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+        max_vehicles=n_imus,
+        max_imus_per_vehicle=IMUS_PER_VEHICLE,
+    )
+    setup = Setup(1, IMUS_PER_VEHICLE, 1, 1, 1000, duration_s=3.0)
+    data = imu_data(setup)
+    n_vehicles = -(-n_imus // IMUS_PER_VEHICLE)
+    keys = [(f"v{n:04d}", m) for n in range(n_vehicles) for m in range(IMUS_PER_VEHICLE)][:n_imus]
+    frames = {key: frames_of(data[key[1]], key[0], key[1], 1000) for key in keys}
+    for k in range(2):
+        for key in keys:
+            fleet.process(frames[key][k], arrival_s=float(k))
+
+    def checkpoint(store: CheckpointStore) -> float:
+        t0 = time.process_time()
+        store.save_encoded(
+            {
+                f"{v}/{i}": encode_state(fleet.pipelines[(v, i)].state_dict())
+                for v, i in fleet.changed_keys()
+            }
+        )
+        return (time.process_time() - t0) * 1e3
+
+    t0 = time.process_time()
+    for v in fleet.vehicles():
+        encode_status(fleet.status(v, service="bench", now_unix_s=0.0))
+    status_ms = (time.process_time() - t0) * 1e3
+    with tempfile.TemporaryDirectory(prefix="bench-fleet-state-") as tmp:
+        with CheckpointStore(Path(tmp) / "checkpoints.sqlite") as store:
+            all_ms = checkpoint(store)
+            idle_ms = checkpoint(store)
+            fleet.process(frames[keys[0]][2], arrival_s=2.0)
+            one_ms = checkpoint(store)
+    return (
+        f"{n_imus:5d} IMUs ({n_vehicles} vehicles): status of every vehicle {status_ms:7.1f} ms; "
+        f"checkpoint of all {all_ms:7.1f} ms, of one changed IMU {one_ms:6.1f} ms, of none {idle_ms:6.1f} ms"
     )
 
 
@@ -596,6 +663,13 @@ def main() -> None:
     parser.add_argument("--frame", type=int, default=100, help="samples per frame")
     parser.add_argument("--rate", type=float, default=1000.0, help="samples/s of each IMU")
     parser.add_argument("--duration", type=float, default=6.0, help="data seconds per IMU")
+    parser.add_argument(
+        "--state",
+        type=int,
+        nargs="*",
+        metavar="IMUS",
+        help="only the status and checkpoint cost of this many IMUs in one instance",
+    )
     args = parser.parse_args()
     if args.publisher:
         publisher_main(args.publisher)
@@ -603,6 +677,10 @@ def main() -> None:
     from service.demo import demo_passport
 
     unit = demo_passport()
+    if args.state is not None:
+        for n in args.state or STATE_IMUS:
+            print(state_cost(n, unit), flush=True)
+        return
     print(
         f"fleet through Zenoh routers on 127.0.0.1, {len(os.sched_getaffinity(0))} cores, "
         f"load average {os.getloadavg()[0]:.1f}; samples/s; CPU in % of one core"
@@ -610,6 +688,9 @@ def main() -> None:
     print(HEADER, flush=True)
     if args.sweep:
         sweep(unit, args.rate, args.duration)
+        print("status and checkpoint cost in one instance (CPU of the service's loop):")
+        for n in STATE_IMUS:
+            print(state_cost(n, unit), flush=True)
         return
     setup = (
         QUICK
