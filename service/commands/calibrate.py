@@ -10,7 +10,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from estimators.conventions import Grade, Triad
+from estimators.conventions import Grade, Triad, reference_magnitude
 from service.cli import UsageError, add_output
 from service.session_args import add_session_arguments, load_session_input
 
@@ -106,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
         created=dt.date.today().isoformat(),
         # White noise from the positions before the audited wander is added to their covariances.
         noise_std={
-            t: per_sample_noise_std(white.positions, t, e.reference) for t, e in estimates.items()
+            t: per_sample_noise_std(white.positions, t, reference_magnitude(t, inp.gravity_mps2))
+            for t in estimates
         },
         sample_rate_hz=inp.session.rate_hz,
         grade=Grade(args.grade),

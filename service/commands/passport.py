@@ -23,6 +23,7 @@ with that parameter marked not observable); 2 for unusable input.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -223,11 +224,9 @@ def run_tilt(args: argparse.Namespace) -> int:
     truth = None
     rejected: dict[str, int] = {}
     if args.simulate:
-        bench = TiltBench(
-            n_runs=args.runs,
-            rounding=Rounding(args.rounding),
-            **({} if angles_deg is None else {"angles_deg": tuple(angles_deg)}),
-        )
+        bench = TiltBench(n_runs=args.runs, rounding=Rounding(args.rounding))
+        if angles_deg is not None:
+            bench = replace(bench, angles_deg=tuple(angles_deg))
         rng = np.random.default_rng(args.seed)
         samples = simulate_samples(bench, rng)
         runs = runs_from_samples(bench, samples)

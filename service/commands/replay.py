@@ -130,13 +130,19 @@ def replay_events(
 
     reader = LogReader(log, vehicle=vehicle, batch_samples=REPLAY_BATCH_SAMPLES)
     events: list[Event] = []
-    emit = events.append if on_event is None else (lambda e: (events.append(e), on_event(e)))
-    wall0 = data0 = None
+
+    def emit(event: Event) -> None:
+        events.append(event)
+        if on_event is not None:
+            on_event(event)
+
+    start: tuple[float, float] | None = None  # (wall clock, data time) at the first frame
     for batch in reader:
         t_last = float(batch.t_s[-1])
         if pace_recorded:
-            if wall0 is None:
-                wall0, data0 = time.monotonic(), float(batch.t_s[0])
+            if start is None:
+                start = time.monotonic(), float(batch.t_s[0])
+            wall0, data0 = start
             delay = (t_last - data0) - (time.monotonic() - wall0)
             if delay > 0:
                 time.sleep(delay)

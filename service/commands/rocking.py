@@ -178,15 +178,17 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
         if not (np.isfinite(rate_hz) and rate_hz > 0.0):
             raise UsageError(f"--rate-hz must be positive, got {rate_hz!r}")
         unit = GyroUnit(
-            scale_err=PAPER_DK if args.dk is None else args.dk,
+            scale_err=tuple(PAPER_DK if args.dk is None else args.dk),
             bias_rps=GyroUnit().bias_rps
             if args.bias_deg_h is None
-            else np.asarray(args.bias_deg_h) * RPS_PER_DPH,
+            else tuple(np.asarray(args.bias_deg_h) * RPS_PER_DPH),
             arw_rad_per_sqrt_s=GyroUnit().arw_rad_per_sqrt_s
             if args.arw_deg_rth is None
             else np.radians(args.arw_deg_rth) / 60.0,
         )
         stand = _stand_settings(args)
+        if stand is None:
+            raise UsageError("--simulate needs the stand's amplitude and frequency")
         runs = paper_runs(
             amplitude_rad=stand.amplitude_rad,
             frequency_hz=stand.frequency_hz,

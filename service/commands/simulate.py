@@ -227,7 +227,7 @@ def _fault_table(text: str) -> dict:
             f"--fault {text}: expected KIND:TRIAD:INDEX:T_START_S:MAGNITUDE[:DURATION_S]"
         )
     keys = ("kind", "triad", "index", "t_start_s", "magnitude", "duration_s")
-    table = dict(zip(keys[: len(parts)], parts, strict=True))
+    table: dict[str, str | float] = dict(zip(keys[: len(parts)], parts, strict=True))
     try:
         for k in ("t_start_s", "magnitude", "duration_s"):
             if k in table:
