@@ -5,10 +5,12 @@ Run: ``python benchmarks/bench_audit.py [--quick]``. Prints
 1. the wall time of a full audit of the Xsens session (38 positions, 51,175
    samples) at 5–40 Monte Carlo replicas, and of simulated sessions of growing
    length at a fixed replica count;
-2. the hit rate (the audit names exactly the hidden effect) of every kind of
-   :data:`estimators.audit.hidden.HIDDEN_KINDS` against its size in detection
-   standard errors, and the false-naming rate on effect-free sessions
-   (:mod:`estimators.audit.hidden` defines both).
+2. per grade (MEMS, navigation), the hit rate (the audit names exactly the
+   hidden effect) of every kind of :func:`estimators.audit.hidden.kinds_of`
+   against its size in detection standard errors (2–10), with and without the
+   temperature column; the coarse grid against its step in noise sd; and the
+   false-naming rate on effect-free sessions (:mod:`estimators.audit.hidden`
+   defines them).
 """
 
 from __future__ import annotations
@@ -21,14 +23,17 @@ from pathlib import Path
 import numpy as np
 
 from estimators.audit import AuditConfig, run_audit
-from estimators.audit.hidden import HIDDEN_KINDS, clean_trial, draw, trial
+from estimators.audit.hidden import clean_trial, draw, hide, kinds_of, trial
 from estimators.chain import ChainConfig
+from estimators.conventions import Triad
 from estimators.sim import Grade, OrientationScheme, multi_position_spec, simulate
 from protocols.session_file import load_session
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "measured" / "xsens-multiposition"
 G_XSENS = 9.81744
-SIZES = (2.0, 4.0, 6.0, 8.0, 12.0, 16.0)
+SIZES = (2.0, 4.0, 6.0, 8.0, 10.0)
+COARSE_STEPS = (2.5, 3.0, 3.5, 4.0)
+"""Coarse-grid rows: the step in white-noise sd (noise below half a step; hidden size = 10 × this)."""
 
 
 def _timed(session, gravity, replicas: int) -> float:
@@ -61,28 +66,68 @@ def wall_times(quick: bool) -> None:
 
 
 def _hit(args) -> bool:
-    seed, size, kind = args
-    return trial(draw(seed, size, kind), seed)
+    seed, size, kind, grade, temperature = args
+    if kind[0] == "quantization" and size > 20.0:
+        h = hide(seed, "quantization", kind[1], None, size, grade=grade)
+    else:
+        h = draw(seed, size, kind, grade)
+    return trial(h, seed, temperature=temperature)
 
 
-def hit_rates(trials: int, workers: int) -> None:
+def _clean(args) -> bool:
+    seed, grade, temperature = args
+    return clean_trial(seed, temperature=temperature, grade=grade)
+
+
+def hit_rates(trials: int, workers: int, grades: tuple[Grade, ...]) -> None:
     print(
         f"Hit rate (exactly the hidden effect named) against size in detection standard errors, {trials} trials each:"
     )
-    print("  " + "kind".ljust(34) + "".join(f"{s:>7.0f}" for s in SIZES))
     with ProcessPoolExecutor(workers) as pool:
-        for k, kind in enumerate(HIDDEN_KINDS):
-            rates = []
-            for size in SIZES:
-                jobs = [(100_000 + 1000 * k + t, size, kind) for t in range(trials)]
-                rates.append(np.mean(list(pool.map(_hit, jobs))))
+        for grade in grades:
+            print(f"  {grade.value} grade".ljust(50) + "".join(f"{s:>7.0f}" for s in SIZES))
+            for k, kind in enumerate(kinds_of(grade)):
+                for temperature in (True, False):
+                    if kind[0].startswith("temperature") and not temperature:
+                        continue
+                    rates = []
+                    for size in SIZES:
+                        jobs = [
+                            (100_000 + 1000 * k + t, size, kind, grade, temperature)
+                            for t in range(trials)
+                        ]
+                        rates.append(np.mean(list(pool.map(_hit, jobs))))
+                    label = (
+                        f"{kind[0]} ({kind[1].value}){'' if temperature else ', no temp column'}"
+                    )
+                    print("    " + label.ljust(46) + "".join(f"{r:7.2f}" for r in rates))
             print(
-                "  "
-                + f"{kind[0]} ({kind[1].value})".ljust(34)
-                + "".join(f"{r:7.2f}" for r in rates)
+                "    coarse grid, step in noise sd".ljust(50)
+                + "".join(f"{s:>7.1f}" for s in COARSE_STEPS)
             )
-        clean = list(pool.map(clean_trial, range(200_000, 200_000 + 5 * trials)))
-    print(f"  effect-free sessions naming nothing: {np.mean(clean):.3f} of {len(clean)}")
+            for temperature in (True, False):
+                rates = []
+                for step in COARSE_STEPS:
+                    jobs = [
+                        (
+                            300_000 + t,
+                            10.0 * step,
+                            ("quantization", Triad.ACCEL),
+                            grade,
+                            temperature,
+                        )
+                        for t in range(trials)
+                    ]
+                    rates.append(np.mean(list(pool.map(_hit, jobs))))
+                label = f"quantization (accel){'' if temperature else ', no temp column'}"
+                print("    " + label.ljust(46) + "".join(f"{r:7.2f}" for r in rates))
+            for temperature in (True, False):
+                jobs = [(200_000 + t, grade, temperature) for t in range(5 * trials)]
+                clean = list(pool.map(_clean, jobs))
+                print(
+                    f"    effect-free sessions naming nothing{'' if temperature else ', no temp column'}: "
+                    f"{np.mean(clean):.3f} of {len(clean)}"
+                )
 
 
 if __name__ == "__main__":
@@ -94,6 +139,15 @@ if __name__ == "__main__":
     ap.add_argument(
         "--workers", type=int, default=2, help="processes for the hit-rate sweep (default 2)"
     )
+    ap.add_argument(
+        "--grade",
+        choices=[g.value for g in (Grade.MEMS, Grade.NAVIGATION)],
+        action="append",
+        help="grade of the hit-rate sweep (repeatable; default both)",
+    )
+    ap.add_argument("--no-times", action="store_true", help="skip the wall-time part")
     args = ap.parse_args()
-    wall_times(args.quick)
-    hit_rates(args.trials or (8 if args.quick else 40), args.workers)
+    if not args.no_times:
+        wall_times(args.quick)
+    grades = tuple(Grade(g) for g in args.grade) if args.grade else (Grade.MEMS, Grade.NAVIGATION)
+    hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades)

@@ -50,3 +50,24 @@ def test_xsens_extended_model_states_the_calibration_uncertainty_and_cuts_f0_fal
     assert gain["heldout_chi2_baseline"] > 3.0 and gain["heldout_chi2_extended"] < 2.0
     assert gain["f0_false_alarm_rate_extended"] < gain["f0_false_alarm_rate_baseline"]
     assert gain["f0_false_alarm_rate_extended"] <= 0.01
+
+
+def test_xsens_z_allan_deviation_is_inside_the_extended_band(audit):
+    # The z-up first position (52 s) wanders most: one Gauss–Markov bias per axis brings its Allan ratio inside.
+    allan = {(c.triad, c.axis): c for c in audit.extended_cmp if c.statistic == "allan"}
+    z = allan[(Triad.ACCEL, "z")]
+    assert z.simulated_p05 <= z.measured <= z.simulated_p95, z
+
+
+def test_xsens_states_its_grade_paths_and_its_grid(audit):
+    paths = audit.to_dict()["grade_paths"]
+    assert paths["accel"]["path"] == "gravity_scalar"
+    # A MEMS gyro: the position means' noise is above the Earth rate itself.
+    assert paths["gyro"]["path"] == "earth_rate_as_noise"
+    assert paths["gyro"]["mean_noise_over_reference"] > 1.0
+    grid = next(
+        c for c in audit.candidates if c.effect == "quantization" and c.triad is Triad.ACCEL
+    )
+    # Output on a grid of 2.418e-3 m/s² with about 3 steps of noise: M2's half-pulse correction holds.
+    assert grid.params["half_pulse_correction_holds"]
+    assert grid.params["step_si"][0] == pytest.approx(2.418e-3, rel=1e-3)

@@ -75,7 +75,7 @@ from estimators.static_detector import StaticDetectorConfig
 
 from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines
 from .candidates import EARTH_RATE_VAR_NORM, Candidate, gauss_markov_moments
-from .statistics import position_table, scalar_residuals
+from .statistics import MIN_POSITIONS, position_table, scalar_residuals
 
 GRAVITY_MPS2 = 9.80665
 RATE_HZ = 50.0
@@ -108,6 +108,16 @@ TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
     ("temperature_bias", Triad.GYRO),
 )
 """The temperature class of issue 13: named on the session's record, re-simulated on it."""
+
+
+def kinds_of(grade: Grade) -> tuple[tuple[str, Triad], ...]:
+    """Every kind a trial of ``grade`` can hide: :data:`HIDDEN_KINDS`, the gyro temperature bias, and at
+    navigation grade the gyro temperature scale (the Earth rate is a known rate)."""
+    extra = [("temperature_bias", Triad.GYRO)]
+    if grade is not Grade.MEMS:
+        extra.append(("temperature_scale", Triad.GYRO))
+    return tuple((e, t) for e, t in HIDDEN_KINDS if t is not None) + tuple(extra)
+
 
 _AXIS_FREE = ("nonstatic_positions", "quantization")
 _COEF_KEY = {
@@ -215,7 +225,13 @@ def session_of(
 
 
 def named_effects(session: ImuSession, chain: ChainResult) -> set[tuple[str, Triad, str | None]]:
-    """What the audit names on a session: the selected candidates, and a grid the baseline found (quantization)."""
+    """What the audit names on a session: the selected candidates, and a grid the baseline found (quantization).
+
+    Nothing when the chain kept fewer than :data:`MIN_POSITIONS` positions (the audit then concludes
+    nothing: a wobble the static detector of a navigation-grade unit cuts into pieces).
+    """
+    if len(chain.positions) < MIN_POSITIONS:
+        return set()
     baselines = fit_baselines(session, chain)
     named = {
         (c.effect, c.triad, c.axis)
