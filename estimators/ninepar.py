@@ -102,8 +102,6 @@ from enum import StrEnum
 from typing import Any
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
-from scipy.optimize import least_squares
 
 from estimators._typing import ArrayT, BoolArray, FloatArray
 from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
@@ -677,6 +675,10 @@ def _linear_solve(
 def _refine(
     mean: FloatArray, cov: FloatArray, start: FloatArray, max_passes: int
 ) -> tuple[FloatArray, FloatArray, float, str]:
+    # scipy.optimize loads on the first fit, not with the module: a session whose geometry
+    # fails (six faces) never needs it.
+    from scipy.optimize import least_squares
+
     params = start.copy()
     for _ in range(max_passes):
         if not _physical(params):
@@ -925,6 +927,9 @@ class RecursiveNineParam:
         self.warmup_positions = int(warmup_positions)
         self.max_buffer = int(max_buffer)
         self.max_iterations = int(max_iterations)
+        # filterpy loads scipy.stats: only the streaming form pays for it.
+        from filterpy.kalman import KalmanFilter
+
         self._kf = KalmanFilter(dim_x=N_PARAMS, dim_z=1)
         self._initialized = False
         self._buffer = _Buffer()

@@ -63,11 +63,11 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
+from statistics import NormalDist
 from types import MappingProxyType
 from typing import Any, TypeVar
 
 import numpy as np
-from scipy.stats import norm
 
 from estimators._typing import ArrayT, BoolArray, FloatArray
 from estimators.conventions import MPS2_PER_MG, N_PARAMS, PARAM_NAMES, RPS_PER_DPH, Grade, Triad
@@ -735,7 +735,7 @@ def passport_from_estimates(
     """
     if not 0.0 < confidence < 1.0:
         raise PassportError(f"confidence must be in (0, 1), got {confidence!r}")
-    z = float(norm.ppf(0.5 + 0.5 * confidence))
+    z = NormalDist().inv_cdf(0.5 + 0.5 * confidence)
     triads = {}
     for key, est in estimates.items():
         triad = Triad(key)

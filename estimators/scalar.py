@@ -49,7 +49,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import optimize, stats
 
 from estimators._typing import BoolArray, FloatArray, StateArray
 from estimators.conventions import Triad, normal_gravity_mps2, reference_magnitude
@@ -482,6 +481,8 @@ _NCX2_MIN_SIGMA = 1e-4
 
 def _noise_tail(x: float, sigma: float) -> float:
     """``P(|s| > x)`` for ``s = ½(|u + n|² − 1)``, ``|u| = 1``, ``n ~ N(0, σ² I₃)``."""
+    from scipy import stats  # loaded when λ0 is derived: it takes most of a second to import
+
     if sigma >= _NCX2_MIN_SIGMA:
         nc = 1.0 / (sigma * sigma)
         up = stats.ncx2.sf((1.0 + 2.0 * x) * nc, 3, nc)
@@ -521,6 +522,8 @@ def _worst_first_order(tol: FloatArray) -> float:
     grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1)
     vals = value(grid)
     best = np.unravel_index(np.argmax(vals), vals.shape)
+    from scipy import optimize  # loaded when λ0 is derived, not with the module
+
     res = optimize.minimize(
         lambda a: -value(a), grid[best], method="L-BFGS-B", bounds=[(0.0, 0.5 * np.pi)] * 2
     )
@@ -624,6 +627,8 @@ def derive_lambda0(
     hi = 10.0 * sigma + sigma**2
     while _noise_tail(hi, sigma) > false_alarm_prob:
         hi *= 2.0
+    from scipy import optimize
+
     x_p = optimize.brentq(
         lambda x: _noise_tail(x, sigma) - false_alarm_prob, 0.0, hi, xtol=1e-15, rtol=1e-12
     )

@@ -30,6 +30,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,29 +40,10 @@ from estimators.plateaus import find_plateaus
 from estimators.positions import Position, build_positions
 from estimators.repeatability import LinearFit, fit_linear
 from estimators.session import ImuSession
-from estimators.sim import (
-    GRADES,
-    Bias,
-    ErrorModel,
-    GSensitivity,
-    Hold,
-    MotionProfile,
-    NonOrthogonality,
-    Quantization,
-    Rounding,
-    ScaleFactor,
-    ScaleNonlinearity,
-    SessionSpec,
-    Spin,
-    TemperatureProfile,
-    TriadErrorModel,
-    Turn,
-    WhiteNoise,
-    attitude_with_up,
-    multi_position_profile,
-    simulate,
-)
 from estimators.static_detector import StaticDetectorConfig, StaticInterval, detect_static
+
+if TYPE_CHECKING:
+    from estimators.sim import ErrorModel, SessionSpec, TemperatureProfile, TriadErrorModel
 
 ACCEL_TERM_NAMES = ("bias_mps2", "scale_error", "misalign_1", "misalign_2", "quad_per_mps2")
 """Per-axis parameter order of :class:`AccelSixPosition` (``misalign_1/2``: the other axes in x, y, z order)."""
@@ -617,6 +599,19 @@ def adis_like_model(*, quantization: bool = True) -> ErrorModel:
     0.4–0.6 %, bias 0.1–0.3 °/s, g-sensitivity 0.01–0.05 °/s per g
     (``g_sensitivity``), noise 0.05 °/s/√Hz, the grade's steps.
     """
+    from estimators.sim import (
+        GRADES,
+        Bias,
+        ErrorModel,
+        GSensitivity,
+        NonOrthogonality,
+        Quantization,
+        ScaleFactor,
+        ScaleNonlinearity,
+        TriadErrorModel,
+        WhiteNoise,
+    )
+
     grade = GRADES[Grade.MEMS]
     accel = [
         NonOrthogonality((0.8e-3, -1.1e-3, 0.6e-3, 1.3e-3, -0.9e-3, 0.7e-3)),
@@ -652,6 +647,8 @@ def six_position_spec(
     temperature: TemperatureProfile | None = None,
 ) -> SessionSpec:
     """The paper's six-position test as a simulator spec: each axis up then down, 1 min at 100 Hz."""
+    from estimators.sim import SessionSpec, attitude_with_up, multi_position_profile
+
     attitudes = np.array([attitude_with_up(u) for u in SIX_FACES_UP_B])
     profile = multi_position_profile(attitudes, static_s=static_s, transition_s=transition_s)
     return SessionSpec(
@@ -671,6 +668,8 @@ def _effect(chain: TriadErrorModel, name: str, default):
 
 def quantizer_offset(chain: TriadErrorModel) -> np.ndarray:
     """(3,) mean offset of averaged (dithered) quantized output: −step/2 for FLOOR, 0 for NEAREST."""
+    from estimators.sim import Rounding
+
     q = chain.find("quantization")
     if q is None or q.rounding is Rounding.NEAREST:
         return np.zeros(3)
@@ -691,6 +690,8 @@ def accel_truth(model: ErrorModel) -> np.ndarray:
     A FLOOR quantizer makes the averaged output half a step low: that is part
     of the bias a user of the output sees, so it is in ``b``.
     """
+    from estimators.sim import Bias, NonOrthogonality, ScaleFactor, ScaleNonlinearity
+
     chain = model.accel
     axes = _effect(chain, "non_orthogonality", NonOrthogonality()).axes
     e = np.array(_effect(chain, "scale_factor", ScaleFactor()).scale_err)
@@ -703,6 +704,8 @@ def accel_truth(model: ErrorModel) -> np.ndarray:
 
 def gyro_truth(model: ErrorModel) -> tuple[np.ndarray, np.ndarray]:
     """True ``Bf`` (3,) rad/s (with the quantizer's mean offset) and ``Bg`` (3, 3) rad/s per m/s² of a simulator model."""
+    from estimators.sim import Bias, GSensitivity
+
     chain = model.gyro
     bias = np.array(_effect(chain, "bias", Bias()).bias_si) + quantizer_offset(chain)
     gs = np.array(_effect(chain, "g_sensitivity", GSensitivity()).coef_rps_per_mps2)
@@ -711,6 +714,8 @@ def gyro_truth(model: ErrorModel) -> tuple[np.ndarray, np.ndarray]:
 
 def rate_table_truth(model: ErrorModel) -> np.ndarray:
     """(3, 3) true slope of gyro ``i`` against a table rate about body axis ``j``: ``(1 + e_i) s_ij``."""
+    from estimators.sim import NonOrthogonality, ScaleFactor
+
     chain = model.gyro
     axes = _effect(chain, "non_orthogonality", NonOrthogonality()).axes
     e = np.array(_effect(chain, "scale_factor", ScaleFactor()).scale_err)
@@ -737,6 +742,8 @@ def simulate_rate_table(
     the Earth rate, whose horizontal part turns with the table; ``g`` along
     the vertical axis; then the model's effect chains).
     """
+    from estimators.sim import MotionProfile, SessionSpec, Spin, attitude_with_up, simulate
+
     prof = np.asarray(profile_rps, dtype=float)
     if axis not in (0, 1, 2):
         raise ValueError(f"axis must be 0, 1 or 2, got {axis!r}")
@@ -973,6 +980,8 @@ def ferraris_spec(
     each axis up, then down, held ``static_s``; with ``turns`` a full turn about each axis
     while it points up (rate ramped up and down over a third of ``turn_s`` each), then the
     same face again."""
+    from estimators.sim import Hold, MotionProfile, SessionSpec, Spin, Turn, attitude_with_up
+
     up = SIX_FACES_UP_B
     segments: list[Hold | Turn | Spin] = [Hold(static_s)]
     for k in range(6):

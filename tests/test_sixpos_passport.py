@@ -6,10 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from real_data import XSENS, needs
 
 from estimators.chain import ChainConfig, calibration_estimates, run_chain
-from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
-from estimators.ninepar import SOURCE_TURNS, SOURCE_VECTOR, Method
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad, normal_gravity_mps2
+from estimators.ninepar import SOURCE_SCALAR, SOURCE_TURNS, SOURCE_VECTOR, Method
 from estimators.passport import Passport, PassportError, passport_from_estimates
 from estimators.positions import build_positions
 from estimators.session import ImuSession
@@ -24,7 +25,7 @@ from estimators.sim import (
 from estimators.sixpos import ferraris_spec, quantizer_offset
 from estimators.static_detector import StaticDetectorConfig, detect_static
 from protocols.passport_codec import read_passport_json
-from protocols.session_file import write_csv_session
+from protocols.session_file import read_session, write_csv_session
 from service.cli import main
 
 MODEL = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
@@ -218,3 +219,24 @@ def test_a_turn_lost_from_the_log_ends_the_position_with_or_without_a_time_gap()
 def test_units_of_g_need_no_rescaling_of_the_thresholds():
     res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=14)
     assert STANDARD_GRAVITY_MPS2 > 9.8 and len(_positions(res.session)) == 6
+
+
+@needs(XSENS)
+def test_the_measured_xsens_session_keeps_its_38_positions_and_passport():
+    session = read_session(XSENS)
+    g = normal_gravity_mps2(45.0)
+    old = run_chain(session, ChainConfig(gravity_mps2=g))  # the fixed thresholds of before
+    new = run_chain(
+        session, ChainConfig(gravity_mps2=g, detector=StaticDetectorConfig.from_session(session))
+    )
+    assert len(old.positions) == len(new.positions) == 38
+    for a, b in zip(old.positions, new.positions, strict=True):
+        assert abs(a.t_start_s - b.t_start_s) < 1.0 and abs(a.t_end_s - b.t_end_s) < 1.0
+    est_old, est_new = old.triads[Triad.ACCEL].estimate, new.triads[Triad.ACCEL].estimate
+    assert est_new.verdict is est_old.verdict
+    # The passport values move by a fraction of their standard deviation (the positions lose or
+    # gain a few tenths of a second at their ends).
+    np.testing.assert_array_less(np.abs(est_new.params - est_old.params), 0.5 * est_old.sigma)
+    cal = calibration_estimates(new)
+    assert set(cal.estimates) == {Triad.ACCEL} and not cal.turns
+    assert cal.estimates[Triad.ACCEL].sources == (SOURCE_SCALAR,) * 9
