@@ -64,9 +64,11 @@ from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.linalg import cho_factor, cho_solve
 from scipy.optimize import minimize_scalar
 
+from estimators._typing import FloatArray
 from estimators.conventions import EARTH_RATE_RPS, RPS_PER_DPH
 from estimators.session import ImuSession
 from estimators.strapdown import (
@@ -157,38 +159,45 @@ PAPER_PHASE_RAD = {
 
 
 def x_from_drift(
-    drift_rps, amplitude_lead_rad, amplitude_lag_rad, frequency_hz, phase_rad
-) -> np.ndarray:
+    drift_rps: ArrayLike,
+    amplitude_lead_rad: ArrayLike,
+    amplitude_lag_rad: ArrayLike,
+    frequency_hz: ArrayLike,
+    phase_rad: ArrayLike,
+) -> FloatArray:
     """``X = 2·Ḋ / (A_i A_j ν sin Δφ)`` (M5 eq. 4; ``ν = 2π f``; Ḋ with the static drift removed, rad/s)."""
     nu = 2.0 * np.pi * np.asarray(frequency_hz, float)
-    return (
+    x: FloatArray = (
         2.0
         * np.asarray(drift_rps, float)
         / (np.asarray(amplitude_lead_rad) * np.asarray(amplitude_lag_rad) * nu * np.sin(phase_rad))
     )
+    return x
 
 
-def dk_from_x(x) -> np.ndarray:
+def dk_from_x(x: ArrayLike) -> FloatArray:
     """``δK_k = (ΣX − X_k)/2`` (M5 eq. 5); ``x`` = ``[Xγ, Xψ, Xθ]`` (..., 3) → ``[δK1, δK2, δK3]``."""
-    x = np.asarray(x, dtype=float)
-    return 0.5 * (x.sum(axis=-1, keepdims=True) - x)
+    xs = np.asarray(x, dtype=np.float64)
+    total: FloatArray = xs.sum(axis=-1, keepdims=True)
+    return 0.5 * (total - xs)
 
 
-def x_from_dk(dk) -> np.ndarray:
+def x_from_dk(dk: ArrayLike) -> FloatArray:
     """``X_k = δK_i + δK_j − δK_k`` (M5 eqs. 1–3, first order): the inverse of :func:`dk_from_x`."""
-    dk = np.asarray(dk, dtype=float)
-    return dk.sum(axis=-1, keepdims=True) - 2.0 * dk
+    dks = np.asarray(dk, dtype=np.float64)
+    total: FloatArray = dks.sum(axis=-1, keepdims=True)
+    return total - 2.0 * dks
 
 
-def corrected_coefficients(k_nominal, dk) -> np.ndarray:
+def corrected_coefficients(k_nominal: ArrayLike, dk: ArrayLike) -> FloatArray:
     """``K = K_H / (1 + δK)`` (M5 eq. 6), per channel; any unit of the transfer coefficient."""
-    return np.asarray(k_nominal, float) / (1.0 + np.asarray(dk, float))
+    return np.asarray(k_nominal, np.float64) / (1.0 + np.asarray(dk, np.float64))
 
 
 # --- the stand and the unit (simulation) ---------------------------------------
 
 
-def earth_rate_stand_rps(latitude_deg: float, heading_deg: float = 0.0) -> np.ndarray:
+def earth_rate_stand_rps(latitude_deg: float, heading_deg: float = 0.0) -> FloatArray:
     """(3,) Earth rate in the stand's rest axes (X forward at ``heading_deg`` from north, Y up, Z right), rad/s."""
     if not np.isfinite(latitude_deg) or abs(latitude_deg) > 90.0:
         raise ValueError(f"latitude_deg must be within [-90, 90], got {latitude_deg!r}")
@@ -211,11 +220,11 @@ class GyroUnit:
     arw_rad_per_sqrt_s : white-noise density (angle random walk), rad/s/√Hz.
     """
 
-    scale_err: tuple = tuple(PAPER_DK)
-    bias_rps: tuple = tuple(np.array([2.0, -30.0, 5.0]) * RPS_PER_DPH)
+    scale_err: ArrayLike = tuple(PAPER_DK)
+    bias_rps: ArrayLike = tuple(np.array([2.0, -30.0, 5.0]) * RPS_PER_DPH)
     arw_rad_per_sqrt_s: float = float(np.radians(0.003) / 60.0)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name, n in (("scale_err", 3), ("bias_rps", 3)):
             v = np.asarray(getattr(self, name), dtype=float)
             if v.shape != (n,) or not np.all(np.isfinite(v)):
@@ -250,7 +259,7 @@ class RockingRun:
     static_after_s: float = 25.0
     ramp_s: float = 2.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         object.__setattr__(self, "pair", RockingPair(self.pair))
         for name in ("amplitude_rad", "frequency_hz", "rocking_s"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
@@ -267,13 +276,13 @@ class RockingRun:
     def duration_s(self) -> float:
         return self.static_before_s + self.rocking_s + self.static_after_s
 
-    def amplitudes_rad(self) -> np.ndarray:
+    def amplitudes_rad(self) -> FloatArray:
         """(3,) per-axis amplitude (zero on the still axis)."""
         a = np.zeros(3)
         a[[self.pair.lead_axis, self.pair.lag_axis]] = self.amplitude_rad
         return a
 
-    def phases_rad(self) -> np.ndarray:
+    def phases_rad(self) -> FloatArray:
         """(3,) per-axis phase: the lagging axis at 0, the leading one at ``Δφ``."""
         p = np.zeros(3)
         p[self.pair.lead_axis] = self.phase_rad
@@ -291,32 +300,42 @@ def paper_runs(
     ``phase_rad`` None gives the paper's phases (:data:`PAPER_PHASE_RAD`); a
     number sets ``Δφ`` of all three runs.
     """
-    return tuple(
-        RockingRun(
-            pair,
-            amplitude_rad,
-            frequency_hz,
-            PAPER_PHASE_RAD[pair] if phase_rad is None else phase_rad,
-        )
-        for pair in (RockingPair.ROLL_PITCH, RockingPair.ROLL_YAW, RockingPair.PITCH_YAW)
-    )
+
+    def run(pair: RockingPair) -> RockingRun:
+        phase = PAPER_PHASE_RAD[pair] if phase_rad is None else phase_rad
+        return RockingRun(pair, amplitude_rad, frequency_hz, phase)
+
+    return run(RockingPair.ROLL_PITCH), run(RockingPair.ROLL_YAW), run(RockingPair.PITCH_YAW)
 
 
-def _sinusoid_angles(t_s, amplitude_rad, phase_rad, frequency_hz, offset_rad, t_ref_s):
+def _sinusoid_angles(
+    t_s: FloatArray,
+    amplitude_rad: FloatArray,
+    phase_rad: FloatArray,
+    frequency_hz: float,
+    offset_rad: FloatArray,
+    t_ref_s: float,
+) -> tuple[FloatArray, FloatArray]:
     """Angles ``c + A sin(ν(t − t_ref) + φ)`` and their rates, (N, 3) each."""
     nu = 2.0 * np.pi * frequency_hz
     arg = nu * (np.asarray(t_s)[:, None] - t_ref_s) + np.asarray(phase_rad)[None]
-    amp = np.asarray(amplitude_rad)[None]
-    return np.asarray(offset_rad)[None] + amp * np.sin(arg), amp * nu * np.cos(arg)
+    amp = np.asarray(amplitude_rad, np.float64)[None]
+    return np.asarray(offset_rad, np.float64)[None] + amp * np.sin(arg), amp * nu * np.cos(arg)
 
 
-def _gyro_output(angles_rad, angle_rates_rps, scale_err, bias_rps, earth_rate_rps) -> np.ndarray:
+def _gyro_output(
+    angles_rad: FloatArray,
+    angle_rates_rps: FloatArray,
+    scale_err: ArrayLike,
+    bias_rps: ArrayLike,
+    earth_rate_rps: FloatArray | None,
+) -> FloatArray:
     """``(1 + δK)·(ω_stand + C_rbᵀ Ω) + b`` for the stand angles; ``scale_err`` (..., 3) broadcasts a batch."""
     omega = body_rate_from_euler(angles_rad, angle_rates_rps)
     if earth_rate_rps is not None:
         omega = omega + rotate_to_body(quat_from_euler(angles_rad), earth_rate_rps)
-    dk = np.asarray(scale_err, float)[..., None, :]
-    return (1.0 + dk) * omega + np.asarray(bias_rps, float)
+    dk = np.asarray(scale_err, np.float64)[..., None, :]
+    return (1.0 + dk) * omega + np.asarray(bias_rps, np.float64)
 
 
 def simulate_run(
@@ -324,7 +343,7 @@ def simulate_run(
     unit: GyroUnit = GyroUnit(),
     *,
     rate_hz: float = 100.0,
-    earth_rate_rps: np.ndarray | None = None,
+    earth_rate_rps: FloatArray | None = None,
     rng: np.random.Generator,
 ) -> ImuSession:
     """A gyro record of one stand run (methods.md M5 bench); no accelerometer triad.
@@ -374,7 +393,7 @@ def simulate_runs(
     unit: GyroUnit = GyroUnit(),
     *,
     rate_hz: float = 100.0,
-    earth_rate_rps: np.ndarray | None = None,
+    earth_rate_rps: FloatArray | None = None,
     rng: np.random.Generator,
 ) -> ImuSession:
     """Several runs recorded one after another as one record (arguments as :func:`simulate_run`)."""
@@ -387,8 +406,13 @@ def simulate_runs(
     return ImuSession(
         np.concatenate([p.t_s + t0 for p, t0 in zip(parts, starts, strict=True)]),
         None,
-        np.vstack([p.gyro_rps for p in parts]),
+        np.vstack([_recorded_gyro(p) for p in parts]),
     )
+
+
+def _recorded_gyro(session: ImuSession) -> FloatArray:
+    assert session.gyro_rps is not None  # simulate_run records the gyros
+    return session.gyro_rps
 
 
 # --- finding the parts of a record ---------------------------------------------
@@ -409,13 +433,13 @@ class EpisodeSegments:
     frequency_hz: float
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+def _runs(mask: FloatArray) -> list[tuple[int, int]]:
     """``[start, stop)`` of the runs of True in a boolean array."""
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
 
 
-def _peak_frequency_hz(t_s: np.ndarray, gyro_rps: np.ndarray) -> float:
+def _peak_frequency_hz(t_s: FloatArray, gyro_rps: FloatArray) -> float:
     """Frequency of the largest spectral peak of the gyro output (zero-padded FFT, parabolic peak)."""
     dt = float(np.median(np.diff(t_s)))
     x = gyro_rps - gyro_rps.mean(axis=0)
@@ -429,8 +453,8 @@ def _peak_frequency_hz(t_s: np.ndarray, gyro_rps: np.ndarray) -> float:
 
 
 def find_episodes(
-    t_s: np.ndarray,
-    gyro_rps: np.ndarray,
+    t_s: FloatArray,
+    gyro_rps: FloatArray,
     *,
     min_static_s: float = MIN_STATIC_S,
     min_periods: int = MIN_PERIODS,
@@ -531,13 +555,13 @@ class StandFit:
 
     frequency_hz: float
     frequency_sigma_hz: float
-    amplitude_rad: np.ndarray
-    amplitude_sigma_rad: np.ndarray
-    phase_rad: np.ndarray
-    offset_rad: np.ndarray
+    amplitude_rad: FloatArray
+    amplitude_sigma_rad: FloatArray
+    phase_rad: FloatArray
+    offset_rad: FloatArray
     t_ref_s: float
 
-    def angles(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def angles(self, t_s: FloatArray) -> tuple[FloatArray, FloatArray]:
         """(N, 3) stand angles and (N, 3) their rates at ``t_s``."""
         return _sinusoid_angles(
             t_s,
@@ -573,17 +597,17 @@ class Episode:
     """
 
     pair: RockingPair
-    t_s: np.ndarray
-    gyro_rps: np.ndarray
+    t_s: FloatArray
+    gyro_rps: FloatArray
     segments: EpisodeSegments
     stand: StandFit
     phase_diff_rad: float
-    drift_static_rps: np.ndarray
-    drift_rocking_rps: np.ndarray
-    static_gyro_mean_rps: np.ndarray
-    arw_sq_rad2_per_s: np.ndarray
-    drift_angle_rad: np.ndarray
-    window_start_quat: np.ndarray
+    drift_static_rps: FloatArray
+    drift_rocking_rps: FloatArray
+    static_gyro_mean_rps: FloatArray
+    arw_sq_rad2_per_s: FloatArray
+    drift_angle_rad: FloatArray
+    window_start_quat: FloatArray
 
     @property
     def drift_axis(self) -> int:
@@ -595,7 +619,7 @@ class Episode:
         k = self.drift_axis
         return float(self.drift_rocking_rps[k] - self.drift_static_rps[k])
 
-    def _slices(self):
+    def _slices(self) -> tuple[slice, slice, slice]:
         s = self.segments
         return slice(*s.static_before), slice(*s.window), slice(*s.static_after)
 
@@ -625,13 +649,13 @@ class Episode:
         var = 1.2 * q_mean / self.window_s
         ts = np.array(self.static_durations_s)
         if static_from_gyro_mean:
-            return var + q_k / ts.sum()
+            return var + q_k / float(ts.sum())
         return var + 1.2 * q_k * float(np.sum(ts**5) / np.sum(ts**3) ** 2)
 
 
 def _fit_columns(
-    t_s: np.ndarray, t_ref_s: float, frequency_hz: float, n_harmonics: int
-) -> np.ndarray:
+    t_s: FloatArray, t_ref_s: float, frequency_hz: float, n_harmonics: int
+) -> FloatArray:
     """Design ``[1, t − t_ref, cos hν(t − t_ref), sin hν(t − t_ref) for h = 1…n]`` (N, 2 + 2n)."""
     tau = t_s - t_ref_s
     cols = [np.ones_like(tau), tau]
@@ -641,7 +665,7 @@ def _fit_columns(
     return np.column_stack(cols)
 
 
-def drift_rates(t_s: np.ndarray, angles_rad: np.ndarray, frequency_hz: float) -> np.ndarray:
+def drift_rates(t_s: FloatArray, angles_rad: FloatArray, frequency_hz: float) -> FloatArray:
     """Drift rates of angles over a steady rocking window, rad/s.
 
     Least-squares slope of ``c + d·t + Σ_h (a_h cos hνt + b_h sin hνt)``,
@@ -660,12 +684,13 @@ def drift_rates(t_s: np.ndarray, angles_rad: np.ndarray, frequency_hz: float) ->
     a = np.asarray(angles_rad, float)
     design = _fit_columns(t_s, 0.5 * (t_s[0] + t_s[-1]), frequency_hz, _N_HARMONICS)
     coef = np.linalg.lstsq(design, a.reshape(-1, a.shape[-1]).T, rcond=None)[0]
-    return coef[1].reshape(a.shape[:-1])
+    slopes: FloatArray = coef[1].reshape(a.shape[:-1])
+    return slopes
 
 
 def _static_drift(
-    t_s: np.ndarray, angles_rad: np.ndarray, before: slice, after: slice
-) -> np.ndarray:
+    t_s: FloatArray, angles_rad: FloatArray, before: slice, after: slice
+) -> FloatArray:
     """(3,) common slope of the angles over both still parts (each with its own intercept)."""
     tb, ta = t_s[before], t_s[after]
     tc = 0.5 * (tb[0] + ta[-1])
@@ -674,11 +699,12 @@ def _static_drift(
     design[: tb.size, 1] = 1.0
     design[tb.size :, 2] = 1.0
     y = np.concatenate([angles_rad[before], angles_rad[after]])
-    return np.linalg.lstsq(design, y, rcond=None)[0][0]
+    slopes: FloatArray = np.linalg.lstsq(design, y, rcond=None)[0][0]
+    return slopes
 
 
 def _fit_stand(
-    t_s: np.ndarray, angles_rad: np.ndarray, axes: list[int], f0_hz: float, *, search_lines: float
+    t_s: FloatArray, angles_rad: FloatArray, axes: list[int], f0_hz: float, *, search_lines: float
 ) -> StandFit:
     """Common-frequency sinusoids on the rocking angles (variable projection over f, then the full Jacobian).
 
@@ -689,7 +715,7 @@ def _fit_stand(
     y = angles_rad[:, axes]
     half_width = search_lines / (t_s[-1] - t_s[0])
 
-    def cost(f):
+    def cost(f: float) -> float:
         design = _fit_columns(t_s, t_ref, f, 1)
         return float(np.linalg.lstsq(design, y, rcond=None)[1].sum())
 
@@ -729,7 +755,7 @@ def _fit_stand(
     return StandFit(f, float(np.sqrt(cov[0, 0])), amplitude, amp_sigma, phase, offset, float(t_ref))
 
 
-def _classify(amplitude_rad: np.ndarray, t_span: tuple[float, float]) -> RockingPair:
+def _classify(amplitude_rad: FloatArray, t_span: tuple[float, float]) -> RockingPair:
     order = np.argsort(amplitude_rad)[::-1]
     a1, a2, a3 = amplitude_rad[order]
     where = f"the rocking at {t_span[0]:.1f}–{t_span[1]:.1f} s"
@@ -749,8 +775,12 @@ _ANGLE_WORDS = ("roll", "yaw", "pitch")
 
 
 def stand_attitude(
-    t_s: np.ndarray, gyro_rps: np.ndarray, *, quat0=None, earth_rate_rps=None
-) -> np.ndarray:
+    t_s: FloatArray,
+    gyro_rps: FloatArray,
+    *,
+    quat0: FloatArray | None = None,
+    earth_rate_rps: FloatArray | None = None,
+) -> FloatArray:
     """(..., N, 4) attitude relative to the stand's rest axes from gyro output (..., N, 3).
 
     The strapdown integral is relative to inertial axes that coincide with the
@@ -766,13 +796,13 @@ def stand_attitude(
 
 
 def measure_episode(
-    t_s: np.ndarray,
-    gyro_rps: np.ndarray,
+    t_s: FloatArray,
+    gyro_rps: FloatArray,
     segments: EpisodeSegments,
     *,
-    scale_err: np.ndarray | None = None,
-    bias_rps: np.ndarray | None = None,
-    earth_rate_rps: np.ndarray | None = None,
+    scale_err: FloatArray | None = None,
+    bias_rps: FloatArray | None = None,
+    earth_rate_rps: FloatArray | None = None,
     frequency_hz: float | None = None,
     phase_tolerance_rad: float = PHASE_TOLERANCE_RAD,
 ) -> Episode:
@@ -804,10 +834,14 @@ def measure_episode(
     lo, hi = segments.static_before[0], segments.static_after[1]
     t = np.asarray(t_s, float)[lo:hi]
     g_rec = np.asarray(gyro_rps, float)[lo:hi]
+
+    def local_range(r: tuple[int, int]) -> tuple[int, int]:
+        return r[0] - lo, r[1] - lo
+
     local = EpisodeSegments(
-        tuple(i - lo for i in segments.static_before),
-        tuple(i - lo for i in segments.window),
-        tuple(i - lo for i in segments.static_after),
+        local_range(segments.static_before),
+        local_range(segments.window),
+        local_range(segments.static_after),
         segments.frequency_hz,
     )
     g = g_rec if bias_rps is None else g_rec - np.asarray(bias_rps, float)
@@ -878,7 +912,7 @@ class StandSettings:
     amplitude_rel_sigma: float = PAPER_REL_SIGMA
     frequency_rel_sigma: float = PAPER_REL_SIGMA
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("amplitude_rad", "frequency_hz"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
@@ -904,13 +938,13 @@ class ClosedForm:
     frequency_hz : (3,) frequency used for each X.
     """
 
-    x: np.ndarray
-    x_cov: np.ndarray
-    dk: np.ndarray
-    dk_cov: np.ndarray
-    dk_bound: np.ndarray
-    amplitude_rad: np.ndarray
-    frequency_hz: np.ndarray
+    x: FloatArray
+    x_cov: FloatArray
+    dk: FloatArray
+    dk_cov: FloatArray
+    dk_bound: FloatArray
+    amplitude_rad: FloatArray
+    frequency_hz: FloatArray
 
 
 @dataclass(frozen=True)
@@ -926,11 +960,11 @@ class ModelBased:
     residual_rps : (3,) measured minus modelled rocking drift at the solution, rad/s.
     """
 
-    dk: np.ndarray
-    dk_cov: np.ndarray
+    dk: FloatArray
+    dk_cov: FloatArray
     steps: int
-    jacobian: np.ndarray
-    residual_rps: np.ndarray
+    jacobian: FloatArray
+    residual_rps: FloatArray
 
 
 @dataclass(frozen=True)
@@ -956,25 +990,25 @@ class RockingResult:
     stand: StandSettings | None = None
 
     @property
-    def dk(self) -> np.ndarray:
+    def dk(self) -> FloatArray:
         """(3,) the default estimate: model-based δK of channels 1–3."""
         return self.model.dk
 
     @property
-    def dk_sigma(self) -> np.ndarray:
+    def dk_sigma(self) -> FloatArray:
         return np.sqrt(np.diag(self.model.dk_cov))
 
     @property
-    def drift_rps(self) -> np.ndarray:
+    def drift_rps(self) -> FloatArray:
         """(3,) ``Ḋ_k − Ḋ_k0`` of each experiment's drift axis, as recorded, rad/s."""
         return np.array([e.drift_rps for e in self.episodes])
 
     @property
-    def drift_corrected_rps(self) -> np.ndarray:
+    def drift_corrected_rps(self) -> FloatArray:
         """(3,) the same after the correction with :attr:`dk`, rad/s."""
         return np.array([e.drift_rps for e in self.corrected])
 
-    def corrected_coefficients(self, k_nominal=(1.0, 1.0, 1.0)) -> np.ndarray:
+    def corrected_coefficients(self, k_nominal: ArrayLike = (1.0, 1.0, 1.0)) -> FloatArray:
         """``K = K_H / (1 + δK)`` (M5 eq. 6) with the model-based δK."""
         return corrected_coefficients(k_nominal, self.dk)
 
@@ -1024,15 +1058,17 @@ def closed_form(episodes: Sequence[Episode], stand: StandSettings | None = None)
     )
 
 
-def _bias_estimate(episode: Episode, scale_err: np.ndarray, earth_rate_rps) -> np.ndarray:
+def _bias_estimate(
+    episode: Episode, scale_err: FloatArray, earth_rate_rps: FloatArray | None
+) -> FloatArray:
     """(..., 3) zero signal: the still gyro mean less the Earth rate it saw (``(1 + δK)·Ω`` at rest)."""
     omega_rest = np.zeros(3) if earth_rate_rps is None else np.asarray(earth_rate_rps, float)
     return episode.static_gyro_mean_rps - (1.0 + np.asarray(scale_err, float)) * omega_rest
 
 
 def _model_drift(
-    episode: Episode, stand: StandFit, scale_err: np.ndarray, earth_rate_rps
-) -> np.ndarray:
+    episode: Episode, stand: StandFit, scale_err: FloatArray, earth_rate_rps: FloatArray | None
+) -> FloatArray:
     """(B,) modelled rocking drift of the episode's drift axis for a batch of δK (B, 3), rad/s.
 
     The stand's fitted motion over the steady window, through ``(1 + δK)``, the
@@ -1067,7 +1103,7 @@ def estimate_scale_errors(
     sessions: Sequence[ImuSession],
     *,
     stand: StandSettings | None = None,
-    earth_rate_rps: np.ndarray | None = None,
+    earth_rate_rps: FloatArray | None = None,
     phase_tolerance_rad: float = PHASE_TOLERANCE_RAD,
     min_static_s: float = MIN_STATIC_S,
     min_periods: int = MIN_PERIODS,
@@ -1111,8 +1147,8 @@ def estimate_scale_errors(
             )
     episodes = _order_by_drift_axis(found)
 
-    def measure_all(dk, *, remove_bias: bool):
-        return tuple(
+    def measure_all(dk: FloatArray, *, remove_bias: bool) -> tuple[Episode, Episode, Episode]:
+        e0, e1, e2 = (
             measure_episode(
                 e.t_s,
                 e.gyro_rps,
@@ -1125,6 +1161,7 @@ def estimate_scale_errors(
             )
             for e in episodes
         )
+        return e0, e1, e2
 
     measured = np.array([e.drift_rocking_rps[e.drift_axis] for e in episodes])
     dk = closed_form(episodes, stand).dk
@@ -1155,6 +1192,7 @@ def estimate_scale_errors(
             )
         delta = np.linalg.solve(jac, residual)
         dk = dk + delta
+    assert jac is not None  # set at the first step
     sigma_r = np.sqrt([e.drift_variance_rps2(static_from_gyro_mean=True) for e in episodes])
     g = np.linalg.solve(jac, np.diag(sigma_r))
     model = ModelBased(dk, g @ g.T, steps, jac, residual)
@@ -1162,6 +1200,9 @@ def estimate_scale_errors(
     return RockingResult(episodes, closed, model, measure_all(dk, remove_bias=False), fitted, stand)
 
 
-def _with_stand(episodes, corrected) -> tuple[Episode, Episode, Episode]:
+def _with_stand(
+    episodes: tuple[Episode, Episode, Episode], corrected: tuple[Episode, Episode, Episode]
+) -> tuple[Episode, Episode, Episode]:
     """The recorded episodes with the stand motion fitted on the corrected record (not biased by δK)."""
-    return tuple(replace(e, stand=c.stand) for e, c in zip(episodes, corrected, strict=True))
+    e0, e1, e2 = (replace(e, stand=c.stand) for e, c in zip(episodes, corrected, strict=True))
+    return e0, e1, e2
