@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
+from estimators._typing import FloatArray
+
 
 @dataclass(frozen=True)
 class AllanDeviation:
@@ -24,14 +26,14 @@ class AllanDeviation:
     n_terms : (m,) number of overlapping second differences behind each value.
     """
 
-    tau_s: np.ndarray
-    adev: np.ndarray
-    n_terms: np.ndarray
+    tau_s: FloatArray
+    adev: FloatArray
+    n_terms: FloatArray
 
 
 def default_cluster_sizes(
     n_samples: int, *, per_octave: int = 2, max_fraction: float = 0.25
-) -> np.ndarray:
+) -> FloatArray:
     """Cluster sizes ``m`` (samples), log-spaced, from 1 to ``max_fraction · n_samples``."""
     top = max(1, int(n_samples * max_fraction))
     m = np.unique(
@@ -41,7 +43,7 @@ def default_cluster_sizes(
 
 
 def overlapping_allan_deviation(
-    x: np.ndarray, rate_hz: float, cluster_sizes: np.ndarray | None = None
+    x: FloatArray, rate_hz: float, cluster_sizes: FloatArray | None = None
 ) -> AllanDeviation:
     """Overlapping Allan deviation (IEEE Std 952, eq. of the overlapping estimator).
 
@@ -73,7 +75,7 @@ def overlapping_allan_deviation(
     return AllanDeviation(m / rate_hz, adev, n - 2 * m + 1)
 
 
-def white_noise_sd(x: np.ndarray) -> np.ndarray:
+def white_noise_sd(x: FloatArray) -> FloatArray:
     """(k,) per-sample white-noise standard deviation from first differences: ``std(Δx)/√2``.
 
     Differences remove the mean and any slow wander (bias instability, drift),
@@ -84,10 +86,11 @@ def white_noise_sd(x: np.ndarray) -> np.ndarray:
         a = a[:, None]
     if a.shape[0] < 3:
         raise ValueError(f"a noise level needs at least 3 samples, got {a.shape[0]}")
-    return np.std(np.diff(a, axis=0), axis=0, ddof=1) / np.sqrt(2.0)
+    sd: FloatArray = np.std(np.diff(a, axis=0), axis=0, ddof=1) / np.sqrt(2.0)
+    return sd
 
 
-def sample_noise_sd(x: np.ndarray, window: int) -> np.ndarray:
+def sample_noise_sd(x: FloatArray, window: int) -> FloatArray:
     """(k,) per-sample noise standard deviation about a centred moving mean of ``window`` samples.
 
     ``var(x − mean_window) = σ²(1 − 1/window)`` for white noise, so the result
@@ -110,10 +113,11 @@ def sample_noise_sd(x: np.ndarray, window: int) -> np.ndarray:
     c = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a - a.mean(axis=0), axis=0)])
     moving = (c[window:] - c[:-window]) / window
     centre = a[window // 2 : window // 2 + moving.shape[0]] - a.mean(axis=0)
-    return np.sqrt(np.mean((centre - moving) ** 2, axis=0) / (1.0 - 1.0 / window))
+    var: FloatArray = np.mean((centre - moving) ** 2, axis=0)
+    return np.sqrt(var / (1.0 - 1.0 / window))
 
 
-def batch_means_sd(records: list[np.ndarray], batch: int) -> np.ndarray:
+def batch_means_sd(records: list[FloatArray], batch: int) -> FloatArray:
     """(k,) noise level that governs averages: ``√(m · var(batch means))``, pooled over records.
 
     Each record (a static interval, (N_r, k)) is cut into whole batches of
@@ -125,7 +129,8 @@ def batch_means_sd(records: list[np.ndarray], batch: int) -> np.ndarray:
     """
     if batch < 1:
         raise ValueError(f"batch must be at least 1 sample, got {batch}")
-    total, dof = None, 0
+    total: FloatArray | None = None
+    dof = 0
     for r in records:
         a = np.asarray(r, dtype=float)
         a = a[:, None] if a.ndim == 1 else a
@@ -133,7 +138,7 @@ def batch_means_sd(records: list[np.ndarray], batch: int) -> np.ndarray:
         if nb < 2:
             continue
         means = a[: nb * batch].reshape(nb, batch, -1).mean(axis=1)
-        ss = np.sum((means - means.mean(axis=0)) ** 2, axis=0)
+        ss: FloatArray = np.sum((means - means.mean(axis=0)) ** 2, axis=0)
         total = ss if total is None else total + ss
         dof += nb - 1
     if total is None:
@@ -141,7 +146,7 @@ def batch_means_sd(records: list[np.ndarray], batch: int) -> np.ndarray:
     return np.sqrt(batch * total / dof)
 
 
-def quantization_step(x: np.ndarray, *, rel_tol: float = 0.02, min_levels: int = 3) -> float | None:
+def quantization_step(x: FloatArray, *, rel_tol: float = 0.02, min_levels: int = 3) -> float | None:
     """The output grid step of a record (M2's count size ``k``), or None when the data are not on a grid.
 
     The smallest positive difference between distinct values is the candidate
@@ -172,7 +177,7 @@ ROUNDING_TERMS = 32
 1e-5 of the sum even for noise-free input (σ = 0, where the sum is q²/12)."""
 
 
-def rounding_mean_var(white_sd: np.ndarray, step: np.ndarray) -> np.ndarray:
+def rounding_mean_var(white_sd: FloatArray, step: FloatArray) -> FloatArray:
     """Variance of the rounding error that stays in a long average of ``round((μ + n)/q)·q`` (M2, no dithering).
 
     With white noise ``n`` of sd ``σ`` before a grid of step ``q``, the mean
@@ -188,11 +193,11 @@ def rounding_mean_var(white_sd: np.ndarray, step: np.ndarray) -> np.ndarray:
     q = np.asarray(step, float)[..., None]
     k = np.arange(1, ROUNDING_TERMS + 1, dtype=float)
     terms = q**2 / (2.0 * np.pi**2 * k**2) * np.exp(-4.0 * np.pi**2 * k**2 * s**2 / q**2)
-    out: np.ndarray = np.sum(terms, axis=-1)
+    out: FloatArray = np.sum(terms, axis=-1)
     return out
 
 
-def dequantized_white_sd(quantized_sd: np.ndarray, step: np.ndarray) -> np.ndarray:
+def dequantized_white_sd(quantized_sd: FloatArray, step: FloatArray) -> FloatArray:
     """(k,) white sd before the grid from the within-position sd of grid output (inverse of Sheppard's rule, exact).
 
     Pooled over positions at values spread over the grid, the output's

@@ -139,8 +139,8 @@ class F0Config:
 
     lambda0: float
     reference: float
-    bias_norm: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    matrix: tuple[tuple[float, float, float], ...] = (
+    bias_norm: ArrayLike = (0.0, 0.0, 0.0)
+    matrix: ArrayLike = (
         (1.0, 0.0, 0.0),
         (0.0, 1.0, 0.0),
         (0.0, 0.0, 1.0),

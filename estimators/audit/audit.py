@@ -28,9 +28,11 @@ what the statistics describe, so it must see every replica.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
+from estimators._typing import BoolArray, FloatArray
 from estimators.chain import ChainConfig, ChainResult, run_chain
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad, reference_magnitude
 from estimators.ninepar import Verdict
@@ -68,6 +70,7 @@ from estimators.sim import (
 
 from .candidates import (
     Candidate,
+    VarianceData,
     accel_records,
     count_tests,
     disturbed_positions,
@@ -81,10 +84,12 @@ from .candidates import (
 from .statistics import (
     MIN_POSITIONS,
     Comparison,
+    PositionTable,
     TriadCurves,
     compare,
     f0_config,
     f0_window_samples,
+    position_span,
     position_table,
     scalar_residuals,
     static_mask,
@@ -127,18 +132,18 @@ class TriadBaseline:
     resolution_reason : the chain's observability verdict, one line.
     """
 
-    params: np.ndarray
-    white_sd_si: np.ndarray
-    quant_step_si: np.ndarray | None
+    params: FloatArray
+    white_sd_si: FloatArray
+    quant_step_si: FloatArray | None
     rate_hz: float
-    mean_noise_sd_si: np.ndarray
-    excess_sd_norm: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    gm_sigma_norm: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    gm_tau_s: np.ndarray = field(default_factory=lambda: np.ones(3))
+    mean_noise_sd_si: FloatArray
+    excess_sd_norm: FloatArray = field(default_factory=lambda: np.zeros(3))
+    gm_sigma_norm: FloatArray = field(default_factory=lambda: np.zeros(3))
+    gm_tau_s: FloatArray = field(default_factory=lambda: np.ones(3))
     scalar_resolved: bool = True
     resolution_reason: str = ""
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "params": [float(v) for v in self.params],
             "white_sd_si": [float(v) for v in self.white_sd_si],
@@ -154,14 +159,14 @@ class TriadBaseline:
         }
 
     @property
-    def rounding_mean_var_si(self) -> np.ndarray:
+    def rounding_mean_var_si(self) -> FloatArray:
         """(3,) variance of the rounding error a position mean keeps on the grid (zeros off a grid), SI²."""
         if self.quant_step_si is None:
             return np.zeros(3)
         return rounding_mean_var(self.white_sd_si, self.quant_step_si)
 
 
-def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: int) -> np.ndarray:
+def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: int) -> FloatArray:
     """(3,) per-sample noise to give :func:`estimators.scalar.derive_lambda0` for windows of ``n_avg`` samples.
 
     ``derive_lambda0`` divides the variance by ``n_avg`` (white noise). The
@@ -177,12 +182,21 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
             for s, t in zip(baseline.gm_sigma_norm, baseline.gm_tau_s, strict=True)
         ]
     )
-    return np.sqrt(white**2 + n_avg * wander)
+    var: FloatArray = white**2 + n_avg * wander
+    return np.sqrt(var)
 
 
-def _angles_from_cosines(d: np.ndarray) -> np.ndarray:
+def _angles_from_cosines(d: FloatArray) -> FloatArray:
     """Six angles ``[δ_xy, δ_xz, δ_yx, δ_yz, δ_zx, δ_zy]`` whose axes have the cosines ``d`` (x on body x, y in the x-y plane)."""
     return np.array([0.0, 0.0, 0.0, -d[0], -(d[2] - d[0] * d[1]), d[1]])
+
+
+def triad_samples(session: ImuSession, triad: Triad) -> FloatArray:
+    """The session's (N, 3) samples of ``triad``, SI."""
+    x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
+    if x is None:
+        raise ValueError(f"the session has no {triad.value} samples")
+    return x
 
 
 def fit_baseline(
@@ -199,8 +213,8 @@ def fit_baseline(
     (:func:`estimators.noise.dequantized_white_sd`, exact also below one step,
     where Sheppard's ``q²/12`` is not).
     """
-    x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
-    spans = [(p.index_start, p.index_stop) for p in chain.positions]
+    x = triad_samples(session, triad)
+    spans = [position_span(p) for p in chain.positions]
     window = max(2, round(window_s * session.rate_hz))
     usable = [(a, b) for a, b in spans if b - a >= 2 * window]
     if not usable:
@@ -327,7 +341,7 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
 
 
 def replayed_temperature(
-    chain: ChainResult, session: ImuSession, hold_s: np.ndarray, turn_s: np.ndarray
+    chain: ChainResult, session: ImuSession, hold_s: FloatArray, turn_s: FloatArray
 ) -> RecordedTemperature | None:
     """The session's temperature record on the simulated timeline, or None without one (issue 13).
 
@@ -338,7 +352,8 @@ def replayed_temperature(
     measured twin saw — a temperature effect re-simulated on the record lands
     on the same positions with the same regressor.
     """
-    if session.temp_c is None:
+    temp_c = session.temp_c
+    if temp_c is None:
         return None
     start_sim = np.concatenate([[0.0], np.cumsum(hold_s[:-1] + turn_s)])
     start_meas = np.array([p.t_start_s for p in chain.positions]) - 0.5 * (
@@ -351,11 +366,11 @@ def replayed_temperature(
     keep = knots_meas > np.maximum.accumulate(np.concatenate([[-np.inf], knots_meas[:-1]]))
     t_sim = np.interp(session.t_s, knots_meas[keep], knots_sim[keep])
     inside = np.concatenate([[True], np.diff(t_sim) > 0])
-    return RecordedTemperature(t_sim[inside], session.temp_c[inside])
+    return RecordedTemperature(t_sim[inside], temp_c[inside])
 
 
 def _at_rate(chain: TriadErrorModel, rate_hz: float) -> TriadErrorModel:
-    wn = chain.find("white_noise")
+    wn = chain.find(WhiteNoise)
     if wn is None:
         return chain
     return chain.with_effect(WhiteNoise(np.array(wn.density_si_per_sqrt_hz) / np.sqrt(rate_hz)))
@@ -363,9 +378,9 @@ def _at_rate(chain: TriadErrorModel, rate_hz: float) -> TriadErrorModel:
 
 def replica_statistics(
     spec: SessionSpec, config: ChainConfig, triads: tuple[Triad, ...], replicas: int, seed: int
-) -> tuple[dict[Triad, list[dict]], dict[Triad, list[TriadCurves]]]:
+) -> tuple[dict[Triad, list[dict[str, float]]], dict[Triad, list[TriadCurves]]]:
     """Statistics and plotted curves of ``replicas`` simulated sessions, per triad."""
-    stats: dict[Triad, list[dict]] = {t: [] for t in triads}
+    stats: dict[Triad, list[dict[str, float]]] = {t: [] for t in triads}
     curves: dict[Triad, list[TriadCurves]] = {t: [] for t in triads}
     for r in range(replicas):
         sim = simulate(spec, np.random.SeedSequence([seed, r]).generate_state(1)[0])
@@ -374,7 +389,7 @@ def replica_statistics(
             s = ImuSession(s.t_s, s.accel_mps2, None, s.temp_c)
         chain = run_chain(s, config)
         for t in triads:
-            x = s.accel_mps2 if t is Triad.ACCEL else s.gyro_rps
+            x = triad_samples(s, t)
             stats[t].append(triad_statistics(chain, x, s.t_s, t, s.rate_hz))
             curves[t].append(triad_curves(chain, x, s.t_s, t, s.rate_hz))
     return stats, curves
@@ -405,13 +420,14 @@ class AuditResult:
     baseline_cmp: list[Comparison] = field(default_factory=list)
     extended_cmp: list[Comparison] = field(default_factory=list)
     candidates: list[Candidate] = field(default_factory=list)
-    gain: dict = field(default_factory=dict)
+    gain: dict[str, float] = field(default_factory=dict)
     replicas: int = 0
-    replica_stats: dict = field(default_factory=dict)
-    measured_stats: dict = field(default_factory=dict)
-    replica_curves: dict = field(default_factory=dict)
-    measured_curves: dict = field(default_factory=dict)
-    extension: list[dict] = field(default_factory=list)
+    # Per model ("baseline", "extended"), per triad: the replicas' statistics and curves.
+    replica_stats: dict[str, dict[Triad, list[dict[str, float]]]] = field(default_factory=dict)
+    measured_stats: dict[Triad, dict[str, float]] = field(default_factory=dict)
+    replica_curves: dict[str, dict[Triad, list[TriadCurves]]] = field(default_factory=dict)
+    measured_curves: dict[Triad, TriadCurves] = field(default_factory=dict)
+    extension: list[dict[str, Any]] = field(default_factory=list)
     grade_paths: dict[Triad, dict[str, str | float]] = field(default_factory=dict)
 
     @property
@@ -421,8 +437,8 @@ class AuditResult:
     def headline(self, cmp: list[Comparison]) -> Comparison | None:
         return next((c for c in cmp if c.statistic == "chi2_per_dof"), None)
 
-    def to_dict(self) -> dict:
-        def block(cmp, models):
+    def to_dict(self) -> dict[str, Any]:
+        def block(cmp: list[Comparison], models: dict[Triad, TriadBaseline]) -> dict[str, Any]:
             head = self.headline(cmp)
             return {
                 "headline": "chi2_per_dof",
@@ -516,11 +532,12 @@ def quantization_candidate(triad: Triad, base: TriadBaseline, n_typical: float) 
     )
 
 
-def candidate_table(chain: ChainResult, session: ImuSession, triad: Triad, base: TriadBaseline):
+def candidate_table(
+    chain: ChainResult, session: ImuSession, triad: Triad, base: TriadBaseline
+) -> PositionTable:
     """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages
     and the rounding variance the baseline's grid leaves in every mean."""
-    x = session.accel_mps2 if triad is Triad.ACCEL else session.gyro_rps
-    tab = position_table(chain, x, session.t_s, triad, session.temp_c)
+    tab = position_table(chain, triad_samples(session, triad), session.t_s, triad, session.temp_c)
     ref = reference_magnitude(triad, chain.gravity_mps2)
     return with_noise_cov(tab, base.mean_noise_sd_si / ref, base.rounding_mean_var_si / ref**2)
 
@@ -590,8 +607,13 @@ def find_candidates(
 
 
 def _fit_candidates(
-    tab_a, tab_g, baselines: dict[Triad, TriadBaseline], g: float, n_tests: int, batch_s: float
-):
+    tab_a: PositionTable,
+    tab_g: PositionTable | None,
+    baselines: dict[Triad, TriadBaseline],
+    g: float,
+    n_tests: int,
+    batch_s: float,
+) -> tuple[list[Candidate], list[VarianceData], tuple[FloatArray, ...]]:
     """Mean and variance candidates of both triads on the given tables; the records and the selected variance model."""
     resid, sigma, jac, _ = scalar_residuals(baselines[Triad.ACCEL].params, tab_a)
     acc = accel_records(tab_a, jac, resid, sigma, n_tests)
@@ -611,7 +633,7 @@ def _fit_candidates(
     return cands + var_cands, records, final
 
 
-def _with_disturbed(c: Candidate, tab_a, disturbed: np.ndarray) -> Candidate:
+def _with_disturbed(c: Candidate, tab_a: PositionTable, disturbed: BoolArray) -> Candidate:
     """``nonstatic_positions`` selected for the positions the screening took out (their times in the evidence)."""
     t0 = tab_a.t_mid_s[disturbed] - 0.5 * tab_a.duration_s[disturbed]
     where = ", ".join(
@@ -665,7 +687,9 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         res.statements.append(
             "single triad (no gyro): gyro effects (g_sensitivity) are not identifiable"
         )
-    tab_a = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL, session.temp_c)
+    tab_a = position_table(
+        chain, triad_samples(session, Triad.ACCEL), session.t_s, Triad.ACCEL, session.temp_c
+    )
     temp_reason = temperature_reason(tab_a)
     if temp_reason is not None:
         res.statements.append(
@@ -689,7 +713,7 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         else TriadErrorModel(),
     )
     for t in triads:
-        x = session.accel_mps2 if t is Triad.ACCEL else session.gyro_rps
+        x = triad_samples(session, t)
         res.measured_stats[t] = triad_statistics(chain, x, session.t_s, t, session.rate_hz)
         res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
     spec = same_session_spec(chain, session, model)
@@ -726,7 +750,11 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
 
 
 def extend_model(
-    model: ErrorModel, baseline: dict[Triad, TriadBaseline], cands: list[Candidate], tab_a, g: float
+    model: ErrorModel,
+    baseline: dict[Triad, TriadBaseline],
+    cands: list[Candidate],
+    tab_a: PositionTable,
+    g: float,
 ) -> tuple[ErrorModel, dict[Triad, TriadBaseline]]:
     """The simulator's error model with every selected effect at its fitted parameters, and the surviving noise per triad.
 
@@ -801,7 +829,9 @@ def extend_model(
     return ext, base
 
 
-def _gain(session: ImuSession, tab_a, res: AuditResult, g: float) -> dict:
+def _gain(
+    session: ImuSession, tab_a: PositionTable, res: AuditResult, g: float
+) -> dict[str, float]:
     """Held-out residual of the calibration and F0 false alarms, baseline versus extended (step 5).
 
     ``tab_a`` is the accelerometer table of :func:`candidate_table` (the noise reference the excess is fitted against).
@@ -837,7 +867,9 @@ def _gain(session: ImuSession, tab_a, res: AuditResult, g: float) -> dict:
             quantization_norm=None if model.quant_step_si is None else model.quant_step_si / g,
             n_avg=n_avg,
         )
-        r = f0_batch(session.accel_mps2, mask, f0_config(base.params, g, lam.lambda0, n_avg))
+        r = f0_batch(
+            triad_samples(session, Triad.ACCEL), mask, f0_config(base.params, g, lam.lambda0, n_avg)
+        )
         out[f"f0_lambda0_{name}"] = float(lam.lambda0)
         out[f"f0_false_alarm_rate_{name}"] = float(r.n_fail / max(r.n_tests, 1))
         out[f"f0_tests_{name}"] = int(r.n_tests)

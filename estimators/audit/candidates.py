@@ -79,14 +79,19 @@ match the data, fitted by :func:`fit_gauss_markov` on the same likelihood.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, TypeAlias
 
 import numpy as np
 from scipy.stats import chi2
 from scipy.stats import f as f_dist
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
 
 from .statistics import PositionTable
+
+CandidateParams: TypeAlias = dict[str, Any]
+"""The fitted values of a candidate by key: numbers, or a [low, high] list for a band (JSON-ready)."""
 
 FAMILY_ALPHA = 0.01
 """Family-wise probability of naming any effect on a session the baseline explains."""
@@ -138,7 +143,7 @@ class Candidate:
     lr: float = 0.0
     threshold: float = float("inf")
     cv_ratio: float = 1.0
-    params: dict = field(default_factory=dict)
+    params: CandidateParams = field(default_factory=dict)
     selected: bool = False
     reason: str = ""
     in_baseline: bool = False
@@ -147,7 +152,7 @@ class Candidate:
     def score(self) -> float:
         return self.lr - self.threshold
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "effect": self.effect,
             "triad": self.triad.value,
@@ -167,10 +172,10 @@ class Candidate:
 # --- mean effects ------------------------------------------------------------
 
 
-def _loo_rss(a: np.ndarray, z: np.ndarray) -> tuple[float, float, np.ndarray]:
+def _loo_rss(a: FloatArray, z: FloatArray) -> tuple[float, float, FloatArray]:
     """(RSS, leave-one-out RSS, coefficients) of the weighted least squares ``z ≈ a θ``."""
     q, _ = np.linalg.qr(a)
-    coef, *_ = np.linalg.lstsq(a, z, rcond=None)
+    coef = np.asarray(np.linalg.lstsq(a, z, rcond=None)[0], dtype=np.float64)
     e = z - a @ coef
     h = np.einsum("ij,ij->i", q, q)
     loo = e / np.clip(1.0 - h, 1e-9, None)
@@ -178,8 +183,8 @@ def _loo_rss(a: np.ndarray, z: np.ndarray) -> tuple[float, float, np.ndarray]:
 
 
 def mean_test(
-    base: np.ndarray, extra: np.ndarray, z: np.ndarray
-) -> tuple[float, float, np.ndarray, np.ndarray]:
+    base: FloatArray, extra: FloatArray, z: FloatArray
+) -> tuple[float, float, FloatArray, FloatArray]:
     """Likelihood ratio (common scale free), held-out ratio, the extra coefficients and their standard errors.
 
     ``base`` (n, p) and ``extra`` (n, k) are already weighted regressors, ``z`` (n,) the weighted data.
@@ -190,7 +195,8 @@ def mean_test(
     rss1, loo1, coef = _loo_rss(full, z)
     n = z.size
     lr = float(n * np.log(rss0 / max(rss1, 1e-300)))
-    r = np.linalg.qr(full, mode="r")
+    # numpy's stub types every mode as QRResult; mode="r" returns R alone.
+    r: FloatArray = np.linalg.qr(full, mode="r")  # type: ignore[assignment]
     rinv = np.linalg.solve(r, np.eye(r.shape[0]))
     se = np.sqrt(np.sum(rinv**2, axis=1))
     k = base.shape[1]
@@ -204,12 +210,14 @@ class MeanTest:
     lr: float
     threshold: float
     cv_ratio: float
-    coef: np.ndarray
-    se: np.ndarray
+    coef: FloatArray
+    se: FloatArray
     selected: bool
 
 
-def forward_select(base: np.ndarray, z: np.ndarray, regs: dict, n_tests: int) -> dict:
+def forward_select(
+    base: FloatArray, z: FloatArray, regs: dict[int, FloatArray], n_tests: int
+) -> dict[int, MeanTest]:
     """Greedy forward selection of mean effects (weighted columns ``regs[key]`` (n, k)).
 
     Every remaining candidate is tested against the baseline plus the effects
@@ -218,7 +226,7 @@ def forward_select(base: np.ndarray, z: np.ndarray, regs: dict, n_tests: int) ->
     that only rides on a selected effect's correlation (e.g. ``temperature_scale``
     next to ``temperature_bias`` of the same axis) is then judged on what it adds.
     """
-    tests: dict = {}
+    tests: dict[int, MeanTest] = {}
     current = base
     remaining = list(regs)
     while remaining:
@@ -245,7 +253,7 @@ def forward_select(base: np.ndarray, z: np.ndarray, regs: dict, n_tests: int) ->
     return tests
 
 
-def leverage_residual(design: np.ndarray, data: np.ndarray, sd: np.ndarray) -> np.ndarray:
+def leverage_residual(design: FloatArray, data: FloatArray, sd: FloatArray) -> FloatArray:
     """Residual of ``data ≈ design θ`` (weights ``1/sd``), in data units, each over ``√(1 − h_kk)``.
 
     Dividing by the leverage keeps the fitted columns from passing for a
@@ -255,7 +263,7 @@ def leverage_residual(design: np.ndarray, data: np.ndarray, sd: np.ndarray) -> n
     z = data / sd
     q, _ = np.linalg.qr(a)
     coef, *_ = np.linalg.lstsq(a, z, rcond=None)
-    h = np.einsum("ij,ij->i", q, q)
+    h: FloatArray = np.einsum("ij,ij->i", q, q)
     return (z - a @ coef) * sd / np.sqrt(np.clip(1.0 - h, 1e-3, None))
 
 
@@ -286,28 +294,28 @@ class VarianceData:
     rows : (n,) index of each datum in the position table.
     """
 
-    y: np.ndarray
-    s0: np.ndarray
-    comps: np.ndarray
-    rows: np.ndarray
+    y: FloatArray
+    s0: FloatArray
+    comps: FloatArray
+    rows: IntArray
 
     @classmethod
-    def finite(cls, y: np.ndarray, s0: np.ndarray, comps: np.ndarray) -> VarianceData:
+    def finite(cls, y: FloatArray, s0: FloatArray, comps: FloatArray) -> VarianceData:
         """The rows of ``y`` (n, q), ``s0`` (n, q, q), ``comps`` (m, n, q, q) whose data are finite."""
         ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(s0), axis=(1, 2))
         return cls(y[ok], s0[ok], comps[:, ok], np.flatnonzero(ok))
 
-    def subset(self, keep: np.ndarray) -> VarianceData:
+    def subset(self, keep: BoolArray) -> VarianceData:
         """The same data with only the components ``keep`` (bool (m,))."""
         return VarianceData(self.y, self.s0, self.comps[np.asarray(keep, bool)], self.rows)
 
-    def with_fixed(self, theta: np.ndarray, fixed: np.ndarray) -> VarianceData:
+    def with_fixed(self, theta: FloatArray, fixed: BoolArray) -> VarianceData:
         """Components ``fixed`` (bool (m,)) folded into ``s0`` at ``theta``; the rest stay free."""
         fixed = np.asarray(fixed, bool)
         s0 = self.s0 + np.einsum("j,jkab->kab", np.asarray(theta, float)[fixed], self.comps[fixed])
         return VarianceData(self.y, s0, self.comps[~fixed], self.rows)
 
-    def scaled(self, weight: np.ndarray) -> VarianceData:
+    def scaled(self, weight: FloatArray) -> VarianceData:
         """The single free component multiplied per position by ``weight`` (indexed by table row)."""
         return VarianceData(
             self.y,
@@ -317,7 +325,7 @@ class VarianceData:
         )
 
 
-def _nll_score(theta: np.ndarray, data: list[VarianceData]) -> tuple[float, np.ndarray, np.ndarray]:
+def _nll_score(theta: FloatArray, data: list[VarianceData]) -> tuple[float, FloatArray, FloatArray]:
     """``½ Σ_k [ln det S_k + y_kᵀ S_k⁻¹ y_k]`` over every dataset, its gradient in ``θ`` and the Fisher information.
 
     Gradient ``½ Σ_k [tr(S⁻¹A_j) − yᵀS⁻¹A_jS⁻¹y]``; information ``½ Σ_k tr(S⁻¹A_j S⁻¹A_l)``.
@@ -337,7 +345,7 @@ def _nll_score(theta: np.ndarray, data: list[VarianceData]) -> tuple[float, np.n
     return nll, grad, info
 
 
-def fit_variance(data: list[VarianceData], *, max_iter: int = 100) -> tuple[np.ndarray, float]:
+def fit_variance(data: list[VarianceData], *, max_iter: int = 100) -> tuple[FloatArray, float]:
     """Maximum-likelihood ``θ ≥ 0`` shared by ``data`` (:class:`VarianceData`), and the minimum negative log-likelihood.
 
     Projected Fisher scoring, the classic variance-component iteration: from
@@ -384,15 +392,15 @@ def variance_se_at_zero(d: VarianceData, j: int) -> float:
 # --- Gauss–Markov process behind a bias instability --------------------------
 
 
-def mean_variance_factor(length_s: np.ndarray, tau_s: float) -> np.ndarray:
+def mean_variance_factor(length_s: FloatArray, tau_s: float) -> FloatArray:
     """``V(L/τ) = 2(τ/L)²(L/τ − 1 + e^{−L/τ})``: variance of a length-L mean of a unit Gauss–Markov process."""
     x = np.asarray(length_s, float) / tau_s
     return np.where(x < 1e-6, 1.0, 2.0 / np.maximum(x, 1e-6) ** 2 * (x - 1.0 + np.exp(-x)))
 
 
 def gauss_markov_moments(
-    length_s: np.ndarray, tau_s: float, batch_s: float
-) -> tuple[np.ndarray, np.ndarray]:
+    length_s: FloatArray, tau_s: float, batch_s: float
+) -> tuple[FloatArray, FloatArray]:
     """Per unit variance of a Gauss–Markov bias (correlation time ``τ``): its excess over the chain's covariance.
 
     Returns (between, halves), each (n,):
@@ -424,7 +432,7 @@ def gauss_markov_moments(
 
 
 def fit_gauss_markov(
-    between: VarianceData, halves: VarianceData, length_s: np.ndarray, batch_s: float
+    between: VarianceData, halves: VarianceData, length_s: FloatArray, batch_s: float
 ) -> tuple[float, float]:
     """(σ², τ_s) of the Gauss–Markov bias of one axis that best explains both records.
 
@@ -480,23 +488,25 @@ class _MeanEffect:
     name: str
     axis: int
     keys: tuple[str, ...]
-    reg: np.ndarray  # (n, k) on the residual (accel) or the mean (gyro)
-    halves: (
-        np.ndarray
-    )  # (n, k) first-half minus second-half change of axis ``axis`` per unit physical parameter
+    reg: FloatArray  # (n, k) on the residual (accel) or the mean (gyro)
+    halves: FloatArray  # (n, k) first-half minus second-half change of axis ``axis`` per unit physical parameter
     sign: float  # physical parameter = sign · regression coefficient
 
 
 def _mean_effects(
-    tab: PositionTable, jac: np.ndarray | None, f_b_mps2: np.ndarray | None, axis: int
+    tab: PositionTable, jac: FloatArray | None, f_b_mps2: FloatArray | None, axis: int
 ) -> list[_MeanEffect]:
     """Mean effects of one axis: accelerometer when ``jac`` is given (exact scalar residual), else gyro."""
     n = tab.t_mid_s.size
     dt = (tab.t_mid_s - tab.t_mid_s.mean())[:, None]
     drift_halves = -0.5 * tab.duration_s[:, None]
-    temp = temperature_reason(tab) is None
-    dtemp = (tab.temp_c - tab.temp_c.mean())[:, None] if temp else None
-    th = tab.temp_halves_c[:, None] if temp else None
+    dtemp: FloatArray | None = None
+    th: FloatArray | None = None
+    if temperature_reason(tab) is None:
+        # An identifiable temperature has its values and its half-to-half changes.
+        assert tab.temp_c is not None and tab.temp_halves_c is not None
+        dtemp = (tab.temp_c - tab.temp_c.mean())[:, None]
+        th = tab.temp_halves_c[:, None]
     i = axis
     if jac is not None:
         # The baseline residual is f ≈ J δp − J_θ θ for an effect θ that the model lacks: the sign flips.
@@ -513,7 +523,7 @@ def _mean_effects(
                 -1.0,
             ),
         ]
-        if temp:
+        if dtemp is not None and th is not None:
             out += [
                 _MeanEffect(
                     "temperature_bias", i, ("coef_norm_per_c",), jac[:, [i]] * dtemp, th, -1.0
@@ -529,6 +539,7 @@ def _mean_effects(
             ]
         return out
     # Gyro keys are in SI (rad/s): the regression runs on means normalized by Ω.
+    assert f_b_mps2 is not None  # the gyro form regresses on the specific force
     out = [
         _MeanEffect("bias_drift", i, ("rate_rps_per_s",), dt, drift_halves, 1.0),
         _MeanEffect(
@@ -540,19 +551,19 @@ def _mean_effects(
             1.0,
         ),
     ]
-    if temp:
+    if dtemp is not None and th is not None:
         out.append(_MeanEffect("temperature_bias", i, ("coef_rps_per_c",), dtemp, th, 1.0))
     return out
 
 
 def _select_means(
     effects: list[_MeanEffect],
-    base: np.ndarray,
-    data: np.ndarray,
-    sd: np.ndarray,
+    base: FloatArray,
+    data: FloatArray,
+    sd: FloatArray,
     n_tests: int,
     n_halves: int,
-):
+) -> tuple[dict[int, MeanTest], FloatArray, FloatArray]:
     """Forward selection (weights ``1/sd``); returns the tests, the chosen columns and the chosen effects' halves means (n, n_halves)."""
     w = 1.0 / sd
     tests = forward_select(
@@ -573,13 +584,13 @@ MEAN_PASSES = 4
 
 def _means_with_excess(
     effects: list[_MeanEffect],
-    base: np.ndarray,
-    data: np.ndarray,
-    var0: np.ndarray,
-    excess_weight: np.ndarray,
+    base: FloatArray,
+    data: FloatArray,
+    var0: FloatArray,
+    excess_weight: FloatArray,
     n_tests: int,
     n_halves: int,
-):
+) -> tuple[dict[int, MeanTest], FloatArray, FloatArray, FloatArray]:
     """Mean selection whose weights carry the variance excess left after the chosen effects, iterated to a fixed point.
 
     Unexplained scatter must not pass for structure (the weights carry the
@@ -603,7 +614,13 @@ def _means_with_excess(
     return tests, chosen, halves_mean, sd
 
 
-def _mean_candidates(effects, tests, triad: Triad, to_si: float, what: str) -> list[Candidate]:
+def _mean_candidates(
+    effects: list[_MeanEffect],
+    tests: dict[int, MeanTest],
+    triad: Triad,
+    to_si: float,
+    what: str,
+) -> list[Candidate]:
     """One candidate per mean effect; ``to_si`` turns the fitted coefficients into the units of their keys."""
     out = []
     for k, t in tests.items():
@@ -641,9 +658,9 @@ class VarianceEffect:
 
 @dataclass(frozen=True)
 class _VarianceTest:
-    lrs: np.ndarray  # (records,) the likelihood ratio each record contributes
+    lrs: FloatArray  # (records,) the likelihood ratio each record contributes
     threshold: float
-    thetas: tuple[np.ndarray, ...]
+    thetas: tuple[FloatArray, ...]
 
     @property
     def lr(self) -> float:
@@ -651,8 +668,8 @@ class _VarianceTest:
 
 
 def _fit_records(
-    records: list[VarianceData], active: list[np.ndarray]
-) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+    records: list[VarianceData], active: list[BoolArray]
+) -> tuple[tuple[FloatArray, ...], FloatArray]:
     """Every record fitted on its own with only its ``active`` components free (the others at zero)."""
     thetas, nlls = [], []
     for rec, act in zip(records, active, strict=True):
@@ -666,7 +683,9 @@ def _fit_records(
     return tuple(thetas), np.array(nlls)
 
 
-def select_variance(effects: list[VarianceEffect], records: list[VarianceData], n_tests: int):
+def select_variance(
+    effects: list[VarianceEffect], records: list[VarianceData], n_tests: int
+) -> tuple[dict[int, _VarianceTest], list[int], tuple[FloatArray, ...]]:
     """Forward selection of variance effects over independent ``records``.
 
     As for the mean effects: each remaining effect is tested (profile LR, χ²
@@ -707,11 +726,11 @@ def select_variance(effects: list[VarianceEffect], records: list[VarianceData], 
 def variance_candidates(
     effects: list[VarianceEffect],
     records: list[VarianceData],
-    duration_s: np.ndarray,
+    duration_s: FloatArray,
     n_tests: int,
     batch_s: float,
     gyro_to_si: float = EARTH_RATE_RPS,
-) -> tuple[list[Candidate], tuple[np.ndarray, ...]]:
+) -> tuple[list[Candidate], tuple[FloatArray, ...]]:
     """The variance candidates of :func:`select_variance`, with a Gauss–Markov fit for each selected ``bias_instability``,
     and the selected model's components per record.
 
@@ -791,8 +810,8 @@ def variance_candidates(
 
 
 def halves_chi2(
-    records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int
-) -> tuple[np.ndarray, np.ndarray]:
+    records: list[VarianceData], thetas: tuple[FloatArray, ...], n: int
+) -> tuple[FloatArray, FloatArray]:
     """Per position (n table rows): χ² of its half-to-half differences under the fitted model, and its degrees of freedom.
 
     The halves records are every second one of :func:`variance_effects`' order (accel, gyro).
@@ -810,8 +829,8 @@ def halves_chi2(
 
 
 def disturbed_positions(
-    records: list[VarianceData], thetas: tuple[np.ndarray, ...], n: int, n_tests: int
-) -> np.ndarray:
+    records: list[VarianceData], thetas: tuple[FloatArray, ...], n: int, n_tests: int
+) -> BoolArray:
     """Rows whose halves lie beyond the fitted model at the family-wise rate split over tests and positions (bool (n,)).
 
     Motion in a few positions (a hand on the unit, a knock) is not a wander of
@@ -823,7 +842,7 @@ def disturbed_positions(
     return p < FAMILY_ALPHA / (max(n_tests, 1) * n)
 
 
-def wobble_band(duration_s: np.ndarray) -> tuple[float, float]:
+def wobble_band(duration_s: FloatArray) -> tuple[float, float]:
     """Band of a wobble the half-to-half differences resolve, Hz: periods from two position lengths to half of one."""
     length = float(np.median(duration_s))
     return 0.5 / length, 2.0 / length
@@ -844,7 +863,7 @@ class TriadRecords:
     halves: VarianceData
 
 
-def _halves_record(tab: PositionTable, halves_mean: np.ndarray, motion: np.ndarray) -> VarianceData:
+def _halves_record(tab: PositionTable, halves_mean: FloatArray, motion: FloatArray) -> VarianceData:
     n = tab.t_mid_s.size
     comps = np.stack(
         [np.broadcast_to(np.diag(np.eye(3)[i]), (n, 3, 3)) for i in range(3)] + [motion]
@@ -855,13 +874,13 @@ def _halves_record(tab: PositionTable, halves_mean: np.ndarray, motion: np.ndarr
 def _scalar_records(
     tab: PositionTable,
     effects: list[_MeanEffect],
-    jac: np.ndarray,
-    residual: np.ndarray,
-    sigma: np.ndarray,
+    jac: FloatArray,
+    residual: FloatArray,
+    sigma: FloatArray,
     n_tests: int,
     triad: Triad,
     to_si: float,
-    motion: np.ndarray,
+    motion: FloatArray,
 ) -> tuple[list[Candidate], VarianceData, VarianceData]:
     """Mean candidates on the exact scalar residual of one triad, then its two variance records.
 
@@ -885,7 +904,7 @@ def _scalar_records(
 
 
 def accel_records(
-    tab: PositionTable, jac: np.ndarray, residual: np.ndarray, sigma: np.ndarray, n_tests: int
+    tab: PositionTable, jac: FloatArray, residual: FloatArray, sigma: FloatArray, n_tests: int
 ) -> TriadRecords:
     """Accelerometer mean candidates and variance records (module docstring).
 
@@ -922,10 +941,10 @@ def accel_records(
 
 def earth_rate_records(
     tab: PositionTable,
-    jac: np.ndarray,
-    residual: np.ndarray,
-    sigma: np.ndarray,
-    f_b_mps2: np.ndarray,
+    jac: FloatArray,
+    residual: FloatArray,
+    sigma: FloatArray,
+    f_b_mps2: FloatArray,
     n_tests: int,
 ) -> TriadRecords:
     """Gyro candidates of the navigation-grade path: the exact scalar equation ``|ω − b − G f| = Ω`` (M1, M4).
@@ -984,7 +1003,7 @@ def earth_rate_records(
 
 
 def _earth_rate_effects(
-    tab: PositionTable, jac: np.ndarray, f_b_mps2: np.ndarray, i: int
+    tab: PositionTable, jac: FloatArray, f_b_mps2: FloatArray, i: int
 ) -> list[_MeanEffect]:
     """Mean effects of gyro axis ``i`` on the scalar residual (:func:`earth_rate_records`).
 
@@ -1030,7 +1049,7 @@ def _earth_rate_effects(
     return out
 
 
-def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> TriadRecords:
+def gyro_records(tab: PositionTable, f_b_mps2: FloatArray, n_tests: int) -> TriadRecords:
     """Gyro mean candidates (M4, on the position means) and variance records; the Earth rate enters as :data:`EARTH_RATE_VAR_NORM`.
 
     ``f_b_mps2`` (n, 3) is the specific force of each position (the accelerometer means), m/s².
@@ -1077,7 +1096,7 @@ def gyro_records(tab: PositionTable, f_b_mps2: np.ndarray, n_tests: int) -> Tria
     )
 
 
-def vertical_earth_rate(mean_norm: np.ndarray, up_i: np.ndarray, var: np.ndarray) -> float:
+def vertical_earth_rate(mean_norm: FloatArray, up_i: FloatArray, var: FloatArray) -> float:
     """The vertical Earth rate's share ``c·u_i`` of one gyro axis' means, ``|c| ≤ 1`` (normalized by Ω).
 
     The Earth rate's vertical part ``Ω sin φ · u`` follows the gravity direction

@@ -44,6 +44,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import brentq
 
+from estimators._typing import FloatArray
 from estimators.chain import ChainConfig, ChainResult, run_chain
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
 from estimators.session import ImuSession
@@ -73,7 +74,7 @@ from estimators.sim import (
 )
 from estimators.static_detector import StaticDetectorConfig
 
-from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines
+from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines, triad_samples
 from .candidates import EARTH_RATE_VAR_NORM, Candidate, gauss_markov_moments
 from .statistics import MIN_POSITIONS, position_table, scalar_residuals
 
@@ -88,7 +89,7 @@ GYRO_SD_RPS = 2.0e-3
 WOBBLE_BAND_HZ = (0.05, 0.5)
 TEMPERATURE = CycleTemperature(20.0, 40.0, 110.0)
 
-HIDDEN_KINDS: tuple[tuple[str, Triad | None], ...] = (
+HIDDEN_KINDS: tuple[tuple[str, Triad], ...] = (
     ("bias_drift", Triad.ACCEL),
     ("temperature_bias", Triad.ACCEL),
     ("temperature_scale", Triad.ACCEL),
@@ -178,7 +179,7 @@ def baseline_model(rng: np.random.Generator, grade: Grade = Grade.MEMS) -> Error
     return ErrorModel(accel=acc, gyro=gyr)
 
 
-def trial_attitudes(seed: int) -> np.ndarray:
+def trial_attitudes(seed: int) -> FloatArray:
     """(N_POSITIONS, 3, 3) random attitudes, each at least :data:`MIN_TURN_DEG` from the one before.
 
     A smaller turn is slow enough for the static detector to keep it inside one
@@ -292,7 +293,7 @@ def _gm_variance_for(
     between, halves = gauss_markov_moments(tab.duration_s, tau_s, NOISE_WINDOW_S)
     shares = np.concatenate([weight * between / var0, halves / (4.0 * tab.cov[:, i, i])])
 
-    def excess(log_var):
+    def excess(log_var: float) -> float:
         x = np.exp(log_var) * shares
         return float(np.sum(x - np.log1p(x))) - size * size
 
@@ -331,7 +332,7 @@ def _hide(
             model.with_effect(Quantization(np.full(3, step), Rounding.NEAREST), triad),
         )
     if effect == "nonstatic_positions":
-        tab = position_table(chain, session.accel_mps2, session.t_s, Triad.ACCEL)
+        tab = position_table(chain, triad_samples(session, Triad.ACCEL), session.t_s, Triad.ACCEL)
         sd_half = 2.0 * np.sqrt(np.median(np.einsum("kii->ki", tab.cov)))
         angle = size * sd_half / np.sqrt(2.0)
         return HiddenEffect(
@@ -342,6 +343,8 @@ def _hide(
             angle,
             model.with_effect(NonstaticPositions(angle_rms_rad=angle, band_hz=WOBBLE_BAND_HZ)),
         )
+    if axis is None:
+        raise ValueError(f"{effect} is hidden on one axis: give axis x, y or z")
     i = AXES.index(axis)
     cand = _clean_candidate(session, chain, effect, triad, axis)
     ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS

@@ -30,13 +30,16 @@ position and the distribution of the F0 statistic of 1 s window means.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.chain import ChainResult
 from estimators.conventions import AXES, Triad, reference_magnitude
 from estimators.ninepar import canonical_triad_matrix, ellipsoid_residual, position_arrays
 from estimators.noise import overlapping_allan_deviation
+from estimators.positions import Position
 from estimators.scalar import F0Config, f0_batch
 
 MIN_POSITIONS = 12
@@ -65,24 +68,33 @@ class PositionTable:
         average down, and both halves of a position share it, so their difference does not see it).
     """
 
-    t_mid_s: np.ndarray
-    temp_c: np.ndarray | None
-    mean: np.ndarray
-    cov: np.ndarray
-    halves: np.ndarray
-    temp_halves_c: np.ndarray | None
-    n_samples: np.ndarray
-    duration_s: np.ndarray
-    spans: np.ndarray
-    grid_var: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    t_mid_s: FloatArray
+    temp_c: FloatArray | None
+    mean: FloatArray
+    cov: FloatArray
+    halves: FloatArray
+    temp_halves_c: FloatArray | None
+    n_samples: IntArray
+    duration_s: FloatArray
+    spans: IntArray
+    grid_var: FloatArray = field(default_factory=lambda: np.zeros(3))
+
+
+def position_span(position: Position) -> tuple[int, int]:
+    """Sample span ``[start, stop)`` of a position found in the audited session."""
+    if position.index_start is None or position.index_stop is None:
+        raise ValueError(
+            "a position without its sample span: the audit needs positions found in the session itself"
+        )
+    return position.index_start, position.index_stop
 
 
 def position_table(
     chain: ChainResult,
-    x_si: np.ndarray,
-    t_s: np.ndarray,
+    x_si: FloatArray,
+    t_s: FloatArray,
     triad: Triad,
-    temp_c: np.ndarray | None = None,
+    temp_c: FloatArray | None = None,
 ) -> PositionTable:
     """The :class:`PositionTable` of ``triad`` from a chain result and the session's samples.
 
@@ -90,9 +102,7 @@ def position_table(
     """
     ref = reference_magnitude(triad, chain.gravity_mps2)
     mean, cov = position_arrays(chain.positions, triad, ref)
-    spans = np.array([[p.index_start, p.index_stop] for p in chain.positions], dtype=int).reshape(
-        -1, 2
-    )
+    spans = np.array([position_span(p) for p in chain.positions], dtype=int).reshape(-1, 2)
     halves = np.full((len(spans), 3), np.nan)
     temp_halves = None if temp_c is None else np.full(len(spans), np.nan)
     for k, ((a, b), pos) in enumerate(zip(spans, chain.positions, strict=True)):
@@ -100,7 +110,7 @@ def position_table(
             continue
         h = (a + b) // 2
         halves[k] = (x_si[a:h].mean(axis=0) - x_si[h:b].mean(axis=0)) / ref
-        if temp_halves is not None:
+        if temp_c is not None and temp_halves is not None:
             temp_halves[k] = temp_c[a:h].mean() - temp_c[h:b].mean()
     temps = [p.temp_mean_c for p in chain.positions]
     temp = None if any(v is None for v in temps) or not temps else np.array(temps, float)
@@ -119,7 +129,7 @@ def position_table(
 
 
 def with_noise_cov(
-    tab: PositionTable, noise_sd_norm: np.ndarray, grid_var_norm: np.ndarray | None = None
+    tab: PositionTable, noise_sd_norm: FloatArray, grid_var_norm: FloatArray | None = None
 ) -> PositionTable:
     """``tab`` with each position's covariance of the mean ``diag(σ²)/n`` from one noise level (3,), normalized,
     and the rounding variance its means keep on a coarse grid (``grid_var_norm`` (3,), :attr:`PositionTable.grid_var`).
@@ -135,10 +145,13 @@ def with_noise_cov(
     return replace(tab, cov=cov, grid_var=grid)
 
 
-def subset_table(tab: PositionTable, keep: np.ndarray) -> PositionTable:
+def subset_table(tab: PositionTable, keep: BoolArray) -> PositionTable:
     """The positions ``keep`` (bool (n,)) of ``tab``."""
     k = np.asarray(keep, bool)
-    pick = lambda a: None if a is None else a[k]  # noqa: E731
+
+    def pick(a: FloatArray | None) -> FloatArray | None:
+        return None if a is None else a[k]
+
     return PositionTable(
         tab.t_mid_s[k],
         pick(tab.temp_c),
@@ -153,7 +166,7 @@ def subset_table(tab: PositionTable, keep: np.ndarray) -> PositionTable:
     )
 
 
-def static_mask(n: int, spans: np.ndarray) -> np.ndarray:
+def static_mask(n: int, spans: IntArray) -> BoolArray:
     """(n,) bool: samples inside the position spans."""
     mask = np.zeros(n, bool)
     for a, b in spans:
@@ -172,7 +185,7 @@ def f0_window_samples(rate_hz: float) -> int:
     return max(1, round(rate_hz))
 
 
-def f0_config(params: np.ndarray, reference: float, lambda0: float, n_avg: int = 1) -> F0Config:
+def f0_config(params: FloatArray, reference: float, lambda0: float, n_avg: int = 1) -> F0Config:
     """F0 settings that compensate the estimated nine parameters (M1)."""
     return F0Config(
         lambda0=lambda0,
@@ -183,7 +196,7 @@ def f0_config(params: np.ndarray, reference: float, lambda0: float, n_avg: int =
     )
 
 
-def param_scatter(params: np.ndarray, tab: PositionTable) -> float | None:
+def param_scatter(params: FloatArray, tab: PositionTable) -> float | None:
     """``mean_j (p₁ − p₂)_j² / (σ₁² + σ₂²)_j`` of the 9 parameters fitted on the first and second half of the positions.
 
     Each half is one Gauss–Newton step of the exact scalar equation (M1) from
@@ -202,7 +215,8 @@ def param_scatter(params: np.ndarray, tab: PositionTable) -> float | None:
     for sl in (slice(0, half), slice(half, None)):
         a = jac[sl] / sigma[sl, None]
         step, *_ = np.linalg.lstsq(a, -f[sl] / sigma[sl], rcond=None)
-        r = np.linalg.qr(a, mode="r")
+        # numpy's stub types every mode as QRResult; mode="r" returns R alone.
+        r: FloatArray = np.linalg.qr(a, mode="r")  # type: ignore[assignment]
         r_inv = np.linalg.solve(r, np.eye(r.shape[0]))
         est.append(step)
         var.append(np.sum(r_inv**2, axis=1))
@@ -210,7 +224,7 @@ def param_scatter(params: np.ndarray, tab: PositionTable) -> float | None:
 
 
 def triad_statistics(
-    chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float
+    chain: ChainResult, x_si: FloatArray, t_s: FloatArray, triad: Triad, rate_hz: float
 ) -> dict[str, float]:
     """Flat ``{name: value}`` statistics of one triad (module docstring); absent ones are left out."""
     triad = Triad(triad)
@@ -270,14 +284,14 @@ class TriadCurves:
         samples, normalized; at most :data:`F0_KEPT_VALUES` (quantiles beyond); None as for ``residual_norm``.
     """
 
-    residual_norm: np.ndarray | None
-    allan_tau_s: np.ndarray
-    allan_si: np.ndarray
-    f0_window: np.ndarray | None
+    residual_norm: FloatArray | None
+    allan_tau_s: FloatArray
+    allan_si: FloatArray
+    f0_window: FloatArray | None
 
 
 def triad_curves(
-    chain: ChainResult, x_si: np.ndarray, t_s: np.ndarray, triad: Triad, rate_hz: float
+    chain: ChainResult, x_si: FloatArray, t_s: FloatArray, triad: Triad, rate_hz: float
 ) -> TriadCurves:
     """The :class:`TriadCurves` of one triad of a session (module docstring)."""
     triad = Triad(triad)
@@ -307,8 +321,8 @@ def triad_curves(
 
 
 def scalar_residuals(
-    params: np.ndarray, tab: PositionTable
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    params: FloatArray, tab: PositionTable
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Exact scalar equation per position (M1): residual, its sigma, ∂f/∂params (n, 9), ∂f/∂ã (n, 3).
 
     The sigma holds the mean's noise and the rounding error a coarse grid leaves in it (``tab.grid_var``).
@@ -344,7 +358,7 @@ class Comparison:
         """The measured value lies within the replicas' 5–95 % band."""
         return self.simulated_p05 <= self.measured <= self.simulated_p95
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "statistic": self.statistic,
             "triad": self.triad.value,
