@@ -22,6 +22,8 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from protocols.atomic_file import private_file
+
 CHECKPOINT_SCHEMA_VERSION = 1
 
 _NDARRAY_EXT = 1
@@ -92,7 +94,7 @@ class CheckpointStore:
 
     def __init__(self, path: str | Path) -> None:
         if str(path) != ":memory:":
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            private_file(path)
         self._lock = threading.Lock()
         self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
         self._db.execute("PRAGMA journal_mode=WAL")
