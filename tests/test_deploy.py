@@ -1,4 +1,7 @@
-"""Every file in deploy/ is loaded by the tool that will read it in production."""
+"""Every file in deploy/ is loaded by the tool that will read it in production.
+
+The units are started as systemd starts them in tests/test_deploy_units.py.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +10,8 @@ import json
 import queue
 import re
 import shlex
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -14,19 +19,24 @@ import pytest
 import zenoh
 from service_support import free_tcp_port, wait_until, zenoh_client_config
 
+from protocols.zenoh_adapter import open_session
 from service.cli import build_parser
 from service.config import config_from_dict, load_config
 
 DEPLOY = Path(__file__).parents[1] / "deploy"
 FILES = sorted(p for p in DEPLOY.iterdir() if p.is_file())
+INSTALLED_VENV_BIN = Path("/opt/ins-health/.venv/bin")
+"""Where INSTALL.md puts the virtual environment the units run from."""
+TLS_DIR = "/etc/zenoh/tls/"
+"""Where INSTALL.md puts the certificates the router and the service configurations name."""
 
 
-def check_toml(path: Path) -> None:
+def check_toml(path: Path, tmp_path: Path) -> None:
     cfg = load_config(path)
     assert cfg.zenoh.frames_key.startswith("ins/")
 
 
-def check_json5(path: Path) -> None:
+def check_json5(path: Path, tmp_path: Path) -> None:
     """The router configuration opens as a router; clients route ins/** through it, other keys are denied."""
     conf = zenoh.Config.from_file(str(path))
     assert json.loads(conf.get_json("mode")) == "router"
@@ -54,19 +64,32 @@ def check_json5(path: Path) -> None:
         assert not other.matching_status.matching
 
 
-def check_unit(path: Path) -> None:
+def read_unit(path: Path) -> configparser.ConfigParser:
     unit = configparser.ConfigParser(strict=False, interpolation=None)
-    unit.optionxform = str
+    unit.optionxform = str  # systemd keys are case-sensitive
     unit.read(path)
+    return unit
+
+
+def check_unit(path: Path, tmp_path: Path) -> None:
+    """A unit runs a program of INSTALL.md's virtual environment as the service user; SIGTERM stops it."""
+    unit = read_unit(path)
     assert {"Unit", "Service", "Install"} <= set(unit.sections())
-    argv = shlex.split(unit["Service"]["ExecStart"])
-    assert Path(argv[0]).name == "ins-health"
-    args = build_parser().parse_args(argv[1:])
-    assert args.command == "run" and Path(args.config).name in {p.name for p in FILES}
-    assert unit["Service"]["KillSignal"] == "SIGTERM"
+    service = unit["Service"]
+    argv = shlex.split(service["ExecStart"])
+    assert Path(argv[0]).parent == INSTALLED_VENV_BIN
+    assert Path(sys.executable).with_name(Path(argv[0]).name).exists(), argv[0]
+    assert service["User"] == "ins-health" and service["KillSignal"] == "SIGTERM"
+    if Path(argv[0]).name == "ins-health":
+        args = build_parser().parse_args(argv[1:])
+        assert args.command == "run" and Path(args.config).name in {p.name for p in FILES}
 
 
-def check_markdown(path: Path) -> None:
+def check_markdown(path: Path, tmp_path: Path) -> None:
+    {"SCALING.md": check_scaling, "INSTALL.md": check_install}[path.name](path)
+
+
+def check_scaling(path: Path) -> None:
     """Each TOML example in the note is a valid configuration, and the shares it shows are disjoint."""
     blocks = re.findall(r"```toml\n(.*?)```", path.read_text(), flags=re.S)
     assert blocks, f"{path.name} shows no configuration"
@@ -77,12 +100,126 @@ def check_markdown(path: Path) -> None:
     assert zenoh.KeyExpr(keys[0]).intersects(zenoh.KeyExpr("ins/alpha-07/imu/0"))
 
 
-CHECKS = {".toml": check_toml, ".json5": check_json5, ".service": check_unit, ".md": check_markdown}
+def check_install(path: Path) -> None:
+    """The install steps are valid shell, name every other file of deploy/, and only files that exist."""
+    text = path.read_text()
+    blocks = re.findall(r"```sh\n(.*?)```", text, flags=re.S)
+    assert blocks, f"{path.name} shows no commands"
+    for block in blocks:
+        checked = subprocess.run(["sh", "-n"], input=block, text=True, capture_output=True)
+        assert checked.returncode == 0, (block, checked.stderr)
+    for name in re.findall(r"deploy/([\w.-]+)", text):
+        assert (DEPLOY / name).is_file(), name
+    assert {p.name for p in FILES if p != path} <= set(re.findall(r"[\w.-]+", text))
+
+
+def check_certificates(path: Path, tmp_path: Path) -> None:
+    """The certificate script's output is what the fleet router (zenoh-router.json5) and the service need.
+
+    A TLS router opened from the shipped configuration, with the script's files in
+    place of /etc/zenoh/tls, admits the members by the common names of their
+    certificates: the service (with the TLS settings of the example configuration)
+    reaches a ground station; a member whose name the router does not list, with a
+    certificate of the same authority, is connected but routed nothing.
+    """
+    certs = tmp_path / "tls"
+    env = {"PATH": "/usr/bin:/bin", "ROUTER_NAME": "localhost"}
+    subprocess.run(["sh", str(path), str(certs)], env=env, check=True, capture_output=True)
+    # A later run adds a member with the same authority.
+    subprocess.run(
+        ["sh", str(path), str(certs), "intruder"], env=env, check=True, capture_output=True
+    )
+    members = ("ins-health", "vehicle", "ground-station", "intruder")
+    keys = ["ca-key.pem", "router-key.pem", *(f"{m}-key.pem" for m in members)]
+    public = ["ca.pem", "router-cert.pem", *(f"{m}-cert.pem" for m in members)]
+    assert sorted(p.name for p in certs.glob("*.pem")) == sorted(keys + public)
+    assert {oct(p.stat().st_mode & 0o777) for p in map(certs.joinpath, keys)} == {"0o600"}
+    verify = subprocess.run(
+        ["openssl", "verify", "-CAfile", "ca.pem", *public[1:]],
+        cwd=certs,
+        capture_output=True,
+        text=True,
+    )
+    assert verify.returncode == 0 and verify.stdout.count(": OK") == len(public) - 1, verify.stdout
+
+    conf = zenoh.Config.from_file(str(DEPLOY / "zenoh-router.json5"))
+    port = free_tcp_port()
+    conf.insert_json5("listen/endpoints", json.dumps([f"tls/localhost:{port}"]))
+    for key, value in json.loads(conf.get_json("transport/link/tls")).items():
+        if isinstance(value, str) and value.startswith(TLS_DIR):
+            conf.insert_json5(
+                f"transport/link/tls/{key}", json.dumps(str(certs / value[len(TLS_DIR) :]))
+            )
+    # Every connection here comes in on the loopback, which the configuration admits as such:
+    # without that subject, only the certificates' names decide.
+    named = [
+        {k: v for k, v in s.items() if v is not None}
+        for s in json.loads(conf.get_json("access_control/subjects"))
+        if s.get("cert_common_names")
+    ]
+    policies = [
+        {**{k: v for k, v in p.items() if v is not None}, "subjects": [n["id"] for n in named]}
+        for p in json.loads(conf.get_json("access_control/policies"))
+    ]
+    conf.insert_json5("access_control/subjects", json.dumps(named))
+    conf.insert_json5("access_control/policies", json.dumps(policies))
+    example_tls = tomllib.loads(
+        re.search(r"^# (tls = \{.*?\})", (DEPLOY / "ins-health.toml").read_text(), flags=re.M)[1]
+    )["tls"]
+
+    def member(name: str) -> zenoh.Session:
+        tls = {
+            k: str(certs / v[len(TLS_DIR) :].replace("ins-health", name))
+            if isinstance(v, str)
+            else v
+            for k, v in example_tls.items()
+        }
+        raw = {
+            "zenoh": {"connect": [f"tls/localhost:{port}"], "tls": tls, "connect_timeout_s": 10.0}
+        }
+        return open_session(config_from_dict(raw).zenoh.session)
+
+    with (
+        zenoh.open(conf),
+        member("ins-health") as service,
+        member("ground-station") as ground,
+        member("vehicle") as vehicle,
+        member("intruder") as intruder,
+    ):
+        got = queue.Queue()
+        ground.declare_subscriber("ins/*/health/events", lambda s: got.put(s.payload.to_bytes()))
+        pub = service.declare_publisher("ins/uav-1/health/events")
+        wait_until(
+            lambda: pub.matching_status.matching,
+            timeout_s=10.0,
+            what="a route to the ground station",
+        )
+        pub.put(b"event")
+        assert got.get(timeout=5.0) == b"event"
+        # Declared together: the listed member's publisher is routed, the other's is not.
+        listed = vehicle.declare_publisher("ins/uav-1/health/events")
+        unlisted = intruder.declare_publisher("ins/uav-1/health/events")
+        wait_until(
+            lambda: listed.matching_status.matching, timeout_s=10.0, what="the vehicle's route"
+        )
+        unlisted.put(b"intruder")
+        listed.put(b"vehicle")
+        assert got.get(timeout=5.0) == b"vehicle"
+        assert not unlisted.matching_status.matching
+
+
+CHECKS = {
+    ".toml": check_toml,
+    ".json5": check_json5,
+    ".service": check_unit,
+    ".md": check_markdown,
+    ".sh": check_certificates,
+}
 
 
 @pytest.mark.parametrize("path", FILES, ids=[p.name for p in FILES])
-def test_deploy_file_loads(path):
+def test_deploy_file_loads(path, tmp_path):
     assert path.suffix in CHECKS, (
         f"no loader for {path.name}: every file in deploy/ must be checked"
     )
-    CHECKS[path.suffix](path)
+    CHECKS[path.suffix](path, tmp_path)
