@@ -588,29 +588,32 @@ class Status:
         object.__setattr__(self, "imus", tuple(self.imus))
 
 
+def status_to_dict(status: Status) -> dict[str, Any]:
+    """The schema map of a status message (what :func:`encode_status` packs)."""
+    return {
+        "type": STATUS_TYPE,
+        "v": STATUS_VERSION,
+        "vehicle": status.vehicle,
+        "service": status.service,
+        "t_s": float(status.t_s),
+        "counters": dict(status.counters),
+        "imus": [
+            {
+                "imu": s.imu,
+                "state": s.state.value,
+                "samples": s.samples,
+                "last_t_s": s.last_t_s,
+                "positions": s.positions,
+                "detail": s.detail,
+            }
+            for s in status.imus
+        ],
+    }
+
+
 def encode_status(status: Status) -> bytes:
     """msgpack bytes of a status message (schema version :data:`STATUS_VERSION`)."""
-    return pack(
-        {
-            "type": STATUS_TYPE,
-            "v": STATUS_VERSION,
-            "vehicle": status.vehicle,
-            "service": status.service,
-            "t_s": float(status.t_s),
-            "counters": dict(status.counters),
-            "imus": [
-                {
-                    "imu": s.imu,
-                    "state": s.state.value,
-                    "samples": s.samples,
-                    "last_t_s": s.last_t_s,
-                    "positions": s.positions,
-                    "detail": s.detail,
-                }
-                for s in status.imus
-            ],
-        }
-    )
+    return pack(status_to_dict(status))
 
 
 def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:

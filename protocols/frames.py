@@ -44,7 +44,7 @@ frames (duplicated or out-of-order ``seq``, time jumps) is the pipeline's job.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any, Literal, Self, overload
@@ -230,6 +230,34 @@ def concat_batches(batches: Iterable[SampleBatch]) -> ImuSession:
         np.concatenate([b.accel_mps2 for b in batches]),
         np.concatenate([b.gyro_rps for b in batches]),
         np.concatenate([b.temp_c for b in batches]) if with_temp else None,
+    )
+
+
+def split_session(
+    session: ImuSession, *, vehicle: str, imu: int, batch_samples: int, first_seq: int = 0
+) -> Iterator[SampleBatch]:
+    """The samples of one IMU's session as consecutive batches of ``batch_samples`` (the last may be shorter).
+
+    The inverse of :func:`concat_batches`; ``seq`` counts from ``first_seq``. Raises
+    ``ValueError`` for a session without accelerometer or gyro samples.
+    """
+    accel, gyro, temp = session.accel_mps2, session.gyro_rps, session.temp_c
+    if accel is None or gyro is None:
+        raise ValueError("a frame needs accelerometer and gyro samples")
+    if batch_samples < 1:
+        raise ValueError(f"batch_samples must be >= 1, got {batch_samples}")
+    cuts = (slice(i, i + batch_samples) for i in range(0, session.n_samples, batch_samples))
+    return (
+        SampleBatch(
+            vehicle,
+            imu,
+            first_seq + k,
+            session.t_s[cut],
+            accel[cut],
+            gyro[cut],
+            None if temp is None else temp[cut],
+        )
+        for k, cut in enumerate(cuts)
     )
 
 

@@ -4,6 +4,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from estimators.session import ImuSession
 from protocols._schema import Reason
 from protocols.frames import (
     FRAME_TYPE,
@@ -14,6 +15,7 @@ from protocols.frames import (
     concat_batches,
     decode_frame,
     encode_frame,
+    split_session,
 )
 
 
@@ -214,3 +216,20 @@ def test_construction_checks_shapes_and_ids():
         SampleBatch("v", 0, 1.5, t, np.zeros((3, 3)), np.zeros((3, 3)))
     with pytest.raises(FrameError, match="numeric array"):
         SampleBatch("v", 0, 0, t, None, np.zeros((3, 3)))
+
+
+def test_split_session_is_the_inverse_of_concat_batches():
+    rng = np.random.default_rng(5)
+    n = 250
+    session = ImuSession(
+        np.arange(n) * 0.01, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), 20 + rng.random(n)
+    )
+    batches = list(split_session(session, vehicle="uav-1", imu=2, batch_samples=100, first_seq=7))
+    assert [(b.seq, b.n_samples, b.imu) for b in batches] == [(7, 100, 2), (8, 100, 2), (9, 50, 2)]
+    back = concat_batches(batches)
+    for name in ("t_s", "accel_mps2", "gyro_rps", "temp_c"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(session, name))
+    with pytest.raises(ValueError, match="accelerometer and gyro"):
+        split_session(
+            ImuSession(session.t_s, None, session.gyro_rps), vehicle="v", imu=0, batch_samples=1
+        )

@@ -1,0 +1,151 @@
+"""``ins-health watch [--vehicle V] [--json] [--router ENDPOINT]``: a deployed daemon's events and status, as a ground station sees them.
+
+Connects to the Zenoh router, subscribes to the events and the status of the
+vehicles ``V`` (a vehicle id or a pattern such as ``fleetA-$*``; default all)
+and acknowledges each event the way a ground station does
+(:class:`protocols.zenoh_adapter.EventReceiver`): the daemon counts an event as
+delivered once a receiver acknowledged it and retries it until then, and the
+receiver drops repeats by id, so each event is printed once.
+
+One line per event: the time it arrived (UTC), vehicle, IMU, severity, its data
+time and its text; with ``--json`` the event as one JSON object per line (the
+event schema of :mod:`protocols.events`, ``"type": "ins.health.event"``).
+Status messages are summarized: a line when a service first reports a vehicle
+and whenever the states of its IMUs change (``--json``: the status map,
+``"type": "ins.health.status"``).
+
+Runs until Ctrl-C or SIGTERM, then prints what it received on stderr. Exit
+status 0; 2 when the router cannot be reached or an option is unusable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import TYPE_CHECKING
+
+from service.router_args import add_router_arguments, open_router_session
+
+if TYPE_CHECKING:
+    from queue import SimpleQueue
+
+    from protocols.events import Event, Status
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = subparsers.add_parser(
+        "watch",
+        help="print a deployed daemon's events (acknowledged as a ground station does) and status changes",
+        description=__doc__.split("\n\n", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--vehicle",
+        default="*",
+        metavar="V",
+        help="a vehicle id or a pattern such as 'fleetA-$*' (default: every vehicle)",
+    )
+    p.add_argument("--json", action="store_true", help="one JSON object per line")
+    add_router_arguments(p)
+    p.set_defaults(func=run)
+
+
+class _Stop:
+    """Put on the queue by the SIGINT/SIGTERM handler: the watch ends after what came before it."""
+
+
+def _utc(t_unix_s: float) -> str:
+    return (
+        time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(t_unix_s))
+        + f".{int(t_unix_s % 1 * 1000):03d}Z"
+    )
+
+
+def event_line(event: Event, arrived_unix_s: float) -> str:
+    """The human line of an event: arrival (UTC), vehicle, IMU, severity, data time, text."""
+    return (
+        f"{_utc(arrived_unix_s)}  {event.vehicle} IMU{event.imu}  {event.severity.name:<8s}"
+        f"  t={event.t_s:.3f} s  {event.text}"
+    )
+
+
+def status_line(status: Status, arrived_unix_s: float) -> str:
+    """The human summary of a status: each IMU's state, samples and positions."""
+    imus = "; ".join(
+        f"IMU{s.imu} {s.state.value} ({s.samples} samples, {s.positions} positions"
+        + (f", {s.detail})" if s.detail else ")")
+        for s in status.imus
+    )
+    return f"{_utc(arrived_unix_s)}  {status.vehicle} status from {status.service}: {imus or 'no IMU yet'}"
+
+
+def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
+    """Print what arrives until a :class:`_Stop`; returns (events, status messages) received."""
+    import json
+
+    from protocols.events import Event, Status, event_to_json, status_to_dict
+
+    states: dict[tuple[str, str], tuple[tuple[int, str], ...]] = {}
+    events = statuses = 0
+    while not isinstance(item := inbox.get(), _Stop):
+        now = time.time()
+        if isinstance(item, Event):
+            events += 1
+            print(event_to_json(item) if as_json else event_line(item, now), flush=True)
+        elif isinstance(item, Status):
+            statuses += 1
+            summary = tuple((s.imu, s.state.value) for s in item.imus)
+            if states.get((item.vehicle, item.service)) != summary:
+                states[(item.vehicle, item.service)] = summary
+                line = (
+                    json.dumps(status_to_dict(item), sort_keys=True)
+                    if as_json
+                    else status_line(item, now)
+                )
+                print(line, flush=True)
+    return events, statuses
+
+
+def run(args: argparse.Namespace) -> int:
+    import queue
+    import signal
+
+    from protocols.events import EventError
+    from protocols.zenoh_adapter import EventReceiver, subscribe_status
+
+    # Handed over from Zenoh's threads and from the signal handler (SimpleQueue.put is reentrant).
+    inbox: queue.SimpleQueue[object] = queue.SimpleQueue()
+    bad_status: list[EventError] = []
+    previous = {
+        sig: signal.signal(sig, lambda *_: inbox.put(_Stop()))
+        for sig in (signal.SIGINT, signal.SIGTERM)
+    }
+    try:
+        with (
+            open_router_session(args) as session,
+            EventReceiver(session, inbox.put, vehicles=args.vehicle) as receiver,
+        ):
+            status_sub = subscribe_status(
+                session, inbox.put, vehicles=args.vehicle, on_reject=bad_status.append
+            )
+            print(
+                f"ins-health watch: {args.router}, vehicles {args.vehicle}: waiting for events",
+                file=sys.stderr,
+                flush=True,
+            )
+            try:
+                events, statuses = _show(inbox, as_json=args.json)
+            finally:
+                status_sub.undeclare()
+            rejected = dict(receiver.rejected)
+            duplicates = receiver.duplicates
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print(
+        f"ins-health watch: {events} events ({duplicates} repeated copies ignored, rejected {rejected or 'none'}), "
+        f"{statuses} status messages ({len(bad_status)} rejected)",
+        file=sys.stderr,
+    )
+    return 0
