@@ -40,6 +40,8 @@ from protocols.frames import decode_frame, split_session
 from protocols.logs import write_dataflash_bin
 from protocols.session_file import load_session, write_csv_session
 from protocols.zenoh_adapter import EventPublisher, EventReceiver, frame_key, subscribe_status
+from service.cli import main
+from service.commands import publish
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
@@ -281,6 +283,25 @@ def test_publish_at_the_recorded_pace_sends_every_frame_in_order(tmp_path):
     assert done.stdout.startswith(
         f"short.csv: {frames} frames, {session.n_samples} samples, 2.0 s of data"
     )
+
+
+def test_publish_reports_its_progress_on_stderr(tmp_path, capsys, monkeypatch):
+    session = unit()[2].session.select(unit()[2].session.t_s < 1.0)
+    csv = tmp_path / "one-second.csv"
+    write_csv_session(csv, session)
+    monkeypatch.setattr(publish, "PROGRESS_PERIOD_S", 0.0)
+    with zenoh_router() as port, zenoh.open(zenoh_client_config(port)) as bench:
+        sub = bench.declare_subscriber(frame_key("uav-4", 0), lambda s: None)
+        argv = ["publish", str(csv), "--vehicle", "uav-4", "--pace", "max", "--batch", "40"]
+        assert main([*argv, "--router", f"tcp/127.0.0.1:{port}"]) == 0
+        sub.undeclare()
+    out, err = capsys.readouterr()
+    frames = -(-session.n_samples // 40)
+    progress = [line for line in err.splitlines() if line.startswith("ins-health publish: ")]
+    assert [line.split(": ")[2].split(",")[0] for line in progress] == [
+        f"{k} frames" for k in range(1, frames + 1)
+    ]
+    assert out.startswith(f"one-second.csv: {frames} frames, {session.n_samples} samples, ")
 
 
 @pytest.mark.parametrize(

@@ -2,10 +2,10 @@
 
 SESSION is a session file (a CSV file, or an Xsens raw-count pair or its
 folder: :mod:`protocols.session_file`), published as IMU ``N`` (default 0) of
-vehicle ``V``. LOG is a MAVLink ``.tlog`` or a DataFlash ``.bin``/``.log``
-(:class:`protocols.logs.LogReader`; a file is taken for a log when its first
-bytes are one), each of its IMUs published as itself, or only IMU ``N`` with
-``--imu``. Frames of ``--batch`` samples (:mod:`protocols.frames`) go through
+vehicle ``V``. LOG is a MAVLink ``.tlog``, a DataFlash ``.bin``/``.log`` or a
+PX4 ULog ``.ulg`` (:class:`protocols.logs.LogReader`; a file is taken for a
+log when its content is one), each of its IMUs published as itself, or only
+IMU ``N`` with ``--imu``. Frames of ``--batch`` samples (:mod:`protocols.frames`) go through
 the router to the daemon's frame subscription; publishing starts once the
 daemon subscribes to each IMU's frames (waiting up to ``--wait-s``).
 
@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "recording",
         type=Path,
         metavar="SESSION|LOG",
-        help="a session file (CSV, Xsens pair folder) or a .tlog/.bin/.log flight log",
+        help="a session file (CSV, Xsens pair folder) or a .tlog/.bin/.log/.ulg flight log",
     )
     p.add_argument("--vehicle", required=True, metavar="V", help="vehicle id of the frames")
     p.add_argument(
