@@ -511,35 +511,13 @@ def find_rate_steps(
     return RateSteps(slices=tuple(slices), gyro_mean_rps=mean, gyro_var_rps=var)
 
 
-def _robust_noise(x: np.ndarray) -> float:
-    """Largest per-axis per-sample noise of (N, 3) samples from the median absolute first difference (robust to turns)."""
-    d = np.diff(x, axis=0)
-    return float(
-        np.max(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2.0))
-    )
-
-
 def session_positions(session: ImuSession, *, min_static_s: float = 5.0) -> tuple[Position, ...]:
-    """The static positions of a bench session (static detector, then :func:`estimators.positions.build_positions`).
-
-    Bench positions are long and separated by large turns, so the detector's
-    thresholds are its defaults or three times the session's own noise spread
-    (:meth:`StaticDetectorConfig.from_noise`), whichever is larger; intervals
-    shorter than ``min_static_s`` are not positions.
-    """
-    defaults = StaticDetectorConfig()
-    accel_std = (
-        defaults.accel_std_mps2
-        if session.accel_mps2 is None
-        else max(defaults.accel_std_mps2, 3.0 * np.sqrt(3.0) * _robust_noise(session.accel_mps2))
-    )
-    gyro_std = (
-        defaults.gyro_std_rps
-        if session.gyro_rps is None
-        else max(defaults.gyro_std_rps, 3.0 * np.sqrt(3.0) * _robust_noise(session.gyro_rps))
-    )
-    config = StaticDetectorConfig(
-        accel_std_mps2=accel_std, gyro_std_rps=gyro_std, min_static_s=min_static_s
+    """The static positions of a bench session (static detector with thresholds from the
+    session's own noise, :meth:`StaticDetectorConfig.from_session`, then
+    :func:`estimators.positions.build_positions`); intervals shorter than ``min_static_s``
+    are not positions."""
+    config = StaticDetectorConfig.from_session(
+        session, base=StaticDetectorConfig(min_static_s=min_static_s)
     )
     return build_positions(session, detect_static(session, config=config)).positions
 

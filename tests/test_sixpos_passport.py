@@ -10,7 +10,7 @@ from real_data import XSENS, needs
 
 from estimators.chain import ChainConfig, calibration_estimates, run_chain
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad, normal_gravity_mps2
-from estimators.ninepar import SOURCE_SCALAR, SOURCE_TURNS, SOURCE_VECTOR, Method
+from estimators.ninepar import SOURCE_SCALAR, SOURCE_TURNS, SOURCE_VECTOR, Method, Verdict
 from estimators.passport import Passport, PassportError, passport_from_estimates
 from estimators.positions import build_positions
 from estimators.session import ImuSession
@@ -20,9 +20,10 @@ from estimators.sim import (
     TriadErrorModel,
     WhiteNoise,
     grade_error_model,
+    multi_position_spec,
     simulate,
 )
-from estimators.sixpos import ferraris_spec, quantizer_offset
+from estimators.sixpos import accel_vector_nine, ferraris_spec, quantizer_offset
 from estimators.static_detector import StaticDetectorConfig, detect_static
 from protocols.passport_codec import read_passport_json
 from protocols.session_file import read_session, write_csv_session
@@ -240,3 +241,31 @@ def test_the_measured_xsens_session_keeps_its_38_positions_and_passport():
     cal = calibration_estimates(new)
     assert set(cal.estimates) == {Triad.ACCEL} and not cal.turns
     assert cal.estimates[Triad.ACCEL].sources == (SOURCE_SCALAR,) * 9
+
+
+def test_several_geometries_combine_into_one_estimate_with_one_covariance():
+    # 18 positions holding the six faces: M1's fit resolves everything. Declare its cosines
+    # unresolved, as a weaker geometry would leave them, and the vector fit supplies them.
+    res = simulate(multi_position_spec(model=MODEL, static_s=8.0), seed=5)
+    g = res.truth.gravity_mps2
+    result = run_chain(
+        res.session,
+        ChainConfig(gravity_mps2=g, detector=StaticDetectorConfig.from_session(res.session)),
+    )
+    m1 = result.triads[Triad.ACCEL].estimate
+    keep = np.arange(9) < 6
+    partial = dataclasses.replace(m1, observable=keep, verdict=Verdict.PARTIALLY_OBSERVABLE)
+    result.triads[Triad.ACCEL] = dataclasses.replace(result.triads[Triad.ACCEL], estimate=partial)
+    est = calibration_estimates(result).estimates[Triad.ACCEL]
+    assert est.method is Method.COMBINED
+    assert est.sources == (SOURCE_SCALAR,) * 6 + (SOURCE_VECTOR,) * 3
+    vector = accel_vector_nine(result.positions, gravity_mps2=g)
+    assert vector is not None
+    np.testing.assert_array_equal(est.params[:6], m1.params[:6])
+    np.testing.assert_allclose(est.params[6:], vector[0][6:], rtol=0, atol=1e-12)
+    # The combination's covariance by the delta method over the position means reproduces
+    # M1's own covariance on the parameters it kept, and it is one positive definite matrix.
+    np.testing.assert_allclose(est.cov[:6, :6], m1.cov[:6, :6], rtol=0.05, atol=1e-14)
+    assert np.linalg.eigvalsh(est.cov)[0] > 0
+    truth = _truth(res, Triad.ACCEL)
+    assert np.all(np.abs(est.params - truth) < 4.5 * est.sigma)
