@@ -222,6 +222,11 @@ class LogReader:
     def fraction_read(self) -> float:
         return float(self._fraction())
 
+    @property
+    def system(self) -> str:
+        """The system that wrote the log, where the log says (ULog: ``sys_name ver_hw``), else ``""``."""
+        return self._ulog.contents.system if self._ulog is not None else ""
+
     def __iter__(self) -> Iterator[SampleBatch]:
         self.stats = LogStats()
         buffers: dict[int, _Buffer] = {}

@@ -76,6 +76,8 @@ MIN_IMU_RATE_HZ = 20.0
 """Slowest logging rate at which a per-instance IMU topic is replayed, Hz."""
 RATE_PROBE_SAMPLES = 16
 """Samples of an instance on which its logging rate is measured."""
+INTERLEAVE_S = 0.5
+"""Slices of log time in which the IMUs of one flush are handed on in turn (:func:`_interleave`)."""
 MAX_MESSAGE_BYTES = 10000
 """A larger (or empty) message is taken as corruption, as pyulog does."""
 
@@ -249,33 +251,79 @@ class UlogImuStream:
         self.contents = UlogContents(system=self._system)
         state = _ImuState()
         for records in self._records():
-            for sel in _get(records, "sensor_selection", 0):
-                state.selected_accel = int(sel["accel_device_id"])
-            for (name, _), rec in sorted(records.items()):
-                if name == "sensor_accel" and "temperature" in (rec.dtype.names or ()):
-                    state.note_temperature(rec)
-            for (name, multi_id), rec in sorted(records.items()):
-                if name == "sensor_combined" and multi_id == 0:
-                    yield from state.combined(rec)
-                elif name == "vehicle_imu":
-                    yield from state.admitted(
-                        self.contents, f"vehicle_imu.{multi_id}", _vehicle_imu_rows(rec, multi_id)
-                    )
-                elif name in ("sensor_accel", "sensor_gyro"):
-                    state.pairs.setdefault(multi_id, _Pairer()).add(name, rec)
-            for multi_id, pairer in sorted(state.pairs.items()):
-                rows = pairer.paired(multi_id)
-                if rows is not None:
-                    yield from state.admitted(self.contents, f"sensor_accel.{multi_id}", rows)
+            yield from _interleave(self._flush_rows(state, records))
         for multi_id, pairer in sorted(state.pairs.items()):
             if pairer.unpaired_accel:
                 self.contents.skipped.setdefault(
                     f"sensor_accel.{multi_id}",
                     f"{pairer.unpaired_accel} samples without a sensor_gyro sample near in time",
                 )
+        rows: list[ImuRows] = []
         for key, probe in sorted(state.probes.items()):
             # An instance whose log ended before the rate probe filled: judge it on what there is.
-            yield from state.decide(self.contents, key, probe, final=True)
+            rows += state.decide(self.contents, key, probe, final=True)
+        yield from _interleave(rows)
+
+    def _flush_rows(
+        self, state: _ImuState, records: Mapping[tuple[str, int], np.ndarray]
+    ) -> list[ImuRows]:
+        """The IMU rows one flush of the stream completes, every IMU's in time order."""
+        for sel in _get(records, "sensor_selection", 0):
+            state.selected_accel = int(sel["accel_device_id"])
+        for (name, _), rec in sorted(records.items()):
+            if name == "sensor_accel" and "temperature" in (rec.dtype.names or ()):
+                state.note_temperature(rec)
+        rows: list[ImuRows] = []
+        for (name, multi_id), rec in sorted(records.items()):
+            if name == "sensor_combined" and multi_id == 0:
+                rows += state.combined(rec)
+            elif name == "vehicle_imu":
+                rows += state.admitted(
+                    self.contents, f"vehicle_imu.{multi_id}", _vehicle_imu_rows(rec, multi_id)
+                )
+            elif name in ("sensor_accel", "sensor_gyro"):
+                state.pairs.setdefault(multi_id, _Pairer()).add(name, rec)
+        for multi_id, pairer in sorted(state.pairs.items()):
+            paired = pairer.paired(multi_id)
+            if paired is not None:
+                rows += state.admitted(self.contents, f"sensor_accel.{multi_id}", paired)
+        return rows
+
+
+def _interleave(rows: list[ImuRows], step_s: float = INTERLEAVE_S) -> Iterator[ImuRows]:
+    """The rows of several IMUs cut into slices of ``step_s`` of log time, in time order.
+
+    A flush holds thousands of samples of each IMU; handed on IMU after IMU, one IMU would run ahead
+    of the others by the whole flush, too far for the cross-IMU comparison to wait for the others.
+    """
+    rows = [r for r in rows if r.t_s.size]
+    if len(rows) < 2:
+        yield from rows
+        return
+    start = min(float(r.t_s[0]) for r in rows)
+    stop = max(float(r.t_s[-1]) for r in rows)
+    cursor = [0] * len(rows)
+    for edge in np.arange(start + step_s, stop + step_s, step_s):
+        for i, r in enumerate(rows):
+            end = int(np.searchsorted(r.t_s, edge, side="left"))
+            if end > cursor[i]:
+                yield _slice(r, cursor[i], end)
+                cursor[i] = end
+    for i, r in enumerate(rows):
+        if cursor[i] < r.t_s.size:
+            yield _slice(r, cursor[i], r.t_s.size)
+
+
+def _slice(r: ImuRows, lo: int, hi: int) -> ImuRows:
+    return ImuRows(
+        r.kind,
+        r.imu,
+        r.t_s[lo:hi],
+        r.accel_mps2[lo:hi],
+        r.gyro_rps[lo:hi],
+        None if r.temp_c is None else r.temp_c[lo:hi],
+        r.clipped[lo:hi],
+    )
 
 
 def _get(records: Mapping[tuple[str, int], np.ndarray], name: str, multi_id: int) -> np.ndarray:

@@ -114,8 +114,8 @@ def test_passport_store_and_human_output(tmp_path, capsys):
 def test_real_ardupilot_dataflash_log_gives_a_deterministic_event_list(capsys):
     """pymavlink's test.BIN: 45 samples of IMU and IMU2 over one second, on the ground, no fault.
 
-    Without a passport only the stream checks run; the unit is not static long enough for a
-    position, so the list is empty — every time, paced or not — and the counts are fixed.
+    Without a passport the nominal passport of a consumer MEMS applies; the unit is not static long
+    enough for F0 to release a sample or for a position, so the list is empty — every time, paced or not — and the counts are fixed.
     """
     fast = replay(capsys, REAL_BIN, "--json")
     again = replay(capsys, REAL_BIN, "--json")
@@ -123,7 +123,9 @@ def test_real_ardupilot_dataflash_log_gives_a_deterministic_event_list(capsys):
     assert fast[0] == 0 and fast[1] == again[1] == paced[1] == []
     assert "(bin): samples IMU0 45, IMU1 45; left out none; 0 events" in fast[2]
     assert "imu0.samples.accepted 45" in fast[2] and "imu1.samples.accepted 45" in fast[2]
-    assert "no passport given" in fast[2]
+    # No passport: the nominal passport of the default class; too short for F0 to test a sample.
+    assert "no passport: nominal passport of class consumer_mems" in fast[2]
+    assert "f0.accel.tests" not in fast[2]
 
 
 @needs(REAL_TLOG)
@@ -137,6 +139,8 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     again = replay(capsys, REAL_TLOG, "--json")
     assert fast[0] == 0 and fast[1] == again[1] == [] and fast[2] == again[2]
     assert "(tlog): samples IMU0 794, IMU1 795; left out time_not_increasing 2; 0 events" in fast[2]
+    # At 4 Hz the static detector's window holds two samples: no nominal passport, stream checks only.
+    assert "IMU0: logged at 4.15 Hz, too slow to tell rest from steady flight" in fast[2]
     assert "imu0.samples.accepted 794" in fast[2] and "imu1.samples.accepted 795" in fast[2]
     # The comparison does run, bin for bin, on this log's 25 s frames: with limits below the IMUs' real differences it fires.
     tight = tmp_path / "tight.toml"

@@ -16,8 +16,18 @@ replays at the logged rate (wall clock), ``fast`` (default) as fast as possible.
 
 Passports: ``--passport FILE`` (a passport JSON, e.g. from ``ins-health
 calibrate``) for every IMU of the log, or ``--passport-dir DIR`` (the service's
-passport store, keyed by ``--vehicle`` and IMU). Without either the stream
-checks run alone. Options of a service configuration (``--config``: ``[site]``,
+passport store, keyed by ``--vehicle`` and IMU). Without either — a real log
+never comes with one — every IMU gets the nominal passport of its sensor class
+(``--grade``, default ``consumer_mems``; :mod:`estimators.nominal_passport`):
+F0 runs on the samples at rest against the class's tolerances, and the
+nine-parameter diagnosis where the log holds the positions.
+
+``--report DIR`` writes the log's IMU health report (``report.json``,
+``report.md``, plots; :mod:`service.log_report`). Replays that take longer
+than a few seconds print a progress line on stderr every
+:data:`PROGRESS_EVERY_S` seconds (at full speed and with ``--pace recorded``);
+memory stays bounded whatever the log's length (the reader streams, the
+pipeline and the report keep small per-IMU state). Options of a service configuration (``--config``: ``[site]``,
 ``[pipeline]``, ``[validity]``) apply as in the daemon; ``--gravity`` or ``--latitude``
 (``--height``) override its site.
 
@@ -33,20 +43,31 @@ import dataclasses
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from service.cli import UsageError
+from service.cli import UsageError, add_output
 from service.method_args import add_gravity_options
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from estimators.passport import Passport
     from protocols.events import Event
+    from protocols.frames import SampleBatch
     from protocols.logs import LogReader
     from service.config import ServiceConfig
+    from service.log_report import ImuF0
     from service.pipeline import FleetProcessor
 
 REPLAY_BATCH_SAMPLES = 100
 REPLAY_MAX_IMUS = 16
+PROGRESS_EVERY_S = 5.0
+SENSOR_CLASSES = ("consumer_mems", "industrial_mems", "tactical", "navigation")
+"""The values of :class:`estimators.nominal_passport.SensorClass`, the default first (stated here:
+building the parser must not import scipy, service.cli)."""
+NOMINAL_MIN_RATE_HZ = 20.0
+"""Slowest IMU stream the nominal passport is applied to: the static detector's 0.5 s window must hold
+enough samples to tell rest from a steady turn (a 4 Hz telemetry stream holds two)."""
 
 
 def register(subparsers) -> None:
@@ -76,6 +97,18 @@ def register(subparsers) -> None:
         help="passport store (<vehicle>/imu<n>.passport.json)",
     )
     p.add_argument(
+        "--grade",
+        choices=SENSOR_CLASSES,
+        default=SENSOR_CLASSES[0],
+        help="sensor class of the nominal passport used without --passport/--passport-dir (default consumer_mems)",
+    )
+    add_output(
+        p,
+        "--report",
+        metavar="DIR",
+        help="write the IMU health report (report.json, report.md, plots) into DIR (created; its parent must exist)",
+    )
+    p.add_argument(
         "--vehicle", default="replay", help="vehicle id given to the log's IMUs (default 'replay')"
     )
     p.add_argument(
@@ -103,28 +136,48 @@ def _config(args: argparse.Namespace) -> ServiceConfig:
     return config
 
 
-def _lookup(args: argparse.Namespace):
+def _lookup(
+    args: argparse.Namespace, gravity_mps2: float, rates: dict[tuple[str, int], float]
+) -> tuple[Any, dict[str, Any]]:
+    """The passport lookup and what the report says about it; ``rates`` holds each IMU's rate when it is admitted."""
+    from estimators.nominal_passport import SensorClass, describe_class, nominal_passport
     from protocols.passport_codec import read_passport_json
     from service.passport_store import PassportStore
 
     if args.passport is not None:
         passport: Passport = read_passport_json(args.passport)
-        return lambda vehicle, imu: passport
+        info = {"kind": "file", "unit_id": passport.unit_id, "sensor_model": passport.sensor_model}
+        return (lambda vehicle, imu: passport), info
     if args.passport_dir is not None:
-        return PassportStore(args.passport_dir).get
+        return PassportStore(args.passport_dir).get, {"kind": "store"}
+    nominal = nominal_passport(SensorClass(args.grade), gravity_mps2=gravity_mps2)
 
-    def none(vehicle: str, imu: int) -> Passport:
-        raise ValueError("no passport given (--passport or --passport-dir)")
+    def lookup(vehicle: str, imu: int) -> Passport:
+        rate = rates.get((vehicle, imu), 0.0)
+        if rate < NOMINAL_MIN_RATE_HZ:
+            raise ValueError(
+                f"logged at {rate:.3g} Hz, too slow to tell rest from steady flight (nominal passport from {NOMINAL_MIN_RATE_HZ:g} Hz)"
+            )
+        return nominal
 
-    return none
+    return lookup, {"kind": "nominal", **describe_class(args.grade)}
 
 
 def replay_events(
-    log: Path, *, fleet: FleetProcessor, vehicle: str, pace_recorded: bool = False, on_event=None
+    log: Path,
+    *,
+    fleet: FleetProcessor,
+    vehicle: str,
+    pace_recorded: bool = False,
+    on_event: Callable[[Event], None] | None = None,
+    on_batch: Callable[[SampleBatch], None] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> tuple[list[Event], LogReader]:
     """Run a log through ``fleet``; returns every event in order and the reader (with its statistics).
 
     Each frame is stamped with its last sample time as its arrival (the log's own clock).
+    ``on_batch`` sees every frame the reader gives; ``progress`` gets a line every
+    :data:`PROGRESS_EVERY_S` seconds of wall time.
     """
     from protocols.logs import LogReader
 
@@ -136,18 +189,30 @@ def replay_events(
         if on_event is not None:
             on_event(event)
 
-    start: tuple[float, float] | None = None  # (wall clock, data time) at the first frame
+    wall0 = time.monotonic()
+    data0: float | None = None
+    next_note = wall0 + PROGRESS_EVERY_S
+    samples = 0
     for batch in reader:
         t_last = float(batch.t_s[-1])
+        if data0 is None:
+            data0 = float(batch.t_s[0])
         if pace_recorded:
-            if start is None:
-                start = time.monotonic(), float(batch.t_s[0])
-            wall0, data0 = start
             delay = (t_last - data0) - (time.monotonic() - wall0)
             if delay > 0:
                 time.sleep(delay)
+        samples += batch.n_samples
+        if on_batch is not None:
+            on_batch(batch)
         for e in fleet.process(batch, arrival_s=t_last):
             emit(e)
+        now = time.monotonic()
+        if progress is not None and now >= next_note:
+            next_note = now + PROGRESS_EVERY_S
+            progress(
+                f"{100.0 * reader.fraction_read:3.0f} % of {log.name} read, {samples:,} samples, "
+                f"{t_last - data0:.0f} s of log in {now - wall0:.0f} s"
+            )
     for e in fleet.finish():
         emit(e)
     return events, reader
@@ -158,15 +223,19 @@ def human(event: Event) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from estimators.log_health import HealthConfig, ImuHealthAccumulator, pair_differences
     from protocols.events import event_to_json
     from service.daemon import pipeline_options
-    from service.pipeline import FleetProcessor
+    from service.pipeline import FleetProcessor, detector_config
 
     config = _config(args)
+    options = pipeline_options(config)
     errors: list[str] = []
+    rates: dict[tuple[str, int], float] = {}
+    lookup, passport_info = _lookup(args, options.gravity_mps2, rates)
     fleet = FleetProcessor(
-        passports=_lookup(args),
-        options=pipeline_options(config),
+        passports=lookup,
+        options=options,
         # A log's IMUs are all wanted (a ULog numbers its instances up to 8, protocols.ulog).
         max_imus_per_vehicle=max(config.pipeline.max_imus_per_vehicle, REPLAY_MAX_IMUS),
         on_passport_error=lambda v, i, msg: errors.append(f"{v} IMU{i}: {msg}"),
@@ -176,15 +245,45 @@ def run(args: argparse.Namespace) -> int:
         if args.json
         else (lambda e: print(human(e), flush=True))
     )
+    health: dict[int, ImuHealthAccumulator] = {}
+    health_config = HealthConfig()
+
+    def observe(batch: SampleBatch) -> None:
+        rates.setdefault((batch.vehicle, batch.imu), _rate(batch))
+        if args.report is None:
+            return
+        acc = health.get(batch.imu)
+        if acc is None:
+            # Rest as the pipeline's static detector sees it: its thresholds raised to the passport's noise.
+            pipe = fleet.admit(batch.vehicle, batch.imu)
+            det = detector_config(
+                options.detector, None if pipe is None else pipe.passport, _rate(batch)
+            )
+            acc = health[batch.imu] = ImuHealthAccumulator(
+                dataclasses.replace(
+                    health_config,
+                    accel_rest_mps2=det.accel_std_mps2,
+                    gyro_rest_rps=det.gyro_std_rps,
+                )
+            )
+        acc.update(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
+
     events, reader = replay_events(
         args.log,
         fleet=fleet,
         vehicle=args.vehicle,
         pace_recorded=args.pace == "recorded",
         on_event=printer,
+        on_batch=observe,
+        progress=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
     )
     for line in errors:
         print(f"ins-health replay: {line}; stream checks only", file=sys.stderr)
+    if passport_info["kind"] == "nominal":
+        print(
+            f"ins-health replay: no passport: nominal passport of class {passport_info['class']} ({passport_info['source']})",
+            file=sys.stderr,
+        )
     samples = ", ".join(f"IMU{i} {n}" for i, n in sorted(reader.stats.samples.items())) or "none"
     dropped = ", ".join(f"{k} {n}" for k, n in sorted(reader.stats.dropped.items())) or "none"
     print(
@@ -198,4 +297,47 @@ def run(args: argparse.Namespace) -> int:
             + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())),
             file=sys.stderr,
         )
+    if args.report is not None:
+        from service.log_report import build_report, write_report
+
+        healths = {imu: acc.result(options.gravity_mps2) for imu, acc in sorted(health.items())}
+        pairs = pair_differences({i: h.blocks for i, h in healths.items()}, health_config.block_s)
+        report = build_report(
+            log_name=args.log.name,
+            log_format=reader.format.value,
+            stats=reader.stats,
+            system=reader.system,
+            passport=passport_info,
+            gravity_mps2=options.gravity_mps2,
+            config=health_config,
+            healths=healths,
+            f0={imu: _f0_summary(fleet, args.vehicle, imu) for imu in healths},
+            pairs=pairs,
+            events=events,
+        )
+        md = write_report(report, healths, pairs, args.report)
+        print(f"ins-health replay: report {md}", file=sys.stderr)
     return 0
+
+
+def _rate(batch: SampleBatch) -> float:
+    """The rate a frame was sampled at (median interval), Hz; 1 Hz for a one-sample frame."""
+    import numpy as np
+
+    return float(1.0 / np.median(np.diff(batch.t_s))) if batch.n_samples > 1 else 1.0
+
+
+def _f0_summary(fleet: FleetProcessor, vehicle: str, imu: int) -> ImuF0 | None:
+    """What F0 did on an IMU's accelerometers (shell and counts), from its pipeline."""
+    from estimators.conventions import Triad
+    from service.log_report import ImuF0
+
+    pipe = fleet.pipelines.get((vehicle, imu))
+    check = None if pipe is None else pipe.checks.get(Triad.ACCEL)
+    if pipe is None or check is None:
+        return None
+    return ImuF0(
+        lambda0=check.lambda0 if check.f0 is not None else None,
+        tests=pipe.counters.get("f0.accel.tests", 0),
+        fails=pipe.counters.get("f0.accel.fail", 0),
+    )

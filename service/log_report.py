@@ -1,0 +1,347 @@
+"""The health report of a replayed log (``ins-health replay LOG --report DIR``): report.json, report.md, plots.
+
+``report.json`` (type ``ins.health.log_report``, schema 1) is deterministic: it
+holds only what the log gives (no wall clock, no path beyond the file name),
+keys sorted, so the same log gives a byte-identical file. It holds the log
+(name, format, what it holds and what was left out), the passport used (a
+file's, or the nominal passport of a sensor class with its tolerances and their
+source, :mod:`estimators.nominal_passport`), per IMU an object in ``imus``
+(:mod:`estimators.log_health` defines each figure; plus ``imu``, ``source``,
+``clipped_samples`` as the log counts them — null when it does not — and the
+F0 shell and counts of the pipeline), per pair of IMUs their disagreement
+(``pairs``), and ``findings``: the events the service raises on the log, then
+the report's own checks (vibration and clipping, with the thresholds'
+source), each with its severity, text and numbers.
+
+``report.md`` shows it as a flight review reads: a table per IMU, |a| − g of
+the blocks at rest against F0's shell, the accelerometer and gyro spectra, the
+cross-IMU differences over time (``gravity_residual.png``, ``spectra.png``,
+``cross_imu.png``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from estimators.conventions import AXES
+from estimators.log_health import HealthConfig, ImuHealth, PairDifference
+from protocols.events import Event, Severity
+from protocols.logs import LogStats
+
+REPORT_TYPE = "ins.health.log_report"
+REPORT_SCHEMA_VERSION = 1
+VIBE_WARN_MPS2 = 30.0
+VIBE_BAD_MPS2 = 60.0
+VIBE_SOURCE = (
+    "ArduPilot wiki, Measuring Vibration: VIBE below 30 m/s² is normally acceptable, "
+    "above 30 may give problems, above 60 nearly always does"
+)
+PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png")
+
+
+@dataclass(frozen=True)
+class ImuF0:
+    """What the pipeline's F0 did on one IMU's accelerometers: the shell λ0 (None: not run) and its counts."""
+
+    lambda0: float | None
+    tests: int
+    fails: int
+
+
+def event_finding(event: Event) -> dict[str, Any]:
+    """A pipeline event as a report finding (severity, text and its numbers)."""
+    return {
+        "source": "pipeline",
+        "severity": event.severity.name.lower(),
+        "imu": event.imu,
+        "t_s": event.t_s,
+        "predicate": event.predicate.value,
+        "cause": event.cause.value,
+        "triad": None if event.triad is None else event.triad.value,
+        "axis": event.axis,
+        "estimate": event.estimate,
+        "nominal": event.nominal,
+        "tolerance": event.tolerance,
+        "unit": event.unit,
+        "text": event.text,
+    }
+
+
+def health_findings(imu: int, health: ImuHealth, clipped: int | None) -> list[dict[str, Any]]:
+    """The report's own checks of one IMU: in-flight vibration (ArduPilot's thresholds) and clipping."""
+    out: list[dict[str, Any]] = []
+    if health.vibe_max_mps2 is not None:
+        worst = float(health.vibe_max_mps2.max())
+        axis = AXES[int(np.argmax(health.vibe_max_mps2))]
+        if worst > VIBE_WARN_MPS2:
+            severity = Severity.ERROR if worst > VIBE_BAD_MPS2 else Severity.WARNING
+            limit = VIBE_BAD_MPS2 if worst > VIBE_BAD_MPS2 else VIBE_WARN_MPS2
+            out.append(
+                {
+                    "source": "report",
+                    "severity": severity.name.lower(),
+                    "imu": imu,
+                    "predicate": "vibration",
+                    "axis": axis,
+                    "estimate": worst,
+                    "tolerance": limit,
+                    "unit": "m/s^2",
+                    "text": f"IMU{imu} vibration (VIBE) {worst:.1f} m/s² on {axis} in flight, above {limit:g} ({VIBE_SOURCE})",
+                }
+            )
+    if clipped:
+        out.append(
+            {
+                "source": "report",
+                "severity": Severity.WARNING.name.lower(),
+                "imu": imu,
+                "predicate": "clipping",
+                "estimate": clipped,
+                "tolerance": 0,
+                "unit": "samples",
+                "text": f"IMU{imu}: {clipped} clipped samples (the sensor saturated: its output is wrong there)",
+            }
+        )
+    if health.rest_s == 0.0:
+        out.append(
+            {
+                "source": "report",
+                "severity": Severity.INFO.name.lower(),
+                "imu": imu,
+                "predicate": "no_rest",
+                "text": f"IMU{imu}: never at rest in the log: F0 and the diagnosis had nothing to test; noise from the first difference",
+            }
+        )
+    return out
+
+
+def build_report(
+    *,
+    log_name: str,
+    log_format: str,
+    stats: LogStats,
+    system: str,
+    passport: Mapping[str, Any],
+    gravity_mps2: float,
+    config: HealthConfig,
+    healths: Mapping[int, ImuHealth],
+    f0: Mapping[int, ImuF0 | None],
+    pairs: Sequence[PairDifference],
+    events: Sequence[Event],
+) -> dict[str, Any]:
+    """The plain-dict report (module docstring)."""
+    imus = []
+    for imu, h in sorted(healths.items()):
+        entry = {"imu": imu, "source": stats.sources.get(imu, ""), **h.to_dict()}
+        entry["clipped_samples"] = stats.clipped.get(imu)
+        check = f0.get(imu)
+        entry["f0_accel"] = (
+            None
+            if check is None
+            else {
+                "lambda0": check.lambda0,
+                "shell_mps2": None if check.lambda0 is None else check.lambda0 * gravity_mps2,
+                "tests": check.tests,
+                "fails": check.fails,
+            }
+        )
+        imus.append(entry)
+    findings = [event_finding(e) for e in events]
+    for imu, h in sorted(healths.items()):
+        findings += health_findings(imu, h, stats.clipped.get(imu))
+    return {
+        "type": REPORT_TYPE,
+        "schema_version": REPORT_SCHEMA_VERSION,
+        "log": {
+            "name": log_name,
+            "format": log_format,
+            "system": system,
+            "holds": dict(sorted(stats.held.items())),
+            "left_out": dict(sorted(stats.skipped.items())),
+            "dropped_samples": dict(sorted(stats.dropped.items())),
+        },
+        "passport": dict(passport),
+        "gravity_mps2": gravity_mps2,
+        "block_s": config.block_s,
+        "imus": imus,
+        "pairs": [p.to_dict() for p in pairs],
+        "findings": findings,
+    }
+
+
+def write_report(
+    report: Mapping[str, Any],
+    healths: Mapping[int, ImuHealth],
+    pairs: Sequence[PairDifference],
+    out_dir: str | Path,
+) -> Path:
+    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.json").write_text(
+        json.dumps(report, sort_keys=True, indent=1, allow_nan=False) + "\n", encoding="utf-8"
+    )
+    plots = {
+        "gravity_residual.png": _residual_plot(report, healths, out / "gravity_residual.png"),
+        "spectra.png": _spectra_plot(healths, out / "spectra.png"),
+        "cross_imu.png": _cross_plot(pairs, out / "cross_imu.png"),
+    }
+    md = out / "report.md"
+    md.write_text(_markdown(report, plots), encoding="utf-8")
+    return md
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def _residual_plot(report: Mapping[str, Any], healths: Mapping[int, ImuHealth], path: Path) -> bool:
+    g = float(report["gravity_mps2"])
+    shells = {e["imu"]: (e["f0_accel"] or {}).get("shell_mps2") for e in report["imus"]}
+    if not any(h.blocks.rest.any() for h in healths.values()):
+        return False
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for imu, h in sorted(healths.items()):
+        b = h.blocks
+        t = (b.k[b.rest] + 0.5) * report["block_s"]
+        ax.plot(t, np.linalg.norm(b.accel_mean[b.rest], axis=1) - g, ".", ms=3, label=f"IMU{imu}")
+        shell = shells.get(imu)
+        if shell is not None:
+            ax.axhline(shell, color="k", lw=0.8, ls="--")
+            ax.axhline(-shell, color="k", lw=0.8, ls="--")
+    ax.set_xlabel("log time, s")
+    ax.set_ylabel("|a| − g at rest, m/s²")
+    ax.set_title("Blocks at rest against F0's shell (dashed)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def _spectra_plot(healths: Mapping[int, ImuHealth], path: Path) -> bool:
+    if not any(h.freq_hz.size for h in healths.values()):
+        return False
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for imu, h in sorted(healths.items()):
+        if not h.freq_hz.size:
+            continue
+        for ax, psd in zip(axes, (h.accel_psd, h.gyro_psd), strict=True):
+            for k, axis in enumerate(AXES):
+                ax.semilogy(h.freq_hz[1:], psd[1:, k], lw=0.8, label=f"IMU{imu} {axis}")
+    axes[0].set_ylabel("accel PSD, (m/s²)²/Hz")
+    axes[1].set_ylabel("gyro PSD, (rad/s)²/Hz")
+    axes[1].set_xlabel("frequency, Hz")
+    axes[0].legend(fontsize=7, ncol=3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def _cross_plot(pairs: Sequence[PairDifference], path: Path) -> bool:
+    if not pairs:
+        return False
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    for p in pairs:
+        label = f"IMU{p.imus[0]}−IMU{p.imus[1]}"
+        axes[0].plot(p.t_s, p.accel_mps2, lw=0.8, label=label)
+        axes[1].plot(p.t_s, p.gyro_rps, lw=0.8, label=label)
+    axes[0].set_ylabel("|Δa|, m/s²")
+    axes[1].set_ylabel("|Δω|, rad/s")
+    axes[1].set_xlabel("log time, s")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+# --------------------------------------------------------------------------- Markdown
+
+
+def _f(v: Any, spec: str = ".4g") -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, list):
+        return ", ".join(_f(x, spec) for x in v)
+    if isinstance(v, float):
+        return format(v, spec)
+    return str(v)
+
+
+def _imu_table(e: Mapping[str, Any]) -> list[str]:
+    vib = e["vibration"]
+    vibe = vib["ardupilot_vibe_mps2"]
+    grav = e["gravity_residual_mps2"]
+    temp = e["temperature_c"]
+    f0 = e["f0_accel"]
+    rows = [
+        ("source", e["source"]),
+        ("samples", e["n_samples"]),
+        ("rate (median), Hz", _f(e["rate_hz"])),
+        ("duration, s", _f(e["duration_s"])),
+        ("gaps (count, longest s)", f"{e['gaps']['count']}, {_f(e['gaps']['longest_s'])}"),
+        ("at rest, s (blocks of spread ≤ accel, gyro)", f"{_f(e['rest_s'])} ({_f(e['rest_test']['accel_spread_mps2'])} m/s², {_f(e['rest_test']['gyro_spread_rps'])} rad/s)"),
+        (f"accel noise x, y, z, m/s² ({e['noise_method']})", _f(e["accel_noise_mps2"])),
+        (f"gyro noise x, y, z, rad/s ({e['noise_method']})", _f(e["gyro_noise_rps"])),
+        ("|a| − g at rest (median, max abs), m/s²", "—" if grav is None else f"{_f(grav['median'])}, {_f(grav['max_abs'])}"),
+        ("gyro bias at rest x, y, z, rad/s", _f(e["gyro_bias_rps"])),
+        ("VIBE in flight x, y, z (median / max), m/s²", "—" if vibe is None else f"{_f(vibe['median'], '.3g')} / {_f(vibe['max'], '.3g')}"),
+        ("PX4 accel vibration metric (median / max), m/s", "—" if vib["px4_accel_vibration_metric_mps"] is None else f"{_f(vib['px4_accel_vibration_metric_mps']['median'])} / {_f(vib['px4_accel_vibration_metric_mps']['max'])}"),
+        ("PX4 gyro vibration metric (median / max), rad", "—" if vib["px4_gyro_vibration_metric_rad"] is None else f"{_f(vib['px4_gyro_vibration_metric_rad']['median'])} / {_f(vib['px4_gyro_vibration_metric_rad']['max'])}"),
+        ("clipped samples", _f(e["clipped_samples"])),
+        ("temperature (min, max), °C", "—" if temp is None else f"{_f(temp['min'])}, {_f(temp['max'])}"),
+        ("F0 shell λ0 (|a| − g, m/s²); tests, fails", "not run" if f0 is None or f0["lambda0"] is None else f"{_f(f0['lambda0'])} ({_f(f0['shell_mps2'])}); {f0['tests']}, {f0['fails']}"),
+    ]  # fmt: skip
+    return ["| | |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
+
+
+def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
+    log, pp = report["log"], report["passport"]
+    lines = [
+        f"# IMU health of {log['name']}",
+        "",
+        f"Format `{log['format']}`" + (f", system {log['system']}" if log["system"] else "") + ".",
+        f"Passport: {pp.get('kind')}" + (f", class `{pp['class']}` ({pp['source']})" if pp.get("class") else "") + ".",
+        f"Local gravity {report['gravity_mps2']:.5f} m/s².",
+        "",
+    ]  # fmt: skip
+    if log["left_out"]:
+        lines += ["Left out: " + "; ".join(f"{k} {v}" for k, v in log["left_out"].items()), ""]
+    lines += ["## Findings", ""]
+    if report["findings"]:
+        lines += [f"- **{f['severity']}** {f['text']}" for f in report["findings"]]
+    else:
+        lines.append("None.")
+    for e in report["imus"]:
+        lines += ["", f"## IMU{e['imu']}", "", *_imu_table(e)]
+    if report["pairs"]:
+        lines += ["", "## Cross-IMU disagreement (block means)", "", "| pair | accel p99 / max flight, m/s² | at rest | gyro p99 / max flight, rad/s | at rest |", "|---|---|---|---|---|"]  # fmt: skip
+        for p in report["pairs"]:
+
+            def pm(d: Mapping[str, Any] | None) -> str:
+                return "—" if d is None else f"{_f(d['p99'])} / {_f(d['max'])}"
+
+            lines.append(
+                f"| IMU{p['imus'][0]}–IMU{p['imus'][1]} | {pm(p['accel_mps2']['flight'])} | {pm(p['accel_mps2']['rest'])} "
+                f"| {pm(p['gyro_rps']['flight'])} | {pm(p['gyro_rps']['rest'])} |"
+            )
+    titles = {
+        "gravity_residual.png": "|a| − g at rest against the F0 shell",
+        "spectra.png": "Accelerometer and gyro spectra",
+        "cross_imu.png": "Cross-IMU differences over time",
+    }
+    for name in PLOTS:
+        if plots.get(name):
+            lines += ["", f"## {titles[name]}", "", f"![{titles[name]}]({name})"]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,197 @@
+"""Log health numerics (estimators.log_health) and nominal passports (estimators.nominal_passport)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimators.conventions import EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Triad
+from estimators.log_health import (
+    HealthConfig,
+    ImuHealthAccumulator,
+    pair_differences,
+)
+from estimators.nominal_passport import (
+    CLASS_TOLERANCES,
+    SensorClass,
+    describe_class,
+    nominal_passport,
+)
+from estimators.scalar import derive_lambda0
+
+G = STANDARD_GRAVITY_MPS2
+FS = 400.0
+
+
+def _unit(seed=1, n_s=60.0, fly=(20.0, 40.0), accel_sd=0.02, gyro_sd=0.003, t0=0.123):
+    """Rest, a vibrating stretch (50 Hz, 5 m/s² on x), rest; accel z reads g + 0.1 m/s²."""
+    rng = np.random.default_rng(seed)
+    t = t0 + np.arange(int(n_s * FS)) / FS
+    a = rng.normal(0.0, accel_sd, (t.size, 3))
+    a[:, 2] += G + 0.1
+    g = rng.normal(0.0, gyro_sd, (t.size, 3)) + np.array([0.01, 0.0, 0.0])
+    moving = (t > fly[0]) & (t < fly[1])
+    a[moving, 0] += 5.0 * np.sin(2 * np.pi * 50.0 * t[moving])
+    return t, a, g
+
+
+def _health(t, a, g, chunk=333, temp=None):
+    acc = ImuHealthAccumulator(HealthConfig())
+    for i in range(0, t.size, chunk):
+        acc.update(
+            t[i : i + chunk],
+            a[i : i + chunk],
+            g[i : i + chunk],
+            None if temp is None else temp[i : i + chunk],
+        )
+    return acc.result(G)
+
+
+def test_rest_noise_bias_and_residual_are_recovered():
+    t, a, g = _unit()
+    h = _health(t, a, g)
+    assert h.noise_method == "rest" and h.rate_hz == 400.0 and h.n_samples == t.size
+    # ~80 000 rest samples per axis: the noise estimate's relative sd is ~1/sqrt(2·80 000) ≈ 0.25 %.
+    np.testing.assert_allclose(h.accel_noise_mps2, 0.02, rtol=0.01)
+    np.testing.assert_allclose(h.gyro_noise_rps, 0.003, rtol=0.01)
+    # Bias: sd of the mean 0.003/sqrt(80 000) ≈ 1e-5.
+    np.testing.assert_allclose(h.gyro_bias_rps, [0.01, 0.0, 0.0], atol=5e-5)
+    assert h.gravity_residual_median_mps2 == pytest.approx(0.1, abs=1e-3)
+    # Rest is 40 s less the blocks the vibrating stretch touches.
+    assert 39.0 <= h.rest_s <= 40.0
+
+
+def test_ardupilot_vibe_and_px4_metric_of_a_sinusoid():
+    t, a, g = _unit(accel_sd=0.0, gyro_sd=0.0)
+    h = _health(t, a, g)
+    # VIBE: rms of the 5 Hz high-passed signal; a 50 Hz sinusoid of amplitude A passes with gain
+    # 50/sqrt(50² + 5²), so VIBE ≈ A/√2 · 0.995 = 3.52 m/s², less the ripple of the 2 Hz smoothing.
+    assert h.vibe_median_mps2[0] == pytest.approx(5.0 / math.sqrt(2) * 0.995, rel=0.05)
+    assert h.vibe_median_mps2[1] == pytest.approx(0.0, abs=1e-9)
+    # PX4: EMA of |Δv_k − Δv_{k−1}| = |a_k − a_{k−1}|·dt; for the sinusoid the mean of
+    # |a_k − a_{k−1}| is 2A·sin(π f dt)·2/π.
+    dt = 1.0 / FS
+    expected = 2 * 5.0 * math.sin(math.pi * 50.0 * dt) * 2 / math.pi * dt
+    assert h.px4_accel_vibration_median_mps == pytest.approx(expected, rel=0.05)
+    assert h.px4_gyro_vibration_median_rad == pytest.approx(0.0, abs=1e-12)
+
+
+def test_spectrum_peaks_at_the_vibration():
+    t, a, g = _unit()
+    h = _health(t, a, g)
+    assert h.freq_hz[np.argmax(h.accel_psd[:, 0])] == pytest.approx(50.0, abs=FS / 256)
+    # Away from the peak: the white noise floor 2σ²/fs (one-sided density).
+    floor = np.median(h.accel_psd[:, 1])
+    assert floor == pytest.approx(2 * 0.02**2 / FS, rel=0.1)
+
+
+def test_batching_does_not_change_the_figures():
+    t, a, g = _unit(n_s=20.0, fly=(5.0, 10.0))
+    one = _health(t, a, g, chunk=t.size)
+    many = _health(t, a, g, chunk=37)
+    assert one.rest_s == many.rest_s and one.gap_count == many.gap_count
+    np.testing.assert_allclose(one.accel_noise_mps2, many.accel_noise_mps2, rtol=1e-12)
+    np.testing.assert_allclose(one.vibe_max_mps2, many.vibe_max_mps2, rtol=1e-12)
+    np.testing.assert_allclose(one.accel_psd, many.accel_psd, rtol=1e-12)
+    np.testing.assert_array_equal(one.blocks.k, many.blocks.k)
+
+
+def test_gaps_temperature_and_no_rest():
+    t, a, g = _unit(n_s=10.0, fly=(-1.0, 11.0))
+    keep = np.ones(t.size, bool)
+    keep[1000:1400] = False  # one second lost
+    keep[2000] = False  # one sample lost
+    temp = np.linspace(30.0, 35.0, t.size)
+    h = _health(t[keep], a[keep], g[keep], temp=temp[keep])
+    assert h.gap_count == 2 and h.longest_gap_s == pytest.approx(401 / FS, abs=1e-6)
+    assert h.temp_min_c == pytest.approx(30.0) and h.temp_max_c == pytest.approx(35.0)
+    # Always vibrating: no rest; the noise comes from the first difference and says so.
+    assert h.rest_s == 0.0 and h.noise_method == "first_difference"
+    assert h.gravity_residual_median_mps2 is None and h.gyro_bias_rps is None
+
+
+def test_slow_logs_have_no_rest():
+    """Four samples a second: a 0.5 s block holds two, which cannot tell rest from a steady turn."""
+    rng = np.random.default_rng(2)
+    t = np.arange(400) / 4.0
+    a = rng.normal(0, 0.01, (t.size, 3)) + np.array([0, 0, G])
+    h = _health(t, a, np.zeros((t.size, 3)), chunk=50)
+    assert h.rate_hz == 4.0 and h.rest_s == 0.0
+
+
+def test_pair_differences_in_flight_and_at_rest():
+    t, a, g = _unit(n_s=30.0, fly=(10.0, 20.0))
+    b = a.copy()
+    b[:, 2] += 0.5  # IMU1 reads 0.5 m/s² more on z, always
+    blocks = {0: _health(t, a, g).blocks, 1: _health(t, b, g).blocks}
+    (pair,) = pair_differences(blocks, 0.5)
+    d = pair.to_dict()
+    assert (
+        d["imus"] == [0, 1] and d["common_blocks"] == 61
+    )  # 0.123 … 30.12 s: partial blocks at both ends
+    assert d["accel_mps2"]["rest"]["max"] == pytest.approx(0.5, abs=1e-9)
+    assert d["accel_mps2"]["flight"]["p99"] == pytest.approx(0.5, abs=1e-9)
+    assert d["gyro_rps"]["rest"]["max"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_health_config_is_validated():
+    with pytest.raises(ValueError, match="block_s"):
+        HealthConfig(block_s=0.0)
+    with pytest.raises(ValueError, match="nfft"):
+        HealthConfig(nfft=4)
+
+
+# ------------------------------------------------------------------ nominal passports
+
+
+@pytest.mark.parametrize("cls", list(SensorClass))
+def test_nominal_passports_carry_the_class_tolerances(cls):
+    p = nominal_passport(cls, gravity_mps2=9.81)
+    f = CLASS_TOLERANCES[cls]
+    acc, gyr = p.triads[Triad.ACCEL], p.triads[Triad.GYRO]
+    np.testing.assert_allclose(acc.tolerance[:3], f.accel.bias_si / 9.81)
+    np.testing.assert_allclose(acc.tolerance[3:6], f.accel.scale)
+    np.testing.assert_allclose(gyr.tolerance[:3], f.gyro.bias_si / EARTH_RATE_RPS)
+    assert not acc.nominal.any() and acc.observable.all()
+    # Only a gyro whose bias tolerance is below the Earth rate can be checked against it (M1).
+    assert gyr.observable.all() == (f.gyro.bias_si < EARTH_RATE_RPS)
+    assert cls.value in acc.provenance.procedure and describe_class(cls)["class"] == cls.value
+
+
+def test_the_classes_shells_are_ordered_and_the_consumer_shell_is_its_datasheet():
+    """λ0 from each class's tolerances (F0's shell): tighter for better classes; consumer MEMS ≈ 0.2."""
+    lam = {}
+    for cls in SensorClass:
+        tp = nominal_passport(cls).triads[Triad.ACCEL]
+        lam[cls] = derive_lambda0(
+            noise_std_norm=tp.noise_std * math.sqrt(250.0 / tp.sample_rate_hz),
+            false_alarm_prob=1e-9,
+            tolerance_norm=tp.tolerance,
+        ).lambda0
+    order = [
+        SensorClass.CONSUMER_MEMS,
+        SensorClass.INDUSTRIAL_MEMS,
+        SensorClass.TACTICAL,
+        SensorClass.NAVIGATION,
+    ]
+    assert [lam[c] for c in order] == sorted(lam.values(), reverse=True)
+    # 80 mg on each axis (√3 · 0.08 at worst) + 3 % scale + 2 % cross-axis, first order: ≈ 0.2.
+    assert 0.18 < lam[SensorClass.CONSUMER_MEMS] < 0.26
+
+
+def test_vibe_filters_have_ardupilots_corners_and_px4s_smoothing():
+    """A 5 Hz vibration sits on VIBE's 5 Hz floor: the first-order high-pass passes 1/√2 of it; PX4's
+    metric (an EMA with α = 0.01) rises over 1/α samples: averaged over the first 200 samples of the
+    vibration it reaches 1 − (1 − 0.99²⁰⁰)/(200·0.01) = 0.567 of its steady value."""
+    t = np.arange(int(30 * FS)) / FS
+    a = np.zeros((t.size, 3)) + np.array([0.0, 0.0, G])
+    on = t >= 10.0
+    a[on, 1] += 2.0 * np.sin(2 * np.pi * 5.0 * (t[on] - 10.0))
+    h = _health(t, a, np.zeros((t.size, 3)))
+    assert h.vibe_median_mps2[1] == pytest.approx(2.0 / math.sqrt(2) / math.sqrt(2), rel=0.05)
+    b = h.blocks
+    steady = np.median(b.px4_accel[b.k >= 30])
+    onset = b.px4_accel[b.k == 20][0]
+    assert onset / steady == pytest.approx(1 - (1 - 0.99**200) / 2.0, abs=0.03)
