@@ -306,11 +306,14 @@ def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
 def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel) -> SessionSpec:
     """The measured session's geometry and timing as a simulator spec (module docstring, step 2).
 
-    Position directions are the measured accelerometer means (headings are not
-    observable and do not matter to the accelerometer statistics); each hold is
-    the averaged span plus the chain's trims, each turn the gap in between.
+    Position directions are the measured accelerometer means; headings and the
+    latitude come from the gyros when they resolve the Earth rate
+    (:func:`measured_attitudes`), else the positions are reached by tilts (the
+    heading does not matter to the accelerometer statistics nor to a MEMS
+    gyro's); each hold is the averaged span plus the chain's trims, each turn
+    the gap in between.
     """
-    up = np.array([p.accel_mean_mps2 for p in chain.positions], float)
+    attitudes, latitude_deg = measured_attitudes(chain)
     trim = 2.0 * 0.25
     hold = np.array([p.duration_s for p in chain.positions]) + trim
     gaps = (
@@ -323,7 +326,7 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
         - trim
     )
     turns = np.clip(gaps, 0.5, None)
-    profile = multi_position_profile(tilt_sequence(up), static_s=hold, transition_s=turns)
+    profile = multi_position_profile(attitudes, static_s=hold, transition_s=turns)
     # White noise density is per √Hz: scale the per-sample level to the session's rate.
     rate = session.rate_hz
     model = ErrorModel(
@@ -337,7 +340,36 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
         rate_hz=rate,
         gravity_mps2=chain.gravity_mps2,
         temperature=replayed_temperature(chain, session, hold, turns),
+        latitude_deg=latitude_deg,
     )
+
+
+def measured_attitudes(chain: ChainResult) -> tuple[np.ndarray, float]:
+    """(P, 3, 3) ``mat_nb`` of the measured positions and the latitude, degrees (45 when unknown).
+
+    Up is each position's accelerometer mean. When the chain resolves all nine
+    gyro parameters against Ω (navigation grade), each position's heading is
+    gyrocompassed: north is the horizontal part of its bias-free gyro mean and
+    ``sin φ`` the median vertical share of the Earth rate — so the replicas see
+    the Earth rate on each axis as the unit did. Otherwise the positions are
+    reached by tilts from an arbitrary heading at 45°.
+    """
+    up = np.array([p.accel_mean_mps2 for p in chain.positions], float)
+    gyro = chain.triads.get(Triad.GYRO)
+    est = None if gyro is None else gyro.estimate
+    if est is None or est.params is None or est.verdict is not Verdict.OBSERVABLE:
+        return tilt_sequence(up), 45.0
+    u = up / np.linalg.norm(up, axis=1, keepdims=True)
+    w = (
+        np.array([p.gyro_mean_rps for p in chain.positions], float)
+        - est.params[:3] * EARTH_RATE_RPS
+    )
+    vertical = np.einsum("ki,ki->k", w, u)
+    north = w - vertical[:, None] * u
+    north /= np.linalg.norm(north, axis=1, keepdims=True)
+    east = np.cross(north, u)
+    sin_lat = float(np.median(vertical / np.linalg.norm(w, axis=1)))
+    return np.stack([east, north, u], axis=1), float(np.degrees(np.arcsin(np.clip(sin_lat, -1, 1))))
 
 
 def replayed_temperature(
