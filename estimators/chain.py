@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from estimators._typing import FloatArray
 from estimators.conventions import N_PARAMS, Triad, reference_magnitude
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Diagnosis, Finding, diagnose
 from estimators.ninepar import (
@@ -75,7 +76,7 @@ class ChainConfig:
     false_alarm_prob: float = DEFAULT_FALSE_ALARM_PROB
     accel_limit_mps2: float | None = None
     gyro_limit_rps: float | None = None
-    bias_instability_std: dict[Triad, np.ndarray] | None = None
+    bias_instability_std: dict[Triad, FloatArray] | None = None
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.gravity_mps2) or not 9.7 < self.gravity_mps2 < 9.9:
@@ -105,8 +106,8 @@ class TriadResult:
     """
 
     estimate: Estimate
-    residuals: np.ndarray | None
-    residual_sigma: np.ndarray | None
+    residuals: FloatArray | None
+    residual_sigma: FloatArray | None
     diagnosis: Diagnosis | None
 
     @property
@@ -239,11 +240,10 @@ def run_chain(
             mean, cov = position_arrays(positions, triad, reference)
             residuals = ellipsoid_residual(est.params, mean)[0]
             sigma = equation_sigma(est.params, mean, cov)
-        has_passport = passport is not None and triad in passport.triads
         diag = (
-            None
-            if not has_passport
-            else diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
+            diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
+            if passport is not None and triad in passport.triads
+            else None
         )
         triads[triad] = TriadResult(est, residuals, sigma, diag)
     return ChainResult(
@@ -259,7 +259,7 @@ def run_chain(
 
 
 def _with_bias_instability(
-    positions: tuple[Position, ...], std_norm: dict[Triad, np.ndarray], gravity_mps2: float
+    positions: tuple[Position, ...], std_norm: dict[Triad, FloatArray], gravity_mps2: float
 ) -> tuple[Position, ...]:
     """Positions whose mean covariances also carry the bias wander (it does not average down)."""
     extra = {
@@ -271,12 +271,12 @@ def _with_bias_instability(
         return positions
     out = []
     for p in positions:
-        fields = {}
-        if Triad.ACCEL in extra and p.accel_cov_mps2 is not None:
-            fields["accel_cov_mps2"] = p.accel_cov_mps2 + extra[Triad.ACCEL]
-        if Triad.GYRO in extra and p.gyro_cov_rps is not None:
-            fields["gyro_cov_rps"] = p.gyro_cov_rps + extra[Triad.GYRO]
-        out.append(replace(p, **fields))
+        accel_cov, gyro_cov = p.accel_cov_mps2, p.gyro_cov_rps
+        if Triad.ACCEL in extra and accel_cov is not None:
+            accel_cov = accel_cov + extra[Triad.ACCEL]
+        if Triad.GYRO in extra and gyro_cov is not None:
+            gyro_cov = gyro_cov + extra[Triad.GYRO]
+        out.append(replace(p, accel_cov_mps2=accel_cov, gyro_cov_rps=gyro_cov))
     return tuple(out)
 
 
@@ -355,7 +355,7 @@ def _accel_vector(
         else np.asarray(scalar.observable, dtype=bool)
     )
 
-    def combined(m: np.ndarray) -> np.ndarray:
+    def combined(m: FloatArray) -> FloatArray:
         fit = six_position_accel(
             m[index] * gravity_mps2,
             gravity_mps2=gravity_mps2,

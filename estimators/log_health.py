@@ -54,6 +54,8 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
+from estimators._typing import BoolArray, FloatArray
+
 VIBE_FLOOR_HZ = 5.0
 VIBE_FILTER_HZ = 2.0
 PX4_VIBE_ALPHA = 0.01
@@ -87,19 +89,19 @@ class HealthConfig:
 class Blocks:
     """The block table of one IMU (module docstring); arrays of K blocks, SI."""
 
-    k: np.ndarray
-    n: np.ndarray
-    accel_mean: np.ndarray
-    gyro_mean: np.ndarray
-    accel_var: np.ndarray
-    gyro_var: np.ndarray
-    vibe_mean: np.ndarray
-    vibe_max: np.ndarray
-    px4_accel: np.ndarray
-    px4_gyro: np.ndarray
-    temp_min: np.ndarray
-    temp_max: np.ndarray
-    rest: np.ndarray
+    k: FloatArray
+    n: FloatArray
+    accel_mean: FloatArray
+    gyro_mean: FloatArray
+    accel_var: FloatArray
+    gyro_var: FloatArray
+    vibe_mean: FloatArray
+    vibe_max: FloatArray
+    px4_accel: FloatArray
+    px4_gyro: FloatArray
+    temp_min: FloatArray
+    temp_max: FloatArray
+    rest: BoolArray
 
 
 @dataclass(frozen=True)
@@ -113,27 +115,27 @@ class ImuHealth:
     longest_gap_s: float
     rest_s: float
     noise_method: str
-    accel_noise_mps2: np.ndarray
-    gyro_noise_rps: np.ndarray
+    accel_noise_mps2: FloatArray
+    gyro_noise_rps: FloatArray
     gravity_residual_median_mps2: float | None
     gravity_residual_max_abs_mps2: float | None
-    gyro_bias_rps: np.ndarray | None
-    vibe_median_mps2: np.ndarray | None
-    vibe_max_mps2: np.ndarray | None
+    gyro_bias_rps: FloatArray | None
+    vibe_median_mps2: FloatArray | None
+    vibe_max_mps2: FloatArray | None
     px4_accel_vibration_median_mps: float | None
     px4_accel_vibration_max_mps: float | None
     px4_gyro_vibration_median_rad: float | None
     px4_gyro_vibration_max_rad: float | None
     temp_min_c: float | None
     temp_max_c: float | None
-    freq_hz: np.ndarray
-    accel_psd: np.ndarray
-    gyro_psd: np.ndarray
+    freq_hz: FloatArray
+    accel_psd: FloatArray
+    gyro_psd: FloatArray
     blocks: Blocks
     config: HealthConfig
 
     def to_dict(self) -> dict[str, Any]:
-        def vec(v: np.ndarray | None) -> list[float] | None:
+        def vec(v: FloatArray | None) -> list[float] | None:
             return None if v is None else [float(x) for x in v]
 
         return {
@@ -182,13 +184,13 @@ class ImuHealth:
 
 @dataclass
 class _Carry:
-    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    a: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    g: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    temp: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    vibe: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    px4a: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    px4g: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t: FloatArray = field(default_factory=lambda: np.zeros(0))
+    a: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    g: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    temp: FloatArray = field(default_factory=lambda: np.zeros(0))
+    vibe: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    px4a: FloatArray = field(default_factory=lambda: np.zeros(0))
+    px4g: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
 class ImuHealthAccumulator:
@@ -204,27 +206,27 @@ class ImuHealthAccumulator:
         self.n_samples = 0
         self._t_first: float | None = None
         self._t_last: float | None = None
-        self._last_a: np.ndarray | None = None
-        self._last_g: np.ndarray | None = None
+        self._last_a: FloatArray | None = None
+        self._last_g: FloatArray | None = None
         self._dt_us: dict[int, int] = {}
         self._dt_s: float | None = None
-        self._zi: dict[str, np.ndarray] = {}
+        self._zi: dict[str, FloatArray] = {}
         self._carry = _Carry()
-        self._tables: list[np.ndarray] = []
-        self._welch_buf: list[np.ndarray] = []
+        self._tables: list[FloatArray] = []
+        self._welch_buf: list[FloatArray] = []
         self._welch_n = 0
-        self._psd_sum: np.ndarray | None = None
+        self._psd_sum: FloatArray | None = None
         self._psd_count = 0
         self._diff_sq = np.zeros(6)
         self._diff_n = 0
-        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pending: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
 
     def update(
         self,
-        t_s: np.ndarray,
-        accel_mps2: np.ndarray,
-        gyro_rps: np.ndarray,
-        temp_c: np.ndarray | None = None,
+        t_s: FloatArray,
+        accel_mps2: FloatArray,
+        gyro_rps: FloatArray,
+        temp_c: FloatArray | None = None,
     ) -> None:
         t = np.asarray(t_s, dtype=float)
         a = np.asarray(accel_mps2, dtype=float).reshape(-1, 3)
@@ -268,7 +270,7 @@ class ImuHealthAccumulator:
             final=False,
         )
 
-    def _start(self, t: np.ndarray, a: np.ndarray) -> None:
+    def _start(self, t: FloatArray, a: FloatArray) -> None:
         self._t_first = float(t[0])
         self._dt_s = float(np.median(np.diff(t)))
         # The filters start settled on the first sample (no start-up transient in the figures):
@@ -286,8 +288,8 @@ class ImuHealthAccumulator:
         return self._dt_s / (self._dt_s + 1.0 / (2.0 * math.pi * fc_hz))
 
     def _vibration(
-        self, a: np.ndarray, g: np.ndarray, dt: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, a: FloatArray, g: FloatArray, dt: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Per sample: ArduPilot's VIBE (N, 3), PX4's accel and gyro vibration metrics (N,) (module docstring)."""
         a5, a2 = self._alpha(VIBE_FLOOR_HZ), self._alpha(VIBE_FILTER_HZ)
         floor, self._zi["floor"] = lfilter([a5], [1.0, a5 - 1.0], a, axis=0, zi=self._zi["floor"])
@@ -310,7 +312,7 @@ class ImuHealthAccumulator:
         self._last_a, self._last_g = a[-1], g[-1]
         return np.sqrt(np.maximum(level, 0.0)), px4a, px4g
 
-    def _welch(self, x: np.ndarray) -> None:
+    def _welch(self, x: FloatArray) -> None:
         nfft = self.config.nfft
         self._welch_buf.append(x)
         self._welch_n += x.shape[0]
@@ -330,13 +332,13 @@ class ImuHealthAccumulator:
 
     def _blocks(
         self,
-        t: np.ndarray,
-        a: np.ndarray,
-        g: np.ndarray,
-        temp: np.ndarray,
-        vibe: np.ndarray,
-        px4a: np.ndarray,
-        px4g: np.ndarray,
+        t: FloatArray,
+        a: FloatArray,
+        g: FloatArray,
+        temp: FloatArray,
+        vibe: FloatArray,
+        px4a: FloatArray,
+        px4g: FloatArray,
         *,
         final: bool,
     ) -> None:
@@ -353,7 +355,7 @@ class ImuHealthAccumulator:
         starts = np.flatnonzero(np.diff(ids, prepend=ids[0] - 1))
         n = np.diff(np.append(starts, cut))
 
-        def mean(x: np.ndarray) -> np.ndarray:
+        def mean(x: FloatArray) -> FloatArray:
             s = np.add.reduceat(x[:cut], starts, axis=0)
             return s / (n if s.ndim == 1 else n[:, None])
 
@@ -451,17 +453,20 @@ class ImuHealthAccumulator:
             config=self.config,
         )
 
-    def _spectra(self, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    def _spectra(self, rate: float) -> tuple[FloatArray, FloatArray]:
         nfft = self.config.nfft
-        freq = np.fft.rfftfreq(nfft, d=1.0 / rate) if rate else np.zeros(nfft // 2 + 1)
+        freq = np.asarray(
+            np.fft.rfftfreq(nfft, d=1.0 / rate) if rate else np.zeros(nfft // 2 + 1),
+            dtype=np.float64,
+        )
         if self._psd_sum is None or not rate:
             return np.zeros((0, 6)), freq[:0]
         w = np.hanning(nfft)
-        psd = self._psd_sum / self._psd_count / (rate * (w**2).sum())
+        psd: FloatArray = self._psd_sum / self._psd_count / (rate * (w**2).sum())
         psd[1:-1] *= 2.0  # one-sided
         return psd, freq
 
-    def _block_view(self, table: np.ndarray, rate: float) -> Blocks:
+    def _block_view(self, table: FloatArray, rate: float) -> Blocks:
         cfg = self.config
         n = table[:, 1]
         spread_a = np.sqrt(table[:, 8:11].sum(axis=1))
@@ -490,13 +495,13 @@ class PairDifference:
     """Disagreement of two IMUs on common blocks: accel (m/s²) and gyro (rad/s) norms of the block-mean differences."""
 
     imus: tuple[int, int]
-    t_s: np.ndarray
-    accel_mps2: np.ndarray
-    gyro_rps: np.ndarray
-    rest: np.ndarray
+    t_s: FloatArray
+    accel_mps2: FloatArray
+    gyro_rps: FloatArray
+    rest: BoolArray
 
     def to_dict(self) -> dict[str, Any]:
-        def stats(x: np.ndarray) -> dict[str, float] | None:
+        def stats(x: FloatArray) -> dict[str, float] | None:
             return (
                 None if not x.size else {"p99": float(np.percentile(x, 99)), "max": float(x.max())}
             )

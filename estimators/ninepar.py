@@ -787,14 +787,14 @@ def _finish(
 def judged_estimate(
     triad: Triad,
     method: Method,
-    params: np.ndarray,
-    cov: np.ndarray,
+    params: FloatArray,
+    cov: FloatArray,
     *,
     n_positions: int,
     reference: float,
     sources: tuple[str, ...],
     observability: ObservabilityRule = DEFAULT_OBSERVABILITY,
-    known: np.ndarray | None = None,
+    known: BoolArray | None = None,
 ) -> Estimate:
     """An estimate made by another method than M1's fit (the six-position vector fit, full
     turns, or a combination), with the same per-parameter precision rule.
@@ -806,7 +806,7 @@ def judged_estimate(
     if known is not None and not np.all(known):
         observable = observable & np.asarray(known, dtype=bool)
         verdict = Verdict.PARTIALLY_OBSERVABLE if observable.any() else Verdict.NOT_OBSERVABLE_YET
-        missing = " ".join(PARAM_NAMES[j] for j in np.flatnonzero(~np.asarray(known)))
+        missing = " ".join(PARAM_NAMES[j] for j in np.flatnonzero(~np.asarray(known, dtype=bool)))
         reason = f"{reason}; not determined by {method.value}: {missing}"
     return Estimate(
         triad=Triad(triad),

@@ -57,11 +57,15 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import Triad
 from estimators.session import ImuSession
 from estimators.static_detector import (
@@ -99,10 +103,10 @@ class Position:
     t_start_s: float
     t_end_s: float
     n_samples: int
-    accel_mean_mps2: np.ndarray | None
-    accel_cov_mps2: np.ndarray | None
-    gyro_mean_rps: np.ndarray | None
-    gyro_cov_rps: np.ndarray | None
+    accel_mean_mps2: FloatArray | None
+    accel_cov_mps2: FloatArray | None
+    gyro_mean_rps: FloatArray | None
+    gyro_cov_rps: FloatArray | None
     temp_mean_c: float | None = None
     index_start: int | None = None
     index_stop: int | None = None
@@ -114,23 +118,23 @@ class Position:
     def duration_s(self) -> float:
         return self.t_end_s - self.t_start_s
 
-    def mean(self, triad: Triad) -> np.ndarray | None:
+    def mean(self, triad: Triad) -> FloatArray | None:
         """(3,) mean output of ``triad`` in its SI unit, or None."""
         return self.accel_mean_mps2 if Triad(triad) is Triad.ACCEL else self.gyro_mean_rps
 
-    def cov(self, triad: Triad) -> np.ndarray | None:
+    def cov(self, triad: Triad) -> FloatArray | None:
         """(3, 3) covariance of that mean, or None."""
         return self.accel_cov_mps2 if Triad(triad) is Triad.ACCEL else self.gyro_cov_rps
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (arrays as nested lists)."""
-        out = {}
+        out: dict[str, Any] = {}
         for key, value in asdict(self).items():
             out[key] = value.tolist() if isinstance(value, np.ndarray) else value
         return out
 
     @classmethod
-    def from_dict(cls, data: dict) -> Position:
+    def from_dict(cls, data: dict[str, Any]) -> Position:
         arrays = {
             "accel_mean_mps2": (3,),
             "accel_cov_mps2": (3, 3),
@@ -184,11 +188,11 @@ class PositionRejection:
     t_end_s: float
     detail: str
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {**asdict(self), "reason": self.reason.value}
 
     @classmethod
-    def from_dict(cls, data: dict) -> PositionRejection:
+    def from_dict(cls, data: dict[str, Any]) -> PositionRejection:
         try:
             return cls(
                 RejectReason(data["reason"]),
@@ -256,14 +260,16 @@ class _Moments:
     """Moments of one triad over a set of samples: count, mean, scatter; the same of the batch means."""
 
     n: int
-    mean: np.ndarray
-    m2: np.ndarray
+    mean: FloatArray
+    m2: FloatArray
     nb: int
-    bmean: np.ndarray
-    bm2: np.ndarray
+    bmean: FloatArray
+    bm2: FloatArray
 
     @staticmethod
-    def _pool(na, ma, sa, nb, mb, sb):
+    def _pool(
+        na: int, ma: FloatArray, sa: FloatArray, nb: int, mb: FloatArray, sb: FloatArray
+    ) -> tuple[int, FloatArray, FloatArray]:
         # Chan et al.'s pairwise update: exact, no subtraction of large sums.
         if na == 0:
             return nb, mb, sb
@@ -279,7 +285,7 @@ class _Moments:
         return _Moments(n, mean, m2, nb, bmean, bm2)
 
     @classmethod
-    def of_samples(cls, y: np.ndarray, batch: int) -> _Moments:
+    def of_samples(cls, y: FloatArray, batch: int) -> _Moments:
         """Moments of the rows of ``y`` (n, 3); batches of ``batch`` consecutive rows, partial last one dropped."""
         n = y.shape[0]
         mean = y.mean(axis=0)
@@ -291,27 +297,36 @@ class _Moments:
         return cls(n, mean, d.T @ d, nb, bmean, bd.T @ bd)
 
     @classmethod
-    def of_sums(cls, shift, n, s, q, nb, bs, bq) -> _Moments:
+    def of_sums(
+        cls,
+        shift: ArrayLike,
+        n: int,
+        s: ArrayLike,
+        q: Sequence[float],
+        nb: int,
+        bs: ArrayLike,
+        bq: Sequence[float],
+    ) -> _Moments:
         """From running sums of shifted samples ``y − shift``: ``s`` (3), ``q`` (6: xx xy xz yy yz zz), same for batch means."""
-        shift = np.asarray(shift, dtype=float)
+        shift_v = np.asarray(shift, dtype=float)
 
-        def sym(v):
+        def sym(v: Sequence[float]) -> FloatArray:
             return np.array([[v[0], v[1], v[2]], [v[1], v[3], v[4]], [v[2], v[4], v[5]]])
 
-        s = np.asarray(s, dtype=float)
-        bs = np.asarray(bs, dtype=float)
-        mean_s = s / n
-        m2 = sym(q) - np.outer(s, mean_s)
+        s_v = np.asarray(s, dtype=float)
+        bs_v = np.asarray(bs, dtype=float)
+        mean_s = s_v / n
+        m2 = sym(q) - np.outer(s_v, mean_s)
         if nb:
-            bmean_s = bs / nb
-            bm2 = sym(bq) - np.outer(bs, bmean_s)
-            bmean = shift + bmean_s
+            bmean_s = bs_v / nb
+            bm2 = sym(bq) - np.outer(bs_v, bmean_s)
+            bmean = shift_v + bmean_s
         else:
             bm2 = np.zeros((3, 3))
             bmean = np.zeros(3)
-        return cls(n, shift + mean_s, m2, nb, bmean, bm2)
+        return cls(n, shift_v + mean_s, m2, nb, bmean, bm2)
 
-    def covariance_of_mean(self, method: CovarianceMethod, batch: int) -> tuple[np.ndarray, float]:
+    def covariance_of_mean(self, method: CovarianceMethod, batch: int) -> tuple[FloatArray, float]:
         """``(cov of the mean (3, 3), n_eff)`` (module docstring)."""
         sigma = self.m2 / (self.n - 1)
         tau = 1.0
@@ -320,7 +335,7 @@ class _Moments:
             tau = max(1.0, batch * float(np.trace(self.bm2)) / (self.nb - 1) / tr)
         return sigma * (tau / self.n), self.n / tau
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "n": self.n,
             "mean": self.mean.tolist(),
@@ -331,7 +346,7 @@ class _Moments:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> _Moments:
+    def from_dict(cls, d: dict[str, Any]) -> _Moments:
         return cls(
             int(d["n"]),
             np.asarray(d["mean"], float).reshape(3),
@@ -340,6 +355,12 @@ class _Moments:
             np.asarray(d["bmean"], float).reshape(3),
             np.asarray(d["bm2"], float).reshape(3, 3),
         )
+
+
+def _present(moments: _Moments | None) -> _Moments:
+    """Moments of a triad the session has: groups of one session carry the same triads (at least one)."""
+    assert moments is not None
+    return moments
 
 
 @dataclass(frozen=True)
@@ -358,7 +379,7 @@ class _Group:
 
     @property
     def n(self) -> int:
-        return (self.accel or self.gyro).n
+        return _present(self.accel or self.gyro).n
 
     def merge(self, other: _Group) -> _Group:
         return _Group(
@@ -366,15 +387,17 @@ class _Group:
             other.stop,
             self.t_start_s,
             other.t_end_s,
-            None if self.accel is None else self.accel.combine(other.accel),
-            None if self.gyro is None else self.gyro.combine(other.gyro),
+            None if self.accel is None else self.accel.combine(_present(other.accel)),
+            None if self.gyro is None else self.gyro.combine(_present(other.gyro)),
             self.temp_sum + other.temp_sum,
             self.temp_n + other.temp_n,
             self.n_intervals + other.n_intervals,
         )
 
     def position(self, config: PositionConfig, batch: int) -> Position:
-        def triad(mom):
+        def triad(
+            mom: _Moments | None,
+        ) -> tuple[FloatArray | None, FloatArray | None, float | None]:
             if mom is None:
                 return None, None, None
             cov, n_eff = mom.covariance_of_mean(config.covariance, batch)
@@ -398,7 +421,7 @@ class _Group:
             gyro_n_eff=gn,
         )
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "start": self.start,
             "stop": self.stop,
@@ -412,7 +435,7 @@ class _Group:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> _Group:
+    def from_dict(cls, d: dict[str, Any]) -> _Group:
         return cls(
             int(d["start"]),
             int(d["stop"]),
@@ -455,12 +478,14 @@ def _offer(
     pending: _Group | None,
     group: _Group,
     rotation_deg: float | None,
-):
+) -> tuple[_Group, _Group | None, PositionRejection | None]:
     """Merge ``group`` into ``pending`` or start a new position: ``(new pending, emitted or None, rejection or None)``."""
     if pending is None:
         return group, None, None
     direction = (
-        None if group.accel is None else direction_change_deg(pending.accel.mean, group.accel.mean)
+        None
+        if group.accel is None
+        else direction_change_deg(_present(pending.accel).mean, group.accel.mean)
     )
     if is_new_orientation(det_config, direction_deg=direction, rotation_deg=rotation_deg):
         return group, pending, None
@@ -546,7 +571,13 @@ def build_positions(
         rotation = None
         if gyro is not None and pending is not None:
             rotation = _rotation_between(
-                t, gyro, acc, detection.segment_start, pending.gyro.mean, last_run_end, first
+                t,
+                gyro,
+                acc,
+                detection.segment_start,
+                _present(pending.gyro).mean,
+                last_run_end,
+                first,
             )
         pending, emitted, rej = _offer(det_cfg, pending, group, rotation)
         if emitted is not None:
@@ -560,7 +591,15 @@ def build_positions(
     return PositionsResult(tuple(positions), tuple(rejections))
 
 
-def _rotation_between(t, gyro, acc, segment_start, bias, last_end: int, first: int) -> float | None:
+def _rotation_between(
+    t: FloatArray,
+    gyro: FloatArray,
+    acc: IntArray,
+    segment_start: BoolArray,
+    bias: FloatArray,
+    last_end: int,
+    first: int,
+) -> float | None:
     """Rotation angle (deg) over accepted samples ``(last_end, first]``; None across a segment break."""
     if np.any(segment_start[last_end + 1 : first + 1]):
         return None
@@ -588,14 +627,14 @@ class _RunSums:
     """Running sums of one static run's kept samples, shifted by the first kept sample (plain floats)."""
 
     n: int = 0
-    shift: list = field(default_factory=lambda: [0.0] * 6)
-    s: list = field(default_factory=lambda: [0.0] * 6)
-    q: list = field(default_factory=lambda: [0.0] * 12)
-    part: list = field(default_factory=lambda: [0.0] * 6)
+    shift: list[float] = field(default_factory=lambda: [0.0] * 6)
+    s: list[float] = field(default_factory=lambda: [0.0] * 6)
+    q: list[float] = field(default_factory=lambda: [0.0] * 12)
+    part: list[float] = field(default_factory=lambda: [0.0] * 6)
     part_n: int = 0
     nb: int = 0
-    bs: list = field(default_factory=lambda: [0.0] * 6)
-    bq: list = field(default_factory=lambda: [0.0] * 12)
+    bs: list[float] = field(default_factory=lambda: [0.0] * 6)
+    bq: list[float] = field(default_factory=lambda: [0.0] * 12)
     temp_sum: float = 0.0
     temp_n: int = 0
     start: int = 0
@@ -604,18 +643,19 @@ class _RunSums:
     t_last: float = 0.0
 
 
-def _seq_sum(start: float, values: np.ndarray) -> float:
+def _seq_sum(start: float, values: FloatArray) -> float:
     """``start + v₀ + v₁ + …`` added one by one, left to right (what a running ``+=`` gives, bit for bit)."""
     if values.size == 0:
         return start
     return float(np.cumsum(np.concatenate([[start], values]))[-1])
 
 
-def _seq_sum_rows(start: np.ndarray, rows: np.ndarray) -> np.ndarray:
+def _seq_sum_rows(start: FloatArray, rows: FloatArray) -> FloatArray:
     """(K,) ``start + rows[0] + rows[1] + …`` per column, added row by row (:func:`_seq_sum` per column)."""
     if rows.shape[0] == 0:
         return start
-    return np.cumsum(np.vstack([start, rows]), axis=0)[-1]
+    last_sums: FloatArray = np.cumsum(np.vstack([start, rows]), axis=0)[-1]
+    return last_sums
 
 
 @dataclass(frozen=True)
@@ -623,8 +663,8 @@ class _Extended:
     """Accepted samples ``base …``: the ring before a batch, then the batch; columns t, ax … gz, temp, and input indices."""
 
     base: int
-    cols: list
-    idx: np.ndarray
+    cols: list[FloatArray]
+    idx: IntArray
 
 
 class PositionAccumulator:
@@ -717,10 +757,10 @@ class PositionAccumulator:
 
     def update_batch(
         self,
-        t_s: np.ndarray,
-        accel_mps2: np.ndarray | None,
-        gyro_rps: np.ndarray | None,
-        temp_c: np.ndarray | None = None,
+        t_s: FloatArray,
+        accel_mps2: FloatArray | None,
+        gyro_rps: FloatArray | None,
+        temp_c: FloatArray | None = None,
     ) -> tuple[list[Position], FinalDecisions]:
         """:meth:`update` over N samples: the same positions, rejections, decisions and state.
 
@@ -788,18 +828,34 @@ class PositionAccumulator:
             )
         return positions, decisions
 
-    def _update_row(self, t, accel, gyro, temp, i, positions, steps) -> None:
+    def _update_row(
+        self,
+        t: FloatArray,
+        accel: FloatArray | None,
+        gyro: FloatArray | None,
+        temp: FloatArray,
+        i: int,
+        positions: list[Position],
+        steps: list[tuple[int, int, int, bool]],
+    ) -> None:
         det = self.detector
-        a = (0.0, 0.0, 0.0) if accel is None else accel[i].tolist()
-        g = (0.0, 0.0, 0.0) if gyro is None else gyro[i].tolist()
+        ax, ay, az = (0.0, 0.0, 0.0) if accel is None else accel[i].tolist()
+        gx, gy, gz = (0.0, 0.0, 0.0) if gyro is None else gyro[i].tolist()
         tc = float(temp[i])
-        pos = self.update(float(t[i]), *a, *g, None if tc != tc else tc)
+        pos = self.update(float(t[i]), ax, ay, az, gx, gy, gz, None if tc != tc else tc)
         if pos is not None:
             positions.append(pos)
         if det.fin_hi > det.fin_lo:
             steps.append((det.fin_lo, det.fin_split, det.fin_hi, det.fin_break))
 
-    def _steady_batch(self, t, accel, gyro, temp, positions) -> FinalDecisions:
+    def _steady_batch(
+        self,
+        t: FloatArray,
+        accel: FloatArray | None,
+        gyro: FloatArray | None,
+        temp: FloatArray,
+        positions: list[Position],
+    ) -> FinalDecisions:
         """Clean samples in the steady state: each finalizes one decision (detector's ``update_batch``)."""
         det = self.detector
         n = t.shape[0]
@@ -859,7 +915,9 @@ class PositionAccumulator:
         tail = np.arange(max(0, n - rn), n)
         pos = (c0 + tail) % rn
         rows = [0, *(1 + c for c in self._chans), 7]
-        self._ring.array()[np.ix_(rows, pos)] = np.vstack([cols[k][rn + tail] for k in rows])
+        self._ring.array()[np.ix_(np.asarray(rows), pos)] = np.vstack(
+            [cols[k][rn + tail] for k in rows]
+        )
         self._ring_idx.array()[pos] = idx[rn + tail]
         return FinalDecisions(j0, static, np.zeros(n, dtype=bool))
 
@@ -1064,7 +1122,7 @@ class PositionAccumulator:
             self.rejections.append(_few_rejection(run, sm.n, self._trim, self.config.min_samples))
             return None
 
-        def moments(o):
+        def moments(o: int) -> _Moments:
             return _Moments.of_sums(
                 sm.shift[o : o + 3],
                 sm.n,
@@ -1094,7 +1152,7 @@ class PositionAccumulator:
         if rej is not None:
             self.rejections.append(rej)
         if det.has_gyro:
-            self._rot.reset(self._pending.gyro.mean.tolist())
+            self._rot.reset(_present(self._pending.gyro).mean.tolist())
             self._rot_active = True
         return None if emitted is None else emitted.position(self.config, self._batch)
 
@@ -1120,7 +1178,7 @@ class PositionAccumulator:
         out, self.rejections = self.rejections, []
         return out
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
         """Plain JSON-able state (detector, ring, open run, pending position, rotation) for checkpoints."""
         return {
             "detector": self.detector.state_dict(),
@@ -1137,7 +1195,7 @@ class PositionAccumulator:
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> PositionAccumulator:
+    def from_state_dict(cls, state: dict[str, Any]) -> PositionAccumulator:
         try:
             det = StreamingStaticDetector.from_state_dict(state["detector"])
             cfg = PositionConfig(**state["config"])

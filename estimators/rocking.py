@@ -220,8 +220,8 @@ class GyroUnit:
     arw_rad_per_sqrt_s : white-noise density (angle random walk), rad/s/√Hz.
     """
 
-    scale_err: ArrayLike = tuple(PAPER_DK)
-    bias_rps: ArrayLike = tuple(np.array([2.0, -30.0, 5.0]) * RPS_PER_DPH)
+    scale_err: tuple[float, ...] = tuple(PAPER_DK.tolist())
+    bias_rps: tuple[float, ...] = tuple((np.array([2.0, -30.0, 5.0]) * RPS_PER_DPH).tolist())
     arw_rad_per_sqrt_s: float = float(np.radians(0.003) / 60.0)
 
     def __post_init__(self) -> None:

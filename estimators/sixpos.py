@@ -30,10 +30,11 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
+from estimators._typing import BoolArray, FloatArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Grade, nine_params
 from estimators.ninepar import SOURCE_NONE, SOURCE_STATIC_MEANS, SOURCE_TURNS
 from estimators.plateaus import find_plateaus
@@ -43,7 +44,9 @@ from estimators.session import ImuSession
 from estimators.static_detector import StaticDetectorConfig, StaticInterval, detect_static
 
 if TYPE_CHECKING:
-    from estimators.sim import ErrorModel, SessionSpec, TemperatureProfile, TriadErrorModel
+    from estimators.sim import Effect, ErrorModel, SessionSpec, TemperatureProfile, TriadErrorModel
+
+_EffectT = TypeVar("_EffectT", bound="Effect")
 
 ACCEL_TERM_NAMES = ("bias_mps2", "scale_error", "misalign_1", "misalign_2", "quad_per_mps2")
 """Per-axis parameter order of :class:`AccelSixPosition` (``misalign_1/2``: the other axes in x, y, z order)."""
@@ -59,7 +62,7 @@ def _face_name(axis: int, sign: float) -> str:
     return f"{'+' if sign > 0 else '-'}{AXES[axis]} up"
 
 
-def face_directions(accel_mean_mps2: np.ndarray) -> np.ndarray:
+def face_directions(accel_mean_mps2: FloatArray) -> FloatArray:
     """(K, 3) nominal up directions ``±e_i`` of the positions, from their mean specific force.
 
     Raises ValueError if a position is more than 20° from every axis-up/down
@@ -91,7 +94,9 @@ def face_directions(accel_mean_mps2: np.ndarray) -> np.ndarray:
     return up
 
 
-def _weighted_fit(h: np.ndarray, y: np.ndarray, var: np.ndarray | None, names) -> LinearFit:
+def _weighted_fit(
+    h: FloatArray, y: FloatArray, var: FloatArray | None, names: Sequence[str] | None
+) -> LinearFit:
     """LS with per-equation variances ``var`` (M,) (known noise) or, if None, noise from the residuals."""
     if var is None:
         return fit_linear(h, y, names=names)
@@ -104,7 +109,7 @@ def _weighted_fit(h: np.ndarray, y: np.ndarray, var: np.ndarray | None, names) -
     )
 
 
-def _diag_var(cov: np.ndarray | None, k: int) -> np.ndarray | None:
+def _diag_var(cov: FloatArray | None, k: int) -> FloatArray | None:
     if cov is None:
         return None
     c = np.asarray(cov, dtype=float)
@@ -129,31 +134,31 @@ class AccelSixPosition:
     """
 
     gravity_mps2: float
-    bias_mps2: np.ndarray
-    scale_error: np.ndarray
-    misalignment: np.ndarray
-    quad_per_mps2: np.ndarray
-    cov: np.ndarray
-    residuals_mps2: np.ndarray
+    bias_mps2: FloatArray
+    scale_error: FloatArray
+    misalignment: FloatArray
+    quad_per_mps2: FloatArray
+    cov: FloatArray
+    residuals_mps2: FloatArray
 
     @property
-    def std(self) -> np.ndarray:
+    def std(self) -> FloatArray:
         """(3, 5) standard deviations in the order of :data:`ACCEL_TERM_NAMES`."""
         return np.sqrt(np.diagonal(self.cov, axis1=1, axis2=2))
 
     @property
-    def values(self) -> np.ndarray:
+    def values(self) -> FloatArray:
         """(3, 5) estimates in the order of :data:`ACCEL_TERM_NAMES`."""
         others = np.array([[self.misalignment[i, j] for j in range(3) if j != i] for i in range(3)])
         return np.column_stack([self.bias_mps2, self.scale_error, others, self.quad_per_mps2])
 
-    def nine_params(self) -> np.ndarray:
+    def nine_params(self) -> FloatArray:
         """The triad's ``[b/g, e, d]`` (conventions order), :func:`vector_to_nine` of this fit."""
         return vector_to_nine(
             self.bias_mps2, self.scale_error, self.misalignment, self.gravity_mps2
         )
 
-    def nine_params_cov(self) -> np.ndarray:
+    def nine_params_cov(self) -> FloatArray:
         """(9, 9) covariance of :meth:`nine_params`: ``J Σ Jᵀ`` with ``J`` the Jacobian of the
         mapping (central differences) and ``Σ`` the fit's per-axis covariances."""
         theta = self.values[:, :4].reshape(12)
@@ -169,7 +174,7 @@ class AccelSixPosition:
         cov = jac @ sigma @ jac.T
         return np.asarray(0.5 * (cov + cov.T))
 
-    def _nine_of(self, theta: np.ndarray) -> np.ndarray:
+    def _nine_of(self, theta: FloatArray) -> FloatArray:
         v = theta.reshape(3, 4)
         mis = np.zeros((3, 3))
         for i in range(3):
@@ -177,7 +182,7 @@ class AccelSixPosition:
             mis[i, j], mis[i, k] = v[i, 2], v[i, 3]
         return vector_to_nine(v[:, 0], v[:, 1], mis, self.gravity_mps2)
 
-    def correct(self, accel_mps2: np.ndarray) -> np.ndarray:
+    def correct(self, accel_mps2: FloatArray) -> FloatArray:
         """(N, 3) specific force with the model inverted (quadratic and coupling by two fixed-point passes).
 
         ``a = (A − b − M a − Q a²) / (1 + S)``, starting from ``a = (A − b)/(1 + S)``;
@@ -193,8 +198,8 @@ class AccelSixPosition:
 
 
 def vector_to_nine(
-    bias_mps2: np.ndarray, scale_error: np.ndarray, misalignment: np.ndarray, gravity_mps2: float
-) -> np.ndarray:
+    bias_mps2: FloatArray, scale_error: FloatArray, misalignment: FloatArray, gravity_mps2: float
+) -> FloatArray:
     """The passport's nine parameters ``[b, e, d]`` of a six-position vector fit (docs/methods.md M4 → M1).
 
     Row ``i`` of the triad matrix is ``r_i = (1 + S_i)·e_i + Σ_j M_ij·e_j``, and M1's
@@ -213,11 +218,11 @@ def vector_to_nine(
 
 
 def six_position_accel(
-    accel_mean_mps2: np.ndarray,
+    accel_mean_mps2: FloatArray,
     *,
     gravity_mps2: float,
-    accel_cov_mps2: np.ndarray | None = None,
-    up_b: np.ndarray | None = None,
+    accel_cov_mps2: FloatArray | None = None,
+    up_b: FloatArray | None = None,
     quadratic: bool = True,
 ) -> AccelSixPosition:
     """Scale, bias, misalignment and quadratic term of each accelerometer (M4, the paper's eq. 7).
@@ -288,26 +293,26 @@ class GyroGSensitivity:
     residuals_rps : (K, 3).
     """
 
-    bias_rps: np.ndarray
-    g_sensitivity: np.ndarray
-    cov: np.ndarray
+    bias_rps: FloatArray
+    g_sensitivity: FloatArray
+    cov: FloatArray
     earth_rate_removed: bool
-    residuals_rps: np.ndarray
+    residuals_rps: FloatArray
 
     @property
-    def std(self) -> np.ndarray:
+    def std(self) -> FloatArray:
         """(3, 4) standard deviations in the order of :data:`GYRO_TERM_NAMES`."""
         return np.sqrt(np.diagonal(self.cov, axis1=1, axis2=2))
 
 
 def gyro_g_sensitivity(
-    gyro_mean_rps: np.ndarray,
-    up_b: np.ndarray,
+    gyro_mean_rps: FloatArray,
+    up_b: FloatArray,
     *,
     gravity_mps2: float,
-    gyro_cov_rps: np.ndarray | None = None,
+    gyro_cov_rps: FloatArray | None = None,
     latitude_deg: float | None = None,
-    earth_rate_b_rps: np.ndarray | None = None,
+    earth_rate_b_rps: FloatArray | None = None,
 ) -> GyroGSensitivity:
     """``Bf`` and ``Bg`` of each gyro from the six positions (M4: ``W = Bf + Bg·a``).
 
@@ -371,7 +376,7 @@ def gyro_g_sensitivity(
     )
 
 
-def paper_rate_profile_rps(*, max_dps: float = 200.0, step_dps: float = 20.0) -> np.ndarray:
+def paper_rate_profile_rps(*, max_dps: float = 200.0, step_dps: float = 20.0) -> FloatArray:
     """Table rates in time order, rad/s: from rest up in steps to ``+max``, then down to ``−max`` (M4).
 
     ``0, 20, …, 200, 180, …, −200`` °/s for the defaults.
@@ -381,7 +386,8 @@ def paper_rate_profile_rps(*, max_dps: float = 200.0, step_dps: float = 20.0) ->
     n = round(max_dps / step_dps)
     up = np.arange(0, n + 1) * step_dps
     down = np.arange(n - 1, -n - 1, -1) * step_dps
-    return np.radians(np.concatenate([up, down]))
+    rates_rps: FloatArray = np.radians(np.concatenate([up, down]))
+    return rates_rps
 
 
 @dataclass(frozen=True)
@@ -403,11 +409,11 @@ class RateTableFit:
     axis: int
     scale_error: float
     bias_rps: float
-    cov: np.ndarray
-    cross_coupling: np.ndarray
-    residuals_rps: np.ndarray
+    cov: FloatArray
+    cross_coupling: FloatArray
+    residuals_rps: FloatArray
     nonlinearity: float
-    table_rate_rps: np.ndarray
+    table_rate_rps: FloatArray
 
     @property
     def scale_error_std(self) -> float:
@@ -415,11 +421,11 @@ class RateTableFit:
 
 
 def rate_table_fit(
-    table_rate_rps: np.ndarray,
-    gyro_mean_rps: np.ndarray,
+    table_rate_rps: FloatArray,
+    gyro_mean_rps: FloatArray,
     *,
     axis: int,
-    gyro_var_rps: np.ndarray | None = None,
+    gyro_var_rps: FloatArray | None = None,
 ) -> RateTableFit:
     """Scale factor of gyro ``axis`` by a linear fit over the rate steps (M4).
 
@@ -471,16 +477,16 @@ class RateSteps:
     """The rate steps found in a record: slices, mean (K, 3) and variance of the mean (K, 3) per step."""
 
     slices: tuple[slice, ...]
-    gyro_mean_rps: np.ndarray
-    gyro_var_rps: np.ndarray
+    gyro_mean_rps: FloatArray
+    gyro_var_rps: FloatArray
 
 
 def find_rate_steps(
-    t_s: np.ndarray,
-    gyro_rps: np.ndarray,
+    t_s: FloatArray,
+    gyro_rps: FloatArray,
     *,
     axis: int,
-    profile_rps: np.ndarray,
+    profile_rps: FloatArray,
     min_hold_s: float = 5.0,
 ) -> RateSteps:
     """The constant-rate steps of a rate-table record, matched in time order to ``profile_rps``.
@@ -608,8 +614,9 @@ def adis_like_model(*, quantization: bool = True) -> ErrorModel:
         ),
         WhiteNoise((0.05 * _DEG,) * 3),
     ]
-    if quantization:
+    if quantization and grade.accel.quant_step_si is not None:
         accel.append(Quantization((grade.accel.quant_step_si,) * 3))
+    if quantization and grade.gyro.quant_step_si is not None:
         gyro.append(Quantization((grade.gyro.quant_step_si,) * 3))
     return ErrorModel(accel=TriadErrorModel(tuple(accel)), gyro=TriadErrorModel(tuple(gyro)))
 
@@ -639,16 +646,17 @@ def six_position_spec(
     )
 
 
-def _effect(chain: TriadErrorModel, name: str, default):
-    e = chain.find(name)
+def _effect(chain: TriadErrorModel, default: _EffectT) -> _EffectT:
+    """The chain's effect of the class of ``default``, or ``default`` (its neutral value) if absent."""
+    e = chain.find(type(default))
     return default if e is None else e
 
 
-def quantizer_offset(chain: TriadErrorModel) -> np.ndarray:
+def quantizer_offset(chain: TriadErrorModel) -> FloatArray:
     """(3,) mean offset of averaged (dithered) quantized output: −step/2 for FLOOR, 0 for NEAREST."""
-    from estimators.sim import Rounding
+    from estimators.sim import Quantization, Rounding
 
-    q = chain.find("quantization")
+    q = chain.find(Quantization)
     if q is None or q.rounding is Rounding.NEAREST:
         return np.zeros(3)
     if q.rounding is Rounding.FLOOR:
@@ -658,7 +666,7 @@ def quantizer_offset(chain: TriadErrorModel) -> np.ndarray:
     )
 
 
-def accel_truth(model: ErrorModel) -> np.ndarray:
+def accel_truth(model: ErrorModel) -> FloatArray:
     """(3, 5) true six-position parameters (:data:`ACCEL_TERM_NAMES` order) of a simulator model.
 
     With unit sensitive axes ``s_i``, scale error ``e``, quadratic ``K2`` and
@@ -671,40 +679,41 @@ def accel_truth(model: ErrorModel) -> np.ndarray:
     from estimators.sim import Bias, NonOrthogonality, ScaleFactor, ScaleNonlinearity
 
     chain = model.accel
-    axes = _effect(chain, "non_orthogonality", NonOrthogonality()).axes
-    e = np.array(_effect(chain, "scale_factor", ScaleFactor()).scale_err)
-    k2 = np.array(_effect(chain, "scale_nonlinearity", ScaleNonlinearity()).k2_per_si)
-    b = np.array(_effect(chain, "bias", Bias()).bias_si) + quantizer_offset(chain)
+    axes = _effect(chain, NonOrthogonality()).axes
+    e = np.array(_effect(chain, ScaleFactor()).scale_err)
+    k2 = np.array(_effect(chain, ScaleNonlinearity()).k2_per_si)
+    b = np.array(_effect(chain, Bias()).bias_si) + quantizer_offset(chain)
     full = (1.0 + e)[:, None] * axes
     others = np.array([[full[i, j] for j in range(3) if j != i] for i in range(3)])
     return np.column_stack([b, np.diag(full) - 1.0, others, (1.0 + e) * k2])
 
 
-def gyro_truth(model: ErrorModel) -> tuple[np.ndarray, np.ndarray]:
+def gyro_truth(model: ErrorModel) -> tuple[FloatArray, FloatArray]:
     """True ``Bf`` (3,) rad/s (with the quantizer's mean offset) and ``Bg`` (3, 3) rad/s per m/s² of a simulator model."""
     from estimators.sim import Bias, GSensitivity
 
     chain = model.gyro
-    bias = np.array(_effect(chain, "bias", Bias()).bias_si) + quantizer_offset(chain)
-    gs = np.array(_effect(chain, "g_sensitivity", GSensitivity()).coef_rps_per_mps2)
+    bias = np.array(_effect(chain, Bias()).bias_si) + quantizer_offset(chain)
+    gs = np.array(_effect(chain, GSensitivity()).coef_rps_per_mps2)
     return bias, gs
 
 
-def rate_table_truth(model: ErrorModel) -> np.ndarray:
+def rate_table_truth(model: ErrorModel) -> FloatArray:
     """(3, 3) true slope of gyro ``i`` against a table rate about body axis ``j``: ``(1 + e_i) s_ij``."""
     from estimators.sim import NonOrthogonality, ScaleFactor
 
     chain = model.gyro
-    axes = _effect(chain, "non_orthogonality", NonOrthogonality()).axes
-    e = np.array(_effect(chain, "scale_factor", ScaleFactor()).scale_err)
-    return (1.0 + e)[:, None] * axes
+    axes = _effect(chain, NonOrthogonality()).axes
+    e = np.array(_effect(chain, ScaleFactor()).scale_err)
+    slopes: FloatArray = (1.0 + e)[:, None] * axes
+    return slopes
 
 
 def simulate_rate_table(
     model: ErrorModel,
     *,
     axis: int,
-    profile_rps: np.ndarray,
+    profile_rps: FloatArray,
     hold_s: float = 10.0,
     ramp_s: float = 1.0,
     rate_hz: float = 100.0,
@@ -776,7 +785,7 @@ def face_positions(positions: Sequence[Position]) -> tuple[Position, ...] | None
 
 def accel_vector_nine(
     positions: Sequence[Position], *, gravity_mps2: float
-) -> tuple[np.ndarray, np.ndarray, int] | None:
+) -> tuple[FloatArray, FloatArray, int] | None:
     """The passport's nine accelerometer parameters from the six faces among ``positions``
     (linear six-position fit, :func:`vector_to_nine`), with their (9, 9) covariance and the
     number of positions used; None without all six faces."""
@@ -809,8 +818,8 @@ class FullTurn:
     sign: float
     t_start_s: float
     t_end_s: float
-    integral_rad: np.ndarray
-    integral_var: np.ndarray
+    integral_rad: FloatArray
+    integral_var: FloatArray
 
     @property
     def angle_rad(self) -> float:
@@ -885,7 +894,7 @@ def gyro_nine_from_turns(
     *,
     turn_rad: float = FULL_TURN_RAD,
     reference_rps: float = EARTH_RATE_RPS,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+) -> tuple[FloatArray, FloatArray, BoolArray, tuple[str, ...]]:
     """The gyro triad's nine parameters from full turns and static means (docs/methods.md M4 → M1).
 
     A turn by ``θ`` about body axis ``j`` integrates to ``K·θ·k_j`` (``K`` the gyro

@@ -98,10 +98,14 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.session import ImuSession, Rejections
 
 SESSION_NOISE_FACTOR = 3.0
@@ -117,7 +121,7 @@ RATE_BOUND_FLOOR_RPS = 0.01
 rad/s) and a MEMS gyro's g-sensitivity (≈ 1e-3 rad/s), below any hand or fixture turn (≳ 0.1 rad/s)."""
 
 
-def _block_spreads(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+def _block_spreads(x: FloatArray, w: int) -> tuple[FloatArray, FloatArray]:
     """Spreads (root of the summed per-axis variances) and means (K, 3) of the K whole
     non-overlapping windows of ``w`` rows of ``x`` (N, 3); non-finite windows are left out."""
     k = x.shape[0] // w
@@ -270,6 +274,13 @@ class StaticInterval:
         return self.t_end_s - self.t_start_s
 
 
+def _required(x: FloatArray | None, name: str) -> FloatArray:
+    """The samples of a triad the detector was built with."""
+    if x is None:
+        raise ValueError(f"{name} is required: the detector was built with that triad")
+    return x
+
+
 class SwitchedRing:
     """Ring-buffer storage held as Python lists on the per-sample path and as a numpy array on the batch path.
 
@@ -282,30 +293,32 @@ class SwitchedRing:
 
     __slots__ = ("_array", "_dtype", "_lists")
 
-    def __init__(self, values: list, dtype: type = float) -> None:
-        self._lists: list | None = values
-        self._array: np.ndarray | None = None
+    def __init__(self, values: list[Any], dtype: type = float) -> None:
+        self._lists: list[Any] | None = values
+        self._array: NDArray[Any] | None = None
         self._dtype = dtype
 
-    def lists(self) -> list:
+    def lists(self) -> list[Any]:
         """The values as (nested) lists, for element access; valid until :meth:`array` is called."""
         if self._lists is None:
-            self._lists, self._array = self._array.tolist(), None
+            assert self._array is not None  # the values are held in exactly one of the two forms
+            lists: list[Any] = self._array.tolist()
+            self._lists, self._array = lists, None
+            return lists
         return self._lists
 
-    def array(self) -> np.ndarray:
+    def array(self) -> NDArray[Any]:
         """The values as an array, modified in place; valid until :meth:`lists` is called."""
         if self._array is None:
             self._array, self._lists = np.array(self._lists, dtype=self._dtype), None
         return self._array
 
-    def snapshot(self) -> list:
+    def snapshot(self) -> list[Any]:
         """A copy as (nested) lists, without switching paths (checkpoints)."""
-        return (
-            self._array.tolist()
-            if self._lists is None
-            else np.array(self._lists, dtype=self._dtype).tolist()
-        )
+        held = self._array if self._lists is None else np.array(self._lists, dtype=self._dtype)
+        assert held is not None  # the values are held in exactly one of the two forms
+        copy: list[Any] = held.tolist()
+        return copy
 
 
 @dataclass(frozen=True)
@@ -324,8 +337,8 @@ class FinalDecisions:
     """
 
     start: int
-    static: np.ndarray
-    brk: np.ndarray
+    static: BoolArray
+    brk: BoolArray
 
     @classmethod
     def empty(cls, start: int) -> FinalDecisions:
@@ -334,7 +347,8 @@ class FinalDecisions:
     @classmethod
     def from_steps(cls, start: int, steps: list[tuple[int, int, int, bool]]) -> FinalDecisions:
         """Join the per-call outputs ``(fin_lo, fin_split, fin_hi, fin_break)`` of consecutive calls (contiguous)."""
-        static, brk = [], []
+        static: list[bool] = []
+        brk: list[bool] = []
         end = int(start)
         for lo, split, hi, b in steps:
             if lo != end:
@@ -380,9 +394,9 @@ class StaticDetection:
     rate_hz : the nominal rate used (sets W and the gap limit).
     """
 
-    static: np.ndarray
-    accepted: np.ndarray
-    segment_start: np.ndarray
+    static: BoolArray
+    accepted: IntArray
+    segment_start: BoolArray
     intervals: tuple[StaticInterval, ...]
     short_runs: tuple[StaticInterval, ...]
     rejections: Rejections
@@ -394,7 +408,7 @@ class StaticDetection:
         return self.config.window_samples(self.rate_hz)
 
 
-def _accepted_mask(t: np.ndarray, values: list[np.ndarray]) -> tuple[np.ndarray, Rejections]:
+def _accepted_mask(t: FloatArray, values: list[FloatArray]) -> tuple[FloatArray, Rejections]:
     """Accepted samples: finite time and values, time later than the last accepted one."""
     rej = Rejections()
     # A row sum is non-finite iff some entry is (or the values overflow, which is no data either).
@@ -421,8 +435,8 @@ _CHUNK = 16384
 
 
 def _window_dev2(
-    x: np.ndarray, w: int, *, mean_norm2: bool = False, centre: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray | None]:
+    x: FloatArray, w: int, *, mean_norm2: bool = False, centre: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray | None]:
     """(M − W + 1,) summed squared deviations from the mean of the windows of ``w`` rows of ``x`` (M, 3).
 
     With ``mean_norm2`` also the squared norm of each window's mean minus ``centre``
@@ -513,6 +527,7 @@ def detect_static(
             )
             ok &= dev2 <= thr * thr * (w - 1)
             if rate is not None:
+                assert mean2 is not None  # asked for with mean_norm2
                 ok &= mean2 <= rate * rate
         quiet[w - 1 :] = ok
         # A window must lie in one segment: the first W − 1 samples of each segment end no full window.
@@ -540,7 +555,8 @@ def detect_static(
     jump_before[1:] = ~linked[:-1]
     firsts = np.flatnonzero(static_k & (~prev | seg_start | jump_before))
     lasts = np.flatnonzero(static_k & (~nxt | nxt_break | ~linked))
-    intervals, short_runs = [], []
+    intervals: list[StaticInterval] = []
+    short_runs: list[StaticInterval] = []
     for f, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
         iv = StaticInterval(
             int(acc[f]), int(acc[last]) + 1, float(tk[f]), float(tk[last]), last - f + 1
@@ -642,7 +658,7 @@ class StreamingStaticDetector:
         if last_t is not None and not t_s > last_t:
             self.rejections.add("non_monotonic_time", 1)
             return None
-        if not self._seg_open or t_s - last_t > self._gap_s:
+        if not self._seg_open or last_t is None or t_s - last_t > self._gap_s:
             if self._seg_open:
                 self._end_segment()
             self._start_segment(
@@ -753,7 +769,7 @@ class StreamingStaticDetector:
         return self._seg_open and self.n_accepted - self._seg_first >= self.window_samples
 
     def clean_batch(
-        self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None
+        self, t_s: FloatArray, accel_mps2: FloatArray | None, gyro_rps: FloatArray | None
     ) -> bool:
         """Whether every sample of the batch would be accepted into the open segment (no rejection, no gap).
 
@@ -763,11 +779,13 @@ class StreamingStaticDetector:
             return False
         chk = t_s.copy()
         if self.has_accel:
-            chk += (accel_mps2[:, 0] + accel_mps2[:, 1]) + accel_mps2[:, 2]
+            a = _required(accel_mps2, "accel_mps2")
+            chk += (a[:, 0] + a[:, 1]) + a[:, 2]
         else:
             chk += 0.0
         if self.has_gyro:
-            chk += (gyro_rps[:, 0] + gyro_rps[:, 1]) + gyro_rps[:, 2]
+            g = _required(gyro_rps, "gyro_rps")
+            chk += (g[:, 0] + g[:, 1]) + g[:, 2]
         else:
             chk += 0.0
         if not np.all(np.isfinite(chk)):
@@ -776,8 +794,8 @@ class StreamingStaticDetector:
         return bool(np.all(dt > 0.0) and not np.any(dt > self._gap_s))
 
     def update_batch(
-        self, t_s: np.ndarray, accel_mps2: np.ndarray | None, gyro_rps: np.ndarray | None
-    ):
+        self, t_s: FloatArray, accel_mps2: FloatArray | None, gyro_rps: FloatArray | None
+    ) -> tuple[BoolArray, dict[int, tuple[StaticInterval, bool]]]:
         """:meth:`update` over a clean batch in the steady state (:meth:`steady`, :meth:`clean_batch`), vectorized.
 
         Returns ``(static (N,) bool, closes)``: sample ``i`` finalizes the decision of
@@ -800,8 +818,11 @@ class StreamingStaticDetector:
         nc = len(chans)
         x = np.column_stack(
             [
-                v
-                for v, present in ((accel_mps2, self.has_accel), (gyro_rps, self.has_gyro))
+                _required(v, name)
+                for v, name, present in (
+                    (accel_mps2, "accel_mps2", self.has_accel),
+                    (gyro_rps, "gyro_rps", self.has_gyro),
+                )
                 if present
             ]
         )
@@ -849,7 +870,7 @@ class StreamingStaticDetector:
         self._s, self._q = s_arr.tolist(), q_arr.tolist()
         tail = np.arange(max(0, n - w), n)
         tail_pos = (c0 + tail) % w
-        buf[np.ix_(chans, tail_pos)] = y[tail].T
+        buf[np.ix_(np.asarray(chans), tail_pos)] = y[tail].T
 
         c = c0 + np.arange(n)
         j = c - w + 1
@@ -861,7 +882,7 @@ class StreamingStaticDetector:
         t_ext = np.concatenate([t_ring[old_pos], t_s])
         idx_new = self.n_input + np.arange(n)
         idx_ext = np.concatenate([idx_ring[old_pos], idx_new])
-        closes = {}
+        closes: dict[int, tuple[StaticInterval, bool]] = {}
         edges = np.flatnonzero(static[1:] != static[:-1]) + 1
         bounds = [0, *edges.tolist(), n]
         for a, b in itertools.pairwise(bounds):
@@ -877,7 +898,9 @@ class StreamingStaticDetector:
                 self._run_n += b - a
             elif self._run_open:
                 self._run_close()
-                closes[a] = (self.closed_run, self.closed_run_short)
+                closed = self.closed_run
+                assert closed is not None  # the open run was just closed
+                closes[a] = (closed, self.closed_run_short)
 
         t_ring[tail_pos], idx_ring[tail_pos] = t_s[tail], idx_new[tail]
         self.n_input += n
@@ -904,7 +927,7 @@ class StreamingStaticDetector:
             self._s[ch] = math.fsum(b)
             self._q[ch] = math.fsum(v * v for v in b)
 
-    def _start_segment(self, accel0, gyro0) -> None:
+    def _start_segment(self, accel0: Sequence[float], gyro0: Sequence[float]) -> None:
         self._seg_open = True
         self._seg_first = self.n_accepted
         self._x0 = [float(v) for v in (*accel0, *gyro0)]
@@ -964,7 +987,7 @@ class StreamingStaticDetector:
             self.closed_run if (self.closed_run is not None and not self.closed_run_short) else None
         )
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
         """Plain JSON-able state (config, rate and everything of the window) for checkpoints."""
         return {
             "config": asdict(self.config),
@@ -997,7 +1020,7 @@ class StreamingStaticDetector:
         }
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> StreamingStaticDetector:
+    def from_state_dict(cls, state: dict[str, Any]) -> StreamingStaticDetector:
         try:
             det = cls(
                 StaticDetectorConfig(**state["config"]),
@@ -1035,7 +1058,7 @@ class StreamingStaticDetector:
         return det
 
 
-def direction_change_deg(mean_a: np.ndarray, mean_b: np.ndarray) -> float:
+def direction_change_deg(mean_a: FloatArray, mean_b: FloatArray) -> float:
     """Angle between two mean specific-force vectors (3,), deg (atan2 form: exact at small angles)."""
     a = np.asarray(mean_a, dtype=float)
     b = np.asarray(mean_b, dtype=float)
@@ -1053,10 +1076,10 @@ class RotationIntegrator:
 
     __slots__ = ("bias_rps", "mark", "q")
 
-    def __init__(self, bias_rps=(0.0, 0.0, 0.0)) -> None:
+    def __init__(self, bias_rps: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
         self.reset(bias_rps)
 
-    def reset(self, bias_rps=(0.0, 0.0, 0.0)) -> None:
+    def reset(self, bias_rps: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
         self.bias_rps = tuple(float(v) for v in bias_rps)
         self.q = (1.0, 0.0, 0.0, 0.0)
         self.mark = self.q
@@ -1064,7 +1087,7 @@ class RotationIntegrator:
     def add(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
         self.add_many(((wx, wy, wz),), (dt_s,))
 
-    def add_many(self, rates_rps, dts_s) -> None:
+    def add_many(self, rates_rps: Iterable[Sequence[float]], dts_s: Iterable[float]) -> None:
         """:meth:`add` for each ``(wx, wy, wz)`` of ``rates_rps`` held over the matching ``dts_s``, in order."""
         bx, by, bz = self.bias_rps
         w, x, y, z = self.q
@@ -1089,7 +1112,7 @@ class RotationIntegrator:
         self.mark = self.q
 
     @staticmethod
-    def quaternion_angle_deg(q) -> float:
+    def quaternion_angle_deg(q: Sequence[float]) -> float:
         w, x, y, z = q
         return math.degrees(2.0 * math.atan2(math.sqrt(x * x + y * y + z * z), abs(w)))
 
@@ -1101,21 +1124,23 @@ class RotationIntegrator:
     def mark_angle_deg(self) -> float:
         return self.quaternion_angle_deg(self.mark)
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict[str, Any]:
         return {"bias_rps": list(self.bias_rps), "q": list(self.q), "mark": list(self.mark)}
 
     @classmethod
-    def from_state_dict(cls, state: dict) -> RotationIntegrator:
+    def from_state_dict(cls, state: dict[str, Any]) -> RotationIntegrator:
         try:
             r = cls(state["bias_rps"])
-            r.q = tuple(float(v) for v in state["q"])
-            r.mark = tuple(float(v) for v in state["mark"])
+            q = tuple(float(v) for v in state["q"])
+            mark = tuple(float(v) for v in state["mark"])
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"invalid RotationIntegrator state: {exc}") from None
-        if len(r.q) != 4 or len(r.mark) != 4 or len(r.bias_rps) != 3:
+        if len(q) != 4 or len(mark) != 4 or len(r.bias_rps) != 3:
             raise ValueError(
                 "invalid RotationIntegrator state: q and mark need 4 numbers, bias_rps 3"
             )
+        r.q = (q[0], q[1], q[2], q[3])
+        r.mark = (mark[0], mark[1], mark[2], mark[3])
         return r
 
 

@@ -101,8 +101,8 @@ class RecordedTemperature:
     extrapolation of a thermal history nobody measured).
     """
 
-    t_s: np.ndarray
-    temp_c: np.ndarray
+    t_s: FloatArray
+    temp_c: FloatArray
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_s, float)
@@ -118,8 +118,8 @@ class RecordedTemperature:
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "temp_c", temp)
 
-    def temp_c_at(self, t_s: np.ndarray) -> np.ndarray:
-        out: np.ndarray = np.interp(np.asarray(t_s, float), self.t_s, self.temp_c)
+    def temp_c_at(self, t_s: FloatArray) -> FloatArray:
+        out: FloatArray = np.interp(np.asarray(t_s, float), self.t_s, self.temp_c)
         return out
 
 
