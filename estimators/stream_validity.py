@@ -48,6 +48,10 @@ class ValidityLimits:
     cross_imu_gyro_rps : mean angular-rate disagreement limit, rad/s (default 5 °/s = 0.0873, ArduPilot).
     cross_imu_window_s : length of the time bins compared, s (default 0.5).
     cross_imu_persist_windows : consecutive disagreeing bins before a report (default 4, i.e. 2 s).
+    min_rate_hz, max_rate_hz : the plausible sample rates, Hz (default 0.5 to 10 kHz); a stream whose
+        measured rate lies outside is refused (:func:`plausible_rate_hz`): detector windows and
+        position buffers are sized in samples from the rate, so a rate from nonsense time stamps
+        (sub-microsecond spacing) would size them in the millions.
     """
 
     timeout_s: float = 0.5
@@ -58,6 +62,8 @@ class ValidityLimits:
     cross_imu_gyro_rps: float = float(np.radians(5.0))
     cross_imu_window_s: float = 0.5
     cross_imu_persist_windows: int = 4
+    min_rate_hz: float = 0.5
+    max_rate_hz: float = 10_000.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -65,6 +71,8 @@ class ValidityLimits:
             "cross_imu_accel_mps2",
             "cross_imu_gyro_rps",
             "cross_imu_window_s",
+            "min_rate_hz",
+            "max_rate_hz",
         ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
@@ -79,6 +87,26 @@ class ValidityLimits:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
         if not 0.0 < self.error_density_max < 1.0:
             raise ValueError(f"error_density_max must be in (0, 1), got {self.error_density_max!r}")
+        if not self.min_rate_hz < self.max_rate_hz:
+            raise ValueError(
+                f"min_rate_hz must be below max_rate_hz, got {self.min_rate_hz!r} and {self.max_rate_hz!r}"
+            )
+
+
+def plausible_rate_hz(t_s: FloatArray, limits: ValidityLimits) -> float | None:
+    """The sample rate of increasing time stamps, Hz, or None when it is not plausible.
+
+    The median spacing, so a few gaps or bunched samples do not move it; None when it lies
+    outside ``[limits.min_rate_hz, limits.max_rate_hz]`` or there are fewer than two stamps.
+    """
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    if t.size < 2:
+        return None
+    spacing_s = float(np.median(np.diff(t)))
+    if not (np.isfinite(spacing_s) and spacing_s > 0):
+        return None
+    rate_hz = 1.0 / spacing_s
+    return rate_hz if limits.min_rate_hz <= rate_hz <= limits.max_rate_hz else None
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -107,6 +108,7 @@ ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
 ALL_EVENTS = f"{ROOT}/*/health/events"
 ALL_STATUS = f"{ROOT}/*/health/status"
+_IMU_INDEX = re.compile(r"0|[1-9][0-9]{0,3}", re.ASCII)
 
 
 # ----------------------------------------------------------------------------- keys
@@ -142,11 +144,13 @@ def frame_selectors(vehicles: Iterable[str] | None = None) -> tuple[str, ...]:
 def parse_frame_key(key: str) -> tuple[str, int]:
     """``(vehicle, imu)`` of a concrete frame key; raises :class:`~protocols.frames.FrameError` (``key_mismatch``) otherwise."""
     parts = str(key).split("/")
+    # ASCII digits in canonical form only: str.isdigit() admits "²" (which int() refuses) and
+    # "٣" or "03" (which int() reads as 3), aliases that access-control rules on plain keys miss.
     if (
         len(parts) != 4
         or parts[0] != ROOT
         or parts[2] != "imu"
-        or not parts[3].isdigit()
+        or _IMU_INDEX.fullmatch(parts[3]) is None
         or int(parts[3]) > MAX_IMU_INDEX
     ):
         raise FrameError(Reason.KEY_MISMATCH, f"{key!r} is not a frame key ins/<vehicle>/imu/<n>")

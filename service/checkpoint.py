@@ -35,6 +35,14 @@ CREATE TABLE IF NOT EXISTS checkpoints (
     saved_unix_s REAL NOT NULL,
     payload BLOB NOT NULL
 );
+CREATE TABLE IF NOT EXISTS quarantined (
+    key TEXT NOT NULL,
+    version INTEGER,
+    saved_unix_s REAL,
+    payload BLOB,
+    moved_unix_s REAL NOT NULL,
+    reason TEXT NOT NULL
+);
 """
 
 
@@ -143,9 +151,38 @@ class CheckpointStore:
             )
         try:
             state = decode_state(bytes(payload))
-        except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        except (ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
             raise CheckpointError(f"checkpoint {key!r} cannot be decoded: {exc}") from exc
         return Checkpoint(key, float(saved), state)
+
+    def quarantine(self, key: str, reason: str, *, now_unix_s: float | None = None) -> None:
+        """Move the checkpoint of ``key`` aside (table ``quarantined``, with why), so the unit starts fresh.
+
+        The row is kept for inspection but never loaded again: a state that failed once would fail
+        on every later start.
+        """
+        stamp = time.time() if now_unix_s is None else float(now_unix_s)
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute(
+                    "INSERT INTO quarantined SELECT key, version, saved_unix_s, payload, ?, ? "
+                    "FROM checkpoints WHERE key = ?",
+                    (stamp, str(reason), key),
+                )
+                self._db.execute("DELETE FROM checkpoints WHERE key = ?", (key,))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+
+    def quarantined(self) -> list[tuple[str, str]]:
+        """``(key, reason)`` of every checkpoint moved aside, oldest first."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT key, reason FROM quarantined ORDER BY moved_unix_s, rowid"
+            ).fetchall()
+        return [(str(k), str(r)) for k, r in rows]
 
     def keys(self) -> list[str]:
         with self._lock:

@@ -327,9 +327,16 @@ class Service:
         try:
             cp = self._running().checkpoints.load(f"{vehicle}/{imu}")
         except CheckpointError as exc:
-            self._say(f"ins-health: {exc}; {vehicle} IMU{imu} starts fresh")
+            self._discard_checkpoint(vehicle, imu, str(exc))
             return None
         return None if cp is None else cp.state
+
+    def _discard_checkpoint(self, vehicle: str, imu: int, why: str) -> None:
+        self._running().checkpoints.quarantine(f"{vehicle}/{imu}", why)
+        self._say(
+            f"ins-health: checkpoint of {vehicle} IMU{imu} unusable ({why}); "
+            "moved aside to the quarantined table, the unit starts fresh"
+        )
 
     def _startup_scan(self) -> None:
         """Load every passport in the store and report the unusable ones (the other units start normally).
@@ -518,7 +525,7 @@ class Service:
                 resources.enter_context(CheckpointStore(cfg.checkpoint_path)),
                 _Wake({name: asyncio.Event() for name in names}),
             )
-            self.fleet.set_restore(self._restore)
+            self.fleet.set_restore(self._restore, self._discard_checkpoint)
             self._startup_scan()
             for key in run.checkpoints.keys():
                 # Units seen before the restart come back with their positions before their first frame.

@@ -85,6 +85,7 @@ from estimators.stream_validity import (
     StreamValidity,
     ValidityLimits,
     ValidityReport,
+    plausible_rate_hz,
 )
 from estimators.temperature import to_reference_temperature
 from protocols.events import (
@@ -530,9 +531,16 @@ class ImuPipeline:
             self._probe.append(good)
             if sum(b.n_samples for b in self._probe) < RATE_PROBE_SAMPLES:
                 return events
-            times = np.concatenate([b.t_s for b in self._probe])
-            det = self._setup(float(1.0 / np.median(np.diff(times))))
             batches, self._probe = self._probe, []
+            rate_hz = plausible_rate_hz(
+                np.concatenate([b.t_s for b in batches]), self.options.validity
+            )
+            if rate_hz is None:
+                # Counted, and the next frames probe afresh: a stream at an implausible rate
+                # never sizes the detector (ValidityLimits.min_rate_hz/max_rate_hz).
+                self._count("samples.rejected.implausible_rate", sum(b.n_samples for b in batches))
+                return events
+            det = self._setup(rate_hz)
             for b in batches:
                 events += self._temperature_range(b) + self._run(det, b)
             return events
@@ -997,7 +1005,13 @@ class ImuPipeline:
             )
         try:
             if state["rate_hz"] is not None:
-                det = self._setup(float(state["rate_hz"]))
+                rate_hz = float(state["rate_hz"])
+                limits = self.options.validity
+                if not limits.min_rate_hz <= rate_hz <= limits.max_rate_hz:
+                    raise ValueError(
+                        f"checkpoint of {self.vehicle} IMU{self.imu} has rate {rate_hz!r} Hz"
+                    )
+                det = self._setup(rate_hz)
                 det.accumulator = PositionAccumulator.from_state_dict(state["accumulator"])
                 det.gate = StaticGate.from_state(state["gate"])
             self.last_seq = state["last_seq"]
@@ -1108,13 +1122,23 @@ class FleetProcessor:
         self.vehicle_counters: dict[str, dict[str, int]] = {}
         self.service_counters: dict[str, int] = {}
         self._restore: Callable[[str, int], dict[str, Any] | None] | None = None
+        self._on_restore_error: Callable[[str, int, str], None] | None = None
         # (samples, counts, timed out) of each pipeline at the last checkpoint (changed_keys).
         self._saved: dict[tuple[str, int], tuple[int, int, bool]] = {}
         self._imu_count: dict[str, int] = {}
 
-    def set_restore(self, load: Callable[[str, int], dict[str, Any] | None]) -> None:
-        """Where new pipelines take their checkpointed state from (``None``: start fresh)."""
+    def set_restore(
+        self,
+        load: Callable[[str, int], dict[str, Any] | None],
+        on_error: Callable[[str, int, str], None] | None = None,
+    ) -> None:
+        """Where new pipelines take their checkpointed state from (``None``: start fresh).
+
+        A state the pipeline cannot resume from is discarded (the unit starts fresh) and
+        ``on_error(vehicle, imu, why)`` is told, so the caller can move it aside.
+        """
         self._restore = load
+        self._on_restore_error = on_error
 
     def count_service(self, name: str, n: int = 1) -> None:
         if n:
@@ -1156,11 +1180,13 @@ class FleetProcessor:
                 try:
                     pipe.load_state(state)
                     self.count_vehicle(vehicle, "checkpoints.restored")
-                except ValueError:
+                except Exception as exc:
                     pipe = ImuPipeline(
                         vehicle, imu, passport=passport, options=self.options, passport_note=note
                     )
                     self.count_vehicle(vehicle, "checkpoints.discarded")
+                    if self._on_restore_error is not None:
+                        self._on_restore_error(vehicle, imu, f"{type(exc).__name__}: {exc}")
         self.pipelines[(vehicle, imu)] = pipe
         self._imu_count[vehicle] = self._imu_count.get(vehicle, 0) + 1
         self.cross.setdefault(vehicle, CrossImuMonitor(limits=self.options.validity))

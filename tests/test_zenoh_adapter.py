@@ -129,6 +129,15 @@ def test_keys():
         "ins/a/b/imu/1",
         "ins/uav-1/imu/256",
         "ins/u$*/imu/1",
+        # Non-ASCII digits (int() refuses "²", reads "٣" and "３" as 3) and non-canonical forms
+        # would name an IMU past access-control rules written for plain keys.
+        "ins/uav-1/imu/²",
+        "ins/uav-1/imu/٣",
+        "ins/uav-1/imu/３",
+        "ins/uav-1/imu/03",
+        "ins/uav-1/imu/+1",
+        "ins/uav-1/imu/ 1",
+        "ins/uav-1/imu/",
     ):
         with pytest.raises(FrameError, match="key_mismatch"):
             parse_frame_key(bad)

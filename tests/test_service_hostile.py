@@ -1,0 +1,109 @@
+"""Hostile input against the real daemon and router processes: it keeps monitoring the healthy vehicles
+and says what happened (issue 15)."""
+
+from __future__ import annotations
+
+import dataclasses
+import sqlite3
+
+import numpy as np
+import pytest
+import zenoh
+from service_support import (
+    batches_of,
+    run_fleet,
+    wait_subscribed,
+    wait_until,
+    zenoh_client_config,
+    zenoh_router,
+)
+from test_service_faults import (
+    ServiceProcess,
+    Statuses,
+    offline_fleet,
+    publish_blocking,
+    put_store,
+    unit,
+    write_config,
+)
+
+from protocols.events import Predicate
+from protocols.frames import encode_frame
+from protocols.zenoh_adapter import EventReceiver, frame_key
+from service.checkpoint import CheckpointStore
+
+pytestmark = pytest.mark.network
+
+
+def test_poisoned_keys_rates_and_checkpoints_cost_only_their_unit(tmp_path):
+    """Before the start, two checkpoints that cannot be resumed (a rate of 1e300 Hz, undecodable bytes);
+    while running, a frame on a key whose IMU index is a superscript digit and a new IMU whose samples
+    are 1 ns apart. The daemon starts, moves both checkpoints aside and says so, counts both frames'
+    rejections on the status topic, delivers the healthy vehicle's F0 event, stops cleanly on SIGTERM,
+    and starts again."""
+    good, poisoned, stamps = "uav-h", "uav-q", "uav-s"
+    sc = unit()[2]
+    frames = list(batches_of(sc.session, vehicle=good, imu=0, batch_samples=100))
+    frames = [b for b in frames if b.t_s[-1] < sc.fault_s + 3.0]
+    expected = run_fleet(offline_fleet(), frames, finish=False)
+    assert [e.predicate for e in expected] == [Predicate.F0]
+    source = offline_fleet()
+    run_fleet(source, list(batches_of(sc.session, vehicle=poisoned, imu=0, batch_samples=100))[:30])
+    (tmp_path / "data").mkdir()
+    with CheckpointStore(tmp_path / "data" / "checkpoints.sqlite") as store:
+        store.save(
+            f"{poisoned}/0", {**source.pipelines[(poisoned, 0)].state_dict(), "rate_hz": 1e300}
+        )
+        store.save(f"{poisoned}/1", {"n": 1})
+    db = sqlite3.connect(tmp_path / "data" / "checkpoints.sqlite")
+    db.execute("UPDATE checkpoints SET payload = x'c1c1c1' WHERE key = ?", (f"{poisoned}/1",))
+    db.commit()
+    db.close()
+    hostile_rate = [
+        dataclasses.replace(b, vehicle=stamps, t_s=1e-9 * np.arange(b.n_samples) + 1e-7 * k)
+        for k, b in enumerate(frames[:20])
+    ]
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [(good, 0), (stamps, 0)]))
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
+            status = Statuses(ground)
+            got = []
+            with EventReceiver(
+                ground, lambda e: got.append(e.event_id) if e.vehicle == good else None
+            ):
+                first = ServiceProcess(config)
+                try:
+                    wait_subscribed(vehicle, frame_key(good, 0))
+                    superscript = dataclasses.replace(frames[0], vehicle="uav-x", imu=2)
+                    vehicle.put("ins/uav-x/imu/²", encode_frame(superscript))
+                    publish_blocking(vehicle, hostile_rate)
+                    publish_blocking(vehicle, frames)
+                    wait_until(lambda: got == [e.event_id for e in expected], timeout_s=60,
+                               what=lambda: f"the healthy vehicle's F0 event (got {got})")  # fmt: skip
+                    n_hostile = sum(b.n_samples for b in hostile_rate)
+                    wait_until(
+                        lambda: (
+                            status.counter(stamps, "imu0.samples.rejected.implausible_rate")
+                            == n_hostile
+                            and status.counter(good, "service.frames.rejected.key_mismatch") == 1
+                        ),
+                        timeout_s=30,
+                        what=lambda: f"the rejections on the status topic ({status.get(stamps)})",
+                    )
+                    assert status.counter(poisoned, "checkpoints.discarded") == 1
+                finally:
+                    code = first.terminate()
+            assert code == 0, first.lines
+            moved = [line for line in first.lines if "moved aside" in line]
+            assert len(moved) == 2 and any("1e+300" in line for line in moved), first.lines
+            with CheckpointStore(tmp_path / "data" / "checkpoints.sqlite") as store:
+                assert sorted(k for k, _ in store.quarantined()) == [
+                    f"{poisoned}/0",
+                    f"{poisoned}/1",
+                ]
+            second = ServiceProcess(config)
+            assert second.terminate() == 0
+            assert not any("moved aside" in line for line in second.lines), second.lines
