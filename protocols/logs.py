@@ -1,7 +1,11 @@
-"""Logged flights → :class:`~protocols.frames.SampleBatch`: MAVLink ``.tlog`` and ArduPilot DataFlash ``.bin`` / ``.log``.
+"""Logged flights → :class:`~protocols.frames.SampleBatch`: MAVLink ``.tlog``, ArduPilot DataFlash ``.bin`` / ``.log``, PX4 ULog.
 
-Reading (pymavlink does the parsing)
-------------------------------------
+Reading (pymavlink parses MAVLink and DataFlash; ULog: :mod:`protocols.ulog`)
+------------------------------------------------------------------------------
+The format is recognised from the content (:func:`detect_format`), never from
+the extension. A log with no IMU data raises :class:`NoImuDataError` naming the
+message types (topics) it does hold.
+
 * ``.tlog`` (a ground station's telemetry log: each record an 8-byte big-endian
   µs wall-clock stamp and one MAVLink packet): the IMU messages of
   :mod:`protocols.mavlink_adapter` (RAW_IMU, SCALED_IMU*, HIGHRES_IMU) with the
@@ -12,6 +16,12 @@ Reading (pymavlink does the parsing)
   ``TimeUS`` (µs; ``TimeMS`` in old logs) and temperature ``T`` (°C) when
   present. The IMU index is the instance field ``I`` when the format has one
   (current ArduPilot), otherwise the name (``IMU`` 0, ``IMU2`` 1, ``IMU3`` 2).
+  Text logs as the firmware writes them: header lines (firmware name, free
+  RAM, board) before the first ``FMT`` line, CRLF or LF. The per-sample ``ACC``
+  and ``GYR`` messages (instance ``I``, time ``SampleUS``) of an instance are
+  paired by time (:class:`protocols.ulog.NearestPairer`) into IMU
+  :data:`DATAFLASH_RAW_BASE` + ``I``. ``VIBE``'s clip counters give the
+  clipped samples per IMU.
 
 Output is deterministic: messages are taken in file order and each IMU's
 samples are cut into batches of ``batch_samples``, emitted as they fill (so
@@ -52,9 +62,12 @@ from protocols.mavlink_adapter import (
     imu_message,
     use_mavlink2,
 )
-from protocols.ulog import ULOG_MAGIC, ImuRows, UlogImuStream, session_triads
+from protocols.ulog import ULOG_MAGIC, ImuRows, NearestPairer, UlogImuStream, session_triads
 
 DATAFLASH_IMU_NAMES = ("IMU", "IMU2", "IMU3")
+DATAFLASH_RAW_BASE = 3
+"""IMU index of ``ACC``/``GYR`` instance 0 (instance ``I`` is ``3 + I``): after IMU, IMU2, IMU3."""
+_RAW_DTYPE = np.dtype([("timestamp_sample", "<u8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 _DF_HEAD = b"\xa3\x95"
 _DF_FMT_ID = 0x80
 _TEXT_HEAD_BYTES = 4096
@@ -149,10 +162,16 @@ _Sample = tuple[
 ]
 
 
-def _rows_from_samples(samples: Iterator[_Sample], flush: int) -> Iterator[ImuRows]:
-    """Blocks of rows from per-message samples, one IMU's block each time it has ``flush`` messages."""
+def _rows_from_samples(samples: Iterator[_Sample | ImuRows], flush: int) -> Iterator[ImuRows]:
+    """Blocks of rows from per-message samples, one IMU's block each time it has ``flush`` messages.
+
+    Rows the source has already built (paired ``ACC``/``GYR``) pass through.
+    """
     pending: dict[int, list[_Sample]] = {}
     for s in samples:
+        if isinstance(s, ImuRows):
+            yield s
+            continue
         block = pending.setdefault(s[1], [])
         block.append(s)
         if len(block) >= flush:
@@ -301,7 +320,7 @@ class LogReader:
         buf.seq += 1
         return batch
 
-    def _tlog_samples(self) -> Iterator[_Sample]:
+    def _tlog_samples(self) -> Iterator[_Sample | ImuRows]:
         # mavlogfile reads sequentially (flat memory) and, unlike mavutil.mavlink_connection's
         # mmap reader, parses nothing before use_mavlink2 has given it its own MAVLink 2 parser.
         conn = use_mavlink2(mavutil.mavlogfile(str(self.path), notimestamps=False))
@@ -321,7 +340,7 @@ class LogReader:
         finally:
             conn.close()
 
-    def _dataflash_samples(self) -> Iterator[_Sample]:
+    def _dataflash_samples(self) -> Iterator[_Sample | ImuRows]:
         reader_cls = (
             DFReader.DFReader_binary
             if self.format is LogFormat.DATAFLASH_BIN
@@ -331,12 +350,30 @@ class LogReader:
         self._fraction = lambda: reader.offset / max(reader.data_len, 1)
         self.stats.held = _dataflash_counts(reader)
         clip: dict[int, list[float]] = {}
+        raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]] = {}
+        pairs: dict[int, NearestPairer] = {}
         try:
-            while (msg := reader.recv_match(type=[*DATAFLASH_IMU_NAMES, "VIBE"])) is not None:
+            types = [*DATAFLASH_IMU_NAMES, "ACC", "GYR", "VIBE"]
+            while (msg := reader.recv_match(type=types)) is not None:
                 name = msg.get_type()
                 fields = msg.get_fieldnames()
                 if name == "VIBE":
                     _note_clipping(msg, fields, clip)
+                    continue
+                if name in ("ACC", "GYR"):
+                    # One triad per message, sampled at SampleUS: paired by time (protocols.ulog.NearestPairer).
+                    inst = int(msg.I) if "I" in fields else 0
+                    t_us = int(msg.SampleUS if "SampleUS" in fields else msg.TimeUS)
+                    prefix = "Acc" if name == "ACC" else "Gyr"
+                    xyz = (
+                        getattr(msg, prefix + "X"),
+                        getattr(msg, prefix + "Y"),
+                        getattr(msg, prefix + "Z"),
+                    )
+                    block = raw.setdefault((inst, name == "ACC"), [])
+                    block.append((t_us, *xyz))
+                    if len(block) >= _FLUSH_MESSAGES:
+                        yield from _pair_raw(raw, pairs, inst)
                     continue
                 imu = int(msg.I) if "I" in fields else DATAFLASH_IMU_NAMES.index(name)
                 t_s = msg.TimeUS * 1e-6 if "TimeUS" in fields else msg.TimeMS * 1e-3
@@ -349,9 +386,32 @@ class LogReader:
                     (msg.GyrX, msg.GyrY, msg.GyrZ),
                     temp,
                 )
+            for inst in sorted({i for i, _ in raw}):
+                yield from _pair_raw(raw, pairs, inst)
         finally:
             reader.close()
+        for inst, pairer in sorted(pairs.items()):
+            if pairer.unpaired_accel:
+                self.stats.skipped[f"ACC.{inst}"] = (
+                    f"{pairer.unpaired_accel} samples without a GYR sample near in time"
+                )
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
+
+
+def _pair_raw(
+    raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]],
+    pairs: dict[int, NearestPairer],
+    inst: int,
+) -> Iterator[ImuRows]:
+    """Hand the ``ACC``/``GYR`` messages gathered for instance ``inst`` to its pairer; the pairs it completes."""
+    pairer = pairs.setdefault(inst, NearestPairer("ACC+GYR", DATAFLASH_RAW_BASE + inst))
+    for is_accel in (True, False):
+        block = raw.pop((inst, is_accel), [])
+        if block:
+            pairer.add(is_accel, np.array(block, dtype=_RAW_DTYPE))
+    rows = pairer.paired()
+    if rows is not None and rows.t_s.size:
+        yield rows
 
 
 def _dataflash_counts(reader: Any) -> dict[str, int]:

@@ -282,9 +282,10 @@ class UlogImuStream:
                     self.contents, f"vehicle_imu.{multi_id}", _vehicle_imu_rows(rec, multi_id)
                 )
             elif name in ("sensor_accel", "sensor_gyro"):
-                state.pairs.setdefault(multi_id, _Pairer()).add(name, rec)
+                pairer = NearestPairer("sensor_accel+sensor_gyro", SENSOR_IMU_BASE + multi_id)
+                state.pairs.setdefault(multi_id, pairer).add(name == "sensor_accel", rec)
         for multi_id, pairer in sorted(state.pairs.items()):
-            paired = pairer.paired(multi_id)
+            paired = pairer.paired()
             if paired is not None:
                 rows += state.admitted(self.contents, f"sensor_accel.{multi_id}", paired)
         return rows
@@ -362,18 +363,28 @@ def _vehicle_imu_rows(rec: np.ndarray, multi_id: int) -> ImuRows:
 
 
 @dataclass
-class _Pairer:
-    """Pairs ``sensor_accel`` with ``sensor_gyro`` samples of one instance (module docstring)."""
+class NearestPairer:
+    """Pairs accelerometer with gyro samples of one IMU logged as two streams (module docstring).
 
+    Records are structured arrays with ``timestamp_sample`` (µs), ``x``, ``y``, ``z`` (SI) and,
+    optionally, ``temperature`` (°C, accelerometer) and ``clip_counter``; PX4's ``sensor_accel`` and
+    ``sensor_gyro`` are such records, and :mod:`protocols.logs` builds them from DataFlash ``ACC``/``GYR``.
+    Each accelerometer sample takes the gyro sample nearest in time within half the longer of
+    the two streams' median intervals; the others are counted in ``unpaired_accel``.
+    """
+
+    kind: str
+    imu: int
     accel: list[np.ndarray] = field(default_factory=list)
     gyro: list[np.ndarray] = field(default_factory=list)
     tol_s: float | None = None
     unpaired_accel: int = 0
 
-    def add(self, name: str, rec: np.ndarray) -> None:
-        (self.accel if name == "sensor_accel" else self.gyro).append(rec)
+    def add(self, is_accel: bool, rec: np.ndarray) -> None:
+        (self.accel if is_accel else self.gyro).append(rec)
 
-    def paired(self, multi_id: int) -> ImuRows | None:
+    def paired(self) -> ImuRows | None:
+        """The pairs complete so far (accelerometer samples later than the last gyro wait), or None."""
         if not self.accel or not self.gyro:
             return None
         acc, gyr = np.concatenate(self.accel), np.concatenate(self.gyro)
@@ -400,8 +411,8 @@ class _Pairer:
             temp = None  # NaN (no reading) or SITL's 0 °C in the block: no temperature for it
         clipped = _flag(a, "clip_counter") | _flag(g, "clip_counter")
         return ImuRows(
-            "sensor_accel+sensor_gyro",
-            SENSOR_IMU_BASE + multi_id,
+            self.kind,
+            self.imu,
             ta[ready][ok],
             np.column_stack([a["x"], a["y"], a["z"]]).astype(float),
             np.column_stack([g["x"], g["y"], g["z"]]).astype(float),
@@ -415,7 +426,7 @@ class _ImuState:
     selected_accel: int | None = None
     temp_by_device: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     last_temp: dict[int, tuple[float, float]] = field(default_factory=dict)
-    pairs: dict[int, _Pairer] = field(default_factory=dict)
+    pairs: dict[int, NearestPairer] = field(default_factory=dict)
     probes: dict[str, list[ImuRows]] = field(default_factory=dict)
     decided: dict[str, bool] = field(default_factory=dict)
 

@@ -345,3 +345,35 @@ def test_real_bin_clip_counters_and_what_it_holds():
     assert stats.sources == {0: "IMU", 1: "IMU2"}
     assert stats.held["VIBE"] == 23 and stats.held["PARM"] == 809 and stats.held["IMU"] == 45
     assert stats.clipped == {0: 0, 1: 0, 2: 0}  # VIBE Clip0..2 did not move in this second
+
+
+def test_acc_and_gyr_messages_are_paired_by_sample_time(tmp_path):
+    """ArduPilot's per-sample ACC and GYR (instance I, SampleUS): each accelerometer sample takes the
+    nearest gyro sample; the gyro here runs at twice the rate, 0.2 ms early."""
+    rng = np.random.default_rng(4)
+    lines = [
+        "FMT, 128, 89, FMT, BBnNZ, Type,Length,Name,Format,Columns",
+        "FMT, 130, 40, ACC, QBQfff, TimeUS,I,SampleUS,AccX,AccY,AccZ",
+        "FMT, 131, 40, GYR, QBQfff, TimeUS,I,SampleUS,GyrX,GyrY,GyrZ",
+    ]
+    n = 700  # more than one block of gathered messages
+    acc = {i: rng.normal([0, 0, -9.8], 0.1, (n, 3)) for i in (0, 1)}
+    gyr = {i: rng.normal(0, 0.01, (2 * n, 3)) for i in (0, 1)}
+    t_acc = 5_000_000 + 2_000 * np.arange(n)  # 500 Hz, µs
+    t_gyr = 4_999_800 + 1_000 * np.arange(2 * n)  # 1 kHz, 0.2 ms early
+    rows = [(t, "ACC", i, k) for i in (0, 1) for k, t in enumerate(t_acc)]
+    rows += [(t, "GYR", i, k) for i in (0, 1) for k, t in enumerate(t_gyr)]
+    for t, name, i, k in sorted(rows):
+        v = (acc if name == "ACC" else gyr)[i][k]
+        lines.append(f"{name}, {t + 100}, {i}, {t}, " + ", ".join(repr(float(x)) for x in v))
+    path = tmp_path / "raw.log"
+    path.write_text("\r\n".join(lines) + "\r\n")
+    back, stats = read_log_sessions(path)
+    assert sorted(back) == [3, 4] and stats.sources == {3: "ACC+GYR", 4: "ACC+GYR"}
+    assert stats.samples == {3: n, 4: n} and stats.skipped == {}
+    for i in (0, 1):
+        s = back[3 + i]
+        np.testing.assert_array_equal(s.t_s, t_acc * 1e-6)
+        np.testing.assert_array_equal(s.accel_mps2, acc[i])
+        # Accelerometer sample k at 2k ms: the nearest gyro sample is 2k (0.2 ms earlier; 2k + 1 is 0.8 ms later).
+        np.testing.assert_array_equal(s.gyro_rps, gyr[i][::2])
