@@ -18,8 +18,9 @@ import numpy as np
 
 from estimators.conventions import normal_gravity_mps2
 from estimators.session import ImuSession, Rejections, validate_session
-from protocols.session_file import LoadedSession, load_session
+from protocols.session_file import LoadedSession
 from service.cli import UsageError, add_output
+from service.session_args import load_units_checked
 
 if TYPE_CHECKING:
     from estimators.passport import Passport, TriadPassport
@@ -89,9 +90,13 @@ def gravity_from(
     )
 
 
-def load_valid(path: Path) -> tuple[LoadedSession, ImuSession, Rejections]:
-    """A session file, and its samples after validation (non-finite values and repeated or backward times dropped, counted)."""
-    loaded = load_session(path)
+def load_valid(
+    path: Path, args: argparse.Namespace
+) -> tuple[LoadedSession, ImuSession, Rejections]:
+    """A session file in SI (its units from ``args``' unit options or the file, refused when
+    implausible), and its samples after validation (non-finite values and repeated or backward
+    times dropped, counted)."""
+    loaded = load_units_checked(str(path), None, None, args)
     clean, rejected = validate_session(loaded.session)
     return loaded, clean, rejected
 

@@ -44,6 +44,7 @@ from service.method_args import (
     rejected_text,
     write_passport,
 )
+from service.session_args import add_unit_arguments
 
 if TYPE_CHECKING:
     from estimators.passport import TriadPassport
@@ -135,6 +136,7 @@ def register(subparsers) -> None:
         help="simulate the paper's chamber: −45…+75 °C, hidden 4th-order dependence",
     )
     m.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
+    add_unit_arguments(m)
     m.add_argument(
         "--static-s",
         type=float,
@@ -176,6 +178,7 @@ def _source_options(p: argparse.ArgumentParser, *, runs_default: int, session_he
         help=f"with --simulate: number of runs (default {runs_default})",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed of --simulate (default 0)")
+    add_unit_arguments(p)
 
 
 def _common_options(p: argparse.ArgumentParser) -> None:
@@ -253,7 +256,7 @@ def run_tilt(args: argparse.Namespace) -> int:
         angles = np.radians(np.arange(5.0, 65.0) if angles_deg is None else angles_deg)
         runs, lsbs, gravities, rates = [], [], [], []
         for path in args.session:
-            loaded, clean, dropped = load_valid(path)
+            loaded, clean, dropped = load_valid(path, args)
             add_rejections(rejected, dropped)
             try:
                 run, lsb = run_from_session(
@@ -453,7 +456,7 @@ def run_triad(args: argparse.Namespace) -> int:
         truth[0:3] += quantizer_offset(res.truth.model.accel) / res.truth.gravity_true_mps2
     else:
         for path in args.session:
-            loaded, clean, dropped = load_valid(path)
+            loaded, clean, dropped = load_valid(path, args)
             add_rejections(rejected, dropped)
             sessions.append((str(path), clean))
             file_gravity = file_gravity or loaded.gravity_mps2
@@ -552,7 +555,7 @@ def run_temperature(args: argparse.Namespace) -> int:
                 comments=("simulated chamber: six positions at -45..75 degC",),
             )
     else:
-        loaded, session, dropped = load_valid(args.session)
+        loaded, session, dropped = load_valid(args.session, args)
         add_rejections(rejected, dropped)
         g = gravity_from(args, file_gravity_mps2=loaded.gravity_mps2)
         if session.accel_mps2 is None:

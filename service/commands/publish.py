@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 
 from service.cli import UsageError
 from service.router_args import add_router_arguments, open_router_session
+from service.session_args import add_unit_arguments, load_units_checked
 
 if TYPE_CHECKING:
     import zenoh
@@ -81,6 +82,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="S",
         help="how long to wait for the daemon to subscribe to an IMU's frames, s (default 10)",
     )
+    add_unit_arguments(p)
     add_router_arguments(p)
     p.set_defaults(func=run)
 
@@ -107,9 +109,8 @@ def _log_batches(args: argparse.Namespace) -> Iterator[SampleBatch]:
 
 def _session_batches(args: argparse.Namespace) -> Iterator[SampleBatch]:
     from protocols.frames import split_session
-    from protocols.session_file import load_session
 
-    session = load_session(args.recording).session
+    session = load_units_checked(str(args.recording), None, None, args).session
     imu = 0 if args.imu is None else args.imu
     return split_session(session, vehicle=args.vehicle, imu=imu, batch_samples=args.batch)
 

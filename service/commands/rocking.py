@@ -21,6 +21,7 @@ import numpy as np
 from estimators.conventions import RPS_PER_DPH
 from service.cli import UsageError, add_output
 from service.method_args import emit
+from service.session_args import add_unit_arguments, load_units_checked
 
 if TYPE_CHECKING:
     from estimators.rocking import RockingResult, StandSettings
@@ -47,6 +48,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="simulate the paper's stand and unit (12.2°, 0.53 Hz, its δK)",
     )
+    add_unit_arguments(p)
     st = p.add_argument_group("stand")
     st.add_argument(
         "--amplitude-deg",
@@ -170,7 +172,7 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
     """The sessions to analyse and notes on how they were obtained."""
     from estimators.rocking import PAPER_DK, GyroUnit, paper_runs, simulate_runs
     from estimators.session import validate_session
-    from protocols.session_file import read_session, write_csv_session
+    from protocols.session_file import write_csv_session
 
     if args.simulate:
         rate_hz = 100.0 if args.rate_hz is None else args.rate_hz
@@ -223,7 +225,9 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
         raise UsageError(f"{', '.join(given)} only apply to --simulate")
     sessions, notes = [], []
     for path in args.log:
-        session, rejected = validate_session(read_session(path))
+        session, rejected = validate_session(
+            load_units_checked(str(path), None, None, args).session
+        )
         if session.gyro_rps is None:
             raise UsageError(f"{path}: no gyro columns gx, gy, gz (rad/s)")
         if rejected.total:
