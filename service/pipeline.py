@@ -474,9 +474,11 @@ class ImuPipeline:
             self.validity.record_rejected(self.last_batch_n), self.last_t_s or 0.0
         )
 
-    def process(self, batch: SampleBatch, *, arrival_s: float) -> list[Event]:
+    def process(self, batch: SampleBatch, *, arrival_s: float, frames: int = 1) -> list[Event]:
         """Run one frame through the chain; returns the events it raised (module docstring).
 
+        ``frames`` > 1: the batch joins that many consecutive clean frames, the
+        last one numbered ``batch.seq`` (:meth:`FleetProcessor.process_queued`).
         Afterwards :attr:`accepted` holds the samples that went in (None if none did).
         """
         self.accepted = None
@@ -501,11 +503,12 @@ class ImuPipeline:
                 )
             events += self._source_restart()
         self._restart_probe = []
-        if self.last_seq is not None and batch.seq > self.last_seq + 1:
-            self._count("frames.missing", batch.seq - self.last_seq - 1)
+        first_seq = batch.seq - frames + 1
+        if self.last_seq is not None and first_seq > self.last_seq + 1:
+            self._count("frames.missing", first_seq - self.last_seq - 1)
         self.last_seq = batch.seq
         keep = self._ordered(batch)
-        self._count("frames.accepted")
+        self._count("frames.accepted", frames)
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
         self._count("samples.rejected.out_of_order_or_non_finite", int((~keep).sum()))
@@ -545,6 +548,33 @@ class ImuPipeline:
                 events += self._temperature_range(b) + self._run(det, b)
             return events
         return events + self._temperature_range(good) + self._run(self.detection, good)
+
+    def joins(self, prev: SampleBatch | None, batch: SampleBatch) -> bool:
+        """Whether ``batch`` may join one batch with the frames before it (``prev``: the last of them; None: the first).
+
+        Only where joining changes nothing but the cost: the chain is set up and
+        in no timeout, error-density or restart episode, and the frame is finite,
+        in order, the next ``seq`` and within a time jump of the previous one, so
+        every per-frame check would have passed it. The chain itself (detector,
+        positions, F0, diagnosis) gives the same results however the stream is cut.
+        """
+        if self.detection is None or self.timed_out or self.error_dense or self._restart_probe:
+            return False
+        last_seq, last_t_s = (
+            (self.last_seq, self.last_t_s) if prev is None else (prev.seq, float(prev.t_s[-1]))
+        )
+        if prev is not None and (prev.temp_c is None) != (batch.temp_c is None):
+            return False
+        t = batch.t_s
+        return (
+            (last_seq is None or batch.seq == last_seq + 1)
+            and (last_t_s is None or last_t_s < t[0] <= last_t_s + self._jump_s())
+            and bool(np.all(np.diff(t) > 0))
+            and bool(np.isfinite(t).all())
+            and bool(np.isfinite(batch.accel_mps2).all())
+            and bool(np.isfinite(batch.gyro_rps).all())
+            and (batch.temp_c is None or bool(np.isfinite(batch.temp_c).all()))
+        )
 
     def _jump_s(self) -> float:
         """A step forward in sample time larger than this is a time jump (data lost or a clock step)."""
@@ -1125,7 +1155,7 @@ class FleetProcessor:
         self._on_restore_error: Callable[[str, int, str], None] | None = None
         # (samples, counts, timed out) of each pipeline at the last checkpoint (changed_keys).
         self._saved: dict[tuple[str, int], tuple[int, int, bool]] = {}
-        self._imu_count: dict[str, int] = {}
+        self._by_vehicle: dict[str, dict[int, ImuPipeline]] = {}
 
     def set_restore(
         self,
@@ -1161,7 +1191,7 @@ class FleetProcessor:
         if not known and len(self.vehicle_counters) >= self._max_vehicles:
             self.count_service("frames.over_vehicle_limit")
             return None
-        if known and self._imu_count.get(vehicle, 0) >= self._max_imus:
+        if known and len(self._by_vehicle.get(vehicle, {})) >= self._max_imus:
             self.count_vehicle(vehicle, "frames.over_imu_limit")
             return None
         self.vehicle_counters.setdefault(vehicle, {})
@@ -1188,7 +1218,7 @@ class FleetProcessor:
                     if self._on_restore_error is not None:
                         self._on_restore_error(vehicle, imu, f"{type(exc).__name__}: {exc}")
         self.pipelines[(vehicle, imu)] = pipe
-        self._imu_count[vehicle] = self._imu_count.get(vehicle, 0) + 1
+        self._by_vehicle.setdefault(vehicle, {})[imu] = pipe
         self.cross.setdefault(vehicle, CrossImuMonitor(limits=self.options.validity))
         return pipe
 
@@ -1198,22 +1228,70 @@ class FleetProcessor:
         if pipe is None:
             return []
         events = pipe.process(batch, arrival_s=arrival_s)
-        good = pipe.accepted
-        # Cross-IMU consistency needs a second IMU on the vehicle; until one appears there is nothing to compare.
-        if good is not None and self._imu_count.get(batch.vehicle, 0) > 1:
-            reports = self.cross[batch.vehicle].add(
-                batch.imu, good.t_s, good.accel_mps2, good.gyro_rps
-            )
-            for r in reports:
-                events.append(
-                    _cross_imu_event(
-                        batch.vehicle,
-                        r,
-                        self.options.validity,
-                        self._scalar_note(batch.vehicle, r.imu),
-                    )
-                )
+        if pipe.accepted is not None:
+            events += self._cross(pipe.accepted)
         return events
+
+    def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
+        """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
+
+        The chain's cost is mostly per batch, so a run of consecutive frames of
+        one IMU that :meth:`ImuPipeline.joins` goes through it as one batch
+        (the per-frame counters still count frames; the cross-IMU check still
+        takes them frame by frame; the scalar state an event of it describes
+        is the one at the end of the run). Every other frame is processed
+        alone. The frames of each IMU keep their order; IMUs are taken in order
+        of their first frame.
+        """
+        groups: dict[tuple[str, int], list[SampleBatch]] = {}
+        for b in batches:
+            groups.setdefault((b.vehicle, b.imu), []).append(b)
+        events: list[Event] = []
+        for key, group in groups.items():
+            i = 0
+            while i < len(group):
+                pipe = self.pipelines.get(key)
+                j = i + 1
+                if pipe is not None and pipe.joins(None, group[i]):
+                    while j < len(group) and pipe.joins(group[j - 1], group[j]):
+                        j += 1
+                if pipe is None or j == i + 1:
+                    events += self.process(group[i], arrival_s=arrival_s)
+                else:
+                    events += self._process_joined(pipe, group[i:j], arrival_s)
+                i = j
+        return events
+
+    def _process_joined(
+        self, pipe: ImuPipeline, run: list[SampleBatch], arrival_s: float
+    ) -> list[Event]:
+        last = run[-1]
+        joined = SampleBatch(
+            last.vehicle,
+            last.imu,
+            last.seq,
+            np.concatenate([b.t_s for b in run]),
+            np.concatenate([b.accel_mps2 for b in run]),
+            np.concatenate([b.gyro_rps for b in run]),
+            None if last.temp_c is None else np.concatenate([b.temp_c for b in run]),
+        )
+        events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
+        pipe.last_batch_n = last.n_samples
+        for b in run:
+            events += self._cross(b)
+        return events
+
+    def _cross(self, good: SampleBatch) -> list[Event]:
+        """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle)."""
+        if len(self._by_vehicle.get(good.vehicle, {})) < 2:
+            return []
+        reports = self.cross[good.vehicle].add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
+        return [
+            _cross_imu_event(
+                good.vehicle, r, self.options.validity, self._scalar_note(good.vehicle, r.imu)
+            )
+            for r in reports
+        ]
 
     def _scalar_note(self, vehicle: str, imu: int) -> str:
         pipe = self.pipelines.get((vehicle, imu))

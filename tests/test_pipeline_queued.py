@@ -1,0 +1,98 @@
+"""FleetProcessor.process_queued: queued frames taken together give what frame-by-frame processing gives."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+from service_support import batches_of
+
+from protocols.events import Event, Predicate
+from protocols.frames import SampleBatch
+from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
+from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
+
+V = DEMO_VEHICLE
+
+
+@functools.cache
+def unit():
+    return demo_passport()
+
+
+def fleet() -> FleetProcessor:
+    passport, g = unit()
+    return FleetProcessor(
+        passports=lambda v, i: passport,
+        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+    )
+
+
+def one_by_one(frames: list[SampleBatch]) -> tuple[list[Event], FleetProcessor]:
+    f = fleet()
+    events = []
+    for b in frames:
+        events += f.process(b, arrival_s=float(b.t_s[-1]))
+    return events, f
+
+
+def queued(frames: list[SampleBatch], seed: int) -> tuple[list[Event], FleetProcessor]:
+    """The frames in groups of 1…40, as a service that falls behind takes them off its queue."""
+    f = fleet()
+    rng = np.random.default_rng(seed)
+    events, k = [], 0
+    while k < len(frames):
+        group = frames[k : k + int(rng.integers(1, 41))]
+        events += f.process_queued(group, arrival_s=float(group[-1].t_s[-1]))
+        k += len(group)
+    return events, f
+
+
+def counters(f: FleetProcessor) -> dict:
+    return {key: dict(p.counters) for key, p in f.pipelines.items()}
+
+
+def test_the_faulty_demo_unit_gives_the_same_events_and_counters_in_queued_groups(monkeypatch):
+    """F0, positions and the diagnosis of the demo's fault, in frames of 20: same events, same counters."""
+    frames = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=20))
+    alone, f_alone = one_by_one(frames)
+    joined = []
+    process = ImuPipeline.process
+
+    def spy(self, batch, *, arrival_s, frames=1):
+        joined.append(frames)
+        return process(self, batch, arrival_s=arrival_s, frames=frames)
+
+    monkeypatch.setattr(ImuPipeline, "process", spy)
+    together, f_together = queued(frames, seed=1)
+    # Most frames went through the chain joined with others.
+    assert sum(n for n in joined if n > 1) > 0.9 * len(frames)
+    assert {e.predicate for e in alone} == {Predicate.F0, Predicate.F6}
+    assert sorted(together, key=lambda e: e.event_id) == sorted(alone, key=lambda e: e.event_id)
+    assert counters(f_together) == counters(f_alone)
+    a, b = f_alone.pipelines[(V, 0)], f_together.pipelines[(V, 0)]
+    assert (b.n_positions, b.last_seq, b.last_t_s) == (a.n_positions, a.last_seq, a.last_t_s)
+
+
+def test_irregular_frames_of_two_imus_are_taken_alone_and_counted_as_frame_by_frame():
+    """Lost, repeated, late, non-finite and time-jumping frames among two interleaved IMUs."""
+    sc = demo_scenario(fault_magnitude=0.0)
+    imu0 = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=20))[:900]
+    imu1 = [dataclasses.replace(b, imu=1) for b in imu0]
+    accel = imu0[300].accel_mps2.copy()
+    accel[5, 1] = np.nan
+    nan = dataclasses.replace(imu0[300], accel_mps2=accel)
+    jumped = [dataclasses.replace(b, t_s=b.t_s + 3.0) for b in imu0[501:]]
+    irregular = [*imu0[:200], *imu0[201:300], nan, *imu0[301:400], imu0[399], imu0[390]]
+    irregular += [*imu0[400:501], *jumped]
+    frames = [b for pair in zip(irregular, imu1, strict=False) for b in pair]
+    alone, f_alone = one_by_one(frames)
+    c = counters(f_alone)[(V, 0)]
+    assert c["frames.missing"] == 1 and c["frames.duplicate"] == 1 and c["time_jumps"] >= 1
+    assert c["frames.out_of_order"] == 1 and c["samples.rejected.out_of_order_or_non_finite"] == 1
+    # Several cuttings into groups: each irregular frame lands inside a group in some of them.
+    for seed in range(2, 8):
+        together, f_together = queued(frames, seed=seed)
+        assert sorted(together, key=lambda e: e.event_id) == sorted(alone, key=lambda e: e.event_id)
+        assert counters(f_together) == counters(f_alone), seed
