@@ -1338,15 +1338,16 @@ class FleetProcessor:
         self, vehicle: str, *, service: str, now_unix_s: float, extra: dict[str, int] | None = None
     ) -> Status:
         """The status message of one vehicle (its pipelines, its counters, the service-wide counters)."""
+        # The vehicle's own pipelines only: a status period costs the fleet's size, not its square.
+        pipes = [p for _, p in sorted(self._by_vehicle.get(vehicle, {}).items())]
         counters: dict[str, int] = {}
-        for (v, _), pipe in sorted(self.pipelines.items()):
-            if v == vehicle:
-                for name, n in pipe.counters.items():
-                    counters[f"imu{pipe.imu}.{name}"] = n
+        for pipe in pipes:
+            for name, n in pipe.counters.items():
+                counters[f"imu{pipe.imu}.{name}"] = n
         counters.update(self.vehicle_counters.get(vehicle, {}))
         counters.update({f"service.{k}": v for k, v in self.service_counters.items()})
         counters.update(extra or {})
-        imus = tuple(p.status() for (v, _), p in sorted(self.pipelines.items()) if v == vehicle)
+        imus = tuple(p.status() for p in pipes)
         return Status(
             vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus
         )
