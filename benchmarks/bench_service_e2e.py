@@ -6,7 +6,7 @@ the router, durable outbox with fsync), and this script as the vehicle (frame
 publisher) and the ground station (event receiver that acknowledges).
 
 * **Throughput** — one IMU at 1 kHz, 15 min of a resting unit in frames of
-  100 and of 1000 samples published as fast as the service takes them: at most
+  20, 100 and 1000 samples published as fast as the service takes them: at most
   :data:`IN_FLIGHT_SAMPLES` ahead of what the status topic (every 0.2 s) shows
   accepted, so the service's frame queue never overflows (a drop would be
   counted there and fails the run); samples/s = samples / (time from the first
@@ -14,7 +14,8 @@ publisher) and the ground station (event receiver that acknowledges).
   samples/s.
   Beside it, the pipeline alone (the same frames through
   :class:`~service.pipeline.FleetProcessor` in this process, no transport, no
-  decoding, no outbox).
+  decoding, no outbox), frame by frame and as the service takes a backlog off
+  its queue (``process_queued`` in groups of ``QUEUED_SAMPLES_MAX`` samples).
 * **Latency** — ``TRIALS`` vehicles, one after the other: 1.5 s of a resting
   unit then a +0.1 g z-bias fault, in frames of 20 samples published at the
   data rate. The frame that *completes* the fault is the one whose processing
@@ -60,15 +61,17 @@ from protocols.zenoh_adapter import (  # noqa: E402
     zenoh_config,
 )
 from protocols.zenoh_router import RouterProcess, free_local_port  # noqa: E402
+from service.daemon import QUEUED_SAMPLES_MAX  # noqa: E402
 from service.demo import demo_passport  # noqa: E402
 from service.passport_store import PassportStore  # noqa: E402
 from service.pipeline import FleetProcessor, PipelineOptions  # noqa: E402
 
 RATE_HZ = 1000.0
 THROUGHPUT_SAMPLES = 900_000
-THROUGHPUT_FRAMES = (100, 1000)
+THROUGHPUT_FRAMES = (20, 100, 1000)
 IN_FLIGHT_SAMPLES = 300_000
-"""Samples published ahead of those accepted: 1.5 s of the target rate, within the service's queue of 4096 frames."""
+QUEUE_FRAMES = 4096
+"""Samples published ahead of those accepted: 1.5 s of the target rate (and at most half the service's queue of :data:`QUEUE_FRAMES`)."""
 TRIALS = 60
 TRIAL_FRAME = 20
 ECHO_ROUNDS = 200
@@ -138,7 +141,7 @@ def main() -> None:
         for k, b in enumerate(frames_of(trial, "probe", TRIAL_FRAME))
         if offline.process(b, arrival_s=0.0)
     )
-    alone = {}
+    alone, queued = {}, {}
     for size in THROUGHPUT_FRAMES:
         fleet = FleetProcessor(passports=lambda v, i: passport, options=options)
         frames = frames_of(rest, "alone", size)
@@ -146,6 +149,13 @@ def main() -> None:
         for b in frames:
             fleet.process(b, arrival_s=0.0)
         alone[size] = rest.n_samples / (time.perf_counter() - t0)
+        # As the service takes a backlog off its queue: groups of QUEUED_SAMPLES_MAX samples.
+        fleet = FleetProcessor(passports=lambda v, i: passport, options=options)
+        per_group = max(1, QUEUED_SAMPLES_MAX // size)
+        t0 = time.perf_counter()
+        for k in range(0, len(frames), per_group):
+            fleet.process_queued(frames[k : k + per_group], arrival_s=0.0)
+        queued[size] = rest.n_samples / (time.perf_counter() - t0)
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -158,7 +168,7 @@ def main() -> None:
         config.write_text(
             f'[service]\ndata_dir = "{tmp / "data"}"\npassport_dir = "{store.root}"\nstatus_period_s = 0.2\n'
             f'[site]\ngravity_mps2 = {g!r}\n[zenoh]\nconnect = ["tcp/127.0.0.1:{port}"]\n'
-            "[validity]\ntimeout_s = 600.0\n[pipeline]\nqueue_capacity = 4096\nmax_vehicles = 1000\n"
+            f"[validity]\ntimeout_s = 600.0\n[pipeline]\nqueue_capacity = {QUEUE_FRAMES}\nmax_vehicles = 1000\n"
         )
         with RouterProcess(f"tcp/127.0.0.1:{port}"):
             service = subprocess.Popen([sys.executable, "-m", "service.cli", "run", "--config", str(config)], cwd=ROOT,
@@ -188,9 +198,11 @@ def main() -> None:
                         with FramePublisher(
                             vehicle, name, 0, congestion_control=zenoh.CongestionControl.BLOCK
                         ) as pub:
+                            # Never more frames ahead than half the service's queue holds.
+                            in_flight = min(IN_FLIGHT_SAMPLES, size * QUEUE_FRAMES // 2)
                             t0 = time.perf_counter()
                             for k, b in enumerate(frames):
-                                ahead = k * size - IN_FLIGHT_SAMPLES
+                                ahead = k * size - in_flight
                                 if accepted.get(name, 0) < ahead:
                                     wait(
                                         lambda: accepted.get(name, 0) >= ahead,
@@ -200,7 +212,10 @@ def main() -> None:
                                 pub.publish(b)
                             t_pub = time.perf_counter() - t0
                             wait(
-                                lambda: accepted.get(name, 0) >= rest.n_samples,
+                                lambda: (
+                                    accepted.get(name, 0) >= rest.n_samples
+                                    or dropped.get(name, 0) > 0
+                                ),
                                 600.0,
                                 "the throughput stream",
                             )
@@ -269,7 +284,8 @@ def main() -> None:
     for size, (rate, t_pub, t_all) in rates.items():
         print(
             f"    frames of {size:5d}: {rate / 1e3:7.1f} k samples/s end to end (published in {t_pub:.2f} s, "
-            f"all accepted after {t_all:.2f} s); pipeline alone {alone[size] / 1e3:7.1f} k samples/s"
+            f"all accepted after {t_all:.2f} s); pipeline alone {alone[size] / 1e3:7.1f} k samples/s frame by frame, "
+            f"{queued[size] / 1e3:7.1f} k queued"
         )
     print(
         f"  latency, frame completing a fault -> event received ({TRIALS} trials, frames of {TRIAL_FRAME} at 1 kHz):"
