@@ -295,6 +295,7 @@ class Service:
         self.mavlink_source: MavlinkSource | None = None
         self._reported: set[str] = set()
         self.events_stored = 0
+        self._taken: list[SampleBatch] = []
 
     @property
     def outbox(self) -> Outbox | None:
@@ -363,6 +364,8 @@ class Service:
             run.wake.set()
 
     def _on_reject(self, key: str, error: FrameError) -> None:
+        # A rejected frame counts against its IMU's stream after the frames received before it.
+        self._process_taken()
         try:
             vehicle, imu = parse_frame_key(key)
         except SchemaError:
@@ -385,16 +388,22 @@ class Service:
             return
         self._store(events)
 
+    def _process_taken(self) -> None:
+        """Process the frames taken off the queue so far (a rejection met while taking them comes after them)."""
+        taken, self._taken = self._taken, []
+        if taken:
+            self._process(taken)
+
     async def _frames(self, source: FrameSource) -> None:
         async for batch in source:
             # Frames already waiting (the service is behind) are taken together, up to a
             # budget of samples that bounds the delay of the last one: consecutive frames
             # of an IMU then cost the chain one batch (FleetProcessor.process_queued).
-            group, n = [batch], batch.n_samples
+            self._taken, n = [batch], batch.n_samples
             while n < QUEUED_SAMPLES_MAX and (more := source.get_nowait()) is not None:
-                group.append(more)
+                self._taken.append(more)
                 n += more.n_samples
-            self._process(group)
+            self._process_taken()
             # Let the delivery and status tasks run between groups.
             await asyncio.sleep(0)
 
