@@ -19,7 +19,7 @@ from estimators.audit import (
     fit_baselines,
     run_audit,
 )
-from estimators.audit.audit import TriadBaseline
+from estimators.audit.audit import TriadBaseline, triad_samples
 from estimators.audit.candidates import (
     VarianceData,
     fit_variance,
@@ -37,9 +37,10 @@ from estimators.audit.hidden import (
     session_of,
     trial,
 )
-from estimators.audit.statistics import position_table
+from estimators.audit.statistics import position_span, position_table
 from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import Triad
+from estimators.positions import Position
 from estimators.session import ImuSession
 from estimators.sim import (
     BiasDrift,
@@ -321,3 +322,15 @@ def test_report_of_an_unusable_session_states_why_and_draws_nothing(tmp_path):
     md = (tmp_path / "r" / "audit.md").read_text()
     assert "no cause can be concluded" in md and ".png" not in md
     assert not list((tmp_path / "r").glob("*.png"))
+
+
+def test_missing_triad_or_position_span_is_a_clear_error():
+    t = np.arange(4) * 0.01
+    accel_only = ImuSession(t, np.zeros((4, 3)), None)
+    assert triad_samples(accel_only, Triad.ACCEL).shape == (4, 3)
+    with pytest.raises(ValueError, match="no gyro samples"):
+        triad_samples(accel_only, Triad.GYRO)
+    found = Position(0.0, 1.0, 100, np.zeros(3), np.eye(3), None, None, None, 10, 110)
+    assert position_span(found) == (10, 110)
+    with pytest.raises(ValueError, match="without its sample span"):
+        position_span(Position(0.0, 1.0, 100, np.zeros(3), np.eye(3), None, None))

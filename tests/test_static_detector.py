@@ -127,6 +127,17 @@ def test_nan_sample_is_a_counted_rejection_that_leaves_the_state_alone():
     assert det.static_now
 
 
+def test_batch_without_a_triad_the_detector_has_is_a_clear_error():
+    det = StreamingStaticDetector(rate_hz=100.0)
+    for k in range(80):
+        det.update(0.01 * k, 0.0, 0.0, 9.8, 0.0, 0.0, 0.0)
+    t = 0.8 + 0.01 * np.arange(5)
+    with pytest.raises(ValueError, match="gyro_rps is required"):
+        det.clean_batch(t, np.tile([0.0, 0.0, 9.8], (5, 1)), None)
+    with pytest.raises(ValueError, match="accel_mps2 is required"):
+        det.update_batch(t, None, np.zeros((5, 3)))
+
+
 def test_one_triad_is_enough(mems_session):
     s = mems_session.session
     full = detect_static(s).intervals
