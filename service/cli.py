@@ -79,7 +79,8 @@ def _run(argv: list[str] | None) -> int:
     except BrokenPipeError:
         raise
     except (UsageError, ValueError, OSError) as exc:
-        print(f"ins-health {args.command}: {exc}", file=sys.stderr)
+        for line in str(exc).splitlines() or [""]:
+            print(f"ins-health {args.command}: {line}", file=sys.stderr)
         return 2
 
 

@@ -2,8 +2,12 @@
 
 ``ins-health run --config FILE.toml`` reads one file with the sections below;
 every key is optional and an unknown key is an error (a typo must not silently
-fall back to a default). ``deploy/ins-health.toml`` is a complete, commented
-example, loaded by the tests.
+fall back to a default). Every key is checked for its type and range before
+the service starts: :class:`ConfigError` carries one line per error (all type
+errors of the file, or when the types are right all range errors), and
+``ins-health run`` prints each and exits with status 2. Infinities and
+non-positive periods are refused. ``deploy/ins-health.toml`` is a complete,
+commented example, loaded by the tests.
 
 Sections
 --------
@@ -36,7 +40,31 @@ from protocols.zenoh_adapter import AckMode, Mode, ZenohSettings
 
 
 class ConfigError(ValueError):
-    """The configuration cannot be used; the message names the key and the value."""
+    """The configuration cannot be used; one line per error, each naming the key and the value."""
+
+    def __init__(self, *lines: str) -> None:
+        super().__init__("\n".join(lines))
+        self.lines = lines
+
+
+_BYTE_ID = (0, 255)
+_MAVLINK_LINK_KEYS: dict[str, tuple[type, tuple[int, int] | None]] = {
+    "device": (str, None),
+    "vehicle": (str, None),
+    "baud": (int, (1, 10_000_000)),
+    "source_system": (int, (1, 255)),
+    "source_component": (int, (1, 255)),
+    "autopilot_system": (int, (1, 255)),
+    "signing_link_id": (int, _BYTE_ID),
+    "accept_unsigned": (bool, None),
+    "signing_key_hex": (str, None),
+    "messages": (list, None),
+    "imu_index": (dict, None),
+    "raw_scale": (dict, None),
+}
+"""Type and range of each ``[mavlink]`` link key, checked before the link settings are built: a
+value of the wrong type must be refused, not compared (a string ``autopilot_system`` matched no
+system, so every IMU message was ignored)."""
 
 
 @dataclass(frozen=True)
@@ -226,6 +254,8 @@ def _coerce(where: str, kind: Any, value: Any, base_dir: Path) -> Any:
     if kind is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where} must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if kind is str:
         if not isinstance(value, str):
@@ -254,18 +284,66 @@ def _split_section(
     nested: str,
     parse: Callable[[dict[str, Any]], object],
     defaults: dict[str, Any],
+    check: Callable[[dict[str, Any]], list[str]],
 ) -> Any:
     """A section whose own keys are fields of ``cls`` and whose other keys configure a transport (``nested``)."""
     if not isinstance(raw, dict):
         raise ConfigError(f"[{name}] must be a table, got {raw!r}")
     own = {f.name for f in dataclasses.fields(cls)} - {nested}
     rest = {**defaults, **{k: v for k, v in raw.items() if k not in own}}
+    errors = list(check(rest))
+    settings = None
+    if not errors:
+        try:
+            settings = parse(rest)
+        except (ValueError, TypeError) as exc:
+            errors.append(f"[{name}] {exc}")
     try:
-        settings = parse(rest)
-    except (ValueError, TypeError) as exc:
-        raise ConfigError(f"[{name}] {exc}") from None
-    section = _build_section(name, cls, {k: v for k, v in raw.items() if k in own}, base_dir)
+        section = _build_section(name, cls, {k: v for k, v in raw.items() if k in own}, base_dir)
+    except ConfigError as exc:
+        errors += exc.lines
+    if errors:
+        raise ConfigError(*errors)
     return dataclasses.replace(section, **{nested: settings})
+
+
+def _zenoh_keys(table: dict[str, Any]) -> list[str]:
+    timeout = table.get("connect_timeout_s")
+    if isinstance(timeout, float) and not math.isfinite(timeout):
+        # "wait forever" is the absent key; an infinity reads like a number and hangs the start.
+        return [
+            f"[zenoh] connect_timeout_s must be a finite number >= 0 or absent, got {timeout!r}"
+        ]
+    return []
+
+
+def _mavlink_keys(table: dict[str, Any]) -> list[str]:
+    errors = []
+    for key, value in table.items():
+        if key not in _MAVLINK_LINK_KEYS:
+            continue  # unknown keys: the link settings name them
+        kind, bounds = _MAVLINK_LINK_KEYS[key]
+        wrong = isinstance(value, bool) != (kind is bool) or not isinstance(value, kind)
+        if wrong:
+            errors.append(f"[mavlink] {key} must be {kind.__name__}, got {value!r}")
+        elif bounds is not None and not bounds[0] <= value <= bounds[1]:
+            errors.append(f"[mavlink] {key} must be in {bounds[0]}..{bounds[1]}, got {value!r}")
+    scale = table.get("raw_scale")
+    if isinstance(scale, dict):
+        for key, value in scale.items():
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if not (number and math.isfinite(value) and value > 0):
+                errors.append(
+                    f"[mavlink] raw_scale.{key} must be a finite number > 0, got {value!r}"
+                )
+    index = table.get("imu_index")
+    if isinstance(index, dict):
+        for key, value in index.items():
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
+                errors.append(
+                    f"[mavlink] imu_index.{key} must be an integer in 0..255, got {value!r}"
+                )
+    return errors
 
 
 def _zenoh_section(raw: Any, base_dir: Path) -> ZenohSection:
@@ -274,14 +352,28 @@ def _zenoh_section(raw: Any, base_dir: Path) -> ZenohSection:
     if mode == Mode.CLIENT.value:
         defaults["connect"] = list(DEFAULT_ZENOH_SESSION.connect)
     return _split_section(
-        "zenoh", ZenohSection, raw, base_dir, "session", ZenohSettings.from_dict, defaults
+        "zenoh",
+        ZenohSection,
+        raw,
+        base_dir,
+        "session",
+        ZenohSettings.from_dict,
+        defaults,
+        _zenoh_keys,
     )
 
 
 def _mavlink_section(raw: Any, base_dir: Path) -> MavlinkSection:
     defaults = {"device": DEFAULT_MAVLINK_LINK.device, "vehicle": DEFAULT_MAVLINK_LINK.vehicle}
     return _split_section(
-        "mavlink", MavlinkSection, raw, base_dir, "link", MavlinkSettings.from_dict, defaults
+        "mavlink",
+        MavlinkSection,
+        raw,
+        base_dir,
+        "link",
+        MavlinkSettings.from_dict,
+        defaults,
+        _mavlink_keys,
     )
 
 
@@ -295,10 +387,15 @@ def _build_section(section: str, cls: type, raw: Any, base_dir: Path) -> Any:
     unknown = sorted(set(raw) - {f.name for f in dataclasses.fields(cls)})
     if unknown:
         raise ConfigError(f"[{section}] has unknown keys {unknown}; known: {sorted(hints)}")
-    values = {
-        name: _coerce(f"[{section}] {name}", hints[name], value, base_dir)
-        for name, value in raw.items()
-    }
+    values: dict[str, Any] = {}
+    errors: list[str] = []
+    for name, value in raw.items():
+        try:
+            values[name] = _coerce(f"[{section}] {name}", hints[name], value, base_dir)
+        except ConfigError as exc:
+            errors += exc.lines
+    if errors:
+        raise ConfigError(*errors)
     try:
         return cls(**values)
     except ValueError as exc:
@@ -311,15 +408,25 @@ def config_from_dict(raw: dict[str, Any], *, base_dir: Path | None = None) -> Se
     unknown = sorted(set(raw) - set(_SECTIONS))
     if unknown:
         raise ConfigError(f"unknown sections {unknown}; known: {sorted(_SECTIONS)}")
-    parts: dict[str, Any] = {
-        name: _NESTED[name](raw[name], base)
-        if name in _NESTED
-        else _build_section(name, cls, raw[name], base)
-        for name, cls in _SECTIONS.items()
-        if name in raw
-    }
+    parts: dict[str, Any] = {}
+    errors: list[str] = []
+    for name, cls in _SECTIONS.items():
+        if name not in raw:
+            continue
+        try:
+            parts[name] = (
+                _NESTED[name](raw[name], base)
+                if name in _NESTED
+                else _build_section(name, cls, raw[name], base)
+            )
+        except ConfigError as exc:
+            errors += exc.lines
+    if errors:
+        raise ConfigError(*errors)
     cfg = ServiceConfig(**parts)
-    _check(cfg)
+    errors = _check(cfg)
+    if errors:
+        raise ConfigError(*errors)
     return cfg
 
 
@@ -334,56 +441,55 @@ def load_config(path: str | Path) -> ServiceConfig:
     return config_from_dict(raw, base_dir=path.resolve().parent)
 
 
-def _positive(where: str, value: float) -> None:
+def _positive(errors: list[str], where: str, value: float) -> None:
     if not value > 0:
-        raise ConfigError(f"{where} must be > 0, got {value!r}")
+        errors.append(f"{where} must be > 0, got {value!r}")
 
 
-def _check(cfg: ServiceConfig) -> None:
+def _check(cfg: ServiceConfig) -> list[str]:
+    """Every range error of a typed configuration, one line each."""
+    errors: list[str] = []
     s, p, m, z = cfg.service, cfg.pipeline, cfg.mavlink, cfg.zenoh
     for vehicle in s.vehicles:
         try:
             check_vehicle(vehicle, error=SchemaError)
         except SchemaError as exc:
-            raise ConfigError(f"[service] vehicles: {exc}") from None
+            errors.append(f"[service] vehicles: {exc}")
     if not s.name:
-        raise ConfigError("[service] name must not be empty")
+        errors.append("[service] name must not be empty")
     for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
-        _positive(f"[service] {name}", getattr(s, name))
+        _positive(errors, f"[service] {name}", getattr(s, name))
     for name in ("queue_capacity", "max_imus_per_vehicle", "max_vehicles"):
-        _positive(f"[pipeline] {name}", getattr(p, name))
+        _positive(errors, f"[pipeline] {name}", getattr(p, name))
     if not 0.0 < p.false_alarm_probability < 0.5:
-        raise ConfigError(
+        errors.append(
             f"[pipeline] false_alarm_probability must be in (0, 0.5), got {p.false_alarm_probability!r}"
         )
     if not (math.isfinite(p.f0_persistence_s) and 0.0 <= p.f0_persistence_s <= 1.0):
-        raise ConfigError(
+        errors.append(
             f"[pipeline] f0_persistence_s must be in [0, 1] s, got {p.f0_persistence_s!r}"
         )
     if p.min_positions < 9:
-        raise ConfigError(
+        errors.append(
             f"[pipeline] min_positions must be >= 9 (nine parameters, M1), got {p.min_positions}"
         )
     g = cfg.site.local_gravity_mps2
     if not 9.7 < g < 9.9:
-        raise ConfigError(
-            f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)"
-        )
+        errors.append(f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)")
     for name in ("alert_min_interval_s", "alert_max_per_s", "heartbeat_period_s"):
-        _positive(f"[mavlink] {name}", getattr(m, name))
+        _positive(errors, f"[mavlink] {name}", getattr(m, name))
     try:
         check_vehicle(m.link.vehicle, error=SchemaError)
     except SchemaError as exc:
-        raise ConfigError(f"[mavlink] vehicle: {exc}") from None
+        errors.append(f"[mavlink] vehicle: {exc}")
     if not z.enabled and not m.enabled:
-        raise ConfigError(
-            "neither [zenoh] nor [mavlink] is enabled: the service would have no input"
-        )
+        errors.append("neither [zenoh] nor [mavlink] is enabled: the service would have no input")
     if z.enabled and not z.frames_key.startswith("ins/"):
-        raise ConfigError(
+        errors.append(
             f"[zenoh] frames_key must be under 'ins/' (ins/<vehicle>/imu/<n>), got {z.frames_key!r}"
         )
     if not z.ack_timeout_s > 0 or z.min_acks < 1:
-        raise ConfigError(
+        errors.append(
             f"[zenoh] needs ack_timeout_s > 0 and min_acks >= 1, got {z.ack_timeout_s!r} and {z.min_acks!r}"
         )
+    return errors

@@ -84,7 +84,38 @@ stale_run_samples = 50
             {"mavlink": {"signing_key_hex": "abcd"}},
             r"\[mavlink\] a MAVLink 2 signing key has 32 bytes",
         ),
-        ({"mavlink": {"source_component": 300}}, r"\[mavlink\] source_component must be in 0..255"),
+        ({"mavlink": {"source_component": 300}}, r"\[mavlink\] source_component must be in 1..255"),
+        # A string here matched no system id: every MAVLink IMU message was silently ignored.
+        (
+            {"mavlink": {"autopilot_system": "1"}},
+            r"\[mavlink\] autopilot_system must be int, got '1'",
+        ),
+        ({"mavlink": {"baud": 1.5}}, r"\[mavlink\] baud must be int"),
+        ({"mavlink": {"accept_unsigned": 1}}, r"\[mavlink\] accept_unsigned must be bool"),
+        (
+            {"mavlink": {"raw_scale": {"accel_mps2_per_lsb": -1.0}}},
+            r"raw_scale.accel_mps2_per_lsb must be a finite number > 0",
+        ),
+        (
+            {"mavlink": {"imu_index": {"SCALED_IMU2": "1"}}},
+            r"imu_index.SCALED_IMU2 must be an integer",
+        ),
+        (
+            {"service": {"status_period_s": float("inf")}},
+            r"\[service\] status_period_s must be a finite number",
+        ),
+        (
+            {"service": {"checkpoint_period_s": -30.0}},
+            r"\[service\] checkpoint_period_s must be > 0",
+        ),
+        (
+            {"zenoh": {"connect_timeout_s": float("inf")}},
+            r"\[zenoh\] connect_timeout_s must be a finite number",
+        ),
+        (
+            {"validity": {"max_rate_hz": float("nan")}},
+            r"\[validity\] max_rate_hz must be a finite number",
+        ),
         ({"mavlink": {"vehicle": "a/b"}}, r"\[mavlink\] vehicle"),
         ({"mavlink": {"alert_max_per_s": 0}}, r"alert_max_per_s must be > 0"),
         ({"validity": {"timeout_s": -1.0}}, r"\[validity\] timeout_s must be finite and > 0"),
@@ -93,6 +124,27 @@ stale_run_samples = 50
 def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
     with pytest.raises(ConfigError, match=match):
         config_from_dict(raw, base_dir=tmp_path)
+
+
+def test_every_error_is_reported_on_its_own_line(tmp_path, capsys):
+    """Three type mistakes in two sections: three lines from the loader, and from ``ins-health run`` three
+    lines on stderr and exit status 2 (an operator fixes them in one pass)."""
+    path = tmp_path / "svc.toml"
+    path.write_text(
+        '[service]\nstatus_period_s = "fast"\ndelivery_retry_s = inf\n'
+        '[mavlink]\nautopilot_system = "1"\n'
+    )
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert len(info.value.lines) == 3
+    assert str(info.value).splitlines() == list(info.value.lines)
+    from service.cli import main
+
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 3 and all(line.startswith("ins-health run: [") for line in err), err
+    assert any("autopilot_system" in line for line in err)
+    assert any("delivery_retry_s must be a finite number" in line for line in err)
 
 
 def test_invalid_toml_names_the_file(tmp_path):
