@@ -52,7 +52,8 @@ class CheckpointError(ValueError):
 
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
-        arr = np.ascontiguousarray(obj)
+        # Not ascontiguousarray: it turns a 0-d array into a 1-d one.
+        arr = obj if obj.flags.c_contiguous else obj.copy(order="C")
         if arr.dtype.hasobject:
             raise TypeError("object arrays cannot be checkpointed")
         header = msgpack.packb([arr.dtype.str, list(arr.shape)])
@@ -81,8 +82,11 @@ def encode_state(state: dict[str, Any]) -> bytes:
 
 
 def decode_state(payload: bytes) -> dict[str, Any]:
-    """The inverse of :func:`encode_state`."""
-    state = msgpack.unpackb(payload, ext_hook=_ext_hook, raw=False, strict_map_key=False)
+    """The inverse of :func:`encode_state`; raises :class:`CheckpointError` for any other bytes."""
+    try:
+        state = msgpack.unpackb(payload, ext_hook=_ext_hook, raw=False, strict_map_key=False)
+    except (ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
+        raise CheckpointError(f"not a checkpoint ({type(exc).__name__}: {exc})") from None
     if not isinstance(state, dict):
         raise CheckpointError(f"a checkpoint must decode to a dict, got {type(state).__name__}")
     return state
@@ -151,8 +155,8 @@ class CheckpointStore:
             )
         try:
             state = decode_state(bytes(payload))
-        except (ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
-            raise CheckpointError(f"checkpoint {key!r} cannot be decoded: {exc}") from exc
+        except CheckpointError as exc:
+            raise CheckpointError(f"checkpoint {key!r} cannot be decoded: {exc}") from None
         return Checkpoint(key, float(saved), state)
 
     def quarantine(self, key: str, reason: str, *, now_unix_s: float | None = None) -> None:
