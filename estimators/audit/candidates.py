@@ -267,6 +267,20 @@ def leverage_residual(design: FloatArray, data: FloatArray, sd: FloatArray) -> F
     return (z - a @ coef) * sd / np.sqrt(np.clip(1.0 - h, 1e-3, None))
 
 
+def leverage_components(design: FloatArray, sd: FloatArray, weight: FloatArray) -> FloatArray:
+    """(m, n) variance that per-datum excesses ``weight`` (m, n) leave in :func:`leverage_residual`'s output.
+
+    The fit takes in part of an excess that varies between data: of ``e_j`` (variance ``w_j``) the residual
+    ``k`` keeps ``Σ_j M_kj² w_j / sd_j²`` in weighted units (``M = I − H``), then the leverage scaling,
+    ``sd_k² / (1 − h_kk)``. Without this a fitted excess on one column leaves a pattern another column fits.
+    """
+    q, _ = np.linalg.qr(design / sd[:, None])
+    m = np.eye(sd.size) - q @ q.T
+    kept: FloatArray = np.einsum("kj,ij->ik", m**2, weight / sd**2) * sd**2
+    kept /= np.clip(np.diag(m), 1e-3, None)
+    return kept
+
+
 def _threshold(k: int, n_tests: int) -> float:
     return float(chi2.isf(FAMILY_ALPHA / max(n_tests, 1), k))
 
@@ -895,10 +909,11 @@ def _scalar_records(
     )
     out = _mean_candidates(effects, tests, triad, to_si, f"{triad.value} scalar residuals")
     # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
+    design = np.hstack([jac, chosen])
     between = VarianceData.finite(
-        leverage_residual(np.hstack([jac, chosen]), residual, sd)[:, None],
+        leverage_residual(design, residual, sd)[:, None],
         var0[:, None, None],
-        g_b2.T[:, :, None, None],
+        leverage_components(design, sd, g_b2.T)[:, :, None, None],
     )
     return out, between, _halves_record(tab, halves_mean, motion)
 

@@ -39,6 +39,7 @@ counts it named when the baseline found a grid on that triad.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -75,7 +76,13 @@ from estimators.sim import (
 from estimators.static_detector import StaticDetectorConfig
 
 from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines, triad_samples
-from .candidates import EARTH_RATE_VAR_NORM, Candidate, gauss_markov_moments
+from .candidates import (
+    EARTH_RATE_VAR_NORM,
+    Candidate,
+    gauss_markov_moments,
+    leverage_components,
+    mean_variance_factor,
+)
 from .statistics import MIN_POSITIONS, position_table, scalar_residuals
 
 GRAVITY_MPS2 = 9.80665
@@ -88,6 +95,10 @@ ACCEL_SD_MPS2 = 0.01
 GYRO_SD_RPS = 2.0e-3
 WOBBLE_BAND_HZ = (0.05, 0.5)
 TEMPERATURE = CycleTemperature(20.0, 40.0, 110.0)
+TAU_RANGE_S = (1.0, 4.0)
+"""Correlation times a hidden bias instability is drawn from, s (log-uniform; raised where its size needs it)."""
+SATURATION_SHARE = 0.8
+"""Largest size of a hidden bias instability, as a share of the most evidence its process can give."""
 
 HIDDEN_KINDS: tuple[tuple[str, Triad], ...] = (
     ("bias_drift", Triad.ACCEL),
@@ -276,29 +287,73 @@ def _clean_candidate(
     )
 
 
-def _gm_variance_for(
-    size: float, tau_s: float, session: ImuSession, chain: ChainResult, triad: Triad, i: int
-) -> float:
-    """Normalized σ² of a Gauss–Markov bias on axis ``i`` whose expected evidence is ``size²`` (module docstring)."""
+def gm_shares(
+    tau_s: float, session: ImuSession, chain: ChainResult, triad: Triad, i: int
+) -> Callable[[float], FloatArray]:
+    """The shares ``x_k(σ²)`` of a Gauss–Markov bias (normalized σ², correlation time ``τ``) on axis ``i`` in
+    the data of the bias-instability test: the scalar residuals (or gyro means), then the half-to-half differences.
+
+    Each datum's share ``x_k`` is what the test sees of the wander, not what the process holds:
+
+    * the noise reference (batch means over the session) takes in ``held_k = V(L/τ) − between_k``
+      of the process, so the reference of a datum is ``c_k + σ² w_k held_k``, not the effect-free ``c_k``;
+    * the baseline's fit absorbs part of the wander between positions: the test's datum is the
+      leverage residual ``(M z)_k / √(1 − h_kk)``, ``M = I − H`` of the baseline's design, so the
+      share is ``(M diag(d) M)_kk / (1 − h_kk)`` with ``d_k = σ² w_k between_k / reference_k``.
+    """
     baselines = fit_baselines(session, chain)
     tab = candidate_table(chain, session, triad, baselines[triad])
+    n = tab.n_samples.size
     if triad is Triad.ACCEL or baselines[triad].scalar_resolved:
-        _, sd, jac, _ = scalar_residuals(baselines[triad].params, tab)
-        weight, var0 = jac[:, i] ** 2, sd**2
+        _, sd, jac, grad = scalar_residuals(baselines[triad].params, tab)
+        weight, held_weight, var0, design = jac[:, i] ** 2, grad[:, i] ** 2, sd**2, jac
     else:
-        weight, var0 = (
-            np.ones(tab.n_samples.size),
-            tab.cov[:, i, i] + tab.grid_var[i] + EARTH_RATE_VAR_NORM,
-        )
+        weight = held_weight = np.ones(n)
+        var0 = tab.cov[:, i, i] + tab.grid_var[i] + EARTH_RATE_VAR_NORM
+        design = np.ones((n, 1))
     between, halves = gauss_markov_moments(tab.duration_s, tau_s, NOISE_WINDOW_S)
-    shares = np.concatenate([weight * between / var0, halves / (4.0 * tab.cov[:, i, i])])
+    held = np.clip(mean_variance_factor(tab.duration_s, tau_s) - between, 0.0, None)
 
-    def excess(log_var: float) -> float:
-        x = np.exp(log_var) * shares
-        return float(np.sum(x - np.log1p(x))) - size * size
+    def shares(var: float) -> FloatArray:
+        ref = var0 + var * held_weight * held
+        kept = leverage_components(design, np.sqrt(ref), (var * weight * between)[None])
+        x_between = kept[0] / ref
+        x_halves = var * halves / (4.0 * (tab.cov[:, i, i] + var * held))
+        return np.concatenate([x_between, x_halves])
 
-    top = np.log(1e4 * float(np.max(var0)))
-    return float(np.exp(brentq(excess, top - 60.0, top)))
+    return shares
+
+
+def _evidence(shares: Callable[[float], FloatArray], var: float) -> float:
+    x = shares(var)
+    return float(np.sum(x - np.log1p(x)))
+
+
+_VAR_BRACKET = (1e-30, 1e6)
+"""Normalized σ² searched: a MEMS gyro's position mean is ~1 Ω², a navigation accelerometer's ~1e-10 g²;
+the top is the saturated evidence."""
+
+
+def _gm_tau_and_variance(
+    size: float, tau_s: float, session: ImuSession, chain: ChainResult, triad: Triad, i: int
+) -> tuple[float, float]:
+    """(τ, normalized σ²) of a Gauss–Markov bias on axis ``i`` whose expected evidence is ``size²`` (module docstring).
+
+    The reference grows with σ² too, so the shares saturate at ``between/held`` and so does the evidence
+    (at most ~9 standard errors at τ = 1 s, ~15 at 2 s, ~22 at 4 s on a trial session); near that bound σ²
+    diverges. ``τ`` is raised, where needed, until ``size`` is at most :data:`SATURATION_SHARE` of the bound.
+    """
+    lo, hi = np.log(_VAR_BRACKET[0]), np.log(_VAR_BRACKET[1])
+
+    def room(log_tau: float) -> float:
+        shares = gm_shares(float(np.exp(log_tau)), session, chain, triad, i)
+        return SATURATION_SHARE**2 * _evidence(shares, _VAR_BRACKET[1]) - size * size
+
+    if room(np.log(tau_s)) < 0.0:
+        tau_s = float(np.exp(brentq(room, np.log(tau_s), np.log(1e3 * tau_s))))
+    shares = gm_shares(tau_s, session, chain, triad, i)
+    var = brentq(lambda v: _evidence(shares, float(np.exp(v))) - size * size, lo, hi)
+    return tau_s, float(np.exp(var))
 
 
 def hide(
@@ -349,8 +404,14 @@ def _hide(
     cand = _clean_candidate(session, chain, effect, triad, axis)
     ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS
     if effect == "bias_instability":
-        tau = float(np.exp(np.random.default_rng([seed, 1]).uniform(np.log(1.0), np.log(4.0))))
-        var = _gm_variance_for(size, tau, session, chain, triad, i)
+        tau = float(
+            np.exp(
+                np.random.default_rng([seed, 1]).uniform(
+                    np.log(TAU_RANGE_S[0]), np.log(TAU_RANGE_S[1])
+                )
+            )
+        )
+        tau, var = _gm_tau_and_variance(size, tau, session, chain, triad, i)
         sigma = np.zeros(3)
         sigma[i] = np.sqrt(var) * ref
         return HiddenEffect(
