@@ -20,10 +20,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# ruff (rules and their exceptions in pyproject.toml) and the formatter's check.
+# ruff (rules and their exceptions in pyproject.toml), the formatter's check, and mypy
+# (strict on estimators/ and protocols/, default on service/: pyproject.toml).
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 bench: $(STAMP)
 	for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

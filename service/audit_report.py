@@ -205,10 +205,10 @@ def _headline_plot(result: AuditResult, path: Path) -> bool:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for name, k in (("baseline", 0), ("extended", 1)):
         reps = result.replica_stats.get(name, {})
+        # The headline's records are those of the first triad with replicas.
+        first = next(iter(reps), None)
         vals = (
-            [r["chi2_per_dof"] for r in reps.get(next(iter(reps), None), []) if "chi2_per_dof" in r]
-            if reps
-            else []
+            [] if first is None else [r["chi2_per_dof"] for r in reps[first] if "chi2_per_dof" in r]
         )
         if vals:
             ax.hist(vals, bins=12, alpha=0.5, color=f"C{k}", label=f"{name} replicas")
