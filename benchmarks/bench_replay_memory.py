@@ -29,8 +29,8 @@ sys.path.insert(0, str(ROOT))
 from estimators.sim import Grade as SimGrade  # noqa: E402
 from estimators.sim import Hold, MotionProfile, SessionSpec, grade_error_model, simulate  # noqa: E402
 from estimators.sim.motion import eighteen_position_attitudes  # noqa: E402
+from protocols.checkpoint_codec import encode_state  # noqa: E402
 from protocols.frames import SampleBatch  # noqa: E402
-from service.checkpoint import encode_state  # noqa: E402
 from service.demo import DEMO_LATITUDE_DEG, demo_passport, handling_segments  # noqa: E402
 from service.pipeline import FleetProcessor, PipelineOptions  # noqa: E402
 

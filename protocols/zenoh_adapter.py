@@ -70,7 +70,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeAlias
 
 import numpy as np
 import zenoh
@@ -110,6 +110,12 @@ ALL_EVENTS = f"{ROOT}/*/health/events"
 ALL_STATUS = f"{ROOT}/*/health/status"
 _IMU_INDEX = re.compile(r"0|[1-9][0-9]{0,3}", re.ASCII)
 
+Session: TypeAlias = zenoh.Session
+"""An open Zenoh session (:func:`open_session`; a context manager that closes it)."""
+
+ZenohError = zenoh.ZError
+"""What Zenoh raises when an operation fails (e.g. a put on a session whose link is gone)."""
+
 
 # ----------------------------------------------------------------------------- keys
 
@@ -139,6 +145,13 @@ def frame_selectors(vehicles: Iterable[str] | None = None) -> tuple[str, ...]:
     if vehicles is None:
         return (ALL_FRAMES,)
     return tuple(f"{ROOT}/{check_vehicle(v, error=SchemaError)}/imu/*" for v in vehicles)
+
+
+def check_frames_selector(key_expr: str) -> str:
+    """A frame key expression a service instance may subscribe to: under ``ins/``; ``ValueError`` otherwise."""
+    if not key_expr.startswith(f"{ROOT}/"):
+        raise ValueError(f"must be under '{ROOT}/' ({ROOT}/<vehicle>/imu/<n>), got {key_expr!r}")
+    return key_expr
 
 
 def parse_frame_key(key: str) -> tuple[str, int]:

@@ -1,9 +1,8 @@
 """Checkpoints of the per-IMU estimator state, so a restart keeps its positions.
 
-A pipeline's ``state_dict()`` (plain dicts, lists, numbers, strings and numpy
-arrays) is encoded with msgpack, numpy arrays as an extension type that keeps
-dtype and shape exactly, and stored in SQLite (WAL, ``synchronous=FULL``) under
-the pipeline's key. One row per (vehicle, IMU): a checkpoint replaces the last
+A pipeline's ``state_dict()`` is encoded by :mod:`protocols.checkpoint_codec`
+(numpy arrays keep dtype and shape exactly) and stored in SQLite (WAL,
+``synchronous=FULL``) under the pipeline's key. One row per (vehicle, IMU): a checkpoint replaces the last
 one atomically, so a crash leaves either the old or the new state, never a mix.
 Each row carries a schema version; a row of another version is reported and
 ignored (the unit starts fresh) rather than fed to an estimator that would
@@ -19,14 +18,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import msgpack
-import numpy as np
-
 from protocols.atomic_file import private_file
+from protocols.checkpoint_codec import CheckpointError, decode_state, encode_state
 
 CHECKPOINT_SCHEMA_VERSION = 1
-
-_NDARRAY_EXT = 1
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS checkpoints (
@@ -44,52 +39,6 @@ CREATE TABLE IF NOT EXISTS quarantined (
     reason TEXT NOT NULL
 );
 """
-
-
-class CheckpointError(ValueError):
-    """A stored checkpoint cannot be used (version or content); the message says which and why."""
-
-
-def _default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        # Not ascontiguousarray: it turns a 0-d array into a 1-d one.
-        arr = obj if obj.flags.c_contiguous else obj.copy(order="C")
-        if arr.dtype.hasobject:
-            raise TypeError("object arrays cannot be checkpointed")
-        header = msgpack.packb([arr.dtype.str, list(arr.shape)])
-        return msgpack.ExtType(_NDARRAY_EXT, header + arr.tobytes())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, tuple):
-        return list(obj)
-    raise TypeError(f"cannot checkpoint a value of type {type(obj).__name__}")
-
-
-def _ext_hook(code: int, data: bytes) -> Any:
-    if code != _NDARRAY_EXT:
-        return msgpack.ExtType(code, data)
-    unpacker = msgpack.Unpacker(raw=False)
-    unpacker.feed(data)
-    dtype_str, shape = unpacker.unpack()
-    offset = unpacker.tell()
-    return np.frombuffer(data[offset:], dtype=np.dtype(dtype_str)).reshape(shape).copy()
-
-
-def encode_state(state: dict[str, Any]) -> bytes:
-    """msgpack bytes of a state dict (numpy arrays kept with dtype and shape)."""
-    payload: bytes = msgpack.packb(state, default=_default, use_bin_type=True, strict_types=False)
-    return payload
-
-
-def decode_state(payload: bytes) -> dict[str, Any]:
-    """The inverse of :func:`encode_state`; raises :class:`CheckpointError` for any other bytes."""
-    try:
-        state = msgpack.unpackb(payload, ext_hook=_ext_hook, raw=False, strict_map_key=False)
-    except (ValueError, TypeError, KeyError, msgpack.UnpackException) as exc:
-        raise CheckpointError(f"not a checkpoint ({type(exc).__name__}: {exc})") from None
-    if not isinstance(state, dict):
-        raise CheckpointError(f"a checkpoint must decode to a dict, got {type(state).__name__}")
-    return state
 
 
 @dataclass(frozen=True)

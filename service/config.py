@@ -36,7 +36,13 @@ from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
 from estimators.stream_validity import ValidityLimits
 from protocols._schema import SchemaError, check_vehicle
 from protocols.mavlink_adapter import MavlinkSettings
-from protocols.zenoh_adapter import AckMode, Mode, ZenohSettings
+from protocols.zenoh_adapter import (
+    ALL_FRAMES,
+    AckMode,
+    Mode,
+    ZenohSettings,
+    check_frames_selector,
+)
 
 
 class ConfigError(ValueError):
@@ -140,7 +146,7 @@ class ZenohSection:
     """
 
     enabled: bool = True
-    frames_key: str = "ins/*/imu/*"
+    frames_key: str = ALL_FRAMES
     event_ack: AckMode = AckMode.RECEIVER
     ack_timeout_s: float = 1.0
     min_acks: int = 1
@@ -484,10 +490,11 @@ def _check(cfg: ServiceConfig) -> list[str]:
         errors.append(f"[mavlink] vehicle: {exc}")
     if not z.enabled and not m.enabled:
         errors.append("neither [zenoh] nor [mavlink] is enabled: the service would have no input")
-    if z.enabled and not z.frames_key.startswith("ins/"):
-        errors.append(
-            f"[zenoh] frames_key must be under 'ins/' (ins/<vehicle>/imu/<n>), got {z.frames_key!r}"
-        )
+    if z.enabled:
+        try:
+            check_frames_selector(z.frames_key)
+        except ValueError as exc:
+            errors.append(f"[zenoh] frames_key {exc}")
     if not z.ack_timeout_s > 0 or z.min_acks < 1:
         errors.append(
             f"[zenoh] needs ack_timeout_s > 0 and min_acks >= 1, got {z.ack_timeout_s!r} and {z.min_acks!r}"

@@ -46,12 +46,12 @@ from dataclasses import dataclass
 from typing import Any, Protocol, TextIO
 
 import numpy as np
-import zenoh
 
 from estimators.conventions import Triad
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from protocols._schema import SchemaError
+from protocols.checkpoint_codec import encode_state
 from protocols.events import (
     Event,
     EventCause,
@@ -66,17 +66,19 @@ from protocols.zenoh_adapter import (
     AckMode,
     EventPublisher,
     FrameSource,
+    Session,
     StatusPublisher,
+    ZenohError,
     open_session,
     parse_frame_key,
 )
-from service.checkpoint import CheckpointError, CheckpointStore, encode_state
+from service.checkpoint import CheckpointError, CheckpointStore
 from service.config import ServiceConfig
 from service.outbox import Outbox
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
 
-TRANSPORT_ERRORS = (zenoh.ZError, OSError, ConnectionError, ValueError)
+TRANSPORT_ERRORS = (ZenohError, OSError, ConnectionError, ValueError)
 """What a transport raises when its link is gone: zenoh errors, socket errors, and pymavlink's
 ``ValueError`` for a write on a closed port. The event stays in the outbox and is retried."""
 DRAIN_TIMEOUT_S = 5.0
@@ -98,9 +100,7 @@ class ZenohEventSink:
 
     name = "zenoh"
 
-    def __init__(
-        self, session: zenoh.Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int
-    ):
+    def __init__(self, session: Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
         self._publisher = EventPublisher(
             session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
         )

@@ -36,7 +36,6 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
-import zenoh
 
 from estimators.chain import ChainConfig, run_chain
 from estimators.conventions import Grade, Triad, reference_magnitude
@@ -61,10 +60,9 @@ from protocols.zenoh_adapter import (
     FramePublisher,
     Mode,
     ZenohSettings,
-    frame_key,
     open_router,
+    open_session,
     subscribe_status,
-    zenoh_config,
 )
 from protocols.zenoh_router import free_local_port
 from service.config import config_from_dict
@@ -314,14 +312,14 @@ async def run_demo(
             screen.line(f"[{event.t_s:7.2f} s] {event.severity.name:<8s} {event.text}")
 
         with (
-            zenoh.open(zenoh_client_config(port)) as ground,
-            zenoh.open(zenoh_client_config(port)) as vehicle,
+            open_session(_client_settings(port)) as ground,
+            open_session(_client_settings(port)) as vehicle,
         ):
             receiver = EventReceiver(ground, on_event)
             status_sub = subscribe_status(ground, lambda s: latest.__setitem__("status", s))
-            await _wait_route(vehicle, frame_key(DEMO_VEHICLE, 0))
-            wall0 = time.monotonic()
             with FramePublisher(vehicle, DEMO_VEHICLE, 0, batch_samples=DEMO_FRAME_SAMPLES) as pub:
+                await _wait_matched(pub)
+                wall0 = time.monotonic()
                 s = sc.session
                 accel, gyro = s.accel_mps2, s.gyro_rps
                 if accel is None or gyro is None:
@@ -354,22 +352,20 @@ async def run_demo(
     return _summary(screen, sc, events)
 
 
-def zenoh_client_config(port: int) -> zenoh.Config:
+def _client_settings(port: int) -> ZenohSettings:
     """A client session of the demo's router (no multicast scouting)."""
-    return zenoh_config(ZenohSettings(mode=Mode.CLIENT, connect=(f"tcp/127.0.0.1:{port}",)))
+    return ZenohSettings(mode=Mode.CLIENT, connect=(f"tcp/127.0.0.1:{port}",))
 
 
-async def _wait_route(session, key: str, timeout_s: float = 10.0) -> None:
+async def _wait_matched(pub: FramePublisher, timeout_s: float = 10.0) -> None:
     """Wait until the service's frame subscription is known to the vehicle's session."""
-    pub = session.declare_publisher(key)
-    try:
-        deadline = time.monotonic() + timeout_s
-        while not pub.matching_status.matching:
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"the service did not subscribe to {key} within {timeout_s} s")
-            await asyncio.sleep(0.05)
-    finally:
-        pub.undeclare()
+    deadline = time.monotonic() + timeout_s
+    while not pub.matched:
+        if time.monotonic() > deadline:
+            raise RuntimeError(
+                f"the service did not subscribe to the frames of {pub.vehicle} IMU{pub.imu} within {timeout_s} s"
+            )
+        await asyncio.sleep(0.05)
 
 
 def _progress_text(sc: DemoScenario, t_s: float, status) -> str:

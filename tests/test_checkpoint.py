@@ -7,7 +7,8 @@ import sqlite3
 import numpy as np
 import pytest
 
-from service.checkpoint import CheckpointError, CheckpointStore, decode_state, encode_state
+from protocols.checkpoint_codec import decode_state, encode_state
+from service.checkpoint import CheckpointError, CheckpointStore
 
 
 def test_state_round_trip_keeps_dtype_shape_and_values():

@@ -8,9 +8,10 @@ import json
 import pytest
 
 from protocols.passport_codec import write_passport_json
+from protocols.passport_entry import passport_checksum
 from service.cli import main
 from service.demo import demo_passport
-from service.passport_store import PassportStore, PassportStoreError, passport_checksum
+from service.passport_store import PassportStore, PassportStoreError
 
 
 @functools.cache

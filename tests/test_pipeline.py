@@ -12,8 +12,8 @@ from service_support import batches_of, run_fleet
 from estimators.conventions import Triad
 from estimators.passport import TemperatureModel
 from estimators.sim import CycleTemperature, TemperatureBias, WarmupTemperature, simulate
+from protocols.checkpoint_codec import decode_state, encode_state
 from protocols.events import ImuState, Predicate, Severity, StreamCause
-from service.checkpoint import decode_state, encode_state
 from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
 from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
 

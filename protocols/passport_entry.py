@@ -1,0 +1,148 @@
+"""The passport store's files: one checksummed, versioned JSON entry per (vehicle, IMU).
+
+Layout: ``<root>/<vehicle>/imu<n>.passport.json``. Each file is a JSON
+*entry*::
+
+    {"type": "ins.health.passport-entry", "entry_version": 1,
+     "vehicle": "uav-7", "imu": 0,
+     "sha256": "<hex digest of the canonical JSON of the passport>",
+     "passport": { ...estimators.passport.Passport.to_dict()... }}
+
+* **Atomic writes** (:mod:`protocols.atomic_file`): a reader sees the old entry
+  or the new one, never a torn file, even across a power cut.
+* **Checksums**: SHA-256 over the canonical JSON of the passport map (sorted
+  keys, no spaces), so a flipped bit or a hand edit that bypassed the store
+  is caught before any number reaches the diagnosis.
+* **Schema versions**: the entry has its own version; the passport inside
+  carries its ``schema_version`` and is validated by
+  :meth:`estimators.passport.Passport.from_dict` (a newer version is a
+  :class:`~estimators.passport.PassportVersionError` with a hint).
+
+An unusable entry raises :class:`PassportEntryError` with a one-line reason;
+:mod:`service.passport_store` names the unit and the file around it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+from estimators.passport import Passport, PassportError
+from protocols._schema import MAX_IMU_INDEX, SchemaError, check_imu, check_vehicle
+from protocols.atomic_file import atomic_write_bytes
+
+ENTRY_TYPE = "ins.health.passport-entry"
+ENTRY_VERSION = 1
+SUPPORTED_ENTRY_VERSIONS = (1,)
+MAX_ENTRY_BYTES = 1 << 20
+_FILE_RE = re.compile(r"^imu(\d{1,3})\.passport\.json$")
+
+
+class PassportEntryError(ValueError):
+    """An entry that cannot be used; the message is the reason (``missing: …``, ``corrupt: …``, …)."""
+
+
+def entry_path(root: Path, vehicle: str, imu: int) -> Path:
+    """Where the entry of (vehicle, IMU) lives under ``root``; ``ValueError`` for an invalid key."""
+    try:
+        check_vehicle(vehicle, error=SchemaError)
+        check_imu(imu, error=SchemaError)
+    except SchemaError as exc:
+        raise ValueError(f"not a valid unit key ({vehicle!r}, {imu!r}): {exc}") from None
+    return root / vehicle / f"imu{imu}.passport.json"
+
+
+def entry_keys(root: Path) -> list[tuple[str, int]]:
+    """Every (vehicle, IMU) with an entry file under ``root``, sorted."""
+    out: list[tuple[str, int]] = []
+    if not root.is_dir():
+        return out
+    for vdir in sorted(p for p in root.iterdir() if p.is_dir()):
+        for f in sorted(vdir.iterdir()):
+            m = _FILE_RE.match(f.name)
+            if m and int(m.group(1)) <= MAX_IMU_INDEX:
+                out.append((vdir.name, int(m.group(1))))
+    return out
+
+
+def passport_checksum(passport_map: dict[str, Any]) -> str:
+    """SHA-256 hex digest of the canonical JSON of a passport map."""
+    text = json.dumps(passport_map, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def write_entry(path: Path, vehicle: str, imu: int, passport: Passport) -> Path:
+    """Write the entry of ``passport`` for (vehicle, IMU) to ``path`` atomically (folders created)."""
+    body = passport.to_dict()
+    entry = {
+        "type": ENTRY_TYPE,
+        "entry_version": ENTRY_VERSION,
+        "vehicle": vehicle,
+        "imu": imu,
+        "sha256": passport_checksum(body),
+        "passport": body,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write_bytes(
+        path, (json.dumps(entry, indent=2, allow_nan=False) + "\n").encode("utf-8")
+    )
+
+
+def read_entry(path: Path, vehicle: str, imu: int) -> Passport:
+    """The passport in the entry file ``path``, checked to be filed for (vehicle, IMU).
+
+    Raises :class:`PassportEntryError` for a missing, oversized, corrupt,
+    altered, unsupported or misfiled entry, or an invalid passport in it.
+    """
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise PassportEntryError("missing: no passport file for this unit") from None
+    if size > MAX_ENTRY_BYTES:
+        raise PassportEntryError(f"{size} bytes exceeds the limit of {MAX_ENTRY_BYTES}")
+    try:
+        entry = json.loads(path.read_bytes().decode("utf-8"), parse_constant=_reject_constant)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise PassportEntryError(f"corrupt: not valid JSON ({exc})") from None
+    if not isinstance(entry, dict):
+        raise PassportEntryError(
+            f"corrupt: top level must be an object, got {type(entry).__name__}"
+        )
+    if entry.get("type") != ENTRY_TYPE:
+        hint = (
+            " (a bare passport file: add it with `ins-health store put`)"
+            if entry.get("type") == "ins.health.passport"
+            else ""
+        )
+        raise PassportEntryError(f"not a passport-store entry: type {entry.get('type')!r}{hint}")
+    version = entry.get("entry_version")
+    if type(version) is not int or version not in SUPPORTED_ENTRY_VERSIONS:
+        raise PassportEntryError(
+            f"entry version {version!r} is not supported (this build reads {list(SUPPORTED_ENTRY_VERSIONS)})"
+        )
+    if entry.get("vehicle") != vehicle or entry.get("imu") != imu:
+        raise PassportEntryError(
+            f"entry is for {entry.get('vehicle')!r} IMU{entry.get('imu')!r}: filed under the wrong unit"
+        )
+    body = entry.get("passport")
+    if not isinstance(body, dict):
+        raise PassportEntryError("corrupt: the entry has no passport object")
+    try:
+        digest = passport_checksum(body)
+    except ValueError as exc:
+        raise PassportEntryError(f"corrupt: {exc}") from None
+    if digest != entry.get("sha256"):
+        raise PassportEntryError(
+            f"checksum mismatch (stored {str(entry.get('sha256'))[:12]}…, content {digest[:12]}…): the file was altered"
+        )
+    try:
+        return Passport.from_dict(body)
+    except PassportError as exc:
+        raise PassportEntryError(str(exc)) from None
+
+
+def _reject_constant(name: str) -> None:
+    raise ValueError(f"non-finite number {name} is not allowed")
