@@ -204,7 +204,7 @@ def _records(args: argparse.Namespace, earth_rate_rps) -> tuple[list, list[str]]
             rng=np.random.default_rng(seed),
         )
         notes = [
-            f"simulated: δK = {', '.join(f'{v:.7g}' for v in unit.scale_err)}, seed {seed}, {rate_hz:g} Hz"
+            f"simulated: δK = {', '.join(f'{v:.7g}' for v in np.asarray(unit.scale_err, dtype=float))}, seed {seed}, {rate_hz:g} Hz"
         ]
         if args.save_csv is not None:
             write_csv_session(
