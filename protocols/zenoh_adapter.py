@@ -116,6 +116,9 @@ Session: TypeAlias = zenoh.Session
 ZenohError = zenoh.ZError
 """What Zenoh raises when an operation fails (e.g. a put on a session whose link is gone)."""
 
+CongestionControl = zenoh.CongestionControl
+"""What a publisher does when the link is congested: ``DROP`` (live data) or ``BLOCK`` (lossless)."""
+
 
 # ----------------------------------------------------------------------------- keys
 

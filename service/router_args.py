@@ -6,7 +6,7 @@ import argparse
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    import zenoh
+    from protocols.zenoh_adapter import Session
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 """The router of ``deploy/ins-health.toml`` (``[zenoh] connect``)."""
@@ -30,7 +30,7 @@ def add_router_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def open_router_session(args: argparse.Namespace) -> zenoh.Session:
+def open_router_session(args: argparse.Namespace) -> Session:
     """A client session of ``args.router`` (a context manager); ``ConnectionError`` when it does not answer in time.
 
     A bad endpoint is a ``ValueError`` naming it (protocols.zenoh_adapter.ZenohSettings).

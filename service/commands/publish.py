@@ -33,10 +33,8 @@ from service.router_args import add_router_arguments, open_router_session
 from service.session_args import add_unit_arguments, load_units_checked
 
 if TYPE_CHECKING:
-    import zenoh
-
     from protocols.frames import SampleBatch
-    from protocols.zenoh_adapter import FramePublisher
+    from protocols.zenoh_adapter import FramePublisher, Session
 
 DEFAULT_BATCH_SAMPLES = 100
 PROGRESS_PERIOD_S = 5.0
@@ -115,14 +113,12 @@ def _session_batches(args: argparse.Namespace) -> Iterator[SampleBatch]:
     return split_session(session, vehicle=args.vehicle, imu=imu, batch_samples=args.batch)
 
 
-def _publisher(session: zenoh.Session, batch: SampleBatch, wait_s: float) -> FramePublisher:
+def _publisher(session: Session, batch: SampleBatch, wait_s: float) -> FramePublisher:
     """A lossless publisher of ``batch``'s IMU, once the daemon subscribes to its frames."""
-    import zenoh
-
-    from protocols.zenoh_adapter import FramePublisher
+    from protocols.zenoh_adapter import CongestionControl, FramePublisher
 
     pub = FramePublisher(
-        session, batch.vehicle, batch.imu, congestion_control=zenoh.CongestionControl.BLOCK
+        session, batch.vehicle, batch.imu, congestion_control=CongestionControl.BLOCK
     )
     deadline = time.monotonic() + wait_s
     while not pub.matched:
