@@ -61,8 +61,8 @@ from protocols.zenoh_adapter import (  # noqa: E402
     zenoh_config,
 )
 from protocols.zenoh_router import RouterProcess, free_local_port  # noqa: E402
-from service.daemon import QUEUED_SAMPLES_MAX  # noqa: E402
 from service.demo import demo_passport  # noqa: E402
+from service.intake import QUEUED_SAMPLES_MAX  # noqa: E402
 from service.passport_store import PassportStore  # noqa: E402
 from service.pipeline import FleetProcessor, PipelineOptions  # noqa: E402
 

@@ -3,7 +3,7 @@
 Fig. 2 of M1, offline: static detection → positions → the 9 parameters of each
 triad with covariance → predicates F1…F9 against the passport. Used by the
 ``calibrate`` and ``diagnose`` commands and by the audit; the streaming service
-runs the same steps sample by sample (``service/pipeline.py``).
+runs the same steps sample by sample (``service/pipeline/``).
 """
 
 from __future__ import annotations

@@ -162,7 +162,7 @@ class MavlinkSection:
 
     enabled : read IMU messages and send alerts over MAVLink (default false).
     alert_min_interval_s : a repeat of the same alert (vehicle, IMU, predicate, sensor, axis,
-        cause) within this interval is suppressed (default 10 s; :class:`service.daemon.AlertPolicy`).
+        cause) within this interval is suppressed (default 10 s; :class:`service.alert_policy.AlertPolicy`).
     alert_max_per_s : distinct alerts are paced to at most this many per second (default 1);
         they wait in the outbox, none is dropped. The Zenoh event stream stays complete whatever
         these say.

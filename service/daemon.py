@@ -6,10 +6,10 @@ Tasks of :meth:`Service.run`
   a bounded ring between Zenoh's thread and the loop; when it is full the
   oldest frame is dropped and counted) and, when configured, from MAVLink
   (:class:`protocols.mavlink_adapter.MavlinkSource`, one-sample batches joined
-  into one batch per IMU every 20 ms by :class:`Coalescer`). Each frame goes
-  through its (vehicle, IMU) pipeline; the events it raises are written to the
+  into one batch per IMU every 20 ms by :class:`service.intake.Coalescer`). Each
+  frame goes through its (vehicle, IMU) pipeline (:class:`service.intake.Intake`); the events it raises are written to the
   outbox in one transaction *before* any sink sees them.
-* **delivery**, one per sink — reads the sink's pending events from the outbox
+* **delivery**, one per sink (:mod:`service.sinks`) — reads the sink's pending events from the outbox
   in order, hands each to its transport, acks what the transport accepted,
   and retries the rest every ``delivery_retry_s``. Zenoh: the event stream on
   ``ins/<vehicle>/health/events``, acknowledged end to end by the receiving
@@ -17,7 +17,7 @@ Tasks of :meth:`Service.run`
   event_ack``); each attempt puts the event again, so a plain subscriber that
   is there while no acknowledging receiver is may see an id more than once
   (ids are stable: deduplicate by id). MAVLink: STATUSTEXT alerts through a rate limiter
-  (:class:`AlertPolicy`): a repeat is suppressed (it counts as delivered to
+  (:class:`service.alert_policy.AlertPolicy`): a repeat is suppressed (it counts as delivered to
   that sink; the full stream stays on Zenoh), distinct alerts are paced.
 * **status** — every ``status_period_s``: the timeout checks, then one
   :class:`~protocols.events.Status` per vehicle on ``ins/<vehicle>/health/status``
@@ -38,187 +38,38 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol, TextIO
+from typing import Any, TextIO
 
-import numpy as np
-
-from estimators.conventions import Triad
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
-from protocols._schema import SchemaError
 from protocols.checkpoint_codec import encode_state
 from protocols.events import (
     Event,
-    EventCause,
     EventError,
-    Predicate,
     decode_event,
     encode_event,
 )
-from protocols.frames import FrameError, SampleBatch
 from protocols.mavlink_adapter import MavlinkLink, MavlinkSource
 from protocols.zenoh_adapter import (
-    AckMode,
-    EventPublisher,
     FrameSource,
-    Session,
     StatusPublisher,
-    ZenohError,
     open_session,
-    parse_frame_key,
 )
+from service.alert_policy import AlertPolicy
 from service.checkpoint import CheckpointError, CheckpointStore
 from service.config import ServiceConfig
+from service.intake import COALESCE_MAX, Intake
 from service.outbox import Outbox
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
+from service.sinks import TRANSPORT_ERRORS, EventSink, MavlinkAlertSink, ZenohEventSink
 
-TRANSPORT_ERRORS = (ZenohError, OSError, ConnectionError, ValueError)
-"""What a transport raises when its link is gone: zenoh errors, socket errors, and pymavlink's
-``ValueError`` for a write on a closed port. The event stays in the outbox and is retried."""
 DRAIN_TIMEOUT_S = 5.0
 """How long SIGTERM keeps delivering before the service exits (the rest is re-sent at the next start)."""
-
-
-class EventSink(Protocol):
-    """A transport that events are delivered to; ``deliver`` returns True once the transport accepted the event."""
-
-    name: str
-
-    async def deliver(self, event: Event) -> bool: ...
-
-    def close(self) -> None: ...
-
-
-class ZenohEventSink:
-    """Events on ``ins/<vehicle>/health/events`` (reliable, blocking), acknowledged as configured."""
-
-    name = "zenoh"
-
-    def __init__(self, session: Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
-        self._publisher = EventPublisher(
-            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
-        )
-
-    async def deliver(self, event: Event) -> bool:
-        # publish() blocks up to the acknowledgement timeout: keep it off the loop.
-        return await asyncio.to_thread(self._publisher.publish, event)
-
-    def close(self) -> None:
-        self._publisher.close()
-
-
-class AlertPolicy:
-    """When a STATUSTEXT alert may go out (no flood on the operator's screen; the Zenoh stream stays complete).
-
-    * A *repeat* — the same (vehicle, IMU, predicate, sensor, axis, cause) within
-      ``min_interval_s`` of the last one sent — is suppressed: it counts as delivered.
-    * Distinct alerts are *paced*, at most ``max_per_s``: an alert that comes too soon is
-      deferred (the sink refuses it and the outbox retries it), never dropped, so a new fault
-      is not lost behind the alert of another.
-    """
-
-    def __init__(self, *, min_interval_s: float, max_per_s: float):
-        if not (min_interval_s > 0 and max_per_s > 0):
-            raise ValueError(
-                f"need min_interval_s > 0 and max_per_s > 0, got {min_interval_s!r}, {max_per_s!r}"
-            )
-        self.min_interval_s = float(min_interval_s)
-        self.period_s = 1.0 / float(max_per_s)
-        self._next_s = -math.inf
-        self._last: dict[
-            tuple[str, int, Predicate, Triad | None, str | None, EventCause], float
-        ] = {}
-        self.suppressed = 0
-        self.deferred = 0
-
-    def decide(self, event: Event, now_s: float) -> bool | None:
-        """True: send now; False: suppressed repeat (drop); None: defer (try again later)."""
-        if now_s < self._next_s:
-            self.deferred += 1
-            return None
-        key = (event.vehicle, event.imu, event.predicate, event.triad, event.axis, event.cause)
-        last = self._last.get(key)
-        if last is not None and now_s - last < self.min_interval_s:
-            self.suppressed += 1
-            return False
-        self._last[key] = now_s
-        self._next_s = now_s + self.period_s
-        return True
-
-
-class MavlinkAlertSink:
-    """STATUSTEXT alerts (:func:`protocols.mavlink_adapter.alert_text`) for the events of the link's vehicle."""
-
-    name = "mavlink"
-
-    def __init__(self, link: MavlinkLink, *, policy: AlertPolicy, clock: Callable[[], float]):
-        self.link = link
-        self.policy = policy
-        self._clock = clock
-        self.other_vehicles = 0
-
-    async def deliver(self, event: Event) -> bool:
-        if event.vehicle != self.link.settings.vehicle:
-            self.other_vehicles += 1
-            return True
-        decision = self.policy.decide(event, self._clock())
-        if decision is None:
-            return False
-        if decision:
-            # A serial port may block on a full buffer: keep the write off the loop.
-            await asyncio.to_thread(self.link.send_alert, event)
-        return True
-
-    async def heartbeat(self) -> None:
-        await asyncio.to_thread(self.link.send_heartbeat)
-
-    def close(self) -> None:
-        """The link belongs to the service; closing the sink leaves it open."""
-
-
-class Coalescer:
-    """Joins one-sample MAVLink batches into one batch per IMU (the pipeline's cost is per batch).
-
-    The joined batches are numbered per (vehicle, IMU) by the coalescer itself:
-    a MAVLink link has no frame numbers of its own to check.
-    """
-
-    def __init__(self) -> None:
-        self._seq: dict[tuple[str, int], int] = {}
-
-    def join(self, batches: list[SampleBatch]) -> list[SampleBatch]:
-        groups: dict[tuple[str, int], list[SampleBatch]] = {}
-        for b in batches:
-            groups.setdefault((b.vehicle, b.imu), []).append(b)
-        out = []
-        for key, group in groups.items():
-            seq = self._seq.get(key, 0)
-            self._seq[key] = seq + 1
-            temps = (
-                None
-                if any(b.temp_c is None for b in group)
-                else np.concatenate([b.temp_c for b in group])
-            )
-            out.append(
-                SampleBatch(
-                    key[0], key[1], seq, np.concatenate([b.t_s for b in group]),
-                    np.concatenate([b.accel_mps2 for b in group]), np.concatenate([b.gyro_rps for b in group]), temps,
-                )
-            )  # fmt: skip
-        return out
-
-
-COALESCE_WINDOW_S = 0.02
-"""How long the MAVLink task gathers samples before running them through the pipeline (20 ms)."""
-COALESCE_MAX = 256
-QUEUED_SAMPLES_MAX = 2000
-"""Samples of queued Zenoh frames taken together (2 ms of a 1 kHz IMU's chain per 1000 in one batch)."""
 
 
 def pipeline_options(config: ServiceConfig) -> PipelineOptions:
@@ -287,6 +138,7 @@ class Service:
             max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
             on_passport_error=self._passport_error,
         )
+        self.intake = Intake(self.fleet, store=self._store, clock=clock, say=self._say)
         self._run: _Run | None = None
         self.source: FrameSource | None = None
         self.sinks: list[EventSink] = []
@@ -295,7 +147,6 @@ class Service:
         self.mavlink_source: MavlinkSource | None = None
         self._reported: set[str] = set()
         self.events_stored = 0
-        self._taken: list[SampleBatch] = []
 
     @property
     def outbox(self) -> Outbox | None:
@@ -362,67 +213,6 @@ class Service:
         self.events_stored += new
         if new:
             run.wake.set()
-
-    def _on_reject(self, key: str, error: FrameError) -> None:
-        # A rejected frame counts against its IMU's stream after the frames received before it.
-        self._process_taken()
-        try:
-            vehicle, imu = parse_frame_key(key)
-        except SchemaError:
-            vehicle, imu = None, None
-        self._store(self.fleet.reject(vehicle, imu, error.reason.value))
-
-    def _process(self, batches: list[SampleBatch]) -> None:
-        try:
-            events = self.fleet.process_queued(batches, arrival_s=self._clock())
-        except Exception as exc:
-            self.fleet.count_service("pipeline.errors")
-            kind = f"{type(exc).__name__}: {exc}"
-            if kind not in self._reported:
-                self._reported.add(kind)
-                first = batches[0]
-                self._say(
-                    f"ins-health: {len(batches)} frame(s) from {first.vehicle} IMU{first.imu} seq {first.seq} on "
-                    f"failed in the pipeline: {kind} (skipped, counted as pipeline.errors)"
-                )
-            return
-        self._store(events)
-
-    def _process_taken(self) -> None:
-        """Process the frames taken off the queue so far (a rejection met while taking them comes after them)."""
-        taken, self._taken = self._taken, []
-        if taken:
-            self._process(taken)
-
-    async def _frames(self, source: FrameSource) -> None:
-        async for batch in source:
-            # Frames already waiting (the service is behind) are taken together, up to a
-            # budget of samples that bounds the delay of the last one: consecutive frames
-            # of an IMU then cost the chain one batch (FleetProcessor.process_queued).
-            self._taken, n = [batch], batch.n_samples
-            while n < QUEUED_SAMPLES_MAX and (more := source.get_nowait()) is not None:
-                self._taken.append(more)
-                n += more.n_samples
-            self._process_taken()
-            # Let the delivery and status tasks run between groups.
-            await asyncio.sleep(0)
-
-    async def _mavlink_frames(self, source: MavlinkSource) -> None:
-        loop = asyncio.get_running_loop()
-        coalescer = Coalescer()
-        while True:
-            try:
-                group = [await source.get()]
-            except EOFError:
-                return
-            deadline = loop.time() + COALESCE_WINDOW_S
-            while len(group) < COALESCE_MAX and (left := deadline - loop.time()) > 0:
-                try:
-                    group.append(await asyncio.wait_for(source.get(), left))
-                except (TimeoutError, EOFError):
-                    break
-            self._process(coalescer.join(group))
-            await asyncio.sleep(0)
 
     async def _heartbeat(self, sink: MavlinkAlertSink, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -566,7 +356,7 @@ class Service:
                     session,
                     (cfg.zenoh.frames_key,),
                     capacity=cfg.pipeline.queue_capacity,
-                    on_reject=self._on_reject,
+                    on_reject=self.intake.reject,
                 )
                 resources.callback(self.source.close)
             if cfg.mavlink.enabled:
@@ -595,14 +385,16 @@ class Service:
             tasks.append(asyncio.create_task(self._checkpoints(stop), name="checkpoints"))
             inputs = []
             if self.source is not None:
-                inputs.append(asyncio.create_task(self._frames(self.source), name="frames"))
+                inputs.append(
+                    asyncio.create_task(self.intake.zenoh_frames(self.source), name="frames")
+                )
             if self.mavlink_sink is not None and self.mavlink_source is not None:
                 tasks.append(
                     asyncio.create_task(self._heartbeat(self.mavlink_sink, stop), name="heartbeat")
                 )
                 inputs.append(
                     asyncio.create_task(
-                        self._mavlink_frames(self.mavlink_source), name="mavlink-frames"
+                        self.intake.mavlink_frames(self.mavlink_source), name="mavlink-frames"
                     )
                 )
             if ready is not None:

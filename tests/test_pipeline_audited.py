@@ -8,13 +8,14 @@ import numpy as np
 
 from estimators.conventions import Triad
 from service.demo import demo_passport
-from service.pipeline import PipelineOptions, _f0_config
+from service.pipeline import PipelineOptions
+from service.pipeline.triad_check import f0_config
 
 RATE_HZ = 200.0
 
 
 def _accel_lambda0(passport, g):
-    _, lambda0, _ = _f0_config(
+    _, lambda0, _ = f0_config(
         passport.triads[Triad.ACCEL], PipelineOptions(gravity_mps2=g), RATE_HZ
     )
     return lambda0

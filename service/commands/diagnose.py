@@ -61,7 +61,8 @@ def f0_report(
     import numpy as np
 
     from estimators.scalar import f0_batch
-    from service.pipeline import PipelineOptions, _f0_config
+    from service.pipeline import PipelineOptions
+    from service.pipeline.triad_check import f0_config
 
     clean = result.session
     if clean is None:
@@ -72,7 +73,7 @@ def f0_report(
         x = clean.accel_mps2 if triad.value == "accel" else clean.gyro_rps
         if x is None:
             continue
-        cfg, lambda0, note = _f0_config(tp, options, clean.rate_hz)
+        cfg, lambda0, note = f0_config(tp, options, clean.rate_hz)
         if cfg is None:
             out[triad.value] = {"run": False, "lambda0": lambda0, "note": note}
             continue

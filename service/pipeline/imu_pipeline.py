@@ -1,89 +1,26 @@
-"""The streaming pipeline: one :class:`ImuPipeline` per (vehicle, IMU), a :class:`FleetProcessor` over them.
-
-Per batch of samples, in this order (docs/architecture.md):
-
-1. **Order.** Frames are taken in ``seq`` order: a repeated ``seq`` is a
-   duplicate, a smaller one is out of order (both rejected and counted), a gap
-   counts the missing frames; a frame with no sample later than the last
-   accepted one is rejected (``no_new_samples``), and so are single samples
-   that go back in time or are not finite. Three rejected frames in a row that
-   form a consistent new stream (consecutive ``seq``, increasing time) are
-   taken as a restart of the source (seq and clock from scratch): the stream
-   restarts, the estimates are kept. A step forward of more than
-   :data:`TIME_JUMP_PERIODS` sample periods is counted as a ``time_jump``; the
-   static detector starts a new segment there by itself.
-2. **Stream validity** (:mod:`estimators.stream_validity`): stale axes, error
-   density; the timeout is checked by :meth:`FleetProcessor.tick`.
-3. **Temperature.** When the frame carries temperature and the passport's
-   triad has a temperature model (methods.md M3) the samples are brought to the
-   passport's reference temperature
-   (:func:`estimators.temperature.to_reference_temperature`) before anything
-   else sees them; the status says so. Beyond the range the model was fitted on
-   the model is held at the nearer edge (not extrapolated), which leaves an
-   unmodelled error: a ``temperature`` event (cause ``temperature_range``) is
-   raised when a sample leaves the range and a ``recovered`` one when the
-   temperature is back inside by :data:`TEMPERATURE_HYSTERESIS_C`; F0 does not
-   test samples taken outside the range (``f0.<triad>.skipped_temperature``) and
-   positions whose mean temperature is outside do not enter the diagnosis
-   (``positions.skipped_temperature.<triad>``). A schema-1 passport's model has
-   no range: it is used at any temperature, and the status says so.
-4. **Static detection and positions**
-   (:class:`estimators.positions.PositionAccumulator`, per sample), with the
-   detector's thresholds raised to the unit's own noise at the stream's rate
-   (:func:`detector_config`).
-5. **F0 on every static sample** (methods.md M1) with
-   :func:`estimators.scalar.f0_batch` over the samples :class:`StaticGate`
-   releases (documented to give the per-sample
-   :class:`~estimators.scalar.F0Monitor`'s decisions), centred on the
-   passport's nominal errors, λ0 from :func:`estimators.scalar.derive_lambda0`
-   with the passport's noise and tolerances at the configured false-alarm
-   probability. The first run of FAILs lasting ``f0_persistence_s`` without a
-   break (:func:`estimators.scalar.persistent_failure`) raises an event dated at
-   the run's first sample: a knock on the resting vehicle fails a few samples
-   and is only counted (``f0.<triad>.fail``); the measured Xsens session has one
-   such knock at 208.1 s. M1's flow "on failure, run the
-   diagnosis" is implemented literally: the failed triad's recursive estimate
-   restarts from the positions *after* the failure, so F1…F9 describe the
-   faulty sensor, not an average of before and after.
-6. **Recursive re-estimation** (:class:`estimators.ninepar.RecursiveNineParam`)
-   with each new position, and **diagnosis** (:func:`estimators.diagnosis.diagnose`)
-   against the unit's passport once ``min_positions`` positions are in.
-7. **Events** (:mod:`protocols.events`) on transitions only: a condition that
-   stays raised gives one event, its end gives one ``recovered`` event.
-
-Everything here is synchronous and deterministic: the same batches with the
-same arrival times give the same events (ids included), which is what makes
-``ins-health replay`` reproducible and lets the daemon re-derive, after a crash,
-events whose ids the outbox already holds.
-"""
+"""The streaming chain of one IMU (package docstring): frame order, stream validity, temperature,
+static detection and positions, F0, re-estimation and diagnosis, events; its status and checkpoint state."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from estimators.conventions import (
-    EARTH_RATE_RPS,
     PARAM_AXIS,
     PARAM_CAUSE,
-    STANDARD_GRAVITY_MPS2,
     Triad,
 )
-from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Outcome, diagnose
-from estimators.ninepar import RecursiveNineParam, canonical_triad_matrix
-from estimators.passport import Passport, TriadPassport
-from estimators.positions import Position, PositionAccumulator, PositionConfig
-from estimators.scalar import F0Config, derive_lambda0, f0_batch, persistent_failure
-from estimators.static_detector import FinalDecisions, StaticDetectorConfig
+from estimators.diagnosis import Outcome, diagnose
+from estimators.ninepar import RecursiveNineParam
+from estimators.passport import Passport
+from estimators.positions import Position, PositionAccumulator
+from estimators.scalar import f0_batch, persistent_failure
 from estimators.stream_validity import (
-    CrossImuMonitor,
-    CrossImuReport,
     StreamValidity,
-    ValidityLimits,
     ValidityReport,
     plausible_rate_hz,
 )
@@ -95,286 +32,26 @@ from protocols.events import (
     ImuStatus,
     Predicate,
     Severity,
-    Status,
     StreamCause,
     event_from_finding,
     make_event,
 )
 from protocols.frames import SampleBatch
-
-PIPELINE_STATE_VERSION = 1
-
-SEVERITY: dict[Predicate, Severity] = {
-    Predicate.F0: Severity.WARNING,
-    Predicate.STALE: Severity.CRITICAL,
-    Predicate.TIMEOUT: Severity.WARNING,
-    Predicate.ERROR_DENSITY: Severity.WARNING,
-    Predicate.CROSS_IMU: Severity.WARNING,
-    Predicate.TEMPERATURE: Severity.WARNING,
-}
-"""MAV_SEVERITY of each predicate's event: F0 says *that* a triad failed (warning); F1…F9 name the
-sensor and the cause (:data:`FINDING_SEVERITY`); a stuck axis is critical; recoveries are info."""
-
-FINDING_SEVERITY = Severity.ERROR
-_TRIAD_WORD = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
-RECOVERED_SEVERITY = Severity.INFO
-RATE_PROBE_SAMPLES = 16
-"""Samples collected before the sample rate (which sets the static detector's window) is measured."""
-TIME_JUMP_PERIODS = 10
-"""Sample periods between two samples beyond which the gap is counted as a time jump."""
-CLOCK_RESET_FRAMES = 3
-"""Consecutive rejected frames forming a consistent new stream after which the source is taken to have restarted."""
-DETECTOR_NOISE_FACTOR = 3.0
-"""Static detector thresholds at least this many times the unit's white-noise window spread."""
-TEMPERATURE_HYSTERESIS_C = 1.0
-"""The temperature must be back this far inside the model's range before the out-of-range event recovers
-(at most a quarter of the range): a unit resting at the edge would otherwise flicker in and out with the
-sensor's noise and quantization, one event pair each time."""
-F0_SHELL_LIMIT = 1.0
-"""A triad whose λ0 exceeds this cannot fail F0 meaningfully (the shell is thicker than the unit
-sphere: a MEMS gyro against the Earth rate); F0 is then not run for it, and the status says why."""
-
-
-@dataclass(frozen=True)
-class PipelineOptions:
-    """What every pipeline of a service shares.
-
-    Attributes
-    ----------
-    gravity_mps2 : local gravity, the accelerometers' reference, m/s².
-    gravity_rel_err : bound of its relative error (enters λ0, M1's reference term).
-    false_alarm_probability : per-sample F0 false-alarm probability.
-    f0_persistence_s : how long F0 must fail without a break before it is declared, s
-        (:func:`estimators.scalar.persistent_failure`; at least one sample). A knock rings
-        for a few ms; a sensor fault stays.
-    diagnosis_false_alarm_probability : per-diagnosis probability of a false F1…F9 (estimators.diagnosis).
-    min_positions : positions before F1…F9 are evaluated.
-    validity : stream-validity and cross-IMU limits.
-    detector : static detector thresholds.
-    positions : position building options.
-    """
-
-    gravity_mps2: float = STANDARD_GRAVITY_MPS2
-    gravity_rel_err: float = 3.0e-3
-    false_alarm_probability: float = 1.0e-9
-    f0_persistence_s: float = 0.02
-    diagnosis_false_alarm_probability: float = DEFAULT_FALSE_ALARM_PROB
-    min_positions: int = 9
-    validity: ValidityLimits = ValidityLimits()
-    detector: StaticDetectorConfig = StaticDetectorConfig()
-    positions: PositionConfig = PositionConfig()
-
-    def reference(self, triad: Triad) -> float:
-        return self.gravity_mps2 if Triad(triad) is Triad.ACCEL else EARTH_RATE_RPS
-
-
-@dataclass
-class _TriadCheck:
-    """F0 and the diagnosis of one triad against its passport."""
-
-    passport: TriadPassport
-    f0: F0Config | None
-    lambda0: float
-    f0_note: str
-    estimator: RecursiveNineParam | None
-    since_t_s: float = -math.inf
-    f0_failing: bool = False
-    f0_fail_t_s: float | None = None
-    active: dict[str, float] = field(default_factory=dict)  # predicate -> data time raised
-    f0_run: int = 0  # F0 failures in a row at the end of the last batch
-    f0_run_onset: tuple[float, float] | None = None  # (t_s, residual) of that run's first sample
-    temp_out_edge_c: float | None = (
-        None  # range edge crossed while the temperature event is raised, °C
-    )
-    # [first, last] sample times taken outside the temperature model's range that F0 has not seen yet:
-    # the static gate hands samples to F0 up to a window later than the frame that carried them.
-    temp_skip_s: list[list[float]] = field(default_factory=list)
-
-    def record_temperature_skip(self, t_s: np.ndarray, outside: np.ndarray) -> None:
-        """Note the samples (times ``t_s`` (N,), ascending) taken outside the temperature model's range (``outside`` (N,))."""
-        if self.temp_skip_s and t_s.size and t_s[0] <= self.temp_skip_s[-1][1]:
-            # Time went back: the source restarted (ImuPipeline._source_restart), the old stream is finished.
-            self.temp_skip_s.clear()
-        edges = np.diff(np.concatenate([[0], outside.astype(np.int8), [0]]))
-        first, last = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
-        self.temp_skip_s += [
-            [float(t_s[a]), float(t_s[b])] for a, b in zip(first, last, strict=True)
-        ]
-
-    def take_temperature_skip(self, t_s: np.ndarray) -> np.ndarray:
-        """(N,) bool: which of the samples at ``t_s`` (N,), ascending, F0 must skip; forgets the spans F0 has passed."""
-        if not self.temp_skip_s or not t_s.size:
-            return np.zeros(t_s.shape, dtype=bool)
-        spans = np.array(self.temp_skip_s)
-        k = np.searchsorted(spans[:, 0], t_s, side="right") - 1
-        skip = (k >= 0) & (t_s <= spans[np.maximum(k, 0), 1])
-        # F0 sees the samples in time order, so spans ending by the last of these are done.
-        self.temp_skip_s = [s for s in self.temp_skip_s if s[1] > t_s[-1]]
-        return skip
-
-
-def _f0_config(
-    tp: TriadPassport, options: PipelineOptions, rate_hz: float
-) -> tuple[F0Config | None, float, str]:
-    """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5)."""
-    ref = options.reference(tp.triad)
-    # Per-sample white noise scales with the square root of the rate it is sampled at; the
-    # audited bias wander (passport.bias_instability_std, docs/audit-xsens.md) does not.
-    white = tp.noise_std * math.sqrt(rate_hz / tp.sample_rate_hz)
-    noise_norm = np.maximum(np.hypot(white, tp.bias_instability_std) * tp.reference / ref, 1e-12)
-    quant = None if tp.quantization_step is None else tp.quantization_step * tp.reference / ref
-    nominal = tp.nominal.copy()
-    nominal[:3] *= tp.reference / ref
-    tol = tp.tolerance.copy()
-    tol[:3] *= tp.reference / ref
-    lam = derive_lambda0(
-        noise_std_norm=noise_norm,
-        false_alarm_prob=options.false_alarm_probability,
-        quantization_norm=quant,
-        tolerance_norm=tol,
-        reference_rel_err=options.gravity_rel_err if tp.triad is Triad.ACCEL else 0.0,
-    )
-    if lam.lambda0 > F0_SHELL_LIMIT:
-        return (
-            None,
-            lam.lambda0,
-            f"F0 {tp.triad.value}: not resolvable (λ0 {lam.lambda0:.3g} > {F0_SHELL_LIMIT:g})",
-        )
-    cfg = F0Config(
-        lambda0=lam.lambda0,
-        reference=ref,
-        bias_norm=tuple(nominal[:3]),
-        matrix=tuple(map(tuple, canonical_triad_matrix(nominal))),
-    )
-    return cfg, lam.lambda0, f"F0 {tp.triad.value}: λ0 {lam.lambda0:.3g}"
-
-
-def detector_config(
-    base: StaticDetectorConfig, passport: Passport | None, rate_hz: float
-) -> StaticDetectorConfig:
-    """The static detector's thresholds for this unit at this rate.
-
-    A quiet window's spread is about ``√3·σ`` for per-axis white noise σ, and σ grows with the
-    square root of the rate; a threshold below the unit's own noise would call a resting unit
-    moving. Each triad's threshold is therefore the larger of the configured one and
-    :data:`DETECTOR_NOISE_FACTOR` × the spread of the passport's noise at ``rate_hz``
-    (:meth:`estimators.static_detector.StaticDetectorConfig.from_noise`).
-    """
-    if passport is None:
-        return base
-    noise = {}
-    for triad, tp in passport.triads.items():
-        noise[triad] = float(
-            tp.noise_std.max() * tp.reference * math.sqrt(rate_hz / tp.sample_rate_hz)
-        )
-    scaled = StaticDetectorConfig.from_noise(
-        accel_noise_mps2=noise.get(Triad.ACCEL),
-        gyro_noise_rps=noise.get(Triad.GYRO),
-        factor=DETECTOR_NOISE_FACTOR,
-        base=base,
-    )
-    return replace(
-        base,
-        accel_std_mps2=max(base.accel_std_mps2, scaled.accel_std_mps2),
-        gyro_std_rps=max(base.gyro_std_rps, scaled.gyro_std_rps),
-    )
-
-
-def _new_estimator(tp: TriadPassport, options: PipelineOptions) -> RecursiveNineParam | None:
-    # A triad whose passport resolves no parameter (a MEMS gyro against Ω) has nothing to diagnose.
-    if not np.any(tp.observable):
-        return None
-    return RecursiveNineParam(tp.triad, reference=options.reference(tp.triad))
-
-
-class StaticGate:
-    """Holds samples until the static detector's decision on them is final, and erodes the static runs.
-
-    F0 (M1) holds only while the unit is static. The detector's causal verdict
-    ``static_now`` lags an abrupt start of motion (a take-off) by up to one
-    window, so F0 is applied to the detector's *final* decisions instead
-    (``W − 1`` samples late; the same decisions as the batch detector), with
-    ``margin`` samples removed at both ends of every static run: the slow start
-    and end of a turn sit inside a quiet window too (the positions trim the same
-    amount for the same reason). The delay is ``W − 1 + margin`` samples.
-
-    Samples are numbered by the detector's accepted-sample count; the caller
-    pushes exactly the samples the detector accepted, with the decisions that
-    became final while it fed them.
-    """
-
-    def __init__(self, margin: int) -> None:
-        self.margin = int(margin)
-        self._c0 = 0  # number of the first buffered sample
-        self._t = np.zeros(0)
-        self._x = np.zeros((0, 6))
-        self._d0 = 0  # number of the first kept decision
-        self._dec = np.zeros(0, dtype=bool)  # final static flag per decided sample
-        self._brk = np.zeros(0, dtype=bool)  # a segment ends after this sample
-        self._next = 0  # next sample to release
-
-    def push(
-        self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, decisions: FinalDecisions
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Buffer samples and the decisions that became final; returns ``(t, accel, gyro, static)`` released."""
-        if t_s.size:
-            self._t = np.concatenate([self._t, t_s])
-            self._x = np.concatenate([self._x, np.hstack([accel, gyro])])
-        end = self._d0 + self._dec.size
-        # Decisions already held (a checkpoint taken mid-stream) are skipped; a gap would misplace every flag.
-        if decisions.start > end:
-            raise ValueError(f"static decisions skip samples {end}…{decisions.start - 1}")
-        skip = min(end - decisions.start, decisions.static.size)
-        if skip < decisions.static.size:
-            self._dec = np.concatenate([self._dec, decisions.static[skip:]])
-            self._brk = np.concatenate([self._brk, decisions.brk[skip:]])
-        return self._release()
-
-    def _release(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        m, d0 = self.margin, self._d0
-        end = d0 + self._dec.size
-        upto = end - m
-        brk_at = np.flatnonzero(self._brk[max(0, self._next - d0) :])
-        if brk_at.size:
-            upto = max(upto, self._next + int(brk_at[-1]) + 1)
-        upto = min(upto, self._c0 + self._t.size)
-        if upto <= self._next:
-            return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)
-        c = np.arange(self._next, upto)
-        bad = np.concatenate([[0], np.cumsum(~self._dec)])
-        brk = np.concatenate([[0], np.cumsum(self._brk)])
-        lo, hi = c - m - d0, c + m - d0  # decision positions of the window [c − m, c + m]
-        inside = (lo >= 0) & (hi < self._dec.size)
-        lo_c, hi_c = np.clip(lo, 0, self._dec.size), np.clip(hi, -1, self._dec.size - 1)
-        static = inside & (bad[hi_c + 1] - bad[lo_c] == 0) & (brk[hi_c] - brk[lo_c] == 0)
-        i0, i1 = self._next - self._c0, upto - self._c0
-        t, x = self._t[i0:i1], self._x[i0:i1]
-        self._next = upto
-        # Keep the samples not released and the decisions the next windows still look back on.
-        self._t, self._x, self._c0 = self._t[i1:], self._x[i1:], upto
-        keep_from = max(0, upto - m - d0)
-        self._dec, self._brk, self._d0 = (
-            self._dec[keep_from:],
-            self._brk[keep_from:],
-            d0 + keep_from,
-        )
-        return t, x[:, :3], x[:, 3:], static
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"margin": self.margin, "c0": self._c0, "t": self._t, "x": self._x, "d0": self._d0,
-                "dec": self._dec, "brk": self._brk, "next": self._next}  # fmt: skip
-
-    @classmethod
-    def from_state(cls, state: dict[str, Any]) -> StaticGate:
-        gate = cls(int(state["margin"]))
-        gate._c0, gate._d0, gate._next = int(state["c0"]), int(state["d0"]), int(state["next"])
-        gate._t = np.asarray(state["t"], float).reshape(-1)
-        gate._x = np.asarray(state["x"], float).reshape(-1, 6)
-        gate._dec = np.asarray(state["dec"], bool).reshape(-1)
-        gate._brk = np.asarray(state["brk"], bool).reshape(-1)
-        if gate._x.shape[0] != gate._t.size or gate._dec.size != gate._brk.size:
-            raise ValueError("inconsistent static gate state")
-        return gate
+from service.pipeline.options import (
+    CLOCK_RESET_FRAMES,
+    FINDING_SEVERITY,
+    PIPELINE_STATE_VERSION,
+    RATE_PROBE_SAMPLES,
+    RECOVERED_SEVERITY,
+    SEVERITY,
+    TEMPERATURE_HYSTERESIS_C,
+    TIME_JUMP_PERIODS,
+    TRIAD_WORD,
+    PipelineOptions,
+    detector_config,
+)
+from service.pipeline.static_gate import StaticGate
+from service.pipeline.triad_check import TriadCheck, f0_config, new_estimator
 
 
 @dataclass
@@ -413,7 +90,7 @@ class ImuPipeline:
         self.validity = StreamValidity(limits=options.validity)
         self.detection: _Detection | None = None
         self.f0_persist = 1
-        self.checks: dict[Triad, _TriadCheck] = {}
+        self.checks: dict[Triad, TriadCheck] = {}
         self._probe: list[SampleBatch] = []
         self.last_seq: int | None = None
         self.accepted: SampleBatch | None = None
@@ -459,10 +136,8 @@ class ImuPipeline:
         )
         if self.passport is not None:
             for triad, tp in self.passport.triads.items():
-                cfg, lam, note = _f0_config(tp, self.options, rate_hz)
-                self.checks[triad] = _TriadCheck(
-                    tp, cfg, lam, note, _new_estimator(tp, self.options)
-                )
+                cfg, lam, note = f0_config(tp, self.options, rate_hz)
+                self.checks[triad] = TriadCheck(tp, cfg, lam, note, new_estimator(tp, self.options))
         return self.detection
 
     # ------------------------------------------------------------------ input
@@ -700,7 +375,9 @@ class ImuPipeline:
                     break
                 i += int(hits[0])
                 t_s, temp_c = float(b.t_s[i]), float(b.temp_c[i])
-                where = f"{self.vehicle} IMU{self.imu} {_TRIAD_WORD[triad]}: temperature {temp_c:.1f} °C"
+                where = (
+                    f"{self.vehicle} IMU{self.imu} {TRIAD_WORD[triad]}: temperature {temp_c:.1f} °C"
+                )
                 kw = dict(triad=triad, estimate=temp_c, nominal=model.reference_temp_c, unit="degC")
                 if entering:
                     check.temp_out_edge_c = edge = hi if temp_c > hi else lo
@@ -739,7 +416,7 @@ class ImuPipeline:
         return events
 
     def _f0(
-        self, triad: Triad, check: _TriadCheck, t_s: np.ndarray, x: np.ndarray, static: np.ndarray
+        self, triad: Triad, check: TriadCheck, t_s: np.ndarray, x: np.ndarray, static: np.ndarray
     ) -> list[Event]:
         if check.f0 is None:
             return []
@@ -776,9 +453,9 @@ class ImuPipeline:
         check.f0_run = run
         return events
 
-    def _restart_diagnosis(self, check: _TriadCheck, t_s: float) -> None:
+    def _restart_diagnosis(self, check: TriadCheck, t_s: float) -> None:
         # M1 (Fig. 2): F0 failed → diagnose from what the unit does from now on.
-        check.estimator = _new_estimator(check.passport, self.options)
+        check.estimator = new_estimator(check.passport, self.options)
         check.since_t_s = t_s
 
     def _positions(self, positions: list[Position]) -> list[Event]:
@@ -812,7 +489,7 @@ class ImuPipeline:
         return events
 
     def _diagnose(
-        self, triad: Triad, check: _TriadCheck, est: RecursiveNineParam, t_s: float
+        self, triad: Triad, check: TriadCheck, est: RecursiveNineParam, t_s: float
     ) -> list[Event]:
         if est.n_positions < self.options.min_positions:
             return []
@@ -871,7 +548,7 @@ class ImuPipeline:
                     self._event(
                         when, Predicate.STALE, StreamCause.STUCK_VALUE, SEVERITY[Predicate.STALE], triad=c.triad, axis=c.axis,
                         estimate=float(c.run_samples), tolerance=float(limits.stale_run_samples), unit="count",
-                        text=f"{self.vehicle} IMU{self.imu} {_TRIAD_WORD[c.triad]} {c.axis}: stuck at {c.value:.6g} "
+                        text=f"{self.vehicle} IMU{self.imu} {TRIAD_WORD[c.triad]} {c.axis}: stuck at {c.value:.6g} "
                         f"for {limits.stale_run_samples} samples [stale]",
                     )
                 )  # fmt: skip
@@ -1080,289 +757,3 @@ class ImuPipeline:
             raise ValueError(
                 f"checkpoint of {self.vehicle} IMU{self.imu} is incomplete: {exc}"
             ) from None
-
-
-PassportLookup = Callable[[str, int], Passport]
-"""``(vehicle, imu) -> Passport``; raises ``ValueError`` (e.g. ``PassportStoreError``) with the reason."""
-
-
-def _cross_imu_event(
-    vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str
-) -> Event:
-    t_s = report.bin_start_s + limits.cross_imu_window_s
-    accel_ratio = report.accel_dev_mps2 / limits.cross_imu_accel_mps2
-    gyro_ratio = report.gyro_dev_rps / limits.cross_imu_gyro_rps
-    if accel_ratio >= gyro_ratio:
-        triad, value, limit, unit = (
-            Triad.ACCEL,
-            report.accel_dev_mps2,
-            limits.cross_imu_accel_mps2,
-            "m/s^2",
-        )
-    else:
-        triad, value, limit, unit = (
-            Triad.GYRO,
-            report.gyro_dev_rps,
-            limits.cross_imu_gyro_rps,
-            "rad/s",
-        )
-    others = ",".join(f"IMU{i}" for i in report.others)
-    if report.consistent:
-        text = f"{vehicle} IMU{report.imu}: agrees again with {others} [cross_imu]"
-        return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.RECOVERED,
-                          severity=RECOVERED_SEVERITY, triad=triad, estimate=value, tolerance=limit, unit=unit, text=text)  # fmt: skip
-    word = "accelerometer" if triad is Triad.ACCEL else "gyro"
-    text = f"{vehicle} IMU{report.imu} {word}: disagrees with {others} by {value:.3g} {unit} (limit {limit:.3g}) [cross_imu]"
-    if scalar_note:
-        text += f"; scalar checks: {scalar_note}"
-    return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.DISAGREEMENT,
-                      severity=SEVERITY[Predicate.CROSS_IMU], triad=triad, estimate=value, tolerance=limit, unit=unit, text=text)  # fmt: skip
-
-
-class FleetProcessor:
-    """All pipelines of a service: routing, admission limits, cross-IMU checks, status, checkpoints.
-
-    Parameters
-    ----------
-    passports : passport lookup per (vehicle, IMU); a ``ValueError`` leaves that unit without a
-        passport (validity checks only) and is reported once through ``on_passport_error``.
-    options : pipeline options.
-    vehicles : vehicles served (empty: all).
-    max_vehicles, max_imus_per_vehicle : admission limits (frames beyond them are counted).
-    """
-
-    def __init__(
-        self,
-        *,
-        passports: PassportLookup,
-        options: PipelineOptions = PipelineOptions(),
-        vehicles: tuple[str, ...] = (),
-        max_vehicles: int = 256,
-        max_imus_per_vehicle: int = 4,
-        on_passport_error: Callable[[str, int, str], None] | None = None,
-    ):
-        self.options = options
-        self._passports = passports
-        self._vehicles = frozenset(vehicles)
-        self._max_vehicles = int(max_vehicles)
-        self._max_imus = int(max_imus_per_vehicle)
-        self._on_passport_error = on_passport_error
-        self.pipelines: dict[tuple[str, int], ImuPipeline] = {}
-        self.cross: dict[str, CrossImuMonitor] = {}
-        self.vehicle_counters: dict[str, dict[str, int]] = {}
-        self.service_counters: dict[str, int] = {}
-        self._restore: Callable[[str, int], dict[str, Any] | None] | None = None
-        self._on_restore_error: Callable[[str, int, str], None] | None = None
-        # (samples, counts, timed out) of each pipeline at the last checkpoint (changed_keys).
-        self._saved: dict[tuple[str, int], tuple[int, int, bool]] = {}
-        self._by_vehicle: dict[str, dict[int, ImuPipeline]] = {}
-
-    def set_restore(
-        self,
-        load: Callable[[str, int], dict[str, Any] | None],
-        on_error: Callable[[str, int, str], None] | None = None,
-    ) -> None:
-        """Where new pipelines take their checkpointed state from (``None``: start fresh).
-
-        A state the pipeline cannot resume from is discarded (the unit starts fresh) and
-        ``on_error(vehicle, imu, why)`` is told, so the caller can move it aside.
-        """
-        self._restore = load
-        self._on_restore_error = on_error
-
-    def count_service(self, name: str, n: int = 1) -> None:
-        if n:
-            self.service_counters[name] = self.service_counters.get(name, 0) + int(n)
-
-    def count_vehicle(self, vehicle: str, name: str, n: int = 1) -> None:
-        if n and vehicle in self.vehicle_counters:
-            c = self.vehicle_counters[vehicle]
-            c[name] = c.get(name, 0) + int(n)
-
-    def admit(self, vehicle: str, imu: int) -> ImuPipeline | None:
-        """The pipeline of (vehicle, IMU), created (and restored from its checkpoint) on first use; None if refused."""
-        pipe = self.pipelines.get((vehicle, imu))
-        if pipe is not None:
-            return pipe
-        if self._vehicles and vehicle not in self._vehicles:
-            self.count_service("frames.unknown_vehicle")
-            return None
-        known = vehicle in self.vehicle_counters
-        if not known and len(self.vehicle_counters) >= self._max_vehicles:
-            self.count_service("frames.over_vehicle_limit")
-            return None
-        if known and len(self._by_vehicle.get(vehicle, {})) >= self._max_imus:
-            self.count_vehicle(vehicle, "frames.over_imu_limit")
-            return None
-        self.vehicle_counters.setdefault(vehicle, {})
-        try:
-            passport, note = self._passports(vehicle, imu), ""
-        except ValueError as exc:
-            passport, note = None, str(exc)
-            if self._on_passport_error is not None:
-                self._on_passport_error(vehicle, imu, note)
-        pipe = ImuPipeline(
-            vehicle, imu, passport=passport, options=self.options, passport_note=note
-        )
-        if self._restore is not None:
-            state = self._restore(vehicle, imu)
-            if state is not None:
-                try:
-                    pipe.load_state(state)
-                    self.count_vehicle(vehicle, "checkpoints.restored")
-                except Exception as exc:
-                    pipe = ImuPipeline(
-                        vehicle, imu, passport=passport, options=self.options, passport_note=note
-                    )
-                    self.count_vehicle(vehicle, "checkpoints.discarded")
-                    if self._on_restore_error is not None:
-                        self._on_restore_error(vehicle, imu, f"{type(exc).__name__}: {exc}")
-        self.pipelines[(vehicle, imu)] = pipe
-        self._by_vehicle.setdefault(vehicle, {})[imu] = pipe
-        self.cross.setdefault(vehicle, CrossImuMonitor(limits=self.options.validity))
-        return pipe
-
-    def process(self, batch: SampleBatch, *, arrival_s: float) -> list[Event]:
-        """Route one decoded frame to its pipeline; returns the events raised."""
-        pipe = self.admit(batch.vehicle, batch.imu)
-        if pipe is None:
-            return []
-        events = pipe.process(batch, arrival_s=arrival_s)
-        if pipe.accepted is not None:
-            events += self._cross(pipe.accepted)
-        return events
-
-    def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
-        """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
-
-        The chain's cost is mostly per batch, so a run of consecutive frames of
-        one IMU that :meth:`ImuPipeline.joins` goes through it as one batch
-        (the per-frame counters still count frames; the cross-IMU check still
-        takes them frame by frame; the scalar state an event of it describes
-        is the one at the end of the run). Every other frame is processed
-        alone. The frames of each IMU keep their order; IMUs are taken in order
-        of their first frame.
-        """
-        groups: dict[tuple[str, int], list[SampleBatch]] = {}
-        for b in batches:
-            groups.setdefault((b.vehicle, b.imu), []).append(b)
-        events: list[Event] = []
-        for key, group in groups.items():
-            i = 0
-            while i < len(group):
-                pipe = self.pipelines.get(key)
-                j = i + 1
-                if pipe is not None and pipe.joins(None, group[i]):
-                    while j < len(group) and pipe.joins(group[j - 1], group[j]):
-                        j += 1
-                if pipe is None or j == i + 1:
-                    events += self.process(group[i], arrival_s=arrival_s)
-                else:
-                    events += self._process_joined(pipe, group[i:j], arrival_s)
-                i = j
-        return events
-
-    def _process_joined(
-        self, pipe: ImuPipeline, run: list[SampleBatch], arrival_s: float
-    ) -> list[Event]:
-        last = run[-1]
-        joined = SampleBatch(
-            last.vehicle,
-            last.imu,
-            last.seq,
-            np.concatenate([b.t_s for b in run]),
-            np.concatenate([b.accel_mps2 for b in run]),
-            np.concatenate([b.gyro_rps for b in run]),
-            None if last.temp_c is None else np.concatenate([b.temp_c for b in run]),
-        )
-        events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
-        pipe.last_batch_n = last.n_samples
-        for b in run:
-            events += self._cross(b)
-        return events
-
-    def _cross(self, good: SampleBatch) -> list[Event]:
-        """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle)."""
-        if len(self._by_vehicle.get(good.vehicle, {})) < 2:
-            return []
-        reports = self.cross[good.vehicle].add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
-        return [
-            _cross_imu_event(
-                good.vehicle, r, self.options.validity, self._scalar_note(good.vehicle, r.imu)
-            )
-            for r in reports
-        ]
-
-    def _scalar_note(self, vehicle: str, imu: int) -> str:
-        pipe = self.pipelines.get((vehicle, imu))
-        if pipe is None:
-            return ""
-        notes = [f"F0 {t.value} failing" for t, c in pipe.checks.items() if c.f0_failing]
-        notes += [
-            f"{t.value} {','.join(sorted(c.active))}" for t, c in pipe.checks.items() if c.active
-        ]
-        return "; ".join(notes) if notes else "F0 passing"
-
-    def reject(self, vehicle: str | None, imu: int | None, reason: str) -> list[Event]:
-        """A frame the decoder rejected; attributed to its IMU when the key names a served one."""
-        if vehicle is None:
-            self.count_service(f"frames.rejected.{reason}")
-            return []
-        pipe = self.pipelines.get((vehicle, imu)) if imu is not None else None
-        if pipe is None:
-            if vehicle in self.vehicle_counters:
-                self.count_vehicle(vehicle, f"frames.rejected.{reason}")
-            else:
-                self.count_service(f"frames.rejected.{reason}")
-            return []
-        return pipe.reject_frame(reason)
-
-    def tick(self, now_s: float) -> list[Event]:
-        """Timeout checks of every pipeline."""
-        events: list[Event] = []
-        for key in sorted(self.pipelines):
-            events += self.pipelines[key].check_timeout(now_s)
-        return events
-
-    def finish(self) -> list[Event]:
-        """End of data (replay): every pipeline finalizes its pending position."""
-        events: list[Event] = []
-        for key in sorted(self.pipelines):
-            events += self.pipelines[key].finish()
-        return events
-
-    def vehicles(self) -> list[str]:
-        return sorted(self.vehicle_counters)
-
-    def status(
-        self, vehicle: str, *, service: str, now_unix_s: float, extra: dict[str, int] | None = None
-    ) -> Status:
-        """The status message of one vehicle (its pipelines, its counters, the service-wide counters)."""
-        # The vehicle's own pipelines only: a status period costs the fleet's size, not its square.
-        pipes = [p for _, p in sorted(self._by_vehicle.get(vehicle, {}).items())]
-        counters: dict[str, int] = {}
-        for pipe in pipes:
-            for name, n in pipe.counters.items():
-                counters[f"imu{pipe.imu}.{name}"] = n
-        counters.update(self.vehicle_counters.get(vehicle, {}))
-        counters.update({f"service.{k}": v for k, v in self.service_counters.items()})
-        counters.update(extra or {})
-        imus = tuple(p.status() for p in pipes)
-        return Status(
-            vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus
-        )
-
-    def state_dicts(self, *, changed_only: bool = False) -> dict[str, dict[str, Any]]:
-        """Checkpoint states keyed ``"<vehicle>/<imu>"`` (see :meth:`changed_keys` for ``changed_only``)."""
-        keys = self.changed_keys() if changed_only else sorted(self.pipelines)
-        return {f"{v}/{i}": self.pipelines[(v, i)].state_dict() for v, i in keys}
-
-    def changed_keys(self) -> list[tuple[str, int]]:
-        """Pipelines that took or refused a frame since the last call (an idle unit's checkpoint is still current)."""
-        out = []
-        for key, p in sorted(self.pipelines.items()):
-            mark = (p.n_samples, sum(p.counters.values()), p.timed_out)
-            if self._saved.get(key) != mark:
-                self._saved[key] = mark
-                out.append(key)
-        return out

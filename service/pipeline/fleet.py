@@ -1,0 +1,318 @@
+"""All pipelines of a service (:class:`FleetProcessor`): routing, admission limits, cross-IMU checks,
+status and checkpoints."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from estimators.conventions import (
+    Triad,
+)
+from estimators.passport import Passport
+from estimators.stream_validity import (
+    CrossImuMonitor,
+    CrossImuReport,
+    ValidityLimits,
+)
+from protocols.events import (
+    Event,
+    Predicate,
+    Status,
+    StreamCause,
+    make_event,
+)
+from protocols.frames import SampleBatch
+from service.pipeline.imu_pipeline import ImuPipeline
+from service.pipeline.options import (
+    RECOVERED_SEVERITY,
+    SEVERITY,
+    PipelineOptions,
+)
+
+PassportLookup = Callable[[str, int], Passport]
+"""``(vehicle, imu) -> Passport``; raises ``ValueError`` (e.g. ``PassportStoreError``) with the reason."""
+
+
+def _cross_imu_event(
+    vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str
+) -> Event:
+    t_s = report.bin_start_s + limits.cross_imu_window_s
+    accel_ratio = report.accel_dev_mps2 / limits.cross_imu_accel_mps2
+    gyro_ratio = report.gyro_dev_rps / limits.cross_imu_gyro_rps
+    if accel_ratio >= gyro_ratio:
+        triad, value, limit, unit = (
+            Triad.ACCEL,
+            report.accel_dev_mps2,
+            limits.cross_imu_accel_mps2,
+            "m/s^2",
+        )
+    else:
+        triad, value, limit, unit = (
+            Triad.GYRO,
+            report.gyro_dev_rps,
+            limits.cross_imu_gyro_rps,
+            "rad/s",
+        )
+    others = ",".join(f"IMU{i}" for i in report.others)
+    if report.consistent:
+        text = f"{vehicle} IMU{report.imu}: agrees again with {others} [cross_imu]"
+        return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.RECOVERED,
+                          severity=RECOVERED_SEVERITY, triad=triad, estimate=value, tolerance=limit, unit=unit, text=text)  # fmt: skip
+    word = "accelerometer" if triad is Triad.ACCEL else "gyro"
+    text = f"{vehicle} IMU{report.imu} {word}: disagrees with {others} by {value:.3g} {unit} (limit {limit:.3g}) [cross_imu]"
+    if scalar_note:
+        text += f"; scalar checks: {scalar_note}"
+    return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.DISAGREEMENT,
+                      severity=SEVERITY[Predicate.CROSS_IMU], triad=triad, estimate=value, tolerance=limit, unit=unit, text=text)  # fmt: skip
+
+
+class FleetProcessor:
+    """All pipelines of a service: routing, admission limits, cross-IMU checks, status, checkpoints.
+
+    Parameters
+    ----------
+    passports : passport lookup per (vehicle, IMU); a ``ValueError`` leaves that unit without a
+        passport (validity checks only) and is reported once through ``on_passport_error``.
+    options : pipeline options.
+    vehicles : vehicles served (empty: all).
+    max_vehicles, max_imus_per_vehicle : admission limits (frames beyond them are counted).
+    """
+
+    def __init__(
+        self,
+        *,
+        passports: PassportLookup,
+        options: PipelineOptions = PipelineOptions(),
+        vehicles: tuple[str, ...] = (),
+        max_vehicles: int = 256,
+        max_imus_per_vehicle: int = 4,
+        on_passport_error: Callable[[str, int, str], None] | None = None,
+    ):
+        self.options = options
+        self._passports = passports
+        self._vehicles = frozenset(vehicles)
+        self._max_vehicles = int(max_vehicles)
+        self._max_imus = int(max_imus_per_vehicle)
+        self._on_passport_error = on_passport_error
+        self.pipelines: dict[tuple[str, int], ImuPipeline] = {}
+        self.cross: dict[str, CrossImuMonitor] = {}
+        self.vehicle_counters: dict[str, dict[str, int]] = {}
+        self.service_counters: dict[str, int] = {}
+        self._restore: Callable[[str, int], dict[str, Any] | None] | None = None
+        self._on_restore_error: Callable[[str, int, str], None] | None = None
+        # (samples, counts, timed out) of each pipeline at the last checkpoint (changed_keys).
+        self._saved: dict[tuple[str, int], tuple[int, int, bool]] = {}
+        self._by_vehicle: dict[str, dict[int, ImuPipeline]] = {}
+
+    def set_restore(
+        self,
+        load: Callable[[str, int], dict[str, Any] | None],
+        on_error: Callable[[str, int, str], None] | None = None,
+    ) -> None:
+        """Where new pipelines take their checkpointed state from (``None``: start fresh).
+
+        A state the pipeline cannot resume from is discarded (the unit starts fresh) and
+        ``on_error(vehicle, imu, why)`` is told, so the caller can move it aside.
+        """
+        self._restore = load
+        self._on_restore_error = on_error
+
+    def count_service(self, name: str, n: int = 1) -> None:
+        if n:
+            self.service_counters[name] = self.service_counters.get(name, 0) + int(n)
+
+    def count_vehicle(self, vehicle: str, name: str, n: int = 1) -> None:
+        if n and vehicle in self.vehicle_counters:
+            c = self.vehicle_counters[vehicle]
+            c[name] = c.get(name, 0) + int(n)
+
+    def admit(self, vehicle: str, imu: int) -> ImuPipeline | None:
+        """The pipeline of (vehicle, IMU), created (and restored from its checkpoint) on first use; None if refused."""
+        pipe = self.pipelines.get((vehicle, imu))
+        if pipe is not None:
+            return pipe
+        if self._vehicles and vehicle not in self._vehicles:
+            self.count_service("frames.unknown_vehicle")
+            return None
+        known = vehicle in self.vehicle_counters
+        if not known and len(self.vehicle_counters) >= self._max_vehicles:
+            self.count_service("frames.over_vehicle_limit")
+            return None
+        if known and len(self._by_vehicle.get(vehicle, {})) >= self._max_imus:
+            self.count_vehicle(vehicle, "frames.over_imu_limit")
+            return None
+        self.vehicle_counters.setdefault(vehicle, {})
+        try:
+            passport, note = self._passports(vehicle, imu), ""
+        except ValueError as exc:
+            passport, note = None, str(exc)
+            if self._on_passport_error is not None:
+                self._on_passport_error(vehicle, imu, note)
+        pipe = ImuPipeline(
+            vehicle, imu, passport=passport, options=self.options, passport_note=note
+        )
+        if self._restore is not None:
+            state = self._restore(vehicle, imu)
+            if state is not None:
+                try:
+                    pipe.load_state(state)
+                    self.count_vehicle(vehicle, "checkpoints.restored")
+                except Exception as exc:
+                    pipe = ImuPipeline(
+                        vehicle, imu, passport=passport, options=self.options, passport_note=note
+                    )
+                    self.count_vehicle(vehicle, "checkpoints.discarded")
+                    if self._on_restore_error is not None:
+                        self._on_restore_error(vehicle, imu, f"{type(exc).__name__}: {exc}")
+        self.pipelines[(vehicle, imu)] = pipe
+        self._by_vehicle.setdefault(vehicle, {})[imu] = pipe
+        self.cross.setdefault(vehicle, CrossImuMonitor(limits=self.options.validity))
+        return pipe
+
+    def process(self, batch: SampleBatch, *, arrival_s: float) -> list[Event]:
+        """Route one decoded frame to its pipeline; returns the events raised."""
+        pipe = self.admit(batch.vehicle, batch.imu)
+        if pipe is None:
+            return []
+        events = pipe.process(batch, arrival_s=arrival_s)
+        if pipe.accepted is not None:
+            events += self._cross(pipe.accepted)
+        return events
+
+    def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
+        """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
+
+        The chain's cost is mostly per batch, so a run of consecutive frames of
+        one IMU that :meth:`ImuPipeline.joins` goes through it as one batch
+        (the per-frame counters still count frames; the cross-IMU check still
+        takes them frame by frame; the scalar state an event of it describes
+        is the one at the end of the run). Every other frame is processed
+        alone. The frames of each IMU keep their order; IMUs are taken in order
+        of their first frame.
+        """
+        groups: dict[tuple[str, int], list[SampleBatch]] = {}
+        for b in batches:
+            groups.setdefault((b.vehicle, b.imu), []).append(b)
+        events: list[Event] = []
+        for key, group in groups.items():
+            i = 0
+            while i < len(group):
+                pipe = self.pipelines.get(key)
+                j = i + 1
+                if pipe is not None and pipe.joins(None, group[i]):
+                    while j < len(group) and pipe.joins(group[j - 1], group[j]):
+                        j += 1
+                if pipe is None or j == i + 1:
+                    events += self.process(group[i], arrival_s=arrival_s)
+                else:
+                    events += self._process_joined(pipe, group[i:j], arrival_s)
+                i = j
+        return events
+
+    def _process_joined(
+        self, pipe: ImuPipeline, run: list[SampleBatch], arrival_s: float
+    ) -> list[Event]:
+        last = run[-1]
+        joined = SampleBatch(
+            last.vehicle,
+            last.imu,
+            last.seq,
+            np.concatenate([b.t_s for b in run]),
+            np.concatenate([b.accel_mps2 for b in run]),
+            np.concatenate([b.gyro_rps for b in run]),
+            None if last.temp_c is None else np.concatenate([b.temp_c for b in run]),
+        )
+        events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
+        pipe.last_batch_n = last.n_samples
+        for b in run:
+            events += self._cross(b)
+        return events
+
+    def _cross(self, good: SampleBatch) -> list[Event]:
+        """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle)."""
+        if len(self._by_vehicle.get(good.vehicle, {})) < 2:
+            return []
+        reports = self.cross[good.vehicle].add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
+        return [
+            _cross_imu_event(
+                good.vehicle, r, self.options.validity, self._scalar_note(good.vehicle, r.imu)
+            )
+            for r in reports
+        ]
+
+    def _scalar_note(self, vehicle: str, imu: int) -> str:
+        pipe = self.pipelines.get((vehicle, imu))
+        if pipe is None:
+            return ""
+        notes = [f"F0 {t.value} failing" for t, c in pipe.checks.items() if c.f0_failing]
+        notes += [
+            f"{t.value} {','.join(sorted(c.active))}" for t, c in pipe.checks.items() if c.active
+        ]
+        return "; ".join(notes) if notes else "F0 passing"
+
+    def reject(self, vehicle: str | None, imu: int | None, reason: str) -> list[Event]:
+        """A frame the decoder rejected; attributed to its IMU when the key names a served one."""
+        if vehicle is None:
+            self.count_service(f"frames.rejected.{reason}")
+            return []
+        pipe = self.pipelines.get((vehicle, imu)) if imu is not None else None
+        if pipe is None:
+            if vehicle in self.vehicle_counters:
+                self.count_vehicle(vehicle, f"frames.rejected.{reason}")
+            else:
+                self.count_service(f"frames.rejected.{reason}")
+            return []
+        return pipe.reject_frame(reason)
+
+    def tick(self, now_s: float) -> list[Event]:
+        """Timeout checks of every pipeline."""
+        events: list[Event] = []
+        for key in sorted(self.pipelines):
+            events += self.pipelines[key].check_timeout(now_s)
+        return events
+
+    def finish(self) -> list[Event]:
+        """End of data (replay): every pipeline finalizes its pending position."""
+        events: list[Event] = []
+        for key in sorted(self.pipelines):
+            events += self.pipelines[key].finish()
+        return events
+
+    def vehicles(self) -> list[str]:
+        return sorted(self.vehicle_counters)
+
+    def status(
+        self, vehicle: str, *, service: str, now_unix_s: float, extra: dict[str, int] | None = None
+    ) -> Status:
+        """The status message of one vehicle (its pipelines, its counters, the service-wide counters)."""
+        # The vehicle's own pipelines only: a status period costs the fleet's size, not its square.
+        pipes = [p for _, p in sorted(self._by_vehicle.get(vehicle, {}).items())]
+        counters: dict[str, int] = {}
+        for pipe in pipes:
+            for name, n in pipe.counters.items():
+                counters[f"imu{pipe.imu}.{name}"] = n
+        counters.update(self.vehicle_counters.get(vehicle, {}))
+        counters.update({f"service.{k}": v for k, v in self.service_counters.items()})
+        counters.update(extra or {})
+        imus = tuple(p.status() for p in pipes)
+        return Status(
+            vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus
+        )
+
+    def state_dicts(self, *, changed_only: bool = False) -> dict[str, dict[str, Any]]:
+        """Checkpoint states keyed ``"<vehicle>/<imu>"`` (see :meth:`changed_keys` for ``changed_only``)."""
+        keys = self.changed_keys() if changed_only else sorted(self.pipelines)
+        return {f"{v}/{i}": self.pipelines[(v, i)].state_dict() for v, i in keys}
+
+    def changed_keys(self) -> list[tuple[str, int]]:
+        """Pipelines that took or refused a frame since the last call (an idle unit's checkpoint is still current)."""
+        out = []
+        for key, p in sorted(self.pipelines.items()):
+            mark = (p.n_samples, sum(p.counters.values()), p.timed_out)
+            if self._saved.get(key) != mark:
+                self._saved[key] = mark
+                out.append(key)
+        return out

@@ -1,0 +1,120 @@
+"""What every pipeline of a service shares: :class:`PipelineOptions`, the severities of the events,
+the chain's thresholds (package docstring) and the static detector's thresholds for a unit (:func:`detector_config`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from estimators.conventions import (
+    EARTH_RATE_RPS,
+    STANDARD_GRAVITY_MPS2,
+    Triad,
+)
+from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
+from estimators.passport import Passport
+from estimators.positions import PositionConfig
+from estimators.static_detector import StaticDetectorConfig
+from estimators.stream_validity import (
+    ValidityLimits,
+)
+from protocols.events import (
+    Predicate,
+    Severity,
+)
+
+PIPELINE_STATE_VERSION = 1
+
+SEVERITY: dict[Predicate, Severity] = {
+    Predicate.F0: Severity.WARNING,
+    Predicate.STALE: Severity.CRITICAL,
+    Predicate.TIMEOUT: Severity.WARNING,
+    Predicate.ERROR_DENSITY: Severity.WARNING,
+    Predicate.CROSS_IMU: Severity.WARNING,
+    Predicate.TEMPERATURE: Severity.WARNING,
+}
+"""MAV_SEVERITY of each predicate's event: F0 says *that* a triad failed (warning); F1…F9 name the
+sensor and the cause (:data:`FINDING_SEVERITY`); a stuck axis is critical; recoveries are info."""
+
+FINDING_SEVERITY = Severity.ERROR
+TRIAD_WORD = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
+RECOVERED_SEVERITY = Severity.INFO
+RATE_PROBE_SAMPLES = 16
+"""Samples collected before the sample rate (which sets the static detector's window) is measured."""
+TIME_JUMP_PERIODS = 10
+"""Sample periods between two samples beyond which the gap is counted as a time jump."""
+CLOCK_RESET_FRAMES = 3
+"""Consecutive rejected frames forming a consistent new stream after which the source is taken to have restarted."""
+DETECTOR_NOISE_FACTOR = 3.0
+"""Static detector thresholds at least this many times the unit's white-noise window spread."""
+TEMPERATURE_HYSTERESIS_C = 1.0
+"""The temperature must be back this far inside the model's range before the out-of-range event recovers
+(at most a quarter of the range): a unit resting at the edge would otherwise flicker in and out with the
+sensor's noise and quantization, one event pair each time."""
+F0_SHELL_LIMIT = 1.0
+"""A triad whose λ0 exceeds this cannot fail F0 meaningfully (the shell is thicker than the unit
+sphere: a MEMS gyro against the Earth rate); F0 is then not run for it, and the status says why."""
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    """What every pipeline of a service shares.
+
+    Attributes
+    ----------
+    gravity_mps2 : local gravity, the accelerometers' reference, m/s².
+    gravity_rel_err : bound of its relative error (enters λ0, M1's reference term).
+    false_alarm_probability : per-sample F0 false-alarm probability.
+    f0_persistence_s : how long F0 must fail without a break before it is declared, s
+        (:func:`estimators.scalar.persistent_failure`; at least one sample). A knock rings
+        for a few ms; a sensor fault stays.
+    diagnosis_false_alarm_probability : per-diagnosis probability of a false F1…F9 (estimators.diagnosis).
+    min_positions : positions before F1…F9 are evaluated.
+    validity : stream-validity and cross-IMU limits.
+    detector : static detector thresholds.
+    positions : position building options.
+    """
+
+    gravity_mps2: float = STANDARD_GRAVITY_MPS2
+    gravity_rel_err: float = 3.0e-3
+    false_alarm_probability: float = 1.0e-9
+    f0_persistence_s: float = 0.02
+    diagnosis_false_alarm_probability: float = DEFAULT_FALSE_ALARM_PROB
+    min_positions: int = 9
+    validity: ValidityLimits = ValidityLimits()
+    detector: StaticDetectorConfig = StaticDetectorConfig()
+    positions: PositionConfig = PositionConfig()
+
+    def reference(self, triad: Triad) -> float:
+        return self.gravity_mps2 if Triad(triad) is Triad.ACCEL else EARTH_RATE_RPS
+
+
+def detector_config(
+    base: StaticDetectorConfig, passport: Passport | None, rate_hz: float
+) -> StaticDetectorConfig:
+    """The static detector's thresholds for this unit at this rate.
+
+    A quiet window's spread is about ``√3·σ`` for per-axis white noise σ, and σ grows with the
+    square root of the rate; a threshold below the unit's own noise would call a resting unit
+    moving. Each triad's threshold is therefore the larger of the configured one and
+    :data:`DETECTOR_NOISE_FACTOR` × the spread of the passport's noise at ``rate_hz``
+    (:meth:`estimators.static_detector.StaticDetectorConfig.from_noise`).
+    """
+    if passport is None:
+        return base
+    noise = {}
+    for triad, tp in passport.triads.items():
+        noise[triad] = float(
+            tp.noise_std.max() * tp.reference * math.sqrt(rate_hz / tp.sample_rate_hz)
+        )
+    scaled = StaticDetectorConfig.from_noise(
+        accel_noise_mps2=noise.get(Triad.ACCEL),
+        gyro_noise_rps=noise.get(Triad.GYRO),
+        factor=DETECTOR_NOISE_FACTOR,
+        base=base,
+    )
+    return replace(
+        base,
+        accel_std_mps2=max(base.accel_std_mps2, scaled.accel_std_mps2),
+        gyro_std_rps=max(base.gyro_std_rps, scaled.gyro_std_rps),
+    )

@@ -1,0 +1,79 @@
+"""Where events are delivered: an :class:`EventSink` per transport (Zenoh events, MAVLink STATUSTEXT alerts)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from typing import Protocol
+
+from protocols.events import Event
+from protocols.mavlink_adapter import MavlinkLink
+from protocols.zenoh_adapter import (
+    AckMode,
+    EventPublisher,
+    Session,
+    ZenohError,
+)
+from service.alert_policy import AlertPolicy
+
+TRANSPORT_ERRORS = (ZenohError, OSError, ConnectionError, ValueError)
+"""What a transport raises when its link is gone: zenoh errors, socket errors, and pymavlink's
+``ValueError`` for a write on a closed port. The event stays in the outbox and is retried."""
+
+
+class EventSink(Protocol):
+    """A transport that events are delivered to; ``deliver`` returns True once the transport accepted the event."""
+
+    name: str
+
+    async def deliver(self, event: Event) -> bool: ...
+
+    def close(self) -> None: ...
+
+
+class ZenohEventSink:
+    """Events on ``ins/<vehicle>/health/events`` (reliable, blocking), acknowledged as configured."""
+
+    name = "zenoh"
+
+    def __init__(self, session: Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
+        self._publisher = EventPublisher(
+            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
+        )
+
+    async def deliver(self, event: Event) -> bool:
+        # publish() blocks up to the acknowledgement timeout: keep it off the loop.
+        return await asyncio.to_thread(self._publisher.publish, event)
+
+    def close(self) -> None:
+        self._publisher.close()
+
+
+class MavlinkAlertSink:
+    """STATUSTEXT alerts (:func:`protocols.mavlink_adapter.alert_text`) for the events of the link's vehicle."""
+
+    name = "mavlink"
+
+    def __init__(self, link: MavlinkLink, *, policy: AlertPolicy, clock: Callable[[], float]):
+        self.link = link
+        self.policy = policy
+        self._clock = clock
+        self.other_vehicles = 0
+
+    async def deliver(self, event: Event) -> bool:
+        if event.vehicle != self.link.settings.vehicle:
+            self.other_vehicles += 1
+            return True
+        decision = self.policy.decide(event, self._clock())
+        if decision is None:
+            return False
+        if decision:
+            # A serial port may block on a full buffer: keep the write off the loop.
+            await asyncio.to_thread(self.link.send_alert, event)
+        return True
+
+    async def heartbeat(self) -> None:
+        await asyncio.to_thread(self.link.send_heartbeat)
+
+    def close(self) -> None:
+        """The link belongs to the service; closing the sink leaves it open."""
