@@ -25,8 +25,10 @@ from service.config import config_from_dict, load_config
 
 DEPLOY = Path(__file__).parents[1] / "deploy"
 FILES = sorted(p for p in DEPLOY.iterdir() if p.is_file())
-INSTALLED_VENV_BIN = Path("/opt/ins-health/.venv/bin")
-"""Where INSTALL.md puts the virtual environment the units run from."""
+INSTALLED_VENV_BIN = (
+    Path(re.search(r"python3\.11 -m venv (\S+)", (DEPLOY / "INSTALL.md").read_text())[1]) / "bin"
+)
+"""Where INSTALL.md creates the virtual environment the units run from (read from it, not repeated)."""
 TLS_DIR = "/etc/zenoh/tls/"
 """Where INSTALL.md puts the certificates the router and the service configurations name."""
 
