@@ -11,25 +11,43 @@ guarantees: a finding, not a nuisance. A vehicle resting on the ground is a
 static unit, so a pre-flight |a| far from g — the symptom of a bad
 accelerometer calibration that both autopilots' pre-arm checks look for — fails F0.
 
-Classes and their figures (bias, relative scale error, cross-axis cosine,
-white-noise density; accelerometer / gyro):
+Classes, their representative parts and where each figure comes from (bias,
+relative scale error, cross-axis cosine, white-noise density; accelerometer /
+gyro). A figure marked *class-typical* is not one datasheet's number but the
+turn-on / in-run repeatability the project uses for the grade
+(:data:`estimators.passport.GRADE_FLOORS`) or the noise of the simulator's
+preset (:mod:`estimators.sim.grades`); every other figure is the part's as its
+document states it, used as the tolerance without a further factor.
 
-* ``consumer_mems`` — the InvenSense MPU-6000 product specification (rev. 3.4,
-  tables of accelerometer and gyroscope specifications): zero-g initial
-  tolerance ±80 mg (z; ±50 mg x, y), sensitivity initial tolerance ±3 %,
-  cross-axis sensitivity ±2 %, noise 400 µg/√Hz; zero-rate output ±20 °/s,
-  sensitivity ±3 %, cross-axis ±2 %, rate noise 0.005 °/s/√Hz. These are the
-  initial (factory) tolerances of the drone-autopilot class of IMU, the
-  largest errors a healthy part shows before any calibration: the default.
-* ``industrial_mems`` — the Analog Devices ADIS16470 data sheet (rev. C):
-  rate noise density 0.008 °/s/√Hz; factory calibrated, so the residual
-  errors are the repeatability floors of a calibrated MEMS unit of this project
-  (:data:`estimators.passport.GRADE_FLOORS`, MEMS: 2 mg, 0.2 %, 1 mrad;
-  20 °/h); accelerometer noise 0.1 mg/√Hz (the simulator's MEMS grade).
-* ``tactical`` and ``navigation`` — the project's floors for those grades
-  (:data:`estimators.passport.GRADE_FLOORS`, the turn-on and in-run
-  repeatability of the grade) and the noise of the simulator's presets
-  (:mod:`estimators.sim.grades`; tactical: 0.05 mg/√Hz, 0.15 °/√h).
+* ``consumer_mems`` (the drone-autopilot IMU; the default) — TDK InvenSense
+  MPU-6000, product specification PS-MPU-6000A-00 rev. 3.4, accelerometer and
+  gyroscope specification tables: zero-g initial calibration tolerance ±80 mg
+  (z; ±50 mg x, y), sensitivity initial calibration tolerance ±3 %, cross-axis
+  sensitivity ±2 %, noise power spectral density 400 µg/√Hz; zero-rate output
+  initial tolerance ±20 °/s, sensitivity initial tolerance ±3 %, cross-axis
+  sensitivity ±2 %, rate noise spectral density 0.005 °/s/√Hz. These are
+  initial (factory) tolerances, the largest errors a healthy part shows before
+  any calibration. A newer part of the class, the TDK InvenSense ICM-42688-P
+  (datasheet DS-000347 rev. 1.7, features: 70 µg/√Hz, 2.8 mdps/√Hz), is quieter
+  and stays inside these bounds.
+* ``industrial_mems`` (factory-calibrated MEMS IMU modules) — Analog Devices
+  ADIS16470 data sheet rev. C (features): rate noise density 0.008 °/s/√Hz;
+  Analog Devices ADIS16475 data sheet (features, same family and factory
+  calibration): axis-to-axis misalignment ±0.1° (1.75 mrad), used for both
+  triads. Class-typical: bias 2 mg and 20 °/h, scale 0.2 %, accelerometer
+  noise 100 µg/√Hz (the ADIS16470's own 13 µg and 8 °/h are in-run bias
+  stabilities, the Allan minimum, not the turn-on bias a tolerance needs).
+* ``tactical`` — Honeywell HG1700 (AG58, the higher-end model) brochure
+  N61-1619-000-001, figures 1σ as quoted by NavToolkit's ``hg1700_model``:
+  accelerometer bias 1 mg, velocity random walk 0.065 ft/s/√h (0.0198 m/s/√h,
+  i.e. 33.7 µg/√Hz), gyro bias 1 °/h, angle random walk 0.125 °/√h
+  (0.00208 °/s/√Hz). Class-typical (the brochure gives none): scale 300 ppm,
+  cross-axis 0.2 mrad.
+* ``navigation`` — Honeywell HG9900 brochure N61-1638-000-000, figures 1σ as
+  quoted by NavToolkit's ``hg9900_model``: accelerometer bias 25 µg, scale
+  factor 100 ppm; gyro bias 0.0035 °/h, scale factor 5 ppm, angle random walk
+  0.002 °/√h. Class-typical (the brochure gives none): cross-axis 50 µrad
+  (accelerometer) and 20 µrad (gyro), accelerometer noise 10 µg/√Hz.
 
 The gyro parameters of a triad whose bias tolerance exceeds the Earth rate are
 not observable (M1's gyro check needs a gyro that resolves Ω): they are marked
@@ -50,17 +68,10 @@ from estimators.conventions import (
     N_PARAMS,
     RPS_PER_DPH,
     STANDARD_GRAVITY_MPS2,
-    Grade,
     Triad,
 )
 from estimators.ninepar import Method
-from estimators.passport import (
-    GRADE_FLOORS,
-    Passport,
-    Provenance,
-    TriadPassport,
-    reference_kind,
-)
+from estimators.passport import Passport, Provenance, TriadPassport, reference_kind
 
 _DEG = math.pi / 180.0
 NOISE_REFERENCE_RATE_HZ = 2.0
@@ -99,39 +110,34 @@ class ClassTolerances:
         return self.accel if Triad(triad) is Triad.ACCEL else self.gyro
 
 
-def _floors(grade: Grade, accel_noise: float, gyro_noise: float, source: str) -> ClassTolerances:
-    a = GRADE_FLOORS[(Triad.ACCEL, grade)]
-    g = GRADE_FLOORS[(Triad.GYRO, grade)]
-    return ClassTolerances(
-        TriadTolerances(a[0], a[1], a[2], accel_noise),
-        TriadTolerances(g[0], g[1], g[2], gyro_noise),
-        source,
-    )
-
+_FT = 0.3048
+"""Metres per foot (HG1700's velocity random walk is in ft/s/√h)."""
+_PER_RT_HOUR = 1.0 / 60.0
+"""A random walk per √h is a white-noise density per √Hz divided by √3600 s."""
 
 CLASS_TOLERANCES: dict[SensorClass, ClassTolerances] = {
     SensorClass.CONSUMER_MEMS: ClassTolerances(
         TriadTolerances(80.0 * MPS2_PER_MG, 0.03, 0.02, 0.4 * MPS2_PER_MG),
         TriadTolerances(20.0 * _DEG, 0.03, 0.02, 0.005 * _DEG),
-        "InvenSense MPU-6000 product specification rev. 3.4: initial tolerances",
+        "TDK InvenSense MPU-6000 product specification PS-MPU-6000A-00 rev. 3.4: initial tolerances, noise",
     ),
-    SensorClass.INDUSTRIAL_MEMS: _floors(
-        Grade.MEMS,
-        0.1 * MPS2_PER_MG,
-        0.008 * _DEG,
-        "ADIS16470 data sheet rev. C (rate noise); calibrated-MEMS floors of estimators.passport.GRADE_FLOORS",
+    SensorClass.INDUSTRIAL_MEMS: ClassTolerances(
+        TriadTolerances(2.0 * MPS2_PER_MG, 2.0e-3, 0.1 * _DEG, 0.1 * MPS2_PER_MG),
+        TriadTolerances(20.0 * RPS_PER_DPH, 2.0e-3, 0.1 * _DEG, 0.008 * _DEG),
+        "Analog Devices ADIS16470 data sheet rev. C (rate noise), ADIS16475 data sheet (misalignment);"
+        " bias, scale and accelerometer noise class-typical",
     ),
-    SensorClass.TACTICAL: _floors(
-        Grade.TACTICAL,
-        0.05 * MPS2_PER_MG,
-        0.15 * _DEG / 60.0,
-        "estimators.passport.GRADE_FLOORS (tactical); noise of a tactical-grade IMU",
+    SensorClass.TACTICAL: ClassTolerances(
+        TriadTolerances(1.0 * MPS2_PER_MG, 3.0e-4, 2.0e-4, 0.065 * _FT * _PER_RT_HOUR),
+        TriadTolerances(1.0 * RPS_PER_DPH, 3.0e-4, 2.0e-4, 0.125 * _DEG * _PER_RT_HOUR),
+        "Honeywell HG1700 (AG58) brochure N61-1619-000-001, 1 sigma (bias, random walks);"
+        " scale and cross-axis class-typical",
     ),
-    SensorClass.NAVIGATION: _floors(
-        Grade.NAVIGATION,
-        0.01 * MPS2_PER_MG,
-        0.002 * _DEG / 60.0,
-        "estimators.passport.GRADE_FLOORS (navigation); noise of estimators.sim.grades (navigation)",
+    SensorClass.NAVIGATION: ClassTolerances(
+        TriadTolerances(0.025 * MPS2_PER_MG, 1.0e-4, 5.0e-5, 0.01 * MPS2_PER_MG),
+        TriadTolerances(0.0035 * RPS_PER_DPH, 5.0e-6, 2.0e-5, 0.002 * _DEG * _PER_RT_HOUR),
+        "Honeywell HG9900 brochure N61-1638-000-000, 1 sigma (bias, scale, angle random walk);"
+        " cross-axis and accelerometer noise class-typical",
     ),
 }
 

@@ -306,6 +306,16 @@ def _imu_table(e: Mapping[str, Any]) -> list[str]:
     return ["| | |", "|---|---|", *(f"| {k} | {v} |" for k, v in rows)]
 
 
+def _tolerances(pp: Mapping[str, Any]) -> str:
+    """The nominal passport's tolerances, in the units its datasheets state them."""
+    return (
+        f"Tolerances: accelerometer bias {_f(pp['accel_bias_mg'])} mg, scale {_f(pp['accel_scale_pct'])} %, "
+        f"cross-axis {_f(pp['accel_cross_axis_pct'])} %, noise {_f(pp['accel_noise_ug_per_rthz'])} µg/√Hz; "
+        f"gyro bias {_f(pp['gyro_bias_dph'])} °/h, scale {_f(pp['gyro_scale_pct'])} %, "
+        f"cross-axis {_f(pp['gyro_cross_axis_pct'])} %, noise {_f(pp['gyro_noise_dps_per_rthz'])} °/s/√Hz."
+    )
+
+
 def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
     log, pp = report["log"], report["passport"]
     lines = [
@@ -313,6 +323,7 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
         "",
         f"Format `{log['format']}`" + (f", system {log['system']}" if log["system"] else "") + ".",
         f"Passport: {pp.get('kind')}" + (f", class `{pp['class']}` ({pp['source']})" if pp.get("class") else "") + ".",
+        *([_tolerances(pp)] if pp.get("class") else []),
         f"Local gravity {report['gravity_mps2']:.5f} m/s².",
         "",
     ]  # fmt: skip

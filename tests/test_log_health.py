@@ -160,6 +160,24 @@ def test_nominal_passports_carry_the_class_tolerances(cls):
     assert cls.value in acc.provenance.procedure and describe_class(cls)["class"] == cls.value
 
 
+CITED = {
+    # class: (accel bias mg, scale %, cross-axis %, noise µg/√Hz; gyro bias °/h, scale %, cross-axis %,
+    # noise °/s/√Hz), each as its source states it (the module docstring names part and document).
+    SensorClass.CONSUMER_MEMS: (80.0, 3.0, 2.0, 400.0, 20.0 * 3600.0, 3.0, 2.0, 0.005),
+    SensorClass.INDUSTRIAL_MEMS: (2.0, 0.2, 100.0 * math.radians(0.1), 100.0, 20.0, 0.2, 100.0 * math.radians(0.1), 0.008),
+    SensorClass.TACTICAL: (1.0, 0.03, 0.02, 0.065 * 0.3048 / 60.0 / 9.80665 * 1e6, 1.0, 0.03, 0.02, 0.125 / 60.0),
+    SensorClass.NAVIGATION: (0.025, 0.01, 0.005, 10.0, 0.0035, 0.0005, 0.002, 0.002 / 60.0),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("cls", list(SensorClass))
+def test_the_class_figures_are_the_cited_ones(cls):
+    d = describe_class(cls)
+    keys = ("accel_bias_mg", "accel_scale_pct", "accel_cross_axis_pct", "accel_noise_ug_per_rthz",
+            "gyro_bias_dph", "gyro_scale_pct", "gyro_cross_axis_pct", "gyro_noise_dps_per_rthz")  # fmt: skip
+    assert [d[k] for k in keys] == pytest.approx(CITED[cls], rel=1e-12)
+
+
 def test_the_classes_shells_are_ordered_and_the_consumer_shell_is_its_datasheet():
     """λ0 from each class's tolerances (F0's shell): tighter for better classes; consumer MEMS ≈ 0.2."""
     lam = {}
