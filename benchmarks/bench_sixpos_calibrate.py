@@ -4,15 +4,18 @@ The session is a simulated MEMS unit (``estimators.sixpos.ferraris_spec``: six f
 6 s, 4 s turns between them, a 6 s full turn about each axis; 100 Hz), written as a CSV
 session file. Timed, medians of ``N`` interleaved runs (default 7):
 
-* whole process: ``ins-health calibrate S.csv --out P.json`` with ``--no-audit`` and with
-  the default audit (20 Monte Carlo replicas), against a process that reads the same CSV
+* whole process: ``ins-health calibrate S.csv --out P.json`` as a user runs it (the model
+  audit on, its default) and with ``--no-audit``, against a process that reads the same CSV
   with pandas and runs imucal's Ferraris calibration on regions given to it (imucal needs
   them marked by hand; here the simulator's truth marks them, so its figure leaves out the
   marking that ins-health does itself);
 * in-process: read → static detection → positions → M1 fit → six-position vector fit and
   full turns → passport, against imucal's ``FerrarisCalibration.compute`` on the regions.
 
-The goal (issue 11) is a whole process no slower than imucal's.
+The goal (issue 11) is a whole process of the default command no slower than imucal's.
+The audit needs more positions than six faces give, so on this session it concludes nothing
+and simulates no replica: its cost here is only what it imports, which is why scipy is
+imported where it is used (the audit, the simulator, ``estimators.noise``), not with them.
 Run: ``python benchmarks/bench_sixpos_calibrate.py [N]`` (needs the test extra: imucal).
 """
 
@@ -113,8 +116,8 @@ def main(n: int = 7) -> int:
         sections = _sections(res)
         cli = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
         commands = {
+            "ins-health calibrate (default)": [*cli, "calibrate", str(path), "--out", str(Path(tmp) / "b.json")],
             "ins-health calibrate --no-audit": [*cli, "calibrate", str(path), "--out", str(Path(tmp) / "a.json"), "--no-audit"],
-            "ins-health calibrate (audit)": [*cli, "calibrate", str(path), "--out", str(Path(tmp) / "b.json")],
             "imucal Ferraris (pandas CSV)": [sys.executable, "-c", IMUCAL_SCRIPT, str(path), json.dumps(sections), repr(g)],
         }  # fmt: skip
         for argv in commands.values():
@@ -146,10 +149,10 @@ def main(n: int = 7) -> int:
         print(f"in-process, median of {n}")
         print(f"  {'ins-health (read → passport)':<34} {ours * 1e3:8.1f} ms")
         print(f"  {'imucal compute (regions given)':<34} {theirs * 1e3:8.1f} ms")
-        whole = np.median(runs["ins-health calibrate --no-audit"])
+        whole = np.median(runs["ins-health calibrate (default)"])
         other = np.median(runs["imucal Ferraris (pandas CSV)"])
         print(
-            f"  goal: whole process (--no-audit) no slower than imucal's: "
+            f"  goal: whole process (default command) no slower than imucal's: "
             f"{'met' if whole <= other else 'NOT met'} ({whole / other:.2f}×)"
         )
     return 0

@@ -10,8 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
+# scipy is imported in the functions that use it: it takes a large part of a second to import, and
+# `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import FloatArray
 
 
@@ -207,6 +208,8 @@ def dequantized_white_sd(quantized_sd: FloatArray, step: FloatArray) -> FloatArr
     from ``−q²/12`` at 0, so the root is unique in ``[0, s]``). Sheppard's
     ``σ² = s² − q²/12`` is its limit for noise above about half a step.
     """
+    from scipy.optimize import brentq
+
     s = np.asarray(quantized_sd, float)
     q = np.asarray(step, float)
     out = np.empty_like(s)

@@ -109,3 +109,43 @@ def test_version_is_the_installed_package_s():
         check=True,
     ).stdout
     assert out == f"ins-health {version('ins-health')}\n"
+
+
+LOADED_BY_CALIBRATE = """
+import json, sys
+from service.cli import main
+status = main(["calibrate", sys.argv[1], "--out", sys.argv[2]])
+print(json.dumps({"status": status, "loaded": sorted({name.split(".")[0] for name in sys.modules})}))
+"""
+
+
+def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
+    # Six faces are too few positions for the model audit (on by default), which then concludes
+    # nothing: the default command must not pay scipy's import for it (benchmarks/bench_sixpos_calibrate.py).
+    import numpy as np
+
+    from estimators.conventions import Grade
+    from estimators.sim import grade_error_model, simulate
+    from estimators.sixpos import ferraris_spec
+    from protocols.session_file import write_csv_session
+
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    res = simulate(ferraris_spec(model, static_s=6.0, transition_s=4.0, turn_s=6.0), seed=1)
+    write_csv_session(tmp_path / "six.csv", res.session)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            LOADED_BY_CALIBRATE,
+            str(tmp_path / "six.csv"),
+            str(tmp_path / "p.json"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    out = json.loads(run.stdout)
+    assert out["status"] == 0 and (tmp_path / "p.json").exists()
+    assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
+    assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))

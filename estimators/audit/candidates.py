@@ -82,9 +82,9 @@ from dataclasses import dataclass, field
 from typing import Any, TypeAlias
 
 import numpy as np
-from scipy.stats import chi2
-from scipy.stats import f as f_dist
 
+# scipy is imported in the functions that use it: it takes a large part of a second to import, and
+# `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
 
@@ -282,11 +282,15 @@ def leverage_components(design: FloatArray, sd: FloatArray, weight: FloatArray) 
 
 
 def _threshold(k: int, n_tests: int) -> float:
+    from scipy.stats import chi2
+
     return float(chi2.isf(FAMILY_ALPHA / max(n_tests, 1), k))
 
 
 def _threshold_mean(k: int, n: int, p: int, n_tests: int) -> float:
     """LR threshold of a mean effect: the exact F test (scale estimated from ``n − p − k`` dof) written as ``n ln(RSS0/RSS1)``."""
+    from scipy.stats import f as f_dist
+
     dof = n - p - k
     if dof < 1:
         return float("inf")
@@ -851,6 +855,8 @@ def disturbed_positions(
     every position: its halves stand out against whatever the homogeneous
     components explain. Bonferroni over :data:`FAMILY_ALPHA` / (tests × positions).
     """
+    from scipy.stats import chi2
+
     chi, dof = halves_chi2(records, thetas, n)
     p = np.where(dof > 0, chi2.sf(chi, np.maximum(dof, 1)), 1.0)
     return p < FAMILY_ALPHA / (max(n_tests, 1) * n)

@@ -43,8 +43,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import brentq
 
+# scipy is imported in the functions that use it: it takes a large part of a second to import, and
+# `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import FloatArray
 from estimators.chain import ChainConfig, ChainResult, run_chain
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
@@ -343,6 +344,8 @@ def _gm_tau_and_variance(
     (at most ~9 standard errors at τ = 1 s, ~15 at 2 s, ~22 at 4 s on a trial session); near that bound σ²
     diverges. ``τ`` is raised, where needed, until ``size`` is at most :data:`SATURATION_SHARE` of the bound.
     """
+    from scipy.optimize import brentq
+
     lo, hi = np.log(_VAR_BRACKET[0]), np.log(_VAR_BRACKET[1])
 
     def room(log_tau: float) -> float:

@@ -49,8 +49,9 @@ from typing import Any, ClassVar, TypeAlias, TypeVar, overload
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.signal import fftconvolve, lfilter
 
+# scipy is imported in the functions that use it: it takes a large part of a second to import, and
+# `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import FloatArray
 from estimators.conventions import Triad, nine_params, sensor_axes
 
@@ -357,6 +358,8 @@ class BiasInstability(Effect):
             raise ValueError(f"gm_tau_s must be positive, got {self.gm_tau_s!r}")
 
     def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        from scipy.signal import fftconvolve, lfilter
+
         n = y.shape[0]
         dt = 1.0 / ctx.rate_hz
         beta = np.zeros_like(y)

@@ -33,8 +33,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 
+# scipy is imported in the functions that use it: it takes a large part of a second to import, and
+# `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import BoolArray, FloatArray, IntArray
 
 _UP_N = np.array([0.0, 0.0, 1.0])
@@ -359,6 +360,8 @@ def attitude_with_up(up_b: ArrayLike, heading_rad: float = 0.0) -> FloatArray:
     The smallest rotation taking ``up_b`` to the navigation up axis, followed by
     a rotation of ``heading_rad`` about the up axis.
     """
+    from scipy.spatial.transform import Rotation
+
     u = np.asarray(up_b, float)
     u = u / np.linalg.norm(u)
     axis = np.cross(u, _UP_N)
@@ -404,6 +407,8 @@ def tilt_sequence(up_b: FloatArray, heading_rad: float = 0.0) -> FloatArray:
     one turns the previous about the horizontal body axis ``u_next × u_prev``
     by the angle between them, as a person tips a box onto its next face.
     """
+    from scipy.spatial.transform import Rotation
+
     u = np.asarray(up_b, float)
     u = u / np.linalg.norm(u, axis=1, keepdims=True)
     out = [attitude_with_up(u[0], heading_rad)]
@@ -430,6 +435,8 @@ def eighteen_position_attitudes(heading_rad: float = 0.0) -> FloatArray:
 
 def random_attitudes(n: int, rng: np.random.Generator) -> FloatArray:
     """(n, 3, 3) attitudes drawn uniformly over the rotation group."""
+    from scipy.spatial.transform import Rotation
+
     if n < 1:
         raise ValueError(f"need at least one attitude, got n={n}")
     mats: FloatArray = Rotation.random(n, random_state=rng).as_matrix()
@@ -497,6 +504,8 @@ def build_motion(
     Sample ``k`` is at ``t0_s + k / rate_hz``. A segment's end attitude is the
     next segment's start attitude.
     """
+    from scipy.spatial.transform import Rotation
+
     if not np.isfinite(rate_hz) or rate_hz <= 0:
         raise ValueError(f"rate_hz must be positive, got {rate_hz!r}")
     dt = 1.0 / rate_hz

@@ -45,7 +45,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=True,
         help="audit the white-noise model against the session first (docs/audit-xsens.md) and carry the bias "
         "instability that survives it into the passport, so the service's thresholds use the audited model "
-        "(default: on; --no-audit keeps the white-noise model)",
+        "(default: on; --no-audit keeps the white-noise model). The audit needs more positions than the nine "
+        "parameters (a six-position session has too few): then it concludes nothing, says so, and the white-noise "
+        "model is kept",
     )
     p.add_argument(
         "--turn-deg",
@@ -85,12 +87,19 @@ def run(args: argparse.Namespace) -> int:
         from estimators.audit import AuditConfig, run_audit
 
         audit = run_audit(inp.session, AuditConfig(chain=config, replicas=args.replicas))
-        instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
-        print(
-            f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}",
-            file=sys.stderr,
-        )
-        result = run_chain(inp.session, replace(config, bias_instability_std=instability))
+        if audit.replica_stats:
+            instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
+            print(
+                f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}",
+                file=sys.stderr,
+            )
+            result = run_chain(inp.session, replace(config, bias_instability_std=instability))
+        else:
+            # Nothing simulated (too few positions, no accelerometers, …): the white-noise model stays.
+            print(
+                f"calibrate: audit concluded nothing ({'; '.join(audit.statements)}); white-noise model kept",
+                file=sys.stderr,
+            )
     cal = calibration_estimates(result, turn_rad=math.radians(args.turn_deg))
     estimates = cal.estimates
     if not estimates:
