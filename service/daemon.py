@@ -38,11 +38,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, TextIO
+from typing import Any
 
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
@@ -63,6 +62,7 @@ from service.alert_policy import AlertPolicy
 from service.checkpoint import CheckpointError, CheckpointStore
 from service.config import ServiceConfig
 from service.intake import COALESCE_MAX, Intake
+from service.log_setup import logger
 from service.outbox import Outbox
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
@@ -70,6 +70,8 @@ from service.sinks import TRANSPORT_ERRORS, EventSink, MavlinkAlertSink, ZenohEv
 
 DRAIN_TIMEOUT_S = 5.0
 """How long SIGTERM keeps delivering before the service exits (the rest is re-sent at the next start)."""
+
+log = logger("daemon")
 
 
 def pipeline_options(config: ServiceConfig) -> PipelineOptions:
@@ -114,7 +116,6 @@ class Service:
     Parameters
     ----------
     config : the service configuration.
-    log : where one-line notices go (passport errors, drains); default: ``sys.stderr`` at the time of writing.
     clock : the monotonic clock that stamps arrivals (timeouts) and paces alerts.
     """
 
@@ -122,11 +123,9 @@ class Service:
         self,
         config: ServiceConfig,
         *,
-        log: TextIO | None = None,
         clock: Callable[[], float] = time.monotonic,
     ):
         self.config = config
-        self._log = log
         self._clock = clock
         self.store = PassportStore(config.service.passport_dir)
         self._passports: dict[tuple[str, int], Passport] = {}
@@ -138,7 +137,7 @@ class Service:
             max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
             on_passport_error=self._passport_error,
         )
-        self.intake = Intake(self.fleet, store=self._store, clock=clock, say=self._say)
+        self.intake = Intake(self.fleet, store=self._store, clock=clock, say=log.warning)
         self._run: _Run | None = None
         self.source: FrameSource | None = None
         self.sinks: list[EventSink] = []
@@ -163,9 +162,6 @@ class Service:
             raise RuntimeError("the service is not running (Service.run opens the outbox)")
         return self._run
 
-    def _say(self, text: str) -> None:
-        print(text, file=self._log if self._log is not None else sys.stderr, flush=True)
-
     # ------------------------------------------------------------------ passports and checkpoints
 
     def _passport(self, vehicle: str, imu: int) -> Passport:
@@ -175,7 +171,7 @@ class Service:
         return self._passports[key]
 
     def _passport_error(self, vehicle: str, imu: int, message: str) -> None:
-        self._say(f"ins-health: {message}; {vehicle} IMU{imu} runs the stream checks only")
+        log.warning("%s; %s IMU%d runs the stream checks only", message, vehicle, imu)
 
     def _restore(self, vehicle: str, imu: int) -> dict[str, Any] | None:
         try:
@@ -187,10 +183,10 @@ class Service:
 
     def _discard_checkpoint(self, vehicle: str, imu: int, why: str) -> None:
         self._running().checkpoints.quarantine(f"{vehicle}/{imu}", why)
-        self._say(
-            f"ins-health: checkpoint of {vehicle} IMU{imu} unusable ({why}); "
-            "moved aside to the quarantined table, the unit starts fresh"
-        )
+        log.warning(
+            "checkpoint of %s IMU%d unusable (%s); moved aside to the quarantined table, the unit starts fresh",
+            vehicle, imu, why,
+        )  # fmt: skip
 
     def _startup_scan(self) -> None:
         """Load every passport in the store and report the unusable ones (the other units start normally).
@@ -200,8 +196,41 @@ class Service:
         """
         scan = self.store.scan([(v, 0) for v in self.config.service.vehicles])
         self._passports.update(scan.passports)
+        loaded = ", ".join(f"{v} IMU{i}" for v, i in sorted(scan.passports)) or "none"
+        log.info(
+            "passports in %s: %d loaded (%s), %d refused",
+            self.store.root, len(scan.passports), loaded, len(scan.errors),
+        )  # fmt: skip
         for err in scan.errors.values():
-            self._say(f"ins-health: {err}")
+            log.warning("refused %s; the unit runs the stream checks only", err)
+
+    def _log_summary(self) -> None:
+        """What this instance serves: one line per input and output."""
+        cfg = self.config
+        vehicles = ", ".join(cfg.service.vehicles) or "every vehicle its key expression delivers"
+        log.info(
+            "%s starting: data in %s; vehicles: %s",
+            cfg.service.name, cfg.service.data_dir, vehicles,
+        )  # fmt: skip
+        if cfg.zenoh.enabled:
+            z = cfg.zenoh.session
+            log.info(
+                "zenoh %s, connect %s, listen %s, connect timeout %s; frames %s; events acknowledged by %s (%d needed)",
+                z.mode.value, list(z.connect), list(z.listen),
+                "none (wait for the router)" if z.connect_timeout_s is None else f"{z.connect_timeout_s:g} s",
+                cfg.zenoh.frames_key, cfg.zenoh.event_ack.value, cfg.zenoh.min_acks,
+            )  # fmt: skip
+        else:
+            log.info("zenoh disabled")
+        if cfg.mavlink.enabled:
+            m = cfg.mavlink.link
+            log.info(
+                "mavlink %s: vehicle %s, autopilot system %s, signing %s",
+                m.device, m.vehicle, "any" if m.autopilot_system is None else m.autopilot_system,
+                "off" if m.signing_key is None else ("on, unsigned accepted" if m.accept_unsigned else "on"),
+            )  # fmt: skip
+        else:
+            log.info("mavlink disabled")
 
     # ------------------------------------------------------------------ events
 
@@ -228,9 +257,7 @@ class Service:
         self.fleet.count_service(f"delivery.{name}.errors")
         if kind not in self._reported:
             self._reported.add(kind)
-            self._say(
-                f"ins-health: sending on {kind} (retrying; counted as delivery.{name}.errors)"
-            )
+            log.warning("sending on %s (retrying; counted as delivery.%s.errors)", kind, name)
 
     async def _deliver(self, sink: EventSink, wake: asyncio.Event, stop: asyncio.Event) -> None:
         retry_s = self.config.service.delivery_retry_s
@@ -334,6 +361,7 @@ class Service:
                 _Wake({name: asyncio.Event() for name in names}),
             )
             self.fleet.set_restore(self._restore, self._discard_checkpoint)
+            self._log_summary()
             self._startup_scan()
             for key in run.checkpoints.keys():
                 # Units seen before the restart come back with their positions before their first frame.
@@ -436,14 +464,12 @@ class Service:
             tasks, await asyncio.gather(*tasks, return_exceptions=True), strict=True
         ):
             if isinstance(result, Exception):
-                self._say(
-                    f"ins-health: task {t.get_name()} ended with {type(result).__name__}: {result}"
+                log.error(
+                    "task %s ended with %s", t.get_name(), type(result).__name__, exc_info=result
                 )
         left = sum(run.outbox.counts().pending_by_sink.values())
         if left:
-            self._say(
-                f"ins-health: {left} event deliveries still pending; they are sent at the next start"
-            )
+            log.warning("%d event deliveries still pending; they are sent at the next start", left)
 
 
 async def _wait_any(a: asyncio.Event, b: asyncio.Event | None, *, timeout_s: float | None) -> None:

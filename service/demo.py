@@ -67,6 +67,7 @@ from protocols.zenoh_adapter import (
 from protocols.zenoh_router import free_local_port
 from service.config import config_from_dict
 from service.daemon import Service
+from service.log_setup import logging_to
 from service.passport_store import PassportStore
 
 DEMO_VEHICLE = "demo-uav"
@@ -287,7 +288,12 @@ async def run_demo(
     )
     events: list = []
     latest: dict = {}
-    with tempfile.TemporaryDirectory(prefix="ins-health-demo-") as tmp, open_router(endpoint):
+    with (
+        tempfile.TemporaryDirectory(prefix="ins-health-demo-") as tmp,
+        open_router(endpoint),
+        # The service's warnings (a passport refused, a send retried) on the demo's screen.
+        logging_to(out, level="warning"),
+    ):
         PassportStore(Path(tmp) / "passports").put(DEMO_VEHICLE, 0, passport)
         config = config_from_dict(
             {
@@ -302,7 +308,7 @@ async def run_demo(
                 "validity": {"timeout_s": 5.0},
             }
         )
-        service = Service(config, log=out)
+        service = Service(config)
         stop, ready = asyncio.Event(), asyncio.Event()
         running = asyncio.create_task(service.run(stop, ready=ready))
         await ready.wait()

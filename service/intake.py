@@ -105,7 +105,7 @@ class Intake:
                 self._reported.add(kind)
                 first = batches[0]
                 self._say(
-                    f"ins-health: {len(batches)} frame(s) from {first.vehicle} IMU{first.imu} seq {first.seq} on "
+                    f"{len(batches)} frame(s) from {first.vehicle} IMU{first.imu} seq {first.seq} on "
                     f"failed in the pipeline: {kind} (skipped, counted as pipeline.errors)"
                 )
             return

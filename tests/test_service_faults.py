@@ -109,7 +109,7 @@ class ServiceProcess:
         def read():
             for line in self.proc.stderr:
                 self.lines.append(line.rstrip())
-                if "running" in line:
+                if line.rstrip().endswith(" running"):
                     ready.set()
             ready.set()
 

@@ -4,6 +4,10 @@ Runs until SIGTERM or SIGINT, then drains: stops taking frames, processes what
 was received, writes the checkpoints and keeps delivering events for a few
 seconds; whatever is still undelivered is sent by the next start. Exit status
 0 after a clean stop, 2 for an unusable configuration.
+
+The log goes to stderr through :mod:`service.log_setup` (one line per record; under
+journald without time stamps and with syslog priorities); ``--log-level`` sets its
+threshold. Once frames are accepted it says ``ins-health: NAME running``.
 """
 
 from __future__ import annotations
@@ -12,6 +16,8 @@ import argparse
 import signal
 import sys
 from typing import TYPE_CHECKING
+
+from service.log_setup import LEVELS, logger, logging_to
 
 if TYPE_CHECKING:
     from service.daemon import Service
@@ -25,6 +31,12 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--config", required=True, help="service configuration, TOML (see deploy/ins-health.toml)"
+    )
+    p.add_argument(
+        "--log-level",
+        choices=LEVELS,
+        default="info",
+        help="least severe log records written to stderr (default: %(default)s)",
     )
     p.set_defaults(func=run)
 
@@ -43,7 +55,7 @@ async def serve(service: Service) -> None:
         [runner, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED
     )
     if ready.is_set():
-        print(f"ins-health: {service.config.service.name} running", file=sys.stderr, flush=True)
+        logger("run").info("%s running", service.config.service.name)
     await runner
 
 
@@ -61,5 +73,6 @@ def run(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
-    asyncio.run(serve(Service(config)))
+    with logging_to(sys.stderr, level=args.log_level):
+        asyncio.run(serve(Service(config)))
     return 0
