@@ -18,15 +18,26 @@ Layout: ``<root>/<vehicle>/imu<n>.passport.json``. Each file is a JSON
   :meth:`estimators.passport.Passport.from_dict` (a newer version is a
   :class:`~estimators.passport.PassportVersionError` with a hint).
 
-An unusable entry raises :class:`PassportEntryError` with a one-line reason;
-:mod:`service.passport_store` names the unit and the file around it.
+* **Only regular files of bounded size are read, without blocking**: the path is
+  stat'ed first (a FIFO, a device, a directory or a symlink to one is refused
+  before it is opened), opened with ``O_NONBLOCK`` and checked again with
+  ``fstat`` (a file swapped in between is refused too), and at most
+  :data:`MAX_ENTRY_BYTES` are read. JSON nested too deeply for the parser is a
+  refusal, not a ``RecursionError``.
+
+An unusable entry raises :class:`PassportEntryError` with a one-line reason and
+a short :class:`EntryProblem` code (for counters); :mod:`service.passport_store`
+names the unit and the file around it.
 """
 
 from __future__ import annotations
 
+import enum
 import hashlib
 import json
+import os
 import re
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +52,28 @@ MAX_ENTRY_BYTES = 1 << 20
 _FILE_RE = re.compile(r"^imu(\d{1,3})\.passport\.json$")
 
 
+class EntryProblem(enum.Enum):
+    """Why an entry cannot be used, as a short name for counters (the message says more)."""
+
+    MISSING = "missing"
+    NOT_REGULAR = "not_a_regular_file"
+    TOO_LARGE = "too_large"
+    UNREADABLE = "unreadable"
+    CORRUPT = "corrupt"
+    NESTED = "nested_too_deeply"
+    NOT_ENTRY = "not_an_entry"
+    VERSION = "unsupported_version"
+    MISFILED = "misfiled"
+    CHECKSUM = "checksum_mismatch"
+    INVALID = "invalid_passport"
+
+
 class PassportEntryError(ValueError):
     """An entry that cannot be used; the message is the reason (``missing: …``, ``corrupt: …``, …)."""
+
+    def __init__(self, message: str, problem: EntryProblem):
+        super().__init__(message)
+        self.problem = problem
 
 
 def entry_path(root: Path, vehicle: str, imu: int) -> Path:
@@ -94,22 +125,23 @@ def write_entry(path: Path, vehicle: str, imu: int, passport: Passport) -> Path:
 def read_entry(path: Path, vehicle: str, imu: int) -> Passport:
     """The passport in the entry file ``path``, checked to be filed for (vehicle, IMU).
 
-    Raises :class:`PassportEntryError` for a missing, oversized, corrupt,
-    altered, unsupported or misfiled entry, or an invalid passport in it.
+    Raises :class:`PassportEntryError` for a missing, non-regular, oversized,
+    corrupt, too deeply nested, altered, unsupported or misfiled entry, or an
+    invalid passport in it. Never blocks on the file (module docstring).
     """
+    text = _read_regular(path)
     try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise PassportEntryError("missing: no passport file for this unit") from None
-    if size > MAX_ENTRY_BYTES:
-        raise PassportEntryError(f"{size} bytes exceeds the limit of {MAX_ENTRY_BYTES}")
-    try:
-        entry = json.loads(path.read_bytes().decode("utf-8"), parse_constant=_reject_constant)
+        entry = json.loads(text.decode("utf-8"), parse_constant=_reject_constant)
+    except RecursionError:
+        raise PassportEntryError(
+            "corrupt: JSON nested too deeply to parse", EntryProblem.NESTED
+        ) from None
     except (UnicodeDecodeError, ValueError) as exc:
-        raise PassportEntryError(f"corrupt: not valid JSON ({exc})") from None
+        raise PassportEntryError(f"corrupt: not valid JSON ({exc})", EntryProblem.CORRUPT) from None
     if not isinstance(entry, dict):
         raise PassportEntryError(
-            f"corrupt: top level must be an object, got {type(entry).__name__}"
+            f"corrupt: top level must be an object, got {type(entry).__name__}",
+            EntryProblem.CORRUPT,
         )
     if entry.get("type") != ENTRY_TYPE:
         hint = (
@@ -117,31 +149,98 @@ def read_entry(path: Path, vehicle: str, imu: int) -> Passport:
             if entry.get("type") == "ins.health.passport"
             else ""
         )
-        raise PassportEntryError(f"not a passport-store entry: type {entry.get('type')!r}{hint}")
+        raise PassportEntryError(
+            f"not a passport-store entry: type {entry.get('type')!r}{hint}", EntryProblem.NOT_ENTRY
+        )
     version = entry.get("entry_version")
     if type(version) is not int or version not in SUPPORTED_ENTRY_VERSIONS:
         raise PassportEntryError(
-            f"entry version {version!r} is not supported (this build reads {list(SUPPORTED_ENTRY_VERSIONS)})"
+            f"entry version {version!r} is not supported (this build reads {list(SUPPORTED_ENTRY_VERSIONS)})",
+            EntryProblem.VERSION,
         )
     if entry.get("vehicle") != vehicle or entry.get("imu") != imu:
         raise PassportEntryError(
-            f"entry is for {entry.get('vehicle')!r} IMU{entry.get('imu')!r}: filed under the wrong unit"
+            f"entry is for {entry.get('vehicle')!r} IMU{entry.get('imu')!r}: filed under the wrong unit",
+            EntryProblem.MISFILED,
         )
     body = entry.get("passport")
     if not isinstance(body, dict):
-        raise PassportEntryError("corrupt: the entry has no passport object")
+        raise PassportEntryError("corrupt: the entry has no passport object", EntryProblem.CORRUPT)
     try:
         digest = passport_checksum(body)
+    except RecursionError:
+        raise PassportEntryError(
+            "corrupt: JSON nested too deeply to check", EntryProblem.NESTED
+        ) from None
     except ValueError as exc:
-        raise PassportEntryError(f"corrupt: {exc}") from None
+        raise PassportEntryError(f"corrupt: {exc}", EntryProblem.CORRUPT) from None
     if digest != entry.get("sha256"):
         raise PassportEntryError(
-            f"checksum mismatch (stored {str(entry.get('sha256'))[:12]}…, content {digest[:12]}…): the file was altered"
+            f"checksum mismatch (stored {str(entry.get('sha256'))[:12]}…, content {digest[:12]}…): the file was altered",
+            EntryProblem.CHECKSUM,
         )
     try:
         return Passport.from_dict(body)
     except PassportError as exc:
-        raise PassportEntryError(str(exc)) from None
+        raise PassportEntryError(str(exc), EntryProblem.INVALID) from None
+
+
+def _read_regular(path: Path) -> bytes:
+    """The bytes of ``path`` if it is a regular file of at most :data:`MAX_ENTRY_BYTES`; never blocks."""
+    try:
+        before = os.stat(path)
+    except FileNotFoundError:
+        raise PassportEntryError(
+            "missing: no passport file for this unit", EntryProblem.MISSING
+        ) from None
+    except OSError as exc:
+        raise PassportEntryError(
+            f"unreadable: {exc.strerror or exc}", EntryProblem.UNREADABLE
+        ) from None
+    _check_regular(before)
+    try:
+        # O_NONBLOCK: should a FIFO be swapped in after the stat, opening it does not wait for a writer.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise PassportEntryError(
+            f"unreadable: {exc.strerror or exc}", EntryProblem.UNREADABLE
+        ) from None
+    try:
+        _check_regular(os.fstat(fd))
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_ENTRY_BYTES + 1)
+    except OSError as exc:
+        raise PassportEntryError(
+            f"unreadable: {exc.strerror or exc}", EntryProblem.UNREADABLE
+        ) from None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_ENTRY_BYTES:
+        raise PassportEntryError(
+            f"more than {MAX_ENTRY_BYTES} bytes (the limit)", EntryProblem.TOO_LARGE
+        )
+    return data
+
+
+_NOT_REGULAR = (
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a device"),
+    (stat.S_ISBLK, "a device"),
+)
+
+
+def _check_regular(st: os.stat_result) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((name for test, name in _NOT_REGULAR if test(st.st_mode)), "not a file")
+        raise PassportEntryError(
+            f"not a regular file ({kind}): refused unread", EntryProblem.NOT_REGULAR
+        )
+    if st.st_size > MAX_ENTRY_BYTES:
+        raise PassportEntryError(
+            f"{st.st_size} bytes exceeds the limit of {MAX_ENTRY_BYTES}", EntryProblem.TOO_LARGE
+        )
 
 
 def _reject_constant(name: str) -> None:

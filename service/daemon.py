@@ -310,6 +310,9 @@ class Service:
             extra["service.mavlink.alerts_deferred"] = self.mavlink_sink.policy.deferred
             extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
             extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
+        extra.update(
+            {f"service.passports.rejected.{k}": n for k, n in self.store.rejected_counts().items()}
+        )
         counts = self._running().outbox.counts()
         extra["service.outbox.stored"] = counts.stored
         extra.update({f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()})

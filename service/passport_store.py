@@ -4,17 +4,21 @@ The files and their format (layout, checksum, entry version) are
 :mod:`protocols.passport_entry`. A missing or unusable entry is a
 :class:`PassportStoreError` that names the vehicle, the IMU, the file and the
 reason; :meth:`PassportStore.scan` collects them per unit so the service starts
-the units that are fine and reports the others.
+the units that are fine and reports the others. The store remembers which
+units it refused and why (:meth:`PassportStore.rejected_counts`, for the status
+topic), whether at the start or when a unit's first frame makes it read one.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from estimators.passport import Passport
 from protocols.passport_entry import (
+    EntryProblem,
     PassportEntryError,
     entry_keys,
     entry_path,
@@ -26,9 +30,11 @@ from protocols.passport_entry import (
 class PassportStoreError(ValueError):
     """A unit's passport cannot be used; the message names vehicle, IMU, file and reason."""
 
-    def __init__(self, vehicle: str, imu: int, path: Path, reason: str):
+    def __init__(self, vehicle: str, imu: int, path: Path, reason: str, problem: str):
         super().__init__(f"passport of {vehicle} IMU{imu} ({path}): {reason}")
         self.vehicle, self.imu, self.path, self.reason = vehicle, imu, path, reason
+        self.problem = problem
+        """A short name of the reason for counters (:class:`~protocols.passport_entry.EntryProblem`, or ``bad_key``)."""
 
 
 @dataclass(frozen=True)
@@ -44,6 +50,7 @@ class PassportStore:
 
     def __init__(self, root: str | Path):
         self.root = Path(root)
+        self._rejected: dict[tuple[str, int], str] = {}
 
     def path_for(self, vehicle: str, imu: int) -> Path:
         """The entry file of (vehicle, IMU); ``ValueError`` for an invalid key."""
@@ -55,11 +62,24 @@ class PassportStore:
 
     def get(self, vehicle: str, imu: int) -> Passport:
         """The passport of (vehicle, IMU); :class:`PassportStoreError` if missing or unusable."""
-        path = self.path_for(vehicle, imu)
         try:
-            return read_entry(path, vehicle, imu)
+            path = self.path_for(vehicle, imu)
+        except ValueError as exc:
+            self._rejected[(vehicle, imu)] = "bad_key"
+            raise PassportStoreError(
+                vehicle, imu, self.root / vehicle, str(exc), "bad_key"
+            ) from None
+        try:
+            passport = read_entry(path, vehicle, imu)
         except PassportEntryError as exc:
-            raise PassportStoreError(vehicle, imu, path, str(exc)) from None
+            self._rejected[(vehicle, imu)] = exc.problem.value
+            raise PassportStoreError(vehicle, imu, path, str(exc), exc.problem.value) from None
+        self._rejected.pop((vehicle, imu), None)
+        return passport
+
+    def rejected_counts(self) -> dict[str, int]:
+        """How many units the last read of their entry refused, per reason (``missing`` is not a refusal)."""
+        return dict(Counter(p for p in self._rejected.values() if p != EntryProblem.MISSING.value))
 
     def keys(self) -> list[tuple[str, int]]:
         """Every (vehicle, IMU) with an entry file, sorted."""
@@ -73,6 +93,4 @@ class PassportStore:
                 scan.passports[key] = self.get(*key)
             except PassportStoreError as exc:
                 scan.errors[key] = exc
-            except ValueError as exc:
-                scan.errors[key] = PassportStoreError(key[0], key[1], self.root / key[0], str(exc))
         return scan

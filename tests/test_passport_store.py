@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 
 import pytest
 
@@ -111,3 +112,48 @@ def test_store_command_puts_and_checks(tmp_path, capsys):
     (root / "uav-3" / "imu1.passport.json").write_text("{}")
     assert main(["store", "check", str(root)]) == 1
     assert "uav-3 IMU1: not a passport-store entry" in capsys.readouterr().out
+
+
+def _fifo(path):
+    os.mkfifo(path)
+
+
+def _symlink_to_fifo(path):
+    os.mkfifo(path.with_name("pipe"))
+    path.symlink_to(path.with_name("pipe"))
+
+
+def _sparse(path):
+    with open(path, "wb") as f:
+        f.truncate(100 * 2**20)
+
+
+def _deep(path):
+    path.write_text("[" * 100_000 + "]" * 100_000)
+
+
+@pytest.mark.parametrize(
+    "make, problem, reason",
+    [
+        (_fifo, "not_a_regular_file", r"not a regular file \(a FIFO\)"),
+        (_symlink_to_fifo, "not_a_regular_file", r"not a regular file \(a FIFO\)"),
+        (lambda p: p.mkdir(), "not_a_regular_file", r"not a regular file \(a directory\)"),
+        (_sparse, "too_large", "104857600 bytes exceeds the limit"),
+        (_deep, "nested_too_deeply", "nested too deeply"),
+    ],
+)
+def test_an_entry_that_is_not_a_small_regular_file_is_refused_without_reading_it(
+    tmp_path, make, problem, reason
+):
+    """A FIFO (no writer: opening it to read would wait forever), a directory, a 100 MB sparse file and
+    JSON nested beyond the parser's recursion limit: each is that unit's refusal, with its reason."""
+    store = PassportStore(tmp_path)
+    store.put("uav-1", 0, passport())
+    path = store.path_for("uav-1", 1)
+    make(path)
+    with pytest.raises(PassportStoreError, match=reason) as info:
+        store.get("uav-1", 1)
+    assert info.value.problem == problem
+    scan = store.scan()
+    assert list(scan.passports) == [("uav-1", 0)] and list(scan.errors) == [("uav-1", 1)]
+    assert store.rejected_counts() == {problem: 1}

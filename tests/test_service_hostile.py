@@ -4,6 +4,7 @@ and says what happened (issue 15)."""
 from __future__ import annotations
 
 import dataclasses
+import os
 import sqlite3
 
 import numpy as np
@@ -107,3 +108,74 @@ def test_poisoned_keys_rates_and_checkpoints_cost_only_their_unit(tmp_path):
             second = ServiceProcess(config)
             assert second.terminate() == 0
             assert not any("moved aside" in line for line in second.lines), second.lines
+
+
+def test_store_entries_that_are_not_small_regular_files_cost_only_their_unit(tmp_path):
+    """Beside a good passport: a FIFO, a directory, a symlink to a FIFO, a 100 MB sparse file and JSON
+    nested beyond the parser's limit, each filed as another unit's entry. The daemon starts (reading a
+    FIFO would wait forever for a writer), monitors the good unit (its F0 event arrives), takes frames
+    of a refused unit with the stream checks only (its entry read again, at run time), reports every
+    refusal with its reason on the status topic and in its log, and ends on SIGTERM."""
+    good = "uav-p"
+    sc = unit()[2]
+    frames = [
+        b
+        for b in batches_of(sc.session, vehicle=good, imu=0, batch_samples=100)
+        if b.t_s[-1] < sc.fault_s + 3.0
+    ]
+    expected = run_fleet(offline_fleet(), frames, finish=False)
+    assert [e.predicate for e in expected] == [Predicate.F0]
+    root = put_store(tmp_path, [(good, 0)])
+    os.mkfifo(root / good / "imu1.passport.json")
+    (root / good / "imu2.passport.json").mkdir()
+    (root / "uav-link").mkdir()
+    (root / "uav-link" / "imu0.passport.json").symlink_to(root / good / "imu1.passport.json")
+    (root / "uav-big").mkdir()
+    with open(root / "uav-big" / "imu0.passport.json", "wb") as f:
+        f.truncate(100 * 2**20)
+    (root / "uav-deep").mkdir()
+    (root / "uav-deep" / "imu0.passport.json").write_text("[" * 100_000 + "]" * 100_000)
+    refused = {"not_a_regular_file": 3, "too_large": 1, "nested_too_deeply": 1}
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, root)
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
+            status = Statuses(ground)
+            got = []
+            with EventReceiver(ground, lambda e: got.append(e.event_id)):
+                daemon = ServiceProcess(config)
+                try:
+                    wait_subscribed(vehicle, frame_key(good, 1))
+                    fifo_unit = [dataclasses.replace(b, imu=1) for b in frames[:5]]
+                    publish_blocking(vehicle, fifo_unit)
+                    publish_blocking(vehicle, frames)
+                    wait_until(lambda: got == [e.event_id for e in expected], timeout_s=60,
+                               what=lambda: f"the good unit's F0 event (got {got})")  # fmt: skip
+                    n_fifo = sum(b.n_samples for b in fifo_unit)
+                    wait_until(
+                        lambda: (
+                            status.counter(good, "imu1.samples.accepted") == n_fifo
+                            and all(
+                                status.counter(good, f"service.passports.rejected.{k}") == n
+                                for k, n in refused.items()
+                            )
+                        ),
+                        timeout_s=30,
+                        what=lambda: f"the refusals on the status topic ({status.get(good)})",
+                    )
+                finally:
+                    code = daemon.terminate()
+    assert code == 0, daemon.lines
+    for unit_name, why in [
+        (f"{good} IMU1", "not a regular file (a FIFO)"),
+        (f"{good} IMU2", "not a regular file (a directory)"),
+        ("uav-link IMU0", "not a regular file (a FIFO)"),
+        ("uav-big IMU0", "104857600 bytes exceeds the limit"),
+        ("uav-deep IMU0", "nested too deeply"),
+    ]:
+        assert any(unit_name in line and why in line for line in daemon.lines), (
+            unit_name,
+            daemon.lines,
+        )
