@@ -1,7 +1,7 @@
 """Logged flights → :class:`~protocols.frames.SampleBatch`: MAVLink ``.tlog``, ArduPilot DataFlash ``.bin`` / ``.log``, PX4 ULog.
 
-Reading (pymavlink parses MAVLink and DataFlash; ULog: :mod:`protocols.ulog`)
-------------------------------------------------------------------------------
+Reading (pymavlink parses MAVLink and decodes DataFlash; ULog: :mod:`protocols.ulog`)
+-------------------------------------------------------------------------------------
 The format is recognised from the content (:func:`detect_format`), never from
 the extension. A log with no IMU data raises :class:`NoImuDataError` naming the
 message types (topics) it does hold.
@@ -21,13 +21,16 @@ message types (topics) it does hold.
   and ``GYR`` messages (instance ``I``, time ``SampleUS``) of an instance are
   paired by time (:class:`protocols.ulog.NearestPairer`) into IMU
   :data:`DATAFLASH_RAW_BASE` + ``I``. ``VIBE``'s clip counters give the
-  clipped samples per IMU.
+  clipped samples per IMU. DataFlash logs are read as a stream
+  (:class:`DataFlashStream`: pymavlink's format and message classes, our own
+  sequential loop), so a reader's memory does not grow with the log's length.
 
 Output is deterministic: messages are taken in file order and each IMU's
 samples are cut into batches of ``batch_samples``, emitted as they fill (so
 the IMUs stay interleaved in time), then the remainders in IMU order. Nothing
 is dropped silently: a sample that is not later than the previous one of its
-IMU, or that holds NaN/Inf, is left out and counted in :class:`LogStats`.
+IMU, or that holds NaN/Inf, is left out and counted in :class:`LogStats`; so
+is a corrupt DataFlash message (``corrupt_messages``).
 
 Writing (for tests and the demo)
 --------------------------------
@@ -73,7 +76,11 @@ _DF_FMT_ID = 0x80
 _TEXT_HEAD_BYTES = 4096
 """How far into a text DataFlash log its first ``FMT`` line may be (after the firmware's header lines)."""
 _FLUSH_MESSAGES = 256
-"""pymavlink messages of one IMU gathered before they are handed on as one block of rows."""
+"""DataFlash or MAVLink messages of one IMU gathered before they are handed on as one block of rows."""
+_READ_BYTES = 1 << 16
+"""Bytes of a binary DataFlash log read at a time (:class:`DataFlashStream`): its memory, whatever the log's length."""
+_DF_MAX_MESSAGE = 255
+"""The longest DataFlash message: ``FMT`` gives a message's length, header included, in one byte."""
 
 
 class LogFormat(StrEnum):
@@ -341,61 +348,216 @@ class LogReader:
             conn.close()
 
     def _dataflash_samples(self) -> Iterator[_Sample | ImuRows]:
-        reader_cls = (
-            DFReader.DFReader_binary
-            if self.format is LogFormat.DATAFLASH_BIN
-            else DFReader.DFReader_text
+        stream = DataFlashStream(
+            self.path,
+            binary=self.format is LogFormat.DATAFLASH_BIN,
+            wanted=frozenset([*DATAFLASH_IMU_NAMES, "ACC", "GYR", "VIBE"]),
+            held=self.stats.held,
         )
-        reader = reader_cls(str(self.path))
-        self._fraction = lambda: reader.offset / max(reader.data_len, 1)
-        self.stats.held = _dataflash_counts(reader)
+        size = max(os.path.getsize(self.path), 1)
+        self._fraction = lambda: stream.offset / size
         clip: dict[int, list[float]] = {}
         raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]] = {}
         pairs: dict[int, NearestPairer] = {}
-        try:
-            types = [*DATAFLASH_IMU_NAMES, "ACC", "GYR", "VIBE"]
-            while (msg := reader.recv_match(type=types)) is not None:
-                name = msg.get_type()
-                fields = msg.get_fieldnames()
+        corrupt = 0
+        for msg in stream:
+            name = msg.get_type()
+            fields = msg.get_fieldnames()
+            try:
                 if name == "VIBE":
                     _note_clipping(msg, fields, clip)
                     continue
                 if name in ("ACC", "GYR"):
-                    # One triad per message, sampled at SampleUS: paired by time (protocols.ulog.NearestPairer).
-                    inst = int(msg.I) if "I" in fields else 0
-                    t_us = int(msg.SampleUS if "SampleUS" in fields else msg.TimeUS)
-                    prefix = "Acc" if name == "ACC" else "Gyr"
-                    xyz = (
-                        getattr(msg, prefix + "X"),
-                        getattr(msg, prefix + "Y"),
-                        getattr(msg, prefix + "Z"),
-                    )
-                    block = raw.setdefault((inst, name == "ACC"), [])
-                    block.append((t_us, *xyz))
-                    if len(block) >= _FLUSH_MESSAGES:
-                        yield from _pair_raw(raw, pairs, inst)
-                    continue
-                imu = int(msg.I) if "I" in fields else DATAFLASH_IMU_NAMES.index(name)
-                t_s = msg.TimeUS * 1e-6 if "TimeUS" in fields else msg.TimeMS * 1e-3
-                temp = float(msg.T) if "T" in fields else None
-                yield (
-                    name,
-                    imu,
-                    t_s,
-                    (msg.AccX, msg.AccY, msg.AccZ),
-                    (msg.GyrX, msg.GyrY, msg.GyrZ),
-                    temp,
-                )
-            for inst in sorted({i for i, _ in raw}):
+                    inst = _note_raw(msg, fields, raw)
+                else:
+                    sample = _imu_sample(msg, fields)
+            except (
+                ValueError,
+                AttributeError,
+            ):  # a text field that is not a number, a field missing
+                corrupt += 1
+                continue
+            if name not in ("ACC", "GYR"):
+                yield sample
+            elif len(raw[(inst, name == "ACC")]) >= _FLUSH_MESSAGES:
                 yield from _pair_raw(raw, pairs, inst)
-        finally:
-            reader.close()
+        for inst in sorted({i for i, _ in raw}):
+            yield from _pair_raw(raw, pairs, inst)
+        self.stats._drop("corrupt_messages", corrupt + stream.corrupt)
         for inst, pairer in sorted(pairs.items()):
             if pairer.unpaired_accel:
                 self.stats.skipped[f"ACC.{inst}"] = (
                     f"{pairer.unpaired_accel} samples without a GYR sample near in time"
                 )
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
+
+
+def _imu_sample(msg: Any, fields: list[str]) -> _Sample:
+    """The sample of an ``IMU``/``IMU2``/``IMU3`` message (module docstring)."""
+    name = msg.get_type()
+    return (
+        name,
+        int(msg.I) if "I" in fields else DATAFLASH_IMU_NAMES.index(name),
+        msg.TimeUS * 1e-6 if "TimeUS" in fields else msg.TimeMS * 1e-3,
+        (msg.AccX, msg.AccY, msg.AccZ),
+        (msg.GyrX, msg.GyrY, msg.GyrZ),
+        float(msg.T) if "T" in fields else None,
+    )
+
+
+def _note_raw(
+    msg: Any, fields: list[str], raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]]
+) -> int:
+    """Gather an ``ACC``/``GYR`` message (one triad, sampled at ``SampleUS``) for pairing by time; its instance."""
+    inst = int(msg.I) if "I" in fields else 0
+    is_accel = msg.get_type() == "ACC"
+    prefix = "Acc" if is_accel else "Gyr"
+    raw.setdefault((inst, is_accel), []).append(
+        (
+            int(msg.SampleUS if "SampleUS" in fields else msg.TimeUS),
+            getattr(msg, prefix + "X"),
+            getattr(msg, prefix + "Y"),
+            getattr(msg, prefix + "Z"),
+        )
+    )
+    return inst
+
+
+def _df_format(type_id: int, name: str, length: int, fmt: str, columns: str) -> Any:
+    """pymavlink's ``DFFormat`` of an ``FMT`` definition; ``ValueError`` for one it cannot decode."""
+    if length < 3 or any(c not in DFReader.FORMAT_TO_STRUCT for c in fmt):
+        # Checked here: DFFormat prints to stdout and raises a bare Exception for an unknown character.
+        raise ValueError(f"FMT of {name!r}: length {length}, format {fmt!r}")
+    return DFReader.DFFormat(type_id, name, length, fmt, columns)
+
+
+def _fmt_of_fmt() -> Any:
+    """The ``FMT`` message's own format (the writers' :data:`_FMT_OF_FMT`), which every log assumes."""
+    f = _FMT_OF_FMT
+    return DFReader.DFFormat(f.type_id, f.name, f.length, f.fmt, ",".join(f.columns))
+
+
+class DataFlashStream:
+    """The messages of a DataFlash log (binary or text) in file order, read as a stream.
+
+    pymavlink's ``DFReader_binary`` and ``DFReader_text`` index a whole log when they open it (an
+    offset per message, the file mapped into memory), so their memory grows with the log: a
+    one-hour 1 kHz log took 417 MB (``.bin``) and 770 MB (``.log``) to replay. This reads the file
+    front to back and holds the message formats, a read buffer and the message at hand, whatever
+    the log's length. Decoding is pymavlink's own, as ``DFReader`` does it: ``DFFormat`` turns each
+    ``FMT`` definition into the struct format, columns and multipliers of its type, and
+    ``DFMessage`` gives the typed, scaled fields (``msg.AccX``, ``get_type()``, ``get_fieldnames()``).
+
+    * Binary: a message is ``A3 95 <type>`` and the body its type's ``FMT`` defines (``FMT`` itself
+      is type 128). Bytes that do not start a message of a defined type are skipped to the next
+      ``A3 95``, as ``DFReader`` does; a body that does not unpack, or an ``FMT`` that defines no
+      usable format, is counted in :attr:`corrupt` and reading resumes after its header. A message
+      cut by the end of the file ends the log.
+    * Text: the lines before the first ``FMT`` line (the firmware's name, free RAM, board) are
+      skipped; fields are split at ``", "``, or at ``","`` where the ``FMT`` lines use that; CRLF
+      or LF. A line of an undefined type, or with fewer fields than its format, is skipped.
+
+    Only the messages named in ``wanted`` are decoded and yielded; every message is counted by name
+    in ``held`` as the stream goes. :attr:`offset` is the number of bytes read so far.
+    """
+
+    def __init__(
+        self, path: Path, *, binary: bool, wanted: frozenset[str], held: dict[str, int]
+    ) -> None:
+        self.path = path
+        self.binary = binary
+        self.wanted = wanted
+        self.held = held
+        self.offset = 0
+        self.corrupt = 0
+
+    def __iter__(self) -> Iterator[Any]:
+        return self._binary() if self.binary else self._text()
+
+    def _binary(self) -> Iterator[Any]:
+        formats = {_DF_FMT_ID: _fmt_of_fmt()}
+        unpack: dict[int, Callable[[bytes], tuple[Any, ...]]] = {}
+        held, wanted = self.held, self.wanted
+        buf, pos, eof = b"", 0, False
+        with open(self.path, "rb") as fh:
+            while True:
+                avail = len(buf) - pos
+                if avail < _DF_MAX_MESSAGE and not eof:
+                    chunk = fh.read(_READ_BYTES)
+                    eof, self.offset = not chunk, fh.tell()
+                    buf, pos = buf[pos:] + chunk, 0
+                    continue
+                if avail < 3:
+                    return
+                type_id = buf[pos + 2]
+                fmt = formats.get(type_id) if buf[pos] == 0xA3 and buf[pos + 1] == 0x95 else None
+                if fmt is None:
+                    found = buf.find(_DF_HEAD, pos + 1)
+                    pos = found if found >= 0 else len(buf) - 1
+                    continue
+                n = fmt.len
+                if avail < n:
+                    return
+                held[fmt.name] = held.get(fmt.name, 0) + 1
+                if type_id == _DF_FMT_ID or fmt.name in wanted:
+                    try:
+                        if type_id not in unpack:
+                            unpack[type_id] = struct.Struct(fmt.msg_struct).unpack
+                        elements = list(unpack[type_id](buf[pos + 3 : pos + n]))
+                        if type_id == _DF_FMT_ID:
+                            null_term = DFReader.null_term
+                            defined = _df_format(
+                                elements[0],
+                                null_term(elements[2]),
+                                elements[1],
+                                null_term(elements[3]),
+                                null_term(elements[4]),
+                            )
+                            formats[defined.type] = defined
+                            unpack.pop(defined.type, None)
+                    except (struct.error, ValueError):
+                        self.corrupt += 1
+                        pos += 3
+                        continue
+                    if type_id != _DF_FMT_ID:
+                        yield DFReader.DFMessage(fmt, elements, True, None)
+                pos += n
+
+    def _text(self) -> Iterator[Any]:
+        formats = {"FMT": _fmt_of_fmt()}
+        held, wanted = self.held, self.wanted
+        delimiter = ""
+        with open(self.path, "rb") as fh:
+            for line in fh:
+                self.offset += len(line)
+                if not delimiter:
+                    if not line.startswith(b"FMT,"):
+                        continue  # the firmware's header lines
+                    delimiter = ", " if line.startswith(b"FMT, ") else ","
+                fields = line.rstrip().decode("utf-8", "backslashreplace").split(delimiter)
+                if len(fields) < 2:
+                    continue
+                name, values = fields[0], fields[1:]
+                held[name] = held.get(name, 0) + 1
+                fmt = formats.get(name)
+                if fmt is None or len(values) < len(fmt.format):
+                    continue
+                if name == "FMT":
+                    if delimiter == ",":  # the columns, themselves comma-separated, were split too
+                        values = [*values[:4], ",".join(values[4:])]
+                    columns = values[4]
+                    if values[2] == "FMT" and columns == "Type,Length,Name,Format":
+                        columns += ",Columns"  # some text logs leave the column out
+                    try:
+                        defined = _df_format(
+                            int(values[0]), values[2], int(values[1]), values[3], columns
+                        )
+                    except ValueError:
+                        self.corrupt += 1
+                        continue
+                    formats[defined.name] = defined
+                elif name in wanted:
+                    yield DFReader.DFMessage(fmt, values, False, None)
 
 
 def _pair_raw(
@@ -412,18 +574,6 @@ def _pair_raw(
     rows = pairer.paired()
     if rows is not None and rows.t_s.size:
         yield rows
-
-
-def _dataflash_counts(reader: Any) -> dict[str, int]:
-    """Messages per type of a DataFlash log, from the index pymavlink builds when it opens it."""
-    counts = reader.counts
-    if isinstance(counts, dict):  # text logs: by name
-        return {str(k): int(n) for k, n in counts.items() if n}
-    return {
-        str(reader.id_to_name[i]): int(n)
-        for i, n in enumerate(counts)
-        if n and i in reader.id_to_name
-    }
 
 
 def _note_clipping(msg: Any, fields: list[str], clip: dict[int, list[float]]) -> None:

@@ -1,6 +1,8 @@
 """Log readers on the real logs (pinned counts and values) and round trips of the log writers."""
 
 import os
+import struct
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -344,6 +346,8 @@ def test_real_bin_clip_counters_and_what_it_holds():
     _, stats = read_log_sessions(REAL_BIN)
     assert stats.sources == {0: "IMU", 1: "IMU2"}
     assert stats.held["VIBE"] == 23 and stats.held["PARM"] == 809 and stats.held["IMU"] == 45
+    # The file ends inside its 24th AHR2 message: 23 are held (pymavlink's index counted 24).
+    assert stats.held["AHR2"] == 23 and len(stats.held) == 47
     assert stats.clipped == {0: 0, 1: 0, 2: 0}  # VIBE Clip0..2 did not move in this second
 
 
@@ -377,3 +381,69 @@ def test_acc_and_gyr_messages_are_paired_by_sample_time(tmp_path):
         np.testing.assert_array_equal(s.accel_mps2, acc[i])
         # Accelerometer sample k at 2k ms: the nearest gyro sample is 2k (0.2 ms earlier; 2k + 1 is 0.8 ms later).
         np.testing.assert_array_equal(s.gyro_rps, gyr[i][::2])
+
+
+# ------------------------------------------------------------------ long DataFlash logs, corrupt messages
+
+_FILLER_FMT = (200, 11, "XKF1", "Q", "TimeUS")
+"""A message type the IMU reader skips: its ``FMT`` (type, length, name, format, columns)."""
+
+
+def _log_with_filler(path, n_filler):
+    """An IMU log of 1000 samples, then ``n_filler`` messages of another type, in ``path``'s format."""
+    session = _sessions(n=1000, rate_hz=1000.0, temp=False, imus=(0,))
+    type_id, length, name, fmt, columns = _FILLER_FMT
+    if path.suffix == ".bin":
+        write_dataflash_bin(path, session)
+        head = struct.pack(
+            "<BB4s16s64s", type_id, length, *(v.encode() for v in (name, fmt, columns))
+        )
+        fmt_msg = b"\xa3\x95\x80" + head
+        filler = b"\xa3\x95" + bytes([type_id]) + struct.pack("<Q", 123456)
+    else:
+        write_dataflash_text(path, session)
+        fmt_msg = f"FMT, {type_id}, {length}, {name}, {fmt}, {columns}\n".encode()
+        filler = f"{name}, 123456\n".encode()
+    with open(path, "ab") as fh:
+        fh.write(fmt_msg + filler * n_filler)
+
+
+@pytest.mark.parametrize("suffix", ["bin", "log"])
+def test_dataflash_reader_memory_does_not_grow_with_the_log(tmp_path, suffix):
+    """The DataFlash readers stream: the Python memory they peak at over a log four times longer is
+    the same. (pymavlink's DFReader, which indexes every message when it opens a log, grew by 2.2 MB
+    (binary) and 2.5 MB (text) for the 60,000 more messages here: the old reader failed this.)"""
+    peaks, read = {}, {}
+    for n in (20_000, 80_000):
+        path = tmp_path / f"filler{n}.{suffix}"
+        _log_with_filler(path, n)
+        tracemalloc.start()
+        try:
+            reader = LogReader(path)
+            samples = sum(b.n_samples for b in reader)
+            peaks[n] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        read[n] = (samples, reader.stats.held["XKF1"])
+    assert peaks[80_000] - peaks[20_000] < 256 * 1024, peaks
+    assert read == {20_000: (1000, 20_000), 80_000: (1000, 80_000)}
+
+
+def test_corrupt_dataflash_messages_are_skipped_and_counted(tmp_path):
+    session = _sessions(n=20, imus=(0,))
+    text = tmp_path / "bad.log"
+    write_dataflash_text(text, session)
+    lines = text.read_text().splitlines()
+    lines[5] = lines[5].replace(", ", ", x", 3)  # a field of the 4th IMU row is not a number
+    text.write_text("\n".join(lines) + "\n")
+    back, stats = read_log_sessions(text)
+    assert back[0].n_samples == 19 and stats.dropped == {"corrupt_messages": 1}
+    # Garbage between two binary messages: skipped to the next message header, nothing lost.
+    binary = tmp_path / "bad.bin"
+    write_dataflash_bin(binary, session)
+    data = binary.read_bytes()
+    cut = data.index(b"\xa3\x95\x81", 200)  # the start of an IMU message
+    binary.write_bytes(data[:cut] + b"\x00\xa3\x07garbage" + data[cut:])
+    back, stats = read_log_sessions(binary)
+    assert back[0].n_samples == 20 and stats.dropped == {}
+    np.testing.assert_allclose(back[0].accel_mps2, session[0].accel_mps2, rtol=2.0**-23)
