@@ -108,6 +108,8 @@ ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
 ALL_EVENTS = f"{ROOT}/*/health/events"
 ALL_STATUS = f"{ROOT}/*/health/status"
+DRAIN_TIMEOUT_S = 5.0
+"""How long :meth:`FramePublisher.drain` waits for the router's answer (a dead link answers at once)."""
 _IMU_INDEX = re.compile(r"0|[1-9][0-9]{0,3}", re.ASCII)
 
 Session: TypeAlias = zenoh.Session
@@ -470,6 +472,8 @@ class FramePublisher:
     :meth:`add` buffers samples and publishes every full batch; :meth:`flush`
     publishes the rest (also done by :meth:`close`). ``seq`` counts frames from
     ``first_seq``. Frames use ``CongestionControl.DROP`` (module docstring).
+    :meth:`close` also waits for the router to hold every frame (:meth:`drain`),
+    so closing the session next loses none.
     """
 
     def __init__(
@@ -486,8 +490,10 @@ class FramePublisher:
         if batch_samples < 1:
             raise ValueError(f"batch_samples must be >= 1, got {batch_samples}")
         self.vehicle, self.imu = vehicle, imu
+        self._session = session
+        self._key = frame_key(vehicle, imu)
         self._publisher = session.declare_publisher(
-            frame_key(vehicle, imu), congestion_control=congestion_control
+            self._key, congestion_control=congestion_control
         )
         self._batch = int(batch_samples)
         self._dtype = SampleDtype(dtype)
@@ -574,8 +580,24 @@ class FramePublisher:
         self.seq = batch.seq + 1
         self.frames_published += 1
 
+    def drain(self, timeout_s: float = DRAIN_TIMEOUT_S) -> None:
+        """Return once the router holds every frame published so far (or after ``timeout_s``).
+
+        ``put`` returns once a frame is in the session's transmission queue, and
+        closing a session drops what that queue still holds: measured on
+        127.0.0.1, 0 to 35 of 500 queued 6 kB frames had reached the router when
+        ``put`` of the last returned, and with a subscriber taking 2 ms a frame the
+        tail of 108 frames was lost in 4 of 70 closes. Zenoh has no flush, but a
+        query on the frame key travels on the same link and priority behind the
+        frames, and the router answers it (a final reply, no queryable needed)
+        only after it has taken them.
+        """
+        for _reply in self._session.get(self._key, timeout=timeout_s):
+            pass
+
     def close(self) -> None:
         self.flush()
+        self.drain()
         self._publisher.undeclare()
 
     def __enter__(self) -> FramePublisher:

@@ -50,11 +50,6 @@ def unit():
     return passport, g, sc.session.select(sc.session.t_s >= sc.landing_s - 0.5)
 
 
-@pytest.mark.xfail(
-    reason="known intermittent defect, not found yet: the F6 alert sometimes never leaves the daemon "
-    "(1 of 2 STATUSTEXT in 60 s, one delivery still pending at shutdown), on a quiet machine too",
-    strict=False,
-)
 def test_mavproxy_sees_the_daemons_heartbeat_and_alerts_with_their_severity(tmp_path):
     passport, g, session = unit()
     store = PassportStore(tmp_path / "passports")

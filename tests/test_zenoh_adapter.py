@@ -188,6 +188,33 @@ def test_frames_published_in_batches_arrive_whole_and_in_order(pair):
     assert counters.accepted == 11 and counters.dropped_overload == 0 and counters.rejected == {}
 
 
+def test_closing_a_frame_publisher_leaves_every_frame_with_the_router():
+    """close() drains: the session may be closed right after it without losing the queued tail.
+
+    The subscriber is the router's own session, so a frame counts once the router
+    has it; 500 frames of 6 kB are still mostly in the client's queue when the
+    last ``put`` returns (31 to 35 had reached it in three runs without the drain).
+    """
+    endpoint = f"tcp/127.0.0.1:{free_local_port()}"
+    t, acc, gyr, temp = _samples(50_000)
+    with open_router(endpoint) as router_session:
+        at_router = []
+        sub = router_session.declare_subscriber(frame_key("v1", 0), at_router.append)
+        try:
+            with client(endpoint) as a:
+                pub = FramePublisher(
+                    a, "v1", 0, batch_samples=100, congestion_control=zenoh.CongestionControl.BLOCK
+                )
+                wait_until(lambda: pub.matched)
+                pub.add(t, acc, gyr, temp)
+                pub.close()
+                held = len(at_router)
+        finally:
+            sub.undeclare()
+    assert pub.frames_published == 500
+    assert held == 500
+
+
 def test_bad_frames_are_counted_by_reason_and_the_source_keeps_going(pair):
     a, b = pair
     good = SampleBatch("v2", 0, 5, np.arange(3.0), np.ones((3, 3)), np.zeros((3, 3)))
