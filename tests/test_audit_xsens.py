@@ -9,8 +9,10 @@ import pytest
 from real_data import XSENS, needs
 
 from estimators.audit import AuditConfig, run_audit
+from estimators.audit.audit import colour_threshold
 from estimators.chain import ChainConfig
 from estimators.conventions import Triad
+from estimators.noise import batch_means_sd
 from estimators.positions import PositionConfig
 from estimators.static_detector import detect_static
 from protocols.session_file import load_session
@@ -26,18 +28,27 @@ def session():
 
 @pytest.fixture(scope="module")
 def audit(session):
-    return run_audit(session, AuditConfig(ChainConfig(gravity_mps2=G_XSENS), replicas=10, seed=0))
+    # 20 replicas, the command's default: with 10 the 5–95 % band is about the replicas' range and the
+    # headline (measured 8.64, extended median 6.5–6.8) sits at its edge.
+    return run_audit(session, AuditConfig(ChainConfig(gravity_mps2=G_XSENS), replicas=20, seed=0))
+
+
+def static_records(session) -> list[np.ndarray]:
+    """The accelerometer samples of each static interval, trimmed as the positions are (no model)."""
+    trim_s = PositionConfig().trim_s
+    return [
+        session.accel_mps2[
+            (session.t_s >= iv.t_start_s + trim_s) & (session.t_s <= iv.t_end_s - trim_s)
+        ]
+        for iv in detect_static(session).intervals
+    ]
 
 
 def largest_excursions(session, count: int) -> list[int]:
     """The ``count`` static positions whose specific-force magnitude strays farthest from its own
     median, from the raw samples (no model, no simulation): a position disturbed by a hand shows it."""
-    trim_s = PositionConfig().trim_s
-    norm = np.linalg.norm(session.accel_mps2, axis=1)
-    excursion = []
-    for iv in detect_static(session).intervals:
-        inside = norm[(session.t_s >= iv.t_start_s + trim_s) & (session.t_s <= iv.t_end_s - trim_s)]
-        excursion.append(np.abs(inside - np.median(inside)).max())
+    norm = [np.linalg.norm(r, axis=1) for r in static_records(session)]
+    excursion = [np.abs(v - np.median(v)).max() for v in norm]
     return sorted(int(k) for k in np.argsort(excursion)[-count:])
 
 
@@ -80,11 +91,28 @@ def test_xsens_extended_model_states_the_calibration_uncertainty_and_cuts_f0_fal
     assert gain["f0_false_alarm_rate_extended"] <= 0.01
 
 
-def test_xsens_z_allan_deviation_is_inside_the_extended_band(audit):
-    # The z-up first position (52 s) wanders most: one Gauss–Markov bias per axis brings its Allan ratio inside.
+def test_xsens_allan_deviations_of_all_three_axes_are_inside_the_extended_band(audit, session):
+    # The z-up first position (52 s) wanders most on z: one Gauss–Markov bias per axis brings its Allan
+    # ratio inside. On x nothing wanders (no bias_instability named); its measured Allan deviation at
+    # τ = L/8 (6.5 s) is 1.45 × what white noise of its per-sample sd gives, and it is inside only because
+    # the simulation has the noise's short-lag colour (without it the extended ratio was 1.66–1.86).
     allan = {(c.triad, c.axis): c for c in audit.extended_cmp if c.statistic == "allan"}
-    z = allan[(Triad.ACCEL, "z")]
-    assert z.simulated_p05 <= z.measured <= z.simulated_p95, z
+    for ax in "xyz":
+        c = allan[(Triad.ACCEL, ax)]
+        assert c.simulated_p05 <= c.measured <= c.simulated_p95, c
+    # Why the colour is right: fitted on frequencies of 1 Hz and up, it predicts the level at which
+    # 0.5 s means shrink; measured directly (batch means of the static intervals, the three disturbed
+    # ones left out: ~640 batches, a 2.8 % sd) x agrees within 3 sd, and white noise of the same
+    # per-sample sd falls 17 % short.
+    base = audit.baseline[Triad.ACCEL]
+    assert np.all(base.colour_lr[:, 0] > colour_threshold()) and np.all(
+        base.colour_sigma_si[:, 0] > 0
+    )
+    disturbed = set(largest_excursions(session, 3))
+    records = [r for k, r in enumerate(static_records(session)) if k not in disturbed]
+    measured_x = batch_means_sd(records, 50)[0]
+    assert abs(base.colour_level_sd_si[0] / measured_x - 1.0) < 3 * 0.028
+    assert base.white_sd_si[0] / measured_x < 1.0 - 3 * 0.028
 
 
 def test_xsens_states_its_grade_paths_and_its_grid(audit):

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimators.conventions import EARTH_RATE_RPS, N_PARAMS, Triad
+from estimators.noise import gm_mean_variance
 from estimators.session import validate_session
 from estimators.sim import (
     EFFECTS,
@@ -18,6 +19,7 @@ from estimators.sim import (
     Bias,
     BiasDrift,
     BiasInstability,
+    ColouredNoise,
     CycleTemperature,
     ErrorModel,
     Fault,
@@ -428,6 +430,31 @@ def test_gauss_markov_bias_has_its_variance_and_correlation_time():
     n_eff = 3 * 600.0 / (2 * tau)
     assert abs((beta**2).mean() / sigma**2 - 1) < 5 * math.sqrt(2 / n_eff)
     np.testing.assert_allclose(lag1, phi, atol=5 * math.sqrt((1 - phi**2) / (600.0 * 20)))
+
+
+def test_coloured_noise_sums_gauss_markov_terms_and_averages_down_as_they_say():
+    # Axis x: two terms (20 ms and 0.2 s), y: one, z: none; 100 Hz for 400 s.
+    sigma = np.array([[3e-3, 2e-3], [4e-3, 0.0], [0.0, 0.0]])
+    tau = np.array([[0.02, 0.2], [0.05, 1.0], [1.0, 1.0]])
+    _, y, x = _static_error([ColouredNoise(sigma, tau)], duration_s=400.0, seed=3)
+    c = y - x
+    phi = np.exp(-1.0 / (100.0 * tau))
+    var = np.sum(sigma**2, axis=1)
+    lag1 = np.sum(sigma**2 * phi, axis=1)
+    assert np.all(c[:, 2] == 0.0)
+    # Independent stretches: 400 s over 2τ of the slowest term (1000 for x, 4000 for y); 5 sd.
+    n_eff = np.array([1000.0, 4000.0])
+    np.testing.assert_array_less(
+        np.abs(np.var(c[:, :2], axis=0) / var[:2] - 1), 5 * np.sqrt(2 / n_eff)
+    )
+    got = np.mean(c[1:, :2] * c[:-1, :2], axis=0)
+    np.testing.assert_array_less(np.abs(got / lag1[:2] - 1), 5 * np.sqrt(2 / n_eff))
+    # 1 s means (400 of them) scatter as estimators.noise.gm_mean_variance says: 5 sd of a variance from 400 means.
+    means = c[: 400 * 100, :2].reshape(400, 100, 2).mean(axis=1)
+    expected = np.sum(sigma[:2] ** 2 * gm_mean_variance(phi[:2], 100), axis=1)
+    np.testing.assert_array_less(np.abs(np.var(means, axis=0) / expected - 1), 5 * np.sqrt(2 / 400))
+    with pytest.raises(ValueError, match="tau_s positive"):
+        ColouredNoise(sigma, np.zeros((3, 2)))
 
 
 def test_random_walk_bias_increments_grow_with_the_square_root_of_time():

@@ -39,6 +39,8 @@ from estimators.ninepar import Verdict
 from estimators.noise import (
     batch_means_sd,
     dequantized_white_sd,
+    fit_noise_colour,
+    gm_mean_variance,
     quantization_step,
     rounding_mean_var,
     sample_noise_sd,
@@ -49,6 +51,7 @@ from estimators.sim import (
     Bias,
     BiasDrift,
     BiasInstability,
+    ColouredNoise,
     ErrorModel,
     GSensitivity,
     NonOrthogonality,
@@ -69,6 +72,7 @@ from estimators.sim import (
 )
 
 from .candidates import (
+    FAMILY_ALPHA,
     Candidate,
     VarianceData,
     accel_records,
@@ -106,6 +110,11 @@ NOISE_WINDOW_S = 0.5
 """Window of the baseline's noise levels, s (the chain's batch length): a sensor filter's short-lag
 correlation and any wander faster than this are noise the chain's batch-means covariance already
 holds; slower wander is what the candidates look for."""
+COLOUR_TERMS = 2
+"""Most Gauss–Markov terms of a triad's noise colour per axis (:func:`estimators.noise.fit_noise_colour`)."""
+COLOUR_SEGMENT_WINDOWS = 2
+"""Length of the colour's periodogram pieces, in noise windows: its lowest frequency is half the window's
+rate, where a wander slower than the window (the candidates' business) has fallen off."""
 F0_FALSE_ALARM_PROB = 1.0e-3
 """Stated per-test false-alarm probability of the F0 gain check (1 s window means)."""
 
@@ -117,7 +126,7 @@ class TriadBaseline:
     Attributes
     ----------
     params : (9,) ``[b, e, d]`` normalized (zeros but the bias for a gyro whose scalar is unobservable).
-    white_sd_si : (3,) per-sample white noise before quantization, SI.
+    white_sd_si : (3,) per-sample noise before quantization (white plus colour), SI.
     quant_step_si : (3,) output grid step, SI, or None.
     rate_hz : the session's sample rate, Hz.
     mean_noise_sd_si : (3,) the noise level at which averages shrink (:func:`estimators.noise.batch_means_sd`,
@@ -127,6 +136,11 @@ class TriadBaseline:
         0 in the baseline.
     gm_sigma_norm, gm_tau_s : (3,) the Gauss–Markov bias behind that wander (normalized sd, correlation
         time in s); sd 0 where none was named.
+    colour_sigma_si, colour_tau_s : (3, m) the short-lag colour of the noise (:func:`estimators.noise.fit_noise_colour`):
+        per-sample sd and correlation time of each Gauss–Markov term, SI and s; sd 0 for a term not selected.
+        Part of ``white_sd_si``: the white part is the rest.
+    colour_lr : (3, m) the likelihood ratio with which each term joined (0: not selected); its threshold
+        is :func:`colour_threshold`.
     scalar_resolved : the chain resolved all nine parameters against the triad's reference (always for
         the accelerometers the audit goes on with; for a gyro, navigation grade: :func:`grade_path`).
     resolution_reason : the chain's observability verdict, one line.
@@ -140,6 +154,9 @@ class TriadBaseline:
     excess_sd_norm: FloatArray = field(default_factory=lambda: np.zeros(3))
     gm_sigma_norm: FloatArray = field(default_factory=lambda: np.zeros(3))
     gm_tau_s: FloatArray = field(default_factory=lambda: np.ones(3))
+    colour_sigma_si: FloatArray = field(default_factory=lambda: np.zeros((3, 0)))
+    colour_tau_s: FloatArray = field(default_factory=lambda: np.ones((3, 0)))
+    colour_lr: FloatArray = field(default_factory=lambda: np.zeros((3, 0)))
     scalar_resolved: bool = True
     resolution_reason: str = ""
 
@@ -156,7 +173,26 @@ class TriadBaseline:
             "gm_sigma_norm": [float(v) for v in self.gm_sigma_norm],
             "gm_tau_s": [float(v) for v in self.gm_tau_s],
             "rounding_mean_sd_si": [float(v) for v in np.sqrt(self.rounding_mean_var_si)],
+            "colour_sigma_si": [[float(v) for v in row] for row in self.colour_sigma_si],
+            "colour_tau_s": [[float(v) for v in row] for row in self.colour_tau_s],
+            "colour_lr": [[float(v) for v in row] for row in self.colour_lr],
         }
+
+    @property
+    def colour_level_sd_si(self) -> FloatArray:
+        """(3,) the level at which long averages of white plus colour shrink, ``√(σ_w² + Σ σ_c² (1 + φ)/(1 − φ))``, SI."""
+        phi = np.exp(-1.0 / (self.rate_hz * self.colour_tau_s))
+        gain = np.sum(self.colour_sigma_si**2 * (1.0 + phi) / (1.0 - phi), axis=1)
+        out: FloatArray = np.sqrt(self.white_only_sd_si**2 + gain)
+        return out
+
+    @property
+    def white_only_sd_si(self) -> FloatArray:
+        """(3,) the white part of the per-sample noise (``white_sd_si`` less the colour), SI."""
+        out: FloatArray = np.sqrt(
+            np.clip(self.white_sd_si**2 - np.sum(self.colour_sigma_si**2, axis=1), 0.0, None)
+        )
+        return out
 
     @property
     def rounding_mean_var_si(self) -> FloatArray:
@@ -172,9 +208,15 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
     ``derive_lambda0`` divides the variance by ``n_avg`` (white noise). The
     Gauss–Markov bias of the audited model averages down only as
     ``σ²·V(T/τ)`` over a window of ``T = n_avg / rate`` (:func:`mean_variance_factor`),
-    so it enters as ``n_avg·σ²·V(T/τ)``: ``σ_eff² = σ_w² + n_avg·σ_gm²·V(T/τ)``.
+    so it enters as ``n_avg·σ²·V(T/τ)``; each colour term likewise as
+    ``n_avg·σ_c²·V_n(φ)`` (:func:`estimators.noise.gm_mean_variance`):
+    ``σ_eff² = σ_w² + n_avg·Σ σ_c² V_n(φ) + n_avg·σ_gm²·V(T/τ)``.
     """
-    white = baseline.white_sd_si / reference
+    white = baseline.white_only_sd_si / reference
+    phi = np.exp(-1.0 / (baseline.rate_hz * baseline.colour_tau_s))
+    colour = np.sum(
+        (baseline.colour_sigma_si / reference) ** 2 * gm_mean_variance(phi, n_avg), axis=1
+    )
     window_s = n_avg / baseline.rate_hz
     wander = np.array(
         [
@@ -182,7 +224,7 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
             for s, t in zip(baseline.gm_sigma_norm, baseline.gm_tau_s, strict=True)
         ]
     )
-    var: FloatArray = white**2 + n_avg * wander
+    var: FloatArray = white**2 + n_avg * (colour + wander)
     return np.sqrt(var)
 
 
@@ -200,7 +242,12 @@ def triad_samples(session: ImuSession, triad: Triad) -> FloatArray:
 
 
 def fit_baseline(
-    session: ImuSession, chain: ChainResult, triad: Triad, *, window_s: float = NOISE_WINDOW_S
+    session: ImuSession,
+    chain: ChainResult,
+    triad: Triad,
+    *,
+    window_s: float = NOISE_WINDOW_S,
+    colour: bool = True,
 ) -> TriadBaseline:
     """Baseline model of ``triad`` (module docstring, step 1).
 
@@ -211,7 +258,11 @@ def fit_baseline(
     grid step from every static sample (:func:`estimators.noise.quantization_step`,
     all three axes or none). On a grid the white noise is the level before it
     (:func:`estimators.noise.dequantized_white_sd`, exact also below one step,
-    where Sheppard's ``q²/12`` is not).
+    where Sheppard's ``q²/12`` is not). The noise's short-lag colour
+    (:func:`estimators.noise.fit_noise_colour`) from the periodogram of
+    :data:`COLOUR_SEGMENT_WINDOWS`-window pieces, its correlation times up to
+    one window (a slower wander is the candidates' business); ``colour=False``
+    leaves it out (white noise only: the candidates do not use it, the simulation does).
     """
     x = triad_samples(session, triad)
     spans = [position_span(p) for p in chain.positions]
@@ -235,6 +286,18 @@ def fit_baseline(
     steps = [quantization_step(static[:, i]) for i in range(3)]
     quant = None if any(s is None for s in steps) else np.array(steps, float)
     white = sd if quant is None else dequantized_white_sd(sd, quant)
+    fit = (
+        fit_noise_colour(
+            [x[a:b] for a, b in usable],
+            session.rate_hz,
+            COLOUR_SEGMENT_WINDOWS * window,
+            colour_threshold(),
+            max_tau_s=window / session.rate_hz,
+            max_terms=COLOUR_TERMS,
+        )
+        if colour
+        else None
+    )
     est = chain.triads[triad].estimate
     if est.params is not None:
         params = np.array(est.params, float)
@@ -249,9 +312,23 @@ def fit_baseline(
         quant,
         session.rate_hz,
         mean_sd,
+        **(
+            {}
+            if fit is None
+            else {"colour_sigma_si": fit.sigma_si, "colour_tau_s": fit.tau_s, "colour_lr": fit.lr}
+        ),
         scalar_resolved=resolved,
         resolution_reason=est.reason,
     )
+
+
+def colour_threshold() -> float:
+    """Likelihood ratio a colour term must exceed: χ² with two degrees of freedom (its variance and correlation
+    time) at the family-wise false-naming rate split over the terms tried on one triad's three axes (Bonferroni,
+    as the candidates)."""
+    from scipy.stats import chi2
+
+    return float(chi2.isf(FAMILY_ALPHA / (3 * COLOUR_TERMS), 2))
 
 
 def grade_path(
@@ -290,14 +367,16 @@ def grade_path(
 
 
 def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
-    """The simulator chain of a baseline (non-orthogonality, scale, bias, white noise, quantization)."""
+    """The simulator chain of a baseline (non-orthogonality, scale, bias, white and coloured noise, quantization)."""
     p = base.params
     effects = [
         NonOrthogonality(_angles_from_cosines(p[6:9])),
         ScaleFactor(p[3:6]),
         Bias(p[:3] * reference),
     ]
-    effects.append(WhiteNoise.from_sample_sd(base.white_sd_si, 1.0))
+    effects.append(WhiteNoise.from_sample_sd(base.white_only_sd_si, 1.0))
+    if np.any(base.colour_sigma_si > 0):
+        effects.append(ColouredNoise(base.colour_sigma_si, base.colour_tau_s))
     if base.quant_step_si is not None:
         effects.append(Quantization(base.quant_step_si, Rounding.NEAREST))
     return TriadErrorModel(tuple(effects))
@@ -516,10 +595,17 @@ def _present(session: ImuSession) -> tuple[Triad, ...]:
 
 
 def fit_baselines(
-    session: ImuSession, chain: ChainResult, *, window_s: float = NOISE_WINDOW_S
+    session: ImuSession,
+    chain: ChainResult,
+    *,
+    window_s: float = NOISE_WINDOW_S,
+    colour: bool = True,
 ) -> dict[Triad, TriadBaseline]:
     """:func:`fit_baseline` of every triad the session has."""
-    return {t: fit_baseline(session, chain, t, window_s=window_s) for t in _present(session)}
+    return {
+        t: fit_baseline(session, chain, t, window_s=window_s, colour=colour)
+        for t in _present(session)
+    }
 
 
 def quantization_candidate(triad: Triad, base: TriadBaseline, n_typical: float) -> Candidate:

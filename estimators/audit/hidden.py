@@ -245,7 +245,7 @@ def named_effects(session: ImuSession, chain: ChainResult) -> set[tuple[str, Tri
     """
     if len(chain.positions) < MIN_POSITIONS:
         return set()
-    baselines = fit_baselines(session, chain)
+    baselines = fit_baselines(session, chain, colour=False)
     named = {
         (c.effect, c.triad, c.axis)
         for c in find_candidates(session, chain, baselines)
@@ -280,7 +280,7 @@ class HiddenEffect:
 def _clean_candidate(
     session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str
 ) -> Candidate:
-    baselines = fit_baselines(session, chain)
+    baselines = fit_baselines(session, chain, colour=False)
     return next(
         c
         for c in find_candidates(session, chain, baselines)
@@ -302,7 +302,7 @@ def gm_shares(
       leverage residual ``(M z)_k / √(1 − h_kk)``, ``M = I − H`` of the baseline's design, so the
       share is ``(M diag(d) M)_kk / (1 − h_kk)`` with ``d_k = σ² w_k between_k / reference_k``.
     """
-    baselines = fit_baselines(session, chain)
+    baselines = fit_baselines(session, chain, colour=False)
     tab = candidate_table(chain, session, triad, baselines[triad])
     n = tab.n_samples.size
     if triad is Triad.ACCEL or baselines[triad].scalar_resolved:

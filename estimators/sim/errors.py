@@ -20,6 +20,7 @@ stage  name                     what it does to ``y`` (per sensor axis ``i``)
 33     ``bias_instability``     ``y_i +=`` Gauss–Markov + random walk + flicker noise
 34     ``g_sensitivity``        gyros: ``y += G f_b`` (M4's Bg, rad/s per m/s²)
 40     ``white_noise``          ``y_i += σ_i n``, ``σ_i = density_i·√rate``
+41     ``coloured_noise``       ``y_i +=`` a sum of short Gauss–Markov terms (noise colour)
 45     (noise-burst faults)     see :mod:`estimators.sim.faults`
 50     ``quantization``         ``y_i = k_i·Entier(y_i / k_i)`` (M2)
 ====== ======================== ===========================================================
@@ -443,6 +444,50 @@ class WhiteNoise(Effect):
         return y + self.sample_sd(ctx.rate_hz) * ctx.rng.standard_normal(y.shape)
 
 
+@dataclass(frozen=True)
+class ColouredNoise(Effect):
+    """Short-lag coloured noise: a sum of first-order Gauss–Markov terms per axis (a sensor's own filtering).
+
+    ``sigma_si`` (3, m): per-sample sd of each term, SI; ``tau_s`` (3, m): its
+    correlation time, s. Each term is ``β_k = φ β_{k−1} + w_k``,
+    ``φ = exp(−Δt/τ)``, ``var w = σ²(1 − φ²)``, started from its stationary
+    law, so every sample has the variance ``Σ_j σ_j²`` and a mean of ``n``
+    samples averages down as white noise of variance ``Σ_j σ_j² (1 + φ_j)/(1 − φ_j)``
+    for ``n ≫ τ/Δt`` (:func:`estimators.noise.fit_noise_colour` fits it). The
+    same process as :class:`BiasInstability`'s Gauss–Markov part, kept apart
+    from it: this is the noise a model has before any wander is named.
+    """
+
+    sigma_si: ArrayLike = ((0.0,),) * 3
+    tau_s: ArrayLike = ((1.0,),) * 3
+    name: ClassVar[str] = "coloured_noise"
+    stage: ClassVar[int] = 41
+
+    def __post_init__(self) -> None:
+        sigma = np.asarray(self.sigma_si, dtype=float)
+        sigma = np.broadcast_to(sigma, (3, sigma.size)) if sigma.ndim < 2 else sigma
+        shape = (3, sigma.shape[-1])
+        object.__setattr__(self, "sigma_si", _float_rows(sigma, shape, "sigma_si"))
+        object.__setattr__(self, "tau_s", _float_rows(self.tau_s, shape, "tau_s"))
+        if np.min(self.sigma_si) < 0 or np.min(self.tau_s) <= 0:
+            raise ValueError(
+                f"sigma_si must be non-negative and tau_s positive, got {self.sigma_si!r}, {self.tau_s!r}"
+            )
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        from scipy.signal import lfilter
+
+        sigma = np.array(self.sigma_si, dtype=np.float64)
+        phi = np.exp(-1.0 / (ctx.rate_hz * np.array(self.tau_s, dtype=np.float64)))
+        white = ctx.rng.standard_normal((*sigma.shape, y.shape[0]))
+        out = y.copy()
+        for i, j in zip(*np.nonzero(sigma > 0), strict=True):
+            w = sigma[i, j] * np.sqrt(1.0 - phi[i, j] ** 2) * white[i, j]
+            w[0] = sigma[i, j] * white[i, j, 0]
+            out[:, i] += lfilter([1.0], [1.0, -phi[i, j]], w)
+        return out
+
+
 class Rounding(StrEnum):
     """How a converter turns ``signal / k`` into a whole number of counts."""
 
@@ -603,6 +648,7 @@ EFFECTS: dict[str, type[Effect] | type[EnvironmentEffect]] = {
         BiasInstability,
         GSensitivity,
         WhiteNoise,
+        ColouredNoise,
         Quantization,
         GravityMismatch,
         NonstaticPositions,
