@@ -283,6 +283,7 @@ class NoiseColour:
 
     Attributes
     ----------
+    white_sd_si : (3,) per-sample sd of the white part, SI.
     sigma_si : (3, m) per-sample sd of each term, SI (0 for a term not selected).
     tau_s : (3, m) its correlation time, s.
     lr : (3, m) the likelihood ratio with which each term joined (0 when not selected).
@@ -291,6 +292,7 @@ class NoiseColour:
         (``√(1 + 2Σρ)``: 1 for white noise).
     """
 
+    white_sd_si: FloatArray
     sigma_si: FloatArray
     tau_s: FloatArray
     lr: FloatArray
@@ -381,7 +383,7 @@ def fit_noise_colour(
         np.ones((k, max_terms)),
         np.zeros((k, max_terms)),
     )
-    ratio = np.ones(k)
+    ratio, white = np.ones(k), np.zeros(k)
     for i in range(k):
         design = np.ones((pgram.shape[0], 1))
         theta, cur = _whittle_fit(design, pgram[:, i], n_seg)
@@ -415,9 +417,9 @@ def fit_noise_colour(
             chosen.append(float(np.exp(log_tau)))
             lrs[i, len(chosen) - 1] = lr
         phi = np.exp(-1.0 / (rate_hz * np.array(chosen)))
-        sigma[i, : len(chosen)] = np.sqrt(theta[1:])
+        white[i], sigma[i, : len(chosen)] = np.sqrt(theta[0]), np.sqrt(theta[1:])
         tau_out[i, : len(chosen)] = chosen
         total = float(np.sum(theta))
         if total > 0.0:
             ratio[i] = np.sqrt((theta[0] + np.sum(theta[1:] * (1.0 + phi) / (1.0 - phi))) / total)
-    return NoiseColour(sigma, tau_out, lrs, threshold, ratio)
+    return NoiseColour(white, sigma, tau_out, lrs, threshold, ratio)

@@ -261,7 +261,9 @@ def fit_baseline(
     where Sheppard's ``q²/12`` is not). The noise's short-lag colour
     (:func:`estimators.noise.fit_noise_colour`) from the periodogram of
     :data:`COLOUR_SEGMENT_WINDOWS`-window pieces, its correlation times up to
-    one window (a slower wander is the candidates' business); ``colour=False``
+    one window (a slower wander is the candidates' business), as shares of the
+    per-sample noise above (the periodogram's total differs from it by a percent
+    or two: bins, rounding); ``colour=False``
     leaves it out (white noise only: the candidates do not use it, the simulation does).
     """
     x = triad_samples(session, triad)
@@ -315,7 +317,14 @@ def fit_baseline(
         **(
             {}
             if fit is None
-            else {"colour_sigma_si": fit.sigma_si, "colour_tau_s": fit.tau_s, "colour_lr": fit.lr}
+            else {
+                "colour_sigma_si": fit.sigma_si
+                * (white / np.maximum(np.sqrt(fit.white_sd_si**2 + fit.variance_si), 1e-300))[
+                    :, None
+                ],
+                "colour_tau_s": fit.tau_s,
+                "colour_lr": fit.lr,
+            }
         ),
         scalar_resolved=resolved,
         resolution_reason=est.reason,
