@@ -1,6 +1,6 @@
 """Model audit: wall time on the Xsens session, its growth, and the hit rate of hidden effects against their size.
 
-Run: ``python benchmarks/bench_audit.py [--quick]``. Prints
+Run: ``python benchmarks/bench_audit.py [--quick] [--no-times | --no-rates]``. Prints
 
 1. the wall time of a full audit of the Xsens session (38 positions, 51,175
    samples) at 5–40 Monte Carlo replicas, and of simulated sessions of growing
@@ -146,8 +146,10 @@ if __name__ == "__main__":
         help="grade of the hit-rate sweep (repeatable; default both)",
     )
     ap.add_argument("--no-times", action="store_true", help="skip the wall-time part")
+    ap.add_argument("--no-rates", action="store_true", help="skip the hit-rate sweep")
     args = ap.parse_args()
     if not args.no_times:
         wall_times(args.quick)
     grades = tuple(Grade(g) for g in args.grade) if args.grade else (Grade.MEMS, Grade.NAVIGATION)
-    hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades)
+    if not args.no_rates:
+        hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades)

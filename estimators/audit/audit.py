@@ -697,22 +697,35 @@ def find_candidates(
         gyro and baselines[Triad.GYRO].scalar_resolved,
     )
     keep = np.ones(n, bool)
-    # Screen for disturbed positions, refit without them, until none is left (a few rounds at most).
-    for _ in range(SCREENING_ROUNDS):
-        cands, records, final = _fit_candidates(
-            subset_table(tab_a, keep),
-            None if tab_g is None else subset_table(tab_g, keep),
+
+    def fit(rows: BoolArray) -> tuple[list[Candidate], list[VarianceData], tuple[FloatArray, ...]]:
+        return _fit_candidates(
+            subset_table(tab_a, rows),
+            None if tab_g is None else subset_table(tab_g, rows),
             baselines,
             g,
             n_tests,
             batch_s,
         )
-        flagged = np.flatnonzero(keep)[
-            disturbed_positions(records, final, int(keep.sum()), n_tests)
-        ]
-        if flagged.size == 0 or keep.sum() - flagged.size < MIN_POSITIONS:
+
+    # Screen for disturbed positions, refit without them, until none is left (a few rounds at most).
+    # A position is flagged against the sensor-axis wander alone (a wobble fitted with it still in could
+    # take its motion for a wobble of all), and confirmed against the model of the other positions,
+    # their common wobble included (a wobble of every position is not a few disturbed ones).
+    cands, records, final = fit(keep)
+    for _ in range(SCREENING_ROUNDS):
+        m = int(keep.sum())
+        flagged = disturbed_positions(records, final, m, n_tests, common_motion=False)
+        if not flagged.any() or m - int(flagged.sum()) < MIN_POSITIONS:
             break
-        keep[flagged] = False
+        trial = keep.copy()
+        trial[np.flatnonzero(keep)[flagged]] = False
+        others = fit(trial)
+        confirmed = flagged & disturbed_positions(records, others[2], m, n_tests)
+        if not confirmed.any():
+            break
+        keep[np.flatnonzero(keep)[confirmed]] = False
+        cands, records, final = others if confirmed.sum() == flagged.sum() else fit(keep)
     if not keep.all():
         cands = [
             _with_disturbed(c, tab_a, ~keep) if c.effect == "nonstatic_positions" else c

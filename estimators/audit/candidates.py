@@ -847,26 +847,33 @@ def halves_chi2(
 
 
 def disturbed_positions(
-    records: list[VarianceData], thetas: tuple[FloatArray, ...], n: int, n_tests: int
+    records: list[VarianceData],
+    thetas: tuple[FloatArray, ...],
+    n: int,
+    n_tests: int,
+    *,
+    common_motion: bool = True,
 ) -> BoolArray:
     """Rows whose halves lie beyond the fitted model at the family-wise rate split over tests and positions (bool (n,)).
 
     Motion in a few positions (a hand on the unit, a knock) is not a wander of
     every position: its halves stand out against whatever the homogeneous
-    sensor-axis components explain. The motion component common to every
-    position (the last of each halves record, :func:`_halves_record`) is left
-    out of that model: fitted with the disturbed positions still in, it would
-    take their motion for a wobble of all and explain it away (the Xsens
-    session with the static detector sized by its own noise kept #26 that way).
-    Bonferroni over :data:`FAMILY_ALPHA` / (tests × positions).
+    components explain. ``common_motion=False`` leaves the motion component
+    common to every position (the last of each halves record,
+    :func:`_halves_record`) out of that model: the screening's first look,
+    before a wobble fitted with the disturbed positions still in can take
+    their motion for a wobble of all (:func:`estimators.audit.audit.find_candidates`
+    then confirms each flagged position against the model of the others,
+    wobble included). Bonferroni over :data:`FAMILY_ALPHA` / (tests × positions).
     """
     from scipy.stats import chi2
 
-    sensor_axes = tuple(
-        np.where(np.arange(th.size) == th.size - 1, 0.0, th) if k % 2 else th
-        for k, th in enumerate(thetas)
-    )
-    chi, dof = halves_chi2(records, sensor_axes, n)
+    if not common_motion:
+        thetas = tuple(
+            np.where(np.arange(th.size) == th.size - 1, 0.0, th) if k % 2 else th
+            for k, th in enumerate(thetas)
+        )
+    chi, dof = halves_chi2(records, thetas, n)
     p = np.where(dof > 0, chi2.sf(chi, np.maximum(dof, 1)), 1.0)
     return p < FAMILY_ALPHA / (max(n_tests, 1) * n)
 
