@@ -260,8 +260,8 @@ def _statistics_table(result: AuditResult) -> list[str]:
 def _model_table(result: AuditResult) -> list[str]:
     """The surviving noise model of each triad (SI, per axis)."""
     lines = [
-        "| triad | white sd per sample | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | wander between positions (sd) |",
-        "|---|---|---|---|---|---|---|",
+        "| triad | noise sd per sample | of it, colour: σ at τ (s) | level of long averages, colour (sd) | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | wander between positions (sd) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for t, m in result.extended_model.items():
         scale = reference_magnitude(t, result.gravity_mps2)
@@ -271,8 +271,14 @@ def _model_table(result: AuditResult) -> list[str]:
         ]
         wander = [f"{v * scale:.3g}" if v > 0 else "–" for v in m.excess_sd_norm]
         step = "none" if m.quant_step_si is None else _fmt(list(m.quant_step_si))
+        colour = "; ".join(
+            " + ".join(f"{sd:.3g} at {tc:.3g}" for sd, tc in zip(sds, taus, strict=True) if sd > 0)
+            or "–"
+            for sds, taus in zip(m.colour_sigma_si, m.colour_tau_s, strict=True)
+        )
         lines.append(
-            f"| {t.value} ({UNIT[t]}) | {_fmt(list(m.white_sd_si))} | {_fmt(list(m.mean_noise_sd_si))} | {step} | "
+            f"| {t.value} ({UNIT[t]}) | {_fmt(list(m.white_sd_si))} | {colour} | {_fmt(list(m.colour_level_sd_si))} | "
+            f"{_fmt(list(m.mean_noise_sd_si))} | {step} | "
             f"[{', '.join(gm)}] | [{', '.join(tau)}] | [{', '.join(wander)}] |"
         )
     return lines
