@@ -174,7 +174,11 @@ def main() -> None:
             service = subprocess.Popen([sys.executable, "-m", "service.cli", "run", "--config", str(config)], cwd=ROOT,
                                        stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
             try:
-                if "running" not in service.stderr.readline():
+                # The log's summary lines come first; the last line of the start says it runs.
+                for line in service.stderr:
+                    if line.rstrip().endswith(" running"):
+                        break
+                else:
                     raise RuntimeError("the service did not start")
                 with zenoh.open(client(port)) as vehicle, zenoh.open(client(port)) as ground:
                     accepted, dropped = {}, {}

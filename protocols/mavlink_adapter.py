@@ -614,6 +614,10 @@ def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:
     return conn
 
 
+READER_RETRY_S = 1.0
+"""The pause of :class:`MavlinkSource`'s reader after a failed read."""
+
+
 class MavlinkSource(BatchSource):
     """IMU batches from a :class:`MavlinkLink` for asyncio: a reader thread and a bounded ring.
 
@@ -637,6 +641,8 @@ class MavlinkSource(BatchSource):
         )
         self._stop = threading.Event()
         self._poll_s = float(poll_s)
+        self.failures = 0
+        self.last_failure: Exception | None = None
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
         )
@@ -644,7 +650,16 @@ class MavlinkSource(BatchSource):
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            batch = self.link.recv_batch(self._poll_s)
+            try:
+                batch = self.link.recv_batch(self._poll_s)
+            except Exception as exc:
+                # A reader that died would end MAVLink input for good, silently: the failure is
+                # kept (:attr:`failures`, :attr:`last_failure`) for the daemon to log and count,
+                # and reading resumes after a pause.
+                self.failures += 1
+                self.last_failure = exc
+                self._stop.wait(READER_RETRY_S)
+                continue
             if batch is not None:
                 self._ring.put(batch)
 

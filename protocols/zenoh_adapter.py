@@ -62,6 +62,7 @@ queryables and publishers keep working.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import re
 import threading
@@ -311,6 +312,23 @@ def open_session(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Session:
         return zenoh.open(config)
     except zenoh.ZError as exc:
         raise ConnectionError(f"cannot open the zenoh session: {exc}") from None
+
+
+def open_session_within(settings: ZenohSettings, timeout_s: float) -> zenoh.Session:
+    """One attempt at opening a session that waits at most ``timeout_s`` for the ``connect`` endpoints.
+
+    ``ConnectionError`` when no router answered in time (whatever ``settings.connect_timeout_s``
+    says). ``zenoh.open`` cannot be interrupted, so a caller that must stay responsive while the
+    router is away (the daemon: other inputs, SIGTERM) runs bounded attempts like this one in a
+    worker thread, in a loop.
+    """
+    return open_session(dataclasses.replace(settings, connect_timeout_s=timeout_s))
+
+
+def connected_nodes(session: zenoh.Session) -> list[str]:
+    """The Zenoh ids of the routers and peers ``session`` is connected to now (empty: no link)."""
+    info = session.info
+    return [str(zid) for zid in [*info.routers_zid(), *info.peers_zid()]]
 
 
 @contextmanager

@@ -2,7 +2,7 @@
 
 Tasks of :meth:`Service.run`
 ----------------------------
-* **frames** — IMU frames from Zenoh (:class:`protocols.zenoh_adapter.FrameSource`:
+* **frames** (Zenoh) and **mavlink-frames** — IMU frames from Zenoh (:class:`protocols.zenoh_adapter.FrameSource`:
   a bounded ring between Zenoh's thread and the loop; when it is full the
   oldest frame is dropped and counted) and, when configured, from MAVLink
   (:class:`protocols.mavlink_adapter.MavlinkSource`, one-sample batches joined
@@ -24,6 +24,19 @@ Tasks of :meth:`Service.run`
   with every counter (rejections by reason, drops, outbox backlog, …).
 * **checkpoints** — every ``checkpoint_period_s`` the state of every pipeline
   (positions, recursive estimates) to SQLite.
+* **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
+* **zenoh-connect** — only while the router is out of reach: the first attempt at opening the
+  Zenoh session (at most :data:`CONNECT_ATTEMPT_S`) is made before the service says it runs; if
+  it fails the service runs without Zenoh (MAVLink is served, events wait in the outbox) and this
+  task tries again every :data:`CONNECT_PAUSE_S`, then starts the Zenoh side. It says so in the
+  log, and past ``connect_timeout_s`` (when set) the daemon exits non-zero. The status task logs
+  when the session's connections are lost and come back (Zenoh reconnects by itself).
+
+Every task runs under a :class:`~service.supervisor.Supervisor`: an exception is logged with its
+traceback, counted (``service.task.<name>.failures``) and the task restarted with back-off; a task
+failing again and again without progress makes the daemon exit with status 70 for systemd to
+restart it. Each task's last progress is on the status topic
+(``service.task.<name>.last_progress_unix_ms``).
 
 SIGTERM (``stop`` set) drains: the sources stop, the frames already received
 are processed, the checkpoints are written, and delivery continues for up to
@@ -52,11 +65,14 @@ from protocols.events import (
     decode_event,
     encode_event,
 )
-from protocols.mavlink_adapter import MavlinkLink, MavlinkSource
+from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
 from protocols.zenoh_adapter import (
     FrameSource,
+    Session,
     StatusPublisher,
-    open_session,
+    ZenohSettings,
+    connected_nodes,
+    open_session_within,
 )
 from service.alert_policy import AlertPolicy
 from service.checkpoint import CheckpointError, CheckpointStore
@@ -67,9 +83,18 @@ from service.outbox import Outbox
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
 from service.sinks import TRANSPORT_ERRORS, EventSink, MavlinkAlertSink, ZenohEventSink
+from service.supervisor import EXIT_TASK_FAILED, Supervisor
 
 DRAIN_TIMEOUT_S = 5.0
 """How long SIGTERM keeps delivering before the service exits (the rest is re-sent at the next start)."""
+
+CONNECT_ATTEMPT_S = 3.0
+"""How long one attempt at opening the Zenoh session may take: the first is made before the
+service says it runs, the others in the background; SIGTERM waits for at most one."""
+CONNECT_PAUSE_S = 2.0
+"""The pause between two attempts at opening the Zenoh session."""
+INPUT_TASKS = ("frames", "mavlink-frames")
+"""The tasks of the frame path."""
 
 log = logger("daemon")
 
@@ -117,6 +142,7 @@ class Service:
     ----------
     config : the service configuration.
     clock : the monotonic clock that stamps arrivals (timeouts) and paces alerts.
+    supervisor : runs the tasks (default: :class:`~service.supervisor.Supervisor`'s back-off).
     """
 
     def __init__(
@@ -124,9 +150,14 @@ class Service:
         config: ServiceConfig,
         *,
         clock: Callable[[], float] = time.monotonic,
+        supervisor: Supervisor | None = None,
     ):
         self.config = config
         self._clock = clock
+        self.supervisor = Supervisor() if supervisor is None else supervisor
+        self._session: Session | None = None
+        self._router_connected = False
+        self._reader_failures = 0
         self.store = PassportStore(config.service.passport_dir)
         self._passports: dict[tuple[str, int], Passport] = {}
         self.fleet = FleetProcessor(
@@ -235,6 +266,8 @@ class Service:
     # ------------------------------------------------------------------ events
 
     def _store(self, events: list[Event]) -> None:
+        # Every frame taken (processed or rejected) ends here: the progress of the frame path.
+        self.supervisor.beat()
         if not events:
             return
         run = self._running()
@@ -247,6 +280,7 @@ class Service:
         while not stop.is_set():
             try:
                 await sink.heartbeat()
+                self.supervisor.beat()
             except TRANSPORT_ERRORS as exc:
                 self._transport_error(sink.name, exc)
             await _wait_any(stop, None, timeout_s=self.config.mavlink.heartbeat_period_s)
@@ -286,6 +320,7 @@ class Service:
                     break
                 acked.append(p.seq)
             outbox.ack(sink.name, acked)
+            self.supervisor.beat()
             if refused is not None:
                 outbox.record_attempt(sink.name, [refused.seq])
                 self.fleet.count_service(f"delivery.{sink.name}.retries")
@@ -310,10 +345,12 @@ class Service:
             extra["service.mavlink.alerts_deferred"] = self.mavlink_sink.policy.deferred
             extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
             extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
+            extra["service.mavlink.reader_failures"] = self.mavlink_source.failures
         extra.update(
             {f"service.passports.rejected.{k}": n for k, n in self.store.rejected_counts().items()}
         )
         counts = self._running().outbox.counts()
+        extra.update(self.supervisor.counters())
         extra["service.outbox.stored"] = counts.stored
         extra.update({f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()})
         now = time.time()
@@ -329,6 +366,8 @@ class Service:
     async def _status(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             self._store(self.fleet.tick(self._clock()))
+            self._track_router()
+            self._check_mavlink_reader()
             if self._status_pub is not None:
                 await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
@@ -349,11 +388,18 @@ class Service:
         while not stop.is_set():
             await _wait_any(stop, None, timeout_s=self.config.service.checkpoint_period_s)
             await self.checkpoint()
+            self.supervisor.beat()
 
     # ------------------------------------------------------------------ run
 
-    async def run(self, stop: asyncio.Event, *, ready: asyncio.Event | None = None) -> None:
-        """Run until ``stop`` is set, then drain (module docstring). ``ready`` is set once frames are accepted."""
+    async def run(self, stop: asyncio.Event, *, ready: asyncio.Event | None = None) -> int:
+        """Run until ``stop`` is set, then drain (module docstring); the exit status.
+
+        ``ready`` is set once frames are accepted from every input that is
+        up: a router that does not answer the first attempt is connected to in the background.
+        Returns 0 after the drain, or :data:`~service.supervisor.EXIT_TASK_FAILED` when a task
+        kept failing or the router stayed out of reach beyond ``connect_timeout_s``.
+        """
         cfg = self.config
         with contextlib.ExitStack() as resources:
             names = self.sink_names()
@@ -363,6 +409,8 @@ class Service:
                 resources.enter_context(CheckpointStore(cfg.checkpoint_path)),
                 _Wake({name: asyncio.Event() for name in names}),
             )
+            # Before the outbox and the checkpoints close, whatever ended the run.
+            resources.callback(self.supervisor.cancel_all)
             self.fleet.set_restore(self._restore, self._discard_checkpoint)
             self._log_summary()
             self._startup_scan()
@@ -370,26 +418,6 @@ class Service:
                 # Units seen before the restart come back with their positions before their first frame.
                 vehicle, imu = key.rsplit("/", 1)
                 self.fleet.admit(vehicle, int(imu))
-            if cfg.zenoh.enabled:
-                session = resources.enter_context(
-                    await asyncio.to_thread(open_session, cfg.zenoh.session)
-                )
-                zsink = ZenohEventSink(
-                    session,
-                    ack=cfg.zenoh.event_ack,
-                    ack_timeout_s=cfg.zenoh.ack_timeout_s,
-                    min_acks=cfg.zenoh.min_acks,
-                )
-                resources.callback(zsink.close)
-                self.sinks.append(zsink)
-                self._status_pub = resources.enter_context(StatusPublisher(session))
-                self.source = FrameSource(
-                    session,
-                    (cfg.zenoh.frames_key,),
-                    capacity=cfg.pipeline.queue_capacity,
-                    on_reject=self.intake.reject,
-                )
-                resources.callback(self.source.close)
             if cfg.mavlink.enabled:
                 link = resources.enter_context(
                     await asyncio.to_thread(MavlinkLink, cfg.mavlink.link)
@@ -404,75 +432,195 @@ class Service:
                     link, capacity=cfg.pipeline.queue_capacity * COALESCE_MAX
                 )
                 resources.callback(self.mavlink_source.close)
+            connector = _Connector(cfg.zenoh.session) if cfg.zenoh.enabled else None
+            session = None if connector is None else await connector.attempt()
             run.wake.set()  # deliver what a previous run left in the outbox
             drain = asyncio.Event()
-            tasks = [
-                asyncio.create_task(
-                    self._deliver(s, run.wake.events[s.name], drain), name=f"deliver-{s.name}"
-                )
-                for s in self.sinks
-            ]
-            tasks.append(asyncio.create_task(self._status(stop), name="status"))
-            tasks.append(asyncio.create_task(self._checkpoints(stop), name="checkpoints"))
-            inputs = []
-            if self.source is not None:
-                inputs.append(
-                    asyncio.create_task(self.intake.zenoh_frames(self.source), name="frames")
-                )
+            sup = self.supervisor
+            if session is not None:
+                self._zenoh_up(session, resources, drain)
+            if self.mavlink_sink is not None:
+                self._start_delivery(self.mavlink_sink, drain)
+            sup.start("status", lambda: self._status(stop))
+            sup.start("checkpoints", lambda: self._checkpoints(stop))
             if self.mavlink_sink is not None and self.mavlink_source is not None:
-                tasks.append(
-                    asyncio.create_task(self._heartbeat(self.mavlink_sink, stop), name="heartbeat")
-                )
-                inputs.append(
-                    asyncio.create_task(
-                        self.intake.mavlink_frames(self.mavlink_source), name="mavlink-frames"
-                    )
+                sink, source = self.mavlink_sink, self.mavlink_source
+                sup.start("heartbeat", lambda: self._heartbeat(sink, stop))
+                sup.start("mavlink-frames", lambda: self.intake.mavlink_frames(source))
+            if connector is not None and session is None:
+                sup.start(
+                    "zenoh-connect",
+                    lambda: self._connect(connector, resources, drain, stop),
                 )
             if ready is not None:
                 ready.set()
-            await stop.wait()
-            await self._drain(inputs, tasks, drain)
+            await _wait_any(stop, sup.fatal, timeout_s=None)
+            stop.set()
+            await self._drain(drain)
+        return EXIT_TASK_FAILED if sup.fatal.is_set() else 0
+
+    def _zenoh_up(
+        self, session: Session, resources: contextlib.ExitStack, drain: asyncio.Event
+    ) -> None:
+        """The Zenoh side on an open session: event sink, status, frame source, and their tasks."""
+        cfg = self.config
+        self._session = resources.enter_context(session)
+        zsink = ZenohEventSink(
+            session,
+            ack=cfg.zenoh.event_ack,
+            ack_timeout_s=cfg.zenoh.ack_timeout_s,
+            min_acks=cfg.zenoh.min_acks,
+        )
+        resources.callback(zsink.close)
+        self.sinks.insert(0, zsink)
+        self._status_pub = resources.enter_context(StatusPublisher(session))
+        source = self.source = FrameSource(
+            session,
+            (cfg.zenoh.frames_key,),
+            capacity=cfg.pipeline.queue_capacity,
+            on_reject=self.intake.reject,
+        )
+        resources.callback(source.close)
+        self._start_delivery(zsink, drain)
+        self.supervisor.start("frames", lambda: self.intake.zenoh_frames(source))
+
+    def _start_delivery(self, sink: EventSink, drain: asyncio.Event) -> None:
+        wake = self._running().wake.events[sink.name]
+        self.supervisor.start(f"deliver-{sink.name}", lambda: self._deliver(sink, wake, drain))
+
+    async def _connect(
+        self,
+        connector: _Connector,
+        resources: contextlib.ExitStack,
+        drain: asyncio.Event,
+        stop: asyncio.Event,
+    ) -> None:
+        """Attempts to open the Zenoh session until one succeeds, ``stop`` is set or ``connect_timeout_s`` passes."""
+        while not stop.is_set():
+            if connector.expired():
+                self.supervisor.fail(
+                    f"zenoh: no router at {list(connector.settings.connect)} within connect_timeout_s = "
+                    f"{connector.settings.connect_timeout_s:g} s"
+                )
+                return
+            session = await connector.attempt()
+            self.supervisor.beat()
+            if session is not None:
+                if stop.is_set():
+                    session.close()
+                    return
+                self._zenoh_up(session, resources, drain)
+                return
+            await _wait_any(stop, None, timeout_s=CONNECT_PAUSE_S)
+
+    def _track_router(self) -> None:
+        """Log when the session's Zenoh connections come and go (Zenoh reconnects by itself)."""
+        if self._session is None:
+            return
+        nodes = connected_nodes(self._session)
+        if bool(nodes) == self._router_connected:
+            return
+        self._router_connected = bool(nodes)
+        if nodes:
+            log.info("zenoh: connected (%s)", ", ".join(nodes))
+        else:
+            log.warning(
+                "zenoh: connection lost; Zenoh reconnects by itself, events wait in the outbox"
+            )
+
+    def _check_mavlink_reader(self) -> None:
+        """Log the MAVLink reader thread's failures (it reads again after a pause)."""
+        source = self.mavlink_source
+        if source is None or source.failures == self._reader_failures:
+            return
+        self._reader_failures = source.failures
+        log.error(
+            "the MAVLink reader failed (%d failure(s) so far, counted as service.mavlink.reader_failures); "
+            "it reads again after %.0f s",
+            source.failures, READER_RETRY_S, exc_info=source.last_failure,
+        )  # fmt: skip
 
     def sink_names(self) -> list[str]:
         """The sinks every event must reach (the outbox keeps a delivery state for each)."""
         names = [ZenohEventSink.name] if self.config.zenoh.enabled else []
         return names + ([MavlinkAlertSink.name] if self.config.mavlink.enabled else [])
 
-    async def _drain(
-        self,
-        inputs: list[asyncio.Task[None]],
-        tasks: list[asyncio.Task[None]],
-        drain: asyncio.Event,
-    ) -> None:
+    async def _drain(self, drain: asyncio.Event) -> None:
+        sup = self.supervisor
+        sup.stop_restarts()
+        tasks = sup.tasks
+        # A connection attempt ends within its bound; what it opened is then closed with the rest.
+        # (gather: a task that failed or was cancelled must not stop the drain.)
+        await asyncio.gather(
+            *[t for n, t in tasks.items() if n == "zenoh-connect"], return_exceptions=True
+        )
         if self.source is not None:
             self.source.close()
         if self.mavlink_source is not None:
             await asyncio.to_thread(self.mavlink_source.close)
         # The sources are closed: the input tasks finish what is queued, then end.
-        for task in inputs:
-            await task
-        await self.checkpoint()
+        await asyncio.gather(
+            *[t for n, t in tasks.items() if n in INPUT_TASKS], return_exceptions=True
+        )
+        try:
+            await self.checkpoint()
+        except Exception:
+            log.exception("the last checkpoint failed; the next start resumes from the one before")
         drain.set()
         run = self._running()
         run.wake.set()
-        deliveries = [t for t in tasks if t.get_name().startswith("deliver-")]
+        deliveries = [t for name, t in tasks.items() if name.startswith("deliver-")]
         _done, pending = (
             await asyncio.wait(deliveries, timeout=DRAIN_TIMEOUT_S)
             if deliveries
             else (set(), set())
         )
-        for t in list(pending) + [t for t in tasks if t not in deliveries]:
+        for t in list(pending) + [t for t in tasks.values() if t not in deliveries]:
             t.cancel()
-        for t, result in zip(
-            tasks, await asyncio.gather(*tasks, return_exceptions=True), strict=True
-        ):
-            if isinstance(result, Exception):
-                log.error(
-                    "task %s ended with %s", t.get_name(), type(result).__name__, exc_info=result
-                )
+        await asyncio.gather(*tasks.values(), return_exceptions=True)
         left = sum(run.outbox.counts().pending_by_sink.values())
         if left:
             log.warning("%d event deliveries still pending; they are sent at the next start", left)
+
+
+class _Connector:
+    """Bounded attempts at opening the Zenoh session, each in a worker thread (the loop stays free)."""
+
+    def __init__(self, settings: ZenohSettings):
+        self.settings = settings
+        self._first_s: float | None = None
+        self._reported = False
+
+    def expired(self) -> bool:
+        limit = self.settings.connect_timeout_s
+        return (
+            limit is not None
+            and self._first_s is not None
+            and time.monotonic() - self._first_s >= limit
+        )
+
+    async def attempt(self) -> Session | None:
+        """One attempt of at most :data:`CONNECT_ATTEMPT_S`; the session, or ``None`` (logged once)."""
+        if self._first_s is None:
+            self._first_s = time.monotonic()
+        limit = self.settings.connect_timeout_s
+        timeout_s = CONNECT_ATTEMPT_S if limit is None else min(CONNECT_ATTEMPT_S, limit)
+        try:
+            session = await asyncio.to_thread(open_session_within, self.settings, timeout_s)
+        except ConnectionError as exc:
+            if not self._reported:
+                self._reported = True
+                log.warning(
+                    "zenoh: cannot reach %s (%s); retrying in the background every %.0f s, "
+                    "the other inputs are served meanwhile",
+                    list(self.settings.connect), exc, CONNECT_ATTEMPT_S + CONNECT_PAUSE_S,
+                )  # fmt: skip
+            return None
+        if self._reported:
+            log.info(
+                "zenoh: session open after %.1f s of attempts", time.monotonic() - self._first_s
+            )
+        return session
 
 
 async def _wait_any(a: asyncio.Event, b: asyncio.Event | None, *, timeout_s: float | None) -> None:

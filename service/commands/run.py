@@ -2,8 +2,12 @@
 
 Runs until SIGTERM or SIGINT, then drains: stops taking frames, processes what
 was received, writes the checkpoints and keeps delivering events for a few
-seconds; whatever is still undelivered is sent by the next start. Exit status
-0 after a clean stop, 2 for an unusable configuration.
+seconds; whatever is still undelivered is sent by the next start. SIGTERM or SIGINT
+ends it within :data:`STOP_BOUND_S` in every state (connecting to an unreachable router
+included); past that bound it logs why and exits with :data:`EXIT_STOP_TIMEOUT`. Exit status
+0 after a clean stop, 2 for an unusable configuration, 70 when a task kept failing or the
+router stayed out of reach beyond ``connect_timeout_s`` (:mod:`service.supervisor`), so
+that systemd starts it afresh.
 
 The log goes to stderr through :mod:`service.log_setup` (one line per record; under
 journald without time stamps and with syslog priorities); ``--log-level`` sets its
@@ -41,9 +45,19 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-async def serve(service: Service) -> None:
-    """Run ``service`` until SIGTERM or SIGINT."""
+STOP_BOUND_S = 15.0
+"""The longest a stop may take, from SIGTERM to exit: the drain's delivery time
+(``service.daemon.DRAIN_TIMEOUT_S``, 5 s), a connection attempt under way
+(``CONNECT_ATTEMPT_S``, 3 s), an acknowledgement under way (``ack_timeout_s``, 1 s by
+default), the queued frames and the last checkpoint; below the unit's ``TimeoutStopSec``."""
+EXIT_STOP_TIMEOUT = 75
+"""Exit status when a stop overran :data:`STOP_BOUND_S` (EX_TEMPFAIL of sysexits.h)."""
+
+
+async def serve(service: Service) -> int:
+    """Run ``service`` until SIGTERM or SIGINT (or a fatal failure); its exit status."""
     import asyncio
+    import os
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -56,7 +70,18 @@ async def serve(service: Service) -> None:
     )
     if ready.is_set():
         logger("run").info("%s running", service.config.service.name)
-    await runner
+    await asyncio.wait(
+        [runner, asyncio.create_task(stop.wait())], return_when=asyncio.FIRST_COMPLETED
+    )
+    done, _ = await asyncio.wait([runner], timeout=STOP_BOUND_S)
+    if not done:
+        logger("run").critical(
+            "the stop took longer than %.0f s; exiting with status %d without finishing it",
+            STOP_BOUND_S, EXIT_STOP_TIMEOUT,
+        )  # fmt: skip
+        # The outbox and checkpoints are SQLite in WAL mode: as safe as after kill -9.
+        os._exit(EXIT_STOP_TIMEOUT)
+    return runner.result()
 
 
 SWITCH_INTERVAL_S = 0.001
@@ -74,5 +99,4 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     with logging_to(sys.stderr, level=args.log_level):
-        asyncio.run(serve(Service(config)))
-    return 0
+        return asyncio.run(serve(Service(config)))
