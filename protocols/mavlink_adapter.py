@@ -667,6 +667,11 @@ class MavlinkSource(BatchSource):
     def dropped_overload(self) -> int:
         return self._ring.dropped
 
+    @property
+    def queued(self) -> int:
+        """Batches read and not yet taken by the consumer."""
+        return len(self._ring)
+
     async def get(self) -> SampleBatch:
         """The next batch; ``EOFError`` after :meth:`close` once drained."""
         return await self._ring.get()

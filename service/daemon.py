@@ -31,6 +31,8 @@ Tasks of :meth:`Service.run`
   task tries again every :data:`CONNECT_PAUSE_S`, then starts the Zenoh side. It says so in the
   log, and past ``connect_timeout_s`` (when set) the daemon exits non-zero. The status task logs
   when the session's connections are lost and come back (Zenoh reconnects by itself).
+* **watchdog** — under systemd with ``WatchdogSec=``: ``WATCHDOG=1`` while the frame path moves
+  (:class:`service.notify.FramePathWatch`); ``READY=1`` once running, ``STOPPING=1`` at SIGTERM.
 
 Every task runs under a :class:`~service.supervisor.Supervisor`: an exception is logged with its
 traceback, counted (``service.task.<name>.failures``) and the task restarted with back-off; a task
@@ -79,6 +81,7 @@ from service.checkpoint import CheckpointError, CheckpointStore
 from service.config import ServiceConfig
 from service.intake import COALESCE_MAX, Intake
 from service.log_setup import logger
+from service.notify import FramePathWatch, Notifier
 from service.outbox import Outbox
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
@@ -94,7 +97,7 @@ service says it runs, the others in the background; SIGTERM waits for at most on
 CONNECT_PAUSE_S = 2.0
 """The pause between two attempts at opening the Zenoh session."""
 INPUT_TASKS = ("frames", "mavlink-frames")
-"""The tasks of the frame path."""
+"""The tasks of the frame path (their progress feeds the systemd watchdog)."""
 
 log = logger("daemon")
 
@@ -142,6 +145,8 @@ class Service:
     ----------
     config : the service configuration.
     clock : the monotonic clock that stamps arrivals (timeouts) and paces alerts.
+    notifier : the service manager's notification socket (default: from the environment, a
+        no-op when ``NOTIFY_SOCKET`` is not set).
     supervisor : runs the tasks (default: :class:`~service.supervisor.Supervisor`'s back-off).
     """
 
@@ -150,11 +155,14 @@ class Service:
         config: ServiceConfig,
         *,
         clock: Callable[[], float] = time.monotonic,
+        notifier: Notifier | None = None,
         supervisor: Supervisor | None = None,
     ):
         self.config = config
         self._clock = clock
+        self.notifier = Notifier() if notifier is None else notifier
         self.supervisor = Supervisor() if supervisor is None else supervisor
+        self.frame_watch = FramePathWatch()
         self._session: Session | None = None
         self._router_connected = False
         self._reader_failures = 0
@@ -395,7 +403,7 @@ class Service:
     async def run(self, stop: asyncio.Event, *, ready: asyncio.Event | None = None) -> int:
         """Run until ``stop`` is set, then drain (module docstring); the exit status.
 
-        ``ready`` is set once frames are accepted from every input that is
+        ``ready`` is set (and ``READY=1`` sent) once frames are accepted from every input that is
         up: a router that does not answer the first attempt is connected to in the background.
         Returns 0 after the drain, or :data:`~service.supervisor.EXIT_TASK_FAILED` when a task
         kept failing or the router stayed out of reach beyond ``connect_timeout_s``.
@@ -409,6 +417,7 @@ class Service:
                 resources.enter_context(CheckpointStore(cfg.checkpoint_path)),
                 _Wake({name: asyncio.Event() for name in names}),
             )
+            resources.callback(self.notifier.close)
             # Before the outbox and the checkpoints close, whatever ended the run.
             resources.callback(self.supervisor.cancel_all)
             self.fleet.set_restore(self._restore, self._discard_checkpoint)
@@ -452,10 +461,14 @@ class Service:
                     "zenoh-connect",
                     lambda: self._connect(connector, resources, drain, stop),
                 )
+            if (watchdog_s := self.notifier.watchdog_s) is not None:
+                sup.start("watchdog", lambda: self._watchdog(stop, period_s=watchdog_s / 2))
             if ready is not None:
                 ready.set()
+            self.notifier.send("READY=1", f"STATUS={cfg.service.name} running")
             await _wait_any(stop, sup.fatal, timeout_s=None)
             stop.set()
+            self.notifier.send("STOPPING=1")
             await self._drain(drain)
         return EXIT_TASK_FAILED if sup.fatal.is_set() else 0
 
@@ -512,6 +525,32 @@ class Service:
                 self._zenoh_up(session, resources, drain)
                 return
             await _wait_any(stop, None, timeout_s=CONNECT_PAUSE_S)
+
+    async def _watchdog(self, stop: asyncio.Event, *, period_s: float) -> None:
+        """``WATCHDOG=1`` every ``period_s`` (half the watchdog timeout) while the frame path is healthy
+        (:class:`~service.notify.FramePathWatch`)."""
+        watch = self.frame_watch
+        stalled = False
+        while not stop.is_set():
+            waiting = self._frames_waiting()
+            if watch.healthy(taken=self.supervisor.beats(*INPUT_TASKS), waiting=waiting):
+                self.notifier.send("WATCHDOG=1")
+                self.supervisor.beat()
+                if stalled:
+                    stalled = False
+                    log.info("the frame path moves again; the watchdog is fed")
+            elif not stalled:
+                stalled = True
+                log.error(
+                    "the frame path is stalled: %d frames wait and none was taken for %.1f s; the "
+                    "watchdog is no longer fed (the service manager restarts the daemon)",
+                    waiting, period_s,
+                )  # fmt: skip
+            await _wait_any(stop, None, timeout_s=period_s)
+
+    def _frames_waiting(self) -> int:
+        zenoh_waiting = 0 if self.source is None else self.source.queued
+        return zenoh_waiting + (0 if self.mavlink_source is None else self.mavlink_source.queued)
 
     def _track_router(self) -> None:
         """Log when the session's Zenoh connections come and go (Zenoh reconnects by itself)."""

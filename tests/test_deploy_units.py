@@ -10,9 +10,11 @@ with only those values changed, from the working directory of its unit.
 
 from __future__ import annotations
 
+import os
 import queue
 import shlex
 import signal
+import socket
 import stat
 import subprocess
 import sys
@@ -99,7 +101,19 @@ def test_the_router_and_the_service_start_and_stop_as_their_units_say(tmp_path):
         Lines(router.stdout).wait_for(
             lambda line: line == f"ready {endpoint}", timeout_s=30, what="the router's ready line"
         )
-        service = subprocess.Popen(service_argv, stderr=subprocess.PIPE, text=True, cwd=state)
+        # Type=notify: systemd names its notification socket and the watchdog period.
+        assert service_unit["Type"] == "notify" and int(service_unit["WatchdogSec"]) > 0
+        manager = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        manager.bind(str(tmp_path / "notify"))
+        manager.settimeout(60)
+        env = {
+            **os.environ,
+            "NOTIFY_SOCKET": str(tmp_path / "notify"),
+            "WATCHDOG_USEC": str(int(service_unit["WatchdogSec"]) * 1_000_000),
+        }
+        service = subprocess.Popen(
+            service_argv, stderr=subprocess.PIPE, text=True, cwd=state, env=env
+        )
         try:
             log = Lines(service.stderr)
             log.wait_for(
@@ -108,9 +122,16 @@ def test_the_router_and_the_service_start_and_stop_as_their_units_say(tmp_path):
                 timeout_s=60,
                 what="'ins-health: ins-health running'",
             )
+            assert manager.recv(4096) == b"READY=1\nSTATUS=ins-health running"
         finally:
             status = stop(service, service_unit)
         assert status == 0, log.seen
+        # Pings (every WatchdogSec / 2) may come before it: the last word is STOPPING=1.
+        said = []
+        while (datagram := manager.recv(4096)) != b"STOPPING=1":
+            said.append(datagram)
+        assert set(said) <= {b"WATCHDOG=1"}
+        manager.close()
     finally:
         assert stop(router, router_unit) == 0
     assert sorted(p.name for p in state.iterdir() if p.suffix == ".sqlite") == [

@@ -1,12 +1,13 @@
 """The daemon never stops silently (issue 15): a failing task is restarted and counted, a router that is
-not there at start is waited for in the background, SIGTERM ends every state. Real router and daemon
-processes on 127.0.0.1."""
+not there at start is waited for in the background, SIGTERM ends every state, and the systemd
+watchdog is fed only while the frame path moves. Real router and daemon processes on 127.0.0.1."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
 import signal
+import socket
 import sqlite3
 import threading
 
@@ -41,6 +42,7 @@ from protocols.mavlink_adapter import ImuMessage, use_mavlink2
 from protocols.zenoh_adapter import EventReceiver, frame_key
 from service.commands.run import STOP_BOUND_S
 from service.daemon import Service
+from service.notify import Notifier
 from service.supervisor import EXIT_TASK_FAILED
 
 pytestmark = pytest.mark.network
@@ -176,6 +178,87 @@ def test_a_late_router_is_joined_a_failing_task_is_restarted_and_the_events_stil
     failed = [line for line in daemon.lines if "task checkpoints failed" in line]
     assert failed and "Traceback (most recent call last):" in failed[0], daemon.lines
     assert "database is locked" in failed[0]
+
+
+class Manager:
+    """The service manager's side of $NOTIFY_SOCKET: a unix datagram socket the test binds."""
+
+    def __init__(self, path):
+        self.path = str(path)
+        self.datagrams: list[str] = []
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.bind(self.path)
+        self._lock = threading.Lock()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        while True:
+            try:
+                data = self._sock.recv(4096)
+            except OSError:
+                return
+            with self._lock:
+                self.datagrams.append(data.decode())
+
+    def seen(self) -> list[str]:
+        with self._lock:
+            return list(self.datagrams)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+def test_ready_then_watchdog_pings_that_stop_when_the_frame_path_hangs(tmp_path, caplog):
+    """READY=1 comes once the daemon runs; WATCHDOG=1 comes while frames flow; once the frame path's task
+    is gone and frames wait, the stall is logged and no ping is sent over several checks."""
+    v = "uav-w"
+    frames, _ = healthy_frames(v)
+    manager = Manager(tmp_path / "notify")
+    notifier = Notifier({"NOTIFY_SOCKET": manager.path, "WATCHDOG_USEC": "400000"})
+    try:
+        with zenoh_router() as port:
+            cfg = service_config(tmp_path, port=port, passport_dir=put_store(tmp_path, [(v, 0)]), name="onboard",
+                                 site={"gravity_mps2": unit()[1]}, validity={"timeout_s": 600.0})  # fmt: skip
+            with (
+                caplog.at_level(logging.INFO, logger="ins_health"),
+                ServiceThread(cfg, notifier=notifier) as svc,
+                zenoh.open(zenoh_client_config(port)) as vehicle,
+            ):
+                wait_until(lambda: manager.seen(), timeout_s=30, what="READY=1")
+                assert manager.seen()[0] == "READY=1\nSTATUS=onboard running"
+                wait_subscribed(vehicle, frame_key(v, 0))
+                publish_blocking(vehicle, frames[:40])
+
+                def taken() -> int:
+                    pipe = svc.call(lambda: svc.service.fleet.pipelines.get((v, 0)))
+                    return 0 if pipe is None else svc.call(lambda: pipe.n_samples)
+
+                wait_until(lambda: taken() == 4000, timeout_s=60, what="the frames processed")
+                wait_until(lambda: manager.seen().count("WATCHDOG=1") >= 3, timeout_s=30,
+                           what="watchdog pings while frames flow")  # fmt: skip
+                # The frame path's task gone (as a bug outside supervision would leave it): frames wait.
+                svc.call(lambda: svc.service.supervisor.tasks["frames"].cancel())
+                publish_blocking(vehicle, frames[40:60])
+
+                def watch():
+                    return svc.call(
+                        lambda: (svc.service.notifier.pings, svc.service.frame_watch.stalls)
+                    )
+
+                wait_until(lambda: watch()[1] >= 1, timeout_s=30, what="the stall seen")
+                pings, stalls = watch()
+                wait_until(lambda: watch()[1] >= stalls + 3, timeout_s=30, what="three more checks")
+                assert watch()[0] == pings
+                assert taken() == 4000
+                wait_until(lambda: manager.seen().count("WATCHDOG=1") == pings, timeout_s=30,
+                           what="every ping sent received")  # fmt: skip
+            wait_until(lambda: "STOPPING=1" in manager.seen(), timeout_s=30, what="STOPPING=1")
+    finally:
+        manager.close()
+    assert any(
+        "the frame path is stalled" in r.getMessage() and r.levelno == logging.ERROR
+        for r in caplog.records
+    )
 
 
 def test_a_router_out_of_reach_beyond_connect_timeout_ends_the_daemon_non_zero(tmp_path, caplog):

@@ -1,10 +1,15 @@
-"""The supervisor of the daemon's tasks, in-process."""
+"""The supervisor of the daemon's tasks, the watchdog's rule and the notification socket, in-process."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import socket
 
+import pytest
+
+from service.notify import FramePathWatch, Notifier
 from service.supervisor import Supervisor
 
 
@@ -109,3 +114,51 @@ def test_liveness_before_any_progress_is_the_start_time():
         "service.task.idle.failures": 0,
         "service.task.idle.last_progress_unix_ms": 12500,
     }
+
+
+def test_the_frame_path_is_healthy_while_frames_move_or_none_wait():
+    watch = FramePathWatch()
+    assert watch.healthy(taken=0, waiting=5)  # the first look
+    assert not watch.healthy(taken=0, waiting=5)  # frames wait, none taken: hung
+    assert watch.healthy(taken=3, waiting=5)  # frames taken
+    assert watch.healthy(taken=3, waiting=0)  # idle, nothing waits
+    assert not watch.healthy(taken=3, waiting=1)
+    assert (watch.checks, watch.stalls) == (5, 2)
+
+
+def test_notifications_reach_the_socket_systemd_names(tmp_path):
+    path = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as manager:
+        manager.bind(path)
+        manager.settimeout(10)
+        env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2500000", "WATCHDOG_PID": str(os.getpid())}
+        notifier = Notifier(env)
+        assert notifier.watchdog_s == 2.5
+        notifier.send("READY=1", "STATUS=onboard running")
+        notifier.send("WATCHDOG=1")
+        notifier.close()
+        assert manager.recv(4096) == b"READY=1\nSTATUS=onboard running"
+        assert manager.recv(4096) == b"WATCHDOG=1"
+    assert notifier.pings == 1
+
+
+@pytest.mark.parametrize(
+    "env",
+    [
+        {},
+        {"NOTIFY_SOCKET": "/x", "WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"},
+        {"WATCHDOG_USEC": "x"},
+    ],
+)
+def test_no_watchdog_without_one_for_this_process(env):
+    assert Notifier(env).watchdog_s is None
+
+
+def test_a_missing_socket_is_reported_once_and_sending_goes_on(tmp_path, caplog):
+    notifier = Notifier({"NOTIFY_SOCKET": str(tmp_path / "none")})
+    with caplog.at_level(logging.ERROR, logger="ins_health"):
+        notifier.send("READY=1")
+        notifier.send("WATCHDOG=1")
+    notifier.close()
+    (record,) = caplog.records
+    assert record.getMessage().startswith(f"cannot notify the service manager at {tmp_path}/none: ")
