@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import threading
 from collections import deque
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -14,17 +15,27 @@ class ThreadToAsyncRing(Generic[T]):
     """A bounded ring filled from any thread and drained by one asyncio consumer.
 
     :meth:`put` never blocks the producer: when the ring is full the *oldest*
-    item is dropped and counted in :attr:`dropped`. The consumer is woken
+    items are dropped and counted in :attr:`dropped`. ``capacity`` and
+    :attr:`dropped` are in units of ``weight(item)`` (default: items; a
+    source of batches passes their sample count). The consumer is woken
     through ``loop.call_soon_threadsafe``, once per empty → non-empty
     transition rather than once per item, so a burst costs one wake-up.
     """
 
-    def __init__(self, capacity: int, loop: asyncio.AbstractEventLoop):
+    def __init__(
+        self,
+        capacity: int,
+        loop: asyncio.AbstractEventLoop,
+        *,
+        weight: Callable[[T], int] | None = None,
+    ):
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
         self._capacity = int(capacity)
         self._loop = loop
-        self._items: deque[T] = deque()
+        self._weight = weight
+        self._held = 0
+        self._items: deque[tuple[T, int]] = deque()
         self._lock = threading.Lock()
         self._wake = asyncio.Event()
         self._wake_pending = False
@@ -38,14 +49,25 @@ class ThreadToAsyncRing(Generic[T]):
             if self._closed:
                 return
             self.put_count += 1
-            if len(self._items) >= self._capacity:
-                self._items.popleft()
-                self.dropped += 1
-            self._items.append(item)
+            w = 1 if self._weight is None else self._weight(item)
+            while self._items and self._held + w > self._capacity:
+                self._drop_oldest()
+            self._items.append((item, w))
+            self._held += w
             if self._wake_pending:
                 return
             self._wake_pending = True
         self._notify()
+
+    def _drop_oldest(self) -> None:
+        w = self._items.popleft()[1]
+        self._held -= w
+        self.dropped += w
+
+    def _pop(self) -> T:
+        item, w = self._items.popleft()
+        self._held -= w
+        return item
 
     def _notify(self) -> None:
         try:
@@ -60,7 +82,7 @@ class ThreadToAsyncRing(Generic[T]):
         while True:
             with self._lock:
                 if self._items:
-                    return self._items.popleft()
+                    return self._pop()
                 self._wake_pending = False
                 self._wake.clear()
                 closed = self._closed
@@ -71,7 +93,7 @@ class ThreadToAsyncRing(Generic[T]):
     def get_nowait(self) -> T | None:
         """The next item, or ``None`` if the ring is empty."""
         with self._lock:
-            return self._items.popleft() if self._items else None
+            return self._pop() if self._items else None
 
     def close(self) -> None:
         """Stop accepting items; a waiting consumer drains what is left, then gets ``EOFError``."""

@@ -38,10 +38,14 @@ auto-switch never runs. A MAVLink 2 parser also reads MAVLink 1 packets.
 from __future__ import annotations
 
 import asyncio
+import logging
+import socket
 import threading
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
+from operator import attrgetter
 from typing import Any, TypeAlias
 
 import numpy as np
@@ -93,6 +97,8 @@ MavlinkMessage: TypeAlias = mavlink2.MAVLink_message
 """Any message of the dialect (pymavlink ships no type stubs: to mypy this is ``Any``)."""
 
 _HIGHRES_TEMPERATURE_BIT = mavlink2.HIGHRES_IMU_UPDATED_TEMPERATURE
+# A child of the daemon's logger (service.log_setup.LOGGER_NAME), so its lines take the daemon's format.
+_log = logging.getLogger("ins_health.mavlink")
 
 
 # --------------------------------------------------------------------------- in
@@ -148,23 +154,6 @@ def decode_imu_message(
         (msg.xacc * ka, msg.yacc * ka, msg.zacc * ka),
         (msg.xgyro * kg, msg.ygyro * kg, msg.zgyro * kg),
         raw_temp * scale.temp_c_per_lsb if raw_temp else None,
-    )
-
-
-def sample_to_batch(sample: ImuSample, *, vehicle: str, seq: int) -> SampleBatch:
-    """A one-sample :class:`~protocols.frames.SampleBatch` of an :class:`ImuSample`."""
-    temp = 0.0 if sample.temp_c is None else sample.temp_c
-    row = np.array([[sample.t_s, *sample.accel_mps2, *sample.gyro_rps, temp]])
-    # One read-only row, viewed as the batch's arrays: SampleBatch then keeps the views without copying.
-    row.flags.writeable = False
-    return SampleBatch(
-        vehicle,
-        sample.imu,
-        seq,
-        row[:, 0],
-        row[:, 1:4],
-        row[:, 4:7],
-        None if sample.temp_c is None else row[:, 7],
     )
 
 
@@ -478,9 +467,34 @@ class MavlinkSettings:
         return cls(**kw)
 
 
+class LinkRejection(StrEnum):
+    """Why bytes received on the link were turned away before any IMU sample was read from them.
+
+    Counted in :attr:`LinkCounters.rejected` (the status topic's
+    ``service.mavlink.rejected.<reason>``) next to the sample-level reasons of
+    :class:`~protocols._schema.Reason`. Framing, CRC and signature checks are
+    pymavlink's; this only sorts what pymavlink refused.
+    """
+
+    GARBAGE_BYTES = "garbage_bytes"
+    """Bytes outside any packet: no start marker, or a packet cut short at the end of a datagram (counts bytes)."""
+    BAD_CRC = "bad_crc"
+    """Packets whose checksum (CRC-16/MCRF4XX with the message's CRC_EXTRA) does not match."""
+    MALFORMED = "malformed"
+    """Packets with a length or flags no MAVLink packet has."""
+    UNSIGNED = "unsigned"
+    """IMU messages without a signature while a signing key is configured."""
+    BAD_SIGNATURE = "bad_signature"
+    """IMU messages signed with another key, or replayed (a time stamp not newer than the stream's last)."""
+
+
 @dataclass
 class LinkCounters:
-    """What a :class:`MavlinkLink` saw and sent."""
+    """What a :class:`MavlinkLink` saw and sent.
+
+    The reader thread writes these; other threads read them with ``dict(...)``
+    snapshots (one C-level copy, never a dict changing size under an iterator).
+    """
 
     messages: int = 0
     imu_samples: dict[str, int] = field(default_factory=dict)
@@ -490,14 +504,161 @@ class LinkCounters:
     texts_sent: int = 0
     heartbeats_sent: int = 0
 
+    def reject(self, reason: str, n: int = 1) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + n
+
+
+# Fields of each IMU message in the order ImuBatcher reads them: time, accel xyz, gyro xyz, temperature,
+# then the HIGHRES_IMU validity bits and the instance id of the messages that carry one.
+_COMMON_FIELDS = ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro", "temperature")
+_FIELDS: Mapping[ImuMessage, Callable[[MavlinkMessage], tuple[float, ...]]] = {
+    ImuMessage.RAW_IMU: attrgetter("time_usec", *_COMMON_FIELDS, "id"),
+    ImuMessage.SCALED_IMU: attrgetter("time_boot_ms", *_COMMON_FIELDS),
+    ImuMessage.SCALED_IMU2: attrgetter("time_boot_ms", *_COMMON_FIELDS),
+    ImuMessage.SCALED_IMU3: attrgetter("time_boot_ms", *_COMMON_FIELDS),
+    ImuMessage.HIGHRES_IMU: attrgetter("time_usec", *_COMMON_FIELDS, "fields_updated", "id"),
+}
+
+
+_WITH_ID = (ImuMessage.RAW_IMU, ImuMessage.HIGHRES_IMU)
+
+
+class ImuBatcher:
+    """Parsed MAVLink messages in, one :class:`~protocols.frames.SampleBatch` per IMU out (no I/O).
+
+    :meth:`add` keeps the raw fields of the selected IMU messages (one C-level
+    ``attrgetter`` per message) and counts what pymavlink refused
+    (``BAD_DATA``, :class:`LinkRejection`); :meth:`take` converts everything
+    kept since the last call with one array operation per message type, with
+    the units and IMU mapping of :func:`decode_imu_message` (the same
+    floating-point operations, so the same values to the bit). ``seq`` counts
+    batches per IMU. A batch carries temperatures only if every sample in it has one.
+    """
+
+    def __init__(self, settings: MavlinkSettings, counters: LinkCounters):
+        self.settings = settings
+        self.counters = counters
+        self._types = {m.value: m for m in settings.messages}
+        self._rows: dict[ImuMessage, list[tuple[float, ...]]] = {}
+        self._seq: dict[int, int] = {}
+        self.pending = 0
+        """Messages kept since the last :meth:`take`."""
+
+    def add(self, messages: Iterable[MavlinkMessage]) -> None:
+        """Keep the IMU messages of ``messages`` (other types are ignored, refused bytes counted)."""
+        system = self.settings.autopilot_system
+        for msg in messages:
+            kind = self._types.get(msg.get_type())
+            if kind is None:
+                if isinstance(msg, mavlink2.MAVLink_bad_data):
+                    self._refused(msg)
+                continue
+            self.counters.messages += 1
+            if system is not None and msg.get_srcSystem() != system:
+                self.counters.ignored_system += 1
+                continue
+            rows = self._rows.get(kind)
+            if rows is None:
+                rows = self._rows[kind] = []
+            rows.append(_FIELDS[kind](msg))
+            self.pending += 1
+
+    def _refused(self, bad: MavlinkMessage) -> None:
+        reason = str(bad.reason)
+        data = bytes(bad.data)
+        if reason == "Bad prefix":
+            self.counters.reject(LinkRejection.GARBAGE_BYTES, len(data))
+        elif reason.startswith("invalid MAVLink CRC"):
+            self.counters.reject(LinkRejection.BAD_CRC)
+        elif reason == "Invalid signature":
+            signed = (
+                data[:1] == bytes([mavlink2.PROTOCOL_MARKER_V2])
+                and len(data) > 2
+                and bool(data[2] & mavlink2.MAVLINK_IFLAG_SIGNED)
+            )
+            self.counters.reject(LinkRejection.BAD_SIGNATURE if signed else LinkRejection.UNSIGNED)
+        else:
+            self.counters.reject(LinkRejection.MALFORMED)
+
+    def take(self) -> list[SampleBatch]:
+        """The kept samples as one batch per IMU and message type, in order of their first message."""
+        out: list[SampleBatch] = []
+        rows_by_kind, self._rows, self.pending = self._rows, {}, 0
+        for kind, rows in rows_by_kind.items():
+            self.counters.imu_samples[kind.value] = self.counters.imu_samples.get(
+                kind.value, 0
+            ) + len(rows)
+            out += self._batches(kind, np.array(rows, dtype=np.float64))
+        return out
+
+    def _batches(self, kind: ImuMessage, a: np.ndarray) -> list[SampleBatch]:
+        base = self.settings.imu_index[kind]
+        if kind is ImuMessage.HIGHRES_IMU:
+            t_s, acc, gyr = a[:, 0] * 1e-6, a[:, 1:4], a[:, 4:7]
+            has_temp = (a[:, 8].astype(np.int64) & _HIGHRES_TEMPERATURE_BIT) != 0
+            temp = a[:, 7]
+        else:
+            scale = self.settings.raw_scale if kind is ImuMessage.RAW_IMU else MILLI_UNITS
+            t_s = a[:, 0] * (1e-6 if kind is ImuMessage.RAW_IMU else 1e-3)
+            acc = a[:, 1:4] * scale.accel_mps2_per_lsb
+            gyr = a[:, 4:7] * scale.gyro_rps_per_lsb
+            # 0 is "no temperature" (decode_imu_message).
+            has_temp = a[:, 7] != 0
+            temp = a[:, 7] * scale.temp_c_per_lsb
+        ids = a[:, -1].astype(np.int64) if kind in _WITH_ID else None
+        parts: list[tuple[int, slice | np.ndarray]] = [(base, slice(None))]
+        if ids is not None and ids.any():
+            first = np.unique(ids, return_index=True)[1]
+            parts = [(base + int(ids[k]), ids == ids[k]) for k in sorted(first)]
+        out = []
+        for imu, sel in parts:
+            with_temp = bool(has_temp[sel].all())
+            seq = self._seq.get(imu, 0)
+            try:
+                batch = SampleBatch(
+                    self.settings.vehicle,
+                    imu,
+                    seq,
+                    t_s[sel],
+                    acc[sel],
+                    gyr[sel],
+                    temp[sel] if with_temp else None,
+                )
+            except FrameError as exc:
+                self.counters.reject(exc.reason.value, len(t_s[sel]))
+                continue
+            self._seq[imu] = seq + 1
+            out.append(batch)
+        return out
+
+
+READ_BYTES = 65_536
+"""Bytes asked of the connection per read (a whole UDP datagram; TCP and serial give what is there)."""
+READ_SAMPLES_MAX = 4_096
+"""IMU messages read before :meth:`MavlinkLink.read` returns even if more are waiting (bounds one call's work)."""
+UDP_RCVBUF_BYTES = 4 << 20
+"""Receive buffer asked for a UDP link (the kernel grants at most ``net.core.rmem_max``)."""
+LOG_PERIOD_S = 10.0
+"""At most one log line per this period about rejected input (the counters are on the status topic)."""
+
 
 class MavlinkLink:
     """A MAVLink 2 connection of an onboard health monitor.
 
-    Reads IMU messages as :class:`~protocols.frames.SampleBatch` (one sample
-    per batch, ``seq`` counted per IMU), sends HEARTBEAT and STATUSTEXT.
-    Blocking calls: in a service run :meth:`recv_batch` in a thread or use
-    :class:`MavlinkSource`. A context manager (closes the port).
+    Reads IMU messages as :class:`~protocols.frames.SampleBatch` (one batch per
+    IMU of the messages read together, ``seq`` counted per IMU), sends
+    HEARTBEAT and STATUSTEXT. Blocking calls: in a service run :meth:`read` in
+    a thread or use :class:`MavlinkSource`. A context manager (closes the port).
+
+    Reading takes whatever the connection holds (a UDP datagram, up to
+    :data:`READ_BYTES` of a stream) and hands it to pymavlink's
+    ``parse_buffer`` at once; the messages go through an :class:`ImuBatcher`.
+    A UDP datagram holds whole packets: bytes of a packet left incomplete at
+    its end are counted as garbage and dropped, so one bad datagram never
+    swallows the packets of the next.
+
+    With a signing key and not ``accept_unsigned``, unsigned and wrongly
+    signed messages are refused (pymavlink's check, :class:`LinkRejection`).
     """
 
     def __init__(self, settings: MavlinkSettings):
@@ -518,50 +679,73 @@ class MavlinkLink:
                 if settings.accept_unsigned
                 else None,
             )
-        self._types = [m.value for m in settings.messages]
-        self._seq: dict[int, int] = {}
+        self._datagrams = isinstance(self._conn, mavutil.mavudp)
+        if self._datagrams:
+            # The kernel holds datagrams while the pipeline has the interpreter: at 50 k/s the
+            # default (~200 kB) lasts a few ms. The kernel caps this at net.core.rmem_max.
+            self._conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
         self._send_lock = threading.Lock()
         self._chunk_id = 0
         self.counters = LinkCounters()
+        self._batcher = ImuBatcher(settings, self.counters)
+        self._logged: dict[str, int] = {}
+        self._logged_at_s = -LOG_PERIOD_S
 
     @property
     def connection(self) -> mavutil.mavfile:
         """The pymavlink connection (its ``mav`` is a MAVLink 2 ``ardupilotmega`` instance)."""
         return self._conn
 
-    def recv_batch(self, timeout_s: float) -> SampleBatch | None:
-        """The next IMU sample as a batch, or ``None`` if none arrives within ``timeout_s``."""
-        msg = self._conn.recv_match(type=self._types, blocking=True, timeout=timeout_s)
-        if msg is None:
-            return None
-        return self.to_batch(msg)
+    def read(self, timeout_s: float, *, gather_s: float = 0.0) -> list[SampleBatch]:
+        """The IMU samples that arrive, one batch per IMU; ``[]`` if nothing came within ``timeout_s``.
 
-    def to_batch(self, msg: MavlinkMessage) -> SampleBatch | None:
-        """Convert one received IMU message (counted); ``None`` if it is from another system or unusable."""
-        self.counters.messages += 1
-        if (
-            self.settings.autopilot_system is not None
-            and msg.get_srcSystem() != self.settings.autopilot_system
-        ):
-            self.counters.ignored_system += 1
-            return None
-        sample = decode_imu_message(
-            msg, raw_scale=self.settings.raw_scale, imu_index=self.settings.imu_index
+        After the first bytes, reading goes on for ``gather_s`` (the batches are
+        larger, the first sample waits that long) or until
+        :data:`READ_SAMPLES_MAX` messages are kept.
+        """
+        conn, batcher = self._conn, self._batcher
+        deadline: float | None = None
+        wait_s = timeout_s
+        while conn.select(wait_s):
+            while batcher.pending < READ_SAMPLES_MAX:
+                data = conn.recv(READ_BYTES)
+                if not data:
+                    break
+                batcher.add(conn.mav.parse_buffer(data) or ())
+                if self._datagrams:
+                    self._end_of_datagram()
+            now = time.monotonic()
+            if deadline is None:
+                deadline = now + gather_s
+            wait_s = deadline - now
+            if wait_s <= 0 or batcher.pending >= READ_SAMPLES_MAX:
+                break
+        self._log_rejections()
+        return batcher.take()
+
+    def _end_of_datagram(self) -> None:
+        mav = self._conn.mav
+        left = mav.buf_len()
+        if left:
+            self.counters.reject(LinkRejection.GARBAGE_BYTES, left)
+            mav.buf = bytearray()
+            mav.buf_index = 0
+            mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+
+    def _log_rejections(self) -> None:
+        now = time.monotonic()
+        if now - self._logged_at_s < LOG_PERIOD_S or self.counters.rejected == self._logged:
+            return
+        current = dict(self.counters.rejected)
+        new = {
+            k: n - self._logged.get(k, 0) for k, n in current.items() if n != self._logged.get(k, 0)
+        }
+        self._logged, self._logged_at_s = current, now
+        _log.warning(
+            "mavlink %s: rejected %s (counted on the status topic as service.mavlink.rejected.*)",
+            self.settings.device,
+            ", ".join(f"{n} {k}" for k, n in sorted(new.items())),
         )
-        if sample is None:
-            return None
-        seq = self._seq.get(sample.imu, 0)
-        try:
-            batch = sample_to_batch(sample, vehicle=self.settings.vehicle, seq=seq)
-        except FrameError as exc:
-            self.counters.rejected[exc.reason.value] = (
-                self.counters.rejected.get(exc.reason.value, 0) + 1
-            )
-            return None
-        self._seq[sample.imu] = seq + 1
-        kind = msg.get_type()
-        self.counters.imu_samples[kind] = self.counters.imu_samples.get(kind, 0) + 1
-        return batch
 
     def send(self, msg: MavlinkMessage) -> None:
         """Send a message built by one of the typed builders (signed if signing is configured)."""
@@ -621,25 +805,31 @@ READER_RETRY_S = 1.0
 class MavlinkSource(BatchSource):
     """IMU batches from a :class:`MavlinkLink` for asyncio: a reader thread and a bounded ring.
 
-    The thread blocks on the link (``poll_s`` at a time, so :meth:`close`
-    returns promptly); when the consumer lags, the oldest batch is dropped and
-    counted in :attr:`dropped_overload`. ``async for batch in source`` or
-    ``await source.get()``; create it inside the running loop (or pass ``loop``).
+    The thread reads the link (:meth:`MavlinkLink.read`, waiting ``poll_s`` at
+    a time so :meth:`close` returns promptly) and gathers the samples of
+    ``gather_s`` after the first into one batch per IMU: the pipeline's cost is
+    per batch, and ``gather_s`` is the latency that buys. The ring holds up to
+    ``capacity`` samples; when the consumer lags, the oldest batches are
+    dropped and their samples counted in :attr:`dropped_overload`.
+    ``async for batch in source`` or ``await source.get()``; create it inside
+    the running loop (or pass ``loop``).
     """
 
     def __init__(
         self,
         link: MavlinkLink,
         *,
-        capacity: int = 4096,
+        capacity: int = 65_536,
+        gather_s: float = 0.0,
         poll_s: float = 0.1,
         loop: asyncio.AbstractEventLoop | None = None,
     ):
         self.link = link
         self._ring: ThreadToAsyncRing[SampleBatch] = ThreadToAsyncRing(
-            capacity, loop or asyncio.get_running_loop()
+            capacity, loop or asyncio.get_running_loop(), weight=lambda b: b.n_samples
         )
         self._stop = threading.Event()
+        self._gather_s = float(gather_s)
         self._poll_s = float(poll_s)
         self.failures = 0
         self.last_failure: Exception | None = None
@@ -651,7 +841,7 @@ class MavlinkSource(BatchSource):
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                batch = self.link.recv_batch(self._poll_s)
+                batches = self.link.read(self._poll_s, gather_s=self._gather_s)
             except Exception as exc:
                 # A reader that died would end MAVLink input for good, silently: the failure is
                 # kept (:attr:`failures`, :attr:`last_failure`) for the daemon to log and count,
@@ -660,11 +850,12 @@ class MavlinkSource(BatchSource):
                 self.last_failure = exc
                 self._stop.wait(READER_RETRY_S)
                 continue
-            if batch is not None:
+            for batch in batches:
                 self._ring.put(batch)
 
     @property
     def dropped_overload(self) -> int:
+        """Samples dropped because the consumer lagged."""
         return self._ring.dropped
 
     @property
@@ -675,6 +866,10 @@ class MavlinkSource(BatchSource):
     async def get(self) -> SampleBatch:
         """The next batch; ``EOFError`` after :meth:`close` once drained."""
         return await self._ring.get()
+
+    def get_nowait(self) -> SampleBatch | None:
+        """The next batch if one is waiting, else ``None``."""
+        return self._ring.get_nowait()
 
     def close(self, *, timeout_s: float = 5.0) -> None:
         """Stop the reader thread (within ``poll_s``) and end iteration; the link stays open."""

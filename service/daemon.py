@@ -5,8 +5,8 @@ Tasks of :meth:`Service.run`
 * **frames** (Zenoh) and **mavlink-frames** — IMU frames from Zenoh (:class:`protocols.zenoh_adapter.FrameSource`:
   a bounded ring between Zenoh's thread and the loop; when it is full the
   oldest frame is dropped and counted) and, when configured, from MAVLink
-  (:class:`protocols.mavlink_adapter.MavlinkSource`, one-sample batches joined
-  into one batch per IMU every 20 ms by :class:`service.intake.Coalescer`). Each
+  (:class:`protocols.mavlink_adapter.MavlinkSource`: the samples that arrive within
+  :data:`service.intake.COALESCE_WINDOW_S` of the first, one batch per IMU). Each
   frame goes through its (vehicle, IMU) pipeline (:class:`service.intake.Intake`); the events it raises are written to the
   outbox in one transaction *before* any sink sees them.
 * **delivery**, one per sink (:mod:`service.sinks`) — reads the sink's pending events from the outbox
@@ -79,7 +79,7 @@ from protocols.zenoh_adapter import (
 from service.alert_policy import AlertPolicy
 from service.checkpoint import CheckpointError, CheckpointStore
 from service.config import ServiceConfig
-from service.intake import COALESCE_MAX, Intake
+from service.intake import COALESCE_MAX, COALESCE_WINDOW_S, Intake
 from service.log_setup import logger
 from service.notify import FramePathWatch, Notifier
 from service.outbox import Outbox
@@ -345,8 +345,10 @@ class Service:
         if self.mavlink_sink is not None and self.mavlink_source is not None:
             link = self.mavlink_sink.link.counters
             extra["service.mavlink.messages"] = link.messages
-            extra.update({f"service.mavlink.samples.{k}": n for k, n in link.imu_samples.items()})
-            extra.update({f"service.mavlink.rejected.{k}": n for k, n in link.rejected.items()})
+            # Snapshots: the reader thread may add a key meanwhile.
+            samples, rejected = dict(link.imu_samples), dict(link.rejected)
+            extra.update({f"service.mavlink.samples.{k}": n for k, n in samples.items()})
+            extra.update({f"service.mavlink.rejected.{k}": n for k, n in rejected.items()})
             extra["service.mavlink.ignored_system"] = link.ignored_system
             extra["service.mavlink.alerts_sent"] = link.alerts_sent
             extra["service.mavlink.alerts_suppressed"] = self.mavlink_sink.policy.suppressed
@@ -438,7 +440,9 @@ class Service:
                 self.mavlink_sink = MavlinkAlertSink(link, policy=policy, clock=self._clock)
                 self.sinks.append(self.mavlink_sink)
                 self.mavlink_source = MavlinkSource(
-                    link, capacity=cfg.pipeline.queue_capacity * COALESCE_MAX
+                    link,
+                    capacity=cfg.pipeline.queue_capacity * COALESCE_MAX,
+                    gather_s=COALESCE_WINDOW_S,
                 )
                 resources.callback(self.mavlink_source.close)
             connector = _Connector(cfg.zenoh.session) if cfg.zenoh.enabled else None

@@ -8,8 +8,11 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from test_properties import _MAV, imu_messages
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
 from estimators.diagnosis import Finding
@@ -17,8 +20,10 @@ from protocols.events import Severity, StreamCause, event_from_finding, make_eve
 from protocols.mavlink_adapter import (
     STATUSTEXT_MAX_CHARS,
     AlertRateLimiter,
+    ImuBatcher,
     ImuMessage,
     ImuScale,
+    LinkCounters,
     MavlinkLink,
     MavlinkSettings,
     MavlinkSource,
@@ -266,6 +271,14 @@ def _peer(port):
     )
 
 
+def _read(link, n_samples):
+    """Batches read by the link until they hold ``n_samples`` samples (or WAIT_S passes)."""
+    got, deadline = [], time.monotonic() + WAIT_S
+    while sum(b.n_samples for b in got) < n_samples and time.monotonic() < deadline:
+        got += link.read(0.1, gather_s=0.2)
+    return got
+
+
 ACC = np.array([0.12, -0.34, -9.79])
 GYR = np.array([0.0123, -0.0045, 0.0067])
 
@@ -290,19 +303,19 @@ def test_imu_messages_from_a_peer_become_si_batches(kind):
                     kind, t_s=t, accel_mps2=ACC * (1 + k), gyro_rps=GYR, temp_c=35.25, imu_id=msg_id
                 )
             )
-        batches = [link.recv_batch(WAIT_S) for _ in range(2)]
+        batches = _read(link, 2)
         peer.close()
-    for k, b in enumerate(batches):
-        assert (b.vehicle, b.imu, b.seq, b.n_samples) == ("v1", imu, k, 1)
+    # Both messages arrive within the gathering time: one batch of two samples.
+    assert [(b.vehicle, b.imu, b.seq, b.n_samples) for b in batches] == [("v1", imu, 0, 2)]
+    b = batches[0]
+    for k in range(2):
         # Integer messages are quantized to the field's count (half a count at most); floats to float32.
         np.testing.assert_allclose(
-            b.accel_mps2[0], ACC * (1 + k), atol=qa / 2 + 1e-6 * abs(ACC).max(), rtol=0
+            b.accel_mps2[k], ACC * (1 + k), atol=qa / 2 + 1e-6 * abs(ACC).max(), rtol=0
         )
-        np.testing.assert_allclose(b.gyro_rps[0], GYR, atol=qg / 2 + 1e-7, rtol=0)
-        np.testing.assert_allclose(b.temp_c, [35.25], atol=qt)
-    assert batches[0].t_s[0] == pytest.approx(12.5, abs=1e-6) and batches[1].t_s[
-        0
-    ] == pytest.approx(12.51, abs=1e-6)
+        np.testing.assert_allclose(b.gyro_rps[k], GYR, atol=qg / 2 + 1e-7, rtol=0)
+    np.testing.assert_allclose(b.temp_c, [35.25, 35.25], atol=qt)
+    np.testing.assert_allclose(b.t_s, [12.5, 12.51], atol=1e-6, rtol=0)
 
 
 def test_raw_imu_scale_is_configurable_and_zero_temperature_means_none():
@@ -366,10 +379,10 @@ def test_settings_from_dict_and_message_selection():
             imu_message(ImuMessage.SCALED_IMU2, t_s=2.0, accel_mps2=ACC, gyro_rps=GYR)
         )  # another system
         peer.mav.send(imu_message(ImuMessage.SCALED_IMU2, t_s=3.0, accel_mps2=ACC, gyro_rps=GYR))
-        got = [link.recv_batch(WAIT_S) for _ in range(3)]
+        got = _read(link, 2)
         peer.close()
         other.close()
-    assert [(b.imu, b.t_s[0]) if b is not None else None for b in got] == [(4, 1.0), None, (4, 3.0)]
+    assert {b.imu for b in got} == {4} and [t for b in got for t in b.t_s] == [1.0, 3.0]
     assert link.counters.ignored_system == 1 and link.counters.imu_samples == {"SCALED_IMU2": 2}
 
 
@@ -402,12 +415,15 @@ def test_async_source_over_tcp():
                 server.mav.send(
                     imu_message(ImuMessage.HIGHRES_IMU, t_s=k * 0.01, accel_mps2=ACC, gyro_rps=GYR)
                 )
-            got = [await asyncio.wait_for(source.get(), WAIT_S) for _ in range(5)]
+            got = [await asyncio.wait_for(source.get(), WAIT_S)]
+            while sum(b.n_samples for b in got) < 5:
+                got.append(await asyncio.wait_for(source.get(), WAIT_S))
         server.close()
         return got
 
     got = asyncio.run(run())
-    assert [b.seq for b in got] == [0, 1, 2, 3, 4] and {b.vehicle for b in got} == {"v2"}
+    assert [b.seq for b in got] == list(range(len(got))) and {b.vehicle for b in got} == {"v2"}
+    np.testing.assert_allclose(np.concatenate([b.t_s for b in got]), np.arange(5) * 0.01)
 
 
 def test_no_pymavlink_global_state_is_touched():
@@ -415,7 +431,7 @@ def test_no_pymavlink_global_state_is_touched():
     with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
         peer = _peer(link.connection.port.getsockname()[1])
         peer.mav.send(imu_message(ImuMessage.RAW_IMU, t_s=1.0, accel_mps2=ACC, gyro_rps=GYR))
-        assert link.recv_batch(WAIT_S) is not None  # a MAVLink 2 packet was parsed ...
+        assert _read(link, 1)  # a MAVLink 2 packet was parsed ...
         peer.close()
     assert (
         os.environ.get("MAVLINK20"),
@@ -440,7 +456,7 @@ def test_serial_link_reads_imu_and_sends_alerts_through_a_pseudo_terminal():
                         ImuMessage.SCALED_IMU2, t_s=5.0 + 0.01 * k, accel_mps2=ACC, gyro_rps=GYR
                     ).pack(autopilot),
                 )
-            got = [link.recv_batch(WAIT_S) for _ in range(3)]
+            got = _read(link, 3)
             link.send_heartbeat()
             event = _finding_event(severity=Severity.ERROR)
             text = link.send_alert(event)
@@ -452,9 +468,11 @@ def test_serial_link_reads_imu_and_sends_alerts_through_a_pseudo_terminal():
     finally:
         os.close(master)
         os.close(slave)
-    assert [(b.vehicle, b.imu, b.seq) for b in got] == [("v3", 1, 0), ("v3", 1, 1), ("v3", 1, 2)]
+    assert {(b.vehicle, b.imu) for b in got} == {("v3", 1)}
+    assert [b.seq for b in got] == list(range(len(got)))
+    np.testing.assert_allclose(np.concatenate([b.t_s for b in got]), [5.0, 5.01, 5.02], rtol=1e-12)
     np.testing.assert_allclose(
-        got[2].accel_mps2[0], ACC, atol=STANDARD_GRAVITY_MPS2 * 1e-3 / 2 + 1e-6, rtol=0
+        got[-1].accel_mps2[-1], ACC, atol=STANDARD_GRAVITY_MPS2 * 1e-3 / 2 + 1e-6, rtol=0
     )
     assert [m.get_type() for m in received] == ["HEARTBEAT", "STATUSTEXT"]
     heartbeat, alert = received
@@ -463,3 +481,64 @@ def test_serial_link_reads_imu_and_sends_alerts_through_a_pseudo_terminal():
         and heartbeat.get_srcComponent() == mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
     )
     assert alert.severity == int(Severity.ERROR) and alert.text == text
+
+
+# ------------------------------------------------------------------ batches and refused bytes
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(imu_messages, min_size=1, max_size=12))
+def test_batches_hold_the_per_message_values_bit_for_bit(messages):
+    """The link's batches hold, per IMU and message type in arrival order, exactly what
+    decode_imu_message gives for each message (NaN included); an IMU index beyond 255 is counted."""
+    parser = mavlink2.MAVLink(None)
+    parsed = parser.parse_buffer(b"".join(m.pack(_MAV) for m in messages))
+    counters = LinkCounters()
+    batcher = ImuBatcher(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1"), counters)
+    batcher.add(parsed)
+    batches = batcher.take()
+    by_kind: dict[str, dict[int, list]] = {}
+    for m in parsed:
+        s = decode_imu_message(m)
+        by_kind.setdefault(m.get_type(), {}).setdefault(s.imu, []).append(s)
+    expected = [(imu, v) for imus in by_kind.values() for imu, v in imus.items() if imu <= 255]
+    too_high = sum(len(v) for imus in by_kind.values() for imu, v in imus.items() if imu > 255)
+    assert counters.rejected == ({"bad_value": too_high} if too_high else {})
+    assert counters.messages == len(messages)
+    assert [b.imu for b in batches] == [imu for imu, _ in expected]
+    for k, (b, (_, want)) in enumerate(zip(batches, expected, strict=True)):
+        # seq counts the batches of an IMU (two message types may feed one).
+        assert b.seq == [c.imu for c in batches[:k]].count(b.imu) and b.vehicle == "v1"
+        bits = lambda a: np.asarray(a, np.float64).view(np.uint64)  # noqa: E731
+        assert np.array_equal(bits(b.t_s), bits([s.t_s for s in want]))
+        assert np.array_equal(bits(b.accel_mps2), bits([s.accel_mps2 for s in want]))
+        assert np.array_equal(bits(b.gyro_rps), bits([s.gyro_rps for s in want]))
+        temps = [s.temp_c for s in want]
+        if None in temps:
+            assert b.temp_c is None
+        else:
+            assert np.array_equal(bits(b.temp_c), bits(temps))
+
+
+def test_refused_bytes_are_counted_by_reason_and_cost_no_good_packet():
+    """Datagrams of garbage, of a packet with a broken CRC and of a packet cut short, between good ones:
+    every good sample is read and each refusal is counted (garbage in bytes)."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    good = [
+        imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + 0.01 * k, accel_mps2=ACC, gyro_rps=GYR).pack(
+            mav
+        )
+        for k in range(4)
+    ]
+    broken = bytearray(good[0])
+    broken[-1] ^= 0xFF
+    garbage = b"\x00\x11garbage\x7f" * 3
+    cut = good[1][:15]
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        for datagram in (good[0], garbage, good[1], bytes(broken), cut, good[2], good[3]):
+            peer.write(datagram)
+        got = _read(link, 4)
+        peer.close()
+    assert [t for b in got for t in b.t_s] == pytest.approx([1.0, 1.01, 1.02, 1.03])
+    assert link.counters.rejected == {"garbage_bytes": len(garbage) + len(cut), "bad_crc": 1}

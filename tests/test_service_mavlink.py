@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import functools
+import json
 import socket
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,11 +26,18 @@ from service_support import (
     zenoh_client_config,
     zenoh_router,
 )
+from test_service_faults import ServiceProcess, Statuses, put_store, write_config
 
 from estimators.conventions import Triad
 from protocols.events import Predicate, Severity, decode_event
 from protocols.frames import SampleBatch
-from protocols.mavlink_adapter import ImuMessage, alert_text, decode_imu_message, use_mavlink2
+from protocols.mavlink_adapter import (
+    LOG_PERIOD_S,
+    ImuMessage,
+    alert_text,
+    decode_imu_message,
+    use_mavlink2,
+)
 from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
@@ -220,3 +229,73 @@ def test_raw_scaled_and_highres_input_give_the_diagnosis_of_equivalent_zenoh_fra
         (i, p) for i in kinds for p in (Predicate.F0, Predicate.F6)
     }
     assert all(t is Triad.ACCEL for _, _, t, *_ in mav)
+
+
+def daemon_config(tmp_path, zport: int, mav_port: int, **link) -> Path:
+    """The daemon's configuration: Zenoh to the router, MAVLink on a UDP port for vehicle mav1."""
+    path = write_config(tmp_path, zport, put_store(tmp_path, [("mav1", 0)]))
+    table = {"enabled": True, "device": f"udpin:127.0.0.1:{mav_port}", "vehicle": "mav1", **link}
+    path.write_text(
+        path.read_text()
+        + "[mavlink]\n"
+        + "".join(f"{k} = {json.dumps(v)}\n" for k, v in table.items())
+    )
+    return path
+
+
+def stream(peer, packets: list[bytes], status: Statuses, between=()) -> None:
+    """The packets 20 to a datagram, each of ``between`` as its own datagram after every 50th; paced by the
+    daemon's count of messages read (status topic) so that the socket's buffer never overflows."""
+    for j, k in enumerate(range(0, len(packets), 20)):
+        if k % 1000 == 0:
+            wait_until(lambda: k - status.counter("mav1", "service.mavlink.messages") <= 1000,
+                       timeout_s=60, what="the daemon reading the stream")  # fmt: skip
+        peer.write(b"".join(packets[k : k + 20]))
+        if j % 50 == 49:
+            for datagram in between:
+                peer.write(datagram)
+
+
+def test_garbage_and_bad_crc_are_counted_and_logged_while_the_fault_is_found(tmp_path):
+    """A real daemon reads a vehicle's SCALED_IMU stream with a fault, between which come datagrams of
+    garbage, of a packet with a broken CRC, and of a packet cut short: each is counted on the status
+    topic (garbage in bytes) and logged at most once per LOG_PERIOD_S; the F0 and F6 events arrive."""
+    _passport, _g, sc, start = unit()
+    packets = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start)
+    broken = bytearray(packets[0])
+    broken[-2] ^= 0x5A
+    garbage, cut = b"\x00\x11garbage\x7f" * 4, packets[1][:20]
+    hostile = (garbage, bytes(broken), cut)
+    n_hostile = len(range(0, len(packets), 20)) // 50
+    mav_port = free_udp_port()
+    with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
+        status, got = Statuses(ground), []
+        with EventReceiver(
+            ground, lambda e: got.append(e.predicate) if e.vehicle == "mav1" else None
+        ):
+            daemon = ServiceProcess(daemon_config(tmp_path, zport, mav_port))
+            t0 = time.monotonic()
+            try:
+                peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{mav_port}"))
+                stream(peer, packets, status, between=hostile)
+                peer.close()
+                wait_until(
+                    lambda: len(got) >= 2,
+                    timeout_s=60,
+                    what=lambda: f"F0 and F6 of mav1, got {got}",
+                )
+                wait_until(
+                    lambda: status.counter("mav1", "service.mavlink.rejected.bad_crc") == n_hostile
+                    and status.counter("mav1", "service.mavlink.samples.SCALED_IMU") == len(packets),
+                    timeout_s=30, what=lambda: f"every packet counted: {status.get('mav1').counters}",
+                )  # fmt: skip
+                counters = status.get("mav1").counters
+            finally:
+                assert daemon.terminate() == 0
+            elapsed_s = time.monotonic() - t0
+    assert got == [Predicate.F0, Predicate.F6]
+    assert counters["service.mavlink.rejected.garbage_bytes"] == n_hostile * (
+        len(garbage) + len(cut)
+    )
+    logged = [line for line in daemon.lines if "rejected" in line and "bad_crc" in line]
+    assert 1 <= len(logged) <= 1 + elapsed_s / LOG_PERIOD_S, daemon.lines
