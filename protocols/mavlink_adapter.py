@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -377,10 +379,12 @@ class MavlinkSettings:
     messages : IMU message types read.
     imu_index : message type → IMU index (module docstring).
     raw_scale : scaling of RAW_IMU counts.
-    signing_key : 32-byte MAVLink 2 signing secret; when set, everything sent is signed.
+    signing_key : 32-byte MAVLink 2 signing secret; when set, everything sent is signed and
+        only IMU messages signed with it are read (unsigned, wrongly signed and replayed ones
+        are refused and counted, :class:`LinkRejection`).
     signing_link_id : link id in the signature.
-    accept_unsigned : with signing on, still accept unsigned incoming messages
-        (autopilots that do not sign their telemetry).
+    accept_unsigned : with signing on, still read IMU messages that are unsigned or fail the
+        check (default false; a transition aid while autopilots are being given the key).
     """
 
     device: str
@@ -394,7 +398,7 @@ class MavlinkSettings:
     raw_scale: ImuScale = RAW_IMU_ARDUPILOT
     signing_key: bytes | None = None
     signing_link_id: int = 1
-    accept_unsigned: bool = True
+    accept_unsigned: bool = False
 
     def __post_init__(self) -> None:
         if self.signing_key is not None and len(self.signing_key) != 32:
@@ -416,14 +420,15 @@ class MavlinkSettings:
         "imu_index",
         "raw_scale",
         "signing_key_hex",
+        "signing_key_file",
         "signing_link_id",
         "accept_unsigned",
     )
 
     @classmethod
     def from_dict(cls, table: Mapping[str, Any]) -> MavlinkSettings:
-        """From a plain dict: as the attributes, with ``signing_key_hex`` (64 hex digits) for the key,
-        ``raw_scale`` as ``{accel_mps2_per_lsb, gyro_rps_per_lsb, temp_c_per_lsb}`` and
+        """From a plain dict: as the attributes, with the key as ``signing_key_hex`` (64 hex digits) or
+        ``signing_key_file`` (a regular file holding them, e.g. ``openssl rand -hex 32``), ``raw_scale`` as ``{accel_mps2_per_lsb, gyro_rps_per_lsb, temp_c_per_lsb}`` and
         ``imu_index`` as ``{"SCALED_IMU2": 1, ...}``. Errors are ``ValueError`` naming the key."""
         unknown = sorted(set(table) - set(cls._KEYS))
         if unknown:
@@ -459,12 +464,46 @@ class MavlinkSettings:
             ) from None
         if "raw_scale" in table:
             kw["raw_scale"] = ImuScale(**{k: float(v) for k, v in table["raw_scale"].items()})
+        if "signing_key_hex" in table and "signing_key_file" in table:
+            raise ValueError("mavlink signing_key_hex and signing_key_file: give one of them")
         if "signing_key_hex" in table:
-            try:
-                kw["signing_key"] = bytes.fromhex(table["signing_key_hex"])
-            except (ValueError, TypeError):
-                raise ValueError("mavlink signing_key_hex must be 64 hexadecimal digits") from None
+            kw["signing_key"] = _signing_key(table["signing_key_hex"], "signing_key_hex")
+        if "signing_key_file" in table:
+            kw["signing_key"] = _signing_key(
+                read_key_file(table["signing_key_file"]), "signing_key_file"
+            )
         return cls(**kw)
+
+
+KEY_FILE_MAX_BYTES = 1024
+
+
+def read_key_file(path: str | os.PathLike[str]) -> str:
+    """The text of a signing-key file: a regular file, opened without blocking, at most
+    :data:`KEY_FILE_MAX_BYTES` read (a FIFO or a device is refused, never waited on).
+    ``ValueError`` naming the file otherwise."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as exc:
+        raise ValueError(f"mavlink signing_key_file {str(path)!r}: {exc.strerror}") from None
+    with os.fdopen(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise ValueError(f"mavlink signing_key_file {str(path)!r} is not a regular file")
+        data = fh.read(KEY_FILE_MAX_BYTES + 1)
+    try:
+        return data.decode("ascii")
+    except UnicodeDecodeError:
+        raise ValueError(f"mavlink signing_key_file {str(path)!r} is not text") from None
+
+
+def _signing_key(text: object, name: str) -> bytes:
+    try:
+        key = bytes.fromhex(str(text).strip()) if isinstance(text, str) else None
+    except ValueError:
+        key = None
+    if key is None or len(key) != 32:
+        raise ValueError(f"mavlink {name} must hold 64 hexadecimal digits (32 bytes)")
+    return key
 
 
 class LinkRejection(StrEnum):
@@ -521,6 +560,13 @@ _FIELDS: Mapping[ImuMessage, Callable[[MavlinkMessage], tuple[float, ...]]] = {
 
 
 _WITH_ID = (ImuMessage.RAW_IMU, ImuMessage.HIGHRES_IMU)
+_IMU_MSG_IDS = {
+    ImuMessage.RAW_IMU: mavlink2.MAVLINK_MSG_ID_RAW_IMU,
+    ImuMessage.SCALED_IMU: mavlink2.MAVLINK_MSG_ID_SCALED_IMU,
+    ImuMessage.SCALED_IMU2: mavlink2.MAVLINK_MSG_ID_SCALED_IMU2,
+    ImuMessage.SCALED_IMU3: mavlink2.MAVLINK_MSG_ID_SCALED_IMU3,
+    ImuMessage.HIGHRES_IMU: mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU,
+}
 
 
 class ImuBatcher:
@@ -657,8 +703,10 @@ class MavlinkLink:
     its end are counted as garbage and dropped, so one bad datagram never
     swallows the packets of the next.
 
-    With a signing key and not ``accept_unsigned``, unsigned and wrongly
-    signed messages are refused (pymavlink's check, :class:`LinkRejection`).
+    With a signing key, unsigned and wrongly signed IMU messages are refused
+    (pymavlink's check, :class:`LinkRejection`) unless ``accept_unsigned``;
+    other message types are not read, so they may come unsigned (a radio's
+    RADIO_STATUS, as the MAVLink signing rules allow).
     """
 
     def __init__(self, settings: MavlinkSettings):
@@ -671,13 +719,15 @@ class MavlinkLink:
         )
         use_mavlink2(self._conn)
         if settings.signing_key is not None:
+            imu_ids = frozenset(_IMU_MSG_IDS[m] for m in settings.messages)
             self._conn.setup_signing(
                 settings.signing_key,
                 sign_outgoing=True,
                 link_id=settings.signing_link_id,
+                # pymavlink asks this for every message that is unsigned or fails the check.
                 allow_unsigned_callback=(lambda mav, msg_id: True)
                 if settings.accept_unsigned
-                else None,
+                else (lambda mav, msg_id: msg_id not in imu_ids),
             )
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
         if self._datagrams:

@@ -64,6 +64,7 @@ _MAVLINK_LINK_KEYS: dict[str, tuple[type, tuple[int, int] | None]] = {
     "signing_link_id": (int, _BYTE_ID),
     "accept_unsigned": (bool, None),
     "signing_key_hex": (str, None),
+    "signing_key_file": (str, None),
     "messages": (list, None),
     "imu_index": (dict, None),
     "raw_scale": (dict, None),
@@ -173,8 +174,11 @@ class MavlinkSection:
         with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default ``"mav1"``),
         ``source_system``, ``source_component`` (default 191, MAV_COMP_ID_ONBOARD_COMPUTER),
         ``autopilot_system``, ``messages``, ``imu_index``, ``raw_scale`` (RAW_IMU counts → SI,
-        default ArduPilot's mG, mrad/s, cdegC), ``signing_key_hex`` (MAVLink2 signing of what
-        is sent), ``signing_link_id``, ``accept_unsigned``.
+        default ArduPilot's mG, mrad/s, cdegC), ``signing_key_hex`` or ``signing_key_file``
+        (a file holding the 64 hex digits, relative to the configuration file; MAVLink 2 signing:
+        what is sent is signed, IMU messages unsigned or signed with another key are refused and
+        counted as ``service.mavlink.rejected.unsigned`` / ``.bad_signature``),
+        ``signing_link_id``, ``accept_unsigned`` (default false: read unsigned IMU messages anyway).
     """
 
     enabled: bool = False
@@ -371,13 +375,20 @@ def _zenoh_section(raw: Any, base_dir: Path) -> ZenohSection:
 
 def _mavlink_section(raw: Any, base_dir: Path) -> MavlinkSection:
     defaults = {"device": DEFAULT_MAVLINK_LINK.device, "vehicle": DEFAULT_MAVLINK_LINK.vehicle}
+
+    def settings(table: dict[str, Any]) -> MavlinkSettings:
+        key_file = table.get("signing_key_file")
+        if isinstance(key_file, str) and key_file:
+            table = {**table, "signing_key_file": str(base_dir / Path(key_file).expanduser())}
+        return MavlinkSettings.from_dict(table)
+
     return _split_section(
         "mavlink",
         MavlinkSection,
         raw,
         base_dir,
         "link",
-        MavlinkSettings.from_dict,
+        settings,
         defaults,
         _mavlink_keys,
     )

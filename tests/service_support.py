@@ -235,9 +235,13 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def mavlink_packets(session, kind, *, imu_id: int = 0, start_s: float = -1e9) -> list[bytes]:
-    """Each sample of ``session`` from ``start_s`` on as one packed MAVLink 2 message of ``kind`` (an autopilot's stream)."""
-    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1)
+def mavlink_packets(
+    session, kind, *, imu_id: int = 0, start_s: float = -1e9, mav=None
+) -> list[bytes]:
+    """Each sample of ``session`` from ``start_s`` on as one packed MAVLink 2 message of ``kind`` (an autopilot's
+    stream); ``mav`` packs them (e.g. a connection's, to sign them), by default an unsigning one of system 1."""
+    if mav is None:
+        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1)
     out = []
     for k in range(int(np.searchsorted(session.t_s, start_s)), session.n_samples):
         msg = imu_message(

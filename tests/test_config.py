@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import tomllib
 from pathlib import Path
 
@@ -82,7 +83,16 @@ stale_run_samples = 50
         ({"site": {"gravity_mps2": 1.62}}, r"not a value on the Earth"),
         (
             {"mavlink": {"signing_key_hex": "abcd"}},
-            r"\[mavlink\] a MAVLink 2 signing key has 32 bytes",
+            r"\[mavlink\] mavlink signing_key_hex must hold 64 hexadecimal digits \(32 bytes\)",
+        ),
+        (
+            {"mavlink": {"signing_key_file": "absent.key"}},
+            r"\[mavlink\] mavlink signing_key_file '.*absent.key': No such file",
+        ),
+        ({"mavlink": {"signing_key_file": 7}}, r"\[mavlink\] signing_key_file must be str"),
+        (
+            {"mavlink": {"signing_key_file": "k", "signing_key_hex": "ab" * 32}},
+            r"\[mavlink\] mavlink signing_key_hex and signing_key_file: give one of them",
         ),
         ({"mavlink": {"source_component": 300}}, r"\[mavlink\] source_component must be in 1..255"),
         # A string here matched no system id: every MAVLink IMU message was silently ignored.
@@ -177,3 +187,23 @@ def test_every_option_is_documented_in_the_example():
             names - set(uncommented.get(section.name, {})),
         )
     assert set(shown) == {f.name for f in dataclasses.fields(cfg)}
+
+
+def test_signing_key_file_is_read_relative_to_the_configuration_and_checked(tmp_path):
+    """The key file holds 64 hex digits (surrounding white space allowed); a short key, a non-hex one
+    and a FIFO (which a blocking open would wait on forever) are one-line errors."""
+    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys" / "mav.key").write_text("ab" * 32 + "\n")
+    cfg = config_from_dict({"mavlink": {"signing_key_file": "keys/mav.key"}}, base_dir=tmp_path)
+    assert cfg.mavlink.link.signing_key == bytes.fromhex("ab" * 32)
+    assert not cfg.mavlink.link.accept_unsigned
+    (tmp_path / "short.key").write_text("ab" * 16)
+    (tmp_path / "words.key").write_text("not a key")
+    os.mkfifo(tmp_path / "fifo.key")
+    for name, match in (
+        ("short.key", "must hold 64 hexadecimal digits"),
+        ("words.key", "must hold 64 hexadecimal digits"),
+        ("fifo.key", "is not a regular file"),
+    ):
+        with pytest.raises(ConfigError, match=rf"\[mavlink\] mavlink signing_key_file.*{match}"):
+            config_from_dict({"mavlink": {"signing_key_file": name}}, base_dir=tmp_path)

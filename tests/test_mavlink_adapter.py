@@ -375,6 +375,7 @@ def test_settings_from_dict_and_message_selection():
                 f"udpout:127.0.0.1:{link.connection.port.getsockname()[1]}", source_system=9
             )
         )
+        other.setup_signing(KEY, sign_outgoing=True)
         other.mav.send(
             imu_message(ImuMessage.SCALED_IMU2, t_s=2.0, accel_mps2=ACC, gyro_rps=GYR)
         )  # another system
@@ -542,3 +543,33 @@ def test_refused_bytes_are_counted_by_reason_and_cost_no_good_packet():
         peer.close()
     assert [t for b in got for t in b.t_s] == pytest.approx([1.0, 1.01, 1.02, 1.03])
     assert link.counters.rejected == {"garbage_bytes": len(garbage) + len(cut), "bad_crc": 1}
+
+
+@pytest.mark.parametrize("accept_unsigned", [False, True])
+def test_signing_refuses_unsigned_and_wrongly_signed_imu_messages(accept_unsigned):
+    """With a key, an IMU message signed with it is read; one signed with another key or unsigned is
+    refused and counted (unless accept_unsigned); a HEARTBEAT may come unsigned."""
+    settings = MavlinkSettings(
+        device="udpin:127.0.0.1:0", vehicle="v1", signing_key=KEY, accept_unsigned=accept_unsigned
+    )
+    with MavlinkLink(settings) as link:
+        port = link.connection.port.getsockname()[1]
+        senders = [_peer(port) for _ in range(3)]
+        senders[0].setup_signing(KEY, sign_outgoing=True, link_id=1)
+        senders[1].setup_signing(bytes(reversed(KEY)), sign_outgoing=True, link_id=2)
+        for k, peer in enumerate(senders):
+            peer.mav.send(
+                imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + k, accel_mps2=ACC, gyro_rps=GYR)
+            )
+        senders[2].mav.send(mavlink2.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3))
+        got = _read(link, 3 if accept_unsigned else 1)
+        time.sleep(0.2)
+        got += link.read(0.1)
+        for peer in senders:
+            peer.close()
+    times = [t for b in got for t in b.t_s]
+    if accept_unsigned:
+        assert times == [1.0, 2.0, 3.0] and link.counters.rejected == {}
+    else:
+        assert times == [1.0]
+        assert link.counters.rejected == {"bad_signature": 1, "unsigned": 1}

@@ -299,3 +299,60 @@ def test_garbage_and_bad_crc_are_counted_and_logged_while_the_fault_is_found(tmp
     )
     logged = [line for line in daemon.lines if "rejected" in line and "bad_crc" in line]
     assert 1 <= len(logged) <= 1 + elapsed_s / LOG_PERIOD_S, daemon.lines
+
+
+KEY = bytes(range(32))
+
+
+def signer(key: bytes, link_id: int):
+    """A pymavlink sender (system 1, the autopilot) that signs with ``key``."""
+    conn = use_mavlink2(mavutil.mavlink_connection("udpout:127.0.0.1:9", source_system=1))
+    conn.setup_signing(key, sign_outgoing=True, link_id=link_id)
+    return conn
+
+
+def test_with_a_signing_key_only_signed_imu_messages_are_read(tmp_path):
+    """A real daemon with a signing key file: the vehicle's stream signed with the key gives its F0 and F6
+    events, while IMU messages signed with another key and unsigned ones, sent between, are refused and
+    counted on the status topic (bad_signature, unsigned)."""
+    _passport, _g, sc, start = unit()
+    (tmp_path / "mav.key").write_text(KEY.hex() + "\n")
+    right, wrong = signer(KEY, 1), signer(bytes(reversed(KEY)), 2)
+    packets = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start, mav=right.mav)
+    forged = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start, mav=wrong.mav)[:1]
+    unsigned = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start)[:1]
+    right.close()
+    wrong.close()
+    n_hostile = len(range(0, len(packets), 20)) // 50
+    mav_port = free_udp_port()
+    with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
+        status, got = Statuses(ground), []
+        with EventReceiver(
+            ground, lambda e: got.append(e.predicate) if e.vehicle == "mav1" else None
+        ):
+            daemon = ServiceProcess(
+                daemon_config(tmp_path, zport, mav_port, signing_key_file="mav.key")
+            )
+            try:
+                peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{mav_port}"))
+                stream(peer, packets, status, between=(forged[0], unsigned[0]))
+                peer.close()
+                wait_until(
+                    lambda: len(got) >= 2,
+                    timeout_s=60,
+                    what=lambda: f"F0 and F6 of mav1, got {got}",
+                )
+                wait_until(
+                    lambda: status.counter("mav1", "service.mavlink.samples.SCALED_IMU") == len(packets)
+                    and status.counter("mav1", "service.mavlink.rejected.unsigned") == n_hostile,
+                    timeout_s=30, what=lambda: f"every packet counted: {status.get('mav1').counters}",
+                )  # fmt: skip
+                counters = status.get("mav1").counters
+            finally:
+                assert daemon.terminate() == 0
+    assert got == [Predicate.F0, Predicate.F6]
+    rejected = {k: n for k, n in counters.items() if k.startswith("service.mavlink.rejected.")}
+    assert rejected == {
+        "service.mavlink.rejected.bad_signature": n_hostile,
+        "service.mavlink.rejected.unsigned": n_hostile,
+    }
