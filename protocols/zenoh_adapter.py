@@ -57,6 +57,17 @@ blocks until it connects or ``connect_timeout_s`` passes (``None``: wait
 forever); afterwards Zenoh reconnects by itself when the router restarts
 (verified by ``tests/test_zenoh_adapter.py``), and declared subscribers,
 queryables and publishers keep working.
+
+Every session opened here asks Zenoh to bound what it reassembles:
+``transport/link/rx/max_message_size`` = :data:`ZENOH_MAX_MESSAGE_BYTES`
+(default 1 GiB). What eclipse-zenoh 1.10.2 does with it, measured
+(``tests/test_service_hostile.py``): the *first* larger message on a link is
+dropped while its fragments arrive, silently (nothing reaches the application,
+nothing is logged at warning level), and the link stays up; later larger
+messages on the same link are reassembled in full and delivered. So the bound
+is not a limit to rely on: the decoders' own checks
+(:data:`~protocols.frames.MAX_FRAME_BYTES`, before unpacking) still refuse and
+count every oversized payload that gets through (``frames.rejected.too_large``).
 """
 
 from __future__ import annotations
@@ -80,6 +91,7 @@ from numpy.typing import ArrayLike
 from protocols._handoff import ThreadToAsyncRing
 from protocols._schema import (
     MAX_IMU_INDEX,
+    MAX_MESSAGE_BYTES,
     VEHICLE_ID_PATTERN,
     Reason,
     SchemaError,
@@ -270,6 +282,11 @@ class ZenohSettings:
         )
 
 
+ZENOH_MAX_MESSAGE_BYTES = MAX_MESSAGE_BYTES + 64 * 1024
+"""Largest message a session reassembles: the largest payload a decoder accepts (frames, status)
+plus room for Zenoh's own headers (key expression, encoding)."""
+
+
 def zenoh_config(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Config:
     """A ``zenoh.Config`` from :class:`ZenohSettings` (or the plain dict it is read from)."""
     if not isinstance(settings, ZenohSettings):
@@ -287,6 +304,7 @@ def zenoh_config(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Config:
         )
     if settings.listen:
         entries["listen/endpoints"] = list(settings.listen)
+    entries["transport/link/rx/max_message_size"] = ZENOH_MAX_MESSAGE_BYTES
     if settings.tls is not None:
         entries["transport/link/tls"] = dict(settings.tls)
     if settings.access_control is not None:

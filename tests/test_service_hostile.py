@@ -30,7 +30,7 @@ from test_service_faults import (
 
 from protocols.events import Predicate
 from protocols.frames import encode_frame
-from protocols.zenoh_adapter import EventReceiver, frame_key
+from protocols.zenoh_adapter import ZENOH_MAX_MESSAGE_BYTES, EventReceiver, frame_key
 from service.checkpoint import CheckpointStore
 
 pytestmark = pytest.mark.network
@@ -179,3 +179,45 @@ def test_store_entries_that_are_not_small_regular_files_cost_only_their_unit(tmp
             unit_name,
             daemon.lines,
         )
+
+
+def test_oversized_zenoh_puts_are_dropped_by_zenoh_or_refused_and_counted(tmp_path):
+    """Three puts of 4 MiB on a frame key, through a router that does not bound message sizes.
+    The daemon's session drops the first while reassembling it (transport/link/rx/max_message_size;
+    Zenoh 1.10.2 then lets the next ones through in full, see protocols.zenoh_adapter), and the
+    others are refused before unpacking and counted (too_large). The link stays up and the healthy
+    vehicle's F0 event arrives with every one of its frames received."""
+    good = "uav-g"
+    frames = [b for b in batches_of(unit()[2].session, vehicle=good, imu=0, batch_samples=100)]
+    frames = [b for b in frames if b.t_s[-1] < unit()[2].fault_s + 3.0]
+    assert ZENOH_MAX_MESSAGE_BYTES < 4 << 20
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [(good, 0)]))
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
+            status, got = Statuses(ground), []
+            with EventReceiver(ground, lambda e: got.append(e.predicate)):
+                daemon = ServiceProcess(config)
+                try:
+                    wait_subscribed(vehicle, frame_key("uav-big", 0))
+                    big = vehicle.declare_publisher(
+                        frame_key("uav-big", 0), congestion_control=zenoh.CongestionControl.BLOCK
+                    )
+                    for _ in range(3):
+                        big.put(b"\x00" * (4 << 20))
+                    publish_blocking(vehicle, frames)
+                    wait_until(lambda: Predicate.F0 in got, timeout_s=60, what="the F0 event")
+                    wait_until(
+                        lambda: status.counter(good, "imu0.frames.accepted") == len(frames),
+                        timeout_s=30,
+                        what=lambda: f"the frames counted: {status.get(good)}",
+                    )
+                    counters = status.get(good).counters
+                finally:
+                    assert daemon.terminate() == 0
+    too_large = counters.get("service.frames.rejected.too_large", 0)
+    # Without the bound all three would reach the decoder.
+    assert too_large < 3
+    assert counters["service.frames.received"] == len(frames) + too_large
