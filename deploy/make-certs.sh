@@ -6,12 +6,13 @@
 # DIR receives ca.pem (the fleet's certificate authority) and ca-key.pem (made once, reused
 # by later runs to add members), router-cert.pem and router-key.pem for the host name
 # ROUTER_NAME (the name the members connect to), and NAME-cert.pem, NAME-key.pem for each
-# MEMBER (default: ins-health vehicle ground-station). A member's name is its certificate's
-# common name, which the router's access control matches (cert_common_names). Keys are 0600.
+# MEMBER (default: ins-health uav-1 ground-station). A member's name is its certificate's
+# common name, which the router's access control matches (cert_common_names): a vehicle's is
+# its vehicle id. Keys are 0600.
 set -eu
 dir=${1:?usage: ROUTER_NAME=host sh make-certs.sh DIR [MEMBER ...]}
 shift
-[ $# -gt 0 ] || set -- ins-health vehicle ground-station
+[ $# -gt 0 ] || set -- ins-health uav-1 ground-station
 router=${ROUTER_NAME:?set ROUTER_NAME to the host name the members connect to}
 days=825
 umask 077

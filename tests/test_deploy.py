@@ -19,7 +19,14 @@ import pytest
 import zenoh
 from service_support import free_tcp_port, wait_until, zenoh_client_config
 
-from protocols.zenoh_adapter import open_session
+from protocols.events import Predicate, Severity, StreamCause, encode_event, make_event
+from protocols.zenoh_adapter import (
+    ZENOH_MAX_MESSAGE_BYTES,
+    AckMode,
+    EventPublisher,
+    EventReceiver,
+    open_session,
+)
 from service.cli import build_parser
 from service.config import config_from_dict, load_config
 
@@ -116,22 +123,27 @@ def check_install(path: Path) -> None:
 
 
 def check_certificates(path: Path, tmp_path: Path) -> None:
-    """The certificate script's output is what the fleet router (zenoh-router.json5) and the service need.
+    """The certificate script's output is what the fleet router (zenoh-router.json5) and the service need,
+    and the router's access control holds for the keys of ins-health.
 
     A TLS router opened from the shipped configuration, with the script's files in
     place of /etc/zenoh/tls, admits the members by the common names of their
-    certificates: the service (with the TLS settings of the example configuration)
-    reaches a ground station; a member whose name the router does not list, with a
-    certificate of the same authority, is connected but routed nothing.
+    certificates. Vehicle uav-1 puts frames on its own key; the same put on uav-2's
+    key and a forged event on its events key are not routed (both are put before
+    its own frame on the same link, so they would arrive before it; and before the
+    service's event, which the frame's arrival causes). The service (with the TLS
+    settings of the example configuration) takes the frame, and its event reaches
+    the ground station and is acknowledged by it; a member whose name the router
+    does not list, with a certificate of the same authority, is routed nothing.
     """
     certs = tmp_path / "tls"
     env = {"PATH": "/usr/bin:/bin", "ROUTER_NAME": "localhost"}
     subprocess.run(["sh", str(path), str(certs)], env=env, check=True, capture_output=True)
-    # A later run adds a member with the same authority.
+    # A later run adds members with the same authority.
     subprocess.run(
-        ["sh", str(path), str(certs), "intruder"], env=env, check=True, capture_output=True
+        ["sh", str(path), str(certs), "uav-2", "intruder"], env=env, check=True, capture_output=True
     )
-    members = ("ins-health", "vehicle", "ground-station", "intruder")
+    members = ("ins-health", "uav-1", "ground-station", "uav-2", "intruder")
     keys = ["ca-key.pem", "router-key.pem", *(f"{m}-key.pem" for m in members)]
     public = ["ca.pem", "router-cert.pem", *(f"{m}-cert.pem" for m in members)]
     assert sorted(p.name for p in certs.glob("*.pem")) == sorted(keys + public)
@@ -145,6 +157,9 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
     assert verify.returncode == 0 and verify.stdout.count(": OK") == len(public) - 1, verify.stdout
 
     conf = zenoh.Config.from_file(str(DEPLOY / "zenoh-router.json5"))
+    assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == (
+        ZENOH_MAX_MESSAGE_BYTES
+    )
     port = free_tcp_port()
     conf.insert_json5("listen/endpoints", json.dumps([f"tls/localhost:{port}"]))
     for key, value in json.loads(conf.get_json("transport/link/tls")).items():
@@ -152,17 +167,19 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
             conf.insert_json5(
                 f"transport/link/tls/{key}", json.dumps(str(certs / value[len(TLS_DIR) :]))
             )
-    # Every connection here comes in on the loopback, which the configuration admits as such:
-    # without that subject, only the certificates' names decide.
-    named = [
+    # Every connection here comes in on the loopback, which the configuration admits as a
+    # service and a ground station: without that subject, only the certificates' names decide.
+    subjects = [
         {k: v for k, v in s.items() if v is not None}
         for s in json.loads(conf.get_json("access_control/subjects"))
-        if s.get("cert_common_names")
     ]
+    named = [s for s in subjects if s.get("cert_common_names")]
+    assert len(named) == len(subjects) - 1
+    names = {s["id"] for s in named}
     policies = [
-        {**{k: v for k, v in p.items() if v is not None}, "subjects": [n["id"] for n in named]}
+        {**{k: v for k, v in p.items() if v is not None}, "subjects": [s for s in p["subjects"] if s in names]}
         for p in json.loads(conf.get_json("access_control/policies"))
-    ]
+    ]  # fmt: skip
     conf.insert_json5("access_control/subjects", json.dumps(named))
     conf.insert_json5("access_control/policies", json.dumps(policies))
     example_tls = tomllib.loads(
@@ -181,33 +198,42 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
         }
         return open_session(config_from_dict(raw).zenoh.session)
 
+    def route(publisher, what: str) -> None:
+        wait_until(lambda: publisher.matching_status.matching, timeout_s=10.0, what=what)
+
+    forged, real = (
+        make_event(vehicle="uav-1", imu=0, t_s=t_s, predicate=Predicate.STALE,
+                   cause=StreamCause.STUCK_VALUE, severity=Severity.ERROR, text=text)
+        for t_s, text in ((1.0, "forged"), (2.0, "real"))
+    )  # fmt: skip
     with (
         zenoh.open(conf),
         member("ins-health") as service,
         member("ground-station") as ground,
-        member("vehicle") as vehicle,
+        member("uav-1") as vehicle,
         member("intruder") as intruder,
     ):
-        got = queue.Queue()
-        ground.declare_subscriber("ins/*/health/events", lambda s: got.put(s.payload.to_bytes()))
-        pub = service.declare_publisher("ins/uav-1/health/events")
-        wait_until(
-            lambda: pub.matching_status.matching,
-            timeout_s=10.0,
-            what="a route to the ground station",
-        )
-        pub.put(b"event")
-        assert got.get(timeout=5.0) == b"event"
-        # Declared together: the listed member's publisher is routed, the other's is not.
-        listed = vehicle.declare_publisher("ins/uav-1/health/events")
-        unlisted = intruder.declare_publisher("ins/uav-1/health/events")
-        wait_until(
-            lambda: listed.matching_status.matching, timeout_s=10.0, what="the vehicle's route"
-        )
-        unlisted.put(b"intruder")
-        listed.put(b"vehicle")
-        assert got.get(timeout=5.0) == b"vehicle"
-        assert not unlisted.matching_status.matching
+        frames, events = queue.Queue(), queue.Queue()
+        service.declare_subscriber("ins/*/imu/*", lambda s: frames.put(s.payload.to_bytes()))
+        receiver = EventReceiver(ground, lambda e: events.put(e.text))
+        own = vehicle.declare_publisher("ins/uav-1/imu/0")
+        other = vehicle.declare_publisher("ins/uav-2/imu/0")
+        fake = vehicle.declare_publisher("ins/uav-1/health/events")
+        publisher = EventPublisher(service, ack=AckMode.RECEIVER, ack_timeout_s=5.0)
+        route(own, "the vehicle's frames to the service")
+        route(fake, "the declaration of the ground station's subscriber")
+        other.put(b"frame of uav-2")
+        fake.put(encode_event(forged))
+        own.put(b"frame of uav-1")
+        assert frames.get(timeout=5.0) == b"frame of uav-1"
+        assert publisher.publish(real), "the ground station did not acknowledge the event"
+        assert events.get(timeout=5.0) == "real"
+        assert frames.empty() and events.empty() and receiver.rejected == {}
+        # An unlisted member of the same authority is routed nothing, frames or events.
+        assert not intruder.declare_publisher("ins/uav-1/imu/0").matching_status.matching
+        assert not intruder.declare_publisher("ins/uav-1/health/events").matching_status.matching
+        publisher.close()
+        receiver.close()
 
 
 CHECKS = {
