@@ -289,16 +289,16 @@ def test_a_failed_mavlink_read_is_logged_and_counted_and_reading_resumes(tmp_pat
     packets = mavlink_packets(unit()[2].session, ImuMessage.SCALED_IMU)[:50]
     with caplog.at_level(logging.ERROR, logger="ins_health"), ServiceThread(cfg) as svc:
         source = svc.service.mavlink_source
-        read = source.link.recv_batch
+        read = source.link.read
         failed = threading.Event()
 
-        def fail_once(timeout_s):
+        def fail_once(timeout_s, **kw):
             if not failed.is_set():
                 failed.set()
                 raise OSError("device reports readiness to read but returned no data")
-            return read(timeout_s)
+            return read(timeout_s, **kw)
 
-        source.link.recv_batch = fail_once
+        source.link.read = fail_once
         wait_until(lambda: source.failures == 1, timeout_s=30, what="the failed read counted")
         peer = use_mavlink2(
             mavutil.mavlink_connection(
