@@ -124,3 +124,31 @@ vehicle = "uav-a"
         r"<4>ins-health: refused passport of uav-b IMU0 \(.*\): .*stream checks only", text
     )
     assert "<6>ins-health: onboard running" in lines
+
+
+def test_a_failure_at_start_is_one_logged_line_with_its_traceback_and_status_1(tmp_path):
+    """A MAVLink serial device that is not there: the daemon cannot start; it says why in one critical
+    record (the traceback folded into the line) and exits with status 1 for systemd to retry."""
+    config = tmp_path / "service.toml"
+    config.write_text(
+        f"""
+[service]
+data_dir = "{tmp_path / "data"}"
+passport_dir = "{tmp_path / "passports"}"
+[zenoh]
+enabled = false
+[mavlink]
+enabled = true
+device = "{tmp_path / "ttyACM9"}"
+"""
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "service.cli", "run", "--config", str(config)],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    lines = done.stderr.splitlines()
+    assert done.returncode == 1, lines
+    assert all(STAMPED.match(line) or " CRITICAL ins-health: " in line for line in lines), lines
+    (failed,) = [line for line in lines if " CRITICAL " in line]
+    assert failed.endswith(f"No such file or directory: '{tmp_path / 'ttyACM9'}'")
+    assert "ins-health: the daemon failed | Traceback (most recent call last):" in failed

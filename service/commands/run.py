@@ -5,9 +5,9 @@ was received, writes the checkpoints and keeps delivering events for a few
 seconds; whatever is still undelivered is sent by the next start. SIGTERM or SIGINT
 ends it within :data:`STOP_BOUND_S` in every state (connecting to an unreachable router
 included); past that bound it logs why and exits with :data:`EXIT_STOP_TIMEOUT`. Exit status
-0 after a clean stop, 2 for an unusable configuration, 70 when a task kept failing or the
-router stayed out of reach beyond ``connect_timeout_s`` (:mod:`service.supervisor`), so
-that systemd starts it afresh.
+0 after a clean stop, 2 for an unusable configuration, 1 for a failure outside the tasks
+(logged with its traceback), 70 when a task kept failing or the router stayed out of reach
+beyond ``connect_timeout_s`` (:mod:`service.supervisor`), so that systemd starts it afresh.
 
 The log goes to stderr through :mod:`service.log_setup` (one line per record; under
 journald without time stamps and with syslog priorities); ``--log-level`` sets its
@@ -50,6 +50,8 @@ STOP_BOUND_S = 15.0
 (``service.daemon.DRAIN_TIMEOUT_S``, 5 s), a connection attempt under way
 (``CONNECT_ATTEMPT_S``, 3 s), an acknowledgement under way (``ack_timeout_s``, 1 s by
 default), the queued frames and the last checkpoint; below the unit's ``TimeoutStopSec``."""
+EXIT_FAILED = 1
+"""Exit status when the daemon fails outside its supervised tasks (at start, or in the drain)."""
 EXIT_STOP_TIMEOUT = 75
 """Exit status when a stop overran :data:`STOP_BOUND_S` (EX_TEMPFAIL of sysexits.h)."""
 
@@ -99,4 +101,10 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     with logging_to(sys.stderr, level=args.log_level):
-        return asyncio.run(serve(Service(config)))
+        try:
+            return asyncio.run(serve(Service(config)))
+        except Exception:
+            # A failure outside the supervised tasks (a link that cannot be opened, a state
+            # file that cannot be read): one log record with its traceback, then status 1.
+            logger("run").critical("the daemon failed", exc_info=True)
+            return EXIT_FAILED
