@@ -46,8 +46,16 @@ makes sense in another unit is refused with one line naming that unit:
   deg/s. A deg/s session whose turns never exceed about 20 °/s cannot be told
   from a rad/s one by its values and passes; a rad/s session declared deg/s
   is not detected either (its rates only look small);
-* time: the median sample interval must lie in ``[10 µs, 1 s]`` (100 kHz …
-  1 Hz); a larger one looks like ms or µs.
+* time: the median sample interval must lie in ``[100 µs, 2 s]``, i.e. a rate
+  of 10 kHz … 0.5 Hz: the rates the service accepts from a stream
+  (:class:`estimators.stream_validity.ValidityLimits`; outside it the detector's
+  windows and buffers, sized in samples, are nonsense), so a file refused here
+  would be refused streamed, and the reverse. A file in s declared ms has its
+  rate multiplied by 1000: a 100 Hz session would read as 100 kHz. The range
+  spans more than a factor 1000, so an interval can be plausible in two units
+  (0.5 is 2 Hz in s and 2 kHz in ms); the refusal then names the unit that puts
+  the rate nearest the middle of the range on a log scale (about 70 Hz, the
+  rates such sessions are logged at).
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ import numpy as np
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2
 from estimators.session import ImuSession, SessionError
+from estimators.stream_validity import ValidityLimits
 from protocols.atomic_file import atomic_write_bytes
 
 CSV_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz", "temp")
@@ -596,8 +605,9 @@ def read_session(
 ACCEL_MEDIAN_RANGE_MPS2 = (5.0, 20.0)
 GYRO_MEDIAN_LIMIT_RPS = 5.0
 GYRO_P995_LIMIT_RPS = 20.0
-SAMPLE_INTERVAL_RANGE_S = (1e-5, 1.0)
+SAMPLE_INTERVAL_RANGE_S = (1.0 / ValidityLimits.max_rate_hz, 1.0 / ValidityLimits.min_rate_hz)
 """The rules of the module docstring, "Plausibility of the units"."""
+_TYPICAL_INTERVAL_S = math.sqrt(SAMPLE_INTERVAL_RANGE_S[0] * SAMPLE_INTERVAL_RANGE_S[1])
 
 
 def _plausible(kind: str, raw: float, unit: StrEnum) -> bool:
@@ -653,7 +663,11 @@ def check_units(session: ImuSession, units: SessionUnits) -> None:
     if dt.size and used.time is not None:
         raw = float(np.median(dt)) / SI_PER_UNIT[used.time]
         if not _plausible("time", raw, used.time):
-            looks_t = next((u for u in TimeUnit if _plausible("time", raw, u)), None)
+            looks_t = min(
+                (u for u in TimeUnit if _plausible("time", raw, u)),
+                key=lambda u: abs(math.log(raw * SI_PER_UNIT[u] / _TYPICAL_INTERVAL_S)),
+                default=None,
+            )
             raise _refuse(
                 "time", used.time, looks_t, f"median sample interval {raw:.4g} {used.time}"
             )

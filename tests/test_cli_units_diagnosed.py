@@ -155,3 +155,53 @@ def test_a_passport_of_another_unit_is_named(files, capsys):
     assert "the passport is probably not this unit's" in out
     assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
     assert "probably not this unit's" not in capsys.readouterr().out
+
+
+TIME_SCALE = {"s": 1.0, "ms": 1e3, "us": 1e6}
+
+
+@pytest.mark.parametrize("rate_hz", [50.0, 100.0])
+@pytest.mark.parametrize(
+    ("written", "declared"),
+    [(w, d) for w in TIME_SCALE for d in TIME_SCALE if w != d],
+)
+def test_time_in_one_unit_declared_another_is_refused_with_the_unit_it_is_in(
+    files, tmp_path, capsys, written, declared, rate_hz
+):
+    # 50 Hz in s declared ms reads as 50 kHz: above the 10 kHz the service accepts (and so on).
+    d, session = files
+    assert np.isclose(session.rate_hz, 100.0)
+    path = tmp_path / f"t_{written}.csv"
+    t_s = session.t_s * (100.0 / rate_hz)
+    write_csv_session(path, replace(session, t_s=t_s * TIME_SCALE[written]))
+    capsys.readouterr()
+    status = main(
+        ["diagnose", str(path), "--passport", str(d / "pp.json"), "--time-unit", declared]
+    )
+    err = capsys.readouterr().err.strip()
+    assert status == 2
+    assert "\n" not in err and f"time values look like {written}, not {declared}" in err, err
+    assert f"--time-unit {written}" in err
+
+
+def test_rates_the_service_accepts_are_accepted_in_their_unit(files):
+    # The range is 0.5 Hz … 10 kHz (estimators.stream_validity.ValidityLimits): 1 % inside each end
+    # is accepted, 1 % outside refused.
+    _, session = files
+    steps = np.arange(session.n_samples, dtype=float)
+    for inside_hz, outside_hz in ((0.505, 0.495), (9_900.0, 10_100.0)):
+        check_units(replace(session, t_s=steps / inside_hz), SessionUnits())
+        with pytest.raises(UnitsError, match="time values"):
+            check_units(replace(session, t_s=steps / outside_hz), SessionUnits())
+
+
+def test_an_interval_plausible_in_two_units_is_named_by_the_nearer_typical_rate(files):
+    # A 1.25 kHz log in ms declared us: 0.8 ms steps read as 0.8 µs. In s the same numbers would
+    # be 1.25 Hz, also inside the range; ms puts the rate nearer the range's middle (≈ 70 Hz, log scale).
+    _, session = files
+    steps = np.arange(session.n_samples, dtype=float)  # 1 per sample, as written
+    with pytest.raises(UnitsError, match="time values look like ms, not us"):
+        check_units(replace(session, t_s=steps * 0.8e-6), SessionUnits(time="us"))
+    # 0.1 per sample declared us: 10 Hz in s or 10 kHz in ms; s is nearer.
+    with pytest.raises(UnitsError, match="time values look like s, not us"):
+        check_units(replace(session, t_s=steps * 0.1e-6), SessionUnits(time="us"))
