@@ -882,9 +882,15 @@ class PositionAccumulator:
 
         j0 = c0 - w + 1  # decision finalized by the first sample
         edges = np.flatnonzero(static[1:] != static[:-1]) + 1
-        bounds = [0, *edges.tolist(), n]
+        # A run that closed at a static decision ended at a jump: a new run starts there.
+        jumps = sorted(a for a in closes if static[a])
+        bounds = sorted({0, *edges.tolist(), *jumps, n})
         for a, b in itertools.pairwise(bounds):
             ja, jb = j0 + a, j0 + b
+            if a in closes:
+                emitted = self._close_run(*closes[a])
+                if emitted is not None:
+                    positions.append(emitted)
             if static[a]:
                 if not self._run_open:
                     self._run_open = True
@@ -904,13 +910,8 @@ class PositionAccumulator:
                 skip = max(0, 2 * self._trim - r0)
                 if ja + skip < jb:
                     self._add_many(ext, ja + skip - self._trim, jb - self._trim)
-            else:
-                if a in closes:
-                    emitted = self._close_run(*closes[a])
-                    if emitted is not None:
-                        positions.append(emitted)
-                if self._rot_active:
-                    self._integrate_ext(ext, ja, jb)
+            elif self._rot_active:
+                self._integrate_ext(ext, ja, jb)
         # The ring keeps the last rn accepted samples (absent triads keep their old values).
         tail = np.arange(max(0, n - rn), n)
         pos = (c0 + tail) % rn
@@ -1008,9 +1009,12 @@ class PositionAccumulator:
     def _after_detector(self) -> Position | None:
         det = self.detector
         emitted = None
+        # A run that ended at a jump closes before the static decision after the jump opens the next.
+        if det.closed_run is not None and det.fin_jump:
+            emitted = self._close_run(det.closed_run, det.closed_run_short)
         for c in range(det.fin_lo, det.fin_split):
             self._static_sample(c)
-        if det.closed_run is not None:
+        if det.closed_run is not None and not det.fin_jump:
             emitted = self._close_run(det.closed_run, det.closed_run_short)
         if self._rot_active:
             for c in range(det.fin_split, det.fin_hi):

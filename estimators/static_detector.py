@@ -72,9 +72,13 @@ jump between two samples (static parts cut out and joined, a log that lost a
 whole turn with uniform time stamps) every window holding both samples has the
 jump inside it and is not quiet, so the run ends at the jump even though the
 samples on either side are static. A jump the noise can explain leaves some
-window quiet and does not end the run. The streaming detector gives the same
-static flags but does not split runs at jumps: a live stream that loses samples
-has a time gap, which starts a new segment.
+window quiet and does not end the run. The streaming detector applies the same
+rule with one comparison per sample: when the decision on sample ``j`` becomes
+final (the window ending at ``j + W − 1`` seen), the quiet windows ending in
+``[j, j + W − 2]`` are all known, and one of them is quiet iff the latest quiet
+window before the current one ends at ``j`` or later. So a stream, however it is
+cut into frames, splits its runs where the batch detector does, with or without
+a time gap at the jump.
 
 The streaming form (:class:`StreamingStaticDetector`) gives the same decisions
 as the batch form (:func:`detect_static`): whether sample ``j`` is static is
@@ -583,6 +587,8 @@ class StreamingStaticDetector:
       decision became final in this call: ``[fin_lo, fin_split)`` static,
       ``[fin_split, fin_hi)`` not;
     * ``fin_break`` — a segment ended after those samples (gap, or :meth:`finish`);
+    * ``fin_jump`` — the data jump just before ``fin_lo`` (a static sample): the run
+      that held the sample before it closed there, and a new run starts at ``fin_lo``;
     * ``closed_run`` — the static run that closed in this call (any length) or None,
       and ``closed_run_short`` whether it is shorter than ``min_static_s``.
 
@@ -638,7 +644,7 @@ class StreamingStaticDetector:
 
     def _clear_outputs(self) -> None:
         self.fin_lo = self.fin_split = self.fin_hi = self._next_final
-        self.fin_break = False
+        self.fin_break = self.fin_jump = False
         self.closed_run: StaticInterval | None = None
         self.closed_run_short = False
 
@@ -646,7 +652,7 @@ class StreamingStaticDetector:
         self, t_s: float, ax: float, ay: float, az: float, gx: float, gy: float, gz: float
     ) -> StaticInterval | None:
         self.fin_lo = self.fin_split = self.fin_hi = self._next_final
-        self.fin_break = self.closed_run_short = False
+        self.fin_break = self.fin_jump = self.closed_run_short = False
         self.closed_run = None
         self.n_input += 1
         ha, hg = self.has_accel, self.has_gyro
@@ -729,6 +735,7 @@ class StreamingStaticDetector:
         if pos == w - 1:
             self._resum()
         self.static_now = quiet
+        quiet_before = self._last_quiet
         if quiet:
             self._last_quiet = c
         j = c - w + 1
@@ -736,6 +743,12 @@ class StreamingStaticDetector:
         self.fin_hi = self._next_final = j + 1
         if self._last_quiet >= j:
             self.fin_split = j + 1
+            if self._run_open and quiet_before < j:
+                # No quiet window holds both j − 1 and j: the data jump between them.
+                self._run_close()
+                self.fin_jump = True
+                self._run_add(j)
+                return None if self.closed_run_short else self.closed_run
             if self._run_open:
                 jp = j % w
                 self._run_last_idx = idx_ring[jp]
@@ -800,7 +813,8 @@ class StreamingStaticDetector:
 
         Returns ``(static (N,) bool, closes)``: sample ``i`` finalizes the decision of
         accepted sample ``n_accepted₀ − W + 1 + i`` (static or not), and ``closes`` maps
-        ``i`` to ``(run, short)`` for the runs that closed at sample ``i``. The state,
+        ``i`` to ``(run, short)`` for the runs that closed at sample ``i`` (where
+        ``static[i]``, at a jump: a new run starts with that decision). The state,
         counters and per-call outputs after the batch are those :meth:`update` leaves.
         The running sums are rebuilt with the same additions in the same order
         (sequential ``cumsum`` of the interleaved ``+y, −p`` terms, restarted at
@@ -877,16 +891,29 @@ class StreamingStaticDetector:
         last_quiet = np.maximum.accumulate(np.where(quiet, c, -1))
         np.maximum(last_quiet, self._last_quiet, out=last_quiet)
         static = last_quiet >= j
+        # update's jump rule: no quiet window before the current one ends at j or later, while the run is open.
+        quiet_before = np.empty_like(last_quiet)
+        quiet_before[0] = self._last_quiet
+        quiet_before[1:] = last_quiet[:-1]
+        run_before = np.empty(n, dtype=bool)
+        run_before[0] = self._run_open
+        run_before[1:] = static[:-1]
+        jump = static & run_before & (quiet_before < j)
         # Times and input indices of the accepted samples c0 − W … (ring, then the batch).
         t_ring, idx_ring = self._t.array(), self._idx.array()
         t_ext = np.concatenate([t_ring[old_pos], t_s])
         idx_new = self.n_input + np.arange(n)
         idx_ext = np.concatenate([idx_ring[old_pos], idx_new])
         closes: dict[int, tuple[StaticInterval, bool]] = {}
-        edges = np.flatnonzero(static[1:] != static[:-1]) + 1
+        edges = np.flatnonzero((static[1:] != static[:-1]) | jump[1:]) + 1
         bounds = [0, *edges.tolist(), n]
         for a, b in itertools.pairwise(bounds):
             if static[a]:
+                if jump[a]:
+                    self._run_close()
+                    closed = self.closed_run
+                    assert closed is not None  # the open run was just closed
+                    closes[a] = (closed, self.closed_run_short)
                 if not self._run_open:
                     # Sample j of batch sample a sits at a + 1 in the extended arrays.
                     self._run_open = True
@@ -913,6 +940,7 @@ class StreamingStaticDetector:
         self.fin_hi = self._next_final = jl + 1
         self.fin_split = jl + 1 if static[-1] else jl
         self.fin_break = False
+        self.fin_jump = bool(jump[-1])
         last_close = closes.get(n - 1)
         self.closed_run, self.closed_run_short = (
             last_close if last_close is not None else (None, False)

@@ -2,17 +2,19 @@
 units, joined static parts and lost turns, calibrated into the passport (issue 11)."""
 
 import dataclasses
+import itertools
 import json
 
 import numpy as np
 import pytest
 from real_data import XSENS, needs
+from service_support import batches_of, run_fleet
 
 from estimators.chain import ChainConfig, calibration_estimates, run_chain
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad, normal_gravity_mps2
 from estimators.ninepar import SOURCE_SCALAR, SOURCE_TURNS, SOURCE_VECTOR, Method, Verdict
 from estimators.passport import Passport, PassportError, passport_from_estimates
-from estimators.positions import build_positions
+from estimators.positions import PositionAccumulator, PositionConfig, build_positions
 from estimators.session import ImuSession
 from estimators.sim import (
     ErrorModel,
@@ -28,6 +30,7 @@ from estimators.static_detector import StaticDetectorConfig, detect_static
 from protocols.passport_codec import read_passport_json
 from protocols.session_file import read_session, write_csv_session
 from service.cli import main
+from service.pipeline import FleetProcessor, PipelineOptions, StaticGate
 
 MODEL = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
 
@@ -269,3 +272,113 @@ def test_several_geometries_combine_into_one_estimate_with_one_covariance():
     assert np.linalg.eigvalsh(est.cov)[0] > 0
     truth = _truth(res, Triad.ACCEL)
     assert np.all(np.abs(est.params - truth) < 4.5 * est.sigma)
+
+
+# --- the same rule streamed: per sample, or in frames cut anywhere (the daemon and replay) ----------
+
+
+def _joined_and_lost():
+    """A six-face session with its static parts joined, and one whose turn 3 → 4 was lost with
+    uniform time stamps (no time gap at either jump)."""
+    res = simulate(ferraris_spec(MODEL, turns=False, static_s=8.0), seed=12)
+    truth = res.truth
+    t_end_hold, t_next = truth.static_intervals_s[2][1], truth.static_intervals_s[3][0]
+    lost = (truth.t_s > t_end_hold) & (truth.t_s < t_next)
+    return {"joined": _joined(res, truth.static), "lost_turn": _joined(res, ~lost)}
+
+
+def _cuts(n, sizes, rng, jumps):
+    """Frame boundaries: random frame lengths in ``sizes``, plus a cut exactly at each jump."""
+    cuts = np.cumsum(rng.integers(*sizes, size=n // sizes[0] + 2))
+    return np.unique(np.concatenate([[0, n], cuts[cuts < n], jumps]))
+
+
+def _stream(session, config, cuts):
+    """Positions, and the final static decisions, from a PositionAccumulator fed ``cuts`` frames
+    (frames of one sample go through ``update``, as the daemon's per-sample path does)."""
+    rate = session.rate_hz
+    acc = PositionAccumulator(rate_hz=rate, detector_config=config)
+    out, steps = [], []
+    decisions = None
+    for a, b in itertools.pairwise(cuts.tolist()):
+        if b - a == 1:
+            p = acc.update(session.t_s[a], *session.accel_mps2[a], *session.gyro_rps[a])
+            out += [] if p is None else [p]
+            d = acc.detector.last_step()
+        else:
+            got, d = acc.update_batch(
+                session.t_s[a:b], session.accel_mps2[a:b], session.gyro_rps[a:b]
+            )
+            out += got
+        decisions = d if decisions is None else decisions.then(d)
+        steps.append(d)
+    out += acc.flush()
+    return out, decisions, steps, acc.detector
+
+
+@pytest.mark.parametrize("case", ["joined", "lost_turn"])
+def test_streamed_positions_split_at_jumps_as_the_batch_ones_however_the_stream_is_cut(case):
+    session = _joined_and_lost()[case]
+    config = StaticDetectorConfig.from_session(session)
+    detection = detect_static(session, config=config)
+    expected = build_positions(session, detection).positions
+    assert len(expected) == 6
+    # The jumps: neighbouring samples whose specific force differs by far more than the noise.
+    step = np.linalg.norm(np.diff(session.accel_mps2, axis=0), axis=1)
+    jumps = np.flatnonzero(step > 2.0) + 1
+    assert 1 <= jumps.size <= 5
+    rng = np.random.default_rng(21)
+    for sizes in ((1, 2), (1, 9), (60, 400), (300, 3000)):
+        got, _, _, _ = _stream(session, config, _cuts(session.n_samples, sizes, rng, jumps))
+        assert len(got) == len(expected), sizes
+        for p, q in zip(got, expected, strict=True):
+            for name in ("index_start", "index_stop", "n_samples", "n_intervals"):
+                assert getattr(p, name) == getattr(q, name), (sizes, name)
+            np.testing.assert_allclose(p.accel_mean_mps2, q.accel_mean_mps2, rtol=1e-9)
+            np.testing.assert_allclose(p.gyro_mean_rps, q.gyro_mean_rps, rtol=1e-9, atol=1e-15)
+
+
+@pytest.mark.parametrize("case", ["joined", "lost_turn"])
+def test_f0_s_static_gate_does_not_erode_at_a_jump(case):
+    # The positions end at a jump; F0 does not: a step fault of a resting unit is a jump, and F0
+    # tests the samples right after it. The gate's flags are the static samples with ``margin``
+    # static neighbours on both sides, jumps or not, whatever frames the stream came in.
+    session = _joined_and_lost()[case]
+    config = StaticDetectorConfig.from_session(session)
+    static = detect_static(session, config=config).static
+    margin = PositionConfig().trim_samples(session.rate_hz)
+    windows = np.lib.stride_tricks.sliding_window_view(static, 2 * margin + 1)
+    expected = np.zeros(session.n_samples, dtype=bool)
+    expected[margin:-margin] = windows.all(axis=1)
+    step = np.linalg.norm(np.diff(session.accel_mps2, axis=0), axis=1)
+    jumps = np.flatnonzero(step > 2.0) + 1
+    assert expected[jumps].all() and expected[jumps - 1].all()
+    rng = np.random.default_rng(22)
+    for sizes in ((1, 2), (1, 9), (60, 400)):
+        cuts = _cuts(session.n_samples, sizes, rng, jumps)
+        gate = StaticGate(margin)
+        _, _, steps, detector = _stream(session, config, cuts)
+        released = []
+        for (a, b), d in zip(itertools.pairwise(cuts.tolist()), steps, strict=True):
+            *_, flags = gate.push(
+                session.t_s[a:b], session.accel_mps2[a:b], session.gyro_rps[a:b], d
+            )
+            released.append(flags)
+        # The last window's decisions come with flush (finish): push them too.
+        *_, flags = gate.push(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), detector.last_step())
+        released.append(flags)
+        got = np.concatenate(released)
+        assert got.size >= session.n_samples - margin
+        assert np.array_equal(got, expected[: got.size]), sizes
+
+
+@pytest.mark.parametrize("case", ["joined", "lost_turn"])
+def test_the_service_s_pipeline_finds_the_six_faces_of_a_joined_stream(case):
+    # What the daemon and replay do with such a recording: frames of any size, no time gap.
+    session = _joined_and_lost()[case]
+    for frame in (1, 7, 333):
+        fleet = FleetProcessor(
+            passports=lambda v, i: None, options=PipelineOptions(gravity_mps2=9.81)
+        )
+        run_fleet(fleet, batches_of(session, vehicle="v", imu=0, batch_samples=frame))
+        assert fleet.pipelines[("v", 0)].n_positions == 6, frame

@@ -314,3 +314,21 @@ def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
     assert not det.clean_batch(
         t[-1] + np.array([0.01, 1.0]), accel[:2], gyro[:2]
     )  # a gap ends the segment
+
+
+@pytest.mark.parametrize(("step_mps2", "runs"), [(3.0, 2), (0.002, 1)])
+def test_the_streaming_detector_ends_a_run_where_the_data_jump_as_the_batch_one(step_mps2, runs):
+    # Two rests joined without a transition or a time gap: a jump far above the noise (σ = 0.005 m/s²)
+    # ends the run in both detectors; one the noise explains does not.
+    rng = np.random.default_rng(31)
+    n = 600
+    accel = np.tile([0.0, 0.0, 9.81], (n, 1)) + rng.normal(0.0, 0.005, (n, 3))
+    accel[n // 2 :, 0] += step_mps2
+    gyro = rng.normal(0.0, 0.001, (n, 3))
+    session = ImuSession(np.arange(n) / 100.0, accel, gyro)
+    batch = detect_static(session)
+    assert len(batch.intervals) == runs and batch.short_runs == ()
+    for state_at in (None, n // 2 + 10):
+        static, intervals, _ = _stream(session, rate_hz=100.0, state_at=state_at)
+        assert intervals == list(batch.intervals)
+        np.testing.assert_array_equal(static, batch.static)

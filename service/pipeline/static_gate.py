@@ -20,6 +20,11 @@ class StaticGate:
     and end of a turn sit inside a quiet window too (the positions trim the same
     amount for the same reason). The delay is ``W − 1 + margin`` samples.
 
+    Where the data jump between two static samples the detector ends the run
+    for the positions (a joined recording, a lost turn), but F0 keeps it whole:
+    a step fault of a resting unit is such a jump, and F0 must test the first
+    samples after it, not ``margin`` samples later.
+
     Samples are numbered by the detector's accepted-sample count; the caller
     pushes exactly the samples the detector accepted, with the decisions that
     became final while it fed them.
