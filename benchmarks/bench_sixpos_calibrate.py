@@ -14,8 +14,9 @@ session file. Timed, medians of ``N`` interleaved runs (default 7):
 
 The goal (issue 11) is a whole process of the default command no slower than imucal's.
 The audit needs more positions than six faces give, so on this session it concludes nothing
-and simulates no replica: its cost here is only what it imports, which is why scipy is
-imported where it is used (the audit, the simulator, ``estimators.noise``), not with them.
+and simulates no replica: its whole cost here was importing it (scipy, the simulator). So
+scipy is imported where it is used (the audit, the simulator, ``estimators.noise``), and
+``calibrate`` compares the positions with the audit's minimum before it loads the rest of it.
 Run: ``python benchmarks/bench_sixpos_calibrate.py [N]`` (needs the test extra: imucal).
 """
 

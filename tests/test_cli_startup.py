@@ -115,13 +115,15 @@ LOADED_BY_CALIBRATE = """
 import json, sys
 from service.cli import main
 status = main(["calibrate", sys.argv[1], "--out", sys.argv[2]])
-print(json.dumps({"status": status, "loaded": sorted({name.split(".")[0] for name in sys.modules})}))
+print(json.dumps({"status": status, "loaded": sorted({name.split(".")[0] for name in sys.modules}),
+                  "simulator": "estimators.sim" in sys.modules}))
 """
 
 
 def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     # Six faces are too few positions for the model audit (on by default), which then concludes
-    # nothing: the default command must not pay scipy's import for it (benchmarks/bench_sixpos_calibrate.py).
+    # nothing: the default command must not pay for importing scipy or the simulator for it
+    # (benchmarks/bench_sixpos_calibrate.py).
     import numpy as np
 
     from estimators.conventions import Grade
@@ -149,3 +151,4 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert out["status"] == 0 and (tmp_path / "p.json").exists()
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
     assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
+    assert not out["simulator"]

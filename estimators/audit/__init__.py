@@ -3,23 +3,33 @@
 Public entry points: :func:`run_audit` with :class:`AuditConfig`, and
 :func:`effective_noise_std_norm` (the surviving noise model for
 :func:`estimators.scalar.derive_lambda0`).
+
+The submodules load on first use of one of their names: ``calibrate`` asks
+:data:`MIN_POSITIONS` before it runs the audit, and a six-position session, too
+few for it, does not pay for importing the simulator.
 """
 
-from .audit import (
-    DEFAULT_REPLICAS,
-    AuditConfig,
-    AuditResult,
-    TriadBaseline,
-    effective_noise_std_norm,
-    extend_model,
-    find_candidates,
-    fit_baseline,
-    fit_baselines,
-    run_audit,
-    same_session_spec,
-)
-from .candidates import CANDIDATE_NAMES, FAMILY_ALPHA, Candidate
-from .statistics import MIN_POSITIONS, Comparison, TriadCurves
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .audit import (
+        DEFAULT_REPLICAS,
+        AuditConfig,
+        AuditResult,
+        TriadBaseline,
+        effective_noise_std_norm,
+        extend_model,
+        find_candidates,
+        fit_baseline,
+        fit_baselines,
+        run_audit,
+        same_session_spec,
+    )
+    from .candidates import CANDIDATE_NAMES, FAMILY_ALPHA, Candidate
+    from .statistics import MIN_POSITIONS, Comparison, TriadCurves
 
 __all__ = [
     "CANDIDATE_NAMES",
@@ -40,3 +50,19 @@ __all__ = [
     "run_audit",
     "same_session_spec",
 ]
+
+_NOT_IN_AUDIT = {
+    "CANDIDATE_NAMES": "candidates",
+    "FAMILY_ALPHA": "candidates",
+    "Candidate": "candidates",
+    "MIN_POSITIONS": "statistics",
+    "Comparison": "statistics",
+    "TriadCurves": "statistics",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name not in __all__:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    module = importlib.import_module(f".{_NOT_IN_AUDIT.get(name, 'audit')}", __name__)
+    return getattr(module, name)

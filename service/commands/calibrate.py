@@ -84,20 +84,26 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.turn_deg) and args.turn_deg > 0):
         raise UsageError(f"--turn-deg must be a positive angle, got {args.turn_deg!r}")
     if args.audit:
-        from estimators.audit import AuditConfig, run_audit
+        import estimators.audit as model_audit  # its submodules (and the simulator) load on first use
 
-        audit = run_audit(inp.session, AuditConfig(chain=config, replicas=args.replicas))
-        if audit.replica_stats:
-            instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
-            print(
-                f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}",
-                file=sys.stderr,
+        n_pos = len(white.positions)
+        # The audit's own first check, on the same positions: too few, and it would only say so.
+        why = [f"{n_pos} static positions, it needs ≥ {model_audit.MIN_POSITIONS}"]
+        if n_pos >= model_audit.MIN_POSITIONS:
+            audit = model_audit.run_audit(
+                inp.session, model_audit.AuditConfig(chain=config, replicas=args.replicas)
             )
-            result = run_chain(inp.session, replace(config, bias_instability_std=instability))
-        else:
-            # Nothing simulated (too few positions, no accelerometers, …): the white-noise model stays.
+            why = [] if audit.replica_stats else audit.statements
+            if audit.replica_stats:
+                instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
+                print(
+                    f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}",
+                    file=sys.stderr,
+                )
+                result = run_chain(inp.session, replace(config, bias_instability_std=instability))
+        if why:
             print(
-                f"calibrate: audit concluded nothing ({'; '.join(audit.statements)}); white-noise model kept",
+                f"calibrate: audit concluded nothing ({'; '.join(why)}); white-noise model kept",
                 file=sys.stderr,
             )
     cal = calibration_estimates(result, turn_rad=math.radians(args.turn_deg))
