@@ -326,6 +326,7 @@ config_tables = st.dictionaries(
                 "max_rate_hz",
                 "frames_key",
                 "signing_key_hex",
+                "signing_key_file",
                 "data_dir",
                 "bogus",
             ]

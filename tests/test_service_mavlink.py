@@ -256,6 +256,42 @@ def stream(peer, packets: list[bytes], status: Statuses, between=()) -> None:
                 peer.write(datagram)
 
 
+def run_daemon(tmp_path, packets, between, counted: str, n_counted: int, **link):
+    """A real daemon reading vehicle mav1 over UDP (``link``: more [mavlink] keys), sent ``packets`` with
+    ``between`` (:func:`stream`), until mav1's F0 and F6 events arrived and the status topic shows every
+    packet read and ``n_counted`` of ``counted``; returns (events, counters, log lines, seconds it ran)."""
+    mav_port = free_udp_port()
+    with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
+        status, got = Statuses(ground), []
+        with EventReceiver(
+            ground, lambda e: got.append(e.predicate) if e.vehicle == "mav1" else None
+        ):
+            daemon = ServiceProcess(daemon_config(tmp_path, zport, mav_port, **link))
+            t0 = time.monotonic()
+            try:
+                peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{mav_port}"))
+                stream(peer, packets, status, between=between)
+                peer.close()
+                wait_until(
+                    lambda: len(got) >= 2,
+                    timeout_s=60,
+                    what=lambda: f"F0 and F6 of mav1, got {got}",
+                )
+                wait_until(
+                    lambda: (
+                        status.counter("mav1", counted) == n_counted
+                        and status.counter("mav1", "service.mavlink.samples.SCALED_IMU")
+                        == len(packets)
+                    ),
+                    timeout_s=30,
+                    what=lambda: f"every packet counted: {status.get('mav1').counters}",
+                )
+                counters = status.get("mav1").counters
+            finally:
+                assert daemon.terminate() == 0
+            return got, counters, daemon.lines, time.monotonic() - t0
+
+
 def test_garbage_and_bad_crc_are_counted_and_logged_while_the_fault_is_found(tmp_path):
     """A real daemon reads a vehicle's SCALED_IMU stream with a fault, between which come datagrams of
     garbage, of a packet with a broken CRC, and of a packet cut short: each is counted on the status
@@ -267,38 +303,15 @@ def test_garbage_and_bad_crc_are_counted_and_logged_while_the_fault_is_found(tmp
     garbage, cut = b"\x00\x11garbage\x7f" * 4, packets[1][:20]
     hostile = (garbage, bytes(broken), cut)
     n_hostile = len(range(0, len(packets), 20)) // 50
-    mav_port = free_udp_port()
-    with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
-        status, got = Statuses(ground), []
-        with EventReceiver(
-            ground, lambda e: got.append(e.predicate) if e.vehicle == "mav1" else None
-        ):
-            daemon = ServiceProcess(daemon_config(tmp_path, zport, mav_port))
-            t0 = time.monotonic()
-            try:
-                peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{mav_port}"))
-                stream(peer, packets, status, between=hostile)
-                peer.close()
-                wait_until(
-                    lambda: len(got) >= 2,
-                    timeout_s=60,
-                    what=lambda: f"F0 and F6 of mav1, got {got}",
-                )
-                wait_until(
-                    lambda: status.counter("mav1", "service.mavlink.rejected.bad_crc") == n_hostile
-                    and status.counter("mav1", "service.mavlink.samples.SCALED_IMU") == len(packets),
-                    timeout_s=30, what=lambda: f"every packet counted: {status.get('mav1').counters}",
-                )  # fmt: skip
-                counters = status.get("mav1").counters
-            finally:
-                assert daemon.terminate() == 0
-            elapsed_s = time.monotonic() - t0
+    got, counters, lines, elapsed_s = run_daemon(
+        tmp_path, packets, hostile, "service.mavlink.rejected.bad_crc", n_hostile
+    )
     assert got == [Predicate.F0, Predicate.F6]
     assert counters["service.mavlink.rejected.garbage_bytes"] == n_hostile * (
         len(garbage) + len(cut)
     )
-    logged = [line for line in daemon.lines if "rejected" in line and "bad_crc" in line]
-    assert 1 <= len(logged) <= 1 + elapsed_s / LOG_PERIOD_S, daemon.lines
+    logged = [line for line in lines if "rejected" in line and "bad_crc" in line]
+    assert 1 <= len(logged) <= 1 + elapsed_s / LOG_PERIOD_S, lines
 
 
 KEY = bytes(range(32))
@@ -324,32 +337,10 @@ def test_with_a_signing_key_only_signed_imu_messages_are_read(tmp_path):
     right.close()
     wrong.close()
     n_hostile = len(range(0, len(packets), 20)) // 50
-    mav_port = free_udp_port()
-    with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
-        status, got = Statuses(ground), []
-        with EventReceiver(
-            ground, lambda e: got.append(e.predicate) if e.vehicle == "mav1" else None
-        ):
-            daemon = ServiceProcess(
-                daemon_config(tmp_path, zport, mav_port, signing_key_file="mav.key")
-            )
-            try:
-                peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{mav_port}"))
-                stream(peer, packets, status, between=(forged[0], unsigned[0]))
-                peer.close()
-                wait_until(
-                    lambda: len(got) >= 2,
-                    timeout_s=60,
-                    what=lambda: f"F0 and F6 of mav1, got {got}",
-                )
-                wait_until(
-                    lambda: status.counter("mav1", "service.mavlink.samples.SCALED_IMU") == len(packets)
-                    and status.counter("mav1", "service.mavlink.rejected.unsigned") == n_hostile,
-                    timeout_s=30, what=lambda: f"every packet counted: {status.get('mav1').counters}",
-                )  # fmt: skip
-                counters = status.get("mav1").counters
-            finally:
-                assert daemon.terminate() == 0
+    got, counters, _, _ = run_daemon(
+        tmp_path, packets, (forged[0], unsigned[0]), "service.mavlink.rejected.unsigned",
+        n_hostile, signing_key_file="mav.key",
+    )  # fmt: skip
     assert got == [Predicate.F0, Predicate.F6]
     rejected = {k: n for k, n in counters.items() if k.startswith("service.mavlink.rejected.")}
     assert rejected == {
