@@ -39,7 +39,9 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 import zenoh
@@ -50,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 from estimators.conventions import Triad  # noqa: E402
 from estimators.session import ImuSession  # noqa: E402
 from estimators.sim import Fault, FaultKind, simulate, static_spec  # noqa: E402
+from protocols.events import Event, Status  # noqa: E402
 from protocols.frames import SampleBatch  # noqa: E402
 from protocols.zenoh_adapter import (  # noqa: E402
     EventReceiver,
@@ -91,6 +94,7 @@ def client(port: int) -> zenoh.Config:
 
 
 def frames_of(session: ImuSession, vehicle: str, size: int) -> list[SampleBatch]:
+    assert session.accel_mps2 is not None and session.gyro_rps is not None
     return [
         SampleBatch(
             vehicle,
@@ -104,7 +108,7 @@ def frames_of(session: ImuSession, vehicle: str, size: int) -> list[SampleBatch]
     ]
 
 
-def wait(cond, timeout_s: float, what: str) -> None:
+def wait(cond: Callable[[], bool], timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     tick = threading.Event()
     while not cond():
@@ -113,10 +117,28 @@ def wait(cond, timeout_s: float, what: str) -> None:
         tick.wait(0.001)
 
 
+def matching(pub: zenoh.Publisher) -> bool:
+    """Whether the publisher has a subscriber (zenoh's stub says bool, 1.x returns a MatchingStatus)."""
+    status: object = pub.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+def wait_running(stderr: IO[str]) -> list[str]:
+    """Read the service's log until its ``running`` line; the lines after it are collected by a thread
+    into the list returned (a pipe nobody reads would block the service's logging)."""
+    lines: list[str] = []
+    for line in stderr:
+        lines.append(line)
+        if "running" in line:
+            threading.Thread(target=lambda: lines.extend(stderr), daemon=True).start()
+            return lines
+    raise RuntimeError(f"the service did not start: {lines}")
+
+
 def wait_route(session: zenoh.Session, key: str) -> None:
     pub = session.declare_publisher(key)
     try:
-        wait(lambda: pub.matching_status.matching, 20.0, f"a subscriber on {key}")
+        wait(lambda: matching(pub), 20.0, f"a subscriber on {key}")
     finally:
         pub.undeclare()
 
@@ -157,8 +179,8 @@ def main() -> None:
             fleet.process_queued(frames[k : k + per_group], arrival_s=0.0)
         queued[size] = rest.n_samples / (time.perf_counter() - t0)
 
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
         store = PassportStore(tmp / "passports")
         vehicles = [f"rate-{n}" for n in THROUGHPUT_FRAMES] + [f"lat-{k}" for k in range(TRIALS)]
         for v in vehicles:
@@ -174,24 +196,22 @@ def main() -> None:
             service = subprocess.Popen([sys.executable, "-m", "service.cli", "run", "--config", str(config)], cwd=ROOT,
                                        stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
             try:
-                # The log's summary lines come first; the last line of the start says it runs.
-                for line in service.stderr:
-                    if line.rstrip().endswith(" running"):
-                        break
-                else:
-                    raise RuntimeError("the service did not start")
+                assert service.stderr is not None
+                wait_running(service.stderr)
                 with zenoh.open(client(port)) as vehicle, zenoh.open(client(port)) as ground:
                     accepted, dropped = {}, {}
 
-                    def on_status(st):
+                    def on_status(st: Status) -> None:
                         accepted[st.vehicle] = st.counters.get("imu0.samples.accepted", 0)
                         dropped[st.vehicle] = st.counters.get("service.frames.dropped_overload", 0)
 
                     subscribe_status(ground, on_status)
-                    received = {}
-                    EventReceiver(
-                        ground, lambda e: received.setdefault(e.vehicle, time.perf_counter())
-                    )
+                    received: dict[str, float] = {}
+
+                    def on_event(e: Event) -> None:
+                        received.setdefault(e.vehicle, time.perf_counter())
+
+                    EventReceiver(ground, on_event)
 
                     # Throughput.
                     rates = {}
@@ -238,14 +258,17 @@ def main() -> None:
                         text=True,
                     )
                     try:
+                        assert echo.stdout is not None
                         echo.stdout.readline()
                         pong, stamp = threading.Event(), [0.0]
-                        ground.declare_subscriber(
-                            "bench/pong",
-                            lambda smp: (stamp.__setitem__(0, time.perf_counter()), pong.set()),
-                        )
+
+                        def on_pong(_: zenoh.Sample) -> None:
+                            stamp[0] = time.perf_counter()
+                            pong.set()
+
+                        ground.declare_subscriber("bench/pong", on_pong)
                         ping = vehicle.declare_publisher("bench/ping")
-                        wait(lambda: ping.matching_status.matching, 20.0, "the echo process")
+                        wait(lambda: matching(ping), 20.0, "the echo process")
                         floor_ms = []
                         for _ in range(ECHO_ROUNDS):
                             pong.clear()
