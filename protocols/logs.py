@@ -48,7 +48,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from pymavlink import DFReader, mavutil
@@ -79,6 +79,8 @@ _FLUSH_MESSAGES = 256
 """DataFlash or MAVLink messages of one IMU gathered before they are handed on as one block of rows."""
 _READ_BYTES = 1 << 16
 """Bytes of a binary DataFlash log read at a time (:class:`DataFlashStream`): its memory, whatever the log's length."""
+_MAX_TEXT_LINE = 1 << 16
+"""Longest text DataFlash line read whole (a real one is under 1 kB); a longer one is counted corrupt."""
 _DF_MAX_MESSAGE = 255
 """The longest DataFlash message: ``FMT`` gives a message's length, header included, in one byte."""
 
@@ -455,7 +457,8 @@ class DataFlashStream:
       cut by the end of the file ends the log.
     * Text: the lines before the first ``FMT`` line (the firmware's name, free RAM, board) are
       skipped; fields are split at ``", "``, or at ``","`` where the ``FMT`` lines use that; CRLF
-      or LF. A line of an undefined type, or with fewer fields than its format, is skipped.
+      or LF. A line of an undefined type, or with fewer fields than its format, is skipped; one
+      longer than :data:`_MAX_TEXT_LINE` is read past in pieces and counted in :attr:`corrupt`.
 
     Only the messages named in ``wanted`` are decoded and yielded; every message is counted by name
     in ``held`` as the stream goes. :attr:`offset` is the number of bytes read so far.
@@ -528,8 +531,11 @@ class DataFlashStream:
         held, wanted = self.held, self.wanted
         delimiter = ""
         with open(self.path, "rb") as fh:
-            for line in fh:
-                self.offset += len(line)
+            for line in _bounded_lines(fh, _MAX_TEXT_LINE):
+                self.offset = fh.tell()
+                if line is None:
+                    self.corrupt += 1
+                    continue
                 if not delimiter:
                     if not line.startswith(b"FMT,"):
                         continue  # the firmware's header lines
@@ -558,6 +564,21 @@ class DataFlashStream:
                     formats[defined.name] = defined
                 elif name in wanted:
                     yield DFReader.DFMessage(fmt, values, False, None)
+
+
+def _bounded_lines(fh: BinaryIO, limit: int) -> Iterator[bytes | None]:
+    """The lines of ``fh``; ``None`` for a line longer than ``limit`` bytes, read past in pieces.
+
+    A file without line breaks (not a text log, or a damaged one) then costs ``limit``
+    bytes of memory, not its size.
+    """
+    while line := fh.readline(limit):
+        if len(line) < limit or line.endswith(b"\n"):
+            yield line
+            continue
+        while (rest := fh.readline(limit)) and not rest.endswith(b"\n"):
+            pass
+        yield None
 
 
 def _pair_raw(

@@ -447,3 +447,23 @@ def test_corrupt_dataflash_messages_are_skipped_and_counted(tmp_path):
     back, stats = read_log_sessions(binary)
     assert back[0].n_samples == 20 and stats.dropped == {}
     np.testing.assert_allclose(back[0].accel_mps2, session[0].accel_mps2, rtol=2.0**-23)
+
+
+def test_an_endless_text_line_costs_a_bounded_read_and_is_counted(tmp_path):
+    """8 MB without a line break between two IMU rows: counted as one corrupt message, read in
+    pieces (the peak stays far below the line's size), and every IMU row around it is kept."""
+    session = _sessions(n=20, imus=(0,))
+    text = tmp_path / "long-line.log"
+    write_dataflash_text(text, session)
+    lines = text.read_text().splitlines()
+    first_imu = next(k for k, line in enumerate(lines) if line.startswith("IMU,"))
+    lines.insert(first_imu + 10, "x" * (8 << 20))
+    text.write_text("\n".join(lines) + "\n")
+    tracemalloc.start()
+    try:
+        back, stats = read_log_sessions(text)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert back[0].n_samples == 20 and stats.dropped == {"corrupt_messages": 1}
+    assert peak < 2 << 20, peak
