@@ -122,7 +122,7 @@ ALL_FRAMES = f"{ROOT}/*/imu/*"
 ALL_EVENTS = f"{ROOT}/*/health/events"
 ALL_STATUS = f"{ROOT}/*/health/status"
 DRAIN_TIMEOUT_S = 5.0
-"""How long :meth:`FramePublisher.drain` waits for the router's answer (a dead link answers at once)."""
+"""How long :meth:`FramePublisher.drain` waits for the router's answer (it comes in milliseconds)."""
 _IMU_INDEX = re.compile(r"0|[1-9][0-9]{0,3}", re.ASCII)
 
 Session: TypeAlias = zenoh.Session
@@ -537,6 +537,7 @@ class FramePublisher:
         self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = []
         self._buffered = 0
         self.frames_published = 0
+        self.confirmed: bool | None = None
 
     def add(
         self,
@@ -616,8 +617,10 @@ class FramePublisher:
         self.seq = batch.seq + 1
         self.frames_published += 1
 
-    def drain(self, timeout_s: float = DRAIN_TIMEOUT_S) -> None:
-        """Return once the router holds every frame published so far (or after ``timeout_s``).
+    def drain(self, timeout_s: float = DRAIN_TIMEOUT_S) -> bool:
+        """Wait until the router holds every frame published so far: True, or False after ``timeout_s``.
+
+        False means no router or peer is connected, or none answered in time.
 
         ``put`` returns once a frame is in the session's transmission queue, and
         closing a session drops what that queue still holds: measured on
@@ -628,12 +631,17 @@ class FramePublisher:
         frames, and the router answers it (a final reply, no queryable needed)
         only after it has taken them.
         """
-        for _reply in self._session.get(self._key, timeout=timeout_s):
-            pass
+        info = self._session.info
+        if not (info.routers_zid() or info.peers_zid()):
+            return False  # with no link, the query is answered at once, by this session
+        return all(
+            reply.ok is not None for reply in self._session.get(self._key, timeout=timeout_s)
+        )
 
     def close(self) -> None:
+        """Publish the rest, :meth:`drain` (its answer in :attr:`confirmed`), undeclare."""
         self.flush()
-        self.drain()
+        self.confirmed = self.drain()
         self._publisher.undeclare()
 
     def __enter__(self) -> FramePublisher:

@@ -25,6 +25,7 @@ from protocols.zenoh_adapter import (
     AckMode,
     EventPublisher,
     EventReceiver,
+    FramePublisher,
     open_session,
 )
 from service.cli import build_parser
@@ -226,6 +227,9 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
         fake.put(encode_event(forged))
         own.put(b"frame of uav-1")
         assert frames.get(timeout=5.0) == b"frame of uav-1"
+        # The router answers the vehicle's question whether it holds its frames (the query
+        # FramePublisher.close drains with), or every publish would wait out the timeout.
+        assert FramePublisher(vehicle, "uav-1", 0).drain(timeout_s=5.0)
         assert publisher.publish(real), "the ground station did not acknowledge the event"
         assert events.get(timeout=5.0) == "real"
         assert frames.empty() and events.empty() and receiver.rejected == {}

@@ -212,7 +212,18 @@ def test_closing_a_frame_publisher_leaves_every_frame_with_the_router():
         finally:
             sub.undeclare()
     assert pub.frames_published == 500
-    assert held == 500
+    assert held == 500 and pub.confirmed
+
+
+def test_drain_says_when_no_router_holds_the_frames():
+    endpoint = f"tcp/127.0.0.1:{free_local_port()}"
+    with open_router(endpoint) as router_session, client(endpoint) as a:
+        pub = FramePublisher(a, "v1", 0)
+        assert pub.drain()
+        router_session.close()
+        # The router is gone: a query would be answered at once by the session alone.
+        wait_until(lambda: not a.info.routers_zid())
+        assert not pub.drain(timeout_s=1.0)
 
 
 def test_bad_frames_are_counted_by_reason_and_the_source_keeps_going(pair):

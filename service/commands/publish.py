@@ -15,8 +15,10 @@ Unlike a vehicle's frames, which a congested link may shed, these are sent
 reliably (Zenoh ``CongestionControl.BLOCK``): a bench test must know that the
 daemon was offered every sample. Progress goes to stderr every few seconds; a
 summary line (frames, samples, seconds of data, seconds taken) ends the
-output. Exit status 0; 2 for an unusable file or option, an unreachable router
-or no subscriber; 130 when interrupted (Ctrl-C, SIGTERM).
+output. Before it ends, publish waits for the router to confirm that it holds the
+last frames (:meth:`protocols.zenoh_adapter.FramePublisher.drain`). Exit status 0;
+1 when the router did not confirm them; 2 for an unusable file or option, an
+unreachable router or no subscriber; 130 when interrupted (Ctrl-C, SIGTERM).
 """
 
 from __future__ import annotations
@@ -210,4 +212,12 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     print(progress.summary())
+    unconfirmed = sorted(imu for imu, pub in publishers.items() if not pub.confirmed)
+    if unconfirmed:
+        print(
+            f"ins-health publish: the router did not confirm the last frames of IMU "
+            f"{', '.join(map(str, unconfirmed))} (the link to it is lost): some may not have reached it",
+            file=sys.stderr,
+        )
+        return 1
     return 0
