@@ -391,6 +391,10 @@ class CrossImuReport:
     consistent: bool
 
 
+CROSS_IMU_STATE_VERSION = 1
+"""Version of :meth:`CrossImuMonitor.state_dict` (a checkpointed state of another version is not resumed)."""
+
+
 @dataclass
 class _OpenBin:
     """The bin an IMU is still filling: its index, samples so far and their sums (SI)."""
@@ -533,3 +537,63 @@ class CrossImuMonitor:
     def flagged(self) -> frozenset[int]:
         """IMUs currently reported as disagreeing."""
         return frozenset(self._flagged)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything :meth:`from_state` needs to go on exactly where this monitor is (for checkpoints).
+
+        The reported disagreements (``flagged``) and the streaks are in it, so a restarted
+        monitor does not report again what it already did; the open and pending bins, so
+        it compares the same bins with the same means.
+        """
+        return {
+            "version": CROSS_IMU_STATE_VERSION,
+            "open": [
+                [imu, o.index, o.n, o.accel_sum.copy(), o.gyro_sum.copy()]
+                for imu, o in sorted(self._open.items())
+            ],
+            "span": sorted([imu, n] for imu, n in self._span.items()),
+            "closed": [
+                [imu, b, means[0].copy(), means[1].copy()]
+                for imu, bins in sorted(self._closed.items())
+                for b, means in sorted(bins.items())
+            ],
+            "streak": sorted([imu, n] for imu, n in self._streak.items()),
+            "flagged": sorted(self._flagged),
+            "last_compared": self._last_compared,
+        }
+
+    @classmethod
+    def from_state(
+        cls, state: dict[str, Any], *, limits: ValidityLimits = ValidityLimits()
+    ) -> CrossImuMonitor:
+        """Restore from :meth:`state_dict`; ``ValueError`` for another version or a malformed state."""
+        if not isinstance(state, dict) or state.get("version") != CROSS_IMU_STATE_VERSION:
+            version = state.get("version") if isinstance(state, dict) else None
+            raise ValueError(
+                f"cross-IMU state version {version!r} is not {CROSS_IMU_STATE_VERSION}"
+            )
+        out = cls(limits=limits)
+        try:
+            for imu, index, n, accel_sum, gyro_sum in state["open"]:
+                out._open[int(imu)] = _OpenBin(
+                    int(index), int(n), _vec3(accel_sum), _vec3(gyro_sum)
+                )
+                out._closed.setdefault(int(imu), {})
+            out._span = {int(imu): int(n) for imu, n in state["span"]}
+            for imu, b, accel_mean, gyro_mean in state["closed"]:
+                out._closed.setdefault(int(imu), {})[int(b)] = (
+                    _vec3(accel_mean),
+                    _vec3(gyro_mean),
+                )
+            out._streak = {int(imu): int(n) for imu, n in state["streak"]}
+            out._flagged = {int(imu) for imu in state["flagged"]}
+            out._last_compared = int(state["last_compared"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"cross-IMU state is malformed: {type(exc).__name__}: {exc}") from None
+        return out
+
+
+def _vec3(values: Any) -> FloatArray:
+    """A (3,) float array of a checkpointed vector; ``ValueError`` if it is not three numbers."""
+    out: FloatArray = np.array(values, dtype=float).reshape(3)
+    return out

@@ -7,6 +7,13 @@ one atomically, so a crash leaves either the old or the new state, never a mix.
 Each row carries a schema version; a row of another version is reported and
 ignored (the unit starts fresh) rather than fed to an estimator that would
 misread it.
+
+A vehicle with two or more units also has one row of its cross-IMU state
+(table ``cross_imu``, :meth:`~service.pipeline.FleetProcessor.checkpoint_states`),
+written in the same transaction as its units' rows, so that a restart neither
+forgets nor re-raises a disagreement. A file written before that table existed
+has no such rows: its vehicles resume their units and start the cross-IMU
+comparison afresh.
 """
 
 from __future__ import annotations
@@ -26,6 +33,12 @@ CHECKPOINT_SCHEMA_VERSION = 1
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS checkpoints (
     key TEXT PRIMARY KEY,
+    version INTEGER NOT NULL,
+    saved_unix_s REAL NOT NULL,
+    payload BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS cross_imu (
+    vehicle TEXT PRIMARY KEY,
     version INTEGER NOT NULL,
     saved_unix_s REAL NOT NULL,
     payload BLOB NOT NULL
@@ -72,17 +85,33 @@ class CheckpointStore:
         """Replace several checkpoints in one transaction (all or none)."""
         self.save_encoded({k: encode_state(s) for k, s in states.items()}, now_unix_s=now_unix_s)
 
-    def save_encoded(self, payloads: dict[str, bytes], *, now_unix_s: float | None = None) -> None:
-        """:meth:`save_many` for states already encoded with :func:`encode_state`."""
+    def save_encoded(
+        self,
+        payloads: dict[str, bytes],
+        *,
+        cross: dict[str, bytes] | None = None,
+        now_unix_s: float | None = None,
+    ) -> None:
+        """:meth:`save_many` for states already encoded with :func:`encode_state`.
+
+        ``cross``: encoded cross-IMU states by vehicle, written in the same transaction.
+        """
         stamp = time.time() if now_unix_s is None else float(now_unix_s)
         rows = [(k, CHECKPOINT_SCHEMA_VERSION, stamp, bytes(p)) for k, p in payloads.items()]
+        vehicles = [
+            (v, CHECKPOINT_SCHEMA_VERSION, stamp, bytes(p)) for v, p in (cross or {}).items()
+        ]
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 self._db.executemany("INSERT OR REPLACE INTO checkpoints VALUES (?, ?, ?, ?)", rows)
+                self._db.executemany(
+                    "INSERT OR REPLACE INTO cross_imu VALUES (?, ?, ?, ?)", vehicles
+                )
                 self._db.execute("COMMIT")
             except BaseException:
-                self._db.execute("ROLLBACK")
+                if self._db.in_transaction:
+                    self._db.execute("ROLLBACK")
                 raise
 
     def load(self, key: str) -> Checkpoint | None:
@@ -91,9 +120,16 @@ class CheckpointStore:
         Raises :class:`CheckpointError` for a row of another schema version or
         undecodable content.
         """
+        return self._load("checkpoints", "key", key)
+
+    def load_cross(self, vehicle: str) -> Checkpoint | None:
+        """The last cross-IMU state of ``vehicle`` (None if none); :class:`CheckpointError` as :meth:`load`."""
+        return self._load("cross_imu", "vehicle", vehicle)
+
+    def _load(self, table: str, column: str, key: str) -> Checkpoint | None:
         with self._lock:
             row = self._db.execute(
-                "SELECT version, saved_unix_s, payload FROM checkpoints WHERE key = ?", (key,)
+                f"SELECT version, saved_unix_s, payload FROM {table} WHERE {column} = ?", (key,)
             ).fetchone()
         if row is None:
             return None
@@ -114,19 +150,33 @@ class CheckpointStore:
         The row is kept for inspection but never loaded again: a state that failed once would fail
         on every later start.
         """
-        stamp = time.time() if now_unix_s is None else float(now_unix_s)
+        self._move_aside("checkpoints", "key", key, key, reason, now_unix_s)
+
+    def quarantine_cross(
+        self, vehicle: str, reason: str, *, now_unix_s: float | None = None
+    ) -> None:
+        """:meth:`quarantine` for a vehicle's cross-IMU state (kept as ``"<vehicle>/cross_imu"``)."""
+        self._move_aside(
+            "cross_imu", "vehicle", vehicle, f"{vehicle}/cross_imu", reason, now_unix_s
+        )
+
+    def _move_aside(
+        self, table: str, column: str, key: str, kept_as: str, reason: str, now: float | None
+    ) -> None:
+        stamp = time.time() if now is None else float(now)
         with self._lock:
             self._db.execute("BEGIN IMMEDIATE")
             try:
                 self._db.execute(
-                    "INSERT INTO quarantined SELECT key, version, saved_unix_s, payload, ?, ? "
-                    "FROM checkpoints WHERE key = ?",
-                    (stamp, str(reason), key),
+                    f"INSERT INTO quarantined SELECT ?, version, saved_unix_s, payload, ?, ? "
+                    f"FROM {table} WHERE {column} = ?",
+                    (kept_as, stamp, str(reason), key),
                 )
-                self._db.execute("DELETE FROM checkpoints WHERE key = ?", (key,))
+                self._db.execute(f"DELETE FROM {table} WHERE {column} = ?", (key,))
                 self._db.execute("COMMIT")
             except BaseException:
-                self._db.execute("ROLLBACK")
+                if self._db.in_transaction:
+                    self._db.execute("ROLLBACK")
                 raise
 
     def quarantined(self) -> list[tuple[str, str]]:

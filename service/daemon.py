@@ -23,7 +23,8 @@ Tasks of :meth:`Service.run`
   :class:`~protocols.events.Status` per vehicle on ``ins/<vehicle>/health/status``
   with every counter (rejections by reason, drops, outbox backlog, …).
 * **checkpoints** — every ``checkpoint_period_s`` the state of every pipeline
-  (positions, recursive estimates) to SQLite.
+  (positions, recursive estimates) and of each vehicle's cross-IMU comparison
+  (the disagreements it raised) to SQLite, a vehicle's taken at one moment.
 * **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
 * **zenoh-connect** — only while the router is out of reach: the first attempt at opening the
   Zenoh session (at most :data:`CONNECT_ATTEMPT_S`) is made before the service says it runs; if
@@ -220,6 +221,22 @@ class Service:
             return None
         return None if cp is None else cp.state
 
+    def _restore_cross(self, vehicle: str) -> dict[str, Any] | None:
+        try:
+            cp = self._running().checkpoints.load_cross(vehicle)
+        except CheckpointError as exc:
+            self._discard_cross(vehicle, str(exc))
+            return None
+        return None if cp is None else cp.state
+
+    def _discard_cross(self, vehicle: str, why: str) -> None:
+        self._running().checkpoints.quarantine_cross(vehicle, why)
+        log.warning(
+            "cross-IMU checkpoint of %s unusable (%s); moved aside to the quarantined table, "
+            "the comparison starts fresh",
+            vehicle, why,
+        )  # fmt: skip
+
     def _discard_checkpoint(self, vehicle: str, imu: int, why: str) -> None:
         self._running().checkpoints.quarantine(f"{vehicle}/{imu}", why)
         log.warning(
@@ -383,16 +400,22 @@ class Service:
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
 
     async def checkpoint(self) -> None:
-        """Write the state of every pipeline that changed since the last checkpoint (one transaction)."""
-        payloads = {}
-        for vehicle, imu in self.fleet.changed_keys():
-            payloads[f"{vehicle}/{imu}"] = encode_state(
-                self.fleet.pipelines[(vehicle, imu)].state_dict()
-            )
-            # One pipeline at a time, so frames keep flowing while a large fleet is saved.
+        """Write the state of every vehicle that changed since the last checkpoint (one transaction).
+
+        A vehicle's units and its cross-IMU state are taken at one moment
+        (:meth:`FleetProcessor.checkpoint_states`); the loop yields between vehicles only.
+        """
+        payloads: dict[str, bytes] = {}
+        cross: dict[str, bytes] = {}
+        for vehicle in sorted({v for v, _ in self.fleet.changed_keys()}):
+            units, cross_state = self.fleet.checkpoint_states(vehicle)
+            payloads.update((k, encode_state(s)) for k, s in units.items())
+            if cross_state is not None:
+                cross[vehicle] = encode_state(cross_state)
+            # One vehicle at a time, so frames keep flowing while a large fleet is saved.
             await asyncio.sleep(0)
         if payloads:
-            self._running().checkpoints.save_encoded(payloads)
+            self._running().checkpoints.save_encoded(payloads, cross=cross)
 
     async def _checkpoints(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -422,7 +445,12 @@ class Service:
             resources.callback(self.notifier.close)
             # Before the outbox and the checkpoints close, whatever ended the run.
             resources.callback(self.supervisor.cancel_all)
-            self.fleet.set_restore(self._restore, self._discard_checkpoint)
+            self.fleet.set_restore(
+                self._restore,
+                self._discard_checkpoint,
+                load_cross=self._restore_cross,
+                on_cross_error=self._discard_cross,
+            )
             self._log_summary()
             self._startup_scan()
             for key in run.checkpoints.keys():

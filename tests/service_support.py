@@ -20,6 +20,7 @@ from protocols.frames import SampleBatch
 from protocols.mavlink_adapter import imu_message
 from service.config import config_from_dict
 from service.daemon import Service
+from service.demo import demo_scenario
 
 
 def free_tcp_port() -> int:
@@ -88,6 +89,20 @@ def batches_of(session, *, vehicle: str, imu: int, batch_samples: int, first_seq
             session.gyro_rps[sl],
             None if session.temp_c is None else session.temp_c[sl],
         )
+
+
+def disagreeing_pair(vehicle: str, *, batch_samples: int = 100) -> list[SampleBatch]:
+    """Two IMUs of ``vehicle`` as they arrive, frame by frame in turn: IMU0 the demo's session without
+    its fault, IMU1 with its z accelerometer off by 0.1 g from one second after landing (beyond the
+    cross-IMU limit of 0.75 m/s²)."""
+    clean = demo_scenario(fault_magnitude=0.0)
+    bad = demo_scenario(fault_index=2, fault_magnitude=0.1)
+    pairs = zip(
+        batches_of(clean.session, vehicle=vehicle, imu=0, batch_samples=batch_samples),
+        batches_of(bad.session, vehicle=vehicle, imu=1, batch_samples=batch_samples),
+        strict=True,
+    )
+    return [b for pair in pairs for b in pair]
 
 
 def run_fleet(fleet, batches, *, finish: bool = True) -> list:

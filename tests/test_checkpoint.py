@@ -70,3 +70,42 @@ def test_unknown_version_and_garbage_are_typed_errors(tmp_path):
 def test_object_arrays_are_refused():
     with pytest.raises(TypeError, match="object arrays"):
         encode_state({"x": np.array([object()])})
+
+
+def test_cross_imu_states_are_saved_with_the_units_and_moved_aside_when_unusable(tmp_path):
+    path = tmp_path / "c.sqlite"
+    with CheckpointStore(path) as store:
+        store.save_encoded(
+            {"v1/0": encode_state({"n": 1}), "v1/1": encode_state({"n": 2})},
+            cross={"v1": encode_state({"flagged": [1]})},
+            now_unix_s=5.0,
+        )
+        assert store.load_cross("v1").state == {"flagged": [1]} and store.load_cross("v2") is None
+        assert store.keys() == ["v1/0", "v1/1"]
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE cross_imu SET payload = x'c1' WHERE vehicle = 'v1'")
+    with CheckpointStore(path) as store:
+        with pytest.raises(CheckpointError, match="cannot be decoded"):
+            store.load_cross("v1")
+        store.quarantine_cross("v1", "undecodable")
+        assert store.load_cross("v1") is None
+        assert store.quarantined() == [("v1/cross_imu", "undecodable")]
+        assert store.load("v1/0").state == {"n": 1}
+
+
+def test_a_file_written_before_the_cross_imu_table_still_loads(tmp_path):
+    """The checkpoint file of an earlier version (no ``cross_imu`` table): its units load, its vehicles
+    have no cross-IMU state, and the next save adds it."""
+    path = tmp_path / "c.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(
+        "CREATE TABLE checkpoints (key TEXT PRIMARY KEY, version INTEGER NOT NULL, "
+        "saved_unix_s REAL NOT NULL, payload BLOB NOT NULL);"
+    )
+    db.execute("INSERT INTO checkpoints VALUES ('v1/0', 1, 3.0, ?)", (encode_state({"n": 4}),))
+    db.commit()
+    db.close()
+    with CheckpointStore(path) as store:
+        assert store.load("v1/0").state == {"n": 4} and store.load_cross("v1") is None
+        store.save_encoded({"v1/1": encode_state({"n": 1})}, cross={"v1": encode_state({"x": 1})})
+        assert store.load_cross("v1").state == {"x": 1}

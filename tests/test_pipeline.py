@@ -7,7 +7,7 @@ import functools
 
 import numpy as np
 import pytest
-from service_support import batches_of, run_fleet
+from service_support import batches_of, disagreeing_pair, run_fleet
 
 from estimators.conventions import Triad
 from estimators.passport import TemperatureModel
@@ -462,3 +462,34 @@ def test_a_persistent_failure_is_dated_at_its_first_failing_sample_across_frames
         first.append(next(e for e in events if e.predicate is Predicate.F0))
     assert len({(e.t_s, e.estimate, e.event_id) for e in first}) == 1
     assert sc.fault_s <= first[0].t_s < sc.fault_s + 0.05 and first[0].estimate > first[0].tolerance
+
+
+def test_a_checkpoint_during_a_cross_imu_disagreement_resumes_without_raising_it_again():
+    """Two IMUs, IMU1's z accelerometer off by 0.1 g after landing: both are flagged (a pair). The fleet
+    is checkpointed while they disagree and resumed in a new fleet: the same events as one fleet over
+    the whole stream (the disagreement once, same ids); without its cross-IMU state the new fleet
+    raises it again under new ids."""
+    passport, g = calibrated()
+    frames = disagreeing_pair(V)
+    whole = run_fleet(fleet_for(passport, g), frames, finish=False)
+    disagree = [e for e in whole if e.cause is StreamCause.DISAGREEMENT]
+    assert sorted(e.imu for e in disagree) == [0, 1]
+    cut = next(k for k, b in enumerate(frames) if b.t_s[0] > disagree[0].t_s + 5.0)
+    first = fleet_for(passport, g)
+    before = run_fleet(first, frames[:cut], finish=False)
+    units, cross = first.checkpoint_states(V)
+    saved = {k: encode_state(s) for k, s in units.items()}
+    saved_cross = encode_state(cross)
+
+    def resumed(with_cross: bool):
+        fleet = fleet_for(passport, g)
+        fleet.set_restore(
+            lambda v, i: decode_state(saved[f"{v}/{i}"]),
+            load_cross=lambda v: decode_state(saved_cross) if with_cross else None,
+        )
+        return fleet
+
+    after = run_fleet(resumed(True), frames[cut:], finish=False)
+    assert [e.event_id for e in before + after] == [e.event_id for e in whole]
+    again = run_fleet(resumed(False), frames[cut:], finish=False)
+    assert [e.imu for e in again if e.cause is StreamCause.DISAGREEMENT] != []

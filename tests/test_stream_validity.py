@@ -13,6 +13,7 @@ from estimators.stream_validity import (
     compare_imus,
     run_lengths,
 )
+from protocols.checkpoint_codec import decode_state, encode_state
 
 RATE_HZ = 1000.0
 ACCEL_NOISE_MPS2 = 0.02
@@ -208,6 +209,45 @@ def test_cross_imu_monitor_persistence_and_recovery():
     assert bad[0].bin_start_s == pytest.approx(2.5)
     assert [r.imu for r in good] == [1] and good[0].bin_start_s == pytest.approx(4.0)
     assert mon.flagged == frozenset()
+
+
+def _offset_stream(seed: int):
+    """Three IMUs in 0.25 s batches at 1 kHz; IMU 1 off by 1 m/s² from 1 to 4 s (flagged at 2.5 s, recovers at 4 s)."""
+    rng = np.random.default_rng(seed)
+    for step in range(20):
+        for imu in (0, 1, 2):
+            t, a, g = static_samples(rng, 250, t0_s=step * 0.25)
+            if imu == 1 and 1.0 <= step * 0.25 < 4.0:
+                a[:, 0] += 1.0
+            yield imu, t, a, g
+
+
+@pytest.mark.parametrize("cut", [5, 16, 31, 37, 44])
+def test_cross_imu_monitor_resumes_from_its_checkpoint_exactly(cut):
+    """Cut anywhere (mid-bin, mid-streak, while flagged), the state through checkpoint bytes and a new
+    monitor: the same reports as one monitor over the whole stream, none raised again."""
+    limits = ValidityLimits(cross_imu_persist_windows=4)
+    items = list(_offset_stream(9))
+    whole = CrossImuMonitor(limits=limits)
+    want = [r for item in items for r in whole.add(*item)]
+    assert [(r.imu, r.consistent) for r in want] == [(1, False), (1, True)]
+    first = CrossImuMonitor(limits=limits)
+    got = [r for item in items[:cut] for r in first.add(*item)]
+    saved = encode_state(first.state_dict())
+    second = CrossImuMonitor.from_state(decode_state(saved), limits=limits)
+    assert second.flagged == first.flagged
+    got += [r for item in items[cut:] for r in second.add(*item)]
+    assert got == want
+
+
+def test_cross_imu_state_of_another_version_or_malformed_is_a_value_error():
+    state = CrossImuMonitor().state_dict()
+    with pytest.raises(ValueError, match="version 99"):
+        CrossImuMonitor.from_state({**state, "version": 99})
+    with pytest.raises(ValueError, match="malformed"):
+        CrossImuMonitor.from_state({**state, "open": [[0, 1, 2, [1.0, 2.0], [0.0] * 3]]})
+    with pytest.raises(ValueError, match="malformed"):
+        CrossImuMonitor.from_state({k: v for k, v in state.items() if k != "flagged"})
 
 
 def test_cross_imu_monitor_does_not_wait_for_a_dead_imu():

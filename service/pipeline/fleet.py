@@ -103,6 +103,8 @@ class FleetProcessor:
         self.service_counters: dict[str, int] = {}
         self._restore: Callable[[str, int], dict[str, Any] | None] | None = None
         self._on_restore_error: Callable[[str, int, str], None] | None = None
+        self._restore_cross: Callable[[str], dict[str, Any] | None] | None = None
+        self._on_cross_error: Callable[[str, str], None] | None = None
         # (samples, counts, timed out) of each pipeline at the last checkpoint (changed_keys).
         self._saved: dict[tuple[str, int], tuple[int, int, bool]] = {}
         self._by_vehicle: dict[str, dict[int, ImuPipeline]] = {}
@@ -111,14 +113,22 @@ class FleetProcessor:
         self,
         load: Callable[[str, int], dict[str, Any] | None],
         on_error: Callable[[str, int, str], None] | None = None,
+        *,
+        load_cross: Callable[[str], dict[str, Any] | None] | None = None,
+        on_cross_error: Callable[[str, str], None] | None = None,
     ) -> None:
         """Where new pipelines take their checkpointed state from (``None``: start fresh).
 
         A state the pipeline cannot resume from is discarded (the unit starts fresh) and
         ``on_error(vehicle, imu, why)`` is told, so the caller can move it aside.
+        ``load_cross(vehicle)`` gives a vehicle's cross-IMU state (:meth:`checkpoint_states`)
+        when its first unit is admitted; one that cannot be resumed is discarded the same
+        way (``on_cross_error(vehicle, why)``).
         """
         self._restore = load
         self._on_restore_error = on_error
+        self._restore_cross = load_cross
+        self._on_cross_error = on_cross_error
 
     def count_service(self, name: str, n: int = 1) -> None:
         if n:
@@ -169,47 +179,79 @@ class FleetProcessor:
                         self._on_restore_error(vehicle, imu, f"{type(exc).__name__}: {exc}")
         self.pipelines[(vehicle, imu)] = pipe
         self._by_vehicle.setdefault(vehicle, {})[imu] = pipe
-        self.cross.setdefault(vehicle, CrossImuMonitor(limits=self.options.validity))
+        if vehicle not in self.cross:
+            self.cross[vehicle] = self._cross_monitor(vehicle)
         return pipe
+
+    def _cross_monitor(self, vehicle: str) -> CrossImuMonitor:
+        """The cross-IMU monitor of a vehicle's first admitted unit, resumed from its checkpoint if any."""
+        limits = self.options.validity
+        state = None if self._restore_cross is None else self._restore_cross(vehicle)
+        if state is None:
+            return CrossImuMonitor(limits=limits)
+        try:
+            monitor = CrossImuMonitor.from_state(state, limits=limits)
+        except ValueError as exc:
+            self.count_vehicle(vehicle, "checkpoints.discarded")
+            if self._on_cross_error is not None:
+                self._on_cross_error(vehicle, str(exc))
+            return CrossImuMonitor(limits=limits)
+        self.count_vehicle(vehicle, "checkpoints.restored")
+        return monitor
 
     def process(self, batch: SampleBatch, *, arrival_s: float) -> list[Event]:
         """Route one decoded frame to its pipeline; returns the events raised."""
+        events, good = self._through_pipeline(batch, arrival_s)
+        return events if good is None else events + self._cross(good)
+
+    def _through_pipeline(
+        self, batch: SampleBatch, arrival_s: float
+    ) -> tuple[list[Event], SampleBatch | None]:
+        """The events of one frame in its pipeline and the samples it accepted (for the cross-IMU check)."""
         pipe = self.admit(batch.vehicle, batch.imu)
         if pipe is None:
-            return []
-        events = pipe.process(batch, arrival_s=arrival_s)
-        if pipe.accepted is not None:
-            events += self._cross(pipe.accepted)
-        return events
+            return [], None
+        return pipe.process(batch, arrival_s=arrival_s), pipe.accepted
 
     def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
         """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
 
         The chain's cost is mostly per batch, so a run of consecutive frames of
         one IMU that :meth:`ImuPipeline.joins` goes through it as one batch
-        (the per-frame counters still count frames; the cross-IMU check still
-        takes them frame by frame; the scalar state an event of it describes
-        is the one at the end of the run). Every other frame is processed
-        alone. The frames of each IMU keep their order; IMUs are taken in order
-        of their first frame.
+        (the per-frame counters still count frames; the scalar state an event
+        of it describes is the one at the end of the run). Every other frame is
+        processed alone. The frames of each IMU keep their order; IMUs are
+        taken in order of their first frame. The cross-IMU check then takes the
+        accepted frames one by one in the order they came, as frame-by-frame
+        processing does: the IMUs it compares are the same however the frames
+        were queued (an IMU whose frames were all taken first would otherwise
+        run ahead of the others by the whole group).
         """
-        groups: dict[tuple[str, int], list[SampleBatch]] = {}
-        for b in batches:
-            groups.setdefault((b.vehicle, b.imu), []).append(b)
+        groups: dict[tuple[str, int], list[tuple[int, SampleBatch]]] = {}
+        for n, b in enumerate(batches):
+            groups.setdefault((b.vehicle, b.imu), []).append((n, b))
         events: list[Event] = []
+        accepted: list[tuple[int, SampleBatch]] = []
         for key, group in groups.items():
             i = 0
             while i < len(group):
                 pipe = self.pipelines.get(key)
                 j = i + 1
-                if pipe is not None and pipe.joins(None, group[i]):
-                    while j < len(group) and pipe.joins(group[j - 1], group[j]):
+                if pipe is not None and pipe.joins(None, group[i][1]):
+                    while j < len(group) and pipe.joins(group[j - 1][1], group[j][1]):
                         j += 1
                 if pipe is None or j == i + 1:
-                    events += self.process(group[i], arrival_s=arrival_s)
+                    raised, good = self._through_pipeline(group[i][1], arrival_s)
+                    events += raised
+                    if good is not None:
+                        accepted.append((group[i][0], good))
                 else:
-                    events += self._process_joined(pipe, group[i:j], arrival_s)
+                    events += self._process_joined(pipe, [b for _, b in group[i:j]], arrival_s)
+                    # Joined frames are clean: every sample of each was accepted.
+                    accepted += group[i:j]
                 i = j
+        for _, good in sorted(accepted, key=lambda item: item[0]):
+            events += self._cross(good)
         return events
 
     def _process_joined(
@@ -227,8 +269,6 @@ class FleetProcessor:
         )
         events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
         pipe.last_batch_n = last.n_samples
-        for b in run:
-            events += self._cross(b)
         return events
 
     def _cross(self, good: SampleBatch) -> list[Event]:
@@ -306,6 +346,20 @@ class FleetProcessor:
         """Checkpoint states keyed ``"<vehicle>/<imu>"`` (see :meth:`changed_keys` for ``changed_only``)."""
         keys = self.changed_keys() if changed_only else sorted(self.pipelines)
         return {f"{v}/{i}": self.pipelines[(v, i)].state_dict() for v, i in keys}
+
+    def checkpoint_states(
+        self, vehicle: str
+    ) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None]:
+        """The checkpoint of one vehicle: its units' states keyed ``"<vehicle>/<imu>"`` and its cross-IMU state.
+
+        Taken together (no frame can come between them), so a restart resumes the units
+        and the comparison between them from the same moment; the cross-IMU state is
+        None for a vehicle with fewer than two units (there is nothing to compare).
+        """
+        pipes = self._by_vehicle.get(vehicle, {})
+        units = {f"{vehicle}/{imu}": pipe.state_dict() for imu, pipe in sorted(pipes.items())}
+        cross = self.cross.get(vehicle)
+        return units, (cross.state_dict() if cross is not None and len(pipes) >= 2 else None)
 
     def changed_keys(self) -> list[tuple[str, int]]:
         """Pipelines that took or refused a frame since the last call (an idle unit's checkpoint is still current)."""
