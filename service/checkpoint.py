@@ -63,6 +63,10 @@ class Checkpoint:
     state: dict[str, Any]
 
 
+class CheckpointUnavailable(RuntimeError):
+    """A checkpoint that cannot be written now (disk full, file locked, I/O error); nothing changed."""
+
+
 class CheckpointStore:
     """Per-unit estimator state in one SQLite file. A context manager; thread-safe."""
 
@@ -102,17 +106,23 @@ class CheckpointStore:
             (v, CHECKPOINT_SCHEMA_VERSION, stamp, bytes(p)) for v, p in (cross or {}).items()
         ]
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
             try:
-                self._db.executemany("INSERT OR REPLACE INTO checkpoints VALUES (?, ?, ?, ?)", rows)
-                self._db.executemany(
-                    "INSERT OR REPLACE INTO cross_imu VALUES (?, ?, ?, ?)", vehicles
-                )
-                self._db.execute("COMMIT")
-            except BaseException:
-                if self._db.in_transaction:
-                    self._db.execute("ROLLBACK")
-                raise
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    self._db.executemany(
+                        "INSERT OR REPLACE INTO checkpoints VALUES (?, ?, ?, ?)", rows
+                    )
+                    self._db.executemany(
+                        "INSERT OR REPLACE INTO cross_imu VALUES (?, ?, ?, ?)", vehicles
+                    )
+                    self._db.execute("COMMIT")
+                except BaseException:
+                    # SQLite has already rolled back after some errors (a full disk).
+                    if self._db.in_transaction:
+                        self._db.execute("ROLLBACK")
+                    raise
+            except sqlite3.OperationalError as exc:
+                raise CheckpointUnavailable(str(exc)) from exc
 
     def load(self, key: str) -> Checkpoint | None:
         """The last checkpoint of ``key``, or None if there is none.

@@ -86,6 +86,8 @@ class ServiceSection:
     checkpoint_period_s : period of the estimator-state checkpoints, s (default 30.0);
         SIGTERM always writes a last one.
     delivery_retry_s : delay before a sink retries events its transport did not accept, s (default 0.5).
+    outbox_max_mb : the largest the outbox file may grow, MB (default 0: as large as the disk allows);
+        beyond it the outbox is full as on a full disk (:mod:`service.outbox_writer`).
     vehicles : vehicle ids served; empty (default) serves every vehicle the key expression delivers.
         A frame of a vehicle outside a non-empty list is counted as ``unknown_vehicle``; the
         passport of IMU 0 of each listed vehicle is checked at startup.
@@ -97,7 +99,13 @@ class ServiceSection:
     status_period_s: float = 1.0
     checkpoint_period_s: float = 30.0
     delivery_retry_s: float = 0.5
+    outbox_max_mb: float = 0.0
     vehicles: tuple[str, ...] = ()
+
+    @property
+    def outbox_max_bytes(self) -> int | None:
+        """``outbox_max_mb`` in bytes (None: unbounded)."""
+        return int(self.outbox_max_mb * 1e6) if self.outbox_max_mb > 0 else None
 
 
 @dataclass(frozen=True)
@@ -476,6 +484,10 @@ def _check(cfg: ServiceConfig) -> list[str]:
         errors.append("[service] name must not be empty")
     for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
         _positive(errors, f"[service] {name}", getattr(s, name))
+    if not (math.isfinite(s.outbox_max_mb) and s.outbox_max_mb >= 0):
+        errors.append(
+            f"[service] outbox_max_mb must be a finite number >= 0, got {s.outbox_max_mb!r}"
+        )
     for name in ("queue_capacity", "max_imus_per_vehicle", "max_vehicles"):
         _positive(errors, f"[pipeline] {name}", getattr(p, name))
     if not 0.0 < p.false_alarm_probability < 0.5:

@@ -8,7 +8,10 @@ Tasks of :meth:`Service.run`
   (:class:`protocols.mavlink_adapter.MavlinkSource`: the samples that arrive within
   :data:`service.intake.COALESCE_WINDOW_S` of the first, one batch per IMU). Each
   frame goes through its (vehicle, IMU) pipeline (:class:`service.intake.Intake`); the events it raises are written to the
-  outbox in one transaction *before* any sink sees them.
+  outbox in one transaction *before* any sink sees them. While the outbox cannot take them (disk
+  full, file locked by another process) they are held in memory and retried, and no frame is taken
+  (back-pressure), no checkpoint written and no timeout checked until it can
+  (:mod:`service.outbox_writer`); the status topic says ``outbox.unavailable``.
 * **delivery**, one per sink (:mod:`service.sinks`) — reads the sink's pending events from the outbox
   in order, hands each to its transport, acks what the transport accepted,
   and retries the rest every ``delivery_retry_s``. Zenoh: the event stream on
@@ -66,7 +69,6 @@ from protocols.events import (
     Event,
     EventError,
     decode_event,
-    encode_event,
 )
 from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
 from protocols.zenoh_adapter import (
@@ -78,12 +80,13 @@ from protocols.zenoh_adapter import (
     open_session_within,
 )
 from service.alert_policy import AlertPolicy
-from service.checkpoint import CheckpointError, CheckpointStore
+from service.checkpoint import CheckpointError, CheckpointStore, CheckpointUnavailable
 from service.config import ServiceConfig
 from service.intake import COALESCE_MAX, COALESCE_WINDOW_S, Intake
 from service.log_setup import logger
 from service.notify import FramePathWatch, Notifier
-from service.outbox import Outbox
+from service.outbox import Outbox, OutboxUnavailable
+from service.outbox_writer import OutboxWriter
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
 from service.sinks import TRANSPORT_ERRORS, EventSink, MavlinkAlertSink, ZenohEventSink
@@ -137,6 +140,7 @@ class _Run:
     outbox: Outbox
     checkpoints: CheckpointStore
     wake: _Wake
+    writer: OutboxWriter
 
 
 class Service:
@@ -177,7 +181,9 @@ class Service:
             max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
             on_passport_error=self._passport_error,
         )
-        self.intake = Intake(self.fleet, store=self._store, clock=clock, say=log.warning)
+        self.intake = Intake(
+            self.fleet, store=self._store, writable=self._writable, clock=clock, say=log.warning
+        )
         self._run: _Run | None = None
         self.source: FrameSource | None = None
         self.sinks: list[EventSink] = []
@@ -290,16 +296,21 @@ class Service:
 
     # ------------------------------------------------------------------ events
 
-    def _store(self, events: list[Event]) -> None:
+    def _store(self, events: list[Event]) -> bool:
+        """Events into the outbox; False if they are held (:mod:`service.outbox_writer`)."""
         # Every frame taken (processed or rejected) ends here: the progress of the frame path.
         self.supervisor.beat()
-        if not events:
-            return
-        run = self._running()
-        new = run.outbox.put_many((e.event_id, e.vehicle, encode_event(e)) for e in events)
+        return self._running().writer.write(events)
+
+    async def _writable(self) -> bool:
+        # Waiting for the outbox (said on the status topic and in the log) is not a hung frame
+        # path: each retry is its progress, so the watchdog does not restart a daemon that holds
+        # events in memory.
+        return await self._running().writer.until_written(on_retry=self.supervisor.beat)
+
+    def _stored(self, new: int) -> None:
         self.events_stored += new
-        if new:
-            run.wake.set()
+        self._running().wake.set()
 
     async def _heartbeat(self, sink: MavlinkAlertSink, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -322,7 +333,13 @@ class Service:
         retry_s = self.config.service.delivery_retry_s
         outbox = self._running().outbox
         while True:
-            pending = outbox.pending(sink.name, limit=64)
+            try:
+                pending = outbox.pending(sink.name, limit=64)
+            except OutboxUnavailable:
+                if stop.is_set():
+                    return
+                await _wait_any(stop, None, timeout_s=retry_s)
+                continue
             if not pending:
                 if stop.is_set():
                     return
@@ -344,14 +361,30 @@ class Service:
                     refused = p
                     break
                 acked.append(p.seq)
-            outbox.ack(sink.name, acked)
+            if not await self._ack(outbox, sink.name, acked, stop):
+                return
             self.supervisor.beat()
             if refused is not None:
-                outbox.record_attempt(sink.name, [refused.seq])
+                with contextlib.suppress(OutboxUnavailable):
+                    # Only a count for the status topic: nothing is lost when it cannot be written.
+                    outbox.record_attempt(sink.name, [refused.seq])
                 self.fleet.count_service(f"delivery.{sink.name}.retries")
                 if stop.is_set():
                     return
                 await _wait_any(stop, None, timeout_s=retry_s)
+
+    async def _ack(self, outbox: Outbox, sink: str, seqs: list[int], stop: asyncio.Event) -> bool:
+        """Ack delivered events; while the outbox cannot take the write it is retried, and nothing is sent
+        meanwhile (so nothing is sent twice). False if the service stops first: they are sent again at the
+        next start, and the receiver drops the repeat by id."""
+        while True:
+            try:
+                outbox.ack(sink, seqs)
+                return True
+            except OutboxUnavailable:
+                if stop.is_set():
+                    return False
+                await _wait_any(stop, None, timeout_s=self.config.service.delivery_retry_s)
 
     async def _publish_status(self, publisher: StatusPublisher) -> None:
         extra = (
@@ -376,10 +409,15 @@ class Service:
         extra.update(
             {f"service.passports.rejected.{k}": n for k, n in self.store.rejected_counts().items()}
         )
-        counts = self._running().outbox.counts()
+        run = self._running()
         extra.update(self.supervisor.counters())
-        extra["service.outbox.stored"] = counts.stored
-        extra.update({f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()})
+        extra.update({f"service.{k}": n for k, n in run.writer.counters().items()})
+        with contextlib.suppress(OutboxUnavailable):
+            counts = run.outbox.counts()
+            extra["service.outbox.stored"] = counts.stored
+            extra.update(
+                {f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()}
+            )
         now = time.time()
         for vehicle in self.fleet.vehicles():
             publisher.publish(
@@ -392,7 +430,9 @@ class Service:
 
     async def _status(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
-            self._store(self.fleet.tick(self._clock()))
+            # Not while frames wait for the outbox: their silence is the service's, not the IMUs'.
+            if not (self._running().writer.holding or self.intake.stalled):
+                self._store(self.fleet.tick(self._clock()))
             self._track_router()
             self._check_mavlink_reader()
             if self._status_pub is not None:
@@ -405,17 +445,29 @@ class Service:
         A vehicle's units and its cross-IMU state are taken at one moment
         (:meth:`FleetProcessor.checkpoint_states`); the loop yields between vehicles only.
         """
+        if self._running().writer.holding:
+            # State ahead of the events in the outbox would, after kill -9, resume past events never stored.
+            self.fleet.count_service("checkpoints.deferred")
+            return
         payloads: dict[str, bytes] = {}
         cross: dict[str, bytes] = {}
-        for vehicle in sorted({v for v, _ in self.fleet.changed_keys()}):
+        keys = self.fleet.changed_keys()
+        for vehicle in sorted({v for v, _ in keys}):
             units, cross_state = self.fleet.checkpoint_states(vehicle)
             payloads.update((k, encode_state(s)) for k, s in units.items())
             if cross_state is not None:
                 cross[vehicle] = encode_state(cross_state)
             # One vehicle at a time, so frames keep flowing while a large fleet is saved.
             await asyncio.sleep(0)
-        if payloads:
+        if not payloads:
+            return
+        try:
             self._running().checkpoints.save_encoded(payloads, cross=cross)
+        except CheckpointUnavailable:
+            # The task fails (logged, counted, restarted by the supervisor); these units are
+            # written again by the next checkpoint even if they do not change meanwhile.
+            self.fleet.mark_unsaved(keys)
+            raise
 
     async def _checkpoints(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -437,10 +489,14 @@ class Service:
         with contextlib.ExitStack() as resources:
             names = self.sink_names()
             # Closed in reverse order on the way out, whatever happened in between.
+            outbox = resources.enter_context(
+                Outbox(cfg.outbox_path, sinks=names, max_bytes=cfg.service.outbox_max_bytes)
+            )
             run = self._run = _Run(
-                resources.enter_context(Outbox(cfg.outbox_path, sinks=names)),
+                outbox,
                 resources.enter_context(CheckpointStore(cfg.checkpoint_path)),
                 _Wake({name: asyncio.Event() for name in names}),
+                OutboxWriter(outbox, on_stored=self._stored, clock=self._clock),
             )
             resources.callback(self.notifier.close)
             # Before the outbox and the checkpoints close, whatever ended the run.
@@ -629,10 +685,14 @@ class Service:
             self.source.close()
         if self.mavlink_source is not None:
             await asyncio.to_thread(self.mavlink_source.close)
-        # The sources are closed: the input tasks finish what is queued, then end.
-        await asyncio.gather(
-            *[t for n, t in tasks.items() if n in INPUT_TASKS], return_exceptions=True
-        )
+        # The sources are closed: the input tasks finish what is queued, then end. Should the
+        # outbox still be unavailable after DRAIN_TIMEOUT_S, they stop waiting for it.
+        inputs = [t for n, t in tasks.items() if n in INPUT_TASKS]
+        if inputs:
+            _done, waiting = await asyncio.wait(inputs, timeout=DRAIN_TIMEOUT_S)
+            if waiting:
+                self._running().writer.abandon()
+            await asyncio.gather(*inputs, return_exceptions=True)
         try:
             await self.checkpoint()
         except Exception:
@@ -649,7 +709,9 @@ class Service:
         for t in list(pending) + [t for t in tasks.values() if t not in deliveries]:
             t.cancel()
         await asyncio.gather(*tasks.values(), return_exceptions=True)
-        left = sum(run.outbox.counts().pending_by_sink.values())
+        left = 0
+        with contextlib.suppress(OutboxUnavailable):
+            left = sum(run.outbox.counts().pending_by_sink.values())
         if left:
             log.warning("%d event deliveries still pending; they are sent at the next start", left)
 

@@ -1,10 +1,11 @@
 """Sources to pipelines: Zenoh frames and MAVLink batches (the samples of :data:`COALESCE_WINDOW_S` per IMU)
-into the :class:`~service.pipeline.FleetProcessor`; decoder rejections counted for their IMU."""
+into the :class:`~service.pipeline.FleetProcessor`; decoder rejections counted for their IMU; back-pressure
+while the outbox cannot take events (:mod:`service.outbox_writer`)."""
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 from protocols._schema import SchemaError
 from protocols.events import Event
@@ -28,10 +29,18 @@ QUEUED_SAMPLES_MAX = 2000
 class Intake:
     """Frames from the sources into the fleet's pipelines; the events they raise go to ``store`` (the outbox).
 
+    No frame is taken while events wait for the outbox (back-pressure): before
+    each group of frames the intake awaits ``writable``, and it stops taking
+    frames into a group as soon as ``store`` held events. Frames then wait in
+    the sources' bounded queues; beyond them the oldest are dropped and counted.
+
     Parameters
     ----------
     fleet : the pipelines.
-    store : where the events of each frame go, in one call per frame.
+    store : where the events of each frame go, in one call per frame; False when they are
+        held because the outbox cannot take them now.
+    writable : waits until no event is held (True), or until the service gives up on the
+        outbox while stopping (False: the intake ends).
     clock : the monotonic clock that stamps arrivals (timeouts).
     say : where one-line notices go.
     """
@@ -40,16 +49,32 @@ class Intake:
         self,
         fleet: FleetProcessor,
         *,
-        store: Callable[[list[Event]], None],
+        store: Callable[[list[Event]], bool],
+        writable: Callable[[], Awaitable[bool]],
         clock: Callable[[], float],
         say: Callable[[str], None],
     ):
         self.fleet = fleet
         self._store = store
+        self._writable = writable
         self._clock = clock
         self._say = say
         self._reported: set[str] = set()
         self._taken: list[SampleBatch] = []
+        self._holding = False
+        self.stalled = False
+        """Set when events were held, until the frames queued meanwhile are taken (the silence was ours)."""
+
+    def _put(self, events: list[Event]) -> None:
+        if not self._store(events):
+            self._holding = self.stalled = True
+
+    async def _resume(self) -> bool:
+        """Wait until the outbox takes events (False: the service gave up on it while stopping)."""
+        if not await self._writable():
+            return False
+        self._holding = False
+        return True
 
     def reject(self, key: str, error: FrameError) -> None:
         """A frame the decoder rejected (``FrameSource``'s ``on_reject``): counted for its IMU when the key names one."""
@@ -59,7 +84,7 @@ class Intake:
             vehicle, imu = parse_frame_key(key)
         except SchemaError:
             vehicle, imu = None, None
-        self._store(self.fleet.reject(vehicle, imu, error.reason.value))
+        self._put(self.fleet.reject(vehicle, imu, error.reason.value))
 
     def process(self, batches: list[SampleBatch]) -> None:
         """Frames through their pipelines; a pipeline error skips them (counted, reported once per kind)."""
@@ -76,7 +101,7 @@ class Intake:
                     f"failed in the pipeline: {kind} (skipped, counted as pipeline.errors)"
                 )
             return
-        self._store(events)
+        self._put(events)
 
     def _process_taken(self) -> None:
         """Process the frames taken off the queue so far (a rejection met while taking them comes after them)."""
@@ -93,14 +118,24 @@ class Intake:
         await self._frames(source)
 
     async def _frames(self, source: FrameSource | MavlinkSource) -> None:
-        async for batch in source:
+        while await self._resume():
+            try:
+                batch = await source.get()
+            except EOFError:
+                return
             # Frames already waiting (the service is behind) are taken together, up to a
             # budget of samples that bounds the delay of the last one: consecutive frames
             # of an IMU then cost the chain one batch (FleetProcessor.process_queued).
             self._taken, n = [batch], batch.n_samples
-            while n < QUEUED_SAMPLES_MAX and (more := source.get_nowait()) is not None:
+            while (
+                n < QUEUED_SAMPLES_MAX
+                and not self._holding
+                and (more := source.get_nowait()) is not None
+            ):
                 self._taken.append(more)
                 n += more.n_samples
             self._process_taken()
+            if not self._holding and source.queued == 0:
+                self.stalled = False
             # Let the delivery and status tasks run between groups.
             await asyncio.sleep(0)

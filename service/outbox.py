@@ -12,14 +12,23 @@ was not delivered, and nothing that was acked is sent again.
 
 The outbox keeps delivered events for ``retain_delivered`` rows (a short
 history for the status topic and for diagnosis of a fleet), then prunes the
-oldest delivered ones, so the file stays bounded.
+oldest delivered ones, so the file stays bounded. ``max_bytes`` bounds the file
+itself (SQLite's ``max_page_count``): beyond it a write fails as on a full disk.
+
+A write the outbox cannot make now — the disk (or ``max_bytes``) full, the file
+locked by another process, an I/O error — raises :class:`OutboxUnavailable`
+and changes nothing; the same call succeeds once space or the lock returns.
+When the file is full, the delivered history gives way first: it is pruned and
+the write tried once more. Waiting for another process's lock is bounded by
+``busy_timeout_s`` so that a caller on an event loop is not held up.
 """
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,10 +51,24 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
 
 OUTBOX_SCHEMA_VERSION = 1
+BUSY_TIMEOUT_S = 0.1
+"""How long a write waits for another process's lock on the file before it is :class:`OutboxUnavailable`."""
 
 
 class OutboxError(RuntimeError):
     """The outbox file cannot be used (wrong schema version, unknown sink)."""
+
+
+class OutboxUnavailable(OutboxError):
+    """A read or write the outbox cannot make now (disk full, file locked, I/O error); nothing changed, retry later."""
+
+
+@contextlib.contextmanager
+def _unavailable_on_error() -> Iterator[None]:
+    try:
+        yield
+    except sqlite3.OperationalError as exc:
+        raise OutboxUnavailable(str(exc)) from exc
 
 
 @dataclass(frozen=True)
@@ -75,6 +98,8 @@ class Outbox:
     path : SQLite file (created if missing); ``":memory:"`` for tests of logic only.
     sinks : names of the sinks every new event must reach (e.g. ``("zenoh", "mavlink")``).
     retain_delivered : how many delivered events to keep before pruning the oldest.
+    max_bytes : the largest the file may grow (None: as large as the disk allows).
+    busy_timeout_s : how long a write waits for another process's lock (:data:`BUSY_TIMEOUT_S`).
 
     Thread-safe: the connection is used under a lock, so a transport callback
     thread and the asyncio loop may both call it. A context manager; ``close``
@@ -82,7 +107,13 @@ class Outbox:
     """
 
     def __init__(
-        self, path: str | Path, *, sinks: Sequence[str], retain_delivered: int = 10_000
+        self,
+        path: str | Path,
+        *,
+        sinks: Sequence[str],
+        retain_delivered: int = 10_000,
+        max_bytes: int | None = None,
+        busy_timeout_s: float = BUSY_TIMEOUT_S,
     ) -> None:
         if not sinks:
             raise ValueError("an outbox needs at least one sink")
@@ -93,11 +124,16 @@ class Outbox:
         self._lock = threading.Lock()
         if str(path) != ":memory:":
             private_file(path)
-        self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+        self._db = sqlite3.connect(
+            str(path), isolation_level=None, check_same_thread=False, timeout=busy_timeout_s
+        )
         self._db.execute("PRAGMA journal_mode=WAL")
         # FULL: a commit is on disk before put() returns (kill -9 and power loss safe).
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)
+        if max_bytes is not None:
+            page_bytes = int(self._db.execute("PRAGMA page_size").fetchone()[0])
+            self._db.execute(f"PRAGMA max_page_count = {max(1, int(max_bytes) // page_bytes)}")
         row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
         if row is None:
             self._db.execute(
@@ -127,33 +163,57 @@ class Outbox:
         return self.put_many([(event_id, vehicle, payload)]) == 1
 
     def put_many(self, events: Iterable[tuple[str, str, bytes]]) -> int:
-        """Store several events in one transaction; returns how many were new."""
-        new = 0
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
+        """Store several events in one transaction; returns how many were new.
+
+        :class:`OutboxUnavailable` if they cannot be stored now (none is then).
+        """
+        rows = [(str(i), str(v), bytes(p)) for i, v, p in events]
+        with self._lock, _unavailable_on_error():
             try:
-                for event_id, vehicle, payload in events:
-                    cur = self._db.execute(
-                        "INSERT OR IGNORE INTO events (id, vehicle, payload) VALUES (?, ?, ?)",
-                        (str(event_id), str(vehicle), bytes(payload)),
+                return self._put_locked(rows)
+            except sqlite3.OperationalError as exc:
+                if exc.sqlite_errorname != "SQLITE_FULL":
+                    raise
+            # Full: the delivered history gives way to the events still to deliver.
+            self._transaction(lambda: self._prune_locked(keep=0))
+            return self._put_locked(rows)
+
+    def _put_locked(self, rows: list[tuple[str, str, bytes]]) -> int:
+        new = 0
+
+        def insert() -> None:
+            nonlocal new
+            for event_id, vehicle, payload in rows:
+                cur = self._db.execute(
+                    "INSERT OR IGNORE INTO events (id, vehicle, payload) VALUES (?, ?, ?)",
+                    (event_id, vehicle, payload),
+                )
+                if cur.rowcount == 1:
+                    new += 1
+                    self._db.executemany(
+                        "INSERT INTO pending (seq, sink) VALUES (?, ?)",
+                        [(cur.lastrowid, s) for s in self._sinks],
                     )
-                    if cur.rowcount == 1:
-                        new += 1
-                        seq = cur.lastrowid
-                        self._db.executemany(
-                            "INSERT INTO pending (seq, sink) VALUES (?, ?)",
-                            [(seq, s) for s in self._sinks],
-                        )
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
+
+        self._transaction(insert)
         return new
+
+    def _transaction(self, work: Callable[[], None]) -> None:
+        """``work`` in one write transaction (the lock held): committed, or rolled back and raised."""
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            work()
+            self._db.execute("COMMIT")
+        except BaseException:
+            # SQLite has already rolled back after some errors (a full disk).
+            if self._db.in_transaction:
+                self._db.execute("ROLLBACK")
+            raise
 
     def pending(self, sink: str, *, limit: int = 100) -> list[PendingEvent]:
         """The oldest events not yet acked by ``sink``, in insertion order."""
         self._check_sink(sink)
-        with self._lock:
+        with self._lock, _unavailable_on_error():
             rows = self._db.execute(
                 "SELECT e.seq, e.id, e.vehicle, e.payload, p.attempts FROM pending p JOIN events e ON e.seq = p.seq "
                 "WHERE p.sink = ? ORDER BY p.seq LIMIT ?",
@@ -163,55 +223,53 @@ class Outbox:
 
     def stored(self, *, limit: int = 1000) -> list[PendingEvent]:
         """The retained events (delivered or not), oldest first; ``attempts`` is 0 here."""
-        with self._lock:
+        with self._lock, _unavailable_on_error():
             rows = self._db.execute(
                 "SELECT seq, id, vehicle, payload FROM events ORDER BY seq LIMIT ?", (int(limit),)
             ).fetchall()
         return [PendingEvent(int(q), i, v, bytes(p), 0) for q, i, v, p in rows]
 
     def ack(self, sink: str, seqs: Iterable[int]) -> None:
-        """Mark events delivered to ``sink`` (they will not be sent to it again)."""
+        """Mark events delivered to ``sink`` (they will not be sent to it again); :class:`OutboxUnavailable` as :meth:`put_many`."""
         self._check_sink(sink)
         rows = [(sink, int(s)) for s in seqs]
         if not rows:
             return
-        with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", rows)
-                self._prune_locked()
-                self._db.execute("COMMIT")
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
+
+        def delete() -> None:
+            self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", rows)
+            self._prune_locked(keep=self._retain)
+
+        with self._lock, _unavailable_on_error():
+            self._transaction(delete)
 
     def record_attempt(self, sink: str, seqs: Iterable[int]) -> None:
         """Count a failed delivery attempt (for the status topic and back-off)."""
         self._check_sink(sink)
-        with self._lock:
+        with self._lock, _unavailable_on_error():
             self._db.executemany(
                 "UPDATE pending SET attempts = attempts + 1 WHERE sink = ? AND seq = ?",
                 [(sink, int(s)) for s in seqs],
             )
 
-    def _prune_locked(self) -> None:
-        # Delete the oldest fully delivered events beyond the retention count.
+    def _prune_locked(self, *, keep: int) -> None:
+        # Delete the oldest fully delivered events beyond ``keep`` most recent rows.
         self._db.execute(
             "DELETE FROM events WHERE seq NOT IN (SELECT seq FROM pending) AND seq <= "
             "(SELECT COALESCE(MAX(seq), 0) FROM events) - ?",
-            (self._retain,),
+            (keep,),
         )
 
     def contains(self, event_id: str) -> bool:
         """Whether an event with this id was ever stored (and not yet pruned)."""
-        with self._lock:
+        with self._lock, _unavailable_on_error():
             return (
                 self._db.execute("SELECT 1 FROM events WHERE id = ?", (event_id,)).fetchone()
                 is not None
             )
 
     def counts(self) -> OutboxCounts:
-        with self._lock:
+        with self._lock, _unavailable_on_error():
             stored = self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]
             rows = dict(
                 self._db.execute("SELECT sink, COUNT(*) FROM pending GROUP BY sink").fetchall()

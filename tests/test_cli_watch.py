@@ -32,6 +32,7 @@ from protocols.events import (
     STATUS_TYPE,
     Predicate,
     Severity,
+    Status,
     StreamCause,
     event_from_json,
     make_event,
@@ -327,3 +328,14 @@ def test_unusable_input_is_a_one_line_error(argv, message, tmp_path):
         done = cli(*args, "--router", router)
     assert done.returncode == 2
     assert done.stderr.count("\n") == 1 and message in done.stderr, done.stderr
+
+
+def test_a_status_line_says_when_the_outbox_is_unavailable():
+    """The operator's line shows the condition the status counters carry (and nothing when it is fine)."""
+    from service.commands.watch import status_line
+
+    held = Status("uav-1", "onboard", 0.0, counters={"service.outbox.unavailable": 1,
+                  "service.outbox.held_events": 3, "service.outbox.write_failures": 7})  # fmt: skip
+    assert status_line(held, 0.0).endswith("; outbox unavailable (3 events held, 7 writes failed)")
+    fine = Status("uav-1", "onboard", 0.0, counters={"service.outbox.unavailable": 0})
+    assert "outbox" not in status_line(fine, 0.0)

@@ -11,7 +11,7 @@ import threading
 
 import pytest
 
-from service.outbox import Outbox, OutboxError
+from service.outbox import Outbox, OutboxError, OutboxUnavailable
 
 
 def ids(events):
@@ -136,3 +136,58 @@ def test_kill_9_while_writing_keeps_every_committed_event(tmp_path):
         got = ids(ob.pending("s", limit=100_000))
     assert got[: reported + 1] == [f"{k:032x}" for k in range(reported + 1)]
     assert len(got) == len(set(got))
+
+
+def test_a_locked_file_is_unavailable_at_once_changes_nothing_and_is_written_once_released(
+    tmp_path,
+):
+    """Another process's write lock (``BEGIN EXCLUSIVE``): put, ack and record_attempt raise
+    OutboxUnavailable after the short busy timeout, reads still work (WAL), and the same calls succeed
+    once the lock is released."""
+    path = tmp_path / "o.sqlite"
+    with Outbox(path, sinks=("s",)) as ob:
+        ob.put("a" * 32, "v", b"A")
+        other = sqlite3.connect(path, isolation_level=None)
+        other.execute("BEGIN EXCLUSIVE")
+        try:
+            with pytest.raises(OutboxUnavailable, match="locked"):
+                ob.put("b" * 32, "v", b"B")
+            with pytest.raises(OutboxUnavailable, match="locked"):
+                ob.ack("s", [ob.pending("s")[0].seq])
+            with pytest.raises(OutboxUnavailable, match="locked"):
+                ob.record_attempt("s", [ob.pending("s")[0].seq])
+            assert ids(ob.pending("s")) == ["a" * 32]
+        finally:
+            other.execute("ROLLBACK")
+            other.close()
+        assert ob.put("b" * 32, "v", b"B")
+        ob.ack("s", [ob.pending("s")[0].seq])
+        assert ids(ob.pending("s")) == ["b" * 32]
+
+
+def _fill(ob: Outbox, size: int) -> int:
+    """Events of ``size`` bytes until the outbox is full; returns how many it took."""
+    k = 0
+    while True:
+        try:
+            ob.put(f"{k:032x}", "v", bytes(size))
+        except OutboxUnavailable as exc:
+            assert "database or disk is full" in str(exc)
+            return k
+        k += 1
+
+
+def test_a_full_outbox_is_unavailable_and_the_delivered_history_gives_way(tmp_path):
+    """max_bytes reached (SQLite's own 'database or disk is full', as on a full disk): nothing is
+    stored while every event is pending; once some are delivered, the history of delivered events is
+    pruned to make room and the new event is stored."""
+    with Outbox(tmp_path / "o.sqlite", sinks=("s",), max_bytes=40 * 4096) as ob:
+        n = _fill(ob, 1000)
+        assert n > 50
+        with pytest.raises(OutboxUnavailable, match="full"):
+            ob.put("f" * 32, "v", bytes(1000))
+        assert ob.counts().stored == n
+        ob.ack("s", [e.seq for e in ob.pending("s", limit=20)])
+        assert ob.put("f" * 32, "v", bytes(1000))
+        counts = ob.counts()
+        assert counts.stored == n + 1 - 20 and counts.pending_by_sink == {"s": n + 1 - 20}

@@ -90,6 +90,20 @@ class Statuses:
             self.latest.clear()
 
 
+@contextlib.contextmanager
+def ground_and_vehicle(tmp_path, passports: Path, *, service: str = ""):
+    """A router, the daemon's configuration for it (``service``: more ``[service]`` lines), a ground and a
+    vehicle session, and the status topic seen from the ground."""
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, passports)
+        config.write_text(config.read_text().replace("[service]\n", f"[service]\n{service}"))
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
+            yield config, ground, vehicle, Statuses(ground)
+
+
 def publish_blocking(session, batches) -> None:
     with FramePublisher(
         session,

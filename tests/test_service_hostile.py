@@ -21,6 +21,7 @@ from service_support import (
 from test_service_faults import (
     ServiceProcess,
     Statuses,
+    ground_and_vehicle,
     offline_fleet,
     publish_blocking,
     put_store,
@@ -28,12 +29,20 @@ from test_service_faults import (
     write_config,
 )
 
-from protocols.events import Predicate
+from protocols.events import Predicate, Severity, StreamCause, encode_event, make_event
 from protocols.frames import encode_frame
 from protocols.zenoh_adapter import ZENOH_MAX_MESSAGE_BYTES, EventReceiver, frame_key
 from service.checkpoint import CheckpointStore
+from service.outbox import Outbox, OutboxUnavailable
 
 pytestmark = pytest.mark.network
+
+
+def to_the_fault(vehicle: str, *, batch_samples: int):
+    """The demo unit's frames up to 3 s after its fault: its F0 event and nothing more."""
+    sc = unit()[2]
+    frames = batches_of(sc.session, vehicle=vehicle, imu=0, batch_samples=batch_samples)
+    return [b for b in frames if b.t_s[-1] < sc.fault_s + 3.0]
 
 
 def test_poisoned_keys_rates_and_checkpoints_cost_only_their_unit(tmp_path):
@@ -117,12 +126,7 @@ def test_store_entries_that_are_not_small_regular_files_cost_only_their_unit(tmp
     of a refused unit with the stream checks only (its entry read again, at run time), reports every
     refusal with its reason on the status topic and in its log, and ends on SIGTERM."""
     good = "uav-p"
-    sc = unit()[2]
-    frames = [
-        b
-        for b in batches_of(sc.session, vehicle=good, imu=0, batch_samples=100)
-        if b.t_s[-1] < sc.fault_s + 3.0
-    ]
+    frames = to_the_fault(good, batch_samples=100)
     expected = run_fleet(offline_fleet(), frames, finish=False)
     assert [e.predicate for e in expected] == [Predicate.F0]
     root = put_store(tmp_path, [(good, 0)])
@@ -136,37 +140,31 @@ def test_store_entries_that_are_not_small_regular_files_cost_only_their_unit(tmp
     (root / "uav-deep").mkdir()
     (root / "uav-deep" / "imu0.passport.json").write_text("[" * 100_000 + "]" * 100_000)
     refused = {"not_a_regular_file": 3, "too_large": 1, "nested_too_deeply": 1}
-    with zenoh_router() as port:
-        config = write_config(tmp_path, port, root)
-        with (
-            zenoh.open(zenoh_client_config(port)) as ground,
-            zenoh.open(zenoh_client_config(port)) as vehicle,
-        ):
-            status = Statuses(ground)
-            got = []
-            with EventReceiver(ground, lambda e: got.append(e.event_id)):
-                daemon = ServiceProcess(config)
-                try:
-                    wait_subscribed(vehicle, frame_key(good, 1))
-                    fifo_unit = [dataclasses.replace(b, imu=1) for b in frames[:5]]
-                    publish_blocking(vehicle, fifo_unit)
-                    publish_blocking(vehicle, frames)
-                    wait_until(lambda: got == [e.event_id for e in expected], timeout_s=60,
-                               what=lambda: f"the good unit's F0 event (got {got})")  # fmt: skip
-                    n_fifo = sum(b.n_samples for b in fifo_unit)
-                    wait_until(
-                        lambda: (
-                            status.counter(good, "imu1.samples.accepted") == n_fifo
-                            and all(
-                                status.counter(good, f"service.passports.rejected.{k}") == n
-                                for k, n in refused.items()
-                            )
-                        ),
-                        timeout_s=30,
-                        what=lambda: f"the refusals on the status topic ({status.get(good)})",
-                    )
-                finally:
-                    code = daemon.terminate()
+    with ground_and_vehicle(tmp_path, root) as (config, ground, vehicle, status):
+        got = []
+        with EventReceiver(ground, lambda e: got.append(e.event_id)):
+            daemon = ServiceProcess(config)
+            try:
+                wait_subscribed(vehicle, frame_key(good, 1))
+                fifo_unit = [dataclasses.replace(b, imu=1) for b in frames[:5]]
+                publish_blocking(vehicle, fifo_unit)
+                publish_blocking(vehicle, frames)
+                wait_until(lambda: got == [e.event_id for e in expected], timeout_s=60,
+                           what=lambda: f"the good unit's F0 event (got {got})")  # fmt: skip
+                n_fifo = sum(b.n_samples for b in fifo_unit)
+                wait_until(
+                    lambda: (
+                        status.counter(good, "imu1.samples.accepted") == n_fifo
+                        and all(
+                            status.counter(good, f"service.passports.rejected.{k}") == n
+                            for k, n in refused.items()
+                        )
+                    ),
+                    timeout_s=30,
+                    what=lambda: f"the refusals on the status topic ({status.get(good)})",
+                )
+            finally:
+                code = daemon.terminate()
     assert code == 0, daemon.lines
     for unit_name, why in [
         (f"{good} IMU1", "not a regular file (a FIFO)"),
@@ -221,3 +219,128 @@ def test_oversized_zenoh_puts_are_dropped_by_zenoh_or_refused_and_counted(tmp_pa
     # Without the bound all three would reach the decoder.
     assert too_large < 3
     assert counters["service.frames.received"] == len(frames) + too_large
+
+
+def test_an_outbox_locked_by_another_process_holds_the_events_then_delivers_each_once(tmp_path):
+    """Another process holds the outbox's write lock (``BEGIN EXCLUSIVE``) while a faulty vehicle and a
+    second one publish: the F0 event cannot be stored, the daemon says ``outbox unavailable`` on the
+    status topic and in its log and takes no frame meanwhile (they wait in its queue). The lock is
+    released: every event of both vehicles arrives exactly once, as the same frames give offline (the
+    frames fit the queue of 256: none is dropped)."""
+    faulty, other = "uav-f", "uav-o"
+    frames = {v: to_the_fault(v, batch_samples=200) for v in (faulty, other)}
+    want = sorted(
+        e.event_id for v in frames for e in run_fleet(offline_fleet(), frames[v], finish=False)
+    )
+    assert len(want) == 2
+    passports = put_store(tmp_path, [(faulty, 0), (other, 0)])
+    with ground_and_vehicle(tmp_path, passports) as (config, ground, vehicle, status):
+        got = []
+        with EventReceiver(ground, lambda e: got.append(e.event_id)):
+            daemon = ServiceProcess(config)
+            try:
+                lock = sqlite3.connect(tmp_path / "data" / "outbox.sqlite", isolation_level=None)
+                lock.execute("BEGIN EXCLUSIVE")
+                try:
+                    wait_subscribed(vehicle, frame_key(faulty, 0))
+                    publish_blocking(vehicle, frames[faulty])
+                    publish_blocking(vehicle, frames[other])
+                    wait_until(lambda: status.counter(faulty, "service.outbox.unavailable") == 1,
+                               timeout_s=60, what=lambda: f"outbox unavailable on the status topic ({status.get(faulty)})")  # fmt: skip
+                    held = status.get(faulty).counters
+                    assert got == [] and held["service.outbox.write_failures"] >= 1
+                    assert held["service.outbox.held_events"] == 1
+                finally:
+                    lock.execute("ROLLBACK")
+                    lock.close()
+                wait_until(lambda: sorted(got) == want, timeout_s=60,
+                           what=lambda: f"both vehicles' events (got {got})")  # fmt: skip
+                n = sum(b.n_samples for b in frames[other])
+                wait_until(
+                    lambda: (
+                        status.counter(other, "imu0.samples.accepted") == n
+                        and status.counter(other, "service.outbox.unavailable") == 0
+                    ),
+                    timeout_s=30,
+                    what=lambda: f"the outbox available again ({status.get(other)})",
+                )
+                after = status.get(other).counters
+            finally:
+                code = daemon.terminate()
+    assert code == 0, daemon.lines
+    assert len(got) == len(set(got)) == 2
+    assert after["service.outbox.unavailable_episodes"] == 1
+    assert after.get("service.frames.dropped_overload", 0) == 0
+    assert any("outbox unavailable (database is locked)" in line for line in daemon.lines), (
+        daemon.lines
+    )
+    assert any("outbox available again" in line for line in daemon.lines), daemon.lines
+
+
+FULL_PAGES = 40
+"""Size of the full outbox of the disk-full test, in SQLite pages of 4096 bytes."""
+
+
+def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
+    """The outbox is full (its ``outbox_max_mb`` reached: SQLite's own 'database or disk is full', as on
+    a full disk) of events of another vehicle that no receiver has acknowledged yet. The faulty
+    vehicle's F0 event cannot be stored: the daemon says ``outbox unavailable`` and holds it. A receiver
+    comes up: the waiting events are delivered, their history gives way, the F0 event is stored and
+    arrives, exactly once, and the daemon says the outbox is back."""
+    v = "uav-d"
+    frames = to_the_fault(v, batch_samples=200)
+    expected = run_fleet(offline_fleet(), frames, finish=False)
+    want = [e.event_id for e in expected]
+    fillers = []
+    (tmp_path / "data").mkdir()
+    with Outbox(
+        tmp_path / "data" / "outbox.sqlite", sinks=("zenoh",), max_bytes=FULL_PAGES * 4096
+    ) as ob:
+        # Large events until one does not fit, then events smaller than F0's until none does.
+        for text in ("x" * 900, "x"):
+            while True:
+                filler = make_event(vehicle="uav-fill", imu=0, t_s=float(len(fillers)), predicate=Predicate.TIMEOUT,
+                                    cause=StreamCause.NO_DATA, severity=Severity.WARNING, text=text)  # fmt: skip
+                try:
+                    ob.put(filler.event_id, filler.vehicle, encode_event(filler))
+                except OutboxUnavailable as exc:
+                    assert "database or disk is full" in str(exc)
+                    break
+                fillers.append(filler.event_id)
+    # The last that did not fit is smaller than the F0 event: F0 cannot fit either.
+    assert len(encode_event(filler)) < len(encode_event(expected[0]))
+    passports = put_store(tmp_path, [(v, 0)])
+    limit = f"outbox_max_mb = {FULL_PAGES * 4096 / 1e6!r}\n"
+    with ground_and_vehicle(tmp_path, passports, service=limit) as (
+        config,
+        ground,
+        vehicle,
+        status,
+    ):
+        daemon = ServiceProcess(config)
+        try:
+            wait_subscribed(vehicle, frame_key(v, 0))
+            publish_blocking(vehicle, frames)
+            wait_until(lambda: status.counter(v, "service.outbox.unavailable") == 1,
+                       timeout_s=60, what=lambda: f"outbox unavailable on the status topic ({status.get(v)})")  # fmt: skip
+            got = []
+            with EventReceiver(ground, lambda e: got.append(e.event_id)):
+                wait_until(lambda: sorted(got) == sorted(fillers + want), timeout_s=60,
+                           what=lambda: f"the waiting events, then F0 ({len(got)} of {len(fillers) + 1})")  # fmt: skip
+                wait_until(
+                    lambda: (
+                        status.counter(v, "service.outbox.unavailable") == 0
+                        and status.counter(v, "imu0.samples.accepted")
+                        == sum(b.n_samples for b in frames)
+                    ),
+                    timeout_s=30,
+                    what=lambda: f"the outbox available again ({status.get(v)})",
+                )
+        finally:
+            code = daemon.terminate()
+    assert code == 0, daemon.lines
+    assert len(fillers) > 50 and len(got) == len(set(got))
+    assert any("outbox unavailable (database or disk is full)" in line for line in daemon.lines), (
+        daemon.lines
+    )
+    assert any("outbox available again" in line for line in daemon.lines), daemon.lines

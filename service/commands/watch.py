@@ -11,8 +11,9 @@ One line per event: the time it arrived (UTC), vehicle, IMU, severity, its data
 time and its text; with ``--json`` the event as one JSON object per line (the
 event schema of :mod:`protocols.events`, ``"type": "ins.health.event"``).
 Status messages are summarized: a line when a service first reports a vehicle
-and whenever the states of its IMUs change (``--json``: the status map,
-``"type": "ins.health.status"``).
+and whenever the states of its IMUs change, or its outbox becomes unavailable
+(the line then says so, with the events held) or available again (``--json``:
+the status map, ``"type": "ins.health.status"``).
 
 Runs until Ctrl-C or SIGTERM, then prints what it received on stderr. Exit
 status 0; 2 when the router cannot be reached or an option is unusable.
@@ -77,7 +78,13 @@ def status_line(status: Status, arrived_unix_s: float) -> str:
         + (f", {s.detail})" if s.detail else ")")
         for s in status.imus
     )
-    return f"{_utc(arrived_unix_s)}  {status.vehicle} status from {status.service}: {imus or 'no IMU yet'}"
+    line = f"{_utc(arrived_unix_s)}  {status.vehicle} status from {status.service}: {imus or 'no IMU yet'}"
+    if status.counters.get("service.outbox.unavailable"):
+        line += (
+            f"; outbox unavailable ({status.counters.get('service.outbox.held_events', 0)} events held,"
+            f" {status.counters.get('service.outbox.write_failures', 0)} writes failed)"
+        )
+    return line
 
 
 def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
@@ -86,7 +93,7 @@ def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
 
     from protocols.events import Event, Status, event_to_json, status_to_dict
 
-    states: dict[tuple[str, str], tuple[tuple[int, str], ...]] = {}
+    states: dict[tuple[str, str], tuple[tuple[tuple[int, str], ...], int]] = {}
     events = statuses = 0
     while not isinstance(item := inbox.get(), _Stop):
         now = time.time()
@@ -95,7 +102,10 @@ def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
             print(event_to_json(item) if as_json else event_line(item, now), flush=True)
         elif isinstance(item, Status):
             statuses += 1
-            summary = tuple((s.imu, s.state.value) for s in item.imus)
+            summary = (
+                tuple((s.imu, s.state.value) for s in item.imus),
+                item.counters.get("service.outbox.unavailable", 0),
+            )
             if states.get((item.vehicle, item.service)) != summary:
                 states[(item.vehicle, item.service)] = summary
                 line = (

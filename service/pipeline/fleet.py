@@ -361,6 +361,11 @@ class FleetProcessor:
         cross = self.cross.get(vehicle)
         return units, (cross.state_dict() if cross is not None and len(pipes) >= 2 else None)
 
+    def mark_unsaved(self, keys: list[tuple[str, int]]) -> None:
+        """These units' checkpoint could not be written: :meth:`changed_keys` lists them again."""
+        for key in keys:
+            self._saved.pop(key, None)
+
     def changed_keys(self) -> list[tuple[str, int]]:
         """Pipelines that took or refused a frame since the last call (an idle unit's checkpoint is still current)."""
         out = []
