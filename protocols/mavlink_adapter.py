@@ -729,6 +729,7 @@ class MavlinkLink:
                 if settings.accept_unsigned
                 else (lambda mav, msg_id: msg_id not in imu_ids),
             )
+            keep_replay_window(self._conn.mav)
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
         if self._datagrams:
             # The kernel holds datagrams while the pipeline has the interpreter: at 50 k/s the
@@ -833,6 +834,31 @@ class MavlinkLink:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def keep_replay_window(mav: mavlink2.MAVLink) -> None:
+    """Only a packet whose signature verifies moves its stream's replay window.
+
+    pymavlink (2.4.50) records a signed packet's time stamp for its (link id, system,
+    component) before it compares the signature: one forged packet with a time stamp far
+    ahead made every later genuine packet of that stream fail as old. The check stays
+    pymavlink's; a failed one only has the stream's previous time stamp put back.
+    """
+    check = mav.check_signature
+    stamps = mav.signing.stream_timestamps
+
+    def checked(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        key = (msgbuf[-13], src_system, src_component)
+        before = stamps.get(key)
+        ok = bool(check(msgbuf, src_system, src_component))
+        if not ok:
+            if before is None:
+                stamps.pop(key, None)
+            else:
+                stamps[key] = before
+        return ok
+
+    mav.check_signature = checked
 
 
 def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:

@@ -573,3 +573,26 @@ def test_signing_refuses_unsigned_and_wrongly_signed_imu_messages(accept_unsigne
     else:
         assert times == [1.0]
         assert link.counters.rejected == {"bad_signature": 1, "unsigned": 1}
+
+
+def test_a_forged_packet_does_not_move_the_replay_window_of_a_genuine_stream():
+    """A packet on the autopilot's stream (same link id, system, component) signed with another key and
+    stamped a day ahead is refused, and the autopilot's next messages are still read (pymavlink alone
+    would have taken the forged time stamp as the stream's and refused them as old)."""
+    with MavlinkLink(
+        MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", signing_key=KEY)
+    ) as link:
+        port = link.connection.port.getsockname()[1]
+        autopilot, forger = _peer(port), _peer(port)
+        autopilot.setup_signing(KEY, sign_outgoing=True, link_id=1)
+        ahead = autopilot.mav.signing.timestamp + 86_400 * 100_000
+        forger.setup_signing(bytes(reversed(KEY)), link_id=1, initial_timestamp=ahead)
+        for k, peer in enumerate((autopilot, forger, autopilot, autopilot)):
+            peer.mav.send(
+                imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + k, accel_mps2=ACC, gyro_rps=GYR)
+            )
+        got = _read(link, 3)
+        autopilot.close()
+        forger.close()
+    assert [t for b in got for t in b.t_s] == [1.0, 3.0, 4.0]
+    assert link.counters.rejected == {"bad_signature": 1}
