@@ -89,7 +89,7 @@ class ServiceSection:
     outbox_max_mb : the largest the outbox file may grow, MB (default 0: as large as the disk allows);
         beyond it the outbox is full as on a full disk (:mod:`service.outbox_writer`).
     vehicles : vehicle ids served; empty (default) serves every vehicle the key expression delivers.
-        A frame of a vehicle outside a non-empty list is counted as ``unknown_vehicle``; the
+        A frame of a vehicle outside a non-empty list is counted as ``frames.rejected.unknown_vehicle``; the
         passport of IMU 0 of each listed vehicle is checked at startup.
     """
 

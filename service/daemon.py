@@ -399,7 +399,7 @@ class Service:
             samples, rejected = dict(link.imu_samples), dict(link.rejected)
             extra.update({f"service.mavlink.samples.{k}": n for k, n in samples.items()})
             extra.update({f"service.mavlink.rejected.{k}": n for k, n in rejected.items()})
-            extra["service.mavlink.ignored_system"] = link.ignored_system
+            extra["service.mavlink.rejected.other_system"] = link.ignored_system
             extra["service.mavlink.alerts_sent"] = link.alerts_sent
             extra["service.mavlink.alerts_suppressed"] = self.mavlink_sink.policy.suppressed
             extra["service.mavlink.alerts_deferred"] = self.mavlink_sink.policy.deferred

@@ -205,7 +205,10 @@ def test_admission_limits_and_unknown_vehicles_are_counted():
         fleet.process(dataclasses.replace(frame, imu=imu), arrival_s=0.0)
     fleet.process(dataclasses.replace(frame, vehicle="intruder"), arrival_s=0.0)
     c = fleet.status(V, service="t", now_unix_s=0.0).counters
-    assert c["frames.over_imu_limit"] == 2 and c["service.frames.unknown_vehicle"] == 1
+    assert (
+        c["frames.rejected.over_imu_limit"] == 2
+        and c["service.frames.rejected.unknown_vehicle"] == 1
+    )
     assert sorted(fleet.pipelines) == [(V, 0), (V, 1)]
 
 

@@ -431,7 +431,7 @@ def test_bad_input_is_counted_and_reported_and_the_diagnosis_is_intact(tmp_path)
                 stranger = next(batches_of(sc.session, vehicle="stranger", imu=0, batch_samples=10))
                 vehicle.put(frame_key("stranger", 0), encode_frame(stranger))
                 wait_until(
-                    lambda: status.counter(v, "service.frames.unknown_vehicle") == 1,
+                    lambda: status.counter(v, "service.frames.rejected.unknown_vehicle") == 1,
                     timeout_s=30,
                     what="the stranger counted",
                 )
@@ -480,7 +480,7 @@ def test_bad_input_is_counted_and_reported_and_the_diagnosis_is_intact(tmp_path)
         and c["imu0.frames.out_of_order"] == 1
         and c["imu0.time_jumps"] == 1
     )
-    assert c["service.frames.unknown_vehicle"] == 1
+    assert c["service.frames.rejected.unknown_vehicle"] == 1
     assert c["service.frames.dropped_overload"] > 0
     assert c["imu1.frames.accepted"] + c["service.frames.dropped_overload"] == len(flood)
     assert c["service.frames.received"] == len(flood) + 1 + len(script)

@@ -145,14 +145,14 @@ class FleetProcessor:
         if pipe is not None:
             return pipe
         if self._vehicles and vehicle not in self._vehicles:
-            self.count_service("frames.unknown_vehicle")
+            self.count_service("frames.rejected.unknown_vehicle")
             return None
         known = vehicle in self.vehicle_counters
         if not known and len(self.vehicle_counters) >= self._max_vehicles:
-            self.count_service("frames.over_vehicle_limit")
+            self.count_service("frames.rejected.over_vehicle_limit")
             return None
         if known and len(self._by_vehicle.get(vehicle, {})) >= self._max_imus:
-            self.count_vehicle(vehicle, "frames.over_imu_limit")
+            self.count_vehicle(vehicle, "frames.rejected.over_imu_limit")
             return None
         self.vehicle_counters.setdefault(vehicle, {})
         try:
