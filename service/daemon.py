@@ -192,6 +192,8 @@ class Service:
         self.mavlink_source: MavlinkSource | None = None
         self._reported: set[str] = set()
         self.events_stored = 0
+        # Set when events are stored: their units' state is saved at once, not a period later.
+        self._checkpoint_soon = asyncio.Event()
 
     @property
     def outbox(self) -> Outbox | None:
@@ -311,6 +313,7 @@ class Service:
     def _stored(self, new: int) -> None:
         self.events_stored += new
         self._running().wake.set()
+        self._checkpoint_soon.set()
 
     async def _heartbeat(self, sink: MavlinkAlertSink, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -470,8 +473,19 @@ class Service:
             raise
 
     async def _checkpoints(self, stop: asyncio.Event) -> None:
+        """A checkpoint every ``checkpoint_period_s``, and as soon as events were stored.
+
+        A unit whose event is in the outbox but whose state is not saved would, after a
+        kill -9 and with a live source that does not send its frames again, raise the
+        same finding again under a new id (its disagreement, its fault); saving right
+        after the event leaves that to the few milliseconds between the two writes.
+        Events stored while a checkpoint is written are covered by the next one.
+        """
         while not stop.is_set():
-            await _wait_any(stop, None, timeout_s=self.config.service.checkpoint_period_s)
+            await _wait_any(
+                stop, self._checkpoint_soon, timeout_s=self.config.service.checkpoint_period_s
+            )
+            self._checkpoint_soon.clear()
             await self.checkpoint()
             self.supervisor.beat()
 
