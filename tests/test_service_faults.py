@@ -146,10 +146,10 @@ class ServiceProcess:
         return self.proc.wait(60)
 
 
-def write_config(tmp_path, port: int, passports: Path) -> Path:
+def write_config(tmp_path, port: int, passports: Path, *, mavlink_port: int | None = None) -> Path:
+    """The daemon's config file: Zenoh client of the router on ``port``; a MAVLink link too with ``mavlink_port``."""
     path = tmp_path / "service.toml"
-    path.write_text(
-        f"""
+    text = f"""
 [service]
 name = "onboard"
 data_dir = "{tmp_path / "data"}"
@@ -165,7 +165,9 @@ ack_timeout_s = 0.3
 [validity]
 timeout_s = 600.0
 """
-    )
+    if mavlink_port is not None:
+        text += f'[mavlink]\nenabled = true\ndevice = "udpin:127.0.0.1:{mavlink_port}"\nvehicle = "mav1"\n'
+    path.write_text(text)
     return path
 
 

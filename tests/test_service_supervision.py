@@ -35,6 +35,7 @@ from test_service_faults import (
     publish_blocking,
     put_store,
     unit,
+    write_config,
 )
 
 from protocols.events import Predicate
@@ -46,30 +47,6 @@ from service.notify import Notifier
 from service.supervisor import EXIT_TASK_FAILED
 
 pytestmark = pytest.mark.network
-
-
-def write_config(tmp_path, *, port: int, passports, mavlink_port: int | None = None):
-    path = tmp_path / "service.toml"
-    text = f"""
-[service]
-name = "onboard"
-data_dir = "{tmp_path / "data"}"
-passport_dir = "{passports}"
-status_period_s = 0.2
-checkpoint_period_s = 0.2
-delivery_retry_s = 0.2
-[site]
-gravity_mps2 = {unit()[1]!r}
-[zenoh]
-connect = ["tcp/127.0.0.1:{port}"]
-ack_timeout_s = 0.3
-[validity]
-timeout_s = 600.0
-"""
-    if mavlink_port is not None:
-        text += f'[mavlink]\nenabled = true\ndevice = "udpin:127.0.0.1:{mavlink_port}"\nvehicle = "mav1"\n'
-    path.write_text(text)
-    return path
 
 
 def healthy_frames(vehicle: str):
