@@ -7,6 +7,7 @@ fit the baseline noise model from the data itself.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,19 +133,25 @@ def batch_means_sd(records: list[FloatArray], batch: int) -> FloatArray:
         raise ValueError(f"batch must be at least 1 sample, got {batch}")
     total: FloatArray | None = None
     dof = 0
-    for r in records:
-        a = np.asarray(r, dtype=float)
-        a = a[:, None] if a.ndim == 1 else a
-        nb = a.shape[0] // batch
-        if nb < 2:
-            continue
-        means = a[: nb * batch].reshape(nb, batch, -1).mean(axis=1)
+    for pieces in _pieces(records, batch, at_least=2):
+        means = pieces.mean(axis=1)
         ss: FloatArray = np.sum((means - means.mean(axis=0)) ** 2, axis=0)
         total = ss if total is None else total + ss
-        dof += nb - 1
+        dof += pieces.shape[0] - 1
     if total is None:
         raise ValueError(f"no record holds two batches of {batch} samples")
     return np.sqrt(batch * total / dof)
+
+
+def _pieces(records: list[FloatArray], length: int, *, at_least: int) -> Iterator[FloatArray]:
+    """Each record cut into consecutive pieces of ``length`` samples, (n, length, axes), the partial
+    last piece dropped; records with fewer than ``at_least`` pieces are skipped."""
+    for r in records:
+        a = np.asarray(r, dtype=float)
+        a = a[:, None] if a.ndim == 1 else a
+        n = a.shape[0] // length
+        if n >= at_least:
+            yield a[: n * length].reshape(n, length, -1)
 
 
 def quantization_step(x: FloatArray, *, rel_tol: float = 0.02, min_levels: int = 3) -> float | None:
@@ -237,17 +244,11 @@ def segment_periodogram(records: list[FloatArray], segment: int) -> tuple[FloatA
         raise ValueError(f"a periodogram segment needs at least 4 samples, got {segment}")
     total: FloatArray | None = None
     count = 0
-    for r in records:
-        a = np.asarray(r, dtype=float)
-        a = a[:, None] if a.ndim == 1 else a
-        n_seg = a.shape[0] // segment
-        if n_seg < 1:
-            continue
-        pieces = a[: n_seg * segment].reshape(n_seg, segment, -1)
+    for pieces in _pieces(records, segment, at_least=1):
         spec = np.fft.rfft(pieces, axis=1)[:, 1 : (segment + 1) // 2]
         p: FloatArray = np.sum(np.abs(spec) ** 2, axis=0) / segment
         total = p if total is None else total + p
-        count += n_seg
+        count += pieces.shape[0]
     if total is None:
         raise ValueError(f"no record holds a segment of {segment} samples")
     return total / count, count
