@@ -4,14 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
 from estimators.audit import AuditResult
 from estimators.conventions import AXES, Triad, reference_magnitude
+from service.figures import plt, save_figure
 
 MODELS = (("baseline", "C0"), ("extended", "C1"))
 UNIT = {Triad.ACCEL: "m/s²", Triad.GYRO: "rad/s"}
@@ -67,9 +64,7 @@ def _residual_plot(result: AuditResult, path: Path) -> bool:
     ax.set_ylabel("scalar residual / predicted σ (–)")
     ax.set_title("Accelerometers: exact scalar equation per position (M1)")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return True
 
 
@@ -110,9 +105,7 @@ def _allan_plot(result: AuditResult, path: Path) -> bool:
             ax.grid(True, which="both", lw=0.3)
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("Allan deviation within the longest static position", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
     return True
 
 
@@ -163,9 +156,7 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
     ax.set_ylabel("probability density (1/unit of s)")
     ax.set_title("F0 statistic on the static data: measured against simulated")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return True
 
 
@@ -194,9 +185,7 @@ def _stat_plot(result: AuditResult, path: Path) -> bool:
     ax.axhline(1.0, color="k", lw=0.5)
     ax.legend(fontsize=7)
     ax.set_title(f"Measured statistics against {result.replicas} Monte Carlo replicas")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return True
 
 
@@ -218,9 +207,7 @@ def _headline_plot(result: AuditResult, path: Path) -> bool:
     ax.set_xlabel("accelerometer χ²/dof of the scalar equation per position (–)")
     ax.set_ylabel("replicas")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return True
 
 

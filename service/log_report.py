@@ -27,16 +27,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 
 from estimators.conventions import AXES
 from estimators.log_health import HealthConfig, ImuHealth, PairDifference
 from protocols.events import Event, Severity
 from protocols.logs import LogStats
+from service.figures import plt, save_figure
 
 REPORT_TYPE = "ins.health.log_report"
 REPORT_SCHEMA_VERSION = 1
@@ -222,9 +219,7 @@ def _residual_plot(report: Mapping[str, Any], healths: Mapping[int, ImuHealth], 
     ax.set_ylabel("|a| − g at rest, m/s²")
     ax.set_title("Blocks at rest against F0's shell (dashed)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
     return True
 
 
@@ -242,9 +237,7 @@ def _spectra_plot(healths: Mapping[int, ImuHealth], path: Path) -> bool:
     axes[1].set_ylabel("gyro PSD, (rad/s)²/Hz")
     axes[1].set_xlabel("frequency, Hz")
     axes[0].legend(fontsize=7, ncol=3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
     return True
 
 
@@ -260,9 +253,7 @@ def _cross_plot(pairs: Sequence[PairDifference], path: Path) -> bool:
     axes[1].set_ylabel("|Δω|, rad/s")
     axes[1].set_xlabel("log time, s")
     axes[0].legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
     return True
 
 

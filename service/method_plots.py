@@ -8,10 +8,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 
@@ -20,15 +16,10 @@ from estimators.repeatability import RunSpread
 from estimators.sixpos import RateTableFit
 from estimators.temperature import TemperatureFit, TemperatureSeries, model_errors
 from estimators.tilt import TiltPassportResult, TiltRun
+from service.figures import plt, save_figure
 
 _ARCMIN = np.pi / 180.0 / 60.0
 _DPI = 72
-
-
-def _save(fig, path: Path) -> None:
-    fig.tight_layout()
-    fig.savefig(path, dpi=_DPI)
-    plt.close(fig)
 
 
 def plot_tilt(
@@ -75,7 +66,7 @@ def plot_tilt(
             label=labels[j],
             truth=None if truth is None else truth[j],
         )
-    _save(fig, path)
+    save_figure(fig, path, dpi=_DPI)
 
 
 def plot_triad(spread: RunSpread, path: Path, *, truth: np.ndarray | None = None) -> None:
@@ -96,7 +87,7 @@ def plot_triad(spread: RunSpread, path: Path, *, truth: np.ndarray | None = None
             truth=None if truth is None else truth[j],
             legend=j == 0,
         )
-    _save(fig, path)
+    save_figure(fig, path, dpi=_DPI)
 
 
 def _interval_panel(
@@ -169,7 +160,7 @@ def plot_temperature(fit: TemperatureFit, series: TemperatureSeries, path: Path)
     ax[1].legend(fontsize=7)
     for a in ax[1:]:
         a.set_xlabel("temperature, °C")
-    _save(fig, path)
+    save_figure(fig, path, dpi=_DPI)
 
 
 def plot_rate_table(fit: RateTableFit, path: Path) -> None:
@@ -196,4 +187,4 @@ def plot_rate_table(fit: RateTableFit, path: Path) -> None:
     ax[1].axhline(0, color="k", lw=0.5)
     ax[1].set_xlabel("table rate, °/s")
     ax[1].set_ylabel("residual, °/h")
-    _save(fig, path)
+    save_figure(fig, path, dpi=_DPI)

@@ -359,10 +359,7 @@ def _text(report: dict, notes: list[str], earth: bool) -> str:
 
 def plot_drifts(result: RockingResult, path: Path) -> None:
     """The third angle of each run as recorded and after the correction (the paper's Figs. 1 and 2)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from service.figures import plt, save_figure
 
     fig, axes = plt.subplots(1, 3, figsize=(9.6, 3.0))
     for a, k in zip(axes, (1, 2, 0), strict=True):  # ψ, θ, γ: the paper's order
@@ -390,9 +387,7 @@ def plot_drifts(result: RockingResult, path: Path) -> None:
         a.tick_params(labelsize=7)
     axes[0].set_ylabel("computed angle, deg", fontsize=8)
     axes[0].legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    save_figure(fig, path, dpi=80)
 
 
 def run(args: argparse.Namespace) -> int:
