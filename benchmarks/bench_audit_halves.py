@@ -1,8 +1,9 @@
-"""Why the Xsens accelerometer half-to-half spreads stay outside the extended model's band (issue 13, item 4).
+"""The Xsens half-to-half spreads against the extended model's replicas, per triad (issue 13, item 4).
 
 Run: ``python benchmarks/bench_audit_halves.py [--replicas N] [--seed S] [--z-gm SIGMA_G TAU_S]``. Prints,
 for the measured session and for the replicas of the extended model as the audit fits it (and of the same
-model without the z wander, and with ``--z-gm`` a z Gauss–Markov bias of σ in g and τ in s instead):
+model without the z wander, without the accelerometer wanders' loadings on other axes, and with ``--z-gm``
+a z Gauss–Markov bias of σ in g and τ in s instead), for the accelerometers and the gyros:
 
 1. the level at which 0.5 s means shrink (:func:`estimators.noise.batch_means_sd`) per axis, over every
    position and over the positions the audit does not flag as disturbed, and the median per-position
@@ -10,7 +11,9 @@ model without the z wander, and with ``--z-gm`` a z Gauss–Markov bias of σ in
 2. the half-to-half statistic ``rms(d / 2σ)`` per axis with σ from the chain's batch-means factor pooled
    over the three axes (what the audit compares, ``estimators.positions``) and from a factor per axis,
    over every position and without the disturbed ones: measured, the replicas' ratio (measured / median),
-   the tail (share of replicas ≥ measured) and whether the measured value is inside their 5–95 % band.
+   the tail (share of replicas ≥ measured) and whether the measured value is inside their 5–95 % band;
+3. the correlation of the x and z half-to-half differences over the undisturbed positions (a wander common
+   to both axes shows there).
 
 A pooled factor lets one axis' wander inside the 0.5 s batches raise the others' σ; the per-axis factor
 does not, so an axis still outside with it has an excess of its own.
@@ -71,6 +74,13 @@ def figures(x: np.ndarray, chain: ChainResult, skip: set[int]) -> dict[str, np.n
         out[f"factor_{label}"] = np.median(factor, axis=0)
         out[f"halves_pooled_{label}"] = np.sqrt(np.mean(pooled, axis=0))
         out[f"halves_per_axis_{label}"] = np.sqrt(np.mean(per_axis, axis=0))
+    d = np.array(
+        [
+            x[a : (a + b) // 2].mean(axis=0) - x[(a + b) // 2 : b].mean(axis=0)
+            for a, b in spans(chain, skip)
+        ]
+    )
+    out["halves_corr_xz_kept"] = np.array([np.corrcoef(d[:, 0], d[:, 2])[0, 1]])
     return out
 
 
@@ -107,39 +117,56 @@ def main() -> None:
     fitted = ext.accel.find(BiasInstability)
     assert fitted is not None, "the audit names no accelerometer wander on this session"
     sigma, tau = np.array(fitted.gm_sigma_si), np.array(fitted.gm_tau_s)
+    loading = np.array(fitted.gm_loading)
     variants = {"extended (as fitted)": ext}
     for label, z in (("without the z wander", (0.0, tau[2])), ("--z-gm", args.z_gm)):
         if z is not None:
             s, t = sigma.copy(), tau.copy()
             s[2], t[2] = z[0] * (G_XSENS if label == "--z-gm" else 1.0), z[1]
             variants[f"{label}: z σ {s[2]:.3g} m/s², τ {t[2]:.3g} s"] = ext.with_effect(
-                BiasInstability(gm_sigma_si=s, gm_tau_s=t), Triad.ACCEL
+                BiasInstability(gm_sigma_si=s, gm_tau_s=t, gm_loading=loading), Triad.ACCEL
             )
-    measured = figures(session.accel_mps2, chain, skip)
-    print(f"Xsens accelerometers; disturbed positions left out of 'kept': {sorted(skip)}")
-    print(f"fitted z wander: σ {sigma[2]:.3g} m/s², τ {tau[2]:.3g} s")
-    for key, value in measured.items():
-        print(f"measured   {key:22s} x/y/z {' / '.join(f'{v:.4g}' for v in value)}")
+    if not np.array_equal(loading, np.eye(3)):
+        variants["without the wanders' loadings on other axes"] = ext.with_effect(
+            BiasInstability(gm_sigma_si=sigma, gm_tau_s=tau), Triad.ACCEL
+        )
+    samples = {Triad.ACCEL: lambda s: s.accel_mps2, Triad.GYRO: lambda s: s.gyro_rps}
+    measured = {tri: figures(get(session), chain, skip) for tri, get in samples.items()}
+    print(f"Xsens; disturbed positions left out of 'kept': {sorted(skip)}")
+    print(
+        f"fitted accelerometer wander: σ {' / '.join(f'{v:.3g}' for v in sigma)} m/s², "
+        f"τ {' / '.join(f'{v:.3g}' for v in tau)} s (x / y / z), loading (columns: the axis' wander) "
+        f"{np.round(loading, 3).tolist()}"
+    )
+    for tri, figs in measured.items():
+        for key, value in figs.items():
+            print(
+                f"measured {tri.value:5s} {key:22s} x/y/z {' / '.join(f'{v:.4g}' for v in value)}"
+            )
     for label, mdl in variants.items():
         spec = same_session_spec(chain, session, mdl)
-        reps = []
+        reps: dict[Triad, list[dict[str, np.ndarray]]] = {tri: [] for tri in samples}
         for r in range(args.replicas):
             sim = simulate(spec, np.random.SeedSequence([args.seed, r]).generate_state(1)[0])
-            reps.append(figures(sim.session.accel_mps2, run_chain(sim.session, config), skip))
+            sim_chain = run_chain(sim.session, config)
+            for tri, get in samples.items():
+                reps[tri].append(figures(get(sim.session), sim_chain, skip))
         print(f"\n{label}, {args.replicas} replicas")
-        for key, value in measured.items():
-            sim_v = np.array([rep[key] for rep in reps])
-            med = np.median(sim_v, axis=0)
-            p05, p95 = np.quantile(sim_v, [0.05, 0.95], axis=0)
-            cells = [
-                f"{m / s:.2f} (tail {t:.2f}, {'in' if lo <= m <= hi else 'OUT'})"
-                for m, s, t, lo, hi in zip(
-                    value, med, np.mean(sim_v >= value, axis=0), p05, p95, strict=True
+        for tri, figs in measured.items():
+            for key, value in figs.items():
+                sim_v = np.array([rep[key] for rep in reps[tri]])
+                med = np.median(sim_v, axis=0)
+                p05, p95 = np.quantile(sim_v, [0.05, 0.95], axis=0)
+                cells = [
+                    f"{m / s:.2f} (tail {tl:.2f}, {'in' if lo <= m <= hi else 'OUT'})"
+                    for m, s, tl, lo, hi in zip(
+                        value, med, np.mean(sim_v >= value, axis=0), p05, p95, strict=True
+                    )
+                ]
+                print(
+                    f"  {tri.value:5s} median {key:22s} {' / '.join(f'{v:.4g}' for v in med)}   "
+                    f"ratio {' / '.join(cells)}"
                 )
-            ]
-            print(
-                f"  median {key:22s} {' / '.join(f'{v:.4g}' for v in med)}   ratio {' / '.join(cells)}"
-            )
 
 
 if __name__ == "__main__":

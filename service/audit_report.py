@@ -247,8 +247,8 @@ def _statistics_table(result: AuditResult) -> list[str]:
 def _model_table(result: AuditResult) -> list[str]:
     """The surviving noise model of each triad (SI, per axis)."""
     lines = [
-        "| triad | noise sd per sample | of it, colour: σ at τ (s) | level of long averages, colour (sd) | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | wander between positions (sd) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| triad | noise sd per sample | of it, colour: σ at τ (s) | level of long averages, colour (sd) | noise for averages (sd) | grid step | Gauss–Markov bias σ | its τ (s) | moves other axes | wander between positions (sd) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for t, m in result.extended_model.items():
         scale = reference_magnitude(t, result.gravity_mps2)
@@ -257,6 +257,12 @@ def _model_table(result: AuditResult) -> list[str]:
             f"{v:.3g}" if s > 0 else "–" for s, v in zip(m.gm_sigma_norm, m.gm_tau_s, strict=True)
         ]
         wander = [f"{v * scale:.3g}" if v > 0 else "–" for v in m.excess_sd_norm]
+        shared = ", ".join(
+            f"{AXES[i]} → {AXES[j]} × {m.gm_loading[j, i]:.2g}"
+            for i in range(3)
+            for j in range(3)
+            if i != j and m.gm_loading[j, i] != 0 and m.gm_sigma_norm[i] > 0
+        )
         step = "none" if m.quant_step_si is None else _fmt(list(m.quant_step_si))
         colour = "; ".join(
             " + ".join(f"{sd:.3g} at {tc:.3g}" for sd, tc in zip(sds, taus, strict=True) if sd > 0)
@@ -266,7 +272,7 @@ def _model_table(result: AuditResult) -> list[str]:
         lines.append(
             f"| {t.value} ({UNIT[t]}) | {_fmt(list(m.white_sd_si))} | {colour} | {_fmt(list(m.colour_level_sd_si))} | "
             f"{_fmt(list(m.mean_noise_sd_si))} | {step} | "
-            f"[{', '.join(gm)}] | [{', '.join(tau)}] | [{', '.join(wander)}] |"
+            f"[{', '.join(gm)}] | [{', '.join(tau)}] | {shared or '–'} | [{', '.join(wander)}] |"
         )
     return lines
 

@@ -432,6 +432,24 @@ def test_gauss_markov_bias_has_its_variance_and_correlation_time():
     np.testing.assert_allclose(lag1, phi, atol=5 * math.sqrt((1 - phi**2) / (600.0 * 20)))
 
 
+def test_gauss_markov_loading_moves_the_axes_its_column_names():
+    # One process on z whose column is (−0.5, 0, 1): x wanders by −0.5 times z's wander, y not at all.
+    loading = np.eye(3)
+    loading[0, 2] = -0.5
+    _, y, x = _static_error(
+        [
+            BiasInstability(
+                gm_sigma_si=(0.0, 0.0, 2e-3), gm_tau_s=(1.0, 1.0, 2.0), gm_loading=loading
+            )
+        ],
+        duration_s=30.0,
+    )
+    beta = y - x
+    assert np.std(beta[:, 2]) > 1e-4
+    np.testing.assert_allclose(beta[:, 0], -0.5 * beta[:, 2], atol=1e-15)
+    np.testing.assert_allclose(beta[:, 1], 0.0, atol=1e-15)
+
+
 def test_coloured_noise_sums_gauss_markov_terms_and_averages_down_as_they_say():
     # Axis x: two terms (20 ms and 0.2 s), y: one, z: none; 100 Hz for 400 s.
     sigma = np.array([[3e-3, 2e-3], [4e-3, 0.0], [0.0, 0.0]])

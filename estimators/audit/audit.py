@@ -100,6 +100,7 @@ from .statistics import (
     subset_table,
     triad_curves,
     triad_statistics,
+    with_batch_means,
     with_noise_cov,
 )
 
@@ -136,6 +137,8 @@ class TriadBaseline:
         0 in the baseline.
     gm_sigma_norm, gm_tau_s : (3,) the Gauss–Markov bias behind that wander (normalized sd, correlation
         time in s); sd 0 where none was named.
+    gm_loading : (3, 3) column ``i``: the sensor axes the wander of axis ``i`` moves (1 on its own axis; a
+        non-zero entry elsewhere is a wander common to both, :func:`estimators.audit.candidates.fit_loading`).
     colour_sigma_si, colour_tau_s : (3, m) the short-lag colour of the noise (:func:`estimators.noise.fit_noise_colour`):
         per-sample sd and correlation time of each Gauss–Markov term, SI and s; sd 0 for a term not selected.
         Part of ``white_sd_si``: the white part is the rest.
@@ -154,6 +157,7 @@ class TriadBaseline:
     excess_sd_norm: FloatArray = field(default_factory=lambda: np.zeros(3))
     gm_sigma_norm: FloatArray = field(default_factory=lambda: np.zeros(3))
     gm_tau_s: FloatArray = field(default_factory=lambda: np.ones(3))
+    gm_loading: FloatArray = field(default_factory=lambda: np.eye(3))
     colour_sigma_si: FloatArray = field(default_factory=lambda: np.zeros((3, 0)))
     colour_tau_s: FloatArray = field(default_factory=lambda: np.ones((3, 0)))
     colour_lr: FloatArray = field(default_factory=lambda: np.zeros((3, 0)))
@@ -172,6 +176,7 @@ class TriadBaseline:
             "excess_sd_norm": [float(v) for v in self.excess_sd_norm],
             "gm_sigma_norm": [float(v) for v in self.gm_sigma_norm],
             "gm_tau_s": [float(v) for v in self.gm_tau_s],
+            "gm_loading": [[float(v) for v in row] for row in self.gm_loading],
             "rounding_mean_sd_si": [float(v) for v in np.sqrt(self.rounding_mean_var_si)],
             "colour_sigma_si": [[float(v) for v in row] for row in self.colour_sigma_si],
             "colour_tau_s": [[float(v) for v in row] for row in self.colour_tau_s],
@@ -208,7 +213,8 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
     ``derive_lambda0`` divides the variance by ``n_avg`` (white noise). The
     Gauss–Markov bias of the audited model averages down only as
     ``σ²·V(T/τ)`` over a window of ``T = n_avg / rate`` (:func:`mean_variance_factor`),
-    so it enters as ``n_avg·σ²·V(T/τ)``; each colour term likewise as
+    so it enters as ``n_avg·σ²·V(T/τ)``, on every axis its loading moves
+    (``Σ_i L_ji² σ_i² V(T/τ_i)`` on axis ``j``); each colour term likewise as
     ``n_avg·σ_c²·V_n(φ)`` (:func:`estimators.noise.gm_mean_variance`):
     ``σ_eff² = σ_w² + n_avg·Σ σ_c² V_n(φ) + n_avg·σ_gm²·V(T/τ)``.
     """
@@ -218,7 +224,7 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
         (baseline.colour_sigma_si / reference) ** 2 * gm_mean_variance(phi, n_avg), axis=1
     )
     window_s = n_avg / baseline.rate_hz
-    wander = np.array(
+    wander = baseline.gm_loading**2 @ np.array(
         [
             s * s * float(mean_variance_factor(np.array([window_s]), float(t))[0])
             for s, t in zip(baseline.gm_sigma_norm, baseline.gm_tau_s, strict=True)
@@ -660,13 +666,27 @@ def quantization_candidate(triad: Triad, base: TriadBaseline, n_typical: float) 
 
 
 def candidate_table(
-    chain: ChainResult, session: ImuSession, triad: Triad, base: TriadBaseline
+    chain: ChainResult,
+    session: ImuSession,
+    triad: Triad,
+    base: TriadBaseline,
+    batch_s: float = NOISE_WINDOW_S,
 ) -> PositionTable:
-    """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages
-    and the rounding variance the baseline's grid leaves in every mean."""
-    tab = position_table(chain, triad_samples(session, triad), session.t_s, triad, session.temp_c)
+    """The position table of ``triad`` with the covariance of each mean from the baseline's noise for averages,
+    the rounding variance the baseline's grid leaves in every mean, and the means of its noise windows
+    (``batch_s``) with the variance of one from the baseline's white noise, colour and rounding alone."""
+    x = triad_samples(session, triad)
+    tab = position_table(chain, x, session.t_s, triad, session.temp_c)
     ref = reference_magnitude(triad, chain.gravity_mps2)
-    return with_noise_cov(tab, base.mean_noise_sd_si / ref, base.rounding_mean_var_si / ref**2)
+    tab = with_noise_cov(tab, base.mean_noise_sd_si / ref, base.rounding_mean_var_si / ref**2)
+    batch = max(1, round(batch_s * session.rate_hz))
+    # The per-sample rounding error that is not kept by a whole position's mean averages down like white noise.
+    rounding = (
+        np.zeros(3) if base.quant_step_si is None else base.quant_step_si**2 / 12.0
+    ) - base.rounding_mean_var_si
+    return with_batch_means(
+        tab, x, batch, ref, (base.colour_level_sd_si**2 + np.clip(rounding, 0.0, None)) / batch
+    )
 
 
 def find_candidates(
@@ -688,8 +708,12 @@ def find_candidates(
     g = chain.gravity_mps2
     triads = _present(session)
     gyro = Triad.GYRO in triads
-    tab_a = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
-    tab_g = candidate_table(chain, session, Triad.GYRO, baselines[Triad.GYRO]) if gyro else None
+    tab_a = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL], batch_s)
+    tab_g = (
+        candidate_table(chain, session, Triad.GYRO, baselines[Triad.GYRO], batch_s)
+        if gyro
+        else None
+    )
     n = tab_a.n_samples.size
     n_tests = count_tests(
         gyro,
@@ -767,8 +791,14 @@ def _fit_candidates(
             gyr = gyro_records(tab_g, tab_a.mean * g, n_tests)
         cands += gyr.candidates
         records += [gyr.between, gyr.halves]
+    tables = {Triad.ACCEL: tab_a} | ({} if tab_g is None else {Triad.GYRO: tab_g})
     var_cands, final = variance_candidates(
-        variance_effects(tab_g is not None), records, tab_a.duration_s, n_tests, batch_s
+        variance_effects(tab_g is not None),
+        records,
+        tab_a.duration_s,
+        n_tests,
+        batch_s,
+        tables=tables,
     )
     return cands + var_cands, records, final
 
@@ -900,7 +930,7 @@ def extend_model(
 
     Physical units of the simulator (:mod:`estimators.sim.errors`) from the
     candidates' normalized fits: a bias instability becomes a Gauss–Markov bias
-    per axis; temperature polynomials refer to the session's mean temperature.
+    per axis, moving the other axes it loads too; temperature polynomials refer to the session's mean temperature.
     """
     ext = model
     base = dict(baseline)
@@ -912,6 +942,7 @@ def extend_model(
     excess = {t: np.zeros(3) for t in Triad}
     gm_sigma = {t: np.zeros(3) for t in Triad}
     gm_tau = {t: np.ones(3) for t in Triad}
+    gm_loading = {t: np.eye(3) for t in Triad}
     for c in cands:
         if not c.selected:
             continue
@@ -921,6 +952,8 @@ def extend_model(
             excess[c.triad][i] = c.params["between_sd_norm"]
             gm_sigma[c.triad][i] = c.params["gm_sigma_norm"]
             gm_tau[c.triad][i] = c.params["gm_tau_s"]
+            for ax, lv in c.params.get("gm_loading", {}).items():
+                gm_loading[c.triad][AXES.index(ax), i] = lv
         elif c.effect == "bias_drift":
             drift[c.triad][i] = (
                 c.params["rate_norm_per_s"] * g
@@ -950,11 +983,18 @@ def extend_model(
     for t, b in list(base.items()):
         ref = g if t is Triad.ACCEL else EARTH_RATE_RPS
         base[t] = replace(
-            b, excess_sd_norm=excess[t], gm_sigma_norm=gm_sigma[t], gm_tau_s=gm_tau[t]
+            b,
+            excess_sd_norm=excess[t],
+            gm_sigma_norm=gm_sigma[t],
+            gm_tau_s=gm_tau[t],
+            gm_loading=gm_loading[t],
         )
         if np.any(gm_sigma[t] > 0):
             ext = ext.with_effect(
-                BiasInstability(gm_sigma_si=gm_sigma[t] * ref, gm_tau_s=gm_tau[t]), t
+                BiasInstability(
+                    gm_sigma_si=gm_sigma[t] * ref, gm_tau_s=gm_tau[t], gm_loading=gm_loading[t]
+                ),
+                t,
             )
         if np.any(drift[t]):
             ext = ext.with_effect(BiasDrift(drift[t][:, None]), t)

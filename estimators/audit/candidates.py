@@ -449,26 +449,132 @@ def gauss_markov_moments(
     return between, halves
 
 
+def batch_mean_covariance(n_batches: int, batch_s: float, tau_s: float) -> FloatArray:
+    """(n_b, n_b) covariance of consecutive ``batch_s`` means of a unit-variance Gauss–Markov process (time constant ``τ``).
+
+    ``V(b/τ)`` (:func:`mean_variance_factor`) on the diagonal; between batches ``d ≥ 1`` apart
+    ``(τ/b)² (1 − e^{−b/τ})² e^{−(d−1) b/τ}`` (the double integral of ``e^{−|t−s|/τ}`` over two
+    windows of length ``b``, ``d`` windows apart, over ``b²``).
+    """
+    d = np.abs(np.subtract.outer(np.arange(n_batches), np.arange(n_batches)))
+    x = batch_s / tau_s
+    off = (1.0 - np.exp(-x)) ** 2 / x**2 * np.exp(-(np.maximum(d, 1) - 1) * x)
+    out: FloatArray = np.where(d == 0, mean_variance_factor(np.array(batch_s), tau_s), off)
+    return out
+
+
+@dataclass(frozen=True)
+class BatchContrasts:
+    """Within-position contrasts of one axis' batch means, the third datum on a wander's correlation time.
+
+    Per group of positions with the same number of batches ``n_b``: an orthonormal basis ``Q`` (n_b, n_b − 2)
+    of the contrasts orthogonal to the position's mean and to its half-to-half difference (those two are the
+    other records' data), and the contrasts ``y = Qᵀ m`` (n, n_b − 2) of each position's batch means ``m``.
+    Under the noise alone each contrast has the variance ``noise_var`` of one batch mean (the noise's
+    correlation is far shorter than a batch); a Gauss–Markov bias of variance ``σ²`` adds
+    ``σ² Qᵀ C(τ) Q`` (:func:`batch_mean_covariance`).
+    """
+
+    groups: tuple[tuple[FloatArray, FloatArray], ...]
+    noise_var: float
+
+    @classmethod
+    def of_table(cls, tab: PositionTable, axis: int, rows: IntArray) -> BatchContrasts | None:
+        """The contrasts of sensor axis ``axis`` over table ``rows`` (single-interval positions with ≥ 3 batches);
+        None when ``tab`` carries no batch means or no position has a contrast."""
+        by_size: dict[int, list[FloatArray]] = {}
+        for k in rows if tab.batch_means else ():
+            m = tab.batch_means[k][:, axis]
+            if m.size >= 3 and np.isfinite(tab.halves[k, axis]):
+                by_size.setdefault(m.size, []).append(m)
+        if not by_size:
+            return None
+        groups = []
+        for nb, means in sorted(by_size.items()):
+            # The mean and the first-half-minus-second-half contrast (0 on an odd count's middle batch).
+            kept = np.column_stack([np.ones(nb), np.sign(nb - 1 - 2 * np.arange(nb))])
+            q = np.linalg.svd(kept, full_matrices=True)[0][:, 2:]
+            groups.append((q, np.array(means) @ q))
+        return cls(tuple(groups), float(tab.batch_var[axis]))
+
+    def data(self, tau_s: float, batch_s: float) -> VarianceData:
+        """The contrasts as independent scalars: in the eigenbasis ``U`` of each group's ``Qᵀ C(τ) Q`` (eigenvalues
+        ``λ``) the rotated contrasts ``Uᵀ y`` have the variances ``noise_var + σ² λ`` and no correlation."""
+        ys, weights = [], []
+        for q, y in self.groups:
+            lam, u = np.linalg.eigh(q.T @ batch_mean_covariance(q.shape[0], batch_s, tau_s) @ q)
+            ys.append((y @ u).ravel())
+            weights.append(np.tile(np.clip(lam, 0.0, None), y.shape[0]))
+        z, w = np.concatenate(ys), np.concatenate(weights)
+        return VarianceData(
+            z[:, None],
+            np.full((z.size, 1, 1), self.noise_var),
+            w[None, :, None, None],
+            np.arange(z.size),
+        )
+
+
 def fit_gauss_markov(
-    between: VarianceData, halves: VarianceData, length_s: FloatArray, batch_s: float
+    between: VarianceData,
+    halves: VarianceData,
+    length_s: FloatArray,
+    batch_s: float,
+    batches: BatchContrasts | None = None,
 ) -> tuple[float, float]:
-    """(σ², τ_s) of the Gauss–Markov bias of one axis that best explains both records.
+    """(σ², τ_s) of the Gauss–Markov bias of one axis that best explains the records.
 
     ``between`` and ``halves`` carry one free component each: the axis' weight
     per position for a unit excess that is the same at every position (the
     other components already folded into ``s0``). For a Gauss–Markov bias the
     excess of position ``k`` is ``σ²`` times :func:`gauss_markov_moments` of its
-    length. The time constant is profiled on a log grid from
-    :data:`GM_MIN_TAU_WINDOWS` noise windows to 30 position lengths; σ² is the
-    likelihood maximum at each.
+    length. Those two hardly tell the correlation time: a fast wander and a
+    slower, larger one leave similar variances between positions and between
+    their halves. ``batches`` (:class:`BatchContrasts`), the scatter of the
+    noise windows' means inside the positions beyond the noise's own, does: a
+    fast wander puts more of itself there. The likelihood is the sum over the
+    records (a composite likelihood: each record's own law is exact, the
+    correlation a wander induces between a position's records is left out).
+    The time constant is profiled on a log grid from :data:`GM_MIN_TAU_WINDOWS`
+    noise windows to 30 position lengths; σ² is the likelihood maximum at each.
     """
     best = (0.0, 1.0, np.inf)
     for tau in np.geomspace(GM_MIN_TAU_WINDOWS * batch_s, 30.0 * float(np.max(length_s)), 41):
         b_w, h_w = gauss_markov_moments(length_s, float(tau), batch_s)
-        theta, nll = fit_variance([between.scaled(b_w), halves.scaled(h_w)])
+        records = [between.scaled(b_w), halves.scaled(h_w)]
+        if batches is not None:
+            records.append(batches.data(float(tau), batch_s))
+        theta, nll = fit_variance(records)
         if nll < best[2]:
             best = (float(theta[0]), float(tau), nll)
     return best[0], best[1]
+
+
+LOADING_GRID = np.round(np.linspace(-1.0, 1.0, 81), 3)
+"""Loadings a wander is profiled over (:func:`fit_loading`): a common wander as large on another axis as on
+its own or larger would be that axis' wander."""
+
+
+def fit_loading(halves: VarianceData, axis: int, other: int) -> tuple[float, float]:
+    """(loading ``l``, likelihood ratio against ``l = 0``) of a wander of ``axis`` on sensor axis ``other``.
+
+    ``halves`` is the half-to-half record with the wander's own component
+    ``e_i e_iᵀ`` the one free component (the rest of the selected model in
+    ``s0``). A wander common to both axes moves the bias along ``v = e_i + l e_j``:
+    its component becomes ``v vᵀ``, whose off-diagonal ``l`` correlates the two
+    axes' half-to-half differences and whose ``l²`` adds to the other axis'
+    variance. ``l`` is profiled over :data:`LOADING_GRID`, the wander's
+    variance refitted at each; one degree of freedom.
+    """
+    _, nll0 = fit_variance([halves])
+    n = halves.y.shape[0]
+    best_l, best = 0.0, nll0
+    for lv in LOADING_GRID:
+        v = np.eye(3)[axis] + lv * np.eye(3)[other]
+        comp = np.broadcast_to(np.outer(v, v), (1, n, 3, 3))
+        nll = fit_variance([VarianceData(halves.y, halves.s0, comp, halves.rows)])[1]
+        if nll < best:
+            best_l, best = float(lv), nll
+    return best_l, 2.0 * (nll0 - best)
 
 
 # --- the candidates of each triad ---------------------------------------------
@@ -748,15 +854,22 @@ def variance_candidates(
     n_tests: int,
     batch_s: float,
     gyro_to_si: float = EARTH_RATE_RPS,
+    tables: dict[Triad, PositionTable] | None = None,
 ) -> tuple[list[Candidate], tuple[FloatArray, ...]]:
     """The variance candidates of :func:`select_variance`, with a Gauss–Markov fit for each selected ``bias_instability``,
     and the selected model's components per record.
+
+    ``tables`` (by triad, the rows the records index) lend the fit their batch means
+    (:class:`BatchContrasts`); without them it sees the two records alone.
 
     A ``bias_instability`` frees ``((between record, i), (halves record, i))``;
     ``nonstatic_positions`` the accelerometer halves' perpendicular component
     (and the gyro halves' isotropic one).
     """
     tests, selected, final = select_variance(effects, records, n_tests)
+    wanders = [k for k in selected if effects[k].name == "bias_instability"]
+    # The loadings tried are their own family, at the audit's family-wise rate (as the noise colour's terms).
+    loading_threshold = _threshold(1, 2 * len(wanders))
     out = []
     for k, e in enumerate(effects):
         t = tests[k]
@@ -791,7 +904,7 @@ def variance_candidates(
             continue
         (rb, i), (rh, _) = e.comps
         vb, vh = float(th[rb][i]), float(th[rh][i])
-        params = {
+        params: CandidateParams = {
             "between_sd_norm": float(np.sqrt(vb)),
             "between_var_se_norm2": variance_se_at_zero(records[rb], i),
             "within_halves_sd_norm": float(np.sqrt(vh)),
@@ -801,13 +914,22 @@ def variance_candidates(
         if k in selected:
             others_b = np.arange(final[rb].size) != i
             others_h = np.arange(final[rh].size) != i
+            tab = (tables or {}).get(e.triad)
             var, tau = fit_gauss_markov(
                 records[rb].with_fixed(final[rb], others_b),
                 records[rh].with_fixed(final[rh], others_h),
                 duration_s,
                 batch_s,
+                None if tab is None else BatchContrasts.of_table(tab, i, records[rh].rows),
             )
             params |= {"gm_sigma_norm": float(np.sqrt(var)), "gm_tau_s": tau}
+            own_halves = records[rh].with_fixed(final[rh], others_h)
+            loadings = {AXES[j]: fit_loading(own_halves, i, j) for j in range(3) if j != i}
+            params |= {
+                "gm_loading": {a: lv for a, (lv, lr) in loadings.items() if lr > loading_threshold},
+                "gm_loading_lr": {a: lr for a, (_, lr) in loadings.items()},
+                "gm_loading_threshold": loading_threshold,
+            }
         ax = AXES[i]
         out.append(
             Candidate(
@@ -821,7 +943,12 @@ def variance_candidates(
                 params,
                 k in selected,
                 f"{e.triad.value} {ax} bias wanders by sd {np.sqrt(vb):.3g} between positions (LR {t.lrs[rb]:.1f}) and adds sd {np.sqrt(vh):.3g} "
-                f"to the half-to-half differences (LR {t.lrs[rh]:.1f}), beyond white noise: LR {t.lr:.1f} (threshold {t.threshold:.1f})",
+                f"to the half-to-half differences (LR {t.lrs[rh]:.1f}), beyond white noise: LR {t.lr:.1f} (threshold {t.threshold:.1f})"
+                + "".join(
+                    f"; it moves {a} by {lv:.2g} of itself (LR {params['gm_loading_lr'][a]:.1f}, threshold "
+                    f"{params['gm_loading_threshold']:.1f})"
+                    for a, lv in params.get("gm_loading", {}).items()
+                ),
             )
         )
     return out, final

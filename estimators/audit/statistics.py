@@ -66,6 +66,9 @@ class PositionTable:
     grid_var : (3,) normalized variance of the rounding error every position mean keeps on a coarse
         grid (:func:`estimators.noise.rounding_mean_var`): in the means, not in ``cov`` (it does not
         average down, and both halves of a position share it, so their difference does not see it).
+    batch_means : per position, the (n_b, 3) normalized means of its consecutive noise windows (the chain's
+        batch length; the partial last one dropped), or empty when not read (:func:`with_batch_means`).
+    batch_var : (3,) normalized variance of one such batch mean from the noise alone, without any wander.
     """
 
     t_mid_s: FloatArray
@@ -78,6 +81,8 @@ class PositionTable:
     duration_s: FloatArray
     spans: IntArray
     grid_var: FloatArray = field(default_factory=lambda: np.zeros(3))
+    batch_means: tuple[FloatArray, ...] = ()
+    batch_var: FloatArray = field(default_factory=lambda: np.zeros(3))
 
 
 def position_span(position: Position) -> tuple[int, int]:
@@ -145,6 +150,20 @@ def with_noise_cov(
     return replace(tab, cov=cov, grid_var=grid)
 
 
+def with_batch_means(
+    tab: PositionTable, x_si: FloatArray, batch: int, reference: float, noise_var_si: FloatArray
+) -> PositionTable:
+    """``tab`` with the means of consecutive ``batch``-sample windows of every position (``x_si`` (N, 3), SI) and
+    the variance of one from the noise alone (``noise_var_si`` (3,), SI²), both normalized by ``reference``."""
+    means = tuple(
+        x_si[a : a + (b - a) // batch * batch].reshape(-1, batch, 3).mean(axis=1) / reference
+        for a, b in tab.spans
+    )
+    return replace(
+        tab, batch_means=means, batch_var=np.asarray(noise_var_si, float).reshape(3) / reference**2
+    )
+
+
 def subset_table(tab: PositionTable, keep: BoolArray) -> PositionTable:
     """The positions ``keep`` (bool (n,)) of ``tab``."""
     k = np.asarray(keep, bool)
@@ -163,6 +182,8 @@ def subset_table(tab: PositionTable, keep: BoolArray) -> PositionTable:
         tab.duration_s[k],
         tab.spans[k],
         tab.grid_var,
+        tuple(tab.batch_means[i] for i in np.flatnonzero(k)) if tab.batch_means else (),
+        tab.batch_var,
     )
 
 

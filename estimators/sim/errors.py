@@ -331,7 +331,10 @@ class BiasInstability(Effect):
 
     * Gauss–Markov: stationary, standard deviation ``gm_sigma_si``, correlation
       time ``gm_tau_s``: ``β_k = φ β_{k−1} + w_k``, ``φ = exp(−Δt/τ)``,
-      ``var w = σ²(1 − φ²)``, ``β_0`` drawn from the stationary law.
+      ``var w = σ²(1 − φ²)``, ``β_0`` drawn from the stationary law. Process
+      ``j`` moves the bias along column ``j`` of ``gm_loading`` (3, 3), the
+      identity by default (one process per axis): a process whose column has
+      other non-zero entries is a wander common to several axes.
     * Random walk: ``random_walk_si_per_sqrt_s`` (SI/√s, the rate random walk
       coefficient K): ``β_k = β_{k−1} + K √Δt n_k``, ``β_0 = 0``.
     * Flicker (1/f) noise of bias-instability coefficient ``flicker_si`` (B of
@@ -346,6 +349,7 @@ class BiasInstability(Effect):
     gm_tau_s: ArrayLike = (100.0,) * 3
     random_walk_si_per_sqrt_s: ArrayLike = (0.0,) * 3
     flicker_si: ArrayLike = (0.0,) * 3
+    gm_loading: ArrayLike = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     name: ClassVar[str] = "bias_instability"
     stage: ClassVar[int] = 33
 
@@ -355,6 +359,7 @@ class BiasInstability(Effect):
             object.__setattr__(self, f, values)
             if min(values) < 0:
                 raise ValueError(f"{f} must be non-negative, got {values!r}")
+        object.__setattr__(self, "gm_loading", _float_rows(self.gm_loading, (3, 3), "gm_loading"))
         if np.min(self.gm_tau_s) <= 0:
             raise ValueError(f"gm_tau_s must be positive, got {self.gm_tau_s!r}")
 
@@ -372,6 +377,7 @@ class BiasInstability(Effect):
             np.array(self.gm_tau_s, dtype=np.float64),
         )
         random_walk = np.array(self.random_walk_si_per_sqrt_s, dtype=np.float64)
+        loading = np.array(self.gm_loading, dtype=np.float64)
         if flicker.any():
             kasdin = np.cumprod(np.concatenate([[1.0], (np.arange(1, n) - 0.5) / np.arange(1, n)]))
             beta += fftconvolve(flicker[:, None] * white[2], kasdin[None, :], axes=1)[:, :n].T
@@ -380,7 +386,8 @@ class BiasInstability(Effect):
             if sigma > 0:
                 phi = np.exp(-dt / tau)
                 w = sigma * np.sqrt(1.0 - phi * phi) * white[0, i]
-                beta[:, i] += lfilter([1.0], [1.0, -phi], w, zi=[phi * sigma * start[i]])[0]
+                process = lfilter([1.0], [1.0, -phi], w, zi=[phi * sigma * start[i]])[0]
+                beta += process[:, None] * loading[:, i]
             k = float(random_walk[i])
             if k > 0:
                 steps = k * np.sqrt(dt) * white[1, i]
