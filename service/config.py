@@ -49,8 +49,15 @@ class ConfigError(ValueError):
     """The configuration cannot be used; one line per error, each naming the key and the value."""
 
     def __init__(self, *lines: str) -> None:
+        # A key from the file or a library's message may hold line breaks: each error stays one line.
+        lines = tuple(_one_line(line) for line in lines)
         super().__init__("\n".join(lines))
         self.lines = lines
+
+
+def _one_line(text: str) -> str:
+    """``text`` with its control characters written as escapes (``\\n``), as ``repr`` writes them."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 _BYTE_ID = (0, 255)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from test_positions import CFG, _assert_identical, _batched, _messy, _per_sample
@@ -379,6 +379,8 @@ config_tables = st.dictionaries(
 
 @FEW
 @given(config_tables)
+# A key with a line break once made a two-line error (found by this test).
+@example({"mavlink": {"raw_scale": {"\n": None}, "imu_index": {"a\rb": -1}}})
 def test_config_loader_gives_a_config_or_config_errors_one_per_line(raw):
     with tempfile.TemporaryDirectory() as tmp:
         try:
