@@ -6,7 +6,9 @@ Tasks of :meth:`Service.run`
   a bounded ring between Zenoh's thread and the loop; when it is full the
   oldest frame is dropped and counted) and, when configured, from MAVLink
   (:class:`protocols.mavlink_adapter.MavlinkSource`: the samples that arrive within
-  :data:`service.intake.COALESCE_WINDOW_S` of the first, one batch per IMU). Each
+  :data:`service.intake.COALESCE_WINDOW_S` of the first, one batch per IMU; the link is read and
+  parsed in a child process, :mod:`protocols.mavlink_process`, unless ``[mavlink] reader =
+  "thread"``). Each
   frame goes through its (vehicle, IMU) pipeline (:class:`service.intake.Intake`); the events it raises are written to the
   outbox in one transaction *before* any sink sees them. While the outbox cannot take them (disk
   full, file locked by another process) they are held in memory and retried, and no frame is taken
@@ -71,6 +73,7 @@ from protocols.events import (
     decode_event,
 )
 from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
+from protocols.mavlink_process import MavlinkProcessLink
 from protocols.zenoh_adapter import (
     FrameSource,
     Session,
@@ -81,7 +84,7 @@ from protocols.zenoh_adapter import (
 )
 from service.alert_policy import AlertPolicy
 from service.checkpoint import CheckpointError, CheckpointStore, CheckpointUnavailable
-from service.config import ServiceConfig
+from service.config import MavlinkReader, ServiceConfig
 from service.intake import COALESCE_MAX, COALESCE_WINDOW_S, Intake
 from service.log_setup import logger
 from service.notify import FramePathWatch, Notifier
@@ -289,8 +292,9 @@ class Service:
         if cfg.mavlink.enabled:
             m = cfg.mavlink.link
             log.info(
-                "mavlink %s: vehicle %s, autopilot system %s, signing %s",
+                "mavlink %s: vehicle %s, autopilot system %s, read in a %s, signing %s",
                 m.device, m.vehicle, "any" if m.autopilot_system is None else m.autopilot_system,
+                cfg.mavlink.reader.value,
                 "off" if m.signing_key is None else ("on, unsigned accepted" if m.accept_unsigned else "on"),
             )  # fmt: skip
         else:
@@ -409,6 +413,8 @@ class Service:
             extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
             extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
             extra["service.mavlink.reader_failures"] = self.mavlink_source.failures
+            if isinstance(self.mavlink_sink.link, MavlinkProcessLink):
+                extra["service.mavlink.reader_restarts"] = self.mavlink_sink.link.restarts
         extra.update(
             {f"service.passports.rejected.{k}": n for k, n in self.store.rejected_counts().items()}
         )
@@ -528,9 +534,8 @@ class Service:
                 vehicle, imu = key.rsplit("/", 1)
                 self.fleet.admit(vehicle, int(imu))
             if cfg.mavlink.enabled:
-                link = resources.enter_context(
-                    await asyncio.to_thread(MavlinkLink, cfg.mavlink.link)
-                )
+                link = await asyncio.to_thread(self._open_mavlink)
+                resources.callback(link.close)
                 policy = AlertPolicy(
                     min_interval_s=cfg.mavlink.alert_min_interval_s,
                     max_per_s=cfg.mavlink.alert_max_per_s,
@@ -668,6 +673,12 @@ class Service:
             log.warning(
                 "zenoh: connection lost; Zenoh reconnects by itself, events wait in the outbox"
             )
+
+    def _open_mavlink(self) -> MavlinkLink | MavlinkProcessLink:
+        m = self.config.mavlink
+        if m.reader is MavlinkReader.PROCESS:
+            return MavlinkProcessLink(m.link, gather_s=COALESCE_WINDOW_S)
+        return MavlinkLink(m.link)
 
     def _check_mavlink_reader(self) -> None:
         """Log the MAVLink reader thread's failures (it reads again after a pause)."""

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from protocols.events import Event
-from protocols.mavlink_adapter import MavlinkLink
+from protocols.mavlink_adapter import ImuLink
 from protocols.zenoh_adapter import (
     AckMode,
     EventPublisher,
@@ -54,7 +54,7 @@ class MavlinkAlertSink:
 
     name = "mavlink"
 
-    def __init__(self, link: MavlinkLink, *, policy: AlertPolicy, clock: Callable[[], float]):
+    def __init__(self, link: ImuLink, *, policy: AlertPolicy, clock: Callable[[], float]):
         self.link = link
         self.policy = policy
         self._clock = clock

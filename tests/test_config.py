@@ -12,7 +12,7 @@ import pytest
 from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
 from protocols.mavlink_adapter import MavlinkSettings
 from protocols.zenoh_adapter import AckMode, Mode, ZenohSettings
-from service.config import ConfigError, ServiceConfig, config_from_dict, load_config
+from service.config import ConfigError, MavlinkReader, ServiceConfig, config_from_dict, load_config
 
 
 def test_empty_document_gives_the_documented_defaults(tmp_path):
@@ -25,6 +25,7 @@ def test_empty_document_gives_the_documented_defaults(tmp_path):
     assert cfg.zenoh.frames_key == "ins/*/imu/*" and cfg.zenoh.event_ack is AckMode.RECEIVER
     assert cfg.pipeline.false_alarm_probability == 1e-9 and cfg.pipeline.min_positions == 9
     assert cfg.validity.cross_imu_accel_mps2 == 0.75
+    assert cfg.mavlink.reader is MavlinkReader.PROCESS
 
 
 def test_file_values_types_and_relative_paths(tmp_path):
@@ -78,6 +79,10 @@ stale_run_samples = 50
         ({"zenoh": {"connect": "tcp/x:1"}}, r"\[zenoh\] zenoh connect must be a list of endpoints"),
         ({"zenoh": {"conect": []}}, r"\[zenoh\] unknown zenoh setting"),
         ({"zenoh": {"event_ack": "maybe"}}, r"event_ack must be one of"),
+        (
+            {"mavlink": {"reader": "fork"}},
+            r"\[mavlink\] reader must be one of \['process', 'thread'\]",
+        ),
         ({"zenoh": {"frames_key": "imu/**"}}, r"frames_key must be under 'ins/'"),
         ({"zenoh": {"enabled": False}}, r"neither \[zenoh\] nor \[mavlink\]"),
         ({"site": {"gravity_mps2": 1.62}}, r"not a value on the Earth"),

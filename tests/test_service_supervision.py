@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import signal
 import socket
 import sqlite3
@@ -295,3 +296,34 @@ def test_a_failed_mavlink_read_is_logged_and_counted_and_reading_resumes(tmp_pat
         )
     (record,) = [r for r in caplog.records if "the MAVLink reader failed" in r.getMessage()]
     assert record.exc_info is not None and "returned no data" in str(record.exc_info[1])
+
+
+def test_a_killed_mavlink_reader_process_is_logged_counted_and_replaced(tmp_path, caplog):
+    """The child process that reads the link (``[mavlink] reader = "process"``, the default) is killed:
+    the service logs and counts it, starts another, and reads the IMU messages sent afterwards."""
+    udp = free_udp_port()
+    cfg = service_config(tmp_path, port=None, passport_dir=put_store(tmp_path, []),
+                         mavlink={"enabled": True, "device": f"udpin:127.0.0.1:{udp}", "vehicle": "mav1"})  # fmt: skip
+    packets = mavlink_packets(unit()[2].session, ImuMessage.SCALED_IMU)[:50]
+    with caplog.at_level(logging.ERROR, logger="ins_health"), ServiceThread(cfg) as svc:
+        source = svc.service.mavlink_source
+        link = source.link
+        first = link.pid
+        assert first is not None
+        os.kill(first, signal.SIGKILL)
+        wait_until(lambda: source.failures == 1, timeout_s=30, what="the ended reader counted")
+        wait_until(lambda: link.restarts == 1 and link.pid not in (None, first), timeout_s=30,
+                   what="another reader process started")  # fmt: skip
+        peer = use_mavlink2(
+            mavutil.mavlink_connection(
+                f"udpout:127.0.0.1:{udp}", source_system=1, source_component=1
+            )
+        )
+        try:
+            peer.write(b"".join(packets))
+            wait_until(lambda: link.counters.messages == len(packets), timeout_s=30,
+                       what="the messages sent after the restart read")  # fmt: skip
+        finally:
+            peer.close()
+    (record,) = [r for r in caplog.records if "the MAVLink reader failed" in r.getMessage()]
+    assert record.exc_info is not None and "exit code -9" in str(record.exc_info[1])

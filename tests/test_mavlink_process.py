@@ -1,0 +1,240 @@
+"""The MAVLink link read in a child process (protocols.mavlink_process): same batches, counters and
+alerts as the in-process link; a child that dies is said once and replaced; it never outlives the service."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from service_support import free_udp_port, mavlink_packets, receive_until, wait_until
+
+from estimators.conventions import Cause, Triad
+from estimators.diagnosis import Finding
+from estimators.sim import simulate, static_spec
+from protocols.events import Severity, event_from_finding
+from protocols.mavlink_adapter import (
+    ImuBatcher,
+    ImuMessage,
+    LinkCounters,
+    LinkRejection,
+    MavlinkSettings,
+    alert_text,
+    use_mavlink2,
+)
+from protocols.mavlink_process import (
+    MavlinkProcessLink,
+    ReaderProcessEnded,
+    ReaderProcessFailed,
+)
+from service.sinks import TRANSPORT_ERRORS
+
+pytestmark = pytest.mark.network
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def session():
+    return simulate(static_spec(duration_s=0.4, rate_hz=1000.0), seed=4).session
+
+
+@pytest.fixture
+def linked():
+    """A process link on a fresh UDP port and an autopilot peer sending to it."""
+    port = free_udp_port()
+    link = MavlinkProcessLink(
+        MavlinkSettings(device=f"udpin:127.0.0.1:{port}", vehicle="v1"), gather_s=0.005
+    )
+    peer = use_mavlink2(
+        mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    )
+    try:
+        yield link, peer
+    finally:
+        peer.close()
+        link.close()
+
+
+def read_samples(link, n, *, timeout_s=20.0):
+    """Batches from ``link`` until they hold ``n`` samples."""
+    got = []
+    deadline = time.monotonic() + timeout_s
+    while sum(b.n_samples for b in got) < n:
+        assert time.monotonic() < deadline, f"{sum(b.n_samples for b in got)} of {n} samples read"
+        got += link.read(0.1)
+    return got
+
+
+def reading_until(link, done, *, timeout_s=10.0):
+    """Read (the child's counters come in with what is read) until ``done()``."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        assert time.monotonic() < deadline, f"not done after {timeout_s} s: {link.counters}"
+        link.read(0.05)
+
+
+def send_each(peer, packets):
+    """One datagram per packet, as a serial-to-UDP bridge forwards them."""
+    for p in packets:
+        peer.write(p)
+
+
+def test_batches_counters_and_alerts_are_the_in_process_links(linked, session):
+    link, peer = linked
+    packets = {
+        kind: mavlink_packets(session, kind, imu_id=2)
+        for kind in (ImuMessage.HIGHRES_IMU, ImuMessage.SCALED_IMU2)
+    }
+    send_each(peer, packets[ImuMessage.HIGHRES_IMU][:200])
+    peer.write(b"\x00\x01\x02junk")
+    send_each(peer, packets[ImuMessage.SCALED_IMU2][:100])
+    batches = read_samples(link, 300)
+
+    # The same bytes through the in-process batcher: the same values to the bit.
+    expected = ImuBatcher(link.settings, LinkCounters())
+    parser = mavlink2.MAVLink(None)
+    for p in [*packets[ImuMessage.HIGHRES_IMU][:200], *packets[ImuMessage.SCALED_IMU2][:100]]:
+        expected.add(parser.parse_buffer(p))
+    want = {b.imu: b for b in expected.take()}
+    for imu, ref in want.items():
+        mine = [b for b in batches if b.imu == imu]
+        assert [b.seq for b in mine] == list(range(len(mine)))
+        for name in ("t_s", "accel_mps2", "gyro_rps"):
+            got = np.concatenate([getattr(b, name) for b in mine])
+            np.testing.assert_array_equal(got, getattr(ref, name))
+        assert all(not b.t_s.flags.writeable for b in mine)
+    assert sorted(want) == [1, 2]  # SCALED_IMU2 is IMU 1; HIGHRES_IMU id 2 is IMU 2
+    reading_until(link, lambda: link.counters.rejected.get(LinkRejection.GARBAGE_BYTES) == 7)
+    assert link.counters.messages == 300
+    assert link.counters.imu_samples == {"HIGHRES_IMU": 200, "SCALED_IMU2": 100}
+
+    finding = Finding("F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR, 2.1e-3, 0.0, 1.0e-3, 1.0e-4)
+    event = event_from_finding(finding, vehicle="v1", imu=2, t_s=0.2)
+    link.send_heartbeat()
+    assert link.send_alert(event) == alert_text(event)
+    assert link.send_text("x" * 120, Severity.INFO) == 3
+    got = receive_until(
+        peer,
+        ["HEARTBEAT", "STATUSTEXT"],
+        lambda ms: len(ms) >= 5,
+        timeout_s=10,
+        what="the heartbeat, the alert and the long text",
+    )
+    texts = [m for m in got if m.get_type() == "STATUSTEXT"]
+    assert texts[0].text == alert_text(event) and texts[0].severity == event.severity
+    assert "".join(m.text for m in texts[1:]) == "x" * 120
+    wait_until(
+        lambda: (
+            (link.counters.alerts_sent, link.counters.heartbeats_sent, link.counters.texts_sent)
+            == (1, 1, 3)
+        ),
+        timeout_s=10,
+        what=lambda: f"the sends counted: {link.counters}",
+    )
+
+
+def test_a_killed_child_is_said_once_replaced_and_numbering_and_counters_go_on(linked, session):
+    link, peer = linked
+    packets = mavlink_packets(session, ImuMessage.HIGHRES_IMU)
+    send_each(peer, packets[:100])
+    before = read_samples(link, 100)
+    first = link.pid
+    os.kill(first, signal.SIGKILL)
+    with pytest.raises(ReaderProcessEnded, match="exit code -9"):
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            link.read(0.1)
+    # A sink's transport error: the event stays in the outbox and is retried.
+    with pytest.raises(TRANSPORT_ERRORS):
+        link.send_heartbeat()
+    assert link.read(0.1) == [] and link.restarts == 1 and link.pid not in (None, first)
+    send_each(peer, packets[100:250])
+    after = read_samples(link, 150)
+    assert [b.seq for b in [*before, *after]] == list(range(len(before) + len(after)))
+    np.testing.assert_array_equal(
+        np.concatenate([b.t_s for b in after]),
+        np.round(session.t_s[100:250] * 1e6) * 1e-6,
+    )
+    assert link.counters.messages == 250
+    link.send_heartbeat()
+    assert link.counters.heartbeats_sent == 1
+
+
+def test_sigterm_to_the_group_leaves_the_child_to_the_service_and_close_ends_it(linked, session):
+    link, peer = linked
+    child = link.pid
+    # systemd signals every process of the unit: the child goes on until the service closes it.
+    os.kill(child, signal.SIGTERM)
+    send_each(peer, mavlink_packets(session, ImuMessage.HIGHRES_IMU)[:50])
+    read_samples(link, 50)
+    assert link.pid == child
+    t0 = time.monotonic()
+    link.close()
+    assert time.monotonic() - t0 < 5.0
+    assert not Path(f"/proc/{child}").exists() or _zombie(child)
+    assert link.read(0.1) == []
+
+
+def _zombie(pid):
+    return Path(f"/proc/{pid}/stat").read_text().split()[2] == "Z"
+
+
+def test_a_device_that_cannot_be_opened_is_one_error_naming_it_and_no_child_is_left():
+    children = _children()
+    with pytest.raises(ReaderProcessFailed, match=r"/dev/ins-health-no-such-port: SerialException"):
+        MavlinkProcessLink(MavlinkSettings(device="/dev/ins-health-no-such-port", vehicle="v1"))
+    assert _children() == children
+
+
+def _children():
+    me = str(os.getpid())
+    return {
+        p.name
+        for p in Path("/proc").iterdir()
+        if p.name.isdigit() and (p / "stat").exists() and _field(p, 3) == me and _field(p, 2) != "Z"
+    }
+
+
+def _field(proc_dir, k):
+    try:
+        return (proc_dir / "stat").read_text().rsplit(")", 1)[1].split()[k - 2]
+    except (OSError, IndexError):
+        return None
+
+
+def test_the_child_ends_when_the_service_is_killed(tmp_path):
+    port = free_udp_port()
+    script = textwrap.dedent(
+        f"""
+        import sys, time
+        from protocols.mavlink_adapter import MavlinkSettings
+        from protocols.mavlink_process import MavlinkProcessLink
+        link = MavlinkProcessLink(MavlinkSettings(device="udpin:127.0.0.1:{port}", vehicle="v1"))
+        print(link.pid, flush=True)
+        time.sleep(60)
+        """
+    )
+    service = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert service.stdout is not None
+        child = int(service.stdout.readline())
+        service.kill()
+        service.wait(10)
+        wait_until(
+            lambda: not Path(f"/proc/{child}").exists() or _zombie(child),
+            timeout_s=10,
+            what="the orphaned reader to end",
+        )
+    finally:
+        service.kill()
+        service.wait(10)
