@@ -106,6 +106,17 @@ def sample_noise_sd(x: FloatArray, window: int) -> FloatArray:
     x : (N,) or (N, k) samples of one static interval, any unit.
     window : moving-mean length, samples (≥ 2, ≤ N).
     """
+    out: FloatArray = np.sqrt(np.diag(sample_noise_cov(x, window)))
+    return out
+
+
+def sample_noise_cov(x: FloatArray, window: int) -> FloatArray:
+    """(k, k) per-sample noise covariance between the columns about a centred moving mean of ``window`` samples.
+
+    :func:`sample_noise_sd` is the root of its diagonal; the off-diagonal terms are the noise the
+    axes share at the same sample, which a statistic of several axes at once sees (F0 projects the
+    noise on the gravity direction: ``uᵀ Σ u``). Same arguments as :func:`sample_noise_sd`, any unit².
+    """
     a = np.asarray(x, dtype=float)
     if a.ndim == 1:
         a = a[:, None]
@@ -114,9 +125,9 @@ def sample_noise_sd(x: FloatArray, window: int) -> FloatArray:
         raise ValueError(f"window must be within [2, {n}] samples, got {window}")
     c = np.vstack([np.zeros((1, a.shape[1])), np.cumsum(a - a.mean(axis=0), axis=0)])
     moving = (c[window:] - c[:-window]) / window
-    centre = a[window // 2 : window // 2 + moving.shape[0]] - a.mean(axis=0)
-    var: FloatArray = np.mean((centre - moving) ** 2, axis=0)
-    return np.sqrt(var / (1.0 - 1.0 / window))
+    d = a[window // 2 : window // 2 + moving.shape[0]] - a.mean(axis=0) - moving
+    cov: FloatArray = d.T @ d / d.shape[0]
+    return cov / (1.0 - 1.0 / window)
 
 
 def batch_means_sd(records: list[FloatArray], batch: int) -> FloatArray:

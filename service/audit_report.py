@@ -229,18 +229,31 @@ def _where(triad: str, axis: str | None) -> str:
 
 
 def _statistics_table(result: AuditResult) -> list[str]:
-    """Measured statistics against both simulations: ratio (measured / median) and tail (replicas ≥ measured)."""
+    """Measured statistics against both simulations: ratio (measured / median) and tail (replicas ≥ measured).
+
+    The extended comparison's measured value is its own where it leaves positions out (both sides alike).
+    """
     ext = {(c.triad, c.statistic, c.axis): c for c in result.extended_cmp}
     lines = [
-        "| triad | statistic | axis | measured | baseline ratio | baseline tail | extended ratio | extended tail | extended inside 5–95 % |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| triad | statistic | axis | measured | baseline ratio | baseline tail | measured, extended comparison | extended ratio | extended tail | extended inside 5–95 % |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in result.baseline_cmp:
         e = ext.get((c.triad, c.statistic, c.axis), c)
+        without = (
+            f" (without {', '.join(f'#{k}' for k in e.positions_left_out)})"
+            if e.positions_left_out
+            else ""
+        )
         lines.append(
             f"| {c.triad.value} | {c.statistic} | {c.axis or ''} | {c.measured:.3g} | {c.ratio:.2f} | {c.tail_prob:.2f} | "
-            f"{e.ratio:.2f} | {e.tail_prob:.2f} | {'yes' if e.inside else 'no'} |"
+            f"{e.measured:.3g}{without} | {e.ratio:.2f} | {e.tail_prob:.2f} | {'yes' if e.inside else 'no'} |"
         )
+    if result.left_out:
+        lines += [
+            "",
+            f"Extended comparison: {result.left_out_reason}. The baseline's keeps every position.",
+        ]
     return lines
 
 

@@ -11,6 +11,7 @@ from estimators.noise import (
     gm_mean_variance,
     overlapping_allan_deviation,
     quantization_step,
+    sample_noise_cov,
     sample_noise_sd,
     white_noise_sd,
 )
@@ -53,6 +54,21 @@ def test_default_cluster_sizes_are_log_spaced_and_stay_within_a_quarter_of_the_r
     ad = overlapping_allan_deviation(np.random.default_rng(3).standard_normal(1000), RATE_HZ)
     m = np.round(ad.tau_s * RATE_HZ).astype(int)
     assert m[0] == 1 and m[-1] <= 250 and np.all(np.diff(m) > 0)
+
+
+def test_sample_noise_cov_reads_the_axes_correlation_under_a_slow_wander():
+    rng = np.random.default_rng(6)
+    n, rho = 20_000, -0.4
+    z = rng.standard_normal((n, 2)) @ np.linalg.cholesky([[1.0, rho], [rho, 1.0]]).T
+    slow = 0.05 * np.sin(
+        2 * np.pi * 0.05 * np.arange(n) / RATE_HZ
+    )  # common to both axes: +1 correlation
+    x = 0.01 * z * [1.0, 2.0] + slow[:, None]
+    cov = sample_noise_cov(x, 50)
+    # A sample correlation has sd (1 − ρ²)/√n: 4 of them; the wander (5× the noise) would push it towards +1.
+    assert abs(cov[0, 1] / np.sqrt(cov[0, 0] * cov[1, 1]) - rho) < 4.0 * (1 - rho**2) / np.sqrt(n)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), sample_noise_sd(x, 50), rtol=1e-12)
+    assert np.corrcoef(x.T)[0, 1] > 0.5
 
 
 def test_sample_noise_sd_ignores_a_slow_wander_but_keeps_the_white_level():

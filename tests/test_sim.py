@@ -335,6 +335,37 @@ def test_white_noise_has_the_stated_standard_deviation():
     np.testing.assert_allclose((y - x).std(axis=0), sd, rtol=5.0 / math.sqrt(2 * n))
 
 
+def test_white_and_coloured_noise_carry_the_axes_correlation_and_keep_each_axis_level():
+    # x–y correlation −0.4, x–z +0.2 (the Xsens accelerometers' x–y noise correlates at −0.35); one colour term
+    # with the same τ on every axis, so its outputs have the drivers' correlation at the same sample.
+    corr = np.array([[1.0, -0.4, 0.2], [-0.4, 1.0, 0.0], [0.2, 0.0, 1.0]])
+    sd = np.array([1e-3, 2e-3, 5e-3])
+    sigma, tau = np.array([[2e-3], [1e-3], [3e-3]]), np.full((3, 1), 0.05)
+    for effect, n_eff in (
+        (WhiteNoise.from_sample_sd(sd, 100.0, corr), 30_000.0),
+        (
+            ColouredNoise(sigma, tau, corr),
+            30_000.0 / 10.0,
+        ),  # independent stretches of 2τ = 10 samples
+    ):
+        _, y, x = _static_error([effect], duration_s=300.0, seed=5)
+        c = y - x
+        level = sd if isinstance(effect, WhiteNoise) else sigma[:, 0]
+        # A sample correlation has sd (1 − ρ²)/√n, a sample sd a relative sd 1/√(2n): 5 of each.
+        np.testing.assert_array_less(
+            np.abs(np.corrcoef(c.T) - corr), 5.0 * (1.0 - corr**2) / np.sqrt(n_eff) + 1e-12
+        )
+        np.testing.assert_allclose(c.std(axis=0), level, rtol=5.0 / np.sqrt(2.0 * n_eff))
+    # Without a correlation the generator's draws are used unchanged (seeded sessions stay as they were).
+    _, y0, _ = _static_error([WhiteNoise.from_sample_sd(sd, 100.0)], seed=5)
+    _, y1, _ = _static_error([WhiteNoise.from_sample_sd(sd, 100.0, np.eye(3))], seed=5)
+    np.testing.assert_array_equal(y0, y1)
+    with pytest.raises(ValueError, match="positive definite"):
+        WhiteNoise(correlation=[[1.0, 0.9, -0.9], [0.9, 1.0, 0.9], [-0.9, 0.9, 1.0]])
+    with pytest.raises(ValueError, match="unit diagonal"):
+        ColouredNoise(sigma, tau, 2.0 * np.eye(3))
+
+
 def test_white_noise_density_scales_with_the_rate():
     eff = WhiteNoise((1e-3,) * 3)
     np.testing.assert_allclose(eff.sample_sd(400.0), 2.0 * eff.sample_sd(100.0))

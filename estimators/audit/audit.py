@@ -43,7 +43,7 @@ from estimators.noise import (
     gm_mean_variance,
     quantization_step,
     rounding_mean_var,
-    sample_noise_sd,
+    sample_noise_cov,
 )
 from estimators.scalar import derive_lambda0, f0_batch
 from estimators.session import ImuSession, validate_session
@@ -86,6 +86,7 @@ from .candidates import (
     variance_effects,
 )
 from .statistics import (
+    INSIDE_POSITION_STATISTICS,
     MIN_POSITIONS,
     Comparison,
     PositionTable,
@@ -144,6 +145,9 @@ class TriadBaseline:
         Part of ``white_sd_si``: the white part is the rest.
     colour_lr : (3, m) the likelihood ratio with which each term joined (0: not selected); its threshold
         is :func:`colour_threshold`.
+    noise_correlation : (3, 3) correlation of the axes' per-sample noise at the same sample, white and colour
+        alike (on a grid, of the output: the rounding, independent per axis, dilutes it by its share of the
+        variance). F0 sees it: it projects the noise on the gravity direction, ``uᵀ Σ u``.
     scalar_resolved : the chain resolved all nine parameters against the triad's reference (always for
         the accelerometers the audit goes on with; for a gyro, navigation grade: :func:`grade_path`).
     resolution_reason : the chain's observability verdict, one line.
@@ -161,6 +165,7 @@ class TriadBaseline:
     colour_sigma_si: FloatArray = field(default_factory=lambda: np.zeros((3, 0)))
     colour_tau_s: FloatArray = field(default_factory=lambda: np.ones((3, 0)))
     colour_lr: FloatArray = field(default_factory=lambda: np.zeros((3, 0)))
+    noise_correlation: FloatArray = field(default_factory=lambda: np.eye(3))
     scalar_resolved: bool = True
     resolution_reason: str = ""
 
@@ -181,6 +186,7 @@ class TriadBaseline:
             "colour_sigma_si": [[float(v) for v in row] for row in self.colour_sigma_si],
             "colour_tau_s": [[float(v) for v in row] for row in self.colour_tau_s],
             "colour_lr": [[float(v) for v in row] for row in self.colour_lr],
+            "noise_correlation": [[float(v) for v in row] for row in self.noise_correlation],
         }
 
     @property
@@ -282,13 +288,16 @@ def fit_baseline(
         )
     # Pooled over positions, weighted by their sample counts: each position's own mean and slow wander drop out.
     n = np.array([b - a for a, b in usable], float)
-    sd = np.sqrt(
+    cov = (
         np.sum(
-            [k * sample_noise_sd(x[a:b], window) ** 2 for k, (a, b) in zip(n, usable, strict=True)],
+            [k * sample_noise_cov(x[a:b], window) for k, (a, b) in zip(n, usable, strict=True)],
             axis=0,
         )
         / n.sum()
     )
+    sd = np.sqrt(np.diag(cov))
+    # An axis frozen on one count has no noise to correlate: its row is 0 and its diagonal stays 1.
+    correlation = cov / np.maximum(np.outer(sd, sd), 1e-300) + np.diag(sd == 0)
     mean_sd = batch_means_sd([x[a:b] for a, b in usable], window)
     static = x[static_mask(x.shape[0], np.array(spans))]
     steps = [quantization_step(static[:, i]) for i in range(3)]
@@ -332,6 +341,7 @@ def fit_baseline(
                 "colour_lr": fit.lr,
             }
         ),
+        noise_correlation=correlation,
         scalar_resolved=resolved,
         resolution_reason=est.reason,
     )
@@ -382,16 +392,19 @@ def grade_path(
 
 
 def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
-    """The simulator chain of a baseline (non-orthogonality, scale, bias, white and coloured noise, quantization)."""
+    """The simulator chain of a baseline (non-orthogonality, scale, bias, white and coloured noise with the axes'
+    correlation, quantization)."""
     p = base.params
     effects = [
         NonOrthogonality(_angles_from_cosines(p[6:9])),
         ScaleFactor(p[3:6]),
         Bias(p[:3] * reference),
     ]
-    effects.append(WhiteNoise.from_sample_sd(base.white_only_sd_si, 1.0))
+    effects.append(WhiteNoise.from_sample_sd(base.white_only_sd_si, 1.0, base.noise_correlation))
     if np.any(base.colour_sigma_si > 0):
-        effects.append(ColouredNoise(base.colour_sigma_si, base.colour_tau_s))
+        effects.append(
+            ColouredNoise(base.colour_sigma_si, base.colour_tau_s, base.noise_correlation)
+        )
     if base.quant_step_si is not None:
         effects.append(Quantization(base.quant_step_si, Rounding.NEAREST))
     return TriadErrorModel(tuple(effects))
@@ -408,18 +421,7 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
     the gap in between.
     """
     attitudes, latitude_deg = measured_attitudes(chain)
-    trim = 2.0 * 0.25
-    hold = np.array([p.duration_s for p in chain.positions]) + trim
-    gaps = (
-        np.array(
-            [
-                b.t_start_s - a.t_end_s
-                for a, b in zip(chain.positions[:-1], chain.positions[1:], strict=True)
-            ]
-        )
-        - trim
-    )
-    turns = np.clip(gaps, 0.5, None)
+    hold, turns = simulated_timing(chain)
     profile = multi_position_profile(attitudes, static_s=hold, transition_s=turns)
     # White noise density is per √Hz: scale the per-sample level to the session's rate.
     rate = session.rate_hz
@@ -436,6 +438,31 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
         temperature=replayed_temperature(chain, session, hold, turns),
         latitude_deg=latitude_deg,
     )
+
+
+def simulated_timing(chain: ChainResult) -> tuple[FloatArray, FloatArray]:
+    """(P,) hold and (P − 1,) turn lengths, s, of the simulated twin of the chain's positions.
+
+    Each hold is the averaged span plus the chain's trims, each turn the gap in between (at least 0.5 s).
+    """
+    trim = 2.0 * 0.25
+    hold = np.array([p.duration_s for p in chain.positions]) + trim
+    gaps = (
+        np.array(
+            [
+                b.t_start_s - a.t_end_s
+                for a, b in zip(chain.positions[:-1], chain.positions[1:], strict=True)
+            ]
+        )
+        - trim
+    )
+    return hold, np.clip(gaps, 0.5, None)
+
+
+def simulated_hold_starts_s(hold_s: FloatArray, turn_s: FloatArray) -> FloatArray:
+    """(P,) start of each simulated hold, s from the simulated session's start (the profile begins with one)."""
+    out: FloatArray = np.concatenate([[0.0], np.cumsum(hold_s[:-1] + turn_s)])
+    return out
 
 
 def measured_attitudes(chain: ChainResult) -> tuple[np.ndarray, float]:
@@ -481,7 +508,7 @@ def replayed_temperature(
     temp_c = session.temp_c
     if temp_c is None:
         return None
-    start_sim = np.concatenate([[0.0], np.cumsum(hold_s[:-1] + turn_s)])
+    start_sim = simulated_hold_starts_s(hold_s, turn_s)
     start_meas = np.array([p.t_start_s for p in chain.positions]) - 0.5 * (
         hold_s - np.array([p.duration_s for p in chain.positions])
     )
@@ -499,13 +526,26 @@ def _at_rate(chain: TriadErrorModel, rate_hz: float) -> TriadErrorModel:
     wn = chain.find(WhiteNoise)
     if wn is None:
         return chain
-    return chain.with_effect(WhiteNoise(np.array(wn.density_si_per_sqrt_hz) / np.sqrt(rate_hz)))
+    return chain.with_effect(
+        replace(wn, density_si_per_sqrt_hz=np.array(wn.density_si_per_sqrt_hz) / np.sqrt(rate_hz))
+    )
 
 
 def replica_statistics(
-    spec: SessionSpec, config: ChainConfig, triads: tuple[Triad, ...], replicas: int, seed: int
+    spec: SessionSpec,
+    config: ChainConfig,
+    triads: tuple[Triad, ...],
+    replicas: int,
+    seed: int,
+    left_out_s: FloatArray | None = None,
 ) -> tuple[dict[Triad, list[dict[str, float]]], dict[Triad, list[TriadCurves]]]:
-    """Statistics and plotted curves of ``replicas`` simulated sessions, per triad."""
+    """Statistics and plotted curves of ``replicas`` simulated sessions, per triad.
+
+    ``left_out_s`` (m, 2): simulated holds ``[start, end)``, s from the session's start, whose positions the
+    statistics inside a position leave out (:func:`triad_statistics`' ``described``): a replica position
+    is matched to its measured twin by the hold its middle falls in, not by its index, which a position the
+    replica's static detector splits or misses would shift.
+    """
     stats: dict[Triad, list[dict[str, float]]] = {t: [] for t in triads}
     curves: dict[Triad, list[TriadCurves]] = {t: [] for t in triads}
     for r in range(replicas):
@@ -514,9 +554,15 @@ def replica_statistics(
         if Triad.GYRO not in triads:
             s = ImuSession(s.t_s, s.accel_mps2, None, s.temp_c)
         chain = run_chain(s, config)
+        described = None
+        if left_out_s is not None:
+            mid = np.array([0.5 * (p.t_start_s + p.t_end_s) for p in chain.positions]) - s.t_s[0]
+            described = ~np.any(
+                (mid[:, None] >= left_out_s[:, 0]) & (mid[:, None] < left_out_s[:, 1]), axis=1
+            )
         for t in triads:
             x = triad_samples(s, t)
-            stats[t].append(triad_statistics(chain, x, s.t_s, t, s.rate_hz))
+            stats[t].append(triad_statistics(chain, x, s.t_s, t, s.rate_hz, described))
             curves[t].append(triad_curves(chain, x, s.t_s, t, s.rate_hz))
     return stats, curves
 
@@ -535,7 +581,9 @@ class AuditResult:
     """Everything the audit found (``to_dict`` is the JSON of the ``audit`` command).
 
     ``replica_stats`` / ``replica_curves``: ``{"baseline" | "extended": {Triad: [per replica]}}``;
-    ``measured_stats`` / ``measured_curves``: ``{Triad: ...}`` (curves: :class:`TriadCurves`, for the report).
+    ``measured_stats``: ``{"baseline" | "extended": {Triad: ...}}`` (the extended model's without the
+    ``left_out`` positions, see :func:`left_out_positions`); ``measured_curves``: ``{Triad: ...}``
+    (:class:`TriadCurves`, for the report).
     """
 
     statements: list[str]
@@ -550,10 +598,13 @@ class AuditResult:
     replicas: int = 0
     # Per model ("baseline", "extended"), per triad: the replicas' statistics and curves.
     replica_stats: dict[str, dict[Triad, list[dict[str, float]]]] = field(default_factory=dict)
-    measured_stats: dict[Triad, dict[str, float]] = field(default_factory=dict)
+    measured_stats: dict[str, dict[Triad, dict[str, float]]] = field(default_factory=dict)
     replica_curves: dict[str, dict[Triad, list[TriadCurves]]] = field(default_factory=dict)
     measured_curves: dict[Triad, TriadCurves] = field(default_factory=dict)
     extension: list[dict[str, Any]] = field(default_factory=list)
+    # The positions the extended comparison's statistics inside a position leave out, and why.
+    left_out: tuple[int, ...] = ()
+    left_out_reason: str = ""
     grade_paths: dict[Triad, dict[str, str | float]] = field(default_factory=dict)
 
     @property
@@ -596,6 +647,11 @@ class AuditResult:
             "extended": {
                 **block(self.extended_cmp, self.extended_model),
                 "effects_added": self.extension,
+                "positions_left_out": {
+                    "positions": list(self.left_out),
+                    "statistics": list(INSIDE_POSITION_STATISTICS) if self.left_out else [],
+                    "reason": self.left_out_reason,
+                },
             },
             "gain": self.gain,
         }
@@ -882,16 +938,22 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         if Triad.GYRO in triads
         else TriadErrorModel(),
     )
+    res.measured_stats["baseline"] = {}
     for t in triads:
         x = triad_samples(session, t)
-        res.measured_stats[t] = triad_statistics(chain, x, session.t_s, t, session.rate_hz)
+        res.measured_stats["baseline"][t] = triad_statistics(
+            chain, x, session.t_s, t, session.rate_hz
+        )
         res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
     spec = same_session_spec(chain, session, model)
     reps, res.replica_curves["baseline"] = replica_statistics(
         spec, chain_config, triads, config.replicas, config.seed
     )
     res.replica_stats["baseline"] = reps
-    res.baseline_cmp = [c for t in triads for c in compare(t, res.measured_stats[t], reps[t])]
+    # Every position: the baseline's comparison shows what it misses, disturbed positions included.
+    res.baseline_cmp = [
+        c for t in triads for c in compare(t, res.measured_stats["baseline"][t], reps[t])
+    ]
 
     res.candidates = find_candidates(session, chain, res.baseline)
     ext_model, res.extended_model = extend_model(model, res.baseline, res.candidates, tab_a, g)
@@ -900,16 +962,31 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         for c in res.named
     ]
     if res.named:
+        res.left_out, res.left_out_reason = left_out_positions(res.candidates)
+        described = np.ones(n, bool)
+        described[list(res.left_out)] = False
+        res.measured_stats["extended"] = {
+            t: triad_statistics(
+                chain, triad_samples(session, t), session.t_s, t, session.rate_hz, described
+            )
+            for t in triads
+        }
+        hold, turns = simulated_timing(chain)
+        start = simulated_hold_starts_s(hold, turns)
+        left_out_s = np.column_stack([start, start + hold])[list(res.left_out)]
         ext_reps, res.replica_curves["extended"] = replica_statistics(
             same_session_spec(chain, session, ext_model),
             chain_config,
             triads,
             config.replicas,
             config.seed + 1,
+            left_out_s,
         )
         res.replica_stats["extended"] = ext_reps
         res.extended_cmp = [
-            c for t in triads for c in compare(t, res.measured_stats[t], ext_reps[t])
+            c
+            for t in triads
+            for c in compare(t, res.measured_stats["extended"][t], ext_reps[t], res.left_out)
         ]
     else:
         res.extended_cmp = res.baseline_cmp
@@ -917,6 +994,24 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g
     )
     return res
+
+
+def left_out_positions(cands: list[Candidate]) -> tuple[tuple[int, ...], str]:
+    """The positions the extended model does not describe inside, and why: those ``nonstatic_positions`` names
+    as moved by hand (the simulator moves every position or none, so no replica moves them).
+
+    The extended comparison computes the statistics inside a position without them, on the measured
+    session and on every replica alike (:data:`INSIDE_POSITION_STATISTICS`); empty when none is named.
+    """
+    c = next((c for c in cands if c.effect == "nonstatic_positions" and c.selected), None)
+    left = () if c is None else tuple(int(k) for k in c.params.get("disturbed_positions", ()))
+    if not left:
+        return (), ""
+    return left, (
+        f"positions {', '.join(f'#{k}' for k in left)} move inside (nonstatic_positions) and the replicas do not "
+        f"move single positions: {', '.join(INSIDE_POSITION_STATISTICS)} are computed without them, measured and "
+        "simulated; the scalar fit's statistics keep them (a turn changes the direction of a mean, not its norm)"
+    )
 
 
 def extend_model(

@@ -21,6 +21,14 @@ the simulation reproduces the unit:
   session mean over each mean's sd (a MEMS gyro's scalar is not observable;
   this is where g-sensitivity and wander show).
 
+The statistics of what happens inside a position (:data:`INSIDE_POSITION_STATISTICS`)
+can be restricted to the positions a model describes (``described`` of
+:func:`triad_statistics`): a position the audit names as moved by hand
+(``nonstatic_positions``) shows its motion there, and a model that does not
+move it cannot describe them. The scalar fit's statistics (``chi2_per_dof``,
+``param_scatter``) keep every position: a turn inside a position changes the
+direction of its mean, not the norm the fit sees.
+
 :func:`triad_curves` keeps, by the same rule for the measured session and every
 replica, the few curves the report plots (:class:`TriadCurves`): the
 normalized residual per position, the Allan deviation curve of the longest
@@ -44,6 +52,10 @@ from estimators.scalar import F0Config, f0_batch
 
 MIN_POSITIONS = 12
 """Positions needed for the accelerometer statistics (9 parameters plus a few degrees of freedom)."""
+
+INSIDE_POSITION_STATISTICS = ("halves_rms", "f0_sd", "f0_q999", "allan", "means_rms")
+"""Statistics made of what happens inside a position: its halves, its samples, its Allan record, a gyro's
+mean rate (module docstring); :func:`triad_statistics` computes them over the positions a model describes."""
 
 F0_KEPT_VALUES = 512
 """Most F0 values a :class:`TriadCurves` keeps: beyond that, quantiles at evenly spaced probabilities."""
@@ -196,7 +208,7 @@ def static_mask(n: int, spans: IntArray) -> BoolArray:
 
 
 def longest_span(tab: PositionTable) -> tuple[int, int]:
-    """Sample span ``[start, stop)`` of the longest position (the Allan deviation's record)."""
+    """Sample span ``[start, stop)`` of the longest position of ``tab`` (the Allan deviation's record)."""
     k = int(np.argmax(tab.spans[:, 1] - tab.spans[:, 0]))
     return int(tab.spans[k, 0]), int(tab.spans[k, 1])
 
@@ -245,14 +257,28 @@ def param_scatter(params: FloatArray, tab: PositionTable) -> float | None:
 
 
 def triad_statistics(
-    chain: ChainResult, x_si: FloatArray, t_s: FloatArray, triad: Triad, rate_hz: float
+    chain: ChainResult,
+    x_si: FloatArray,
+    t_s: FloatArray,
+    triad: Triad,
+    rate_hz: float,
+    described: BoolArray | None = None,
 ) -> dict[str, float]:
-    """Flat ``{name: value}`` statistics of one triad (module docstring); absent ones are left out."""
+    """Flat ``{name: value}`` statistics of one triad (module docstring); absent ones are left out.
+
+    ``described`` (n,) bool over the chain's positions: those the model describes, over which the
+    :data:`INSIDE_POSITION_STATISTICS` are computed (None: every position).
+    """
     triad = Triad(triad)
     out: dict[str, float] = {}
     if len(chain.positions) == 0:
         return out
-    tab = position_table(chain, x_si, t_s, triad)
+    whole = position_table(chain, x_si, t_s, triad)
+    tab = whole if described is None else subset_table(whole, described)
+    if tab.spans.shape[0] == 0:
+        raise ValueError(
+            "described keeps none of the positions: nothing inside a position to describe"
+        )
     sd_half = 2.0 * np.sqrt(np.einsum("kii->ki", tab.cov))
     ok = (sd_half > 0) & np.isfinite(tab.halves)
     for i, ax in enumerate(AXES):
@@ -278,7 +304,7 @@ def triad_statistics(
         s = s[np.isfinite(s)]
         out["f0_sd"] = float(np.std(s))
         out["f0_q999"] = float(np.quantile(np.abs(s - np.mean(s)), 0.999))
-        scatter = param_scatter(np.asarray(est.params, float), tab)
+        scatter = param_scatter(np.asarray(est.params, float), whole)
         if scatter is not None:
             out["param_scatter"] = scatter
     if triad is Triad.GYRO:
@@ -362,6 +388,8 @@ class Comparison:
     ``ratio`` = measured / median simulated; ``tail_prob`` = fraction of
     replicas at or above the measured value (near 0: the simulation
     under-predicts the statistic; near 1: it over-predicts).
+    ``positions_left_out``: the positions (measured indices) the statistic was computed without, on
+    both sides (:data:`INSIDE_POSITION_STATISTICS`); empty when it holds every position.
     """
 
     statistic: str
@@ -373,6 +401,7 @@ class Comparison:
     simulated_p95: float
     ratio: float
     tail_prob: float
+    positions_left_out: tuple[int, ...] = ()
 
     @property
     def inside(self) -> bool:
@@ -391,13 +420,20 @@ class Comparison:
             "ratio": self.ratio,
             "tail_prob": self.tail_prob,
             "inside_band": self.inside,
+            "positions_left_out": list(self.positions_left_out),
         }
 
 
 def compare(
-    triad: Triad, measured: dict[str, float], replicas: list[dict[str, float]]
+    triad: Triad,
+    measured: dict[str, float],
+    replicas: list[dict[str, float]],
+    left_out: tuple[int, ...] = (),
 ) -> list[Comparison]:
-    """Measured statistics against the replicas' distributions (names present in both)."""
+    """Measured statistics against the replicas' distributions (names present in both).
+
+    ``left_out``: the positions both sides computed the :data:`INSIDE_POSITION_STATISTICS` without.
+    """
     out = []
     for name, value in measured.items():
         sims = np.array([r[name] for r in replicas if name in r], float)
@@ -418,6 +454,7 @@ def compare(
                 float(np.quantile(sims, 0.95)),
                 float(value / med) if med != 0 else float("inf"),
                 above,
+                left_out if base in INSIDE_POSITION_STATISTICS else (),
             )
         )
     return out

@@ -19,8 +19,8 @@ stage  name                     what it does to ``y`` (per sensor axis ``i``)
 32     ``temperature_bias``     ``y_i += Σ_j d_ij (T − T_ref)^j`` (M3, j ≥ 1)
 33     ``bias_instability``     ``y_i +=`` Gauss–Markov + random walk + flicker noise
 34     ``g_sensitivity``        gyros: ``y += G f_b`` (M4's Bg, rad/s per m/s²)
-40     ``white_noise``          ``y_i += σ_i n``, ``σ_i = density_i·√rate``
-41     ``coloured_noise``       ``y_i +=`` a sum of short Gauss–Markov terms (noise colour)
+40     ``white_noise``          ``y_i += σ_i n_i``, ``σ_i = density_i·√rate``, ``corr(n) = R``
+41     ``coloured_noise``       ``y_i +=`` a sum of short Gauss–Markov terms (noise colour), driven with ``R``
 45     (noise-burst faults)     see :mod:`estimators.sim.faults`
 50     ``quantization``         ``y_i = k_i·Entier(y_i / k_i)`` (M2)
 ====== ======================== ===========================================================
@@ -162,6 +162,32 @@ class Effect(abc.ABC):
 
 
 _EffectT = TypeVar("_EffectT", bound=Effect)
+
+
+def _correlation_rows(value: ArrayLike) -> FloatRows:
+    """A (3, 3) correlation matrix of the axes' noise (symmetric, unit diagonal, positive definite) as rows."""
+    r = _finite(value, (3, 3), "correlation")
+    if not np.allclose(r, r.T) or not np.allclose(np.diag(r), 1.0):
+        raise ValueError(f"correlation must be symmetric with a unit diagonal, got {r.tolist()!r}")
+    try:
+        np.linalg.cholesky(r)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"correlation must be positive definite, got {r.tolist()!r}") from None
+    return _float_rows(r, (3, 3), "correlation")
+
+
+def _correlated_normals(
+    rng: np.random.Generator, correlation: ArrayLike, shape: tuple[int, ...], axis: int
+) -> FloatArray:
+    """Standard normals of ``shape`` whose ``axis`` (the 3 sensor axes) has the correlation ``correlation``.
+
+    Each sensor axis keeps unit variance (the Cholesky factor's rows have unit norm); with the identity
+    these are the generator's own draws, unchanged, so a seeded simulation without a correlation is too.
+    """
+    z = np.moveaxis(rng.standard_normal(shape), axis, 0)
+    factor = np.linalg.cholesky(np.array(correlation, dtype=np.float64))
+    out: FloatArray = np.moveaxis(np.tensordot(factor, z, axes=(1, 0)), 0, axis)
+    return out
 
 
 @dataclass(frozen=True)
@@ -425,30 +451,37 @@ class WhiteNoise(Effect):
     """Additive white noise; per-sample standard deviation ``density·√rate_hz``.
 
     ``density_si_per_sqrt_hz`` (3,): SI/√Hz (m/s²/√Hz, or rad/s/√Hz = rad/√s,
-    the angle random walk).
+    the angle random walk). ``correlation`` (3, 3): the correlation of the axes' noise at the same
+    sample (identity: independent axes).
     """
 
     density_si_per_sqrt_hz: ArrayLike = (0.0,) * 3
+    correlation: ArrayLike = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     name: ClassVar[str] = "white_noise"
     stage: ClassVar[int] = 40
 
     def __post_init__(self) -> None:
         density = _floats(self.density_si_per_sqrt_hz, 3, "density_si_per_sqrt_hz")
         object.__setattr__(self, "density_si_per_sqrt_hz", density)
+        object.__setattr__(self, "correlation", _correlation_rows(self.correlation))
         if min(density) < 0:
             raise ValueError(f"noise density must be non-negative, got {density!r}")
 
     @classmethod
-    def from_sample_sd(cls, sd_si: ArrayLike, rate_hz: float) -> WhiteNoise:
-        """The noise whose per-sample standard deviation at ``rate_hz`` is ``sd_si``."""
-        return cls(np.asarray(sd_si, float) / np.sqrt(rate_hz))
+    def from_sample_sd(
+        cls, sd_si: ArrayLike, rate_hz: float, correlation: ArrayLike | None = None
+    ) -> WhiteNoise:
+        """The noise whose per-sample standard deviation at ``rate_hz`` is ``sd_si`` (correlation: identity if None)."""
+        density = np.asarray(sd_si, float) / np.sqrt(rate_hz)
+        return cls(density) if correlation is None else cls(density, correlation)
 
     def sample_sd(self, rate_hz: float) -> FloatArray:
         """(3,) per-sample standard deviation at ``rate_hz``, SI."""
         return np.array(self.density_si_per_sqrt_hz, dtype=np.float64) * float(np.sqrt(rate_hz))
 
     def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
-        return y + self.sample_sd(ctx.rate_hz) * ctx.rng.standard_normal(y.shape)
+        n = _correlated_normals(ctx.rng, self.correlation, y.shape, axis=1)
+        return y + self.sample_sd(ctx.rate_hz) * n
 
 
 @dataclass(frozen=True)
@@ -462,11 +495,14 @@ class ColouredNoise(Effect):
     samples averages down as white noise of variance ``Σ_j σ_j² (1 + φ_j)/(1 − φ_j)``
     for ``n ≫ τ/Δt`` (:func:`estimators.noise.fit_noise_colour` fits it). The
     same process as :class:`BiasInstability`'s Gauss–Markov part, kept apart
-    from it: this is the noise a model has before any wander is named.
+    from it: this is the noise a model has before any wander is named. ``correlation`` (3, 3): the
+    correlation of the axes' driving noise, term by term (the terms' outputs have it at the same sample
+    where the axes' correlation times agree; identity: independent axes).
     """
 
     sigma_si: ArrayLike = ((0.0,),) * 3
     tau_s: ArrayLike = ((1.0,),) * 3
+    correlation: ArrayLike = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     name: ClassVar[str] = "coloured_noise"
     stage: ClassVar[int] = 41
 
@@ -476,6 +512,7 @@ class ColouredNoise(Effect):
         shape = (3, sigma.shape[-1])
         object.__setattr__(self, "sigma_si", _float_rows(sigma, shape, "sigma_si"))
         object.__setattr__(self, "tau_s", _float_rows(self.tau_s, shape, "tau_s"))
+        object.__setattr__(self, "correlation", _correlation_rows(self.correlation))
         if np.min(self.sigma_si) < 0 or np.min(self.tau_s) <= 0:
             raise ValueError(
                 f"sigma_si must be non-negative and tau_s positive, got {self.sigma_si!r}, {self.tau_s!r}"
@@ -486,7 +523,7 @@ class ColouredNoise(Effect):
 
         sigma = np.array(self.sigma_si, dtype=np.float64)
         phi = np.exp(-1.0 / (ctx.rate_hz * np.array(self.tau_s, dtype=np.float64)))
-        white = ctx.rng.standard_normal((*sigma.shape, y.shape[0]))
+        white = _correlated_normals(ctx.rng, self.correlation, (*sigma.shape, y.shape[0]), axis=0)
         out = y.copy()
         for i, j in zip(*np.nonzero(sigma > 0), strict=True):
             w = sigma[i, j] * np.sqrt(1.0 - phi[i, j] ** 2) * white[i, j]

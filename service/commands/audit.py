@@ -74,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"  headline χ²/dof ratio: baseline {data['baseline']['ratio']:.2f} (tail {data['baseline']['tail_prob']:.2f}), extended {data['extended']['ratio']:.2f} (tail {data['extended']['tail_prob']:.2f})"
         )
+    if result.left_out:
+        print(f"  extended comparison: {result.left_out_reason}")
     for c in data["named_causes"]:
         print(f"  CAUSE {c['effect']} {c['triad']} {c['axis'] or ''}: {c['evidence']}")
     if not data["named_causes"]:
