@@ -7,16 +7,22 @@ sender process (the autopilot: pre-packed MAVLink 2 HIGHRES_IMU messages, one
 IMU sample each) and this script (the ground station: event receiver that
 acknowledges, status subscriber).
 
-* **Throughput** — one IMU, ``--messages`` messages of a resting unit (1 kHz
-  sample times) sent as fast as the service takes them, ``D`` messages per
-  datagram (1: each packet on its own, as a serial-to-UDP bridge forwards them;
-  20: a bridge that batches). The sender stays at most
-  :data:`IN_FLIGHT_DATAGRAMS` datagrams (and :data:`IN_FLIGHT_MESSAGES`
-  messages) ahead of what the status topic, every 50 ms, shows read, so the
-  socket never overflows (the kernel's drops are counted nowhere: checked as
-  messages read = sent). messages/s = N / time from the first datagram until
-  the status shows every sample accepted by the pipeline; dropped =
-  ``service.mavlink.dropped_overload`` + (sent − read). Target ≥ 50,000.
+* **Throughput** — one IMU of a resting unit (1 kHz sample times), sent by
+  this process at a fixed offered rate (a real autopilot does not wait for the
+  service) for ``--seconds`` per rung, ``D`` messages per datagram (1: each
+  packet on its own, as a serial-to-UDP bridge forwards them; 20: a bridge that
+  batches), rung after rung up the ``--offered`` ladder (:data:`LADDER`) until a
+  rung loses messages or the service lags. Per rung: messages sent, read
+  (``service.mavlink.messages`` on the status topic, every 50 ms) and accepted by
+  the pipeline; lost = sent − read (datagrams the socket could not hold; the
+  kernel's ``RcvbufErrors`` are printed beside it) + the service's
+  ``dropped_overload``; lag = time from the last datagram sent until the status
+  shows every sample accepted (a service that keeps up lags by about one status
+  period); CPU each process used over the rung (% of one core): the service,
+  its reader process, this sender. A rung keeps up if nothing is lost and the
+  lag is under :data:`KEEP_UP_LAG_S`. Target ≥ 50,000 messages/s at D = 1.
+  Once per ``[mavlink] reader`` (``--readers``: ``process``, the default, and
+  ``thread``).
 * **Latency** — ``--trials`` IMUs (HIGHRES_IMU ``id`` k is IMU k), each from
   its own sender process started ``--stagger`` s after the previous one (by
   default after it ended): 1.5 s at rest then a +0.1 g z-bias fault, one
@@ -28,7 +34,8 @@ acknowledges, status subscriber).
   a time); latency = event received − that message sent (both on this host's
   monotonic clock). Target p99 < 20 ms.
 
-Run: ``python benchmarks/bench_mavlink_e2e.py [--messages N] [--load MSGS_PER_S] [--trials N] [--stagger S]``.
+Run: ``python benchmarks/bench_mavlink_e2e.py [--seconds S] [--offered K/S ...] [--latency-only]
+[--load MSGS_PER_S] [--trials N] [--stagger S] [--readers process thread]``.
 """
 
 from __future__ import annotations
@@ -74,18 +81,24 @@ from protocols.zenoh_adapter import (  # noqa: E402
     zenoh_config,
 )
 from protocols.zenoh_router import RouterProcess, free_local_port  # noqa: E402
+from service.config import MavlinkReader  # noqa: E402
 from service.demo import demo_passport  # noqa: E402
 from service.passport_store import PassportStore  # noqa: E402
 from service.pipeline import FleetProcessor, PipelineOptions  # noqa: E402
 
 RATE_HZ = 1000.0
-THROUGHPUT_MESSAGES = 300_000
 DATAGRAMS = (1, 20)
-IN_FLIGHT_DATAGRAMS = 5_000
-"""Datagrams sent ahead of the messages the status shows read: the service's socket buffer (8 MB) holds
-about 6000 small ones; with the status every 50 ms this paces one message per datagram at <= 100 k/s."""
-IN_FLIGHT_MESSAGES = 20_000
-"""... and at most this many messages (the service's queue holds 65,536 samples)."""
+LADDER = {
+    1: (30_000, 40_000, 50_000, 60_000, 70_000, 80_000),
+    20: (60_000, 90_000, 120_000, 150_000),
+}
+"""Offered messages/s per messages per datagram, rung by rung (``--offered`` replaces both)."""
+RUNG_S = 3.0
+"""Seconds of sending per rung."""
+BURST_S = 0.001
+"""The sender sends what is due every millisecond (a burst of ≤ 80 datagrams at 80 k/s)."""
+KEEP_UP_LAG_S = 0.5
+"""A rung keeps up when every sample is accepted within this long after the last datagram."""
 LOAD_IMUS = (250, 251, 252, 253)
 """IMUs of the background load (its messages are spread over them)."""
 TRIAL_STAGGER_S = 2.6
@@ -206,15 +219,35 @@ def main() -> None:
     ap.add_argument(
         "--stagger", type=float, default=TRIAL_STAGGER_S, help="seconds between trial starts"
     )
-    ap.add_argument("--messages", type=int, default=THROUGHPUT_MESSAGES)
+    ap.add_argument("--seconds", type=float, default=RUNG_S, help="seconds of sending per rung")
+    ap.add_argument(
+        "--offered",
+        type=float,
+        nargs="+",
+        help="offered k messages/s of the ladder, for every datagram size (default: LADDER)",
+    )
+    ap.add_argument("--latency-only", action="store_true", help="skip the throughput ladder")
+    ap.add_argument(
+        "--readers",
+        nargs="+",
+        choices=[r.value for r in MavlinkReader],
+        default=[r.value for r in MavlinkReader],
+        help="[mavlink] reader of the throughput ladder (the first also runs the latency trials)",
+    )
     args = ap.parse_args()
     passport, g = demo_passport()
     options = PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4)
     # The background load lasts as long as the trials: its messages are spread over LOAD_IMUS.
     per_load_imu = int(args.load * (args.trials * args.stagger + 3.0)) // len(LOAD_IMUS)
+    ladders = {
+        d: tuple(int(k * 1e3) for k in args.offered) if args.offered else LADDER[d]
+        for d in DATAGRAMS
+    }
+    # Rung after rung the IMU's samples go on in time: one stream, cut per rung.
+    stream_n = max(per_load_imu, *(int(sum(ladder) * args.seconds) for ladder in ladders.values()))
     rest = simulate(
         static_spec(
-            duration_s=max(args.messages, per_load_imu) / RATE_HZ,
+            duration_s=stream_n / RATE_HZ,
             rate_hz=RATE_HZ,
             latitude_deg=45.0,
         ),
@@ -227,11 +260,10 @@ def main() -> None:
     ).session
     trial_packets = [packets_of(trial, k, t0_s=k * 3.0) for k in range(args.trials + 2)]
     done_at = completing_sample(decoded(trial_packets[0]), options, passport)
-    rest_packets = {imu: packets_of(rest, imu, n=args.messages) for imu in (0, 1)}
     load_packets = [p for imu in LOAD_IMUS for p in packets_of(rest, imu, n=per_load_imu)]
 
     imus = [*LOAD_IMUS, *range(args.trials + 2)]
-    rates: dict[int, tuple[float, int, int, float]] = {}
+    rungs: list[Rung] = []
     lat_ms: list[float] = []
     missed: list[int] = []
     zport, mport = free_local_port(), free_local_port()
@@ -245,20 +277,31 @@ def main() -> None:
         for imu in imus:
             store.put(VEHICLE, imu, passport)
         # The throughput is paced by the status topic, so it comes often; the latency runs with the default.
-        with running_service(
-            tmp / "rate", store.root, g, zport, mport, len(imus), status_period_s=0.05
-        ):
-            ground = Ground(session)
-            read_before = 0
+        # The status comes often: it times the lag and counts what was read.
+        for reader in () if args.latency_only else args.readers:
             for imu, per_datagram in zip((0, 1), DATAGRAMS, strict=True):
-                rates[per_datagram] = throughput(
-                    ground, mport, rest_packets[imu], imu, per_datagram, read_before
-                )
-                read_before += len(rest_packets[imu])
-            ground.close()
+                packets = packets_of(rest, imu, n=int(sum(ladders[per_datagram]) * args.seconds))
+                with running_service(
+                    tmp / f"rate-{reader}-{per_datagram}", store.root, g, zport, mport, len(imus),
+                    status_period_s=0.05, reader=reader,
+                ) as service:  # fmt: skip
+                    ground = Ground(session)
+                    sent = 0
+                    for rate in ladders[per_datagram]:
+                        n = int(rate * args.seconds)
+                        rung = offer(
+                            ground, mport, packets[sent : sent + n], imu, per_datagram, rate,
+                            sent, service, reader,
+                        )  # fmt: skip
+                        rungs.append(rung)
+                        sent += n
+                        if not rung.keeps_up:
+                            break
+                    ground.close()
         with running_service(
-            tmp / "latency", store.root, g, zport, mport, len(imus), status_period_s=1.0
-        ):
+            tmp / "latency", store.root, g, zport, mport, len(imus), status_period_s=1.0,
+            reader=args.readers[0],
+        ):  # fmt: skip
             ground = Ground(session)
             load = sender(mport, load_packets, 20, args.load) if load_packets else None
             try:
@@ -286,13 +329,21 @@ def main() -> None:
                     load.wait(10)
             ground.close()
     print("MAVLink end to end: UDP on 127.0.0.1 -> ins-health run -> events through a Zenoh router")
-    print(
-        f"  throughput, one IMU, {args.messages} HIGHRES_IMU messages (one sample each; target >= 50 k/s):"
-    )
-    for per_datagram, (rate, accepted, dropped, t_all) in rates.items():
+    if rungs:
         print(
-            f"    {per_datagram:2d} per datagram: {rate / 1e3:6.1f} k messages/s end to end "
-            f"(all accepted after {t_all:.2f} s), accepted {accepted}, dropped {dropped}"
+            f"  throughput, one IMU, HIGHRES_IMU (one sample each) offered at a fixed rate for {args.seconds:g} s a"
+            f" rung (target >= 50 k/s at 1 per datagram; keeps up: nothing lost, lag < {KEEP_UP_LAG_S} s):"
+        )
+        print(
+            "    reader   per dgram  offered k/s  sent k/s     sent     read  accepted  lost (kernel)"
+            "  lag ms  keeps up  CPU % of a core"
+        )
+    for r in rungs:
+        print(
+            f"    {r.reader:8s} {r.per_datagram:9d} {r.offered / 1e3:12.0f} {r.sent_rate / 1e3:9.1f} {r.sent:8d} "
+            f"{r.read:8d} {r.accepted:9d} {r.lost:5d} ({r.kernel_drops:5d}) {r.lag_s * 1e3:7.0f}  "
+            f"{'yes' if r.keeps_up else 'no':8s}  "
+            + ", ".join(f"{k} {v:.0f}" for k, v in r.cpu.items())
         )
     lat = np.array(lat_ms)
     print(
@@ -319,14 +370,15 @@ def running_service(
     n_imus: int,
     *,
     status_period_s: float,
-) -> Iterator[None]:
+    reader: str,
+) -> Iterator[subprocess.Popen[str]]:
     """``ins-health run`` with its own data directory, until the context ends (SIGTERM)."""
     data.mkdir()
     config = data / "bench.toml"
     config.write_text(
         f'[service]\ndata_dir = "{data}"\npassport_dir = "{passports}"\nstatus_period_s = {status_period_s}\n'
         f'[site]\ngravity_mps2 = {g!r}\n[zenoh]\nconnect = ["tcp/127.0.0.1:{zport}"]\n'
-        f'[mavlink]\nenabled = true\ndevice = "udpin:127.0.0.1:{mport}"\nvehicle = "{VEHICLE}"\n'
+        f'[mavlink]\nenabled = true\ndevice = "udpin:127.0.0.1:{mport}"\nvehicle = "{VEHICLE}"\nreader = "{reader}"\n'
         f"alert_max_per_s = 100.0\n[validity]\ntimeout_s = 600.0\n[pipeline]\nmax_imus_per_vehicle = {n_imus}\n"
     )
     service = subprocess.Popen(
@@ -337,46 +389,114 @@ def running_service(
     try:
         assert service.stderr is not None
         log = wait_running(service.stderr)
-        yield
+        yield service
     finally:
         service.terminate()
         if service.wait(60):
             print(f"the service exited with {service.returncode}: {log}", file=sys.stderr)
 
 
-def throughput(
-    ground: Ground, port: int, packets: list[bytes], imu: int, per_datagram: int, read_before: int
-) -> tuple[float, int, int, float]:
-    """(messages/s, accepted, dropped, seconds) of one stream sent as fast as the service reads it."""
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (the service's MAVLink reader)."""
+    out = []
+    for p in Path("/proc").iterdir():
+        if p.name.isdigit():
+            try:
+                if int((p / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(p.name))
+            except (OSError, IndexError):
+                continue
+    return out
+
+
+@dataclasses.dataclass
+class Rung:
+    """One offered rate: what was sent, read, accepted and lost, the lag and the CPU (module docstring)."""
+
+    reader: str
+    per_datagram: int
+    offered: float
+    sent: int
+    sent_rate: float
+    read: int
+    accepted: int
+    lost: int
+    kernel_drops: int
+    lag_s: float
+    cpu: dict[str, float]
+
+    @property
+    def keeps_up(self) -> bool:
+        return self.lost == 0 and self.accepted == self.sent and self.lag_s < KEEP_UP_LAG_S
+
+
+def udp_rcvbuf_errors() -> int:
+    """The kernel's count of UDP datagrams dropped for a full receive buffer (all sockets of the host)."""
+    rows = [
+        line.split()
+        for line in Path("/proc/net/snmp").read_text().splitlines()
+        if line.startswith("Udp:")
+    ]
+    return int(rows[1][rows[0].index("RcvbufErrors")])
+
+
+def offer(
+    ground: Ground,
+    port: int,
+    packets: list[bytes],
+    imu: int,
+    per_datagram: int,
+    rate: float,
+    before: int,
+    service: subprocess.Popen[str],
+    reader: str,
+) -> Rung:
+    """Send ``packets`` at ``rate`` messages/s; wait for the status to show them accepted (or stop moving)."""
     import socket
 
     datagrams = [
         b"".join(packets[i : i + per_datagram]) for i in range(0, len(packets), per_datagram)
     ]
-    read = lambda: ground.count("service.mavlink.messages") - read_before  # noqa: E731
+    read = lambda: ground.count("service.mavlink.messages") - before  # noqa: E731
+    accepted = lambda: ground.count(f"imu{imu}.samples.accepted") - before  # noqa: E731
+    procs = {"service": service.pid, "sender": os.getpid()}
+    procs.update({f"reader{k or ''}": pid for k, pid in enumerate(children(service.pid))})
     dropped_before = ground.count("service.mavlink.dropped_overload")
-    accepted = lambda: ground.count(f"imu{imu}.samples.accepted")  # noqa: E731
+    kernel_before = udp_rcvbuf_errors()
+    cpu0 = {name: cpu_s(pid) for name, pid in procs.items()}
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.connect(("127.0.0.1", port))
+        per_s = rate / per_datagram
         t0 = time.perf_counter()
-        for i, d in enumerate(datagrams):
-            ahead = i * per_datagram - min(IN_FLIGHT_DATAGRAMS * per_datagram, IN_FLIGHT_MESSAGES)
-            if read() < ahead:
-                wait(lambda: read() >= ahead, 600.0, "the service to catch up")
-            sock.send(d)
-        # Until every sample is accepted, or nothing more is read for a second (datagrams lost).
-        last = (-1, time.perf_counter())
-        while accepted() < len(packets):
-            if (n := read() + accepted()) != last[0]:
-                last = (n, time.perf_counter())
-            elif time.perf_counter() - last[1] > 1.0:
-                break
-            time.sleep(0.001)
-        t_all = time.perf_counter() - t0
-    dropped = (
-        ground.count("service.mavlink.dropped_overload") - dropped_before + len(packets) - read()
-    )
-    return len(packets) / t_all, accepted(), dropped, t_all
+        i = 0
+        while i < len(datagrams):
+            due = min(len(datagrams), int((time.perf_counter() - t0) * per_s) + 1)
+            while i < due:
+                sock.send(datagrams[i])
+                i += 1
+            time.sleep(BURST_S)
+        t_sent = time.perf_counter()
+    # Until every sample is accepted, or nothing more moves for a second (datagrams lost).
+    last = (-1, time.perf_counter())
+    while accepted() < len(packets):
+        if (n := read() + accepted()) != last[0]:
+            last = (n, time.perf_counter())
+        elif time.perf_counter() - last[1] > 1.0:
+            break
+        time.sleep(0.001)
+    t_end = time.perf_counter()
+    cpu = {name: 100.0 * (cpu_s(pid) - cpu0[name]) / (t_end - t0) for name, pid in procs.items()}
+    dropped = ground.count("service.mavlink.dropped_overload") - dropped_before
+    return Rung(
+        reader, per_datagram, rate, len(packets), len(packets) / (t_sent - t0), read(), accepted(),
+        len(packets) - read() + dropped, udp_rcvbuf_errors() - kernel_before, t_end - t_sent, cpu,
+    )  # fmt: skip
 
 
 if __name__ == "__main__":
