@@ -47,12 +47,17 @@ class OutboxWriter:
     Parameters
     ----------
     outbox : the durable outbox.
-    on_stored : told how many new events each successful write stored (wakes the deliveries).
+    on_stored : told how many new events each successful write stored and the vehicles of the
+        events it wrote (wakes the deliveries, saves those vehicles' state).
     clock : a monotonic clock (how long the outbox was unavailable).
     """
 
     def __init__(
-        self, outbox: Outbox, *, on_stored: Callable[[int], None], clock: Callable[[], float]
+        self,
+        outbox: Outbox,
+        *,
+        on_stored: Callable[[int, set[str]], None],
+        clock: Callable[[], float],
     ) -> None:
         self._outbox = outbox
         self._on_stored = on_stored
@@ -92,15 +97,15 @@ class OutboxWriter:
                     exc, len(self._held),
                 )  # fmt: skip
             return False
-        written, self._held = len(self._held), []
+        written, self._held = self._held, []
         if self._since is not None:
             log.warning(
                 "outbox available again after %.1f s: %d held event(s) written, frames taken again",
-                self._clock() - self._since, written,
+                self._clock() - self._since, len(written),
             )  # fmt: skip
             self._since = None
         if new:
-            self._on_stored(new)
+            self._on_stored(new, {e.vehicle for e in written})
         return True
 
     async def until_written(self, *, on_retry: Callable[[], None] | None = None) -> bool:

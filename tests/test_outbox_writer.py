@@ -21,8 +21,8 @@ def test_events_are_held_in_order_while_the_file_is_locked_and_written_once_it_i
     path = tmp_path / "o.sqlite"
     stored = []
     with Outbox(path, sinks=("s",)) as ob:
-        writer = OutboxWriter(ob, on_stored=stored.append, clock=lambda: 0.0)
-        assert writer.write([event(0)]) and stored == [1]
+        writer = OutboxWriter(ob, on_stored=lambda n, v: stored.append((n, v)), clock=lambda: 0.0)
+        assert writer.write([event(0)]) and stored == [(1, {"v"})]
         other = sqlite3.connect(path, isolation_level=None)
         other.execute("BEGIN EXCLUSIVE")
         assert not writer.write([event(1), event(2)])
@@ -36,7 +36,7 @@ def test_events_are_held_in_order_while_the_file_is_locked_and_written_once_it_i
         other.execute("ROLLBACK")
         assert asyncio.run(writer.until_written())
         assert [p.id for p in ob.pending("s")] == [event(k).event_id for k in range(4)]
-        assert stored == [1, 3] and not writer.holding
+        assert stored == [(1, {"v"}), (3, {"v"})] and not writer.holding
         assert writer.counters()["outbox.unavailable"] == 0
         other.execute("BEGIN EXCLUSIVE")
         assert not writer.write([event(4)])

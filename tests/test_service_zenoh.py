@@ -121,25 +121,39 @@ def test_frames_published_by_one_session_are_diagnosed_and_events_arrive_at_anot
             assert last.counters["service.frames.dropped_overload"] == 0
 
 
-def test_a_units_state_is_saved_as_soon_as_its_event_is_stored(tmp_path):
-    """With an hour between periodic checkpoints, the unit whose F0 event is stored is saved at
-    once: a kill -9 then cannot leave an event without the state that raised it."""
-    v = "uav-1"
+def test_a_vehicles_state_is_saved_as_soon_as_its_event_is_stored_and_no_other(tmp_path):
+    """With an hour between periodic checkpoints, the vehicle whose F0 event is stored is saved at
+    once: a kill -9 then cannot leave an event without the state that raised it. Another vehicle
+    streaming meanwhile waits for the period (saving every changed unit after each event cost a
+    fleet's loop tens of ms per event)."""
+    v, other = "uav-1", "uav-2"
     g = unit()[1]
     until_s = expected_events(v)[0].t_s + 1.0
     assert [e.predicate for e in expected_events(v, until_s=until_s)] == [Predicate.F0]
+    quiet_until_s = expected_events(other)[0].t_s - 5.0
+    assert expected_events(other, until_s=quiet_until_s) == []
     with zenoh_router() as port:
         cfg = service_config(
             tmp_path,
             port=port,
-            passport_dir=store_with(tmp_path, [v]),
+            passport_dir=store_with(tmp_path, [v, other]),
             name="soon",
             site={"gravity_mps2": g},
             validity=QUIET,
             service={"checkpoint_period_s": 3600.0},
         )
         with ServiceThread(cfg) as svc, zenoh.open(zenoh_client_config(port)) as vehicle:
-            wait_subscribed(vehicle, frame_key(v, 0))
+            wait_subscribed(vehicle, frame_key(other, 0))
+            publish(vehicle, frames(other, until_s=quiet_until_s))
+            wait_until(
+                lambda: (
+                    svc.service.fleet.pipelines.get((other, 0)) is not None
+                    and svc.service.fleet.pipelines[(other, 0)].n_samples
+                    == sum(b.n_samples for b in frames(other, until_s=quiet_until_s))
+                ),
+                timeout_s=60,
+                what="the other vehicle's frames taken",
+            )
             publish(vehicle, frames(v, until_s=until_s))
             wait_until(lambda: svc.service.events_stored >= 1, timeout_s=60, what="the F0 event")
             wait_until(
@@ -147,6 +161,7 @@ def test_a_units_state_is_saved_as_soon_as_its_event_is_stored(tmp_path):
                 timeout_s=10,
                 what="the checkpoint of the unit that raised it",
             )
+            assert svc.call(lambda: svc.service.checkpoints.load(f"{other}/0")) is None
 
 
 def test_two_instances_share_a_fleet_by_key_expression(tmp_path):

@@ -3,7 +3,7 @@ status and checkpoints."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Any
 
 import numpy as np
@@ -366,10 +366,18 @@ class FleetProcessor:
         for key in keys:
             self._saved.pop(key, None)
 
-    def changed_keys(self) -> list[tuple[str, int]]:
-        """Pipelines that took or refused a frame since the last call (an idle unit's checkpoint is still current)."""
+    def changed_keys(self, vehicles: Collection[str] | None = None) -> list[tuple[str, int]]:
+        """Pipelines that took or refused a frame since the last call (an idle unit's checkpoint is still current).
+
+        ``vehicles``: only their pipelines are looked at (and marked); None: every vehicle's.
+        """
+        pipes = (
+            self.pipelines.items()
+            if vehicles is None
+            else [((v, i), p) for v in vehicles for i, p in self._by_vehicle.get(v, {}).items()]
+        )
         out = []
-        for key, p in sorted(self.pipelines.items()):
+        for key, p in sorted(pipes):
             mark = (p.n_samples, sum(p.counters.values()), p.timed_out)
             if self._saved.get(key) != mark:
                 self._saved[key] = mark
