@@ -258,26 +258,47 @@ def test_a_router_out_of_reach_beyond_connect_timeout_ends_the_daemon_non_zero(t
     )
 
 
-def test_a_failed_mavlink_read_is_logged_and_counted_and_reading_resumes(tmp_path, caplog):
-    """The MAVLink reader thread's read raises once (a serial port that went away): the failure is
-    logged with its traceback and counted, and the IMU messages sent afterwards are read."""
+def fail_one_read(source):
+    """The reader's read raises once (a serial port that went away); nothing to wait for after."""
+    read = source.link.read
+    failed = threading.Event()
+
+    def fail_once(timeout_s, **kw):
+        if not failed.is_set():
+            failed.set()
+            raise OSError("device reports readiness to read but returned no data")
+        return read(timeout_s, **kw)
+
+    source.link.read = fail_once
+    return lambda: True
+
+
+def kill_reader_process(source):
+    """The child process that reads the link (``[mavlink] reader = "process"``, the default) is
+    killed; another must be started."""
+    link = source.link
+    first = link.pid
+    assert first is not None
+    os.kill(first, signal.SIGKILL)
+    return lambda: link.restarts == 1 and link.pid not in (None, first)
+
+
+@pytest.mark.parametrize(
+    ("fail", "said"), [(fail_one_read, "returned no data"), (kill_reader_process, "exit code -9")]
+)
+def test_a_failed_mavlink_reader_is_logged_counted_and_reading_resumes(
+    tmp_path, caplog, fail, said
+):
+    """The failure is logged with its traceback and counted, and the IMU messages sent afterwards are read."""
     udp = free_udp_port()
     cfg = service_config(tmp_path, port=None, passport_dir=put_store(tmp_path, []),
                          mavlink={"enabled": True, "device": f"udpin:127.0.0.1:{udp}", "vehicle": "mav1"})  # fmt: skip
     packets = mavlink_packets(unit()[2].session, ImuMessage.SCALED_IMU)[:50]
     with caplog.at_level(logging.ERROR, logger="ins_health"), ServiceThread(cfg) as svc:
         source = svc.service.mavlink_source
-        read = source.link.read
-        failed = threading.Event()
-
-        def fail_once(timeout_s, **kw):
-            if not failed.is_set():
-                failed.set()
-                raise OSError("device reports readiness to read but returned no data")
-            return read(timeout_s, **kw)
-
-        source.link.read = fail_once
-        wait_until(lambda: source.failures == 1, timeout_s=30, what="the failed read counted")
+        recovered = fail(source)
+        wait_until(lambda: source.failures == 1, timeout_s=30, what="the failure counted")
+        wait_until(recovered, timeout_s=30, what="the reader back")
         peer = use_mavlink2(
             mavutil.mavlink_connection(
                 f"udpout:127.0.0.1:{udp}", source_system=1, source_component=1
@@ -295,35 +316,4 @@ def test_a_failed_mavlink_read_is_logged_and_counted_and_reading_resumes(tmp_pat
             what="the failure logged",
         )
     (record,) = [r for r in caplog.records if "the MAVLink reader failed" in r.getMessage()]
-    assert record.exc_info is not None and "returned no data" in str(record.exc_info[1])
-
-
-def test_a_killed_mavlink_reader_process_is_logged_counted_and_replaced(tmp_path, caplog):
-    """The child process that reads the link (``[mavlink] reader = "process"``, the default) is killed:
-    the service logs and counts it, starts another, and reads the IMU messages sent afterwards."""
-    udp = free_udp_port()
-    cfg = service_config(tmp_path, port=None, passport_dir=put_store(tmp_path, []),
-                         mavlink={"enabled": True, "device": f"udpin:127.0.0.1:{udp}", "vehicle": "mav1"})  # fmt: skip
-    packets = mavlink_packets(unit()[2].session, ImuMessage.SCALED_IMU)[:50]
-    with caplog.at_level(logging.ERROR, logger="ins_health"), ServiceThread(cfg) as svc:
-        source = svc.service.mavlink_source
-        link = source.link
-        first = link.pid
-        assert first is not None
-        os.kill(first, signal.SIGKILL)
-        wait_until(lambda: source.failures == 1, timeout_s=30, what="the ended reader counted")
-        wait_until(lambda: link.restarts == 1 and link.pid not in (None, first), timeout_s=30,
-                   what="another reader process started")  # fmt: skip
-        peer = use_mavlink2(
-            mavutil.mavlink_connection(
-                f"udpout:127.0.0.1:{udp}", source_system=1, source_component=1
-            )
-        )
-        try:
-            peer.write(b"".join(packets))
-            wait_until(lambda: link.counters.messages == len(packets), timeout_s=30,
-                       what="the messages sent after the restart read")  # fmt: skip
-        finally:
-            peer.close()
-    (record,) = [r for r in caplog.records if "the MAVLink reader failed" in r.getMessage()]
-    assert record.exc_info is not None and "exit code -9" in str(record.exc_info[1])
+    assert record.exc_info is not None and said in str(record.exc_info[1])
