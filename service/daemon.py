@@ -456,8 +456,9 @@ class Service:
         """Write the state of every vehicle that changed since the last checkpoint (one transaction);
         ``vehicles``: of these vehicles only.
 
-        A vehicle's units and its cross-IMU state are taken at one moment
-        (:meth:`FleetProcessor.checkpoint_states`); the loop yields between vehicles only.
+        A vehicle's changed units and its cross-IMU state are taken at one moment
+        (:meth:`FleetProcessor.checkpoint_states`; its other units' saved states are still
+        theirs); the loop yields between vehicles only.
         """
         if self._running().writer.holding:
             # State ahead of the events in the outbox would, after kill -9, resume past events never stored.
@@ -466,8 +467,12 @@ class Service:
         payloads: dict[str, bytes] = {}
         cross: dict[str, bytes] = {}
         keys = self.fleet.changed_keys(vehicles)
-        for vehicle in sorted({v for v, _ in keys}):
-            units, cross_state = self.fleet.checkpoint_states(vehicle)
+        changed: dict[str, set[int]] = {}
+        for v, i in keys:
+            changed.setdefault(v, set()).add(i)
+        for vehicle, imus in sorted(changed.items()):
+            # A vehicle of many units, one of them streaming, cost every unit's encoding (1.5 ms each).
+            units, cross_state = self.fleet.checkpoint_states(vehicle, imus)
             payloads.update((k, encode_state(s)) for k, s in units.items())
             if cross_state is not None:
                 cross[vehicle] = encode_state(cross_state)

@@ -496,3 +496,19 @@ def test_a_checkpoint_during_a_cross_imu_disagreement_resumes_without_raising_it
     assert [e.event_id for e in before + after] == [e.event_id for e in whole]
     again = run_fleet(resumed(False), frames[cut:], finish=False)
     assert [e.imu for e in again if e.cause is StreamCause.DISAGREEMENT] != []
+
+
+def test_a_vehicles_checkpoint_holds_its_changed_units_and_its_cross_imu_state():
+    """Only the units that took a frame since the last look are encoded again (an idle unit's saved state
+    is still its state); the vehicle's cross-IMU state comes with them, taken at the same moment."""
+    passport, g = calibrated()
+    frames = disagreeing_pair(V)
+    fleet = fleet_for(passport, g)
+    run_fleet(fleet, frames[:40], finish=False)
+    assert fleet.changed_keys() == [(V, 0), (V, 1)]
+    run_fleet(fleet, [b for b in frames[40:80] if b.imu == 1], finish=False)
+    keys = fleet.changed_keys([V])
+    assert keys == [(V, 1)] and fleet.changed_keys([V]) == []
+    units, cross = fleet.checkpoint_states(V, {i for _, i in keys})
+    assert list(units) == [f"{V}/1"] and cross is not None
+    assert list(fleet.checkpoint_states(V)[0]) == [f"{V}/0", f"{V}/1"]

@@ -348,16 +348,22 @@ class FleetProcessor:
         return {f"{v}/{i}": self.pipelines[(v, i)].state_dict() for v, i in keys}
 
     def checkpoint_states(
-        self, vehicle: str
+        self, vehicle: str, imus: Collection[int] | None = None
     ) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None]:
         """The checkpoint of one vehicle: its units' states keyed ``"<vehicle>/<imu>"`` and its cross-IMU state.
 
         Taken together (no frame can come between them), so a restart resumes the units
         and the comparison between them from the same moment; the cross-IMU state is
         None for a vehicle with fewer than two units (there is nothing to compare).
+        ``imus``: only these units' states (the others' saved states are still current:
+        :meth:`changed_keys`); None: every unit's.
         """
         pipes = self._by_vehicle.get(vehicle, {})
-        units = {f"{vehicle}/{imu}": pipe.state_dict() for imu, pipe in sorted(pipes.items())}
+        units = {
+            f"{vehicle}/{imu}": pipe.state_dict()
+            for imu, pipe in sorted(pipes.items())
+            if imus is None or imu in imus
+        }
         cross = self.cross.get(vehicle)
         return units, (cross.state_dict() if cross is not None and len(pipes) >= 2 else None)
 
