@@ -169,7 +169,7 @@ def test_each_triad_states_its_grade_path_and_why():
     paths = {}
     for grade in (Grade.MEMS, Grade.NAVIGATION):
         s, _ = session_of(baseline_model(np.random.default_rng(2), grade), 8500, grade=grade)
-        res = run_audit(s, AuditConfig(trial_chain_config(grade), replicas=5))
+        res = run_audit(s, AuditConfig(trial_chain_config(grade, s), replicas=5))
         data = res.to_dict()
         paths[grade] = {t: p["path"] for t, p in data["grade_paths"].items()}
         assert all(p["reason"] for p in data["grade_paths"].values())
@@ -188,11 +188,26 @@ def test_navigation_grade_replicas_see_the_earth_rate_as_the_unit_did():
         accel=triad_model(base[Triad.ACCEL], G), gyro=triad_model(base[Triad.GYRO], EARTH_RATE_RPS)
     )
     sim = simulate(same_session_spec(chain, s, model), 4).session
-    sim_chain = run_chain(sim, trial_chain_config(grade))
+    sim_chain = run_chain(sim, trial_chain_config(grade, s))
     measured = np.array([p.gyro_mean_rps for p in chain.positions])
     replayed = np.array([p.gyro_mean_rps for p in sim_chain.positions])
     assert replayed.shape == measured.shape
     assert np.max(np.abs(replayed - measured)) < 0.02 * EARTH_RATE_RPS
+
+
+# --- a hand's wobble at navigation grade -------------------------------------------------
+
+
+def test_a_navigation_grade_wobble_is_named_as_nonstatic_positions_and_nothing_else():
+    # The gyros see the wobble's rate far above their noise: a chain that took it for turns cut the positions
+    # into pieces and left the audit too few to name anything.
+    hits = []
+    for t in range(TRIALS):
+        seed = 8800 + t
+        kind = ("nonstatic_positions", Triad.ACCEL)
+        h = draw(seed, _size(seed, DETECTION), kind, Grade.NAVIGATION)
+        hits.append(trial(h, seed, temperature=t % 2 == 0))
+    assert sum(hits) >= REQUIRED, [t for t, h in enumerate(hits) if not h]
 
 
 # --- bias instability, sized by the evidence the test sees --------------------------------

@@ -207,16 +207,22 @@ def trial_attitudes(seed: int) -> FloatArray:
     return np.array(att)
 
 
-def trial_chain_config(grade: Grade) -> ChainConfig:
-    """The chain of a trial: the default static detector for MEMS; at navigation grade one sized by the
-    unit's noise (the MEMS thresholds would take the slow ends of the turns for rest)."""
+def trial_chain_config(grade: Grade, session: ImuSession) -> ChainConfig:
+    """The chain of a trial: the default static detector for MEMS; at navigation grade the one the audit
+    command derives from the session's own quiet windows (:meth:`StaticDetectorConfig.from_session`).
+
+    The MEMS thresholds would take the slow ends of a navigation-grade unit's turns for rest. Thresholds
+    at 3√3 times its white gyro noise (2e-5 rad/s) take a hand's wobble inside a position for a turn:
+    at 6–10 detection standard errors they cut the wobbling positions into pieces (1–12 of 27 left in
+    the trials measured) and the audit, too short of positions, named nothing. The session's quiet
+    windows carry the wobble the unit had, so each position stays whole and the gyros' turning inside
+    it is evidence the ``nonstatic_positions`` candidate explains.
+    """
     if grade is Grade.MEMS:
         return ChainConfig(gravity_mps2=GRAVITY_MPS2)
-    u = TRIAL_UNITS[grade]
-    detector = StaticDetectorConfig.from_noise(
-        accel_noise_mps2=u.accel_sd_mps2, gyro_noise_rps=u.gyro_sd_rps
+    return ChainConfig(
+        gravity_mps2=GRAVITY_MPS2, detector=StaticDetectorConfig.from_session(session)
     )
-    return ChainConfig(gravity_mps2=GRAVITY_MPS2, detector=detector)
 
 
 def session_of(
@@ -234,14 +240,13 @@ def session_of(
     s = simulate(spec, seed).session
     if not temperature:
         s = ImuSession(s.t_s, s.accel_mps2, s.gyro_rps)
-    return s, run_chain(s, trial_chain_config(grade))
+    return s, run_chain(s, trial_chain_config(grade, s))
 
 
 def named_effects(session: ImuSession, chain: ChainResult) -> set[tuple[str, Triad, str | None]]:
     """What the audit names on a session: the selected candidates, and a grid the baseline found (quantization).
 
-    Nothing when the chain kept fewer than :data:`MIN_POSITIONS` positions (the audit then concludes
-    nothing: a wobble the static detector of a navigation-grade unit cuts into pieces).
+    Nothing when the chain kept fewer than :data:`MIN_POSITIONS` positions (the audit then concludes nothing).
     """
     if len(chain.positions) < MIN_POSITIONS:
         return set()
