@@ -27,6 +27,7 @@ it ends when the service closes the command pipe, or when the service is gone.
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import socket
@@ -297,6 +298,10 @@ def serve(data: Connection, cmd: Connection) -> None:
     except Exception as exc:
         data.send(("error", f"{type(exc).__name__}: {exc}"))
         return
+    # pymavlink's dialect tables live as long as the child: out of the collector's full passes, which
+    # would hold the batches back (the service's command does the same, service.commands.run).
+    gc.collect()
+    gc.freeze()
     stop = threading.Event()
     threading.Thread(target=_commands, args=(link, cmd, stop), daemon=True).start()
     reported = LinkCounters()
