@@ -202,17 +202,25 @@ class MavlinkProcessLink:
         return out
 
     def _ended(self) -> ReaderProcessEnded:
+        return ReaderProcessEnded(
+            f"mavlink {self.settings.device}: the reader process ended (exit code {self._let_go()}); "
+            "the next read starts another"
+        )
+
+    def _let_go(self) -> int | None:
+        """Forget the child: close its command pipe (it ends on that), wait for it, close its data pipe.
+
+        Its exit code; None when none ran.
+        """
         with self._lock:
             proc, data, cmd = self._proc, self._data, self._cmd
             self._proc = self._data = self._cmd = None
-        for conn in (data, cmd):
-            if conn is not None:
-                conn.close()
+        if cmd is not None:
+            cmd.close()
         code = None if proc is None else _end(proc)
-        return ReaderProcessEnded(
-            f"mavlink {self.settings.device}: the reader process ended (exit code {code}); "
-            "the next read starts another"
-        )
+        if data is not None:
+            data.close()
+        return code
 
     def _call(self, name: str, *args: object) -> Any:
         with self._lock:
@@ -256,15 +264,7 @@ class MavlinkProcessLink:
     def close(self) -> None:
         """End the child (it closes the device) and wait for it; :meth:`read` then returns ``[]``."""
         self._closed = True
-        with self._lock:
-            proc, data, cmd = self._proc, self._data, self._cmd
-            self._proc = self._data = self._cmd = None
-        if proc is None:
-            return
-        assert data is not None and cmd is not None
-        cmd.close()
-        _end(proc)
-        data.close()
+        self._let_go()
 
     def __enter__(self) -> MavlinkProcessLink:
         return self
