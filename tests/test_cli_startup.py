@@ -152,3 +152,59 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
     assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
     assert not out["simulator"]
+
+
+LOADED_BY_A_UNIT = """
+import json, sys
+import numpy as np
+from service.commands.run import freeze_imports
+from service.daemon import Service
+from estimators.passport import Passport
+from protocols.frames import SampleBatch
+from service.pipeline import FleetProcessor, PipelineOptions
+passport = Passport.from_dict(json.loads(open(sys.argv[1]).read()))
+data = dict(np.load(sys.argv[2]))
+freeze_imports()
+before = set(sys.modules)
+fleet = FleetProcessor(passports=lambda v, i: passport,
+                       options=PipelineOptions(gravity_mps2=float(data["g"]), gravity_rel_err=1e-4))
+predicates = set()
+for k, start in enumerate(range(0, len(data["t_s"]), 20)):
+    sl = slice(start, start + 20)
+    batch = SampleBatch("v", 0, k, data["t_s"][sl], data["accel_mps2"][sl], data["gyro_rps"][sl], None)
+    predicates |= {e.predicate.value for e in fleet.process(batch, arrival_s=float(batch.t_s[-1]))}
+print(json.dumps({"predicates": sorted(predicates), "new": sorted(set(sys.modules) - before)}))
+"""
+
+
+def test_a_unit_s_first_fault_loads_no_module_the_daemon_did_not_freeze(tmp_path):
+    """What a pipeline loads on first use is loaded (and frozen) before the daemon runs.
+
+    A module loaded after ``freeze_imports`` stays in the collector's full passes for the
+    daemon's life (scipy.stats loaded so made 44,000 of their objects).
+    """
+    import numpy as np
+
+    from service.demo import demo_passport, demo_scenario
+
+    passport, g = demo_passport()
+    session = demo_scenario().session
+    (tmp_path / "p.json").write_text(json.dumps(passport.to_dict()))
+    np.savez(
+        tmp_path / "s.npz",
+        g=g,
+        t_s=session.t_s,
+        accel_mps2=session.accel_mps2,
+        gyro_rps=session.gyro_rps,
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", LOADED_BY_A_UNIT, str(tmp_path / "p.json"), str(tmp_path / "s.npz")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    result = json.loads(out)
+    # The unit went the whole way: F0 on the fault, then the diagnosis that names it.
+    assert result["predicates"] == ["F0", "F6"]
+    assert result["new"] == []
