@@ -235,11 +235,13 @@ class StreamValidity:
             runs = run_lengths(good, self._last_value, self._run)
             over = runs >= limit
             before = np.vstack([(self._run >= limit)[None, :], over[:-1]])
-            names = _axis_names()
-            t_good = None if t_s is None else np.asarray(t_s, float).reshape(-1)[~bad]
-            prev_run = np.vstack([self._run[None, :], runs[:-1]])
-            prev_val = np.vstack([self._last_value[None, :], good[:-1]])
-            for k, ax in zip(*np.nonzero(over != before), strict=True):
+            flips = np.nonzero(over != before)
+            if flips[0].size:
+                names = _axis_names()
+                t_good = None if t_s is None else np.asarray(t_s, float).reshape(-1)[~bad]
+                prev_run = np.vstack([self._run[None, :], runs[:-1]])
+                prev_val = np.vstack([self._last_value[None, :], good[:-1]])
+            for k, ax in zip(*flips, strict=True):
                 rising = bool(over[k, ax])
                 run = int(runs[k, ax]) if rising else int(prev_run[k, ax])
                 value = float(good[k, ax]) if rising else float(prev_val[k, ax])
@@ -275,6 +277,8 @@ class StreamValidity:
         if bad.size == 0:
             d = float(self._ring.sum()) / w
             return d, d
+        if not bad.any() and not self._ring.any():
+            return 0.0, 0.0  # a clean batch after a clean window: the ring stays all good
         # Window sums at each new sample over the old ring followed by the batch.
         history = np.concatenate([self._ring, bad])
         csum = np.concatenate([[0], np.cumsum(history)])

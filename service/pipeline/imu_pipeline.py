@@ -169,7 +169,8 @@ class ImuPipeline:
                     unit="s",
                 )
             )
-        problem = self._order_problem(batch)
+        keep = self._ordered(batch)
+        problem = self._order_problem(batch, keep)
         if problem is not None:
             if not self._restarted(batch):
                 self._count(problem)
@@ -177,12 +178,12 @@ class ImuPipeline:
                     self.validity.record_rejected(batch.n_samples), self.last_t_s or 0.0
                 )
             events += self._source_restart()
+            keep = self._ordered(batch)  # against the new stream: no sample before it
         self._restart_probe = []
         first_seq = batch.seq - frames + 1
         if self.last_seq is not None and first_seq > self.last_seq + 1:
             self._count("frames.missing", first_seq - self.last_seq - 1)
         self.last_seq = batch.seq
-        keep = self._ordered(batch)
         self._count("frames.accepted", frames)
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
@@ -271,14 +272,14 @@ class ImuPipeline:
         )
         return finite & (t > prev_max)
 
-    def _order_problem(self, batch: SampleBatch) -> str | None:
-        """Why this frame cannot follow the last accepted one (a counter name), or None."""
+    def _order_problem(self, batch: SampleBatch, ordered: np.ndarray) -> str | None:
+        """Why this frame cannot follow the last accepted one (a counter name), or None (``ordered``: :meth:`_ordered`)."""
         last = self.last_seq
         if last is not None and batch.seq == last:
             return "frames.duplicate"
         if last is not None and batch.seq < last:
             return "frames.out_of_order"
-        if not self._ordered(batch).any():
+        if not ordered.any():
             return "frames.rejected.no_new_samples"
         return None
 
