@@ -101,6 +101,8 @@ class Blocks:
     px4_gyro: FloatArray
     temp_min: FloatArray
     temp_max: FloatArray
+    full: BoolArray
+    """Blocks with samples enough to be judged at rest or not (``FULL_BLOCK`` of a block, at least ``MIN_REST_SAMPLES``)."""
     rest: BoolArray
 
 
@@ -486,6 +488,7 @@ class ImuHealthAccumulator:
             px4_gyro=table[:, 21],
             temp_min=table[:, 22],
             temp_max=table[:, 23],
+            full=full,
             rest=rest,
         )
 

@@ -110,13 +110,21 @@ def health_findings(imu: int, health: ImuHealth, clipped: int | None) -> list[di
             }
         )
     if health.rest_s == 0.0:
+        # A log too short or too sparse to fill one block is not one that was never at rest.
+        too_short = not health.blocks.full.any()
+        why = (
+            f"{health.n_samples} samples over {health.duration_s:.2f} s at {health.rate_hz:.0f} Hz: "
+            f"no {health.config.block_s:g} s block held samples enough to tell rest from motion"
+            if too_short
+            else "never at rest in the log"
+        )
         out.append(
             {
                 "source": "report",
                 "severity": Severity.INFO.name.lower(),
                 "imu": imu,
-                "predicate": "no_rest",
-                "text": f"IMU{imu}: never at rest in the log: F0 and the diagnosis had nothing to test; noise from the first difference",
+                "predicate": "too_short" if too_short else "no_rest",
+                "text": f"IMU{imu}: {why}: F0 and the diagnosis had nothing to test; noise from the first difference",
             }
         )
     return out

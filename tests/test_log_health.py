@@ -20,6 +20,7 @@ from estimators.nominal_passport import (
     nominal_passport,
 )
 from estimators.scalar import derive_lambda0
+from service.log_report import health_findings
 
 G = STANDARD_GRAVITY_MPS2
 FS = 400.0
@@ -119,6 +120,19 @@ def test_slow_logs_have_no_rest():
     a = rng.normal(0, 0.01, (t.size, 3)) + np.array([0, 0, G])
     h = _health(t, a, np.zeros((t.size, 3)), chunk=50)
     assert h.rate_hz == 4.0 and h.rest_s == 0.0
+    assert not h.blocks.full.any()
+
+
+def test_the_report_tells_a_log_too_short_to_judge_from_one_never_at_rest():
+    """45 samples at 400 Hz (0.11 s): too short to fill a block, which is not "never at rest"."""
+    t, a, g = _unit(n_s=60.0, fly=(-1.0, 61.0))
+    short = _health(t[:45], a[:45], g[:45])
+    (finding,) = health_findings(0, short, None)
+    assert finding["predicate"] == "too_short"
+    assert "45 samples over 0.11 s at 400 Hz: no 0.5 s block held samples enough" in finding["text"]
+    vibrating = _health(t, a, g)
+    assert vibrating.blocks.full.any()
+    assert [f["predicate"] for f in health_findings(0, vibrating, None)][-1] == "no_rest"
 
 
 def test_pair_differences_in_flight_and_at_rest():
