@@ -104,9 +104,9 @@ service says it runs, the others in the background; SIGTERM waits for at most on
 CONNECT_PAUSE_S = 2.0
 """The pause between two attempts at opening the Zenoh session."""
 INPUT_TASKS = ("frames", "mavlink-frames")
+"""The tasks of the frame path (their progress feeds the systemd watchdog)."""
 EVENT_CHECKPOINT_DELAY_S = 0.003
 """How long the checkpoint of the vehicles whose events were just stored waits for their delivery to start."""
-"""The tasks of the frame path (their progress feeds the systemd watchdog)."""
 
 log = logger("daemon")
 
