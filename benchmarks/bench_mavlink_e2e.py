@@ -59,6 +59,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench_service_e2e import wait, wait_running  # noqa: E402  (benchmarks/ is on sys.path)
+from host_steal import STEAL_WINDOW_S, HostSteal, percentiles, print_by_steal  # noqa: E402
 
 from estimators.conventions import Triad  # noqa: E402
 from estimators.passport import Passport  # noqa: E402
@@ -265,6 +266,7 @@ def main() -> None:
     imus = [*LOAD_IMUS, *range(args.trials + 2)]
     rungs: list[Rung] = []
     lat_ms: list[float] = []
+    stolen: list[float | None] = []
     missed: list[int] = []
     zport, mport = free_local_port(), free_local_port()
     with (
@@ -304,6 +306,7 @@ def main() -> None:
         ):  # fmt: skip
             ground = Ground(session)
             load = sender(mport, load_packets, 20, args.load) if load_packets else None
+            steal = HostSteal()
             try:
                 trials = {}
                 for k, packets in enumerate(trial_packets[2:], start=2):
@@ -320,10 +323,12 @@ def main() -> None:
                         missed.append(k)
                         continue
                     lat_ms.append((ground.first_event_s[k] - t_last) * 1e3)
+                    stolen.append(steal.fraction(t_last - STEAL_WINDOW_S, ground.first_event_s[k]))
                 wait(lambda: ground.count("service.mavlink.messages") > 0, 5.0, "a status")
                 load_read = sum(ground.count(f"imu{i}.samples.accepted") for i in LOAD_IMUS)
                 load_dropped = ground.count("service.mavlink.dropped_overload")
             finally:
+                steal.close()
                 if load is not None:
                     load.kill()
                     load.wait(10)
@@ -352,10 +357,8 @@ def main() -> None:
         f"IMUs: {load_read} of their samples accepted, {load_dropped} dropped by the service's queue):"
     )
     if len(lat):
-        print(
-            f"    p50 {np.percentile(lat, 50):6.2f} ms   p99 {np.percentile(lat, 99):6.2f} ms   "
-            f"max {lat.max():6.2f} ms   (target p99 < 20 ms)"
-        )
+        print(f"    all trials:{percentiles(lat)}   (target p99 < 20 ms)")
+    print_by_steal(lat, stolen)
     if missed:
         print(f"    no event within 30 s for {len(missed)} trials (IMUs {missed})")
 

@@ -1,0 +1,74 @@
+"""The benchmarks' measure of the CPU time a virtual machine's host took (benchmarks/host_steal.py)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import time
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+MODULE = Path(__file__).resolve().parents[1] / "benchmarks" / "host_steal.py"
+
+
+@pytest.fixture(scope="module")
+def host_steal() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("host_steal", MODULE)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load {MODULE}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def stat_line(user: int, system: int, idle: int, steal: int, guest: int) -> str:
+    # /proc/stat's cpu line: user nice system idle iowait irq softirq steal guest guest_nice
+    return f"cpu  {user} 0 {system} {idle} 0 0 0 {steal} {guest} {guest}\ncpu0 1 2 3\n"
+
+
+def test_the_share_stolen_is_steal_over_all_ticks_between_the_samples_around_the_window(
+    host_steal: ModuleType, tmp_path: Path
+) -> None:
+    stat = tmp_path / "stat"
+    stat.write_text(stat_line(100, 50, 800, 50, 40))
+    steal = host_steal.HostSteal(stat, period_s=None)
+    steal.sample()
+    after_first = time.perf_counter()
+    # 1000 more ticks, 150 of them stolen; guest time is inside user already and is not counted twice.
+    stat.write_text(stat_line(300, 100, 1400, 200, 140))
+    steal.sample()
+    after_second = time.perf_counter()
+    stat.write_text(stat_line(400, 100, 1800, 200, 140))
+    steal.sample()
+    assert steal.fraction(after_first, after_first) == pytest.approx(0.15)
+    # Across both intervals: 150 of 1500 ticks.
+    assert steal.fraction(after_first, after_second) == pytest.approx(0.10)
+    # A window beyond the samples is not measured.
+    assert steal.fraction(after_first, time.perf_counter() + 1.0) is None
+
+
+def test_a_machine_without_proc_stat_says_steal_was_not_measured(
+    host_steal: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    steal = host_steal.HostSteal(tmp_path / "absent", period_s=0.01)
+    assert not steal.available
+    assert steal.fraction(0.0, time.perf_counter()) is None
+    steal.close()
+    host_steal.print_by_steal(np.array([5.0, 6.0]), [None, None])
+    assert "not measured" in capsys.readouterr().out
+
+
+def test_trials_are_split_at_the_quiet_share(
+    host_steal: ModuleType, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lat_ms = np.array([9.0, 10.0, 30.0])
+    host_steal.print_by_steal(lat_ms, [0.0, 0.005, 0.2])
+    out = capsys.readouterr().out
+    quiet = next(line for line in out.splitlines() if "steal <" in line)
+    stolen = next(line for line in out.splitlines() if "steal >=" in line)
+    assert "2 trials" in quiet and "max  10.00 ms" in quiet
+    assert "1 trials" in stolen and "max  30.00 ms" in stolen
