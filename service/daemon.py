@@ -354,7 +354,10 @@ class Service:
             if not pending:
                 if stop.is_set():
                     return
-                await _wait_any(wake, stop, timeout_s=None)
+                # The wake alone (the drain sets it after ``stop``): one turn of the loop from the events'
+                # commit to their delivery, which the intake gives it before the rest of a group.
+                # _wait_any on both took three turns (two tasks, then asyncio.wait's callback).
+                await wake.wait()
                 wake.clear()
                 continue
             acked: list[int] = []
@@ -445,7 +448,8 @@ class Service:
         while not stop.is_set():
             # Not while frames wait for the outbox: their silence is the service's, not the IMUs'.
             if not (self._running().writer.holding or self.intake.stalled):
-                self._store(self.fleet.tick(self._clock()))
+                async with self.intake.group_lock:
+                    self._store(self.fleet.tick(self._clock()))
             self._track_router()
             self._check_mavlink_reader()
             if self._status_pub is not None:
@@ -472,7 +476,8 @@ class Service:
             changed.setdefault(v, set()).add(i)
         for vehicle, imus in sorted(changed.items()):
             # A vehicle of many units, one of them streaming, cost every unit's encoding (1.5 ms each).
-            units, cross_state = self.fleet.checkpoint_states(vehicle, imus)
+            async with self.intake.group_lock:
+                units, cross_state = self.fleet.checkpoint_states(vehicle, imus)
             payloads.update((k, encode_state(s)) for k, s in units.items())
             if cross_state is not None:
                 cross[vehicle] = encode_state(cross_state)

@@ -5,7 +5,7 @@ while the outbox cannot take events (:mod:`service.outbox_writer`)."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 
 from protocols._schema import SchemaError
 from protocols.events import Event
@@ -64,6 +64,10 @@ class Intake:
         self._holding = False
         self.stalled = False
         """Set when events were held, until the frames queued meanwhile are taken (the silence was ours)."""
+        self.group_lock = asyncio.Lock()
+        """Held while a group of frames goes through the pipelines, IMU by IMU with the loop turning between
+        them (:meth:`_process_group`). Whatever else reads a unit's whole state or adds to it from the loop
+        (checkpoints, the timeout checks) takes it: the group's cross-IMU check comes only at its end."""
 
     def _put(self, events: list[Event]) -> None:
         if not self._store(events):
@@ -88,8 +92,19 @@ class Intake:
 
     def process(self, batches: list[SampleBatch]) -> None:
         """Frames through their pipelines; a pipeline error skips them (counted, reported once per kind)."""
+        for _ in self._steps(batches):
+            pass
+
+    def _steps(self, batches: list[SampleBatch]) -> Iterator[None]:
+        """:meth:`process`, IMU by IMU: each IMU's events go to the outbox as soon as its frames are
+        through (:meth:`FleetProcessor.queued_steps`), and a step ends after each IMU that raised any."""
+        stored = False
         try:
-            events = self.fleet.process_queued(batches, arrival_s=self._clock())
+            for events in self.fleet.queued_steps(batches, arrival_s=self._clock()):
+                if events:
+                    self._put(events)
+                    stored = True
+                    yield
         except Exception as exc:
             self.fleet.count_service("pipeline.errors")
             kind = f"{type(exc).__name__}: {exc}"
@@ -101,7 +116,8 @@ class Intake:
                     f"failed in the pipeline: {kind} (skipped, counted as pipeline.errors)"
                 )
             return
-        self._put(events)
+        if not stored:
+            self._put([])
 
     def _process_taken(self) -> None:
         """Process the frames taken off the queue so far (a rejection met while taking them comes after them)."""
@@ -134,8 +150,26 @@ class Intake:
             ):
                 self._taken.append(more)
                 n += more.n_samples
-            self._process_taken()
+            await self._process_group()
             if not self._holding and source.queued == 0:
                 self.stalled = False
             # Let the delivery and status tasks run between groups.
             await asyncio.sleep(0)
+
+    async def _process_group(self) -> None:
+        """The frames taken, under :attr:`group_lock`; after each IMU that raised events the loop turns once,
+        so that their delivery (woken when the outbox took them) goes out before the rest of the group.
+
+        Under 25 k MAVLink messages/s of four other IMUs a group is about 3 ms of the pipeline's work,
+        which an event waited for in full before it was stored. A cancelled wait still finishes the
+        group: frames taken off the queue are never left half processed.
+        """
+        taken, self._taken = self._taken, []
+        async with self.group_lock:
+            steps = self._steps(taken)
+            try:
+                for _ in steps:
+                    await asyncio.sleep(0)
+            finally:
+                for _ in steps:
+                    pass

@@ -107,3 +107,31 @@ def test_a_cross_imu_disagreement_is_the_same_whichever_frames_were_queued_toget
     assert sorted(e.imu for e in alone if e.predicate is Predicate.CROSS_IMU) == [0, 1]
     together, _ = queued(frames, seed=3)
     assert sorted(e.event_id for e in together) == sorted(e.event_id for e in alone)
+
+
+def test_queued_steps_give_process_queued_s_events_imu_by_imu_then_the_cross_check():
+    """Two interleaved IMUs of the faulty demo in groups of 1…40: the steps, joined, are process_queued's events."""
+    sc = demo_scenario()
+    frames = [
+        b
+        for pair in zip(
+            batches_of(sc.session, vehicle=V, imu=0, batch_samples=20),
+            batches_of(sc.session, vehicle=V, imu=1, batch_samples=20),
+            strict=True,
+        )
+        for b in pair
+    ]
+    together, _ = queued(frames, seed=3)
+    f = fleet()
+    rng = np.random.default_rng(3)
+    stepped, k, steps_per_group = [], 0, []
+    while k < len(frames):
+        group = frames[k : k + int(rng.integers(1, 41))]
+        steps = list(f.queued_steps(group, arrival_s=float(group[-1].t_s[-1])))
+        # One step per IMU of the group, then the cross-IMU check's.
+        steps_per_group.append(len(steps) == len({b.imu for b in group}) + 1)
+        stepped += [e for step in steps for e in step]
+        k += len(group)
+    assert all(steps_per_group)
+    assert [e.event_id for e in stepped] == [e.event_id for e in together]
+    assert {e.predicate for e in stepped} >= {Predicate.F0}

@@ -3,7 +3,7 @@ status and checkpoints."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
 from typing import Any
 
 import numpy as np
@@ -227,12 +227,25 @@ class FleetProcessor:
         were queued (an IMU whose frames were all taken first would otherwise
         run ahead of the others by the whole group).
         """
+        return [e for step in self.queued_steps(batches, arrival_s=arrival_s) for e in step]
+
+    def queued_steps(
+        self, batches: list[SampleBatch], *, arrival_s: float
+    ) -> Iterator[list[Event]]:
+        """:meth:`process_queued` one IMU at a time: the events of each IMU's frames as soon as its
+        frames are through, then those of the cross-IMU check (lists that may be empty).
+
+        The events and their order are :meth:`process_queued`'s. A caller that stores each
+        step's events can deliver them before the rest of the group is processed. Between
+        two steps this processor must not take frames or give states to a checkpoint (the
+        group's cross-IMU check comes at its end).
+        """
         groups: dict[tuple[str, int], list[tuple[int, SampleBatch]]] = {}
         for n, b in enumerate(batches):
             groups.setdefault((b.vehicle, b.imu), []).append((n, b))
-        events: list[Event] = []
         accepted: list[tuple[int, SampleBatch]] = []
         for key, group in groups.items():
+            events: list[Event] = []
             i = 0
             while i < len(group):
                 pipe = self.pipelines.get(key)
@@ -250,9 +263,11 @@ class FleetProcessor:
                     # Joined frames are clean: every sample of each was accepted.
                     accepted += group[i:j]
                 i = j
+            yield events
+        cross: list[Event] = []
         for _, good in sorted(accepted, key=lambda item: item[0]):
-            events += self._cross(good)
-        return events
+            cross += self._cross(good)
+        yield cross
 
     def _process_joined(
         self, pipe: ImuPipeline, run: list[SampleBatch], arrival_s: float
