@@ -62,13 +62,13 @@ def test_a_machine_without_proc_stat_says_steal_was_not_measured(
     assert "not measured" in capsys.readouterr().out
 
 
-def test_trials_are_split_at_the_quiet_share(
+def test_trials_are_split_into_those_with_no_steal_and_the_rest(
     host_steal: ModuleType, capsys: pytest.CaptureFixture[str]
 ) -> None:
     lat_ms = np.array([9.0, 10.0, 30.0])
     host_steal.print_by_steal(lat_ms, [0.0, 0.005, 0.2])
     out = capsys.readouterr().out
-    quiet = next(line for line in out.splitlines() if "steal <" in line)
-    stolen = next(line for line in out.splitlines() if "steal >=" in line)
-    assert "2 trials" in quiet and "max  10.00 ms" in quiet
-    assert "1 trials" in stolen and "max  30.00 ms" in stolen
+    quiet = next(line for line in out.splitlines() if "no steal" in line)
+    stolen = next(line for line in out.splitlines() if "some steal" in line)
+    assert "1 trials" in quiet and "max   9.00 ms" in quiet
+    assert "2 trials" in stolen and "max  30.00 ms" in stolen
