@@ -184,7 +184,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         store = PassportStore(tmp / "passports")
-        vehicles = [f"rate-{n}" for n in THROUGHPUT_FRAMES] + [f"lat-{k}" for k in range(TRIALS)]
+        trial_vehicles = [f"lat-{k}" for k in range(TRIALS)]
+        vehicles = [f"rate-{n}" for n in THROUGHPUT_FRAMES] + trial_vehicles
         for v in vehicles:
             store.put(v, 0, passport)
         port = free_local_port()
@@ -287,7 +288,7 @@ def main() -> None:
                     # Latency.
                     lat_ms, stolen = [], []
                     steal = HostSteal()
-                    for v in vehicles[1:]:
+                    for v in trial_vehicles:
                         trial_frames = frames_of(trial, v, TRIAL_FRAME)
                         wait_route(vehicle, frame_key(v, 0))
                         with FramePublisher(

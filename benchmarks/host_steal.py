@@ -68,7 +68,16 @@ class HostSteal:
 
     def fraction(self, t0_s: float, t1_s: float) -> float | None:
         """Share of all CPUs' time the host took between the samples around ``t0_s`` and ``t1_s``
-        (``time.perf_counter``, s); None when no sample precedes ``t0_s`` or follows ``t1_s``."""
+        (``time.perf_counter``, s); None when no sample precedes ``t0_s`` or follows ``t1_s``.
+
+        Asked right after ``t1_s``, it waits for the thread's next sample (up to three periods).
+        """
+        if self._period_s is not None and self._thread.is_alive():
+            deadline = time.perf_counter() + 3 * self._period_s
+            while self._all[-1:] and self._t[len(self._all) - 1] < t1_s:
+                if time.perf_counter() > deadline:
+                    break
+                time.sleep(self._period_s / 5)
         t = np.asarray(self._t[: len(self._all)])
         i = int(np.searchsorted(t, t0_s, side="right")) - 1
         j = int(np.searchsorted(t, t1_s, side="left"))

@@ -72,3 +72,15 @@ def test_trials_are_split_into_those_with_no_steal_and_the_rest(
     stolen = next(line for line in out.splitlines() if "some steal" in line)
     assert "1 trials" in quiet and "max   9.00 ms" in quiet
     assert "2 trials" in stolen and "max  30.00 ms" in stolen
+
+
+def test_asked_right_after_its_window_it_waits_for_the_next_sample(host_steal: ModuleType) -> None:
+    steal = host_steal.HostSteal(period_s=0.05)
+    if not steal.available:
+        steal.close()
+        pytest.skip("this machine has no /proc/stat")
+    time.sleep(0.12)
+    now = time.perf_counter()
+    share = steal.fraction(now - 0.1, now)
+    steal.close()
+    assert share is not None and 0.0 <= share <= 1.0
