@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import asyncio
+import functools
+import importlib.util
 import json
 import socket
+import sys
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import zenoh
@@ -20,7 +25,37 @@ from protocols.frames import SampleBatch
 from protocols.mavlink_adapter import imu_message
 from service.config import config_from_dict
 from service.daemon import Service
-from service.demo import demo_scenario
+from service.demo import demo_passport, demo_scenario
+from service.pipeline import FleetProcessor, PipelineOptions
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """``benchmarks/<name>.py`` as a module (the folder is not a package: scripts run from it)."""
+    path = BENCHMARKS / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    # Registered first: its dataclasses look their module up while the file runs.
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@functools.cache
+def _demo_unit():
+    return demo_passport()
+
+
+def demo_fleet() -> FleetProcessor:
+    """A fleet whose every IMU has the demo unit's passport, at the demo site's gravity."""
+    passport, g = _demo_unit()
+    return FleetProcessor(
+        passports=lambda v, i: passport,
+        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+    )
 
 
 def free_tcp_port() -> int:

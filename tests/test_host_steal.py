@@ -2,27 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
-
-MODULE = Path(__file__).resolve().parents[1] / "benchmarks" / "host_steal.py"
+from service_support import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def host_steal() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("host_steal", MODULE)
-    if spec is None or spec.loader is None:
-        raise ImportError(f"cannot load {MODULE}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("host_steal")
 
 
 def stat_line(user: int, system: int, idle: int, steal: int, guest: int) -> str:

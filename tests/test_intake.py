@@ -3,31 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-import functools
 
-from service_support import batches_of
+from service_support import batches_of, demo_fleet
 
 from protocols.events import Event
 from protocols.frames import SampleBatch
-from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
+from service.demo import DEMO_VEHICLE, demo_scenario
 from service.intake import Intake
-from service.pipeline import FleetProcessor, PipelineOptions
 
 V = DEMO_VEHICLE
 FRAME = 20
-
-
-@functools.cache
-def unit():
-    return demo_passport()
-
-
-def fleet() -> FleetProcessor:
-    passport, g = unit()
-    return FleetProcessor(
-        passports=lambda v, i: passport,
-        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
-    )
 
 
 class ListSource:
@@ -50,7 +35,7 @@ class ListSource:
 
 
 def first_raising_frame(frames: list[SampleBatch]) -> int:
-    f = fleet()
+    f = demo_fleet()
     return next(k for k, b in enumerate(frames) if f.process(b, arrival_s=0.0))
 
 
@@ -59,7 +44,7 @@ def test_an_imu_s_event_is_delivered_before_the_other_imus_of_its_group_are_proc
     calm = demo_scenario(fault_magnitude=0.0).session
     resting = list(batches_of(calm, vehicle=V, imu=1, batch_samples=FRAME))
     k = first_raising_frame(faulty)
-    f = fleet()
+    f = demo_fleet()
     for b in faulty[:k]:
         assert not f.process(b, arrival_s=0.0)
     for b in resting[:k]:

@@ -3,34 +3,20 @@
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import numpy as np
-from service_support import batches_of, disagreeing_pair
+from service_support import batches_of, demo_fleet, disagreeing_pair
 
 from protocols.events import Event, Predicate
 from protocols.frames import SampleBatch
-from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
-from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
+from service.demo import DEMO_VEHICLE, demo_scenario
+from service.pipeline import FleetProcessor, ImuPipeline
 
 V = DEMO_VEHICLE
 
 
-@functools.cache
-def unit():
-    return demo_passport()
-
-
-def fleet() -> FleetProcessor:
-    passport, g = unit()
-    return FleetProcessor(
-        passports=lambda v, i: passport,
-        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
-    )
-
-
 def one_by_one(frames: list[SampleBatch]) -> tuple[list[Event], FleetProcessor]:
-    f = fleet()
+    f = demo_fleet()
     events = []
     for b in frames:
         events += f.process(b, arrival_s=float(b.t_s[-1]))
@@ -39,7 +25,7 @@ def one_by_one(frames: list[SampleBatch]) -> tuple[list[Event], FleetProcessor]:
 
 def queued(frames: list[SampleBatch], seed: int) -> tuple[list[Event], FleetProcessor]:
     """The frames in groups of 1…40, as a service that falls behind takes them off its queue."""
-    f = fleet()
+    f = demo_fleet()
     rng = np.random.default_rng(seed)
     events, k = [], 0
     while k < len(frames):
@@ -122,7 +108,7 @@ def test_queued_steps_give_process_queued_s_events_imu_by_imu_then_the_cross_che
         for b in pair
     ]
     together, _ = queued(frames, seed=3)
-    f = fleet()
+    f = demo_fleet()
     rng = np.random.default_rng(3)
     stepped, k, steps_per_group = [], 0, []
     while k < len(frames):
