@@ -101,8 +101,10 @@ def percentiles(lat_ms: np.ndarray) -> str:
 
 def print_by_steal(lat_ms: np.ndarray, stolen: list[float | None]) -> None:
     """The latencies split by the CPU time the host took around each trial (:mod:`host_steal`)."""
-    if not stolen or any(s is None for s in stolen):
-        print("    host steal time: not measured (no /proc/stat)")
+    unmeasured = sum(s is None for s in stolen)
+    if not stolen or unmeasured:
+        why = "no /proc/stat" if unmeasured == len(stolen) else "no sample around them"
+        print(f"    host steal time: not measured for {unmeasured} of {len(stolen)} trials ({why})")
         return
     share = np.array(stolen, dtype=float)
     print(

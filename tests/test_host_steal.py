@@ -50,7 +50,7 @@ def test_a_machine_without_proc_stat_says_steal_was_not_measured(
     assert steal.fraction(0.0, time.perf_counter()) is None
     steal.close()
     host_steal.print_by_steal(np.array([5.0, 6.0]), [None, None])
-    assert "not measured" in capsys.readouterr().out
+    assert "not measured for 2 of 2 trials (no /proc/stat)" in capsys.readouterr().out
 
 
 def test_trials_are_split_into_those_with_no_steal_and_the_rest(
