@@ -65,13 +65,16 @@ def test_trials_are_split_into_those_with_no_steal_and_the_rest(
     assert "2 trials" in stolen and "max  30.00 ms" in stolen
 
 
-def test_asked_right_after_its_window_it_waits_for_the_next_sample(host_steal: ModuleType) -> None:
-    steal = host_steal.HostSteal(period_s=0.05)
-    if not steal.available:
-        steal.close()
-        pytest.skip("this machine has no /proc/stat")
+def test_asked_right_after_its_window_it_waits_for_the_next_sample(
+    host_steal: ModuleType, tmp_path: Path
+) -> None:
+    stat = tmp_path / "stat"
+    stat.write_text(stat_line(100, 50, 800, 50, 0))
+    steal = host_steal.HostSteal(stat, period_s=0.05)
     time.sleep(0.12)
+    # Every sample up to now read the first line; the next one, taken after the call, reads this.
+    stat.write_text(stat_line(300, 100, 1400, 200, 0))
     now = time.perf_counter()
     share = steal.fraction(now - 0.1, now)
     steal.close()
-    assert share is not None and 0.0 <= share <= 1.0
+    assert share == pytest.approx(0.15)
