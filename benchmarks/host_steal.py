@@ -42,9 +42,8 @@ class HostSteal:
     def __init__(self, path: Path = PROC_STAT, period_s: float | None = PERIOD_S):
         self._path = path
         self._period_s = period_s
-        self._t: list[float] = []
-        self._steal: list[int] = []
-        self._all: list[int] = []
+        self._samples: list[tuple[float, int, int]] = []
+        """(time, steal ticks, all ticks), appended whole (a reader never sees half a sample)."""
         self._stop = threading.Event()
         self.available = _read(path) is not None
         """False where the machine has no ``/proc/stat`` (then every fraction is None)."""
@@ -56,9 +55,7 @@ class HostSteal:
         """Take one sample now (the thread does, every ``period_s``; with ``period_s=None`` only calls do)."""
         now = _read(self._path)
         if now is not None:
-            self._t.append(time.perf_counter())
-            self._steal.append(now[0])
-            self._all.append(now[1])
+            self._samples.append((time.perf_counter(), *now))
 
     def _run(self) -> None:
         assert self._period_s is not None
@@ -74,16 +71,14 @@ class HostSteal:
         """
         if self._period_s is not None and self._thread.is_alive():
             deadline = time.perf_counter() + 3 * self._period_s
-            while self._all[-1:] and self._t[len(self._all) - 1] < t1_s:
-                if time.perf_counter() > deadline:
-                    break
+            while self._samples and self._samples[-1][0] < t1_s and time.perf_counter() < deadline:
                 time.sleep(self._period_s / 5)
-        t = np.asarray(self._t[: len(self._all)])
+        t, steal, total = np.array(self._samples, dtype=float).reshape(-1, 3).T
         i = int(np.searchsorted(t, t0_s, side="right")) - 1
         j = int(np.searchsorted(t, t1_s, side="left"))
-        if i < 0 or j >= len(t) or self._all[j] == self._all[i]:
+        if i < 0 or j >= len(t) or total[j] == total[i]:
             return None
-        return (self._steal[j] - self._steal[i]) / (self._all[j] - self._all[i])
+        return float((steal[j] - steal[i]) / (total[j] - total[i]))
 
     def close(self) -> None:
         self._stop.set()

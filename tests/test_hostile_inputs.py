@@ -7,32 +7,22 @@ import functools
 
 import numpy as np
 import pytest
-from service_support import batches_of
+from service_support import batches_of, demo_fleet
 
 from estimators.stream_validity import ValidityLimits, plausible_rate_hz
 from service.checkpoint import CheckpointStore, encode_state
-from service.demo import demo_passport, demo_scenario
-from service.pipeline import FleetProcessor, PipelineOptions
+from service.demo import demo_scenario
 
 V = "uav-p"
 
 
 @functools.cache
-def unit():
-    passport, g = demo_passport()
-    return passport, g, demo_scenario()
-
-
-def fleet() -> FleetProcessor:
-    passport, g, _ = unit()
-    return FleetProcessor(
-        passports=lambda v, i: passport,
-        options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
-    )
+def scenario():
+    return demo_scenario()
 
 
 def frames(n: int):
-    return list(batches_of(unit()[2].session, vehicle=V, imu=0, batch_samples=100))[:n]
+    return list(batches_of(scenario().session, vehicle=V, imu=0, batch_samples=100))[:n]
 
 
 def test_plausible_rate_is_the_median_spacing_inside_the_limits():
@@ -52,7 +42,7 @@ def test_plausible_rate_is_the_median_spacing_inside_the_limits():
 def test_sub_microsecond_stamps_are_refused_counted_and_cost_no_memory():
     """A new IMU whose first samples are 1 ns apart: refused with a counted reason, its state stays
     small, and the same IMU's later plausible stream is taken up at its own rate."""
-    f = fleet()
+    f = demo_fleet()
     good = frames(40)
     hostile = [
         dataclasses.replace(b, t_s=1e-9 * np.arange(b.n_samples) + 1e-7 * k)
@@ -85,12 +75,12 @@ def test_sub_microsecond_stamps_are_refused_counted_and_cost_no_memory():
 def test_a_checkpoint_that_cannot_be_resumed_costs_only_its_unit(tmp_path, poison):
     """Its unit starts fresh and the caller is told why (so it can move the row aside); the state is
     otherwise a real one, so only the poisoned field can be the cause."""
-    source = fleet()
+    source = demo_fleet()
     for b in frames(30):
         source.process(b, arrival_s=0.0)
     state = {**source.pipelines[(V, 0)].state_dict(), **poison}
     told = []
-    f = fleet()
+    f = demo_fleet()
     f.set_restore(
         lambda v, i: state if v == V else None, lambda v, i, why: told.append((v, i, why))
     )
