@@ -5,6 +5,7 @@ import os
 import re
 import select
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from test_properties import _MAV, imu_messages
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
 from estimators.diagnosis import Finding
+from protocols import mavlink_adapter
 from protocols.events import Severity, StreamCause, event_from_finding, make_event
 from protocols.mavlink_adapter import (
     STATUSTEXT_MAX_CHARS,
@@ -316,6 +318,26 @@ def test_imu_messages_from_a_peer_become_si_batches(kind):
         np.testing.assert_allclose(b.gyro_rps[k], GYR, atol=qg / 2 + 1e-7, rtol=0)
     np.testing.assert_allclose(b.temp_c, [35.25, 35.25], atol=qt)
     np.testing.assert_allclose(b.t_s, [12.5, 12.51], atol=1e-6, rtol=0)
+
+
+def test_a_read_ends_at_its_gather_time_even_with_more_waiting(monkeypatch):
+    """A reader behind its input hands the backlog over in several reads: one read stops once its
+    gather time has passed, not when the socket is empty, and the next read goes on from there.
+
+    A fake clock a second later at every look stands for a parse slower than the gather time."""
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        times = [1.0 + 0.01 * k for k in range(4)]
+        for t in times:
+            peer.mav.send(imu_message(ImuMessage.HIGHRES_IMU, t_s=t, accel_mps2=ACC, gyro_rps=GYR))
+        # Loopback UDP is in the receive buffer when send returns: all four datagrams wait.
+        assert select.select([link.connection.port], [], [], WAIT_S)[0]
+        clock = iter(range(1_000_000))
+        monkeypatch.setattr(mavlink_adapter, "time", SimpleNamespace(monotonic=lambda: next(clock)))
+        reads = [link.read(0.1, gather_s=0.5) for _ in times]
+        peer.close()
+    assert [[b.n_samples for b in r] for r in reads] == [[1]] * 4
+    np.testing.assert_allclose([b.t_s[0] for r in reads for b in r], times, atol=1e-6, rtol=0)
 
 
 def test_raw_imu_scale_is_configurable_and_zero_temperature_means_none():
