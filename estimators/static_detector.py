@@ -824,8 +824,6 @@ class StreamingStaticDetector:
         w = self.window_samples
         c0 = self.n_accepted
         i_res = (w - 1 - c0 % w) % w  # first sample whose ring position is W − 1 (re-summation)
-        pad = w - 1 - i_res
-        rows = (pad + n + w - 1) // w
         res_at = np.arange(i_res, n, w)
         old_pos = np.arange(c0 - w, c0) % w
         chans = ([0, 1, 2] if self.has_accel else []) + ([3, 4, 5] if self.has_gyro else [])
@@ -845,26 +843,26 @@ class StreamingStaticDetector:
         buf = self._buf.array()
         ext = np.concatenate([buf[chans][:, old_pos].T, y])
         ext2 = ext * ext
-        e1, e2 = ext.T.tolist(), ext2.T.tolist()
         res = res_at.tolist()
         starts = np.empty((2 * nc, len(res) + 1))
         starts[:nc, 0] = np.asarray(self._s)[chans]
         starts[nc:, 0] = np.asarray(self._q)[chans]
         for r, i in enumerate(res, start=1):
-            starts[:nc, r] = [math.fsum(e[i + 1 : i + w + 1]) for e in e1]
-            starts[nc:, r] = [math.fsum(e[i + 1 : i + w + 1]) for e in e2]
-        # One row per stretch between re-summations: start, +y, −p, +y, −p, … added in update's order.
-        z = np.zeros((2 * nc, rows, 2 * w + 1))
-        z[:, :, 0] = starts[:, :rows]
-        flat = np.zeros((2, 2 * nc, rows * w))
-        flat[0, :nc, pad : pad + n] = y.T
-        flat[0, nc:, pad : pad + n] = ext2[w:].T
-        flat[1, :nc, pad : pad + n] = -ext[:n].T
-        flat[1, nc:, pad : pad + n] = -ext2[:n].T
-        z[:, :, 1::2] = flat[0].reshape(2 * nc, rows, w)
-        z[:, :, 2::2] = flat[1].reshape(2 * nc, rows, w)
-        np.cumsum(z, axis=2, out=z)
-        sums = z[:, :, 2::2].reshape(2 * nc, rows * w)[:, pad : pad + n]
+            # Only the window being re-summed goes to lists: most batches of a stream hold no re-summation.
+            starts[:nc, r] = [math.fsum(e) for e in ext[i + 1 : i + w + 1].T.tolist()]
+            starts[nc:, r] = [math.fsum(e) for e in ext2[i + 1 : i + w + 1].T.tolist()]
+        # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order.
+        plus = np.concatenate([y, ext2[w:]], axis=1).T
+        minus = -np.concatenate([ext[:n], ext2[:n]], axis=1).T
+        sums = np.empty((2 * nc, n))
+        cuts = [0, *(i + 1 for i in res if i + 1 < n), n]
+        for r, (a, b) in enumerate(itertools.pairwise(cuts)):
+            z = np.empty((2 * nc, 2 * (b - a) + 1))
+            z[:, 0] = starts[:, r]
+            z[:, 1::2] = plus[:, a:b]
+            z[:, 2::2] = minus[:, a:b]
+            np.cumsum(z, axis=1, out=z)
+            sums[:, a:b] = z[:, 2::2]
         quiet = np.ones(n, dtype=bool)
         lims = ([self._lim_a] if self.has_accel else []) + ([self._lim_g] if self.has_gyro else [])
         for k, lim in enumerate(lims):
