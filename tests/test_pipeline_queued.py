@@ -121,3 +121,16 @@ def test_queued_steps_give_process_queued_s_events_imu_by_imu_then_the_cross_che
     assert all(steps_per_group)
     assert [e.event_id for e in stepped] == [e.event_id for e in together]
     assert {e.predicate for e in stepped} >= {Predicate.F0}
+
+
+def test_the_imu_with_the_fewest_queued_samples_goes_through_first():
+    """Three frames of IMU0 queued before one of IMU1: IMU1's step comes first, so its events do not wait
+    for the work of IMU0's larger share of the group."""
+    imu0 = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=20))[:3]
+    group = [*imu0, dataclasses.replace(imu0[0], imu=1)]
+    f = demo_fleet()
+    steps = f.queued_steps(group, arrival_s=float(imu0[-1].t_s[-1]))
+    next(steps)
+    assert {key: p.n_samples for key, p in f.pipelines.items()} == {(V, 1): 20}
+    assert len(list(steps)) == 2
+    assert {key: p.n_samples for key, p in f.pipelines.items()} == {(V, 1): 20, (V, 0): 60}
