@@ -49,12 +49,19 @@ def _demo_unit():
     return demo_passport()
 
 
-def demo_fleet() -> FleetProcessor:
-    """A fleet whose every IMU has the demo unit's passport, at the demo site's gravity."""
+def demo_fleet(*, max_imus_per_vehicle: int | None = None) -> FleetProcessor:
+    """A fleet whose every IMU has the demo unit's passport, at the demo site's gravity (and, when
+    given, that admission limit; else FleetProcessor's)."""
     passport, g = _demo_unit()
-    return FleetProcessor(
+    fleet = functools.partial(
+        FleetProcessor,
         passports=lambda v, i: passport,
         options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
+    )
+    return (
+        fleet()
+        if max_imus_per_vehicle is None
+        else fleet(max_imus_per_vehicle=max_imus_per_vehicle)
     )
 
 

@@ -124,13 +124,25 @@ def test_queued_steps_give_process_queued_s_events_imu_by_imu_then_the_cross_che
 
 
 def test_the_imu_with_the_fewest_queued_samples_goes_through_first():
-    """Three frames of IMU0 queued before one of IMU1: IMU1's step comes first, so its events do not wait
-    for the work of IMU0's larger share of the group."""
-    imu0 = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=20))[:3]
-    group = [*imu0, dataclasses.replace(imu0[0], imu=1)]
+    """Three frames of IMU0 queued before one of IMU1, both running: IMU1's step comes first, so its events
+    do not wait for the work of IMU0's larger share of the group."""
+    imu0 = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=20))[:4]
+    imu1 = [dataclasses.replace(b, imu=1) for b in imu0[:2]]
     f = demo_fleet()
-    steps = f.queued_steps(group, arrival_s=float(imu0[-1].t_s[-1]))
+    for b in (imu0[0], imu1[0]):
+        f.process(b, arrival_s=float(b.t_s[-1]))
+    steps = f.queued_steps([*imu0[1:], imu1[1]], arrival_s=float(imu0[-1].t_s[-1]))
     next(steps)
-    assert {key: p.n_samples for key, p in f.pipelines.items()} == {(V, 1): 20}
+    assert {key: p.n_samples for key, p in f.pipelines.items()} == {(V, 0): 20, (V, 1): 40}
     assert len(list(steps)) == 2
-    assert {key: p.n_samples for key, p in f.pipelines.items()} == {(V, 1): 20, (V, 0): 60}
+    assert {key: p.n_samples for key, p in f.pipelines.items()} == {(V, 0): 80, (V, 1): 40}
+
+
+def test_imus_without_a_pipeline_are_admitted_in_the_order_their_frames_came():
+    """At the admission limit the IMU whose frame came first takes the last place, as frame by frame,
+    even when a later IMU has fewer queued samples."""
+    imu0 = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=20))[:3]
+    f = demo_fleet(max_imus_per_vehicle=1)
+    f.process_queued([*imu0, dataclasses.replace(imu0[0], imu=1)], arrival_s=0.0)
+    assert sorted(f.pipelines) == [(V, 0)]
+    assert f.status(V, service="t", now_unix_s=0.0).counters["frames.rejected.over_imu_limit"] == 1

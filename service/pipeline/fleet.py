@@ -221,10 +221,11 @@ class FleetProcessor:
         (the per-frame counters still count frames; the scalar state an event
         of it describes is the one at the end of the run). Every other frame is
         processed alone. The frames of each IMU keep their order; IMUs are
-        taken fewest queued samples first (ties in order of their first frame):
-        what is raised does not depend on that order, and an IMU of small frames
-        (a slow unit, or one sample per MAVLink message) does not wait for the
-        work of the large ones. The cross-IMU check then takes the
+        taken fewest queued samples first, so that an IMU of small frames (a slow
+        unit, or one sample per MAVLink message) does not wait for the work of
+        the large ones; IMUs without a pipeline yet come after them in the order
+        of their first frame, as the admission limits take them. What is raised
+        does not depend on that order. The cross-IMU check then takes the
         accepted frames one by one in the order they came, as frame-by-frame
         processing does: the IMUs it compares are the same however the frames
         were queued (an IMU whose frames were all taken first would otherwise
@@ -247,7 +248,13 @@ class FleetProcessor:
         for n, b in enumerate(batches):
             groups.setdefault((b.vehicle, b.imu), []).append((n, b))
         accepted: list[tuple[int, SampleBatch]] = []
-        for key, group in sorted(groups.items(), key=lambda kv: sum(b.n_samples for _, b in kv[1])):
+
+        def order(item: tuple[tuple[str, int], list[tuple[int, SampleBatch]]]) -> tuple[bool, int]:
+            key, group = item
+            known = key in self.pipelines
+            return (not known, sum(b.n_samples for _, b in group) if known else 0)
+
+        for key, group in sorted(groups.items(), key=order):
             events: list[Event] = []
             i = 0
             while i < len(group):
