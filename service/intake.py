@@ -98,12 +98,10 @@ class Intake:
     def _steps(self, batches: list[SampleBatch]) -> Iterator[None]:
         """:meth:`process`, IMU by IMU: each IMU's events go to the outbox as soon as its frames are
         through (:meth:`FleetProcessor.queued_steps`), and a step ends after each IMU that raised any."""
-        stored = False
         try:
             for events in self.fleet.queued_steps(batches, arrival_s=self._clock()):
+                self._put(events)
                 if events:
-                    self._put(events)
-                    stored = True
                     yield
         except Exception as exc:
             self.fleet.count_service("pipeline.errors")
@@ -115,9 +113,6 @@ class Intake:
                     f"{len(batches)} frame(s) from {first.vehicle} IMU{first.imu} seq {first.seq} on "
                     f"failed in the pipeline: {kind} (skipped, counted as pipeline.errors)"
                 )
-            return
-        if not stored:
-            self._put([])
 
     def _process_taken(self) -> None:
         """Process the frames taken off the queue so far (a rejection met while taking them comes after them)."""

@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -49,19 +50,14 @@ def _demo_unit():
     return demo_passport()
 
 
-def demo_fleet(*, max_imus_per_vehicle: int | None = None) -> FleetProcessor:
-    """A fleet whose every IMU has the demo unit's passport, at the demo site's gravity (and, when
-    given, that admission limit; else FleetProcessor's)."""
+def demo_fleet(**limits: Any) -> FleetProcessor:
+    """A fleet whose every IMU has the demo unit's passport, at the demo site's gravity (``limits``:
+    FleetProcessor's admission limits, its own where not given)."""
     passport, g = _demo_unit()
-    fleet = functools.partial(
-        FleetProcessor,
+    return FleetProcessor(
         passports=lambda v, i: passport,
         options=PipelineOptions(gravity_mps2=g, gravity_rel_err=1e-4),
-    )
-    return (
-        fleet()
-        if max_imus_per_vehicle is None
-        else fleet(max_imus_per_vehicle=max_imus_per_vehicle)
+        **limits,
     )
 
 
