@@ -303,10 +303,13 @@ def main() -> None:
         with running_service(
             tmp / "latency", store.root, g, zport, mport, len(imus), status_period_s=1.0,
             reader=args.readers[0],
-        ):  # fmt: skip
+        ) as service:  # fmt: skip
             ground = Ground(session)
             load = sender(mport, load_packets, 20, args.load) if load_packets else None
             steal = HostSteal()
+            procs = {"service": service.pid}
+            procs.update({f"reader{k or ''}": pid for k, pid in enumerate(children(service.pid))})
+            cpu0, t0 = {name: cpu_s(pid) for name, pid in procs.items()}, time.perf_counter()
             try:
                 trials = {}
                 for k, packets in enumerate(trial_packets[2:], start=2):
@@ -324,9 +327,12 @@ def main() -> None:
                         continue
                     lat_ms.append((ground.first_event_s[k] - t_last) * 1e3)
                     stolen.append(steal.fraction(t_last - STEAL_WINDOW_S, ground.first_event_s[k]))
+                cpu = {name: cpu_s(pid) - cpu0[name] for name, pid in procs.items()}
+                span_s = time.perf_counter() - t0
                 wait(lambda: ground.count("service.mavlink.messages") > 0, 5.0, "a status")
                 load_read = sum(ground.count(f"imu{i}.samples.accepted") for i in LOAD_IMUS)
                 load_dropped = ground.count("service.mavlink.dropped_overload")
+                read_n = ground.count("service.mavlink.messages")
             finally:
                 steal.close()
                 if load is not None:
@@ -358,6 +364,15 @@ def main() -> None:
     )
     if len(lat):
         print(f"    all trials:{percentiles(lat)}   (target p99 < 20 ms)")
+        # The reader's cost per message says how near this host was, this run, to the rate at which
+        # the reader no longer keeps up (the same code has cost 1.5 times as much on other runs).
+        print(
+            f"    CPU over the trials ({span_s:.0f} s, {read_n / span_s / 1e3:.1f} k messages/s read): "
+            + ", ".join(
+                f"{name} {100.0 * c / span_s:.0f} % of a core ({c / read_n * 1e6:.1f} µs per message)"
+                for name, c in cpu.items()
+            )
+        )
     print_by_steal(lat, stolen)
     if missed:
         print(f"    no event within 30 s for {len(missed)} trials (IMUs {missed})")

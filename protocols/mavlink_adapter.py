@@ -570,44 +570,49 @@ _IMU_MSG_IDS = {
 
 
 class ImuBatcher:
-    """Parsed MAVLink messages in, one :class:`~protocols.frames.SampleBatch` per IMU out (no I/O).
+    """Parsed MAVLink messages in, their IMU fields out as one array per message type (no I/O).
 
     :meth:`add` keeps the raw fields of the selected IMU messages (one C-level
     ``attrgetter`` per message) and counts what pymavlink refused
-    (``BAD_DATA``, :class:`LinkRejection`); :meth:`take` converts everything
-    kept since the last call with one array operation per message type, with
-    the units and IMU mapping of :func:`decode_imu_message` (the same
-    floating-point operations, so the same values to the bit). ``seq`` counts
-    batches per IMU. A batch carries temperatures only if every sample in it has one.
+    (``BAD_DATA``, :class:`LinkRejection`); :meth:`take_fields` hands over
+    everything kept since the last call, one array per message type, and
+    :meth:`take` turns that into batches with :attr:`converter`. A reader
+    process sends the arrays and the service converts them
+    (:mod:`protocols.mavlink_process`): the reader's core is then left to
+    pymavlink's parse, which sets the rate it keeps up with.
     """
 
     def __init__(self, settings: MavlinkSettings, counters: LinkCounters):
         self.settings = settings
         self.counters = counters
+        self.converter = ImuConverter(settings, counters)
         self._types = {m.value: m for m in settings.messages}
         self._rows: dict[ImuMessage, list[tuple[float, ...]]] = {}
-        self._seq: dict[int, int] = {}
         self.pending = 0
-        """Messages kept since the last :meth:`take`."""
+        """Messages kept since the last :meth:`take_fields`."""
 
     def add(self, messages: Iterable[MavlinkMessage]) -> None:
         """Keep the IMU messages of ``messages`` (other types are ignored, refused bytes counted)."""
         system = self.settings.autopilot_system
+        types, all_rows = self._types, self._rows
+        seen = kept = 0
         for msg in messages:
-            kind = self._types.get(msg.get_type())
+            kind = types.get(msg.get_type())
             if kind is None:
                 if isinstance(msg, mavlink2.MAVLink_bad_data):
                     self._refused(msg)
                 continue
-            self.counters.messages += 1
+            seen += 1
             if system is not None and msg.get_srcSystem() != system:
-                self.counters.ignored_system += 1
                 continue
-            rows = self._rows.get(kind)
+            rows = all_rows.get(kind)
             if rows is None:
-                rows = self._rows[kind] = []
+                rows = all_rows[kind] = []
             rows.append(_FIELDS[kind](msg))
-            self.pending += 1
+            kept += 1
+        self.counters.messages += seen
+        self.counters.ignored_system += seen - kept
+        self.pending += kept
 
     def _refused(self, bad: MavlinkMessage) -> None:
         reason = str(bad.reason)
@@ -626,18 +631,39 @@ class ImuBatcher:
         else:
             self.counters.reject(LinkRejection.MALFORMED)
 
-    def take(self) -> list[SampleBatch]:
-        """The kept samples as one batch per IMU and message type, in order of their first message."""
-        out: list[SampleBatch] = []
+    def take_fields(self) -> list[tuple[ImuMessage, np.ndarray]]:
+        """The kept messages' fields, one float64 array per message type (a row per message, in the
+        order of :data:`_FIELDS`), in order of each type's first message."""
         rows_by_kind, self._rows, self.pending = self._rows, {}, 0
+        samples = self.counters.imu_samples
+        out = []
         for kind, rows in rows_by_kind.items():
-            self.counters.imu_samples[kind.value] = self.counters.imu_samples.get(
-                kind.value, 0
-            ) + len(rows)
-            out += self._batches(kind, np.array(rows, dtype=np.float64))
+            samples[kind.value] = samples.get(kind.value, 0) + len(rows)
+            out.append((kind, np.array(rows, dtype=np.float64)))
         return out
 
-    def _batches(self, kind: ImuMessage, a: np.ndarray) -> list[SampleBatch]:
+    def take(self) -> list[SampleBatch]:
+        """The kept samples as one batch per IMU and message type, in order of their first message."""
+        return [b for kind, a in self.take_fields() for b in self.converter.batches(kind, a)]
+
+
+class ImuConverter:
+    """The fields of one message type's messages (:meth:`ImuBatcher.take_fields`) as one
+    :class:`~protocols.frames.SampleBatch` per IMU (no I/O).
+
+    One array operation per message type, with the units and IMU mapping of
+    :func:`decode_imu_message` (the same floating-point operations, so the
+    same values to the bit). ``seq`` counts batches per IMU. A batch carries
+    temperatures only if every sample in it has one; one that is no valid
+    frame is counted in ``counters`` by its :class:`~protocols.frames.FrameError` reason.
+    """
+
+    def __init__(self, settings: MavlinkSettings, counters: LinkCounters):
+        self.settings = settings
+        self.counters = counters
+        self._seq: dict[int, int] = {}
+
+    def batches(self, kind: ImuMessage, a: np.ndarray) -> list[SampleBatch]:
         base = self.settings.imu_index[kind]
         if kind is ImuMessage.HIGHRES_IMU:
             t_s, acc, gyr = a[:, 0] * 1e-6, a[:, 1:4], a[:, 4:7]
@@ -757,6 +783,18 @@ class MavlinkLink:
         Under 50 k messages/s that cut the reader's share of a fault's latency
         from p90 13.5 / max 20 ms to 5.2 / 9 ms (``bench_mavlink_e2e.py``).
         """
+        self._gather(timeout_s, gather_s)
+        return self._batcher.take()
+
+    def read_fields(
+        self, timeout_s: float, *, gather_s: float = 0.0
+    ) -> list[tuple[ImuMessage, np.ndarray]]:
+        """:meth:`read`, with the messages' fields left unconverted (:meth:`ImuBatcher.take_fields`):
+        what a reader process sends, for an :class:`ImuConverter` on the service's side."""
+        self._gather(timeout_s, gather_s)
+        return self._batcher.take_fields()
+
+    def _gather(self, timeout_s: float, gather_s: float) -> None:
         conn, batcher = self._conn, self._batcher
         deadline: float | None = None
         wait_s = timeout_s
@@ -775,7 +813,6 @@ class MavlinkLink:
             wait_s = deadline - time.monotonic()
             if wait_s <= 0 or batcher.pending >= READ_SAMPLES_MAX:
                 break
-        return batcher.take()
 
     def _end_of_datagram(self) -> None:
         mav = self._conn.mav

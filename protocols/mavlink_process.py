@@ -8,13 +8,17 @@ each. :class:`MavlinkProcessLink` runs :class:`~protocols.mavlink_adapter.Mavlin
 in a child process (``python -m protocols.mavlink_process``, a fresh
 interpreter: nothing of the service's threads or sockets is inherited, and the
 service's main module is not imported again) that opens the device, reads and parses, gathers ``gather_s`` of
-samples into one batch per IMU, and sends the batches' arrays over a pipe;
-the service then spends one pipe read per batch.
+samples, and sends their fields over a pipe, one array per message type
+(:meth:`~protocols.mavlink_adapter.MavlinkLink.read_fields`). The service
+turns them into batches (:class:`~protocols.mavlink_adapter.ImuConverter`):
+the child's core is left to pymavlink's parse, which sets the rate a link
+keeps up with (under 50 k messages/s of the latency benchmark the child
+was, at times, that core's whole time).
 
 The child is the link's only owner, so everything sent (HEARTBEAT, STATUSTEXT,
 signed when signing is on) goes through it too: a command over a second pipe,
 answered when the child has written it (or with the error it met). The
-service's side numbers the batches (``seq`` per IMU, continued across child
+service's side makes and numbers the batches (``seq`` per IMU, continued across child
 restarts), counts what was sent when the child answers, and adds up the
 counters of what the child read (deltas with every batch and at least every
 :data:`COUNTERS_PERIOD_S`, taken in by :meth:`MavlinkProcessLink.read`), so
@@ -44,6 +48,7 @@ from protocols.events import Event, Severity
 from protocols.frames import SampleBatch
 from protocols.mavlink_adapter import (
     READER_RETRY_S,
+    ImuConverter,
     LinkCounters,
     MavlinkLink,
     MavlinkSettings,
@@ -114,7 +119,7 @@ class MavlinkProcessLink:
         """Children started after the first (each after one ended)."""
         self._gather_s = float(gather_s)
         self._poll_s = float(poll_s)
-        self._seq: dict[int, int] = {}
+        self._converter = ImuConverter(settings, self.counters)
         self._lock = threading.Lock()
         self._proc: subprocess.Popen[bytes] | None = None
         self._data: Connection | None = None
@@ -192,14 +197,9 @@ class MavlinkProcessLink:
             raise self._ended() from None
         if message[0] == "failure":
             raise ReaderProcessFailed(f"mavlink {self.settings.device}: {message[1]}")
-        rows, delta = message[1], message[2]
+        fields, delta = message[1], message[2]
         _add(self.counters, delta)
-        out = []
-        for imu, t_s, accel, gyro, temp in rows:
-            seq = self._seq.get(imu, 0)
-            self._seq[imu] = seq + 1
-            out.append(SampleBatch(self.settings.vehicle, imu, seq, t_s, accel, gyro, temp))
-        return out
+        return [b for kind, a in fields for b in self._converter.batches(kind, a)]
 
     def _ended(self) -> ReaderProcessEnded:
         return ReaderProcessEnded(
@@ -310,15 +310,14 @@ def serve(data: Connection, cmd: Connection) -> None:
         last_s = time.monotonic()
         while not stop.is_set():
             try:
-                batches = link.read(poll_s, gather_s=gather_s)
+                fields = link.read_fields(poll_s, gather_s=gather_s)
             except Exception:
                 data.send(("failure", traceback.format_exc()))
                 stop.wait(READER_RETRY_S)
                 continue
             now = time.monotonic()
-            if batches or now - last_s >= COUNTERS_PERIOD_S:
-                rows = [(b.imu, b.t_s, b.accel_mps2, b.gyro_rps, b.temp_c) for b in batches]
-                data.send(("batches", rows, _delta(link.counters, reported)))
+            if fields or now - last_s >= COUNTERS_PERIOD_S:
+                data.send(("fields", fields, _delta(link.counters, reported)))
                 last_s = now
     except (BrokenPipeError, EOFError, ConnectionError):
         pass  # the service is gone: nobody to read for

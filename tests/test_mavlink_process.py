@@ -22,6 +22,7 @@ from estimators.diagnosis import Finding
 from estimators.sim import simulate, static_spec
 from protocols.events import Severity, event_from_finding
 from protocols.mavlink_adapter import (
+    DEFAULT_IMU_INDEX,
     ImuBatcher,
     ImuMessage,
     LinkCounters,
@@ -139,6 +140,31 @@ def test_batches_counters_and_alerts_are_the_in_process_links(linked, session):
         timeout_s=10,
         what=lambda: f"the sends counted: {link.counters}",
     )
+
+
+def test_samples_that_make_no_frame_are_counted_once_by_the_service(session):
+    """The child sends fields; the service makes the batches, so it counts what makes no frame
+    (here an IMU index beyond 255: HIGHRES_IMU id 100 on a base of 200) once, and the rest goes on."""
+    port = free_udp_port()
+    settings = MavlinkSettings(
+        device=f"udpin:127.0.0.1:{port}",
+        vehicle="v1",
+        imu_index={**DEFAULT_IMU_INDEX, ImuMessage.HIGHRES_IMU: 200},
+    )
+    peer = use_mavlink2(
+        mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    )
+    with MavlinkProcessLink(settings, gather_s=0.005) as link:
+        try:
+            send_each(peer, mavlink_packets(session, ImuMessage.HIGHRES_IMU, imu_id=100)[:30])
+            send_each(peer, mavlink_packets(session, ImuMessage.HIGHRES_IMU, imu_id=5)[:40])
+            got = read_samples(link, 40)
+            reading_until(link, lambda: link.counters.messages == 70)
+        finally:
+            peer.close()
+        assert {b.imu for b in got} == {205}
+        assert link.counters.rejected == {"bad_value": 30}
+        assert link.counters.imu_samples == {"HIGHRES_IMU": 70}
 
 
 def test_a_killed_child_is_said_once_replaced_and_numbering_and_counters_go_on(linked, session):
