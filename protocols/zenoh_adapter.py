@@ -720,11 +720,16 @@ class EventPublisher:
         pub, querier = self._declared(vehicle)
         return _matching(querier if self._ack is AckMode.RECEIVER else pub)
 
-    def publish(self, event: Event) -> bool:
-        """Put the event on its events key and return True iff it is acknowledged (:class:`AckMode`)."""
+    def publish(self, event: Event, *, on_put: Callable[[], None] | None = None) -> bool:
+        """Put the event on its events key and return True iff it is acknowledged (:class:`AckMode`).
+
+        ``on_put`` is called once the put has returned, before the wait for acknowledgements.
+        """
         payload = encode_event(event)
         pub, querier = self._declared(event.vehicle)
         pub.put(payload)
+        if on_put is not None:
+            on_put()
         if self._ack is AckMode.MATCHED:
             return _matching(pub)
         expected = event.event_id.encode()

@@ -26,6 +26,10 @@ QUEUED_SAMPLES_MAX = 2000
 """Samples of queued Zenoh frames taken together (2 ms of a 1 kHz IMU's chain per 1000 in one batch)."""
 
 
+async def _one_turn() -> None:
+    await asyncio.sleep(0)
+
+
 class Intake:
     """Frames from the sources into the fleet's pipelines; the events they raise go to ``store`` (the outbox).
 
@@ -43,6 +47,9 @@ class Intake:
         outbox while stopping (False: the intake ends).
     clock : the monotonic clock that stamps arrivals (timeouts).
     say : where one-line notices go.
+    handed_over : awaited after each IMU whose frames raised events, before the rest of the group:
+        until their delivery has handed them to the transports (the service bounds the wait;
+        by default one turn of the loop).
     """
 
     def __init__(
@@ -53,10 +60,12 @@ class Intake:
         writable: Callable[[], Awaitable[bool]],
         clock: Callable[[], float],
         say: Callable[[str], None],
+        handed_over: Callable[[], Awaitable[None]] = _one_turn,
     ):
         self.fleet = fleet
         self._store = store
         self._writable = writable
+        self._handed_over = handed_over
         self._clock = clock
         self._say = say
         self._reported: set[str] = set()
@@ -152,8 +161,9 @@ class Intake:
             await asyncio.sleep(0)
 
     async def _process_group(self) -> None:
-        """The frames taken, under :attr:`group_lock`; after each IMU that raised events the loop turns once,
-        so that their delivery (woken when the outbox took them) goes out before the rest of the group.
+        """The frames taken, under :attr:`group_lock`; after each IMU that raised events the intake awaits
+        ``handed_over``, so that their delivery (woken when the outbox took them) goes out before the rest
+        of the group.
 
         Under 25 k MAVLink messages/s of four other IMUs a group is about 3 ms of the pipeline's work,
         which an event waited for in full before it was stored. A cancelled wait still finishes the
@@ -164,7 +174,7 @@ class Intake:
             steps = self._steps(taken)
             try:
                 for _ in steps:
-                    await asyncio.sleep(0)
+                    await self._handed_over()
             finally:
                 for _ in steps:
                     pass

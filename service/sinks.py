@@ -22,11 +22,15 @@ TRANSPORT_ERRORS = (ZenohError, OSError, ConnectionError, ValueError)
 
 
 class EventSink(Protocol):
-    """A transport that events are delivered to; ``deliver`` returns True once the transport accepted the event."""
+    """A transport that events are delivered to; ``deliver`` returns True once the transport accepted the event.
+
+    ``sent`` is called, from any thread, once the transport holds the event (before a wait for
+    acknowledgements): the service's intake then goes on with the rest of a group of frames.
+    """
 
     name: str
 
-    async def deliver(self, event: Event) -> bool: ...
+    async def deliver(self, event: Event, *, sent: Callable[[], None]) -> bool: ...
 
     def close(self) -> None: ...
 
@@ -41,9 +45,9 @@ class ZenohEventSink:
             session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
         )
 
-    async def deliver(self, event: Event) -> bool:
+    async def deliver(self, event: Event, *, sent: Callable[[], None]) -> bool:
         # publish() blocks up to the acknowledgement timeout: keep it off the loop.
-        return await asyncio.to_thread(self._publisher.publish, event)
+        return await asyncio.to_thread(self._publisher.publish, event, on_put=sent)
 
     def close(self) -> None:
         self._publisher.close()
@@ -60,7 +64,7 @@ class MavlinkAlertSink:
         self._clock = clock
         self.other_vehicles = 0
 
-    async def deliver(self, event: Event) -> bool:
+    async def deliver(self, event: Event, *, sent: Callable[[], None]) -> bool:
         if event.vehicle != self.link.settings.vehicle:
             self.other_vehicles += 1
             return True
@@ -70,6 +74,7 @@ class MavlinkAlertSink:
         if decision:
             # A serial port may block on a full buffer: keep the write off the loop.
             await asyncio.to_thread(self.link.send_alert, event)
+            sent()
         return True
 
     async def heartbeat(self) -> None:

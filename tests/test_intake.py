@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 
 from service_support import batches_of, demo_fleet
 
@@ -39,7 +40,9 @@ def first_raising_frame(frames: list[SampleBatch]) -> int:
     return next(k for k, b in enumerate(frames) if f.process(b, arrival_s=0.0))
 
 
-def test_an_imu_s_event_is_delivered_before_the_other_imus_of_its_group_are_processed():
+def raising_group():
+    """A fleet, and the group the service takes off its queue: the faulty IMU's raising frame, then ten
+    of another IMU's; that IMU's pipeline, its last seq before the group and its last in the group."""
     faulty = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=FRAME))
     calm = demo_scenario(fault_magnitude=0.0).session
     resting = list(batches_of(calm, vehicle=V, imu=1, batch_samples=FRAME))
@@ -49,10 +52,12 @@ def test_an_imu_s_event_is_delivered_before_the_other_imus_of_its_group_are_proc
         assert not f.process(b, arrival_s=0.0)
     for b in resting[:k]:
         f.process(b, arrival_s=0.0)
-    # The group the service takes off its queue: the faulty IMU's raising frame, then ten of the other's.
-    group = [faulty[k], *resting[k : k + 10]]
     other = f.pipelines[(V, 1)]
-    seq_before = other.last_seq
+    return f, [faulty[k], *resting[k : k + 10]], other, other.last_seq, resting[k + 9].seq
+
+
+def test_an_imu_s_event_is_delivered_before_the_other_imus_of_its_group_are_processed():
+    f, group, other, seq_before, seq_after = raising_group()
 
     async def scenario() -> tuple[list[Event], list[int | None], list[int | None]]:
         stored: list[Event] = []
@@ -86,4 +91,39 @@ def test_an_imu_s_event_is_delivered_before_the_other_imus_of_its_group_are_proc
     assert at_store[0] == seq_before
     assert at_delivery == [seq_before]
     # ...and those frames were all processed after.
-    assert other.last_seq == resting[k + 9].seq
+    assert other.last_seq == seq_after
+
+
+def test_the_rest_of_the_group_waits_until_the_events_are_handed_over():
+    """A transport's worker thread says when it holds the events (20 ms later here): the other IMU's
+    frames wait for it, so that the thread does not wait for the interpreter behind them."""
+    f, group, other, seq_before, seq_after = raising_group()
+
+    async def scenario() -> list[tuple[str, int | None]]:
+        seen: list[tuple[str, int | None]] = []
+        loop = asyncio.get_running_loop()
+
+        async def writable() -> bool:
+            return True
+
+        async def handed_over() -> None:
+            seen.append(("asked", other.last_seq))
+            handed = asyncio.Event()
+            threading.Timer(0.02, loop.call_soon_threadsafe, (handed.set,)).start()
+            await handed.wait()
+            seen.append(("handed", other.last_seq))
+
+        intake = Intake(
+            f,
+            store=lambda events: True,
+            writable=writable,
+            clock=lambda: 0.0,
+            say=print,
+            handed_over=handed_over,
+        )
+        await intake.mavlink_frames(ListSource(group))  # type: ignore[arg-type]
+        return seen
+
+    seen = asyncio.run(scenario())
+    assert seen == [("asked", seq_before), ("handed", seq_before)]
+    assert other.last_seq == seq_after

@@ -397,7 +397,10 @@ def test_event_without_an_acknowledging_receiver_is_not_acknowledged(pair):
     ):
         wait_until(lambda: probe.ready("v1"))  # the plain subscriber is routed ...
         assert not pub.ready("v1")  # ... but nobody acknowledges
-        assert pub.publish(_event(3.0)) is False  # nobody confirmed it: the outbox must retry
+        puts: list[int] = []
+        # Put, then unconfirmed: the outbox must retry; the intake was told of the put at once.
+        assert pub.publish(_event(3.0), on_put=lambda: puts.append(1)) is False
+        assert puts == [1]
         wait_until(lambda: receiver.received == 1)  # the put still reached the plain subscriber
 
 
