@@ -941,7 +941,8 @@ class MavlinkSource(BatchSource):
     a time so :meth:`close` returns promptly) and gathers the samples of
     ``gather_s`` after the first into one batch per IMU: the pipeline's cost is
     per batch, and ``gather_s`` is the latency that buys. It logs the link's
-    rejected input at most once per :data:`LOG_PERIOD_S`. The ring holds up to
+    rejected input: a reason not logged before at once, more of the same at most
+    once per :data:`LOG_PERIOD_S`. The ring holds up to
     ``capacity`` samples; when the consumer lags, the oldest batches are
     dropped and their samples counted in :attr:`dropped_overload`.
     ``async for batch in source`` or ``await source.get()``; create it inside
@@ -990,10 +991,14 @@ class MavlinkSource(BatchSource):
             self._log_rejections()
 
     def _log_rejections(self) -> None:
-        now = time.monotonic()
-        if now - self._logged_at_s < LOG_PERIOD_S or self.link.counters.rejected == self._logged:
-            return
         current = dict(self.link.counters.rejected)
+        if current == self._logged:
+            return
+        now = time.monotonic()
+        # A new kind of bad input is said at once (a broken CRC seconds after the first garbage
+        # used to wait a whole period); the kinds are few, so the log stays bounded.
+        if now - self._logged_at_s < LOG_PERIOD_S and current.keys() <= self._logged.keys():
+            return
         new = {
             k: n - self._logged.get(k, 0) for k, n in current.items() if n != self._logged.get(k, 0)
         }

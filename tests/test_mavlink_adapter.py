@@ -4,6 +4,7 @@ import asyncio
 import os
 import re
 import select
+import threading
 import time
 from types import SimpleNamespace
 
@@ -447,6 +448,40 @@ def test_async_source_over_tcp():
     got = asyncio.run(run())
     assert [b.seq for b in got] == list(range(len(got))) and {b.vehicle for b in got} == {"v2"}
     np.testing.assert_allclose(np.concatenate([b.t_s for b in got]), np.arange(5) * 0.01)
+
+
+class ScriptedLink:
+    """An ImuLink without a device: each read adds the next rejections of ``steps`` and returns nothing."""
+
+    def __init__(self, steps: list[dict[str, int]]):
+        self.settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")
+        self.counters = LinkCounters()
+        self._steps = list(steps)
+        self.done = threading.Event()
+
+    def read(self, timeout_s: float, *, gather_s: float = 0.0) -> list:
+        if self._steps:
+            for reason, n in self._steps.pop(0).items():
+                self.counters.reject(reason, n)
+        else:
+            self.done.set()
+            time.sleep(timeout_s)
+        return []
+
+
+def test_a_new_kind_of_rejection_is_logged_at_once_more_of_the_same_once_a_period(caplog):
+    """Garbage, then a broken CRC a read later, then more of both: two log lines within the period."""
+    link = ScriptedLink([{"garbage_bytes": 7}, {"bad_crc": 1}, {"bad_crc": 1, "garbage_bytes": 7}])
+
+    async def run() -> None:
+        with MavlinkSource(link, poll_s=0.01):  # type: ignore[arg-type]
+            assert await asyncio.to_thread(link.done.wait, WAIT_S)
+
+    with caplog.at_level("WARNING", logger="ins_health.mavlink"):
+        asyncio.run(run())
+    said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+    assert len(said) == 2, said
+    assert "7 garbage_bytes" in said[0] and "1 bad_crc" in said[1] and "garbage" not in said[1]
 
 
 def test_no_pymavlink_global_state_is_touched():
