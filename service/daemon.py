@@ -412,8 +412,8 @@ class Service:
                 if stop.is_set():
                     return
                 # The wake alone (the drain sets it after ``stop``): one turn of the loop from the events'
-                # commit to their delivery, which the intake gives it before the rest of a group.
-                # _wait_any on both took three turns (two tasks, then asyncio.wait's callback).
+                # commit to their delivery, which the intake waits for before the rest of a group
+                # (_handed_over). _wait_any on both took three turns (two tasks, then asyncio.wait's callback).
                 wakes.idle(sink.name)
                 await wake.wait()
                 wake.clear()
