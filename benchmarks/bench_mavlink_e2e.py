@@ -14,9 +14,9 @@ acknowledges, status subscriber).
   batches), rung after rung up the ``--offered`` ladder (:data:`LADDER`) until a
   rung loses messages or the service lags. Per rung: messages sent, read
   (``service.mavlink.messages`` on the status topic, every 50 ms) and accepted by
-  the pipeline; lost = sent − read (datagrams the socket could not hold; the
-  kernel's ``RcvbufErrors`` are printed beside it) + the service's
-  ``dropped_overload``; lag = time from the last datagram sent until the status
+  the pipeline; lost = sent − read (datagrams the socket could not hold: the
+  kernel's drops at the reader's socket, ``service.mavlink.dropped_kernel``, are
+  printed beside it) + the service's ``dropped_overload``; lag = time from the last datagram sent until the status
   shows every sample accepted (a service that keeps up lags by about one status
   period); CPU each process used over the rung (% of one core): the service,
   its reader process, this sender. A rung keeps up if nothing is lost and the
@@ -332,6 +332,7 @@ def main() -> None:
                 wait(lambda: ground.count("service.mavlink.messages") > 0, 5.0, "a status")
                 load_read = sum(ground.count(f"imu{i}.samples.accepted") for i in LOAD_IMUS)
                 load_dropped = ground.count("service.mavlink.dropped_overload")
+                kernel_dropped = ground.count("service.mavlink.dropped_kernel")
                 read_n = ground.count("service.mavlink.messages")
             finally:
                 steal.close()
@@ -360,7 +361,8 @@ def main() -> None:
     print(
         f"  latency, message completing a fault -> event received ({len(lat)} trials, one message per "
         f"datagram at 1 kHz, background {args.load / 1e3:.0f} k messages/s of {len(LOAD_IMUS)} other "
-        f"IMUs: {load_read} of their samples accepted, {load_dropped} dropped by the service's queue):"
+        f"IMUs: {load_read} of their samples accepted, {load_dropped} dropped by the service's queue; "
+        f"{kernel_dropped} datagrams dropped by the kernel at the reader's socket):"
     )
     if len(lat):
         print(f"    all trials:{percentiles(lat)}   (target p99 < 20 ms)")
@@ -454,16 +456,6 @@ class Rung:
         return self.lost == 0 and self.accepted == self.sent and self.lag_s < KEEP_UP_LAG_S
 
 
-def udp_rcvbuf_errors() -> int:
-    """The kernel's count of UDP datagrams dropped for a full receive buffer (all sockets of the host)."""
-    rows = [
-        line.split()
-        for line in Path("/proc/net/snmp").read_text().splitlines()
-        if line.startswith("Udp:")
-    ]
-    return int(rows[1][rows[0].index("RcvbufErrors")])
-
-
 def offer(
     ground: Ground,
     port: int,
@@ -486,7 +478,7 @@ def offer(
     procs = {"service": service.pid, "sender": os.getpid()}
     procs.update({f"reader{k or ''}": pid for k, pid in enumerate(children(service.pid))})
     dropped_before = ground.count("service.mavlink.dropped_overload")
-    kernel_before = udp_rcvbuf_errors()
+    kernel_before = ground.count("service.mavlink.dropped_kernel")
     cpu0 = {name: cpu_s(pid) for name, pid in procs.items()}
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.connect(("127.0.0.1", port))
@@ -513,7 +505,8 @@ def offer(
     dropped = ground.count("service.mavlink.dropped_overload") - dropped_before
     return Rung(
         reader, per_datagram, rate, len(packets), len(packets) / (t_sent - t0), read(), accepted(),
-        len(packets) - read() + dropped, udp_rcvbuf_errors() - kernel_before, t_end - t_sent, cpu,
+        len(packets) - read() + dropped, ground.count("service.mavlink.dropped_kernel") - kernel_before,
+        t_end - t_sent, cpu,
     )  # fmt: skip
 
 

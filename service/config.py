@@ -35,7 +35,7 @@ from typing import Any
 from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
 from estimators.stream_validity import ValidityLimits
 from protocols._schema import SchemaError, check_vehicle
-from protocols.mavlink_adapter import MavlinkSettings
+from protocols.mavlink_adapter import UDP_RCVBUF_MIN_BYTES, MavlinkSettings
 from protocols.zenoh_adapter import (
     ALL_FRAMES,
     AckMode,
@@ -75,6 +75,7 @@ _MAVLINK_LINK_KEYS: dict[str, tuple[type, tuple[int, int] | None]] = {
     "messages": (list, None),
     "imu_index": (dict, None),
     "raw_scale": (dict, None),
+    "udp_rcvbuf_bytes": (int, (UDP_RCVBUF_MIN_BYTES, 2**31 - 1)),
 }
 """Type and range of each ``[mavlink]`` link key, checked before the link settings are built: a
 value of the wrong type must be refused, not compared (a string ``autopilot_system`` matched no
@@ -206,7 +207,9 @@ class MavlinkSection:
         (a file holding the 64 hex digits, relative to the configuration file; MAVLink 2 signing:
         what is sent is signed, IMU messages unsigned or signed with another key are refused and
         counted as ``service.mavlink.rejected.unsigned`` / ``.bad_signature``),
-        ``signing_link_id``, ``accept_unsigned`` (default false: read unsigned IMU messages anyway).
+        ``signing_link_id``, ``accept_unsigned`` (default false: read unsigned IMU messages anyway),
+        ``udp_rcvbuf_bytes`` (a UDP link's receive buffer, default 4 MiB: the backlog held
+        before the kernel drops datagrams, counted as ``service.mavlink.dropped_kernel``).
     """
 
     enabled: bool = False

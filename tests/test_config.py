@@ -106,6 +106,10 @@ stale_run_samples = 50
             r"\[mavlink\] autopilot_system must be int, got '1'",
         ),
         ({"mavlink": {"baud": 1.5}}, r"\[mavlink\] baud must be int"),
+        (
+            {"mavlink": {"udp_rcvbuf_bytes": 1024}},
+            r"\[mavlink\] udp_rcvbuf_bytes must be in 4096..2147483647, got 1024",
+        ),
         ({"mavlink": {"accept_unsigned": 1}}, r"\[mavlink\] accept_unsigned must be bool"),
         (
             {"mavlink": {"raw_scale": {"accel_mps2_per_lsb": -1.0}}},

@@ -22,6 +22,7 @@ from protocols import mavlink_adapter
 from protocols.events import Severity, StreamCause, event_from_finding, make_event
 from protocols.mavlink_adapter import (
     STATUSTEXT_MAX_CHARS,
+    UDP_RCVBUF_MIN_BYTES,
     AlertRateLimiter,
     ImuBatcher,
     ImuMessage,
@@ -341,6 +342,35 @@ def test_a_read_ends_at_its_gather_time_even_with_more_waiting(monkeypatch):
     np.testing.assert_allclose([b.t_s[0] for r in reads for b in r], times, atol=1e-6, rtol=0)
 
 
+@pytest.mark.skipif(
+    not os.path.exists("/proc/net/udp"), reason="the kernel lists no UDP socket's drops (not Linux)"
+)
+def test_datagrams_the_kernel_drops_are_counted():
+    """A reader behind its input, with the least receive buffer: the kernel drops most of 300
+    datagrams, and every one sent is either read or counted as dropped."""
+    sent = 300
+    settings = MavlinkSettings.from_dict(
+        {"device": "udpin:127.0.0.1:0", "vehicle": "v1", "udp_rcvbuf_bytes": UDP_RCVBUF_MIN_BYTES}
+    )
+    with MavlinkLink(settings) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        for k in range(sent):
+            peer.mav.send(
+                imu_message(
+                    ImuMessage.HIGHRES_IMU, t_s=1.0 + 1e-3 * k, accel_mps2=ACC, gyro_rps=GYR
+                )
+            )
+        # Loopback UDP is in the receive buffer, or dropped, when send returns.
+        got = []
+        while batches := link.read(0.1):
+            got += batches
+        peer.close()
+    read = sum(b.n_samples for b in got)
+    assert 0 < read < sent // 10
+    assert link.counters.messages == read
+    assert link.counters.dropped_kernel == sent - read
+
+
 def test_raw_imu_scale_is_configurable_and_zero_temperature_means_none():
     scale = ImuScale(
         accel_mps2_per_lsb=STANDARD_GRAVITY_MPS2 / 2048.0,
@@ -418,6 +448,8 @@ def test_settings_from_dict_and_message_selection():
         ({"device": "x", "vehicle": "v", "signing_key_hex": "zz"}, "64 hexadecimal"),
         ({"device": "x", "vehicle": "v", "signing_key_hex": "00" * 16}, "32 bytes"),
         ({"device": "x", "vehicle": "v", "speed": 3}, "unknown mavlink setting"),
+        ({"device": "x", "vehicle": "v", "udp_rcvbuf_bytes": 100}, "udp_rcvbuf_bytes must be"),
+        ({"device": "x", "vehicle": "v", "udp_rcvbuf_bytes": "4M"}, "udp_rcvbuf_bytes must be"),
     ],
 )
 def test_bad_settings(table, match):
@@ -451,7 +483,8 @@ def test_async_source_over_tcp():
 
 
 class ScriptedLink:
-    """An ImuLink without a device: each read adds the next rejections of ``steps`` and returns nothing."""
+    """An ImuLink without a device: each read adds the next rejections (and kernel drops) of ``steps``
+    and returns nothing."""
 
     def __init__(self, steps: list[dict[str, int]]):
         self.settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")
@@ -462,7 +495,10 @@ class ScriptedLink:
     def read(self, timeout_s: float, *, gather_s: float = 0.0) -> list:
         if self._steps:
             for reason, n in self._steps.pop(0).items():
-                self.counters.reject(reason, n)
+                if reason == "dropped_kernel":
+                    self.counters.dropped_kernel += n
+                else:
+                    self.counters.reject(reason, n)
         else:
             self.done.set()
             time.sleep(timeout_s)
@@ -482,6 +518,20 @@ def test_a_new_kind_of_rejection_is_logged_at_once_more_of_the_same_once_a_perio
     said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
     assert len(said) == 2, said
     assert "7 garbage_bytes" in said[0] and "1 bad_crc" in said[1] and "garbage" not in said[1]
+
+
+def test_kernel_drops_are_logged_at_once_then_once_a_period(caplog):
+    """Drops seen on two reads within the period: one line, at the first."""
+    link = ScriptedLink([{"dropped_kernel": 40}, {"dropped_kernel": 5}])
+
+    async def run() -> None:
+        with MavlinkSource(link, poll_s=0.01):  # type: ignore[arg-type]
+            assert await asyncio.to_thread(link.done.wait, WAIT_S)
+
+    with caplog.at_level("WARNING", logger="ins_health.mavlink"):
+        asyncio.run(run())
+    said = [r.getMessage() for r in caplog.records if "kernel dropped" in r.getMessage()]
+    assert len(said) == 1 and "dropped 40 datagrams (40 in all)" in said[0], said
 
 
 def test_no_pymavlink_global_state_is_touched():

@@ -23,6 +23,7 @@ from estimators.sim import simulate, static_spec
 from protocols.events import Severity, event_from_finding
 from protocols.mavlink_adapter import (
     DEFAULT_IMU_INDEX,
+    UDP_RCVBUF_MIN_BYTES,
     ImuBatcher,
     ImuMessage,
     LinkCounters,
@@ -165,6 +166,32 @@ def test_samples_that_make_no_frame_are_counted_once_by_the_service(session):
         assert {b.imu for b in got} == {205}
         assert link.counters.rejected == {"bad_value": 30}
         assert link.counters.imu_samples == {"HIGHRES_IMU": 70}
+
+
+@pytest.mark.skipif(
+    not os.path.exists("/proc/net/udp"), reason="the kernel lists no UDP socket's drops (not Linux)"
+)
+def test_datagrams_the_kernel_drops_at_the_childs_socket_reach_the_services_counters(session):
+    """The child's socket with the least receive buffer and 2,000 datagrams in a burst, sent faster
+    than the child parses: every one is read or counted as dropped, in the service's counters."""
+    port = free_udp_port()
+    settings = MavlinkSettings(
+        device=f"udpin:127.0.0.1:{port}", vehicle="v1", udp_rcvbuf_bytes=UDP_RCVBUF_MIN_BYTES
+    )
+    peer = use_mavlink2(
+        mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    )
+    packets = mavlink_packets(session, ImuMessage.HIGHRES_IMU) * 5
+    with MavlinkProcessLink(settings, gather_s=0.005) as link:
+        try:
+            send_each(peer, packets)
+            reading_until(
+                link,
+                lambda: link.counters.messages + link.counters.dropped_kernel == len(packets),
+            )
+        finally:
+            peer.close()
+    assert 0 < link.counters.dropped_kernel < len(packets)
 
 
 def test_a_killed_child_is_said_once_replaced_and_numbering_and_counters_go_on(linked, session):

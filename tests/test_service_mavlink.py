@@ -311,6 +311,7 @@ def test_garbage_and_bad_crc_are_counted_and_logged_while_the_fault_is_found(tmp
     assert counters["service.mavlink.rejected.garbage_bytes"] == n_hostile * (
         len(garbage) + len(cut)
     )
+    assert counters["service.mavlink.dropped_kernel"] == 0  # the stream is paced to the reading
     logged = [line for line in lines if "rejected" in line and "bad_crc" in line]
     # bad_crc's first line, then one a period at most; a line said at once for the other kind
     # (garbage_bytes) may hold bad_crc counted since the last line.
