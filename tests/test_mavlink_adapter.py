@@ -505,9 +505,8 @@ class ScriptedLink:
         return []
 
 
-def test_a_new_kind_of_rejection_is_logged_at_once_more_of_the_same_once_a_period(caplog):
-    """Garbage, then a broken CRC a read later, then more of both: two log lines within the period."""
-    link = ScriptedLink([{"garbage_bytes": 7}, {"bad_crc": 1}, {"bad_crc": 1, "garbage_bytes": 7}])
+def warnings_while_read(link: ScriptedLink, caplog) -> list[str]:
+    """The MAVLink log's warnings while a :class:`MavlinkSource` reads ``link`` through its steps."""
 
     async def run() -> None:
         with MavlinkSource(link, poll_s=0.01):  # type: ignore[arg-type]
@@ -515,7 +514,13 @@ def test_a_new_kind_of_rejection_is_logged_at_once_more_of_the_same_once_a_perio
 
     with caplog.at_level("WARNING", logger="ins_health.mavlink"):
         asyncio.run(run())
-    said = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+    return [r.getMessage() for r in caplog.records]
+
+
+def test_a_new_kind_of_rejection_is_logged_at_once_more_of_the_same_once_a_period(caplog):
+    """Garbage, then a broken CRC a read later, then more of both: two log lines within the period."""
+    link = ScriptedLink([{"garbage_bytes": 7}, {"bad_crc": 1}, {"bad_crc": 1, "garbage_bytes": 7}])
+    said = [line for line in warnings_while_read(link, caplog) if "rejected" in line]
     assert len(said) == 2, said
     assert "7 garbage_bytes" in said[0] and "1 bad_crc" in said[1] and "garbage" not in said[1]
 
@@ -523,14 +528,7 @@ def test_a_new_kind_of_rejection_is_logged_at_once_more_of_the_same_once_a_perio
 def test_kernel_drops_are_logged_at_once_then_once_a_period(caplog):
     """Drops seen on two reads within the period: one line, at the first."""
     link = ScriptedLink([{"dropped_kernel": 40}, {"dropped_kernel": 5}])
-
-    async def run() -> None:
-        with MavlinkSource(link, poll_s=0.01):  # type: ignore[arg-type]
-            assert await asyncio.to_thread(link.done.wait, WAIT_S)
-
-    with caplog.at_level("WARNING", logger="ins_health.mavlink"):
-        asyncio.run(run())
-    said = [r.getMessage() for r in caplog.records if "kernel dropped" in r.getMessage()]
+    said = [line for line in warnings_while_read(link, caplog) if "kernel dropped" in line]
     assert len(said) == 1 and "dropped 40 datagrams (40 in all)" in said[0], said
 
 
