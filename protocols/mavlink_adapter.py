@@ -42,6 +42,7 @@ import logging
 import os
 import socket
 import stat
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -788,6 +789,10 @@ class MavlinkLink:
             self._conn.port.setsockopt(
                 socket.SOL_SOCKET, socket.SO_RCVBUF, settings.udp_rcvbuf_bytes
             )
+        self.udp_rcvbuf_granted_bytes = (
+            granted_rcvbuf_bytes(self._conn.port) if self._datagrams else None
+        )
+        """The receive buffer the kernel granted a UDP link (at most ``net.core.rmem_max``); None on others."""
         self._kernel_drops = KernelDrops(self._conn.port) if self._datagrams else None
         self._drops_read_s = -DROPS_PERIOD_S
         self._send_lock = threading.Lock()
@@ -898,6 +903,17 @@ class MavlinkLink:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def granted_rcvbuf_bytes(sock: socket.socket) -> int:
+    """The receive buffer the kernel granted ``sock``, in the bytes asked for with ``SO_RCVBUF``.
+
+    Linux reports twice the bytes granted (the other half is for its own
+    bookkeeping, ``man 7 socket``) and grants at most ``net.core.rmem_max``
+    (212,992 on a stock kernel).
+    """
+    reported = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+    return reported // 2 if sys.platform.startswith("linux") else reported
 
 
 _PROC_UDP = {socket.AF_INET: "/proc/net/udp", socket.AF_INET6: "/proc/net/udp6"}

@@ -117,6 +117,8 @@ class MavlinkProcessLink:
         self.counters = LinkCounters()
         self.restarts = 0
         """Children started after the first (each after one ended)."""
+        self.udp_rcvbuf_granted_bytes: int | None = None
+        """The receive buffer the kernel granted the child's UDP socket (None on other links)."""
         self._gather_s = float(gather_s)
         self._poll_s = float(poll_s)
         self._converter = ImuConverter(settings, self.counters)
@@ -162,6 +164,7 @@ class MavlinkProcessLink:
             first = data_conn.recv()
             if first[0] != "ready":
                 raise ReaderProcessFailed(f"mavlink {self.settings.device}: {first[1]}")
+            self.udp_rcvbuf_granted_bytes = first[1]
         except (EOFError, OSError) as exc:
             data_conn.close()
             cmd_conn.close()
@@ -306,7 +309,7 @@ def serve(data: Connection, cmd: Connection) -> None:
     threading.Thread(target=_commands, args=(link, cmd, stop), daemon=True).start()
     reported = LinkCounters()
     try:
-        data.send(("ready",))
+        data.send(("ready", link.udp_rcvbuf_granted_bytes))
         last_s = time.monotonic()
         while not stop.is_set():
             try:

@@ -628,6 +628,7 @@ class Service:
             if cfg.mavlink.enabled:
                 link = await asyncio.to_thread(self._open_mavlink)
                 resources.callback(link.close)
+                _warn_short_rcvbuf(link)
                 policy = AlertPolicy(
                     min_interval_s=cfg.mavlink.alert_min_interval_s,
                     max_per_s=cfg.mavlink.alert_max_per_s,
@@ -871,6 +872,19 @@ class _Connector:
                 "zenoh: session open after %.1f s of attempts", time.monotonic() - self._first_s
             )
         return session
+
+
+def _warn_short_rcvbuf(link: MavlinkLink | MavlinkProcessLink) -> None:
+    """Say when the kernel granted a UDP link less receive buffer than ``udp_rcvbuf_bytes`` asked:
+    a stock kernel caps the default 4 MiB at 208 KiB, about 500 datagrams of one message, and a
+    backlog the buffer was sized for is then dropped (``service.mavlink.dropped_kernel``)."""
+    granted, asked = link.udp_rcvbuf_granted_bytes, link.settings.udp_rcvbuf_bytes
+    if granted is not None and granted < asked:
+        log.warning(
+            "mavlink %s: the kernel granted %d bytes of receive buffer of the %d asked (udp_rcvbuf_bytes); "
+            "net.core.rmem_max caps it: sysctl -w net.core.rmem_max=%d",
+            link.settings.device, granted, asked, asked,
+        )  # fmt: skip
 
 
 def _not_last() -> None:

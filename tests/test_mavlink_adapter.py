@@ -6,6 +6,7 @@ import re
 import select
 import threading
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -369,6 +370,22 @@ def test_datagrams_the_kernel_drops_are_counted():
     assert 0 < read < sent // 10
     assert link.counters.messages == read
     assert link.counters.dropped_kernel == sent - read
+
+
+RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
+
+
+@pytest.mark.skipif(
+    not RMEM_MAX.exists(), reason="no net.core.rmem_max to cap the buffer (not Linux)"
+)
+def test_the_receive_buffer_granted_is_what_was_asked_up_to_rmem_max():
+    rmem_max = int(RMEM_MAX.read_text())
+    granted = []
+    for asked in (UDP_RCVBUF_MIN_BYTES, rmem_max + 4096):
+        settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", udp_rcvbuf_bytes=asked)
+        with MavlinkLink(settings) as link:
+            granted.append(link.udp_rcvbuf_granted_bytes)
+    assert granted == [UDP_RCVBUF_MIN_BYTES, rmem_max]
 
 
 def test_raw_imu_scale_is_configurable_and_zero_temperature_means_none():

@@ -192,6 +192,7 @@ def test_datagrams_the_kernel_drops_at_the_childs_socket_reach_the_services_coun
         finally:
             peer.close()
     assert 0 < link.counters.dropped_kernel < len(packets)
+    assert link.udp_rcvbuf_granted_bytes == UDP_RCVBUF_MIN_BYTES
 
 
 def test_a_killed_child_is_said_once_replaced_and_numbering_and_counters_go_on(linked, session):

@@ -353,3 +353,25 @@ def test_with_a_signing_key_only_signed_imu_messages_are_read(tmp_path):
         "service.mavlink.rejected.bad_signature": n_hostile,
         "service.mavlink.rejected.unsigned": n_hostile,
     }
+
+
+RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
+
+
+@pytest.mark.skipif(
+    not RMEM_MAX.exists(), reason="no net.core.rmem_max to cap the buffer (not Linux)"
+)
+@pytest.mark.parametrize("reader", ["process", "thread"])
+def test_a_receive_buffer_the_kernel_caps_is_said_at_start(tmp_path, caplog, reader):
+    """More receive buffer asked than net.core.rmem_max grants: one warning names both and the sysctl."""
+    rmem_max = int(RMEM_MAX.read_text())
+    asked = rmem_max + 4096
+    mavlink = {"enabled": True, "device": f"udpin:127.0.0.1:{free_udp_port()}", "vehicle": "mav1",
+               "reader": reader, "udp_rcvbuf_bytes": asked}  # fmt: skip
+    cfg = service_config(tmp_path, port=None, passport_dir=put_store(tmp_path, []), mavlink=mavlink)
+    with caplog.at_level("WARNING", logger="ins_health"), ServiceThread(cfg) as svc:
+        assert svc.service.mavlink_sink.link.udp_rcvbuf_granted_bytes == rmem_max
+    said = [r.getMessage() for r in caplog.records if "receive buffer" in r.getMessage()]
+    assert len(said) == 1, said
+    assert f"granted {rmem_max} bytes of receive buffer of the {asked} asked" in said[0]
+    assert f"net.core.rmem_max={asked}" in said[0]
