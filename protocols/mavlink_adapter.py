@@ -783,18 +783,16 @@ class MavlinkLink:
             )
             keep_replay_window(self._conn.mav)
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
+        self.udp_rcvbuf_granted_bytes: int | None = None
+        """The receive buffer the kernel granted a UDP link (at most ``net.core.rmem_max``); None on others."""
+        self._kernel_drops: KernelDrops | None = None
         if self._datagrams:
             # The kernel holds datagrams while the pipeline has the interpreter: at 50 k/s the
             # default (~200 kB) lasts a few ms. The kernel caps this at net.core.rmem_max.
-            self._conn.port.setsockopt(
-                socket.SOL_SOCKET, socket.SO_RCVBUF, settings.udp_rcvbuf_bytes
-            )
-        self.udp_rcvbuf_granted_bytes = (
-            granted_rcvbuf_bytes(self._conn.port) if self._datagrams else None
-        )
-        """The receive buffer the kernel granted a UDP link (at most ``net.core.rmem_max``); None on others."""
-        self._kernel_drops = KernelDrops(self._conn.port) if self._datagrams else None
-        self._drops_read_s = -DROPS_PERIOD_S
+            port = self._conn.port
+            port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, settings.udp_rcvbuf_bytes)
+            self.udp_rcvbuf_granted_bytes = granted_rcvbuf_bytes(port)
+            self._kernel_drops = KernelDrops(port)
         self._send_lock = threading.Lock()
         self._chunk_id = 0
         self.counters = LinkCounters()
@@ -847,15 +845,7 @@ class MavlinkLink:
             wait_s = deadline - time.monotonic()
             if wait_s <= 0 or batcher.pending >= READ_SAMPLES_MAX:
                 break
-        self._count_kernel_drops()
-
-    def _count_kernel_drops(self) -> None:
-        now = time.monotonic()
-        if self._kernel_drops is None or now - self._drops_read_s < DROPS_PERIOD_S:
-            return
-        self._drops_read_s = now
-        total = self._kernel_drops.total()
-        if total is not None:
+        if self._kernel_drops is not None and (total := self._kernel_drops.total()) is not None:
             self.counters.dropped_kernel = total
 
     def _end_of_datagram(self) -> None:
@@ -925,19 +915,28 @@ class KernelDrops:
     The ``drops`` column of ``/proc/net/udp`` (``udp6``) on the socket's row,
     found by its inode: datagrams that came while the receive buffer was full
     (the kernel's ``RcvbufErrors``, of this socket alone) or that failed their
-    checksum. Read at most every :data:`DROPS_PERIOD_S`: the file lists every
-    UDP socket of the host, and a read took 0.07 ms with a few and 2.7 ms with
-    a thousand here, in the reader that sets the link's speed.
+    checksum. The file is read at most every :data:`DROPS_PERIOD_S`: it lists
+    every UDP socket of the host, and a read took 0.07 ms with a few and 2.7 ms
+    with a thousand here, in the reader that sets the link's speed.
     """
 
     def __init__(self, sock: socket.socket):
         self._inode = str(os.fstat(sock.fileno()).st_ino)
         self._path = _PROC_UDP.get(sock.family)
+        self._total: int | None = None
+        self._read_s = -DROPS_PERIOD_S
 
     def total(self) -> int | None:
-        """The socket's drops so far; None where the kernel does not list them (not Linux, no row)."""
-        if self._path is None:
-            return None
+        """The socket's drops so far (as last read); None where the kernel does not list them
+        (not Linux, no row)."""
+        now = time.monotonic()
+        if self._path is not None and now - self._read_s >= DROPS_PERIOD_S:
+            self._read_s = now
+            self._total = self._read()
+        return self._total
+
+    def _read(self) -> int | None:
+        assert self._path is not None
         try:
             with open(self._path, encoding="ascii") as f:
                 next(f, None)  # the header
@@ -1023,6 +1022,29 @@ class ImuLink(Protocol):
     def close(self) -> None: ...
 
 
+class _LogRate:
+    """Which growth of some counts to log now: a kind not logged before at once (a broken CRC seconds
+    after the first garbage used to wait a whole period), more of a kind already logged at most once
+    per :data:`LOG_PERIOD_S`. The kinds are few, so the log stays bounded."""
+
+    def __init__(self) -> None:
+        self._logged: dict[str, int] = {}
+        self._at_s = -LOG_PERIOD_S
+
+    def due(self, current: dict[str, int]) -> dict[str, int]:
+        """What ``current`` gained since the last line logged, if a line is due now; else ``{}``."""
+        if current == self._logged:
+            return {}
+        now = time.monotonic()
+        if now - self._at_s < LOG_PERIOD_S and current.keys() <= self._logged.keys():
+            return {}
+        new = {
+            k: n - self._logged.get(k, 0) for k, n in current.items() if n != self._logged.get(k, 0)
+        }
+        self._logged, self._at_s = current, now
+        return new
+
+
 class MavlinkSource(BatchSource):
     """IMU batches from a link (:class:`ImuLink`) for asyncio: a reader thread and a bounded ring.
 
@@ -1056,10 +1078,8 @@ class MavlinkSource(BatchSource):
         self._poll_s = float(poll_s)
         self.failures = 0
         self.last_failure: Exception | None = None
-        self._logged: dict[str, int] = {}
-        self._logged_at_s = -LOG_PERIOD_S
-        self._drops_logged = 0
-        self._drops_logged_at_s = -LOG_PERIOD_S
+        self._rejections_log = _LogRate()
+        self._drops_log = _LogRate()
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
         )
@@ -1083,39 +1103,25 @@ class MavlinkSource(BatchSource):
             self._log_kernel_drops()
 
     def _log_rejections(self) -> None:
-        current = dict(self.link.counters.rejected)
-        if current == self._logged:
-            return
-        now = time.monotonic()
-        # A new kind of bad input is said at once (a broken CRC seconds after the first garbage
-        # used to wait a whole period); the kinds are few, so the log stays bounded.
-        if now - self._logged_at_s < LOG_PERIOD_S and current.keys() <= self._logged.keys():
-            return
-        new = {
-            k: n - self._logged.get(k, 0) for k, n in current.items() if n != self._logged.get(k, 0)
-        }
-        self._logged, self._logged_at_s = current, now
-        _log.warning(
-            "mavlink %s: rejected %s (counted on the status topic as service.mavlink.rejected.*)",
-            self.link.settings.device,
-            ", ".join(f"{n} {k}" for k, n in sorted(new.items())),
-        )
+        new = self._rejections_log.due(dict(self.link.counters.rejected))
+        if new:
+            _log.warning(
+                "mavlink %s: rejected %s (counted on the status topic as service.mavlink.rejected.*)",
+                self.link.settings.device,
+                ", ".join(f"{n} {k}" for k, n in sorted(new.items())),
+            )
 
     def _log_kernel_drops(self) -> None:
         total = self.link.counters.dropped_kernel
-        if total == self._drops_logged:
-            return
-        now = time.monotonic()
-        if self._drops_logged and now - self._drops_logged_at_s < LOG_PERIOD_S:
-            return
-        _log.warning(
-            "mavlink %s: the kernel dropped %d datagrams (%d in all): the socket's receive buffer "
-            "was full, the reader is behind its input (service.mavlink.dropped_kernel)",
-            self.link.settings.device,
-            total - self._drops_logged,
-            total,
-        )
-        self._drops_logged, self._drops_logged_at_s = total, now
+        new = self._drops_log.due({"dropped_kernel": total} if total else {})
+        if new:
+            _log.warning(
+                "mavlink %s: the kernel dropped %d datagrams (%d in all): the socket's receive buffer "
+                "was full, the reader is behind its input (service.mavlink.dropped_kernel)",
+                self.link.settings.device,
+                new["dropped_kernel"],
+                total,
+            )
 
     @property
     def dropped_overload(self) -> int:

@@ -18,6 +18,7 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
+import pytest
 import zenoh
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
@@ -30,6 +31,18 @@ from service.demo import demo_passport, demo_scenario
 from service.pipeline import FleetProcessor, PipelineOptions
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
+"""``net.core.rmem_max``: the most receive buffer the kernel grants a socket."""
+# The service reads these Linux files (protocols.mavlink_adapter.KernelDrops, granted_rcvbuf_bytes);
+# where they are absent it counts no drops, and the tests of those counts have nothing to check.
+needs_udp_drops = pytest.mark.skipif(
+    not Path("/proc/net/udp").exists(), reason="the kernel lists no UDP socket's drops (not Linux)"
+)
+needs_rmem_max = pytest.mark.skipif(
+    not RMEM_MAX.exists(), reason="no net.core.rmem_max to cap the buffer (not Linux)"
+)
 
 
 def load_benchmark(name: str) -> ModuleType:

@@ -6,7 +6,6 @@ import re
 import select
 import threading
 import time
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+from service_support import RMEM_MAX, needs_rmem_max, needs_udp_drops
 from test_properties import _MAV, imu_messages
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
@@ -343,9 +343,7 @@ def test_a_read_ends_at_its_gather_time_even_with_more_waiting(monkeypatch):
     np.testing.assert_allclose([b.t_s[0] for r in reads for b in r], times, atol=1e-6, rtol=0)
 
 
-@pytest.mark.skipif(
-    not os.path.exists("/proc/net/udp"), reason="the kernel lists no UDP socket's drops (not Linux)"
-)
+@needs_udp_drops
 def test_datagrams_the_kernel_drops_are_counted():
     """A reader behind its input, with the least receive buffer: the kernel drops most of 300
     datagrams, and every one sent is either read or counted as dropped."""
@@ -372,12 +370,7 @@ def test_datagrams_the_kernel_drops_are_counted():
     assert link.counters.dropped_kernel == sent - read
 
 
-RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
-
-
-@pytest.mark.skipif(
-    not RMEM_MAX.exists(), reason="no net.core.rmem_max to cap the buffer (not Linux)"
-)
+@needs_rmem_max
 def test_the_receive_buffer_granted_is_what_was_asked_up_to_rmem_max():
     rmem_max = int(RMEM_MAX.read_text())
     granted = []

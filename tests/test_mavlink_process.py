@@ -15,7 +15,13 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-from service_support import free_udp_port, mavlink_packets, receive_until, wait_until
+from service_support import (
+    free_udp_port,
+    mavlink_packets,
+    needs_udp_drops,
+    receive_until,
+    wait_until,
+)
 
 from estimators.conventions import Cause, Triad
 from estimators.diagnosis import Finding
@@ -168,9 +174,7 @@ def test_samples_that_make_no_frame_are_counted_once_by_the_service(session):
         assert link.counters.imu_samples == {"HIGHRES_IMU": 70}
 
 
-@pytest.mark.skipif(
-    not os.path.exists("/proc/net/udp"), reason="the kernel lists no UDP socket's drops (not Linux)"
-)
+@needs_udp_drops
 def test_datagrams_the_kernel_drops_at_the_childs_socket_reach_the_services_counters(session):
     """The child's socket with the least receive buffer and 2,000 datagrams in a burst, sent faster
     than the child parses: every one is read or counted as dropped, in the service's counters."""

@@ -15,10 +15,12 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from real_data import REAL_TLOG, needs
 from service_support import (
+    RMEM_MAX,
     ServiceThread,
     free_tcp_port,
     free_udp_port,
     mavlink_packets,
+    needs_rmem_max,
     of_type,
     receive_until,
     service_config,
@@ -356,13 +358,10 @@ def test_with_a_signing_key_only_signed_imu_messages_are_read(tmp_path):
     }
 
 
-RMEM_MAX = Path("/proc/sys/net/core/rmem_max")
 IMU_TYPES = frozenset(m.value for m in ImuMessage)
 
 
-@pytest.mark.skipif(
-    not RMEM_MAX.exists(), reason="no net.core.rmem_max to cap the buffer (not Linux)"
-)
+@needs_rmem_max
 @pytest.mark.parametrize("reader", ["process", "thread"])
 def test_a_receive_buffer_the_kernel_caps_is_said_at_start(tmp_path, caplog, reader):
     """More receive buffer asked than net.core.rmem_max grants: one warning names both and the sysctl."""
