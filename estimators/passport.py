@@ -21,14 +21,16 @@ names, checked), ``reference`` (float), ``reference_kind``
 (``"gravity_mps2"``/``"earth_rate_rps"``), ``nominal``, ``tolerance``,
 ``sigma`` (9 floats each), ``observable`` (9 bools), ``noise_std`` (3 floats:
 per-sample standard deviation of the normalized output per axis),
-``sample_rate_hz``, ``quantization_step`` (3 floats, normalized, or null),
+``sample_rate_hz`` (0.5 Hz … 10 kHz, :data:`SAMPLE_RATE_RANGE_HZ`),
+``quantization_step`` (3 floats, normalized, or null),
 ``temperature`` (null or ``{reference_temp_c, bias_coeffs, scale_coeffs,
 valid_min_c, valid_max_c}``, the last two the temperature range the model was
 fitted on, °C) and ``provenance`` (``{method, n_positions, confidence, ci_low,
 ci_high, procedure, n_runs, reproducible}`` and, from version 3, an optional
 ``param_sources``: 9 strings saying how each parameter was obtained — M1's
 scalar fit, the M4 six-position vector fit, M4 full turns, the mean of the
-static positions, or "not determined"). Unknown keys, wrong shapes and non-finite numbers are rejected
+static positions, or "not determined"). Unknown keys, wrong shapes, non-finite numbers and
+non-numbers where a number belongs (a string such as ``"0.001"``, a boolean, null) are rejected
 with the field and the received value; a newer schema version raises
 :class:`PassportVersionError`.
 
@@ -60,7 +62,8 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
-from collections.abc import Mapping, Sequence
+import numbers
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, StrEnum
 from statistics import NormalDist
@@ -70,9 +73,18 @@ from typing import Any, TypeVar
 import numpy as np
 
 from estimators._typing import ArrayT, BoolArray, FloatArray
-from estimators.conventions import MPS2_PER_MG, N_PARAMS, PARAM_NAMES, RPS_PER_DPH, Grade, Triad
+from estimators.conventions import (
+    MPS2_PER_MG,
+    N_PARAMS,
+    PARAM_NAMES,
+    RPS_PER_DPH,
+    Grade,
+    Triad,
+    reference_magnitude,
+)
 from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method
 from estimators.positions import Position
+from estimators.stream_validity import ValidityLimits
 
 PASSPORT_TYPE = "ins.health.passport"
 PASSPORT_SCHEMA_VERSION = 3
@@ -81,6 +93,13 @@ UNBOUNDED_TEMPERATURE_VERSION = 1
 """The last schema whose temperature models carry no valid range (module docstring)."""
 PARAM_SOURCES_VERSION = 3
 """The first schema whose provenance may say how each parameter was obtained (``param_sources``)."""
+SAMPLE_RATE_RANGE_HZ = (ValidityLimits.min_rate_hz, ValidityLimits.max_rate_hz)
+"""The sample rates a passport may state, Hz: those a session or stream is read at
+(:class:`~estimators.stream_validity.ValidityLimits`, as :mod:`protocols.session_file` checks)."""
+REFERENCE_REL_TOL = 0.02
+"""Largest relative difference between a triad's passport reference and the session's
+(:func:`check_references`). Gravity spans 9.76…9.84 m/s² over the Earth (0.8 %), so a passport
+made at another site stays inside; one in other units (g, ft/s², °/h) is off by a factor of 3 or more."""
 
 
 class PassportError(ValueError):
@@ -186,8 +205,10 @@ class TemperatureModel:
     valid_max_c: float | None = field(kw_only=True)
 
     def __post_init__(self) -> None:
-        ref = _finite(self.reference_temp_c, "temperature.reference_temp_c")
-        bias = np.asarray(self.bias_coeffs, dtype=float)
+        ref = _number(self.reference_temp_c, "temperature.reference_temp_c")
+        bias = _numbers(
+            self.bias_coeffs, "temperature.bias_coeffs", "numbers of shape (3, order+1)"
+        )
         if bias.ndim != 2 or bias.shape[0] != 3 or bias.shape[1] < 1:
             raise PassportError(
                 f"temperature.bias_coeffs must have shape (3, order+1), got {np.shape(self.bias_coeffs)}: {_short(self.bias_coeffs)}"
@@ -202,8 +223,8 @@ class TemperatureModel:
             raise PassportError(
                 f"temperature.valid_min_c and valid_max_c go together, got {self.valid_min_c!r} and {self.valid_max_c!r}"
             )
-        lo = _finite(self.valid_min_c, "temperature.valid_min_c")
-        hi = _finite(self.valid_max_c, "temperature.valid_max_c")
+        lo = _number(self.valid_min_c, "temperature.valid_min_c")
+        hi = _number(self.valid_max_c, "temperature.valid_max_c")
         if not lo < hi:
             raise PassportError(
                 f"temperature.valid_min_c must be below valid_max_c, got {lo!r} ≥ {hi!r}"
@@ -430,10 +451,15 @@ class TriadPassport:
             raise PassportError(
                 f"{where}.reference_kind must be {reference_kind(triad).value!r} for the {triad.value} triad, got {kind.value!r}"
             )
-        for name in ("reference", "sample_rate_hz"):
-            value = _finite(getattr(self, name), f"{where}.{name}")
-            if value <= 0.0:
-                raise PassportError(f"{where}.{name} must be positive, got {value!r}")
+        if _number(self.reference, f"{where}.reference") <= 0.0:
+            raise PassportError(f"{where}.reference must be positive, got {self.reference!r}")
+        lo, hi = SAMPLE_RATE_RANGE_HZ
+        # The pipeline scales the noise by √(session rate / this rate): 0 Hz or 1 GHz would void λ0.
+        if not lo <= _number(self.sample_rate_hz, f"{where}.sample_rate_hz") <= hi:
+            raise PassportError(
+                f"{where}.sample_rate_hz must be a sample rate sessions are read at, {lo:g}…{hi:g} Hz, "
+                f"got {self.sample_rate_hz!r}"
+            )
         arrays: dict[str, FloatArray | BoolArray] = {
             "nominal": _array(self.nominal, (N_PARAMS,), f"{where}.nominal"),
             "tolerance": _array(self.tolerance, (N_PARAMS,), f"{where}.tolerance"),
@@ -669,6 +695,34 @@ class Passport:
         )
 
 
+_REFERENCE_WORDS = {
+    Triad.ACCEL: ("accelerometer", "m/s²", "the session's gravity", "a passport in g units"),
+    Triad.GYRO: ("gyro", "rad/s", "Earth's rotation rate", "a passport in °/h or °/s"),
+}
+
+
+def check_references(passport: Passport, *, gravity_mps2: float) -> None:
+    """Raise :class:`PassportError` when a triad's ``reference`` does not fit the session's.
+
+    Biases are normalized by the reference and rescaled by ``passport.reference / reference``
+    when compared (:mod:`estimators.diagnosis`), so a reference in other units would turn every
+    bias into a fault. Within :data:`REFERENCE_REL_TOL` the passport may come from another site.
+
+    Parameters
+    ----------
+    gravity_mps2 : the session's local gravity, m/s² (the gyros' reference is Earth's rate).
+    """
+    for triad, tp in passport.triads.items():
+        expected = reference_magnitude(triad, gravity_mps2)
+        if abs(tp.reference - expected) > REFERENCE_REL_TOL * expected:
+            sensor, unit, what, hint = _REFERENCE_WORDS[triad]
+            raise PassportError(
+                f"the passport's {sensor} reference is {tp.reference!r} {unit} but {what} is "
+                f"{expected:.6g} {unit}: {hint}, or of another quantity? (a passport from another "
+                f"site differs by less than {REFERENCE_REL_TOL:.0%})"
+            )
+
+
 def per_sample_noise_std(
     positions: Sequence[Position], triad: Triad, reference: float
 ) -> FloatArray:
@@ -823,45 +877,58 @@ def _map(obj: Any, where: str, keys: tuple[str, ...]) -> dict[str, Any]:
     return obj
 
 
-def _array(value: Any, shape: tuple[int, ...], name: str) -> FloatArray:
+# One rule for every number of a passport, scalar or array: a real number, never a bool or a
+# string. float() and np.array(dtype=float) would turn "0.001" and true into numbers, so a
+# hand-edited or foreign file would pass with values nobody wrote as numbers.
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _leaves(value: Any) -> Iterator[Any]:
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            yield from _leaves(item)
+    else:
+        yield value
+
+
+def _numbers(value: Any, name: str, expected: str) -> FloatArray:
+    """``value`` (nested lists or an array of numbers) as a float array of its own shape."""
+    if not isinstance(value, (list, tuple, np.ndarray)):
+        raise PassportError(f"{name} must be {expected}, got {_short(value)}")
+    bad = [v for v in _leaves(value) if not _is_number(v)]
+    if bad:
+        kind = (
+            "booleans"
+            if isinstance(bad[0], (bool, np.bool_))
+            else f"{type(bad[0]).__name__} {bad[0]!r}"
+        )
+        raise PassportError(f"{name} must be numbers, got {kind}: {_short(value)}")
     try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise PassportError(
-            f"{name} must be numbers of shape {shape}, got {_short(value)}"
-        ) from None
+        return np.array(value, dtype=float)
+    except ValueError:  # ragged nesting
+        raise PassportError(f"{name} must be {expected}, got {_short(value)}") from None
+
+
+def _array(value: Any, shape: tuple[int, ...], name: str) -> FloatArray:
+    arr = _numbers(value, name, f"numbers of shape {shape}")
     if arr.shape != shape:
         raise PassportError(
             f"{name} must have shape {shape}, got shape {arr.shape}: {_short(value)}"
         )
-    if _has_bool(value):
-        raise PassportError(f"{name} must be numbers, got booleans: {_short(value)}")
     if not np.isfinite(arr).all():
         raise PassportError(f"{name} must be finite, got {_short(value)}")
     return _readonly(arr)
 
 
-def _has_bool(value: Any) -> bool:
-    if isinstance(value, (bool, np.bool_)):
-        return True
-    if isinstance(value, np.ndarray):
-        return bool(value.dtype == bool)
-    if isinstance(value, (list, tuple)):
-        return any(_has_bool(v) for v in value)
-    return False
-
-
 def _number(value: Any, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if not _is_number(value):
         raise PassportError(f"{name} must be a number, got {_short(value)}")
-    return _finite(value, name)
-
-
-def _finite(value: Any, name: str) -> float:
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise PassportError(f"{name} must be a number, got {_short(value)}") from None
+    out = float(value)
     if not math.isfinite(out):
         raise PassportError(f"{name} must be finite, got {value!r}")
     return out

@@ -13,6 +13,11 @@ import numpy as np
 
 from estimators._typing import BoolArray, FloatArray
 
+ACCEL_IMPLAUSIBLE_MPS2 = 1e6
+"""Beyond about 100,000 g no accelerometer measures: a larger value is a corrupt record, not a sample."""
+GYRO_IMPLAUSIBLE_RPS = 1e4
+"""Beyond about 570,000 °/s no gyro measures: a larger value is a corrupt record, not a sample."""
+
 
 class SessionError(ValueError):
     """The session cannot be used at all (the message says why, in one line)."""
@@ -81,9 +86,10 @@ def validate_session(
     """Check a session and drop unusable samples, counting each reason.
 
     Rules: shapes must agree (else :class:`SessionError`); samples with a
-    non-finite value, a time stamp that is not later than the last kept one
-    (duplicate or going back), or a value at or beyond a saturation limit are
-    dropped and counted. Raises :class:`SessionError` if nothing usable is left.
+    non-finite value, a value beyond what any sensor measures
+    (:data:`ACCEL_IMPLAUSIBLE_MPS2`, :data:`GYRO_IMPLAUSIBLE_RPS`), a time stamp
+    that is not later than the last kept one (duplicate or going back), or a
+    value at or beyond a saturation limit are dropped and counted. Raises :class:`SessionError` if nothing usable is left.
 
     Parameters
     ----------
@@ -119,6 +125,14 @@ def validate_session(
         finite &= np.isfinite(arrays["temp_c"])
     rej.add("non_finite", int((~finite).sum()))
     keep = finite.copy()
+    # A finite but absurd value (one corrupt record of 1e300) would overflow the squares of every
+    # later sum: it is no sample.
+    for name, bound in (("accel_mps2", ACCEL_IMPLAUSIBLE_MPS2), ("gyro_rps", GYRO_IMPLAUSIBLE_RPS)):
+        triad = arrays[name]
+        if triad is not None:
+            absurd = keep & (np.abs(triad) > bound).any(axis=1)
+            rej.add("implausible_value", int(absurd.sum()))
+            keep &= ~absurd
 
     for name, limit in (("accel_mps2", accel_limit_mps2), ("gyro_rps", gyro_limit_rps)):
         triad = arrays[name]

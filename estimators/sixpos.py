@@ -854,9 +854,10 @@ def find_full_turns(
         lo = max(a.stop - 1 - margin, (a.start + a.stop) // 2)
         hi = min(b.start + margin, (b.start + b.stop) // 2)
         tt = t[lo : hi + 1]
-        if tt.size < 3 or np.any(np.diff(tt) > gap):
-            continue
         rest = np.concatenate([w[a.start : lo], w[hi + 1 : b.stop]])
+        # Two rest samples at least: their spread is the turn's noise (a 1 Hz session has fewer).
+        if tt.size < 3 or rest.shape[0] < 2 or np.any(np.diff(tt) > gap):
+            continue
         bias = rest.mean(axis=0)
         var = rest.var(axis=0, ddof=1)
         rate = w[lo : hi + 1] - bias

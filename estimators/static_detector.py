@@ -110,7 +110,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators._typing import BoolArray, FloatArray, IntArray
-from estimators.session import ImuSession, Rejections
+from estimators.session import ImuSession, Rejections, SessionError, validate_session
 
 SESSION_NOISE_FACTOR = 3.0
 """Thresholds from the session: this many times the typical spread of its quiet windows."""
@@ -222,7 +222,15 @@ class StaticDetectorConfig:
     ) -> StaticDetectorConfig:
         """``base`` with thresholds derived from the session's own noise (module docstring,
         "Thresholds from the session"): spreads at ``factor`` times the typical spread of the
-        quiet windows, and a mean-rate bound about the gyros' zero signal."""
+        quiet windows, and a mean-rate bound about the gyros' zero signal. The session is
+        validated first (:func:`~estimators.session.validate_session`): a non-finite value or a
+        repeated time stamp would otherwise set the rate and the spreads."""
+        session, rejected = validate_session(session)
+        if session.n_samples < 2:
+            raise SessionError(
+                f"{session.n_samples} usable sample(s) left after validation, too few for a rate "
+                f"(rejected: {rejected.counts})"
+            )
         out = cls() if base is None else base
         w = out.window_samples(session.rate_hz)
         quiet_means = None
@@ -396,6 +404,10 @@ class StaticDetection:
     rejections : counts of rejected samples by reason.
     config : the thresholds used.
     rate_hz : the nominal rate used (sets W and the gap limit).
+    gaps : time steps between accepted samples larger than the gap limit (each starts a segment).
+    longest_gap_s : the largest of them, s (0 without gaps).
+    untested_samples : accepted samples in segments shorter than a window: no window holds them,
+        so they can never be found static (a rate that drops mid-session leaves every sample here).
     """
 
     static: BoolArray
@@ -406,6 +418,9 @@ class StaticDetection:
     rejections: Rejections
     config: StaticDetectorConfig
     rate_hz: float
+    gaps: int = 0
+    longest_gap_s: float = 0.0
+    untested_samples: int = 0
 
     @property
     def window_samples(self) -> int:
@@ -438,8 +453,17 @@ _CHUNK = 16384
 """Windows per block of :func:`_window_dev2`: the block's arrays stay in cache."""
 
 
+_SUM_ERR = 64.0 * float(np.finfo(float).eps)
+"""Relative error allowed for a running sum of squares (it grows with the terms summed)."""
+
+
 def _window_dev2(
-    x: FloatArray, w: int, *, mean_norm2: bool = False, centre: FloatArray | None = None
+    x: FloatArray,
+    w: int,
+    *,
+    mean_norm2: bool = False,
+    centre: FloatArray | None = None,
+    resolve: float,
 ) -> tuple[FloatArray, FloatArray | None]:
     """(M − W + 1,) summed squared deviations from the mean of the windows of ``w`` rows of ``x`` (M, 3).
 
@@ -450,7 +474,11 @@ def _window_dev2(
     from running sums of ``y`` and ``|y|²``. The rows are processed in blocks
     (with ``w − 1`` rows of overlap), each shifted by its first row: the running
     sums then stay small where the unit rests (no cancellation between g² and the
-    noise variance) and the block's arrays stay in cache.
+    noise variance) and the block's arrays stay in cache. A window whose running
+    sum of squares is so large that its rounding reaches ``resolve`` (the
+    smallest deviation the caller must tell apart) is summed again on its own
+    rows: one finite spike (1e9 m/s² in a recorded session) left 1e18 in the
+    running sum, and every later window of its block looked in motion.
     """
     m = x.shape[0]
     n_win = m - w + 1
@@ -467,6 +495,12 @@ def _window_dev2(
         np.cumsum(np.einsum("ij,ij->i", y, y), out=c2[1:])
         s1 = c1[w:] - c1[:-w]
         out[i0:i1] = (c2[w:] - c2[:-w]) - np.einsum("ij,ij->i", s1, s1) / w
+        lost = np.flatnonzero(_SUM_ERR * c2[w:] > resolve)
+        if lost.size:
+            rows = np.lib.stride_tricks.sliding_window_view(y, w, axis=0)[lost]
+            dev = rows - rows.mean(axis=2, keepdims=True)
+            out[i0 + lost] = np.einsum("kij,kij->k", dev, dev)
+            s1[lost] = rows.sum(axis=2)
         if mean2 is not None:
             mean = s1 / w + (x[i0] if centre is None else x[i0] - centre)
             mean2[i0:i1] = np.einsum("ij,ij->i", mean, mean)
@@ -528,6 +562,7 @@ def detect_static(
                 w,
                 mean_norm2=rate is not None,
                 centre=np.asarray(config.gyro_rate_centre_rps),
+                resolve=1e-3 * thr * thr * (w - 1),
             )
             ok &= dev2 <= thr * thr * (w - 1)
             if rate is not None:
@@ -568,8 +603,19 @@ def detect_static(
         (intervals if iv.duration_s >= config.min_static_s else short_runs).append(iv)
     static = np.zeros(n, dtype=bool)
     static[acc] = static_k
+    step_s = tk[1:] - tk[:-1]
     return StaticDetection(
-        static, acc, seg_start, tuple(intervals), tuple(short_runs), rej, config, float(rate_hz)
+        static,
+        acc,
+        seg_start,
+        tuple(intervals),
+        tuple(short_runs),
+        rej,
+        config,
+        float(rate_hz),
+        gaps=starts.size - 1 if m else 0,
+        longest_gap_s=float(step_s[seg_start[1:]].max()) if starts.size > 1 else 0.0,
+        untested_samples=int(lengths[lengths < w].sum()),
     )
 
 

@@ -42,7 +42,13 @@ def read_passport_json(path: str | os.PathLike[str]) -> Passport:
         raise PassportError(
             f"{source}: {size} bytes exceeds the passport limit of {MAX_PASSPORT_BYTES}"
         )
-    text = source.read_text(encoding="utf-8")
+    try:
+        text = source.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise PassportError(
+            f"{source}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
+            "a passport is the JSON file `ins-health calibrate` writes"
+        ) from None
     try:
         obj = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:

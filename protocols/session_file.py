@@ -55,7 +55,10 @@ makes sense in another unit is refused with one line naming that unit:
   spans more than a factor 1000, so an interval can be plausible in two units
   (0.5 is 2 Hz in s and 2 kHz in ms); the refusal then names the unit that puts
   the rate nearest the middle of the range on a log scale (about 70 Hz, the
-  rates such sessions are logged at).
+  rates such sessions are logged at). A file that does not declare its time
+  unit is refused too when another unit puts the rate nearer that middle than
+  seconds do (steps of 1 read as seconds are 1 Hz, as milliseconds 1 kHz):
+  such a file calibrates without error either way, so the unit must be said.
 """
 
 from __future__ import annotations
@@ -629,16 +632,19 @@ def _refuse(kind: str, declared: StrEnum, looks: StrEnum | None, what: str) -> U
     )
 
 
-def check_units(session: ImuSession, units: SessionUnits) -> None:
+def check_units(session: ImuSession, units: SessionUnits, *, time_declared: bool = True) -> None:
     """Refuse a session (SI, read in ``units``) whose values only make sense in other units.
 
     Raises :class:`UnitsError` with one line naming the unit the data look like
-    (rules in the module docstring). Non-finite samples are ignored.
+    (rules in the module docstring). Non-finite samples are ignored. With
+    ``time_declared`` False (no option nor file line said it), a time unit that
+    another unit would beat is refused too.
     """
     used = units.resolved()
     a = session.accel_mps2
     if a is not None and used.accel is not None:
-        norm = np.linalg.norm(a, axis=1)
+        with np.errstate(over="ignore"):  # an absurd value's norm is inf: left out below
+            norm = np.linalg.norm(a, axis=1)
         norm = norm[np.isfinite(norm)]
         if norm.size:
             raw = float(np.median(norm)) / SI_PER_UNIT[used.accel]
@@ -647,7 +653,8 @@ def check_units(session: ImuSession, units: SessionUnits) -> None:
                 raise _refuse("accel", used.accel, looks, f"median |a| {raw:.4g} {used.accel}")
     w = session.gyro_rps
     if w is not None and used.gyro is GyroUnit.RPS:
-        rate = np.linalg.norm(w, axis=1)
+        with np.errstate(over="ignore"):
+            rate = np.linalg.norm(w, axis=1)
         rate = rate[np.isfinite(rate)]
         if rate.size:
             med, p995 = (float(v) for v in np.percentile(rate, [50.0, 99.5]))
@@ -662,12 +669,20 @@ def check_units(session: ImuSession, units: SessionUnits) -> None:
     dt = dt[np.isfinite(dt) & (dt > 0)]
     if dt.size and used.time is not None:
         raw = float(np.median(dt)) / SI_PER_UNIT[used.time]
+        looks_t = min(
+            (u for u in TimeUnit if _plausible("time", raw, u)),
+            key=lambda u: abs(math.log(raw * SI_PER_UNIT[u] / _TYPICAL_INTERVAL_S)),
+            default=None,
+        )
         if not _plausible("time", raw, used.time):
-            looks_t = min(
-                (u for u in TimeUnit if _plausible("time", raw, u)),
-                key=lambda u: abs(math.log(raw * SI_PER_UNIT[u] / _TYPICAL_INTERVAL_S)),
-                default=None,
-            )
             raise _refuse(
                 "time", used.time, looks_t, f"median sample interval {raw:.4g} {used.time}"
+            )
+        if not time_declared and looks_t is not None and looks_t is not used.time:
+            # Undeclared, and another unit gives a more usual rate: 1 ms steps read as seconds are a
+            # 1 Hz session, which calibrates (wrongly) without a word.
+            raise UnitsError(
+                f"units: the time stamps are {raw:.4g} {used.time} apart, a rate of {1.0 / (raw * SI_PER_UNIT[used.time]):.4g} Hz "
+                f"read as {used.time} but {1.0 / (raw * SI_PER_UNIT[looks_t]):.4g} Hz read as {looks_t}: declare the time unit "
+                f"({_UNIT_OPTION['time']} {used.time} or {looks_t}, or a '# {UNIT_KEYS['time']} = ...' line)"
             )

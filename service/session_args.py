@@ -8,8 +8,9 @@ from dataclasses import dataclass
 
 from estimators.conventions import normal_gravity_mps2
 from estimators.session import ImuSession
-from estimators.static_detector import StaticDetectorConfig
+from estimators.static_detector import StaticDetection, StaticDetectorConfig
 from protocols.session_file import (
+    UNIT_KEYS,
     AccelUnit,
     GyroUnit,
     LoadedSession,
@@ -136,7 +137,11 @@ def load_units_checked(
     """The session in SI, refused with one line when its values are implausible in their units."""
     declared = SessionUnits(args.accel_unit, args.gyro_unit, args.time_unit)
     loaded = load_session(path, gyro_file, sidecar=sidecar, units=declared)
-    check_units(loaded.session, loaded.units)
+    check_units(
+        loaded.session,
+        loaded.units,
+        time_declared=declared.time is not None or UNIT_KEYS["time"] in loaded.metadata,
+    )
     return loaded
 
 
@@ -168,3 +173,21 @@ def load_session_input(args: argparse.Namespace) -> SessionInput:
     return SessionInput(
         loaded.session, float(gravity), source, args.accel_range, args.gyro_range, detector
     )
+
+
+def time_gap_line(detection: StaticDetection) -> str | None:
+    """What the session's time gaps cost the static detection, for the report; None without gaps."""
+    if not detection.gaps:
+        return None
+    limit_s = detection.config.gap_limit_s(detection.rate_hz)
+    line = (
+        f"  time gaps: {detection.gaps} step(s) between samples longer than {limit_s:.3g} s "
+        f"(longest {detection.longest_gap_s:.4g} s, at {detection.rate_hz:.4g} Hz median rate)"
+    )
+    if detection.untested_samples:
+        line += (
+            f"; {detection.untested_samples} samples lie between gaps closer than one "
+            f"{detection.config.window_s:g} s window and were never tested for rest "
+            "(a sample rate that changes in the session?)"
+        )
+    return line

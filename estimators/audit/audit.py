@@ -440,23 +440,35 @@ def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel
     )
 
 
-def simulated_timing(chain: ChainResult) -> tuple[FloatArray, FloatArray]:
-    """(P,) hold and (P − 1,) turn lengths, s, of the simulated twin of the chain's positions.
+TURN_MAX_S = 120.0
+"""Longest turn of the simulated twin, s. A longer gap between two positions is a break in the
+recording, not a turn: simulating it would cost its samples at the session's rate in every
+replica (a session with an 11-day break took 18 GB), and ``run_audit`` says where it cut one."""
+_TRIM_S = 2.0 * 0.25
 
-    Each hold is the averaged span plus the chain's trims, each turn the gap in between (at least 0.5 s).
-    """
-    trim = 2.0 * 0.25
-    hold = np.array([p.duration_s for p in chain.positions]) + trim
-    gaps = (
+
+def position_gaps_s(chain: ChainResult) -> FloatArray:
+    """(P − 1,) time between consecutive positions, s, less the chain's trims."""
+    out: FloatArray = (
         np.array(
             [
                 b.t_start_s - a.t_end_s
                 for a, b in zip(chain.positions[:-1], chain.positions[1:], strict=True)
             ]
         )
-        - trim
+        - _TRIM_S
     )
-    return hold, np.clip(gaps, 0.5, None)
+    return out
+
+
+def simulated_timing(chain: ChainResult) -> tuple[FloatArray, FloatArray]:
+    """(P,) hold and (P − 1,) turn lengths, s, of the simulated twin of the chain's positions.
+
+    Each hold is the averaged span plus the chain's trims, each turn the gap in between
+    (0.5 s to :data:`TURN_MAX_S`).
+    """
+    hold = np.array([p.duration_s for p in chain.positions]) + _TRIM_S
+    return hold, np.clip(position_gaps_s(chain), 0.5, TURN_MAX_S)
 
 
 def simulated_hold_starts_s(hold_s: FloatArray, turn_s: FloatArray) -> FloatArray:
@@ -912,6 +924,14 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
     if Triad.GYRO not in triads:
         res.statements.append(
             "single triad (no gyro): gyro effects (g_sensitivity) are not identifiable"
+        )
+    breaks = np.flatnonzero(position_gaps_s(chain) > TURN_MAX_S)
+    if breaks.size:
+        res.statements.append(
+            f"{breaks.size} break(s) in the recording between positions (after position(s) "
+            f"{', '.join(str(int(k)) for k in breaks[:5])}{', …' if breaks.size > 5 else ''}; longest "
+            f"{float(position_gaps_s(chain).max()):.4g} s): the simulated twin turns in {TURN_MAX_S:.0f} s "
+            "there, so a statistic across a break compares unlike spans"
         )
     tab_a = position_table(
         chain, triad_samples(session, Triad.ACCEL), session.t_s, Triad.ACCEL, session.temp_c

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from estimators.conventions import Grade, Triad, reference_magnitude
 from service.cli import UsageError, add_output
-from service.session_args import add_session_arguments, load_session_input
+from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -69,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from estimators.chain import ChainConfig, calibration_estimates, run_chain
-    from estimators.conventions import PARAM_NAMES
+    from estimators.conventions import N_PARAMS, PARAM_NAMES
     from estimators.ninepar import SOURCE_SCALAR, Verdict
     from estimators.passport import passport_from_estimates, per_sample_noise_std
     from protocols.passport_codec import write_passport_json
@@ -124,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
             t: per_sample_noise_std(white.positions, t, reference_magnitude(t, inp.gravity_mps2))
             for t in estimates
         },
-        sample_rate_hz=inp.session.rate_hz,
+        # The validated samples' rate: a repeated or non-finite time stamp must not set it.
+        sample_rate_hz=(result.session or inp.session).rate_hz,
         grade=Grade(args.grade),
         bias_instability_std=instability,
     )
@@ -135,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}", file=sys.stderr)
+    if (gaps := time_gap_line(result.detection)) is not None:
+        print(gaps, file=sys.stderr)
     if cal.turns:
         print(
             "  turns: "
@@ -150,11 +153,25 @@ def run(args: argparse.Namespace) -> int:
             continue
         est = r.estimate
         line = f"  {triad.value}: M1 fit {est.verdict.value}"
+        exact_fit = r.residuals is not None and est.chi2_per_dof is None
         if r.residuals is not None:
-            line += f", residual rms {float((r.residuals**2).mean() ** 0.5):.3g} (normalized), chi2/dof {est.chi2_per_dof or float('nan'):.2f}"
+            line += f", residual rms {float((r.residuals**2).mean() ** 0.5):.3g} (normalized), " + (
+                "no chi2/dof (no redundancy)" if exact_fit else f"chi2/dof {est.chi2_per_dof:.2f}"
+            )
         if est.verdict is not Verdict.OBSERVABLE:
             line += f" — {est.reason}"
         print(line, file=sys.stderr)
+        if exact_fit:
+            from estimators.audit import MIN_POSITIONS
+
+            # As many equations as parameters: the fit passes through every position, so its
+            # residuals are zero whatever the data, and a disturbed position would go unseen.
+            print(
+                f"calibrate: warning: the {triad.value} fit has {est.n_positions} positions for its {N_PARAMS} "
+                "parameters, no redundancy: the residual check (chi2/dof) is impossible and a bad position "
+                f"would go unnoticed; record more positions (at least {MIN_POSITIONS}) to check the calibration",
+                file=sys.stderr,
+            )
         written = estimates.get(triad)
         if written is None:
             print(

@@ -13,7 +13,8 @@ import json
 import sys
 from typing import TYPE_CHECKING, Any
 
-from service.session_args import add_session_arguments, load_session_input
+from service.cli import UsageError
+from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 if TYPE_CHECKING:
     from estimators.chain import ChainConfig, ChainResult
@@ -93,6 +94,7 @@ def f0_report(
 
 def run(args: argparse.Namespace) -> int:
     from estimators.chain import ChainConfig, run_chain
+    from estimators.passport import PassportError, check_references
     from protocols.passport_codec import read_passport_json
 
     passport = read_passport_json(args.passport)
@@ -101,6 +103,11 @@ def run(args: argparse.Namespace) -> int:
         gravity_mps2=inp.gravity_mps2, false_alarm_prob=args.false_alarm, detector=inp.detector,
         accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
     )  # fmt: skip
+    # A reference in other units would be diagnosed as bias faults on every axis: refuse it instead.
+    try:
+        check_references(passport, gravity_mps2=inp.gravity_mps2)
+    except PassportError as exc:
+        raise UsageError(f"{args.passport}: {exc}") from None
     result = run_chain(inp.session, config, passport)
     f0 = f0_report(result, passport, config)
     status = 0 if result.diagnosed else EXIT_NOT_DIAGNOSED
@@ -117,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}")
+    if (gaps := time_gap_line(result.detection)) is not None:
+        print(gaps)
     for triad, r in result.triads.items():
         state = "diagnosed" if r.diagnosed else f"NOT DIAGNOSED: {r.reason}"
         print(f"  {triad.value}: {r.estimate.verdict.value} — {r.estimate.reason}; {state}")
