@@ -234,7 +234,10 @@ def run_chain(
     triads = {}
     for triad in present_triads(clean):
         reference = reference_magnitude(triad, config.gravity_mps2)
-        est = estimate_triad(positions, triad, reference, method=config.method)
+        try:
+            est = estimate_triad(positions, triad, reference, method=config.method)
+        except ValueError as exc:
+            raise ValueError(f"{triad.value}: {exc}") from None
         residuals = sigma = None
         if est.params is not None:
             mean, cov = position_arrays(positions, triad, reference)

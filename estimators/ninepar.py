@@ -1171,6 +1171,15 @@ def _check_positions(mean_norm: FloatArray, cov_norm: FloatArray) -> tuple[Float
         nonpos = eig_min <= 0.0
         if nonpos.any():
             k = int(np.flatnonzero(nonpos)[0])
+            # A channel without spread (to rounding) is what a user can act on; the eigenvalue is not.
+            flat = [a for a in range(3) if cov[k, a, a] <= max(1e-12 * np.trace(cov[k]), 1e-30)]
+            if flat:
+                axes = ", ".join("xyz"[a] for a in flat)
+                raise ValueError(
+                    f"position {k}: {'axes' if len(flat) > 1 else 'axis'} {axes} "
+                    f"{'have' if len(flat) > 1 else 'has'} no spread at all (a stuck channel, or output "
+                    "quantized coarser than its noise: include the quantization variance step²/12/n of each axis)"
+                )
             raise ValueError(
                 f"position {k} covariance is not positive definite (smallest eigenvalue {eig_min[k]:.3g}); "
                 "include the quantization variance step²/12/n of each axis"

@@ -345,8 +345,10 @@ def test_recursive_form_before_initialization_and_with_bad_input():
     )
     with pytest.raises(ValueError, match="non-finite"):
         rec.update([np.nan, 0.0, 1.0], case.cov[0])
-    with pytest.raises(ValueError, match="not positive definite"):
+    with pytest.raises(ValueError, match="axes x, y, z have no spread at all"):
         rec.update(case.means_true[5], np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="not positive definite"):
+        rec.update(case.means_true[5], np.full((3, 3), 1e-6))
     assert rec.n_positions == 5
     with pytest.raises(ValueError, match="kind"):
         RecursiveNineParam.from_state_dict({"kind": "something else"})

@@ -117,3 +117,14 @@ def test_a_break_in_the_recording_is_simulated_as_a_bounded_turn_and_said(sessio
         s.startswith("1 break(s) in the recording") and f"turns in {TURN_MAX_S:.0f} s" in s
         for s in res.statements
     ), res.statements
+
+
+def test_a_stuck_channel_is_named_instead_of_a_covariance(session, tmp_path, capsys):
+    accel = session.accel_mps2.copy()
+    accel[:, 1] = 0.25  # the y accelerometer's output stuck at one value
+    write_csv_session(tmp_path / "stuck.csv", replace(session, accel_mps2=accel))
+    capsys.readouterr()
+    assert main(["calibrate", str(tmp_path / "stuck.csv"), "--out", str(tmp_path / "pp.json")]) == 2
+    assert (
+        "accel: position 0: axis y has no spread at all (a stuck channel" in capsys.readouterr().err
+    )
