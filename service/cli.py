@@ -13,6 +13,8 @@ import importlib
 import os
 import pkgutil
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +26,25 @@ OUTPUTS = "_outputs"
 
 class UsageError(Exception):
     """Unusable input to a command: reported as one line on stderr, exit status 2."""
+
+
+PROGRESS_EVERY_S = 5.0
+"""A long command says how far it got at most this often, s (stderr)."""
+
+
+def stderr_progress(command: str) -> Callable[[str], None]:
+    """A progress callback printing ``ins-health COMMAND: line`` on stderr, at most every
+    :data:`PROGRESS_EVERY_S` and not before that much has passed (a short run stays quiet)."""
+    next_s = time.monotonic() + PROGRESS_EVERY_S
+
+    def say(line: str) -> None:
+        nonlocal next_s
+        now = time.monotonic()
+        if now >= next_s:
+            next_s = now + PROGRESS_EVERY_S
+            print(f"ins-health {command}: {line}", file=sys.stderr, flush=True)
+
+    return say
 
 
 class _Version(argparse.Action):

@@ -140,3 +140,18 @@ def test_store_check_of_a_missing_folder_is_an_error(tmp_path, capsys):
     )
     (tmp_path / "file").write_text("")
     _one_line_error(capsys, ["store", "check", tmp_path / "file"])
+
+
+def test_progress_lines_come_only_after_a_while_and_then_at_most_every_period(monkeypatch, capsys):
+    import service.cli as cli
+
+    now = [100.0]
+    monkeypatch.setattr(cli.time, "monotonic", lambda: now[0])
+    say = cli.stderr_progress("audit")
+    for t_s, line in ((101.0, "early"), (105.0, "first"), (107.0, "too soon"), (110.5, "second")):
+        now[0] = t_s
+        say(line)
+    assert capsys.readouterr().err.splitlines() == [
+        "ins-health audit: first",
+        "ins-health audit: second",
+    ]

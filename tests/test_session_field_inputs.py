@@ -112,7 +112,11 @@ def test_a_break_in_the_recording_is_simulated_as_a_bounded_turn_and_said(sessio
     chain = run_chain(broken, ChainConfig(gravity_mps2=G))
     assert position_gaps_s(chain).max() > 999.0
     assert simulated_timing(chain)[1].max() == TURN_MAX_S
-    res = run_audit(broken, AuditConfig(ChainConfig(gravity_mps2=G), replicas=2))
+    heard: list[str] = []
+    res = run_audit(
+        broken, AuditConfig(ChainConfig(gravity_mps2=G), replicas=2), progress=heard.append
+    )
+    assert heard[:2] == [f"baseline model: {k} of 2 replicas simulated" for k in (1, 2)]
     assert any(
         s.startswith("1 break(s) in the recording") and f"turns in {TURN_MAX_S:.0f} s" in s
         for s in res.statements

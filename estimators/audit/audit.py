@@ -27,6 +27,7 @@ what the statistics describe, so it must see every replica.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -550,13 +551,16 @@ def replica_statistics(
     replicas: int,
     seed: int,
     left_out_s: FloatArray | None = None,
+    progress: Callable[[str], None] | None = None,
+    label: str = "baseline",
 ) -> tuple[dict[Triad, list[dict[str, float]]], dict[Triad, list[TriadCurves]]]:
     """Statistics and plotted curves of ``replicas`` simulated sessions, per triad.
 
     ``left_out_s`` (m, 2): simulated holds ``[start, end)``, s from the session's start, whose positions the
     statistics inside a position leave out (:func:`triad_statistics`' ``described``): a replica position
     is matched to its measured twin by the hold its middle falls in, not by its index, which a position the
-    replica's static detector splits or misses would shift.
+    replica's static detector splits or misses would shift. ``progress`` hears of each replica done
+    (the ``label``'d model's), for a command to show on long sessions.
     """
     stats: dict[Triad, list[dict[str, float]]] = {t: [] for t in triads}
     curves: dict[Triad, list[TriadCurves]] = {t: [] for t in triads}
@@ -576,6 +580,8 @@ def replica_statistics(
             x = triad_samples(s, t)
             stats[t].append(triad_statistics(chain, x, s.t_s, t, s.rate_hz, described))
             curves[t].append(triad_curves(chain, x, s.t_s, t, s.rate_hz))
+        if progress is not None:
+            progress(f"{label} model: {r + 1} of {replicas} replicas simulated")
     return stats, curves
 
 
@@ -893,8 +899,12 @@ def _with_disturbed(c: Candidate, tab_a: PositionTable, disturbed: BoolArray) ->
     return replace(c, identifiable=True, params=params, selected=True, reason=reason)
 
 
-def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
-    """The audit of one session (module docstring). Never names a cause it could not test: see ``statements``."""
+def run_audit(
+    session: ImuSession, config: AuditConfig, *, progress: Callable[[str], None] | None = None
+) -> AuditResult:
+    """The audit of one session (module docstring). Never names a cause it could not test: see ``statements``.
+
+    ``progress`` hears of each replica simulated (:func:`replica_statistics`)."""
     # The chain's position spans index the validated samples: every later step uses the same ones.
     session, _ = validate_session(
         session,
@@ -967,7 +977,7 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
         res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
     spec = same_session_spec(chain, session, model)
     reps, res.replica_curves["baseline"] = replica_statistics(
-        spec, chain_config, triads, config.replicas, config.seed
+        spec, chain_config, triads, config.replicas, config.seed, progress=progress
     )
     res.replica_stats["baseline"] = reps
     # Every position: the baseline's comparison shows what it misses, disturbed positions included.
@@ -1001,6 +1011,8 @@ def run_audit(session: ImuSession, config: AuditConfig) -> AuditResult:
             config.replicas,
             config.seed + 1,
             left_out_s,
+            progress,
+            "extended",
         )
         res.replica_stats["extended"] = ext_reps
         res.extended_cmp = [

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from service.cli import UsageError
+from service.cli import UsageError, stderr_progress
 from service.session_args import add_session_arguments, load_session_input
 
 DEFAULT_REPLICAS = 20
@@ -53,7 +53,11 @@ def run(args: argparse.Namespace) -> int:
         accel_limit_mps2=inp.accel_limit_mps2,
         gyro_limit_rps=inp.gyro_limit_rps,
     )
-    result = run_audit(inp.session, AuditConfig(chain, replicas=args.replicas, seed=args.seed))
+    result = run_audit(
+        inp.session,
+        AuditConfig(chain, replicas=args.replicas, seed=args.seed),
+        progress=stderr_progress("audit"),
+    )
     if args.report:
         from service.audit_report import write_report
 

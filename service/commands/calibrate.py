@@ -11,7 +11,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from estimators.conventions import Grade, Triad, reference_magnitude
-from service.cli import UsageError, add_output
+from service.cli import UsageError, add_output, stderr_progress
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 
@@ -91,7 +91,9 @@ def run(args: argparse.Namespace) -> int:
         why = [f"{n_pos} static positions, it needs ≥ {model_audit.MIN_POSITIONS}"]
         if n_pos >= model_audit.MIN_POSITIONS:
             audit = model_audit.run_audit(
-                inp.session, model_audit.AuditConfig(chain=config, replicas=args.replicas)
+                inp.session,
+                model_audit.AuditConfig(chain=config, replicas=args.replicas),
+                progress=stderr_progress("calibrate: audit"),
             )
             why = [] if audit.replica_stats else audit.statements
             if audit.replica_stats:
