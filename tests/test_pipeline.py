@@ -197,6 +197,33 @@ def test_missing_passport_runs_the_stream_checks_only_and_says_why():
     assert errors == [f"passport of {V} IMU0: missing"]
 
 
+def test_a_passport_whose_reference_is_not_the_sites_gravity_runs_the_stream_checks_only():
+    # Its biases normalized by 1 m/s² (a passport in g) would raise F1-F3 on every axis.
+    passport, g = calibrated()
+    in_g = dataclasses.replace(
+        passport,
+        triads={
+            **passport.triads,
+            Triad.ACCEL: dataclasses.replace(passport.triads[Triad.ACCEL], reference=1.0),
+        },
+    )
+    errors = []
+    fleet = FleetProcessor(
+        passports=lambda v, i: in_g,
+        options=options(g),
+        on_passport_error=lambda v, i, m: errors.append(m),
+    )
+    events = run_fleet(
+        fleet,
+        list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))[:50],
+        finish=False,
+    )
+    assert [e for e in events if e.predicate is not Predicate.TIMEOUT] == []
+    st = fleet.status(V, service="t", now_unix_s=0.0).imus[0]
+    assert st.state is ImuState.NO_PASSPORT and "accelerometer reference is 1.0" in st.detail
+    assert len(errors) == 1 and "a passport in g units" in errors[0]
+
+
 def test_admission_limits_and_unknown_vehicles_are_counted():
     passport, g = calibrated()
     fleet = fleet_for(passport, g, vehicles=(V,), max_imus_per_vehicle=2)

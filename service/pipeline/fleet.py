@@ -11,7 +11,7 @@ import numpy as np
 from estimators.conventions import (
     Triad,
 )
-from estimators.passport import Passport
+from estimators.passport import Passport, check_references
 from estimators.stream_validity import (
     CrossImuMonitor,
     CrossImuReport,
@@ -74,8 +74,9 @@ class FleetProcessor:
 
     Parameters
     ----------
-    passports : passport lookup per (vehicle, IMU); a ``ValueError`` leaves that unit without a
-        passport (validity checks only) and is reported once through ``on_passport_error``.
+    passports : passport lookup per (vehicle, IMU); a ``ValueError`` (or a passport whose reference
+        does not fit ``options``' gravity, :func:`~estimators.passport.check_references`) leaves that
+        unit without a passport (validity checks only) and is reported once through ``on_passport_error``.
     options : pipeline options.
     vehicles : vehicles served (empty: all).
     max_vehicles, max_imus_per_vehicle : admission limits (frames beyond them are counted).
@@ -157,6 +158,9 @@ class FleetProcessor:
         self.vehicle_counters.setdefault(vehicle, {})
         try:
             passport, note = self._passports(vehicle, imu), ""
+            if passport is not None:
+                # A reference in other units (a passport in g) would turn every bias into a fault.
+                check_references(passport, gravity_mps2=self.options.gravity_mps2)
         except ValueError as exc:
             passport, note = None, str(exc)
             if self._on_passport_error is not None:
