@@ -30,7 +30,9 @@ samples are cut into batches of ``batch_samples``, emitted as they fill (so
 the IMUs stay interleaved in time), then the remainders in IMU order. Nothing
 is dropped silently: a sample that is not later than the previous one of its
 IMU, or that holds NaN/Inf, is left out and counted in :class:`LogStats`; so
-is a corrupt DataFlash message (``corrupt_messages``).
+is a corrupt message (``corrupt_messages``: a DataFlash one that does not decode, a
+tlog packet with a bad CRC), the bytes passed over to the next message
+(``skipped_bytes``) and where a file cut mid-message ends (``cut_at_byte``).
 
 Writing (for tests and the demo)
 --------------------------------
@@ -43,6 +45,7 @@ is in the docstring) and the tests read it back with pymavlink's ``DFReader``.
 from __future__ import annotations
 
 import os
+import re
 import struct
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -83,6 +86,12 @@ _MAX_TEXT_LINE = 1 << 16
 """Longest text DataFlash line read whole (a real one is under 1 kB); a longer one is counted corrupt."""
 _DF_MAX_MESSAGE = 255
 """The longest DataFlash message: ``FMT`` gives a message's length, header included, in one byte."""
+_DF_MAX_INSTANCE = 256
+"""Instance numbers (``I``, ``VIBE``'s ``IMU``) are a uint8 in ArduPilot's formats; another value is a corrupt message."""
+_MESSAGE_NAME = re.compile(r"[A-Za-z0-9_.]+")
+"""A message type or topic name a log can hold; another "name" is the first field of a damaged line or record."""
+_HOLDS_SHOWN = 40
+"""Message types listed in :meth:`LogStats.holds`: a damaged text log makes a "type" of every garbled line."""
 
 
 class LogFormat(StrEnum):
@@ -134,7 +143,8 @@ class LogStats:
     ``clipped``: clipped samples per IMU (ULog: samples with a clipping flag; DataFlash: the
     growth of ``VIBE``'s clip counters over the log; absent when the log does not say);
     ``held``: every message type (topic instance) of the log with its count; ``skipped``:
-    IMU instances not replayed and why.
+    IMU instances not replayed and why; ``skipped_bytes``: bytes that start no message, passed
+    over to the next one; ``cut_at_byte``: where the file ends in the middle of a message.
     """
 
     messages: dict[str, int] = field(default_factory=dict)
@@ -144,18 +154,39 @@ class LogStats:
     clipped: dict[int, int] = field(default_factory=dict)
     held: dict[str, int] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
+    skipped_bytes: int = 0
+    cut_at_byte: int | None = None
 
     def _drop(self, reason: str, n: int = 1) -> None:
         if n:
             self.dropped[reason] = self.dropped.get(reason, 0) + n
 
+    def left_out(self) -> str:
+        """What reading left out, for a summary line: dropped samples and messages, skipped bytes, or ``none``."""
+        parts = [f"{k} {n}" for k, n in sorted(self.dropped.items())]
+        if self.skipped_bytes:
+            parts.append(f"skipped_bytes {self.skipped_bytes}")
+        return ", ".join(parts) or "none"
+
+    def cut(self) -> str:
+        """Where the file ends in the middle of a message, for a message; ``""`` for a whole file."""
+        return "" if self.cut_at_byte is None else f"cut mid-message at byte {self.cut_at_byte}"
+
     def holds(self) -> str:
         """What the log holds, for a message: message types (topics) with their counts."""
-        held = (
-            ", ".join(f"{k} {n}" for k, n in sorted(self.held.items()) if n) or "nothing readable"
-        )
-        skipped = "; ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()))
-        return held + (f"; left out: {skipped}" if skipped else "")
+        named = sorted((k, n) for k, n in self.held.items() if n and _MESSAGE_NAME.fullmatch(k))
+        garbled = sum(n for k, n in self.held.items() if n and not _MESSAGE_NAME.fullmatch(k))
+        held = ", ".join(f"{k} {n}" for k, n in named[:_HOLDS_SHOWN]) or "nothing readable"
+        if len(named) > _HOLDS_SHOWN:
+            held += f" and {len(named) - _HOLDS_SHOWN} more types"
+        if garbled:
+            held += f"; {garbled} messages with unreadable names"
+        left_out = [f"{k} {v}" for k, v in sorted(self.skipped.items())]
+        if (read := self.left_out()) != "none":
+            left_out.append(read)
+        if self.cut_at_byte is not None:
+            left_out.append(self.cut())
+        return held + (f"; left out: {'; '.join(left_out)}" if left_out else "")
 
 
 @dataclass
@@ -312,6 +343,7 @@ class LogReader:
             self.stats.skipped = dict(ulog.contents.skipped)
             if ulog.contents.corrupt_messages:
                 self.stats._drop("corrupt_messages", ulog.contents.corrupt_messages)
+            self.stats.cut_at_byte = ulog.contents.cut_at_byte
             return
         samples = (
             self._tlog_samples() if self.format is LogFormat.TLOG else self._dataflash_samples()
@@ -336,16 +368,23 @@ class LogReader:
         size = max(os.path.getsize(self.path), 1)
         self._fraction = lambda: conn.f.tell() / size
         types = {m.value for m in ImuMessage}
-        held = self.stats.held
+        stats = self.stats
         try:
             while (msg := conn.recv_msg()) is not None:
                 kind = msg.get_type()
-                held[kind] = held.get(kind, 0) + 1
+                stats.held[kind] = stats.held.get(kind, 0) + 1
+                # pymavlink's verdict on a packet with a bad CRC, or on bytes that start no packet.
+                if kind == "BAD_DATA":
+                    stats._drop("corrupt_messages")
+                    stats.skipped_bytes += len(msg.data)
+                    continue
                 if kind not in types:
                     continue
                 s = decode_imu_message(msg, raw_scale=self._raw_scale, imu_index=self._imu_index)
                 if s is not None:
                     yield kind, s.imu, s.t_s, s.accel_mps2, s.gyro_rps, s.temp_c
+            if pending := conn.mav.buf_len():
+                stats.cut_at_byte = os.path.getsize(self.path) - pending
         finally:
             conn.close()
 
@@ -373,10 +412,8 @@ class LogReader:
                     inst = _note_raw(msg, fields, raw)
                 else:
                     sample = _imu_sample(msg, fields)
-            except (
-                ValueError,
-                AttributeError,
-            ):  # a text field that is not a number, a field missing
+            except (ValueError, TypeError, AttributeError):
+                # A field that is not a number (text, or a string or array in the format), or missing.
                 corrupt += 1
                 continue
             if name not in ("ACC", "GYR"):
@@ -386,6 +423,8 @@ class LogReader:
         for inst in sorted({i for i, _ in raw}):
             yield from _pair_raw(raw, pairs, inst)
         self.stats._drop("corrupt_messages", corrupt + stream.corrupt)
+        self.stats.skipped_bytes += stream.skipped_bytes
+        self.stats.cut_at_byte = stream.cut_at_byte
         for inst, pairer in sorted(pairs.items()):
             if pairer.unpaired_accel:
                 self.stats.skipped[f"ACC.{inst}"] = (
@@ -394,15 +433,26 @@ class LogReader:
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
 
 
+def _whole(value: Any, limit: int) -> int:
+    """A field that must be a whole number in ``0 .. limit - 1``; ``ValueError`` (a corrupt message) otherwise."""
+    try:
+        number = int(value)
+    except OverflowError:  # inf
+        raise ValueError(f"{value!r} is not a whole number") from None
+    if not 0 <= number < limit:
+        raise ValueError(f"{value!r} is outside 0..{limit - 1}")
+    return number
+
+
 def _imu_sample(msg: Any, fields: list[str]) -> _Sample:
     """The sample of an ``IMU``/``IMU2``/``IMU3`` message (module docstring)."""
     name = msg.get_type()
     return (
         name,
-        int(msg.I) if "I" in fields else DATAFLASH_IMU_NAMES.index(name),
-        msg.TimeUS * 1e-6 if "TimeUS" in fields else msg.TimeMS * 1e-3,
-        (msg.AccX, msg.AccY, msg.AccZ),
-        (msg.GyrX, msg.GyrY, msg.GyrZ),
+        _whole(msg.I, _DF_MAX_INSTANCE) if "I" in fields else DATAFLASH_IMU_NAMES.index(name),
+        float(msg.TimeUS) * 1e-6 if "TimeUS" in fields else float(msg.TimeMS) * 1e-3,
+        (float(msg.AccX), float(msg.AccY), float(msg.AccZ)),
+        (float(msg.GyrX), float(msg.GyrY), float(msg.GyrZ)),
         float(msg.T) if "T" in fields else None,
     )
 
@@ -411,25 +461,41 @@ def _note_raw(
     msg: Any, fields: list[str], raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]]
 ) -> int:
     """Gather an ``ACC``/``GYR`` message (one triad, sampled at ``SampleUS``) for pairing by time; its instance."""
-    inst = int(msg.I) if "I" in fields else 0
+    inst = _whole(msg.I, _DF_MAX_INSTANCE) if "I" in fields else 0
     is_accel = msg.get_type() == "ACC"
     prefix = "Acc" if is_accel else "Gyr"
+    time_us = msg.SampleUS if "SampleUS" in fields else msg.TimeUS
     raw.setdefault((inst, is_accel), []).append(
         (
-            int(msg.SampleUS if "SampleUS" in fields else msg.TimeUS),
-            getattr(msg, prefix + "X"),
-            getattr(msg, prefix + "Y"),
-            getattr(msg, prefix + "Z"),
+            _whole(time_us, 1 << 64),  # _RAW_DTYPE's uint64
+            float(getattr(msg, prefix + "X")),
+            float(getattr(msg, prefix + "Y")),
+            float(getattr(msg, prefix + "Z")),
         )
     )
     return inst
 
 
 def _df_format(type_id: int, name: str, length: int, fmt: str, columns: str) -> Any:
-    """pymavlink's ``DFFormat`` of an ``FMT`` definition; ``ValueError`` for one it cannot decode."""
+    """pymavlink's ``DFFormat`` of an ``FMT`` definition; ``ValueError`` for one it cannot decode.
+
+    Refused besides: more columns than format characters (``DFMessage`` would index past its
+    values when a column is read), and a redefinition of ``FMT`` itself other than the one every
+    log assumes (the readers take an ``FMT``'s fields by position).
+    """
     if length < 3 or any(c not in DFReader.FORMAT_TO_STRUCT for c in fmt):
         # Checked here: DFFormat prints to stdout and raises a bare Exception for an unknown character.
         raise ValueError(f"FMT of {name!r}: length {length}, format {fmt!r}")
+    if len(columns.split(",")) > len(fmt):
+        raise ValueError(f"FMT of {name!r}: columns {columns!r} outnumber format {fmt!r}")
+    f = _FMT_OF_FMT
+    if (type_id == f.type_id or name == f.name) and (type_id, name, length, fmt) != (
+        f.type_id,
+        f.name,
+        f.length,
+        f.fmt,
+    ):
+        raise ValueError(f"FMT redefines FMT: type {type_id}, length {length}, format {fmt!r}")
     return DFReader.DFFormat(type_id, name, length, fmt, columns)
 
 
@@ -452,13 +518,16 @@ class DataFlashStream:
 
     * Binary: a message is ``A3 95 <type>`` and the body its type's ``FMT`` defines (``FMT`` itself
       is type 128). Bytes that do not start a message of a defined type are skipped to the next
-      ``A3 95``, as ``DFReader`` does; a body that does not unpack, or an ``FMT`` that defines no
-      usable format, is counted in :attr:`corrupt` and reading resumes after its header. A message
-      cut by the end of the file ends the log.
+      ``A3 95``, as ``DFReader`` does, and counted in :attr:`skipped_bytes`; a body that does not
+      unpack, or an ``FMT`` that defines no usable format, is counted in :attr:`corrupt` and reading
+      resumes after its header. A message cut by the end of the file ends the log, and
+      :attr:`cut_at_byte` says where it starts.
     * Text: the lines before the first ``FMT`` line (the firmware's name, free RAM, board) are
       skipped; fields are split at ``", "``, or at ``","`` where the ``FMT`` lines use that; CRLF
       or LF. A line of an undefined type, or with fewer fields than its format, is skipped; one
-      longer than :data:`_MAX_TEXT_LINE` is read past in pieces and counted in :attr:`corrupt`.
+      longer than :data:`_MAX_TEXT_LINE` is read past in pieces and counted in :attr:`corrupt`. A
+      last line without a line break (the firmware ends every line with one) is cut: not decoded,
+      and :attr:`cut_at_byte` says where it starts.
 
     Only the messages named in ``wanted`` are decoded and yielded; every message is counted by name
     in ``held`` as the stream goes. :attr:`offset` is the number of bytes read so far.
@@ -473,6 +542,8 @@ class DataFlashStream:
         self.held = held
         self.offset = 0
         self.corrupt = 0
+        self.skipped_bytes = 0
+        self.cut_at_byte: int | None = None
 
     def __iter__(self) -> Iterator[Any]:
         return self._binary() if self.binary else self._text()
@@ -491,15 +562,21 @@ class DataFlashStream:
                     buf, pos = buf[pos:] + chunk, 0
                     continue
                 if avail < 3:
+                    if avail:
+                        self.cut_at_byte = self.offset - avail
                     return
                 type_id = buf[pos + 2]
                 fmt = formats.get(type_id) if buf[pos] == 0xA3 and buf[pos + 1] == 0x95 else None
                 if fmt is None:
                     found = buf.find(_DF_HEAD, pos + 1)
-                    pos = found if found >= 0 else len(buf) - 1
+                    # Short of the end, the last byte may be the A3 of a header the next read completes.
+                    resume = found if found >= 0 else len(buf) - (0 if eof else 1)
+                    self.skipped_bytes += resume - pos
+                    pos = resume
                     continue
                 n = fmt.len
                 if avail < n:
+                    self.cut_at_byte = self.offset - avail
                     return
                 held[fmt.name] = held.get(fmt.name, 0) + 1
                 if type_id == _DF_FMT_ID or fmt.name in wanted:
@@ -532,10 +609,13 @@ class DataFlashStream:
         delimiter = ""
         with open(self.path, "rb") as fh:
             for line in _bounded_lines(fh, _MAX_TEXT_LINE):
-                self.offset = fh.tell()
+                start, self.offset = self.offset, fh.tell()
                 if line is None:
                     self.corrupt += 1
                     continue
+                if not line.endswith(b"\n"):
+                    self.cut_at_byte = start
+                    return
                 if not delimiter:
                     if not line.startswith(b"FMT,"):
                         continue  # the firmware's header lines
@@ -600,9 +680,11 @@ def _pair_raw(
 def _note_clipping(msg: Any, fields: list[str], clip: dict[int, list[float]]) -> None:
     """First and last value of VIBE's cumulative clip counters per IMU (``Clip0..2``, or ``IMU`` + ``Clip``)."""
     if "Clip" in fields:
-        counters = {int(getattr(msg, "IMU", 0)): float(msg.Clip)}
+        counters = {_whole(getattr(msg, "IMU", 0), _DF_MAX_INSTANCE): float(msg.Clip)}
     else:
         counters = {k: float(getattr(msg, f"Clip{k}")) for k in range(3) if f"Clip{k}" in fields}
+    if not all(np.isfinite(v) for v in counters.values()):
+        raise ValueError(f"VIBE clip counters {counters}")
     for imu, value in counters.items():
         clip.setdefault(imu, [value, value])[1] = value
 

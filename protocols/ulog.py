@@ -56,6 +56,8 @@ clipping counters, from the specification above; pyulog reads its files (tests).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import struct
 from collections.abc import Iterator, Mapping, Sequence
@@ -80,6 +82,11 @@ INTERLEAVE_S = 0.5
 """Slices of log time in which the IMUs of one flush are handed on in turn (:func:`_interleave`)."""
 MAX_MESSAGE_BYTES = 10000
 """A larger (or empty) message is taken as corruption, as pyulog does."""
+MAX_FLAT_FIELDS = 2 * MAX_MESSAGE_BYTES
+"""Most fields and nested instances a topic's format may flatten to (:func:`struct_dtype`). A data
+message holds at most :data:`MAX_MESSAGE_BYTES`, each field takes a byte or more and each nested
+instance holds a field, so a format that flattens to more describes no message a log can hold;
+nested arrays (``a[1000]`` of ``b[1000]`` of ...) would otherwise flatten to billions of fields."""
 
 PRIMARY_IMU = 0
 SENSOR_IMU_BASE = 1
@@ -87,6 +94,17 @@ VEHICLE_IMU_BASE = 5
 IMU_TOPICS = ("sensor_combined", "sensor_accel", "sensor_gyro", "vehicle_imu")
 IMU_LIKE_PREFIXES = ("sensor_", "vehicle_imu", "vehicle_acceleration", "vehicle_angular")
 _WANTED = (*IMU_TOPICS, "sensor_selection")
+_NEEDED_FIELDS: Mapping[str, Mapping[str, tuple[int, ...]]] = {
+    "sensor_combined": {"timestamp": (), "gyro_rad": (3,), "accelerometer_m_s2": (3,)},
+    "sensor_accel": {"timestamp_sample": (), "x": (), "y": (), "z": ()},
+    "sensor_gyro": {"timestamp_sample": (), "x": (), "y": (), "z": ()},
+    "vehicle_imu": {
+        "timestamp_sample": (), "delta_velocity": (3,), "delta_velocity_dt": (),
+        "delta_angle": (3,), "delta_angle_dt": (),
+    },
+    "sensor_selection": {"accel_device_id": ()},
+}  # fmt: skip
+"""The numeric fields (name → array shape) each wanted topic is read from."""
 
 _NUMPY_TYPES = {
     "int8_t": "<i1", "uint8_t": "<u1", "int16_t": "<i2", "uint16_t": "<u2",
@@ -120,30 +138,45 @@ class UlogContents:
     skipped: dict[str, str] = field(default_factory=dict)
     corrupt_messages: int = 0
     system: str = ""
+    cut_at_byte: int | None = None
 
 
 def struct_dtype(formats: Mapping[str, Any], name: str) -> np.dtype[Any]:
     """The packed numpy dtype of topic ``name`` (nested formats flattened to ``outer.inner`` names).
 
     ``formats`` maps a format name to pyulog's ``MessageFormat`` (``fields``: (type, array size, name)).
+    :class:`UlogError` for a format that nests itself or flattens to more than :data:`MAX_FLAT_FIELDS`.
     """
     names: list[str] = []
     types: list[Any] = []
+    flat = 0
 
-    def add(fmt_name: str, prefix: str) -> None:
+    def grow() -> None:
+        nonlocal flat
+        flat += 1
+        if flat > MAX_FLAT_FIELDS:
+            raise UlogError(
+                f"format {name!r} flattens to more than {MAX_FLAT_FIELDS} fields, more than a message holds"
+            )
+
+    def add(fmt_name: str, prefix: str, within: tuple[str, ...]) -> None:
+        grow()
         for type_name, size, fname in formats[fmt_name].fields:
             full = prefix + fname
             if type_name in _NUMPY_TYPES:
+                grow()
                 base = _NUMPY_TYPES[type_name]
                 names.append(full)
                 types.append((base, (size,)) if size else base)
+            elif type_name in within:
+                raise UlogError(f"format {name!r} nests itself: {' > '.join((*within, type_name))}")
             elif type_name in formats:
                 for k in range(max(size, 1)):
-                    add(type_name, f"{full}[{k}]." if size else f"{full}.")
+                    add(type_name, f"{full}[{k}]." if size else f"{full}.", (*within, type_name))
             else:
                 raise UlogError(f"format {fmt_name!r}: unknown field type {type_name!r}")
 
-    add(name, "")
+    add(name, "", (name,))
     # The logger does not write the padding at the end of a message (pyulog's max_data_size).
     while names and names[-1].startswith("_padding"):
         names.pop()
@@ -160,9 +193,12 @@ class UlogImuStream:
     def __init__(self, path: str | os.PathLike[str]):
         self.path = Path(path)
         try:
-            header = ULog(str(self.path), parse_header_only=True)
+            # pyulog prints its findings (corruption, unknown messages) to stdout, where --json writes.
+            with contextlib.redirect_stdout(io.StringIO()):
+                header = ULog(str(self.path), parse_header_only=True)
         except Exception as exc:  # pyulog raises its own, struct and index errors on bad files
             raise UlogError(f"{self.path}: not a ULog pyulog can read ({exc})") from None
+        self._definitions_corrupt = int(header.file_corruption)
         self._formats = header.message_formats
         info = header.msg_info_dict
         self._system = " ".join(str(info[k]) for k in ("sys_name", "ver_hw") if k in info)
@@ -188,6 +224,8 @@ class UlogImuStream:
                     buf, pos = buf[pos:] + more, 0
                     self.fraction_read = (fh.tell() - len(buf)) / max(self.size, 1)
                 if len(buf) - pos < 3:
+                    if len(buf) > pos:
+                        self.contents.cut_at_byte = self.size - (len(buf) - pos)
                     break
                 size, mtype = struct.unpack_from("<HB", buf, pos)
                 if size == 0 or size > MAX_MESSAGE_BYTES or not 0x41 <= mtype <= 0x5A:
@@ -202,8 +240,10 @@ class UlogImuStream:
                         pos = max(pos + 1, len(buf) - len(SYNC_BYTES) + 1)
                     continue
                 end = pos + 3 + size
+                # Only at the end of the file: a read keeps a whole message ahead.
                 if end > len(buf):
-                    break  # cut mid-message: the log ends here
+                    self.contents.cut_at_byte = self.size - (len(buf) - pos)
+                    break
                 if mtype == 0x44:  # 'D'
                     (msg_id,) = struct.unpack_from("<H", buf, pos + 3)
                     sub = subs.get(msg_id)
@@ -221,13 +261,29 @@ class UlogImuStream:
                     name = buf[pos + 6 : end].decode("ascii", "replace")
                     dtype = None
                     if name in _WANTED and name in self._formats:
-                        dtype = struct_dtype(self._formats, name)
+                        dtype = self._topic_dtype(name, multi_id)
                     subs[msg_id] = (name, multi_id, dtype)
                     topics.setdefault(f"{name}.{multi_id}", 0)
                 pos = end
         if pending:
             yield self._decode(subs, pending)
         self.fraction_read = 1.0
+
+    def _topic_dtype(self, name: str, multi_id: int) -> np.dtype[Any] | None:
+        """The dtype of a wanted topic; None, the reason kept, when its format lacks a field it is read from."""
+        try:
+            dtype = struct_dtype(self._formats, name)
+        except UlogError as exc:
+            raise UlogError(f"{self.path}: topic {name}: {exc}") from None
+        names = dtype.names or ()
+        for fname, shape in _NEEDED_FIELDS[name].items():
+            sub = dtype[fname] if fname in names else None
+            if sub is None or sub.shape != shape or sub.base.kind not in "biuf":
+                self.contents.skipped[f"{name}.{multi_id}"] = (
+                    f"its format has no numeric field {fname}{list(shape) if shape else ''}"
+                )
+                return None
+        return dtype
 
     def _decode(
         self,
@@ -248,7 +304,9 @@ class UlogImuStream:
     # ------------------------------------------------------------------ IMU rows
 
     def __iter__(self) -> Iterator[ImuRows]:
-        self.contents = UlogContents(system=self._system)
+        self.contents = UlogContents(
+            system=self._system, corrupt_messages=self._definitions_corrupt
+        )
         state = _ImuState()
         for records in self._records():
             yield from _interleave(self._flush_rows(state, records))
@@ -271,7 +329,8 @@ class UlogImuStream:
         for sel in _get(records, "sensor_selection", 0):
             state.selected_accel = int(sel["accel_device_id"])
         for (name, _), rec in sorted(records.items()):
-            if name == "sensor_accel" and "temperature" in (rec.dtype.names or ()):
+            names = set(rec.dtype.names or ())
+            if name == "sensor_accel" and {"temperature", "device_id"} <= names:
                 state.note_temperature(rec)
         rows: list[ImuRows] = []
         for (name, multi_id), rec in sorted(records.items()):
@@ -340,8 +399,8 @@ def _flag(rec: np.ndarray, *names: str) -> np.ndarray:
     clipped = np.zeros(rec.shape[0], dtype=bool)
     for name in names:
         if name in (rec.dtype.names or ()):
-            values = np.asarray(rec[name])
-            clipped |= (values.reshape(rec.shape[0], -1) != 0).any(axis=1)
+            values = np.asarray(rec[name]) != 0
+            clipped |= values.any(axis=tuple(range(1, values.ndim)))
     return clipped
 
 

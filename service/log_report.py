@@ -36,7 +36,8 @@ from protocols.logs import LogStats
 from service.figures import plt, save_figure
 
 REPORT_TYPE = "ins.health.log_report"
-REPORT_SCHEMA_VERSION = 1
+REPORT_SCHEMA_VERSION = 2
+"""2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give)."""
 VIBE_WARN_MPS2 = 30.0
 VIBE_BAD_MPS2 = 60.0
 VIBE_SOURCE = (
@@ -174,6 +175,8 @@ def build_report(
             "holds": dict(sorted(stats.held.items())),
             "left_out": dict(sorted(stats.skipped.items())),
             "dropped_samples": dict(sorted(stats.dropped.items())),
+            "skipped_bytes": stats.skipped_bytes,
+            "cut_at_byte": stats.cut_at_byte,
         },
         "passport": dict(passport),
         "gravity_mps2": gravity_mps2,
@@ -328,6 +331,13 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
     ]  # fmt: skip
     if log["left_out"]:
         lines += ["Left out: " + "; ".join(f"{k} {v}" for k, v in log["left_out"].items()), ""]
+    damage = [f"{k} {n}" for k, n in log["dropped_samples"].items()]
+    if log["skipped_bytes"]:
+        damage.append(f"{log['skipped_bytes']} bytes that start no message")
+    if log["cut_at_byte"] is not None:
+        damage.append(f"the file is cut mid-message at byte {log['cut_at_byte']}")
+    if damage:
+        lines += ["Not read: " + "; ".join(damage) + ".", ""]
     lines += ["## Findings", ""]
     if report["findings"]:
         lines += [f"- **{f['severity']}** {f['text']}" for f in report["findings"]]

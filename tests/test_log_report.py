@@ -151,3 +151,21 @@ def test_the_grade_choices_are_the_sensor_classes():
     from estimators.nominal_passport import SensorClass
 
     assert replay_command.SENSOR_CLASSES == tuple(c.value for c in SensorClass)
+
+
+def test_a_cut_and_damaged_log_says_in_its_report_what_was_not_read(tmp_path, capsys):
+    _, sessions = flight()
+    whole = tmp_path / "whole.bin"
+    write_dataflash_bin(whole, sessions)
+    data = bytearray(whole.read_bytes())
+    data[len(data) // 2 : len(data) // 2 + 4096] = bytes(4096)  # a zeroed flash page
+    cut = len(data) - 7  # the recorder lost power mid-message
+    log = tmp_path / "damaged.bin"
+    log.write_bytes(bytes(data[:cut]))
+    report, _ = run_report(capsys, log, tmp_path / "r")
+    assert report["schema_version"] == 2
+    assert report["log"]["skipped_bytes"] >= 4096 - 255
+    assert cut - 255 < report["log"]["cut_at_byte"] < cut
+    md = (tmp_path / "r" / "report.md").read_text()
+    assert "bytes that start no message" in md
+    assert f"the file is cut mid-message at byte {report['log']['cut_at_byte']}" in md

@@ -12,7 +12,10 @@ events, ids included: everything runs on the log's own time. The timeout check
 is a live one (no sample for ``timeout_s`` on the arrival clock) and is not run
 on a log; a gap in a log is counted as a time jump (the summary on stderr lists
 the counters) and ends the static interval it falls in. ``--pace recorded``
-replays at the logged rate (wall clock), ``fast`` (default) as fast as possible.
+replays at the logged rate (wall clock), ``fast`` (default) as fast as possible;
+a step of the log's time between frames longer than :data:`PACE_MAX_STEP_S`, forward
+or back, is not waited for: the pacing resumes from the frame after it, and the
+summary counts these steps.
 
 Passports: ``--passport FILE`` (a passport JSON, e.g. from ``ins-health
 calibrate``) for every IMU of the log, or ``--passport-dir DIR`` (the service's
@@ -45,7 +48,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.cli import UsageError, add_output
+from service.cli import PROGRESS_EVERY_S, UsageError, add_output
 from service.method_args import add_gravity_options
 
 if TYPE_CHECKING:
@@ -61,7 +64,11 @@ if TYPE_CHECKING:
 
 REPLAY_BATCH_SAMPLES = 100
 REPLAY_MAX_IMUS = 16
-PROGRESS_EVERY_S = 5.0
+PACE_MAX_STEP_S = 60.0
+"""Longest step of log time between frames that ``--pace recorded`` waits through, s. A frame of
+:data:`REPLAY_BATCH_SAMPLES` samples of a 4 Hz telemetry stream spans 25 s; a longer step is a
+logging pause or a corrupt time stamp (one a year ahead, or past what a sleep takes), not worth
+the wait."""
 SENSOR_CLASSES = ("consumer_mems", "industrial_mems", "tactical", "navigation")
 """The values of :class:`estimators.nominal_passport.SensorClass`, the default first (stated here:
 building the parser must not import scipy, service.cli)."""
@@ -172,12 +179,14 @@ def replay_events(
     on_event: Callable[[Event], None] | None = None,
     on_batch: Callable[[SampleBatch], None] | None = None,
     progress: Callable[[str], None] | None = None,
+    on_pace_step: Callable[[float], None] | None = None,
 ) -> tuple[list[Event], LogReader]:
     """Run a log through ``fleet``; returns every event in order and the reader (with its statistics).
 
     Each frame is stamped with its last sample time as its arrival (the log's own clock).
     ``on_batch`` sees every frame the reader gives; ``progress`` gets a line every
-    :data:`PROGRESS_EVERY_S` seconds of wall time.
+    :data:`PROGRESS_EVERY_S` seconds of wall time; ``on_pace_step`` each step of log time (s)
+    that ``pace_recorded`` does not wait through (module docstring).
     """
     from protocols.logs import LogReader
 
@@ -193,14 +202,21 @@ def replay_events(
     data0: float | None = None
     next_note = wall0 + PROGRESS_EVERY_S
     samples = 0
+    paced_t, due = 0.0, wall0  # the latest log time paced, and when it was due on the wall clock
     for batch in reader:
         t_last = float(batch.t_s[-1])
         if data0 is None:
-            data0 = float(batch.t_s[0])
+            data0 = paced_t = float(batch.t_s[0])
         if pace_recorded:
-            delay = (t_last - data0) - (time.monotonic() - wall0)
-            if delay > 0:
-                time.sleep(delay)
+            step = t_last - paced_t
+            if abs(step) > PACE_MAX_STEP_S:
+                paced_t = t_last
+                if on_pace_step is not None:
+                    on_pace_step(step)
+            elif step > 0:
+                paced_t, due = t_last, due + step
+                if (delay := due - time.monotonic()) > 0:
+                    time.sleep(delay)
         samples += batch.n_samples
         if on_batch is not None:
             on_batch(batch)
@@ -231,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
     config = _config(args)
     options = pipeline_options(config)
     errors: list[str] = []
+    pace_steps: list[float] = []
     rates: dict[tuple[str, int], float] = {}
     lookup, passport_info = _lookup(args, options.gravity_mps2, rates)
     fleet = FleetProcessor(
@@ -276,6 +293,7 @@ def run(args: argparse.Namespace) -> int:
         on_event=printer,
         on_batch=observe,
         progress=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
+        on_pace_step=pace_steps.append,
     )
     for line in errors:
         print(f"ins-health replay: {line}; stream checks only", file=sys.stderr)
@@ -284,10 +302,20 @@ def run(args: argparse.Namespace) -> int:
             f"ins-health replay: no passport: nominal passport of class {passport_info['class']} ({passport_info['source']})",
             file=sys.stderr,
         )
+    if pace_steps:
+        longest = max(pace_steps, key=abs)
+        print(
+            f"ins-health replay: --pace recorded: {len(pace_steps)} steps of log time over {PACE_MAX_STEP_S:g} s "
+            f"not waited for (longest {longest:+.6g} s); the pacing resumed after each",
+            file=sys.stderr,
+        )
+    for key, why in sorted(reader.stats.skipped.items()):
+        print(f"ins-health replay: not replayed: {key} {why}", file=sys.stderr)
+    if cut := reader.stats.cut():
+        print(f"ins-health replay: {args.log.name} is {cut}: read up to there", file=sys.stderr)
     samples = ", ".join(f"IMU{i} {n}" for i, n in sorted(reader.stats.samples.items())) or "none"
-    dropped = ", ".join(f"{k} {n}" for k, n in sorted(reader.stats.dropped.items())) or "none"
     print(
-        f"ins-health replay: {args.log.name} ({reader.format.value}): samples {samples}; left out {dropped}; {len(events)} events",
+        f"ins-health replay: {args.log.name} ({reader.format.value}): samples {samples}; left out {reader.stats.left_out()}; {len(events)} events",
         file=sys.stderr,
     )
     for vehicle in fleet.vehicles():
