@@ -117,6 +117,47 @@ class UlogError(ValueError):
     """A file that is not a ULog pyulog can read; the message says why."""
 
 
+DEFINITIONS_READ_BUDGET_BYTES = 64 << 20
+"""Most bytes pyulog may read for a file's definitions. It reads them once on a whole file (a few
+MB at most), but past a corrupt header it steps one byte and reads the next header's declared size
+(up to 64 KiB) again: on erased flash (0xFF) after the definitions that is quadratic, minutes for
+1 MiB. This allows about a thousand such steps."""
+
+
+class _BudgetedReads(io.RawIOBase):
+    """A file pyulog reads through, refusing to read more than ``budget`` bytes in all."""
+
+    def __init__(self, path: Path, budget: int):
+        self._f = open(path, "rb")
+        self._budget = self._left = budget
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._f.read(n)
+        self._left -= len(data)
+        if self._left < 0:
+            raise UlogError(
+                f"its definitions are corrupt beyond repair: pyulog read {self._budget} "
+                f"bytes resynchronizing and was at byte {self._f.tell()}"
+            )
+        return data
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._f.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+    def close(self) -> None:
+        self._f.close()
+        super().close()
+
+
 @dataclass(frozen=True)
 class ImuRows:
     """Consecutive samples of one IMU as a reader yields them (SI; ``temp_c`` None when not known)."""
@@ -194,8 +235,11 @@ class UlogImuStream:
         self.path = Path(path)
         try:
             # pyulog prints its findings (corruption, unknown messages) to stdout, where --json writes.
-            with contextlib.redirect_stdout(io.StringIO()):
-                header = ULog(str(self.path), parse_header_only=True)
+            with (
+                contextlib.redirect_stdout(io.StringIO()),
+                _BudgetedReads(self.path, DEFINITIONS_READ_BUDGET_BYTES) as f,
+            ):
+                header = ULog(f, parse_header_only=True)
         except Exception as exc:  # pyulog raises its own, struct and index errors on bad files
             raise UlogError(f"{self.path}: not a ULog pyulog can read ({exc})") from None
         self._definitions_corrupt = int(header.file_corruption)

@@ -6,12 +6,12 @@ Every damaged input is built here from the project's own log writers and a few h
 from __future__ import annotations
 
 import struct
-import time
 
 import numpy as np
 import pytest
 
 from estimators.session import ImuSession
+from protocols import ulog as ulog_module
 from protocols.logs import (
     LogReader,
     NoImuDataError,
@@ -264,11 +264,29 @@ def test_a_ulog_format_flattening_past_any_message_is_refused_at_once(tmp_path, 
     write_ulog(path, _session())
     nested = [b"n1:float[1000] a;", b"n2:n1[1000] b;", b"n3:n2[1000] c;", b"sensor_selection:n3[1000] d;"]  # fmt: skip
     _insert_before_subscriptions(path, *(_ulog_message(b"F", f) for f in nested))
-    start = time.monotonic()
     status, out, err = _replay(capsys, path, "--json")
     assert status == 2 and out == "" and len(err.splitlines()) == 1
     assert f"topic sensor_selection: format 'sensor_selection' flattens to more than {MAX_FLAT_FIELDS}" in err  # fmt: skip
-    assert time.monotonic() - start < 5.0
+
+
+def test_definitions_followed_by_erased_flash_are_refused_within_the_read_budget(
+    tmp_path, capsys, monkeypatch
+):
+    # The definitions, then erased flash: pyulog steps a byte at a time and re-reads 64 KiB each.
+    monkeypatch.setattr(ulog_module, "DEFINITIONS_READ_BUDGET_BYTES", 1 << 20)
+    path = tmp_path / "flight.ulg"
+    write_ulog(path, _session())
+    data = path.read_bytes()
+    pos = 16
+    while data[pos + 2] != ord("A"):
+        pos += 3 + struct.unpack_from("<H", data, pos)[0]
+    path.write_bytes(data[:pos] + b"\xff" * (64 << 10))
+    status, out, err = _replay(capsys, path, "--json")
+    assert status == 2 and out == ""
+    assert "its definitions are corrupt beyond repair: pyulog read 1048576 bytes" in err
+    # The whole file reads well within the same budget.
+    write_ulog(path, _session())
+    assert _replay(capsys, path, "--json")[0] == 0
 
 
 def test_pyulog_findings_stay_off_stdout_and_are_counted(tmp_path, capsys):
