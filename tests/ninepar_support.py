@@ -14,12 +14,14 @@ import numpy as np
 from estimators.conventions import (
     EARTH_RATE_RPS,
     RPS_PER_DPH,
+    Grade,
     Triad,
     nine_params,
     sensor_axes,
     triad_matrix,
 )
-from estimators.ninepar import scheme_directions
+from estimators.ninepar import estimate_refined, scheme_directions
+from estimators.passport import Passport, TemperatureModel, passport_from_estimates
 
 DEG_PER_H_NORM = RPS_PER_DPH / EARTH_RATE_RPS
 """1 °/h in units of Ω."""
@@ -143,3 +145,42 @@ def single_axis_directions(
     return np.cos(cone) * axis + np.sin(cone) * (
         np.outer(np.cos(phi), a) + np.outer(np.sin(phi), c)
     )
+
+
+PASSPORT_G_MPS2 = 9.7953
+"""Local gravity of :func:`synthetic_passport`'s accelerometer fit, m/s²."""
+
+
+def synthetic_passport(seed: int) -> Passport:
+    """A passport of a MEMS accelerometer and a navigation gyro fitted from one draw of their positions,
+    with a quantization step and an accelerometer temperature model."""
+    rng = np.random.default_rng(seed)
+    accel, gyro = mems_accel(rng), nav_gyro(rng)
+    estimates = {
+        Triad.ACCEL: estimate_refined(
+            accel.draw(rng, 1)[0], accel.cov, Triad.ACCEL, reference=PASSPORT_G_MPS2
+        ),
+        Triad.GYRO: estimate_refined(
+            gyro.draw(rng, 1)[0], gyro.cov, Triad.GYRO, reference=EARTH_RATE_RPS
+        ),
+    }
+    p = passport_from_estimates(
+        estimates,
+        unit_id="imu-0042",
+        sensor_model="synthetic-9dof",
+        sensor_ids={"accel": "A-17", "gyro": "G-23"},
+        created="2024-05-01T12:00:00+00:00",
+        noise_std={Triad.ACCEL: np.full(3, 1e-3), Triad.GYRO: np.full(3, 0.08)},
+        sample_rate_hz=100.0,
+        grade={Triad.ACCEL: Grade.MEMS, Triad.GYRO: Grade.NAVIGATION},
+        quantization_step={Triad.ACCEL: np.full(3, 2.44e-4)},
+    )
+    temp = TemperatureModel(
+        25.0,
+        np.array([[1e-4, 2e-6, 0.0]] * 3),
+        np.array([[0.0, 1e-5, -3e-8]] * 3),
+        valid_min_c=-20.0,
+        valid_max_c=60.0,
+    )
+    triads = {**p.triads, Triad.ACCEL: replace(p.triads[Triad.ACCEL], temperature=temp)}
+    return Passport(p.unit_id, p.sensor_model, p.sensor_ids, p.created, triads)

@@ -10,11 +10,11 @@ import os
 import msgpack
 import numpy as np
 import pytest
-from ninepar_support import mems_accel, nav_gyro
+from ninepar_support import PASSPORT_G_MPS2, synthetic_passport
 from scipy.stats import norm
 
 from estimators.conventions import EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Triad
-from estimators.ninepar import Estimate, Method, Verdict, estimate_refined
+from estimators.ninepar import Estimate, Method, Verdict
 from estimators.passport import (
     GRADE_FLOORS,
     PASSPORT_SCHEMA_VERSION,
@@ -37,41 +37,12 @@ from protocols.passport_codec import (
     write_passport_json,
 )
 
-G_MPS2 = 9.7953
+G_MPS2 = PASSPORT_G_MPS2
 
 
 @pytest.fixture(scope="module")
 def passport() -> Passport:
-    rng = np.random.default_rng(7)
-    accel, gyro = mems_accel(rng), nav_gyro(rng)
-    estimates = {
-        Triad.ACCEL: estimate_refined(
-            accel.draw(rng, 1)[0], accel.cov, Triad.ACCEL, reference=G_MPS2
-        ),
-        Triad.GYRO: estimate_refined(
-            gyro.draw(rng, 1)[0], gyro.cov, Triad.GYRO, reference=EARTH_RATE_RPS
-        ),
-    }
-    p = passport_from_estimates(
-        estimates,
-        unit_id="imu-0042",
-        sensor_model="synthetic-9dof",
-        sensor_ids={"accel": "A-17", "gyro": "G-23"},
-        created="2024-05-01T12:00:00+00:00",
-        noise_std={Triad.ACCEL: np.full(3, 1e-3), Triad.GYRO: np.full(3, 0.08)},
-        sample_rate_hz=100.0,
-        grade={Triad.ACCEL: Grade.MEMS, Triad.GYRO: Grade.NAVIGATION},
-        quantization_step={Triad.ACCEL: np.full(3, 2.44e-4)},
-    )
-    temp = TemperatureModel(
-        25.0,
-        np.array([[1e-4, 2e-6, 0.0]] * 3),
-        np.array([[0.0, 1e-5, -3e-8]] * 3),
-        valid_min_c=-20.0,
-        valid_max_c=60.0,
-    )
-    triads = {**p.triads, Triad.ACCEL: dataclasses.replace(p.triads[Triad.ACCEL], temperature=temp)}
-    return Passport(p.unit_id, p.sensor_model, p.sensor_ids, p.created, triads)
+    return synthetic_passport(7)
 
 
 def test_default_tolerance_is_three_sigma_or_the_grade_floor():

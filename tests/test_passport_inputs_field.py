@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 import pytest
-from ninepar_support import mems_accel, nav_gyro
+from ninepar_support import PASSPORT_G_MPS2, synthetic_passport
 
 from estimators.conventions import (
     EARTH_RATE_RPS,
@@ -18,41 +18,21 @@ from estimators.conventions import (
     Triad,
     normal_gravity_mps2,
 )
-from estimators.ninepar import estimate_refined
 from estimators.passport import (
     Passport,
     PassportError,
     TemperatureModel,
     check_references,
-    passport_from_estimates,
 )
 from estimators.sim import grade_error_model, multi_position_spec, simulate
 from protocols.passport_codec import read_passport_json, write_passport_json
 from protocols.session_file import write_csv_session
 from service.cli import main
 
-G_MPS2 = 9.7953
-
 
 @pytest.fixture(scope="module")
 def passport() -> Passport:
-    rng = np.random.default_rng(11)
-    accel, gyro = mems_accel(rng), nav_gyro(rng)
-    estimates = {
-        Triad.ACCEL: estimate_refined(accel.draw(rng, 1)[0], accel.cov, Triad.ACCEL, reference=G_MPS2),
-        Triad.GYRO: estimate_refined(gyro.draw(rng, 1)[0], gyro.cov, Triad.GYRO, reference=EARTH_RATE_RPS),
-    }  # fmt: skip
-    p = passport_from_estimates(
-        estimates, unit_id="imu-7", sensor_model="synthetic", sensor_ids={}, created="2024-05-01",
-        noise_std={Triad.ACCEL: np.full(3, 1e-3), Triad.GYRO: np.full(3, 0.08)},
-        sample_rate_hz=100.0, grade={Triad.ACCEL: Grade.MEMS, Triad.GYRO: Grade.NAVIGATION},
-        quantization_step={Triad.ACCEL: np.full(3, 2.44e-4)},
-    )  # fmt: skip
-    temp = TemperatureModel(
-        25.0, np.zeros((3, 2)), np.zeros((3, 2)), valid_min_c=-20.0, valid_max_c=60.0
-    )
-    accel_tp = dataclasses.replace(p.triads[Triad.ACCEL], temperature=temp)
-    return dataclasses.replace(p, triads={**p.triads, Triad.ACCEL: accel_tp})
+    return synthetic_passport(11)
 
 
 def _with(passport: Passport, path: tuple[str, ...], value) -> dict:
@@ -190,7 +170,9 @@ def test_a_gyro_reference_in_degrees_per_hour_does_not_fit_earths_rate(passport)
     with pytest.raises(
         PassportError, match=r"gyro reference is 15\.04.* rad/s but Earth's rotation rate is 7\.29"
     ):
-        check_references(_with_reference(passport, Triad.GYRO, deg_per_h), gravity_mps2=G_MPS2)
+        check_references(
+            _with_reference(passport, Triad.GYRO, deg_per_h), gravity_mps2=PASSPORT_G_MPS2
+        )
 
 
 def test_a_passport_from_any_site_on_earth_fits_a_session_from_any_other(passport):
