@@ -19,6 +19,17 @@ GYRO_IMPLAUSIBLE_RPS = 1e4
 """Beyond about 570,000 °/s no gyro measures: a larger value is a corrupt record, not a sample."""
 
 
+def plausible_rows(accel_mps2: FloatArray | None, gyro_rps: FloatArray | None) -> BoolArray:
+    """(N,) rows whose every value is within what a sensor measures (:data:`ACCEL_IMPLAUSIBLE_MPS2`,
+    :data:`GYRO_IMPLAUSIBLE_RPS`); NaN compares as plausible here (non-finite rows are told apart)."""
+    rows = next(a for a in (accel_mps2, gyro_rps) if a is not None).shape[0]
+    ok = np.ones(rows, dtype=bool)
+    for triad, bound in ((accel_mps2, ACCEL_IMPLAUSIBLE_MPS2), (gyro_rps, GYRO_IMPLAUSIBLE_RPS)):
+        if triad is not None:
+            ok &= ~(np.abs(triad) > bound).any(axis=1)
+    return ok
+
+
 class SessionError(ValueError):
     """The session cannot be used at all (the message says why, in one line)."""
 
@@ -127,12 +138,9 @@ def validate_session(
     keep = finite.copy()
     # A finite but absurd value (one corrupt record of 1e300) would overflow the squares of every
     # later sum: it is no sample.
-    for name, bound in (("accel_mps2", ACCEL_IMPLAUSIBLE_MPS2), ("gyro_rps", GYRO_IMPLAUSIBLE_RPS)):
-        triad = arrays[name]
-        if triad is not None:
-            absurd = keep & (np.abs(triad) > bound).any(axis=1)
-            rej.add("implausible_value", int(absurd.sum()))
-            keep &= ~absurd
+    absurd = keep & ~plausible_rows(arrays["accel_mps2"], arrays["gyro_rps"])
+    rej.add("implausible_value", int(absurd.sum()))
+    keep &= ~absurd
 
     for name, limit in (("accel_mps2", accel_limit_mps2), ("gyro_rps", gyro_limit_rps)):
         triad = arrays[name]

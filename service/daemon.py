@@ -213,6 +213,7 @@ class Service:
         self._reader_failures = 0
         self.store = PassportStore(config.service.passport_dir)
         self._passports: dict[tuple[str, int], Passport] = {}
+        self._pipeline_errors_logged: set[tuple[str, int, str]] = set()
         self.fleet = FleetProcessor(
             passports=self._passport,
             options=pipeline_options(config),
@@ -220,6 +221,7 @@ class Service:
             max_vehicles=config.pipeline.max_vehicles,
             max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
             on_passport_error=self._passport_error,
+            on_pipeline_error=self._pipeline_error,
         )
         self.intake = Intake(
             self.fleet,
@@ -266,6 +268,18 @@ class Service:
 
     def _passport_error(self, vehicle: str, imu: int, message: str) -> None:
         log.warning("%s; %s IMU%d runs the stream checks only", message, vehicle, imu)
+
+    def _pipeline_error(self, vehicle: str, imu: int, message: str) -> None:
+        # Logged once per IMU and kind of error (the counter has them all): a hostile stream must
+        # not fill the journal.
+        key = (vehicle, imu, message.split(":", 1)[0])
+        if key not in self._pipeline_errors_logged:
+            self._pipeline_errors_logged.add(key)
+            log.error(
+                "%s IMU%d: the pipeline failed on a frame (%s); the IMU starts afresh, counted as "
+                "imu%d.pipeline.errors (further errors of this kind are counted, not logged)",
+                vehicle, imu, message, imu,
+            )  # fmt: skip
 
     def _restore(self, vehicle: str, imu: int) -> dict[str, Any] | None:
         try:

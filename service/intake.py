@@ -115,8 +115,9 @@ class Intake:
         except Exception as exc:
             self.fleet.count_service("pipeline.errors")
             kind = f"{type(exc).__name__}: {exc}"
-            if kind not in self._reported:
-                self._reported.add(kind)
+            # Reported once per exception type: a message naming sample numbers differs every frame.
+            if type(exc).__name__ not in self._reported:
+                self._reported.add(type(exc).__name__)
                 first = batches[0]
                 self._say(
                     f"{len(batches)} frame(s) from {first.vehicle} IMU{first.imu} seq {first.seq} on "

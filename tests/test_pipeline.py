@@ -68,6 +68,70 @@ def test_fault_is_detected_by_f0_and_named_by_the_diagnosis():
     assert "accelerometer z: scale factor error" in f6.text
 
 
+@pytest.mark.parametrize("triad", ["accel_mps2", "gyro_rps"])
+def test_one_sample_beyond_any_sensor_is_rejected_and_the_fault_is_still_found(triad):
+    """A corrupt 1e300 (finite: the frame decodes) once made sin(inf) in the attitude check and left
+    the IMU's chain failing every later frame: no F0, no F6."""
+    passport, g = calibrated()
+    frames = list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))
+    bad = getattr(frames[30], triad).copy()
+    bad[50, 0] = 1e300
+    frames[30] = dataclasses.replace(frames[30], **{triad: bad})
+    fleet = fleet_for(passport, g)
+    events = run_fleet(fleet, frames)
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
+    counters = fleet.pipelines[(V, 0)].counters
+    assert counters["samples.rejected.implausible_value"] == 1
+    assert "samples.rejected.out_of_order_or_non_finite" not in counters
+
+
+def test_an_imu_whose_chain_raises_starts_afresh_and_the_other_imus_go_on(monkeypatch):
+    passport, g = calibrated()
+    session = faulty().session
+    frames = {v: list(batches_of(session, vehicle=v, imu=0, batch_samples=100)) for v in ("a", "b")}
+    process = ImuPipeline.process
+    lost = []
+
+    def failing(self, batch, **kw):
+        # Frames joined into one batch carry the last one's seq.
+        if self.vehicle == "a" and batch.seq - kw.get("frames", 1) < 30 <= batch.seq and not lost:
+            lost.append(batch)
+            raise ValueError("static decisions skip samples 3001…3100")
+        return process(self, batch, **kw)
+
+    monkeypatch.setattr(ImuPipeline, "process", failing)
+    errors = []
+    fleet = FleetProcessor(
+        passports=lambda v, i: passport,
+        options=options(g),
+        on_pipeline_error=lambda v, i, m: errors.append((v, i, m)),
+    )
+    events = []
+    for k in range(0, len(frames["a"]), 4):
+        group = [
+            f
+            for pair in zip(frames["a"][k : k + 4], frames["b"][k : k + 4], strict=True)
+            for f in pair
+        ]
+        events += fleet.process_queued(group, arrival_s=float(group[-1].t_s[-1]))
+    events += fleet.finish()
+    assert errors == [("a", 0, "ValueError: static decisions skip samples 3001…3100")]
+    # The other vehicle, in the same groups, lost nothing.
+    assert kinds([e for e in events if e.vehicle == "b"]) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
+    a = fleet.pipelines[("a", 0)]
+    assert a.counters["pipeline.errors"] == 1
+    # Its history is kept, and every frame after the failing one went through the fresh chain.
+    (failed,) = lost
+    assert a.counters["samples.accepted"] == session.n_samples - failed.n_samples
+    assert a.n_samples == session.n_samples - int(np.searchsorted(session.t_s, failed.t_s[-1])) - 1
+
+
 def test_fault_free_unit_raises_nothing_and_reaches_ok():
     passport, g = calibrated()
     clean = demo_scenario(fault_magnitude=0.0)

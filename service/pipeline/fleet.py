@@ -78,6 +78,8 @@ class FleetProcessor:
         does not fit ``options``' gravity, :func:`~estimators.passport.check_references`) leaves that
         unit without a passport (validity checks only) and is reported once through ``on_passport_error``.
     options : pipeline options.
+    on_pipeline_error : told ``(vehicle, imu, error)`` when an IMU's chain raised on a frame: that
+        IMU starts afresh (its counters kept, ``pipeline.errors`` counted) and the others go on.
     vehicles : vehicles served (empty: all).
     max_vehicles, max_imus_per_vehicle : admission limits (frames beyond them are counted).
     """
@@ -91,6 +93,7 @@ class FleetProcessor:
         max_vehicles: int = 256,
         max_imus_per_vehicle: int = 4,
         on_passport_error: Callable[[str, int, str], None] | None = None,
+        on_pipeline_error: Callable[[str, int, str], None] | None = None,
     ):
         self.options = options
         self._passports = passports
@@ -98,6 +101,7 @@ class FleetProcessor:
         self._max_vehicles = int(max_vehicles)
         self._max_imus = int(max_imus_per_vehicle)
         self._on_passport_error = on_passport_error
+        self._on_pipeline_error = on_pipeline_error
         self.pipelines: dict[tuple[str, int], ImuPipeline] = {}
         self.cross: dict[str, CrossImuMonitor] = {}
         self.vehicle_counters: dict[str, dict[str, int]] = {}
@@ -215,7 +219,11 @@ class FleetProcessor:
         pipe = self.admit(batch.vehicle, batch.imu)
         if pipe is None:
             return [], None
-        return pipe.process(batch, arrival_s=arrival_s), pipe.accepted
+        try:
+            return pipe.process(batch, arrival_s=arrival_s), pipe.accepted
+        except Exception as exc:
+            self._start_afresh(pipe, exc)
+            return [], None
 
     def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
         """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
@@ -296,9 +304,31 @@ class FleetProcessor:
             np.concatenate([b.gyro_rps for b in run]),
             None if last.temp_c is None else np.concatenate([b.temp_c for b in run]),
         )
-        events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
+        try:
+            events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
+        except Exception as exc:
+            self._start_afresh(pipe, exc)
+            return []
         pipe.last_batch_n = last.n_samples
         return events
+
+    def _start_afresh(self, pipe: ImuPipeline, exc: Exception) -> None:
+        """An IMU whose chain raised: a half-updated chain would refuse every later frame (a detector
+        ahead of its positions), so the IMU starts afresh with its passport, keeping its counters
+        (``pipeline.errors`` added), and ``on_pipeline_error`` is told. The other IMUs go on."""
+        fresh = ImuPipeline(
+            pipe.vehicle,
+            pipe.imu,
+            passport=pipe.passport,
+            options=self.options,
+            passport_note=pipe.passport_note,
+        )
+        fresh.counters = pipe.counters
+        fresh.counters["pipeline.errors"] = fresh.counters.get("pipeline.errors", 0) + 1
+        self.pipelines[(pipe.vehicle, pipe.imu)] = fresh
+        self._by_vehicle[pipe.vehicle][pipe.imu] = fresh
+        if self._on_pipeline_error is not None:
+            self._on_pipeline_error(pipe.vehicle, pipe.imu, f"{type(exc).__name__}: {exc}")
 
     def _cross(self, good: SampleBatch) -> list[Event]:
         """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle)."""

@@ -19,6 +19,7 @@ from estimators.ninepar import RecursiveNineParam
 from estimators.passport import Passport
 from estimators.positions import Position, PositionAccumulator
 from estimators.scalar import f0_batch, persistent_failure
+from estimators.session import plausible_rows
 from estimators.stream_validity import (
     StreamValidity,
     ValidityReport,
@@ -187,7 +188,9 @@ class ImuPipeline:
         self._count("frames.accepted", frames)
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
-        self._count("samples.rejected.out_of_order_or_non_finite", int((~keep).sum()))
+        absurd = ~plausible_rows(batch.accel_mps2, batch.gyro_rps)
+        self._count("samples.rejected.implausible_value", int(absurd.sum()))
+        self._count("samples.rejected.out_of_order_or_non_finite", int((~keep & ~absurd).sum()))
         report = self.validity.update(
             accel_mps2=batch.accel_mps2,
             gyro_rps=batch.gyro_rps,
@@ -250,6 +253,7 @@ class ImuPipeline:
             and bool(np.isfinite(batch.accel_mps2).all())
             and bool(np.isfinite(batch.gyro_rps).all())
             and (batch.temp_c is None or bool(np.isfinite(batch.temp_c).all()))
+            and bool(plausible_rows(batch.accel_mps2, batch.gyro_rps).all())
         )
 
     def _jump_s(self) -> float:
@@ -263,6 +267,9 @@ class ImuPipeline:
             np.isfinite(t)
             & np.isfinite(batch.accel_mps2).all(axis=1)
             & np.isfinite(batch.gyro_rps).all(axis=1)
+            # A finite value beyond any sensor (one corrupt sample of 1e300 rad/s) is no sample
+            # either: its square overflows the detector's sums and the attitude's sine.
+            & plausible_rows(batch.accel_mps2, batch.gyro_rps)
         )
         if batch.temp_c is not None:
             finite &= np.isfinite(batch.temp_c)
