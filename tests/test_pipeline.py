@@ -211,6 +211,42 @@ def test_a_restarted_source_is_followed_after_three_consistent_frames():
     assert fleet.pipelines[(V, 0)].last_t_s == pytest.approx(frames[9].t_s[-1])
 
 
+@pytest.mark.parametrize("ahead_s", [2.0, 100.0, 1e6])
+def test_one_frame_stamped_ahead_costs_a_few_frames_not_the_fault_detection(ahead_s):
+    """A frame stamped in the future, then the stream as before: once the stream is followed again (as a
+    restarted source), the detector must not keep the future clock (it refused every later sample:
+    no F0, no F6), nor join samples across the two clocks (+2 s gave a false F0)."""
+    passport, g = calibrated()
+    frames = list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))
+    clean = [e for e in run_fleet(fleet_for(passport, g), frames)]
+    frames[60] = dataclasses.replace(frames[60], t_s=frames[60].t_s + ahead_s)
+    fleet = fleet_for(passport, g)
+    events = [e for e in run_fleet(fleet, frames) if e.predicate is not Predicate.ERROR_DENSITY]
+    assert [(e.predicate, e.cause, e.t_s) for e in events] == [
+        (e.predicate, e.cause, e.t_s) for e in clean
+    ]
+    c = fleet.pipelines[(V, 0)].counters
+    assert c["source_restarts"] == 1 and c["frames.rejected.no_new_samples"] == 2
+
+
+def test_a_vehicle_rebooted_mid_stream_is_diagnosed_as_before_on_its_new_clock():
+    """It rebooted 50 s in (seq and time from 0 again): the chain went on with the old stream's clock,
+    refused the new samples inside the detector and raised F3, F5, F6, F8 and F9 on a healthy start."""
+    passport, g = calibrated()
+    sc = faulty()
+    frames = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=100))
+    fleet = fleet_for(passport, g)
+    assert run_fleet(fleet, frames[:100], finish=False) == []
+    rebooted = run_fleet(fleet, [dataclasses.replace(b, seq=k) for k, b in enumerate(frames)])
+    events = [e for e in rebooted if e.predicate is not Predicate.ERROR_DENSITY]
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
+    assert sc.fault_s <= events[0].t_s < sc.fault_s + 0.05
+    assert fleet.pipelines[(V, 0)].counters["source_restarts"] == 1
+
+
 def test_stuck_gyro_is_a_critical_stale_event_naming_the_axis():
     passport, g = calibrated()
     sc = faulty()

@@ -125,16 +125,19 @@ class ImuPipeline:
             **kw,
         )
 
-    def _setup(self, rate_hz: float) -> _Detection:
-        self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
+    def _new_detection(self, rate_hz: float) -> _Detection:
         detector = detector_config(self.options.detector, self.passport, rate_hz)
-        self.detection = _Detection(
+        return _Detection(
             rate_hz,
             PositionAccumulator(
                 rate_hz=rate_hz, detector_config=detector, config=self.options.positions
             ),
             StaticGate(self.options.positions.trim_samples(rate_hz)),
         )
+
+    def _setup(self, rate_hz: float) -> _Detection:
+        self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
+        self.detection = self._new_detection(rate_hz)
         if self.passport is not None:
             for triad, tp in self.passport.triads.items():
                 cfg, lam, note = f0_config(tp, self.options, rate_hz)
@@ -315,7 +318,15 @@ class ImuPipeline:
         self.last_seq = None
         self.last_t_s = None
         # The old stream ended: its pending position is complete.
-        return self.finish()
+        events = self.finish()
+        if self.detection is not None:
+            # The detector and the positions hold the old stream's clock: every sample of the new one
+            # would be older than their last and refused inside them (fault detection would stop). The
+            # diagnosis keeps the positions it has: they are the same unit's.
+            self.detection = self._new_detection(self.detection.rate_hz)
+            for check in self.checks.values():
+                check.f0_run, check.f0_run_onset = 0, None
+        return events
 
     # ------------------------------------------------------------------ the chain
 
