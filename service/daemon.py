@@ -222,6 +222,7 @@ class Service:
             max_imus_per_vehicle=config.pipeline.max_imus_per_vehicle,
             on_passport_error=self._passport_error,
             on_pipeline_error=self._pipeline_error,
+            on_evicted=self._evicted,
         )
         self.intake = Intake(
             self.fleet,
@@ -268,6 +269,14 @@ class Service:
 
     def _passport_error(self, vehicle: str, imu: int, message: str) -> None:
         log.warning("%s; %s IMU%d runs the stream checks only", message, vehicle, imu)
+
+    def _evicted(self, evicted: str, admitted: str) -> None:
+        log.warning(
+            "vehicle limit reached: %s, without a passport and idle longest, makes room for %s, "
+            "which has one (counted as service.vehicles.evicted_without_passport)",
+            evicted,
+            admitted,
+        )
 
     def _pipeline_error(self, vehicle: str, imu: int, message: str) -> None:
         # Logged once per IMU and kind of error (the counter has them all): a hostile stream must

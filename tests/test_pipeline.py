@@ -324,6 +324,42 @@ def test_a_passport_whose_reference_is_not_the_sites_gravity_runs_the_stream_che
     assert len(errors) == 1 and "a passport in g units" in errors[0]
 
 
+def test_a_flood_of_made_up_vehicles_does_not_lock_out_the_fleets_own():
+    passport, g = calibrated()
+
+    def lookup(v, i):
+        if v.startswith("uav"):
+            return passport
+        raise ValueError(f"no passport of {v} IMU{i}")
+
+    evicted = []
+    fleet = FleetProcessor(
+        passports=lookup,
+        options=options(g),
+        max_vehicles=8,
+        on_evicted=lambda gone, came: evicted.append((gone, came)),
+    )
+    frames = list(batches_of(faulty().session, vehicle="uav1", imu=0, batch_samples=100))
+    one = frames[0]
+    for k in range(20):  # one frame each, under made-up ids
+        fleet.process(dataclasses.replace(one, vehicle=f"x{k}"), arrival_s=0.0)
+    fleet.process(dataclasses.replace(one, vehicle="x3"), arrival_s=0.0)  # x3 is heard again
+    events = run_fleet(fleet, frames)
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
+    fleet.process(dataclasses.replace(one, vehicle="uav2"), arrival_s=0.0)
+    fleet.process(dataclasses.replace(one, vehicle="x99"), arrival_s=0.0)
+    # The longest idle made-up vehicles made room, x3 (heard last) stayed; a new one is refused.
+    assert evicted == [("x0", "uav1"), ("x1", "uav2")]
+    assert fleet.service_counters == {
+        "frames.rejected.over_vehicle_limit": 12 + 1,
+        "vehicles.evicted_without_passport": 2,
+    }
+    assert set(fleet.vehicle_counters) == {"uav1", "uav2", *(f"x{k}" for k in range(2, 8))}
+
+
 def test_admission_limits_and_unknown_vehicles_are_counted():
     passport, g = calibrated()
     fleet = fleet_for(passport, g, vehicles=(V,), max_imus_per_vehicle=2)

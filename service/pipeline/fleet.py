@@ -80,8 +80,12 @@ class FleetProcessor:
     options : pipeline options.
     on_pipeline_error : told ``(vehicle, imu, error)`` when an IMU's chain raised on a frame: that
         IMU starts afresh (its counters kept, ``pipeline.errors`` counted) and the others go on.
+    max_vehicles : vehicles served at once; at the limit a vehicle with a passport takes the place of
+        the longest idle vehicle without one (``vehicles.evicted_without_passport``, and
+        ``on_evicted(evicted, admitted)`` is told), any other new vehicle is refused
+        (``frames.rejected.over_vehicle_limit``).
     vehicles : vehicles served (empty: all).
-    max_vehicles, max_imus_per_vehicle : admission limits (frames beyond them are counted).
+    max_imus_per_vehicle : IMUs served per vehicle (frames beyond are counted).
     """
 
     def __init__(
@@ -94,6 +98,7 @@ class FleetProcessor:
         max_imus_per_vehicle: int = 4,
         on_passport_error: Callable[[str, int, str], None] | None = None,
         on_pipeline_error: Callable[[str, int, str], None] | None = None,
+        on_evicted: Callable[[str, str], None] | None = None,
     ):
         self.options = options
         self._passports = passports
@@ -102,6 +107,10 @@ class FleetProcessor:
         self._max_imus = int(max_imus_per_vehicle)
         self._on_passport_error = on_passport_error
         self._on_pipeline_error = on_pipeline_error
+        self._on_evicted = on_evicted
+        # The frames routed so far when each vehicle's last one was (which vehicle idles longest).
+        self._seen: dict[str, int] = {}
+        self._frames_routed = 0
         self.pipelines: dict[tuple[str, int], ImuPipeline] = {}
         self.cross: dict[str, CrossImuMonitor] = {}
         self.vehicle_counters: dict[str, dict[str, int]] = {}
@@ -153,7 +162,11 @@ class FleetProcessor:
             self.count_service("frames.rejected.unknown_vehicle")
             return None
         known = vehicle in self.vehicle_counters
-        if not known and len(self.vehicle_counters) >= self._max_vehicles:
+        if (
+            not known
+            and len(self.vehicle_counters) >= self._max_vehicles
+            and not self._make_room_for(vehicle, imu)
+        ):
             self.count_service("frames.rejected.over_vehicle_limit")
             return None
         if known and len(self._by_vehicle.get(vehicle, {})) >= self._max_imus:
@@ -191,6 +204,34 @@ class FleetProcessor:
             self.cross[vehicle] = self._cross_monitor(vehicle)
         return pipe
 
+    def _make_room_for(self, vehicle: str, imu: int) -> bool:
+        """At the vehicle limit, a vehicle with a passport takes the place of the longest idle one
+        without any: a flood of made-up vehicle ids (each one frame) would otherwise fill the limit
+        for good and lock the fleet's real vehicles out. Whether room was made."""
+        try:
+            if self._passports(vehicle, imu) is None:
+                return False
+        except ValueError:
+            return False
+        idle = [
+            v
+            for v, pipes in self._by_vehicle.items()
+            if all(p.passport is None for p in pipes.values())
+        ]
+        if not idle:
+            return False
+        victim = min(idle, key=lambda v: self._seen.get(v, -1))
+        for imu_of in self._by_vehicle.pop(victim):
+            del self.pipelines[(victim, imu_of)]
+            self._saved.pop((victim, imu_of), None)
+        self.vehicle_counters.pop(victim, None)
+        self.cross.pop(victim, None)
+        self._seen.pop(victim, None)
+        self.count_service("vehicles.evicted_without_passport")
+        if self._on_evicted is not None:
+            self._on_evicted(victim, vehicle)
+        return True
+
     def _cross_monitor(self, vehicle: str) -> CrossImuMonitor:
         """The cross-IMU monitor of a vehicle's first admitted unit, resumed from its checkpoint if any."""
         limits = self.options.validity
@@ -219,6 +260,7 @@ class FleetProcessor:
         pipe = self.admit(batch.vehicle, batch.imu)
         if pipe is None:
             return [], None
+        self._seen[batch.vehicle] = self._frames_routed = self._frames_routed + 1
         try:
             return pipe.process(batch, arrival_s=arrival_s), pipe.accepted
         except Exception as exc:
@@ -295,6 +337,7 @@ class FleetProcessor:
         self, pipe: ImuPipeline, run: list[SampleBatch], arrival_s: float
     ) -> list[Event]:
         last = run[-1]
+        self._seen[last.vehicle] = self._frames_routed = self._frames_routed + len(run)
         joined = SampleBatch(
             last.vehicle,
             last.imu,
