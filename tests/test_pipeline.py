@@ -14,6 +14,7 @@ from estimators.passport import TemperatureModel
 from estimators.sim import CycleTemperature, TemperatureBias, WarmupTemperature, simulate
 from protocols.checkpoint_codec import decode_state, encode_state
 from protocols.events import ImuState, Predicate, Severity, StreamCause
+from protocols.frames import SampleBatch
 from service.demo import DEMO_VEHICLE, demo_passport, demo_scenario
 from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
 
@@ -244,6 +245,24 @@ def test_a_vehicle_rebooted_mid_stream_is_diagnosed_as_before_on_its_new_clock()
         (Predicate.F6, "scale_factor"),
     ]
     assert sc.fault_s <= events[0].t_s < sc.fault_s + 0.05
+    assert fleet.pipelines[(V, 0)].counters["source_restarts"] == 1
+
+
+def test_a_reboot_before_the_rate_is_known_sizes_the_detector_on_the_new_clock():
+    """Five samples of an earlier boot, then the unit: they waited to size the detector and, kept
+    through the restart, sized it on the old clock; every later sample was refused inside it."""
+    passport, g = calibrated()
+    sc = faulty()
+    frames = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=100, first_seq=1))
+    t_boot = 5000.0 + 0.005 * np.arange(5)
+    earlier = SampleBatch(V, 0, 0, t_boot, np.tile([0.0, 0.0, -g], (5, 1)), np.zeros((5, 3)))
+    fleet = fleet_for(passport, g)
+    events = run_fleet(fleet, [earlier, *frames])
+    events = [e for e in events if e.predicate is not Predicate.ERROR_DENSITY]
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
     assert fleet.pipelines[(V, 0)].counters["source_restarts"] == 1
 
 

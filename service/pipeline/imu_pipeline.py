@@ -319,6 +319,8 @@ class ImuPipeline:
         self.last_t_s = None
         # The old stream ended: its pending position is complete.
         events = self.finish()
+        # Samples of the old stream still waiting to size the detector would size it on the old clock.
+        self._probe = []
         if self.detection is not None:
             # The detector and the positions hold the old stream's clock: every sample of the new one
             # would be older than their last and refused inside them (fault detection would stop). The
