@@ -37,13 +37,13 @@ def write_passport_json(passport: Passport, path: str | os.PathLike[str]) -> Non
 def read_passport_json(path: str | os.PathLike[str]) -> Passport:
     """Read and validate a JSON passport; unusable content raises :class:`PassportError` naming the file."""
     source = Path(path)
-    size = source.stat().st_size
-    if size > MAX_PASSPORT_BYTES:
-        raise PassportError(
-            f"{source}: {size} bytes exceeds the passport limit of {MAX_PASSPORT_BYTES}"
-        )
+    # Read at most one byte past the limit: a device or a pipe (st_size 0) may never end.
+    with open(source, "rb") as f:
+        raw = f.read(MAX_PASSPORT_BYTES + 1)
+    if len(raw) > MAX_PASSPORT_BYTES:
+        raise PassportError(f"{source}: more than the passport limit of {MAX_PASSPORT_BYTES} bytes")
     try:
-        text = source.read_text(encoding="utf-8")
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise PassportError(
             f"{source}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "

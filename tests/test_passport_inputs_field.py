@@ -229,3 +229,9 @@ def test_calibrate_from_exactly_nine_positions_warns_that_the_fit_cannot_be_chec
     )
     assert "record more positions (at least 12)" in err
     assert read_passport_json(tmp_path / "pp9.json").triads[Triad.ACCEL].provenance.n_positions == 9
+
+
+def test_a_passport_path_that_never_ends_is_read_only_up_to_the_limit():
+    # /dev/zero has no size to check first: reading it whole took 3 GB in 4 s and never ended.
+    with pytest.raises(PassportError, match=r"/dev/zero: more than the passport limit"):
+        read_passport_json("/dev/zero")
