@@ -25,8 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from protocols._schema import check_imu, check_vehicle
 from protocols.atomic_file import private_file
 from protocols.checkpoint_codec import CheckpointError, decode_state, encode_state
+from protocols.events import EventError
 
 CHECKPOINT_SCHEMA_VERSION = 1
 
@@ -61,6 +63,38 @@ class Checkpoint:
     key: str
     saved_unix_s: float
     state: dict[str, Any]
+
+
+def checkpoint_unit(key: str) -> tuple[str, int]:
+    """(vehicle, IMU) of a unit's checkpoint key ``"<vehicle>/<imu>"``; :class:`CheckpointError`
+    for a key that names no unit (a row written by hand, or by another program)."""
+    vehicle, sep, imu = key.rpartition("/")
+    try:
+        if not sep or not imu.isdigit():
+            raise ValueError(f"not <vehicle>/<imu>: {key!r}")
+        return check_vehicle(vehicle, error=EventError), check_imu(int(imu), error=EventError)
+    except ValueError as exc:  # EventError is one
+        raise CheckpointError(f"checkpoint key names no unit ({exc})") from None
+
+
+def open_checkpoints(path: Path) -> tuple[CheckpointStore, str | None]:
+    """The checkpoint store at ``path``, and why a file that could not be opened was moved aside.
+
+    Checkpoints only save work (a unit without one starts fresh), so a file SQLite cannot open
+    (cut, overwritten, a directory in its place) is renamed ``<name>.unreadable-<unix time>``, its
+    journal files with it, and a new one is made: refusing to start would stop the service for
+    good under its supervisor. None when the file opened.
+    """
+    try:
+        return CheckpointStore(path), None
+    except (sqlite3.DatabaseError, OSError) as exc:
+        why = f"{type(exc).__name__}: {exc}"
+    aside = path.with_name(f"{path.name}.unreadable-{int(time.time())}")
+    for suffix in ("", "-wal", "-shm"):
+        part = path.with_name(path.name + suffix)
+        if part.exists() or part.is_symlink():
+            part.rename(aside.with_name(aside.name + suffix))
+    return CheckpointStore(path), f"{path} could not be opened ({why}); moved aside to {aside}"
 
 
 class CheckpointUnavailable(RuntimeError):

@@ -83,7 +83,13 @@ from protocols.zenoh_adapter import (
     open_session_within,
 )
 from service.alert_policy import AlertPolicy
-from service.checkpoint import CheckpointError, CheckpointStore, CheckpointUnavailable
+from service.checkpoint import (
+    CheckpointError,
+    CheckpointStore,
+    CheckpointUnavailable,
+    checkpoint_unit,
+    open_checkpoints,
+)
 from service.config import MavlinkReader, ServiceConfig
 from service.intake import COALESCE_MAX, COALESCE_WINDOW_S, Intake
 from service.log_setup import logger
@@ -627,9 +633,13 @@ class Service:
             outbox = resources.enter_context(
                 Outbox(cfg.outbox_path, sinks=names, max_bytes=cfg.service.outbox_max_bytes)
             )
+            checkpoints, replaced = open_checkpoints(cfg.checkpoint_path)
+            if replaced is not None:
+                self.fleet.count_service("checkpoints.store_replaced")
+                log.error("checkpoints: %s; every unit starts fresh", replaced)
             run = self._run = _Run(
                 outbox,
-                resources.enter_context(CheckpointStore(cfg.checkpoint_path)),
+                resources.enter_context(checkpoints),
                 _Wake(names),
                 OutboxWriter(outbox, on_stored=self._stored, clock=self._clock),
             )
@@ -646,8 +656,13 @@ class Service:
             self._startup_scan()
             for key in run.checkpoints.keys():
                 # Units seen before the restart come back with their positions before their first frame.
-                vehicle, imu = key.rsplit("/", 1)
-                self.fleet.admit(vehicle, int(imu))
+                try:
+                    vehicle, imu = checkpoint_unit(key)
+                except CheckpointError as exc:
+                    run.checkpoints.quarantine(key, str(exc))
+                    log.warning("checkpoint %r moved aside to the quarantined table: %s", key, exc)
+                    continue
+                self.fleet.admit(vehicle, imu)
             if cfg.mavlink.enabled:
                 link = await asyncio.to_thread(self._open_mavlink)
                 resources.callback(link.close)

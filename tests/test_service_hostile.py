@@ -344,3 +344,54 @@ def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
         daemon.lines
     )
     assert any("outbox available again" in line for line in daemon.lines), daemon.lines
+
+
+def test_checkpoints_a_crash_or_a_hand_left_unreadable_cost_only_themselves(tmp_path):
+    """A checkpoint file cut or overwritten stopped the daemon at every start (under systemd, for
+    good); a row whose key names no unit stopped it too, and one naming an invalid vehicle id broke
+    the status topic of the whole fleet. Now the file is moved aside, the rows are quarantined, and
+    the healthy vehicle is monitored as before."""
+    good = "uav-h"
+    frames = to_the_fault(good, batch_samples=100)
+    expected = [e.event_id for e in run_fleet(offline_fleet(), frames, finish=False)]
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "checkpoints.sqlite").write_bytes(os.urandom(8192))
+    got: list[str] = []
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [(good, 0)]))
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+            EventReceiver(ground, lambda e: got.append(e.event_id)),
+        ):
+            status = Statuses(ground)
+            first = ServiceProcess(config)
+            try:
+                wait_subscribed(vehicle, frame_key(good, 0))
+                publish_blocking(vehicle, frames)
+                wait_until(lambda: got == expected, timeout_s=60,
+                           what=lambda: f"the healthy vehicle's F0 event (got {got})")  # fmt: skip
+                wait_until(
+                    lambda: status.counter(good, "service.checkpoints.store_replaced") == 1,
+                    timeout_s=30,
+                    what=lambda: f"the replaced store on the status topic ({status.get(good)})",
+                )
+            finally:
+                assert first.terminate() == 0, first.lines
+            assert any("could not be opened" in line for line in first.lines), first.lines
+            assert len(list(data.glob("checkpoints.sqlite.unreadable-*"))) == 1
+            with CheckpointStore(data / "checkpoints.sqlite") as store:
+                assert store.keys() == [f"{good}/0"]
+                store.save("noslash", {"n": 1})
+                store.save("bad vehicle!/0", {"n": 1})
+            status.forget()
+            second = ServiceProcess(config)
+            try:
+                # Its checkpointed unit is back before its first frame, and says so.
+                wait_until(lambda: status.counter(good, "checkpoints.restored") == 1, timeout_s=30,
+                           what=lambda: f"the healthy vehicle's status ({status.get(good)})")  # fmt: skip
+            finally:
+                assert second.terminate() == 0, second.lines
+    with CheckpointStore(data / "checkpoints.sqlite") as store:
+        assert sorted(k for k, _ in store.quarantined()) == ["bad vehicle!/0", "noslash"]
