@@ -266,6 +266,26 @@ def test_a_reboot_before_the_rate_is_known_sizes_the_detector_on_the_new_clock()
     assert fleet.pipelines[(V, 0)].counters["source_restarts"] == 1
 
 
+def test_a_checkpoint_made_against_another_passport_is_not_resumed():
+    """An IMU replaced (its new passport filed with --replace) inherited the old unit's positions and
+    its raised F6: the same fault on the new unit would never be reported."""
+    passport, g = calibrated()
+    fleet = fleet_for(passport, g)
+    run_fleet(fleet, batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))
+    state = fleet.pipelines[(V, 0)].state_dict()
+    assert state["passport"] == f"{passport.unit_id} {passport.created}"
+    replacement = dataclasses.replace(passport, unit_id="replacement-SN4711")
+    with pytest.raises(ValueError, match="replaced unit"):
+        ImuPipeline(V, 0, passport=replacement, options=options(g)).load_state(state)
+    same = ImuPipeline(V, 0, passport=passport, options=options(g))
+    same.load_state(state)
+    assert same.n_positions == fleet.pipelines[(V, 0)].n_positions
+    # A state saved before the passport was recorded in it is the present unit's.
+    ImuPipeline(V, 0, passport=replacement, options=options(g)).load_state(
+        {k: v for k, v in state.items() if k != "passport"}
+    )
+
+
 def test_stuck_gyro_is_a_critical_stale_event_naming_the_axis():
     passport, g = calibrated()
     sc = faulty()

@@ -692,6 +692,7 @@ class ImuPipeline:
             "version": PIPELINE_STATE_VERSION,
             "vehicle": self.vehicle,
             "imu": self.imu,
+            "passport": self._passport_identity(),
             "rate_hz": None if det is None else det.rate_hz,
             "last_seq": self.last_seq,
             "last_t_s": self.last_t_s,
@@ -721,6 +722,11 @@ class ImuPipeline:
             },
         }
 
+    def _passport_identity(self) -> str | None:
+        """The passport a state was made against: its unit and date (None: stream checks only)."""
+        p = self.passport
+        return None if p is None else f"{p.unit_id} {p.created}"
+
     def load_state(self, state: dict[str, Any]) -> None:
         """Resume from :meth:`state_dict` (raises ``ValueError`` for another unit or version; then start fresh)."""
         if (
@@ -730,6 +736,13 @@ class ImuPipeline:
         ):
             raise ValueError(
                 f"checkpoint is not a version-{PIPELINE_STATE_VERSION} state of {self.vehicle} IMU{self.imu}"
+            )
+        # A state saved before the passport was recorded in it is the present unit's.
+        if "passport" in state and state["passport"] != self._passport_identity():
+            raise ValueError(
+                f"checkpoint of {self.vehicle} IMU{self.imu} was made against passport "
+                f"{state['passport']!r}, the store now holds {self._passport_identity()!r} (a replaced "
+                "unit: its positions and raised faults are not this one's)"
             )
         try:
             if state["rate_hz"] is not None:
