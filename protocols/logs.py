@@ -64,7 +64,9 @@ from protocols.mavlink_adapter import (
     RAW_IMU_ARDUPILOT,
     ImuMessage,
     ImuScale,
+    LinkRejection,
     decode_imu_message,
+    highres_triads_updated,
     imu_message,
     use_mavlink2,
 )
@@ -379,6 +381,9 @@ class LogReader:
                     stats.skipped_bytes += len(msg.data)
                     continue
                 if kind not in types:
+                    continue
+                if not highres_triads_updated(msg):
+                    stats._drop(LinkRejection.FIELDS_NOT_UPDATED.value)
                     continue
                 s = decode_imu_message(msg, raw_scale=self._raw_scale, imu_index=self._imu_index)
                 if s is not None:

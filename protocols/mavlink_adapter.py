@@ -100,6 +100,15 @@ MavlinkMessage: TypeAlias = mavlink2.MAVLink_message
 """Any message of the dialect (pymavlink ships no type stubs: to mypy this is ``Any``)."""
 
 _HIGHRES_TEMPERATURE_BIT = mavlink2.HIGHRES_IMU_UPDATED_TEMPERATURE
+_HIGHRES_TRIADS_BITS = (
+    mavlink2.HIGHRES_IMU_UPDATED_XACC
+    | mavlink2.HIGHRES_IMU_UPDATED_YACC
+    | mavlink2.HIGHRES_IMU_UPDATED_ZACC
+    | mavlink2.HIGHRES_IMU_UPDATED_XGYRO
+    | mavlink2.HIGHRES_IMU_UPDATED_YGYRO
+    | mavlink2.HIGHRES_IMU_UPDATED_ZGYRO
+)
+"""HIGHRES_IMU ``fields_updated`` bits of the accelerometer and gyro fields."""
 # A child of the daemon's logger (service.log_setup.LOGGER_NAME), so its lines take the daemon's format.
 _log = logging.getLogger("ins_health.mavlink")
 
@@ -116,6 +125,15 @@ class ImuSample:
     accel_mps2: tuple[float, float, float]
     gyro_rps: tuple[float, float, float]
     temp_c: float | None
+
+
+def highres_triads_updated(msg: MavlinkMessage) -> bool:
+    """False for a HIGHRES_IMU message whose ``fields_updated`` leaves out an accelerometer or gyro
+    field (no new measurement there: :attr:`LinkRejection.FIELDS_NOT_UPDATED`); True otherwise."""
+    return bool(
+        msg.get_type() != "HIGHRES_IMU"
+        or msg.fields_updated & _HIGHRES_TRIADS_BITS == _HIGHRES_TRIADS_BITS
+    )
 
 
 def decode_imu_message(
@@ -548,6 +566,9 @@ class LinkRejection(StrEnum):
     """IMU messages without a signature while a signing key is configured."""
     BAD_SIGNATURE = "bad_signature"
     """IMU messages signed with another key, or replayed (a time stamp not newer than the stream's last)."""
+    FIELDS_NOT_UPDATED = "fields_not_updated"
+    """HIGHRES_IMU messages whose ``fields_updated`` does not flag all six accelerometer and gyro
+    fields: what they hold there is no new measurement (a held or zeroed value)."""
 
 
 @dataclass
@@ -692,6 +713,13 @@ class ImuConverter:
     def batches(self, kind: ImuMessage, a: np.ndarray) -> list[SampleBatch]:
         base = self.settings.imu_index[kind]
         if kind is ImuMessage.HIGHRES_IMU:
+            # highres_triads_updated, on the array.
+            updated = (a[:, 8].astype(np.int64) & _HIGHRES_TRIADS_BITS) == _HIGHRES_TRIADS_BITS
+            if not updated.all():
+                self.counters.reject(LinkRejection.FIELDS_NOT_UPDATED, int((~updated).sum()))
+                a = a[updated]
+                if not a.shape[0]:
+                    return []
             t_s, acc, gyr = a[:, 0] * 1e-6, a[:, 1:4], a[:, 4:7]
             has_temp = (a[:, 8].astype(np.int64) & _HIGHRES_TEMPERATURE_BIT) != 0
             temp = a[:, 7]

@@ -349,3 +349,29 @@ def test_paced_replay_does_not_wait_through_a_time_jump(tmp_path, capsys, monkey
     assert status == 0 and "samples IMU0 200" in err
     assert "--pace recorded: 1 steps of log time over 60 s not waited for" in err
     assert sum(sleeps) < 1.0
+
+
+def test_tlog_highres_messages_without_their_accel_and_gyro_flagged_updated_are_counted_out(
+    tmp_path,
+):
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from protocols.mavlink_adapter import ImuMessage, imu_message
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    records = []
+    for k in range(300):
+        msg = imu_message(
+            ImuMessage.HIGHRES_IMU,
+            t_s=10.0 + k / 200,
+            accel_mps2=(0.0, 0.0, -9.8),
+            gyro_rps=(0, 0, 0),
+        )
+        if k % 30 == 7:
+            msg.fields_updated = 0b111000  # the accelerometer fields not updated (held or zeroed)
+        records.append(struct.pack(">Q", int(1.7e15) + 5000 * k) + msg.pack(mav))
+    path = tmp_path / "flight.tlog"
+    path.write_bytes(b"".join(records))
+    reader = LogReader(path)
+    assert sum(b.n_samples for b in reader) == 290
+    assert reader.stats.dropped == {"fields_not_updated": 10}

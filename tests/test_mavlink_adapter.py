@@ -34,6 +34,7 @@ from protocols.mavlink_adapter import (
     MavlinkSource,
     alert_text,
     decode_imu_message,
+    highres_triads_updated,
     imu_message,
     statustext_messages,
     use_mavlink2,
@@ -409,6 +410,32 @@ def test_raw_imu_scale_is_configurable_and_zero_temperature_means_none():
     assert decode_imu_message(mavlink2.MAVLink_heartbeat_message(0, 0, 0, 0, 0, 3)) is None
 
 
+def test_highres_messages_that_do_not_flag_their_accel_and_gyro_as_updated_are_refused_and_counted():
+    """A message whose fields_updated leaves out an accelerometer or gyro field holds no new
+    measurement there (a held or zeroed value): read as a sample, one in twenty zeroed accelerometers
+    kept the detector from ever seeing the unit at rest."""
+    settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v")
+    counters = LinkCounters()
+    batcher = ImuBatcher(settings, counters)
+    msgs = [
+        imu_message(
+            ImuMessage.HIGHRES_IMU,
+            t_s=0.01 * k,
+            accel_mps2=(0.0, 0.0, -9.8),
+            gyro_rps=(0.0, 0.0, 0.0),
+        )
+        for k in range(20)
+    ]
+    for k, bits in ((3, 0b111000), (7, 0b000111), (11, 0b111110)):
+        msgs[k].fields_updated = bits
+        msgs[k].xacc = msgs[k].xgyro = 0.0
+    batcher.add(msgs)
+    (batch,) = batcher.take()
+    assert batch.n_samples == 17
+    np.testing.assert_allclose(batch.t_s, [0.01 * k for k in range(20) if k not in (3, 7, 11)])
+    assert counters.rejected == {"fields_not_updated": 3}
+
+
 def test_settings_from_dict_and_message_selection():
     settings = MavlinkSettings.from_dict(
         {
@@ -614,12 +641,17 @@ def test_batches_hold_the_per_message_values_bit_for_bit(messages):
     batcher.add(parsed)
     batches = batcher.take()
     by_kind: dict[str, dict[int, list]] = {}
+    not_updated = 0
     for m in parsed:
+        if not highres_triads_updated(m):
+            not_updated += 1
+            continue
         s = decode_imu_message(m)
         by_kind.setdefault(m.get_type(), {}).setdefault(s.imu, []).append(s)
     expected = [(imu, v) for imus in by_kind.values() for imu, v in imus.items() if imu <= 255]
     too_high = sum(len(v) for imus in by_kind.values() for imu, v in imus.items() if imu > 255)
-    assert counters.rejected == ({"bad_value": too_high} if too_high else {})
+    want_rejected = {"bad_value": too_high, "fields_not_updated": not_updated}
+    assert counters.rejected == {k: n for k, n in want_rejected.items() if n}
     assert counters.messages == len(messages)
     assert [b.imu for b in batches] == [imu for imu, _ in expected]
     for k, (b, (_, want)) in enumerate(zip(batches, expected, strict=True)):
