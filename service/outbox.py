@@ -122,15 +122,22 @@ class Outbox:
         self._sinks = tuple(dict.fromkeys(str(s) for s in sinks))
         self._retain = int(retain_delivered)
         self._lock = threading.Lock()
-        if str(path) != ":memory:":
-            private_file(path)
-        self._db = sqlite3.connect(
-            str(path), isolation_level=None, check_same_thread=False, timeout=busy_timeout_s
-        )
-        self._db.execute("PRAGMA journal_mode=WAL")
-        # FULL: a commit is on disk before put() returns (kill -9 and power loss safe).
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.executescript(_SCHEMA)
+        try:
+            if str(path) != ":memory:":
+                private_file(path)
+            self._db = sqlite3.connect(
+                str(path), isolation_level=None, check_same_thread=False, timeout=busy_timeout_s
+            )
+            self._db.execute("PRAGMA journal_mode=WAL")
+            # FULL: a commit is on disk before put() returns (kill -9 and power loss safe).
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.executescript(_SCHEMA)
+        except (sqlite3.DatabaseError, OSError) as exc:
+            # Unlike the checkpoints it is not moved aside here: it may hold events not yet delivered.
+            raise OutboxError(
+                f"outbox {path} cannot be opened ({type(exc).__name__}: {exc}); it may hold events not "
+                "yet delivered: move it aside (and look into it) to start with an empty outbox"
+            ) from None
         if max_bytes is not None:
             page_bytes = int(self._db.execute("PRAGMA page_size").fetchone()[0])
             self._db.execute(f"PRAGMA max_page_count = {max(1, int(max_bytes) // page_bytes)}")

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import sqlite3
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -19,6 +21,7 @@ from service_support import (
     zenoh_router,
 )
 from test_service_faults import (
+    ROOT,
     ServiceProcess,
     Statuses,
     ground_and_vehicle,
@@ -74,7 +77,10 @@ def test_poisoned_keys_rates_and_checkpoints_cost_only_their_unit(tmp_path):
         for k, b in enumerate(frames[:20])
     ]
     with zenoh_router() as port:
-        config = write_config(tmp_path, port, put_store(tmp_path, [(good, 0), (stamps, 0)]))
+        # uav-q has its passport: the rate, not the passport, is what its checkpoint fails on.
+        config = write_config(
+            tmp_path, port, put_store(tmp_path, [(good, 0), (stamps, 0), (poisoned, 0)])
+        )
         with (
             zenoh.open(zenoh_client_config(port)) as ground,
             zenoh.open(zenoh_client_config(port)) as vehicle,
@@ -395,3 +401,21 @@ def test_checkpoints_a_crash_or_a_hand_left_unreadable_cost_only_themselves(tmp_
                 assert second.terminate() == 0, second.lines
     with CheckpointStore(data / "checkpoints.sqlite") as store:
         assert sorted(k for k, _ in store.quarantined()) == ["bad vehicle!/0", "noslash"]
+
+
+def test_an_unreadable_outbox_stops_the_start_with_one_line_saying_what_to_do(tmp_path):
+    """It may hold events not yet delivered, so it is not moved aside as the checkpoints are; but the
+    reason was the last frame of a folded traceback."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "outbox.sqlite").write_bytes(os.urandom(8192))
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [("uav-h", 0)]))
+        proc = subprocess.run(
+            [sys.executable, "-m", "service.cli", "run", "--config", str(config)],
+            capture_output=True, text=True, timeout=120, cwd=ROOT,
+        )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    (line,) = [ln for ln in proc.stderr.splitlines() if "CRITICAL" in ln]
+    assert "the daemon cannot start: outbox" in line and "move it aside" in line
+    assert "Traceback" not in proc.stderr

@@ -122,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
 
     from service.config import load_config
     from service.daemon import Service
+    from service.outbox import OutboxError
 
     config = load_config(args.config)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
@@ -129,6 +130,10 @@ def run(args: argparse.Namespace) -> int:
     with logging_to(sys.stderr, level=args.log_level):
         try:
             return asyncio.run(serve(Service(config)))
+        except OutboxError as exc:
+            # The outbox's own words say what is wrong and what to do; a traceback would bury them.
+            logger("run").critical("the daemon cannot start: %s", exc)
+            return EXIT_FAILED
         except Exception:
             # A failure outside the supervised tasks (a link that cannot be opened, a state
             # file that cannot be read): one log record with its traceback, then status 1.
