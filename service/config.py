@@ -275,6 +275,21 @@ _SECTIONS: dict[str, type] = {
 }
 
 
+ACK_TIMEOUT_MAX_S = 86_400.0
+"""Longest wait for acknowledgements of one delivery, s ([zenoh] ack_timeout_s)."""
+
+
+def _path(where: str, value: str, base_dir: Path) -> Path:
+    """``value`` as a path: ``~`` expanded, relative to ``base_dir`` (the configuration's folder)."""
+    if "\0" in value:
+        raise ConfigError(f"{where} holds a NUL character: {value!r}")
+    try:
+        path = Path(value).expanduser()
+    except RuntimeError as exc:  # ~user of no user, or no home directory
+        raise ConfigError(f"{where}: {value!r}: {exc}") from None
+    return path if path.is_absolute() else (base_dir / path)
+
+
 def _coerce(where: str, kind: Any, value: Any, base_dir: Path) -> Any:
     args = typing.get_args(kind)
     if type(None) in args:
@@ -306,8 +321,7 @@ def _coerce(where: str, kind: Any, value: Any, base_dir: Path) -> Any:
     if kind is Path:
         if not isinstance(value, str) or not value:
             raise ConfigError(f"{where} must be a non-empty path string, got {value!r}")
-        path = Path(value).expanduser()
-        return path if path.is_absolute() else (base_dir / path)
+        return _path(where, value, base_dir)
     if isinstance(kind, type) and issubclass(kind, Enum):
         try:
             return kind(value)
@@ -411,7 +425,10 @@ def _mavlink_section(raw: Any, base_dir: Path) -> MavlinkSection:
     def settings(table: dict[str, Any]) -> MavlinkSettings:
         key_file = table.get("signing_key_file")
         if isinstance(key_file, str) and key_file:
-            table = {**table, "signing_key_file": str(base_dir / Path(key_file).expanduser())}
+            table = {
+                **table,
+                "signing_key_file": str(_path("[mavlink] signing_key_file", key_file, base_dir)),
+            }
         return MavlinkSettings.from_dict(table)
 
     return _split_section(
@@ -542,8 +559,11 @@ def _check(cfg: ServiceConfig) -> list[str]:
             check_frames_selector(z.frames_key)
         except ValueError as exc:
             errors.append(f"[zenoh] frames_key {exc}")
-    if not z.ack_timeout_s > 0 or z.min_acks < 1:
+    # Zenoh takes the timeout in whole milliseconds: beyond a day it overflowed ("negative timeout")
+    # and every delivery failed.
+    if not 0 < z.ack_timeout_s <= ACK_TIMEOUT_MAX_S or z.min_acks < 1:
         errors.append(
-            f"[zenoh] needs ack_timeout_s > 0 and min_acks >= 1, got {z.ack_timeout_s!r} and {z.min_acks!r}"
+            f"[zenoh] needs 0 < ack_timeout_s <= {ACK_TIMEOUT_MAX_S:g} and min_acks >= 1, got "
+            f"{z.ack_timeout_s!r} and {z.min_acks!r}"
         )
     return errors

@@ -138,6 +138,14 @@ stale_run_samples = 50
         ({"mavlink": {"vehicle": "a/b"}}, r"\[mavlink\] vehicle"),
         ({"mavlink": {"alert_max_per_s": 0}}, r"alert_max_per_s must be > 0"),
         ({"validity": {"timeout_s": -1.0}}, r"\[validity\] timeout_s must be finite and > 0"),
+        # Accepted before, then a traceback at start or every delivery failing:
+        ({"service": {"data_dir": "~nosuchuser_xyz/data"}}, r"\[service\] data_dir: '~nosuchuser"),
+        ({"service": {"data_dir": "a\0b"}}, r"\[service\] data_dir holds a NUL character"),
+        (
+            {"mavlink": {"enabled": True, "signing_key_file": "~nosuchuser_xyz/key"}},
+            r"\[mavlink\] signing_key_file: '~nosuchuser",
+        ),
+        ({"zenoh": {"ack_timeout_s": 1e300}}, r"\[zenoh\] needs 0 < ack_timeout_s <= 86400"),
     ],
 )
 def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
