@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import time
 from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass
@@ -94,7 +95,7 @@ from service.config import MavlinkReader, ServiceConfig
 from service.intake import COALESCE_MAX, COALESCE_WINDOW_S, Intake
 from service.log_setup import logger
 from service.notify import FramePathWatch, Notifier
-from service.outbox import Outbox, OutboxUnavailable
+from service.outbox import Outbox, OutboxUnavailable, lock_data_dir
 from service.outbox_writer import OutboxWriter
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
@@ -630,6 +631,7 @@ class Service:
         with contextlib.ExitStack() as resources:
             names = self.sink_names()
             # Closed in reverse order on the way out, whatever happened in between.
+            resources.callback(os.close, lock_data_dir(cfg.service.data_dir))
             outbox = resources.enter_context(
                 Outbox(cfg.outbox_path, sinks=names, max_bytes=cfg.service.outbox_max_bytes)
             )

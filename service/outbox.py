@@ -26,6 +26,8 @@ the write tried once more. Waiting for another process's lock is bounded by
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import os
 import sqlite3
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -57,6 +59,31 @@ BUSY_TIMEOUT_S = 0.1
 
 class OutboxError(RuntimeError):
     """The outbox file cannot be used (wrong schema version, unknown sink)."""
+
+
+class DataDirInUse(OutboxError):
+    """Another process holds the data directory (:func:`lock_data_dir`)."""
+
+
+def lock_data_dir(data_dir: Path) -> int:
+    """Hold ``data_dir/lock`` for the life of the process: a file descriptor to keep open.
+
+    Two daemons on one data directory would both take frames, checkpoint the same units and publish
+    the same status under one name; the second is refused (:class:`DataDirInUse`, naming the holder).
+    """
+    path = private_file(data_dir / "lock")
+    fd = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+        os.close(fd)
+        raise DataDirInUse(
+            f"{data_dir} is in use by another ins-health daemon (pid {holder}): give each its own data_dir"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd
 
 
 class OutboxUnavailable(OutboxError):

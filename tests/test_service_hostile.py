@@ -419,3 +419,22 @@ def test_an_unreadable_outbox_stops_the_start_with_one_line_saying_what_to_do(tm
     (line,) = [ln for ln in proc.stderr.splitlines() if "CRITICAL" in ln]
     assert "the daemon cannot start: outbox" in line and "move it aside" in line
     assert "Traceback" not in proc.stderr
+
+
+def test_a_second_daemon_on_the_same_data_directory_is_refused_naming_the_first(tmp_path):
+    """Both started and took every frame before: the same units checkpointed twice, one status name
+    published by two processes."""
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [("uav-h", 0)]))
+        first = ServiceProcess(config)
+        try:
+            second = subprocess.run(
+                [sys.executable, "-m", "service.cli", "run", "--config", str(config)],
+                capture_output=True, text=True, timeout=120, cwd=ROOT,
+            )  # fmt: skip
+        finally:
+            assert first.terminate() == 0, first.lines
+        assert second.returncode == 1, second.stderr
+        assert f"is in use by another ins-health daemon (pid {first.proc.pid})" in second.stderr
+        # Once the first has ended, the directory is free again.
+        assert ServiceProcess(config).terminate() == 0
