@@ -18,6 +18,7 @@ comparison afresh.
 
 from __future__ import annotations
 
+import math
 import sqlite3
 import threading
 import time
@@ -231,11 +232,15 @@ class CheckpointStore:
             ).fetchall()
         return [(str(k), str(r)) for k, r in rows]
 
-    def keys(self) -> list[str]:
+    def keys(self, *, saved_since_unix_s: float = -math.inf) -> list[str]:
+        """Keys of the units' checkpoints, those saved at or after ``saved_since_unix_s`` only."""
         with self._lock:
             return [
                 r[0]
-                for r in self._db.execute("SELECT key FROM checkpoints ORDER BY key").fetchall()
+                for r in self._db.execute(
+                    "SELECT key FROM checkpoints WHERE saved_unix_s >= ? ORDER BY key",
+                    (saved_since_unix_s,),
+                ).fetchall()
             ]
 
     def delete(self, key: str) -> None:

@@ -125,6 +125,10 @@ EVENT_CHECKPOINT_DELAY_S = 0.003
 log = logger("daemon")
 
 
+REVIVE_MAX_AGE_S = 7 * 86_400.0
+"""Checkpoints saved longer ago than this are not admitted at start (a unit heard again resumes from its own)."""
+
+
 def pipeline_options(config: ServiceConfig) -> PipelineOptions:
     """The pipelines' options from the service configuration."""
     site = config.site
@@ -656,8 +660,11 @@ class Service:
             )
             self._log_summary()
             self._startup_scan()
-            for key in run.checkpoints.keys():
-                # Units seen before the restart come back with their positions before their first frame.
+            # Units seen before the restart come back with their positions before their first frame
+            # (so one that stays silent times out); not those gone for longer than REVIVE_MAX_AGE_S,
+            # which would fill the vehicle limit with retired vehicles. Those resume on a frame.
+            recent = run.checkpoints.keys(saved_since_unix_s=time.time() - REVIVE_MAX_AGE_S)
+            for key in recent:
                 try:
                     vehicle, imu = checkpoint_unit(key)
                 except CheckpointError as exc:

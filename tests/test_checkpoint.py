@@ -109,3 +109,11 @@ def test_a_file_written_before_the_cross_imu_table_still_loads(tmp_path):
         assert store.load("v1/0").state == {"n": 4} and store.load_cross("v1") is None
         store.save_encoded({"v1/1": encode_state({"n": 1})}, cross={"v1": encode_state({"x": 1})})
         assert store.load_cross("v1").state == {"x": 1}
+
+
+def test_keys_can_be_limited_to_the_checkpoints_saved_since_a_time(tmp_path):
+    with CheckpointStore(tmp_path / "c.sqlite") as store:
+        store.save("old/0", {"n": 1}, now_unix_s=1_000.0)
+        store.save("new/0", {"n": 1}, now_unix_s=2_000.0)
+        assert store.keys() == ["new/0", "old/0"]
+        assert store.keys(saved_since_unix_s=1_500.0) == ["new/0"]

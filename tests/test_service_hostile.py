@@ -8,6 +8,7 @@ import os
 import sqlite3
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -438,3 +439,34 @@ def test_a_second_daemon_on_the_same_data_directory_is_refused_naming_the_first(
         assert f"is in use by another ins-health daemon (pid {first.proc.pid})" in second.stderr
         # Once the first has ended, the directory is free again.
         assert ServiceProcess(config).terminate() == 0
+
+
+def test_checkpoints_of_vehicles_gone_for_long_do_not_fill_the_vehicle_limit_at_start(tmp_path):
+    """300 retired vehicles' checkpoints were all admitted at every start: the first 256 filled
+    max_vehicles and a real vehicle without a passport had every frame refused."""
+    data = tmp_path / "data"
+    data.mkdir()
+    with CheckpointStore(data / "checkpoints.sqlite") as store:
+        store.save_many(
+            {f"old-{k:03d}/0": {"n": 1} for k in range(300)}, now_unix_s=time.time() - 8 * 86_400
+        )
+    frames = to_the_fault("uav-np", batch_samples=100)[:20]
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [("uav-h", 0)]))
+        with (
+            zenoh.open(zenoh_client_config(port)) as ground,
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+        ):
+            status = Statuses(ground)
+            service = ServiceProcess(config)
+            try:
+                wait_subscribed(vehicle, frame_key("uav-np", 0))
+                publish_blocking(vehicle, frames)
+                wait_until(
+                    lambda: status.counter("uav-np", "imu0.frames.accepted") == len(frames),
+                    timeout_s=30,
+                    what=lambda: f"the new vehicle's frames accepted ({status.get('uav-np')})",
+                )
+                assert status.get("old-000") is None
+            finally:
+                assert service.terminate() == 0, service.lines
