@@ -639,6 +639,12 @@ class Service:
             outbox = resources.enter_context(
                 Outbox(cfg.outbox_path, sinks=names, max_bytes=cfg.service.outbox_max_bytes)
             )
+            if elsewhere := outbox.pending_elsewhere():
+                log.warning(
+                    "outbox: events pending for sinks not configured now, kept until they are back "
+                    "(re-enable them, or move the outbox aside to drop them): %s",
+                    ", ".join(f"{n} for {sink}" for sink, n in elsewhere.items()),
+                )
             checkpoints, replaced = open_checkpoints(cfg.checkpoint_path)
             if replaced is not None:
                 self.fleet.count_service("checkpoints.store_replaced")

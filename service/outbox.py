@@ -302,6 +302,15 @@ class Outbox:
                 is not None
             )
 
+    def pending_elsewhere(self) -> dict[str, int]:
+        """Events still pending for sinks this outbox does not deliver to (one removed from the
+        configuration): they are kept, not pruned, until that sink is back."""
+        with self._lock, _unavailable_on_error():
+            rows = self._db.execute(
+                "SELECT sink, COUNT(*) FROM pending GROUP BY sink ORDER BY sink"
+            ).fetchall()
+        return {str(k): int(n) for k, n in rows if k not in self._sinks}
+
     def counts(self) -> OutboxCounts:
         with self._lock, _unavailable_on_error():
             stored = self._db.execute("SELECT COUNT(*) FROM events").fetchone()[0]

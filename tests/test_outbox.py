@@ -191,3 +191,15 @@ def test_a_full_outbox_is_unavailable_and_the_delivered_history_gives_way(tmp_pa
         assert ob.put("f" * 32, "v", bytes(1000))
         counts = ob.counts()
         assert counts.stored == n + 1 - 20 and counts.pending_by_sink == {"s": n + 1 - 20}
+
+
+def test_events_pending_for_a_sink_no_longer_configured_are_reported(tmp_path):
+    """They are kept (not pruned) until that sink is back: the daemon says so at start instead of
+    keeping them for ever without a word."""
+    with Outbox(tmp_path / "o.sqlite", sinks=("zenoh", "mavlink")) as ob:
+        ob.put_many([(f"{k:032d}", "v1", b"E") for k in range(5)])
+        ob.ack("zenoh", [e.seq for e in ob.pending("zenoh")])
+        assert ob.pending_elsewhere() == {}
+    with Outbox(tmp_path / "o.sqlite", sinks=("zenoh",)) as ob:
+        assert ob.pending_elsewhere() == {"mavlink": 5}
+        assert ob.counts().pending_by_sink == {"zenoh": 0}

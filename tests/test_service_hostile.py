@@ -470,3 +470,17 @@ def test_checkpoints_of_vehicles_gone_for_long_do_not_fill_the_vehicle_limit_at_
                 assert status.get("old-000") is None
             finally:
                 assert service.terminate() == 0, service.lines
+
+
+def test_events_left_pending_for_a_sink_taken_out_of_the_configuration_are_said_at_start(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    with Outbox(data / "outbox.sqlite", sinks=("zenoh", "mavlink")) as ob:
+        ob.put_many([(f"{k:032d}", "uav-h", b"E") for k in range(3)])
+        ob.ack("zenoh", [e.seq for e in ob.pending("zenoh")])
+    with zenoh_router() as port:
+        config = write_config(tmp_path, port, put_store(tmp_path, [("uav-h", 0)]))
+        service = ServiceProcess(config)
+        assert service.terminate() == 0, service.lines
+    said = [ln for ln in service.lines if "events pending for sinks not configured now" in ln]
+    assert len(said) == 1 and said[0].endswith(": 3 for mavlink"), service.lines
