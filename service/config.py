@@ -504,6 +504,8 @@ def load_config(path: str | Path) -> ServiceConfig:
             raw = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # TOML is UTF-8; tomllib lets a Latin-1 file through as this
+        raise ConfigError(f"{path}: not UTF-8 text (TOML is): {exc}") from None
     return config_from_dict(raw, base_dir=path.resolve().parent)
 
 
@@ -552,6 +554,8 @@ def _check(cfg: ServiceConfig) -> list[str]:
         check_vehicle(m.link.vehicle, error=SchemaError)
     except SchemaError as exc:
         errors.append(f"[mavlink] vehicle: {exc}")
+    if m.enabled and not m.link.messages:
+        errors.append("[mavlink] messages is empty: the link would read no IMU message")
     if not z.enabled and not m.enabled:
         errors.append("neither [zenoh] nor [mavlink] is enabled: the service would have no input")
     if z.enabled:

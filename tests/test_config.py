@@ -146,6 +146,7 @@ stale_run_samples = 50
             r"\[mavlink\] signing_key_file: '~nosuchuser",
         ),
         ({"zenoh": {"ack_timeout_s": 1e300}}, r"\[zenoh\] needs 0 < ack_timeout_s <= 86400"),
+        ({"mavlink": {"enabled": True, "messages": []}}, r"\[mavlink\] messages is empty"),
     ],
 )
 def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
@@ -172,6 +173,13 @@ def test_every_error_is_reported_on_its_own_line(tmp_path, capsys):
     assert len(err) == 3 and all(line.startswith("ins-health run: [") for line in err), err
     assert any("autopilot_system" in line for line in err)
     assert any("delivery_retry_s must be a finite number" in line for line in err)
+
+
+def test_a_configuration_that_is_not_utf8_names_the_file(tmp_path):
+    path = tmp_path / "service.toml"
+    path.write_bytes('[service]\nname = "sonde-é"\n'.encode("latin-1"))
+    with pytest.raises(ConfigError, match=r"service.toml: not UTF-8 text"):
+        load_config(path)
 
 
 def test_invalid_toml_names_the_file(tmp_path):
