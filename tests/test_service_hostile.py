@@ -451,25 +451,20 @@ def test_checkpoints_of_vehicles_gone_for_long_do_not_fill_the_vehicle_limit_at_
             {f"old-{k:03d}/0": {"n": 1} for k in range(300)}, now_unix_s=time.time() - 8 * 86_400
         )
     frames = to_the_fault("uav-np", batch_samples=100)[:20]
-    with zenoh_router() as port:
-        config = write_config(tmp_path, port, put_store(tmp_path, [("uav-h", 0)]))
-        with (
-            zenoh.open(zenoh_client_config(port)) as ground,
-            zenoh.open(zenoh_client_config(port)) as vehicle,
-        ):
-            status = Statuses(ground)
-            service = ServiceProcess(config)
-            try:
-                wait_subscribed(vehicle, frame_key("uav-np", 0))
-                publish_blocking(vehicle, frames)
-                wait_until(
-                    lambda: status.counter("uav-np", "imu0.frames.accepted") == len(frames),
-                    timeout_s=30,
-                    what=lambda: f"the new vehicle's frames accepted ({status.get('uav-np')})",
-                )
-                assert status.get("old-000") is None
-            finally:
-                assert service.terminate() == 0, service.lines
+    passports = put_store(tmp_path, [("uav-h", 0)])
+    with ground_and_vehicle(tmp_path, passports) as (config, _, vehicle, status):
+        service = ServiceProcess(config)
+        try:
+            wait_subscribed(vehicle, frame_key("uav-np", 0))
+            publish_blocking(vehicle, frames)
+            wait_until(
+                lambda: status.counter("uav-np", "imu0.frames.accepted") == len(frames),
+                timeout_s=30,
+                what=lambda: f"the new vehicle's frames accepted ({status.get('uav-np')})",
+            )
+            assert status.get("old-000") is None
+        finally:
+            assert service.terminate() == 0, service.lines
 
 
 def test_events_left_pending_for_a_sink_taken_out_of_the_configuration_are_said_at_start(tmp_path):
