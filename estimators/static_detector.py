@@ -547,9 +547,10 @@ def detect_static(
     acc = np.arange(n) if everything else np.flatnonzero(accepted_mask)
     m = acc.size
     tk = t if everything else t[acc]
+    step_s = tk[1:] - tk[:-1]
     seg_start = np.ones(m, dtype=bool)
     if m > 1:
-        np.greater(tk[1:] - tk[:-1], config.gap_limit_s(rate_hz), out=seg_start[1:])
+        np.greater(step_s, config.gap_limit_s(rate_hz), out=seg_start[1:])
     starts = np.flatnonzero(seg_start)
     lengths = np.diff(np.append(starts, m))
 
@@ -603,7 +604,6 @@ def detect_static(
         (intervals if iv.duration_s >= config.min_static_s else short_runs).append(iv)
     static = np.zeros(n, dtype=bool)
     static[acc] = static_k
-    step_s = tk[1:] - tk[:-1]
     return StaticDetection(
         static,
         acc,

@@ -130,10 +130,12 @@ class ImuSample:
 def highres_triads_updated(msg: MavlinkMessage) -> bool:
     """False for a HIGHRES_IMU message whose ``fields_updated`` leaves out an accelerometer or gyro
     field (no new measurement there: :attr:`LinkRejection.FIELDS_NOT_UPDATED`); True otherwise."""
-    return bool(
-        msg.get_type() != "HIGHRES_IMU"
-        or msg.fields_updated & _HIGHRES_TRIADS_BITS == _HIGHRES_TRIADS_BITS
-    )
+    return msg.get_type() != "HIGHRES_IMU" or bool(_triads_updated(msg.fields_updated))
+
+
+def _triads_updated(fields_updated: Any) -> Any:
+    """Whether ``fields_updated`` (an int, or an integer array) flags all six triad fields."""
+    return fields_updated & _HIGHRES_TRIADS_BITS == _HIGHRES_TRIADS_BITS
 
 
 def decode_imu_message(
@@ -713,8 +715,7 @@ class ImuConverter:
     def batches(self, kind: ImuMessage, a: np.ndarray) -> list[SampleBatch]:
         base = self.settings.imu_index[kind]
         if kind is ImuMessage.HIGHRES_IMU:
-            # highres_triads_updated, on the array.
-            updated = (a[:, 8].astype(np.int64) & _HIGHRES_TRIADS_BITS) == _HIGHRES_TRIADS_BITS
+            updated = _triads_updated(a[:, 8].astype(np.int64))
             if not updated.all():
                 self.counters.reject(LinkRejection.FIELDS_NOT_UPDATED, int((~updated).sum()))
                 a = a[updated]

@@ -162,26 +162,17 @@ class FleetProcessor:
             self.count_service("frames.rejected.unknown_vehicle")
             return None
         known = vehicle in self.vehicle_counters
-        if (
-            not known
-            and len(self.vehicle_counters) >= self._max_vehicles
-            and not self._make_room_for(vehicle, imu)
-        ):
-            self.count_service("frames.rejected.over_vehicle_limit")
-            return None
         if known and len(self._by_vehicle.get(vehicle, {})) >= self._max_imus:
             self.count_vehicle(vehicle, "frames.rejected.over_imu_limit")
             return None
+        at_limit = not known and len(self.vehicle_counters) >= self._max_vehicles
+        passport, note = self._passport_of(vehicle, imu)
+        if at_limit and (passport is None or not self._make_room_for(vehicle)):
+            self.count_service("frames.rejected.over_vehicle_limit")
+            return None
         self.vehicle_counters.setdefault(vehicle, {})
-        try:
-            passport, note = self._passports(vehicle, imu), ""
-            if passport is not None:
-                # A reference in other units (a passport in g) would turn every bias into a fault.
-                check_references(passport, gravity_mps2=self.options.gravity_mps2)
-        except ValueError as exc:
-            passport, note = None, str(exc)
-            if self._on_passport_error is not None:
-                self._on_passport_error(vehicle, imu, note)
+        if note and self._on_passport_error is not None:
+            self._on_passport_error(vehicle, imu, note)
         pipe = ImuPipeline(
             vehicle, imu, passport=passport, options=self.options, passport_note=note
         )
@@ -204,15 +195,21 @@ class FleetProcessor:
             self.cross[vehicle] = self._cross_monitor(vehicle)
         return pipe
 
-    def _make_room_for(self, vehicle: str, imu: int) -> bool:
+    def _passport_of(self, vehicle: str, imu: int) -> tuple[Passport | None, str]:
+        """The unit's passport, or None and why not (``""`` when the lookup simply has none)."""
+        try:
+            passport = self._passports(vehicle, imu)
+            if passport is not None:
+                # A reference in other units (a passport in g) would turn every bias into a fault.
+                check_references(passport, gravity_mps2=self.options.gravity_mps2)
+        except ValueError as exc:
+            return None, str(exc)
+        return passport, ""
+
+    def _make_room_for(self, vehicle: str) -> bool:
         """At the vehicle limit, a vehicle with a passport takes the place of the longest idle one
         without any: a flood of made-up vehicle ids (each one frame) would otherwise fill the limit
         for good and lock the fleet's real vehicles out. Whether room was made."""
-        try:
-            if self._passports(vehicle, imu) is None:
-                return False
-        except ValueError:
-            return False
         idle = [
             v
             for v, pipes in self._by_vehicle.items()

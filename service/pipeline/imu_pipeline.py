@@ -64,6 +64,18 @@ class _Detection:
     gate: StaticGate
 
 
+def _finite_rows(batch: SampleBatch) -> np.ndarray:
+    """(N,) samples whose time stamp and values (temperature too, when sent) are all finite."""
+    finite = (
+        np.isfinite(batch.t_s)
+        & np.isfinite(batch.accel_mps2).all(axis=1)
+        & np.isfinite(batch.gyro_rps).all(axis=1)
+    )
+    if batch.temp_c is not None:
+        finite &= np.isfinite(batch.temp_c)
+    return finite
+
+
 class ImuPipeline:
     """The streaming chain of one IMU (module docstring). Small state: see :meth:`state_dict`.
 
@@ -173,7 +185,11 @@ class ImuPipeline:
                     unit="s",
                 )
             )
-        keep = self._ordered(batch)
+        # A finite value beyond any sensor (one corrupt sample of 1e300 rad/s) is no sample either:
+        # its square overflows the detector's sums and the attitude's sine.
+        plausible = plausible_rows(batch.accel_mps2, batch.gyro_rps)
+        usable = _finite_rows(batch) & plausible
+        keep = self._ordered(batch, usable)
         problem = self._order_problem(batch, keep)
         if problem is not None:
             if not self._restarted(batch):
@@ -182,7 +198,7 @@ class ImuPipeline:
                     self.validity.record_rejected(batch.n_samples), self.last_t_s or 0.0
                 )
             events += self._source_restart()
-            keep = self._ordered(batch)  # against the new stream: no sample before it
+            keep = self._ordered(batch, usable)  # against the new stream: no sample before it
         self._restart_probe = []
         first_seq = batch.seq - frames + 1
         if self.last_seq is not None and first_seq > self.last_seq + 1:
@@ -191,9 +207,8 @@ class ImuPipeline:
         self._count("frames.accepted", frames)
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
-        absurd = ~plausible_rows(batch.accel_mps2, batch.gyro_rps)
-        self._count("samples.rejected.implausible_value", int(absurd.sum()))
-        self._count("samples.rejected.out_of_order_or_non_finite", int((~keep & ~absurd).sum()))
+        self._count("samples.rejected.implausible_value", int((~plausible).sum()))
+        self._count("samples.rejected.out_of_order_or_non_finite", int((~keep & plausible).sum()))
         report = self.validity.update(
             accel_mps2=batch.accel_mps2,
             gyro_rps=batch.gyro_rps,
@@ -252,35 +267,22 @@ class ImuPipeline:
             (last_seq is None or batch.seq == last_seq + 1)
             and (last_t_s is None or last_t_s < t[0] <= last_t_s + self._jump_s())
             and bool(np.all(np.diff(t) > 0))
-            and bool(np.isfinite(t).all())
-            and bool(np.isfinite(batch.accel_mps2).all())
-            and bool(np.isfinite(batch.gyro_rps).all())
-            and (batch.temp_c is None or bool(np.isfinite(batch.temp_c).all()))
-            and bool(plausible_rows(batch.accel_mps2, batch.gyro_rps).all())
+            and bool((_finite_rows(batch) & plausible_rows(batch.accel_mps2, batch.gyro_rps)).all())
         )
 
     def _jump_s(self) -> float:
         """A step forward in sample time larger than this is a time jump (data lost or a clock step)."""
         return TIME_JUMP_PERIODS / self.detection.rate_hz if self.detection else 1.0
 
-    def _ordered(self, batch: SampleBatch) -> np.ndarray:
-        """(N,) samples that are finite and later than every sample before them (this frame and the last accepted)."""
+    def _ordered(self, batch: SampleBatch, usable: np.ndarray) -> np.ndarray:
+        """(N,) samples that are ``usable`` (finite and plausible) and later than every usable sample
+        before them (this frame and the last accepted)."""
         t = batch.t_s
-        finite = (
-            np.isfinite(t)
-            & np.isfinite(batch.accel_mps2).all(axis=1)
-            & np.isfinite(batch.gyro_rps).all(axis=1)
-            # A finite value beyond any sensor (one corrupt sample of 1e300 rad/s) is no sample
-            # either: its square overflows the detector's sums and the attitude's sine.
-            & plausible_rows(batch.accel_mps2, batch.gyro_rps)
-        )
-        if batch.temp_c is not None:
-            finite &= np.isfinite(batch.temp_c)
         start = -math.inf if self.last_t_s is None else self.last_t_s
         prev_max = np.maximum.accumulate(
-            np.concatenate([[start], np.where(finite, t, -math.inf)[:-1]])
+            np.concatenate([[start], np.where(usable, t, -math.inf)[:-1]])
         )
-        return finite & (t > prev_max)
+        return usable & (t > prev_max)
 
     def _order_problem(self, batch: SampleBatch, ordered: np.ndarray) -> str | None:
         """Why this frame cannot follow the last accepted one (a counter name), or None (``ordered``: :meth:`_ordered`)."""
