@@ -30,6 +30,18 @@ def plausible_rows(accel_mps2: FloatArray | None, gyro_rps: FloatArray | None) -
     return ok
 
 
+def finite_rows(
+    t_s: FloatArray, accel_mps2: FloatArray, gyro_rps: FloatArray, temp_c: FloatArray | None
+) -> BoolArray:
+    """(N,) samples whose time stamp and values (temperature too, when given) are all finite."""
+    finite: BoolArray = (
+        np.isfinite(t_s) & np.isfinite(accel_mps2).all(axis=1) & np.isfinite(gyro_rps).all(axis=1)
+    )
+    if temp_c is not None:
+        finite &= np.isfinite(temp_c)
+    return finite
+
+
 class SessionError(ValueError):
     """The session cannot be used at all (the message says why, in one line)."""
 

@@ -57,7 +57,7 @@ import numpy as np
 from pymavlink import DFReader, mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from estimators.session import ImuSession
+from estimators.session import ImuSession, finite_rows
 from protocols.frames import MAX_SAMPLES, SampleBatch, concat_batches
 from protocols.mavlink_adapter import (
     DEFAULT_IMU_INDEX,
@@ -297,13 +297,7 @@ class LogReader:
             stats.messages[rows.kind] = stats.messages.get(rows.kind, 0) + n
             stats.sources.setdefault(rows.imu, rows.kind)
             buf = buffers.setdefault(rows.imu, _Buffer())
-            finite = (
-                np.isfinite(rows.t_s)
-                & np.isfinite(rows.accel_mps2).all(axis=1)
-                & np.isfinite(rows.gyro_rps).all(axis=1)
-            )
-            if rows.temp_c is not None:
-                finite &= np.isfinite(rows.temp_c)
+            finite = finite_rows(rows.t_s, rows.accel_mps2, rows.gyro_rps, rows.temp_c)
             stats._drop("non_finite", int(n - finite.sum()))
             prev = np.maximum.accumulate(
                 np.concatenate([[buf.last_t_s], np.where(finite, rows.t_s, -np.inf)[:-1]])

@@ -19,7 +19,7 @@ from estimators.ninepar import RecursiveNineParam
 from estimators.passport import Passport
 from estimators.positions import Position, PositionAccumulator
 from estimators.scalar import f0_batch, persistent_failure
-from estimators.session import plausible_rows
+from estimators.session import finite_rows, plausible_rows
 from estimators.stream_validity import (
     StreamValidity,
     ValidityReport,
@@ -62,18 +62,6 @@ class _Detection:
     rate_hz: float
     accumulator: PositionAccumulator
     gate: StaticGate
-
-
-def _finite_rows(batch: SampleBatch) -> np.ndarray:
-    """(N,) samples whose time stamp and values (temperature too, when sent) are all finite."""
-    finite = (
-        np.isfinite(batch.t_s)
-        & np.isfinite(batch.accel_mps2).all(axis=1)
-        & np.isfinite(batch.gyro_rps).all(axis=1)
-    )
-    if batch.temp_c is not None:
-        finite &= np.isfinite(batch.temp_c)
-    return finite
 
 
 class ImuPipeline:
@@ -188,7 +176,7 @@ class ImuPipeline:
         # A finite value beyond any sensor (one corrupt sample of 1e300 rad/s) is no sample either:
         # its square overflows the detector's sums and the attitude's sine.
         plausible = plausible_rows(batch.accel_mps2, batch.gyro_rps)
-        usable = _finite_rows(batch) & plausible
+        usable = finite_rows(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c) & plausible
         keep = self._ordered(batch, usable)
         problem = self._order_problem(batch, keep)
         if problem is not None:
@@ -267,7 +255,12 @@ class ImuPipeline:
             (last_seq is None or batch.seq == last_seq + 1)
             and (last_t_s is None or last_t_s < t[0] <= last_t_s + self._jump_s())
             and bool(np.all(np.diff(t) > 0))
-            and bool((_finite_rows(batch) & plausible_rows(batch.accel_mps2, batch.gyro_rps)).all())
+            and bool(
+                (
+                    finite_rows(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
+                    & plausible_rows(batch.accel_mps2, batch.gyro_rps)
+                ).all()
+            )
         )
 
     def _jump_s(self) -> float:
