@@ -49,7 +49,7 @@ ENTRY_TYPE = "ins.health.passport-entry"
 ENTRY_VERSION = 1
 SUPPORTED_ENTRY_VERSIONS = (1,)
 MAX_ENTRY_BYTES = 1 << 20
-_FILE_RE = re.compile(r"^imu(\d{1,3})\.passport\.json$")
+_FILE_RE = re.compile(r"^imu(0|[1-9]\d{0,2})\.passport\.json$")
 
 
 class EntryProblem(enum.Enum):
@@ -96,6 +96,39 @@ def entry_keys(root: Path) -> list[tuple[str, int]]:
             m = _FILE_RE.match(f.name)
             if m and int(m.group(1)) <= MAX_IMU_INDEX:
                 out.append((vdir.name, int(m.group(1))))
+    return out
+
+
+def stray_files(root: Path) -> list[tuple[Path, str]]:
+    """Every file under ``root`` that :func:`entry_keys` does not read, with why (hidden files skipped).
+
+    A passport copied in by hand as ``imu01.passport.json``, ``imu300…`` or
+    straight into ``root`` is never used by the daemon; saying so is the only
+    way its owner learns it.
+    """
+    out: list[tuple[Path, str]] = []
+    if not root.is_dir():
+        return out
+    for top in sorted(p for p in root.iterdir() if not p.name.startswith(".")):
+        if not top.is_dir():
+            out.append(
+                (
+                    top,
+                    f"not in a vehicle folder (entries are {root}/<vehicle>/imu<n>.passport.json)",
+                )
+            )
+            continue
+        for f in sorted(p for p in top.iterdir() if not p.name.startswith(".")):
+            m = _FILE_RE.match(f.name)
+            if m is None:
+                out.append(
+                    (
+                        f,
+                        f"not an entry name (imu<n>.passport.json, n in 0..{MAX_IMU_INDEX} without leading zeros)",
+                    )
+                )
+            elif int(m.group(1)) > MAX_IMU_INDEX:
+                out.append((f, f"IMU index {m.group(1)} is beyond 0..{MAX_IMU_INDEX}"))
     return out
 
 

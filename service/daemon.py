@@ -347,6 +347,8 @@ class Service:
         )  # fmt: skip
         for err in scan.errors.values():
             log.warning("refused %s; the unit runs the stream checks only", err)
+        for path, why in scan.strays:
+            log.warning("passport store: %s is not read: %s", path, why)
 
     def _log_summary(self) -> None:
         """What this instance serves: one line per input and output."""

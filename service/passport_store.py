@@ -23,6 +23,7 @@ from protocols.passport_entry import (
     entry_keys,
     entry_path,
     read_entry,
+    stray_files,
     write_entry,
 )
 
@@ -43,6 +44,8 @@ class StoreScan:
 
     passports: dict[tuple[str, int], Passport] = field(default_factory=dict)
     errors: dict[tuple[str, int], PassportStoreError] = field(default_factory=dict)
+    strays: list[tuple[Path, str]] = field(default_factory=list)
+    """Files in the store that are no unit's entry, with why (:func:`~protocols.passport_entry.stray_files`)."""
 
 
 class PassportStore:
@@ -86,8 +89,8 @@ class PassportStore:
         return entry_keys(self.root)
 
     def scan(self, expected: Iterable[tuple[str, int]] = ()) -> StoreScan:
-        """Load every entry (and report each ``expected`` unit that has none)."""
-        scan = StoreScan()
+        """Load every entry (and report each ``expected`` unit that has none, and every stray file)."""
+        scan = StoreScan(strays=stray_files(self.root))
         for key in sorted(set(self.keys()) | set(expected)):
             try:
                 scan.passports[key] = self.get(*key)

@@ -73,11 +73,13 @@ def test_the_level_threshold_holds_and_the_handler_is_removed_afterwards(tmp_pat
 
 @pytest.mark.network
 def test_the_daemon_summarises_its_start_and_writes_journald_lines(tmp_path):
-    """With a good and a corrupt passport, MAVLink only, under journald: every line is in journald's
-    form, the summary names the inputs and the passports (the refused one with why), then `running`."""
+    """With a good, a corrupt and a misnamed passport, MAVLink only, under journald: every line is in
+    journald's form, the summary names the inputs and the passports (the refused and the unread one
+    with why), then `running`."""
     store = put_store(tmp_path, [("uav-a", 0), ("uav-b", 0)])
     entry = store / "uav-b" / "imu0.passport.json"
     entry.write_text(entry.read_text().replace("{", "[", 1))
+    (store / "uav-a" / "imu01.passport.json").write_bytes(b"{}")
     config = tmp_path / "service.toml"
     config.write_text(
         f"""
@@ -122,6 +124,10 @@ vehicle = "uav-a"
     assert re.search(r"<6>ins-health: passports in \S+: 1 loaded \(uav-a IMU0\), 1 refused", text)
     assert re.search(
         r"<4>ins-health: refused passport of uav-b IMU0 \(.*\): .*stream checks only", text
+    )
+    assert re.search(
+        r"<4>ins-health: passport store: \S+/uav-a/imu01.passport.json is not read: not an entry name",
+        text,
     )
     assert "<6>ins-health: onboard running" in lines
 

@@ -157,3 +157,29 @@ def test_an_entry_that_is_not_a_small_regular_file_is_refused_without_reading_it
     scan = store.scan()
     assert list(scan.passports) == [("uav-1", 0)] and list(scan.errors) == [("uav-1", 1)]
     assert store.rejected_counts() == {problem: 1}
+
+
+def test_store_check_names_files_the_daemon_would_not_read(tmp_path, capsys):
+    src = tmp_path / "calibrated.json"
+    write_passport_json(passport(), src)
+    root = tmp_path / "store"
+    assert main(["store", "put", str(root), "uav-3", "1", str(src)]) == 0
+    good = (root / "uav-3" / "imu1.passport.json").read_bytes()
+    (root / "uav-3" / "imu01.passport.json").write_bytes(good)
+    (root / "uav-3" / "imu300.passport.json").write_bytes(good)
+    (root / "imu0.passport.json").write_bytes(good)
+    (root / "uav-3" / ".imu1.passport.json.x.tmp").write_bytes(b"")
+    capsys.readouterr()
+    assert main(["store", "check", str(root)]) == 1
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "uav-3 IMU1: ok (demo-uav-imu0, triads accel)"
+    assert not any("missing" in line for line in lines)
+    stray = {line.split(": not read: ")[0]: line.split(": not read: ")[1] for line in lines[1:]}
+    assert stray.keys() == {
+        str(root / "imu0.passport.json"),
+        str(root / "uav-3" / "imu01.passport.json"),
+        str(root / "uav-3" / "imu300.passport.json"),
+    }
+    assert "without leading zeros" in stray[str(root / "uav-3" / "imu01.passport.json")]
+    assert "beyond 0..255" in stray[str(root / "uav-3" / "imu300.passport.json")]
+    assert "not in a vehicle folder" in stray[str(root / "imu0.passport.json")]

@@ -6,7 +6,9 @@
   entry keeps it unless ``--replace`` is given (exit status 2 otherwise).
 * ``check DIR`` — load every entry and report each unit as ``ok`` or with the
   reason it is unusable (missing, corrupt, checksum, version, filed under the
-  wrong unit). Exit status 0 if all are usable, 1 if any is not, 2 if DIR is
+  wrong unit), and every file the daemon would not read (a misnamed entry such
+  as ``imu01.passport.json``, a file outside a vehicle folder). Exit status 0
+  if all are usable, 1 if any is not or a stray file is present, 2 if DIR is
   not a folder.
 """
 
@@ -69,6 +71,8 @@ def run_check(args: argparse.Namespace) -> int:
         )
     for key, err in sorted(scan.errors.items()):
         print(f"{key[0]} IMU{key[1]}: {err.reason}")
+    for path, why in scan.strays:
+        print(f"{path}: not read: {why}")
     if not scan.passports and not scan.errors:
         print(f"{args.dir}: no passport entries")
-    return 1 if scan.errors else 0
+    return 1 if scan.errors or scan.strays else 0
