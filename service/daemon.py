@@ -641,6 +641,12 @@ class Service:
             outbox = resources.enter_context(
                 Outbox(cfg.outbox_path, sinks=names, max_bytes=cfg.service.outbox_max_bytes)
             )
+            if outbox.over_limit_bytes:
+                log.warning(
+                    "outbox: %s is %.3f MB above outbox_max_mb with events not yet delivered; it is "
+                    "held at its present size until a restart after their delivery compacts it",
+                    cfg.outbox_path, outbox.over_limit_bytes / 1e6,
+                )  # fmt: skip
             if elsewhere := outbox.pending_elsewhere():
                 log.warning(
                     "outbox: events pending for sinks not configured now, kept until they are back "

@@ -14,6 +14,8 @@ The outbox keeps delivered events for ``retain_delivered`` rows (a short
 history for the status topic and for diagnosis of a fleet), then prunes the
 oldest delivered ones, so the file stays bounded. ``max_bytes`` bounds the file
 itself (SQLite's ``max_page_count``): beyond it a write fails as on a full disk.
+A file already larger than a newly lowered ``max_bytes`` is pruned and compacted
+when opened (:attr:`Outbox.over_limit_bytes` says what could not be given up).
 
 A write the outbox cannot make now — the disk (or ``max_bytes``) full, the file
 locked by another process, an I/O error — raises :class:`OutboxUnavailable`
@@ -165,9 +167,10 @@ class Outbox:
                 f"outbox {path} cannot be opened ({type(exc).__name__}: {exc}); it may hold events not "
                 "yet delivered: move it aside (and look into it) to start with an empty outbox"
             ) from None
+        self.over_limit_bytes = 0
+        """How far the file is above ``max_bytes`` once opened (0: within it); see :meth:`_bound`."""
         if max_bytes is not None:
-            page_bytes = int(self._db.execute("PRAGMA page_size").fetchone()[0])
-            self._db.execute(f"PRAGMA max_page_count = {max(1, int(max_bytes) // page_bytes)}")
+            self._bound(int(max_bytes))
         row = self._db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
         if row is None:
             self._db.execute(
@@ -179,6 +182,24 @@ class Outbox:
                 f"outbox {path} has schema version {row[0]}, this service writes {OUTBOX_SCHEMA_VERSION}: "
                 "deliver or move the old file first"
             )
+
+    def _bound(self, max_bytes: int) -> None:
+        """Cap the file at ``max_bytes``; a file already larger gives up its delivered history first.
+
+        SQLite never sets ``max_page_count`` below the file's page count, so a limit lowered
+        since the file grew would silently not hold: the delivered history is pruned and the
+        file compacted (``VACUUM``), and whatever is still above the limit (events not yet
+        delivered) is left in :attr:`over_limit_bytes` for the caller to say.
+        """
+        page_bytes = int(self._db.execute("PRAGMA page_size").fetchone()[0])
+        want = max(1, max_bytes // page_bytes)
+        if int(self._db.execute("PRAGMA page_count").fetchone()[0]) > want:
+            self._transaction(lambda: self._prune_locked(keep=0))
+            self._db.execute("VACUUM")
+            # In WAL mode the main file shrinks only when the compacted pages are checkpointed into it.
+            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        got = int(self._db.execute(f"PRAGMA max_page_count = {want}").fetchone()[0])
+        self.over_limit_bytes = (got - want) * page_bytes
 
     @property
     def sinks(self) -> tuple[str, ...]:

@@ -193,6 +193,26 @@ def test_a_full_outbox_is_unavailable_and_the_delivered_history_gives_way(tmp_pa
         assert counts.stored == n + 1 - 20 and counts.pending_by_sink == {"s": n + 1 - 20}
 
 
+def test_a_limit_lowered_below_the_files_size_holds_from_the_next_open(tmp_path):
+    """SQLite keeps ``max_page_count`` at the file's page count when asked for less: the outbox gives
+    up its delivered history and compacts the file so that the lowered limit holds, and says how far
+    above it the events not yet delivered keep it."""
+    path = tmp_path / "o.sqlite"
+    with Outbox(path, sinks=("s",)) as ob:
+        ob.put_many([(f"{k:032x}", "v", bytes(400)) for k in range(1000)])
+        ob.ack("s", [e.seq for e in ob.pending("s", limit=990)])
+    assert path.stat().st_size > 100 * 4096
+    with Outbox(path, sinks=("s",), max_bytes=40 * 4096) as ob:
+        assert ob.over_limit_bytes == 0
+        assert ob.counts().stored == 10 and ob.counts().pending_by_sink == {"s": 10}
+        assert path.stat().st_size <= 40 * 4096
+        assert _fill(ob, 400) > 100
+        assert path.stat().st_size <= 40 * 4096
+    with Outbox(path, sinks=("s",), max_bytes=8 * 4096) as ob:
+        assert ob.counts().pending_by_sink["s"] > 100
+        assert 0 < ob.over_limit_bytes <= path.stat().st_size - 8 * 4096
+
+
 def test_events_pending_for_a_sink_no_longer_configured_are_reported(tmp_path):
     """They are kept (not pruned) until that sink is back: the daemon says so at start instead of
     keeping them for ever without a word."""
