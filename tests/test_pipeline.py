@@ -266,6 +266,56 @@ def test_a_reboot_before_the_rate_is_known_sizes_the_detector_on_the_new_clock()
     assert fleet.pipelines[(V, 0)].counters["source_restarts"] == 1
 
 
+@pytest.mark.parametrize("burst_hz", [1000.0, 50.0])
+def test_a_start_up_burst_at_another_rate_does_not_size_the_detector_for_good(burst_hz):
+    """50 samples at another spacing before the 200 Hz stream (a driver's start-up burst): the probe
+    sized the detector from them and every later window had the wrong length: no F0, no F6, and
+    nothing said. The rate watch measures the rate again and re-sizes the detector."""
+    passport, g = calibrated()
+    sc = faulty()
+    clean = run_fleet(
+        fleet_for(passport, g), batches_of(sc.session, vehicle=V, imu=0, batch_samples=10)
+    )
+    n = 50
+    t_burst = sc.session.t_s[0] - (n - np.arange(n)) / burst_hz
+    burst = [
+        SampleBatch(V, 0, k, t_burst[k : k + 1], np.array([[0.0, 0.0, -g]]), np.zeros((1, 3)))
+        for k in range(n)
+    ]
+    fleet = fleet_for(passport, g)
+    frames = batches_of(sc.session, vehicle=V, imu=0, batch_samples=10, first_seq=n)
+    events = [
+        e for e in run_fleet(fleet, [*burst, *frames]) if e.predicate is not Predicate.ERROR_DENSITY
+    ]
+    assert [(e.predicate, e.cause, e.t_s) for e in events] == [
+        (e.predicate, e.cause, e.t_s) for e in clean
+    ]
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
+    pipe = fleet.pipelines[(V, 0)]
+    assert pipe.counters["rate_changes"] == 1 and pipe.detection.rate_hz == pytest.approx(200.0)
+    assert f"sample rate changed from {burst_hz:.4g} to 200 Hz" in pipe.status().detail
+
+
+def test_time_stamp_jitter_does_not_re_size_the_detector():
+    """Every stamp moved by up to ±40 % of a period (a bus with loose time stamps): the median step of
+    each block stays the period, so the detector keeps its size and the fault is found as before."""
+    passport, g = calibrated()
+    sc = faulty()
+    rng = np.random.default_rng(7)
+    t = sc.session.t_s + rng.uniform(-0.4, 0.4, sc.session.t_s.size) * 0.005
+    jittered = dataclasses.replace(sc.session, t_s=t)
+    fleet = fleet_for(passport, g)
+    events = run_fleet(fleet, batches_of(jittered, vehicle=V, imu=0, batch_samples=10))
+    assert kinds(events) == [
+        (Predicate.F0, StreamCause.OUT_OF_SHELL),
+        (Predicate.F6, "scale_factor"),
+    ]
+    assert "rate_changes" not in fleet.pipelines[(V, 0)].counters
+
+
 def test_a_checkpoint_made_against_another_passport_is_not_resumed():
     """An IMU replaced (its new passport filed with --replace) inherited the old unit's positions and
     its raised F6: the same fault on the new unit would never be reported."""

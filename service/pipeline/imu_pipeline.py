@@ -42,6 +42,9 @@ from service.pipeline.options import (
     CLOCK_RESET_FRAMES,
     FINDING_SEVERITY,
     PIPELINE_STATE_VERSION,
+    RATE_CHECK_BLOCKS,
+    RATE_CHECK_SAMPLES,
+    RATE_CHECK_TOLERANCE,
     RATE_PROBE_SAMPLES,
     RECOVERED_SEVERITY,
     SEVERITY,
@@ -93,6 +96,11 @@ class ImuPipeline:
         self.f0_persist = 1
         self.checks: dict[Triad, TriadCheck] = {}
         self._probe: list[SampleBatch] = []
+        # The rate watch (_watch_rate): sample steps of the block being filled, s, and blocks off in a row.
+        self._rate_steps_s = np.empty(RATE_CHECK_SAMPLES)
+        self._rate_fill = 0
+        self._rate_off = 0
+        self.rate_changed_from_hz: float | None = None
         self.last_seq: int | None = None
         self.accepted: SampleBatch | None = None
         self.last_t_s: float | None = None
@@ -136,13 +144,60 @@ class ImuPipeline:
         )
 
     def _setup(self, rate_hz: float) -> _Detection:
+        """Size the detector and F0 for ``rate_hz``; a triad already checked keeps its diagnosis."""
         self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
         self.detection = self._new_detection(rate_hz)
+        self._rate_fill = self._rate_off = 0
         if self.passport is not None:
             for triad, tp in self.passport.triads.items():
                 cfg, lam, note = f0_config(tp, self.options, rate_hz)
-                self.checks[triad] = TriadCheck(tp, cfg, lam, note, new_estimator(tp, self.options))
+                check = self.checks.get(triad)
+                if check is None:
+                    self.checks[triad] = TriadCheck(
+                        tp, cfg, lam, note, new_estimator(tp, self.options)
+                    )
+                else:
+                    check.f0, check.lambda0, check.f0_note = cfg, lam, note
+                    check.f0_run, check.f0_run_onset = 0, None
         return self.detection
+
+    def _watch_rate(self, prev_t_s: float | None, t_s: np.ndarray) -> list[Event]:
+        """Measure the rate again over every :data:`RATE_CHECK_SAMPLES` steps after ``prev_t_s`` (s);
+        re-size the detector when :data:`RATE_CHECK_BLOCKS` blocks in a row are off.
+
+        The probe sized it from the first samples only: a start-up burst at another spacing, or
+        a rate changed in flight, left every later window the wrong length and fault detection
+        silently off. The median step ignores gaps and bunched samples, as the probe does.
+        """
+        det = self.detection
+        if det is None:
+            return []
+        steps_s = np.diff(t_s) if prev_t_s is None else np.diff(t_s, prepend=prev_t_s)
+        events: list[Event] = []
+        i = 0
+        while i < steps_s.size:
+            take = min(steps_s.size - i, RATE_CHECK_SAMPLES - self._rate_fill)
+            self._rate_steps_s[self._rate_fill : self._rate_fill + take] = steps_s[i : i + take]
+            self._rate_fill += take
+            i += take
+            if self._rate_fill < RATE_CHECK_SAMPLES:
+                break
+            self._rate_fill = 0
+            rate_hz = 1.0 / float(np.median(self._rate_steps_s))
+            limits = self.options.validity
+            if abs(rate_hz / det.rate_hz - 1.0) <= RATE_CHECK_TOLERANCE or not (
+                limits.min_rate_hz <= rate_hz <= limits.max_rate_hz
+            ):
+                self._rate_off = 0
+                continue
+            self._rate_off += 1
+            if self._rate_off >= RATE_CHECK_BLOCKS:
+                self._count("rate_changes")
+                self.rate_changed_from_hz = det.rate_hz
+                # The pending position ends with the old sizing; the diagnosis keeps what it has.
+                events += self.finish()
+                det = self._setup(rate_hz)
+        return events
 
     # ------------------------------------------------------------------ input
 
@@ -211,7 +266,7 @@ class ImuPipeline:
             None if batch.temp_c is None else batch.temp_c[keep],
         )  # fmt: skip
         self.accepted = good
-        self.last_t_s = float(t_k[-1])
+        prev_t_s, self.last_t_s = self.last_t_s, float(t_k[-1])
         self.last_batch_n = batch.n_samples
         self.n_samples += int(t_k.size)
         self._count("samples.accepted", int(t_k.size))
@@ -232,6 +287,7 @@ class ImuPipeline:
             for b in batches:
                 events += self._temperature_range(b) + self._run(det, b)
             return events
+        events += self._watch_rate(prev_t_s, t_k)
         return events + self._temperature_range(good) + self._run(self.detection, good)
 
     def joins(self, prev: SampleBatch | None, batch: SampleBatch) -> bool:
@@ -671,6 +727,11 @@ class ImuPipeline:
             )  # fmt: skip
         if self.stale:
             parts.append("stale " + ",".join(f"{t}.{a}" for t, a in sorted(self.stale)))
+        if self.rate_changed_from_hz is not None and self.detection is not None:
+            parts.append(
+                f"sample rate changed from {self.rate_changed_from_hz:.4g} to "
+                f"{self.detection.rate_hz:.4g} Hz: detector re-sized"
+            )
         return ImuStatus(
             self.imu,
             self.state,

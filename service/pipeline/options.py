@@ -41,6 +41,13 @@ TRIAD_WORD = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
 RECOVERED_SEVERITY = Severity.INFO
 RATE_PROBE_SAMPLES = 16
 """Samples collected before the sample rate (which sets the static detector's window) is measured."""
+RATE_CHECK_SAMPLES = 128
+"""Sample steps in one block of the rate watch: after the probe, the median step of each block is the
+stream's rate again (a burst at another spacing, or a rate changed in flight, sized the detector wrong)."""
+RATE_CHECK_BLOCKS = 2
+"""Blocks in a row whose rate is off by more than :data:`RATE_CHECK_TOLERANCE` before the detector is re-sized."""
+RATE_CHECK_TOLERANCE = 0.25
+"""Relative difference between a block's rate and the detector's beyond which the block is off."""
 TIME_JUMP_PERIODS = 10
 """Sample periods between two samples beyond which the gap is counted as a time jump."""
 CLOCK_RESET_FRAMES = 3
