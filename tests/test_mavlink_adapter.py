@@ -22,6 +22,7 @@ from estimators.diagnosis import Finding
 from protocols import mavlink_adapter
 from protocols.events import Severity, StreamCause, event_from_finding, make_event
 from protocols.mavlink_adapter import (
+    REREADS_MAX,
     STATUSTEXT_MAX_CHARS,
     UDP_RCVBUF_MIN_BYTES,
     AlertRateLimiter,
@@ -691,7 +692,39 @@ def test_refused_bytes_are_counted_by_reason_and_cost_no_good_packet():
         got = _read(link, 4)
         peer.close()
     assert [t for b in got for t in b.t_s] == pytest.approx([1.0, 1.01, 1.02, 1.03])
-    assert link.counters.rejected == {"garbage_bytes": len(garbage) + len(cut), "bad_crc": 1}
+    # The broken packet's bytes after its start byte are searched again for packets: garbage too.
+    garbage_bytes = len(garbage) + len(cut) + len(broken) - 1
+    assert link.counters.rejected == {"garbage_bytes": garbage_bytes, "bad_crc": 1}
+
+
+@pytest.mark.parametrize(
+    "junk",
+    [b"\xfd", b"\xfe", b"\x00\xfd\x01", "cut", "broken"],
+    ids=["stray-v2-start", "stray-v1-start", "junk-around-a-start", "cut-packet", "length-hit"],
+)
+def test_junk_at_the_start_of_a_datagram_costs_no_good_packet_after_it(junk):
+    """pymavlink read the byte after a stray start byte as a length and dropped that many bytes: the
+    good packets after it in the datagram were lost, counted only as garbage. The frame that fails is
+    read again from its second byte, so every good packet after the junk is read."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    good = [
+        imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + 0.01 * k, accel_mps2=ACC, gyro_rps=GYR).pack(
+            mav
+        )
+        for k in range(12)
+    ]
+    if junk == "cut":
+        junk = good[0][:15]
+    elif junk == "broken":  # its length byte hit: the frame reaches into the packets after it
+        junk = good[0][:1] + bytes([good[0][1] + 40]) + good[0][2:]
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        peer.write(junk + b"".join(good[1:6]))
+        peer.write(b"".join(good[6:9]) + junk + b"".join(good[9:]))
+        got = _read(link, 11)
+        peer.close()
+    assert [t for b in got for t in b.t_s] == pytest.approx([1.0 + 0.01 * k for k in range(1, 12)])
+    assert sum(link.counters.rejected.values()) > 0
 
 
 @pytest.mark.parametrize("accept_unsigned", [False, True])
@@ -745,3 +778,21 @@ def test_a_forged_packet_does_not_move_the_replay_window_of_a_genuine_stream():
         forger.close()
     assert [t for b in got for t in b.t_s] == [1.0, 3.0, 4.0]
     assert link.counters.rejected == {"bad_signature": 1}
+
+
+def test_a_datagram_of_start_bytes_is_read_again_only_a_bounded_number_of_times():
+    """Each refused frame read again from its second byte is one more frame sliced and checked: a
+    datagram of 65,000 start bytes was 64,723 frames (0.4 s of the reader) instead of 233. At most
+    REREADS_MAX (a handful) more than pymavlink's own count, and the good packet of the next datagram
+    is read."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    good = imu_message(ImuMessage.SCALED_IMU, t_s=1.0, accel_mps2=ACC, gyro_rps=GYR).pack(mav)
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        peer.write(b"\xfd" * 65_000)
+        peer.write(good)
+        got = _read(link, 1)
+        peer.close()
+    assert [t for b in got for t in b.t_s] == pytest.approx([1.0])
+    frames = 65_000 // (253 + mavlink2.HEADER_LEN_V2 + 2)
+    assert 0.9 * frames < link.counters.rejected["malformed"] <= frames + REREADS_MAX < 1.2 * frames
