@@ -590,6 +590,9 @@ class LinkCounters:
     """Datagrams the kernel dropped at a UDP link's socket before they were read: its receive
     buffer was full, the reader behind its input (:class:`KernelDrops`; 0 on other links)."""
     rejected: dict[str, int] = field(default_factory=dict)
+    signing_rewound: int = 0
+    """Signed streams whose replay window a key holder had pushed more than a minute beyond this
+    host's clock, followed again from a packet stamped near it (:func:`keep_replay_window`)."""
     alerts_sent: int = 0
     texts_sent: int = 0
     heartbeats_sent: int = 0
@@ -818,7 +821,7 @@ class MavlinkLink:
                 if settings.accept_unsigned
                 else (lambda mav, msg_id: msg_id not in imu_ids),
             )
-            keep_replay_window(self._conn.mav)
+            keep_replay_window(self._conn.mav, self._signing_rewound)
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
         self.udp_rcvbuf_granted_bytes: int | None = None
         """The receive buffer the kernel granted a UDP link (at most ``net.core.rmem_max``); None on others."""
@@ -904,6 +907,9 @@ class MavlinkLink:
         mav.buf = bytearray()
         mav.buf_index = 0
         mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+
+    def _signing_rewound(self) -> None:
+        self.counters.signing_rewound += 1
 
     def send(self, msg: MavlinkMessage) -> None:
         """Send a message built by one of the typed builders (signed if signing is configured)."""
@@ -1046,26 +1052,69 @@ def _read_again(mav: mavlink2.MAVLink, bad: MavlinkMessage) -> None:
         mav.buf_index = 0
 
 
-def keep_replay_window(mav: mavlink2.MAVLink) -> None:
-    """Only a packet whose signature verifies moves its stream's replay window.
+SIGNING_EPOCH_UNIX_S = 1_420_070_400
+"""MAVLink 2 signing time stamps count 10 µs units from 2015-01-01 00:00 UTC."""
+SIGNING_WINDOW = 6_000_000
+"""One minute in signing units: the MAVLink signing rules' window for a new stream's time stamp."""
+
+
+def signing_now() -> int:
+    """This host's clock as a MAVLink 2 signing time stamp (10 µs units since :data:`SIGNING_EPOCH_UNIX_S`)."""
+    return int((time.time() - SIGNING_EPOCH_UNIX_S) * 100_000)
+
+
+def keep_replay_window(
+    mav: mavlink2.MAVLink, on_rewound: Callable[[], None] = lambda: None
+) -> None:
+    """Only a packet whose signature verifies moves its stream's replay window, and a window that a
+    key holder pushed beyond this host's clock comes back to it.
 
     pymavlink (2.4.50) records a signed packet's time stamp for its (link id, system,
     component) before it compares the signature: one forged packet with a time stamp far
     ahead made every later genuine packet of that stream fail as old. The check stays
     pymavlink's; a failed one only has the stream's previous time stamp put back.
+
+    A validly signed packet stamped far ahead (an autopilot whose clock stepped back after
+    it) locked its stream out until the daemon restarted, and every new stream too (pymavlink
+    refuses a new stream more than a minute behind the newest stamp it has seen). When a
+    stream's window, or for a new stream that newest stamp, is more than
+    :data:`SIGNING_WINDOW` ahead of this host's clock, a packet that fails only as old and is
+    stamped within that window of the clock is checked again by pymavlink as the start of a
+    new stream; passing, it rewinds the window (``on_rewound`` is called). A replay is
+    accepted this way only while a key holder has pushed the window ahead, and only of a
+    packet stamped within a minute of now.
     """
     check = mav.check_signature
-    stamps = mav.signing.stream_timestamps
+    signing = mav.signing
+    stamps = signing.stream_timestamps
+
+    def restore(key: tuple[int, int, int], before: int | None) -> None:
+        if before is None:
+            stamps.pop(key, None)
+        else:
+            stamps[key] = before
 
     def checked(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
         key = (msgbuf[-13], src_system, src_component)
         before = stamps.get(key)
+        if check(msgbuf, src_system, src_component):
+            return True
+        restore(key, before)
+        now = signing_now()
+        window = signing.timestamp if before is None else before
+        stamp = int.from_bytes(msgbuf[-12:-6], "little")
+        if window <= now + SIGNING_WINDOW or abs(stamp - now) > SIGNING_WINDOW:
+            return False
+        ours = signing.timestamp
+        stamps.pop(key, None)
+        signing.timestamp = now
         ok = bool(check(msgbuf, src_system, src_component))
-        if not ok:
-            if before is None:
-                stamps.pop(key, None)
-            else:
-                stamps[key] = before
+        # Our own packets' stamps must not go back: the vehicle keeps a window for them too.
+        signing.timestamp = max(ours, signing.timestamp)
+        if ok:
+            on_rewound()
+        else:
+            restore(key, before)
         return ok
 
     mav.check_signature = checked
@@ -1164,6 +1213,7 @@ class MavlinkSource(BatchSource):
         self.last_failure: Exception | None = None
         self._rejections_log = _LogRate()
         self._drops_log = _LogRate()
+        self._rewound_log = _LogRate()
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
         )
@@ -1185,6 +1235,7 @@ class MavlinkSource(BatchSource):
                 self._ring.put(batch)
             self._log_rejections()
             self._log_kernel_drops()
+            self._log_signing_rewound()
 
     def _log_rejections(self) -> None:
         new = self._rejections_log.due(dict(self.link.counters.rejected))
@@ -1193,6 +1244,19 @@ class MavlinkSource(BatchSource):
                 "mavlink %s: rejected %s (counted on the status topic as service.mavlink.rejected.*)",
                 self.link.settings.device,
                 ", ".join(f"{n} {k}" for k, n in sorted(new.items())),
+            )
+
+    def _log_signing_rewound(self) -> None:
+        total = self.link.counters.signing_rewound
+        new = self._rewound_log.due({"signing_rewound": total} if total else {})
+        if new:
+            _log.warning(
+                "mavlink %s: %d signed stream(s) had been stamped more than a minute ahead of this "
+                "host's clock by a key holder and are followed again from packets stamped near it "
+                "(service.mavlink.signing_rewound; %d in all): look at the autopilot's clock",
+                self.link.settings.device,
+                new["signing_rewound"],
+                total,
             )
 
     def _log_kernel_drops(self) -> None:

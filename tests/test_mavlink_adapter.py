@@ -796,3 +796,31 @@ def test_a_datagram_of_start_bytes_is_read_again_only_a_bounded_number_of_times(
     assert [t for b in got for t in b.t_s] == pytest.approx([1.0])
     frames = 65_000 // (253 + mavlink2.HEADER_LEN_V2 + 2)
     assert 0.9 * frames < link.counters.rejected["malformed"] <= frames + REREADS_MAX < 1.2 * frames
+
+
+def test_a_stream_stamped_ahead_by_a_key_holder_is_followed_again_near_this_hosts_clock():
+    """One packet signed with the right key and stamped a day ahead (an autopilot whose clock stepped
+    back after it): pymavlink took that stamp as the stream's window and refused every later packet as
+    old, until the daemon restarted. A packet stamped within a minute of this host's clock is checked
+    again as the start of a new stream and rewinds the window (counted); one stamped an hour behind the
+    clock, or signed with another key, is still refused."""
+    with MavlinkLink(
+        MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", signing_key=KEY)
+    ) as link:
+        port = link.connection.port.getsockname()[1]
+        autopilot, ahead, behind, forger = (_peer(port) for _ in range(4))
+        autopilot.setup_signing(KEY, sign_outgoing=True, link_id=1)
+        now = autopilot.mav.signing.timestamp
+        ahead.setup_signing(KEY, link_id=1, initial_timestamp=now + 86_400 * 100_000)
+        behind.setup_signing(KEY, link_id=1, initial_timestamp=now - 3_600 * 100_000)
+        forger.setup_signing(bytes(reversed(KEY)), link_id=1, initial_timestamp=now + 100)
+        for k, peer in enumerate((autopilot, ahead, behind, forger, autopilot, autopilot)):
+            peer.mav.send(
+                imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + k, accel_mps2=ACC, gyro_rps=GYR)
+            )
+        got = _read(link, 4)
+        for peer in (autopilot, ahead, behind, forger):
+            peer.close()
+    assert [t for b in got for t in b.t_s] == [1.0, 2.0, 5.0, 6.0]
+    assert link.counters.rejected == {"bad_signature": 2}
+    assert link.counters.signing_rewound == 1

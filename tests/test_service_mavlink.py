@@ -335,18 +335,31 @@ def signer(key: bytes, link_id: int):
 def test_with_a_signing_key_only_signed_imu_messages_are_read(tmp_path):
     """A real daemon with a signing key file: the vehicle's stream signed with the key gives its F0 and F6
     events, while IMU messages signed with another key and unsigned ones, sent between, are refused and
-    counted on the status topic (bad_signature, unsigned)."""
+    counted on the status topic (bad_signature, unsigned); a packet signed with the key but stamped a
+    day ahead does not lock the stream out (signing_rewound, logged)."""
     _passport, _g, sc, start = unit()
     (tmp_path / "mav.key").write_text(KEY.hex() + "\n")
     right, wrong = signer(KEY, 1), signer(bytes(reversed(KEY)), 2)
     packets = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start, mav=right.mav)
     forged = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start, mav=wrong.mav)[:1]
     unsigned = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start)[:1]
+    # A HEARTBEAT on the vehicle's stream, signed with the key and stamped a day ahead (a clock that
+    # stepped back after it): the next genuine packet rewinds the stream's window.
+    ahead = use_mavlink2(mavutil.mavlink_connection("udpout:127.0.0.1:9", source_system=1))
+    ahead.setup_signing(
+        KEY, sign_outgoing=True, link_id=1,
+        initial_timestamp=right.mav.signing.timestamp + 86_400 * 100_000,
+    )  # fmt: skip
+    heartbeat = mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(ahead.mav)
     right.close()
     wrong.close()
-    n_hostile = len(range(0, len(packets), 20)) // 50
-    got, counters, _, _ = run_daemon(
-        tmp_path, packets, (forged[0], unsigned[0]), "service.mavlink.rejected.unsigned",
+    ahead.close()
+    n_datagrams = len(range(0, len(packets), 20))
+    n_hostile = n_datagrams // 50
+    # A round of hostile datagrams followed by the stream's next one.
+    n_rewound = len(range(49, n_datagrams - 1, 50))
+    got, counters, lines, _ = run_daemon(
+        tmp_path, packets, (forged[0], unsigned[0], heartbeat), "service.mavlink.rejected.unsigned",
         n_hostile, signing_key_file="mav.key",
     )  # fmt: skip
     assert got == [Predicate.F0, Predicate.F6]
@@ -357,6 +370,8 @@ def test_with_a_signing_key_only_signed_imu_messages_are_read(tmp_path):
         "service.mavlink.rejected.bad_signature": n_hostile,
         "service.mavlink.rejected.unsigned": n_hostile,
     }
+    assert n_rewound > 0 and counters["service.mavlink.signing_rewound"] == n_rewound
+    assert any("stamped more than a minute ahead of this host's clock" in line for line in lines)
 
 
 IMU_TYPES = frozenset(m.value for m in ImuMessage)
