@@ -6,6 +6,7 @@ and the daemon run in the test process (tests/service_support.py).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import json
@@ -15,6 +16,7 @@ import sys
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from service_support import (
@@ -287,6 +289,39 @@ def test_publish_at_the_recorded_pace_sends_every_frame_in_order(tmp_path):
     assert done.stdout.startswith(
         f"short.csv: {frames} frames, {session.n_samples} samples, 2.0 s of data"
     )
+
+
+def test_publish_leaves_out_unusable_samples_and_says_so(tmp_path):
+    """A session with one NaN sample and one repeated time stamp: sent as they were, the daemon's
+    decoder refused the two frames holding them whole (200 samples) while publish said nothing. They
+    are left out and said in the summary line; every frame the subscriber gets is one the decoder takes."""
+    session = unit()[2].session.select(unit()[2].session.t_s < 2.0)
+    accel, t = session.accel_mps2.copy(), session.t_s.copy()
+    accel[150, 1] = np.nan
+    t[250] = t[249]
+    csv = tmp_path / "damaged.csv"
+    write_csv_session(csv, dataclasses.replace(session, t_s=t, accel_mps2=accel))
+    with zenoh_router() as port, zenoh.open(zenoh_client_config(port)) as bench:
+        frames = []
+        sub = bench.declare_subscriber(
+            frame_key("uav-5", 0), lambda s: frames.append(decode_frame(s.payload.to_bytes()))
+        )
+        done = cli(
+            "publish",
+            csv,
+            "--vehicle",
+            "uav-5",
+            "--pace",
+            "max",
+            "--router",
+            f"tcp/127.0.0.1:{port}",
+        )
+        n = session.n_samples - 2
+        wait_until(lambda: sum(f.n_samples for f in frames) >= n, timeout_s=10, what="every sample")
+        sub.undeclare()
+    assert done.returncode == 0, done.stderr
+    assert sum(f.n_samples for f in frames) == n
+    assert done.stdout.rstrip().endswith("; left out: non_finite 1, non_monotonic_time 1")
 
 
 def test_publish_reports_its_progress_on_stderr(tmp_path, capsys, monkeypatch):

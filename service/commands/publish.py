@@ -14,9 +14,10 @@ has come, as the vehicle did; ``--pace max`` as fast as the link takes them.
 Unlike a vehicle's frames, which a congested link may shed, these are sent
 reliably (Zenoh ``CongestionControl.BLOCK``): a bench test must know that the
 daemon was offered every sample. Progress goes to stderr every few seconds; a
-summary line (frames, samples, seconds of data, seconds taken) ends the
-output. Before it ends, publish waits for the router to confirm that it holds the
-last frames (:meth:`protocols.zenoh_adapter.FramePublisher.drain`). Exit status 0;
+summary line (frames, samples, seconds of data, seconds taken, and the samples
+left out: a session's unusable ones, which the daemon would refuse with their
+whole frame, or what the log reader left out) ends the output. Before it ends,
+publish waits for the router to confirm that it holds the last frames (:meth:`protocols.zenoh_adapter.FramePublisher.drain`). Exit status 0;
 1 when the router did not confirm them; 2 for an unusable file or option, an
 unreachable router or no subscriber; 130 when interrupted (Ctrl-C, SIGTERM).
 """
@@ -26,7 +27,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -99,20 +100,36 @@ def _is_log(path: Path) -> bool:
     return True
 
 
-def _log_batches(args: argparse.Namespace) -> Iterator[SampleBatch]:
+def _log_batches(args: argparse.Namespace) -> tuple[Iterator[SampleBatch], Callable[[], str]]:
+    """The log's frames, and what reading it left out (known once they are all read)."""
     from protocols.logs import LogReader
 
-    for batch in LogReader(args.recording, vehicle=args.vehicle, batch_samples=args.batch):
-        if args.imu is None or batch.imu == args.imu:
-            yield batch
+    reader = LogReader(args.recording, vehicle=args.vehicle, batch_samples=args.batch)
+
+    def left_out() -> str:
+        return "; ".join(p for p in (reader.stats.left_out(), reader.stats.cut()) if p)
+
+    return (b for b in reader if args.imu is None or b.imu == args.imu), left_out
 
 
-def _session_batches(args: argparse.Namespace) -> Iterator[SampleBatch]:
+def _session_batches(args: argparse.Namespace) -> tuple[Iterator[SampleBatch], Callable[[], str]]:
+    """The session's usable samples as frames, and what validation left out.
+
+    A frame holding one unusable sample (NaN, a duplicate time stamp) is refused whole by the
+    daemon's decoder: those samples are left out here and said, not sent to cost their frame.
+    """
+    from estimators.session import SessionError, validate_session
     from protocols.frames import split_session
 
     session = load_units_checked(str(args.recording), None, None, args).session
+    try:
+        session, rejected = validate_session(session)
+    except SessionError as exc:
+        raise UsageError(f"{args.recording}: {exc}") from None
     imu = 0 if args.imu is None else args.imu
-    return split_session(session, vehicle=args.vehicle, imu=imu, batch_samples=args.batch)
+    left_out = ", ".join(f"{k} {n}" for k, n in sorted(rejected.counts.items())) or "none"
+    batches = split_session(session, vehicle=args.vehicle, imu=imu, batch_samples=args.batch)
+    return batches, lambda: left_out
 
 
 def _publisher(session: Session, batch: SampleBatch, wait_s: float) -> FramePublisher:
@@ -184,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--wait-s must be >= 0, got {args.wait_s!r}")
     if not args.recording.exists():
         raise UsageError(f"{args.recording}: no such file or folder")
-    batches = _log_batches(args) if _is_log(args.recording) else _session_batches(args)
+    batches, left_out = _log_batches(args) if _is_log(args.recording) else _session_batches(args)
     progress = _Progress(args.recording.name)
 
     def interrupt(signum: int, frame: object) -> None:
@@ -211,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
-    print(progress.summary())
+    print(f"{progress.summary()}; left out: {left_out()}")
     unconfirmed = sorted(imu for imu, pub in publishers.items() if not pub.confirmed)
     if unconfirmed:
         print(
