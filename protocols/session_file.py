@@ -13,13 +13,22 @@ sample a line::
 ``t`` in s, ``ax ay az`` specific force in m/s², ``gx gy gz`` angular rate in
 rad/s, ``temp`` in °C (optional), unless the file says otherwise with
 ``# accel_unit = g`` (``m/s2``, ``g``, ``mg``), ``# gyro_unit = deg/s``
-(``rad/s``, ``deg/s``) or ``# time_unit = ms`` (``s``, ``ms``, ``us``) comment
+(``rad/s``, ``deg/s``) or ``# time_unit = ms`` (``s``, ``ms``, ``us``, ``ns``) comment
 lines, or the caller declares the units (:class:`SessionUnits`; a declaration
 overrides the file's). Values are converted to SI here, once
 (``g`` = 9.80665 m/s², the unit a data sheet means). Columns may come in any order; a file may
 hold one triad only (all three of its columns). Blank lines are skipped.
 ``nan``/``inf`` values are passed through: :func:`estimators.session.validate_session`
 counts and drops them — this reader never drops a row.
+
+**Other tools' IMU CSV files** (read, :data:`CSV_DIALECTS`): EuRoC/ASL
+``imu0/data.csv`` (``#timestamp [ns],w_RS_S_x [rad s^-1],…,a_RS_S_z [m s^-2]``,
+the layout Kalibr, OpenVINS and Basalt read), Kalibr's ``imu0.csv``
+(``timestamp,omega_x,…,alpha_z``) and a ROS ``sensor_msgs/Imu`` topic written
+by ``rostopic echo -p`` (``field.header.stamp`` and the angular velocity and
+linear acceleration fields; its other columns are not read). Their units are the
+format's (ns, rad/s, m/s²) unless declared otherwise; ``LoadedSession.metadata``
+says the format (``format``) and the units, as a file's comments would.
 
 **Xsens raw-count pair** (read). Two whitespace-separated text files on the same
 time stamps, ``time_s x y z`` per line, accelerometer and gyro in raw 16-bit
@@ -110,6 +119,7 @@ class TimeUnit(StrEnum):
     S = "s"
     MS = "ms"
     US = "us"
+    NS = "ns"
 
 
 SI_PER_UNIT: dict[StrEnum, float] = {
@@ -121,6 +131,7 @@ SI_PER_UNIT: dict[StrEnum, float] = {
     TimeUnit.S: 1.0,
     TimeUnit.MS: 1e-3,
     TimeUnit.US: 1e-6,
+    TimeUnit.NS: 1e-9,
 }
 """Factor from each unit to SI (m/s², rad/s, s)."""
 
@@ -213,35 +224,53 @@ def _read_text(path: Path) -> str:
 
 
 def _parse_rows(
-    path: Path, rows: list[tuple[int, str]], names: tuple[str, ...], delimiter: str | None
+    path: Path,
+    rows: list[tuple[int, str]],
+    names: tuple[str, ...],
+    delimiter: str | None,
+    used_cols: list[int] | None = None,
+    n_fields: int | None = None,
 ) -> np.ndarray:
-    """(R, len(names)) floats from ``rows`` of (line number, text).
+    """(R, len(names)) floats from ``rows`` of (line number, text): the fields at ``used_cols`` of
+    lines of ``n_fields`` fields (the others not read), else every field of lines of ``len(names)``.
 
     numpy parses the whole table at once; only when that fails is the table
     scanned line by line, to name the first bad line and column.
     """
     if not rows:
         return np.empty((0, len(names)))
+    cols = list(range(len(names))) if used_cols is None else used_cols
+    n_fields = len(names) if n_fields is None else n_fields
     try:
         data = np.loadtxt(
-            [text for _, text in rows], delimiter=delimiter, comments=None, ndmin=2, dtype=float
+            [text for _, text in rows],
+            delimiter=delimiter,
+            comments=None,
+            ndmin=2,
+            dtype=float,
+            usecols=used_cols,
         )
-        if data.shape[1] == len(names):
+        # loadtxt reads the used columns of a line with fields more or fewer than the header names.
+        if data.shape[1] == len(names) and (
+            used_cols is None or all(len(t.split(delimiter)) == n_fields for _, t in rows)
+        ):
             return data
     except ValueError:
         pass
     for lineno, text in rows:
         fields = text.split(delimiter)
-        if len(fields) != len(names):
+        if len(fields) != n_fields:
             raise SessionFileError(
-                f"{path}: line {lineno}: expected {len(names)} fields ({','.join(names)}), got {len(fields)}"
+                f"{path}: line {lineno}: expected {n_fields} fields"
+                + (f" ({','.join(names)})" if used_cols is None else "")
+                + f", got {len(fields)}"
             )
-        for name, value in zip(names, fields, strict=True):
+        for name, k in zip(names, cols, strict=True):
             try:
-                float(value)
+                float(fields[k])
             except ValueError:
                 raise SessionFileError(
-                    f"{path}: line {lineno}, column {name!r}: not a number: {value.strip()!r}"
+                    f"{path}: line {lineno}, column {name!r}: not a number: {fields[k].strip()!r}"
                 ) from None
     raise SessionFileError(f"{path}: the numeric table cannot be parsed")
 
@@ -319,6 +348,87 @@ def _check_header(path: Path, lineno: int, names: list[str]) -> None:
         )
 
 
+@dataclass(frozen=True)
+class CsvDialect:
+    """The IMU CSV file of another tool: its column names (lower case) for ours, and its units."""
+
+    name: str
+    columns: dict[str, str]
+    units: SessionUnits
+    ignored_prefixes: tuple[str, ...] = ()
+    """Columns of the format that hold nothing read here (a ROS message's other fields)."""
+
+    def ours(self, names: list[str]) -> list[str | None] | None:
+        """Our column for each of ``names`` (None: ignored), or None when they are not this format."""
+        out: list[str | None] = []
+        for n in names:
+            if n in self.columns:
+                out.append(self.columns[n])
+            elif n.startswith(self.ignored_prefixes) and self.ignored_prefixes:
+                out.append(None)
+            else:
+                return None
+        return out
+
+
+_SI_NS = SessionUnits(AccelUnit.MPS2, GyroUnit.RPS, TimeUnit.NS)
+
+
+def _axes(ours: str, pattern: str) -> dict[str, str]:
+    return {pattern.format(axis): f"{ours}{axis}" for axis in "xyz"}
+
+
+CSV_DIALECTS = (
+    CsvDialect(
+        "EuRoC/ASL imu0/data.csv",
+        {
+            "#timestamp [ns]": "t",
+            "timestamp [ns]": "t",
+            **_axes("g", "w_rs_s_{} [rad s^-1]"),
+            **_axes("a", "a_rs_s_{} [m s^-2]"),
+        },
+        _SI_NS,
+    ),
+    CsvDialect(
+        "Kalibr imu0.csv",
+        {"timestamp": "t", **_axes("g", "omega_{}"), **_axes("a", "alpha_{}")},
+        _SI_NS,
+    ),
+    CsvDialect(
+        "ROS sensor_msgs/Imu (rostopic echo -p)",
+        {
+            "field.header.stamp": "t",
+            **_axes("g", "field.angular_velocity.{}"),
+            **_axes("a", "field.linear_acceleration.{}"),
+        },
+        _SI_NS,
+        ignored_prefixes=("%time", "field."),
+    ),
+)
+"""IMU CSV files other tools write, read as they are (nanosecond time stamps, rad/s, m/s²).
+EuRoC's header line starts with ``#`` (a comment here): it is taken as the header when it
+names that format's columns."""
+
+
+def _dialect_of(names: list[str]) -> tuple[CsvDialect, list[str | None]] | None:
+    for dialect in CSV_DIALECTS:
+        ours = dialect.ours(names)
+        if ours is not None and "t" in ours:
+            return dialect, ours
+    return None
+
+
+def _commented_header(text: str) -> tuple[int, str] | None:
+    """The first line, when it is a ``#``-commented header of a :data:`CSV_DIALECTS` format (EuRoC's)."""
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s:
+            continue
+        names = [n.strip().lower() for n in s.split(",")]
+        return (lineno, s) if s.startswith("#") and _dialect_of(names) else None
+    return None
+
+
 def _file_units(metadata: dict[str, str], path: Path) -> SessionUnits:
     declared = [metadata.get(UNIT_KEYS[k]) for k in ("accel", "gyro", "time")]
     try:
@@ -337,7 +447,11 @@ def read_csv_session(
     ``LoadedSession.units``; call :func:`check_units` to refuse implausible ones.
     """
     path = Path(path)
-    rows, comments = _split_lines(path, _read_text(path))
+    text = _read_text(path)
+    rows, comments = _split_lines(path, text)
+    if (commented := _commented_header(text)) is not None:
+        rows.insert(0, commented)
+        comments.remove(commented[1][1:].strip())
     if not rows:
         raise SessionFileError(f"{path}: empty file (no header row t,ax,ay,az,gx,gy,gz[,temp])")
     header_line, header = rows[0]
@@ -347,10 +461,28 @@ def read_csv_session(
             "(give the gyro file too, or the directory holding both)"
         )
     names = [n.strip().lower() for n in header.split(",")]
-    _check_header(path, header_line, names)
+    meta = _metadata(comments)
+    file_units = _file_units(meta, path)
+    used_cols: list[int] | None = None
+    if (found := _dialect_of(names)) is not None:
+        dialect, ours = found
+        used_cols = [k for k, n in enumerate(ours) if n is not None]
+        names = [n for n in ours if n is not None]
+        # The format fixes its units: written down as if the file had said them.
+        file_units = file_units.over(dialect.units)
+        meta = {"format": dialect.name, **dialect.units.to_dict(), **meta}
+    try:
+        _check_header(path, header_line, names)
+    except SessionFileError as exc:
+        if found is None:
+            raise
+        theirs = ", ".join(n for n in found[0].columns if n != "#timestamp [ns]")
+        raise SessionFileError(
+            f"{exc}; read as {found[0].name}, whose columns are {theirs}"
+        ) from None
     if len(rows) == 1:
         raise SessionFileError(f"{path}: no data rows after the header (line {header_line})")
-    data = _parse_rows(path, rows[1:], tuple(names), ",")
+    data = _parse_rows(path, rows[1:], tuple(names), ",", used_cols, header.count(",") + 1)
     col = {n: data[:, k] for k, n in enumerate(names)}
 
     def triad(cols: tuple[str, ...]) -> np.ndarray | None:
@@ -362,8 +494,7 @@ def read_csv_session(
         triad(GYRO_COLUMNS),
         col["temp"].copy() if "temp" in col else None,
     )
-    meta = _metadata(comments)
-    used = units.over(_file_units(meta, path)).resolved()
+    used = units.over(file_units).resolved()
     return LoadedSession(used.to_si(session), _gravity_from(meta, path), meta, str(path), used)
 
 

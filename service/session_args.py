@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from dataclasses import dataclass
 
 from estimators.conventions import normal_gravity_mps2
@@ -137,6 +138,13 @@ def load_units_checked(
     """The session in SI, refused with one line when its values are implausible in their units."""
     declared = SessionUnits(args.accel_unit, args.gyro_unit, args.time_unit)
     loaded = load_session(path, gyro_file, sidecar=sidecar, units=declared)
+    if "format" in loaded.metadata:
+        u = loaded.units
+        print(
+            f"ins-health: {path} read as {loaded.metadata['format']} "
+            f"(time {u.time}, accelerometer {u.accel}, gyro {u.gyro})",
+            file=sys.stderr,
+        )
     check_units(
         loaded.session,
         loaded.units,
