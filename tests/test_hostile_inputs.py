@@ -25,11 +25,16 @@ def frames(n: int):
     return list(batches_of(scenario().session, vehicle=V, imu=0, batch_samples=100))[:n]
 
 
-def test_plausible_rate_is_the_median_spacing_inside_the_limits():
+def test_plausible_rate_is_the_typical_spacing_inside_the_limits():
     limits = ValidityLimits(min_rate_hz=1.0, max_rate_hz=1000.0)
     t = np.arange(20) * 0.01
-    t[5:] += 3.0  # one gap: the median ignores it
+    t[5:] += 3.0  # one gap: the interquartile mean ignores it
+    t[12] = t[11] + 1e-4  # and one sample bunched on the last
     assert plausible_rate_hz(t, limits) == pytest.approx(100.0)
+    # 400 Hz stamped in whole ms: steps of 2 and 3 ms, whose median flips between 333 and 500 Hz.
+    ms = np.floor((np.arange(16) / 400.0 + 0.0012) * 1e3) / 1e3
+    assert sorted(set(np.round(np.diff(ms) * 1e3).astype(int))) == [2, 3]
+    assert plausible_rate_hz(ms, limits) == pytest.approx(400.0, rel=0.1)
     assert plausible_rate_hz(np.arange(20) * 1e-9, limits) is None
     assert plausible_rate_hz(np.arange(20) * 10.0, limits) is None
     assert plausible_rate_hz(np.array([1.0]), limits) is None

@@ -36,13 +36,15 @@ Per batch of samples, in this order (docs/architecture.md):
    detector's thresholds raised to the unit's own noise at the stream's rate
    (:func:`detector_config`). The rate is measured from the first
    :data:`RATE_PROBE_SAMPLES` samples and again over every
-   :data:`RATE_CHECK_SAMPLES` steps after them (median step): when
+   :data:`RATE_CHECK_SAMPLES` steps after them (the interquartile mean step,
+   :func:`estimators.stream_validity.typical_step_s`): when
    :data:`RATE_CHECK_BLOCKS` blocks in a row are off by more than
    :data:`RATE_CHECK_TOLERANCE`, the detector and F0 are sized again for the
-   new rate (``rate_changes``; the status names both rates), the pending
-   position is ended and the diagnosis keeps its positions. A start-up burst
-   at another spacing had sized the detector for good and silently turned
-   fault detection off.
+   new rate at the sample that completes the last of them, whatever the
+   framing (``rate_changes``; the status names both rates; the watch's
+   progress is in the checkpoint), the pending position is ended and the
+   diagnosis keeps its positions. A start-up burst at another spacing had
+   sized the detector for good and silently turned fault detection off.
 5. **F0 on every static sample** (methods.md M1) with
    :func:`estimators.scalar.f0_batch` over the samples :class:`StaticGate`
    releases (documented to give the per-sample

@@ -24,6 +24,7 @@ from estimators.stream_validity import (
     StreamValidity,
     ValidityReport,
     plausible_rate_hz,
+    typical_step_s,
 )
 from estimators.temperature import to_reference_temperature
 from protocols.events import (
@@ -56,6 +57,14 @@ from service.pipeline.options import (
 )
 from service.pipeline.static_gate import StaticGate
 from service.pipeline.triad_check import TriadCheck, f0_config, new_estimator
+
+
+def _rows(batch: SampleBatch, rows: slice) -> SampleBatch:
+    """The samples ``rows`` of ``batch`` as a batch of the same IMU and ``seq``."""
+    return SampleBatch(
+        batch.vehicle, batch.imu, batch.seq, batch.t_s[rows], batch.accel_mps2[rows],
+        batch.gyro_rps[rows], None if batch.temp_c is None else batch.temp_c[rows],
+    )  # fmt: skip
 
 
 @dataclass
@@ -161,19 +170,23 @@ class ImuPipeline:
                     check.f0_run, check.f0_run_onset = 0, None
         return self.detection
 
-    def _watch_rate(self, prev_t_s: float | None, t_s: np.ndarray) -> list[Event]:
-        """Measure the rate again over every :data:`RATE_CHECK_SAMPLES` steps after ``prev_t_s`` (s);
-        re-size the detector when :data:`RATE_CHECK_BLOCKS` blocks in a row are off.
+    def _watch_rate(self, prev_t_s: float | None, t_s: np.ndarray) -> tuple[int, float] | None:
+        """Measure the rate again over every :data:`RATE_CHECK_SAMPLES` steps of the samples at
+        ``t_s`` (s, after ``prev_t_s``); returns where the detector must be re-sized, if anywhere:
+        the index of the sample that completes :data:`RATE_CHECK_BLOCKS` blocks in a row off by
+        more than :data:`RATE_CHECK_TOLERANCE`, and the rate of the last, Hz. The steps after that
+        sample are not taken: the caller re-sizes there and hands the rest over again, so the
+        chain is cut at the same sample however the stream is framed.
 
-        The probe sized it from the first samples only: a start-up burst at another spacing, or
-        a rate changed in flight, left every later window the wrong length and fault detection
-        silently off. The median step ignores gaps and bunched samples, as the probe does.
+        The probe sized the detector from the first samples only: a start-up burst at another
+        spacing, or a rate changed in flight, left every later window the wrong length and fault
+        detection silently off. A block's rate is from its :func:`typical_step_s`, as the probe's.
         """
         det = self.detection
         if det is None:
-            return []
+            return None
         steps_s = np.diff(t_s) if prev_t_s is None else np.diff(t_s, prepend=prev_t_s)
-        events: list[Event] = []
+        first = 0 if prev_t_s is not None else 1  # the sample each step ends at, in t_s
         i = 0
         while i < steps_s.size:
             take = min(steps_s.size - i, RATE_CHECK_SAMPLES - self._rate_fill)
@@ -183,7 +196,7 @@ class ImuPipeline:
             if self._rate_fill < RATE_CHECK_SAMPLES:
                 break
             self._rate_fill = 0
-            rate_hz = 1.0 / float(np.median(self._rate_steps_s))
+            rate_hz = 1.0 / typical_step_s(self._rate_steps_s)
             limits = self.options.validity
             if abs(rate_hz / det.rate_hz - 1.0) <= RATE_CHECK_TOLERANCE or not (
                 limits.min_rate_hz <= rate_hz <= limits.max_rate_hz
@@ -192,12 +205,33 @@ class ImuPipeline:
                 continue
             self._rate_off += 1
             if self._rate_off >= RATE_CHECK_BLOCKS:
-                self._count("rate_changes")
-                self.rate_changed_from_hz = det.rate_hz
-                # The pending position ends with the old sizing; the diagnosis keeps what it has.
-                events += self.finish()
-                det = self._setup(rate_hz)
+                return first + i - 1, rate_hz
+        return None
+
+    def _resize(self, rate_hz: float) -> list[Event]:
+        """Size the detector and F0 for the stream's new rate (:meth:`_watch_rate`)."""
+        assert self.detection is not None
+        self._count("rate_changes")
+        self.rate_changed_from_hz = self.detection.rate_hz
+        # The pending position ends with the old sizing; the diagnosis keeps what it has.
+        events = self.finish()
+        self._setup(rate_hz)
         return events
+
+    def _chain(self, batch: SampleBatch, prev_t_s: float | None) -> list[Event]:
+        """The chain over ``batch`` (samples after ``prev_t_s``, s), re-sized where the rate watch says."""
+        events: list[Event] = []
+        while (cut := self._watch_rate(prev_t_s, batch.t_s)) is not None:
+            k, rate_hz = cut
+            head = batch if k + 1 == batch.n_samples else _rows(batch, slice(0, k + 1))
+            assert self.detection is not None
+            events += self._temperature_range(head) + self._run(self.detection, head)
+            events += self._resize(rate_hz)
+            if head is batch:
+                return events
+            batch, prev_t_s = _rows(batch, slice(k + 1, None)), float(head.t_s[-1])
+        assert self.detection is not None
+        return events + self._temperature_range(batch) + self._run(self.detection, batch)
 
     # ------------------------------------------------------------------ input
 
@@ -279,8 +313,11 @@ class ImuPipeline:
             if sum(b.n_samples for b in self._probe) < RATE_PROBE_SAMPLES:
                 return events
             batches, self._probe = self._probe, []
+            # Exactly the first RATE_PROBE_SAMPLES, and the rate watch from the next one on: the
+            # same sizing and the same cuts however the stream is framed.
             rate_hz = plausible_rate_hz(
-                np.concatenate([b.t_s for b in batches]), self.options.validity
+                np.concatenate([b.t_s for b in batches])[:RATE_PROBE_SAMPLES],
+                self.options.validity,
             )
             if rate_hz is None:
                 # Counted, and the next frames probe afresh: a stream at an implausible rate
@@ -288,11 +325,21 @@ class ImuPipeline:
                 self._count("samples.rejected.implausible_rate", sum(b.n_samples for b in batches))
                 return events
             det = self._setup(rate_hz)
+            seen, prev_t_s = 0, None
             for b in batches:
-                events += self._temperature_range(b) + self._run(det, b)
+                n_head = min(b.n_samples, max(0, RATE_PROBE_SAMPLES - seen))
+                seen += b.n_samples
+                if n_head:
+                    head = b if n_head == b.n_samples else _rows(b, slice(0, n_head))
+                    events += self._temperature_range(head) + self._run(det, head)
+                    prev_t_s = float(head.t_s[-1])
+                if n_head < b.n_samples:
+                    events += self._chain(
+                        b if n_head == 0 else _rows(b, slice(n_head, None)), prev_t_s
+                    )
+                    prev_t_s = float(b.t_s[-1])
             return events
-        events += self._watch_rate(prev_t_s, t_k)
-        return events + self._temperature_range(good) + self._run(self.detection, good)
+        return events + self._chain(good, prev_t_s)
 
     def joins(self, prev: SampleBatch | None, batch: SampleBatch) -> bool:
         """Whether ``batch`` may join one batch with the frames before it (``prev``: the last of them; None: the first).
@@ -766,6 +813,11 @@ class ImuPipeline:
             "accumulator": None if det is None else det.accumulator.state_dict(),
             "gate": None if det is None else det.gate.state_dict(),
             "counters": dict(self.counters),
+            "rate_watch": {
+                "steps_s": self._rate_steps_s[: self._rate_fill].tolist(),
+                "off": self._rate_off,
+                "changed_from_hz": self.rate_changed_from_hz,
+            },
             "checks": {
                 t.value: {
                     "since_t_s": None if math.isinf(c.since_t_s) else c.since_t_s,
@@ -829,6 +881,16 @@ class ImuPipeline:
                 state["validity"], limits=self.options.validity
             )
             self.counters = {str(k): int(v) for k, v in state["counters"].items()}
+            # Absent from checkpoints written before the rate watch: a block starts afresh.
+            watch = state.get("rate_watch") or {"steps_s": [], "off": 0, "changed_from_hz": None}
+            steps_s = np.asarray(watch["steps_s"], dtype=float).reshape(-1)[
+                : RATE_CHECK_SAMPLES - 1
+            ]
+            self._rate_steps_s[: steps_s.size] = steps_s
+            self._rate_fill = int(steps_s.size)
+            self._rate_off = int(watch["off"])
+            changed = watch["changed_from_hz"]
+            self.rate_changed_from_hz = None if changed is None else float(changed)
             for name, cs in state["checks"].items():
                 check = self.checks.get(Triad(name))
                 if check is None:

@@ -42,10 +42,12 @@ RECOVERED_SEVERITY = Severity.INFO
 RATE_PROBE_SAMPLES = 16
 """Samples collected before the sample rate (which sets the static detector's window) is measured."""
 RATE_CHECK_SAMPLES = 128
-"""Sample steps in one block of the rate watch: after the probe, the median step of each block is the
-stream's rate again (a burst at another spacing, or a rate changed in flight, sized the detector wrong)."""
-RATE_CHECK_BLOCKS = 2
-"""Blocks in a row whose rate is off by more than :data:`RATE_CHECK_TOLERANCE` before the detector is re-sized."""
+"""Sample steps in one block of the rate watch: after the probe, each block's typical step
+(:func:`estimators.stream_validity.typical_step_s`) is the stream's rate again (a burst at another
+spacing, or a rate changed in flight, sized the detector wrong)."""
+RATE_CHECK_BLOCKS = 4
+"""Blocks in a row whose rate is off by more than :data:`RATE_CHECK_TOLERANCE` before the detector is
+re-sized: 512 samples, so a burst of a few hundred samples stamped closer does not re-size it twice."""
 RATE_CHECK_TOLERANCE = 0.25
 """Relative difference between a block's rate and the detector's beyond which the block is off."""
 TIME_JUMP_PERIODS = 10
