@@ -591,8 +591,9 @@ class LinkCounters:
     buffer was full, the reader behind its input (:class:`KernelDrops`; 0 on other links)."""
     rejected: dict[str, int] = field(default_factory=dict)
     signing_rewound: int = 0
-    """Signed streams whose replay window a key holder had pushed more than a minute beyond this
-    host's clock, followed again from a packet stamped near it (:func:`keep_replay_window`)."""
+    """Signed packets that brought back a replay window which had jumped ahead by more than a
+    minute (a key holder's packet stamped ahead), or that a jump of the newest stamp had made a
+    new stream too old to accept (:func:`keep_replay_window`)."""
     alerts_sent: int = 0
     texts_sent: int = 0
     heartbeats_sent: int = 0
@@ -1052,22 +1053,16 @@ def _read_again(mav: mavlink2.MAVLink, bad: MavlinkMessage) -> None:
         mav.buf_index = 0
 
 
-SIGNING_EPOCH_UNIX_S = 1_420_070_400
-"""MAVLink 2 signing time stamps count 10 µs units from 2015-01-01 00:00 UTC."""
 SIGNING_WINDOW = 6_000_000
-"""One minute in signing units: the MAVLink signing rules' window for a new stream's time stamp."""
-
-
-def signing_now() -> int:
-    """This host's clock as a MAVLink 2 signing time stamp (10 µs units since :data:`SIGNING_EPOCH_UNIX_S`)."""
-    return int((time.time() - SIGNING_EPOCH_UNIX_S) * 100_000)
+"""One minute in signing units (10 µs): the MAVLink signing rules' window for a new stream's time
+stamp, and the step forward beyond which a stream's time stamp is taken as a jump."""
 
 
 def keep_replay_window(
     mav: mavlink2.MAVLink, on_rewound: Callable[[], None] = lambda: None
 ) -> None:
-    """Only a packet whose signature verifies moves its stream's replay window, and a window that a
-    key holder pushed beyond this host's clock comes back to it.
+    """Only a packet whose signature verifies moves its stream's replay window, and a window that
+    jumped ahead comes back to the stream's packets after it.
 
     pymavlink (2.4.50) records a signed packet's time stamp for its (link id, system,
     component) before it compares the signature: one forged packet with a time stamp far
@@ -1077,16 +1072,23 @@ def keep_replay_window(
     A validly signed packet stamped far ahead (an autopilot whose clock stepped back after
     it) locked its stream out until the daemon restarted, and every new stream too (pymavlink
     refuses a new stream more than a minute behind the newest stamp it has seen). When a
-    stream's window, or for a new stream that newest stamp, is more than
-    :data:`SIGNING_WINDOW` ahead of this host's clock, a packet that fails only as old and is
-    stamped within that window of the clock is checked again by pymavlink as the start of a
-    new stream; passing, it rewinds the window (``on_rewound`` is called). A replay is
-    accepted this way only while a key holder has pushed the window ahead, and only of a
-    packet stamped within a minute of now.
+    stream's window, or that newest stamp, stepped forward by more than
+    :data:`SIGNING_WINDOW` in one packet, the stamps before and after the jump are remembered;
+    a packet that then fails only as old but is stamped between them is checked again by
+    pymavlink as following the stamp before, and passing, rewinds the window (``on_rewound``
+    is called). No packet accepted so far was stamped between them, so none can be replayed
+    this way; and the clocks of this host and the vehicle play no part (a vehicle whose clock
+    runs ahead of this host's is followed as before). A new stream refused as more than a
+    minute older than the newest stamp is checked against the newest stamp before its last
+    jump instead. The link's own signing stamp is never moved back (a sending thread signs
+    with it).
     """
     check = mav.check_signature
     signing = mav.signing
     stamps = signing.stream_timestamps
+    # Per stream, the stamps around its first jump not yet brought back: (before, landed at).
+    jumps: dict[tuple[int, int, int], tuple[int, int]] = {}
+    newest_before_jump: list[int] = []
 
     def restore(key: tuple[int, int, int], before: int | None) -> None:
         if before is None:
@@ -1096,26 +1098,34 @@ def keep_replay_window(
 
     def checked(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
         key = (msgbuf[-13], src_system, src_component)
-        before = stamps.get(key)
+        before, newest = stamps.get(key), signing.timestamp
         if check(msgbuf, src_system, src_component):
+            if before is not None and stamps[key] - before > SIGNING_WINDOW:
+                jumps.setdefault(key, (before, stamps[key]))
+            if signing.timestamp - newest > SIGNING_WINDOW:
+                newest_before_jump[:] = [newest]
             return True
         restore(key, before)
-        now = signing_now()
-        window = signing.timestamp if before is None else before
         stamp = int.from_bytes(msgbuf[-12:-6], "little")
-        if window <= now + SIGNING_WINDOW or abs(stamp - now) > SIGNING_WINDOW:
-            return False
-        ours = signing.timestamp
-        stamps.pop(key, None)
-        signing.timestamp = now
-        ok = bool(check(msgbuf, src_system, src_component))
-        # Our own packets' stamps must not go back: the vehicle keeps a window for them too.
-        signing.timestamp = max(ours, signing.timestamp)
-        if ok:
-            on_rewound()
+        if before is not None:
+            # An existing stream: between its stamps before and after the jump, which no packet
+            # accepted so far was signed with.
+            jump = jumps.get(key)
+            if jump is None or not jump[0] < stamp < jump[1]:
+                return False
+            floor = jump[0]
+        elif not newest_before_jump or stamp + SIGNING_WINDOW < newest_before_jump[0]:
+            return False  # a new stream too old even against the newest stamp before the jump
         else:
+            floor = stamp - 1
+        # pymavlink checks it as the continuation of a stream whose window is ``floor``.
+        stamps[key] = floor
+        if not check(msgbuf, src_system, src_component):
             restore(key, before)
-        return ok
+            return False
+        jumps.pop(key, None)
+        on_rewound()
+        return True
 
     mav.check_signature = checked
 
@@ -1251,9 +1261,9 @@ class MavlinkSource(BatchSource):
         new = self._rewound_log.due({"signing_rewound": total} if total else {})
         if new:
             _log.warning(
-                "mavlink %s: %d signed stream(s) had been stamped more than a minute ahead of this "
-                "host's clock by a key holder and are followed again from packets stamped near it "
-                "(service.mavlink.signing_rewound; %d in all): look at the autopilot's clock",
+                "mavlink %s: %d signed stream(s) had jumped more than a minute ahead (a packet signed "
+                "with the key and stamped ahead) and are followed again from their packets after the "
+                "jump (service.mavlink.signing_rewound; %d in all): look at the autopilot's clock",
                 self.link.settings.device,
                 new["signing_rewound"],
                 total,

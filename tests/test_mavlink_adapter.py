@@ -798,12 +798,15 @@ def test_a_datagram_of_start_bytes_is_read_again_only_a_bounded_number_of_times(
     assert 0.9 * frames < link.counters.rejected["malformed"] <= frames + REREADS_MAX < 1.2 * frames
 
 
-def test_a_stream_stamped_ahead_by_a_key_holder_is_followed_again_near_this_hosts_clock():
+def test_a_stream_that_jumped_ahead_is_followed_again_and_no_packet_can_be_replayed():
     """One packet signed with the right key and stamped a day ahead (an autopilot whose clock stepped
-    back after it): pymavlink took that stamp as the stream's window and refused every later packet as
-    old, until the daemon restarted. A packet stamped within a minute of this host's clock is checked
-    again as the start of a new stream and rewinds the window (counted); one stamped an hour behind the
-    clock, or signed with another key, is still refused."""
+    back after it): pymavlink took that stamp as the stream's window and refused every later packet
+    as old, until the daemon restarted. A packet stamped between the stamps before and after the jump
+    (no packet accepted so far was) is checked again as following the stamp before it, and rewinds
+    the window (counted); a new stream that the jump made look too old is admitted (counted). Refused
+    still: a packet stamped before the jump, one signed with another key, a replay of a packet already
+    read, before and after a genuine jump forward, and a replay of a packet a vehicle whose clock runs
+    ahead of this host's signed minutes ago (now stamped near this host's clock)."""
     with MavlinkLink(
         MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", signing_key=KEY)
     ) as link:
@@ -814,13 +817,35 @@ def test_a_stream_stamped_ahead_by_a_key_holder_is_followed_again_near_this_host
         ahead.setup_signing(KEY, link_id=1, initial_timestamp=now + 86_400 * 100_000)
         behind.setup_signing(KEY, link_id=1, initial_timestamp=now - 3_600 * 100_000)
         forger.setup_signing(bytes(reversed(KEY)), link_id=1, initial_timestamp=now + 100)
-        for k, peer in enumerate((autopilot, ahead, behind, forger, autopilot, autopilot)):
-            peer.mav.send(
-                imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + k, accel_mps2=ACC, gyro_rps=GYR)
-            )
-        got = _read(link, 4)
-        for peer in (autopilot, ahead, behind, forger):
+
+        def packet(peer, t_s):
+            msg = imu_message(ImuMessage.SCALED_IMU, t_s=t_s, accel_mps2=ACC, gyro_rps=GYR)
+            return msg.pack(peer.mav)
+
+        read_once = packet(autopilot, 1.0)
+        sent = [read_once, packet(ahead, 2.0), packet(behind, 3.0), packet(forger, 4.0)]
+        after = packet(autopilot, 5.0)
+        sent += [after, packet(autopilot, 6.0), after, read_once]
+        # The vehicle's clock steps forward 10 min (a GPS fix): followed; replaying a packet from
+        # after the step once the window is past it is refused.
+        autopilot.mav.signing.timestamp += 600 * 100_000
+        forward = packet(autopilot, 7.0)
+        sent += [forward, packet(autopilot, 8.0), forward]
+        # Another vehicle's clock runs 5 min ahead of this host's: a packet it signed 5 min ago
+        # (recorded by a listener) is stamped near this host's clock, and is still a replay.
+        clock_ahead, earlier = _peer(port), _peer(port)
+        clock_ahead.setup_signing(KEY, link_id=2, initial_timestamp=now + 300 * 100_000)
+        earlier.setup_signing(KEY, link_id=2, initial_timestamp=now)
+        recorded = packet(earlier, 10.0)
+        sent += [packet(clock_ahead, 9.0), recorded]
+        for datagram in sent:
+            autopilot.write(datagram)
+        got = _read(link, 7)
+        time.sleep(0.2)
+        got += link.read(0.1)
+        for peer in (autopilot, ahead, behind, forger, clock_ahead, earlier):
             peer.close()
-    assert [t for b in got for t in b.t_s] == [1.0, 2.0, 5.0, 6.0]
-    assert link.counters.rejected == {"bad_signature": 2}
-    assert link.counters.signing_rewound == 1
+    assert [t for b in got for t in b.t_s] == [1.0, 2.0, 5.0, 6.0, 7.0, 8.0, 9.0]
+    assert link.counters.rejected == {"bad_signature": 6}
+    # Stream 1 brought back, and stream 2 admitted although the day-ahead stamp had made it "old".
+    assert link.counters.signing_rewound == 2
