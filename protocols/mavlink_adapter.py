@@ -559,9 +559,7 @@ class LinkRejection(StrEnum):
     """
 
     GARBAGE_BYTES = "garbage_bytes"
-    """Bytes outside any packet: no start marker, or a packet cut short at the end of a datagram (counts
-    bytes). The bytes of a refused frame after its start byte are searched again for packets
-    (:func:`parse_all`), so those of a packet with a bad CRC are counted here too."""
+    """Bytes outside any packet: no start marker, or a packet cut short at the end of a datagram (counts bytes)."""
     BAD_CRC = "bad_crc"
     """Packets whose checksum (CRC-16/MCRF4XX with the message's CRC_EXTRA) does not match."""
     MALFORMED = "malformed"
@@ -770,9 +768,10 @@ READ_BYTES = 65_536
 READ_SAMPLES_MAX = 4_096
 """IMU messages read before :meth:`MavlinkLink.read` returns even if more are waiting (bounds one call's work)."""
 REREADS_MAX = 8
-"""Refused frames read again from their second byte per read of the connection (:func:`parse_all`).
-Junk before good packets costs one or two; the bound keeps a datagram of start bytes (each re-read
-slices and checks a frame of up to 280 bytes) from costing the reader 0.4 s instead of 2 ms."""
+"""Start bytes inside refused frames tried as the start of a packet per read of the connection
+(:func:`parse_all`, and the bytes left incomplete at a datagram's end). Junk before good packets
+costs one or two; the bound keeps a datagram of start bytes (each try decodes a frame of up to
+280 bytes) from costing the reader 0.4 s instead of 2 ms."""
 DROPS_PERIOD_S = 1.0
 """A UDP link reads its socket's kernel drops at most this often (:class:`KernelDrops`)."""
 LOG_PERIOD_S = 10.0
@@ -1011,23 +1010,31 @@ def parse_all(
     without its last call, made on an empty buffer, that can only say "no more" (one message per UDP
     datagram: one call instead of two, about 1 µs of the 10 µs a message costs).
 
-    Up to ``rereads`` frames that fail their check are read again from their second byte
-    (:func:`_read_again`); returns the messages and the re-reads left.
+    A frame that fails its check, or of a message the dialect does not know, is read again from
+    a start byte inside it where a whole packet starts (:func:`_read_again`), up to ``rereads``
+    start bytes tried in all; returns the messages and the re-reads left.
     """
     msg = mav.parse_char(data)
     if msg is None:
         return [], rereads
     out = [msg]
     while True:
-        if msg.__class__ is _BAD_DATA and rereads > 0 and _false_start(msg):
-            rereads -= 1
-            _read_again(mav, msg)
+        kind = msg.__class__
+        if rereads > 0 and (kind is _UNKNOWN or (kind is _BAD_DATA and _false_start(msg))):
+            frame = bytes(msg.get_msgbuf() if kind is _UNKNOWN else msg.data)
+            swallowed_only = kind is _BAD_DATA and _genuine_header(frame)
+            tried, resumed = _read_again(mav, frame, rereads, swallowed_only=swallowed_only)
+            rereads -= tried
+            if kind is _UNKNOWN and resumed is not None:
+                # Not a message but junk before a packet: counted as garbage, as junk is.
+                out[-1] = _BAD_DATA(frame[:resumed], "Bad prefix")
         if mav.buf_len() <= 0 or (msg := mav.parse_char(b"")) is None:
             return out, rereads
         out.append(msg)
 
 
 _BAD_DATA = mavlink2.MAVLink_bad_data
+_UNKNOWN = mavlink2.MAVLink_unknown
 
 
 def _false_start(bad: MavlinkMessage) -> bool:
@@ -1037,20 +1044,84 @@ def _false_start(bad: MavlinkMessage) -> bool:
     return reason != "Bad prefix" and reason != "Invalid signature"
 
 
-def _read_again(mav: mavlink2.MAVLink, bad: MavlinkMessage) -> None:
-    """Put the bytes of the refused frame ``bad`` after its start byte back before the parser's buffer.
+_START_BYTES = (mavlink2.PROTOCOL_MARKER_V1, mavlink2.PROTOCOL_MARKER_V2)
 
-    pymavlink takes the byte after a start byte as the frame's length and drops that many
-    bytes when the check fails: a stray 0xFD, or a packet cut short, before good packets lost
-    those packets. The C library's parser, too, looks for the next start byte after the
-    failed one.
+
+def _genuine_header(frame: bytes) -> bool:
+    """Whether a refused frame's header is a real packet's: a message id of the dialect and a payload
+    no longer than that message's (a packet hit by bit errors or short of bytes, not a stray start
+    byte, whose "header" is whatever bytes followed it)."""
+    if frame[0] == mavlink2.PROTOCOL_MARKER_V2 and len(frame) >= mavlink2.HEADER_LEN_V2:
+        msg_id = int.from_bytes(frame[7:10], "little")
+    elif frame[0] == mavlink2.PROTOCOL_MARKER_V1 and len(frame) >= mavlink2.HEADER_LEN_V1:
+        msg_id = frame[5]
+    else:
+        return False
+    kind = mavlink2.mavlink_map.get(msg_id)
+    return kind is not None and 0 < frame[1] <= kind.unpacker.size
+
+
+_HEADER_V1: int = mavlink2.HEADER_LEN_V1
+_HEADER_V2: int = mavlink2.HEADER_LEN_V2
+_SIGNATURE_BYTES: int = mavlink2.MAVLINK_SIGNATURE_BLOCK_LEN
+_FRAME_MAX_BYTES = _HEADER_V2 + 255 + 2 + _SIGNATURE_BYTES
+
+
+def _frame_bytes(buf: bytes) -> int:
+    """The length of the frame a start byte at ``buf[0]`` announces (its header's length byte and,
+    for MAVLink 2, signature flag); a frame whose header is not all there counts as long."""
+    if len(buf) < 3:
+        return _FRAME_MAX_BYTES
+    if buf[0] == mavlink2.PROTOCOL_MARKER_V1:
+        return _HEADER_V1 + 2 + buf[1]
+    signed = _SIGNATURE_BYTES if buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED else 0
+    return _HEADER_V2 + 2 + buf[1] + signed
+
+
+def _read_again(
+    mav: mavlink2.MAVLink, frame: bytes, budget: int, *, swallowed_only: bool
+) -> tuple[int, int | None]:
+    """Resume parsing inside ``frame``, the last frame pymavlink consumed, where a whole packet starts;
+    returns the start bytes tried (at most ``budget``) and where in ``frame`` parsing resumes (None:
+    nowhere, the frame stays consumed).
+
+    pymavlink takes the byte after a start byte as the frame's length and consumes that many
+    bytes: when the frame fails its check, or carries a message id the dialect does not know
+    (then nothing is checked), the good packets in them are lost: after a stray 0xFD, or a
+    packet cut short. The parser is put back to the first start byte inside the frame from
+    which a message of the dialect decodes with its CRC (tried on a parser of its own, without
+    signing: the link's parser checks the signature when it reads it). A start byte inside the
+    payload of a packet hit by a bit error starts no such message: that frame is dropped
+    whole, as before, and the packets after it are read. With ``swallowed_only`` (a refused
+    frame whose header is a real one, :func:`_genuine_header`) only a packet reaching past the
+    frame's end is taken, one the frame swallowed: a packet whole inside it is payload (a .tlog
+    downloaded by FILE_TRANSFER_PROTOCOL). A frame of an unknown message is more likely junk
+    after a stray start byte (a v1 header's one-byte id is often one the dialect lacks) than a
+    carrier: any packet inside it is taken.
     """
-    n = len(bad.data) - 1
-    if mav.buf_index > n:
-        mav.buf_index -= n
-    else:  # the frame was the buffer's last bytes: pymavlink has emptied it
-        mav.buf = bytearray(bad.data[1:]) + mav.buf[mav.buf_index :]
-        mav.buf_index = 0
+    emptied = mav.buf_len() <= 0
+    rest = b"" if emptied else bytes(mav.buf[mav.buf_index : mav.buf_index + _FRAME_MAX_BYTES])
+    tried = 0
+    for j in range(1, len(frame)):
+        if frame[j] not in _START_BYTES:
+            continue
+        if swallowed_only and j + _frame_bytes(frame[j:] + rest[:3]) <= len(frame):
+            continue
+        if tried == budget:
+            break
+        tried += 1
+        probe = mavlink2.MAVLink(None)
+        probe.robust_parsing = True
+        msg = probe.parse_char(frame[j:] + rest)
+        if msg is None or isinstance(msg, (mavlink2.MAVLink_bad_data, mavlink2.MAVLink_unknown)):
+            continue
+        if emptied:
+            mav.buf = bytearray(frame[j:])
+            mav.buf_index = 0
+        else:
+            mav.buf_index -= len(frame) - j
+        return tried, j
+    return tried, None
 
 
 SIGNING_WINDOW = 6_000_000

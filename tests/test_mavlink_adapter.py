@@ -692,20 +692,27 @@ def test_refused_bytes_are_counted_by_reason_and_cost_no_good_packet():
         got = _read(link, 4)
         peer.close()
     assert [t for b in got for t in b.t_s] == pytest.approx([1.0, 1.01, 1.02, 1.03])
-    # The broken packet's bytes after its start byte are searched again for packets: garbage too.
-    garbage_bytes = len(garbage) + len(cut) + len(broken) - 1
-    assert link.counters.rejected == {"garbage_bytes": garbage_bytes, "bad_crc": 1}
+    assert link.counters.rejected == {"garbage_bytes": len(garbage) + len(cut), "bad_crc": 1}
 
 
 @pytest.mark.parametrize(
     "junk",
-    [b"\xfd", b"\xfe", b"\x00\xfd\x01", "cut", "broken"],
-    ids=["stray-v2-start", "stray-v1-start", "junk-around-a-start", "cut-packet", "length-hit"],
+    [b"\xfd", b"\xfe", b"\x00\xfd\x01", "cut", "broken", b"\xfe\x39\x00\x01\x01\x0f"],
+    ids=[
+        "stray-v2-start",
+        "stray-v1-start",
+        "junk-around-a-start",
+        "cut-packet",
+        "length-hit",
+        "unknown-message-header",
+    ],
 )
 def test_junk_at_the_start_of_a_datagram_costs_no_good_packet_after_it(junk):
     """pymavlink read the byte after a stray start byte as a length and dropped that many bytes: the
-    good packets after it in the datagram were lost, counted only as garbage. The frame that fails is
-    read again from its second byte, so every good packet after the junk is read."""
+    good packets after it in the datagram were lost, counted only as garbage (or, after the header of
+    a message id the dialect does not know, decoded unchecked as that message). The frame is read
+    again from the start byte inside it where a whole packet begins, so every good packet after the
+    junk is read."""
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
     good = [
         imu_message(ImuMessage.SCALED_IMU, t_s=1.0 + 0.01 * k, accel_mps2=ACC, gyro_rps=GYR).pack(
@@ -849,3 +856,28 @@ def test_a_stream_that_jumped_ahead_is_followed_again_and_no_packet_can_be_repla
     assert link.counters.rejected == {"bad_signature": 6}
     # Stream 1 brought back, and stream 2 admitted although the day-ahead stamp had made it "old".
     assert link.counters.signing_rewound == 2
+
+
+def test_a_packet_hit_by_a_bit_error_costs_only_itself():
+    """A packet whose payload was damaged so that it holds a start byte and the header of a message the
+    dialect does not know (159): read again from that start byte, pymavlink decoded the unknown id
+    without a CRC and its length swallowed the good packets after it. The frame is read again only
+    where a whole packet of the dialect decodes: here nowhere, so only the damaged packet is lost."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    packets = [
+        bytearray(
+            imu_message(
+                ImuMessage.HIGHRES_IMU, t_s=1.0 + 0.01 * k, accel_mps2=ACC, gyro_rps=GYR
+            ).pack(mav)
+        )
+        for k in range(5)
+    ]
+    assert 159 not in mavlink2.mavlink_map
+    packets[0][20:26] = bytes([mavlink2.PROTOCOL_MARKER_V1, 96, 0, 1, 1, 159])
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        peer.write(b"".join(bytes(p) for p in packets))
+        got = _read(link, 4)
+        peer.close()
+    assert [t for b in got for t in b.t_s] == pytest.approx([1.01, 1.02, 1.03, 1.04])
+    assert link.counters.rejected == {"bad_crc": 1}
