@@ -1328,29 +1328,29 @@ class MavlinkSource(BatchSource):
             )
 
     def _log_signing_rewound(self) -> None:
-        total = self.link.counters.signing_rewound
-        new = self._rewound_log.due({"signing_rewound": total} if total else {})
-        if new:
-            _log.warning(
-                "mavlink %s: %d signed stream(s) had jumped more than a minute ahead (a packet signed "
-                "with the key and stamped ahead) and are followed again from their packets after the "
-                "jump (service.mavlink.signing_rewound; %d in all): look at the autopilot's clock",
-                self.link.settings.device,
-                new["signing_rewound"],
-                total,
-            )
+        self._log_total(
+            self._rewound_log,
+            "signing_rewound",
+            "mavlink %s: %d signed stream(s) had jumped more than a minute ahead (a packet signed "
+            "with the key and stamped ahead) and are followed again from their packets after the "
+            "jump (service.mavlink.signing_rewound; %d in all): look at the autopilot's clock",
+        )
 
     def _log_kernel_drops(self) -> None:
-        total = self.link.counters.dropped_kernel
-        new = self._drops_log.due({"dropped_kernel": total} if total else {})
+        self._log_total(
+            self._drops_log,
+            "dropped_kernel",
+            "mavlink %s: the kernel dropped %d datagrams (%d in all): the socket's receive buffer "
+            "was full, the reader is behind its input (service.mavlink.dropped_kernel)",
+        )
+
+    def _log_total(self, rate: _LogRate, counter: str, text: str) -> None:
+        """Log ``text`` (device, count since the last line, total) when the link's ``counter`` grew
+        and ``rate`` says a line is due."""
+        total = getattr(self.link.counters, counter)
+        new = rate.due({counter: total} if total else {})
         if new:
-            _log.warning(
-                "mavlink %s: the kernel dropped %d datagrams (%d in all): the socket's receive buffer "
-                "was full, the reader is behind its input (service.mavlink.dropped_kernel)",
-                self.link.settings.device,
-                new["dropped_kernel"],
-                total,
-            )
+            _log.warning(text, self.link.settings.device, new[counter], total)
 
     @property
     def dropped_overload(self) -> int:
