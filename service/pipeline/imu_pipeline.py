@@ -271,12 +271,8 @@ class ImuPipeline:
         if problem is not None:
             if not self._restarted(batch):
                 self._count(problem)
-                # Dated by the refused samples themselves: after one frame stamped ahead, the last
-                # accepted time is that future time, and the episode it starts would carry it.
-                t_s = batch.t_s[np.isfinite(batch.t_s)]
                 return events + self._validity_events(
-                    self.validity.record_rejected(batch.n_samples),
-                    float(t_s.max()) if t_s.size else (self.last_t_s or 0.0),
+                    self.validity.record_rejected(batch.n_samples), self.last_t_s or 0.0
                 )
             events += self._source_restart()
             keep = self._ordered(batch, usable)  # against the new stream: no sample before it
