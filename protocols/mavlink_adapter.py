@@ -588,10 +588,9 @@ class LinkCounters:
     """Datagrams the kernel dropped at a UDP link's socket before they were read: its receive
     buffer was full, the reader behind its input (:class:`KernelDrops`; 0 on other links)."""
     rejected: dict[str, int] = field(default_factory=dict)
-    signing_rewound: int = 0
-    """Signed packets that brought back a replay window which had jumped ahead by more than a
-    minute (a key holder's packet stamped ahead), or that a jump of the newest stamp had made a
-    new stream too old to accept (:func:`keep_replay_window`)."""
+    signing_stale: int = 0
+    """IMU and other packets signed with the key but refused for their time stamp (counted in
+    ``rejected`` too): replays, or an autopilot whose clock went back (:func:`keep_replay_window`)."""
     alerts_sent: int = 0
     texts_sent: int = 0
     heartbeats_sent: int = 0
@@ -821,7 +820,7 @@ class MavlinkLink:
                 if settings.accept_unsigned
                 else (lambda mav, msg_id: msg_id not in imu_ids),
             )
-            keep_replay_window(self._conn.mav, self._signing_rewound)
+            keep_replay_window(self._conn.mav, self._signing_stale)
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
         self.udp_rcvbuf_granted_bytes: int | None = None
         """The receive buffer the kernel granted a UDP link (at most ``net.core.rmem_max``); None on others."""
@@ -908,8 +907,8 @@ class MavlinkLink:
         mav.buf_index = 0
         mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
 
-    def _signing_rewound(self) -> None:
-        self.counters.signing_rewound += 1
+    def _signing_stale(self) -> None:
+        self.counters.signing_stale += 1
 
     def send(self, msg: MavlinkMessage) -> None:
         """Send a message built by one of the typed builders (signed if signing is configured)."""
@@ -1124,42 +1123,31 @@ def _read_again(
     return tried, None
 
 
-SIGNING_WINDOW = 6_000_000
-"""One minute in signing units (10 µs): the MAVLink signing rules' window for a new stream's time
-stamp, and the step forward beyond which a stream's time stamp is taken as a jump."""
+NEW_STREAM_WINDOW = 6_000_000
+"""pymavlink's rule: a new signed stream is refused when stamped more than this (one minute, in the
+signing stamp's 10 µs units) before the newest stamp seen."""
 
 
-def keep_replay_window(
-    mav: mavlink2.MAVLink, on_rewound: Callable[[], None] = lambda: None
-) -> None:
-    """Only a packet whose signature verifies moves its stream's replay window, and a window that
-    jumped ahead comes back to the stream's packets after it.
+def keep_replay_window(mav: mavlink2.MAVLink, on_stale: Callable[[], None] = lambda: None) -> None:
+    """Only a packet whose signature verifies moves its stream's replay window; a packet signed with
+    the key but refused as old is told apart from a forged one.
 
     pymavlink (2.4.50) records a signed packet's time stamp for its (link id, system,
     component) before it compares the signature: one forged packet with a time stamp far
     ahead made every later genuine packet of that stream fail as old. The check stays
     pymavlink's; a failed one only has the stream's previous time stamp put back.
 
-    A validly signed packet stamped far ahead (an autopilot whose clock stepped back after
-    it) locked its stream out until the daemon restarted, and every new stream too (pymavlink
-    refuses a new stream more than a minute behind the newest stamp it has seen). When a
-    stream's window, or that newest stamp, stepped forward by more than
-    :data:`SIGNING_WINDOW` in one packet, the stamps before and after the jump are remembered;
-    a packet that then fails only as old but is stamped between them is checked again by
-    pymavlink as following the stamp before, and passing, rewinds the window (``on_rewound``
-    is called). No packet accepted so far was stamped between them, so none can be replayed
-    this way; and the clocks of this host and the vehicle play no part (a vehicle whose clock
-    runs ahead of this host's is followed as before). A new stream refused as more than a
-    minute older than the newest stamp is checked against the newest stamp before its last
-    jump instead. The link's own signing stamp is never moved back (a sending thread signs
-    with it).
+    A packet refused for its time stamp (not newer than its stream's window, or a new stream
+    more than a minute older than the newest stamp seen) is checked once more by pymavlink as
+    if its stream's window were just below it, and the window put back whatever the answer:
+    when the signature verifies, ``on_stale`` is called. Such packets are replays, or come from
+    an autopilot whose clock went back after a packet stamped ahead: that stream stays refused
+    until its stamps pass the window (or the daemon restarts), and the count says why. Bringing
+    the window back was tried and dropped: whatever rule does it lets some recorded packets be
+    replayed (those sent during a reception gap, or accepted before a clock went back).
     """
     check = mav.check_signature
-    signing = mav.signing
-    stamps = signing.stream_timestamps
-    # Per stream, the stamps around its first jump not yet brought back: (before, landed at).
-    jumps: dict[tuple[int, int, int], tuple[int, int]] = {}
-    newest_before_jump: list[int] = []
+    stamps = mav.signing.stream_timestamps
 
     def restore(key: tuple[int, int, int], before: int | None) -> None:
         if before is None:
@@ -1169,34 +1157,22 @@ def keep_replay_window(
 
     def checked(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
         key = (msgbuf[-13], src_system, src_component)
-        before, newest = stamps.get(key), signing.timestamp
+        before = stamps.get(key)
         if check(msgbuf, src_system, src_component):
-            if before is not None and stamps[key] - before > SIGNING_WINDOW:
-                jumps.setdefault(key, (before, stamps[key]))
-            if signing.timestamp - newest > SIGNING_WINDOW:
-                newest_before_jump[:] = [newest]
             return True
         restore(key, before)
         stamp = int.from_bytes(msgbuf[-12:-6], "little")
         if before is not None:
-            # An existing stream: between its stamps before and after the jump, which no packet
-            # accepted so far was signed with.
-            jump = jumps.get(key)
-            if jump is None or not jump[0] < stamp < jump[1]:
-                return False
-            floor = jump[0]
-        elif not newest_before_jump or stamp + SIGNING_WINDOW < newest_before_jump[0]:
-            return False  # a new stream too old even against the newest stamp before the jump
+            old = stamp <= before
         else:
-            floor = stamp - 1
-        # pymavlink checks it as the continuation of a stream whose window is ``floor``.
-        stamps[key] = floor
-        if not check(msgbuf, src_system, src_component):
+            old = stamp + NEW_STREAM_WINDOW < mav.signing.timestamp
+        if old:
+            stamps[key] = stamp - 1
+            signed_with_key = check(msgbuf, src_system, src_component)
             restore(key, before)
-            return False
-        jumps.pop(key, None)
-        on_rewound()
-        return True
+            if signed_with_key:
+                on_stale()
+        return False
 
     mav.check_signature = checked
 
@@ -1294,7 +1270,7 @@ class MavlinkSource(BatchSource):
         self.last_failure: Exception | None = None
         self._rejections_log = _LogRate()
         self._drops_log = _LogRate()
-        self._rewound_log = _LogRate()
+        self._stale_log = _LogRate()
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
         )
@@ -1316,7 +1292,7 @@ class MavlinkSource(BatchSource):
                 self._ring.put(batch)
             self._log_rejections()
             self._log_kernel_drops()
-            self._log_signing_rewound()
+            self._log_signing_stale()
 
     def _log_rejections(self) -> None:
         new = self._rejections_log.due(dict(self.link.counters.rejected))
@@ -1327,13 +1303,14 @@ class MavlinkSource(BatchSource):
                 ", ".join(f"{n} {k}" for k, n in sorted(new.items())),
             )
 
-    def _log_signing_rewound(self) -> None:
+    def _log_signing_stale(self) -> None:
         self._log_total(
-            self._rewound_log,
-            "signing_rewound",
-            "mavlink %s: %d signed stream(s) had jumped more than a minute ahead (a packet signed "
-            "with the key and stamped ahead) and are followed again from their packets after the "
-            "jump (service.mavlink.signing_rewound; %d in all): look at the autopilot's clock",
+            self._stale_log,
+            "signing_stale",
+            "mavlink %s: %d packet(s) signed with the key were refused as older than their stream's "
+            "window (service.mavlink.signing_stale; %d in all): replays, or an autopilot clock that "
+            "went back after a packet stamped ahead; such a stream stays refused until its stamps "
+            "pass the window or this daemon restarts",
         )
 
     def _log_kernel_drops(self) -> None:

@@ -518,7 +518,7 @@ class Service:
             extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
             extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
             extra["service.mavlink.dropped_kernel"] = link.dropped_kernel
-            extra["service.mavlink.signing_rewound"] = link.signing_rewound
+            extra["service.mavlink.signing_stale"] = link.signing_stale
             extra["service.mavlink.reader_failures"] = self.mavlink_source.failures
             if isinstance(self.mavlink_sink.link, MavlinkProcessLink):
                 extra["service.mavlink.reader_restarts"] = self.mavlink_sink.link.restarts

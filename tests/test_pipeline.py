@@ -837,3 +837,44 @@ def test_a_vehicles_checkpoint_holds_its_changed_units_and_its_cross_imu_state()
     units, cross = fleet.checkpoint_states(V, {i for _, i in keys})
     assert list(units) == [f"{V}/1"] and cross is not None
     assert list(fleet.checkpoint_states(V)[0]) == [f"{V}/0", f"{V}/1"]
+
+
+@pytest.mark.parametrize(
+    "watch",
+    [
+        {"steps_s": [0.0] * 100, "off": 0, "changed_from_hz": None},
+        {"steps_s": [float("nan")] * 3, "off": 0, "changed_from_hz": None},
+        {"steps_s": [0.005] * 500, "off": 0, "changed_from_hz": None},
+        {"steps_s": [[0.005, 0.005]], "off": 0, "changed_from_hz": None},
+        {"steps_s": [], "off": -1000, "changed_from_hz": None},
+        {"steps_s": [], "off": float("inf"), "changed_from_hz": None},
+        {"steps_s": [], "off": 0, "changed_from_hz": float("nan")},
+        {"steps_s": [], "off": 0, "changed_from_hz": -5.0},
+        {"steps_s": [], "off": 0},
+    ],
+    ids=[
+        "zero-steps",
+        "nan-steps",
+        "too-many",
+        "nested",
+        "negative-count",
+        "inf-count",
+        "nan-rate",
+        "negative-rate",
+        "missing-key",
+    ],  # fmt: skip
+)
+def test_a_checkpoint_with_a_rate_watch_it_never_holds_is_refused(watch):
+    """Loaded, 100 zero steps divided by zero at the next block (the unit started afresh and raised F0
+    again, F6 never), and a count of -1000 never re-sized: such a state is a ValueError, as any other
+    unusable checkpoint (the fleet then starts the unit fresh and counts it)."""
+    passport, g = calibrated()
+    frames = list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=10))
+    pipe = ImuPipeline(V, 0, passport=passport, options=options(g))
+    for b in frames[:500]:
+        pipe.process(b, arrival_s=0.0)
+    state = decode_state(encode_state(pipe.state_dict()))
+    ImuPipeline(V, 0, passport=passport, options=options(g)).load_state(state)
+    state["rate_watch"] = watch
+    with pytest.raises(ValueError, match=f"checkpoint of {V} IMU0"):
+        ImuPipeline(V, 0, passport=passport, options=options(g)).load_state(state)

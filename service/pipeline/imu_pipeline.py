@@ -830,6 +830,36 @@ class ImuPipeline:
             },
         }
 
+    def _load_rate_watch(self, watch: dict[str, Any]) -> None:
+        """The rate watch's progress from a checkpoint; ``ValueError`` for values it never holds (a
+        step that is not positive, a count of blocks outside ``0..RATE_CHECK_BLOCKS - 1``, a former
+        rate outside the validity limits): they would divide by zero or never re-size."""
+        steps_s = np.asarray(watch["steps_s"], dtype=float)
+        off, changed = watch["off"], watch["changed_from_hz"]
+        limits = self.options.validity
+        if (
+            steps_s.ndim != 1
+            or steps_s.size >= RATE_CHECK_SAMPLES
+            or not bool(np.all(np.isfinite(steps_s) & (steps_s > 0)))
+        ):
+            raise ValueError(
+                f"checkpoint of {self.vehicle} IMU{self.imu}: rate watch steps unusable"
+            )
+        if type(off) is not int or not 0 <= off < RATE_CHECK_BLOCKS:
+            raise ValueError(
+                f"checkpoint of {self.vehicle} IMU{self.imu}: rate watch count {off!r}"
+            )
+        if changed is not None and not (
+            type(changed) in (int, float) and limits.min_rate_hz <= changed <= limits.max_rate_hz
+        ):
+            raise ValueError(
+                f"checkpoint of {self.vehicle} IMU{self.imu}: former rate {changed!r} Hz"
+            )
+        self._rate_steps_s[: steps_s.size] = steps_s
+        self._rate_fill = int(steps_s.size)
+        self._rate_off = off
+        self.rate_changed_from_hz = None if changed is None else float(changed)
+
     def _passport_identity(self) -> str | None:
         """The passport a state was made against: its unit and date (None: stream checks only)."""
         p = self.passport
@@ -879,14 +909,7 @@ class ImuPipeline:
             self.counters = {str(k): int(v) for k, v in state["counters"].items()}
             # Absent from checkpoints written before the rate watch: a block starts afresh.
             watch = state.get("rate_watch") or {"steps_s": [], "off": 0, "changed_from_hz": None}
-            steps_s = np.asarray(watch["steps_s"], dtype=float).reshape(-1)[
-                : RATE_CHECK_SAMPLES - 1
-            ]
-            self._rate_steps_s[: steps_s.size] = steps_s
-            self._rate_fill = int(steps_s.size)
-            self._rate_off = int(watch["off"])
-            changed = watch["changed_from_hz"]
-            self.rate_changed_from_hz = None if changed is None else float(changed)
+            self._load_rate_watch(watch)
             for name, cs in state["checks"].items():
                 check = self.checks.get(Triad(name))
                 if check is None:
