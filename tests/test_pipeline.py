@@ -862,7 +862,7 @@ def test_a_vehicles_checkpoint_holds_its_changed_units_and_its_cross_imu_state()
         "nan-rate",
         "negative-rate",
         "missing-key",
-    ],  # fmt: skip
+    ],
 )
 def test_a_checkpoint_with_a_rate_watch_it_never_holds_is_refused(watch):
     """Loaded, 100 zero steps divided by zero at the next block (the unit started afresh and raised F0
