@@ -1021,7 +1021,13 @@ def parse_all(
         kind = msg.__class__
         if rereads > 0 and (kind is _UNKNOWN or (kind is _BAD_DATA and _false_start(msg))):
             frame = bytes(msg.get_msgbuf() if kind is _UNKNOWN else msg.data)
-            swallowed_only = kind is _BAD_DATA and _genuine_header(frame)
+            # A refused frame with a real header, or a MAVLink 2 message of another dialect (a stray
+            # start byte rarely makes valid flags): a packet whole inside it is its payload.
+            swallowed_only = (
+                _genuine_header(frame)
+                if kind is _BAD_DATA
+                else frame[0] == mavlink2.PROTOCOL_MARKER_V2
+            )
             tried, resumed = _read_again(mav, frame, rereads, swallowed_only=swallowed_only)
             rereads -= tried
             if kind is _UNKNOWN and resumed is not None:
@@ -1094,9 +1100,10 @@ def _read_again(
     whole, as before, and the packets after it are read. With ``swallowed_only`` (a refused
     frame whose header is a real one, :func:`_genuine_header`) only a packet reaching past the
     frame's end is taken, one the frame swallowed: a packet whole inside it is payload (a .tlog
-    downloaded by FILE_TRANSFER_PROTOCOL). A frame of an unknown message is more likely junk
-    after a stray start byte (a v1 header's one-byte id is often one the dialect lacks) than a
-    carrier: any packet inside it is taken.
+    downloaded by FILE_TRANSFER_PROTOCOL). So too for a MAVLink 2 frame of a message id the
+    dialect lacks (another dialect's message: junk after a stray start byte rarely has valid
+    flags); a MAVLink 1 one is more likely junk (its one-byte id is often one the dialect
+    lacks): any packet inside it is taken.
     """
     emptied = mav.buf_len() <= 0
     rest = b"" if emptied else bytes(mav.buf[mav.buf_index : mav.buf_index + _FRAME_MAX_BYTES])

@@ -867,3 +867,25 @@ def test_a_packet_hit_by_a_bit_error_costs_only_itself():
         peer.close()
     assert [t for b in got for t in b.t_s] == pytest.approx([1.01, 1.02, 1.03, 1.04])
     assert link.counters.rejected == {"bad_crc": 1}
+
+
+def test_a_packet_carried_in_another_dialects_message_stays_its_payload():
+    """A MAVLink 2 message of an id this dialect lacks (60000) holding a HIGHRES_IMU packet in its
+    payload: pymavlink cannot check it, and it is read again only for a packet reaching past its end;
+    the one inside is payload, not a sample. The packet after it is read."""
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    inner = imu_message(ImuMessage.HIGHRES_IMU, t_s=1234.5, accel_mps2=ACC, gyro_rps=GYR).pack(mav)
+    payload = bytes(8) + inner + bytes(8)
+    assert 60000 not in mavlink2.mavlink_map
+    header = bytes([mavlink2.PROTOCOL_MARKER_V2, len(payload), 0, 0, 7, 1, 1])
+    carrier = header + (60000).to_bytes(3, "little") + payload + b"\x00\x00"
+    later = imu_message(ImuMessage.HIGHRES_IMU, t_s=2000.0, accel_mps2=ACC, gyro_rps=GYR).pack(mav)
+    with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
+        peer = _peer(link.connection.port.getsockname()[1])
+        peer.write(carrier + later)
+        got = _read(link, 1)
+        time.sleep(0.2)
+        got += link.read(0.1)
+        peer.close()
+    assert [t for b in got for t in b.t_s] == [2000.0]
+    assert link.counters.rejected == {}
