@@ -96,10 +96,10 @@ class ValidityLimits:
 def typical_step_s(steps_s: FloatArray) -> float:
     """The interquartile mean of sample steps ``steps_s`` (s, at least one): the mean of the middle half.
 
-    Gaps and bunched samples (up to a quarter of the steps on either side) do not move it, as they
-    would not move the median; unlike the median, it does not flip between the two values of time
-    stamps quantized to a coarser tick (400 Hz stamped in whole ms steps 2 and 3 ms: 2.5 ms here,
-    333 or 500 Hz by the median).
+    Gaps and bunched samples (up to a quarter of the steps on either side) do not move it; unlike
+    the median, it does not flip between the two values of time stamps quantized to a coarser tick
+    (400 Hz stamped in whole ms steps 2 and 3 ms: 2.5 ms here, 333 or 500 Hz by the median). Over
+    a few steps of two rates (a stream changing rate) the median keeps the more frequent one.
     """
     steps = np.sort(np.asarray(steps_s, dtype=float).reshape(-1))
     quarter = steps.size // 4
@@ -109,13 +109,14 @@ def typical_step_s(steps_s: FloatArray) -> float:
 def plausible_rate_hz(t_s: FloatArray, limits: ValidityLimits) -> float | None:
     """The sample rate of increasing time stamps, Hz, or None when it is not plausible.
 
-    From the :func:`typical_step_s` of their spacing; None when it lies outside
+    The median spacing, so a few gaps or bunched samples do not move it (a stream that starts
+    at another rate, as a real tlog does, keeps its more frequent one); None when it lies outside
     ``[limits.min_rate_hz, limits.max_rate_hz]`` or there are fewer than two stamps.
     """
     t = np.asarray(t_s, dtype=float).reshape(-1)
     if t.size < 2:
         return None
-    spacing_s = typical_step_s(np.diff(t))
+    spacing_s = float(np.median(np.diff(t)))
     if not (np.isfinite(spacing_s) and spacing_s > 0):
         return None
     rate_hz = 1.0 / spacing_s

@@ -35,7 +35,7 @@ Per batch of samples, in this order (docs/architecture.md):
    (:class:`estimators.positions.PositionAccumulator`, per sample), with the
    detector's thresholds raised to the unit's own noise at the stream's rate
    (:func:`detector_config`). The rate is measured from the first
-   :data:`RATE_PROBE_SAMPLES` samples and again over every
+   :data:`RATE_PROBE_SAMPLES` samples (their median step) and again over every
    :data:`RATE_CHECK_SAMPLES` steps after them (the interquartile mean step,
    :func:`estimators.stream_validity.typical_step_s`): when
    :data:`RATE_CHECK_BLOCKS` blocks in a row are off by more than

@@ -180,7 +180,8 @@ class ImuPipeline:
 
         The probe sized the detector from the first samples only: a start-up burst at another
         spacing, or a rate changed in flight, left every later window the wrong length and fault
-        detection silently off. A block's rate is from its :func:`typical_step_s`, as the probe's.
+        detection silently off. A block's rate is from its :func:`typical_step_s`; the probe's
+        median, within :data:`RATE_CHECK_TOLERANCE` of it, is kept.
         """
         det = self.detection
         if det is None:
