@@ -790,9 +790,10 @@ class MavlinkLink:
     (:func:`parse_all`); the messages go through an :class:`ImuBatcher`.
     A UDP datagram holds whole packets: bytes of a packet left incomplete at
     its end are counted as garbage and dropped, so one bad datagram never
-    swallows the packets of the next; a frame that failed its check or was
-    left incomplete is read again from its second byte, so a stray start byte
-    or a packet cut short does not swallow the good packets after it.
+    swallows the packets of the next. A frame that failed its check is read
+    again where a whole packet starts inside it (:func:`parse_all`), and bytes
+    left incomplete at a datagram's end from their second byte, so a stray
+    start byte or a packet cut short does not swallow the good packets after it.
 
     With a signing key, unsigned and wrongly signed IMU messages are refused
     (pymavlink's check, :class:`LinkRejection`) unless ``accept_unsigned``;

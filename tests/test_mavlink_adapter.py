@@ -788,10 +788,10 @@ def test_a_forged_packet_does_not_move_the_replay_window_of_a_genuine_stream():
 
 
 def test_a_datagram_of_start_bytes_is_read_again_only_a_bounded_number_of_times():
-    """Each refused frame read again from its second byte is one more frame sliced and checked: a
-    datagram of 65,000 start bytes was 64,723 frames (0.4 s of the reader) instead of 233. At most
-    REREADS_MAX (a handful) more than pymavlink's own count, and the good packet of the next datagram
-    is read."""
+    """Each start byte tried inside a refused frame is one more frame sliced and checked: a datagram
+    of 65,000 start bytes was 64,723 frames (0.4 s of the reader) instead of 233 when every one was
+    tried. At most REREADS_MAX (a handful) more than pymavlink's own count, and the good packet of
+    the next datagram is read."""
     mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
     good = imu_message(ImuMessage.SCALED_IMU, t_s=1.0, accel_mps2=ACC, gyro_rps=GYR).pack(mav)
     with MavlinkLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")) as link:
