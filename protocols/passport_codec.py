@@ -43,7 +43,7 @@ def read_passport_json(path: str | os.PathLike[str]) -> Passport:
     if len(raw) > MAX_PASSPORT_BYTES:
         raise PassportError(f"{source}: more than the passport limit of {MAX_PASSPORT_BYTES} bytes")
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # a byte-order mark (a Windows editor's) is not JSON
     except UnicodeDecodeError as exc:
         raise PassportError(
             f"{source}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "

@@ -216,7 +216,8 @@ class LoadedSession:
 
 def _read_text(path: Path) -> str:
     try:
-        return path.read_text(encoding="utf-8")
+        # utf-8-sig: a byte-order mark (Windows editors and spreadsheets save one) is not text.
+        return path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
         raise SessionFileError(
             f"{path}: not a text file ({exc.reason} at byte {exc.start})"

@@ -500,11 +500,11 @@ def load_config(path: str | Path) -> ServiceConfig:
     """Read and validate a TOML configuration file (relative paths are relative to the file)."""
     path = Path(path)
     try:
-        with path.open("rb") as fh:
-            raw = tomllib.load(fh)
+        # utf-8-sig: a byte-order mark (a Windows editor's) made tomllib say "Invalid statement".
+        raw = tomllib.loads(path.read_bytes().decode("utf-8-sig"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError as exc:  # TOML is UTF-8; tomllib lets a Latin-1 file through as this
+    except UnicodeDecodeError as exc:  # TOML is UTF-8
         raise ConfigError(f"{path}: not UTF-8 text (TOML is): {exc}") from None
     return config_from_dict(raw, base_dir=path.resolve().parent)
 

@@ -182,6 +182,15 @@ def test_a_configuration_that_is_not_utf8_names_the_file(tmp_path):
         load_config(path)
 
 
+def test_a_configuration_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """Saved by a Windows editor with a UTF-8 byte-order mark: tomllib said "Invalid statement (at line
+    1, column 1)". The mark is not text, and the file reads as without it."""
+    text = '[service]\nname = "sonde-é"\n'
+    path = tmp_path / "service.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    assert load_config(path).service.name == "sonde-é"
+
+
 def test_invalid_toml_names_the_file(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text("[service\n")

@@ -71,6 +71,16 @@ def test_a_passport_file_that_is_not_utf8_is_refused_naming_the_file(tmp_path):
         read_passport_json(path)
 
 
+def test_a_passport_saved_with_a_byte_order_mark_is_read(tmp_path):
+    """A passport opened and saved in a Windows editor starts with a UTF-8 byte-order mark: json refused
+    it ("Unexpected UTF-8 BOM") at line 1, column 1. The mark is not text, and the passport reads."""
+    passport = synthetic_passport(3)
+    plain, marked = tmp_path / "plain.json", tmp_path / "marked.json"
+    write_passport_json(passport, plain)
+    marked.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    assert read_passport_json(marked).to_dict() == read_passport_json(plain).to_dict()
+
+
 # --------------------------------------------------------------------------- numbers are numbers
 
 

@@ -155,3 +155,19 @@ def test_a_damaged_file_of_another_format_is_one_line_naming_it(tmp_path, text, 
     path.write_text(text)
     with pytest.raises(SessionFileError, match=match):
         load_session(path)
+
+
+@pytest.mark.parametrize("kind", ["native", "euroc", "kalibr"])
+def test_a_file_saved_with_a_byte_order_mark_reads_as_without_it(tmp_path, simulated, kind):
+    """Windows editors and spreadsheets save UTF-8 with a byte-order mark: its header was read as
+    '\\ufefftimestamp' (or the first comment as a header) and refused as an unknown column."""
+    if kind == "native":
+        plain = write_csv_session(tmp_path / "plain.csv", simulated.session)
+    else:
+        plain = _write(tmp_path, simulated.session, kind)
+    marked = tmp_path / "marked.csv"
+    marked.write_bytes(b"\xef\xbb\xbf" + plain.read_bytes())
+    a, b = load_session(plain), load_session(marked)
+    np.testing.assert_array_equal(a.session.t_s, b.session.t_s)
+    np.testing.assert_array_equal(a.session.accel_mps2, b.session.accel_mps2)
+    assert a.metadata == b.metadata
