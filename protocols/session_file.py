@@ -326,6 +326,13 @@ def _all_numbers(fields: list[str]) -> bool:
 
 def _check_header(path: Path, lineno: int, names: list[str]) -> None:
     expected = "t,ax,ay,az,gx,gy,gz[,temp]"
+    if len(names) == 1 and (sep := next((c for c in ";\t" if c in names[0]), None)):
+        # A spreadsheet's export in a locale whose list separator is ';' (its decimals then ',').
+        word = "tabs" if sep == "\t" else "';'"
+        raise SessionFileError(
+            f"{path}: line {lineno}: the header is separated by {word}; a session file is "
+            f"comma-separated with '.' decimals ({expected})"
+        )
     for n in names:
         if n not in CSV_COLUMNS:
             raise SessionFileError(

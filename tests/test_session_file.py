@@ -91,6 +91,11 @@ def test_nan_and_inf_are_passed_to_validation_which_counts_them(tmp_path):
         ("t,ax,ay,az,gx,gy,gz\n", r"no data rows after the header \(line 1\)"),
         ("t,ax,ay,gx,gy,gz\n0,0,0,0,0,0\n", r"line 1: missing column 'az'"),
         ("ax,ay,az\n0,0,9.8\n", r"line 1: missing column 't'"),
+        (
+            "t;ax;ay;az\n0;0;0;9,8\n",
+            r"line 1: the header is separated by ';'; a session file is comma-separated",
+        ),
+        ("t\tax\tay\taz\n0\t0\t0\t9.8\n", r"line 1: the header is separated by tabs"),
         ("t,temp\n0,20\n", "missing columns ax,ay,az and gx,gy,gz"),
         ("t,ax,ay,az,tmp\n0,0,0,9.8,20\n", r"unknown column 'tmp'"),
         ("t,ax,ay,az,ax\n0,0,0,9.8,1\n", r"duplicate column 'ax'"),
