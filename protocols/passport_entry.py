@@ -38,6 +38,7 @@ import json
 import os
 import re
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -86,17 +87,22 @@ def entry_path(root: Path, vehicle: str, imu: int) -> Path:
     return root / vehicle / f"imu{imu}.passport.json"
 
 
-def entry_keys(root: Path) -> list[tuple[str, int]]:
-    """Every (vehicle, IMU) with an entry file under ``root``, sorted."""
-    out: list[tuple[str, int]] = []
+def _vehicle_files(root: Path) -> Iterator[tuple[Path, Path, re.Match[str] | None]]:
+    """(vehicle folder, file, the file name's entry match) for every file in a folder of ``root``."""
     if not root.is_dir():
-        return out
+        return
     for vdir in sorted(p for p in root.iterdir() if p.is_dir()):
         for f in sorted(vdir.iterdir()):
-            m = _FILE_RE.match(f.name)
-            if m and int(m.group(1)) <= MAX_IMU_INDEX:
-                out.append((vdir.name, int(m.group(1))))
-    return out
+            yield vdir, f, _FILE_RE.match(f.name)
+
+
+def entry_keys(root: Path) -> list[tuple[str, int]]:
+    """Every (vehicle, IMU) with an entry file under ``root``, sorted."""
+    return [
+        (vdir.name, int(m.group(1)))
+        for vdir, _, m in _vehicle_files(root)
+        if m and int(m.group(1)) <= MAX_IMU_INDEX
+    ]
 
 
 def stray_files(root: Path) -> list[tuple[Path, str]]:
@@ -106,30 +112,22 @@ def stray_files(root: Path) -> list[tuple[Path, str]]:
     straight into ``root`` is never used by the daemon; saying so is the only
     way its owner learns it.
     """
-    out: list[tuple[Path, str]] = []
     if not root.is_dir():
-        return out
-    for top in sorted(p for p in root.iterdir() if not p.name.startswith(".")):
-        if not top.is_dir():
-            out.append(
-                (
-                    top,
-                    f"not in a vehicle folder (entries are {root}/<vehicle>/imu<n>.passport.json)",
-                )
-            )
+        return []
+    out = [
+        (top, f"not in a vehicle folder (entries are {root}/<vehicle>/imu<n>.passport.json)")
+        for top in root.iterdir()
+        if not top.name.startswith(".") and not top.is_dir()
+    ]
+    for vdir, f, m in _vehicle_files(root):
+        if vdir.name.startswith(".") or f.name.startswith("."):
             continue
-        for f in sorted(p for p in top.iterdir() if not p.name.startswith(".")):
-            m = _FILE_RE.match(f.name)
-            if m is None:
-                out.append(
-                    (
-                        f,
-                        f"not an entry name (imu<n>.passport.json, n in 0..{MAX_IMU_INDEX} without leading zeros)",
-                    )
-                )
-            elif int(m.group(1)) > MAX_IMU_INDEX:
-                out.append((f, f"IMU index {m.group(1)} is beyond 0..{MAX_IMU_INDEX}"))
-    return out
+        if m is None:
+            why = f"not an entry name (imu<n>.passport.json, n in 0..{MAX_IMU_INDEX} without leading zeros)"
+            out.append((f, why))
+        elif int(m.group(1)) > MAX_IMU_INDEX:
+            out.append((f, f"IMU index {m.group(1)} is beyond 0..{MAX_IMU_INDEX}"))
+    return sorted(out)
 
 
 def passport_checksum(passport_map: dict[str, Any]) -> str:

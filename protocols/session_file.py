@@ -372,7 +372,7 @@ class CsvDialect:
         for n in names:
             if n in self.columns:
                 out.append(self.columns[n])
-            elif n.startswith(self.ignored_prefixes) and self.ignored_prefixes:
+            elif n.startswith(self.ignored_prefixes):  # False for no prefixes
                 out.append(None)
             else:
                 return None

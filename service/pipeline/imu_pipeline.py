@@ -59,8 +59,8 @@ from service.pipeline.static_gate import StaticGate
 from service.pipeline.triad_check import TriadCheck, f0_config, new_estimator
 
 
-def _rows(batch: SampleBatch, rows: slice) -> SampleBatch:
-    """The samples ``rows`` of ``batch`` as a batch of the same IMU and ``seq``."""
+def _rows(batch: SampleBatch, rows: slice | np.ndarray) -> SampleBatch:
+    """The samples ``rows`` (a slice or a mask) of ``batch`` as a batch of the same IMU and ``seq``."""
     return SampleBatch(
         batch.vehicle, batch.imu, batch.seq, batch.t_s[rows], batch.accel_mps2[rows],
         batch.gyro_rps[rows], None if batch.temp_c is None else batch.temp_c[rows],
@@ -301,10 +301,7 @@ class ImuPipeline:
         )
         t_k = batch.t_s[keep]
         events += self._validity_events(report, float(t_k[-1]))
-        good = batch if keep.all() else SampleBatch(
-            batch.vehicle, batch.imu, batch.seq, t_k, batch.accel_mps2[keep], batch.gyro_rps[keep],
-            None if batch.temp_c is None else batch.temp_c[keep],
-        )  # fmt: skip
+        good = batch if keep.all() else _rows(batch, keep)
         self.accepted = good
         prev_t_s, self.last_t_s = self.last_t_s, float(t_k[-1])
         self.last_batch_n = batch.n_samples
