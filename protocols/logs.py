@@ -20,7 +20,9 @@ message types (topics) it does hold.
   RAM, board) before the first ``FMT`` line, CRLF or LF. The per-sample ``ACC``
   and ``GYR`` messages (instance ``I``, time ``SampleUS``) of an instance are
   paired by time (:class:`protocols.ulog.NearestPairer`) into IMU
-  :data:`DATAFLASH_RAW_BASE` + ``I``. ``VIBE``'s clip counters give the
+  :data:`DATAFLASH_RAW_BASE` + ``I``; so are those of ArduPilot before 4.1,
+  ``ACC1``…``ACC3`` and ``GYR1``…``GYR3`` (instance 0…2 by name,
+  :data:`DATAFLASH_RAW_NAMES`). ``VIBE``'s clip counters give the
   clipped samples per IMU. DataFlash logs are read as a stream
   (:class:`DataFlashStream`: pymavlink's format and message classes, our own
   sequential loop), so a reader's memory does not grow with the log's length.
@@ -75,6 +77,15 @@ from protocols.ulog import ULOG_MAGIC, ImuRows, NearestPairer, UlogImuStream, se
 DATAFLASH_IMU_NAMES = ("IMU", "IMU2", "IMU3")
 DATAFLASH_RAW_BASE = 3
 """IMU index of ``ACC``/``GYR`` instance 0 (instance ``I`` is ``3 + I``): after IMU, IMU2, IMU3."""
+DATAFLASH_RAW_NAMES: dict[str, tuple[bool, int | None]] = {
+    "ACC": (True, None),
+    "GYR": (False, None),
+    **{f"ACC{k + 1}": (True, k) for k in range(3)},
+    **{f"GYR{k + 1}": (False, k) for k in range(3)},
+}
+"""The per-sample messages: name → (accelerometer?, instance the name gives; None: the field ``I``).
+ArduPilot 4.1 and later write ``ACC``/``GYR`` with an instance field; earlier versions (its
+``IMU_RAW`` logging) wrote ``ACC1``…``ACC3`` and ``GYR1``…``GYR3``, one name per instance."""
 _RAW_DTYPE = np.dtype([("timestamp_sample", "<u8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 _DF_HEAD = b"\xa3\x95"
 _DF_FMT_ID = 0x80
@@ -391,7 +402,7 @@ class LogReader:
         stream = DataFlashStream(
             self.path,
             binary=self.format is LogFormat.DATAFLASH_BIN,
-            wanted=frozenset([*DATAFLASH_IMU_NAMES, "ACC", "GYR", "VIBE"]),
+            wanted=frozenset([*DATAFLASH_IMU_NAMES, *DATAFLASH_RAW_NAMES, "VIBE"]),
             held=self.stats.held,
         )
         size = max(os.path.getsize(self.path), 1)
@@ -399,6 +410,7 @@ class LogReader:
         clip: dict[int, list[float]] = {}
         raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]] = {}
         pairs: dict[int, NearestPairer] = {}
+        suffix: dict[int, str] = {}  # per instance: "" (ACC/GYR) or its number (ACC1/GYR1 ...)
         corrupt = 0
         for msg in stream:
             name = msg.get_type()
@@ -407,27 +419,30 @@ class LogReader:
                 if name == "VIBE":
                     _note_clipping(msg, fields, clip)
                     continue
-                if name in ("ACC", "GYR"):
+                if name in DATAFLASH_RAW_NAMES:
                     inst = _note_raw(msg, fields, raw)
+                    suffix[inst] = name[3:]
                 else:
                     sample = _imu_sample(msg, fields)
             except (ValueError, TypeError, AttributeError):
                 # A field that is not a number (text, or a string or array in the format), or missing.
                 corrupt += 1
                 continue
-            if name not in ("ACC", "GYR"):
+            if name not in DATAFLASH_RAW_NAMES:
                 yield sample
-            elif len(raw[(inst, name == "ACC")]) >= _FLUSH_MESSAGES:
-                yield from _pair_raw(raw, pairs, inst)
+            elif len(raw[(inst, DATAFLASH_RAW_NAMES[name][0])]) >= _FLUSH_MESSAGES:
+                yield from _pair_raw(raw, pairs, inst, suffix[inst])
         for inst in sorted({i for i, _ in raw}):
-            yield from _pair_raw(raw, pairs, inst)
+            yield from _pair_raw(raw, pairs, inst, suffix[inst])
         self.stats._drop("corrupt_messages", corrupt + stream.corrupt)
         self.stats.skipped_bytes += stream.skipped_bytes
         self.stats.cut_at_byte = stream.cut_at_byte
         for inst, pairer in sorted(pairs.items()):
+            pairer.finish()
             if pairer.unpaired_accel:
-                self.stats.skipped[f"ACC.{inst}"] = (
-                    f"{pairer.unpaired_accel} samples without a GYR sample near in time"
+                accel, gyro = pairer.kind.split("+")
+                self.stats.skipped[f"{accel}.{inst}"] = (
+                    f"{pairer.unpaired_accel} samples without a {gyro} sample near in time"
                 )
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
 
@@ -459,9 +474,10 @@ def _imu_sample(msg: Any, fields: list[str]) -> _Sample:
 def _note_raw(
     msg: Any, fields: list[str], raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]]
 ) -> int:
-    """Gather an ``ACC``/``GYR`` message (one triad, sampled at ``SampleUS``) for pairing by time; its instance."""
-    inst = _whole(msg.I, _DF_MAX_INSTANCE) if "I" in fields else 0
-    is_accel = msg.get_type() == "ACC"
+    """Gather a per-sample message (:data:`DATAFLASH_RAW_NAMES`: one triad, sampled at ``SampleUS``)
+    for pairing by time; its instance."""
+    is_accel, named = DATAFLASH_RAW_NAMES[msg.get_type()]
+    inst = _whole(msg.I, _DF_MAX_INSTANCE) if "I" in fields else (named or 0)
     prefix = "Acc" if is_accel else "Gyr"
     time_us = msg.SampleUS if "SampleUS" in fields else msg.TimeUS
     raw.setdefault((inst, is_accel), []).append(
@@ -664,9 +680,15 @@ def _pair_raw(
     raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]],
     pairs: dict[int, NearestPairer],
     inst: int,
+    suffix: str,
 ) -> Iterator[ImuRows]:
-    """Hand the ``ACC``/``GYR`` messages gathered for instance ``inst`` to its pairer; the pairs it completes."""
-    pairer = pairs.setdefault(inst, NearestPairer("ACC+GYR", DATAFLASH_RAW_BASE + inst))
+    """Hand the per-sample messages gathered for instance ``inst`` to its pairer; the pairs it completes.
+
+    The pairer is named after the messages: ``ACC+GYR``, or ``ACC1+GYR1`` … (``suffix``) in a log
+    of ArduPilot before 4.1."""
+    if inst not in pairs:
+        pairs[inst] = NearestPairer(f"ACC{suffix}+GYR{suffix}", DATAFLASH_RAW_BASE + inst)
+    pairer = pairs[inst]
     for is_accel in (True, False):
         block = raw.pop((inst, is_accel), [])
         if block:

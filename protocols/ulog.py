@@ -354,16 +354,18 @@ class UlogImuStream:
         state = _ImuState()
         for records in self._records():
             yield from _interleave(self._flush_rows(state, records))
-        for multi_id, pairer in sorted(state.pairs.items()):
-            if pairer.unpaired_accel:
-                self.contents.skipped.setdefault(
-                    f"sensor_accel.{multi_id}",
-                    f"{pairer.unpaired_accel} samples without a sensor_gyro sample near in time",
-                )
         rows: list[ImuRows] = []
         for key, probe in sorted(state.probes.items()):
             # An instance whose log ended before the rate probe filled: judge it on what there is.
             rows += state.decide(self.contents, key, probe, final=True)
+        for multi_id, pairer in sorted(state.pairs.items()):
+            pairer.finish()
+            if pairer.unpaired_accel:
+                # An instance left out for its rate keeps that reason.
+                self.contents.skipped.setdefault(
+                    f"sensor_accel.{multi_id}",
+                    f"{pairer.unpaired_accel} samples without a sensor_gyro sample near in time",
+                )
         yield from _interleave(rows)
 
     def _flush_rows(
@@ -485,6 +487,14 @@ class NearestPairer:
 
     def add(self, is_accel: bool, rec: np.ndarray) -> None:
         (self.accel if is_accel else self.gyro).append(rec)
+
+    def finish(self) -> None:
+        """At the end of the log: the accelerometer samples still waiting for a gyro sample (later
+        than the last one, or all of them when too few came to pair any) are unpaired. An instance
+        that never had a gyro sample is no IMU of two streams (PX4 logs a temperature that way)."""
+        if self.gyro:
+            self.unpaired_accel += sum(len(a) for a in self.accel)
+        self.accel = []
 
     def paired(self) -> ImuRows | None:
         """The pairs complete so far (accelerometer samples later than the last gyro wait), or None."""

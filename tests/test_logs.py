@@ -383,6 +383,77 @@ def test_acc_and_gyr_messages_are_paired_by_sample_time(tmp_path):
         np.testing.assert_array_equal(s.gyro_rps, gyr[i][::2])
 
 
+_LEGACY_RAW_FMT = {
+    name: (
+        type_id,
+        31,
+        "QQfff",
+        f"TimeUS,SampleUS,{name[:3].title()}X,{name[:3].title()}Y,{name[:3].title()}Z",
+    )
+    for type_id, name in zip(
+        range(176, 182), ("ACC1", "ACC2", "ACC3", "GYR1", "GYR2", "GYR3"), strict=True
+    )
+}
+"""ArduPilot before 4.1: ``ACC1``…``GYR3`` (type, length, format, columns), as its real logs define them."""
+
+
+def _fmt_record(name, type_id, length, fmt, columns):
+    return b"\xa3\x95\x80" + struct.pack(
+        "<BB4s16s64s", type_id, length, name.encode(), fmt.encode(), columns.encode()
+    )
+
+
+@needs(REAL_BIN)
+def test_real_bin_defines_the_legacy_per_sample_messages_as_the_test_below_writes_them():
+    """The real log's FMT records of ACC1…GYR3 (ArduPilot before 4.1), byte for byte."""
+    data = REAL_BIN.read_bytes()
+    for name, definition in _LEGACY_RAW_FMT.items():
+        assert data.count(_fmt_record(name, *definition)) == 1, name
+
+
+def test_legacy_acc1_gyr1_messages_are_paired_as_acc_and_gyr_are(tmp_path):
+    """ACC1/GYR1 and ACC2/GYR2 (one name per instance, no ``I`` field) become IMUs 3 and 4, as ACC and
+    GYR instances 0 and 1 do; pymavlink's DFReader reads the same values from the same file."""
+    rng = np.random.default_rng(7)
+    n = 700  # more than one block of gathered messages
+    t_us = 8_000_000 + 1_000 * np.arange(
+        n
+    )  # 1 kHz, the gyro sampled 0.1 ms after the accelerometer
+    acc = {i: rng.normal([0, 0, -9.8], 0.1, (n, 3)).astype(np.float32) for i in (1, 2)}
+    gyr = {i: rng.normal(0, 0.01, (n, 3)).astype(np.float32) for i in (1, 2)}
+    out = bytearray(_fmt_record("FMT", 128, 89, "BBnNZ", "Type,Length,Name,Format,Columns"))
+    for name in ("ACC1", "ACC2", "GYR1", "GYR2"):
+        out += _fmt_record(name, *_LEGACY_RAW_FMT[name])
+    for k in range(n):
+        for name in ("ACC1", "GYR1", "ACC2", "GYR2"):
+            i, v = int(name[3]), (acc if name[0] == "A" else gyr)[int(name[3])][k]
+            t = int(t_us[k]) + (100 if name[0] == "G" else 0)
+            out += (
+                b"\xa3\x95"
+                + bytes([_LEGACY_RAW_FMT[name][0]])
+                + struct.pack("<QQfff", t + 50, t, *v)
+            )
+    path = tmp_path / "legacy_raw.bin"
+    path.write_bytes(bytes(out))
+
+    back, stats = read_log_sessions(path)
+    assert stats.sources == {3: "ACC1+GYR1", 4: "ACC2+GYR2"}
+    assert stats.samples == {3: n, 4: n} and stats.skipped == {} and stats.dropped == {}
+    oracle = DFReader.DFReader_binary(str(path))
+    expected: dict[str, list[list[float]]] = {}
+    while (m := oracle.recv_msg()) is not None:
+        if m.get_type() != "FMT":
+            axes = "Acc" if m.get_type()[0] == "A" else "Gyr"
+            row = [m.SampleUS * 1e-6, *(getattr(m, axes + c) for c in "XYZ")]
+            expected.setdefault(m.get_type(), []).append(row)
+    for i in (1, 2):
+        s, a, g = back[2 + i], np.array(expected[f"ACC{i}"]), np.array(expected[f"GYR{i}"])
+        np.testing.assert_array_equal(s.t_s, a[:, 0])
+        np.testing.assert_array_equal(s.accel_mps2, a[:, 1:])
+        np.testing.assert_array_equal(s.gyro_rps, g[:, 1:])
+        np.testing.assert_array_equal(s.accel_mps2, acc[i])
+
+
 # ------------------------------------------------------------------ long DataFlash logs, corrupt messages
 
 _FILLER_FMT = (200, 11, "XKF1", "Q", "TimeUS")

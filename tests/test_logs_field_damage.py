@@ -9,6 +9,7 @@ import struct
 
 import numpy as np
 import pytest
+from pyulog import ULog
 
 from estimators.session import ImuSession
 from protocols import ulog as ulog_module
@@ -324,6 +325,60 @@ def test_pairing_with_no_accelerometer_sample_ready_gives_empty_rows():
     pairer.add(True, accel)
     rows = pairer.paired()
     assert rows is not None and rows.t_s.size == 0 and rows.clipped.shape == (0,)
+
+
+def _without_last_gyro_messages(path, name: str, n_last: int) -> None:
+    """Rewrite a ULog without the last ``n_last`` data messages of topic ``name`` (all instances)."""
+    data = path.read_bytes()
+    pos, ids, kept, found = 16, {}, [data[:16]], []
+    while pos < len(data):
+        size, mtype = struct.unpack_from("<HB", data, pos)
+        msg = data[pos : pos + 3 + size]
+        if mtype == ord("A"):
+            ids[struct.unpack_from("<H", msg, 4)[0]] = msg[6:].decode()
+        if mtype == ord("D") and ids.get(struct.unpack_from("<H", msg, 3)[0]) == name:
+            found.append(len(kept))
+        kept.append(msg)
+        pos += 3 + size
+    for k in found[-n_last:]:
+        kept[k] = b""
+    path.write_bytes(b"".join(kept))
+
+
+def test_accelerometer_samples_after_the_last_gyro_sample_are_counted_not_lost(tmp_path, capsys):
+    """A log whose gyro stream stops before the accelerometer's: the accelerometer samples left
+    waiting for a gyro sample at the end are said (they were dropped without a word). DataFlash
+    ACC/GYR and a ULog sensor_accel/sensor_gyro pair; pyulog confirms what the edited ULog holds."""
+    rows = [FMT_OF_FMT]
+    rows.append("FMT, 130, 35, ACC, QBQfff, TimeUS,I,SampleUS,AccX,AccY,AccZ\n")
+    rows.append("FMT, 131, 35, GYR, QBQfff, TimeUS,I,SampleUS,GyrX,GyrY,GyrZ\n")
+    for k in range(N):
+        rows.append(f"ACC, {1000 * (k + 1)}, 0, {1000 * (k + 1)}, 0.1, 0.2, -9.8\n")
+        if k < N - 7:
+            rows.append(f"GYR, {1000 * (k + 1)}, 0, {1000 * (k + 1)}, 0.01, 0.0, 0.0\n")
+    path = tmp_path / "raw.log"
+    path.write_text("".join(rows))
+    back, stats = read_log_sessions(path)
+    assert back[3].n_samples == N - 7
+    assert stats.skipped == {"ACC.0": "7 samples without a GYR sample near in time"}
+
+    n = 600
+    session = _session(n=n, rate_hz=200.0)[0]
+    ulg = tmp_path / "flight.ulg"
+    write_ulog(ulg, {1: session})
+    _without_last_gyro_messages(ulg, "sensor_gyro", 30)
+    by_topic = {(d.name, d.multi_id): len(d.data["timestamp"]) for d in ULog(str(ulg)).data_list}
+    assert by_topic[("sensor_accel", 0)] == n and by_topic[("sensor_gyro", 0)] == n - 30
+    back, stats = read_log_sessions(ulg)
+    assert back[1].n_samples == n - 30
+    assert stats.skipped == {
+        "sensor_accel.0": "30 samples without a sensor_gyro sample near in time"
+    }
+    status, _, err = _replay(capsys, ulg)
+    assert status == 0
+    assert (
+        "not replayed: sensor_accel.0 30 samples without a sensor_gyro sample near in time" in err
+    )
 
 
 # ------------------------------------------------------------------ C6, H2: --pace recorded
