@@ -157,7 +157,9 @@ class LogStats:
     growth of ``VIBE``'s clip counters over the log; absent when the log does not say);
     ``held``: every message type (topic instance) of the log with its count; ``skipped``:
     IMU instances not replayed and why; ``skipped_bytes``: bytes that start no message, passed
-    over to the next one; ``cut_at_byte``: where the file ends in the middle of a message.
+    over to the next one; ``cut_at_byte``: where the file ends in the middle of a message;
+    ``logger_lost``: how often the autopilot's logger said it lost data (ULog dropout messages,
+    with their ``logger_lost_ms``; DataFlash: writes its logger refused, the growth of ``DSF.Dp``).
     """
 
     messages: dict[str, int] = field(default_factory=dict)
@@ -169,6 +171,8 @@ class LogStats:
     skipped: dict[str, str] = field(default_factory=dict)
     skipped_bytes: int = 0
     cut_at_byte: int | None = None
+    logger_lost: int = 0
+    logger_lost_ms: int | None = None
 
     def _drop(self, reason: str, n: int = 1) -> None:
         if n:
@@ -184,6 +188,22 @@ class LogStats:
     def cut(self) -> str:
         """Where the file ends in the middle of a message, for a message; ``""`` for a whole file."""
         return "" if self.cut_at_byte is None else f"cut mid-message at byte {self.cut_at_byte}"
+
+    def logger(self) -> str:
+        """What the autopilot's logger said it lost, for a message; ``""`` when it said nothing.
+
+        A gap in an IMU's samples there is the logger's, not the sensor's."""
+        if not self.logger_lost:
+            return ""
+        if self.logger_lost_ms is not None:
+            return (
+                f"the logger lost data {self.logger_lost} times, {self.logger_lost_ms} ms in all "
+                "(ULog dropouts): gaps in the samples there are the logger's"
+            )
+        return (
+            f"the logger refused {self.logger_lost} writes (DSF.Dp): messages of every type, "
+            "IMU ones among them, are missing from the log"
+        )
 
     def holds(self) -> str:
         """What the log holds, for a message: message types (topics) with their counts."""
@@ -351,6 +371,8 @@ class LogReader:
             if ulog.contents.corrupt_messages:
                 self.stats._drop("corrupt_messages", ulog.contents.corrupt_messages)
             self.stats.cut_at_byte = ulog.contents.cut_at_byte
+            self.stats.logger_lost = ulog.contents.dropouts
+            self.stats.logger_lost_ms = ulog.contents.dropout_ms
             return
         samples = (
             self._tlog_samples() if self.format is LogFormat.TLOG else self._dataflash_samples()
@@ -402,12 +424,13 @@ class LogReader:
         stream = DataFlashStream(
             self.path,
             binary=self.format is LogFormat.DATAFLASH_BIN,
-            wanted=frozenset([*DATAFLASH_IMU_NAMES, *DATAFLASH_RAW_NAMES, "VIBE"]),
+            wanted=frozenset([*DATAFLASH_IMU_NAMES, *DATAFLASH_RAW_NAMES, "VIBE", "DSF"]),
             held=self.stats.held,
         )
         size = max(os.path.getsize(self.path), 1)
         self._fraction = lambda: stream.offset / size
         clip: dict[int, list[float]] = {}
+        refused: list[int] = []  # DSF.Dp: the last value, then the writes refused over the log
         raw: dict[tuple[int, bool], list[tuple[int, float, float, float]]] = {}
         pairs: dict[int, NearestPairer] = {}
         suffix: dict[int, str] = {}  # per instance: "" (ACC/GYR) or its number (ACC1/GYR1 ...)
@@ -418,6 +441,9 @@ class LogReader:
             try:
                 if name == "VIBE":
                     _note_clipping(msg, fields, clip)
+                    continue
+                if name == "DSF":
+                    _note_refused_writes(msg, refused)
                     continue
                 if name in DATAFLASH_RAW_NAMES:
                     inst = _note_raw(msg, fields, raw)
@@ -445,6 +471,7 @@ class LogReader:
                     f"{pairer.unpaired_accel} samples without a {gyro} sample near in time"
                 )
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
+        self.stats.logger_lost = refused[1] if refused else 0
 
 
 def _whole(value: Any, limit: int) -> int:
@@ -696,6 +723,19 @@ def _pair_raw(
     rows = pairer.paired()
     if rows is not None and rows.t_s.size:
         yield rows
+
+
+def _note_refused_writes(msg: Any, refused: list[int]) -> None:
+    """The growth of ``DSF.Dp``, the writes the logger refused (a full buffer), in ``refused`` as
+    [last value, total]. Counted from the first ``DSF``: its value may hold a previous log's (some
+    ArduPilot versions clear the counter at a new log, others at boot); a value lower than the
+    last is a counter cleared since."""
+    value = _whole(msg.Dp, 1 << 32)
+    if not refused:
+        refused += [value, 0]
+        return
+    refused[1] += value - refused[0] if value >= refused[0] else value
+    refused[0] = value
 
 
 def _note_clipping(msg: Any, fields: list[str], clip: dict[int, list[float]]) -> None:

@@ -9,7 +9,8 @@ time in µs), then messages ``uint16 msg_size, uint8 msg_type, payload``
 ``P``/``Q`` (parameters); the data section ``A`` (subscribe: ``uint8
 multi_id, uint16 msg_id, name``), ``D`` (data: ``uint16 msg_id`` and the
 packed fields of the format, nested formats inlined, a uint64 ``timestamp``
-in µs), ``L``/``C`` (log text), ``S`` (sync bytes), ``O`` (dropout) and ``R``
+in µs), ``L``/``C`` (log text), ``S`` (sync bytes), ``O`` (dropout: ``uint16
+duration`` in ms the logger lost, counted in :class:`UlogContents`) and ``R``
 (unsubscribe).
 
 Reading
@@ -180,6 +181,9 @@ class UlogContents:
     corrupt_messages: int = 0
     system: str = ""
     cut_at_byte: int | None = None
+    dropouts: int = 0
+    """Dropout messages: the logger lost data (its buffer full) for ``dropout_ms`` in all."""
+    dropout_ms: int = 0
 
 
 def struct_dtype(formats: Mapping[str, Any], name: str) -> np.dtype[Any]:
@@ -300,6 +304,9 @@ class UlogImuStream:
                             if n_pending >= FLUSH_MESSAGES:
                                 yield self._decode(subs, pending)
                                 pending, n_pending = {}, 0
+                elif mtype == 0x4F and size >= 2:  # 'O': uint16 duration in ms
+                    self.contents.dropouts += 1
+                    self.contents.dropout_ms += struct.unpack_from("<H", buf, pos + 3)[0]
                 elif mtype == 0x41:  # 'A'
                     multi_id, msg_id = struct.unpack_from("<BH", buf, pos + 3)
                     name = buf[pos + 6 : end].decode("ascii", "replace")

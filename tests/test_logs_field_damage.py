@@ -9,6 +9,7 @@ import struct
 
 import numpy as np
 import pytest
+from pymavlink import DFReader
 from pyulog import ULog
 
 from estimators.session import ImuSession
@@ -379,6 +380,69 @@ def test_accelerometer_samples_after_the_last_gyro_sample_are_counted_not_lost(t
     assert (
         "not replayed: sensor_accel.0 30 samples without a sensor_gyro sample near in time" in err
     )
+
+
+def _ulog_with_dropouts(path, dropouts_ms: dict[float, int]) -> None:
+    """A ULog of 30 s of IMU 0 at 250 Hz in which the logger lost, at each time (s), that many ms:
+    the samples of that stretch are missing and a dropout message stands in their place, as PX4 writes it."""
+    n = 7500
+    session = _session(n=n, rate_hz=250.0)[0]
+    lost = np.zeros(n, bool)
+    for t0, ms in dropouts_ms.items():
+        lost |= (session.t_s >= t0) & (session.t_s < t0 + ms * 1e-3)
+    keep = ~lost
+    write_ulog(
+        path,
+        {0: ImuSession(session.t_s[keep], session.accel_mps2[keep], session.gyro_rps[keep], None)},
+    )
+    data, out, pos = path.read_bytes(), [], 16
+    out.append(data[:16])
+    pending = sorted(dropouts_ms.items())
+    while pos < len(data):
+        size, mtype = struct.unpack_from("<HB", data, pos)
+        if (
+            mtype == ord("D")
+            and pending
+            and struct.unpack_from("<Q", data, pos + 5)[0] >= pending[0][0] * 1e6
+        ):
+            out.append(_ulog_message(b"O", struct.pack("<H", pending.pop(0)[1])))
+        out.append(data[pos : pos + 3 + size])
+        pos += 3 + size
+    path.write_bytes(b"".join(out))
+
+
+def test_ulog_dropouts_are_said_as_the_loggers_with_their_duration(tmp_path, capsys):
+    """PX4's logger writes a dropout message where its buffer overflowed: the replay says how often and
+    how long, so the gaps in the samples are not taken for the sensor's (pyulog reads the same dropouts)."""
+    path = tmp_path / "dropouts.ulg"
+    _ulog_with_dropouts(path, {20.0: 600, 25.0: 150})
+    assert [d.duration for d in ULog(str(path)).dropouts] == [600, 150]
+    _, stats = read_log_sessions(path)
+    assert (stats.logger_lost, stats.logger_lost_ms) == (2, 750)
+    status, _, err = _replay(capsys, path)
+    assert status == 0
+    assert "dropouts.ulg: the logger lost data 2 times, 750 ms in all (ULog dropouts)" in err
+    write_ulog(path, _session())
+    assert read_log_sessions(path)[1].logger() == ""
+
+
+def test_dataflash_refused_writes_are_said_from_the_growth_of_dsf_dp(tmp_path, capsys):
+    """ArduPilot's DSF.Dp counts the writes its logger refused; the log's are the counter's growth from
+    its first DSF, a lower value being a counter cleared since (3 → 3 → 10 → 2 → 5: 7 + 2 + 3)."""
+    path, lines = _text_lines(tmp_path)
+    lines.append("FMT, 246, 34, DSF, QIBHIIII, TimeUS,Dp,IErr,Blk,Bytes,FMn,FMx,FAv")
+    for k, dp in enumerate([3, 3, 10, 2, 5]):
+        lines.append(f"DSF, {10_000_000 + k * 1_000_000}, {dp}, 0, {k}, {4096 * k}, 100, 200, 150")
+    path.write_text("\n".join(lines) + "\n")
+    oracle = DFReader.DFReader_text(str(path))
+    dp = []
+    while (m := oracle.recv_match(type="DSF")) is not None:
+        dp.append(m.Dp)
+    assert dp == [3, 3, 10, 2, 5]
+    _, stats = read_log_sessions(path)
+    assert stats.logger_lost == 12 and stats.logger_lost_ms is None
+    status, _, err = _replay(capsys, path)
+    assert status == 0 and "flight.log: the logger refused 12 writes (DSF.Dp)" in err
 
 
 # ------------------------------------------------------------------ C6, H2: --pace recorded

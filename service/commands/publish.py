@@ -107,7 +107,8 @@ def _log_batches(args: argparse.Namespace) -> tuple[Iterator[SampleBatch], Calla
     reader = LogReader(args.recording, vehicle=args.vehicle, batch_samples=args.batch)
 
     def left_out() -> str:
-        return "; ".join(p for p in (reader.stats.left_out(), reader.stats.cut()) if p)
+        stats = reader.stats
+        return "; ".join(p for p in (stats.left_out(), stats.cut(), stats.logger()) if p)
 
     return (b for b in reader if args.imu is None or b.imu == args.imu), left_out
 
