@@ -127,6 +127,13 @@ class TriadResult:
             return self.estimate.reason
         return f"no parameter is resolved by both this session and the passport ({self.estimate.reason})"
 
+    @property
+    def suspect(self) -> bool:
+        """The triad has a passport and positions that determine its parameters, but its fit left the
+        physical domain (:attr:`~estimators.ninepar.Estimate.fit_left_domain`): not diagnosed, and not
+        to be taken for "no fault" either (a gross fault, values in other units, another unit)."""
+        return self.diagnosis is not None and self.estimate.fit_left_domain
+
 
 @dataclass(frozen=True)
 class ChainResult:
@@ -152,6 +159,11 @@ class ChainResult:
     def diagnosed(self) -> bool:
         """Some triad was diagnosed: "no fault" then means the data were looked at."""
         return any(r.diagnosed for r in self.triads.values())
+
+    @property
+    def suspects(self) -> tuple[Triad, ...]:
+        """The triads with a passport whose fit left the physical domain (:attr:`TriadResult.suspect`)."""
+        return tuple(t for t, r in self.triads.items() if r.suspect)
 
     @property
     def reason(self) -> str:
@@ -194,6 +206,7 @@ class ChainResult:
                     "predicates": None if r.diagnosis is None else r.diagnosis.to_dict(),
                     "diagnosed": r.diagnosed,
                     "reason": r.reason,
+                    "suspect": r.suspect,
                 }
                 for t, r in self.triads.items()
             },

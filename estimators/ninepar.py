@@ -97,7 +97,7 @@ fit to very noisy points can grow without bound); it is reported as
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -225,6 +225,9 @@ class Estimate:
     reference : the value the means were normalized by, m/s² (accel) or rad/s (gyro), if known.
     sources : (9,) how each parameter was obtained (e.g. "M1 scalar fit", "M4 six-position
         vector fit", "M4 full turns"), or None: all by ``method``.
+    fit_left_domain : the positions determined the nine parameters but the exact fit left the
+        physical domain (:func:`estimate_refined`): a fault far beyond the scheme's, values in other
+        units, a session of another unit, or noise too large; not "too few positions".
     """
 
     triad: Triad
@@ -241,6 +244,7 @@ class Estimate:
     dof: int
     reference: float | None = None
     sources: tuple[str, ...] | None = None
+    fit_left_domain: bool = False
 
     @property
     def sigma(self) -> FloatArray | None:
@@ -275,6 +279,7 @@ class Estimate:
             "dof": self.dof,
             "chi2_per_dof": _finite_or_none(self.chi2_per_dof),
             "sources": None if self.sources is None else list(self.sources),
+            "fit_left_domain": self.fit_left_domain,
         }
 
 
@@ -593,7 +598,8 @@ def _refined(
     params, cov_p, chi2, note = _refine(mean, cov, start, max_passes)
     if note:
         failed = _Geometry(False, note, geo.rank, geo.condition, geo.gram, geo.centre)
-        return _not_observable(triad, method, failed, mean.shape[0], reference), failed
+        est = _not_observable(triad, method, failed, mean.shape[0], reference)
+        return replace(est, fit_left_domain=True), failed
     return _finish(
         triad, method, params, cov_p, chi2, mean.shape[0], geo, observability, reference
     ), geo
@@ -711,7 +717,8 @@ def _refine(
             np.inf,
             (
                 "the fit left the physical domain (gain 1+e outside (0.1, 10) or sensitive axes nearly coplanar): "
-                f"{np.array2string(params, precision=3)}; the noise is too large for this scheme"
+                f"{np.array2string(params, precision=3)}{_unit_hint(params)}; a fault far beyond this scheme's, "
+                "values in other units, another unit's session, or noise too large for it"
             ),
         )
     sigma = equation_sigma(params, mean, cov)
@@ -824,6 +831,18 @@ def judged_estimate(
         reference=float(reference),
         sources=tuple(sources),
     )
+
+
+_DEG_PER_RAD = 180.0 / np.pi
+
+
+def _unit_hint(params: FloatArray) -> str:
+    """What gains all near 180/π say: rates in degrees read as radians (the reverse, gains near π/180,
+    leaves means too small for the geometry check to pass, which says so itself)."""
+    gain = 1.0 + params[3:6]
+    if np.all(np.abs(gain / _DEG_PER_RAD - 1.0) < 0.05):
+        return f" (gains near {_DEG_PER_RAD:.4g}: values in deg/s read as rad/s?)"
+    return ""
 
 
 def _not_observable(

@@ -186,3 +186,27 @@ def test_audited_calibration_of_xsens_carries_the_bias_instability_that_explains
     assert (
         tp.bias_instability_std.max() > 5e-5
     )  # ≈ 0.1 mg of wander on at least one axis (docs/audit-xsens.md)
+
+
+def test_a_triad_whose_fit_leaves_the_physical_domain_is_suspect_not_no_fault(
+    unit_files, tmp_path, capsys
+):
+    """The unit's accelerometer x gain halved (a fault far beyond the scheme's): its eighteen positions
+    determine the parameters but the fit leaves the physical domain. diagnose said "no fault" with
+    exit 0 when another triad was diagnosed, and blamed the noise; now SUSPECT, exit 3."""
+    fault = Fault(FaultKind.STEP, Triad.ACCEL, 3, 0.0, -0.5)
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    path = tmp_path / "halved.csv"
+    write_csv_session(
+        path, simulate(multi_position_spec(model=model, faults=(fault,)), seed=31).session
+    )
+    capsys.readouterr()
+    argv = ["diagnose", str(path), "--passport", str(unit_files / "pp.json"), "--latitude", "45"]
+    assert main(argv) == 3
+    text = capsys.readouterr().out
+    assert "SUSPECT accel: its positions determine the nine parameters" in text
+    assert "  no fault" not in text.splitlines()
+    assert main([*argv, "--json"]) == 3
+    out = json.loads(capsys.readouterr().out)
+    assert out["triads"]["accel"]["suspect"] is True
+    assert out["triads"]["accel"]["estimate"]["fit_left_domain"] is True

@@ -440,3 +440,21 @@ def test_estimate_to_dict_is_strict_json():
     missing = estimate_refined(case.means_true[:3], case.cov[:3], case.triad).to_dict()
     assert missing["params"] is None and missing["condition_number"] is None
     json.dumps(missing, allow_nan=False)
+
+
+@pytest.mark.parametrize(("gain", "hint"), [(180.0 / np.pi, True), (0.5, False)])
+def test_a_fit_that_leaves_the_physical_domain_says_so_apart_from_too_few_positions(gain, hint):
+    """A navigation gyro whose rates are all multiplied (values in deg/s read as rad/s, or a gross
+    scale fault): the eighteen positions determine the parameters, the exact fit leaves the domain,
+    and the estimate says that (the chain calls the triad SUSPECT), naming deg/s when the gains
+    are 180/π; the same positions unscaled are observable."""
+    rng = np.random.default_rng(5)
+    case = nav_gyro(rng)
+    means = case.draw(rng, 1)[0]
+    assert not estimate_refined(means, case.cov, case.triad).fit_left_domain
+    est = estimate_refined(gain * means, gain**2 * case.cov, case.triad)
+    assert est.fit_left_domain and est.params is None
+    assert est.verdict is Verdict.NOT_OBSERVABLE_YET and est.to_dict()["fit_left_domain"] is True
+    assert ("values in deg/s read as rad/s" in est.reason) is hint
+    few = estimate_refined(gain * means[:8], gain**2 * case.cov[:8], case.triad)
+    assert not few.fit_left_domain

@@ -32,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "diagnose",
         help="static detection → positions → estimates → predicates F1…F9 against a passport",
         description="Exit status 0: diagnosed, with or without faults; 2: unusable input (one-line reason); "
-        "3: the data do not allow a diagnosis (NOT DIAGNOSED and why).",
+        "3: the data do not allow a diagnosis (NOT DIAGNOSED and why), or a triad with a passport "
+        "could not be fitted (SUSPECT: a gross fault, values in other units, another unit's session).",
     )
     add_session_arguments(p)
     p.add_argument("--passport", required=True, metavar="PASSPORT.json", help="the unit's passport")
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.passport}: {exc}") from None
     result = run_chain(inp.session, config, passport)
     f0 = f0_report(result, passport, config)
-    status = 0 if result.diagnosed else EXIT_NOT_DIAGNOSED
+    status = 0 if result.diagnosed and not result.suspects else EXIT_NOT_DIAGNOSED
     if args.json:
         out = result.to_dict()
         out["unit_id"] = passport.unit_id
@@ -141,11 +142,18 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"  F0 {name}: {f['tested']} static samples inside the shell (λ0 {f['lambda0']:.3g})"
             )
+    for triad in result.suspects:
+        print(
+            f"SUSPECT {triad.value}: its positions determine the nine parameters but the fit left the physical "
+            "domain (above): a fault far beyond the scheme's, values in other units or another unit's session; "
+            "not diagnosed, and not 'no fault'"
+        )
     if not result.diagnosed:
         print(f"NOT DIAGNOSED: {result.reason}")
         return status
-    if not result.faults:
-        print("  no fault")
+    undiagnosed = [t.value for t, r in result.triads.items() if not r.diagnosed]
+    if not result.faults and not result.suspects:
+        print("  no fault" + (f" (not diagnosed: {', '.join(undiagnosed)})" if undiagnosed else ""))
     for fault in result.faults:
         print(
             f"  FAULT {fault.predicate}: {fault.triad.value} {fault.axis} {fault.cause.value}: estimate {fault.estimate:.4g} "
