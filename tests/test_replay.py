@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
+import numpy as np
 import pytest
 from real_data import LOGS, REAL_BIN, REAL_TLOG, needs
 
@@ -93,6 +95,29 @@ def test_the_same_log_always_gives_the_same_events(tmp_path, capsys, passport_fi
     assert first[1] == second[1] and [event_from_json(line).predicate for line in first[1]] == [
         Predicate.F0
     ]
+
+
+def test_frames_the_pipeline_failed_on_are_named_and_exit_3(tmp_path, capsys):
+    """A passport that reads (zero accelerometer noise passes its checks) but that the pipeline cannot
+    use: every frame raised and was only counted, and replay said '0 events' with exit 0."""
+    passport, g, faulty, *_ = flight()
+    accel = passport.triads[Triad.ACCEL]
+    broken = dataclasses.replace(
+        passport,
+        triads={**passport.triads, Triad.ACCEL: dataclasses.replace(accel, noise_std=np.zeros(3))},
+    )
+    path = tmp_path / "broken.passport.json"
+    write_passport_json(broken, path)
+    log = tmp_path / "landing.bin"
+    write_dataflash_bin(log, {0: faulty.session.select(faulty.session.t_s < 20.0)})
+    status, _, err = replay(capsys, log, "--passport", path, "--gravity", g)
+    assert status == 3
+    frames = -(-faulty.session.select(faulty.session.t_s < 20.0).n_samples // 100)
+    assert f"replay IMU0: the pipeline failed on {frames} frame(s) (ValueError: " in err
+    assert "their samples were not tested" in err
+    write_passport_json(passport, path)
+    status, _, err = replay(capsys, log, "--passport", path, "--gravity", g)
+    assert status == 0 and "the pipeline failed" not in err
 
 
 def test_passport_store_and_human_output(tmp_path, capsys):

@@ -35,7 +35,9 @@ pipeline and the report keep small per-IMU state). Options of a service configur
 (``--height``) override its site.
 
 Exit status 0 whatever the events; 2 for an unusable log, passport or option, and
-for a log without IMU data (the message names what the log holds).
+for a log without IMU data (the message names what the log holds); 3 when the
+pipeline failed on frames (a passport it cannot use, say): each kind of failure is
+named once with the frames it cost, and those samples were not tested.
 A summary goes to stderr.
 """
 
@@ -64,6 +66,8 @@ if TYPE_CHECKING:
 
 REPLAY_BATCH_SAMPLES = 100
 REPLAY_MAX_IMUS = 16
+EXIT_UNTESTED = 3
+"""The pipeline failed on frames: their samples were not tested (each kind of failure is named)."""
 PACE_MAX_STEP_S = 60.0
 """Longest step of log time between frames that ``--pace recorded`` waits through, s. A frame of
 :data:`REPLAY_BATCH_SAMPLES` samples of a 4 Hz telemetry stream spans 25 s; a longer step is a
@@ -247,7 +251,14 @@ def run(args: argparse.Namespace) -> int:
     config = _config(args)
     options = pipeline_options(config)
     errors: list[str] = []
+    failed: dict[
+        tuple[str, int, str], list[Any]
+    ] = {}  # (vehicle, imu, kind) -> [frames, first message]
     pace_steps: list[float] = []
+
+    def pipeline_error(vehicle: str, imu: int, message: str) -> None:
+        failed.setdefault((vehicle, imu, message.split(":", 1)[0]), [0, message])[0] += 1
+
     rates: dict[tuple[str, int], float] = {}
     lookup, passport_info = _lookup(args, options.gravity_mps2, rates)
     fleet = FleetProcessor(
@@ -256,6 +267,7 @@ def run(args: argparse.Namespace) -> int:
         # A log's IMUs are all wanted (a ULog numbers its instances up to 8, protocols.ulog).
         max_imus_per_vehicle=max(config.pipeline.max_imus_per_vehicle, REPLAY_MAX_IMUS),
         on_passport_error=lambda v, i, msg: errors.append(f"{v} IMU{i}: {msg}"),
+        on_pipeline_error=pipeline_error,
     )
     printer = (
         (lambda e: print(event_to_json(e), flush=True))
@@ -297,6 +309,12 @@ def run(args: argparse.Namespace) -> int:
     )
     for line in errors:
         print(f"ins-health replay: {line}; stream checks only", file=sys.stderr)
+    for (vehicle, imu, _), (frames, message) in sorted(failed.items()):
+        print(
+            f"ins-health replay: {vehicle} IMU{imu}: the pipeline failed on {frames} frame(s) ({message}); "
+            "their samples were not tested",
+            file=sys.stderr,
+        )
     if passport_info["kind"] == "nominal":
         print(
             f"ins-health replay: no passport: nominal passport of class {passport_info['class']} ({passport_info['source']})",
@@ -347,7 +365,7 @@ def run(args: argparse.Namespace) -> int:
         )
         md = write_report(report, healths, pairs, args.report)
         print(f"ins-health replay: report {md}", file=sys.stderr)
-    return 0
+    return EXIT_UNTESTED if failed else 0
 
 
 def _rate(batch: SampleBatch) -> float:
