@@ -31,7 +31,11 @@ Output is deterministic: messages are taken in file order and each IMU's
 samples are cut into batches of ``batch_samples``, emitted as they fill (so
 the IMUs stay interleaved in time), then the remainders in IMU order. Nothing
 is dropped silently: a sample that is not later than the previous one of its
-IMU, or that holds NaN/Inf, is left out and counted in :class:`LogStats`; so
+IMU (``time_not_increasing``), a single time stamp far ahead of its
+neighbours (``time_glitch``, :data:`JUMP_HOLD_S`), or one that holds NaN/Inf,
+is left out and counted in :class:`LogStats`; a run of samples whose time
+started again is kept and counted (``clock_restarts``,
+:data:`CLOCK_RESTART_SAMPLES`); so
 is a corrupt message (``corrupt_messages``: a DataFlash one that does not decode, a
 tlog packet with a bad CRC), the bytes passed over to the next message
 (``skipped_bytes``) and where a file cut mid-message ends (``cut_at_byte``).
@@ -59,6 +63,7 @@ import numpy as np
 from pymavlink import DFReader, mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from estimators._typing import BoolArray
 from estimators.session import ImuSession, finite_rows
 from protocols.frames import MAX_SAMPLES, SampleBatch, concat_batches
 from protocols.mavlink_adapter import (
@@ -159,7 +164,8 @@ class LogStats:
     IMU instances not replayed and why; ``skipped_bytes``: bytes that start no message, passed
     over to the next one; ``cut_at_byte``: where the file ends in the middle of a message;
     ``logger_lost``: how often the autopilot's logger said it lost data (ULog dropout messages,
-    with their ``logger_lost_ms``; DataFlash: writes its logger refused, the growth of ``DSF.Dp``).
+    with their ``logger_lost_ms``; DataFlash: writes its logger refused, the growth of ``DSF.Dp``);
+    ``clock_restarts``: how often an IMU's time started again (:data:`CLOCK_RESTART_SAMPLES`).
     """
 
     messages: dict[str, int] = field(default_factory=dict)
@@ -173,6 +179,7 @@ class LogStats:
     cut_at_byte: int | None = None
     logger_lost: int = 0
     logger_lost_ms: int | None = None
+    clock_restarts: int = 0
 
     def _drop(self, reason: str, n: int = 1) -> None:
         if n:
@@ -205,6 +212,15 @@ class LogStats:
             "IMU ones among them, are missing from the log"
         )
 
+    def clock(self) -> str:
+        """How often an IMU's time started again, for a message; ``""`` when it never did."""
+        if not self.clock_restarts:
+            return ""
+        return (
+            f"the time of the samples started again {self.clock_restarts} time(s) (an autopilot reboot, "
+            "or logs joined end to end): what follows is replayed as a stream that restarted"
+        )
+
     def holds(self) -> str:
         """What the log holds, for a message: message types (topics) with their counts."""
         named = sorted((k, n) for k, n in self.held.items() if n and _MESSAGE_NAME.fullmatch(k))
@@ -222,12 +238,31 @@ class LogStats:
         return held + (f"; left out: {'; '.join(left_out)}" if left_out else "")
 
 
+JUMP_HOLD_S = 1.0
+"""A sample this much later than the one before it is held until the next one says what it is: a time
+stamp gone wrong (the next one goes on from before it: it is left out as ``time_glitch``) or a gap
+in the log (the next one is later still: both are kept)."""
+CLOCK_RESTART_SAMPLES = 16
+"""This many samples in a row earlier than the last one kept, and increasing among themselves, are a
+clock that started again (an autopilot reboot, logs joined end to end): they are kept, as a stream
+that restarted, which the pipeline detects as the daemon's does (``source_restarts``). Fewer are
+late samples, left out as ``time_not_increasing``."""
+
+
 @dataclass
 class _Buffer:
     parts: list[ImuRows] = field(default_factory=list)
     n: int = 0
     seq: int = 0
     last_t_s: float = -np.inf
+    held: ImuRows | None = None
+    """A sample after a jump of more than :data:`JUMP_HOLD_S`, until the next sample."""
+    back: list[ImuRows] = field(default_factory=list)
+    """Samples earlier than ``last_t_s``, increasing among themselves: a restarted clock or late samples."""
+
+    @property
+    def back_n(self) -> int:
+        return sum(p.t_s.size for p in self.back)
 
 
 _Sample = tuple[
@@ -330,23 +365,16 @@ class LogReader:
             buf = buffers.setdefault(rows.imu, _Buffer())
             finite = finite_rows(rows.t_s, rows.accel_mps2, rows.gyro_rps, rows.temp_c)
             stats._drop("non_finite", int(n - finite.sum()))
-            prev = np.maximum.accumulate(
-                np.concatenate([[buf.last_t_s], np.where(finite, rows.t_s, -np.inf)[:-1]])
-            )
-            keep = finite & (rows.t_s > prev)
-            stats._drop("time_not_increasing", int(finite.sum() - keep.sum()))
-            if not keep.any():
-                continue
-            kept = _select(rows, keep)
-            buf.last_t_s = float(kept.t_s[-1])
-            buf.parts.append(kept)
-            buf.n += kept.t_s.size
-            stats.samples[rows.imu] = stats.samples.get(rows.imu, 0) + kept.t_s.size
-            if self.format is LogFormat.ULOG:
-                stats.clipped[rows.imu] = stats.clipped.get(rows.imu, 0) + int(kept.clipped.sum())
+            self._keep(rows.imu, buf, _in_order(buf, rows, finite, stats))
             while buf.n >= self._batch:
                 yield self._emit(rows.imu, buf, self._batch)
         for imu in sorted(buffers):
+            buf = buffers[imu]
+            # The log ended: a held sample had no next one to tell a glitch (it is kept); a run of
+            # earlier samples too short to be a restarted clock is late samples.
+            self._keep(imu, buf, [buf.held] if buf.held is not None else [])
+            self.stats._drop("time_not_increasing", buf.back_n)
+            buf.held, buf.back = None, []
             while buffers[imu].n:
                 yield self._emit(imu, buffers[imu], buffers[imu].n)
         if not self.stats.samples:
@@ -360,6 +388,14 @@ class LogReader:
             raise NoImuDataError(
                 f"{self.path}: no IMU data ({what}); the log holds {self.stats.holds()}"
             )
+
+    def _keep(self, imu: int, buf: _Buffer, pieces: list[ImuRows]) -> None:
+        for kept in pieces:
+            buf.parts.append(kept)
+            buf.n += kept.t_s.size
+            self.stats.samples[imu] = self.stats.samples.get(imu, 0) + kept.t_s.size
+            if self.format is LogFormat.ULOG:
+                self.stats.clipped[imu] = self.stats.clipped.get(imu, 0) + int(kept.clipped.sum())
 
     def _rows(self) -> Iterator[ImuRows]:
         if self._ulog is not None:
@@ -748,6 +784,80 @@ def _note_clipping(msg: Any, fields: list[str], clip: dict[int, list[float]]) ->
         raise ValueError(f"VIBE clip counters {counters}")
     for imu, value in counters.items():
         clip.setdefault(imu, [value, value])[1] = value
+
+
+def _in_order(buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats) -> list[ImuRows]:
+    """The finite samples of ``rows`` to keep, in time order, with what ``buf`` held before them
+    (:data:`JUMP_HOLD_S`, :data:`CLOCK_RESTART_SAMPLES`); ``buf`` carries what waits to the next rows.
+
+    A running maximum of the time stamps made one stamp gone wrong (a bit flipped: 2³² µs ahead) refuse
+    every later sample of the log as not increasing, and a log across a reboot lost all after it."""
+    t = rows.t_s
+    last = buf.last_t_s
+    if buf.held is None and not buf.back:
+        steps = np.diff(t[finite], prepend=last)
+        if np.all(steps > 0.0) and np.all(steps[np.isfinite(steps)] <= JUMP_HOLD_S):
+            if finite.any():
+                buf.last_t_s = float(t[finite][-1])
+                return [_select(rows, finite)]
+            return []
+    out: list[ImuRows] = []
+    run: list[int] = []  # indices of this block kept in a row, not yet in ``out``
+    back: list[int] = []  # indices of this block in the run of earlier samples
+    held: int | None = None  # index of this block held after a jump
+    for k in map(int, np.flatnonzero(finite)):
+        tk = float(t[k])
+        if buf.held is not None or held is not None:
+            if held is not None:
+                held_t = float(t[held])
+            else:
+                assert buf.held is not None
+                held_t = float(buf.held.t_s[0])
+            if tk > held_t:  # a gap in the log: the held sample goes on
+                if held is not None:
+                    run.append(held)
+                else:
+                    assert buf.held is not None
+                    out.append(buf.held)
+                last = held_t
+            else:  # back from before it: the held stamp went wrong
+                stats._drop("time_glitch")
+            buf.held, held = None, None
+        if buf.back or back:
+            back_last = float(t[back[-1]]) if back else float(buf.back[-1].t_s[-1])
+            if tk > last:  # the clock goes on: the run was late samples
+                stats._drop("time_not_increasing", buf.back_n + len(back))
+                buf.back, back = [], []
+            elif tk > back_last:
+                back.append(k)
+                if buf.back_n + len(back) >= CLOCK_RESTART_SAMPLES:
+                    # The clock started again: the run is the new stream's first samples.
+                    if run:
+                        out.append(_select(rows, np.array(run)))
+                    out.extend(buf.back)
+                    run, buf.back, back = back, [], []
+                    last = tk
+                    stats.clock_restarts += 1
+                continue
+            else:
+                stats._drop("time_not_increasing", buf.back_n + len(back))
+                buf.back, back = [], [k]
+                continue
+        if tk <= last:
+            back = [k]
+        elif np.isfinite(last) and tk - last > JUMP_HOLD_S:
+            held = k
+        else:
+            run.append(k)
+            last = tk
+    if run:
+        out.append(_select(rows, np.array(run)))
+    if held is not None:
+        buf.held = _select(rows, np.array([held]))
+    if back:
+        buf.back.append(_select(rows, np.array(back)))
+    buf.last_t_s = last
+    return out
 
 
 def _select(rows: ImuRows, index: np.ndarray | slice) -> ImuRows:

@@ -445,6 +445,75 @@ def test_dataflash_refused_writes_are_said_from_the_growth_of_dsf_dp(tmp_path, c
     assert status == 0 and "flight.log: the logger refused 12 writes (DSF.Dp)" in err
 
 
+def _log_with_times(tmp_path, t_us: list[int]):
+    """A text DataFlash log of one IMU whose samples carry these TimeUS (µs), in this order."""
+    path = tmp_path / "times.log"
+    write_dataflash_text(path, _session(n=len(t_us)))
+    lines = path.read_text().splitlines()
+    imu = [k for k, line in enumerate(lines) if line.startswith("IMU,")]
+    for k, t in zip(imu, t_us, strict=True):
+        row = lines[k].split(", ")
+        row[1] = str(t)
+        lines[k] = ", ".join(row)
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+_STEP = 5000  # µs: 200 Hz
+
+
+@pytest.mark.parametrize(
+    ("times", "kept", "dropped", "restarts"),
+    [
+        # a real 5 s gap in the log: both sides kept
+        ([_STEP * k for k in range(40)] + [5_000_000 + _STEP * k for k in range(40)], 80, {}, 0),
+        # the last sample 10 s ahead: nothing after it to say it went wrong, kept
+        ([_STEP * k for k in range(40)] + [10_000_000], 41, {}, 0),
+        # one stamp 2^32 µs ahead, then the clock goes on
+        (
+            [_STEP * k for k in range(20)] + [2**32] + [_STEP * k for k in range(21, 40)],
+            39,
+            {"time_glitch": 1},
+            0,
+        ),
+        # five late samples (older than the last, increasing), then the clock goes on
+        (
+            [_STEP * k for k in range(40)]
+            + [_STEP * k for k in range(5)]
+            + [_STEP * k for k in range(40, 60)],
+            60,
+            {"time_not_increasing": 5},
+            0,
+        ),
+        # the clock started again: 30 samples from 0 after 40
+        ([_STEP * k for k in range(40)] + [_STEP * k for k in range(30)], 70, {}, 1),
+        # fewer late samples than a restart at the end of the log
+        (
+            [_STEP * k for k in range(40)] + [_STEP * k for k in range(10)],
+            40,
+            {"time_not_increasing": 10},
+            0,
+        ),
+        # duplicates
+        ([_STEP * (k // 2) for k in range(40)], 20, {"time_not_increasing": 20}, 0),
+    ],
+    ids=["gap", "last-ahead", "glitch", "late-run", "restart", "late-run-at-end", "duplicates"],
+)
+@pytest.mark.parametrize("batch", [1, 7, 100])
+def test_time_order_glitches_late_samples_and_restarts(
+    tmp_path, times, kept, dropped, restarts, batch
+):
+    """What the reader keeps of an IMU's samples whose time stamps are out of order, in each case
+    counted: kept + dropped = all, and the kept ones increase but across a restart."""
+    path = _log_with_times(tmp_path, times)
+    reader = LogReader(path, vehicle="v", batch_samples=batch)
+    t = np.concatenate([b.t_s for b in reader])
+    stats = reader.stats
+    assert (t.size, stats.dropped, stats.clock_restarts) == (kept, dropped, restarts)
+    assert t.size + sum(stats.dropped.values()) == len(times)
+    assert int((np.diff(t) <= 0).sum()) == restarts
+
+
 # ------------------------------------------------------------------ C6, H2: --pace recorded
 
 

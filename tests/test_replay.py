@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import struct
 
 import numpy as np
 import pytest
@@ -118,6 +119,60 @@ def test_frames_the_pipeline_failed_on_are_named_and_exit_3(tmp_path, capsys):
     write_passport_json(passport, path)
     status, _, err = replay(capsys, log, "--passport", path, "--gravity", g)
     assert status == 0 and "the pipeline failed" not in err
+
+
+def _imu_time_patched(path, k: int, add_us: int) -> None:
+    """Add ``add_us`` to the TimeUS of IMU message ``k`` of a one-IMU DataFlash binary (fixed-size messages)."""
+    data = bytearray(path.read_bytes())
+    first = data.index(b"\xa3\x95\x81", 2 * 89)  # after the FMT messages of FMT and IMU
+    size = data.index(b"\xa3\x95\x81", first + 3) - first
+    (t_us,) = struct.unpack_from("<Q", data, first + k * size + 3)
+    struct.pack_into("<Q", data, first + k * size + 3, t_us + add_us)
+    path.write_bytes(bytes(data))
+
+
+def test_one_time_stamp_gone_wrong_is_left_out_and_the_rest_replayed(
+    tmp_path, capsys, passport_file
+):
+    """One TimeUS with a bit flipped (2^32 µs ahead) before the fault: the reader's running maximum
+    refused every later sample as not increasing (no F0, no F6, exit 0). Now that one sample is
+    left out as time_glitch and the events are those of the log without it."""
+    _passport, g, faulty, faulty_part, _ = flight()
+    log = tmp_path / "flight.bin"
+    write_dataflash_bin(log, {0: faulty_part})
+    clean = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
+    before_fault = int(np.searchsorted(faulty_part.t_s, faulty.fault_s)) // 2
+    _imu_time_patched(log, before_fault, 2**32)
+    status, lines, err = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
+    assert status == 0 and len(lines) == 2
+    assert [event_from_json(e).predicate for e in lines] == [Predicate.F0, Predicate.F6]
+    assert lines == clean[1]
+    assert f"samples IMU0 {faulty_part.n_samples - 1}; left out time_glitch 1;" in err
+
+
+def test_a_log_whose_clock_started_again_is_replayed_past_the_restart(
+    tmp_path, capsys, passport_file
+):
+    """Two logs joined end to end (or an autopilot reboot): the second's samples are earlier than the
+    first's last. They were all refused as not increasing; now they are replayed as a stream that
+    restarted, which the pipeline detects (source_restarts), and the replay says so."""
+    _passport, g, _faulty, faulty_part, clean_part = flight()
+    first, second = tmp_path / "a.log", tmp_path / "b.log"
+    write_dataflash_text(first, {0: clean_part.select(clean_part.t_s < clean_part.t_s[0] + 60.0)})
+    write_dataflash_text(second, {0: faulty_part})
+    joined = tmp_path / "joined.log"
+    joined.write_text(first.read_text() + second.read_text())
+    status, lines, err = replay(
+        capsys, joined, "--json", "--passport", passport_file, "--gravity", g
+    )
+    assert status == 0
+    assert "joined.log: the time of the samples started again 1 time(s)" in err
+    n = (
+        clean_part.select(clean_part.t_s < clean_part.t_s[0] + 60.0).n_samples
+        + faulty_part.n_samples
+    )
+    assert f"samples IMU0 {n}; left out none;" in err and "imu0.source_restarts 1" in err
+    assert Predicate.F6 in [event_from_json(e).predicate for e in lines]
 
 
 def test_passport_store_and_human_output(tmp_path, capsys):

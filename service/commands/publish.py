@@ -108,7 +108,9 @@ def _log_batches(args: argparse.Namespace) -> tuple[Iterator[SampleBatch], Calla
 
     def left_out() -> str:
         stats = reader.stats
-        return "; ".join(p for p in (stats.left_out(), stats.cut(), stats.logger()) if p)
+        return "; ".join(
+            p for p in (stats.left_out(), stats.cut(), stats.logger(), stats.clock()) if p
+        )
 
     return (b for b in reader if args.imu is None or b.imu == args.imu), left_out
 

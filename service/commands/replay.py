@@ -331,8 +331,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"ins-health replay: not replayed: {key} {why}", file=sys.stderr)
     if cut := reader.stats.cut():
         print(f"ins-health replay: {args.log.name} is {cut}: read up to there", file=sys.stderr)
-    if logger := reader.stats.logger():
-        print(f"ins-health replay: {args.log.name}: {logger}", file=sys.stderr)
+    for said in (reader.stats.logger(), reader.stats.clock()):
+        if said:
+            print(f"ins-health replay: {args.log.name}: {said}", file=sys.stderr)
     samples = ", ".join(f"IMU{i} {n}" for i, n in sorted(reader.stats.samples.items())) or "none"
     print(
         f"ins-health replay: {args.log.name} ({reader.format.value}): samples {samples}; left out {reader.stats.left_out()}; {len(events)} events",
