@@ -406,6 +406,7 @@ class LogReader:
             self.stats.skipped = dict(ulog.contents.skipped)
             if ulog.contents.corrupt_messages:
                 self.stats._drop("corrupt_messages", ulog.contents.corrupt_messages)
+            self.stats._drop("data_without_subscription", ulog.contents.unsubscribed_data)
             self.stats.cut_at_byte = ulog.contents.cut_at_byte
             self.stats.logger_lost = ulog.contents.dropouts
             self.stats.logger_lost_ms = ulog.contents.dropout_ms
@@ -704,7 +705,13 @@ class DataFlashStream:
                 name, values = fields[0], fields[1:]
                 held[name] = held.get(name, 0) + 1
                 fmt = formats.get(name)
-                if fmt is None or len(values) < len(fmt.format):
+                if fmt is None:
+                    continue
+                if len(values) < len(fmt.format):
+                    # A line cut short (a field lost): counted where it was wanted, as a binary
+                    # message that does not decode is.
+                    if name == "FMT" or name in wanted:
+                        self.corrupt += 1
                     continue
                 if name == "FMT":
                     if delimiter == ",":  # the columns, themselves comma-separated, were split too

@@ -183,6 +183,8 @@ class UlogContents:
     cut_at_byte: int | None = None
     dropouts: int = 0
     """Dropout messages: the logger lost data (its buffer full) for ``dropout_ms`` in all."""
+    unsubscribed_data: int = 0
+    """Data messages whose ``msg_id`` no subscription names (their topic is unknown)."""
     dropout_ms: int = 0
 
 
@@ -295,7 +297,11 @@ class UlogImuStream:
                 if mtype == 0x44:  # 'D'
                     (msg_id,) = struct.unpack_from("<H", buf, pos + 3)
                     sub = subs.get(msg_id)
-                    if sub is not None:
+                    if sub is None:
+                        # Its subscription lost (a damaged definitions or data section): of a
+                        # topic nobody can name, IMU or not.
+                        self.contents.unsubscribed_data += 1
+                    else:
                         key = f"{sub[0]}.{sub[1]}"
                         topics[key] = topics.get(key, 0) + 1
                         if sub[2] is not None:

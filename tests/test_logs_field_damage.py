@@ -514,6 +514,37 @@ def test_time_order_glitches_late_samples_and_restarts(
     assert int((np.diff(t) <= 0).sum()) == restarts
 
 
+def test_text_imu_lines_cut_short_are_counted_corrupt(tmp_path):
+    """Every other IMU line of a text log missing its last field was skipped without a count
+    ('left out none'); a binary message that does not decode is counted, and now so is such a line."""
+    path, lines = _text_lines(tmp_path)
+    imu = [k for k, line in enumerate(lines) if line.startswith("IMU,")]
+    for k in imu[::2]:
+        lines[k] = lines[k].rsplit(", ", 1)[0]
+    path.write_text("\n".join(lines) + "\n")
+    back, stats = read_log_sessions(path)
+    assert back[0].n_samples == N - len(imu[::2])
+    assert stats.dropped == {"corrupt_messages": len(imu[::2])}
+
+
+def test_ulog_data_whose_subscription_is_lost_is_counted(tmp_path):
+    """The subscription ('A') of sensor_combined lost: its data messages name a topic nobody knows.
+    They were passed over without a count; now the log says how many there were."""
+    path = tmp_path / "flight.ulg"
+    write_ulog(path, _session(n=200))
+    data, out, pos = path.read_bytes(), [], 16
+    out.append(data[:16])
+    while pos < len(data):
+        size, mtype = struct.unpack_from("<HB", data, pos)
+        msg = data[pos : pos + 3 + size]
+        if not (mtype == ord("A") and msg.endswith(b"sensor_combined")):
+            out.append(msg)
+        pos += 3 + size
+    path.write_bytes(b"".join(out))
+    with pytest.raises(NoImuDataError, match=r"left out: data_without_subscription 200"):
+        read_log_sessions(path)
+
+
 # ------------------------------------------------------------------ C6, H2: --pace recorded
 
 
