@@ -75,14 +75,19 @@ class PassportStore:
         try:
             passport = read_entry(path, vehicle, imu)
         except PassportEntryError as exc:
-            self._rejected[(vehicle, imu)] = exc.problem.value
+            if exc.problem is EntryProblem.MISSING:
+                # Not a refusal, and not kept: a peer inventing vehicle ids would grow it without end
+                # (100,000 ids held 10 MiB).
+                self._rejected.pop((vehicle, imu), None)
+            else:
+                self._rejected[(vehicle, imu)] = exc.problem.value
             raise PassportStoreError(vehicle, imu, path, str(exc), exc.problem.value) from None
         self._rejected.pop((vehicle, imu), None)
         return passport
 
     def rejected_counts(self) -> dict[str, int]:
         """How many units the last read of their entry refused, per reason (``missing`` is not a refusal)."""
-        return dict(Counter(p for p in self._rejected.values() if p != EntryProblem.MISSING.value))
+        return dict(Counter(self._rejected.values()))
 
     def keys(self) -> list[tuple[str, int]]:
         """Every (vehicle, IMU) with an entry file, sorted."""

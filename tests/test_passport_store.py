@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import tracemalloc
 
 import pytest
 
@@ -99,6 +100,27 @@ def test_missing_units_and_bad_keys(tmp_path):
         store.path_for("../etc", 0)
     with pytest.raises(ValueError, match="not a valid unit key"):
         store.path_for("uav-1", 300)
+
+
+def test_lookups_of_made_up_vehicles_keep_no_memory(tmp_path):
+    """A peer inventing a vehicle id per frame: each id is looked up (a vehicle with a passport may
+    take an idle one's place) and was remembered as a miss for good, 100 bytes an id (10 MiB for
+    100,000 ids in the daemon). Misses are not refusals: the store's memory no longer grows with them."""
+    store = PassportStore(tmp_path)
+
+    def miss(first: int, n: int) -> None:
+        for k in range(first, first + n):
+            with pytest.raises(PassportStoreError):
+                store.get(f"made-up-{k}", 0)
+
+    tracemalloc.start()
+    miss(0, 20_000)  # past what the interpreter's own caches (interned path parts) settle at
+    before = tracemalloc.get_traced_memory()[0]
+    miss(20_000, 20_000)
+    grown = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    assert grown < 100_000, grown  # 20,000 misses remembered took 2.4 MB
+    assert store.rejected_counts() == {}
 
 
 def test_store_command_puts_and_checks(tmp_path, capsys):
