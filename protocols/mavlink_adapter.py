@@ -401,7 +401,10 @@ class MavlinkSettings:
     baud : serial baud rate.
     source_system : our MAVLink system id (an onboard computer uses its vehicle's, usually 1).
     source_component : our component id (default MAV_COMP_ID_ONBOARD_COMPUTER = 191).
-    autopilot_system : accept IMU messages only from this system id (None: any).
+    autopilot_system : accept IMU messages only from this system id. None (the default): from the
+        system of the first IMU message the link reads; the IMU messages of any other system (a
+        second vehicle on a shared radio or UDP bus, a simulator, a ground station replaying a
+        log) are then refused, counted and logged once per system id (:class:`ImuBatcher`).
     messages : IMU message types read.
     imu_index : message type → IMU index (module docstring).
     raw_scale : scaling of RAW_IMU counts.
@@ -584,6 +587,13 @@ class LinkCounters:
     messages: int = 0
     imu_samples: dict[str, int] = field(default_factory=dict)
     ignored_system: int = 0
+    """IMU messages of a system other than :attr:`imu_system`, not read (the status topic's
+    ``service.mavlink.rejected.other_system``)."""
+    ignored_systems: dict[int, int] = field(default_factory=dict)
+    """:attr:`ignored_system` by the system id that sent them."""
+    imu_system: int | None = None
+    """The system id whose IMU messages are read: ``autopilot_system``, or when that is unset the
+    system of the first IMU message read (None until then)."""
     dropped_kernel: int = 0
     """Datagrams the kernel dropped at a UDP link's socket before they were read: its receive
     buffer was full, the reader behind its input (:class:`KernelDrops`; 0 on other links)."""
@@ -632,11 +642,25 @@ class ImuBatcher:
     process sends the arrays and the service converts them
     (:mod:`protocols.mavlink_process`): the reader's core is then left to
     pymavlink's parse, which sets the rate it keeps up with.
+
+    IMU messages are read from one system only, ``counters.imu_system``: the
+    configured ``autopilot_system``, else ``imu_system`` (the system a previous
+    reader of this link took, handed over), else the system of the first IMU
+    message added. Two systems' samples merged into one IMU stream would hide
+    each other's faults: the others' IMU messages are counted
+    (:attr:`LinkCounters.ignored_system`, per system in
+    :attr:`LinkCounters.ignored_systems`) and left out.
     """
 
-    def __init__(self, settings: MavlinkSettings, counters: LinkCounters):
+    def __init__(
+        self, settings: MavlinkSettings, counters: LinkCounters, *, imu_system: int | None = None
+    ):
         self.settings = settings
         self.counters = counters
+        if settings.autopilot_system is not None:
+            counters.imu_system = settings.autopilot_system
+        elif imu_system is not None:
+            counters.imu_system = imu_system
         self.converter = ImuConverter(settings, counters)
         self._types = {m.value: m for m in settings.messages}
         self._rows: dict[ImuMessage, list[tuple[float, ...]]] = {}
@@ -644,8 +668,10 @@ class ImuBatcher:
         """Messages kept since the last :meth:`take_fields`."""
 
     def add(self, messages: Iterable[MavlinkMessage]) -> None:
-        """Keep the IMU messages of ``messages`` (other types are ignored, refused bytes counted)."""
-        system = self.settings.autopilot_system
+        """Keep the IMU messages of ``messages`` from :attr:`LinkCounters.imu_system` (the first one's
+        system when it is None); other types are ignored, other systems' and refused bytes counted."""
+        counters = self.counters
+        system, ignored = counters.imu_system, counters.ignored_systems
         types, all_rows = self._types, self._rows
         seen = kept = 0
         for msg in messages:
@@ -655,8 +681,13 @@ class ImuBatcher:
                     self._refused(msg)
                 continue
             seen += 1
-            if system is not None and msg.get_srcSystem() != system:
-                continue
+            source = msg.get_srcSystem()
+            if source != system:
+                if system is None:
+                    system = counters.imu_system = source
+                else:
+                    ignored[source] = ignored.get(source, 0) + 1
+                    continue
             rows = all_rows.get(kind)
             if rows is None:
                 rows = all_rows[kind] = []
@@ -799,9 +830,14 @@ class MavlinkLink:
     (pymavlink's check, :class:`LinkRejection`) unless ``accept_unsigned``;
     other message types are not read, so they may come unsigned (a radio's
     RADIO_STATUS, as the MAVLink signing rules allow).
+
+    IMU messages are read from one MAVLink system (:class:`ImuBatcher`):
+    ``autopilot_system``, else ``imu_system`` (the system a previous link of
+    these settings read, :mod:`protocols.mavlink_process` hands it to a new
+    reader), else the first one heard.
     """
 
-    def __init__(self, settings: MavlinkSettings):
+    def __init__(self, settings: MavlinkSettings, *, imu_system: int | None = None):
         self.settings = settings
         self._conn = mavutil.mavlink_connection(
             settings.device,
@@ -836,7 +872,7 @@ class MavlinkLink:
         self._send_lock = threading.Lock()
         self._chunk_id = 0
         self.counters = LinkCounters()
-        self._batcher = ImuBatcher(settings, self.counters)
+        self._batcher = ImuBatcher(settings, self.counters, imu_system=imu_system)
 
     @property
     def connection(self) -> mavutil.mavfile:
@@ -1256,6 +1292,10 @@ class MavlinkSource(BatchSource):
     dropped and their samples counted in :attr:`dropped_overload`.
     ``async for batch in source`` or ``await source.get()``; create it inside
     the running loop (or pass ``loop``).
+
+    Without a configured ``autopilot_system``, each system whose IMU messages
+    the link left out (:attr:`LinkCounters.ignored_systems`) is logged once,
+    with the system it reads and how to choose another.
     """
 
     def __init__(
@@ -1279,6 +1319,7 @@ class MavlinkSource(BatchSource):
         self._rejections_log = _LogRate()
         self._drops_log = _LogRate()
         self._stale_log = _LogRate()
+        self._systems_logged: set[int] = set()
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
         )
@@ -1301,6 +1342,7 @@ class MavlinkSource(BatchSource):
             self._log_rejections()
             self._log_kernel_drops()
             self._log_signing_stale()
+            self._log_other_systems()
 
     def _log_rejections(self) -> None:
         new = self._rejections_log.due(dict(self.link.counters.rejected))
@@ -1309,6 +1351,25 @@ class MavlinkSource(BatchSource):
                 "mavlink %s: rejected %s (counted on the status topic as service.mavlink.rejected.*)",
                 self.link.settings.device,
                 ", ".join(f"{n} {k}" for k, n in sorted(new.items())),
+            )
+
+    def _log_other_systems(self) -> None:
+        """Once per system id (at most 256 lines): IMU messages of a system other than the one the
+        link locked onto (none is configured) were left out."""
+        counters = self.link.counters
+        if self.link.settings.autopilot_system is not None or len(counters.ignored_systems) == len(
+            self._systems_logged
+        ):
+            return
+        for system in sorted(dict(counters.ignored_systems).keys() - self._systems_logged):
+            self._systems_logged.add(system)
+            _log.warning(
+                "mavlink %s: IMU messages of system %d ignored: this link's IMUs come from system %s, "
+                "the first heard; set [mavlink] autopilot_system to choose (counted on the status "
+                "topic as service.mavlink.rejected.other_system)",
+                self.link.settings.device,
+                system,
+                counters.imu_system,
             )
 
     def _log_signing_stale(self) -> None:

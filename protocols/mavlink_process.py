@@ -25,6 +25,11 @@ counters of what the child read (deltas with every batch and at least every
 :attr:`counters` is the link's whole history whatever the child's. A child that dies (killed, out of
 memory) makes the next :meth:`MavlinkProcessLink.read` raise
 :class:`ReaderProcessEnded`; the read after that starts a new child.
+The system whose IMU messages are read (``autopilot_system``, else the first
+heard: :class:`~protocols.mavlink_adapter.ImuBatcher`) is chosen in the child,
+which leaves the others' messages out before they cost the pipe anything, and
+reported with its counters (:attr:`LinkCounters.imu_system`); the service hands
+it to each new child, so that a restart does not let another system's IMU in.
 The child ignores SIGINT and SIGTERM (systemd signals the unit's whole group):
 it ends when the service closes the command pipe, or when the service is gone.
 """
@@ -75,12 +80,13 @@ class ReaderProcessFailed(OSError):
 
 # What the child reads; what it sends is counted here when it answers (so at once, not with the next batch).
 _SCALARS = ("messages", "ignored_system", "dropped_kernel", "signing_stale")
-_TABLES = ("imu_samples", "rejected")
+_TABLES = ("imu_samples", "rejected", "ignored_systems")
 
 
 def _delta(now: LinkCounters, before: LinkCounters) -> dict[str, Any]:
-    """What ``now`` gained over ``before`` (plain values: the child runs as ``__main__``), and ``before`` set to ``now``."""
-    d: dict[str, Any] = {}
+    """What ``now`` gained over ``before`` (plain values: the child runs as ``__main__``), and ``before`` set to ``now``;
+    the system whose IMU messages are read as it is."""
+    d: dict[str, Any] = {"imu_system": now.imu_system}
     for name in _SCALARS:
         value = getattr(now, name)
         d[name] = value - getattr(before, name)
@@ -93,6 +99,8 @@ def _delta(now: LinkCounters, before: LinkCounters) -> dict[str, Any]:
 
 
 def _add(counters: LinkCounters, d: dict[str, Any]) -> None:
+    if d["imu_system"] is not None:
+        counters.imu_system = d["imu_system"]
     for name in _SCALARS:
         setattr(counters, name, getattr(counters, name) + d[name])
     for name in _TABLES:
@@ -114,7 +122,7 @@ class MavlinkProcessLink:
 
     def __init__(self, settings: MavlinkSettings, *, gather_s: float = 0.0, poll_s: float = 0.1):
         self.settings = settings
-        self.counters = LinkCounters()
+        self.counters = LinkCounters(imu_system=settings.autopilot_system)
         self.restarts = 0
         """Children started after the first (each after one ended)."""
         self.udp_rcvbuf_granted_bytes: int | None = None
@@ -156,7 +164,8 @@ class MavlinkProcessLink:
             )
         data_conn, cmd_conn = Connection(data.detach()), Connection(cmd.detach())
         try:
-            cmd_conn.send((self.settings, self._gather_s, self._poll_s))
+            # The system a previous child read (None: the child takes the first it hears).
+            cmd_conn.send((self.settings, self._gather_s, self._poll_s, self.counters.imu_system))
             if not data_conn.poll(START_TIMEOUT_S):
                 raise ReaderProcessFailed(
                     f"mavlink {self.settings.device}: the reader process did not start within {START_TIMEOUT_S:.0f} s"
@@ -293,11 +302,11 @@ def serve(data: Connection, cmd: Connection) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     try:
-        settings, gather_s, poll_s = cmd.recv()
+        settings, gather_s, poll_s, imu_system = cmd.recv()
     except (EOFError, OSError):
         return
     try:
-        link = MavlinkLink(settings)
+        link = MavlinkLink(settings, imu_system=imu_system)
     except Exception as exc:
         data.send(("error", f"{type(exc).__name__}: {exc}"))
         return

@@ -202,7 +202,9 @@ class MavlinkSection:
         connection string, default ``"udpin:127.0.0.1:14550"``; ``tcp:…``, or a serial device
         with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default ``"mav1"``),
         ``source_system``, ``source_component`` (default 191, MAV_COMP_ID_ONBOARD_COMPUTER),
-        ``autopilot_system``, ``messages``, ``imu_index``, ``raw_scale`` (RAW_IMU counts → SI,
+        ``autopilot_system`` (the one system whose IMU messages are read; unset, the first
+        heard: other systems' are counted as ``service.mavlink.rejected.other_system`` and each
+        logged once), ``messages``, ``imu_index``, ``raw_scale`` (RAW_IMU counts → SI,
         default ArduPilot's mG, mrad/s, cdegC), ``signing_key_hex`` or ``signing_key_file``
         (a file holding the 64 hex digits, relative to the configuration file; MAVLink 2 signing:
         what is sent is signed, IMU messages unsigned or signed with another key are refused and

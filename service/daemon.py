@@ -372,7 +372,7 @@ class Service:
             m = cfg.mavlink.link
             log.info(
                 "mavlink %s: vehicle %s, autopilot system %s, read in a %s, signing %s",
-                m.device, m.vehicle, "any" if m.autopilot_system is None else m.autopilot_system,
+                m.device, m.vehicle, "the first heard" if m.autopilot_system is None else m.autopilot_system,
                 cfg.mavlink.reader.value,
                 "off" if m.signing_key is None else ("on, unsigned accepted" if m.accept_unsigned else "on"),
             )  # fmt: skip

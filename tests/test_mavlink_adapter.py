@@ -35,6 +35,7 @@ from protocols.mavlink_adapter import (
     MavlinkSource,
     alert_text,
     decode_imu_message,
+    heartbeat_message,
     highres_triads_updated,
     imu_message,
     statustext_messages,
@@ -437,6 +438,50 @@ def test_highres_messages_that_do_not_flag_their_accel_and_gyro_as_updated_are_r
     assert counters.rejected == {"fields_not_updated": 3}
 
 
+def _packed(system: int, times, kind=ImuMessage.HIGHRES_IMU) -> list[bytes]:
+    """IMU messages of MAVLink system ``system`` (component 1), one at each of ``times``."""
+    mav = mavlink2.MAVLink(None, srcSystem=system, srcComponent=1)
+    return [imu_message(kind, t_s=t, accel_mps2=ACC, gyro_rps=GYR).pack(mav) for t in times]
+
+
+def test_without_autopilot_system_the_first_imu_system_heard_is_the_only_one_read():
+    """A ground station's HEARTBEAT, then two systems' IMU messages interleaved (system 3 first) and
+    one of a third: only system 3's samples are in the batches, the others are counted by system.
+    Merged, the two streams would be one IMU's (each hiding the other's faults)."""
+    heartbeat = heartbeat_message().pack(mavlink2.MAVLink(None, srcSystem=255, srcComponent=190))
+    first, second = _packed(3, np.arange(10) * 0.01), _packed(42, np.arange(10) * 0.01 + 0.0025)
+    packets = [heartbeat, *(p for pair in zip(first, second, strict=True) for p in pair)]
+    packets.append(_packed(9, [0.2], ImuMessage.SCALED_IMU)[0])
+    counters = LinkCounters()
+    batcher = ImuBatcher(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1"), counters)
+    parser = mavlink2.MAVLink(None)
+    for p in packets:
+        batcher.add(parser.parse_buffer(p))
+    (batch,) = batcher.take()
+    np.testing.assert_allclose(batch.t_s, np.arange(10) * 0.01)
+    assert counters.imu_system == 3 and counters.messages == 21
+    assert counters.ignored_system == 11 and counters.ignored_systems == {42: 10, 9: 1}
+    assert counters.imu_samples == {"HIGHRES_IMU": 10}
+
+
+def test_a_system_handed_over_is_read_and_a_configured_one_comes_first():
+    """A new reader of a link (a reader process restarted) is handed the system read before: that
+    one's messages are read even when another's come first; ``autopilot_system`` overrides both."""
+    packets = [*_packed(42, [0.0]), *_packed(3, [0.01]), *_packed(1, [0.02])]
+    parser = mavlink2.MAVLink(None)
+    messages = [m for p in packets for m in parser.parse_buffer(p)]
+    for configured, handed, read in ((None, 3, 3), (1, 3, 1), (None, None, 42)):
+        counters = LinkCounters()
+        settings = MavlinkSettings(
+            device="udpin:127.0.0.1:0", vehicle="v1", autopilot_system=configured
+        )
+        batcher = ImuBatcher(settings, counters, imu_system=handed)
+        batcher.add(messages)
+        (batch,) = batcher.take()
+        assert list(batch.t_s) == [{42: 0.0, 3: 0.01, 1: 0.02}[read]]
+        assert counters.imu_system == read and counters.ignored_system == 2
+
+
 def test_settings_from_dict_and_message_selection():
     settings = MavlinkSettings.from_dict(
         {
@@ -521,12 +566,13 @@ def test_async_source_over_tcp():
 
 
 class ScriptedLink:
-    """An ImuLink without a device: each read adds the next rejections (and kernel drops) of ``steps``
-    and returns nothing."""
+    """An ImuLink without a device: each read adds the next rejections (and kernel drops, and IMU
+    messages of other systems as ``"system N"``, the link reading system 1) of ``steps`` and
+    returns nothing."""
 
-    def __init__(self, steps: list[dict[str, int]]):
-        self.settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1")
-        self.counters = LinkCounters()
+    def __init__(self, steps: list[dict[str, int]], **settings):
+        self.settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", **settings)
+        self.counters = LinkCounters(imu_system=1)
         self._steps = list(steps)
         self.done = threading.Event()
 
@@ -535,6 +581,11 @@ class ScriptedLink:
             for reason, n in self._steps.pop(0).items():
                 if reason == "dropped_kernel":
                     self.counters.dropped_kernel += n
+                elif reason.startswith("system "):
+                    system = int(reason.split()[1])
+                    ignored = self.counters.ignored_systems
+                    ignored[system] = ignored.get(system, 0) + n
+                    self.counters.ignored_system += n
                 else:
                     self.counters.reject(reason, n)
         else:
@@ -568,6 +619,23 @@ def test_kernel_drops_are_logged_at_once_then_once_a_period(caplog):
     link = ScriptedLink([{"dropped_kernel": 40}, {"dropped_kernel": 5}])
     said = [line for line in warnings_while_read(link, caplog) if "kernel dropped" in line]
     assert len(said) == 1 and "dropped 40 datagrams (40 in all)" in said[0], said
+
+
+def test_each_other_system_is_logged_once_with_the_one_read_and_how_to_choose(caplog):
+    """IMU messages of system 42, then of 42 and 7, then of 42 again: one line for each system, at once."""
+    link = ScriptedLink([{"system 42": 5}, {"system 42": 5, "system 7": 1}, {"system 42": 3}])
+    said = [line for line in warnings_while_read(link, caplog) if "system" in line]
+    assert len(said) == 2, said
+    for line, system in zip(said, (42, 7), strict=True):
+        assert f"IMU messages of system {system} ignored" in line
+        assert "come from system 1, the first heard" in line
+        assert "[mavlink] autopilot_system" in line and "rejected.other_system" in line
+
+
+def test_other_systems_are_not_logged_when_autopilot_system_is_configured(caplog):
+    """Configured: the other systems are counted as before (other_system), with no log line."""
+    link = ScriptedLink([{"system 42": 5}, {"system 7": 1}], autopilot_system=1)
+    assert not [line for line in warnings_while_read(link, caplog) if "system" in line]
 
 
 def test_no_pymavlink_global_state_is_touched():

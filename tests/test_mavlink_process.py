@@ -226,6 +226,36 @@ def test_a_killed_child_is_said_once_replaced_and_numbering_and_counters_go_on(l
     assert link.counters.heartbeats_sent == 1
 
 
+def test_the_system_read_is_kept_across_a_child_restart(linked, session):
+    """Without autopilot_system the first child reads the first system heard (the peer, system 1);
+    a second system interleaved is left out and counted by system in the service's counters. The
+    child that replaces a killed one reads system 1 too, though system 42's messages come first."""
+    link, peer = linked
+    packets = mavlink_packets(session, ImuMessage.HIGHRES_IMU)
+    other = mavlink_packets(
+        session, ImuMessage.HIGHRES_IMU, mav=mavlink2.MAVLink(None, srcSystem=42)
+    )
+    send_each(peer, [p for pair in zip(packets[:100], other[:100], strict=True) for p in pair])
+    before = read_samples(link, 100)
+    reading_until(link, lambda: link.counters.messages == 200)
+    expected_t_s = np.round(session.t_s * 1e6) * 1e-6
+    np.testing.assert_array_equal(np.concatenate([b.t_s for b in before]), expected_t_s[:100])
+    assert link.counters.imu_system == 1 and link.counters.ignored_systems == {42: 100}
+    os.kill(link.pid, signal.SIGKILL)
+    with pytest.raises(ReaderProcessEnded):
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            link.read(0.1)
+    assert link.read(0.1) == [] and link.restarts == 1
+    send_each(peer, [*other[100:150], *packets[100:250]])
+    after = read_samples(link, 150)
+    reading_until(link, lambda: link.counters.messages == 400)
+    np.testing.assert_array_equal(np.concatenate([b.t_s for b in after]), expected_t_s[100:250])
+    assert link.counters.imu_system == 1 and link.counters.ignored_systems == {42: 150}
+    assert link.counters.ignored_system == 150
+    assert link.counters.imu_samples == {"HIGHRES_IMU": 250}
+
+
 def test_sigterm_to_the_group_leaves_the_child_to_the_service_and_close_ends_it(linked, session):
     link, peer = linked
     child = link.pid

@@ -32,6 +32,7 @@ from service_support import (
 from test_service_faults import ServiceProcess, Statuses, put_store, write_config
 
 from estimators.conventions import Triad
+from estimators.session import ImuSession
 from protocols.events import Predicate, Severity, decode_event
 from protocols.frames import SampleBatch
 from protocols.mavlink_adapter import (
@@ -259,10 +260,13 @@ def stream(peer, packets: list[bytes], status: Statuses, between=()) -> None:
                 peer.write(datagram)
 
 
-def run_daemon(tmp_path, packets, between, counted: str, n_counted: int, **link):
+def run_daemon(
+    tmp_path, packets, between, counted: str, n_counted: int, *, taken: int | None = None, **link
+):
     """A real daemon reading vehicle mav1 over UDP (``link``: more [mavlink] keys), sent ``packets`` with
-    ``between`` (:func:`stream`), until mav1's F0 and F6 events arrived and the status topic shows every
-    packet read and ``n_counted`` of ``counted``; returns (events, counters, log lines, seconds it ran)."""
+    ``between`` (:func:`stream`), until mav1's F0 and F6 events arrived and the status topic shows
+    ``taken`` SCALED_IMU samples read (default: every packet) and ``n_counted`` of ``counted``; returns
+    (events, counters, log lines, seconds it ran)."""
     mav_port = free_udp_port()
     with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
         status, got = Statuses(ground), []
@@ -284,7 +288,7 @@ def run_daemon(tmp_path, packets, between, counted: str, n_counted: int, **link)
                     lambda: (
                         status.counter("mav1", counted) == n_counted
                         and status.counter("mav1", "service.mavlink.samples.SCALED_IMU")
-                        == len(packets)
+                        == (len(packets) if taken is None else taken)
                     ),
                     timeout_s=30,
                     what=lambda: f"every packet counted: {status.get('mav1').counters}",
@@ -319,6 +323,30 @@ def test_garbage_and_bad_crc_are_counted_and_logged_while_the_fault_is_found(tmp
     # bad_crc's first line, then one a period at most; a line said at once for the other kind
     # (garbage_bytes) may hold bad_crc counted since the last line.
     assert 1 <= len(logged) <= 2 + elapsed_s / LOG_PERIOD_S, lines
+
+
+def test_a_second_system_on_the_link_does_not_hide_the_autopilots_fault(tmp_path):
+    """autopilot_system unset: the vehicle's autopilot (system 1, its IMU with the demo's fault) and a
+    second system (42: another vehicle on a shared bus, a simulator; a healthy unit on a clock 2.5 ms
+    apart) stream SCALED_IMU interleaved message by message. The link reads the first system heard:
+    the fault's F0 and F6 events arrive (merged, the static detector saw no rest and they never
+    came), system 42's messages are counted as rejected.other_system and it is logged once."""
+    _passport, _g, sc, start = unit()
+    healthy = demo_scenario(fault_magnitude=0.0).session
+    healthy = ImuSession(healthy.t_s + 0.0025, healthy.accel_mps2, healthy.gyro_rps, None)
+    mine = mavlink_packets(sc.session, ImuMessage.SCALED_IMU, start_s=start)
+    other = mavlink_packets(
+        healthy, ImuMessage.SCALED_IMU, start_s=start, mav=mavlink2.MAVLink(None, srcSystem=42)
+    )
+    packets = [p for pair in zip(mine, other, strict=True) for p in pair]
+    got, counters, lines, _ = run_daemon(
+        tmp_path, packets, (), "service.mavlink.rejected.other_system", len(other), taken=len(mine)
+    )
+    assert got == [Predicate.F0, Predicate.F6]
+    assert counters["service.mavlink.messages"] == len(packets)
+    said = [line for line in lines if "IMU messages of system" in line]
+    assert len(said) == 1 and "system 42 ignored" in said[0], said
+    assert "come from system 1, the first heard" in said[0]
 
 
 KEY = bytes(range(32))
