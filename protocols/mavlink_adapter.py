@@ -60,6 +60,7 @@ from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
 from protocols._handoff import ThreadToAsyncRing
 from protocols.events import Event, Predicate, Severity, StreamCause
 from protocols.frames import BatchSource, FrameError, SampleBatch
+from protocols.log_rate import LogRate
 
 STATUSTEXT_MAX_CHARS = 50
 """Characters of one STATUSTEXT (the MAVLink field; ground stations show one message per line)."""
@@ -804,8 +805,6 @@ costs one or two; the bound keeps a datagram of start bytes (each try decodes a 
 280 bytes) from costing the reader 0.4 s instead of 2 ms."""
 DROPS_PERIOD_S = 1.0
 """A UDP link reads its socket's kernel drops at most this often (:class:`KernelDrops`)."""
-LOG_PERIOD_S = 10.0
-"""At most one log line per this period about rejected input (the counters are on the status topic)."""
 
 
 class MavlinkLink:
@@ -1256,29 +1255,6 @@ class ImuLink(Protocol):
     def close(self) -> None: ...
 
 
-class _LogRate:
-    """Which growth of some counts to log now: a kind not logged before at once (a broken CRC seconds
-    after the first garbage used to wait a whole period), more of a kind already logged at most once
-    per :data:`LOG_PERIOD_S`. The kinds are few, so the log stays bounded."""
-
-    def __init__(self) -> None:
-        self._logged: dict[str, int] = {}
-        self._at_s = -LOG_PERIOD_S
-
-    def due(self, current: dict[str, int]) -> dict[str, int]:
-        """What ``current`` gained since the last line logged, if a line is due now; else ``{}``."""
-        if current == self._logged:
-            return {}
-        now = time.monotonic()
-        if now - self._at_s < LOG_PERIOD_S and current.keys() <= self._logged.keys():
-            return {}
-        new = {
-            k: n - self._logged.get(k, 0) for k, n in current.items() if n != self._logged.get(k, 0)
-        }
-        self._logged, self._at_s = current, now
-        return new
-
-
 class MavlinkSource(BatchSource):
     """IMU batches from a link (:class:`ImuLink`) for asyncio: a reader thread and a bounded ring.
 
@@ -1287,7 +1263,7 @@ class MavlinkSource(BatchSource):
     ``gather_s`` after the first into one batch per IMU: the pipeline's cost is
     per batch, and ``gather_s`` is the latency that buys. It logs the link's
     rejected input and the datagrams the kernel dropped: a reason not logged
-    before at once, more of the same at most once per :data:`LOG_PERIOD_S`. The ring holds up to
+    before at once, more of the same at most once per :data:`~protocols.log_rate.LOG_PERIOD_S`. The ring holds up to
     ``capacity`` samples; when the consumer lags, the oldest batches are
     dropped and their samples counted in :attr:`dropped_overload`.
     ``async for batch in source`` or ``await source.get()``; create it inside
@@ -1316,9 +1292,9 @@ class MavlinkSource(BatchSource):
         self._poll_s = float(poll_s)
         self.failures = 0
         self.last_failure: Exception | None = None
-        self._rejections_log = _LogRate()
-        self._drops_log = _LogRate()
-        self._stale_log = _LogRate()
+        self._rejections_log = LogRate()
+        self._drops_log = LogRate()
+        self._stale_log = LogRate()
         self._systems_logged: set[int] = set()
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
@@ -1390,7 +1366,7 @@ class MavlinkSource(BatchSource):
             "was full, the reader is behind its input (service.mavlink.dropped_kernel)",
         )
 
-    def _log_total(self, rate: _LogRate, counter: str, text: str) -> None:
+    def _log_total(self, rate: LogRate, counter: str, text: str) -> None:
         """Log ``text`` (device, count since the last line, total) when the link's ``counter`` grew
         and ``rate`` says a line is due."""
         total = getattr(self.link.counters, counter)

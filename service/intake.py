@@ -10,6 +10,7 @@ from collections.abc import Awaitable, Callable, Iterator
 from protocols._schema import SchemaError
 from protocols.events import Event
 from protocols.frames import FrameError, SampleBatch
+from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import MavlinkSource
 from protocols.zenoh_adapter import (
     FrameSource,
@@ -69,6 +70,9 @@ class Intake:
         self._clock = clock
         self._say = say
         self._reported: set[str] = set()
+        self._refused: dict[str, int] = {}
+        self._refused_log = LogRate()
+        self._last_refusal = ""
         self._taken: list[SampleBatch] = []
         self._holding = False
         self.stalled = False
@@ -98,6 +102,27 @@ class Intake:
         except SchemaError:
             vehicle, imu = None, None
         self._put(self.fleet.reject(vehicle, imu, error.reason.value))
+        reason = error.reason.value
+        self._refused[reason] = self._refused.get(reason, 0) + 1
+        self._last_refusal = f"{key}: {error}"
+        self._log_refusals()
+
+    def _log_refusals(self) -> None:
+        """Frames refused (by the decoder, or at admission: a vehicle unknown or over the limits)
+        said in the log, a new reason at once and more at most once per period: the counters alone
+        made a fleet-wide schema mismatch silent where no vehicle had a status yet."""
+        refused = dict(self._refused)
+        for name, n in self.fleet.service_counters.items():
+            if name.startswith("frames.rejected."):
+                reason = name.removeprefix("frames.rejected.")
+                refused[reason] = max(refused.get(reason, 0), n)
+        if new := self._refused_log.due(refused):
+            self._say(
+                "frames refused: "
+                + ", ".join(f"{n} {k}" for k, n in sorted(new.items()))
+                + (f" (last decoder refusal {self._last_refusal})" if self._last_refusal else "")
+                + "; counted on the status topic as frames.rejected.<reason>"
+            )
 
     def process(self, batches: list[SampleBatch]) -> None:
         """Frames through their pipelines; a pipeline error skips them (counted, reported once per kind)."""
@@ -156,6 +181,7 @@ class Intake:
                 self._taken.append(more)
                 n += more.n_samples
             await self._process_group()
+            self._log_refusals()
             if not self._holding and source.queued == 0:
                 self.stalled = False
             # Let the delivery and status tasks run between groups.

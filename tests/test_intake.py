@@ -7,8 +7,10 @@ import threading
 
 from service_support import batches_of, demo_fleet
 
+from protocols._schema import Reason
 from protocols.events import Event
-from protocols.frames import SampleBatch
+from protocols.frames import FrameError, SampleBatch
+from protocols.zenoh_adapter import frame_key
 from service.demo import DEMO_VEHICLE, demo_scenario
 from service.intake import Intake
 
@@ -127,3 +129,29 @@ def test_the_rest_of_the_group_waits_until_the_events_are_handed_over():
     seen = asyncio.run(scenario())
     assert seen == [("asked", seq_before), ("handed", seq_before)]
     assert other.last_seq == seq_after
+
+
+def test_refused_frames_are_logged_a_new_reason_at_once_and_more_at_a_bounded_rate():
+    """Frames the decoder refused, and frames refused at admission (over the vehicle limit), were
+    counted only: with no vehicle admitted there was no status either, so a fleet publishing a newer
+    frame schema went unseen. The intake now says them: a new reason at once, more of the same at
+    most once per LOG_PERIOD_S, with the last refusal's key and reason."""
+    said: list[str] = []
+    f = demo_fleet(max_vehicles=1)
+    intake = Intake(f, store=lambda events: True, writable=None, clock=lambda: 0.0, say=said.append)  # type: ignore[arg-type]
+    error = FrameError(
+        Reason.UNKNOWN_VERSION, "frame schema version 2 is newer than this service's 1"
+    )
+    for _ in range(100):
+        intake.reject(frame_key("uav-1", 0), error)
+    assert len(said) == 1 and said[0].startswith("frames refused: 1 unknown_version (last decoder")
+    assert "ins/uav-1/imu/0: unknown_version: frame schema version 2 is newer" in said[0]
+    frames = list(batches_of(demo_scenario().session, vehicle="uav-2", imu=0, batch_samples=FRAME))
+    intake.process(frames[:1])
+    intake.process(
+        list(batches_of(demo_scenario().session, vehicle="uav-3", imu=0, batch_samples=FRAME))[:5]
+    )
+    intake.reject(frame_key("uav-1", 0), error)
+    # A new reason (the vehicle limit) is said at once; the 100 more of the old one wait their period.
+    assert len(said) == 2 and "5 over_vehicle_limit" in said[1]
+    assert f.service_counters["frames.rejected.over_vehicle_limit"] == 5

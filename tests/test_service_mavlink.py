@@ -35,8 +35,8 @@ from estimators.conventions import Triad
 from estimators.session import ImuSession
 from protocols.events import Predicate, Severity, decode_event
 from protocols.frames import SampleBatch
+from protocols.log_rate import LOG_PERIOD_S
 from protocols.mavlink_adapter import (
-    LOG_PERIOD_S,
     ImuMessage,
     alert_text,
     decode_imu_message,
