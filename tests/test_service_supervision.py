@@ -64,8 +64,9 @@ def healthy_frames(vehicle: str):
 
 
 def test_an_unreachable_router_is_said_the_mavlink_side_is_served_and_sigterm_ends_it(tmp_path):
-    """No router on the configured endpoint: the daemon says so, runs, answers on MAVLink, and SIGTERM
-    (while it still tries to connect) ends it with status 0 within the stop bound."""
+    """No router on the configured endpoint: the daemon says so, runs, answers on MAVLink, ignores
+    SIGHUP (and says so), and SIGTERM (while it still tries to connect) ends it with status 0 within
+    the stop bound."""
     udp = free_udp_port()
     config = write_config(
         tmp_path, port=free_tcp_port(), passports=put_store(tmp_path, []), mavlink_port=udp
@@ -90,6 +91,14 @@ def test_an_unreachable_router_is_said_the_mavlink_side_is_served_and_sigterm_en
             )
         finally:
             peer.close()
+        # SIGHUP (a closed terminal) killed the daemon with no drain: it is said and ignored.
+        daemon.proc.send_signal(signal.SIGHUP)
+        wait_until(
+            lambda: any("SIGHUP ignored" in line for line in daemon.lines),
+            timeout_s=30.0,
+            what="the SIGHUP line",
+        )
+        assert daemon.proc.poll() is None, daemon.lines
     finally:
         daemon.proc.send_signal(signal.SIGTERM)
         # A deadline on the wait, not a timing assertion: a daemon that ignores SIGTERM never ends.

@@ -1,6 +1,6 @@
 """``ins-health run --config FILE.toml``: the daemon (service/daemon.py).
 
-Runs until SIGTERM or SIGINT, then drains: stops taking frames, processes what
+Runs until SIGTERM or SIGINT (SIGHUP is logged and ignored: there is no reload), then drains: stops taking frames, processes what
 was received, writes the checkpoints and keeps delivering events for a few
 seconds; whatever is still undelivered is sent by the next start. SIGTERM or SIGINT
 ends it within :data:`STOP_BOUND_S` in every state (connecting to an unreachable router
@@ -67,6 +67,16 @@ async def serve(service: Service) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    # SIGHUP (a closed terminal or ssh session, or an operator expecting a reload) killed the daemon
+    # with no drain and no last checkpoint. There is no reload: it is said and otherwise ignored, so a
+    # stop stays SIGTERM's and systemd's Restart= keeps its meaning.
+    loop.add_signal_handler(
+        signal.SIGHUP,
+        lambda: logger("run").warning(
+            "SIGHUP ignored: the configuration is read at start (restart the service to read it "
+            "again); SIGTERM or SIGINT stops it"
+        ),
+    )
     ready = asyncio.Event()
     runner = asyncio.create_task(service.run(stop, ready=ready))
     await asyncio.wait(
