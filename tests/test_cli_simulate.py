@@ -175,6 +175,13 @@ def test_random_errors_draw_from_the_grade(tmp_path, capsys):
             "does not apply to the accel triad",
         ),
         ([], "[profile]\nkind = 'orbit'\n", "profile kind must be one of"),
+        (
+            ["--profile", "flight", "--rest-s", "0"],
+            None,
+            r"--rest-s \(setting rest_s\) must be positive and finite, got 0.0",
+        ),
+        (["--rate-hz", "nan"], None, r"--rate-hz \(setting rate_hz\) must be positive and finite"),
+        ([], "[profile]\nstatic_s = -1\n", r"--static-s \(setting static_s\) must be positive"),
         ([], "seed = [\n", "not valid TOML"),
     ],
 )

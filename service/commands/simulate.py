@@ -86,6 +86,8 @@ PROFILE_KEYS = (
     "duration_s",
     "rest_s",
 )
+_DURATIONS = ("static_s", "transition_s", "first_static_s", "duration_s", "rest_s", "rate_hz")
+"""Settings that must be positive and finite (seconds, or Hz)."""
 TOP_KEYS = (
     "seed",
     "rate_hz",
@@ -354,6 +356,12 @@ def spec_from_settings(cfg: dict):
     grade, model = _model(cfg, seed)
     prof = dict(cfg.get("profile", {}))
     kind = prof.pop("kind", "multiposition")
+    # Said in the option's words: the simulator's own check named its internal segment (Hold(...)).
+    for key, value in [*prof.items(), ("rate_hz", cfg.get("rate_hz"))]:
+        if key in _DURATIONS and value is not None and not 0.0 < float(value) < math.inf:
+            raise UsageError(
+                f"--{key.replace('_', '-')} (setting {key}) must be positive and finite, got {value!r}"
+            )
     common = dict(
         model=model,
         rate_hz=float(cfg.get("rate_hz", 100.0)),
