@@ -6,6 +6,7 @@ import argparse
 import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 from estimators.conventions import normal_gravity_mps2
 from estimators.session import ImuSession
@@ -17,6 +18,7 @@ from protocols.session_file import (
     LoadedSession,
     SessionUnits,
     TimeUnit,
+    UnitsError,
     check_units,
     load_session,
 )
@@ -145,11 +147,22 @@ def load_units_checked(
             f"(time {u.time}, accelerometer {u.accel}, gyro {u.gyro})",
             file=sys.stderr,
         )
-    check_units(
-        loaded.session,
-        loaded.units,
-        time_declared=declared.time is not None or UNIT_KEYS["time"] in loaded.metadata,
-    )
+    try:
+        check_units(
+            loaded.session,
+            loaded.units,
+            time_declared=declared.time is not None or UNIT_KEYS["time"] in loaded.metadata,
+        )
+    except UnitsError as exc:
+        if gyro_file is None and not Path(path).is_dir():
+            raise
+        # Units cannot be declared for a raw-count pair: the check's advice (--accel-unit ...) would
+        # be refused. What goes wrong with a pair is the files or the sidecar.
+        raise UnitsError(
+            f"{str(exc).split(' (')[0]}: this raw-count pair is converted by its sidecar, so the "
+            "accelerometer and gyro files may be swapped (the accelerometer's first, the gyro's with "
+            "--gyro-file) or the sidecar's scale factors may not be this unit's"
+        ) from None
     return loaded
 
 

@@ -210,3 +210,16 @@ def test_a_triad_whose_fit_leaves_the_physical_domain_is_suspect_not_no_fault(
     out = json.loads(capsys.readouterr().out)
     assert out["triads"]["accel"]["suspect"] is True
     assert out["triads"]["accel"]["estimate"]["fit_left_domain"] is True
+
+
+@needs(XSENS)
+def test_a_swapped_xsens_pair_is_said_as_such_not_as_a_unit_to_declare(tmp_path, capsys):
+    """The real pair given gyro file first: its 'accelerometer' looks like g. The advice was to
+    declare --accel-unit g, which a raw-count pair refuses; now the files or the sidecar are named."""
+    argv = ["calibrate", str(XSENS / "xsens_gyro.mat"), "--gyro-file", str(XSENS / "xsens_acc.mat")]
+    capsys.readouterr()
+    assert main([*argv, "--out", str(tmp_path / "x.json"), "--no-audit"]) == 2
+    err = capsys.readouterr().err
+    assert "look like g, not m/s2" in err and "--accel-unit" not in err
+    assert "the accelerometer and gyro files may be swapped" in err
+    assert err.count("\n") == 1 and not (tmp_path / "x.json").exists()
