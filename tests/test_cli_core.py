@@ -223,3 +223,30 @@ def test_a_swapped_xsens_pair_is_said_as_such_not_as_a_unit_to_declare(tmp_path,
     assert "look like g, not m/s2" in err and "--accel-unit" not in err
     assert "the accelerometer and gyro files may be swapped" in err
     assert err.count("\n") == 1 and not (tmp_path / "x.json").exists()
+
+
+def test_diagnose_f0_counts_rest_as_the_service_does_not_a_flights_manoeuvres(tmp_path, capsys):
+    """A fault-free flight of the unit the passport was made of: F0 found 225 'static' samples out
+    of the shell, because the chain's detector (thresholds from the session's own noise) took
+    manoeuvres for rest; replay of the same flight tested 1901 and found none. F0 now uses the
+    service's detector (thresholds raised to the passport's noise): none leaves the shell."""
+    for argv in (
+        ["simulate", "--out", tmp_path / "mp.csv", "--seed", "1"],
+        ["calibrate", tmp_path / "mp.csv", "--out", tmp_path / "mp.json", "--no-audit"],
+        [
+            "simulate",
+            "--out",
+            tmp_path / "fl.csv",
+            "--profile",
+            "flight",
+            "--duration-s",
+            "300",
+            "--seed",
+            "1",
+        ],
+    ):
+        assert main([str(a) for a in argv]) == 0
+    capsys.readouterr()
+    main(["diagnose", str(tmp_path / "fl.csv"), "--passport", str(tmp_path / "mp.json"), "--json"])
+    f0 = json.loads(capsys.readouterr().out)["f0"]["accel"]
+    assert f0["run"] and f0["tested"] > 1000 and f0["failed"] == 0

@@ -57,19 +57,28 @@ def f0_report(
 ) -> dict[str, dict[str, Any]]:
     """F0 on every static sample against the passport, as the service runs it (service.pipeline).
 
+    Static as the service's detector sees it: its thresholds raised to the passport's noise
+    (:func:`~service.pipeline.detector_config`), as ``replay`` runs it. The chain's detector, whose
+    thresholds come from the session's own noise, took a flight's manoeuvres for rest (a fault-free
+    flight: 225 samples 'leaving the shell' that replay did not test).
+
     Per triad: static samples tested, how many leave the shell, the first such
     time and the worst ``|½(|ã|²−1)|``; or why F0 is not run for the triad.
     """
     import numpy as np
 
     from estimators.scalar import f0_batch
-    from service.pipeline import PipelineOptions
+    from estimators.static_detector import detect_static
+    from service.pipeline import PipelineOptions, detector_config
     from service.pipeline.triad_check import f0_config
 
     clean = result.session
     if clean is None:
         raise ValueError("the chain result does not carry its session")
     options = PipelineOptions(gravity_mps2=config.gravity_mps2)
+    static = detect_static(
+        clean, config=detector_config(options.detector, passport, clean.rate_hz)
+    ).static
     out: dict[str, dict[str, Any]] = {}
     for triad, tp in passport.triads.items():
         x = clean.accel_mps2 if triad.value == "accel" else clean.gyro_rps
@@ -79,7 +88,7 @@ def f0_report(
         if cfg is None:
             out[triad.value] = {"run": False, "lambda0": lambda0, "note": note}
             continue
-        f0 = f0_batch(x, result.detection.static, cfg)
+        f0 = f0_batch(x, static, cfg)
         failed = np.flatnonzero(f0.state == 0)
         out[triad.value] = {
             "run": True,
