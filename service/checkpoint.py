@@ -14,6 +14,12 @@ written in the same transaction as its units' rows, so that a restart neither
 forgets nor re-raises a disagreement. A file written before that table existed
 has no such rows: its vehicles resume their units and start the cross-IMU
 comparison afresh.
+
+A checkpoint the store cannot write now (disk full, the file locked by another process, an I/O
+error) is :class:`CheckpointUnavailable` and changes nothing. Waiting for another process's lock
+is bounded by :data:`BUSY_TIMEOUT_S`, as the outbox's, since the daemon writes from its event
+loop. The daemon does not stop for it (:class:`SaveFailures`): checkpoints only save work, the
+units' state stays in memory and is written once the store takes writes again.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import math
 import sqlite3
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,8 +37,17 @@ from protocols._schema import check_imu, check_vehicle
 from protocols.atomic_file import private_file
 from protocols.checkpoint_codec import CheckpointError, decode_state, encode_state
 from protocols.events import EventError
+from service.log_setup import logger
 
 CHECKPOINT_SCHEMA_VERSION = 1
+BUSY_TIMEOUT_S = 0.1
+"""How long a write waits for another process's lock on the file before it is :class:`CheckpointUnavailable`
+(SQLite's default, 5 s, held the daemon's whole event loop that long at each attempt)."""
+RETRY_MIN_S = 0.1
+RETRY_MAX_S = 5.0
+"""A checkpoint that failed is tried again after :data:`RETRY_MIN_S`, doubling up to this."""
+
+log = logger("checkpoints")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS checkpoints (
@@ -102,14 +118,82 @@ class CheckpointUnavailable(RuntimeError):
     """A checkpoint that cannot be written now (disk full, file locked, I/O error); nothing changed."""
 
 
-class CheckpointStore:
-    """Per-unit estimator state in one SQLite file. A context manager; thread-safe."""
+class SaveFailures:
+    """Checkpoints the store could not write: counted, logged once per episode, retried with back-off.
 
-    def __init__(self, path: str | Path) -> None:
+    A failed save is not an error of the daemon: the units' state is in memory and their checkpoint
+    is written by the next attempt (after :attr:`retry_s`, :data:`RETRY_MIN_S` doubling up to
+    :data:`RETRY_MAX_S`), with the state they have then. The log says when the store becomes
+    unavailable (with the reason) and when a checkpoint is saved again (after how long); the status
+    topic carries ``checkpoints.unavailable`` (1 while the last attempt failed),
+    ``checkpoints.write_failures`` (attempts that failed) and ``checkpoints.unavailable_episodes``.
+
+    ``clock``: a monotonic clock (how long the store was unavailable).
+    """
+
+    def __init__(self, *, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self._since: float | None = None
+        self._failures_now = 0
+        self.retry_s = RETRY_MIN_S
+        """How long to wait before the next attempt, after a failed one."""
+        self.write_failures = 0
+        self.episodes = 0
+
+    @property
+    def unavailable(self) -> bool:
+        """Whether the last checkpoint attempt failed."""
+        return self._since is not None
+
+    def failed(self, exc: CheckpointUnavailable, units: int) -> None:
+        """An attempt to save ``units`` units' state failed: counted, :attr:`retry_s` set for the next one."""
+        self.write_failures += 1
+        self._failures_now += 1
+        if self._since is None:
+            self._since = self._clock()
+            self.episodes += 1
+            log.error(
+                "checkpoints cannot be saved (%s): the state of %d unit(s) is kept in memory and saved "
+                "once the store takes writes again (retrying; fault detection goes on, a restart "
+                "meanwhile resumes from the last checkpoint saved)",
+                exc, units,
+            )  # fmt: skip
+        self.retry_s = min(RETRY_MAX_S, RETRY_MIN_S * 2.0 ** (self._failures_now - 1))
+
+    def saved(self, units: int) -> None:
+        """A checkpoint of ``units`` units was written: the end of an episode of failures, if any."""
+        if self._since is None:
+            return
+        log.warning(
+            "checkpoints saved again after %.1f s unavailable (%d attempt(s) failed): %d unit(s) written",
+            self._clock() - self._since, self._failures_now, units,
+        )  # fmt: skip
+        self._since = None
+        self._failures_now = 0
+        self.retry_s = RETRY_MIN_S
+
+    def counters(self) -> dict[str, int]:
+        """For the status topic (class docstring)."""
+        return {
+            "checkpoints.unavailable": int(self.unavailable),
+            "checkpoints.write_failures": self.write_failures,
+            "checkpoints.unavailable_episodes": self.episodes,
+        }
+
+
+class CheckpointStore:
+    """Per-unit estimator state in one SQLite file. A context manager; thread-safe.
+
+    ``busy_timeout_s``: how long a write waits for another process's lock (:data:`BUSY_TIMEOUT_S`).
+    """
+
+    def __init__(self, path: str | Path, *, busy_timeout_s: float = BUSY_TIMEOUT_S) -> None:
         if str(path) != ":memory:":
             private_file(path)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(str(path), isolation_level=None, check_same_thread=False)
+        self._db = sqlite3.connect(
+            str(path), isolation_level=None, check_same_thread=False, timeout=busy_timeout_s
+        )
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")
         self._db.executescript(_SCHEMA)

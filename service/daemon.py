@@ -29,7 +29,10 @@ Tasks of :meth:`Service.run`
   with every counter (rejections by reason, drops, outbox backlog, …).
 * **checkpoints** — every ``checkpoint_period_s`` the state of every pipeline
   (positions, recursive estimates) and of each vehicle's cross-IMU comparison
-  (the disagreements it raised) to SQLite, a vehicle's taken at one moment.
+  (the disagreements it raised) to SQLite, a vehicle's taken at one moment. A checkpoint the
+  store cannot write (disk full, file locked by another process) ends neither the task nor the
+  daemon: the state stays in memory and is saved by the next attempt, retried with back-off
+  (:class:`service.checkpoint.SaveFailures`); the status topic says ``checkpoints.unavailable``.
 * **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
 * **zenoh-connect** — only while the router is out of reach: the first attempt at opening the
   Zenoh session (at most :data:`CONNECT_ATTEMPT_S`) is made before the service says it runs; if
@@ -88,6 +91,7 @@ from service.checkpoint import (
     CheckpointError,
     CheckpointStore,
     CheckpointUnavailable,
+    SaveFailures,
     checkpoint_unit,
     open_checkpoints,
 )
@@ -254,6 +258,7 @@ class Service:
         # Set when events are stored: their vehicles' state is saved at once, not a period later.
         self._checkpoint_soon = asyncio.Event()
         self._checkpoint_vehicles: set[str] = set()
+        self._saves = SaveFailures(clock=clock)
 
     @property
     def outbox(self) -> Outbox | None:
@@ -528,6 +533,7 @@ class Service:
         run = self._running()
         extra.update(self.supervisor.counters())
         extra.update({f"service.{k}": n for k, n in run.writer.counters().items()})
+        extra.update({f"service.{k}": n for k, n in self._saves.counters().items()})
         with contextlib.suppress(OutboxUnavailable):
             counts = run.outbox.counts()
             extra["service.outbox.stored"] = counts.stored
@@ -562,7 +568,10 @@ class Service:
 
         A vehicle's changed units and its cross-IMU state are taken at one moment
         (:meth:`FleetProcessor.checkpoint_states`; its other units' saved states are still
-        theirs); the loop yields between vehicles only.
+        theirs); the loop yields between vehicles only. A write the store refuses
+        (:class:`CheckpointUnavailable`) is counted and logged (:class:`SaveFailures`), and its
+        units are written by the next checkpoint, with their state then, even if they do not
+        change meanwhile.
         """
         if self._running().writer.holding:
             # State ahead of the events in the outbox would, after kill -9, resume past events never stored.
@@ -587,11 +596,12 @@ class Service:
             return
         try:
             self._running().checkpoints.save_encoded(payloads, cross=cross)
-        except CheckpointUnavailable:
-            # The task fails (logged, counted, restarted by the supervisor); these units are
-            # written again by the next checkpoint even if they do not change meanwhile.
+        except CheckpointUnavailable as exc:
+            # Only saved work: the state is in memory, the daemon goes on without it meanwhile.
             self.fleet.mark_unsaved(keys)
-            raise
+            self._saves.failed(exc, len(payloads))
+            return
+        self._saves.saved(len(payloads))
 
     async def _checkpoints(self, stop: asyncio.Event) -> None:
         """A checkpoint every ``checkpoint_period_s``, and of the vehicles whose events were stored
@@ -606,8 +616,13 @@ class Service:
         fleet of 48 IMUs about 70 ms of the loop per event, and the events of a fleet's
         faults in one second made seconds of latency. Events stored while a checkpoint is
         written are covered by the next one.
+
+        While the store refuses writes, the next checkpoint (of every changed unit, those of the
+        failed attempt included) comes after the back-off of :class:`SaveFailures` instead of the
+        period, and the events' vehicles wait for it.
         """
         period_s = self.config.service.checkpoint_period_s
+        saves = self._saves
         due_s = self._clock() + period_s
         while not stop.is_set():
             await _wait_any(stop, self._checkpoint_soon, timeout_s=max(0.0, due_s - self._clock()))
@@ -615,13 +630,15 @@ class Service:
             vehicles, self._checkpoint_vehicles = self._checkpoint_vehicles, set()
             if self._clock() >= due_s:
                 await self.checkpoint()
-                due_s = self._clock() + period_s
-            elif vehicles:
+                due_s = self._clock() + (saves.retry_s if saves.unavailable else period_s)
+            elif vehicles and not saves.unavailable:
                 # The events' deliveries go first: encoding a unit's state holds the interpreter
                 # for about 1.5 ms, and a delivery thread that has not yet put its event waited
                 # for all of it (up to 9 ms of a fault-to-event latency of 12).
                 await asyncio.sleep(EVENT_CHECKPOINT_DELAY_S)
                 await self.checkpoint(vehicles)
+                if saves.unavailable:
+                    due_s = min(due_s, self._clock() + saves.retry_s)
             self.supervisor.beat()
 
     # ------------------------------------------------------------------ run
@@ -877,6 +894,11 @@ class Service:
             await self.checkpoint()
         except Exception:
             log.exception("the last checkpoint failed; the next start resumes from the one before")
+        if self._saves.unavailable:
+            log.error(
+                "the last checkpoint could not be saved (the store is unavailable); the next start "
+                "resumes from the last one saved"
+            )
         drain.set()
         run = self._running()
         run.wake.set()
