@@ -586,6 +586,12 @@ class Service:
         for vehicle, imus in sorted(changed.items()):
             # A vehicle of many units, one of them streaming, cost every unit's encoding (1.5 ms each).
             async with self.intake.group_lock:
+                if self._running().writer.holding:
+                    # A group run while the loop yielded had its events held: a state taken now
+                    # would be ahead of them. Nothing is written; the next checkpoint takes them all.
+                    self.fleet.mark_unsaved(keys)
+                    self.fleet.count_service("checkpoints.deferred")
+                    return
                 units, cross_state = self.fleet.checkpoint_states(vehicle, imus)
             payloads.update((k, encode_state(s)) for k, s in units.items())
             if cross_state is not None:

@@ -505,3 +505,42 @@ def test_a_failed_mavlink_reader_is_logged_counted_and_reading_resumes(
         )
     (record,) = [r for r in caplog.records if "the MAVLink reader failed" in r.getMessage()]
     assert record.exc_info is not None and said in str(record.exc_info[1])
+
+
+def test_a_checkpoint_is_not_taken_ahead_of_events_held_while_it_yields(tmp_path):
+    """A checkpoint yields to the loop between vehicles; a group run meanwhile may have its events
+    held (the outbox unavailable). The state of the vehicles after that point would be saved ahead
+    of those events (after kill -9, resumed past events never stored): it checked only once, at the
+    start. Now nothing is written, the units stay unsaved, and it is counted as deferred."""
+    vehicles = ("uav-a", "uav-b")
+    mavlink = {"enabled": True, "device": f"udpin:127.0.0.1:{free_udp_port()}", "vehicle": "mav1"}
+    cfg = service_config(
+        tmp_path,
+        port=None,
+        passport_dir=put_store(tmp_path, [(v, 0) for v in vehicles]),
+        mavlink=mavlink,
+    )
+    session = unit()[2].session
+    with ServiceThread(cfg) as svc:
+        s = svc.service
+        frames = [
+            b
+            for v in vehicles
+            for b in list(batches_of(session, vehicle=v, imu=0, batch_samples=50))[:3]
+        ]
+        svc.call(s.intake.process, frames)
+        writer = s._running().writer
+        taken = s.fleet.checkpoint_states
+
+        def held_after_the_first(vehicle, imus):
+            out = taken(vehicle, imus)
+            writer._held.append(b"an event the outbox did not take")  # what the yield let happen
+            return out
+
+        s.fleet.checkpoint_states = held_after_the_first
+        asyncio.run_coroutine_threadsafe(s.checkpoint(), svc._loop).result(30)
+        writer._held.clear()
+        s.fleet.checkpoint_states = taken
+        assert s._running().checkpoints.keys() == []
+        assert s.fleet.service_counters["checkpoints.deferred"] == 1
+        assert sorted(svc.call(s.fleet.changed_keys)) == [(v, 0) for v in vehicles]
