@@ -390,6 +390,34 @@ UDP_RCVBUF_MIN_BYTES = 4096
 """The least receive buffer a UDP link may ask for (the kernel's own floor is about this)."""
 
 
+_NETWORK_DEVICES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcp:", "tcpin:")
+_SOCKET_DEVICES = ("uds:", "unix:")
+_LOG_SUFFIXES = (".bin", ".log", ".tlog", ".px4log", ".raw", ".mavlink")
+
+
+def _check_device(device: str) -> None:
+    """A live link's pymavlink connection string, else ``ValueError`` at configuration time.
+
+    pymavlink takes any other string with a colon for a UDP address (``bogus:://`` failed only at
+    start, "UDP ports must be specified as host:port"), reads a log file for a path to one, and runs
+    a regular file under ``/bin/`` or named ``.elf`` as a child process."""
+    for prefix in _NETWORK_DEVICES:
+        if device.startswith(prefix):
+            host, sep, port = device[len(prefix) :].rpartition(":")
+            if not (sep and host and port.isdigit() and int(port) <= 65535):
+                raise ValueError(
+                    f"mavlink device {device!r}: {prefix} takes HOST:PORT (a port 0..65535)"
+                )
+            return
+    if device.startswith(_SOCKET_DEVICES):
+        return
+    if ":" in device or device.lower().endswith(_LOG_SUFFIXES) or os.path.isfile(device):
+        raise ValueError(
+            f"mavlink device {device!r} is no live link: give udpin:, udpout:, udpbcast:, udp:, tcp: or "
+            "tcpin: with HOST:PORT, uds: or unix: with a socket path, or a serial device (/dev/ttyACM0)"
+        )
+
+
 @dataclass(frozen=True)
 class MavlinkSettings:
     """One MAVLink link; :meth:`from_dict` reads the ``[mavlink]`` table of the service configuration.
@@ -439,6 +467,7 @@ class MavlinkSettings:
     udp_rcvbuf_bytes: int = UDP_RCVBUF_BYTES
 
     def __post_init__(self) -> None:
+        _check_device(self.device)
         if (
             not isinstance(self.udp_rcvbuf_bytes, int)
             or self.udp_rcvbuf_bytes < UDP_RCVBUF_MIN_BYTES

@@ -147,6 +147,12 @@ stale_run_samples = 50
         ),
         ({"zenoh": {"ack_timeout_s": 1e300}}, r"\[zenoh\] needs 0 < ack_timeout_s <= 86400"),
         ({"mavlink": {"enabled": True, "messages": []}}, r"\[mavlink\] messages is empty"),
+        # pymavlink took it for a UDP address and failed at start ("UDP ports must be specified ...").
+        ({"mavlink": {"device": "bogus:://"}}, r"mavlink device 'bogus:://' is no live link"),
+        ({"mavlink": {"device": "udpin:0.0.0.0"}}, r"udpin: takes HOST:PORT"),
+        # pymavlink would read a log file, or run a regular file under /bin/ as a child process.
+        ({"mavlink": {"device": "/usr/bin/env"}}, r"mavlink device '/usr/bin/env' is no live link"),
+        ({"mavlink": {"device": "flight.tlog"}}, r"is no live link"),
     ],
 )
 def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
