@@ -34,6 +34,10 @@ Tasks of :meth:`Service.run`
   daemon: the state stays in memory and is saved by the next attempt, retried with back-off
   (:class:`service.checkpoint.SaveFailures`); the status topic says ``checkpoints.unavailable``.
 * **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
+* **mavlink-open** — only while the MAVLink device cannot be opened (a serial adapter not plugged
+  in yet, an autopilot's TCP port not up yet): an attempt every :data:`CONNECT_PAUSE_S`, logged once
+  per kind of failure and counted as ``service.mavlink.open_failures``; the rest of the service runs
+  meanwhile, and the link's sink, source, heartbeat and delivery start when it opens.
 * **zenoh-connect** — only while the router is out of reach: the first attempt at opening the
   Zenoh session (at most :data:`CONNECT_ATTEMPT_S`) is made before the service says it runs; if
   it fails the service runs without Zenoh (MAVLink is served, events wait in the outbox) and this
@@ -710,22 +714,8 @@ class Service:
                     log.warning("checkpoint %r moved aside to the quarantined table: %s", key, exc)
                     continue
                 self.fleet.admit(vehicle, imu)
-            if cfg.mavlink.enabled:
-                link = await asyncio.to_thread(self._open_mavlink)
-                resources.callback(link.close)
-                _warn_short_rcvbuf(link)
-                policy = AlertPolicy(
-                    min_interval_s=cfg.mavlink.alert_min_interval_s,
-                    max_per_s=cfg.mavlink.alert_max_per_s,
-                )
-                self.mavlink_sink = MavlinkAlertSink(link, policy=policy, clock=self._clock)
-                self.sinks.append(self.mavlink_sink)
-                self.mavlink_source = MavlinkSource(
-                    link,
-                    capacity=cfg.pipeline.queue_capacity * COALESCE_MAX,
-                    gather_s=COALESCE_WINDOW_S,
-                )
-                resources.callback(self.mavlink_source.close)
+            if cfg.mavlink.enabled and (link := await self._try_mavlink()) is not None:
+                self._mavlink_up(link, resources)
             connector = _Connector(cfg.zenoh.session) if cfg.zenoh.enabled else None
             session = None if connector is None else await connector.attempt()
             run.wake.set()  # deliver what a previous run left in the outbox
@@ -734,13 +724,11 @@ class Service:
             if session is not None:
                 self._zenoh_up(session, resources, drain)
             if self.mavlink_sink is not None:
-                self._start_delivery(self.mavlink_sink, drain)
+                self._mavlink_tasks(drain, stop)
+            elif cfg.mavlink.enabled:
+                sup.start("mavlink-open", lambda: self._mavlink_open(resources, drain, stop))
             sup.start("status", lambda: self._status(stop))
             sup.start("checkpoints", lambda: self._checkpoints(stop))
-            if self.mavlink_sink is not None and self.mavlink_source is not None:
-                sink, source = self.mavlink_sink, self.mavlink_source
-                sup.start("heartbeat", lambda: self._heartbeat(sink, stop))
-                sup.start("mavlink-frames", lambda: self.intake.mavlink_frames(source))
             if connector is not None and session is None:
                 sup.start(
                     "zenoh-connect",
@@ -781,6 +769,71 @@ class Service:
         resources.callback(source.close)
         self._start_delivery(zsink, drain)
         self.supervisor.start("frames", lambda: self.intake.zenoh_frames(source))
+
+    async def _try_mavlink(self) -> MavlinkLink | MavlinkProcessLink | None:
+        """The MAVLink link opened, or None when its device cannot be opened now (logged once per kind
+        of failure, counted as ``service.mavlink.open_failures``): a serial adapter not plugged in
+        yet, an autopilot's TCP port not up yet. That stopped the whole daemon at start, with a
+        traceback, Zenoh input included."""
+        try:
+            return await asyncio.to_thread(self._open_mavlink)
+        except OSError as exc:  # ReaderProcessFailed, a serial port absent, a TCP peer refusing
+            self.fleet.count_service("mavlink.open_failures")
+            kind = f"{type(exc).__name__}: {exc}"
+            if kind not in self._reported:
+                self._reported.add(kind)
+                log.error(
+                    "mavlink %s: cannot open it (%s); trying again every %.0f s, the rest of the "
+                    "service runs meanwhile (counted as service.mavlink.open_failures)",
+                    self.config.mavlink.link.device, kind, CONNECT_PAUSE_S,
+                )  # fmt: skip
+            return None
+
+    def _mavlink_up(
+        self, link: MavlinkLink | MavlinkProcessLink, resources: contextlib.ExitStack
+    ) -> None:
+        """The MAVLink side on an open link: the alert sink and the IMU source."""
+        cfg = self.config
+        resources.callback(link.close)
+        _warn_short_rcvbuf(link)
+        policy = AlertPolicy(
+            min_interval_s=cfg.mavlink.alert_min_interval_s,
+            max_per_s=cfg.mavlink.alert_max_per_s,
+        )
+        self.mavlink_sink = MavlinkAlertSink(link, policy=policy, clock=self._clock)
+        self.sinks.append(self.mavlink_sink)
+        self.mavlink_source = MavlinkSource(
+            link,
+            capacity=cfg.pipeline.queue_capacity * COALESCE_MAX,
+            gather_s=COALESCE_WINDOW_S,
+        )
+        resources.callback(self.mavlink_source.close)
+
+    def _mavlink_tasks(self, drain: asyncio.Event, stop: asyncio.Event) -> None:
+        sink, source = self.mavlink_sink, self.mavlink_source
+        assert sink is not None and source is not None
+        self._start_delivery(sink, drain)
+        self.supervisor.start("heartbeat", lambda: self._heartbeat(sink, stop))
+        self.supervisor.start("mavlink-frames", lambda: self.intake.mavlink_frames(source))
+
+    async def _mavlink_open(
+        self, resources: contextlib.ExitStack, drain: asyncio.Event, stop: asyncio.Event
+    ) -> None:
+        """Attempts to open the MAVLink link every :data:`CONNECT_PAUSE_S` until one succeeds or ``stop`` is set."""
+        while not stop.is_set():
+            await _wait_any(stop, None, timeout_s=CONNECT_PAUSE_S)
+            if stop.is_set():
+                return
+            link = await self._try_mavlink()
+            self.supervisor.beat()
+            if link is not None:
+                if stop.is_set():
+                    link.close()
+                    return
+                self._mavlink_up(link, resources)
+                self._mavlink_tasks(drain, stop)
+                log.info("mavlink %s: open", self.config.mavlink.link.device)
+                return
 
     def _start_delivery(self, sink: EventSink, drain: asyncio.Event) -> None:
         wake = self._running().wake.events[sink.name]

@@ -544,3 +544,39 @@ def test_a_checkpoint_is_not_taken_ahead_of_events_held_while_it_yields(tmp_path
         assert s._running().checkpoints.keys() == []
         assert s.fleet.service_counters["checkpoints.deferred"] == 1
         assert sorted(svc.call(s.fleet.changed_keys)) == [(v, 0) for v in vehicles]
+
+
+def test_a_mavlink_device_not_there_at_start_is_opened_when_it_comes(tmp_path, caplog):
+    """The autopilot's TCP port not up yet (or a USB serial adapter not plugged in): the daemon stopped
+    at start with a traceback, Zenoh input included. Now it runs, says so once, counts the attempts,
+    and opens the link when the port comes: the peer then hears its HEARTBEAT."""
+    port = free_tcp_port()
+    mavlink = {
+        "enabled": True,
+        "device": f"tcp:127.0.0.1:{port}",
+        "vehicle": "mav1",
+        "reader": "thread",
+    }
+    cfg = service_config(tmp_path, port=None, passport_dir=put_store(tmp_path, []), mavlink=mavlink)
+    with caplog.at_level(logging.INFO, logger="ins_health"), ServiceThread(cfg) as svc:
+        s = svc.service
+        wait_until(
+            lambda: svc.call(lambda: s.fleet.service_counters.get("mavlink.open_failures", 0)) >= 1,
+            timeout_s=60,
+            what="a failed attempt counted",
+        )
+        assert s.mavlink_source is None
+        peer = use_mavlink2(mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}"))
+        try:
+            receive_until(
+                peer,
+                ["HEARTBEAT"],
+                lambda msgs: bool(msgs),
+                timeout_s=60,
+                what="the daemon's HEARTBEAT",
+            )
+        finally:
+            peer.close()
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("cannot open it" in m for m in said) == 1, said
+    assert any(m == f"mavlink tcp:127.0.0.1:{port}: open" for m in said), said
