@@ -527,6 +527,11 @@ def _check(cfg: ServiceConfig) -> list[str]:
             errors.append(f"[service] vehicles: {exc}")
     if not s.name:
         errors.append("[service] name must not be empty")
+    for name in ("data_dir", "passport_dir"):
+        folder = getattr(s, name)
+        # A file there ended the start in a traceback (FileExistsError) from the outbox's mkdir.
+        if folder is not None and folder.exists() and not folder.is_dir():
+            errors.append(f"[service] {name} {str(folder)!r} is a file, not a folder")
     for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
         _positive(errors, f"[service] {name}", getattr(s, name))
     if not (math.isfinite(s.outbox_max_mb) and s.outbox_max_mb >= 0):

@@ -160,6 +160,14 @@ def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
         config_from_dict(raw, base_dir=tmp_path)
 
 
+@pytest.mark.parametrize("name", ["data_dir", "passport_dir"])
+def test_a_folder_setting_that_names_a_file_is_a_one_line_error(tmp_path, name):
+    """data_dir naming a regular file ended the start in a FileExistsError traceback."""
+    (tmp_path / "taken").write_text("not a folder")
+    with pytest.raises(ConfigError, match=rf"\[service\] {name} '.*taken' is a file, not a folder"):
+        config_from_dict({"service": {name: "taken"}}, base_dir=tmp_path)
+
+
 def test_every_error_is_reported_on_its_own_line(tmp_path, capsys):
     """Three type mistakes in two sections: three lines from the loader, and from ``ins-health run`` three
     lines on stderr and exit status 2 (an operator fixes them in one pass)."""
