@@ -391,7 +391,8 @@ UDP_RCVBUF_MIN_BYTES = 4096
 
 
 _NETWORK_DEVICES = ("udpin:", "udpout:", "udpbcast:", "udp:", "tcp:", "tcpin:")
-_SOCKET_DEVICES = ("uds:", "unix:")
+_OTHER_DEVICES = ("uds:", "unix:", "mcast:", "wsserver:", "ws:", "wss:")
+"""Unix sockets, multicast UDP (``mcast:`` or ``mcast:IP:PORT``, SITL's and MAVProxy's), websockets."""
 _LOG_SUFFIXES = (".bin", ".log", ".tlog", ".px4log", ".raw", ".mavlink")
 
 
@@ -404,17 +405,20 @@ def _check_device(device: str) -> None:
     for prefix in _NETWORK_DEVICES:
         if device.startswith(prefix):
             host, sep, port = device[len(prefix) :].rpartition(":")
-            if not (sep and host and port.isdigit() and int(port) <= 65535):
+            # pymavlink splits at the first colon: an IPv6 host never opens.
+            if not (sep and host and port.isdigit() and int(port) <= 65535) or ":" in host:
                 raise ValueError(
-                    f"mavlink device {device!r}: {prefix} takes HOST:PORT (a port 0..65535)"
+                    f"mavlink device {device!r}: {prefix} takes HOST:PORT (a port 0..65535; "
+                    "pymavlink has no IPv6 address)"
                 )
             return
-    if device.startswith(_SOCKET_DEVICES):
+    if device.startswith(_OTHER_DEVICES):
         return
     if ":" in device or device.lower().endswith(_LOG_SUFFIXES) or os.path.isfile(device):
         raise ValueError(
             f"mavlink device {device!r} is no live link: give udpin:, udpout:, udpbcast:, udp:, tcp: or "
-            "tcpin: with HOST:PORT, uds: or unix: with a socket path, or a serial device (/dev/ttyACM0)"
+            "tcpin: with HOST:PORT, uds: or unix: with a socket path, mcast:, ws:, wss: or wsserver:, "
+            "or a serial device path without a colon (/dev/ttyACM0, /dev/serial/by-id/...)"
         )
 
 

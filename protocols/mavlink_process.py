@@ -30,7 +30,8 @@ heard: :class:`~protocols.mavlink_adapter.ImuBatcher`) is chosen in the child,
 which leaves the others' messages out before they cost the pipe anything, and
 reported with its counters (:attr:`LinkCounters.imu_system`); the service hands
 it to each new child, so that a restart does not let another system's IMU in.
-The child ignores SIGINT and SIGTERM (systemd signals the unit's whole group):
+The child ignores SIGINT, SIGTERM and SIGHUP (systemd signals the unit's whole group, and a closed
+terminal the whole process group; the service logs and ignores SIGHUP):
 it ends when the service closes the command pipe, or when the service is gone.
 """
 
@@ -299,7 +300,7 @@ def _end(proc: subprocess.Popen[bytes]) -> int:
 
 def serve(data: Connection, cmd: Connection) -> None:
     """The child's work: open the link, then read and report until the command pipe closes."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)
     try:
         settings, gather_s, poll_s, imu_system = cmd.recv()

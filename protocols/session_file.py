@@ -101,7 +101,13 @@ class SessionFileError(SessionError):
 
 
 class UnitsError(SessionFileError):
-    """The values of a session are implausible in their declared units; the message names the likely unit."""
+    """The values of a session are implausible in their declared units; the message names the likely unit.
+
+    ``kind``: which columns, ``accel``, ``gyro`` or ``time``."""
+
+    def __init__(self, message: str, kind: str):
+        super().__init__(message)
+        self.kind = kind
 
 
 class AccelUnit(StrEnum):
@@ -763,11 +769,13 @@ def _refuse(kind: str, declared: StrEnum, looks: StrEnum | None, what: str) -> U
     word = _UNIT_WORD[kind]
     if looks is None:
         return UnitsError(
-            f"units: the {word} values are implausible in {declared} ({what}) and in every other unit"
+            f"units: the {word} values are implausible in {declared} ({what}) and in every other unit",
+            kind,
         )
     return UnitsError(
         f"units: the {word} values look like {looks}, not {declared} ({what}; "
-        f"use {_UNIT_OPTION[kind]} {looks} or a '# {UNIT_KEYS[kind]} = {looks}' line)"
+        f"use {_UNIT_OPTION[kind]} {looks} or a '# {UNIT_KEYS[kind]} = {looks}' line)",
+        kind,
     )
 
 
@@ -823,5 +831,6 @@ def check_units(session: ImuSession, units: SessionUnits, *, time_declared: bool
             raise UnitsError(
                 f"units: the time stamps are {raw:.4g} {used.time} apart, a rate of {1.0 / (raw * SI_PER_UNIT[used.time]):.4g} Hz "
                 f"read as {used.time} but {1.0 / (raw * SI_PER_UNIT[looks_t]):.4g} Hz read as {looks_t}: declare the time unit "
-                f"({_UNIT_OPTION['time']} {used.time} or {looks_t}, or a '# {UNIT_KEYS['time']} = ...' line)"
+                f"({_UNIT_OPTION['time']} {used.time} or {looks_t}, or a '# {UNIT_KEYS['time']} = ...' line)",
+                "time",
             )

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import tomllib
 import typing
 from collections.abc import Callable
@@ -530,7 +531,9 @@ def _check(cfg: ServiceConfig) -> list[str]:
     for name in ("data_dir", "passport_dir"):
         folder = getattr(s, name)
         # A file there ended the start in a traceback (FileExistsError) from the outbox's mkdir.
-        if folder is not None and folder.exists() and not folder.is_dir():
+        # os.path: False where the caller may not look (Path.exists raised PermissionError, and a
+        # command that reads the configuration for its site only, replay --config, then failed).
+        if folder is not None and os.path.isfile(folder):
             errors.append(f"[service] {name} {str(folder)!r} is a file, not a folder")
     for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
         _positive(errors, f"[service] {name}", getattr(s, name))

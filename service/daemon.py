@@ -67,6 +67,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import threading
 import time
 from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass
@@ -562,6 +563,7 @@ class Service:
                     self._store(self.fleet.tick(self._clock()))
             self._track_router()
             self._check_mavlink_reader()
+            self.intake.log_refusals()
             if self._status_pub is not None:
                 await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
@@ -714,7 +716,7 @@ class Service:
                     log.warning("checkpoint %r moved aside to the quarantined table: %s", key, exc)
                     continue
                 self.fleet.admit(vehicle, imu)
-            if cfg.mavlink.enabled and (link := await self._try_mavlink()) is not None:
+            if cfg.mavlink.enabled and (link := await self._try_mavlink(stop)) is not None:
                 self._mavlink_up(link, resources)
             connector = _Connector(cfg.zenoh.session) if cfg.zenoh.enabled else None
             session = None if connector is None else await connector.attempt()
@@ -770,13 +772,55 @@ class Service:
         self._start_delivery(zsink, drain)
         self.supervisor.start("frames", lambda: self.intake.zenoh_frames(source))
 
-    async def _try_mavlink(self) -> MavlinkLink | MavlinkProcessLink | None:
+    async def _try_mavlink(self, stop: asyncio.Event) -> MavlinkLink | MavlinkProcessLink | None:
         """The MAVLink link opened, or None when its device cannot be opened now (logged once per kind
         of failure, counted as ``service.mavlink.open_failures``): a serial adapter not plugged in
         yet, an autopilot's TCP port not up yet. That stopped the whole daemon at start, with a
-        traceback, Zenoh input included."""
+        traceback, Zenoh input included. None too when ``stop`` is set first.
+
+        The open runs in a daemon thread of its own, not the loop's executor: it may block a minute
+        (the reader process's start, pymavlink's TCP retries), and ``asyncio.run`` waits for the
+        executor's threads at exit without a bound, past the stop bound. A link that opens after
+        the wait was given up is closed."""
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[MavlinkLink | MavlinkProcessLink] = loop.create_future()
+
+        def settle(
+            link: MavlinkLink | MavlinkProcessLink | None, exc: BaseException | None
+        ) -> None:
+            if done.cancelled():
+                if link is not None:
+                    link.close()
+            elif exc is not None:
+                done.set_exception(exc)
+            else:
+                done.set_result(link)  # type: ignore[arg-type]
+
+        def open_link() -> None:
+            link, exc = None, None
+            try:
+                link = self._open_mavlink()
+            except BaseException as e:  # handed to the loop, which tells them apart
+                exc = e
+            try:
+                loop.call_soon_threadsafe(settle, link, exc)
+            except RuntimeError:  # the loop is closed: the service is gone
+                if link is not None:
+                    link.close()
+
+        threading.Thread(target=open_link, name="mavlink-open", daemon=True).start()
+        stopped = asyncio.create_task(stop.wait())
         try:
-            return await asyncio.to_thread(self._open_mavlink)
+            waits: list[asyncio.Future[Any]] = [done, stopped]
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stopped.cancel()
+            if not done.done():
+                done.cancel()
+        if done.cancelled():
+            return None
+        try:
+            return done.result()
         except OSError as exc:  # ReaderProcessFailed, a serial port absent, a TCP peer refusing
             self.fleet.count_service("mavlink.open_failures")
             kind = f"{type(exc).__name__}: {exc}"
@@ -824,7 +868,7 @@ class Service:
             await _wait_any(stop, None, timeout_s=CONNECT_PAUSE_S)
             if stop.is_set():
                 return
-            link = await self._try_mavlink()
+            link = await self._try_mavlink(stop)
             self.supervisor.beat()
             if link is not None:
                 if stop.is_set():

@@ -72,7 +72,7 @@ class Intake:
         self._reported: set[str] = set()
         self._refused: dict[str, int] = {}
         self._refused_log = LogRate()
-        self._last_refusal = ""
+        self._last_refusal: tuple[str, str] | None = None
         self._taken: list[SampleBatch] = []
         self._holding = False
         self.stalled = False
@@ -104,23 +104,30 @@ class Intake:
         self._put(self.fleet.reject(vehicle, imu, error.reason.value))
         reason = error.reason.value
         self._refused[reason] = self._refused.get(reason, 0) + 1
-        self._last_refusal = f"{key}: {error}"
-        self._log_refusals()
+        self._last_refusal = (reason, f"{key}: {error}")
+        self.log_refusals()
 
-    def _log_refusals(self) -> None:
+    def log_refusals(self) -> None:
         """Frames refused (by the decoder, or at admission: a vehicle unknown or over the limits)
         said in the log, a new reason at once and more at most once per period: the counters alone
-        made a fleet-wide schema mismatch silent where no vehicle had a status yet."""
+        made a fleet-wide schema mismatch silent where no vehicle had a status yet. Called on each
+        refusal, after each group, and by the service's status task (refusals that stop coming are
+        still said, and the MAVLink path's admission refusals too)."""
         refused = dict(self._refused)
         for name, n in self.fleet.service_counters.items():
             if name.startswith("frames.rejected."):
                 reason = name.removeprefix("frames.rejected.")
                 refused[reason] = max(refused.get(reason, 0), n)
         if new := self._refused_log.due(refused):
+            last = self._last_refusal
             self._say(
                 "frames refused: "
                 + ", ".join(f"{n} {k}" for k, n in sorted(new.items()))
-                + (f" (last decoder refusal {self._last_refusal})" if self._last_refusal else "")
+                + (
+                    f" (last decoder refusal {last[1]})"
+                    if last is not None and last[0] in new
+                    else ""
+                )
                 + "; counted on the status topic as frames.rejected.<reason>"
             )
 
@@ -181,7 +188,7 @@ class Intake:
                 self._taken.append(more)
                 n += more.n_samples
             await self._process_group()
-            self._log_refusals()
+            self.log_refusals()
             if not self._holding and source.queued == 0:
                 self.stalled = False
             # Let the delivery and status tasks run between groups.

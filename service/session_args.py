@@ -154,14 +154,15 @@ def load_units_checked(
             time_declared=declared.time is not None or UNIT_KEYS["time"] in loaded.metadata,
         )
     except UnitsError as exc:
-        if gyro_file is None and not Path(path).is_dir():
+        if exc.kind == "time" or (gyro_file is None and not Path(path).is_dir()):
             raise
         # Units cannot be declared for a raw-count pair: the check's advice (--accel-unit ...) would
         # be refused. What goes wrong with a pair is the files or the sidecar.
         raise UnitsError(
             f"{str(exc).split(' (')[0]}: this raw-count pair is converted by its sidecar, so the "
             "accelerometer and gyro files may be swapped (the accelerometer's first, the gyro's with "
-            "--gyro-file) or the sidecar's scale factors may not be this unit's"
+            "--gyro-file) or the sidecar's scale factors may not be this unit's",
+            exc.kind,
         ) from None
     return loaded
 

@@ -178,10 +178,29 @@ def test_random_errors_draw_from_the_grade(tmp_path, capsys):
         (
             ["--profile", "flight", "--rest-s", "0"],
             None,
-            r"--rest-s \(setting rest_s\) must be positive and finite, got 0.0",
+            r"--rest-s \(setting rest_s\) must be a positive finite number, got 0.0",
         ),
-        (["--rate-hz", "nan"], None, r"--rate-hz \(setting rate_hz\) must be positive and finite"),
-        ([], "[profile]\nstatic_s = -1\n", r"--static-s \(setting static_s\) must be positive"),
+        (
+            ["--rate-hz", "nan"],
+            None,
+            r"--rate-hz \(setting rate_hz\) must be a positive finite number",
+        ),
+        (
+            [],
+            "[profile]\nstatic_s = -1\n",
+            r"--static-s \(setting static_s\) must be a positive finite number",
+        ),
+        (
+            [],
+            "[profile]\nkind = 'flight'\nrest_s = 'ten'\n",
+            r"--rest-s \(setting rest_s\) must be a positive finite number, got 'ten'",
+        ),
+        (
+            [],
+            "[profile]\nkind = 'flight'\nrest_s = [1, 2]\n",
+            r"--rest-s \(setting rest_s\) must be",
+        ),
+        ([], "[profile]\nkind = 'flight'\nrest_s = true\n", r"--rest-s \(setting rest_s\) must be"),
         ([], "seed = [\n", "not valid TOML"),
     ],
 )

@@ -153,11 +153,30 @@ stale_run_samples = 50
         # pymavlink would read a log file, or run a regular file under /bin/ as a child process.
         ({"mavlink": {"device": "/usr/bin/env"}}, r"mavlink device '/usr/bin/env' is no live link"),
         ({"mavlink": {"device": "flight.tlog"}}, r"is no live link"),
+        ({"mavlink": {"device": "udpin:[::]:14550"}}, r"pymavlink has no IPv6 address"),
     ],
 )
 def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
     with pytest.raises(ConfigError, match=match):
         config_from_dict(raw, base_dir=tmp_path)
+
+
+@pytest.mark.parametrize(
+    "device",
+    [
+        "mcast:",
+        "mcast:239.255.145.50:14550",
+        "wsserver:0.0.0.0:5760",
+        "COM3",
+        "/dev/serial/by-id/usb-ArduPilot_fmuv3-if00",
+    ],
+)
+def test_live_links_users_configure_are_accepted(tmp_path, device):
+    """Multicast UDP (ArduPilot SITL, MAVProxy), websockets and serial ports pass the device check."""
+    assert (
+        config_from_dict({"mavlink": {"device": device}}, base_dir=tmp_path).mavlink.link.device
+        == device
+    )
 
 
 @pytest.mark.parametrize("name", ["data_dir", "passport_dir"])

@@ -7,6 +7,7 @@ import threading
 
 from service_support import batches_of, demo_fleet
 
+from protocols import log_rate
 from protocols._schema import Reason
 from protocols.events import Event
 from protocols.frames import FrameError, SampleBatch
@@ -131,7 +132,7 @@ def test_the_rest_of_the_group_waits_until_the_events_are_handed_over():
     assert other.last_seq == seq_after
 
 
-def test_refused_frames_are_logged_a_new_reason_at_once_and_more_at_a_bounded_rate():
+def test_refused_frames_are_logged_a_new_reason_at_once_and_more_at_a_bounded_rate(monkeypatch):
     """Frames the decoder refused, and frames refused at admission (over the vehicle limit), were
     counted only: with no vehicle admitted there was no status either, so a fleet publishing a newer
     frame schema went unseen. The intake now says them: a new reason at once, more of the same at
@@ -153,5 +154,15 @@ def test_refused_frames_are_logged_a_new_reason_at_once_and_more_at_a_bounded_ra
     )
     intake.reject(frame_key("uav-1", 0), error)
     # A new reason (the vehicle limit) is said at once; the 100 more of the old one wait their period.
-    assert len(said) == 2 and "5 over_vehicle_limit" in said[1]
+    assert len(said) == 2 and "5 over_vehicle_limit" in said[1], said
+    # The last decoder refusal is named only beside its own reason, not beside admission refusals.
+    assert ("unknown_version" in said[1]) == ("last decoder refusal" in said[1])
     assert f.service_counters["frames.rejected.over_vehicle_limit"] == 5
+    for _ in range(3):  # more of a reason said within the period: they wait
+        intake.reject(frame_key("uav-1", 0), error)
+    assert len(said) == 2
+    # Then no frame comes any more: the service's status task says them once the period is over.
+    now = log_rate.time.monotonic() + log_rate.LOG_PERIOD_S + 1.0
+    monkeypatch.setattr(log_rate.time, "monotonic", lambda: now)
+    intake.log_refusals()
+    assert len(said) == 3 and said[2].startswith("frames refused: 3 unknown_version (last decoder")

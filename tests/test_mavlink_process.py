@@ -256,11 +256,15 @@ def test_the_system_read_is_kept_across_a_child_restart(linked, session):
     assert link.counters.imu_samples == {"HIGHRES_IMU": 250}
 
 
-def test_sigterm_to_the_group_leaves_the_child_to_the_service_and_close_ends_it(linked, session):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_to_the_group_leaves_the_child_to_the_service_and_close_ends_it(
+    linked, session, sig
+):
     link, peer = linked
     child = link.pid
-    # systemd signals every process of the unit: the child goes on until the service closes it.
-    os.kill(child, signal.SIGTERM)
+    # systemd signals every process of the unit, a closed terminal its process group (SIGHUP, which
+    # the service logs and ignores): the child goes on until the service closes it.
+    os.kill(child, sig)
     send_each(peer, mavlink_packets(session, ImuMessage.HIGHRES_IMU)[:50])
     read_samples(link, 50)
     assert link.pid == child

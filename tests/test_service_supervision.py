@@ -6,6 +6,7 @@ file locked) stops none of it. Real router and daemon processes on 127.0.0.1."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import signal
@@ -46,7 +47,7 @@ from protocols.mavlink_adapter import ImuMessage, use_mavlink2
 from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key
 from service.checkpoint import CheckpointStore, CheckpointUnavailable
 from service.commands.run import STOP_BOUND_S
-from service.daemon import Service
+from service.daemon import CONNECT_PAUSE_S, Service
 from service.notify import Notifier
 from service.supervisor import EXIT_TASK_FAILED, Supervisor
 
@@ -580,3 +581,50 @@ def test_a_mavlink_device_not_there_at_start_is_opened_when_it_comes(tmp_path, c
     said = [r.getMessage() for r in caplog.records]
     assert sum("cannot open it" in m for m in said) == 1, said
     assert any(m == f"mavlink tcp:127.0.0.1:{port}: open" for m in said), said
+
+
+def test_sigterm_while_a_mavlink_open_hangs_ends_the_daemon_within_the_stop_bound(tmp_path):
+    """The autopilot's TCP port answers no connection (its backlog full: the connect hangs) while the
+    daemon tries again to open it. The attempt ran in the loop's executor, which asyncio.run waits
+    for at exit without a bound: SIGTERM took a minute (the reader process's start timeout), past the
+    stop bound and systemd's stop timeout. The attempt is now a thread of its own, left behind."""
+    port = free_tcp_port()
+    config = tmp_path / "service.toml"
+    config.write_text(
+        f"""
+[service]
+data_dir = "{tmp_path / "data"}"
+passport_dir = "{put_store(tmp_path, [])}"
+[zenoh]
+enabled = false
+[mavlink]
+enabled = true
+device = "tcp:127.0.0.1:{port}"
+"""
+    )
+    daemon = ServiceProcess(config)
+    try:
+        wait_until(
+            lambda: any("cannot open it" in line for line in daemon.lines),
+            timeout_s=60,
+            what="the first attempt refused",
+        )
+        with socket.socket() as listener:
+            listener.bind(("127.0.0.1", port))
+            listener.listen(0)
+            fillers = [socket.socket() for _ in range(3)]
+            for c in fillers:
+                c.setblocking(False)
+                with contextlib.suppress(BlockingIOError):
+                    c.connect(("127.0.0.1", port))
+            # The next attempt starts CONNECT_PAUSE_S after the first; SIGTERM comes while it hangs.
+            threading.Event().wait(CONNECT_PAUSE_S + 1.5)
+            daemon.proc.send_signal(signal.SIGTERM)
+            # A deadline on the wait, not a timing assertion: the old daemon took 60 s.
+            code = daemon.proc.wait(STOP_BOUND_S + 5)
+            for c in fillers:
+                c.close()
+    finally:
+        if daemon.proc.poll() is None:
+            daemon.kill()
+    assert code == 0, daemon.lines

@@ -49,9 +49,10 @@ def register(subparsers) -> None:
 
 STOP_BOUND_S = 15.0
 """The longest a stop may take, from SIGTERM to exit: the drain's delivery time
-(``service.daemon.DRAIN_TIMEOUT_S``, 5 s), a connection attempt under way
+(``service.daemon.DRAIN_TIMEOUT_S``, 5 s), a Zenoh connection attempt under way
 (``CONNECT_ATTEMPT_S``, 3 s), an acknowledgement under way (``ack_timeout_s``, 1 s by
-default), the queued frames and the last checkpoint; below the unit's ``TimeoutStopSec``."""
+default), the queued frames and the last checkpoint; below the unit's ``TimeoutStopSec``.
+A MAVLink open under way is not waited for (it runs in a thread of its own, left behind)."""
 EXIT_FAILED = 1
 """Exit status when the daemon fails outside its supervised tasks (at start, or in the drain)."""
 EXIT_STOP_TIMEOUT = 75

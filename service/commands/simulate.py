@@ -358,9 +358,12 @@ def spec_from_settings(cfg: dict):
     kind = prof.pop("kind", "multiposition")
     # Said in the option's words: the simulator's own check named its internal segment (Hold(...)).
     for key, value in [*prof.items(), ("rate_hz", cfg.get("rate_hz"))]:
-        if key in _DURATIONS and value is not None and not 0.0 < float(value) < math.inf:
+        if key not in _DURATIONS or value is None:
+            continue
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not (number and 0.0 < float(value) < math.inf):
             raise UsageError(
-                f"--{key.replace('_', '-')} (setting {key}) must be positive and finite, got {value!r}"
+                f"--{key.replace('_', '-')} (setting {key}) must be a positive finite number, got {value!r}"
             )
     common = dict(
         model=model,
