@@ -67,6 +67,13 @@ def healthy_frames(vehicle: str):
     return frames, [e.event_id for e in expected]
 
 
+def hear_heartbeat(peer) -> None:
+    """Until the peer hears the daemon's HEARTBEAT (1 Hz)."""
+    receive_until(
+        peer, ["HEARTBEAT"], lambda msgs: bool(msgs), timeout_s=60, what="the daemon's HEARTBEAT"
+    )
+
+
 def test_an_unreachable_router_is_said_the_mavlink_side_is_served_and_sigterm_ends_it(tmp_path):
     """No router on the configured endpoint: the daemon says so, runs, answers on MAVLink, ignores
     SIGHUP (and says so), and SIGTERM (while it still tries to connect) ends it with status 0 within
@@ -86,13 +93,7 @@ def test_an_unreachable_router_is_said_the_mavlink_side_is_served_and_sigterm_en
         try:
             # The daemon answers the peer it heard from (udpin learns the address).
             peer.mav.heartbeat_send(2, 3, 0, 0, 0)
-            receive_until(
-                peer,
-                ["HEARTBEAT"],
-                lambda msgs: bool(msgs),
-                timeout_s=30,
-                what="the daemon's HEARTBEAT",
-            )
+            hear_heartbeat(peer)
         finally:
             peer.close()
         # SIGHUP (a closed terminal) killed the daemon with no drain: it is said and ignored.
@@ -569,13 +570,7 @@ def test_a_mavlink_device_not_there_at_start_is_opened_when_it_comes(tmp_path, c
         assert s.mavlink_source is None
         peer = use_mavlink2(mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}"))
         try:
-            receive_until(
-                peer,
-                ["HEARTBEAT"],
-                lambda msgs: bool(msgs),
-                timeout_s=60,
-                what="the daemon's HEARTBEAT",
-            )
+            hear_heartbeat(peer)
         finally:
             peer.close()
     said = [r.getMessage() for r in caplog.records]
