@@ -687,7 +687,7 @@ def _refine(
 
     params = start.copy()
     for _ in range(max_passes):
-        if not _physical(params):
+        if not physical(params):
             break
         sigma = equation_sigma(params, mean, cov)
         try:
@@ -710,7 +710,7 @@ def _refine(
         cov_p = _cov_from_jacobian(sol.jac)
         if np.all(np.abs(step) <= 1e-4 * np.sqrt(np.diag(cov_p))):
             break
-    if not _physical(params):
+    if not physical(params):
         return (
             params,
             np.full((N_PARAMS, N_PARAMS), np.inf),
@@ -726,7 +726,7 @@ def _refine(
     return params, _cov_from_jacobian(jac / sigma[:, None]), float(np.sum((f / sigma) ** 2)), ""
 
 
-def _physical(params: FloatArray) -> bool:
+def physical(params: FloatArray) -> bool:
     """Within the domain of a triad that still works (module docstring)."""
     if not np.all(np.isfinite(params)):
         return False

@@ -82,7 +82,7 @@ from estimators.conventions import (
     Triad,
     reference_magnitude,
 )
-from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method
+from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method, physical
 from estimators.positions import Position
 from estimators.stream_validity import ValidityLimits
 
@@ -460,8 +460,9 @@ class TriadPassport:
                 f"{where}.sample_rate_hz must be a sample rate sessions are read at, {lo:g}…{hi:g} Hz, "
                 f"got {self.sample_rate_hz!r}"
             )
+        nominal = _array(self.nominal, (N_PARAMS,), f"{where}.nominal")
         arrays: dict[str, FloatArray | BoolArray] = {
-            "nominal": _array(self.nominal, (N_PARAMS,), f"{where}.nominal"),
+            "nominal": nominal,
             "tolerance": _array(self.tolerance, (N_PARAMS,), f"{where}.tolerance"),
             "sigma": _array(self.sigma, (N_PARAMS,), f"{where}.sigma"),
             "noise_std": _array(self.noise_std, (3,), f"{where}.noise_std"),
@@ -472,6 +473,13 @@ class TriadPassport:
         if np.any(arrays["tolerance"] <= 0.0):
             raise PassportError(
                 f"{where}.tolerance must be positive, got {arrays['tolerance'].tolist()}"
+            )
+        # Outside it the scalar model has no meaning: the pipeline and diagnose failed on such a
+        # passport in their linear algebra ('Matrix is not positive definite').
+        if not physical(nominal):
+            raise PassportError(
+                f"{where}.nominal {nominal.tolist()} is no working triad: a gain 1 + e outside "
+                "(0.1, 10) or sensitive axes nearly coplanar (cosines d1..d3)"
             )
         for name in ("sigma", "noise_std", "bias_instability_std"):
             if np.any(arrays[name] < 0.0):

@@ -327,6 +327,17 @@ def _mutated(passport: Passport, path: tuple, value) -> dict:
             "",
             r"procedure must be a non-empty string",
         ),
+        # Read before, then the pipeline and diagnose failed in their linear algebra.
+        (
+            ("triads", "accel", "nominal"),
+            [3.0] * 9,
+            r"triads\.accel\.nominal .* is no working triad",
+        ),
+        (
+            ("triads", "accel", "nominal"),
+            [0, 0, 0, -0.95, 0, 0, 0, 0, 0],
+            r"is no working triad: a gain 1 \+ e outside \(0\.1, 10\)",
+        ),
         (("triads", "accel", "param_names"), ["b"] * 9, "param_names must be"),
         (("triads", "accel", "extra"), 1, r"triads\.accel has unknown field\(s\) \['extra'\]"),
         (("triads", "accel", "sigma"), KeyError, r"triads\.accel lacks field\(s\) \['sigma'\]"),
