@@ -91,7 +91,8 @@ class ServiceSection:
     data_dir : directory of ``outbox.sqlite`` and ``checkpoints.sqlite`` (default ``"./ins-health-data"``; a default
         is relative to the working directory, a configured relative path to the configuration file).
     passport_dir : directory of the passport store (default ``"./passports"``).
-    status_period_s : period of the status publication and of the timeout checks, s (default 1.0).
+    status_period_s : period of the status publication and of the timeout checks, s (default 1.0;
+        this and the other periods at least :data:`PERIOD_MIN_S`).
     checkpoint_period_s : period of the estimator-state checkpoints, s (default 30.0);
         SIGTERM always writes a last one.
     delivery_retry_s : delay before a sink retries events its transport did not accept, s (default 0.5).
@@ -517,6 +518,16 @@ def _positive(errors: list[str], where: str, value: float) -> None:
         errors.append(f"{where} must be > 0, got {value!r}")
 
 
+PERIOD_MIN_S = 0.01
+"""The shortest period of a task's loop (status, checkpoints, delivery retries, heartbeat): 1e-300 s
+passed as > 0, and the task then ran at every turn of the event loop, the frames' loop."""
+
+
+def _period(errors: list[str], where: str, value: float) -> None:
+    if not PERIOD_MIN_S <= value:
+        errors.append(f"{where} must be at least {PERIOD_MIN_S} s, got {value!r}")
+
+
 def _check(cfg: ServiceConfig) -> list[str]:
     """Every range error of a typed configuration, one line each."""
     errors: list[str] = []
@@ -536,7 +547,7 @@ def _check(cfg: ServiceConfig) -> list[str]:
         if folder is not None and os.path.isfile(folder):
             errors.append(f"[service] {name} {str(folder)!r} is a file, not a folder")
     for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
-        _positive(errors, f"[service] {name}", getattr(s, name))
+        _period(errors, f"[service] {name}", getattr(s, name))
     if not (math.isfinite(s.outbox_max_mb) and s.outbox_max_mb >= 0):
         errors.append(
             f"[service] outbox_max_mb must be a finite number >= 0, got {s.outbox_max_mb!r}"
@@ -558,8 +569,9 @@ def _check(cfg: ServiceConfig) -> list[str]:
     g = cfg.site.local_gravity_mps2
     if not 9.7 < g < 9.9:
         errors.append(f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)")
-    for name in ("alert_min_interval_s", "alert_max_per_s", "heartbeat_period_s"):
+    for name in ("alert_min_interval_s", "alert_max_per_s"):
         _positive(errors, f"[mavlink] {name}", getattr(m, name))
+    _period(errors, "[mavlink] heartbeat_period_s", m.heartbeat_period_s)
     try:
         check_vehicle(m.link.vehicle, error=SchemaError)
     except SchemaError as exc:

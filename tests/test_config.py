@@ -71,7 +71,7 @@ stale_run_samples = 50
         ({"servcie": {}}, r"unknown sections \['servcie'\]"),
         ({"service": {"nmae": "x"}}, r"\[service\] has unknown keys \['nmae'\]"),
         ({"service": {"status_period_s": "fast"}}, r"\[service\] status_period_s must be a number"),
-        ({"service": {"status_period_s": 0}}, r"status_period_s must be > 0"),
+        ({"service": {"status_period_s": 0}}, r"status_period_s must be at least 0.01 s"),
         ({"pipeline": {"queue_capacity": True}}, r"queue_capacity must be an integer"),
         ({"pipeline": {"false_alarm_probability": 0.7}}, r"false_alarm_probability must be in"),
         ({"pipeline": {"min_positions": 6}}, r"min_positions must be >= 9"),
@@ -125,8 +125,13 @@ stale_run_samples = 50
         ),
         (
             {"service": {"checkpoint_period_s": -30.0}},
-            r"\[service\] checkpoint_period_s must be > 0",
+            r"\[service\] checkpoint_period_s must be at least 0.01 s",
         ),
+        (
+            {"service": {"status_period_s": 1e-300}},
+            r"\[service\] status_period_s must be at least 0.01 s, got 1e-300",
+        ),
+        ({"mavlink": {"heartbeat_period_s": 0.0}}, r"heartbeat_period_s must be at least 0.01 s"),
         (
             {"zenoh": {"connect_timeout_s": float("inf")}},
             r"\[zenoh\] connect_timeout_s must be a finite number",
