@@ -375,8 +375,8 @@ class LogReader:
             self._keep(imu, buf, [buf.held] if buf.held is not None else [])
             self.stats._drop("time_not_increasing", buf.back_n)
             buf.held, buf.back = None, []
-            while buffers[imu].n:
-                yield self._emit(imu, buffers[imu], buffers[imu].n)
+            while buf.n:
+                yield self._emit(imu, buf, buf.n)
         if not self.stats.samples:
             what = (
                 "topics sensor_combined, sensor_accel+sensor_gyro, vehicle_imu"
@@ -811,25 +811,19 @@ def _in_order(buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats) -
     out: list[ImuRows] = []
     run: list[int] = []  # indices of this block kept in a row, not yet in ``out``
     back: list[int] = []  # indices of this block in the run of earlier samples
-    held: int | None = None  # index of this block held after a jump
     for k in map(int, np.flatnonzero(finite)):
         tk = float(t[k])
-        if buf.held is not None or held is not None:
-            if held is not None:
-                held_t = float(t[held])
-            else:
-                assert buf.held is not None
-                held_t = float(buf.held.t_s[0])
-            if tk > held_t:  # a gap in the log: the held sample goes on
-                if held is not None:
-                    run.append(held)
-                else:
-                    assert buf.held is not None
-                    out.append(buf.held)
+        if buf.held is not None:
+            held_t = float(buf.held.t_s[0])
+            if tk > held_t:  # a gap in the log: the held sample goes on, after those kept before it
+                if run:
+                    out.append(_select(rows, np.array(run)))
+                    run = []
+                out.append(buf.held)
                 last = held_t
             else:  # back from before it: the held stamp went wrong
                 stats._drop("time_glitch")
-            buf.held, held = None, None
+            buf.held = None
         if buf.back or back:
             back_last = float(t[back[-1]]) if back else float(buf.back[-1].t_s[-1])
             if tk > last:  # the clock goes on: the run was late samples
@@ -853,14 +847,12 @@ def _in_order(buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats) -
         if tk <= last:
             back = [k]
         elif np.isfinite(last) and tk - last > JUMP_HOLD_S:
-            held = k
+            buf.held = _select(rows, np.array([k]))
         else:
             run.append(k)
             last = tk
     if run:
         out.append(_select(rows, np.array(run)))
-    if held is not None:
-        buf.held = _select(rows, np.array([held]))
     if back:
         buf.back.append(_select(rows, np.array(back)))
     buf.last_t_s = last

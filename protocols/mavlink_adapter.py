@@ -620,11 +620,9 @@ class LinkCounters:
 
     messages: int = 0
     imu_samples: dict[str, int] = field(default_factory=dict)
-    ignored_system: int = 0
-    """IMU messages of a system other than :attr:`imu_system`, not read (the status topic's
-    ``service.mavlink.rejected.other_system``)."""
     ignored_systems: dict[int, int] = field(default_factory=dict)
-    """:attr:`ignored_system` by the system id that sent them."""
+    """IMU messages of a system other than :attr:`imu_system`, not read, by the system that sent
+    them (:attr:`ignored_system` in all)."""
     imu_system: int | None = None
     """The system id whose IMU messages are read: ``autopilot_system``, or when that is unset the
     system of the first IMU message read (None until then)."""
@@ -638,6 +636,11 @@ class LinkCounters:
     alerts_sent: int = 0
     texts_sent: int = 0
     heartbeats_sent: int = 0
+
+    @property
+    def ignored_system(self) -> int:
+        """IMU messages of other systems in all (the status topic's ``service.mavlink.rejected.other_system``)."""
+        return sum(dict(self.ignored_systems).values())
 
     def reject(self, reason: str, n: int = 1) -> None:
         self.rejected[reason] = self.rejected.get(reason, 0) + n
@@ -727,8 +730,7 @@ class ImuBatcher:
                 rows = all_rows[kind] = []
             rows.append(_FIELDS[kind](msg))
             kept += 1
-        self.counters.messages += seen
-        self.counters.ignored_system += seen - kept
+        counters.messages += seen
         self.pending += kept
 
     def _refused(self, bad: MavlinkMessage) -> None:

@@ -80,7 +80,7 @@ class ReaderProcessFailed(OSError):
 
 
 # What the child reads; what it sends is counted here when it answers (so at once, not with the next batch).
-_SCALARS = ("messages", "ignored_system", "dropped_kernel", "signing_stale")
+_SCALARS = ("messages", "dropped_kernel", "signing_stale")
 _TABLES = ("imu_samples", "rejected", "ignored_systems")
 
 

@@ -38,6 +38,7 @@ from protocols.atomic_file import private_file
 from protocols.checkpoint_codec import CheckpointError, decode_state, encode_state
 from protocols.events import EventError
 from service.log_setup import logger
+from service.outage import Outage
 
 CHECKPOINT_SCHEMA_VERSION = 1
 BUSY_TIMEOUT_S = 0.1
@@ -132,52 +133,42 @@ class SaveFailures:
     """
 
     def __init__(self, *, clock: Callable[[], float]) -> None:
-        self._clock = clock
-        self._since: float | None = None
-        self._failures_now = 0
+        self._outage = Outage(clock)
         self.retry_s = RETRY_MIN_S
         """How long to wait before the next attempt, after a failed one."""
-        self.write_failures = 0
-        self.episodes = 0
 
     @property
     def unavailable(self) -> bool:
         """Whether the last checkpoint attempt failed."""
-        return self._since is not None
+        return self._outage.ongoing
 
     def failed(self, exc: CheckpointUnavailable, units: int) -> None:
         """An attempt to save ``units`` units' state failed: counted, :attr:`retry_s` set for the next one."""
-        self.write_failures += 1
-        self._failures_now += 1
-        if self._since is None:
-            self._since = self._clock()
-            self.episodes += 1
+        if self._outage.failed():
             log.error(
                 "checkpoints cannot be saved (%s): the state of %d unit(s) is kept in memory and saved "
                 "once the store takes writes again (retrying; fault detection goes on, a restart "
                 "meanwhile resumes from the last checkpoint saved)",
                 exc, units,
             )  # fmt: skip
-        self.retry_s = min(RETRY_MAX_S, RETRY_MIN_S * 2.0 ** (self._failures_now - 1))
+        self.retry_s = min(RETRY_MAX_S, RETRY_MIN_S * 2.0 ** (self._outage.failures_now - 1))
 
     def saved(self, units: int) -> None:
         """A checkpoint of ``units`` units was written: the end of an episode of failures, if any."""
-        if self._since is None:
+        failed = self._outage.failures_now
+        if (lasted := self._outage.ended()) is None:
             return
         log.warning(
             "checkpoints saved again after %.1f s unavailable (%d attempt(s) failed): %d unit(s) written",
-            self._clock() - self._since, self._failures_now, units,
+            lasted, failed, units,
         )  # fmt: skip
-        self._since = None
-        self._failures_now = 0
         self.retry_s = RETRY_MIN_S
 
     def counters(self) -> dict[str, int]:
         """For the status topic (class docstring)."""
         return {
             "checkpoints.unavailable": int(self.unavailable),
-            "checkpoints.write_failures": self.write_failures,
-            "checkpoints.unavailable_episodes": self.episodes,
+            **self._outage.counters("checkpoints"),
         }
 
 

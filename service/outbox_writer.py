@@ -33,6 +33,7 @@ from collections.abc import Callable
 
 from protocols.events import Event, encode_event
 from service.log_setup import logger
+from service.outage import Outage
 from service.outbox import Outbox, OutboxUnavailable
 
 RETRY_MIN_S = 0.05
@@ -61,12 +62,9 @@ class OutboxWriter:
     ) -> None:
         self._outbox = outbox
         self._on_stored = on_stored
-        self._clock = clock
         self._held: list[Event] = []
-        self._since: float | None = None
+        self._outage = Outage(clock)
         self._abandoned = False
-        self.write_failures = 0
-        self.episodes = 0
 
     @property
     def holding(self) -> bool:
@@ -87,10 +85,7 @@ class OutboxWriter:
                 (e.event_id, e.vehicle, encode_event(e)) for e in self._held
             )
         except OutboxUnavailable as exc:
-            self.write_failures += 1
-            if self._since is None:
-                self._since = self._clock()
-                self.episodes += 1
+            if self._outage.failed():
                 log.error(
                     "outbox unavailable (%s): %d event(s) held in memory, frames wait "
                     "(dropped beyond the queue, counted); retrying",
@@ -98,12 +93,11 @@ class OutboxWriter:
                 )  # fmt: skip
             return False
         written, self._held = self._held, []
-        if self._since is not None:
+        if (lasted := self._outage.ended()) is not None:
             log.warning(
                 "outbox available again after %.1f s: %d held event(s) written, frames taken again",
-                self._clock() - self._since, len(written),
+                lasted, len(written),
             )  # fmt: skip
-            self._since = None
         if new:
             self._on_stored(new, {e.vehicle for e in written})
         return True
@@ -140,7 +134,6 @@ class OutboxWriter:
         """For the status topic (module docstring)."""
         return {
             "outbox.unavailable": int(self.holding),
-            "outbox.write_failures": self.write_failures,
             "outbox.held_events": len(self._held),
-            "outbox.unavailable_episodes": self.episodes,
+            **self._outage.counters("outbox"),
         }

@@ -585,7 +585,6 @@ class ScriptedLink:
                     system = int(reason.split()[1])
                     ignored = self.counters.ignored_systems
                     ignored[system] = ignored.get(system, 0) + n
-                    self.counters.ignored_system += n
                 else:
                     self.counters.reject(reason, n)
         else:
