@@ -15,7 +15,13 @@ import numpy as np
 
 from estimators._typing import FloatArray
 from estimators.conventions import N_PARAMS, Triad, reference_magnitude
-from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB, Diagnosis, Finding, diagnose
+from estimators.diagnosis import (
+    DEFAULT_FALSE_ALARM_PROB,
+    Diagnosis,
+    Finding,
+    critical_z,
+    diagnose,
+)
 from estimators.ninepar import (
     SOURCE_SCALAR,
     SOURCE_VECTOR,
@@ -148,12 +154,19 @@ class ChainResult:
     gravity_mps2: float
     session: ImuSession | None = None
     """The validated samples the chain ran on."""
+    onset: Onset | None = None
+    """Where a fault began mid-session (:func:`split_at_onset`); ``triads`` are then the fits
+    of the positions after it, ``onset.before`` those of the positions before."""
 
     @property
     def faults(self) -> tuple[Finding, ...]:
-        return tuple(
-            f for r in self.triads.values() if r.diagnosis is not None for f in r.diagnosis.findings
-        )
+        """The failed predicates of ``triads`` (after the onset, when there is one)."""
+        return _findings(self.triads)
+
+    @property
+    def faults_before(self) -> tuple[Finding, ...]:
+        """The failed predicates of the positions before the onset (none without one)."""
+        return () if self.onset is None else _findings(self.onset.before)
 
     @property
     def diagnosed(self) -> bool:
@@ -193,28 +206,68 @@ class ChainResult:
             "static_intervals": len(self.detection.intervals),
             "positions": [p.to_dict() for p in self.positions],
             "position_rejections": [r.to_dict() for r in self.position_rejections],
-            "triads": {
-                t.value: {
-                    "estimate": r.estimate.to_dict(),
-                    "residuals": None if r.residuals is None else [float(v) for v in r.residuals],
-                    "residual_sigma": None
-                    if r.residual_sigma is None
-                    else [float(v) for v in r.residual_sigma],
-                    "residual_rms": None
-                    if r.residuals is None
-                    else float(np.sqrt(np.mean(r.residuals**2))),
-                    "predicates": None if r.diagnosis is None else r.diagnosis.to_dict(),
-                    "diagnosed": r.diagnosed,
-                    "reason": r.reason,
-                    "suspect": r.suspect,
-                }
-                for t, r in self.triads.items()
-            },
+            "triads": _triads_dict(self.triads),
             "faults": [f.to_dict() for f in self.faults],
             "diagnosed": self.diagnosed,
             "reason": self.reason,
             "passport_of_another_unit": self.passport_of_another_unit,
+            "onset": None if self.onset is None else self.onset.to_dict(),
         }
+
+
+@dataclass(frozen=True)
+class Onset:
+    """A fault that began mid-session: the positions before and after it, fitted apart (:func:`split_at_onset`).
+
+    Attributes
+    ----------
+    t_s : when it began (the first sample of F0's first persistent failure), s.
+    before : per triad, the fit of the positions that ended before ``t_s``, against the passport.
+    n_before, n_after : positions wholly before and wholly after ``t_s``.
+    n_straddling : positions that held ``t_s`` (in neither set).
+    """
+
+    t_s: float
+    before: dict[Triad, TriadResult]
+    n_before: int
+    n_after: int
+    n_straddling: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "t_s": self.t_s,
+            "n_before": self.n_before,
+            "n_after": self.n_after,
+            "n_straddling": self.n_straddling,
+            "before": _triads_dict(self.before),
+            "faults_before": [f.to_dict() for f in _findings(self.before)],
+        }
+
+
+def _findings(triads: dict[Triad, TriadResult]) -> tuple[Finding, ...]:
+    return tuple(
+        f for r in triads.values() if r.diagnosis is not None for f in r.diagnosis.findings
+    )
+
+
+def _triads_dict(triads: dict[Triad, TriadResult]) -> dict[str, Any]:
+    return {
+        t.value: {
+            "estimate": r.estimate.to_dict(),
+            "residuals": None if r.residuals is None else [float(v) for v in r.residuals],
+            "residual_sigma": None
+            if r.residual_sigma is None
+            else [float(v) for v in r.residual_sigma],
+            "residual_rms": None
+            if r.residuals is None
+            else float(np.sqrt(np.mean(r.residuals**2))),
+            "predicates": None if r.diagnosis is None else r.diagnosis.to_dict(),
+            "diagnosed": r.diagnosed,
+            "reason": r.reason,
+            "suspect": r.suspect,
+        }
+        for t, r in triads.items()
+    }
 
 
 def present_triads(session: ImuSession) -> tuple[Triad, ...]:
@@ -234,6 +287,9 @@ def run_chain(
     Raises ``ValueError`` (a :class:`~estimators.session.SessionError`) when the
     session has no usable samples; a session without enough positions is not an
     error: its estimates say "not observable yet" and no predicate is evaluated.
+    A triad with a passport that M1's geometry does not resolve is diagnosed by
+    the M4 fits that make a six-position passport (:func:`m4_estimate`), where
+    the session holds their geometry.
     """
     clean, rejected = validate_session(
         session, accel_limit_mps2=config.accel_limit_mps2, gyro_limit_rps=config.gyro_limit_rps
@@ -244,34 +300,116 @@ def run_chain(
     if instability is None and passport is not None:
         instability = {t: tp.bias_instability_std for t, tp in passport.triads.items()}
     positions = _with_bias_instability(found.positions, instability or {}, config.gravity_mps2)
-    triads = {}
-    for triad in present_triads(clean):
-        reference = reference_magnitude(triad, config.gravity_mps2)
-        try:
-            est = estimate_triad(positions, triad, reference, method=config.method)
-        except ValueError as exc:
-            raise ValueError(f"{triad.value}: {exc}") from None
-        residuals = sigma = None
-        if est.params is not None:
-            mean, cov = position_arrays(positions, triad, reference)
-            residuals = ellipsoid_residual(est.params, mean)[0]
-            sigma = equation_sigma(est.params, mean, cov)
-        diag = (
-            diagnose(est, passport.triads[triad], false_alarm_prob=config.false_alarm_prob)
-            if passport is not None and triad in passport.triads
-            else None
-        )
-        triads[triad] = TriadResult(est, residuals, sigma, diag)
+    turns = (
+        find_full_turns(clean, detection.intervals)
+        if passport is not None and Triad.GYRO in passport.triads
+        else ()
+    )
     return ChainResult(
         session.n_samples,
         rejected,
         detection,
         positions,
         found.rejections,
-        triads,
+        _fit_triads(positions, turns, present_triads(clean), config, passport),
         config.gravity_mps2,
         clean,
     )
+
+
+def split_at_onset(
+    result: ChainResult, t_s: float, triad: Triad, config: ChainConfig, passport: Passport
+) -> ChainResult:
+    """The chain's fits redone apart on the positions before and after the onset ``t_s`` of a
+    fault F0 found in ``triad``, when the unit changed there.
+
+    One fit of positions taken before and after a fault began estimates neither the
+    old nor the new parameters (M1 restarts its estimation when F0 fails, Fig. 2).
+    But F0 sees a fault only in the orientations it moves ``½(|ã|²−1)`` in (a scale
+    error of axis ``i`` by ``e·u_i²``): a fault present from the start first fails
+    F0 wherever its axis first points along gravity. The unit changed at ``t_s``
+    when one set of parameters does not explain all its positions: the largest
+    normalized residual of the session's fit ``|r_k|/σ_k`` exceeds the two-sided
+    Bonferroni bound at ``config.false_alarm_prob`` over the ``n`` positions
+    (:func:`~estimators.diagnosis.critical_z`).
+
+    Positions that ended by ``t_s`` are then fitted as one set, those that began
+    at or after it as another, each against the passport (a set with too few
+    positions says so); a position holding ``t_s`` is in neither. ``result`` is
+    returned unchanged when no position ended before ``t_s`` (the fault was there
+    from the start), when the session's fit explains every position, or when it
+    has no fit to judge by (too few positions; or a fit that left the physical
+    domain, which a fault there from the start also gives).
+    """
+    if result.session is None:
+        raise ValueError("the chain result does not carry its session")
+    before = tuple(p for p in result.positions if p.t_end_s <= t_s)
+    whole = result.triads.get(triad)
+    if not before or whole is None or not _changed(whole, config.false_alarm_prob):
+        return result
+    after = tuple(p for p in result.positions if p.t_start_s >= t_s)
+    turns = (
+        find_full_turns(result.session, result.detection.intervals)
+        if Triad.GYRO in passport.triads
+        else ()
+    )
+    present = tuple(result.triads)
+    return replace(
+        result,
+        triads=_fit_triads(
+            after, tuple(tr for tr in turns if tr.t_start_s >= t_s), present, config, passport
+        ),
+        onset=Onset(
+            t_s,
+            _fit_triads(
+                before, tuple(tr for tr in turns if tr.t_end_s <= t_s), present, config, passport
+            ),
+            len(before),
+            len(after),
+            len(result.positions) - len(before) - len(after),
+        ),
+    )
+
+
+def _changed(whole: TriadResult, false_alarm_prob: float) -> bool:
+    """The session's fit of a triad does not explain all its positions (:func:`split_at_onset`)."""
+    if whole.residuals is None or whole.residual_sigma is None:
+        return False
+    z = np.abs(whole.residuals) / whole.residual_sigma
+    return bool(np.max(z) > critical_z(false_alarm_prob, z.size))
+
+
+def _fit_triads(
+    positions: tuple[Position, ...],
+    turns: tuple[FullTurn, ...],
+    triads: tuple[Triad, ...],
+    config: ChainConfig,
+    passport: Passport | None,
+) -> dict[Triad, TriadResult]:
+    """Estimate and (with a passport) diagnose each triad from ``positions`` (and ``turns``)."""
+    out = {}
+    for triad in triads:
+        reference = reference_magnitude(triad, config.gravity_mps2)
+        try:
+            est = estimate_triad(positions, triad, reference, method=config.method)
+        except ValueError as exc:
+            raise ValueError(f"{triad.value}: {exc}") from None
+        tp = None if passport is None else passport.triads.get(triad)
+        # A fit that left the physical domain is not a geometry M4 completes: it stays SUSPECT.
+        if tp is not None and est.verdict is not Verdict.OBSERVABLE and not est.fit_left_domain:
+            alt = m4_estimate(triad, est, positions, turns, config.gravity_mps2)
+            if alt is not None and alt.params is not None and np.any(alt.observable):
+                est = alt
+        residuals = sigma = None
+        if est.params is not None:
+            mean, cov = position_arrays(positions, triad, reference)
+            residuals = ellipsoid_residual(est.params, mean)[0]
+            sigma = equation_sigma(est.params, mean, cov)
+        diag = (
+            diagnose(est, tp, false_alarm_prob=config.false_alarm_prob) if tp is not None else None
+        )
+        out[triad] = TriadResult(est, residuals, sigma, diag)
+    return out
 
 
 def _with_bias_instability(
@@ -333,12 +471,7 @@ def calibration_estimates(result: ChainResult, *, turn_rad: float = FULL_TURN_RA
         if est.verdict is Verdict.OBSERVABLE:
             out[triad] = replace(est, sources=(SOURCE_SCALAR,) * N_PARAMS)
             continue
-        reference = reference_magnitude(triad, result.gravity_mps2)
-        alt = (
-            _accel_vector(result.positions, est, result.gravity_mps2)
-            if triad is Triad.ACCEL
-            else _gyro_turns(turns, result.positions, est, reference, turn_rad)
-        )
+        alt = m4_estimate(triad, est, result.positions, turns, result.gravity_mps2, turn_rad)
         best = est if alt is None else alt
         if best.params is not None and np.any(best.observable):
             out[triad] = (
@@ -347,6 +480,23 @@ def calibration_estimates(result: ChainResult, *, turn_rad: float = FULL_TURN_RA
                 else replace(best, sources=(SOURCE_SCALAR,) * N_PARAMS)
             )
     return Calibration(out, turns)
+
+
+def m4_estimate(
+    triad: Triad,
+    scalar: Estimate,
+    positions: tuple[Position, ...],
+    turns: tuple[FullTurn, ...],
+    gravity_mps2: float,
+    turn_rad: float = FULL_TURN_RAD,
+) -> Estimate | None:
+    """M1's estimate ``scalar`` of ``triad`` completed (or replaced) by M4 (docs/methods.md, "M4 into
+    the passport"): the six-position vector fit for the accelerometers, the full turns of
+    ``turn_rad`` and the static means for the gyros; None when the session holds neither.
+    ``sources`` names the method of each parameter."""
+    if triad is Triad.ACCEL:
+        return _accel_vector(positions, scalar, gravity_mps2)
+    return _gyro_turns(turns, positions, scalar, reference_magnitude(triad, gravity_mps2), turn_rad)
 
 
 def _accel_vector(

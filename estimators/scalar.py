@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estimators._typing import BoolArray, FloatArray, StateArray
+from estimators._typing import BoolArray, FloatArray, IntArray, StateArray
 from estimators.conventions import Triad, normal_gravity_mps2, reference_magnitude
 
 
@@ -289,6 +289,94 @@ def persistent_failure(state: StateArray, run_in: int, persist: int) -> tuple[in
     run = np.where(last_break < 0, idx + 1 + run_in, idx - last_break)
     hits = np.flatnonzero(run >= persist)
     return (int(hits[0]) if hits.size else -1), int(run[-1])
+
+
+def persistence_samples(persistence_s: float, rate_hz: float) -> int:
+    """Failing samples in a row that make a persistent F0 failure: ``persistence_s`` at ``rate_hz``,
+    at least one (module docstring, Persistence)."""
+    return max(1, round(persistence_s * rate_hz))
+
+
+@dataclass(frozen=True)
+class F0Session:
+    """F0 over a whole session, its failures split into persistent ones and knocks (module docstring).
+
+    Attributes
+    ----------
+    tested, failed : shell tests made and failed.
+    persist : failing samples in a row that make a failure.
+    runs : runs of failing samples in a row (a sample not failing, tested or not, ends a run).
+    persistent_runs : those of at least ``persist`` samples; the others are knocks.
+    first_fail_t_s : time of the first failing sample, s (None without failures).
+    worst : largest ``|s|`` of a failing sample (None without failures).
+    onset_t_s : first sample of the first persistent run, s (None without one): when the
+        failure began, as the service dates its F0 event.
+    onset_residual : ``s`` of that sample.
+    persistent_failed : failing samples inside persistent runs.
+    persistent_worst : largest ``|s|`` inside persistent runs (None without one).
+    """
+
+    tested: int
+    failed: int
+    persist: int
+    runs: int
+    persistent_runs: int
+    first_fail_t_s: float | None
+    worst: float | None
+    onset_t_s: float | None
+    onset_residual: float | None
+    persistent_failed: int
+    persistent_worst: float | None
+
+    @property
+    def persistent(self) -> bool:
+        """F0 failed persistently: a finding, not a knock."""
+        return self.persistent_runs > 0
+
+    @property
+    def knocks(self) -> int:
+        """Failing runs shorter than the persistence: counted, not a finding."""
+        return self.runs - self.persistent_runs
+
+
+def f0_session(
+    t_s: FloatArray, x_si: FloatArray, static: BoolArray, config: F0Config, persist: int
+) -> F0Session:
+    """F0 on every static sample of a session (:func:`f0_batch`) with the persistence rule of
+    :func:`persistent_failure` applied to the whole of it: ``persist`` failing samples in a row
+    are a failure, dated at their first; shorter runs are knocks."""
+    if persist < 1:
+        raise ValueError(f"persist must be >= 1, got {persist!r}")
+    t = np.asarray(t_s, dtype=float)
+    res = f0_batch(x_si, static, config)
+    if t.shape != res.state.shape:
+        raise ValueError(f"t_s must have shape {res.state.shape}, got {t.shape}")
+    fail = res.state == _FAIL
+    edges = np.diff(np.concatenate([[0], fail.view(np.int8), [0]]))
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    long = stops - starts >= persist
+    inside = np.zeros(fail.size, dtype=bool)
+    for a, b in zip(starts[long], stops[long], strict=True):
+        inside[a:b] = True
+    failed = np.flatnonzero(fail)
+    onset = int(starts[long][0]) if long.any() else None
+
+    def worst(idx: IntArray) -> float | None:
+        return float(np.max(np.abs(res.residual[idx]))) if idx.size else None
+
+    return F0Session(
+        tested=res.n_tests,
+        failed=res.n_fail,
+        persist=persist,
+        runs=int(starts.size),
+        persistent_runs=int(np.count_nonzero(long)),
+        first_fail_t_s=float(t[failed[0]]) if failed.size else None,
+        worst=worst(failed),
+        onset_t_s=None if onset is None else float(t[onset]),
+        onset_residual=None if onset is None else float(res.residual[onset]),
+        persistent_failed=int(np.count_nonzero(inside)),
+        persistent_worst=worst(np.flatnonzero(inside)),
+    )
 
 
 def _f0_windows(

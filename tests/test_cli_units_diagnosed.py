@@ -106,12 +106,17 @@ def test_si_declared_for_si_data_is_accepted_and_a_wrong_declaration_refused(fil
         SessionUnits(gyro="rpm")
 
 
-def test_a_diagnosable_fault_free_session_exits_0_with_no_fault(files, capsys):
+def test_a_fault_free_session_with_an_undiagnosed_triad_is_no_finding_within_coverage_exit_3(
+    files, capsys
+):
+    """The accelerometers are diagnosed and pass; the MEMS gyro (no passport: it cannot see the
+    Earth rate) is not: 'no fault' would claim what was not tested."""
     d, _ = files
     capsys.readouterr()
-    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 3
     out = capsys.readouterr().out
-    assert "no fault" in out
+    assert "  no finding within coverage; not tested: gyro: no passport for this triad" in out
+    assert "  no fault" not in out.splitlines() and "FAULT" not in out
     assert not any(line.startswith("NOT DIAGNOSED") for line in out.splitlines())
 
 
@@ -132,13 +137,13 @@ def test_too_few_positions_is_not_diagnosed_exit_3_with_the_reason(files, capsys
 def test_diagnose_runs_f0_against_the_passport(files, capsys):
     d, _ = files
     capsys.readouterr()
-    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json"), "--json"]) == 0
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json"), "--json"]) == 3
     doc = json.loads(capsys.readouterr().out)
     assert doc["diagnosed"] is True and doc["reason"] == ""
     f0 = doc["f0"]["accel"]
     assert f0["run"] and f0["tested"] > 10_000 and f0["failed"] == 0
     # Another unit's samples leave this unit's shell.
-    assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json"), "--json"]) == 0
+    assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json"), "--json"]) == 1
     other = json.loads(capsys.readouterr().out)["f0"]["accel"]
     assert (
         other["failed"] > 0
@@ -150,10 +155,10 @@ def test_diagnose_runs_f0_against_the_passport(files, capsys):
 def test_a_passport_of_another_unit_is_named(files, capsys):
     d, _ = files
     capsys.readouterr()
-    assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json")]) == 0
+    assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json")]) == 1
     out = capsys.readouterr().out
     assert "the passport is probably not this unit's" in out
-    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 3
     assert "probably not this unit's" not in capsys.readouterr().out
 
 

@@ -1,9 +1,21 @@
 """``ins-health diagnose SESSION --passport PASSPORT.json [--json]``: the offline chain of methods.md M1.
 
-Exit status: 0 the session was diagnosed (with or without faults); 2 unusable
-input (one line on stderr); 3 the data do not allow a diagnosis (no triad had
-a predicate F1…F9 it could evaluate: too few positions, their geometry, or
-noise against the reference), said as ``NOT DIAGNOSED: …`` with the reasons.
+Exit status (one set for every verdict command):
+
+- 0: tested, no fault: every triad of the session was diagnosed and nothing failed;
+- 1: a fault found (``FAULT`` lines): a predicate F1…F9, or F0 failing persistently
+  (:attr:`~service.pipeline.PipelineOptions.f0_persistence_s` of failures in a row; shorter
+  runs are knocks, counted and said) even when the nine parameters cannot be fitted;
+- 2: unusable input (one line on stderr);
+- 3: not enough to test, nothing found: ``NOT DIAGNOSED: …`` (no triad had a predicate F1…F9 it
+  could evaluate: too few positions, their geometry, noise against the reference), ``SUSPECT``
+  (a triad with a passport whose fit left the physical domain), or some triad of the session not
+  diagnosed (``no finding within coverage``, what was not tested and why).
+
+A fault outranks what was not tested. A session whose geometry M1's scalar fit cannot use (six
+faces, with or without full turns) is diagnosed by the M4 fits that make a six-position passport,
+the method named per parameter. When F0's persistent failure begins after the first positions,
+the positions before and after it are fitted apart and the fault named in the later set.
 """
 
 from __future__ import annotations
@@ -17,23 +29,28 @@ from service.cli import UsageError
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 if TYPE_CHECKING:
-    from estimators.chain import ChainConfig, ChainResult
+    from estimators.chain import ChainConfig, ChainResult, TriadResult
+    from estimators.conventions import Triad
     from estimators.passport import Passport
 
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 """estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
 scipy (tests/test_cli_startup.py checks they agree)."""
 
-EXIT_NOT_DIAGNOSED = 3
+EXIT_NO_FAULT = 0
+EXIT_FAULT = 1
+EXIT_UNTESTED = 3
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="static detection → positions → estimates → predicates F1…F9 against a passport",
-        description="Exit status 0: diagnosed, with or without faults; 2: unusable input (one-line reason); "
-        "3: the data do not allow a diagnosis (NOT DIAGNOSED and why), or a triad with a passport "
-        "could not be fitted (SUSPECT: a gross fault, values in other units, another unit's session).",
+        description="Exit status 0: tested, no fault (every triad diagnosed); 1: a fault found (FAULT lines: "
+        "F1…F9, or F0 failing persistently, even when the nine parameters cannot be fitted); "
+        "2: unusable input (one-line reason); 3: not enough to test, nothing found (NOT DIAGNOSED and why; "
+        "SUSPECT: a triad with a passport whose fit left the physical domain; or a triad not diagnosed). "
+        "A fault outranks what was not tested.",
     )
     add_session_arguments(p)
     p.add_argument("--passport", required=True, metavar="PASSPORT.json", help="the unit's passport")
@@ -60,14 +77,15 @@ def f0_report(
     Static as the service's detector sees it: its thresholds raised to the passport's noise
     (:func:`~service.pipeline.detector_config`), as ``replay`` runs it. The chain's detector, whose
     thresholds come from the session's own noise, took a flight's manoeuvres for rest (a fault-free
-    flight: 225 samples 'leaving the shell' that replay did not test).
+    flight: 225 samples 'leaving the shell' that replay did not test). Failures persist as the
+    service declares them (:attr:`~service.pipeline.PipelineOptions.f0_persistence_s`,
+    :func:`estimators.scalar.f0_session`).
 
-    Per triad: static samples tested, how many leave the shell, the first such
-    time and the worst ``|½(|ã|²−1)|``; or why F0 is not run for the triad.
+    Per triad: static samples tested, how many leave the shell, the first such time and the
+    worst ``|½(|ã|²−1)|``, the failing runs and which of them persist (a finding) and which are
+    knocks; or why F0 is not run for the triad.
     """
-    import numpy as np
-
-    from estimators.scalar import f0_batch
+    from estimators.scalar import f0_session, persistence_samples
     from estimators.static_detector import detect_static
     from service.pipeline import PipelineOptions, detector_config
     from service.pipeline.triad_check import f0_config
@@ -79,6 +97,7 @@ def f0_report(
     static = detect_static(
         clean, config=detector_config(options.detector, passport, clean.rate_hz)
     ).static
+    persist = persistence_samples(options.f0_persistence_s, clean.rate_hz)
     out: dict[str, dict[str, Any]] = {}
     for triad, tp in passport.triads.items():
         x = clean.accel_mps2 if triad.value == "accel" else clean.gyro_rps
@@ -88,22 +107,62 @@ def f0_report(
         if cfg is None:
             out[triad.value] = {"run": False, "lambda0": lambda0, "note": note}
             continue
-        f0 = f0_batch(x, static, cfg)
-        failed = np.flatnonzero(f0.state == 0)
+        f0 = f0_session(clean.t_s, x, static, cfg, persist)
         out[triad.value] = {
             "run": True,
             "lambda0": lambda0,
-            "tested": f0.n_tests,
-            "failed": int(failed.size),
-            "first_fail_t_s": float(clean.t_s[failed[0]]) if failed.size else None,
-            "worst": float(np.nanmax(np.abs(f0.residual[failed]))) if failed.size else None,
+            "tested": f0.tested,
+            "failed": f0.failed,
+            "first_fail_t_s": f0.first_fail_t_s,
+            "worst": f0.worst,
+            "persistence_s": options.f0_persistence_s,
+            "persist_samples": f0.persist,
+            "runs": f0.runs,
+            "persistent_runs": f0.persistent_runs,
+            "knocks": f0.knocks,
+            "persistent": f0.persistent,
+            "onset_t_s": f0.onset_t_s,
+            "onset_residual": f0.onset_residual,
             "note": note,
         }
     return out
 
 
+def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The persistent F0 failures as findings (``faults`` of the JSON), in the form of F1…F9's."""
+    return [
+        {
+            "predicate": "F0",
+            "triad": name,
+            "axis": None,
+            "cause": "out_of_shell",
+            "estimate": f["onset_residual"],
+            "nominal": 0.0,
+            "tolerance": f["lambda0"],
+            "sigma": None,
+            "failed": f["failed"],
+            "tested": f["tested"],
+            "first_t_s": f["onset_t_s"],
+            "worst": f["worst"],
+        }
+        for name, f in f0.items()
+        if f["run"] and f["persistent"]
+    ]
+
+
+def exit_status(result: ChainResult, faults: list[dict[str, Any]]) -> int:
+    """:data:`EXIT_FAULT` when anything failed, else :data:`EXIT_UNTESTED` when some triad of the
+    session was not diagnosed (or is SUSPECT), else :data:`EXIT_NO_FAULT` (module docstring)."""
+    if faults:
+        return EXIT_FAULT
+    if result.suspects or not all(r.diagnosed for r in result.triads.values()):
+        return EXIT_UNTESTED
+    return EXIT_NO_FAULT
+
+
 def run(args: argparse.Namespace) -> int:
-    from estimators.chain import ChainConfig, run_chain
+    from estimators.chain import ChainConfig, run_chain, split_at_onset
+    from estimators.conventions import Triad
     from estimators.passport import PassportError, check_references
     from protocols.passport_codec import read_passport_json
 
@@ -120,32 +179,69 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.passport}: {exc}") from None
     result = run_chain(inp.session, config, passport)
     f0 = f0_report(result, passport, config)
-    status = 0 if result.diagnosed and not result.suspects else EXIT_NOT_DIAGNOSED
+    onsets = [(f["onset_t_s"], name) for name, f in f0.items() if f["run"] and f["persistent"]]
+    if onsets:
+        t_s, name = min(onsets)
+        result = split_at_onset(result, t_s, Triad(name), config, passport)
+    faults = f0_faults(f0) + [
+        {**f.to_dict(), **({"positions": "after onset"} if result.onset else {})}
+        for f in result.faults
+    ]
+    faults += [{**f.to_dict(), "positions": "before onset"} for f in result.faults_before]
+    status = exit_status(result, faults)
     if args.json:
         out = result.to_dict()
         out["unit_id"] = passport.unit_id
         out["gravity_source"] = inp.gravity_source
         out["f0"] = f0
+        out["faults"] = faults
+        out["exit_status"] = status
         json.dump(out, sys.stdout, indent=1)
         print()
         return status
+    _print_text(result, passport, f0, inp.gravity_mps2, inp.gravity_source)
+    return status
+
+
+def _print_text(
+    result: ChainResult,
+    passport: Passport,
+    f0: dict[str, dict[str, Any]],
+    gravity_mps2: float,
+    gravity_source: str,
+) -> None:
     print(
-        f"{passport.unit_id}: {len(result.positions)} positions, g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})"
+        f"{passport.unit_id}: {len(result.positions)} positions, g = {gravity_mps2:.5f} m/s² ({gravity_source})"
     )
     if result.sample_rejections.total:
         print(f"  rejected samples: {result.sample_rejections.counts}")
     if (gaps := time_gap_line(result.detection)) is not None:
         print(gaps)
-    for triad, r in result.triads.items():
-        state = "diagnosed" if r.diagnosed else f"NOT DIAGNOSED: {r.reason}"
-        print(f"  {triad.value}: {r.estimate.verdict.value} — {r.estimate.reason}; {state}")
+    onset = result.onset
+    if onset is not None:
+        print(
+            f"  F0's persistent failure began at {onset.t_s:.3f} s, mid-session: the {onset.n_before} positions "
+            f"before and the {onset.n_after} after it are fitted apart"
+            + (f" ({onset.n_straddling} holding it in neither)" if onset.n_straddling else "")
+        )
+        _print_triads(onset.before, "before the onset: ")
+        _print_findings(onset.before, "before the onset")
+    _print_triads(result.triads, "after the onset: " if onset else "")
     for name, f in f0.items():
         if not f["run"]:
             print(f"  F0 {name}: not run ({f['note']})")
+        elif f["persistent"]:
+            print(
+                f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['failed']} of {f['tested']} "
+                f"static samples, {f['persistent_runs']} runs of {f['persistence_s']:g} s or more from "
+                f"{f['onset_t_s']:.3f} s; worst |½(|ã|²−1)| {f['worst']:.3g}"
+                + (f", and {f['knocks']} knocks" if f["knocks"] else "")
+            )
         elif f["failed"]:
             print(
-                f"  F0 {name}: {f['failed']} of {f['tested']} static samples leave the shell (λ0 {f['lambda0']:.3g}); "
-                f"first at {f['first_fail_t_s']:.3f} s, worst |½(|ã|²−1)| {f['worst']:.3g}"
+                f"  F0 {name}: {f['failed']} of {f['tested']} static samples leave the shell (λ0 {f['lambda0']:.3g}) "
+                f"in {f['knocks']} knocks shorter than {f['persistence_s']:g} s, first at {f['first_fail_t_s']:.3f} s, "
+                f"worst |½(|ã|²−1)| {f['worst']:.3g}: not a fault"
             )
         else:
             print(
@@ -157,21 +253,42 @@ def run(args: argparse.Namespace) -> int:
             "domain (above): a fault far beyond the scheme's, values in other units or another unit's session; "
             "not diagnosed, and not 'no fault'"
         )
+    f0_fault = any(f["run"] and f["persistent"] for f in f0.values())
     if not result.diagnosed:
         print(f"NOT DIAGNOSED: {result.reason}")
-        return status
-    undiagnosed = [t.value for t, r in result.triads.items() if not r.diagnosed]
-    if not result.faults and not result.suspects:
-        print("  no fault" + (f" (not diagnosed: {', '.join(undiagnosed)})" if undiagnosed else ""))
-    for fault in result.faults:
+        return
+    undiagnosed = [f"{t.value}: {r.reason}" for t, r in result.triads.items() if not r.diagnosed]
+    if not (result.faults or result.faults_before or result.suspects or f0_fault):
         print(
-            f"  FAULT {fault.predicate}: {fault.triad.value} {fault.axis} {fault.cause.value}: estimate {fault.estimate:.4g} "
-            f"vs nominal {fault.nominal:.4g} ± {fault.tolerance:.3g} (σ {fault.sigma:.2g})"
+            f"  no finding within coverage; not tested: {'; '.join(undiagnosed)}"
+            if undiagnosed
+            else "  no fault"
         )
+    _print_findings(result.triads, "after the onset" if onset else "")
     if result.passport_of_another_unit:
         failed, evaluated = result.predicate_counts()
         print(
             f"  hint: {failed} of {evaluated} predicates fail at once: the passport is probably not this unit's "
             f"(passport of {passport.unit_id!r})"
         )
-    return status
+
+
+def _print_triads(triads: dict[Triad, TriadResult], prefix: str) -> None:
+    for triad, r in triads.items():
+        state = "diagnosed" if r.diagnosed else f"NOT DIAGNOSED: {r.reason}"
+        print(f"  {prefix}{triad.value}: {r.estimate.verdict.value} — {r.estimate.reason}; {state}")
+
+
+def _print_findings(triads: dict[Triad, TriadResult], where: str) -> None:
+    for r in triads.values():
+        if r.diagnosis is None:
+            continue
+        sources = r.estimate.sources
+        for fault in r.diagnosis.findings:
+            j = int(fault.predicate[1:]) - 1
+            method = "" if sources is None else f", {sources[j]}"
+            print(
+                f"  FAULT {fault.predicate}: {fault.triad.value} {fault.axis} {fault.cause.value}: estimate {fault.estimate:.4g} "
+                f"vs nominal {fault.nominal:.4g} ± {fault.tolerance:.3g} (σ {fault.sigma:.2g}{method})"
+                + (f" [{where}]" if where else "")
+            )

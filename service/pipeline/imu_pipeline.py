@@ -18,7 +18,7 @@ from estimators.diagnosis import Outcome, diagnose
 from estimators.ninepar import RecursiveNineParam
 from estimators.passport import Passport
 from estimators.positions import Position, PositionAccumulator
-from estimators.scalar import f0_batch, persistent_failure
+from estimators.scalar import f0_batch, persistence_samples, persistent_failure
 from estimators.session import finite_rows, plausible_rows
 from estimators.stream_validity import (
     StreamValidity,
@@ -154,7 +154,7 @@ class ImuPipeline:
 
     def _setup(self, rate_hz: float) -> _Detection:
         """Size the detector and F0 for ``rate_hz``; a triad already checked keeps its diagnosis."""
-        self.f0_persist = max(1, round(self.options.f0_persistence_s * rate_hz))
+        self.f0_persist = persistence_samples(self.options.f0_persistence_s, rate_hz)
         self.detection = self._new_detection(rate_hz)
         self._rate_fill = self._rate_off = 0
         if self.passport is not None:

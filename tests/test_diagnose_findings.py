@@ -1,0 +1,186 @@
+"""diagnose's findings beyond one fit of the whole session (issue 28): F0 failing persistently is a
+fault even without the nine parameters, six-position sessions are diagnosed by the M4 fits that
+made their passport, a fault that began mid-session is found in the positions after it, and the
+exit status says which (0 tested, no fault; 1 a fault; 2 unusable input; 3 not enough to test)."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from estimators.conventions import Triad
+from estimators.ninepar import SOURCE_VECTOR
+from estimators.sim import Fault, FaultKind, Grade, grade_error_model, multi_position_spec, simulate
+from estimators.sixpos import ferraris_spec
+from protocols.passport_codec import read_passport_json
+from protocols.session_file import write_csv_session
+from service.cli import main
+
+MODEL = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+SCALE_Z = 5  # parameter index of e_z
+SCALE_Y = 4
+F0_FAULT = 0.04
+"""A z scale error this large moves ½(|ã|²−1) by about e·u_z² = 0.04 with z vertical: beyond the
+MEMS passport's shell (λ0 ≈ 0.016, mostly its tolerances), so F0 sees it; 20× the tolerance of e_z."""
+
+
+def _diagnose(capsys, path, passport, *extra):
+    """(exit status, text) and (exit status, JSON) of diagnose."""
+    argv = ["diagnose", str(path), "--passport", str(passport), "--latitude", "45", *extra]
+    capsys.readouterr()
+    status = main(argv)
+    text = capsys.readouterr().out
+    json_status = main([*argv, "--json"])
+    return status, text, json_status, json.loads(capsys.readouterr().out)
+
+
+@pytest.fixture(scope="module")
+def unit(tmp_path_factory):
+    """An 18-position MEMS session, its passport, and the multi-position sessions under test."""
+    d = tmp_path_factory.mktemp("diag")
+    clean = simulate(multi_position_spec(model=MODEL), seed=30)
+    write_csv_session(d / "clean.csv", clean.session)
+    argv = ["calibrate", str(d / "clean.csv"), "--out", str(d / "pp.json"), "--latitude", "45"]
+    assert main([*argv, "--no-audit"]) == 0
+    return d, clean
+
+
+# --- F0 is a finding -----------------------------------------------------------------------------
+
+
+def test_f0_failing_on_five_positions_is_a_fault_exit_1(unit, capsys):
+    """Five positions cannot fit nine parameters; F0 failed on a third of the rest samples and the
+    answer was NOT DIAGNOSED, exit 3, no fault. F0 alone is the finding."""
+    d, _ = unit
+    fault = Fault(FaultKind.STEP, Triad.ACCEL, SCALE_Z, 0.0, F0_FAULT)
+    res = simulate(multi_position_spec(model=MODEL, n_positions=5, faults=(fault,)), seed=34)
+    write_csv_session(d / "five.csv", res.session)
+    status, text, json_status, doc = _diagnose(capsys, d / "five.csv", d / "pp.json")
+    assert status == json_status == 1
+    assert "NOT DIAGNOSED: accel: 5 positions" in text  # the nine parameters: still not fitted
+    (line,) = [x for x in text.splitlines() if x.startswith("  FAULT F0: accel")]
+    f0 = doc["f0"]["accel"]
+    assert f0["persistent"] and f0["failed"] > 1000
+    assert f"on {f0['failed']} of {f0['tested']} static samples" in line
+    assert [(f["predicate"], f["triad"]) for f in doc["faults"]] == [("F0", "accel")]
+    found = doc["faults"][0]
+    # The z faces fail first: |s| ≈ 0.04 there, beyond λ0.
+    assert found["failed"] == f0["failed"] and found["first_t_s"] == f0["onset_t_s"]
+    assert f0["lambda0"] < found["worst"] < 1.5 * F0_FAULT
+
+
+def test_a_knock_is_counted_and_said_not_a_fault(unit, capsys):
+    """One sample far off the shell at rest (a knock: shorter than the 20 ms the service's
+    persistence asks) is counted and named, and stays what it is: not a fault."""
+    d, _ = unit
+    res = simulate(multi_position_spec(model=MODEL, n_positions=5), seed=35)
+    session = res.session
+    k = int(np.searchsorted(session.t_s, np.mean(res.truth.static_intervals_s[2])))
+    session.accel_mps2[k] *= 1.03  # |s| ≈ 0.03: out of the shell, too small to end the rest
+    write_csv_session(d / "knock.csv", session)
+    status, text, json_status, doc = _diagnose(capsys, d / "knock.csv", d / "pp.json")
+    assert status == json_status == 3
+    f0 = doc["f0"]["accel"]
+    assert f0["failed"] == f0["knocks"] == 1 and not f0["persistent"]
+    assert doc["faults"] == [] and "FAULT" not in text
+    assert "in 1 knocks shorter than 0.02 s" in text and "not a fault" in text
+
+
+# --- six-position sessions -----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def six(tmp_path_factory):
+    """Ferraris-type sessions (six faces, with and without full turns) and their passports."""
+    d = tmp_path_factory.mktemp("six")
+    for turns in (True, False):
+        res = simulate(ferraris_spec(MODEL, static_s=8.0, turns=turns), seed=8)
+        path = d / f"cal-{turns}.csv"
+        write_csv_session(path, res.session, metadata={"gravity_mps2": res.truth.gravity_mps2})
+        out = d / f"pp-{turns}.json"
+        assert main(["calibrate", str(path), "--out", str(out), "--no-audit"]) == 0
+    return d
+
+
+def _six_session(d, turns, faults, seed):
+    spec = dataclasses.replace(ferraris_spec(MODEL, static_s=8.0, turns=turns), faults=faults)
+    res = simulate(spec, seed=seed)
+    path = d / f"s-{turns}-{seed}-{len(faults)}.csv"
+    write_csv_session(path, res.session, metadata={"gravity_mps2": res.truth.gravity_mps2})
+    return path
+
+
+@pytest.mark.parametrize("turns", [True, False])
+def test_a_six_position_session_of_the_unit_diagnoses_as_no_fault_against_its_passport(
+    six, capsys, turns
+):
+    """Another session of the unit that made the passport: the vector fit (and the turns) diagnose
+    it, nothing fails. Without turns the gyro has no passport: not tested, said, exit 3."""
+    path = _six_session(six, turns, (), seed=9)
+    status, text, _, doc = _diagnose(capsys, path, six / f"pp-{turns}.json")
+    accel = doc["triads"]["accel"]
+    assert accel["diagnosed"] and accel["estimate"]["sources"] == [SOURCE_VECTOR] * 9
+    assert doc["faults"] == [] and "FAULT" not in text
+    if turns:
+        assert doc["triads"]["gyro"]["diagnosed"]
+        assert status == 0 and "  no fault" in text.splitlines()
+    else:
+        assert status == 3
+        assert "  no finding within coverage; not tested: gyro: no passport for this triad" in text
+
+
+@pytest.mark.parametrize("turns", [True, False])
+def test_a_2_percent_scale_fault_of_one_axis_is_named_by_the_six_position_fit(six, capsys, turns):
+    passport = read_passport_json(six / f"pp-{turns}.json").triads[Triad.ACCEL]
+    fault = Fault(FaultKind.STEP, Triad.ACCEL, SCALE_Y, 0.0, 0.02)
+    path = _six_session(six, turns, (fault,), seed=9)
+    status, text, json_status, doc = _diagnose(capsys, path, six / f"pp-{turns}.json")
+    assert status == json_status == 1
+    named = [f for f in doc["faults"] if f["predicate"] != "F0"]
+    assert [(f["predicate"], f["triad"], f["axis"], f["cause"]) for f in named] == [
+        ("F5", "accel", "y", "scale_factor")
+    ]
+    # The fault is the change from the passport: 0.02 within the noise of both.
+    f5 = named[0]
+    s = np.hypot(f5["sigma"], passport.sigma[SCALE_Y])
+    assert abs(f5["estimate"] - f5["nominal"] - 0.02) < 4.0 * s
+    assert f"(σ {f5['sigma']:.2g}, {SOURCE_VECTOR})" in text
+    # F0 fails only where y points along gravity; one set of parameters explains every position,
+    # so the fault was there from the start: no onset, no split of the six faces.
+    assert doc["onset"] is None and "mid-session" not in text
+
+
+# --- where the fault began -----------------------------------------------------------------------
+
+
+def test_a_fault_from_the_10th_of_18_positions_is_dated_and_named_in_the_later_positions(
+    unit, capsys
+):
+    """Position 10 holds −z up: a z scale fault from its start fails F0 at once. One fit of all
+    18 positions mixes the unit before and after; the positions after the onset name it."""
+    d, clean = unit
+    t10 = clean.truth.static_intervals_s[9][0]
+    fault = Fault(FaultKind.STEP, Triad.ACCEL, SCALE_Z, t10, F0_FAULT)
+    res = simulate(multi_position_spec(model=MODEL, faults=(fault,)), seed=36)
+    write_csv_session(d / "late.csv", res.session)
+    status, text, json_status, doc = _diagnose(capsys, d / "late.csv", d / "pp.json")
+    assert status == json_status == 1
+    onset = doc["onset"]
+    # Dated at the first static sample that fails: within the detector's window (1 s) of the
+    # position's start.
+    assert t10 <= onset["t_s"] < t10 + 1.0
+    assert onset["n_before"] == 9 and onset["n_after"] == 9
+    assert onset["faults_before"] == []
+    after = [f for f in doc["faults"] if f["predicate"] != "F0"]
+    assert [(f["predicate"], f["axis"], f["cause"], f["positions"]) for f in after] == [
+        ("F6", "z", "scale_factor", "after onset")
+    ]
+    assert f"F0's persistent failure began at {onset['t_s']:.3f} s, mid-session" in text
+    assert "probably not this unit's" not in text and not doc["passport_of_another_unit"]
+
+    twin = simulate(multi_position_spec(model=MODEL), seed=36)
+    write_csv_session(d / "late_twin.csv", twin.session)
+    status, text, _, doc = _diagnose(capsys, d / "late_twin.csv", d / "pp.json")
+    assert doc["faults"] == [] and doc["onset"] is None and "FAULT" not in text
+    assert status == 3  # the MEMS gyro: not tested
