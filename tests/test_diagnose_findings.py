@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from real_data import XSENS, needs
 
 from estimators.conventions import Triad
 from estimators.ninepar import SOURCE_VECTOR
@@ -184,3 +185,22 @@ def test_a_fault_from_the_10th_of_18_positions_is_dated_and_named_in_the_later_p
     status, text, _, doc = _diagnose(capsys, d / "late_twin.csv", d / "pp.json")
     assert doc["faults"] == [] and doc["onset"] is None and "FAULT" not in text
     assert status == 3  # the MEMS gyro: not tested
+
+
+@needs(XSENS)
+def test_the_measured_xsens_session_keeps_its_diagnosis_its_knocks_are_not_a_fault(
+    tmp_path, capsys
+):
+    """The real unit against its own passport: the accelerometers diagnosed, nothing fails; F0's
+    six failures are single samples (knocks), not a fault; the gyro has no passport (it cannot see
+    the Earth rate), so the answer is no finding within coverage, exit 3 (it was 0)."""
+    pp = tmp_path / "xs.json"
+    assert main(["calibrate", str(XSENS), "--out", str(pp), "--no-audit"]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(XSENS), "--passport", str(pp), "--json"]) == 3
+    doc = json.loads(capsys.readouterr().out)
+    assert len(doc["positions"]) == 38 and doc["triads"]["accel"]["diagnosed"]
+    assert doc["faults"] == [] and doc["onset"] is None
+    f0 = doc["f0"]["accel"]
+    assert f0["failed"] == f0["knocks"] == 6 and not f0["persistent"]
+    assert doc["triads"]["gyro"]["reason"] == "no passport for this triad"
