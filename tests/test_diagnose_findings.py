@@ -85,7 +85,7 @@ def test_a_knock_is_counted_and_said_not_a_fault(unit, capsys):
     f0 = doc["f0"]["accel"]
     assert f0["failed"] == f0["knocks"] == 1 and not f0["persistent"]
     assert doc["faults"] == [] and "FAULT" not in text
-    assert "in 1 knocks shorter than 0.02 s" in text and "not a fault" in text
+    assert "in 1 knock shorter than 0.02 s" in text and "not a fault" in text
 
 
 # --- six-position sessions -----------------------------------------------------------------------

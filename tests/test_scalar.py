@@ -22,6 +22,7 @@ from estimators.scalar import (
     compensate,
     derive_lambda0,
     f0_batch,
+    f0_session,
     normalize,
     persistent_failure,
     scalar_residual,
@@ -431,3 +432,31 @@ def test_persistent_failure_is_the_first_run_of_persist_failures_however_the_sam
         assert found == expected
     with pytest.raises(ValueError):
         persistent_failure(np.zeros(3, np.int8), 0, 0)
+
+
+def test_f0_over_a_session_dates_the_first_persistent_run_and_counts_shorter_ones_as_knocks():
+    """A resting unit at exactly g: one sample out of the shell (a knock), then a run of three
+    beyond it with a non-static sample between two failing ones (which ends a run, as in the
+    service), then a persistent run of four from t = 0.5 s."""
+    n = 100
+    t = np.arange(n) * 0.01
+    x = np.tile([0.0, 0.0, 9.8], (n, 1))
+    static = np.ones(n, dtype=bool)
+    out = 9.8 * np.sqrt(1.1)  # s = 0.05
+    x[10, 2] = out
+    x[[20, 22], 2] = out
+    static[21] = False
+    x[50:54, 2] = out
+    cfg = F0Config(lambda0=0.01, reference=9.8)
+    f0 = f0_session(t, x, static, cfg, persist=2)
+    assert (f0.tested, f0.failed, f0.runs, f0.persistent_runs, f0.knocks) == (99, 7, 4, 1, 3)
+    assert f0.persistent and f0.onset_t_s == t[50] and f0.first_fail_t_s == t[10]
+    assert f0.persistent_failed == 4 and f0.onset_residual == pytest.approx(0.05)
+    assert f0.worst == f0.persistent_worst == pytest.approx(0.05)
+    # The bare predicate (persistence of one sample): every failing run is a failure.
+    assert f0_session(t, x, static, cfg, persist=1).onset_t_s == t[10]
+    # Nothing out of the shell: no run, no onset.
+    quiet = f0_session(t, np.tile([0.0, 0.0, 9.8], (n, 1)), static, cfg, persist=2)
+    assert (quiet.failed, quiet.runs, quiet.onset_t_s, quiet.worst) == (0, 0, None, None)
+    with pytest.raises(ValueError, match="persist"):
+        f0_session(t, x, static, cfg, persist=0)

@@ -235,12 +235,12 @@ def _print_text(
                 f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['failed']} of {f['tested']} "
                 f"static samples, {f['persistent_runs']} runs of {f['persistence_s']:g} s or more from "
                 f"{f['onset_t_s']:.3f} s; worst |½(|ã|²−1)| {f['worst']:.3g}"
-                + (f", and {f['knocks']} knocks" if f["knocks"] else "")
+                + (f", and {_knocks(f['knocks'])}" if f["knocks"] else "")
             )
         elif f["failed"]:
             print(
                 f"  F0 {name}: {f['failed']} of {f['tested']} static samples leave the shell (λ0 {f['lambda0']:.3g}) "
-                f"in {f['knocks']} knocks shorter than {f['persistence_s']:g} s, first at {f['first_fail_t_s']:.3f} s, "
+                f"in {_knocks(f['knocks'])} shorter than {f['persistence_s']:g} s, first at {f['first_fail_t_s']:.3f} s, "
                 f"worst |½(|ã|²−1)| {f['worst']:.3g}: not a fault"
             )
         else:
@@ -271,6 +271,10 @@ def _print_text(
             f"  hint: {failed} of {evaluated} predicates fail at once: the passport is probably not this unit's "
             f"(passport of {passport.unit_id!r})"
         )
+
+
+def _knocks(n: int) -> str:
+    return f"{n} knock" + ("" if n == 1 else "s")
 
 
 def _print_triads(triads: dict[Triad, TriadResult], prefix: str) -> None:
