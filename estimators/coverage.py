@@ -34,7 +34,10 @@ smallest fault, so::
     mdf_bias_i  = (λ0 + k σ) · ref / max|uᵢ|        (SI)
     mdf_scale_i = (λ0 + k σ) / max uᵢ²
 
-(infinite for an axis that never saw gravity). A session holding many samples at
+(infinite for an axis that never saw gravity). The first-order shift holds for a
+fault small against the reference: an axis whose MDF would reach the reference
+itself (a zero signal of 1 g, a scale error of 100 %) saw too little gravity to be
+tested, and its MDF is infinite too. A session holding many samples at
 that orientation detects the fault with a higher probability still: the MDF is
 a bound that holds for any session length.
 
@@ -195,9 +198,13 @@ class CheckCoverage:
         """One human line: what ran on how much and its MDF per axis (SI and % of tolerance), or why not."""
         if not self.ran and not self.applies:
             return f"{self.name}: does not apply ({self.reason})"
-        if not self.ran and not (self.samples or self.positions):
+        if not self.ran and self.mdf_bias_si is None:
             return f"{self.name}: NOT TESTED ({self.reason})"
-        amount = f"{self.positions} positions" if self.positions else f"{self.samples:,} tests"
+        amount = (
+            f"{self.positions} position{'s' * (self.positions != 1)}"
+            if self.check is Check.F1_F9
+            else f"{self.samples:,} samples"
+        )
         parts = [f"{self.name}: {'ran' if self.ran else 'PARTLY'} on {amount}"]
         if self.mdf_bias_si is not None:
             parts.append(
@@ -255,14 +262,15 @@ class ImuCoverage:
         return [f"IMU{self.imu} {c.line(unit[c.triad])}" for c in self.checks]
 
     def summary(self) -> str:
-        """A short line for a status: each check ran, partly, or not, and why."""
-        words = []
-        for c in self.checks:
-            if c.ran:
-                words.append(f"{c.name} ok")
-            elif c.applies:
-                words.append(f"{c.name} untested ({c.reason})")
-        return "; ".join(words)
+        """A short line for a status: the checks that ran, and those that did not and why."""
+        ran = [c.name for c in self.checks if c.ran]
+        untested = [f"{c.name} ({c.reason})" for c in self.untested]
+        return "; ".join(
+            [
+                *(["tested: " + ", ".join(ran)] if ran else []),
+                *(["untested: " + ", ".join(untested)] if untested else []),
+            ]
+        )
 
 
 def verdict(fault_found: bool, coverages: Iterable[ImuCoverage]) -> Verdict:
@@ -275,8 +283,14 @@ def verdict(fault_found: bool, coverages: Iterable[ImuCoverage]) -> Verdict:
 
 
 def untested_lines(coverages: Sequence[ImuCoverage]) -> list[str]:
-    """What was not tested and why, one line each (for the ``no finding within coverage`` verdict)."""
-    return [f"IMU{cov.imu} {c.name}: {c.reason}" for cov in coverages for c in cov.untested]
+    """What was not tested and why, one line per IMU and reason (for ``no finding within coverage``)."""
+    out = []
+    for cov in coverages:
+        by_reason: dict[str, list[str]] = {}
+        for c in cov.untested:
+            by_reason.setdefault(c.reason, []).append(c.name)
+        out += [f"IMU{cov.imu} {', '.join(names)}: {why}" for why, names in by_reason.items()]
+    return out
 
 
 # ------------------------------------------------------------------ minimum detectable faults
@@ -303,9 +317,11 @@ def _max_u(max_abs_u: ArrayLike) -> FloatArray:
     return out
 
 
-def _per_axis(shift: float, u: FloatArray, power: int) -> Triple:
+def _per_axis(shift: float, u: FloatArray, power: int, limit: float) -> Triple:
+    """``shift / uᵢ^power`` per axis; infinite where it reaches ``limit`` (module docstring: not seen)."""
     with np.errstate(divide="ignore"):
         v = np.where(u > 0.0, shift / u**power, math.inf)
+    v[v >= limit] = math.inf
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
@@ -333,8 +349,8 @@ def f0_mdf(
         raise ValueError(f"lambda0 must be > 0 and noise_std >= 0, got {lambda0!r}, {noise_std!r}")
     u = _max_u(max_abs_u)
     shift = lambda0 + persistence_margin(persist, power) * noise_std
-    bias = _per_axis(shift * reference, u, 1)
-    return bias, _per_axis(shift, u, 2)
+    bias = _per_axis(shift * reference, u, 1, reference)
+    return bias, _per_axis(shift, u, 2, 1.0)
 
 
 def predicate_mdf(
@@ -380,7 +396,7 @@ def gross_mdf(
         tolerance_si
         + (nd.inv_cdf(1.0 - 0.5 * false_alarm_prob) + nd.inv_cdf(power)) * sigma_mean_si
     )
-    return _per_axis(shift, u, 1), _per_axis(shift / reference, u, 2)
+    return _per_axis(shift, u, 1, reference), _per_axis(shift / reference, u, 2, 1.0)
 
 
 def ninepar_coverage(
