@@ -75,9 +75,13 @@ def _f0(pipe: ImuPipeline, triad: Triad, check: TriadCheck) -> CheckCoverage:
     tp, options = check.passport, pipe.options
     if check.f0 is None:
         # λ0 beyond the unit sphere: a MEMS gyro's noise and bias dwarf the Earth rate it is normalized by.
-        what = "gyro cannot see the Earth rate" if triad is Triad.GYRO else "shell too thick"
+        # A gyro's is a limit of the method; an accelerometer's, of a passport too loose to test it.
+        gyro = triad is Triad.GYRO
+        what = (
+            "gyro cannot see the Earth rate" if gyro else "the passport's tolerances are too wide"
+        )
         return CheckCoverage(
-            Check.F0, triad, ran=False, applies=False,
+            Check.F0, triad, ran=False, applies=not gyro,
             reason=f"{what}: the F0 shell λ0 {check.lambda0:.3g} exceeds 1",
         )  # fmt: skip
     why = _not_running(pipe)
