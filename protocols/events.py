@@ -26,10 +26,14 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 ``"m/s^2"``, ``"rad/s"``, ``"count"``, ``"degC"``), ``severity`` (str, lower-case
 :class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
 
-Status schema, version 1: ``type`` = ``"ins.health.status"``, ``v`` = 1,
+Status schema, version 2: ``type`` = ``"ins.health.status"``, ``v`` = 2,
 ``vehicle``, ``service`` (instance name), ``t_s`` (service clock, s since the
 Unix epoch), ``counters`` (map str → int ≥ 0), ``imus`` (array of maps
-``{imu, state, samples, last_t_s, positions, detail}``).
+``{imu, state, samples, last_t_s, positions, detail, coverage}``), ``coverage``
+an array of maps, one per check of the IMU
+(:meth:`estimators.coverage.CheckCoverage.to_dict`: what ran, on how much, its
+minimum detectable fault, and why a check did not run). Version 1 (no
+``coverage``) is still read, with no coverage.
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from estimators.conventions import AXES, Cause, Triad
+from estimators.coverage import CheckCoverage
 from protocols._schema import (
     MAX_MESSAGE_BYTES,
     Reason,
@@ -68,8 +73,8 @@ EVENT_TYPE = "ins.health.event"
 EVENT_VERSION = 1
 SUPPORTED_EVENT_VERSIONS = (1,)
 STATUS_TYPE = "ins.health.status"
-STATUS_VERSION = 1
-SUPPORTED_STATUS_VERSIONS = (1,)
+STATUS_VERSION = 2
+SUPPORTED_STATUS_VERSIONS = (1, 2)
 MAX_EVENT_BYTES = 64 * 1024
 MAX_STATUS_BYTES = MAX_MESSAGE_BYTES
 MAX_TEXT_CHARS = 1000
@@ -535,6 +540,7 @@ class ImuStatus:
     last_t_s : data time of the last accepted sample, s (None before the first).
     positions : static positions accumulated for the diagnosis.
     detail : short free text (e.g. the last failed predicate).
+    coverage : what each check of the IMU tested so far (empty from a version-1 status).
     """
 
     imu: int
@@ -543,6 +549,7 @@ class ImuStatus:
     last_t_s: float | None = None
     positions: int = 0
     detail: str = ""
+    coverage: tuple[CheckCoverage, ...] = ()
 
     def __post_init__(self) -> None:
         check_imu(self.imu, error=EventError)
@@ -605,6 +612,7 @@ def status_to_dict(status: Status) -> dict[str, Any]:
                 "last_t_s": s.last_t_s,
                 "positions": s.positions,
                 "detail": s.detail,
+                "coverage": [c.to_dict() for c in s.coverage],
             }
             for s in status.imus
         ],
@@ -619,7 +627,9 @@ def encode_status(status: Status) -> bytes:
 def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
     """Decode and validate a status message; raises :class:`EventError` with a reason."""
     obj = unpack_map(data, max_bytes=max_bytes, error=EventError)
-    check_header(obj, type_tag=STATUS_TYPE, versions=SUPPORTED_STATUS_VERSIONS, error=EventError)
+    version = check_header(
+        obj, type_tag=STATUS_TYPE, versions=SUPPORTED_STATUS_VERSIONS, error=EventError
+    )
     imus = []
     for item in field(obj, "imus", list, error=EventError):
         if not isinstance(item, dict):
@@ -634,6 +644,9 @@ def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
                 last_t_s=float_field(item, "last_t_s", optional=True, error=EventError),
                 positions=field(item, "positions", int, error=EventError),
                 detail=field(item, "detail", str, error=EventError),
+                coverage=()
+                if version < 2
+                else _coverage(field(item, "coverage", list, error=EventError)),
             )
         )
     return Status(
@@ -643,3 +656,11 @@ def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
         counters=field(obj, "counters", dict, error=EventError),
         imus=tuple(imus),
     )
+
+
+def _coverage(items: list[Any]) -> tuple[CheckCoverage, ...]:
+    """The ``coverage`` of a version-2 status IMU entry; :class:`EventError` for an entry it cannot read."""
+    try:
+        return tuple(CheckCoverage.from_dict(c) for c in items)
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise EventError(Reason.BAD_VALUE, f"unusable coverage entry: {exc!r}") from None

@@ -24,8 +24,29 @@ OUTPUTS = "_outputs"
 """Namespace attribute listing the ``(dest, flag)`` of the options that name a file to write."""
 
 
+EXIT_NO_FAULT = 0
+"""Every check that applies ran and nothing was found."""
+EXIT_FAULT = 1
+"""A fault was found (a sensor finding: F0…F9, gross, stale); it outranks missing coverage."""
+EXIT_UNUSABLE = 2
+"""Unusable input: a log, passport, session or option the command cannot use (:class:`UsageError`)."""
+EXIT_UNTESTED = 3
+"""Not enough to test: a check that applies did not run (``no finding within coverage``), nothing found."""
+EXIT_STATUS_HELP = (
+    "exit status: 0 tested, no fault; 1 a fault found; 2 unusable input; "
+    "3 not enough to test (no finding within coverage)"
+)
+"""The exit statuses of the verdict commands (``diagnose``, ``replay``), as their ``--help`` states them."""
+EXIT_OF_VERDICT = {
+    "fault": EXIT_FAULT,
+    "no fault": EXIT_NO_FAULT,
+    "no finding within coverage": EXIT_UNTESTED,
+}
+"""Exit status of each :class:`estimators.coverage.Verdict` (its values: this module imports no numerics)."""
+
+
 class UsageError(Exception):
-    """Unusable input to a command: reported as one line on stderr, exit status 2."""
+    """Unusable input to a command: reported as one line on stderr, exit status :data:`EXIT_UNUSABLE`."""
 
 
 PROGRESS_EVERY_S = 5.0
@@ -102,7 +123,7 @@ def _run(argv: list[str] | None) -> int:
     except (UsageError, ValueError, OSError) as exc:
         for line in str(exc).splitlines() or [""]:
             print(f"ins-health {args.command}: {line}", file=sys.stderr)
-        return 2
+        return EXIT_UNUSABLE
 
 
 def main(argv: list[str] | None = None) -> int:

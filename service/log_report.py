@@ -11,7 +11,9 @@ source, :mod:`estimators.nominal_passport`), per IMU an object in ``imus``
 F0 shell and counts of the pipeline), per pair of IMUs their disagreement
 (``pairs``), and ``findings``: the events the service raises on the log, then
 the report's own checks (vibration and clipping, with the thresholds'
-source), each with its severity, text and numbers.
+source), each with its severity, text and numbers; ``coverage`` (schema 3): the verdict, what
+was not tested and why, and per IMU what each check tested with its minimum
+detectable fault (the ``--json`` coverage line of :mod:`service.commands.replay`).
 
 ``report.md`` shows it as a flight review reads: a table per IMU, |a| − g of
 the blocks at rest against F0's shell, the accelerometer and gyro spectra, the
@@ -36,8 +38,9 @@ from protocols.logs import LogStats
 from service.figures import plt, save_figure
 
 REPORT_TYPE = "ins.health.log_report"
-REPORT_SCHEMA_VERSION = 2
-"""2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give)."""
+REPORT_SCHEMA_VERSION = 3
+"""2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give);
+3: ``coverage`` (what each check tested, the verdict)."""
 VIBE_WARN_MPS2 = 30.0
 VIBE_BAD_MPS2 = 60.0
 VIBE_SOURCE = (
@@ -144,8 +147,9 @@ def build_report(
     f0: Mapping[int, ImuF0 | None],
     pairs: Sequence[PairDifference],
     events: Sequence[Event],
+    coverage: Mapping[str, Any],
 ) -> dict[str, Any]:
-    """The plain-dict report (module docstring)."""
+    """The plain-dict report (module docstring); ``coverage``: the replay's coverage map."""
     imus = []
     for imu, h in sorted(healths.items()):
         entry = {"imu": imu, "source": stats.sources.get(imu, ""), **h.to_dict()}
@@ -184,6 +188,7 @@ def build_report(
         "imus": imus,
         "pairs": [p.to_dict() for p in pairs],
         "findings": findings,
+        "coverage": dict(coverage),
     }
 
 
@@ -318,6 +323,19 @@ def _tolerances(pp: Mapping[str, Any]) -> str:
     )
 
 
+def _coverage_section(coverage: Mapping[str, Any]) -> list[str]:
+    """The verdict, what was not tested, and each check's coverage (one line each)."""
+    from estimators.coverage import ImuCoverage
+
+    lines = ["## Verdict and coverage", "", f"**{coverage['verdict']}**."]
+    if coverage["untested"]:
+        lines += ["", "Not tested:", *(f"- {u}" for u in coverage["untested"])]
+    lines += ["", "What each check tested (minimum detectable fault at probability 0.95):", ""]
+    for imu in coverage["imus"]:
+        lines += [f"- {line}" for line in ImuCoverage.from_dict(imu).lines()]
+    return lines
+
+
 def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
     log, pp = report["log"], report["passport"]
     lines = [
@@ -343,6 +361,7 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
         lines += [f"- **{f['severity']}** {f['text']}" for f in report["findings"]]
     else:
         lines.append("None.")
+    lines += ["", *_coverage_section(report["coverage"])]
     for e in report["imus"]:
         lines += ["", f"## IMU{e['imu']}", "", *_imu_table(e)]
     if report["pairs"]:

@@ -200,10 +200,15 @@ def test_a_published_session_s_fault_reaches_watch_which_acknowledges_it(tmp_pat
     assert [e.event_id for e in events] == [e.event_id for e in want]
     statuses = [o for o in lines if o["type"] == STATUS_TYPE]
     assert statuses and {s["vehicle"] for s in statuses} == {v}
-    # Summarized: a status line only when the states change, and the last one says FAULT.
+    # Summarized: a status line only when the states or the checks that ran change, and the last one
+    # says FAULT, with what tested it.
     states = [tuple(i["state"] for i in s["imus"]) for s in statuses]
-    assert all(a != b for a, b in itertools.pairwise(states))
-    assert states[-1] == ("fault",)
+    ran = [
+        tuple((c["triad"], c["check"], c["ran"]) for i in s["imus"] for c in i["coverage"])
+        for s in statuses
+    ]
+    assert all(a != b for a, b in itertools.pairwise(zip(states, ran, strict=True)))
+    assert states[-1] == ("fault",) and ("accel", "F0", True) in ran[-1]
     assert f"ins-health watch: {len(want)} events" in watch.err[-1]
 
 
@@ -374,3 +379,30 @@ def test_a_status_line_says_when_the_outbox_is_unavailable():
     assert status_line(held, 0.0).endswith("; outbox unavailable (3 events held, 7 writes failed)")
     fine = Status("uav-1", "onboard", 0.0, counters={"service.outbox.unavailable": 0})
     assert "outbox" not in status_line(fine, 0.0)
+
+
+def test_watch_prints_a_status_when_a_check_starts_running_with_what_was_not_tested(capsys):
+    """Same states, but F1…F9 ran at last: a new line; the same coverage again: none."""
+    import queue
+
+    from estimators.conventions import Triad
+    from estimators.coverage import Check, CheckCoverage
+    from protocols.events import ImuState, ImuStatus
+    from service.commands.watch import _show, _Stop
+
+    f0 = CheckCoverage(Check.F0, Triad.ACCEL, ran=True, samples=500)
+    waiting = CheckCoverage(
+        Check.F1_F9, Triad.ACCEL, ran=False, positions=4, reason="4 positions at rest, 9 needed"
+    )
+    ran = CheckCoverage(Check.F1_F9, Triad.ACCEL, ran=True, positions=9)
+    inbox = queue.SimpleQueue()
+    for cov in ((f0, waiting), (f0, waiting), (f0, ran)):
+        inbox.put(Status("uav-1", "onboard", 0.0, imus=(ImuStatus(0, ImuState.OK, coverage=cov),)))
+    inbox.put(_Stop())
+    assert _show(inbox, as_json=False) == (0, 3)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2
+    assert lines[0].endswith(
+        "tested: accel F0; untested: accel F1-F9 (4 positions at rest, 9 needed))"
+    )
+    assert lines[1].endswith("tested: accel F0, accel F1-F9)")

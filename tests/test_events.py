@@ -247,6 +247,27 @@ def test_status_round_trip_and_validation():
     assert info.value.reason is Reason.BAD_VALUE
 
 
+def test_status_carries_each_imus_coverage_and_older_statuses_still_decode():
+    from estimators.coverage import Check, CheckCoverage
+
+    coverage = (
+        CheckCoverage(Check.F0, Triad.ACCEL, ran=True, samples=900, mdf_bias_si=(0.3, float("inf"), 0.2),
+                      mdf_scale=(0.03, float("inf"), 0.02), false_alarm_prob=1e-9),
+        CheckCoverage(Check.F1_F9, Triad.ACCEL, ran=False, positions=3, reason="3 positions at rest, 9 needed"),
+    )  # fmt: skip
+    st = Status("v1", "svc", 1.7e9, imus=(ImuStatus(0, ImuState.STARTING, coverage=coverage),))
+    wire = msgpack.unpackb(encode_status(st), raw=False)
+    assert wire["v"] == 2 and wire["imus"][0]["coverage"][1]["reason"].startswith("3 positions")
+    assert decode_status(encode_status(st)) == st
+    # A version-1 status (before coverage) decodes, with no coverage.
+    old = {**wire, "v": 1, "imus": [{k: v for k, v in wire["imus"][0].items() if k != "coverage"}]}
+    assert decode_status(msgpack.packb(old)).imus[0].coverage == ()
+    wire["imus"][0]["coverage"][0]["check"] = "F42"
+    with pytest.raises(EventError, match="unusable coverage entry") as info:
+        decode_status(msgpack.packb(wire))
+    assert info.value.reason is Reason.BAD_VALUE
+
+
 def test_event_construction_rejects_non_finite_numbers():
     with pytest.raises(EventError, match="estimate must be a finite number"):
         make_event(

@@ -10,7 +10,7 @@ from real_data import LOGS, needs
 
 from protocols.logs import write_dataflash_bin, write_dataflash_text, write_tlog
 from protocols.ulog import write_ulog
-from service.cli import main
+from service.cli import EXIT_FAULT, EXIT_NO_FAULT, EXIT_UNTESTED, main
 from service.commands import replay as replay_command
 from service.demo import demo_scenario
 
@@ -30,10 +30,14 @@ def flight():
 
 
 def run_report(capsys, log, out, *extra):
+    """The report of a replay; its coverage is the ``--json`` coverage line and states the exit status."""
     status = main(["replay", str(log), "--json", "--report", str(out), *map(str, extra)])
     captured = capsys.readouterr()
-    assert status == 0, captured.err
-    return json.loads((out / "report.json").read_text()), captured.err
+    report = json.loads((out / "report.json").read_text())
+    assert status in (EXIT_FAULT, EXIT_UNTESTED, EXIT_NO_FAULT), captured.err
+    assert json.loads(captured.out.splitlines()[-1]) == report["coverage"]
+    assert report["coverage"]["exit_status"] == status
+    return report, captured.err
 
 
 def _key(finding):
@@ -70,6 +74,8 @@ def test_the_same_faulty_flight_in_four_formats_gives_the_same_findings(tmp_path
         f6 = next(f for f in report["findings"] if f["predicate"] == "F6")
         assert f6["estimate"] == pytest.approx(GROSS_SCALE_FAULT, abs=0.02)
         assert [e["imu"] for e in report["imus"]] == [0, 1]
+        assert report["coverage"]["verdict"] == "fault"
+        assert report["coverage"]["exit_status"] == EXIT_FAULT
     assert findings["tlog"] == findings["bin"] == findings["log"] == findings["ulg"]
     # Without a passport, from the class's tolerances: F0 then F6 (z scale factor) on IMU0, and the
     # disagreement with its healthy twin; nothing on the healthy IMU of its own.
@@ -138,6 +144,14 @@ def test_real_px4_log_report_is_pinned(tmp_path, capsys):
     assert abs(imu["gravity_residual_mps2"]["median"]) < 0.01
     assert imu["f0_accel"]["tests"] == 7034 and imu["f0_accel"]["fails"] == 0
     assert report["findings"] == [] and report["pairs"] == []
+    # No finding, but not "no fault": one position at rest, the diagnosis was not run.
+    cov = report["coverage"]
+    assert cov["verdict"] == "no finding within coverage" and cov["exit_status"] == EXIT_UNTESTED
+    assert cov["untested"] == ["IMU0 accel F1-F9: 1 position at rest, 9 needed"]
+    md = (tmp_path / "px4" / "report.md").read_text()
+    assert "## Verdict and coverage\n\n**no finding within coverage**." in md
+    assert "- IMU0 accel F1-F9: 1 position at rest, 9 needed" in md
+    assert "- IMU0 accel F0: ran on 7,034 samples; min. detectable zero signal x not seen" in md
 
 
 @needs(REAL_COPTER31)
@@ -163,7 +177,7 @@ def test_a_cut_and_damaged_log_says_in_its_report_what_was_not_read(tmp_path, ca
     log = tmp_path / "damaged.bin"
     log.write_bytes(bytes(data[:cut]))
     report, _ = run_report(capsys, log, tmp_path / "r")
-    assert report["schema_version"] == 2
+    assert report["schema_version"] == 3
     assert report["log"]["skipped_bytes"] >= 4096 - 255
     assert cut - 255 < report["log"]["cut_at_byte"] < cut
     md = (tmp_path / "r" / "report.md").read_text()

@@ -23,7 +23,7 @@ from protocols.logs import (
     write_tlog,
 )
 from protocols.ulog import MAX_FLAT_FIELDS, NearestPairer, UlogError, write_ulog
-from service.cli import main
+from service.cli import EXIT_UNTESTED, main
 from service.commands import replay as replay_command
 
 N = 40
@@ -57,9 +57,13 @@ def _text_lines(tmp_path, name: str = "flight.log") -> tuple[object, list[str]]:
 
 
 def _replay(capsys, *argv) -> tuple[int, str, str]:
+    """Exit status, stdout without the coverage line that ends ``--json`` output, stderr."""
     status = main(["replay", *map(str, argv)])
     out = capsys.readouterr()
-    return status, out.out, out.err
+    lines = out.out.splitlines(keepends=True)
+    if lines and '"type": "ins.health.coverage"' in lines[-1]:
+        lines.pop()
+    return status, "".join(lines), out.err
 
 
 # ------------------------------------------------------------------ C1, C2: unusable FMT definitions
@@ -231,7 +235,10 @@ def test_a_file_cut_mid_message_says_where(tmp_path, capsys, suffix, writer, cut
         _, stats = read_log_sessions(path)
         assert stats.cut_at_byte == start
     status, _, err = _replay(capsys, path, "--json")
-    assert status == 0 and f"is cut mid-message at byte {stats.cut_at_byte}: read up to" in err
+    assert (
+        status == EXIT_UNTESTED
+        and f"is cut mid-message at byte {stats.cut_at_byte}: read up to" in err
+    )
 
 
 # ------------------------------------------------------------------ C5, M1, S4, U1, U2: ULog
@@ -288,7 +295,7 @@ def test_definitions_followed_by_erased_flash_are_refused_within_the_read_budget
     assert "its definitions are corrupt beyond repair: pyulog read 1048576 bytes" in err
     # The whole file reads well within the same budget.
     write_ulog(path, _session())
-    assert _replay(capsys, path, "--json")[0] == 0
+    assert _replay(capsys, path, "--json")[0] == EXIT_UNTESTED
 
 
 def test_pyulog_findings_stay_off_stdout_and_are_counted(tmp_path, capsys):
@@ -298,7 +305,7 @@ def test_pyulog_findings_stay_off_stdout_and_are_counted(tmp_path, capsys):
         path, _ulog_message(b"I", b"\xff")
     )  # a key longer than the message
     status, out, err = _replay(capsys, path, "--json")
-    assert status == 0 and out == "" and "left out corrupt_messages 1;" in err
+    assert status == EXIT_UNTESTED and out == "" and "left out corrupt_messages 1;" in err
 
 
 def test_a_ulog_topic_without_a_field_it_is_read_from_is_left_out_with_the_reason(tmp_path):
@@ -376,7 +383,7 @@ def test_accelerometer_samples_after_the_last_gyro_sample_are_counted_not_lost(t
         "sensor_accel.0": "30 samples without a sensor_gyro sample near in time"
     }
     status, _, err = _replay(capsys, ulg)
-    assert status == 0
+    assert status == EXIT_UNTESTED
     assert (
         "not replayed: sensor_accel.0 30 samples without a sensor_gyro sample near in time" in err
     )
@@ -420,7 +427,7 @@ def test_ulog_dropouts_are_said_as_the_loggers_with_their_duration(tmp_path, cap
     _, stats = read_log_sessions(path)
     assert (stats.logger_lost, stats.logger_lost_ms) == (2, 750)
     status, _, err = _replay(capsys, path)
-    assert status == 0
+    assert status == EXIT_UNTESTED
     assert "dropouts.ulg: the logger lost data 2 times, 750 ms in all (ULog dropouts)" in err
     write_ulog(path, _session())
     assert read_log_sessions(path)[1].logger() == ""
@@ -442,7 +449,7 @@ def test_dataflash_refused_writes_are_said_from_the_growth_of_dsf_dp(tmp_path, c
     _, stats = read_log_sessions(path)
     assert stats.logger_lost == 12 and stats.logger_lost_ms is None
     status, _, err = _replay(capsys, path)
-    assert status == 0 and "flight.log: the logger refused 12 writes (DSF.Dp)" in err
+    assert status == EXIT_UNTESTED and "flight.log: the logger refused 12 writes (DSF.Dp)" in err
 
 
 def _log_with_times(tmp_path, t_us: list[int]):
@@ -565,7 +572,7 @@ def test_paced_replay_does_not_wait_through_a_time_jump(tmp_path, capsys, monkey
     sleeps: list[float] = []
     monkeypatch.setattr(replay_command.time, "sleep", sleeps.append)
     status, _, err = _replay(capsys, path, "--json", "--pace", "recorded")
-    assert status == 0 and "samples IMU0 200" in err
+    assert status == EXIT_UNTESTED and "samples IMU0 200" in err
     assert "--pace recorded: 1 steps of log time over 60 s not waited for" in err
     assert sum(sleeps) < 1.0
 

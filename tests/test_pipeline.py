@@ -740,6 +740,12 @@ def test_pipeline_state_round_trips_through_msgpack():
     twin = ImuPipeline(V, 0, passport=passport, options=options(g))
     twin.load_state(state)
     assert twin.status() == pipe.status() and twin.n_positions == pipe.n_positions > 5
+    # The gravity directions F0 tested, on which its coverage rests: z saw the resting unit's gravity.
+    max_u = pipe.checks[Triad.ACCEL].f0_max_abs_u
+    assert np.array_equal(twin.checks[Triad.ACCEL].f0_max_abs_u, max_u) and max_u[2] > 0.99
+    assert [c.to_dict() for c in twin.status().coverage] == [
+        c.to_dict() for c in pipe.status().coverage
+    ]
     with pytest.raises(ValueError, match="not a version-1 state of demo-uav IMU1"):
         ImuPipeline(V, 1, passport=passport, options=options(g)).load_state(state)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import struct
 
 import numpy as np
@@ -15,7 +16,7 @@ from protocols.events import Predicate, event_from_json
 from protocols.logs import write_dataflash_bin, write_dataflash_text, write_tlog
 from protocols.passport_codec import write_passport_json
 from protocols.ulog import write_ulog
-from service.cli import main
+from service.cli import EXIT_FAULT, EXIT_UNTESTED, EXIT_UNUSABLE, main
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
 
@@ -35,10 +36,20 @@ def flight():
     return passport, g, faulty, part(faulty), part(clean)
 
 
-def replay(capsys, *argv) -> tuple[int, list[str], str]:
+def replay_with_coverage(capsys, *argv) -> tuple[int, list[str], str, dict | None]:
+    """Exit status, event lines, stderr and the coverage map (``--json``: the last line of stdout)."""
     status = main(["replay", *map(str, argv)])
     out = capsys.readouterr()
-    return status, [line for line in out.out.splitlines() if line], out.err
+    lines = [line for line in out.out.splitlines() if line]
+    coverage = None
+    if "--json" in argv and status != EXIT_UNUSABLE:
+        coverage = json.loads(lines.pop())
+        assert coverage["type"] == "ins.health.coverage" and coverage["exit_status"] == status
+    return status, lines, out.err, coverage
+
+
+def replay(capsys, *argv) -> tuple[int, list[str], str]:
+    return replay_with_coverage(capsys, *argv)[:3]
 
 
 @pytest.fixture
@@ -64,7 +75,7 @@ def test_log_of_a_faulty_flight_gives_the_expected_events(
     log = tmp_path / f"flight.{suffix}"
     writer(log, {0: faulty_part, 1: clean_part} if imus == 2 else {0: faulty_part})
     status, lines, err = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
-    assert status == 0
+    assert status == EXIT_FAULT
     events = [event_from_json(line) for line in lines]
     assert [(e.imu, e.predicate, e.triad, e.axis) for e in events] == [
         (0, Predicate.F0, Triad.ACCEL, None),
@@ -112,13 +123,13 @@ def test_frames_the_pipeline_failed_on_are_named_and_exit_3(tmp_path, capsys):
     log = tmp_path / "landing.bin"
     write_dataflash_bin(log, {0: faulty.session.select(faulty.session.t_s < 20.0)})
     status, _, err = replay(capsys, log, "--passport", path, "--gravity", g)
-    assert status == 3
+    assert status == EXIT_UNTESTED
     frames = -(-faulty.session.select(faulty.session.t_s < 20.0).n_samples // 100)
     assert f"replay IMU0: the pipeline failed on {frames} frame(s) (ValueError: " in err
     assert "their samples were not tested" in err
     write_passport_json(passport, path)
     status, _, err = replay(capsys, log, "--passport", path, "--gravity", g)
-    assert status == 0 and "the pipeline failed" not in err
+    assert status == EXIT_UNTESTED and "the pipeline failed" not in err
 
 
 def _imu_time_patched(path, k: int, add_us: int) -> None:
@@ -144,7 +155,7 @@ def test_one_time_stamp_gone_wrong_is_left_out_and_the_rest_replayed(
     before_fault = int(np.searchsorted(faulty_part.t_s, faulty.fault_s)) // 2
     _imu_time_patched(log, before_fault, 2**32)
     status, lines, err = replay(capsys, log, "--json", "--passport", passport_file, "--gravity", g)
-    assert status == 0 and len(lines) == 2
+    assert status == EXIT_FAULT and len(lines) == 2
     assert [event_from_json(e).predicate for e in lines] == [Predicate.F0, Predicate.F6]
     assert lines == clean[1]
     assert f"samples IMU0 {faulty_part.n_samples - 1}; left out time_glitch 1;" in err
@@ -165,7 +176,7 @@ def test_a_log_whose_clock_started_again_is_replayed_past_the_restart(
     status, lines, err = replay(
         capsys, joined, "--json", "--passport", passport_file, "--gravity", g
     )
-    assert status == 0
+    assert status == EXIT_FAULT
     assert "joined.log: the time of the samples started again 1 time(s)" in err
     n = (
         clean_part.select(clean_part.t_s < clean_part.t_s[0] + 60.0).n_samples
@@ -183,11 +194,66 @@ def test_passport_store_and_human_output(tmp_path, capsys):
     status, lines, _err = replay(
         capsys, log, "--passport-dir", tmp_path / "store", "--vehicle", "uav-9", "--gravity", g
     )
-    assert status == 0 and len(lines) == 2
+    assert status == EXIT_FAULT and len(lines) == 2
     assert (
         "WARNING" in lines[0] and "uav-9 IMU0 accelerometer: output off the unit sphere" in lines[0]
     )
     assert "ERROR" in lines[1] and "uav-9 IMU0 accelerometer z: scale factor error" in lines[1]
+
+
+def _checks(coverage: dict, imu: int = 0) -> dict[str, dict]:
+    """The coverage map's checks of one IMU by name ("accel F0", "stream", …)."""
+    (entry,) = [e for e in coverage["imus"] if e["imu"] == imu]
+    return {" ".join(filter(None, (c["triad"], c["check"]))): c for c in entry["checks"]}
+
+
+def test_a_flight_every_check_ran_on_says_no_fault_with_what_it_tested(tmp_path, capsys):
+    """The healthy twin against the nominal passport: F0 at rest and F1…F9 over its 13 positions ran,
+    the gyro's checks cannot apply (a MEMS gyro cannot see the Earth rate), one IMU has no cross-check."""
+    _passport, g, _faulty, _faulty_part, clean_part = flight()
+    log = tmp_path / "clean.bin"
+    write_dataflash_bin(log, {0: clean_part})
+    status, lines, err, coverage = replay_with_coverage(capsys, log, "--json", "--gravity", g)
+    assert status == 0 and lines == [] and coverage["verdict"] == "no fault"
+    assert coverage["untested"] == [] and "verdict: no fault (every check that applies ran)" in err
+    checks = _checks(coverage)
+    f0, f19 = checks["accel F0"], checks["accel F1-F9"]
+    assert f0["ran"] and f"imu0.f0.accel.tests {f0['samples']}," in err
+    assert f19["ran"] and f19["positions"] == 13 and "imu0.positions 13," in err
+    # F1…F9 detects λ + (z + 1.645)s: at least the tolerance, and no more than it plus a few of its
+    # σ (0.6e-3 of the scale errors here).
+    for mdf, tol in zip(f19["mdf_scale"], f19["tolerance_scale"], strict=True):
+        assert tol < mdf < tol + 10 * 0.7e-3
+    # F0's MDF is at least its shell λ0·g, a zero signal the nominal shell (±2.35 m/s²) lets through.
+    assert all(2.35 < b < 2.6 for b in f0["mdf_bias_si"])
+    assert not checks["gyro F0"]["applies"] and "Earth rate" in checks["gyro F0"]["reason"]
+    assert (
+        not checks["cross_imu"]["applies"] and checks["stream"]["samples"] == clean_part.n_samples
+    )
+    assert (
+        "coverage IMU0 accel F1-F9: ran on 13 positions; min. detectable zero signal x 0.787 m/s²"
+        in err
+    )
+
+
+def test_a_flight_with_too_few_positions_is_no_finding_within_coverage(tmp_path, capsys):
+    """Before the landing (the flight and two rests) the diagnosis has too few positions: not
+    "no fault" but what was not tested, a warning, exit 3."""
+    _passport, g, faulty, _faulty_part, clean_part = flight()
+    log = tmp_path / "short.bin"
+    write_dataflash_bin(log, {0: clean_part.select(clean_part.t_s < faulty.landing_s + 20.0)})
+    status, lines, err, coverage = replay_with_coverage(capsys, log, "--json", "--gravity", g)
+    assert status == EXIT_UNTESTED and lines == []
+    assert coverage["verdict"] == "no finding within coverage"
+    n = _checks(coverage)["accel F1-F9"]["positions"]
+    assert 0 < n < 9
+    assert coverage["untested"] == [f"IMU0 accel F1-F9: {n} positions at rest, 9 needed"]
+    assert (
+        f"WARNING  verdict: no finding within coverage; not tested: IMU0 accel F1-F9: {n} positions"
+        in err
+    )
+    status, _, err = replay(capsys, log, "--gravity", g)
+    assert status == EXIT_UNTESTED and "no finding within coverage" in err and "no fault" not in err
 
 
 @needs(REAL_BIN)
@@ -200,12 +266,17 @@ def test_real_ardupilot_dataflash_log_gives_a_deterministic_event_list(capsys):
     fast = replay(capsys, REAL_BIN, "--json")
     again = replay(capsys, REAL_BIN, "--json")
     paced = replay(capsys, REAL_BIN, "--json", "--pace", "recorded")
-    assert fast[0] == 0 and fast[1] == again[1] == paced[1] == []
+    assert fast[0] == EXIT_UNTESTED and fast[1] == again[1] == paced[1] == []
     assert "(bin): samples IMU0 45, IMU1 45; left out none; 0 events" in fast[2]
     assert "imu0.samples.accepted 45" in fast[2] and "imu1.samples.accepted 45" in fast[2]
     # No passport: the nominal passport of the default class; too short for F0 to test a sample.
     assert "no passport: nominal passport of class consumer_mems" in fast[2]
     assert "f0.accel.tests" not in fast[2]
+    # So F0 and F1…F9 were not tested, and the verdict says so (the MEMS gyros' checks cannot apply).
+    assert (
+        "not tested: IMU0 accel F0: no rest: the accelerometer was never static; IMU0 accel F1-F9: "
+        "0 positions at rest, 9 needed; IMU1 accel F0:" in fast[2]
+    )
 
 
 @needs(REAL_TLOG)
@@ -217,10 +288,14 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     """
     fast = replay(capsys, REAL_TLOG, "--json")
     again = replay(capsys, REAL_TLOG, "--json")
-    assert fast[0] == 0 and fast[1] == again[1] == [] and fast[2] == again[2]
+    assert fast[0] == EXIT_UNTESTED and fast[1] == again[1] == [] and fast[2] == again[2]
     assert "(tlog): samples IMU0 794, IMU1 795; left out time_not_increasing 2; 0 events" in fast[2]
     # At 4 Hz the static detector's window holds two samples: no nominal passport, stream checks only.
     assert "IMU0: logged at 4.15 Hz, too slow to tell rest from steady flight" in fast[2]
+    assert (
+        "not tested: IMU0 accel F0, accel F1-F9, gyro F0, gyro F1-F9: logged at 4.15 Hz" in fast[2]
+    )
+    assert "coverage IMU1 cross_imu: ran on 795 samples" in fast[2]
     assert "imu0.samples.accepted 794" in fast[2] and "imu1.samples.accepted 795" in fast[2]
     # Its first samples come at two rates (0.24 s and 0.5 s steps): the probe keeps 4.1 Hz, which
     # the rate watch finds again over the flight: no re-size.
@@ -231,7 +306,9 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     status, lines, _ = replay(capsys, REAL_TLOG, "--json", "--config", str(tight))
     events = [event_from_json(line) for line in lines]
     assert (
-        status == 0 and {e.predicate for e in events} == {Predicate.CROSS_IMU} and len(events) >= 4
+        status == EXIT_UNTESTED
+        and {e.predicate for e in events} == {Predicate.CROSS_IMU}
+        and len(events) >= 4
     )
 
 
@@ -239,8 +316,14 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
 def test_real_px4_ulog_replays_its_primary_imu(capsys):
     """PX4 SITL flight (SOURCE.md): sensor_combined at 250 Hz; the per-instance topics (1–2 Hz) are left out."""
     status, lines, err = replay(capsys, REAL_ULOG, "--json")
-    assert status == 0 and lines == []
+    assert status == EXIT_UNTESTED and lines == []
     assert "(ulg): samples IMU0 7783; left out none; 0 events" in err
+    # F0 tested the samples at rest, the unit level: only z saw gravity; one position, no diagnosis.
+    assert (
+        "coverage IMU0 accel F0: ran on 7,034 samples; min. detectable zero signal x not seen, "
+        "y not seen, z 2.45 m/s²" in err
+    )
+    assert "not tested: IMU0 accel F1-F9: 1 position at rest, 9 needed" in err
     assert "rate_changes" not in err
 
 

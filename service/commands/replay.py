@@ -34,11 +34,23 @@ pipeline and the report keep small per-IMU state). Options of a service configur
 ``[pipeline]``, ``[validity]``) apply as in the daemon; ``--gravity`` or ``--latitude``
 (``--height``) override its site.
 
-Exit status 0 whatever the events; 2 for an unusable log, passport or option, and
-for a log without IMU data (the message names what the log holds); 3 when the
-pipeline failed on frames (a passport it cannot use, say): each kind of failure is
-named once with the frames it cost, and those samples were not tested.
-A summary goes to stderr.
+Coverage and verdict. After the log, every IMU's coverage
+(:func:`service.pipeline.coverage.imu_coverage`: per triad F0 and F1…F9 with the
+samples or positions they ran on and their minimum detectable fault, the stream
+checks, cross-IMU; what did not run and why) goes to stderr, one line per check,
+and the verdict after it: ``fault`` when a sensor finding was raised (F0…F9,
+gross, stale; not a recovery), ``no fault`` only when every check that applies
+ran, else ``no finding within coverage`` with what was not tested (a warning).
+With ``--json`` the last line of stdout is the coverage as one JSON object of
+type ``ins.health.coverage`` (:data:`COVERAGE_TYPE`), told from the events by
+its ``type``; ``--report`` writes it into the report.
+
+Exit status (:mod:`service.cli`): 0 tested, no fault; 1 a fault found; 2 an
+unusable log, passport or option, or a log without IMU data (the message names
+what the log holds); 3 not enough to test — a check that applies did not run, or
+the pipeline failed on frames (a passport it cannot use, say: each kind of
+failure is named once with the frames it cost, and those samples were not tested).
+A fault outranks 3. A summary goes to stderr.
 """
 
 from __future__ import annotations
@@ -50,12 +62,19 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.cli import PROGRESS_EVERY_S, UsageError, add_output
+from service.cli import (
+    EXIT_OF_VERDICT,
+    EXIT_STATUS_HELP,
+    PROGRESS_EVERY_S,
+    UsageError,
+    add_output,
+)
 from service.method_args import add_gravity_options
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
+    from estimators.coverage import ImuCoverage, Verdict
     from estimators.passport import Passport
     from protocols.events import Event
     from protocols.frames import SampleBatch
@@ -66,8 +85,11 @@ if TYPE_CHECKING:
 
 REPLAY_BATCH_SAMPLES = 100
 REPLAY_MAX_IMUS = 16
-EXIT_UNTESTED = 3
-"""The pipeline failed on frames: their samples were not tested (each kind of failure is named)."""
+COVERAGE_TYPE = "ins.health.coverage"
+COVERAGE_VERSION = 1
+"""Schema of the ``--json`` coverage line: ``type``, ``v``, ``vehicle``, ``verdict`` (a
+:class:`estimators.coverage.Verdict` value), ``exit_status``, ``untested`` (lines), ``imus``
+(:meth:`estimators.coverage.ImuCoverage.to_dict` each)."""
 PACE_MAX_STEP_S = 60.0
 """Longest step of log time between frames that ``--pace recorded`` waits through, s. A frame of
 :data:`REPLAY_BATCH_SAMPLES` samples of a 4 Hz telemetry stream spans 25 s; a longer step is a
@@ -85,7 +107,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "replay",
         help="run a logged flight (.tlog, DataFlash .bin/.log, PX4 .ulg) through the pipeline and print the events",
-        description="Replay a log through the same pipeline as the daemon; the same log always gives the same events.",
+        description="Replay a log through the same pipeline as the daemon; the same log always gives the same events. "
+        "After them: what each check tested (its minimum detectable fault) and what it could not, and the verdict.",
+        epilog=EXIT_STATUS_HELP,
     )
     p.add_argument(
         "log", type=Path, metavar="LOG", help="a .tlog, DataFlash .bin/.log or ULog .ulg file"
@@ -243,10 +267,14 @@ def human(event: Event) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    import json
+
+    from estimators.coverage import Verdict, untested_lines, verdict
     from estimators.log_health import HealthConfig, ImuHealthAccumulator, pair_differences
-    from protocols.events import event_to_json
+    from protocols.events import StreamCause, event_to_json
     from service.daemon import pipeline_options
     from service.pipeline import FleetProcessor, detector_config
+    from service.pipeline.coverage import FAULT_PREDICATES, imu_coverage
 
     config = _config(args)
     options = pipeline_options(config)
@@ -346,6 +374,29 @@ def run(args: argparse.Namespace) -> int:
             + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())),
             file=sys.stderr,
         )
+    pipes = [p for (v, _), p in sorted(fleet.pipelines.items()) if v == args.vehicle]
+    coverages = [imu_coverage(p, imus_on_vehicle=len(pipes)) for p in pipes]
+    found = [
+        e
+        for e in events
+        if e.predicate.value in FAULT_PREDICATES and e.cause != StreamCause.RECOVERED
+    ]
+    said = verdict(bool(found), coverages)
+    untested = untested_lines(coverages) + [
+        f"IMU{imu}: the pipeline failed on {frames} frame(s)"
+        for (_, imu, _), (frames, _) in sorted(failed.items())
+    ]
+    if failed and said is Verdict.NO_FAULT:
+        said = Verdict.NO_FINDING
+    status = EXIT_OF_VERDICT[said.value]
+    for cov in coverages:
+        for line in cov.lines():
+            print(f"ins-health replay: coverage {line}", file=sys.stderr)
+    print(f"ins-health replay: {_verdict_line(said, len(found), untested)}", file=sys.stderr)
+    if args.json:
+        print(
+            json.dumps(_coverage_map(args.vehicle, said, status, untested, coverages)), flush=True
+        )
     if args.report is not None:
         from service.log_report import build_report, write_report
 
@@ -363,10 +414,37 @@ def run(args: argparse.Namespace) -> int:
             f0={imu: _f0_summary(fleet, args.vehicle, imu) for imu in healths},
             pairs=pairs,
             events=events,
+            coverage=_coverage_map(args.vehicle, said, status, untested, coverages),
         )
         md = write_report(report, healths, pairs, args.report)
         print(f"ins-health replay: report {md}", file=sys.stderr)
-    return EXIT_UNTESTED if failed else 0
+    return status
+
+
+def _verdict_line(said: Verdict, n_found: int, untested: list[str]) -> str:
+    """The verdict as a person reads it: the findings, or what was not tested (a warning)."""
+    from estimators.coverage import Verdict
+
+    if said is Verdict.FAULT:
+        return f"ERROR    verdict: fault ({n_found} finding event(s) above)"
+    if said is Verdict.NO_FINDING:
+        return "WARNING  verdict: no finding within coverage; not tested: " + "; ".join(untested)
+    return "INFO     verdict: no fault (every check that applies ran)"
+
+
+def _coverage_map(
+    vehicle: str, said: Verdict, status: int, untested: list[str], coverages: list[ImuCoverage]
+) -> dict[str, Any]:
+    """The coverage line of ``--json`` and of the report (:data:`COVERAGE_VERSION`)."""
+    return {
+        "type": COVERAGE_TYPE,
+        "v": COVERAGE_VERSION,
+        "vehicle": vehicle,
+        "verdict": said.value,
+        "exit_status": status,
+        "untested": untested,
+        "imus": [c.to_dict() for c in coverages],
+    }
 
 
 def _rate(batch: SampleBatch) -> float:

@@ -11,9 +11,11 @@ One line per event: the time it arrived (UTC), vehicle, IMU, severity, its data
 time and its text; with ``--json`` the event as one JSON object per line (the
 event schema of :mod:`protocols.events`, ``"type": "ins.health.event"``).
 Status messages are summarized: a line when a service first reports a vehicle
-and whenever the states of its IMUs change, or its outbox becomes unavailable
-(the line then says so, with the events held) or available again (``--json``:
-the status map, ``"type": "ins.health.status"``).
+and whenever the states of its IMUs change, a check starts or stops running on
+one of them (each IMU's line says which checks have tested it and which have not,
+and why), or its outbox becomes unavailable (the line then says so, with the
+events held) or available again (``--json``: the status map, ``"type":
+"ins.health.status"``).
 
 Runs until Ctrl-C or SIGTERM, then prints what it received on stderr. Exit
 status 0; 2 when the router cannot be reached or an option is unusable.
@@ -72,10 +74,13 @@ def event_line(event: Event, arrived_unix_s: float) -> str:
 
 
 def status_line(status: Status, arrived_unix_s: float) -> str:
-    """The human summary of a status: each IMU's state, samples and positions."""
+    """The human summary of a status: each IMU's state, samples and positions, and its coverage."""
+    from estimators.coverage import ImuCoverage
+
     imus = "; ".join(
         f"IMU{s.imu} {s.state.value} ({s.samples} samples, {s.positions} positions"
-        + (f", {s.detail})" if s.detail else ")")
+        + (f", {s.detail}" if s.detail else "")
+        + (f"; {ImuCoverage(s.imu, s.coverage).summary()})" if s.coverage else ")")
         for s in status.imus
     )
     line = f"{_utc(arrived_unix_s)}  {status.vehicle} status from {status.service}: {imus or 'no IMU yet'}"
@@ -93,7 +98,7 @@ def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
 
     from protocols.events import Event, Status, event_to_json, status_to_dict
 
-    states: dict[tuple[str, str], tuple[tuple[tuple[int, str], ...], int]] = {}
+    states: dict[tuple[str, str], tuple[object, ...]] = {}
     events = statuses = 0
     while not isinstance(item := inbox.get(), _Stop):
         now = time.time()
@@ -104,6 +109,7 @@ def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
             statuses += 1
             summary = (
                 tuple((s.imu, s.state.value) for s in item.imus),
+                tuple((s.imu, c.name, c.ran) for s in item.imus for c in s.coverage),
                 item.counters.get("service.outbox.unavailable", 0),
             )
             if states.get((item.vehicle, item.service)) != summary:

@@ -39,6 +39,7 @@ from protocols.events import (
     make_event,
 )
 from protocols.frames import SampleBatch
+from service.pipeline.coverage import imu_coverage
 from service.pipeline.options import (
     CLOCK_RESET_FRAMES,
     FINDING_SEVERITY,
@@ -547,6 +548,11 @@ class ImuPipeline:
         self._count(f"f0.{triad.value}.skipped_temperature", int(np.count_nonzero(hot & static)))
         res = f0_batch(x, static & ~hot, check.f0)
         self._count(f"f0.{triad.value}.tests", res.n_tests)
+        if res.n_tests:
+            # The gravity directions F0 saw: its coverage's minimum detectable fault rests on them.
+            tested = x[res.state >= 0]
+            u = np.abs(tested) / np.linalg.norm(tested, axis=1, keepdims=True)
+            np.maximum(check.f0_max_abs_u, u.max(axis=0), out=check.f0_max_abs_u)
         self._count(f"f0.{triad.value}.fail", res.n_fail)
         k, run = persistent_failure(res.state, check.f0_run, self.f0_persist)
         events: list[Event] = []
@@ -789,6 +795,7 @@ class ImuPipeline:
             self.last_t_s,
             self.n_positions,
             "; ".join(parts)[:500],
+            imu_coverage(self).checks,
         )
 
     def state_dict(self) -> dict[str, Any]:
@@ -828,6 +835,7 @@ class ImuPipeline:
                     "f0_run_onset": None if c.f0_run_onset is None else list(c.f0_run_onset),
                     "temp_out_edge_c": c.temp_out_edge_c,
                     "temp_skip_s": [list(span) for span in c.temp_skip_s],
+                    "f0_max_abs_u": c.f0_max_abs_u.tolist(),
                 }
                 for t, c in self.checks.items()
             },
@@ -929,6 +937,13 @@ class ImuPipeline:
                 edge = cs.get("temp_out_edge_c")
                 check.temp_out_edge_c = None if edge is None else float(edge)
                 check.temp_skip_s = [[float(a), float(b)] for a, b in cs.get("temp_skip_s", [])]
+                # Absent from checkpoints written before the coverage: no direction seen yet.
+                max_u = np.asarray(cs.get("f0_max_abs_u", [0.0, 0.0, 0.0]), dtype=float)
+                if max_u.shape != (3,) or not np.all((max_u >= 0) & (max_u <= 1)):
+                    raise ValueError(
+                        f"checkpoint of {self.vehicle} IMU{self.imu}: F0 directions {cs['f0_max_abs_u']!r}"
+                    )
+                check.f0_max_abs_u = max_u
                 if cs["estimator"] is not None and check.estimator is not None:
                     check.estimator = RecursiveNineParam.from_state_dict(cs["estimator"])
         except (KeyError, TypeError) as exc:

@@ -14,7 +14,7 @@ from estimators.conventions import (
 )
 from estimators.ninepar import RecursiveNineParam, canonical_triad_matrix
 from estimators.passport import TriadPassport
-from estimators.scalar import F0Config, derive_lambda0
+from estimators.scalar import F0Config, Lambda0, derive_lambda0
 from service.pipeline.options import (
     F0_SHELL_LIMIT,
     PipelineOptions,
@@ -42,6 +42,10 @@ class TriadCheck:
     # [first, last] sample times taken outside the temperature model's range that F0 has not seen yet:
     # the static gate hands samples to F0 up to a window later than the frame that carried them.
     temp_skip_s: list[list[float]] = field(default_factory=list)
+    # Largest |x_i|/|x| per axis over the samples F0 tested: the gravity directions its coverage rests on.
+    f0_max_abs_u: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # (rate, Hz; F0's per-sample noise σ there) for the coverage's MDF, derived once per rate.
+    f0_noise_at: tuple[float, float] | None = None
 
     def record_temperature_skip(self, t_s: np.ndarray, outside: np.ndarray) -> None:
         """Note the samples (times ``t_s`` (N,), ascending) taken outside the temperature model's range (``outside`` (N,))."""
@@ -66,27 +70,33 @@ class TriadCheck:
         return skip
 
 
-def f0_config(
-    tp: TriadPassport, options: PipelineOptions, rate_hz: float
-) -> tuple[F0Config | None, float, str]:
-    """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5)."""
+def f0_threshold(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> Lambda0:
+    """F0's threshold for one triad at ``rate_hz`` and what it is made of (module docstring step 5)."""
     ref = options.reference(tp.triad)
     # Per-sample white noise scales with the square root of the rate it is sampled at; the
     # audited bias wander (passport.bias_instability_std, docs/audit-xsens.md) does not.
     white = tp.noise_std * math.sqrt(rate_hz / tp.sample_rate_hz)
     noise_norm = np.maximum(np.hypot(white, tp.bias_instability_std) * tp.reference / ref, 1e-12)
     quant = None if tp.quantization_step is None else tp.quantization_step * tp.reference / ref
-    nominal = tp.nominal.copy()
-    nominal[:3] *= tp.reference / ref
     tol = tp.tolerance.copy()
     tol[:3] *= tp.reference / ref
-    lam = derive_lambda0(
+    return derive_lambda0(
         noise_std_norm=noise_norm,
         false_alarm_prob=options.false_alarm_probability,
         quantization_norm=quant,
         tolerance_norm=tol,
         reference_rel_err=options.gravity_rel_err if tp.triad is Triad.ACCEL else 0.0,
     )
+
+
+def f0_config(
+    tp: TriadPassport, options: PipelineOptions, rate_hz: float
+) -> tuple[F0Config | None, float, str]:
+    """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5)."""
+    ref = options.reference(tp.triad)
+    nominal = tp.nominal.copy()
+    nominal[:3] *= tp.reference / ref
+    lam = f0_threshold(tp, options, rate_hz)
     if lam.lambda0 > F0_SHELL_LIMIT:
         return (
             None,
