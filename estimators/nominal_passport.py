@@ -88,7 +88,7 @@ The consumer worst unit reads 17.5 % of g: all three zero signals (√(50² + 50
 + 80²) = 106 mg along their common direction), +3 % on every axis and +2 % in
 all six cross-axis entries, with gravity along ``(1, 1, 1)/√3``. A resting unit
 whose z reads 1.2 g (s = 0.22) is outside the shell at 50 and 200 Hz; at rates
-whose per-sample noise term exceeds 0.026 (above about 230 Hz) per-sample F0
+whose per-sample noise term exceeds 0.026 (above about 220 Hz) per-sample F0
 cannot tell it from the worst healthy unit, and only a test on window means
 (the gross plausibility test) can. A unit reading 0.35 g (s = −0.44) is outside
 at every rate.

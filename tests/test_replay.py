@@ -220,7 +220,7 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     assert fast[0] == 0 and fast[1] == again[1] == [] and fast[2] == again[2]
     assert "(tlog): samples IMU0 794, IMU1 795; left out time_not_increasing 2; 0 events" in fast[2]
     # At 4 Hz the static detector's window holds two samples: no nominal passport, stream checks only.
-    assert "IMU0: logged at 4.15 Hz, too slow to tell rest from steady flight" in fast[2]
+    assert "IMU0: sampled at 4.13 Hz, too slow to tell rest from steady flight" in fast[2]
     assert "imu0.samples.accepted 794" in fast[2] and "imu1.samples.accepted 795" in fast[2]
     # Its first samples come at two rates (0.24 s and 0.5 s steps): the probe keeps 4.1 Hz, which
     # the rate watch finds again over the flight: no re-size.
