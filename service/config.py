@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
+from estimators.nominal_passport import SensorClass
 from estimators.stream_validity import ValidityLimits
 from protocols._schema import SchemaError, check_vehicle
 from protocols.mavlink_adapter import UDP_RCVBUF_MIN_BYTES, MavlinkSettings
@@ -44,6 +45,9 @@ from protocols.zenoh_adapter import (
     ZenohSettings,
     check_frames_selector,
 )
+
+NO_DEFAULT_GRADE = "none"
+"""``[service] default_grade`` that gives a unit without a passport no nominal one (stream checks only)."""
 
 
 class ConfigError(ValueError):
@@ -101,6 +105,12 @@ class ServiceSection:
     vehicles : vehicle ids served; empty (default) serves every vehicle the key expression delivers.
         A frame of a vehicle outside a non-empty list is counted as ``frames.rejected.unknown_vehicle``; the
         passport of IMU 0 of each listed vehicle is checked at startup.
+    default_grade : sensor class (:class:`estimators.nominal_passport.SensorClass`: ``consumer_mems``,
+        ``industrial_mems``, ``tactical``, ``navigation``) whose nominal passport a unit runs on
+        when the store has no usable entry for it (none, or one refused: it stays reported as
+        refused), so that F0 and the diagnosis run against the class's datasheet limits
+        (default ``consumer_mems``, the drone-autopilot IMU); ``"none"``: such a unit runs
+        the stream validity checks only.
     """
 
     name: str = "ins-health"
@@ -111,6 +121,12 @@ class ServiceSection:
     delivery_retry_s: float = 0.5
     outbox_max_mb: float = 0.0
     vehicles: tuple[str, ...] = ()
+    default_grade: str = SensorClass.CONSUMER_MEMS.value
+
+    @property
+    def nominal_class(self) -> SensorClass | None:
+        """The class of ``default_grade`` (None: ``"none"``; :func:`load_config` refuses any other value)."""
+        return None if self.default_grade == NO_DEFAULT_GRADE else SensorClass(self.default_grade)
 
     @property
     def outbox_max_bytes(self) -> int | None:
@@ -548,6 +564,9 @@ def _check(cfg: ServiceConfig) -> list[str]:
             errors.append(f"[service] {name} {str(folder)!r} is a file, not a folder")
     for name in ("status_period_s", "checkpoint_period_s", "delivery_retry_s"):
         _period(errors, f"[service] {name}", getattr(s, name))
+    grades = [c.value for c in SensorClass] + [NO_DEFAULT_GRADE]
+    if s.default_grade not in grades:
+        errors.append(f"[service] default_grade must be one of {grades}, got {s.default_grade!r}")
     if not (math.isfinite(s.outbox_max_mb) and s.outbox_max_mb >= 0):
         errors.append(
             f"[service] outbox_max_mb must be a finite number >= 0, got {s.outbox_max_mb!r}"

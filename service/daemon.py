@@ -243,6 +243,7 @@ class Service:
             on_passport_error=self._passport_error,
             on_pipeline_error=self._pipeline_error,
             on_evicted=self._evicted,
+            nominal=config.service.nominal_class,
         )
         self.intake = Intake(
             self.fleet,
@@ -288,8 +289,13 @@ class Service:
             self._passports[key] = self.store.get(vehicle, imu)
         return self._passports[key]
 
+    def _without_passport(self) -> str:
+        """What a unit without a usable passport runs ([service] default_grade)."""
+        cls = self.fleet.nominal
+        return "the stream checks only" if cls is None else f"on the nominal {cls.value} passport"
+
     def _passport_error(self, vehicle: str, imu: int, message: str) -> None:
-        log.warning("%s; %s IMU%d runs the stream checks only", message, vehicle, imu)
+        log.warning("%s; %s IMU%d runs %s", message, vehicle, imu, self._without_passport())
 
     def _evicted(self, evicted: str, admitted: str) -> None:
         log.warning(
@@ -351,12 +357,16 @@ class Service:
         scan = self.store.scan([(v, 0) for v in self.config.service.vehicles])
         self._passports.update(scan.passports)
         loaded = ", ".join(f"{v} IMU{i}" for v, i in sorted(scan.passports)) or "none"
+        nominal = self.fleet.nominal
         log.info(
-            "passports in %s: %d loaded (%s), %d refused",
+            "passports in %s: %d loaded (%s), %d refused; %d unit(s) run on nominal passports "
+            "(those refused; [service] default_grade %s: any unit without a usable passport runs %s)",
             self.store.root, len(scan.passports), loaded, len(scan.errors),
+            0 if nominal is None else len(scan.errors),
+            "none" if nominal is None else nominal.value, self._without_passport(),
         )  # fmt: skip
         for err in scan.errors.values():
-            log.warning("refused %s; the unit runs the stream checks only", err)
+            log.warning("refused %s; the unit runs %s", err, self._without_passport())
         for path, why in scan.strays:
             log.warning("passport store: %s is not read: %s", path, why)
 

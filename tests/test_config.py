@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
+from estimators.nominal_passport import SensorClass
 from protocols.mavlink_adapter import MavlinkSettings
 from protocols.zenoh_adapter import AckMode, Mode, ZenohSettings
 from service.config import ConfigError, MavlinkReader, ServiceConfig, config_from_dict, load_config
@@ -159,11 +160,27 @@ stale_run_samples = 50
         ({"mavlink": {"device": "/usr/bin/env"}}, r"mavlink device '/usr/bin/env' is no live link"),
         ({"mavlink": {"device": "flight.tlog"}}, r"is no live link"),
         ({"mavlink": {"device": "udpin:[::]:14550"}}, r"pymavlink has no IPv6 address"),
+        (
+            {"service": {"default_grade": "mems"}},
+            r"^\[service\] default_grade must be one of \['consumer_mems', 'industrial_mems', "
+            r"'tactical', 'navigation', 'none'\], got 'mems'$",
+        ),
+        ({"service": {"default_grade": False}}, r"\[service\] default_grade must be a string"),
     ],
 )
 def test_bad_values_are_one_line_errors_naming_the_key(raw, match, tmp_path):
     with pytest.raises(ConfigError, match=match):
         config_from_dict(raw, base_dir=tmp_path)
+
+
+def test_default_grade_names_the_nominal_class_of_a_unit_without_a_passport(tmp_path):
+    """Documented default consumer_mems; "none" is the stated way to turn the nominal passport off."""
+    assert ServiceConfig().service.nominal_class is SensorClass.CONSUMER_MEMS
+    for cls in SensorClass:
+        raw = {"service": {"default_grade": cls.value}}
+        assert config_from_dict(raw, base_dir=tmp_path).service.nominal_class is cls
+    raw = {"service": {"default_grade": "none"}}
+    assert config_from_dict(raw, base_dir=tmp_path).service.nominal_class is None
 
 
 @pytest.mark.parametrize(

@@ -106,7 +106,10 @@ def test_report_is_deterministic_and_complete(tmp_path, capsys):
     assert "## IMU0" in md and "## IMU1" in md and "![" in md
     # The class and its tolerances, as its datasheet states them (estimators.nominal_passport).
     assert "class `consumer_mems` (TDK InvenSense MPU-6000" in md
-    assert "Tolerances: accelerometer bias 80 mg, scale 3 %, cross-axis 2 %, noise 400 µg/√Hz" in md
+    assert (
+        "Tolerances: accelerometer bias 50, 50, 80 mg, scale 3 %, cross-axis 2 %, noise 400 µg/√Hz"
+        in md
+    )
     for png in ("gravity_residual.png", "spectra.png", "cross_imu.png"):
         assert (tmp_path / "a" / png).stat().st_size > 1000
 

@@ -121,9 +121,15 @@ vehicle = "uav-a"
     assert "<6>ins-health: onboard starting: data in " in text
     assert "<6>ins-health: zenoh disabled" in text
     assert "<6>ins-health: mavlink udpin:127.0.0.1:0: vehicle uav-a" in text
-    assert re.search(r"<6>ins-health: passports in \S+: 1 loaded \(uav-a IMU0\), 1 refused", text)
     assert re.search(
-        r"<4>ins-health: refused passport of uav-b IMU0 \(.*\): .*stream checks only", text
+        r"<6>ins-health: passports in \S+: 1 loaded \(uav-a IMU0\), 1 refused; 1 unit\(s\) run on "
+        r"nominal passports",
+        text,
+    )
+    assert re.search(
+        r"<4>ins-health: refused passport of uav-b IMU0 \(.*\): .*runs on the nominal "
+        r"consumer_mems passport",
+        text,
     )
     assert re.search(
         r"<4>ins-health: passport store: \S+/uav-a/imu01.passport.json is not read: not an entry name",

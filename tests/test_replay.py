@@ -291,9 +291,9 @@ def test_real_vtol_telemetry_log_gives_a_deterministic_event_list(capsys, tmp_pa
     assert fast[0] == EXIT_UNTESTED and fast[1] == again[1] == [] and fast[2] == again[2]
     assert "(tlog): samples IMU0 794, IMU1 795; left out time_not_increasing 2; 0 events" in fast[2]
     # At 4 Hz the static detector's window holds two samples: no nominal passport, stream checks only.
-    assert "IMU0: logged at 4.15 Hz, too slow to tell rest from steady flight" in fast[2]
+    assert "IMU0: sampled at 4.13 Hz, too slow to tell rest from steady flight" in fast[2]
     assert (
-        "not tested: IMU0 accel F0, accel F1-F9, gyro F0, gyro F1-F9: logged at 4.15 Hz" in fast[2]
+        "not tested: IMU0 accel F0, accel F1-F9, gyro F0, gyro F1-F9: sampled at 4.13 Hz" in fast[2]
     )
     assert "coverage IMU1 cross_imu: ran on 795 samples" in fast[2]
     assert "imu0.samples.accepted 794" in fast[2] and "imu1.samples.accepted 795" in fast[2]

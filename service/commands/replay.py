@@ -21,7 +21,9 @@ Passports: ``--passport FILE`` (a passport JSON, e.g. from ``ins-health
 calibrate``) for every IMU of the log, or ``--passport-dir DIR`` (the service's
 passport store, keyed by ``--vehicle`` and IMU). Without either — a real log
 never comes with one — every IMU gets the nominal passport of its sensor class
-(``--grade``, default ``consumer_mems``; :mod:`estimators.nominal_passport`):
+(``--grade``, default ``consumer_mems``; :mod:`estimators.nominal_passport`),
+given by the fleet as the daemon gives it (``[service] default_grade``) and from
+the same rate (:data:`service.pipeline.options.NOMINAL_MIN_RATE_HZ`):
 F0 runs on the samples at rest against the class's tolerances, and the
 nine-parameter diagnosis where the log holds the positions.
 
@@ -75,6 +77,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from estimators.coverage import ImuCoverage, Verdict
+    from estimators.nominal_passport import SensorClass
     from estimators.passport import Passport
     from protocols.events import Event
     from protocols.frames import SampleBatch
@@ -98,9 +101,6 @@ the wait."""
 SENSOR_CLASSES = ("consumer_mems", "industrial_mems", "tactical", "navigation")
 """The values of :class:`estimators.nominal_passport.SensorClass`, the default first (stated here:
 building the parser must not import scipy, service.cli)."""
-NOMINAL_MIN_RATE_HZ = 20.0
-"""Slowest IMU stream the nominal passport is applied to: the static detector's 0.5 s window must hold
-enough samples to tell rest from a steady turn (a 4 Hz telemetry stream holds two)."""
 
 
 def register(subparsers) -> None:
@@ -171,31 +171,25 @@ def _config(args: argparse.Namespace) -> ServiceConfig:
     return config
 
 
-def _lookup(
-    args: argparse.Namespace, gravity_mps2: float, rates: dict[tuple[str, int], float]
-) -> tuple[Any, dict[str, Any]]:
-    """The passport lookup and what the report says about it; ``rates`` holds each IMU's rate when it is admitted."""
-    from estimators.nominal_passport import SensorClass, describe_class, nominal_passport
+def _lookup(args: argparse.Namespace) -> tuple[Any, SensorClass | None, dict[str, Any]]:
+    """The passport lookup, the class whose nominal passport the fleet gives a unit without one
+    (:class:`~service.pipeline.FleetProcessor`, as the daemon's ``[service] default_grade``), and
+    what the report says about them."""
+    from estimators.nominal_passport import SensorClass, describe_class
     from protocols.passport_codec import read_passport_json
     from service.passport_store import PassportStore
 
     if args.passport is not None:
         passport: Passport = read_passport_json(args.passport)
         info = {"kind": "file", "unit_id": passport.unit_id, "sensor_model": passport.sensor_model}
-        return (lambda vehicle, imu: passport), info
+        return (lambda vehicle, imu: passport), None, info
     if args.passport_dir is not None:
-        return PassportStore(args.passport_dir).get, {"kind": "store"}
-    nominal = nominal_passport(SensorClass(args.grade), gravity_mps2=gravity_mps2)
-
-    def lookup(vehicle: str, imu: int) -> Passport:
-        rate = rates.get((vehicle, imu), 0.0)
-        if rate < NOMINAL_MIN_RATE_HZ:
-            raise ValueError(
-                f"logged at {rate:.3g} Hz, too slow to tell rest from steady flight (nominal passport from {NOMINAL_MIN_RATE_HZ:g} Hz)"
-            )
-        return nominal
-
-    return lookup, {"kind": "nominal", **describe_class(args.grade)}
+        return PassportStore(args.passport_dir).get, None, {"kind": "store"}
+    return (
+        (lambda vehicle, imu: None),
+        SensorClass(args.grade),
+        {"kind": "nominal", **describe_class(args.grade)},
+    )
 
 
 def replay_events(
@@ -287,10 +281,10 @@ def run(args: argparse.Namespace) -> int:
     def pipeline_error(vehicle: str, imu: int, message: str) -> None:
         failed.setdefault((vehicle, imu, message.split(":", 1)[0]), [0, message])[0] += 1
 
-    rates: dict[tuple[str, int], float] = {}
-    lookup, passport_info = _lookup(args, options.gravity_mps2, rates)
+    lookup, nominal, passport_info = _lookup(args)
     fleet = FleetProcessor(
         passports=lookup,
+        nominal=nominal,
         options=options,
         # A log's IMUs are all wanted (a ULog numbers its instances up to 8, protocols.ulog).
         max_imus_per_vehicle=max(config.pipeline.max_imus_per_vehicle, REPLAY_MAX_IMUS),
@@ -306,7 +300,6 @@ def run(args: argparse.Namespace) -> int:
     health_config = HealthConfig()
 
     def observe(batch: SampleBatch) -> None:
-        rates.setdefault((batch.vehicle, batch.imu), _rate(batch))
         if args.report is None:
             return
         acc = health.get(batch.imu)
@@ -314,7 +307,9 @@ def run(args: argparse.Namespace) -> int:
             # Rest as the pipeline's static detector sees it: its thresholds raised to the passport's noise.
             pipe = fleet.admit(batch.vehicle, batch.imu)
             det = detector_config(
-                options.detector, None if pipe is None else pipe.passport, _rate(batch)
+                options.detector,
+                None if pipe is None else pipe.passport_at(_rate(batch)),
+                _rate(batch),
             )
             acc = health[batch.imu] = ImuHealthAccumulator(
                 dataclasses.replace(
@@ -335,6 +330,11 @@ def run(args: argparse.Namespace) -> int:
         progress=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
         on_pace_step=pace_steps.append,
     )
+    errors += [
+        f"{v} IMU{i}: {pipe.nominal_too_slow}"
+        for (v, i), pipe in sorted(fleet.pipelines.items())
+        if pipe.nominal_too_slow
+    ]
     for line in errors:
         print(f"ins-health replay: {line}; stream checks only", file=sys.stderr)
     for (vehicle, imu, _), (frames, message) in sorted(failed.items()):

@@ -57,6 +57,8 @@ def imu_coverage(pipe: ImuPipeline, *, imus_on_vehicle: int | None = None) -> Im
 def _no_check(pipe: ImuPipeline, triad: Triad) -> str:
     if pipe.passport is None:
         return pipe.passport_note or "no passport"
+    if pipe.nominal_too_slow:
+        return pipe.nominal_too_slow
     if triad in pipe.passport.triads:  # the checks are set up with the sample rate
         return _not_running(pipe) or "not set up"
     return f"the passport has no {TRIAD_WORD[triad]} triad"

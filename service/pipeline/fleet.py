@@ -11,6 +11,7 @@ import numpy as np
 from estimators.conventions import (
     Triad,
 )
+from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.passport import Passport, check_references
 from estimators.stream_validity import (
     CrossImuMonitor,
@@ -32,7 +33,7 @@ from service.pipeline.options import (
     PipelineOptions,
 )
 
-PassportLookup = Callable[[str, int], Passport]
+PassportLookup = Callable[[str, int], Passport | None]
 """``(vehicle, imu) -> Passport``; raises ``ValueError`` (e.g. ``PassportStoreError``) with the reason."""
 
 
@@ -74,10 +75,16 @@ class FleetProcessor:
 
     Parameters
     ----------
-    passports : passport lookup per (vehicle, IMU); a ``ValueError`` (or a passport whose reference
-        does not fit ``options``' gravity, :func:`~estimators.passport.check_references`) leaves that
-        unit without a passport (validity checks only) and is reported once through ``on_passport_error``.
+    passports : passport lookup per (vehicle, IMU): the unit's own passport, or None (it has none); a
+        ``ValueError`` (or a passport whose reference does not fit ``options``' gravity,
+        :func:`~estimators.passport.check_references`) refuses it, reported once through
+        ``on_passport_error``.
     options : pipeline options.
+    nominal : sensor class whose nominal passport (:func:`~estimators.nominal_passport.nominal_passport`)
+        a unit without a usable passport of its own runs on (None: stream validity checks only). A
+        refused entry falls back to it too: a corrupt or altered file must not switch F0 off, and the
+        unit stays reported as refused (``on_passport_error``, the status). Only a passport of its own
+        counts as one for the vehicle limit.
     on_pipeline_error : told ``(vehicle, imu, error)`` when an IMU's chain raised on a frame: that
         IMU starts afresh (its counters kept, ``pipeline.errors`` counted) and the others go on.
     max_vehicles : vehicles served at once; at the limit a vehicle with a passport takes the place of
@@ -99,9 +106,16 @@ class FleetProcessor:
         on_passport_error: Callable[[str, int, str], None] | None = None,
         on_pipeline_error: Callable[[str, int, str], None] | None = None,
         on_evicted: Callable[[str, str], None] | None = None,
+        nominal: SensorClass | None = None,
     ):
         self.options = options
         self._passports = passports
+        self.nominal = None if nominal is None else SensorClass(nominal)
+        self._nominal_passport = (
+            None
+            if self.nominal is None
+            else nominal_passport(self.nominal, gravity_mps2=options.gravity_mps2)
+        )
         self._vehicles = frozenset(vehicles)
         self._max_vehicles = int(max_vehicles)
         self._max_imus = int(max_imus_per_vehicle)
@@ -173,9 +187,7 @@ class FleetProcessor:
         self.vehicle_counters.setdefault(vehicle, {})
         if note and self._on_passport_error is not None:
             self._on_passport_error(vehicle, imu, note)
-        pipe = ImuPipeline(
-            vehicle, imu, passport=passport, options=self.options, passport_note=note
-        )
+        pipe = self._pipeline(vehicle, imu, passport, note)
         if self._restore is not None:
             state = self._restore(vehicle, imu)
             if state is not None:
@@ -183,9 +195,7 @@ class FleetProcessor:
                     pipe.load_state(state)
                     self.count_vehicle(vehicle, "checkpoints.restored")
                 except Exception as exc:
-                    pipe = ImuPipeline(
-                        vehicle, imu, passport=passport, options=self.options, passport_note=note
-                    )
+                    pipe = self._pipeline(vehicle, imu, passport, note)
                     self.count_vehicle(vehicle, "checkpoints.discarded")
                     if self._on_restore_error is not None:
                         self._on_restore_error(vehicle, imu, f"{type(exc).__name__}: {exc}")
@@ -194,6 +204,23 @@ class FleetProcessor:
         if vehicle not in self.cross:
             self.cross[vehicle] = self._cross_monitor(vehicle)
         return pipe
+
+    def _pipeline(
+        self, vehicle: str, imu: int, passport: Passport | None, note: str
+    ) -> ImuPipeline:
+        """A fresh pipeline on the unit's own passport, else on the nominal one (if configured)."""
+        if passport is not None or self.nominal is None:
+            return ImuPipeline(
+                vehicle, imu, passport=passport, options=self.options, passport_note=note
+            )
+        return ImuPipeline(
+            vehicle,
+            imu,
+            passport=self._nominal_passport,
+            options=self.options,
+            passport_note=note,
+            nominal_class=self.nominal.value,
+        )
 
     def _passport_of(self, vehicle: str, imu: int) -> tuple[Passport | None, str]:
         """The unit's passport, or None and why not (``""`` when the lookup simply has none)."""
@@ -213,7 +240,7 @@ class FleetProcessor:
         idle = [
             v
             for v, pipes in self._by_vehicle.items()
-            if all(p.passport is None for p in pipes.values())
+            if all(p.passport is None or p.nominal_class is not None for p in pipes.values())
         ]
         if not idle:
             return False
@@ -362,6 +389,7 @@ class FleetProcessor:
             passport=pipe.passport,
             options=self.options,
             passport_note=pipe.passport_note,
+            nominal_class=pipe.nominal_class,
         )
         fresh.counters = pipe.counters
         fresh.counters["pipeline.errors"] = fresh.counters.get("pipeline.errors", 0) + 1

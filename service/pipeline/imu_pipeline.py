@@ -43,6 +43,7 @@ from service.pipeline.coverage import imu_coverage
 from service.pipeline.options import (
     CLOCK_RESET_FRAMES,
     FINDING_SEVERITY,
+    NOMINAL_MIN_RATE_HZ,
     PIPELINE_STATE_VERSION,
     RATE_CHECK_BLOCKS,
     RATE_CHECK_SAMPLES,
@@ -84,8 +85,11 @@ class ImuPipeline:
     ----------
     vehicle, imu : the IMU.
     passport : its passport, or None (then only stream validity runs, and the status says why).
-    passport_note : why there is no passport (shown in the status).
+    passport_note : why there is no passport of its own (shown in the status).
     options : shared options.
+    nominal_class : the sensor class when ``passport`` is that class's nominal passport
+        (:mod:`estimators.nominal_passport`), not the unit's own: the status says so, and it applies
+        only from :data:`~service.pipeline.options.NOMINAL_MIN_RATE_HZ` (:meth:`passport_at`).
     """
 
     def __init__(
@@ -96,10 +100,13 @@ class ImuPipeline:
         passport: Passport | None,
         options: PipelineOptions,
         passport_note: str = "",
+        nominal_class: str | None = None,
     ):
         self.vehicle, self.imu = vehicle, imu
         self.passport = passport
         self.passport_note = passport_note
+        self.nominal_class = nominal_class
+        self.nominal_too_slow = ""  # why the nominal passport does not apply at the measured rate
         self.options = options
         self.validity = StreamValidity(limits=options.validity)
         self.detection: _Detection | None = None
@@ -143,8 +150,17 @@ class ImuPipeline:
             **kw,
         )
 
+    def passport_at(self, rate_hz: float) -> Passport | None:
+        """The passport the chain runs against at ``rate_hz``: a nominal one only from
+        :data:`NOMINAL_MIN_RATE_HZ`. Below it the static detector's window holds too few samples to tell
+        rest from a steady turn, whose |a| is not g: F0 against a class's shell would fail in flight;
+        the unit's own passport (its noise, its tolerances) is its operator's statement and applies."""
+        if self.nominal_class is not None and rate_hz < NOMINAL_MIN_RATE_HZ:
+            return None
+        return self.passport
+
     def _new_detection(self, rate_hz: float) -> _Detection:
-        detector = detector_config(self.options.detector, self.passport, rate_hz)
+        detector = detector_config(self.options.detector, self.passport_at(rate_hz), rate_hz)
         return _Detection(
             rate_hz,
             PositionAccumulator(
@@ -158,8 +174,17 @@ class ImuPipeline:
         self.f0_persist = persistence_samples(self.options.f0_persistence_s, rate_hz)
         self.detection = self._new_detection(rate_hz)
         self._rate_fill = self._rate_off = 0
-        if self.passport is not None:
-            for triad, tp in self.passport.triads.items():
+        passport = self.passport_at(rate_hz)
+        self.nominal_too_slow = (
+            f"sampled at {rate_hz:.3g} Hz, too slow to tell rest from steady flight "
+            f"(nominal passport from {NOMINAL_MIN_RATE_HZ:g} Hz)"
+            if passport is None and self.passport is not None
+            else ""
+        )
+        if passport is None:
+            self.checks.clear()
+        else:
+            for triad, tp in passport.triads.items():
                 cfg, lam, note = f0_config(tp, self.options, rate_hz)
                 check = self.checks.get(triad)
                 if check is None:
@@ -744,7 +769,7 @@ class ImuPipeline:
 
     @property
     def state(self) -> ImuState:
-        if self.passport is None:
+        if self.passport is None or self.nominal_too_slow:
             return ImuState.NO_PASSPORT
         if self.timed_out:
             return ImuState.NO_DATA
@@ -760,6 +785,10 @@ class ImuPipeline:
         parts = []
         if self.passport is None:
             parts.append(self.passport_note or "no passport")
+        elif self.nominal_class is not None:
+            # A refused entry stays said: the unit runs on its class's passport, not on its own.
+            parts += [f"passport: nominal {self.nominal_class}", self.passport_note]
+            parts.append(self.nominal_too_slow)
         for check in self.checks.values():
             parts.append(check.f0_note + (" FAILING" if check.f0_failing else ""))
             if check.active:
@@ -794,7 +823,7 @@ class ImuPipeline:
             self.n_samples,
             self.last_t_s,
             self.n_positions,
-            "; ".join(parts)[:500],
+            "; ".join(p for p in parts if p)[:500],
             imu_coverage(self).checks,
         )
 

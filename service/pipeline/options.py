@@ -60,6 +60,10 @@ TEMPERATURE_HYSTERESIS_C = 1.0
 """The temperature must be back this far inside the model's range before the out-of-range event recovers
 (at most a quarter of the range): a unit resting at the edge would otherwise flicker in and out with the
 sensor's noise and quantization, one event pair each time."""
+NOMINAL_MIN_RATE_HZ = 20.0
+"""Slowest IMU stream a nominal passport is applied to (:meth:`ImuPipeline.passport_at`): the static
+detector's 0.5 s window must hold enough samples to tell rest from a steady turn (a 4 Hz telemetry
+stream holds two)."""
 F0_SHELL_LIMIT = 1.0
 """A triad whose λ0 exceeds this cannot fail F0 meaningfully (the shell is thicker than the unit
 sphere: a MEMS gyro against the Earth rate); F0 is then not run for it, and the status says why."""
