@@ -224,14 +224,18 @@ def test_a_flight_every_check_ran_on_says_no_fault_with_what_it_tested(tmp_path,
     # σ (0.6e-3 of the scale errors here).
     for mdf, tol in zip(f19["mdf_scale"], f19["tolerance_scale"], strict=True):
         assert tol < mdf < tol + 10 * 0.7e-3
-    # F0's MDF is at least its shell λ0·g, a zero signal the nominal shell (±2.35 m/s²) lets through.
-    assert all(2.35 < b < 2.6 for b in f0["mdf_bias_si"])
+    # F0's MDF is at least its shell λ0·g, a zero signal the nominal shell (±2.0 to ±2.2 m/s² from 50
+    # to 200 Hz: the MPU-6000's worst unit plus the noise) lets through.
+    assert all(2.0 < b < 2.6 for b in f0["mdf_bias_si"])
     assert not checks["gyro F0"]["applies"] and "Earth rate" in checks["gyro F0"]["reason"]
     assert (
         not checks["cross_imu"]["applies"] and checks["stream"]["samples"] == clean_part.n_samples
     )
+    # The text says the JSON's figure; the x zero signal's tolerance is the MPU-6000's 50 mg.
+    mdf_x = f19["mdf_bias_si"][0]
+    assert 0.049 * 9.8 < mdf_x < 0.051 * 9.8 + 0.1
     assert (
-        "coverage IMU0 accel F1-F9: ran on 13 positions; min. detectable zero signal x 0.787 m/s²"
+        f"coverage IMU0 accel F1-F9: ran on 13 positions; min. detectable zero signal x {mdf_x:.3g} m/s²"
         in err
     )
 
@@ -321,7 +325,7 @@ def test_real_px4_ulog_replays_its_primary_imu(capsys):
     # F0 tested the samples at rest, the unit level: only z saw gravity; one position, no diagnosis.
     assert (
         "coverage IMU0 accel F0: ran on 7,034 samples; min. detectable zero signal x not seen, "
-        "y not seen, z 2.45 m/s²" in err
+        "y not seen, z 2.27 m/s²" in err
     )
     assert "not tested: IMU0 accel F1-F9: 1 position at rest, 9 needed" in err
     assert "rate_changes" not in err
