@@ -164,7 +164,10 @@ def test_real_logs_keep_their_healthy_verdict_inside_the_tighter_shell(log, tmp_
     out = capsys.readouterr()
     (line,) = out.out.strip().splitlines()
     coverage = json.loads(line)
-    assert coverage["type"] == "ins.health.coverage" and coverage["verdict"] == "no finding within coverage"
+    assert (
+        coverage["type"] == "ins.health.coverage"
+        and coverage["verdict"] == "no finding within coverage"
+    )
     assert status == 3 and coverage["exit_status"] == 3 and coverage["untested"]
     report = json.loads((tmp_path / "r" / "report.json").read_text())
     for imu in report["imus"]:
