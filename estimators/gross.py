@@ -79,13 +79,15 @@ minimum detectable fault (:class:`GrossCoverage`) come with both.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from statistics import NormalDist
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from estimators._typing import BoolArray, FloatArray
+from estimators._typing import FloatArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
 from estimators.ninepar import canonical_triad_matrix
 from estimators.nominal_passport import SensorClass, nominal_passport
@@ -124,6 +126,7 @@ _BINS_PER_DECADE = 16
 _N_BINS = 11 * _BINS_PER_DECADE
 _LOW_MODE_BINS = math.floor(_BINS_PER_DECADE * math.log10(LOW_MODE_FACTOR))
 _ACC, _GYR = slice(0, 3), slice(3, 6)
+_SPREAD_FLOORS = np.array([[SPREAD_FLOOR_MPS2], [SPREAD_FLOOR_RPS]])
 _TESTS = (Triad.ACCEL, Triad.GYRO, Triad.GYRO, Triad.GYRO)
 _TEST_AXIS: tuple[int | None, ...] = (None, 0, 1, 2)
 
@@ -335,9 +338,14 @@ class GrossUpdate:
     """What one :meth:`GrossMonitor.update` did: windows completed, tested and failed per triad, changes."""
 
     windows: int
-    tested: dict[Triad, int]
-    failed: dict[Triad, int]
-    changes: list[GrossChange]
+    tested: Mapping[Triad, int]
+    failed: Mapping[Triad, int]
+    changes: tuple[GrossChange, ...]
+
+
+_NONE = MappingProxyType({Triad.ACCEL: 0, Triad.GYRO: 0})
+_NO_WINDOWS = GrossUpdate(0, _NONE, _NONE, ())
+"""What a frame that completes no window did (shared: most frames)."""
 
 
 class _Run:
@@ -378,26 +386,26 @@ class _Run:
 
 
 def _spread_bins(spread: FloatArray) -> FloatArray:
-    with np.errstate(divide="ignore"):
-        idx = np.floor((np.log10(spread) - _LOG_MIN) * _BINS_PER_DECADE)
-    bins: FloatArray = np.clip(np.nan_to_num(idx, nan=0.0, neginf=0.0), 0, _N_BINS - 1)
+    """The histogram bin of each spread (≥ 0; a zero spread, noise-free data, in the lowest)."""
+    idx = np.floor((np.log10(np.maximum(spread, 1e-300)) - _LOG_MIN) * _BINS_PER_DECADE)
+    bins: FloatArray = np.clip(idx, 0, _N_BINS - 1)
     return bins
 
 
-def _floors(hist: FloatArray, bins: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Per window: the typical quiet spread after counting it (module docstring), and the histogram after all."""
-    k = bins.size
-    onehot = np.zeros((k, _N_BINS))
-    onehot[np.arange(k), bins.astype(np.intp)] = 1.0
-    counts = hist + np.cumsum(onehot, axis=0)
-    cum = np.cumsum(counts, axis=1)
-    n = cum[:, -1]
-    iq = np.argmax(cum >= LOW_QUANTILE * n[:, None], axis=1)
+def _floors(hist: FloatArray, spread: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per triad (2) and window (K): the typical quiet spread after counting the window's ``spread``
+    (2, K) into the histograms ``hist`` (2, bins) (module docstring); and the histograms after all."""
+    k = spread.shape[1]
+    onehot = np.zeros((2, k, _N_BINS))
+    onehot[np.arange(2)[:, None], np.arange(k), _spread_bins(spread).astype(np.intp)] = 1.0
+    counts = hist[:, None, :] + np.cumsum(onehot, axis=1)
+    cum = np.cumsum(counts, axis=2)
+    iq = np.argmax(cum >= LOW_QUANTILE * cum[..., -1:], axis=2)
     lim = np.minimum(iq + _LOW_MODE_BINS, _N_BINS - 1)
-    low = cum[np.arange(k), lim]
-    imed = np.argmax(cum >= 0.5 * low[:, None], axis=1)
+    low = np.take_along_axis(cum, lim[..., None], axis=2)
+    imed = np.argmax(cum >= 0.5 * low, axis=2)
     typical = 10.0 ** (_LOG_MIN + (imed + 0.5) / _BINS_PER_DECADE)
-    return typical, counts[-1]
+    return typical, counts[:, -1]
 
 
 class GrossMonitor:
@@ -409,6 +417,10 @@ class GrossMonitor:
 
     def __init__(self, config: GrossConfig) -> None:
         self.config = config
+        # The open window: frames held as they came (no work per frame), and sums only where a
+        # checkpoint folded them (state_dict), so the state stays a few numbers.
+        self._held: list[tuple[FloatArray, FloatArray]] = []
+        self._held_n = 0
         self._n = 0
         self._t0 = math.nan
         self._shift = np.zeros(6)
@@ -433,66 +445,77 @@ class GrossMonitor:
             self._t0 = float(t_s[0])
         d = x - self._shift
         self._s1 += d.sum(axis=0)
-        self._s2 += np.einsum("ij,ij->j", d, d)
+        d *= d
+        self._s2 += d.sum(axis=0)
         self._n += x.shape[0]
 
     def _windows(
         self, t_s: FloatArray, x: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """Means (K, 6), sample variances (K, 6), first and last sample times (K,) of the windows ``x`` completes."""
+        """Means (K, 6), sample variances (K, 6), first and last sample times (K,) of the windows
+        completed by the held frames and ``x`` (at least one); the rest is held."""
         w = self.config.window_samples
-        n = x.shape[0]
-        if self._n + n < w:
-            self._add_partial(t_s, x)
-            empty = np.zeros((0, 6))
-            return empty, empty, np.zeros(0), np.zeros(0)
-        head = w - self._n
-        self._add_partial(t_s[:head], x[:head])
-        s1, s2 = self._s1, self._s2
-        m0 = self._shift + s1 / w
-        v0 = (s2 - s1 * s1 / w) / (w - 1)
-        t_first, t_last = [self._t0], [float(t_s[head - 1])]
-        k2 = (n - head) // w
-        blocks = x[head : head + k2 * w].reshape(k2, w, 6)
-        tb = t_s[head : head + k2 * w].reshape(k2, w)
-        self._n, self._s1, self._s2 = 0, np.zeros(6), np.zeros(6)
-        self._add_partial(t_s[head + k2 * w :], x[head + k2 * w :])
-        means = np.vstack([m0[None, :], blocks.mean(axis=1)])
-        var = np.vstack([np.maximum(v0, 0.0)[None, :], blocks.var(axis=1, ddof=1)])
-        return means, var, np.concatenate([t_first, tb[:, 0]]), np.concatenate([t_last, tb[:, -1]])
+        if self._held:
+            t_s = np.concatenate([*(h[0] for h in self._held), t_s])
+            x = np.concatenate([*(h[1] for h in self._held), x])
+            self._held, self._held_n = [], 0
+        parts_m, parts_v, parts_t0, parts_t1 = [], [], [], []
+        start = 0
+        if self._n:  # sums a checkpoint folded: the first window completes them
+            start = w - self._n
+            self._add_partial(t_s[:start], x[:start])
+            s1, s2 = self._s1, self._s2
+            parts_m.append((self._shift + s1 / w)[None, :])
+            parts_v.append(np.maximum((s2 - s1 * s1 / w) / (w - 1), 0.0)[None, :])
+            parts_t0.append(np.array([self._t0]))
+            parts_t1.append(t_s[start - 1 : start])
+            self._n, self._s1, self._s2 = 0, np.zeros(6), np.zeros(6)
+        k = (x.shape[0] - start) // w
+        if k:
+            blocks = x[start : start + k * w].reshape(k, w, 6)
+            tb = t_s[start : start + k * w].reshape(k, w)
+            parts_m.append(blocks.mean(axis=1))
+            parts_v.append(blocks.var(axis=1, ddof=1))
+            parts_t0.append(tb[:, 0])
+            parts_t1.append(tb[:, -1])
+        end = start + k * w
+        if end < x.shape[0]:
+            self._held, self._held_n = [(t_s[end:], x[end:])], x.shape[0] - end
+        cat = np.concatenate
+        return cat(parts_m), cat(parts_v), cat(parts_t0), cat(parts_t1)
 
     # ------------------------------------------------------------------ the tests
 
     def update(self, t_s: FloatArray, accel_mps2: FloatArray, gyro_rps: FloatArray) -> GrossUpdate:
-        t = np.asarray(t_s, dtype=float)
-        x = np.hstack([np.asarray(accel_mps2, dtype=float), np.asarray(gyro_rps, dtype=float)])
-        if x.ndim != 2 or x.shape != (t.size, 6):
+        t = np.array(t_s, dtype=float)  # a copy: frames are held until their window completes
+        a, g = np.asarray(accel_mps2, dtype=float), np.asarray(gyro_rps, dtype=float)
+        if t.ndim != 1 or a.shape != (t.size, 3) or g.shape != a.shape:
             raise ValueError(
-                f"accel_mps2 and gyro_rps must be (N, 3) with t_s (N,), got {x.shape} and {t.shape}"
+                f"accel_mps2 and gyro_rps must be (N, 3) with t_s (N,), got {a.shape}, {g.shape} and {t.shape}"
             )
+        x = np.concatenate((a, g), axis=1)
+        if self._n + self._held_n + t.size < self.config.window_samples:
+            # The usual small frame: held (a window's work is done once, when it completes).
+            if t.size:
+                self._held.append((t, x))
+                self._held_n += t.size
+            return _NO_WINDOWS
         means, var, t_first, t_last = self._windows(t, x)
         k = means.shape[0]
-        if not k:
-            return GrossUpdate(
-                0, {Triad.ACCEL: 0, Triad.GYRO: 0}, {Triad.ACCEL: 0, Triad.GYRO: 0}, []
-            )
         cfg = self.config
         w = cfg.window_samples
         spread = np.sqrt(np.stack([var[:, _ACC].sum(axis=1), var[:, _GYR].sum(axis=1)]))
-        quiet = []
-        for j, floor_min in ((0, SPREAD_FLOOR_MPS2), (1, SPREAD_FLOOR_RPS)):
-            typical, self._hist[j] = _floors(self._hist[j], _spread_bins(spread[j]))
-            quiet.append(spread[j] <= np.maximum(SESSION_NOISE_FACTOR * typical, floor_min))
-        quiet_a = quiet[0]
-        quiet_g = quiet[1] & (spread[1] <= STILL_RATE_RPS)
+        typical, self._hist = _floors(self._hist, spread)
+        quiet_a, quiet_g = spread <= np.maximum(SESSION_NOISE_FACTOR * typical, _SPREAD_FLOORS)
+        quiet_g &= spread[1] <= STILL_RATE_RPS
         # Per-axis noise pooled over the quiet windows up to each window.
         sig = np.empty((k, 6))
         for j, (q, sl) in enumerate(((quiet_a, _ACC), (quiet_g, _GYR))):
             n_q = self._var_n[j] + np.cumsum(q)
             v_q = self._var_sum[sl] + np.cumsum(var[:, sl] * q[:, None], axis=0)
             wander = cfg.accel_wander_mps2 if j == 0 else cfg.gyro_wander_rps
-            with np.errstate(invalid="ignore", divide="ignore"):
-                sig[:, sl] = np.sqrt(v_q / n_q[:, None] / w + wander**2)
+            # Before any quiet window (n_q = 0) the window is not quiet either: its σ is not used.
+            sig[:, sl] = np.sqrt(v_q / np.maximum(n_q, 1.0)[:, None] / w + wander**2)
             self._var_n[j], self._var_sum[sl] = n_q[-1], v_q[-1]
 
         a_c = cfg.gravity_mps2 * (
@@ -523,58 +546,66 @@ class GrossMonitor:
             self.tested[tr] += tested[tr]
             self.failed[tr] += failed[tr]
 
-        bound_a = np.where(dev >= 0.0, hi, lo)
+        # The four tests (accelerometer, gyro x y z) as rows: tested, failed, and what a change reports.
+        rest = np.vstack([rest_a, rest_g, rest_g, rest_g])
+        fail = np.vstack([fail_a, fail_g.T])
+        values = np.vstack([dev, rate.T])
+        bounds = np.vstack([np.where(dev >= 0.0, hi, lo), bound_g.T])
+        sigmas = np.vstack([sig_a, sig[:, _GYR].T])
         named = np.where(np.abs(u).max(axis=1) >= AXIS_NAMED_COS, np.abs(u).argmax(axis=1), -1)
         changes: list[GrossChange] = []
         for i, run in enumerate(self._runs):
+            if not rest[i].any() and run.fail_run == 0 and run.pass_run == 0:
+                continue  # a moving unit's windows: nothing to carry
             ax = _TEST_AXIS[i]
-            if ax is None:
-                rest, fail = rest_a, fail_a
-                rows = np.stack([t_first, dev, bound_a, sig_a, named], axis=1)
-            else:
-                rest, fail = rest_g, fail_g[:, ax]
-                rows = np.stack(
-                    [t_first, rate[:, ax], bound_g[:, ax], sig[:, 3 + ax], np.full(k, ax)], axis=1
+
+            def at(
+                j: int, i: int = i, ax: int | None = ax
+            ) -> tuple[float, float, float, float, int]:
+                axis = int(named[j]) if ax is None else ax
+                return (
+                    float(t_first[j]),
+                    float(values[i, j]),
+                    float(bounds[i, j]),
+                    float(sigmas[i, j]),
+                    axis,
                 )
-            changes += self._persist(i, run, rest, fail, rows, t_last)
-        return GrossUpdate(k, tested, failed, changes)
+
+            changes += self._persist(i, run, rest[i].tolist(), fail[i].tolist(), at, t_last)
+        return GrossUpdate(k, tested, failed, tuple(changes))
 
     def _persist(
         self,
         i: int,
         run: _Run,
-        rest: BoolArray,
-        fail: BoolArray,
-        rows: FloatArray,
+        rest: list[bool],
+        fail: list[bool],
+        at: Callable[[int], tuple[float, float, float, float, int]],
         t_last: FloatArray,
     ) -> list[GrossChange]:
-        """Runs over the K windows of one test (O(1) per window); the changes they make."""
+        """Runs over the K windows of one test (O(1) per window); the changes they make. ``at(j)``:
+        what window ``j`` reports (first time, value, bound, sigma, axis or −1)."""
         p = self.config.persist_windows
         out: list[GrossChange] = []
-        if not rest.any() and run.fail_run == 0 and run.pass_run == 0:
-            return out  # the usual frame of a moving unit: nothing to carry
-        for j in range(rest.size):
-            if not rest[j]:
+        for j, (tested, failed) in enumerate(zip(rest, fail, strict=True)):
+            if not tested:
                 run.fail_run = run.pass_run = 0
-                continue
-            row = rows[j]
-            here = (float(row[0]), float(row[1]), float(row[2]), float(row[3]), int(row[4]))
-            if fail[j]:
+            elif failed:
                 run.pass_run = 0
                 if run.fail_run == 0:
-                    run.onset = here
+                    run.onset = at(j)
                 run.fail_run += 1
-                if run.fail_run == p and not run.failing:
+                if run.fail_run == p and not run.failing and run.onset is not None:
                     run.failing = True
-                    out.append(self._change(i, True, run.onset or here, float(t_last[j])))
+                    out.append(self._change(i, True, run.onset, float(t_last[j])))
             else:
                 run.fail_run = 0
                 if run.pass_run == 0:
-                    run.recovery = here
+                    run.recovery = at(j)
                 run.pass_run += 1
-                if run.pass_run == p and run.failing:
+                if run.pass_run == p and run.failing and run.recovery is not None:
                     run.failing = False
-                    out.append(self._change(i, False, run.recovery or here, float(t_last[j])))
+                    out.append(self._change(i, False, run.recovery, float(t_last[j])))
         return out
 
     def _change(
@@ -638,11 +669,16 @@ class GrossMonitor:
     def restart(self) -> None:
         """The source restarted: the open window is dropped (it would join two streams); the rest stays."""
         self._n, self._s1, self._s2 = 0, np.zeros(6), np.zeros(6)
+        self._held, self._held_n = [], 0
 
     # ------------------------------------------------------------------ checkpoints
 
     def state_dict(self) -> dict[str, Any]:
-        """Plain, versioned state (the config is rebuilt from the passport and the rate, not saved)."""
+        """Plain, versioned state (the config is rebuilt from the passport and the rate, not saved);
+        the held frames of the open window are folded into its sums first."""
+        for t_s, x in self._held:
+            self._add_partial(t_s, x)
+        self._held, self._held_n = [], 0
         return {
             "version": GROSS_STATE_VERSION,
             "window_samples": self.config.window_samples,

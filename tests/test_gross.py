@@ -189,7 +189,7 @@ def test_the_state_round_trips_and_resumes_where_it_stopped():
     cut = 437  # mid-window and mid-run (the failure is declared after 500 samples)
     assert (
         first.update(session.t_s[:cut], session.accel_mps2[:cut], session.gyro_rps[:cut]).changes
-        == []
+        == ()
     )
     state = json.loads(json.dumps(first.state_dict()))  # plain values only
     assert state["version"] == GROSS_STATE_VERSION
@@ -407,3 +407,51 @@ def test_real_logs_are_tested_and_raise_no_gross_event(capsys):
         assert status == 0 and events == [], path.name
         if path.name not in ("ardupilot-test.BIN", "ardupilot-copter462-cut.bin"):
             assert ".gross.accel.windows" in err and ".gross.accel.fail" not in err, path.name
+
+
+@pytest.mark.network
+def test_the_daemon_raises_the_gross_event_of_a_unit_without_passport_over_zenoh(tmp_path):
+    """A vehicle with no passport in the store streams a unit at rest reading 1.2 g: the gross event
+    arrives at a ground station, and the status says the class tolerances were used."""
+    import zenoh
+    from service_support import (
+        ServiceThread,
+        batches_of,
+        service_config,
+        wait_subscribed,
+        wait_until,
+        zenoh_client_config,
+        zenoh_router,
+    )
+
+    from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key, subscribe_status
+
+    session = at_rest(1.2, rate_hz=100.0, noise_factor=1.0, seed=12)
+    with zenoh_router() as port:
+        cfg = service_config(
+            tmp_path, port=port, passport_dir=tmp_path / "empty-store", validity={"timeout_s": 60.0}
+        )
+        with (
+            ServiceThread(cfg),
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+            zenoh.open(zenoh_client_config(port)) as ground,
+        ):
+            got, statuses = [], []
+            with EventReceiver(ground, got.append):
+                subscribe_status(ground, statuses.append)
+                wait_subscribed(vehicle, frame_key("uav-7", 0))
+                with FramePublisher(
+                    vehicle, "uav-7", 0, congestion_control=zenoh.CongestionControl.BLOCK
+                ) as pub:
+                    for b in batches_of(session, vehicle="uav-7", imu=0, batch_samples=50):
+                        pub.publish(b)
+                wait_until(lambda: gross_events(got), timeout_s=60, what="the gross event")
+                wait_until(
+                    lambda: any(s.imus and "gross at rest" in s.imus[0].detail for s in statuses),
+                    timeout_s=30,
+                    what="a status naming the gross test",
+                )
+    (event,) = gross_events(got)
+    assert event.triad is Triad.ACCEL and event.axis == "z" and event.estimate > event.tolerance
+    detail = next(s for s in reversed(statuses) if s.imus).imus[0].detail
+    assert "gross at rest: nominal consumer_mems (no passport)" in detail
