@@ -52,7 +52,7 @@ The tests (each on the window mean)
   ``tol_low = g(1 − √(1 − 2t))``, ``tol_high = g(√(1 + 2t) − 1)``. The passport's nominal errors are
   compensated first, as F0 does. ``σ_|ā|² = Σ u_i² σ_mean,i²`` with ``u`` the window's gravity
   direction.
-* Each gyro axis: ``|ω̄_i − b_i| ≤ tol_b,i + Ω·r_i + z·σ_i/√W`` with ``b`` the passport's zero signal
+* Each gyro axis: ``|ω̄_i − b_i| ≤ tol_b,i + Ω·r_i + z·σ_mean,i`` with ``b`` the passport's zero signal
   and ``tol_b`` its tolerance; the Earth rate's projection is unknown without a heading and enters
   as a bound, ``Ω`` times the largest gain of row ``i`` of the triad matrix within its tolerances
   (``r_i = 1 + |e_i| + tol_e,i + Σ_pairs (|δ| + tol_δ)``).
@@ -68,12 +68,13 @@ with ``z_power = Φ⁻¹(0.95^(1/P))`` (2.57 for ten windows): the minimum detec
 
 Batch and stream
 ----------------
-:class:`GrossMonitor` takes samples in frames of any length (vectorized over the windows a frame
-completes; per window O(1) work; state: one partial window's sums, two histograms, pooled
-variances and the runs, round-tripping through :meth:`GrossMonitor.state_dict`);
-:func:`gross_batch` runs it over a whole session in blocks. However the samples are cut, the
-windows and decisions are the same (the window moments agree to rounding). Coverage values for the
-minimum detectable fault (:class:`GrossCoverage`) come with both.
+:class:`GrossMonitor` takes samples in frames of any length: a frame is held as it comes, and a
+window's work (O(1), vectorized over the windows a frame completes) is done once, when it completes;
+its state — the open window's sums, two histograms, pooled variances and the runs — round-trips
+through :meth:`GrossMonitor.state_dict`. :func:`gross_batch` runs it over a whole session in blocks.
+However the samples are cut, every window is computed from the same samples alike: the same
+decisions (after a checkpoint, the open window's moments come from its sums and agree to rounding).
+Coverage values for the minimum detectable fault (:class:`GrossCoverage`) come with both.
 """
 
 from __future__ import annotations
@@ -331,6 +332,16 @@ class GrossCoverage:
     z: float
     z_power: float
     source: str
+
+    @property
+    def window_false_alarm_prob(self) -> float:
+        """Per window, two-sided: ``false_alarm_prob^(1/persist_windows)`` (``z``'s probability)."""
+        return float(self.false_alarm_prob ** (1.0 / self.persist_windows))
+
+    @property
+    def window_power(self) -> float:
+        """Per window: ``0.95^(1/persist_windows)`` (``z_power``'s), so that the run is found with 0.95."""
+        return float(0.95 ** (1.0 / self.persist_windows))
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from statistics import NormalDist
 
 import numpy as np
 import pytest
@@ -128,6 +129,11 @@ def test_rest_off_g_is_found_whatever_the_noise_and_the_twin_is_not(
     cov = twin.coverage[Triad.ACCEL]
     assert twin.changes == [] and cov.windows == twin.windows == 40
     assert twin.coverage[Triad.GYRO].windows == 40
+    # Per window, the quantiles the coverage's minimum detectable fault takes (module docstring).
+    nd = NormalDist()
+    assert nd.inv_cdf(1 - cov.window_false_alarm_prob / 2) == pytest.approx(cov.z)
+    assert nd.inv_cdf(cov.window_power) == pytest.approx(cov.z_power)
+    assert cov.window_false_alarm_prob**cov.persist_windows == pytest.approx(P_FALSE)
     # Gravity along z: only z saw it (what coverage's minimum detectable fault needs).
     assert cov.max_abs_u[2] == pytest.approx(1.0, abs=1e-4) and max(cov.max_abs_u[:2]) < 0.01
 
