@@ -138,6 +138,21 @@ def test_rest_off_g_is_found_whatever_the_noise_and_the_twin_is_not(
     assert cov.max_abs_u[2] == pytest.approx(1.0, abs=1e-4) and max(cov.max_abs_u[:2]) < 0.01
 
 
+def test_a_session_without_gyros_is_tested_on_its_accelerometer_and_says_the_gyro_was_not():
+    session = dataclasses.replace(
+        at_rest(0.35, rate_hz=100.0, noise_factor=1.0, seed=11), gyro_rps=None
+    )
+    res = gross_batch(session, None, gravity_mps2=G)
+    assert [(c.triad, c.axis, c.raised) for c in res.changes] == [(Triad.ACCEL, "z", True)]
+    gyro = res.coverage[Triad.GYRO]
+    assert gyro.windows == 0 and all(math.isnan(v) for v in gyro.sigma_mean_si)
+    # Shorter than a window: nothing tested, and the coverage says so.
+    short = gross_batch(
+        at_rest(1.2, rate_hz=100.0, noise_factor=1.0, seed=11, duration_s=0.3), None, gravity_mps2=G
+    )
+    assert short.changes == [] and short.windows == 0 and short.coverage[Triad.ACCEL].windows == 0
+
+
 def test_the_noise_used_is_the_streams_own():
     """3× the class noise: the window mean's σ is the stream's, three times the 1× stream's."""
     sig = [
