@@ -396,6 +396,10 @@ class _Run:
         return run
 
 
+def _triple(x: FloatArray) -> tuple[float, float, float]:
+    return float(x[0]), float(x[1]), float(x[2])
+
+
 def _spread_bins(spread: FloatArray) -> FloatArray:
     """The histogram bin of each spread (≥ 0; a zero spread, noise-free data, in the lowest)."""
     idx = np.floor((np.log10(np.maximum(spread, 1e-300)) - _LOG_MIN) * _BINS_PER_DECADE)
@@ -642,7 +646,7 @@ class GrossMonitor:
     def failing(self) -> list[tuple[Triad, str | None]]:
         """The tests whose failure is declared now: (triad, axis) — axis None for the accelerometer."""
         return [
-            (_TESTS[i], None if _TEST_AXIS[i] is None else AXES[_TEST_AXIS[i]])  # type: ignore[index]
+            (_TESTS[i], None if (ax := _TEST_AXIS[i]) is None else AXES[ax])
             for i, run in enumerate(self._runs)
             if run.failing
         ]
@@ -666,9 +670,9 @@ class GrossMonitor:
                 windows=self.tested[triad],
                 fail_windows=self.failed[triad],
                 window_samples=w,
-                max_abs_u=tuple(float(v) for v in self._max_abs_u) if j == 0 else None,  # type: ignore[arg-type]
-                sigma_mean_si=tuple(float(v) for v in sig),  # type: ignore[arg-type]
-                tolerance_si=tuple(float(v) for v in tol),  # type: ignore[arg-type]
+                max_abs_u=_triple(self._max_abs_u) if j == 0 else None,
+                sigma_mean_si=_triple(sig),
+                tolerance_si=_triple(tol),
                 persist_windows=cfg.persist_windows,
                 false_alarm_prob=cfg.false_alarm_prob,
                 z=cfg.z,
