@@ -14,9 +14,9 @@ completed the detection, packed as float64) — never a wall clock. The same
 detection therefore gets the same id in a retry, after a restart, and in a
 replay of the same log; the outbox and every receiver deduplicate by it.
 
-Wire schema, version 1 (msgpack map; JSON lines use the same map)
+Wire schema, version 2 (msgpack map; JSON lines use the same map)
 -----------------------------------------------------------------
-``type`` = ``"ins.health.event"``, ``v`` = 1, ``id`` (str, 32 hex), ``vehicle``
+``type`` = ``"ins.health.event"``, ``v`` = 1 or 2, ``id`` (str, 32 hex), ``vehicle``
 (str), ``imu`` (int 0..255), ``t_s`` (float, s), ``predicate`` (str,
 :class:`Predicate`), ``triad`` (str :class:`~estimators.conventions.Triad` or
 nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
@@ -25,6 +25,12 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 ``unit`` (str, unit of those four numbers: ``"1"`` dimensionless, ``"s"``,
 ``"m/s^2"``, ``"rad/s"``, ``"count"``, ``"degC"``), ``severity`` (str, lower-case
 :class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
+
+Version 2 adds the predicate ``gross`` (gross plausibility at rest, :mod:`estimators.gross`) and the
+cause ``gravity_magnitude``; nothing else changed. An event is written with the lowest version that
+holds it (:func:`event_version`): a version-1 reader keeps reading every other event, and is told a
+gross event is of a newer schema rather than given an unknown predicate. Both versions are read; a
+version-1 map naming what only version 2 has is refused.
 
 Status schema, version 2: ``type`` = ``"ins.health.status"``, ``v`` = 2,
 ``vehicle``, ``service`` (instance name), ``t_s`` (service clock, s since the
@@ -70,8 +76,8 @@ if TYPE_CHECKING:  # the diagnosis pulls in scipy.stats: too heavy an import for
     from estimators.diagnosis import Finding
 
 EVENT_TYPE = "ins.health.event"
-EVENT_VERSION = 1
-SUPPORTED_EVENT_VERSIONS = (1,)
+EVENT_VERSION = 2
+SUPPORTED_EVENT_VERSIONS = (1, 2)
 STATUS_TYPE = "ins.health.status"
 STATUS_VERSION = 2
 SUPPORTED_STATUS_VERSIONS = (1, 2)
@@ -100,7 +106,7 @@ class Severity(IntEnum):
 
 
 class Predicate(StrEnum):
-    """Which check failed: F0…F9 of methods.md M1, or a stream-validity check."""
+    """Which check failed: F0…F9 of methods.md M1, gross plausibility at rest, or a stream-validity check."""
 
     F0 = "F0"
     F1 = "F1"
@@ -117,6 +123,7 @@ class Predicate(StrEnum):
     ERROR_DENSITY = "error_density"
     CROSS_IMU = "cross_imu"
     TEMPERATURE = "temperature"
+    GROSS = "gross"
 
     @classmethod
     def parse(cls, value: Any) -> Predicate:
@@ -144,7 +151,13 @@ class StreamCause(StrEnum):
     DISAGREEMENT = "disagreement"
     TEMPERATURE_RANGE = "temperature_range"
     RECOVERED = "recovered"
+    GRAVITY_MAGNITUDE = "gravity_magnitude"
+    """The gross test: ``|a|`` at rest off local gravity beyond the passport's tolerances (a gyro's
+    mean off its zero signal is :attr:`Cause.ZERO_SIGNAL`)."""
 
+
+_V2_ONLY: frozenset[Enum] = frozenset({Predicate.GROSS, StreamCause.GRAVITY_MAGNITUDE})
+"""What only schema version 2 holds (module docstring)."""
 
 EventCause = Cause | StreamCause
 
@@ -348,6 +361,7 @@ _CAUSE_WORDS = {
     StreamCause.DISAGREEMENT: "disagrees with the other IMUs",
     StreamCause.TEMPERATURE_RANGE: "temperature outside the passport range",
     StreamCause.RECOVERED: "recovered",
+    StreamCause.GRAVITY_MAGNITUDE: "|a| − g at rest",
 }
 _TRIAD_WORDS = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
 
@@ -385,11 +399,16 @@ def describe(event: Event) -> str:
     return f"{where}: {what} [{event.predicate.value}]"
 
 
+def event_version(event: Event) -> int:
+    """The lowest schema version that holds ``event`` (module docstring)."""
+    return 2 if event.predicate in _V2_ONLY or event.cause in _V2_ONLY else 1
+
+
 def event_to_dict(event: Event) -> dict[str, Any]:
-    """The schema map (module docstring) of an event."""
+    """The schema map (module docstring) of an event, at :func:`event_version`."""
     return {
         "type": EVENT_TYPE,
-        "v": EVENT_VERSION,
+        "v": event_version(event),
         "id": event.event_id,
         "vehicle": event.vehicle,
         "imu": event.imu,
@@ -418,7 +437,9 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
     if not isinstance(obj, Mapping):
         raise EventError(Reason.NOT_A_MAP, f"an event must be a map, got {type(obj).__name__}")
     obj = dict(obj)
-    check_header(obj, type_tag=EVENT_TYPE, versions=SUPPORTED_EVENT_VERSIONS, error=EventError)
+    version = check_header(
+        obj, type_tag=EVENT_TYPE, versions=SUPPORTED_EVENT_VERSIONS, error=EventError
+    )
     severity_name = field(obj, "severity", str, error=EventError)
     if severity_name.upper() not in Severity.__members__ or severity_name != severity_name.lower():
         raise EventError(
@@ -459,11 +480,17 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
             Reason.BAD_VALUE,
             f"event id {event.event_id} does not match its fields (expected {expected})",
         )
+    if version < event_version(event):
+        raise EventError(
+            Reason.BAD_VALUE,
+            f"predicate {event.predicate.value!r} with cause {event.cause.value!r} needs event schema "
+            f"version {event_version(event)}, the map says {version}",
+        )
     return event
 
 
 def encode_event(event: Event) -> bytes:
-    """msgpack bytes of an event (schema version :data:`EVENT_VERSION`)."""
+    """msgpack bytes of an event (schema version :func:`event_version`)."""
     return pack(event_to_dict(event))
 
 

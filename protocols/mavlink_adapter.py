@@ -313,6 +313,7 @@ _CAUSE_ABBREV = {
     StreamCause.DISAGREEMENT: "disagree",
     StreamCause.TEMPERATURE_RANGE: "temp range",
     StreamCause.RECOVERED: "recovered",
+    StreamCause.GRAVITY_MAGNITUDE: "|a|-g",
 }
 _UNIT_ABBREV = {"1": "", "s": "s", "m/s^2": "m/s2", "rad/s": "rad/s", "count": "", "degC": "C"}
 

@@ -12,9 +12,11 @@ import numpy as np
 from estimators.conventions import (
     PARAM_AXIS,
     PARAM_CAUSE,
+    Cause,
     Triad,
 )
 from estimators.diagnosis import Outcome, diagnose
+from estimators.gross import GrossChange, GrossMonitor, gross_config
 from estimators.ninepar import RecursiveNineParam
 from estimators.passport import Passport
 from estimators.positions import Position, PositionAccumulator
@@ -112,6 +114,7 @@ class ImuPipeline:
         self.detection: _Detection | None = None
         self.f0_persist = 1
         self.checks: dict[Triad, TriadCheck] = {}
+        self.gross: GrossMonitor | None = None
         self._probe: list[SampleBatch] = []
         # The rate watch (_watch_rate): sample steps of the block being filled, s, and blocks off in a row.
         self._rate_steps_s = np.empty(RATE_CHECK_SAMPLES)
@@ -174,6 +177,19 @@ class ImuPipeline:
         self.f0_persist = persistence_samples(self.options.f0_persistence_s, rate_hz)
         self.detection = self._new_detection(rate_hz)
         self._rate_fill = self._rate_off = 0
+        gross = gross_config(
+            self.passport,
+            rate_hz=rate_hz,
+            gravity_mps2=self.options.gravity_mps2,
+            gravity_rel_err=self.options.gravity_rel_err,
+            false_alarm_prob=self.options.false_alarm_probability,
+        )
+        # A new rate keeps the raised failures, runs and counts; the windows start again at its length.
+        self.gross = (
+            GrossMonitor(gross)
+            if self.gross is None
+            else GrossMonitor.from_state(gross, self.gross.state_dict())
+        )
         passport = self.passport_at(rate_hz)
         self.nominal_too_slow = (
             f"sampled at {rate_hz:.3g} Hz, too slow to tell rest from steady flight "
@@ -455,6 +471,8 @@ class ImuPipeline:
             self.detection = self._new_detection(self.detection.rate_hz)
             for check in self.checks.values():
                 check.f0_run, check.f0_run_onset = 0, None
+        if self.gross is not None:
+            self.gross.restart()
         return events
 
     # ------------------------------------------------------------------ the chain
@@ -467,7 +485,63 @@ class ImuPipeline:
         # Static detector and positions over the batch: the per-sample results, vectorized where the stream is clean.
         positions, decisions = det.accumulator.update_batch(b.t_s, accel, gyro, temp)
         events = self._f0_all(*det.gate.push(b.t_s, accel, gyro, decisions))
-        return events + self._positions(positions)
+        return events + self._gross(b.t_s, accel, gyro, temp) + self._positions(positions)
+
+    def _gross(
+        self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, temp: np.ndarray | None
+    ) -> list[Event]:
+        """The gross test on every accepted sample (:mod:`estimators.gross`): no static detector, no
+        gate; as F0, not beyond a temperature model's range, where compensation is not exact."""
+        assert self.gross is not None  # made with the detection
+        if temp is not None:
+            models = [c.passport.temperature for c in self.checks.values()]
+            inside = np.ones(t_s.shape, dtype=bool)
+            for model in models:
+                if model is not None:
+                    inside &= model.in_range(temp)
+            if not inside.all():
+                self._count("gross.skipped_temperature", int(np.count_nonzero(~inside)))
+                t_s, accel, gyro = t_s[inside], accel[inside], gyro[inside]
+        up = self.gross.update(t_s, accel, gyro)
+        for triad in (Triad.ACCEL, Triad.GYRO):
+            self._count(f"gross.{triad.value}.windows", up.tested[triad])
+            self._count(f"gross.{triad.value}.fail", up.failed[triad])
+        return [self._gross_event(c) for c in up.changes]
+
+    def _gross_event(self, c: GrossChange) -> Event:
+        assert self.gross is not None
+        where = f"{self.vehicle} IMU{self.imu} {TRIAD_WORD[c.triad]}" + (
+            f" {c.axis}" if c.axis else ""
+        )
+        source = self.gross.config.source
+        if c.triad is Triad.ACCEL:
+            g = self.options.gravity_mps2
+            what = (
+                f"|a| at rest {g + c.value_si:.4g} m/s^2, {c.value_si:+.3g} from g {g:.5g} "
+                f"(allowed {c.bound_si:.3g} with noise, sigma {c.sigma_si:.2g})"
+            )
+            cause: EventCause = StreamCause.GRAVITY_MAGNITUDE
+        else:
+            what = (
+                f"mean rate at rest {c.value_si:.3g} rad/s ({math.degrees(c.value_si):.3g} deg/s), "
+                f"zero signal {c.nominal_si:.3g} ± {c.bound_si:.3g} rad/s (tolerance, Earth rate, noise)"
+            )
+            cause = Cause.ZERO_SIGNAL
+        kw: dict[str, Any] = dict(
+            triad=c.triad, axis=c.axis, estimate=c.value_si, nominal=c.nominal_si,
+            tolerance=c.bound_si, sigma=c.sigma_si, unit="m/s^2" if c.triad is Triad.ACCEL else "rad/s",
+        )  # fmt: skip
+        if c.raised:
+            text = f"{where}: {what} for {c.duration_s:.1f} s; tolerances: {source} [gross]"
+            return self._event(
+                c.t_s, Predicate.GROSS, cause, SEVERITY[Predicate.GROSS], text=text, **kw
+            )
+        text = (
+            f"{where}: back within the gross bound at rest for {c.duration_s:.1f} s: {what} [gross]"
+        )
+        return self._event(
+            c.t_s, Predicate.GROSS, StreamCause.RECOVERED, RECOVERED_SEVERITY, text=text, **kw
+        )
 
     def _f0_all(
         self, t_s: np.ndarray, accel: np.ndarray, gyro: np.ndarray, static: np.ndarray
@@ -769,6 +843,8 @@ class ImuPipeline:
 
     @property
     def state(self) -> ImuState:
+        if self.gross is not None and self.gross.failing():
+            return ImuState.FAULT
         if self.passport is None or self.nominal_too_slow:
             return ImuState.NO_PASSPORT
         if self.timed_out:
@@ -810,6 +886,13 @@ class ImuPipeline:
                 "temperature-compensated (M3)" if self.temperature_compensated
                 else ("temperature model waiting for temperature" if with_model else "no temperature model")
             )  # fmt: skip
+        if self.gross is not None:
+            failing = ",".join(t.value + (f".{a}" if a else "") for t, a in self.gross.failing())
+            nominal = " (no passport)" if self.passport is None else ""
+            parts.append(
+                f"gross at rest: {self.gross.config.source}{nominal}"
+                + (f" FAILING {failing}" if failing else "")
+            )
         if self.stale:
             parts.append("stale " + ",".join(f"{t}.{a}" for t, a in sorted(self.stale)))
         if self.rate_changed_from_hz is not None and self.detection is not None:
@@ -847,6 +930,7 @@ class ImuPipeline:
             "validity": self.validity.state_dict(),
             "accumulator": None if det is None else det.accumulator.state_dict(),
             "gate": None if det is None else det.gate.state_dict(),
+            "gross": None if self.gross is None else self.gross.state_dict(),
             "counters": dict(self.counters),
             "rate_watch": {
                 "steps_s": self._rate_steps_s[: self._rate_fill].tolist(),
@@ -933,6 +1017,9 @@ class ImuPipeline:
                 det = self._setup(rate_hz)
                 det.accumulator = PositionAccumulator.from_state_dict(state["accumulator"])
                 det.gate = StaticGate.from_state(state["gate"])
+                # Absent from checkpoints written before the gross test: it starts afresh.
+                if state.get("gross") is not None and self.gross is not None:
+                    self.gross = GrossMonitor.from_state(self.gross.config, state["gross"])
             self.last_seq = state["last_seq"]
             self.last_t_s = state["last_t_s"]
             self.last_batch_n = int(state["last_batch_n"])

@@ -32,9 +32,11 @@ SEVERITY: dict[Predicate, Severity] = {
     Predicate.ERROR_DENSITY: Severity.WARNING,
     Predicate.CROSS_IMU: Severity.WARNING,
     Predicate.TEMPERATURE: Severity.WARNING,
+    Predicate.GROSS: Severity.ERROR,
 }
 """MAV_SEVERITY of each predicate's event: F0 says *that* a triad failed (warning); F1…F9 name the
-sensor and the cause (:data:`FINDING_SEVERITY`); a stuck axis is critical; recoveries are info."""
+sensor and the cause (:data:`FINDING_SEVERITY`), as the gross test does (an accelerometer off g or a
+gyro off its zero signal at rest, whatever the passport); a stuck axis is critical; recoveries are info."""
 
 FINDING_SEVERITY = Severity.ERROR
 TRIAD_WORD = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
