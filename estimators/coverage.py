@@ -115,7 +115,7 @@ class CheckCoverage:
     ran : the check ran in full.
     applies : False when the check cannot apply to this sensor at all (a MEMS gyro
         against the Earth rate): then its not running is no missing coverage.
-    samples : samples (or windows) tested.
+    samples : samples tested (the gross test: windows at rest).
     positions : positions used (F1…F9).
     mdf_bias_si : per axis, minimum detectable zero signal, m/s² or rad/s (inf: axis not seen).
     mdf_scale : per axis, minimum detectable relative scale error (0.02 = 2 %).
@@ -203,6 +203,8 @@ class CheckCoverage:
         amount = (
             f"{self.positions} position{'s' * (self.positions != 1)}"
             if self.check is Check.F1_F9
+            else f"{self.samples:,} windows at rest"
+            if self.check is Check.GROSS
             else f"{self.samples:,} samples"
         )
         parts = [f"{self.name}: {'ran' if self.ran else 'PARTLY'} on {amount}"]

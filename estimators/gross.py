@@ -30,9 +30,9 @@ Rest, per test
 * **Accelerometer.** A window is at rest for it when the gyro is *still* — quiet, and its mean within
   ``STILL_RATE_RPS`` of the passport's zero signal — and the accelerometer is quiet too (against its
   own floor: a faulty accelerometer with steady noise is quiet, a knock is not).
-* **Gyro.** A window is at rest for it when the accelerometer is quiet and its ``|ā|`` passes the
-  accelerometer test below (near g), and the gyro is quiet. Its mean is not bounded: that is what is
-  tested.
+* **Gyro.** A window is at rest for it when the accelerometer is quiet and its ``|ā|`` near g (within
+  the accelerometer test's tolerance below plus ``NEAR_G_SIGMAS`` σ of the window mean), and the
+  gyro is quiet. Its mean is not bounded: that is what is tested.
 
 What this cannot tell apart: a sustained linear acceleration under a still gyro (a vehicle braking
 hard in a straight line: ``|a| = g·√(1 + (a/g)²)``) and free fall read as an accelerometer off g; a
@@ -46,10 +46,11 @@ The tests (each on the window mean)
 -----------------------------------
 * ``|ā| − g`` against the tolerance the passport allows, ``[−tol_low, tol_high]`` plus
   ``z·σ_|ā|``. The tolerance is the worst case over all orientations of the passport's zero-signal,
-  scale and cross-axis tolerances and of the reference's error: the tolerance terms ``t`` of
-  :func:`estimators.scalar.derive_lambda0` (first and second order and reference), which bound
-  ``s = ½(|ã|² − 1)`` of a within-tolerance unit at rest, hence ``|ã| ∈ [√(1 − 2t), √(1 + 2t)]``:
-  ``tol_low = g(1 − √(1 − 2t))``, ``tol_high = g(√(1 + 2t) − 1)``. The passport's nominal errors are
+  scale and cross-axis tolerances and of the reference's error: the least and largest
+  ``s = ½(|ã|² − 1)`` a within-tolerance unit reads at rest, exactly over orientations and units
+  (:func:`estimators.scalar.tolerance_extremes`, F0's tolerance terms), hence with the reference's
+  relative error ``r``: ``tol_low = g(1 − √(1 + 2s_min)(1 − r))``, ``tol_high = g(√(1 + 2s_max)(1 + r)
+  − 1)`` (for the MPU-6000's limits −1.74 and +1.76 m/s²). The passport's nominal errors are
   compensated first, as F0 does. ``σ_|ā|² = Σ u_i² σ_mean,i²`` with ``u`` the window's gravity
   direction.
 * Each gyro axis: ``|ω̄_i − b_i| ≤ tol_b,i + Ω·r_i + z·σ_mean,i`` with ``b`` the passport's zero signal
@@ -90,10 +91,11 @@ import numpy as np
 
 from estimators._typing import FloatArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
+from estimators.coverage import Check, CheckCoverage, gross_mdf
 from estimators.ninepar import canonical_triad_matrix
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.passport import Passport, TriadPassport
-from estimators.scalar import derive_lambda0
+from estimators.scalar import tolerance_extremes
 from estimators.session import ImuSession, validate_session
 from estimators.static_detector import (
     LOW_MODE_FACTOR,
@@ -114,6 +116,12 @@ STILL_RATE_RPS = 0.05
 """A still gyro: window mean within this of the zero signal, spread within it too. 0.05 rad/s holds a
 calibrated MEMS gyro's residual zero signal and lets a coordinated turn move |a| by at most 0.5 % of g
 at 30 m/s (module docstring)."""
+NEAR_G_SIGMAS = 6.0
+"""Rest for the gyro test: the accelerometer's ``|ā| − g`` within its tolerance plus this many σ of the
+window mean (a linear acceleration or a turn moves it further). Not the accelerometer's own
+per-window test: at ``z`` ≈ 1.5 it fails one window in eight of a unit at its tolerance's edge, and
+each such window would break the gyro's run of failing windows, hiding a gyro fault (found on a
+passport whose tolerances lie below the noise: 39 of 100 gyro faults at 1.5× the MDF declared)."""
 AXIS_NAMED_COS = 0.9
 """An accelerometer failure names the axis whose |u_i| (gravity direction) is at least this at its onset:
 at rest along one axis, |a| moves with that axis's zero signal and scale only."""
@@ -172,19 +180,18 @@ class GrossConfig:
 
 
 def _accel_tolerance(
-    tp: TriadPassport, gravity_mps2: float, gravity_rel_err: float, p: float
-) -> float:
-    """``t``: bound of ``s = ½(|ã|² − 1)`` of a within-tolerance unit at rest (module docstring)."""
+    tp: TriadPassport, gravity_mps2: float, gravity_rel_err: float
+) -> tuple[float, float]:
+    """``(tol_low, tol_high)``: how far below and above g ``|ã|`` of a within-tolerance unit at rest
+    reads, m/s² (module docstring): the exact least and largest ``s`` over orientations and units
+    (:func:`estimators.scalar.tolerance_extremes`, asymmetric: a unit's zero signals and gains lift
+    ``|ã|`` further than they lower it), widened by the reference's relative error."""
     tol = tp.tolerance.copy()
     tol[:3] *= tp.reference / gravity_mps2
-    lam = derive_lambda0(
-        noise_std_norm=np.maximum(tp.noise_std, 1e-12),
-        false_alarm_prob=p,
-        tolerance_norm=tol,
-        reference_rel_err=gravity_rel_err,
-    )
-    # Only the tolerance terms: the noise here is the stream's own, of a window mean.
-    return lam.tolerance_first_order + lam.tolerance_second_order + lam.reference_offset
+    s_min, s_max = tolerance_extremes(tol)
+    low = 1.0 - math.sqrt(max(0.0, 1.0 + 2.0 * s_min)) * (1.0 - gravity_rel_err)
+    high = math.sqrt(1.0 + 2.0 * s_max) * (1.0 + gravity_rel_err) - 1.0
+    return gravity_mps2 * low, gravity_mps2 * high
 
 
 def _gyro_row_gain(tp: TriadPassport) -> FloatArray:
@@ -197,6 +204,22 @@ def _gyro_row_gain(tp: TriadPassport) -> FloatArray:
         cross[j] += span[6 + k]
     gain: FloatArray = 1.0 + span[3:6] + cross
     return gain
+
+
+def tolerance_passports(
+    passport: Passport | None, *, gravity_mps2: float
+) -> tuple[dict[Triad, TriadPassport], dict[Triad, str]]:
+    """Per triad, the passport whose tolerances the gross test uses and whose they are: the unit's,
+    or for a triad it lacks (or no passport) the nominal passport of :data:`NOMINAL_CLASS`."""
+    nominal = nominal_passport(NOMINAL_CLASS, gravity_mps2=gravity_mps2)
+    tps: dict[Triad, TriadPassport] = {}
+    source: dict[Triad, str] = {}
+    for triad in (Triad.ACCEL, Triad.GYRO):
+        if passport is not None and triad in passport.triads:
+            tps[triad], source[triad] = passport.triads[triad], f"passport {passport.unit_id}"
+        else:
+            tps[triad], source[triad] = nominal.triads[triad], f"nominal {NOMINAL_CLASS.value}"
+    return tps, source
 
 
 def gross_config(
@@ -226,23 +249,14 @@ def gross_config(
     if not (math.isfinite(persistence_s) and persistence_s >= 0.0):
         raise ValueError(f"persistence_s must be finite and >= 0, got {persistence_s!r}")
     w = max(MIN_WINDOW_SAMPLES, round(GROSS_WINDOW_S * rate_hz))
-    nominal = nominal_passport(NOMINAL_CLASS, gravity_mps2=gravity_mps2)
-    source = {}
-    tps = {}
-    for triad in (Triad.ACCEL, Triad.GYRO):
-        if passport is not None and triad in passport.triads:
-            tps[triad], source[triad] = passport.triads[triad], f"passport {passport.unit_id}"
-        else:
-            tps[triad], source[triad] = nominal.triads[triad], f"nominal {NOMINAL_CLASS.value}"
+    tps, source = tolerance_passports(passport, gravity_mps2=gravity_mps2)
     ta, tg = tps[Triad.ACCEL], tps[Triad.GYRO]
     acc_nom = ta.nominal.copy()
     acc_nom[:3] *= ta.reference / gravity_mps2
     a_inv = np.asarray(
         np.linalg.solve(canonical_triad_matrix(acc_nom), np.eye(3)), dtype=np.float64
     )
-    t = _accel_tolerance(ta, gravity_mps2, gravity_rel_err, false_alarm_prob)
-    tol_low = gravity_mps2 * (1.0 - math.sqrt(max(0.0, 1.0 - 2.0 * t)))
-    tol_high = gravity_mps2 * (math.sqrt(1.0 + 2.0 * t) - 1.0)
+    tol_low, tol_high = _accel_tolerance(ta, gravity_mps2, gravity_rel_err)
     gyro_zero = tg.nominal[:3] * tg.reference
     gyro_tol = tg.tolerance[:3] * tg.reference + EARTH_RATE_RPS * _gyro_row_gain(tg)
     names = (
@@ -342,6 +356,54 @@ class GrossCoverage:
     def window_power(self) -> float:
         """Per window: ``0.95^(1/persist_windows)`` (``z_power``'s), so that the run is found with 0.95."""
         return float(0.95 ** (1.0 / self.persist_windows))
+
+    def check(self, tp: TriadPassport, *, gravity_mps2: float, total_windows: int) -> CheckCoverage:
+        """This triad's gross test as a verdict's coverage (:mod:`estimators.coverage`): windows tested
+        and the minimum detectable zero signal (both triads) and scale error (the accelerometer: a
+        gyro at rest turns at no rate a scale error could multiply) against ``tp``'s tolerances (the
+        passport whose tolerances the test used, :func:`tolerance_passports`); ``total_windows``:
+        the windows the stream completed, for why none was at rest."""
+        tol_bias = tp.tolerance[:3] * tp.reference
+        tolerance_bias_si = _triple(tol_bias)
+        if self.windows == 0:
+            other = (
+                "the gyro was never still with the accelerometer quiet"
+                if self.triad is Triad.ACCEL
+                else "the accelerometer was never quiet near g with the gyro quiet"
+            )
+            return CheckCoverage(
+                Check.GROSS, self.triad, ran=False, tolerance_bias_si=tolerance_bias_si,
+                reason=f"no rest in {total_windows} window(s) of {self.window_samples} samples: {other}",
+            )  # fmt: skip
+        per_window = {
+            "false_alarm_prob": self.window_false_alarm_prob,
+            "power": self.window_power,
+        }
+        if self.triad is Triad.ACCEL:
+            assert self.max_abs_u is not None
+            bias, scale = gross_mdf(
+                tolerance_si=self.tolerance_si[0], sigma_mean_si=max(self.sigma_mean_si),
+                max_abs_u=self.max_abs_u, reference=gravity_mps2, **per_window,
+            )  # fmt: skip
+            tolerance_scale: tuple[float, float, float] | None = _triple(tp.tolerance[3:6])
+            mdf_scale: tuple[float, float, float] | None = scale
+        else:
+            # Each gyro axis is tested on its own mean: its direction factor is 1.
+            bias = _triple(
+                np.array([
+                    gross_mdf(
+                        tolerance_si=tol, sigma_mean_si=sig, max_abs_u=(1.0, 1.0, 1.0),
+                        reference=1.0, **per_window,
+                    )[0][0]
+                    for tol, sig in zip(self.tolerance_si, self.sigma_mean_si, strict=True)
+                ])
+            )  # fmt: skip
+            tolerance_scale = mdf_scale = None
+        return CheckCoverage(
+            Check.GROSS, self.triad, ran=True, samples=self.windows, mdf_bias_si=bias,
+            mdf_scale=mdf_scale, tolerance_bias_si=tolerance_bias_si,
+            tolerance_scale=tolerance_scale, false_alarm_prob=self.false_alarm_prob,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -548,7 +610,13 @@ class GrossMonitor:
         rest_a = quiet_a & still
         near_g = (dev <= hi) & (dev >= -lo)
         fail_a = rest_a & ~near_g
-        rest_g = quiet_a & near_g & quiet_g
+        margin = NEAR_G_SIGMAS * sig_a
+        rest_g = (
+            quiet_a
+            & (dev <= cfg.accel_tol_high_mps2 + margin)
+            & (dev >= -cfg.accel_tol_low_mps2 - margin)
+            & quiet_g
+        )
         bound_g = cfg.gyro_tol_rps + cfg.z * sig[:, _GYR]
         fail_g = rest_g[:, None] & (np.abs(err) > bound_g)
 

@@ -42,6 +42,7 @@ is the bare predicate.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -668,6 +669,14 @@ def tolerance_extremes(tolerance_norm: ArrayLike) -> tuple[float, float]:
     tol = np.asarray(tolerance_norm, dtype=float).reshape(-1)
     if tol.shape != (9,) or not np.all(np.isfinite(tol)) or np.any(tol < 0):
         raise ValueError(f"tolerance_norm must be 9 finite numbers >= 0, got {tolerance_norm!r}")
+    # The search costs about 0.1 s and every pipeline, F0 and gross configuration asks for the
+    # same few passports' tolerances again: the answer depends on the nine numbers alone.
+    return _tolerance_extremes(tuple(float(t) for t in tol))
+
+
+@functools.lru_cache(maxsize=256)
+def _tolerance_extremes(tolerance: tuple[float, ...]) -> tuple[float, float]:
+    tol = np.asarray(tolerance)
     if not np.any(tol):
         return 0.0, 0.0
     from scipy import optimize  # loaded when λ0 is derived, not with the module

@@ -1,5 +1,5 @@
-"""What an IMU's pipeline tested so far (:mod:`estimators.coverage`): per triad F0 and F1…F9 with
-their minimum detectable fault, the stream checks and the cross-IMU check, and why any did not run.
+"""What an IMU's pipeline tested so far (:mod:`estimators.coverage`): per triad F0, F1…F9 and the
+gross test with their minimum detectable fault, the stream checks and the cross-IMU check, and why any did not run.
 
 Read from the pipeline's own state (F0's test counter ``f0.<triad>.tests``, its λ0 and the gravity
 directions it saw, the diagnosis's estimator), so ``replay``, the daemon's status and ``watch`` state
@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from estimators.conventions import Triad
 from estimators.coverage import Check, CheckCoverage, ImuCoverage, f0_mdf, ninepar_coverage
+from estimators.gross import tolerance_passports
 from service.pipeline.options import TRIAD_WORD
 from service.pipeline.triad_check import TriadCheck, f0_threshold
 
@@ -34,6 +35,7 @@ def imu_coverage(pipe: ImuPipeline, *, imus_on_vehicle: int | None = None) -> Im
             continue
         checks.append(_f0(pipe, triad, check))
         checks.append(_ninepar(pipe, triad, check))
+    checks += [_gross(pipe, triad) for triad in (Triad.ACCEL, Triad.GYRO)]
     checks.append(
         CheckCoverage(Check.STREAM, None, ran=True, samples=pipe.n_samples)
         if pipe.n_samples
@@ -145,4 +147,15 @@ def _ninepar(pipe: ImuPipeline, triad: Triad, check: TriadCheck) -> CheckCoverag
         positions=n,
         reference=options.reference(triad),
         passport_observable=check.passport.observable,
+    )
+
+
+def _gross(pipe: ImuPipeline, triad: Triad) -> CheckCoverage:
+    """The gross test of one triad: run whatever the rate and the passport (:mod:`estimators.gross`)."""
+    if pipe.gross is None:
+        reason = _not_running(pipe) or "not set up"
+        return CheckCoverage(Check.GROSS, triad, ran=False, reason=reason)
+    tps, _ = tolerance_passports(pipe.passport, gravity_mps2=pipe.options.gravity_mps2)
+    return pipe.gross.coverage()[triad].check(
+        tps[triad], gravity_mps2=pipe.options.gravity_mps2, total_windows=pipe.gross.windows
     )
