@@ -57,17 +57,25 @@ def missing(vehicle: str, imu: int):
 
 def test_a_unit_without_a_passport_gets_f0_from_its_class_and_says_so():
     """1.2 g at rest (s = 0.22 against λ0 0.219 at 200 Hz, 2.4 mg of noise in s): F0's event; the healthy
-    twin none. Without a class ("none") the same unit has no passport and raises nothing."""
+    twin none. Without a class ("none") the same unit has no passport: no F0, but the gross test."""
     fleet = FleetProcessor(passports=missing, options=options(), nominal=SensorClass.CONSUMER_MEMS)
     events = run_fleet(fleet, resting("uav-bad", 1.2) + resting("uav-ok", 1.0, seed=2))
-    assert [(e.vehicle, e.predicate) for e in events] == [("uav-bad", Predicate.F0)]
+    # F0 per sample, and the gross test on its windows (5 s of them) too.
+    assert [(e.vehicle, e.predicate) for e in events] == [
+        ("uav-bad", Predicate.F0),
+        ("uav-bad", Predicate.GROSS),
+    ]
     for vehicle in ("uav-bad", "uav-ok"):
         st = fleet.status(vehicle, service="t", now_unix_s=0.0).imus[0]
         assert st.state is not ImuState.NO_PASSPORT
         assert st.detail.startswith("passport: nominal consumer_mems; F0 accel: λ0 0.219")
+    # Without a class ("none") F0 has no passport to run against; the gross test, which needs none,
+    # still finds the unit off g and says whose tolerances it took.
     off = FleetProcessor(passports=missing, options=options(), nominal=None)
-    assert run_fleet(off, resting("uav-bad", 1.2)) == []
-    assert off.status("uav-bad", service="t", now_unix_s=0.0).imus[0].state is ImuState.NO_PASSPORT
+    assert [e.predicate for e in run_fleet(off, resting("uav-bad", 1.2))] == [Predicate.GROSS]
+    st = off.status("uav-bad", service="t", now_unix_s=0.0).imus[0]
+    assert st.state is ImuState.FAULT and "nominal consumer_mems (no passport)" in st.detail
+    assert "F0 accel" not in st.detail
 
 
 def test_a_refused_entry_falls_back_to_the_nominal_passport_and_stays_reported(tmp_path):
@@ -86,7 +94,7 @@ def test_a_refused_entry_falls_back_to_the_nominal_passport_and_stays_reported(t
         on_passport_error=lambda v, i, why: told.append(why),
     )
     events = run_fleet(fleet, resting("uav-x", 1.2))
-    assert [e.predicate for e in events] == [Predicate.F0]
+    assert [e.predicate for e in events] == [Predicate.F0, Predicate.GROSS]
     assert len(told) == 1 and store.rejected_counts() == {"checksum_mismatch": 1}
     detail = fleet.status("uav-x", service="t", now_unix_s=0.0).imus[0].detail
     assert detail.startswith(f"passport: nominal consumer_mems; {told[0]}")
@@ -98,7 +106,10 @@ def test_a_checkpoint_made_on_a_nominal_passport_resumes_on_the_same_class_only(
     (moved aside by the daemon) and the unit starts fresh."""
     fleet = FleetProcessor(passports=missing, options=options(), nominal=SensorClass.CONSUMER_MEMS)
     frames = resting("uav-c", 1.2)
-    assert [e.predicate for e in run_fleet(fleet, frames[:10], finish=False)] == [Predicate.F0]
+    assert [e.predicate for e in run_fleet(fleet, frames[:10], finish=False)] == [
+        Predicate.F0,
+        Predicate.GROSS,
+    ]
     state = fleet.pipelines[("uav-c", 0)].state_dict()
     assert state["passport"] == "nominal-consumer_mems 2026-01-01"
     for cls, restored in ((SensorClass.CONSUMER_MEMS, True), (SensorClass.TACTICAL, False)):
@@ -148,9 +159,12 @@ def test_the_daemon_gives_a_unit_without_a_passport_its_class_and_raises_f0_over
                 publish_blocking(vehicle, ok)
                 publish_blocking(vehicle, bad)
                 wait_until(
-                    lambda: any(e.vehicle == "uav-bad" for e in got),
+                    lambda: (
+                        {e.predicate for e in got if e.vehicle == "uav-bad"}
+                        == {Predicate.F0, Predicate.GROSS}
+                    ),
                     timeout_s=60,
-                    what=lambda: f"the F0 event of uav-bad (got {got})",
+                    what=lambda: f"the F0 and gross events of uav-bad (got {got})",
                 )
                 wait_until(
                     lambda: all(
@@ -164,7 +178,10 @@ def test_the_daemon_gives_a_unit_without_a_passport_its_class_and_raises_f0_over
             finally:
                 code = daemon.terminate()
     assert code == 0, daemon.lines
-    assert [(e.vehicle, e.imu, e.predicate) for e in got] == [("uav-bad", 0, Predicate.F0)]
+    assert sorted((e.vehicle, e.imu, e.predicate.value) for e in got) == [
+        ("uav-bad", 0, "F0"),
+        ("uav-bad", 0, "gross"),
+    ]
     assert all(d.startswith("passport: nominal consumer_mems; ") for d in details.values()), details
     assert any(
         "0 refused; 0 unit(s) run on nominal passports" in line
