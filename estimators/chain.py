@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from estimators._typing import FloatArray
-from estimators.conventions import N_PARAMS, Triad, reference_magnitude
+from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad, reference_magnitude
 from estimators.diagnosis import (
     DEFAULT_FALSE_ALARM_PROB,
     Diagnosis,
@@ -285,8 +285,10 @@ def run_chain(
     """Static detection → positions → estimates → diagnosis (module docstring).
 
     Raises ``ValueError`` (a :class:`~estimators.session.SessionError`) when the
-    session has no usable samples; a session without enough positions is not an
-    error: its estimates say "not observable yet" and no predicate is evaluated.
+    session has no usable samples, and without a passport when a triad's positions
+    cannot be fitted (a channel without spread); a session without enough positions
+    is not an error: its estimates say "not observable yet" and no predicate is
+    evaluated. With a passport, a triad that cannot be fitted is not diagnosed, and why.
     A triad with a passport that M1's geometry does not resolve is diagnosed by
     the M4 fits that make a six-position passport (:func:`m4_estimate`), where
     the session holds their geometry.
@@ -386,17 +388,32 @@ def _fit_triads(
     config: ChainConfig,
     passport: Passport | None,
 ) -> dict[Triad, TriadResult]:
-    """Estimate and (with a passport) diagnose each triad from ``positions`` (and ``turns``)."""
+    """Estimate and (with a passport) diagnose each triad from ``positions`` (and ``turns``).
+
+    Positions a triad cannot be fitted from (a channel without spread: stuck, or clipped at its
+    range) make a passport impossible: an error without one. Against a passport they are that
+    triad's finding to make, not the session's end: the triad is not diagnosed, the reason
+    said, and the other triad and F0 still judge the samples.
+    """
     out = {}
     for triad in triads:
         reference = reference_magnitude(triad, config.gravity_mps2)
+        fitted = True
         try:
             est = estimate_triad(positions, triad, reference, method=config.method)
         except ValueError as exc:
-            raise ValueError(f"{triad.value}: {exc}") from None
+            if passport is None:
+                raise ValueError(f"{triad.value}: {exc}") from None
+            est = _unfitted(triad, config.method, len(positions), reference, str(exc))
+            fitted = False
         tp = None if passport is None else passport.triads.get(triad)
         # A fit that left the physical domain is not a geometry M4 completes: it stays SUSPECT.
-        if tp is not None and est.verdict is not Verdict.OBSERVABLE and not est.fit_left_domain:
+        if (
+            fitted
+            and tp is not None
+            and est.verdict is not Verdict.OBSERVABLE
+            and not est.fit_left_domain
+        ):
             alt = m4_estimate(triad, est, positions, turns, config.gravity_mps2)
             if alt is not None and alt.params is not None and np.any(alt.observable):
                 est = alt
@@ -410,6 +427,27 @@ def _fit_triads(
         )
         out[triad] = TriadResult(est, residuals, sigma, diag)
     return out
+
+
+def _unfitted(triad: Triad, method: Method, n: int, reference: float, why: str) -> Estimate:
+    """The estimate of a triad whose positions cannot be fitted (:func:`_fit_triads`), saying why."""
+    observable = np.zeros(N_PARAMS, dtype=bool)
+    observable.flags.writeable = False
+    return Estimate(
+        triad=triad,
+        method=method,
+        verdict=Verdict.NOT_OBSERVABLE_YET,
+        reason=f"its positions cannot be fitted: {why}; not observable: {' '.join(PARAM_NAMES)}",
+        n_positions=n,
+        params=None,
+        cov=None,
+        observable=observable,
+        rank=0,
+        condition=float("inf"),
+        chi2=None,
+        dof=max(n - N_PARAMS, 0),
+        reference=reference,
+    )
 
 
 def _with_bias_instability(

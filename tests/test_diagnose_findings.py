@@ -204,3 +204,38 @@ def test_the_measured_xsens_session_keeps_its_diagnosis_its_knocks_are_not_a_fau
     f0 = doc["f0"]["accel"]
     assert f0["failed"] == f0["knocks"] == 6 and not f0["persistent"]
     assert doc["triads"]["gyro"]["reason"] == "no passport for this triad"
+
+
+# --- what diagnose must not do (review of the above) ---------------------------------------------
+
+
+def test_a_channel_clipped_flat_is_an_f0_fault_not_unusable_input(unit, capsys):
+    """z clipped at ±5 m/s² from the start: where z is near vertical its output is flat (no
+    spread: no position covariance) and |a| ≈ 0.7 g. The fit cannot use those positions, F0 fails
+    on them: a fault (exit 1) with the accelerometers not diagnosed and why, not 'unusable input'."""
+    d, _ = unit
+    fault = Fault(FaultKind.SATURATION, Triad.ACCEL, 2, 0.0, 5.0)
+    res = simulate(multi_position_spec(model=MODEL, n_positions=5, faults=(fault,)), seed=37)
+    write_csv_session(d / "clipped.csv", res.session)
+    status, text, json_status, doc = _diagnose(capsys, d / "clipped.csv", d / "pp.json")
+    assert status == json_status == doc["exit_status"] == 1
+    assert [(f["predicate"], f["triad"]) for f in doc["faults"]] == [("F0", "accel")]
+    accel = doc["triads"]["accel"]
+    assert not accel["diagnosed"] and "axis z has no spread at all" in accel["reason"]
+    assert "FAULT F0: accel" in text and "axis z has no spread at all" in text
+
+
+def test_a_dead_gyro_channel_does_not_stop_the_accelerometers_being_diagnosed(unit, capsys):
+    """The passport has no gyro (a MEMS gyro cannot see the Earth rate); the session's gyro x reads
+    exactly 0. That triad cannot be fitted, the accelerometers still can: diagnosed, nothing
+    found, the gyro not tested and why (exit 3), not 'unusable input' (exit 2)."""
+    d, _ = unit
+    res = simulate(multi_position_spec(model=MODEL, n_positions=12, static_s=5.0), seed=38)
+    gyro = res.session.gyro_rps.copy()
+    gyro[:, 0] = 0.0
+    write_csv_session(d / "deadgyro.csv", dataclasses.replace(res.session, gyro_rps=gyro))
+    status, text, json_status, doc = _diagnose(capsys, d / "deadgyro.csv", d / "pp.json")
+    assert status == json_status == doc["exit_status"] == 3
+    assert doc["triads"]["accel"]["diagnosed"] and doc["faults"] == []
+    assert "not tested: gyro: no passport for this triad" in text
+
