@@ -239,3 +239,50 @@ def test_a_dead_gyro_channel_does_not_stop_the_accelerometers_being_diagnosed(un
     assert doc["triads"]["accel"]["diagnosed"] and doc["faults"] == []
     assert "not tested: gyro: no passport for this triad" in text
 
+
+def _accel_only(d, name, seed, noise_factor=1.0):
+    """A 12-position accelerometer-only session of the unit, its white noise ``noise_factor`` × the
+    passport's."""
+    res = simulate(multi_position_spec(model=MODEL, n_positions=12, static_s=5.0), seed=seed)
+    accel = res.session.accel_mps2
+    if noise_factor != 1.0:
+        tp = read_passport_json(d / "pp.json").triads[Triad.ACCEL]
+        extra = np.sqrt(noise_factor**2 - 1.0) * tp.noise_std * tp.reference
+        accel = accel + extra * np.random.default_rng(seed).standard_normal(accel.shape)
+    write_csv_session(
+        d / name, dataclasses.replace(res.session, accel_mps2=accel, gyro_rps=None, temp_c=None)
+    )
+    return d / name
+
+
+def test_f0_that_tested_no_sample_is_not_tested_not_inside_the_shell(unit, capsys):
+    """A unit 6× noisier than its passport: the chain's detector (thresholds from the session's
+    own noise) finds its positions and F1…F9 pass, but the service's detector (thresholds from
+    the passport's noise) sees no rest, so F0 tested nothing. That is not 'no fault' (exit 0)
+    and not '0 static samples inside the shell': F0 was not tested, and why (exit 3)."""
+    d, _ = unit
+    path = _accel_only(d, "noisy.csv", seed=39, noise_factor=6.0)
+    status, text, json_status, doc = _diagnose(capsys, path, d / "pp.json")
+    assert doc["triads"]["accel"]["diagnosed"] and doc["f0"]["accel"]["tested"] == 0
+    assert status == json_status == doc["exit_status"] == 3
+    assert "  no fault" not in text.splitlines() and "inside the shell" not in text
+    assert "not tested: F0 accel: no static sample" in text
+
+
+def test_a_passport_triad_the_session_does_not_carry_is_not_tested(unit, capsys):
+    """The passport diagnoses a gyro (a navigation-grade one); the session has no gyro columns.
+    The accelerometers pass, the gyro was not tested: exit 3 and said, not 'no fault'."""
+    from estimators.nominal_passport import SensorClass, nominal_passport
+    from protocols.passport_codec import write_passport_json
+
+    d, _ = unit
+    own = read_passport_json(d / "pp.json")
+    gyro = nominal_passport(SensorClass.NAVIGATION).triads[Triad.GYRO]
+    write_passport_json(
+        dataclasses.replace(own, triads={**own.triads, Triad.GYRO: gyro}), d / "pp_gyro.json"
+    )
+    path = _accel_only(d, "accel_only.csv", seed=40)
+    status, text, json_status, doc = _diagnose(capsys, path, d / "pp_gyro.json")
+    assert doc["triads"]["accel"]["diagnosed"] and doc["faults"] == []
+    assert status == json_status == doc["exit_status"] == 3
+    assert "not tested: gyro: the session has no gyro samples" in text

@@ -8,9 +8,10 @@ Exit status (one set for every verdict command):
   runs are knocks, counted and said) even when the nine parameters cannot be fitted;
 - 2: unusable input (one line on stderr);
 - 3: not enough to test, nothing found: ``NOT DIAGNOSED: …`` (no triad had a predicate F1…F9 it
-  could evaluate: too few positions, their geometry, noise against the reference), ``SUSPECT``
-  (a triad with a passport whose fit left the physical domain), or some triad of the session not
-  diagnosed (``no finding within coverage``, what was not tested and why).
+  could evaluate: too few positions, their geometry, noise against the reference, positions it
+  cannot be fitted from), ``SUSPECT`` (a triad with a passport whose fit left the physical
+  domain), or something that applies not tested (``no finding within coverage``, what and why):
+  a triad of the session or of the passport not diagnosed, or an F0 that found no sample at rest.
 
 A fault outranks what was not tested. A session whose geometry M1's scalar fit cannot use (six
 faces, with or without full turns) is diagnosed by the M4 fits that make a six-position passport,
@@ -49,7 +50,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Exit status 0: tested, no fault (every triad diagnosed); 1: a fault found (FAULT lines: "
         "F1…F9, or F0 failing persistently, even when the nine parameters cannot be fitted); "
         "2: unusable input (one-line reason); 3: not enough to test, nothing found (NOT DIAGNOSED and why; "
-        "SUSPECT: a triad with a passport whose fit left the physical domain; or a triad not diagnosed). "
+        "SUSPECT: a triad with a passport whose fit left the physical domain; a triad of the session or "
+        "the passport not diagnosed; or F0 without a sample at rest). "
         "A fault outranks what was not tested.",
     )
     add_session_arguments(p)
@@ -150,12 +152,31 @@ def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     ]
 
 
-def exit_status(result: ChainResult, faults: list[dict[str, Any]]) -> int:
-    """:data:`EXIT_FAULT` when anything failed, else :data:`EXIT_UNTESTED` when some triad of the
-    session was not diagnosed (or is SUSPECT), else :data:`EXIT_NO_FAULT` (module docstring)."""
+def not_tested(result: ChainResult, passport: Passport, f0: dict[str, dict[str, Any]]) -> list[str]:
+    """What applies and was not tested, and why: a triad of the session or of the passport not
+    diagnosed, and an F0 that could run but found no sample at rest to test."""
+    out = [f"{t.value}: {r.reason}" for t, r in result.triads.items() if not r.diagnosed]
+    out += [
+        f"{t.value}: the session has no {t.value} samples"
+        for t in passport.triads
+        if t not in result.triads
+    ]
+    out += [
+        f"F0 {name}: no static sample (the service's detector, its thresholds from the passport's "
+        "noise, saw no rest)"
+        for name, f in f0.items()
+        if f["run"] and f["tested"] == 0
+    ]
+    return out
+
+
+def exit_status(result: ChainResult, faults: list[dict[str, Any]], untested: list[str]) -> int:
+    """:data:`EXIT_FAULT` when anything failed, else :data:`EXIT_UNTESTED` when something that
+    applies was not tested (:func:`not_tested`) or a triad is SUSPECT, else :data:`EXIT_NO_FAULT`
+    (module docstring)."""
     if faults:
         return EXIT_FAULT
-    if result.suspects or not all(r.diagnosed for r in result.triads.values()):
+    if result.suspects or untested:
         return EXIT_UNTESTED
     return EXIT_NO_FAULT
 
@@ -188,18 +209,20 @@ def run(args: argparse.Namespace) -> int:
         for f in result.faults
     ]
     faults += [{**f.to_dict(), "positions": "before onset"} for f in result.faults_before]
-    status = exit_status(result, faults)
+    untested = not_tested(result, passport, f0)
+    status = exit_status(result, faults, untested)
     if args.json:
         out = result.to_dict()
         out["unit_id"] = passport.unit_id
         out["gravity_source"] = inp.gravity_source
         out["f0"] = f0
         out["faults"] = faults
+        out["not_tested"] = untested
         out["exit_status"] = status
         json.dump(out, sys.stdout, indent=1)
         print()
         return status
-    _print_text(result, passport, f0, inp.gravity_mps2, inp.gravity_source)
+    _print_text(result, passport, f0, untested, inp.gravity_mps2, inp.gravity_source)
     return status
 
 
@@ -207,6 +230,7 @@ def _print_text(
     result: ChainResult,
     passport: Passport,
     f0: dict[str, dict[str, Any]],
+    untested: list[str],
     gravity_mps2: float,
     gravity_source: str,
 ) -> None:
@@ -230,6 +254,8 @@ def _print_text(
     for name, f in f0.items():
         if not f["run"]:
             print(f"  F0 {name}: not run ({f['note']})")
+        elif not f["tested"]:
+            print(f"  F0 {name}: not tested: no static sample (λ0 {f['lambda0']:.3g})")
         elif f["persistent"]:
             print(
                 f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['failed']} of {f['tested']} "
@@ -255,13 +281,12 @@ def _print_text(
         )
     f0_fault = any(f["run"] and f["persistent"] for f in f0.values())
     if not result.diagnosed:
-        print(f"NOT DIAGNOSED: {result.reason}")
+        print(f"NOT DIAGNOSED: {'; '.join(untested)}")
         return
-    undiagnosed = [f"{t.value}: {r.reason}" for t, r in result.triads.items() if not r.diagnosed]
     if not (result.faults or result.faults_before or result.suspects or f0_fault):
         print(
-            f"  no finding within coverage; not tested: {'; '.join(undiagnosed)}"
-            if undiagnosed
+            f"  no finding within coverage; not tested: {'; '.join(untested)}"
+            if untested
             else "  no fault"
         )
     _print_findings(result.triads, "after the onset" if onset else "")
