@@ -193,7 +193,13 @@ class ChainResult:
     @property
     def passport_of_another_unit(self) -> bool:
         """Most predicates fail at once (:data:`FOREIGN_PASSPORT_MIN_FAILED`, more than half of
-        those evaluated): a unit rarely breaks that way, a passport of another unit always does."""
+        those evaluated): a unit rarely breaks that way, a passport of another unit always does.
+
+        Never after an :attr:`onset`: the unit changed within the session (one set of parameters
+        did not explain its positions), which another unit's passport, constant over the session,
+        does not make; a second change after it makes the later fit fail broadly instead."""
+        if self.onset is not None:
+            return False
         failed, evaluated = self.predicate_counts()
         return failed >= FOREIGN_PASSPORT_MIN_FAILED and 2 * failed > evaluated
 
@@ -225,6 +231,9 @@ class Onset:
     before : per triad, the fit of the positions that ended before ``t_s``, against the passport.
     n_before, n_after : positions wholly before and wholly after ``t_s``.
     n_straddling : positions that held ``t_s`` (in neither set).
+    changed_after : the fit of the positions after ``t_s`` does not explain them either (the
+        test of :func:`split_at_onset`): the unit changed again, or the fault came and went, and
+        that fit's estimates mix the states it held.
     """
 
     t_s: float
@@ -232,6 +241,7 @@ class Onset:
     n_before: int
     n_after: int
     n_straddling: int
+    changed_after: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -239,6 +249,7 @@ class Onset:
             "n_before": self.n_before,
             "n_after": self.n_after,
             "n_straddling": self.n_straddling,
+            "changed_after": self.changed_after,
             "before": _triads_dict(self.before),
             "faults_before": [f.to_dict() for f in _findings(self.before)],
         }
@@ -356,11 +367,12 @@ def split_at_onset(
         else ()
     )
     present = tuple(result.triads)
+    later = _fit_triads(
+        after, tuple(tr for tr in turns if tr.t_start_s >= t_s), present, config, passport
+    )
     return replace(
         result,
-        triads=_fit_triads(
-            after, tuple(tr for tr in turns if tr.t_start_s >= t_s), present, config, passport
-        ),
+        triads=later,
         onset=Onset(
             t_s,
             _fit_triads(
@@ -369,6 +381,7 @@ def split_at_onset(
             len(before),
             len(after),
             len(result.positions) - len(before) - len(after),
+            _changed(later[triad], config.false_alarm_prob),
         ),
     )
 

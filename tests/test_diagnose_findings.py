@@ -286,3 +286,25 @@ def test_a_passport_triad_the_session_does_not_carry_is_not_tested(unit, capsys)
     assert doc["triads"]["accel"]["diagnosed"] and doc["faults"] == []
     assert status == json_status == doc["exit_status"] == 3
     assert "not tested: gyro: the session has no gyro samples" in text
+
+
+def test_a_second_fault_after_the_onset_is_said_and_not_taken_for_another_units_passport(
+    unit, capsys
+):
+    """z zero signal +0.05 g from the 6th position, x scale +0.04 from the 13th: F0 dates the first
+    change and the positions after it are fitted apart, but they hold a second change too, so no
+    one set of parameters explains them and most predicates fail. That is the unit changing twice,
+    said so, and not a passport of another unit (issue 28, item 6); exit 1."""
+    d, clean = unit
+    starts = [a for a, _ in clean.truth.static_intervals_s]
+    faults = (
+        Fault(FaultKind.STEP, Triad.ACCEL, 2, starts[5], 0.05),
+        Fault(FaultKind.STEP, Triad.ACCEL, 3, starts[12], 0.04),
+    )
+    res = simulate(multi_position_spec(model=MODEL, faults=faults), seed=41)
+    write_csv_session(d / "twice.csv", res.session)
+    status, text, json_status, doc = _diagnose(capsys, d / "twice.csv", d / "pp.json")
+    assert status == json_status == doc["exit_status"] == 1
+    assert doc["onset"] is not None and doc["onset"]["changed_after"]
+    assert not doc["passport_of_another_unit"] and "probably not this unit's" not in text
+    assert "not explained by one set of parameters either" in text

@@ -248,6 +248,11 @@ def _print_text(
             f"before and the {onset.n_after} after it are fitted apart"
             + (f" ({onset.n_straddling} holding it in neither)" if onset.n_straddling else "")
         )
+        if onset.changed_after:
+            print(
+                "  the positions after it are not explained by one set of parameters either: the unit "
+                "changed again, or the fault came and went; their estimates mix what it was"
+            )
         _print_triads(onset.before, "before the onset: ")
         _print_findings(onset.before, "before the onset")
     _print_triads(result.triads, "after the onset: " if onset else "")
