@@ -308,3 +308,22 @@ def test_a_second_fault_after_the_onset_is_said_and_not_taken_for_another_units_
     assert doc["onset"] is not None and doc["onset"]["changed_after"]
     assert not doc["passport_of_another_unit"] and "probably not this unit's" not in text
     assert "not explained by one set of parameters either" in text
+
+
+def test_the_f0_finding_counts_and_measures_its_persistent_failure_not_the_knocks(unit, capsys):
+    """Five positions, a z scale fault of 0.02 (|s| ≈ 0.023 where z is vertical, beyond λ0 ≈ 0.016)
+    and one knock of 3.5 % (|s| ≈ 0.035) on a rest sample elsewhere: the FAULT F0 finding's count
+    and worst value are the persistent failure's; the knock is counted apart, as knocks are."""
+    d, _ = unit
+    fault = Fault(FaultKind.STEP, Triad.ACCEL, SCALE_Z, 0.0, 0.02)
+    res = simulate(multi_position_spec(model=MODEL, n_positions=5, faults=(fault,)), seed=42)
+    k = int(np.searchsorted(res.session.t_s, np.mean(res.truth.static_intervals_s[1])))
+    res.session.accel_mps2[k] *= 1.035
+    write_csv_session(d / "fault_knock.csv", res.session)
+    status, text, _, doc = _diagnose(capsys, d / "fault_knock.csv", d / "pp.json")
+    f0 = doc["f0"]["accel"]
+    assert status == 1 and f0["persistent"] and f0["knocks"] == 1
+    (found,) = doc["faults"]
+    assert found["failed"] == f0["failed"] - 1 and found["worst"] < 0.03 < f0["worst"]
+    assert f"on {found['failed']} of {f0['tested']} static samples" in text
+    assert f"worst |½(|ã|²−1)| {found['worst']:.3g}, and 1 knock" in text

@@ -123,6 +123,8 @@ def f0_report(
             "persistent_runs": f0.persistent_runs,
             "knocks": f0.knocks,
             "persistent": f0.persistent,
+            "persistent_failed": f0.persistent_failed,
+            "persistent_worst": f0.persistent_worst,
             "onset_t_s": f0.onset_t_s,
             "onset_residual": f0.onset_residual,
             "note": note,
@@ -131,7 +133,8 @@ def f0_report(
 
 
 def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
-    """The persistent F0 failures as findings (``faults`` of the JSON), in the form of F1…F9's."""
+    """The persistent F0 failures as findings (``faults`` of the JSON), in the form of F1…F9's:
+    their samples and worst value; the knocks only counted."""
     return [
         {
             "predicate": "F0",
@@ -142,10 +145,11 @@ def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
             "nominal": 0.0,
             "tolerance": f["lambda0"],
             "sigma": None,
-            "failed": f["failed"],
+            "failed": f["persistent_failed"],
             "tested": f["tested"],
             "first_t_s": f["onset_t_s"],
-            "worst": f["worst"],
+            "worst": f["persistent_worst"],
+            "knocks": f["knocks"],
         }
         for name, f in f0.items()
         if f["run"] and f["persistent"]
@@ -263,9 +267,9 @@ def _print_text(
             print(f"  F0 {name}: not tested: no static sample (λ0 {f['lambda0']:.3g})")
         elif f["persistent"]:
             print(
-                f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['failed']} of {f['tested']} "
-                f"static samples, {f['persistent_runs']} runs of {f['persistence_s']:g} s or more from "
-                f"{f['onset_t_s']:.3f} s; worst |½(|ã|²−1)| {f['worst']:.3g}"
+                f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['persistent_failed']} of "
+                f"{f['tested']} static samples, {f['persistent_runs']} runs of {f['persistence_s']:g} s or more "
+                f"from {f['onset_t_s']:.3f} s; worst |½(|ã|²−1)| {f['persistent_worst']:.3g}"
                 + (f", and {_knocks(f['knocks'])}" if f["knocks"] else "")
             )
         elif f["failed"]:
