@@ -313,11 +313,7 @@ def run_chain(
     if instability is None and passport is not None:
         instability = {t: tp.bias_instability_std for t, tp in passport.triads.items()}
     positions = _with_bias_instability(found.positions, instability or {}, config.gravity_mps2)
-    turns = (
-        find_full_turns(clean, detection.intervals)
-        if passport is not None and Triad.GYRO in passport.triads
-        else ()
-    )
+    turns = _diagnosis_turns(clean, detection, positions, passport)
     return ChainResult(
         session.n_samples,
         rejected,
@@ -361,11 +357,7 @@ def split_at_onset(
     if not before or whole is None or not _changed(whole, config.false_alarm_prob):
         return result
     after = tuple(p for p in result.positions if p.t_start_s >= t_s)
-    turns = (
-        find_full_turns(result.session, result.detection.intervals)
-        if Triad.GYRO in passport.triads
-        else ()
-    )
+    turns = _diagnosis_turns(result.session, result.detection, result.positions, passport)
     present = tuple(result.triads)
     later = _fit_triads(
         after, tuple(tr for tr in turns if tr.t_start_s >= t_s), present, config, passport
@@ -384,6 +376,25 @@ def split_at_onset(
             _changed(later[triad], config.false_alarm_prob),
         ),
     )
+
+
+def _diagnosis_turns(
+    session: ImuSession,
+    detection: StaticDetection,
+    positions: tuple[Position, ...],
+    passport: Passport | None,
+) -> tuple[FullTurn, ...]:
+    """The full turns a gyro with a passport is diagnosed by (:func:`m4_estimate`): only in a
+    session holding the six faces, the calibration of the Ferraris type whose turns they are.
+
+    A turn's scale factor is its integral against exactly ``2π``; the detector accepts any
+    stretch between rests within 10 % of it about one axis. In a flight a manoeuvre between its
+    rests can integrate to that (about a fixed axis or not): taken for a turn it gave a healthy
+    navigation-grade unit a scale error of -0.025 against a tolerance of 0.0045.
+    """
+    if passport is None or Triad.GYRO not in passport.triads or face_positions(positions) is None:
+        return ()
+    return find_full_turns(session, detection.intervals)
 
 
 def _changed(whole: TriadResult, false_alarm_prob: float) -> bool:

@@ -327,3 +327,25 @@ def test_the_f0_finding_counts_and_measures_its_persistent_failure_not_the_knock
     assert found["failed"] == f0["failed"] - 1 and found["worst"] < 0.03 < f0["worst"]
     assert f"on {found['failed']} of {f0['tested']} static samples" in text
     assert f"worst |½(|ã|²−1)| {found['worst']:.3g}, and 1 knock" in text
+
+
+def test_a_healthy_flights_manoeuvre_is_not_taken_for_a_full_turn_of_a_calibration(
+    tmp_path, capsys
+):
+    """A navigation-grade unit's 60 s flight against its own passport: one position, nothing to
+    fit. Between its rests the gyro integrates to within 10 % of 2π about x, which a calibration's
+    turn detector accepts; taken as a turn of exactly 2π it 'measured' e_x = -0.025 (tolerance
+    0.0045): FAULT F4 on a healthy unit. Full turns diagnose only a session holding the six faces
+    (the Ferraris calibration they belong to); the flight is not diagnosed (exit 3), as before."""
+    cal, flight, pp = tmp_path / "cal.csv", tmp_path / "flight.csv", tmp_path / "pp.json"
+    nav = ["--grade", "navigation"]
+    assert (
+        main(["simulate", "--out", str(cal), "--static-s", "6", "--transition-s", "2", *nav]) == 0
+    )
+    assert main(["calibrate", str(cal), "--out", str(pp), "--latitude", "45", "--no-audit"]) == 0
+    argv = ["--profile", "flight", "--duration-s", "60", "--seed", "4032", *nav]
+    assert main(["simulate", "--out", str(flight), *argv]) == 0
+    status, text, json_status, doc = _diagnose(capsys, flight, pp)
+    assert len(doc["positions"]) == 1
+    assert doc["faults"] == [] and "FAULT" not in text
+    assert status == json_status == doc["exit_status"] == 3
