@@ -9,14 +9,16 @@ import json
 import numpy as np
 import pytest
 from real_data import XSENS, needs
+from service_support import batches_of, run_fleet
 
 from estimators.conventions import Triad
 from estimators.ninepar import SOURCE_VECTOR
 from estimators.sim import Fault, FaultKind, Grade, grade_error_model, multi_position_spec, simulate
 from estimators.sixpos import ferraris_spec
 from protocols.passport_codec import read_passport_json
-from protocols.session_file import write_csv_session
+from protocols.session_file import read_csv_session, write_csv_session
 from service.cli import main
+from service.pipeline import FleetProcessor, PipelineOptions
 
 MODEL = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
 SCALE_Z = 5  # parameter index of e_z
@@ -188,12 +190,12 @@ def test_a_fault_from_the_10th_of_18_positions_is_dated_and_named_in_the_later_p
 
 
 @needs(XSENS)
-def test_the_measured_xsens_session_keeps_its_diagnosis_its_knocks_are_not_a_fault(
-    tmp_path, capsys
-):
-    """The real unit against its own passport: the accelerometers diagnosed, nothing fails; F0's
-    six failures are single samples (knocks), not a fault; the gyro has no passport (it cannot see
-    the Earth rate), so the answer is no finding within coverage, exit 3 (it was 0)."""
+def test_the_measured_xsens_session_keeps_its_diagnosis(tmp_path, capsys):
+    """The real unit against its own passport: the accelerometers diagnosed, nothing fails; F0
+    tests the 34,882 samples the service tests (tests/test_pipeline_xsens.py: the static runs less
+    25 samples at each end) and none leaves this shell (the six single-sample failures diagnose
+    counted as knocks before were those run ends); the gyro has no passport (it cannot see the
+    Earth rate), so the answer is no finding within coverage, exit 3 (it was 0)."""
     pp = tmp_path / "xs.json"
     assert main(["calibrate", str(XSENS), "--out", str(pp), "--no-audit"]) == 0
     capsys.readouterr()
@@ -202,7 +204,7 @@ def test_the_measured_xsens_session_keeps_its_diagnosis_its_knocks_are_not_a_fau
     assert len(doc["positions"]) == 38 and doc["triads"]["accel"]["diagnosed"]
     assert doc["faults"] == [] and doc["onset"] is None
     f0 = doc["f0"]["accel"]
-    assert f0["failed"] == f0["knocks"] == 6 and not f0["persistent"]
+    assert (f0["tested"], f0["failed"], f0["knocks"]) == (34882, 0, 0)
     assert doc["triads"]["gyro"]["reason"] == "no passport for this triad"
 
 
@@ -349,3 +351,26 @@ def test_a_healthy_flights_manoeuvre_is_not_taken_for_a_full_turn_of_a_calibrati
     assert len(doc["positions"]) == 1
     assert doc["faults"] == [] and "FAULT" not in text
     assert status == json_status == doc["exit_status"] == 3
+
+
+def test_f0_tests_the_samples_the_services_f0_tests(unit, capsys):
+    """diagnose's F0 is the service's (f0_report): the same detector and the same erosion of every
+    static run by the positions' trim (service.pipeline.static_gate), where the slow start and end
+    of a motion still sit in a quiet window. A healthy 60 s flight: the service tests 1,902
+    samples and none fails; diagnose tested the 100 edge samples too and called one a knock."""
+    d, _ = unit
+    path = d / "flight.csv"
+    argv = ["--profile", "flight", "--duration-s", "60", "--seed", "1000"]
+    assert main(["simulate", "--out", str(path), *argv]) == 0
+    _, text, _, doc = _diagnose(capsys, path, d / "pp.json")
+    passport = read_passport_json(d / "pp.json")
+    fleet = FleetProcessor(
+        passports=lambda v, i: passport, options=PipelineOptions(gravity_mps2=doc["gravity_mps2"])
+    )
+    session = read_csv_session(path).session
+    assert run_fleet(fleet, batches_of(session, vehicle="v", imu=0, batch_samples=100)) == []
+    counters = fleet.pipelines[("v", 0)].counters
+    f0 = doc["f0"]["accel"]
+    service = (counters["f0.accel.tests"], counters.get("f0.accel.fail", 0))
+    assert (f0["tested"], f0["failed"]) == service == (1902, 0)
+    assert f0["knocks"] == 0 and "knock" not in text

@@ -30,9 +30,12 @@ from service.cli import UsageError
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 if TYPE_CHECKING:
+    from estimators._typing import BoolArray
     from estimators.chain import ChainConfig, ChainResult, TriadResult
     from estimators.conventions import Triad
     from estimators.passport import Passport
+    from estimators.session import ImuSession
+    from estimators.static_detector import StaticDetection
 
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 """estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
@@ -79,7 +82,9 @@ def f0_report(
     Static as the service's detector sees it: its thresholds raised to the passport's noise
     (:func:`~service.pipeline.detector_config`), as ``replay`` runs it. The chain's detector, whose
     thresholds come from the session's own noise, took a flight's manoeuvres for rest (a fault-free
-    flight: 225 samples 'leaving the shell' that replay did not test). Failures persist as the
+    flight: 225 samples 'leaving the shell' that replay did not test). And each static run eroded
+    as the service erodes it (:func:`_f0_static`): tested whole, the measured Xsens session's
+    turn edges were 6 'knocks' and a flight's take-off one. Failures persist as the
     service declares them (:attr:`~service.pipeline.PipelineOptions.f0_persistence_s`,
     :func:`estimators.scalar.f0_session`).
 
@@ -96,9 +101,11 @@ def f0_report(
     if clean is None:
         raise ValueError("the chain result does not carry its session")
     options = PipelineOptions(gravity_mps2=config.gravity_mps2)
-    static = detect_static(
-        clean, config=detector_config(options.detector, passport, clean.rate_hz)
-    ).static
+    static = _f0_static(
+        clean,
+        detect_static(clean, config=detector_config(options.detector, passport, clean.rate_hz)),
+        options.positions.trim_samples(clean.rate_hz),
+    )
     persist = persistence_samples(options.f0_persistence_s, clean.rate_hz)
     out: dict[str, dict[str, Any]] = {}
     for triad, tp in passport.triads.items():
@@ -129,6 +136,28 @@ def f0_report(
             "onset_residual": f0.onset_residual,
             "note": note,
         }
+    return out
+
+
+def _f0_static(clean: ImuSession, detection: StaticDetection, margin: int) -> BoolArray:
+    """The samples F0 tests: the detector's static samples less ``margin`` at both ends of every
+    static run, where the slow start and end of a motion still sit in a quiet window. The
+    service's own gate (:class:`~service.pipeline.static_gate.StaticGate`) decides, given the
+    whole session at once; the last ``margin`` samples, which it holds for a later frame, have no
+    window after them and are not static for it either."""
+    import numpy as np
+
+    from estimators.static_detector import FinalDecisions
+    from service.pipeline.static_gate import StaticGate
+
+    accepted = detection.accepted
+    ends = np.append(detection.segment_start[1:], False)
+    rows = np.zeros((accepted.size, 3))
+    released = StaticGate(margin).push(
+        clean.t_s[accepted], rows, rows, FinalDecisions(0, detection.static[accepted], ends)
+    )[3]
+    out = np.zeros(clean.n_samples, dtype=bool)
+    out[accepted[: released.size]] = released
     return out
 
 
