@@ -374,3 +374,21 @@ def test_f0_tests_the_samples_the_services_f0_tests(unit, capsys):
     service = (counters["f0.accel.tests"], counters.get("f0.accel.fail", 0))
     assert (f0["tested"], f0["failed"]) == service == (1902, 0)
     assert f0["knocks"] == 0 and "knock" not in text
+
+
+def test_not_diagnosed_after_a_late_onset_says_after_the_onset(unit, capsys):
+    """z scale +0.04 from the 17th of 18 positions: the positions before F0 sees it are diagnosed
+    (nothing found), the ones after are too few. The summary line is about the later set and says so,
+    instead of a bare NOT DIAGNOSED of a session whose first positions were diagnosed."""
+    d, _ = unit
+    spec = multi_position_spec(model=MODEL, static_s=6.0, transition_s=2.0)
+    t16 = simulate(spec, seed=43).truth.static_intervals_s[16][0]
+    fault = Fault(FaultKind.STEP, Triad.ACCEL, SCALE_Z, t16, F0_FAULT)
+    res = simulate(dataclasses.replace(spec, faults=(fault,)), seed=43)
+    write_csv_session(d / "late16.csv", res.session)
+    status, text, _, doc = _diagnose(capsys, d / "late16.csv", d / "pp.json")
+    assert status == 1 and doc["onset"]["n_before"] >= 16
+    assert not doc["triads"]["accel"]["diagnosed"]
+    assert doc["onset"]["before"]["accel"]["diagnosed"] and doc["onset"]["faults_before"] == []
+    (line,) = [x for x in text.splitlines() if x.startswith("NOT DIAGNOSED")]
+    assert line.startswith("NOT DIAGNOSED after the onset: accel: ")

@@ -319,7 +319,7 @@ def _print_text(
         )
     f0_fault = any(f["run"] and f["persistent"] for f in f0.values())
     if not result.diagnosed:
-        print(f"NOT DIAGNOSED: {'; '.join(untested)}")
+        print(f"NOT DIAGNOSED{' after the onset' if onset else ''}: {'; '.join(untested)}")
         return
     if not (result.faults or result.faults_before or result.suspects or f0_fault):
         print(
