@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from estimators._typing import FloatArray
-from estimators.conventions import N_PARAMS, Triad, reference_magnitude
+from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad, reference_magnitude
 from estimators.diagnosis import (
     DEFAULT_FALSE_ALARM_PROB,
     Diagnosis,
@@ -193,7 +193,13 @@ class ChainResult:
     @property
     def passport_of_another_unit(self) -> bool:
         """Most predicates fail at once (:data:`FOREIGN_PASSPORT_MIN_FAILED`, more than half of
-        those evaluated): a unit rarely breaks that way, a passport of another unit always does."""
+        those evaluated): a unit rarely breaks that way, a passport of another unit always does.
+
+        Never after an :attr:`onset`: the unit changed within the session (one set of parameters
+        did not explain its positions), which another unit's passport, constant over the session,
+        does not make; a second change after it makes the later fit fail broadly instead."""
+        if self.onset is not None:
+            return False
         failed, evaluated = self.predicate_counts()
         return failed >= FOREIGN_PASSPORT_MIN_FAILED and 2 * failed > evaluated
 
@@ -225,6 +231,9 @@ class Onset:
     before : per triad, the fit of the positions that ended before ``t_s``, against the passport.
     n_before, n_after : positions wholly before and wholly after ``t_s``.
     n_straddling : positions that held ``t_s`` (in neither set).
+    changed_after : the fit of the positions after ``t_s`` does not explain them either (the
+        test of :func:`split_at_onset`): the unit changed again, or the fault came and went, and
+        that fit's estimates mix the states it held.
     """
 
     t_s: float
@@ -232,6 +241,7 @@ class Onset:
     n_before: int
     n_after: int
     n_straddling: int
+    changed_after: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -239,6 +249,7 @@ class Onset:
             "n_before": self.n_before,
             "n_after": self.n_after,
             "n_straddling": self.n_straddling,
+            "changed_after": self.changed_after,
             "before": _triads_dict(self.before),
             "faults_before": [f.to_dict() for f in _findings(self.before)],
         }
@@ -285,8 +296,10 @@ def run_chain(
     """Static detection → positions → estimates → diagnosis (module docstring).
 
     Raises ``ValueError`` (a :class:`~estimators.session.SessionError`) when the
-    session has no usable samples; a session without enough positions is not an
-    error: its estimates say "not observable yet" and no predicate is evaluated.
+    session has no usable samples, and without a passport when a triad's positions
+    cannot be fitted (a channel without spread); a session without enough positions
+    is not an error: its estimates say "not observable yet" and no predicate is
+    evaluated. With a passport, a triad that cannot be fitted is not diagnosed, and why.
     A triad with a passport that M1's geometry does not resolve is diagnosed by
     the M4 fits that make a six-position passport (:func:`m4_estimate`), where
     the session holds their geometry.
@@ -300,11 +313,7 @@ def run_chain(
     if instability is None and passport is not None:
         instability = {t: tp.bias_instability_std for t, tp in passport.triads.items()}
     positions = _with_bias_instability(found.positions, instability or {}, config.gravity_mps2)
-    turns = (
-        find_full_turns(clean, detection.intervals)
-        if passport is not None and Triad.GYRO in passport.triads
-        else ()
-    )
+    turns = _diagnosis_turns(clean, detection, positions, passport)
     return ChainResult(
         session.n_samples,
         rejected,
@@ -348,17 +357,14 @@ def split_at_onset(
     if not before or whole is None or not _changed(whole, config.false_alarm_prob):
         return result
     after = tuple(p for p in result.positions if p.t_start_s >= t_s)
-    turns = (
-        find_full_turns(result.session, result.detection.intervals)
-        if Triad.GYRO in passport.triads
-        else ()
-    )
+    turns = _diagnosis_turns(result.session, result.detection, result.positions, passport)
     present = tuple(result.triads)
+    later = _fit_triads(
+        after, tuple(tr for tr in turns if tr.t_start_s >= t_s), present, config, passport
+    )
     return replace(
         result,
-        triads=_fit_triads(
-            after, tuple(tr for tr in turns if tr.t_start_s >= t_s), present, config, passport
-        ),
+        triads=later,
         onset=Onset(
             t_s,
             _fit_triads(
@@ -367,8 +373,28 @@ def split_at_onset(
             len(before),
             len(after),
             len(result.positions) - len(before) - len(after),
+            _changed(later[triad], config.false_alarm_prob),
         ),
     )
+
+
+def _diagnosis_turns(
+    session: ImuSession,
+    detection: StaticDetection,
+    positions: tuple[Position, ...],
+    passport: Passport | None,
+) -> tuple[FullTurn, ...]:
+    """The full turns a gyro with a passport is diagnosed by (:func:`m4_estimate`): only in a
+    session holding the six faces, the calibration of the Ferraris type whose turns they are.
+
+    A turn's scale factor is its integral against exactly ``2π``; the detector accepts any
+    stretch between rests within 10 % of it about one axis. In a flight a manoeuvre between its
+    rests can integrate to that (about a fixed axis or not): taken for a turn it gave a healthy
+    navigation-grade unit a scale error of -0.025 against a tolerance of 0.0045.
+    """
+    if passport is None or Triad.GYRO not in passport.triads or face_positions(positions) is None:
+        return ()
+    return find_full_turns(session, detection.intervals)
 
 
 def _changed(whole: TriadResult, false_alarm_prob: float) -> bool:
@@ -386,17 +412,32 @@ def _fit_triads(
     config: ChainConfig,
     passport: Passport | None,
 ) -> dict[Triad, TriadResult]:
-    """Estimate and (with a passport) diagnose each triad from ``positions`` (and ``turns``)."""
+    """Estimate and (with a passport) diagnose each triad from ``positions`` (and ``turns``).
+
+    Positions a triad cannot be fitted from (a channel without spread: stuck, or clipped at its
+    range) make a passport impossible: an error without one. Against a passport they are that
+    triad's finding to make, not the session's end: the triad is not diagnosed, the reason
+    said, and the other triad and F0 still judge the samples.
+    """
     out = {}
     for triad in triads:
         reference = reference_magnitude(triad, config.gravity_mps2)
+        fitted = True
         try:
             est = estimate_triad(positions, triad, reference, method=config.method)
         except ValueError as exc:
-            raise ValueError(f"{triad.value}: {exc}") from None
+            if passport is None:
+                raise ValueError(f"{triad.value}: {exc}") from None
+            est = _unfitted(triad, config.method, len(positions), reference, str(exc))
+            fitted = False
         tp = None if passport is None else passport.triads.get(triad)
         # A fit that left the physical domain is not a geometry M4 completes: it stays SUSPECT.
-        if tp is not None and est.verdict is not Verdict.OBSERVABLE and not est.fit_left_domain:
+        if (
+            fitted
+            and tp is not None
+            and est.verdict is not Verdict.OBSERVABLE
+            and not est.fit_left_domain
+        ):
             alt = m4_estimate(triad, est, positions, turns, config.gravity_mps2)
             if alt is not None and alt.params is not None and np.any(alt.observable):
                 est = alt
@@ -410,6 +451,27 @@ def _fit_triads(
         )
         out[triad] = TriadResult(est, residuals, sigma, diag)
     return out
+
+
+def _unfitted(triad: Triad, method: Method, n: int, reference: float, why: str) -> Estimate:
+    """The estimate of a triad whose positions cannot be fitted (:func:`_fit_triads`), saying why."""
+    observable = np.zeros(N_PARAMS, dtype=bool)
+    observable.flags.writeable = False
+    return Estimate(
+        triad=triad,
+        method=method,
+        verdict=Verdict.NOT_OBSERVABLE_YET,
+        reason=f"its positions cannot be fitted: {why}; not observable: {' '.join(PARAM_NAMES)}",
+        n_positions=n,
+        params=None,
+        cov=None,
+        observable=observable,
+        rank=0,
+        condition=float("inf"),
+        chi2=None,
+        dof=max(n - N_PARAMS, 0),
+        reference=reference,
+    )
 
 
 def _with_bias_instability(

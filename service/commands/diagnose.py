@@ -8,9 +8,10 @@ Exit status (one set for every verdict command):
   runs are knocks, counted and said) even when the nine parameters cannot be fitted;
 - 2: unusable input (one line on stderr);
 - 3: not enough to test, nothing found: ``NOT DIAGNOSED: …`` (no triad had a predicate F1…F9 it
-  could evaluate: too few positions, their geometry, noise against the reference), ``SUSPECT``
-  (a triad with a passport whose fit left the physical domain), or some triad of the session not
-  diagnosed (``no finding within coverage``, what was not tested and why).
+  could evaluate: too few positions, their geometry, noise against the reference, positions it
+  cannot be fitted from), ``SUSPECT`` (a triad with a passport whose fit left the physical
+  domain), or something that applies not tested (``no finding within coverage``, what and why):
+  a triad of the session or of the passport not diagnosed, or an F0 that found no sample at rest.
 
 A fault outranks what was not tested. A session whose geometry M1's scalar fit cannot use (six
 faces, with or without full turns) is diagnosed by the M4 fits that make a six-position passport,
@@ -29,9 +30,12 @@ from service.cli import UsageError
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 if TYPE_CHECKING:
+    from estimators._typing import BoolArray
     from estimators.chain import ChainConfig, ChainResult, TriadResult
     from estimators.conventions import Triad
     from estimators.passport import Passport
+    from estimators.session import ImuSession
+    from estimators.static_detector import StaticDetection
 
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 """estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
@@ -49,7 +53,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Exit status 0: tested, no fault (every triad diagnosed); 1: a fault found (FAULT lines: "
         "F1…F9, or F0 failing persistently, even when the nine parameters cannot be fitted); "
         "2: unusable input (one-line reason); 3: not enough to test, nothing found (NOT DIAGNOSED and why; "
-        "SUSPECT: a triad with a passport whose fit left the physical domain; or a triad not diagnosed). "
+        "SUSPECT: a triad with a passport whose fit left the physical domain; a triad of the session or "
+        "the passport not diagnosed; or F0 without a sample at rest). "
         "A fault outranks what was not tested.",
     )
     add_session_arguments(p)
@@ -77,7 +82,9 @@ def f0_report(
     Static as the service's detector sees it: its thresholds raised to the passport's noise
     (:func:`~service.pipeline.detector_config`), as ``replay`` runs it. The chain's detector, whose
     thresholds come from the session's own noise, took a flight's manoeuvres for rest (a fault-free
-    flight: 225 samples 'leaving the shell' that replay did not test). Failures persist as the
+    flight: 225 samples 'leaving the shell' that replay did not test). And each static run eroded
+    as the service erodes it (:func:`_f0_static`): tested whole, the measured Xsens session's
+    turn edges were 6 'knocks' and a flight's take-off one. Failures persist as the
     service declares them (:attr:`~service.pipeline.PipelineOptions.f0_persistence_s`,
     :func:`estimators.scalar.f0_session`).
 
@@ -94,9 +101,11 @@ def f0_report(
     if clean is None:
         raise ValueError("the chain result does not carry its session")
     options = PipelineOptions(gravity_mps2=config.gravity_mps2)
-    static = detect_static(
-        clean, config=detector_config(options.detector, passport, clean.rate_hz)
-    ).static
+    static = _f0_static(
+        clean,
+        detect_static(clean, config=detector_config(options.detector, passport, clean.rate_hz)),
+        options.positions.trim_samples(clean.rate_hz),
+    )
     persist = persistence_samples(options.f0_persistence_s, clean.rate_hz)
     out: dict[str, dict[str, Any]] = {}
     for triad, tp in passport.triads.items():
@@ -121,6 +130,8 @@ def f0_report(
             "persistent_runs": f0.persistent_runs,
             "knocks": f0.knocks,
             "persistent": f0.persistent,
+            "persistent_failed": f0.persistent_failed,
+            "persistent_worst": f0.persistent_worst,
             "onset_t_s": f0.onset_t_s,
             "onset_residual": f0.onset_residual,
             "note": note,
@@ -128,8 +139,31 @@ def f0_report(
     return out
 
 
+def _f0_static(clean: ImuSession, detection: StaticDetection, margin: int) -> BoolArray:
+    """The samples F0 tests: the detector's static samples less ``margin`` at both ends of every
+    static run, where the slow start and end of a motion still sit in a quiet window. The
+    service's own gate (:class:`~service.pipeline.static_gate.StaticGate`) decides, given the
+    whole session at once; the last ``margin`` samples, which it holds for a later frame, have no
+    window after them and are not static for it either."""
+    import numpy as np
+
+    from estimators.static_detector import FinalDecisions
+    from service.pipeline.static_gate import StaticGate
+
+    accepted = detection.accepted
+    ends = np.append(detection.segment_start[1:], False)
+    rows = np.zeros((accepted.size, 3))
+    released = StaticGate(margin).push(
+        clean.t_s[accepted], rows, rows, FinalDecisions(0, detection.static[accepted], ends)
+    )[3]
+    out = np.zeros(clean.n_samples, dtype=bool)
+    out[accepted[: released.size]] = released
+    return out
+
+
 def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
-    """The persistent F0 failures as findings (``faults`` of the JSON), in the form of F1…F9's."""
+    """The persistent F0 failures as findings (``faults`` of the JSON), in the form of F1…F9's:
+    their samples and worst value; the knocks only counted."""
     return [
         {
             "predicate": "F0",
@@ -140,22 +174,42 @@ def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
             "nominal": 0.0,
             "tolerance": f["lambda0"],
             "sigma": None,
-            "failed": f["failed"],
+            "failed": f["persistent_failed"],
             "tested": f["tested"],
             "first_t_s": f["onset_t_s"],
-            "worst": f["worst"],
+            "worst": f["persistent_worst"],
+            "knocks": f["knocks"],
         }
         for name, f in f0.items()
         if f["run"] and f["persistent"]
     ]
 
 
-def exit_status(result: ChainResult, faults: list[dict[str, Any]]) -> int:
-    """:data:`EXIT_FAULT` when anything failed, else :data:`EXIT_UNTESTED` when some triad of the
-    session was not diagnosed (or is SUSPECT), else :data:`EXIT_NO_FAULT` (module docstring)."""
+def not_tested(result: ChainResult, passport: Passport, f0: dict[str, dict[str, Any]]) -> list[str]:
+    """What applies and was not tested, and why: a triad of the session or of the passport not
+    diagnosed, and an F0 that could run but found no sample at rest to test."""
+    out = [f"{t.value}: {r.reason}" for t, r in result.triads.items() if not r.diagnosed]
+    out += [
+        f"{t.value}: the session has no {t.value} samples"
+        for t in passport.triads
+        if t not in result.triads
+    ]
+    out += [
+        f"F0 {name}: no static sample (the service's detector, its thresholds from the passport's "
+        "noise, saw no rest)"
+        for name, f in f0.items()
+        if f["run"] and f["tested"] == 0
+    ]
+    return out
+
+
+def exit_status(result: ChainResult, faults: list[dict[str, Any]], untested: list[str]) -> int:
+    """:data:`EXIT_FAULT` when anything failed, else :data:`EXIT_UNTESTED` when something that
+    applies was not tested (:func:`not_tested`) or a triad is SUSPECT, else :data:`EXIT_NO_FAULT`
+    (module docstring)."""
     if faults:
         return EXIT_FAULT
-    if result.suspects or not all(r.diagnosed for r in result.triads.values()):
+    if result.suspects or untested:
         return EXIT_UNTESTED
     return EXIT_NO_FAULT
 
@@ -188,18 +242,20 @@ def run(args: argparse.Namespace) -> int:
         for f in result.faults
     ]
     faults += [{**f.to_dict(), "positions": "before onset"} for f in result.faults_before]
-    status = exit_status(result, faults)
+    untested = not_tested(result, passport, f0)
+    status = exit_status(result, faults, untested)
     if args.json:
         out = result.to_dict()
         out["unit_id"] = passport.unit_id
         out["gravity_source"] = inp.gravity_source
         out["f0"] = f0
         out["faults"] = faults
+        out["not_tested"] = untested
         out["exit_status"] = status
         json.dump(out, sys.stdout, indent=1)
         print()
         return status
-    _print_text(result, passport, f0, inp.gravity_mps2, inp.gravity_source)
+    _print_text(result, passport, f0, untested, inp.gravity_mps2, inp.gravity_source)
     return status
 
 
@@ -207,6 +263,7 @@ def _print_text(
     result: ChainResult,
     passport: Passport,
     f0: dict[str, dict[str, Any]],
+    untested: list[str],
     gravity_mps2: float,
     gravity_source: str,
 ) -> None:
@@ -224,17 +281,24 @@ def _print_text(
             f"before and the {onset.n_after} after it are fitted apart"
             + (f" ({onset.n_straddling} holding it in neither)" if onset.n_straddling else "")
         )
+        if onset.changed_after:
+            print(
+                "  the positions after it are not explained by one set of parameters either: the unit "
+                "changed again, or the fault came and went; their estimates mix what it was"
+            )
         _print_triads(onset.before, "before the onset: ")
         _print_findings(onset.before, "before the onset")
     _print_triads(result.triads, "after the onset: " if onset else "")
     for name, f in f0.items():
         if not f["run"]:
             print(f"  F0 {name}: not run ({f['note']})")
+        elif not f["tested"]:
+            print(f"  F0 {name}: not tested: no static sample (λ0 {f['lambda0']:.3g})")
         elif f["persistent"]:
             print(
-                f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['failed']} of {f['tested']} "
-                f"static samples, {f['persistent_runs']} runs of {f['persistence_s']:g} s or more from "
-                f"{f['onset_t_s']:.3f} s; worst |½(|ã|²−1)| {f['worst']:.3g}"
+                f"  FAULT F0: {name} leaves the shell (λ0 {f['lambda0']:.3g}) on {f['persistent_failed']} of "
+                f"{f['tested']} static samples, {f['persistent_runs']} runs of {f['persistence_s']:g} s or more "
+                f"from {f['onset_t_s']:.3f} s; worst |½(|ã|²−1)| {f['persistent_worst']:.3g}"
                 + (f", and {_knocks(f['knocks'])}" if f["knocks"] else "")
             )
         elif f["failed"]:
@@ -255,13 +319,12 @@ def _print_text(
         )
     f0_fault = any(f["run"] and f["persistent"] for f in f0.values())
     if not result.diagnosed:
-        print(f"NOT DIAGNOSED: {result.reason}")
+        print(f"NOT DIAGNOSED{' after the onset' if onset else ''}: {'; '.join(untested)}")
         return
-    undiagnosed = [f"{t.value}: {r.reason}" for t, r in result.triads.items() if not r.diagnosed]
     if not (result.faults or result.faults_before or result.suspects or f0_fault):
         print(
-            f"  no finding within coverage; not tested: {'; '.join(undiagnosed)}"
-            if undiagnosed
+            f"  no finding within coverage; not tested: {'; '.join(untested)}"
+            if untested
             else "  no fault"
         )
     _print_findings(result.triads, "after the onset" if onset else "")
