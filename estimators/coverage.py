@@ -366,6 +366,15 @@ def predicate_mdf(
     return tolerance + (z + NormalDist().inv_cdf(power)) * s
 
 
+def tolerance_triples(tolerance: ArrayLike, reference: float) -> tuple[Triple, Triple]:
+    """A passport triad's tolerances as a coverage states them: ``(zero signals SI, scale errors)``
+    per axis, from its (9,) normalized ``tolerance`` and its ``reference`` (SI)."""
+    tol = np.asarray(tolerance, dtype=float).reshape(-1)
+    if tol.shape != (9,):
+        raise ValueError(f"tolerance must be 9 numbers, got {tolerance!r}")
+    return _triple(tol[:3] * reference), _triple(tol[3:6])
+
+
 def gross_mdf(
     *,
     tolerance_si: float,

@@ -91,7 +91,7 @@ import numpy as np
 
 from estimators._typing import FloatArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
-from estimators.coverage import Check, CheckCoverage, gross_mdf
+from estimators.coverage import Check, CheckCoverage, gross_mdf, tolerance_triples
 from estimators.ninepar import canonical_triad_matrix
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.passport import Passport, TriadPassport
@@ -363,8 +363,7 @@ class GrossCoverage:
         gyro at rest turns at no rate a scale error could multiply) against ``tp``'s tolerances (the
         passport whose tolerances the test used, :func:`tolerance_passports`); ``total_windows``:
         the windows the stream completed, for why none was at rest."""
-        tol_bias = tp.tolerance[:3] * tp.reference
-        tolerance_bias_si = _triple(tol_bias)
+        tolerance_bias_si, tol_scale = tolerance_triples(tp.tolerance, tp.reference)
         if self.windows == 0:
             other = (
                 "the gyro was never still with the accelerometer quiet"
@@ -385,7 +384,7 @@ class GrossCoverage:
                 tolerance_si=self.tolerance_si[0], sigma_mean_si=max(self.sigma_mean_si),
                 max_abs_u=self.max_abs_u, reference=gravity_mps2, **per_window,
             )  # fmt: skip
-            tolerance_scale: tuple[float, float, float] | None = _triple(tp.tolerance[3:6])
+            tolerance_scale: tuple[float, float, float] | None = tol_scale
             mdf_scale: tuple[float, float, float] | None = scale
         else:
             # Each gyro axis is tested on its own mean: its direction factor is 1.

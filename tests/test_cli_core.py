@@ -54,10 +54,13 @@ def test_diagnose_json_names_the_fault(unit_files, capsys):
     accel = out["triads"]["accel"]
     assert len(accel["estimate"]["params"]) == len(accel["estimate"]["sigma"]) == 9
     assert [p["outcome"] for p in accel["predicates"]["predicates"]].count("fail") == 1
-    assert [(f["triad"], f["axis"], f["cause"]) for f in out["faults"]] == [
-        ("accel", "y", "scale_factor")
-    ]
-    assert set(out["faults"][0]) >= {
+    # F1…F9 name it; the gross test sees |a| off g where y points up (its own tests: test_gross.py).
+    named = [f for f in out["faults"] if f["predicate"] != "gross"]
+    assert [(f["triad"], f["axis"], f["cause"]) for f in named] == [("accel", "y", "scale_factor")]
+    assert {(f["triad"], f["axis"]) for f in out["faults"] if f["predicate"] == "gross"} <= {
+        ("accel", "y")
+    }
+    assert set(named[0]) >= {
         "triad",
         "axis",
         "cause",

@@ -48,10 +48,10 @@ from protocols.events import (
 from protocols.frames import SampleBatch
 from protocols.logs import write_dataflash_bin
 from protocols.mavlink_adapter import STATUSTEXT_MAX_CHARS, alert_text
-from protocols.passport_codec import read_passport_json
+from protocols.passport_codec import read_passport_json, write_passport_json
 from protocols.session_file import load_session, write_csv_session
 from protocols.ulog import write_ulog
-from service.cli import EXIT_FAULT, EXIT_UNTESTED, main
+from service.cli import EXIT_FAULT, EXIT_NO_FAULT, EXIT_UNTESTED, main
 from service.pipeline import FleetProcessor, ImuPipeline, PipelineOptions
 
 G = STANDARD_GRAVITY_MPS2
@@ -372,6 +372,45 @@ def test_a_mems_gyro_2_9_deg_s_off_its_passport_is_found_on_18_positions(eightee
     assert gross_events(twin_events) == [] and twin_pipe.counters["gross.gyro.windows"] >= 18 * 10
     batch = gross_batch(faulty, passport, gravity_mps2=g)
     assert [(c.triad, c.axis, c.raised) for c in batch.changes] == [(Triad.GYRO, "x", True)]
+
+
+def test_diagnose_names_the_gyro_2_9_deg_s_off_and_says_what_it_tested(eighteen, tmp_path, capsys):
+    """The issue's case offline: 18 positions, gyro x 2.9 deg/s off its passport. It was 'no fault
+    (not diagnosed: gyro)', exit 0; the gross test names it (exit 1) and the coverage states each
+    check with its minimum detectable fault. The twin: no gross fault, and the gyro's F0 and F1…F9
+    do not apply (a MEMS gyro cannot see the Earth rate), so nothing the verdict rests on is missing."""
+    passport, g, twin, faulty = eighteen
+    pj = tmp_path / "p.json"
+    write_passport_json(passport, pj)
+    verdicts = {}
+    for name, session in (("faulty", faulty), ("twin", twin)):
+        csv = tmp_path / f"{name}.csv"
+        write_csv_session(csv, session)
+        status = main(["diagnose", str(csv), "--passport", str(pj), "--gravity", str(g), "--json"])
+        out = json.loads(capsys.readouterr().out)
+        assert out["exit_status"] == status
+        verdicts[name] = status, out
+    status, out = verdicts["faulty"]
+    (fault,) = [f for f in out["faults"] if f["predicate"] == "gross"]
+    assert status == EXIT_FAULT and (fault["triad"], fault["axis"]) == ("gyro", "x")
+    assert fault["cause"] == "zero_signal" and fault["estimate"] - fault["nominal"] > 0.045
+    checks = {(c["triad"], c["check"]): c for c in out["coverage"]["checks"]}
+    gyro_gross, accel_f19 = checks["gyro", "gross"], checks["accel", "F1-F9"]
+    # Its MDF: the MEMS floor's zero-signal tolerance plus a few window-mean σ, under the fault.
+    assert gyro_gross["ran"] and gyro_gross["samples"] >= 18 * 10
+    assert all(
+        tol < m < 0.05
+        for m, tol in zip(gyro_gross["mdf_bias_si"], gyro_gross["tolerance_bias_si"], strict=True)
+    )
+    assert accel_f19["ran"] and accel_f19["positions"] == 18
+    assert not checks["gyro", "F1-F9"]["applies"]
+    twin_status, twin_out = verdicts["twin"]
+    assert not [f for f in twin_out["faults"] if f["predicate"] == "gross"]
+    assert twin_status in (EXIT_NO_FAULT, EXIT_UNTESTED)
+    csv = tmp_path / "faulty.csv"
+    assert main(["diagnose", str(csv), "--passport", str(pj), "--gravity", str(g)]) == EXIT_FAULT
+    text = capsys.readouterr().out
+    assert "FAULT gross: gyro x zero_signal" in text and "coverage: IMU0 gyro gross: ran on" in text
 
 
 def test_a_checkpoint_keeps_a_raised_failure_and_its_recovery_comes_once():

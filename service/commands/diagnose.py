@@ -26,13 +26,15 @@ import json
 import sys
 from typing import TYPE_CHECKING, Any
 
-from service.cli import UsageError
+from service.cli import EXIT_FAULT, EXIT_NO_FAULT, EXIT_STATUS_HELP, EXIT_UNTESTED, UsageError
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 if TYPE_CHECKING:
     from estimators._typing import BoolArray
     from estimators.chain import ChainConfig, ChainResult, TriadResult
     from estimators.conventions import Triad
+    from estimators.coverage import ImuCoverage
+    from estimators.gross import GrossResult
     from estimators.passport import Passport
     from estimators.session import ImuSession
     from estimators.static_detector import StaticDetection
@@ -40,10 +42,6 @@ if TYPE_CHECKING:
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 """estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
 scipy (tests/test_cli_startup.py checks they agree)."""
-
-EXIT_NO_FAULT = 0
-EXIT_FAULT = 1
-EXIT_UNTESTED = 3
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -56,6 +54,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "SUSPECT: a triad with a passport whose fit left the physical domain; a triad of the session or "
         "the passport not diagnosed; or F0 without a sample at rest). "
         "A fault outranks what was not tested.",
+        epilog=EXIT_STATUS_HELP,
     )
     add_session_arguments(p)
     p.add_argument("--passport", required=True, metavar="PASSPORT.json", help="the unit's passport")
@@ -69,7 +68,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument(
         "--json",
         action="store_true",
-        help="print one JSON object (positions, estimates, predicates, faults, F0, diagnosed/reason)",
+        help="print one JSON object (positions, estimates, predicates, faults, F0, the gross test, "
+        "coverage, diagnosed/reason)",
     )
     p.set_defaults(func=run)
 
@@ -92,10 +92,12 @@ def f0_report(
     worst ``|½(|ã|²−1)|``, the failing runs and which of them persist (a finding) and which are
     knocks; or why F0 is not run for the triad.
     """
+    import numpy as np
+
     from estimators.scalar import f0_session, persistence_samples
     from estimators.static_detector import detect_static
     from service.pipeline import PipelineOptions, detector_config
-    from service.pipeline.triad_check import f0_config
+    from service.pipeline.triad_check import f0_config, f0_threshold
 
     clean = result.session
     if clean is None:
@@ -117,7 +119,15 @@ def f0_report(
             out[triad.value] = {"run": False, "lambda0": lambda0, "note": note}
             continue
         f0 = f0_session(clean.t_s, x, static, cfg, persist)
+        tested = x[static]
+        norm = np.linalg.norm(tested, axis=1, keepdims=True)
         out[triad.value] = {
+            # For the minimum detectable fault (estimators.coverage.f0_mdf): the largest share of
+            # each axis in the tested outputs' direction, and the per-sample noise of s.
+            "max_abs_u": (np.abs(tested) / np.maximum(norm, 1e-300)).max(axis=0).tolist()
+            if tested.size
+            else [0.0, 0.0, 0.0],
+            "noise_std": f0_threshold(tp, options, clean.rate_hz).noise_std,
             "run": True,
             "lambda0": lambda0,
             "tested": f0.tested,
@@ -203,6 +213,118 @@ def not_tested(result: ChainResult, passport: Passport, f0: dict[str, dict[str, 
     return out
 
 
+def gross_faults(gross: GrossResult) -> list[dict[str, Any]]:
+    """The gross test's declared failures as findings (``faults`` of the JSON), in SI: the window
+    mean (``|ā| − g`` or a gyro axis's mean), its nominal, the bound it crossed and the mean's σ."""
+    return [
+        {
+            "predicate": "gross",
+            "triad": c.triad.value,
+            "axis": c.axis,
+            "cause": "gravity_magnitude" if c.triad.value == "accel" else "zero_signal",
+            "estimate": c.value_si,
+            "nominal": c.nominal_si,
+            "tolerance": c.bound_si,
+            "sigma": c.sigma_si,
+            "unit": "m/s^2" if c.triad.value == "accel" else "rad/s",
+            "first_t_s": c.t_s,
+            "duration_s": c.duration_s,
+        }
+        for c in gross.changes
+        if c.raised
+    ]
+
+
+def coverage(
+    result: ChainResult,
+    passport: Passport,
+    f0: dict[str, dict[str, Any]],
+    gross: GrossResult,
+    gravity_mps2: float,
+) -> ImuCoverage:
+    """What the diagnosis tested (:mod:`estimators.coverage`), per triad: F0 on the static samples,
+    F1…F9 on the positions, the gross test on its windows at rest; with each one's minimum
+    detectable fault, or why it did not run (a MEMS gyro's F0 and F1…F9 cannot apply)."""
+    import numpy as np
+
+    from estimators.conventions import Triad, reference_magnitude
+    from estimators.coverage import (
+        Check,
+        CheckCoverage,
+        ImuCoverage,
+        f0_mdf,
+        ninepar_coverage,
+        tolerance_triples,
+    )
+    from estimators.gross import tolerance_passports
+    from estimators.scalar import persistence_samples
+    from service.pipeline import PipelineOptions
+
+    options = PipelineOptions(gravity_mps2=gravity_mps2)
+    assert result.session is not None
+    persist = persistence_samples(options.f0_persistence_s, result.session.rate_hz)
+    checks: list[CheckCoverage] = []
+    for triad in (Triad.ACCEL, Triad.GYRO):
+        tp = passport.triads.get(triad)
+        r = result.triads.get(triad)
+        if tp is None or r is None:
+            why = (
+                f"the passport has no {triad.value} triad"
+                if tp is None
+                else f"the session has no {triad.value} samples"
+            )
+            checks += [
+                CheckCoverage(c, triad, ran=False, reason=why) for c in (Check.F0, Check.F1_F9)
+            ]
+            continue
+        ref = reference_magnitude(triad, gravity_mps2)
+        f = f0[triad.value]
+        tol_bias, tol_scale = tolerance_triples(tp.tolerance, tp.reference)
+        if not f["run"]:
+            checks.append(
+                CheckCoverage(Check.F0, triad, ran=False, applies=triad is Triad.ACCEL, reason=f["note"])
+            )  # fmt: skip
+        elif not f["tested"]:
+            checks.append(CheckCoverage(Check.F0, triad, ran=False, reason="no static sample"))
+        else:
+            bias, scale = f0_mdf(
+                lambda0=f["lambda0"], noise_std=f["noise_std"], persist=persist,
+                max_abs_u=f["max_abs_u"], reference=ref,
+            )  # fmt: skip
+            checks.append(
+                CheckCoverage(
+                    Check.F0, triad, ran=True, samples=f["tested"], mdf_bias_si=bias, mdf_scale=scale,
+                    false_alarm_prob=options.false_alarm_probability, tolerance_bias_si=tol_bias,
+                    tolerance_scale=tol_scale,
+                )
+            )  # fmt: skip
+        if not np.any(tp.observable):
+            checks.append(
+                CheckCoverage(
+                    Check.F1_F9, triad, ran=False, applies=False,
+                    reason="the passport resolves no parameter"
+                    + (" (a gyro that cannot see the Earth rate)" if triad is Triad.GYRO else ""),
+                )
+            )  # fmt: skip
+        elif r.diagnosis is None or not r.diagnosed:
+            checks.append(
+                CheckCoverage(Check.F1_F9, triad, ran=False, positions=r.estimate.n_positions, reason=r.reason)
+            )  # fmt: skip
+        else:
+            checks.append(
+                ninepar_coverage(
+                    r.diagnosis, positions=r.estimate.n_positions, reference=ref,
+                    passport_observable=tp.observable,
+                )
+            )  # fmt: skip
+    tps, _ = tolerance_passports(passport, gravity_mps2=gravity_mps2)
+    checks += [
+        gross.coverage[t].check(tps[t], gravity_mps2=gravity_mps2, total_windows=gross.windows)
+        for t in (Triad.ACCEL, Triad.GYRO)
+    ]
+    return ImuCoverage(0, tuple(checks))
+
+
 def exit_status(result: ChainResult, faults: list[dict[str, Any]], untested: list[str]) -> int:
     """:data:`EXIT_FAULT` when anything failed, else :data:`EXIT_UNTESTED` when something that
     applies was not tested (:func:`not_tested`) or a triad is SUSPECT, else :data:`EXIT_NO_FAULT`
@@ -217,6 +339,8 @@ def exit_status(result: ChainResult, faults: list[dict[str, Any]], untested: lis
 def run(args: argparse.Namespace) -> int:
     from estimators.chain import ChainConfig, run_chain, split_at_onset
     from estimators.conventions import Triad
+    from estimators.coverage import Check
+    from estimators.gross import gross_batch
     from estimators.passport import PassportError, check_references
     from protocols.passport_codec import read_passport_json
 
@@ -242,7 +366,12 @@ def run(args: argparse.Namespace) -> int:
         for f in result.faults
     ]
     faults += [{**f.to_dict(), "positions": "before onset"} for f in result.faults_before]
-    untested = not_tested(result, passport, f0)
+    gross = gross_batch(inp.session, passport, gravity_mps2=inp.gravity_mps2)
+    faults += gross_faults(gross)
+    cover = coverage(result, passport, f0, gross, inp.gravity_mps2)
+    untested = not_tested(result, passport, f0) + [
+        f"{c.name}: {c.reason}" for c in cover.untested if c.check is Check.GROSS
+    ]
     status = exit_status(result, faults, untested)
     if args.json:
         out = result.to_dict()
@@ -251,11 +380,26 @@ def run(args: argparse.Namespace) -> int:
         out["f0"] = f0
         out["faults"] = faults
         out["not_tested"] = untested
+        out["gross"] = {
+            "windows": gross.windows,
+            "source": gross.config.source,
+            "rejected": gross.rejected,
+        }
+        out["coverage"] = cover.to_dict()
         out["exit_status"] = status
         json.dump(out, sys.stdout, indent=1)
         print()
         return status
     _print_text(result, passport, f0, untested, inp.gravity_mps2, inp.gravity_source)
+    for fault in gross_faults(gross):
+        print(
+            f"  FAULT gross: {fault['triad']} {fault['axis'] or ''} {fault['cause']}: window mean "
+            f"{fault['estimate']:+.4g} {fault['unit']} vs nominal {fault['nominal']:.4g} beyond "
+            f"±{fault['tolerance']:.3g} (σ {fault['sigma']:.2g}) from {fault['first_t_s']:.3f} s "
+            f"for {fault['duration_s']:.1f} s at rest (tolerances: {gross.config.source})"
+        )
+    for line in cover.lines():
+        print(f"  coverage: {line}")
     return status
 
 

@@ -10,7 +10,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from estimators.conventions import Triad
-from estimators.coverage import Check, CheckCoverage, ImuCoverage, f0_mdf, ninepar_coverage
+from estimators.coverage import (
+    Check,
+    CheckCoverage,
+    ImuCoverage,
+    f0_mdf,
+    ninepar_coverage,
+    tolerance_triples,
+)
 from estimators.gross import tolerance_passports
 from service.pipeline.options import TRIAD_WORD
 from service.pipeline.triad_check import TriadCheck, f0_threshold
@@ -105,7 +112,7 @@ def _f0(pipe: ImuPipeline, triad: Triad, check: TriadCheck) -> CheckCoverage:
         max_abs_u=check.f0_max_abs_u,
         reference=options.reference(triad),
     )
-    tol = tp.tolerance
+    tol_bias, tol_scale = tolerance_triples(tp.tolerance, tp.reference)
     return CheckCoverage(
         Check.F0,
         triad,
@@ -113,12 +120,8 @@ def _f0(pipe: ImuPipeline, triad: Triad, check: TriadCheck) -> CheckCoverage:
         samples=tests,
         mdf_bias_si=bias,
         mdf_scale=scale,
-        tolerance_bias_si=(
-            float(tol[0] * tp.reference),
-            float(tol[1] * tp.reference),
-            float(tol[2] * tp.reference),
-        ),
-        tolerance_scale=(float(tol[3]), float(tol[4]), float(tol[5])),
+        tolerance_bias_si=tol_bias,
+        tolerance_scale=tol_scale,
         false_alarm_prob=options.false_alarm_probability,
     )
 
