@@ -2,13 +2,14 @@
 detection rate against fault size.
 
 1. Table: for each nominal sensor class (estimators.nominal_passport) at 200 Hz, the MDF of F0 on
-   an axis that saw gravity (|u_i| = 1) — per sample, so the same for any session length — and of
-   F1…F9 (zero signal of x, scale error of z) for 9 and 18 positions of 5 s and 60 s at rest, in SI
-   and in % of the class's tolerance; the accelerometers (a MEMS gyro's checks do not apply).
+   an axis that saw gravity (|u_i| = 1) — per sample, so the same for any session length — of the
+   gross test on the axis along gravity (z) for :data:`GROSS_REST_S` at rest, and of F1…F9 (zero
+   signal of x, scale error of z) for 9 and 18 positions of 5 s and 60 s at rest, in SI and in % of
+   the class's tolerance; the accelerometers (a MEMS gyro's F0 and F1…F9 do not apply).
 2. Detection rate against fault size (0.5…10 × the MDF), 200 seeded trials per
    point: F0 on a six-face rest session (1 s a face), F1…F9 on 18 positions of 5 s, for the
-   consumer-MEMS and tactical classes. The gross test is not in this branch (issue 28's gross
-   stream): its curve is to be added with it.
+   consumer-MEMS and tactical classes; and the gross test (window means at rest,
+   :mod:`estimators.gross`) on :data:`GROSS_REST_S` at rest with z up.
 
 F0 and F1…F9 are run as the pipeline runs them (λ0 from ``f0_threshold``, persistence 0.02 s,
 the refined fit, ``diagnose``). Run: ``python benchmarks/bench_coverage.py``.
@@ -21,12 +22,14 @@ import math
 import numpy as np
 
 from estimators.conventions import Triad
-from estimators.coverage import f0_mdf, ninepar_coverage
+from estimators.coverage import CheckCoverage, f0_mdf, ninepar_coverage
 from estimators.diagnosis import diagnose
+from estimators.gross import gross_batch, tolerance_passports
 from estimators.ninepar import estimate_refined, scheme_directions
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.passport import TriadPassport
 from estimators.scalar import F0Config, f0_batch, persistent_failure
+from estimators.session import ImuSession
 from service.pipeline.options import PipelineOptions
 from service.pipeline.triad_check import f0_threshold
 
@@ -37,6 +40,8 @@ PERSIST = max(1, round(OPTIONS.f0_persistence_s * RATE_HZ))
 TRIALS = 200
 FACTORS = (0.5, 0.75, 0.9, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 FACES = np.vstack([np.eye(3), -np.eye(3)])
+GROSS_REST_S = 6.0
+"""Rest of the gross test's sessions: 12 windows of 0.5 s, two more than a declared failure needs."""
 
 
 def _accel(cls: SensorClass) -> TriadPassport:
@@ -78,14 +83,48 @@ def _ninepar_mdf(tp: TriadPassport, n_positions: int, seconds: float, rng) -> tu
     return cov_.mdf_bias_si[0], cov_.mdf_scale[2]
 
 
+def _gross_rest(
+    cls: SensorClass, seed: int, bias_z: float = 0.0, scale_z: float = 0.0
+) -> ImuSession:
+    """A unit of the class resting z up for GROSS_REST_S, its z accelerometer off by ``bias_z`` m/s²
+    and ``scale_z`` (relative); white noise of the class at RATE_HZ."""
+    passport = nominal_passport(cls, gravity_mps2=G)
+    rng = np.random.default_rng(seed)
+    n = round(GROSS_REST_S * RATE_HZ)
+    sd = {
+        t: float(tp.noise_std.max() * tp.reference * math.sqrt(RATE_HZ / tp.sample_rate_hz))
+        for t, tp in passport.triads.items()
+    }
+    accel = rng.normal(0.0, sd[Triad.ACCEL], (n, 3))
+    accel[:, 2] += G * (1.0 + scale_z) + bias_z
+    gyro = rng.normal(0.0, sd[Triad.GYRO], (n, 3))
+    return ImuSession(np.arange(n) / RATE_HZ, accel, gyro)
+
+
+def _gross_found(cls: SensorClass, session: ImuSession) -> bool:
+    res = gross_batch(session, nominal_passport(cls, gravity_mps2=G), gravity_mps2=G)
+    return any(c.raised and c.triad is Triad.ACCEL for c in res.changes)
+
+
+def _gross_mdf(cls: SensorClass) -> CheckCoverage:
+    """The gross test's coverage of the accelerometers, from a fault-free rest of the class."""
+    passport = nominal_passport(cls, gravity_mps2=G)
+    res = gross_batch(_gross_rest(cls, 10_000), passport, gravity_mps2=G)
+    tps, _ = tolerance_passports(passport, gravity_mps2=G)
+    return res.coverage[Triad.ACCEL].check(
+        tps[Triad.ACCEL], gravity_mps2=G, total_windows=res.windows
+    )
+
+
 def table() -> None:
     print(
         f"Minimum detectable fault of the accelerometers, {RATE_HZ:g} Hz (probability 0.95; % of the class tolerance)"
     )
     print(
-        "| class | F0 zero signal | F0 scale | F1…F9 zero signal x / scale z: 9 × 5 s | 9 × 60 s | 18 × 5 s | 18 × 60 s |"
+        "| class | F0 zero signal | F0 scale | gross zero signal z / scale z, 6 s at rest "
+        "| F1…F9 zero signal x / scale z: 9 × 5 s | 9 × 60 s | 18 × 5 s | 18 × 60 s |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     rng = np.random.default_rng(1)
     for cls in SensorClass:
         tp = _accel(cls)
@@ -95,6 +134,12 @@ def table() -> None:
             f"{bias[0]:.3g} m/s² ({100 * bias[0] / tol_b:.0f} %)",
             f"{100 * scale[0]:.3g} % ({100 * scale[0] / tol_e:.0f} %)",
         ]
+        gross = _gross_mdf(cls)
+        assert gross.mdf_bias_si is not None and gross.mdf_scale is not None
+        gb, ge, tol_bz = gross.mdf_bias_si[2], gross.mdf_scale[2], tp.tolerance[2] * G
+        cells.append(
+            f"{gb:.3g} m/s² ({100 * gb / tol_bz:.0f} %) / {100 * ge:.3g} % ({100 * ge / tol_e:.0f} %)"
+        )
         for n, s in ((9, 5.0), (9, 60.0), (18, 5.0), (18, 60.0)):
             b, e = _ninepar_mdf(tp, n, s, rng)
             cells.append(
@@ -170,6 +215,28 @@ def ninepar_curve(cls: SensorClass) -> None:
     )
 
 
+def gross_curve(cls: SensorClass) -> None:
+    mdf = _gross_mdf(cls)
+    assert mdf.mdf_bias_si is not None and mdf.mdf_scale is not None
+    bias, scale = mdf.mdf_bias_si[2], mdf.mdf_scale[2]
+    rows = {
+        "zero signal z": [
+            sum(_gross_found(cls, _gross_rest(cls, s, bias_z=f * bias)) for s in range(TRIALS))
+            for f in FACTORS
+        ],
+        "scale z": [
+            sum(_gross_found(cls, _gross_rest(cls, s, scale_z=f * scale)) for s in range(TRIALS))
+            for f in FACTORS
+        ],
+    }
+    for name, size in (("zero signal z", f"{bias:.3g} m/s²"), ("scale z", f"{100 * scale:.3g} %")):
+        print(
+            f"| gross {cls.value}, {name} (MDF {size}) | "
+            + " | ".join(f"{n}/{TRIALS}" for n in rows[name])
+            + " |"
+        )
+
+
 def main() -> None:
     table()
     print()
@@ -180,7 +247,8 @@ def main() -> None:
         f0_curve(cls)
     for cls in (SensorClass.CONSUMER_MEMS, SensorClass.TACTICAL):
         ninepar_curve(cls)
-    print("gross test: not in this branch (issue 28's gross stream); no curve")
+    for cls in (SensorClass.CONSUMER_MEMS, SensorClass.TACTICAL):
+        gross_curve(cls)
 
 
 if __name__ == "__main__":
