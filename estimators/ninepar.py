@@ -228,6 +228,9 @@ class Estimate:
     fit_left_domain : the positions determined the nine parameters but the exact fit left the
         physical domain (:func:`estimate_refined`): a fault far beyond the scheme's, values in other
         units, a session of another unit, or noise too large; not "too few positions".
+    reference_unresolvable : the position means' noise is too large against the reference for any
+        position scheme to resolve it (a MEMS gyro against the Earth rate): no session of this
+        sensor can fit its nine parameters, so the predicates F1…F9 (and F0) cannot apply to it.
     """
 
     triad: Triad
@@ -245,6 +248,7 @@ class Estimate:
     reference: float | None = None
     sources: tuple[str, ...] | None = None
     fit_left_domain: bool = False
+    reference_unresolvable: bool = False
 
     @property
     def sigma(self) -> FloatArray | None:
@@ -280,6 +284,7 @@ class Estimate:
             "chi2_per_dof": _finite_or_none(self.chi2_per_dof),
             "sources": None if self.sources is None else list(self.sources),
             "fit_left_domain": self.fit_left_domain,
+            "reference_unresolvable": self.reference_unresolvable,
         }
 
 
@@ -430,6 +435,7 @@ class _Geometry:
     condition: float
     gram: FloatArray | None  # HᵀH of the unit directions about the fitted centre
     centre: FloatArray | None  # best-fitting sphere centre, normalized
+    reference_unresolvable: bool = False  # the means' noise exceeds any scheme's spread
 
 
 MAX_PLANE_SPREAD = 1.0 / np.sqrt(3.0)
@@ -477,7 +483,15 @@ def _check_geometry(
                 f"with normal {np.array2string(normal, precision=3)}, limit {limit:.3g} {symbol} "
                 f"(max of {rule.min_plane_spread:g} and {rule.noise_factor:g}× noise {noise:.3g})"
             )
-        return _Geometry(False, reason, 0, np.inf, None, None)
+        return _Geometry(
+            False,
+            reason,
+            0,
+            np.inf,
+            None,
+            None,
+            reference_unresolvable=bool(noise_limit >= MAX_PLANE_SPREAD),
+        )
     # Sphere |ã|² = 2cᵀã + k, linear in (c, k): defined once the means are not coplanar.
     sol, *_ = np.linalg.lstsq(
         np.column_stack([2.0 * mean, np.ones(n)]), np.einsum("ij,ij->i", mean, mean), rcond=None
@@ -862,6 +876,7 @@ def _not_observable(
         chi2=None,
         dof=max(n - N_PARAMS, 0),
         reference=reference,
+        reference_unresolvable=geo.reference_unresolvable,
     )
 
 

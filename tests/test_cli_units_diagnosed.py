@@ -106,17 +106,23 @@ def test_si_declared_for_si_data_is_accepted_and_a_wrong_declaration_refused(fil
         SessionUnits(gyro="rpm")
 
 
-def test_a_fault_free_session_with_an_undiagnosed_triad_is_no_finding_within_coverage_exit_3(
+def test_a_fault_free_session_whose_mems_gyro_cannot_be_fitted_is_no_fault_with_what_was_tested(
     files, capsys
 ):
-    """The accelerometers are diagnosed and pass; the MEMS gyro (no passport: it cannot see the
-    Earth rate) is not: 'no fault' would claim what was not tested."""
+    """The accelerometers are diagnosed and pass; the MEMS gyro (no passport) cannot see the Earth
+    rate, as the session's own position means show: its F0 and F1…F9 do not apply (no session of it
+    could run them), the gross test ran on it. 'No fault', exit 0, with the coverage saying so; a
+    gyro that could be fitted and was not would be 'not tested' (exit 3: test_diagnose_findings)."""
     d, _ = files
     capsys.readouterr()
-    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 3
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
     out = capsys.readouterr().out
-    assert "  no finding within coverage; not tested: gyro: no passport for this triad" in out
-    assert "  no fault" not in out.splitlines() and "FAULT" not in out
+    assert "  no fault" in out.splitlines() and "FAULT" not in out
+    assert (
+        "coverage: IMU0 gyro F1-F9: does not apply (gyro cannot see the Earth rate: this session's "
+        "position means are too noisy against it)" in out
+    )
+    assert "coverage: IMU0 gyro gross: ran on" in out
     assert not any(line.startswith("NOT DIAGNOSED") for line in out.splitlines())
 
 
@@ -137,7 +143,7 @@ def test_too_few_positions_is_not_diagnosed_exit_3_with_the_reason(files, capsys
 def test_diagnose_runs_f0_against_the_passport(files, capsys):
     d, _ = files
     capsys.readouterr()
-    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json"), "--json"]) == 3
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json"), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["diagnosed"] is True and doc["reason"] == ""
     f0 = doc["f0"]["accel"]
@@ -158,7 +164,7 @@ def test_a_passport_of_another_unit_is_named(files, capsys):
     assert main(["diagnose", str(d / "other.csv"), "--passport", str(d / "pp.json")]) == 1
     out = capsys.readouterr().out
     assert "the passport is probably not this unit's" in out
-    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 3
+    assert main(["diagnose", str(d / "si.csv"), "--passport", str(d / "pp.json")]) == 0
     assert "probably not this unit's" not in capsys.readouterr().out
 
 

@@ -188,7 +188,7 @@ def test_a_fault_from_the_10th_of_18_positions_is_dated_and_named_in_the_later_p
     write_csv_session(d / "late_twin.csv", twin.session)
     status, text, _, doc = _diagnose(capsys, d / "late_twin.csv", d / "pp.json")
     assert doc["faults"] == [] and doc["onset"] is None and "FAULT" not in text
-    assert status == 3  # the MEMS gyro: not tested
+    assert status == 0  # the MEMS gyro's F0 and F1…F9 cannot apply; the gross test ran
 
 
 @needs(XSENS)
@@ -196,18 +196,25 @@ def test_the_measured_xsens_session_keeps_its_diagnosis(tmp_path, capsys):
     """The real unit against its own passport: the accelerometers diagnosed, nothing fails; F0
     tests the 34,882 samples the service tests (tests/test_pipeline_xsens.py: the static runs less
     25 samples at each end) and none leaves this shell (the six single-sample failures diagnose
-    counted as knocks before were those run ends); the gyro has no passport (it cannot see the
-    Earth rate), so the answer is no finding within coverage, exit 3 (it was 0)."""
+    counted as knocks before were those run ends); the gyro has no passport and cannot see the
+    Earth rate (its F0 and F1…F9 do not apply); the gross test tests both triads at rest, the
+    accelerometer's too although this gyro rests 0.05 rad/s off 0 (inside its class's 20 °/s: a
+    healthy gyro must not switch the accelerometer's test off). Everything that applies ran: no
+    fault, exit 0."""
     pp = tmp_path / "xs.json"
     assert main(["calibrate", str(XSENS), "--out", str(pp), "--no-audit"]) == 0
     capsys.readouterr()
-    assert main(["diagnose", str(XSENS), "--passport", str(pp), "--json"]) == 3
+    assert main(["diagnose", str(XSENS), "--passport", str(pp), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert len(doc["positions"]) == 38 and doc["triads"]["accel"]["diagnosed"]
     assert doc["faults"] == [] and doc["onset"] is None
     f0 = doc["f0"]["accel"]
     assert (f0["tested"], f0["failed"], f0["knocks"]) == (34882, 0, 0)
     assert doc["triads"]["gyro"]["reason"] == "no passport for this triad"
+    checks = {(c["triad"], c["check"]): c for c in doc["coverage"]["checks"]}
+    assert not checks["gyro", "F1-F9"]["applies"] and not checks["gyro", "F0"]["applies"]
+    assert checks["accel", "gross"]["samples"] == checks["gyro", "gross"]["samples"] == 695
+    assert doc["not_tested"] == []
 
 
 # --- what diagnose must not do (review of the above) ---------------------------------------------

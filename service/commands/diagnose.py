@@ -198,7 +198,11 @@ def f0_faults(f0: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
 def not_tested(result: ChainResult, passport: Passport, f0: dict[str, dict[str, Any]]) -> list[str]:
     """What applies and was not tested, and why: a triad of the session or of the passport not
     diagnosed, and an F0 that could run but found no sample at rest to test."""
-    out = [f"{t.value}: {r.reason}" for t, r in result.triads.items() if not r.diagnosed]
+    out = [
+        f"{t.value}: {r.reason}"
+        for t, r in result.triads.items()
+        if not r.diagnosed and cannot_apply(t, r, passport) is None
+    ]
     out += [
         f"{t.value}: the session has no {t.value} samples"
         for t in passport.triads
@@ -211,6 +215,27 @@ def not_tested(result: ChainResult, passport: Passport, f0: dict[str, dict[str, 
         if f["run"] and f["tested"] == 0
     ]
     return out
+
+
+def cannot_apply(triad: Triad, r: TriadResult, passport: Passport) -> str | None:
+    """Why F1…F9 (and F0) cannot apply to a triad at all, or None: a gyro that cannot see the Earth
+    rate, as its passport says (no parameter resolved) or, without a gyro passport, as the session
+    shows (its position means too noisy against Ω for any scheme). Not having run then leaves
+    nothing the verdict rests on untested; its zero signal is the gross test's."""
+    import numpy as np
+
+    from estimators.conventions import Triad
+
+    if triad is not Triad.GYRO:
+        return None
+    tp = passport.triads.get(triad)
+    if tp is not None and not np.any(tp.observable):
+        return "gyro cannot see the Earth rate: its passport resolves no parameter"
+    if tp is None and r.estimate.reference_unresolvable:
+        return (
+            "gyro cannot see the Earth rate: this session's position means are too noisy against it"
+        )
+    return None
 
 
 def gross_faults(gross: GrossResult) -> list[dict[str, Any]]:
@@ -245,7 +270,6 @@ def coverage(
     """What the diagnosis tested (:mod:`estimators.coverage`), per triad: F0 on the static samples,
     F1…F9 on the positions, the gross test on its windows at rest; with each one's minimum
     detectable fault, or why it did not run (a MEMS gyro's F0 and F1…F9 cannot apply)."""
-    import numpy as np
 
     from estimators.conventions import Triad, reference_magnitude
     from estimators.coverage import (
@@ -267,6 +291,13 @@ def coverage(
     for triad in (Triad.ACCEL, Triad.GYRO):
         tp = passport.triads.get(triad)
         r = result.triads.get(triad)
+        why_not = None if r is None else cannot_apply(triad, r, passport)
+        if tp is None and why_not is not None:
+            checks += [
+                CheckCoverage(c, triad, ran=False, applies=False, reason=why_not)
+                for c in (Check.F0, Check.F1_F9)
+            ]
+            continue
         if tp is None or r is None:
             why = (
                 f"the passport has no {triad.value} triad"
@@ -298,14 +329,10 @@ def coverage(
                     tolerance_scale=tol_scale,
                 )
             )  # fmt: skip
-        if not np.any(tp.observable):
+        if why_not is not None:
             checks.append(
-                CheckCoverage(
-                    Check.F1_F9, triad, ran=False, applies=False,
-                    reason="the passport resolves no parameter"
-                    + (" (a gyro that cannot see the Earth rate)" if triad is Triad.GYRO else ""),
-                )
-            )  # fmt: skip
+                CheckCoverage(Check.F1_F9, triad, ran=False, applies=False, reason=why_not)
+            )
         elif r.diagnosis is None or not r.diagnosed:
             checks.append(
                 CheckCoverage(Check.F1_F9, triad, ran=False, positions=r.estimate.n_positions, reason=r.reason)
