@@ -40,6 +40,11 @@ an array of maps, one per check of the IMU
 (:meth:`estimators.coverage.CheckCoverage.to_dict`: what ran, on how much, its
 minimum detectable fault, and why a check did not run). Version 1 (no
 ``coverage``) is still read, with no coverage.
+
+Service status schema, version 1: ``type`` = ``"ins.health.service_status"``, ``v`` = 1, ``service``
+(instance name), ``t_s`` (s since the Unix epoch), ``vehicles`` (array of the vehicle ids it
+serves, possibly empty), ``counters`` (map str → int ≥ 0, the instance's ``service.*`` counters):
+what an instance says of itself from its start, before any vehicle and whatever their number.
 """
 
 from __future__ import annotations
@@ -81,6 +86,8 @@ SUPPORTED_EVENT_VERSIONS = (1, 2)
 STATUS_TYPE = "ins.health.status"
 STATUS_VERSION = 2
 SUPPORTED_STATUS_VERSIONS = (1, 2)
+SERVICE_STATUS_TYPE = "ins.health.service_status"
+SERVICE_STATUS_VERSION = 1
 MAX_EVENT_BYTES = 64 * 1024
 MAX_STATUS_BYTES = MAX_MESSAGE_BYTES
 MAX_TEXT_CHARS = 1000
@@ -691,3 +698,58 @@ def _coverage(items: list[Any]) -> tuple[CheckCoverage, ...]:
         return tuple(CheckCoverage.from_dict(c) for c in items)
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise EventError(Reason.BAD_VALUE, f"unusable coverage entry: {exc!r}") from None
+
+
+@dataclass(frozen=True)
+class ServiceStatus:
+    """The periodic status of one service instance, vehicles or none (module docstring).
+
+    Attributes
+    ----------
+    service : instance name.
+    t_s : service clock at publication, s since the Unix epoch.
+    vehicles : the vehicles it serves now.
+    counters : the instance's counters (``service.*``).
+    """
+
+    service: str
+    t_s: float
+    vehicles: tuple[str, ...] = ()
+    counters: Mapping[str, int] = dc_field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for vehicle in self.vehicles:
+            check_vehicle(vehicle, error=EventError)
+        object.__setattr__(self, "vehicles", tuple(self.vehicles))
+        # The same rule as a vehicle's status counters.
+        Status(vehicle=self.service, service=self.service, t_s=self.t_s, counters=self.counters)
+        object.__setattr__(self, "counters", MappingProxyType(dict(self.counters)))
+
+
+def encode_service_status(status: ServiceStatus) -> bytes:
+    """msgpack bytes of a service status (schema version :data:`SERVICE_STATUS_VERSION`)."""
+    return pack(
+        {
+            "type": SERVICE_STATUS_TYPE,
+            "v": SERVICE_STATUS_VERSION,
+            "service": status.service,
+            "t_s": float(status.t_s),
+            "vehicles": list(status.vehicles),
+            "counters": dict(status.counters),
+        }
+    )
+
+
+def decode_service_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> ServiceStatus:
+    """Decode and validate a service status; raises :class:`EventError` with a reason."""
+    obj = unpack_map(data, max_bytes=max_bytes, error=EventError)
+    check_header(obj, type_tag=SERVICE_STATUS_TYPE, versions=(1,), error=EventError)
+    vehicles = field(obj, "vehicles", list, error=EventError)
+    if not all(isinstance(v, str) for v in vehicles):
+        raise EventError(Reason.WRONG_TYPE, "vehicles must be an array of str")
+    return ServiceStatus(
+        service=field(obj, "service", str, error=EventError),
+        t_s=float_field(obj, "t_s", error=EventError),
+        vehicles=tuple(vehicles),
+        counters=field(obj, "counters", dict, error=EventError),
+    )

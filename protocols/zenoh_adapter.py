@@ -88,7 +88,7 @@ import numpy as np
 import zenoh
 from numpy.typing import ArrayLike
 
-from protocols._handoff import ThreadToAsyncRing
+from protocols._handoff import FairQueues
 from protocols._schema import (
     MAX_IMU_INDEX,
     MAX_MESSAGE_BYTES,
@@ -101,10 +101,13 @@ from protocols._schema import (
 from protocols.events import (
     Event,
     EventError,
+    ServiceStatus,
     Status,
     decode_event,
+    decode_service_status,
     decode_status,
     encode_event,
+    encode_service_status,
     encode_status,
 )
 from protocols.frames import (
@@ -121,6 +124,13 @@ ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
 ALL_EVENTS = f"{ROOT}/*/health/events"
 ALL_STATUS = f"{ROOT}/*/health/status"
+SERVICES = f"{ROOT}/_service"
+"""Where the instances speak of themselves (a vehicle id cannot start with ``_``)."""
+ALL_ALIVE = f"{SERVICES}/*/alive"
+LEASE_MS = 2000
+"""The Zenoh lease of every session opened here: a peer silent this long (killed, stopped, cut off)
+is closed by the other side, and its liveliness tokens go with it. Zenoh's default, 10 s, made a
+stopped daemon look alive for 10 s; keep-alives go every quarter of it."""
 DRAIN_TIMEOUT_S = 5.0
 """How long :meth:`FramePublisher.drain` waits for the router's answer (it comes in milliseconds)."""
 _IMU_INDEX = re.compile(r"0|[1-9][0-9]{0,3}", re.ASCII)
@@ -156,6 +166,27 @@ def ack_key(vehicle: str) -> str:
 def status_key(vehicle: str) -> str:
     """``ins/<vehicle>/health/status``."""
     return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/health/status"
+
+
+def check_service_name(name: str) -> str:
+    """An instance name usable as one key chunk (no ``/``, wildcard or ``$?#``); ``ValueError`` otherwise."""
+    if not name or any(c in name for c in "/*$?#") or name.strip() != name:
+        raise ValueError(
+            f"an instance name is one Zenoh key chunk: not empty, no '/', '*', '$', '?', '#' "
+            f"or surrounding spaces, got {name!r}"
+        )
+    return name
+
+
+def alive_key(service: str, vehicle: str | None = None) -> str:
+    """``ins/_service/<service>/alive``, the instance's liveliness token, or ``…/alive/<vehicle>``, one per vehicle it serves."""
+    key = f"{SERVICES}/{check_service_name(service)}/alive"
+    return key if vehicle is None else f"{key}/{check_vehicle(vehicle, error=SchemaError)}"
+
+
+def service_status_key(service: str) -> str:
+    """``ins/_service/<service>/status``."""
+    return f"{SERVICES}/{check_service_name(service)}/status"
 
 
 def frame_selectors(vehicles: Iterable[str] | None = None) -> tuple[str, ...]:
@@ -305,6 +336,7 @@ def zenoh_config(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Config:
     if settings.listen:
         entries["listen/endpoints"] = list(settings.listen)
     entries["transport/link/rx/max_message_size"] = ZENOH_MAX_MESSAGE_BYTES
+    entries["transport/link/tx/lease"] = LEASE_MS
     if settings.tls is not None:
         entries["transport/link/tls"] = dict(settings.tls)
     if settings.access_control is not None:
@@ -413,9 +445,10 @@ class FrameSource(BatchSource):
 
     Use as ``async for batch in source`` or ``await source.get()``; create it
     inside the running loop (or pass ``loop``). Payloads are copied out of
-    Zenoh's callback thread into a :class:`~protocols._handoff.ThreadToAsyncRing`
-    and decoded by the consumer, so a flood costs the receiving thread only a
-    copy. Rejected frames (bad bytes, or a payload whose vehicle/imu differ
+    Zenoh's callback thread into one queue per (vehicle, IMU) of its key
+    (:class:`~protocols._handoff.FairQueues`: the drop policy) and decoded by the
+    consumer, the units taken in turn, so a flood costs the receiving thread only a
+    copy and no other unit its frames. Rejected frames (bad bytes, or a payload whose vehicle/imu differ
     from its key: ``key_mismatch``) are counted by reason in :attr:`counters`
     and reported to ``on_reject`` (an ``(key, FrameError)`` callable, called in
     the consumer); they never stop the source.
@@ -424,7 +457,9 @@ class FrameSource(BatchSource):
     ----------
     session : an open Zenoh session.
     key_exprs : frame key expressions, default the whole fleet (:func:`frame_selectors`).
-    capacity : frames held between Zenoh and the pipeline; beyond it the oldest is dropped and counted.
+    capacity : frames held per (vehicle, IMU) between Zenoh and the pipeline; beyond it new frames are
+        dropped and counted (:attr:`dropped_by_unit`).
+    total : frames held for all units together; beyond it a unit over its fair share loses its newest.
     max_frame_bytes : size limit passed to :func:`~protocols.frames.decode_frame`.
     """
 
@@ -433,13 +468,14 @@ class FrameSource(BatchSource):
         session: zenoh.Session,
         key_exprs: Sequence[str] = (ALL_FRAMES,),
         *,
-        capacity: int = 4096,
+        capacity: int = 256,
+        total: int = 4096,
         max_frame_bytes: int = MAX_FRAME_BYTES,
         on_reject: Callable[[str, FrameError], None] | None = None,
         loop: asyncio.AbstractEventLoop | None = None,
     ):
-        self._ring: ThreadToAsyncRing[tuple[str, bytes]] = ThreadToAsyncRing(
-            capacity, loop or asyncio.get_running_loop()
+        self._ring: FairQueues[tuple[str, int] | None, tuple[str, bytes]] = FairQueues(
+            capacity, total, loop or asyncio.get_running_loop()
         )
         self._max_bytes = int(max_frame_bytes)
         self._on_reject = on_reject
@@ -448,13 +484,33 @@ class FrameSource(BatchSource):
         self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in key_exprs]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self._ring.put((str(sample.key_expr), sample.payload.to_bytes()))
+        key = str(sample.key_expr)
+        try:
+            unit: tuple[str, int] | None = parse_frame_key(key)
+        except FrameError:
+            # Queued together, and refused by the decoder in turn.
+            unit = None
+        self._ring.put(unit, (key, sample.payload.to_bytes()))
 
     @property
     def counters(self) -> SourceCounters:
+        received, dropped = self._ring.counts()
         return SourceCounters(
-            self._ring.put_count, self._accepted, self._ring.dropped, dict(self._rejected)
+            sum(received.values()), self._accepted, sum(dropped.values()), dict(self._rejected)
         )
+
+    def unit_counts(self) -> tuple[dict[tuple[str, int], int], dict[tuple[str, int], int]]:
+        """Frames that came for each (vehicle, IMU), dropped ones included, and those dropped
+        (its queue, or the instance's, full)."""
+        received, dropped = self._ring.counts()
+        return (
+            {k: n for k, n in received.items() if k is not None},
+            {k: n for k, n in dropped.items() if k is not None},
+        )
+
+    def queued_of(self, vehicle: str, imu: int) -> int:
+        """Frames of the unit waiting to be taken."""
+        return self._ring.queued((vehicle, imu))
 
     async def get(self) -> SampleBatch:
         """The next valid frame (waits; rejected frames are counted and skipped); ``EOFError`` after :meth:`close`."""
@@ -851,15 +907,30 @@ class EventReceiver:
 
 
 class StatusPublisher:
-    """Publishes :class:`~protocols.events.Status` on ``ins/<vehicle>/health/status``.
+    """Publishes :class:`~protocols.events.Status` on ``ins/<vehicle>/health/status`` and the
+    instance's :class:`~protocols.events.ServiceStatus` on ``ins/_service/<service>/status``, and
+    answers a query of a vehicle's status (:func:`query_status`) with the last one published.
+
+    Liveliness: the instance's token (:func:`alive_key`) from the start, and one per vehicle once
+    its status is published; Zenoh withdraws them when the session ends or its lease expires
+    (:data:`LEASE_MS`), so a subscriber (:func:`subscribe_alive`) sees a killed or stopped
+    instance go.
 
     Status is periodic and the latest one supersedes the others, so it uses
     ``CongestionControl.DROP``; the service's clock decides the period.
     """
 
-    def __init__(self, session: zenoh.Session):
+    def __init__(self, session: zenoh.Session, service: str):
         self._session = session
+        self._service = service
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._last: dict[str, bytes] = {}
+        self._tokens = [session.liveliness().declare_token(alive_key(service))]
+        self._vehicle_tokens: dict[str, zenoh.LivelinessToken] = {}
+        self._service_pub = session.declare_publisher(
+            service_status_key(service), congestion_control=zenoh.CongestionControl.DROP
+        )
+        self._queryable = session.declare_queryable(ALL_STATUS, self._answer)
 
     def publish(self, status: Status) -> None:
         pub = self._publishers.get(status.vehicle)
@@ -868,12 +939,33 @@ class StatusPublisher:
                 status_key(status.vehicle), congestion_control=zenoh.CongestionControl.DROP
             )
             self._publishers[status.vehicle] = pub
-        pub.put(encode_status(status))
+            self._vehicle_tokens[status.vehicle] = self._session.liveliness().declare_token(
+                alive_key(self._service, status.vehicle)
+            )
+        payload = encode_status(status)
+        self._last[status.vehicle] = payload
+        pub.put(payload)
+
+    def publish_service(self, status: ServiceStatus) -> None:
+        self._service_pub.put(encode_service_status(status))
+
+    def _answer(self, query: zenoh.Query) -> None:
+        # Zenoh's thread: the payload is bytes already encoded by the loop.
+        key = str(query.key_expr)
+        parts = key.split("/")
+        payload = self._last.get(parts[1]) if len(parts) == 4 else None
+        if payload is not None:
+            query.reply(key, payload)
 
     def close(self) -> None:
+        self._queryable.undeclare()
         for pub in self._publishers.values():
             pub.undeclare()
         self._publishers.clear()
+        self._service_pub.undeclare()
+        for token in [*self._tokens, *self._vehicle_tokens.values()]:
+            token.undeclare()
+        self._tokens, self._vehicle_tokens = [], {}
 
     def __enter__(self) -> StatusPublisher:
         return self
@@ -904,3 +996,50 @@ def subscribe_status(
         on_status(status)
 
     return session.declare_subscriber(f"{ROOT}/{vehicles}/health/status", callback)
+
+
+def query_status(session: zenoh.Session, vehicle: str, *, timeout_s: float) -> list[Status]:
+    """The last status of ``vehicle`` from each instance that serves it (:class:`StatusPublisher`),
+    asked now; empty when none answers within ``timeout_s`` (undecodable answers are left out)."""
+    statuses = []
+    for reply in session.get(status_key(vehicle), timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        try:
+            statuses.append(decode_status(reply.ok.payload.to_bytes()))
+        except EventError:
+            continue
+    return statuses
+
+
+def subscribe_alive(
+    session: zenoh.Session, on_change: Callable[[str, bool], None]
+) -> zenoh.Subscriber[None]:
+    """Follow the instances' liveliness (:func:`alive_key`): ``on_change(service, alive)`` for each
+    instance alive when subscribing, and each time one goes (``False``) or comes (``True``)."""
+
+    def callback(sample: zenoh.Sample) -> None:
+        service = str(sample.key_expr).split("/")[2]
+        on_change(service, sample.kind == zenoh.SampleKind.PUT)
+
+    return session.liveliness().declare_subscriber(ALL_ALIVE, callback, history=True)
+
+
+def subscribe_service_status(
+    session: zenoh.Session,
+    on_status: Callable[[ServiceStatus], None],
+    *,
+    on_reject: Callable[[EventError], None] | None = None,
+) -> zenoh.Subscriber[None]:
+    """Subscribe to the instances' service status (``ins/_service/*/status``)."""
+
+    def callback(sample: zenoh.Sample) -> None:
+        try:
+            status = decode_service_status(sample.payload.to_bytes())
+        except EventError as exc:
+            if on_reject is not None:
+                on_reject(exc)
+            return
+        on_status(status)
+
+    return session.declare_subscriber(f"{SERVICES}/*/status", callback)

@@ -44,6 +44,7 @@ from protocols.zenoh_adapter import (
     Mode,
     ZenohSettings,
     check_frames_selector,
+    check_service_name,
 )
 
 NO_DEFAULT_GRADE = "none"
@@ -245,6 +246,10 @@ class PipelineSection:
     """``[pipeline]``.
 
     queue_capacity : frames queued per (vehicle, IMU) before new frames are dropped and counted (default 256).
+    instance_queue_capacity : frames queued for all units of the instance together (default 4096); when
+        full, a unit holding less than its fair share (this over the units with frames queued) takes
+        the place of the newest frame of the longest queue, and one holding its share or more has its
+        new frame dropped (:class:`protocols._handoff.FairQueues`; deploy/SCALING.md).
     false_alarm_probability : per-sample false-alarm probability of F0 from which λ0 is derived
         with the passport's noise and tolerances (default 1e-9: at 1 kHz about one false alarm
         in 11 days of static data; :func:`estimators.scalar.derive_lambda0`).
@@ -258,6 +263,7 @@ class PipelineSection:
     """
 
     queue_capacity: int = 256
+    instance_queue_capacity: int = 4096
     false_alarm_probability: float = 1e-9
     f0_persistence_s: float = 0.02
     min_positions: int = 9
@@ -553,8 +559,11 @@ def _check(cfg: ServiceConfig) -> list[str]:
             check_vehicle(vehicle, error=SchemaError)
         except SchemaError as exc:
             errors.append(f"[service] vehicles: {exc}")
-    if not s.name:
-        errors.append("[service] name must not be empty")
+    try:
+        # The name is a key chunk of the instance's liveliness token and service status.
+        check_service_name(s.name)
+    except ValueError as exc:
+        errors.append(f"[service] name: {exc}")
     for name in ("data_dir", "passport_dir"):
         folder = getattr(s, name)
         # A file there ended the start in a traceback (FileExistsError) from the outbox's mkdir.
@@ -571,7 +580,12 @@ def _check(cfg: ServiceConfig) -> list[str]:
         errors.append(
             f"[service] outbox_max_mb must be a finite number >= 0, got {s.outbox_max_mb!r}"
         )
-    for name in ("queue_capacity", "max_imus_per_vehicle", "max_vehicles"):
+    for name in (
+        "queue_capacity",
+        "instance_queue_capacity",
+        "max_imus_per_vehicle",
+        "max_vehicles",
+    ):
         _positive(errors, f"[pipeline] {name}", getattr(p, name))
     if not 0.0 < p.false_alarm_probability < 0.5:
         errors.append(

@@ -3,8 +3,9 @@
 Tasks of :meth:`Service.run`
 ----------------------------
 * **frames** (Zenoh) and **mavlink-frames** — IMU frames from Zenoh (:class:`protocols.zenoh_adapter.FrameSource`:
-  a bounded ring between Zenoh's thread and the loop; when it is full the
-  oldest frame is dropped and counted) and, when configured, from MAVLink
+  a bounded queue per (vehicle, IMU) between Zenoh's thread and the loop, taken in turn; a unit's
+  frames beyond ``queue_capacity``, or beyond its fair share of ``instance_queue_capacity``, are
+  dropped, counted per unit and logged) and, when configured, from MAVLink
   (:class:`protocols.mavlink_adapter.MavlinkSource`: the samples that arrive within
   :data:`service.intake.COALESCE_WINDOW_S` of the first, one batch per IMU; the link is read and
   parsed in a child process, :mod:`protocols.mavlink_process`, unless ``[mavlink] reader =
@@ -24,9 +25,14 @@ Tasks of :meth:`Service.run`
   (ids are stable: deduplicate by id). MAVLink: STATUSTEXT alerts through a rate limiter
   (:class:`service.alert_policy.AlertPolicy`): a repeat is suppressed (it counts as delivered to
   that sink; the full stream stays on Zenoh), distinct alerts are paced.
-* **status** — every ``status_period_s``: the timeout checks, then one
-  :class:`~protocols.events.Status` per vehicle on ``ins/<vehicle>/health/status``
-  with every counter (rejections by reason, drops, outbox backlog, …).
+* **status** — every ``status_period_s``: the timeout checks, then the instance's own
+  :class:`~protocols.events.ServiceStatus` on ``ins/_service/<name>/status`` (from the start,
+  before any vehicle) and one :class:`~protocols.events.Status` per vehicle on
+  ``ins/<vehicle>/health/status`` with every counter (rejections by reason, drops per IMU, outbox
+  backlog, …); the frames dropped are logged naming vehicle and IMU. With the Zenoh session the
+  instance declares its liveliness token (:class:`protocols.zenoh_adapter.StatusPublisher`), which
+  Zenoh withdraws when the daemon is killed, stopped or cut off (``ins-health watch`` says
+  ``lost``).
 * **checkpoints** — every ``checkpoint_period_s`` the state of every pipeline
   (positions, recursive estimates) and of each vehicle's cross-IMU comparison
   (the disagreements it raised) to SQLite, a vehicle's taken at one moment. A checkpoint the
@@ -79,8 +85,10 @@ from protocols.checkpoint_codec import encode_state
 from protocols.events import (
     Event,
     EventError,
+    ServiceStatus,
     decode_event,
 )
+from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
 from protocols.mavlink_process import MavlinkProcessLink
 from protocols.zenoh_adapter import (
@@ -265,6 +273,7 @@ class Service:
         self._checkpoint_soon = asyncio.Event()
         self._checkpoint_vehicles: set[str] = set()
         self._saves = SaveFailures(clock=clock)
+        self._drops_log = LogRate()
 
     @property
     def outbox(self) -> Outbox | None:
@@ -556,14 +565,63 @@ class Service:
                 {f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()}
             )
         now = time.time()
-        for vehicle in self.fleet.vehicles():
+        name = self.config.service.name
+        vehicles = self.fleet.vehicles()
+        publisher.publish_service(
+            ServiceStatus(
+                service=name,
+                t_s=now,
+                vehicles=tuple(vehicles),
+                counters={
+                    **{f"service.{k}": n for k, n in self.fleet.service_counters.items()},
+                    **{k: n for k, n in extra.items() if k.startswith("service.")},
+                },
+            )
+        )
+        units = self._unit_frames()
+        for vehicle in vehicles:
             publisher.publish(
                 self.fleet.status(
-                    vehicle, service=self.config.service.name, now_unix_s=now, extra=extra
+                    vehicle, service=name, now_unix_s=now, extra=extra | units.get(vehicle, {})
                 )
             )
             # One vehicle at a time: frames waiting behind a large fleet's status are not held up.
             await asyncio.sleep(0)
+
+    def _unit_frames(self) -> dict[str, dict[str, int]]:
+        """Each vehicle's frames from Zenoh per IMU: ``imu<n>.frames.received`` (dropped ones
+        included), ``imu<n>.frames.dropped_overload`` and ``imu<n>.frames.queued`` (waiting now):
+        what ``ins-health publish`` compares with what it sent."""
+        source = self.source
+        if source is None:
+            return {}
+        received, dropped = source.unit_counts()
+        out: dict[str, dict[str, int]] = {}
+        for (vehicle, imu), n in received.items():
+            out.setdefault(vehicle, {}).update(
+                {
+                    f"imu{imu}.frames.received": n,
+                    f"imu{imu}.frames.dropped_overload": dropped.get((vehicle, imu), 0),
+                    f"imu{imu}.frames.queued": source.queued_of(vehicle, imu),
+                }
+            )
+        return out
+
+    def _log_drops(self) -> None:
+        """Frames dropped because a queue was full, said per vehicle and IMU: a new unit at once,
+        more at most once per period (:class:`~protocols.log_rate.LogRate`)."""
+        if self.source is None:
+            return
+        dropped = {f"{v} IMU{i}": n for (v, i), n in self.source.unit_counts()[1].items()}
+        if new := self._drops_log.due(dropped):
+            p = self.config.pipeline
+            log.warning(
+                "frames dropped, their queue full (queue_capacity %d per IMU, instance_queue_capacity "
+                "%d): %s; the newest are dropped, counted on the status topic as "
+                "imu<n>.frames.dropped_overload",
+                p.queue_capacity, p.instance_queue_capacity,
+                ", ".join(f"{n} of {unit}" for unit, n in sorted(new.items())),
+            )  # fmt: skip
 
     async def _status(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
@@ -574,6 +632,7 @@ class Service:
             self._track_router()
             self._check_mavlink_reader()
             self.intake.log_refusals()
+            self._log_drops()
             if self._status_pub is not None:
                 await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
@@ -771,11 +830,12 @@ class Service:
         )
         resources.callback(zsink.close)
         self.sinks.insert(0, zsink)
-        self._status_pub = resources.enter_context(StatusPublisher(session))
+        self._status_pub = resources.enter_context(StatusPublisher(session, cfg.service.name))
         source = self.source = FrameSource(
             session,
             (cfg.zenoh.frames_key,),
             capacity=cfg.pipeline.queue_capacity,
+            total=cfg.pipeline.instance_queue_capacity,
             on_reject=self.intake.reject,
         )
         resources.callback(source.close)

@@ -37,7 +37,9 @@ class Intake:
     No frame is taken while events wait for the outbox (back-pressure): before
     each group of frames the intake awaits ``writable``, and it stops taking
     frames into a group as soon as ``store`` held events. Frames then wait in
-    the sources' bounded queues; beyond them the oldest are dropped and counted.
+    the sources' bounded queues; beyond them frames are dropped and counted (the
+    Zenoh source's new frames of the unit whose queue is full,
+    :class:`protocols._handoff.FairQueues`; the MAVLink source's oldest).
 
     Parameters
     ----------

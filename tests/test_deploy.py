@@ -19,14 +19,26 @@ import pytest
 import zenoh
 from service_support import free_tcp_port, wait_until, zenoh_client_config
 
-from protocols.events import Predicate, Severity, StreamCause, encode_event, make_event
+from protocols.events import (
+    Predicate,
+    ServiceStatus,
+    Severity,
+    Status,
+    StreamCause,
+    encode_event,
+    make_event,
+)
 from protocols.zenoh_adapter import (
     ZENOH_MAX_MESSAGE_BYTES,
     AckMode,
     EventPublisher,
     EventReceiver,
     FramePublisher,
+    StatusPublisher,
     open_session,
+    query_status,
+    subscribe_alive,
+    subscribe_service_status,
 )
 from service.cli import build_parser
 from service.config import config_from_dict, load_config
@@ -72,6 +84,23 @@ def check_json5(path: Path, tmp_path: Path) -> None:
         assert allowed.get(timeout=5.0) == b"after"
         assert denied.empty(), f"other/x was routed: {denied.get()!r}"
         assert not other.matching_status.matching
+        # A ground station sees a service's liveliness token come and go, and its own status; a
+        # vehicle's last status is answered to a query (what ins-health publish reads at its end).
+        alive, own = queue.Queue(), queue.Queue()
+        subscribe_alive(sub_s, lambda name, up: alive.put((name, up)))
+        subscribe_service_status(sub_s, own.put)
+        status = StatusPublisher(pub_s, "onboard")
+        assert alive.get(timeout=5.0) == ("onboard", True)
+        wait_until(
+            lambda: status._service_pub.matching_status.matching, timeout_s=5.0, what="a route"
+        )
+        status.publish_service(ServiceStatus("onboard", 1.0))
+        status.publish(Status("v1", "onboard", 1.0, {"imu0.frames.dropped_overload": 2}))
+        assert own.get(timeout=5.0).service == "onboard"
+        [answer] = query_status(sub_s, "v1", timeout_s=5.0)
+        assert answer.counters["imu0.frames.dropped_overload"] == 2
+        status.close()
+        assert alive.get(timeout=5.0) == ("onboard", False)
 
 
 def read_unit(path: Path) -> configparser.ConfigParser:

@@ -16,12 +16,15 @@ from protocols.events import (
     ImuState,
     ImuStatus,
     Predicate,
+    ServiceStatus,
     Severity,
     Status,
     StreamCause,
     decode_event,
+    decode_service_status,
     decode_status,
     encode_event,
+    encode_service_status,
     encode_status,
     event_from_finding,
     event_from_json,
@@ -284,3 +287,20 @@ def test_event_construction_rejects_non_finite_numbers():
             vehicle="v1", imu=0, t_s=float("nan"), predicate="F0", cause="out_of_shell", severity=4
         )
     assert isinstance(_event(), Event)
+
+
+def test_a_service_status_says_an_instance_runs_before_any_vehicle():
+    """An instance's own status: no vehicle needed; its vehicles and counters checked as a vehicle's."""
+    none_yet = ServiceStatus(service="onboard", t_s=1.7e9)
+    assert decode_service_status(encode_service_status(none_yet)) == none_yet
+    serving = ServiceStatus("onboard", 1.7e9, ("uav-1",), {"service.frames.dropped_overload": 3})
+    assert decode_service_status(encode_service_status(serving)) == serving
+    with pytest.raises(EventError, match="counter 'x' must be"):
+        ServiceStatus("onboard", 0.0, counters={"x": -1})
+    with pytest.raises(EventError):
+        ServiceStatus("onboard", 0.0, vehicles=("bad/id",))
+    # A vehicle's status is not taken for an instance's, nor the other way round.
+    with pytest.raises(EventError):
+        decode_service_status(encode_status(Status(vehicle="v1", service="onboard", t_s=0.0)))
+    with pytest.raises(EventError):
+        decode_status(encode_service_status(none_yet))

@@ -256,7 +256,9 @@ def test_an_outbox_locked_by_another_process_holds_the_events_then_delivers_each
                                timeout_s=60, what=lambda: f"outbox unavailable on the status topic ({status.get(faulty)})")  # fmt: skip
                     held = status.get(faulty).counters
                     assert got == [] and held["service.outbox.write_failures"] >= 1
-                    assert held["service.outbox.held_events"] == 1
+                    # The queues of the two vehicles are taken in turn: the group whose event could
+                    # not be stored may hold the other vehicle's fault too, and no frame is taken after it.
+                    assert 1 <= held["service.outbox.held_events"] <= len(want)
                 finally:
                     lock.execute("ROLLBACK")
                     lock.close()

@@ -17,9 +17,16 @@ daemon was offered every sample. Progress goes to stderr every few seconds; a
 summary line (frames, samples, seconds of data, seconds taken, and the samples
 left out: a session's unusable ones, which the daemon would refuse with their
 whole frame, or what the log reader left out) ends the output. Before it ends,
-publish waits for the router to confirm that it holds the last frames (:meth:`protocols.zenoh_adapter.FramePublisher.drain`). Exit status 0;
-1 when the router did not confirm them; 2 for an unusable file or option, an
-unreachable router or no subscriber; 130 when interrupted (Ctrl-C, SIGTERM).
+publish waits for the router to confirm that it holds the last frames (:meth:`protocols.zenoh_adapter.FramePublisher.drain`),
+then asks the daemon for the vehicle's status until it has taken every frame
+sent (``imu<n>.frames.received`` and ``…queued``, waiting up to ``--wait-s``)
+and says the frames it dropped, its queue of the IMU full
+(``imu<n>.frames.dropped_overload``, counted from publish's start). Exit status
+0 when the daemon took every frame; 1 when it dropped any (named on stderr) or
+the router did not confirm the last ones; 3 when the daemon did not account for
+them within ``--wait-s`` (a daemon older than this command does not answer);
+2 for an unusable file or option, an unreachable router or no subscriber; 130
+when interrupted (Ctrl-C, SIGTERM).
 """
 
 from __future__ import annotations
@@ -41,6 +48,10 @@ if TYPE_CHECKING:
 
 DEFAULT_BATCH_SAMPLES = 100
 PROGRESS_PERIOD_S = 5.0
+STATUS_POLL_S = 0.2
+"""How often the daemon's status is asked for at the end (it publishes one every status period, 1 s)."""
+EXIT_DROPPED = 1
+EXIT_UNACCOUNTED = 3
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -154,6 +165,46 @@ def _publisher(session: Session, batch: SampleBatch, wait_s: float) -> FramePubl
     return pub
 
 
+def _unit_frames(session: Session, vehicle: str) -> dict[str, int] | None:
+    """The daemon's ``imu<n>.frames.*`` counters of ``vehicle`` (summed over the instances that
+    answer); None when none answers."""
+    from protocols.zenoh_adapter import query_status
+
+    statuses = query_status(session, vehicle, timeout_s=STATUS_POLL_S * 5)
+    if not statuses:
+        return None
+    out: dict[str, int] = {}
+    for status in statuses:
+        for name, n in status.counters.items():
+            if ".frames." in name and name.startswith("imu"):
+                out[name] = out.get(name, 0) + n
+    return out
+
+
+def _daemon_account(
+    session: Session, vehicle: str, sent: dict[int, int], before: dict[str, int], wait_s: float
+) -> dict[int, int] | None:
+    """IMU → frames the daemon dropped of those ``sent`` (IMU → frames), once its status shows them
+    all received and none queued; None when it does not within ``wait_s``."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        now = _unit_frames(session, vehicle)
+        if now is not None:
+
+            def gained(imu: int, what: str, now: dict[str, int] = now) -> int:
+                name = f"imu{imu}.frames.{what}"
+                return now.get(name, 0) - before.get(name, 0)
+
+            if all(
+                gained(imu, "received") >= n and now.get(f"imu{imu}.frames.queued", 0) == 0
+                for imu, n in sent.items()
+            ):
+                return {imu: gained(imu, "dropped_overload") for imu in sent}
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(STATUS_POLL_S)
+
+
 class _RecordedPace:
     """Holds each frame back until its last sample's time has come, counted from the first frame."""
 
@@ -173,12 +224,14 @@ class _Progress:
     def __init__(self, name: str) -> None:
         self.name = name
         self.frames = self.samples = 0
+        self.by_imu: dict[int, int] = {}
         self.first_t_s: float | None = None
         self.last_t_s = 0.0
         self.start = self._shown = time.monotonic()
 
     def add(self, batch: SampleBatch) -> None:
         self.frames += 1
+        self.by_imu[batch.imu] = self.by_imu.get(batch.imu, 0) + 1
         self.samples += batch.n_samples
         if self.first_t_s is None:
             self.first_t_s = float(batch.t_s[0])
@@ -212,8 +265,10 @@ def run(args: argparse.Namespace) -> int:
 
     previous = signal.signal(signal.SIGTERM, interrupt)
     publishers: dict[int, FramePublisher] = {}
+    dropped: dict[int, int] | None = None
     try:
         with open_router_session(args) as session:
+            before = _unit_frames(session, args.vehicle) or {}
             try:
                 pace = _RecordedPace() if args.pace == "recorded" else None
                 for batch in batches:
@@ -226,6 +281,7 @@ def run(args: argparse.Namespace) -> int:
             finally:
                 for pub in publishers.values():
                     pub.close()
+            dropped = _daemon_account(session, args.vehicle, progress.by_imu, before, args.wait_s)
     except KeyboardInterrupt:
         print(f"ins-health publish: interrupted: {progress.summary()}", file=sys.stderr)
         return 130
@@ -240,4 +296,25 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
+    if dropped is None:
+        print(
+            f"ins-health publish: the daemon did not account for the frames of {args.vehicle} within "
+            f"--wait-s {args.wait_s:g} s (its status shows them neither received nor dropped): "
+            "whether it took them all is unknown",
+            file=sys.stderr,
+        )
+        return EXIT_UNACCOUNTED
+    if lost := {imu: n for imu, n in dropped.items() if n}:
+        print(
+            "ins-health publish: the daemon dropped "
+            + ", ".join(
+                f"{n} of {progress.by_imu[imu]} frames of {args.vehicle} IMU{imu}"
+                for imu, n in sorted(lost.items())
+            )
+            + " (its queue of the IMU full: the service was behind; "
+            "imu<n>.frames.dropped_overload on the status topic)",
+            file=sys.stderr,
+        )
+        return EXIT_DROPPED
+    print(f"ins-health publish: the daemon took all {progress.frames} frames", file=sys.stderr)
     return 0

@@ -15,7 +15,14 @@ and whenever the states of its IMUs change, a check starts or stops running on
 one of them (each IMU's line says which checks have tested it and which have not,
 and why), or its outbox becomes unavailable (the line then says so, with the
 events held) or available again (``--json``: the status map, ``"type":
-"ins.health.status"``).
+"ins.health.status"``). Frames the daemon dropped, its queue of the IMU full, are said on the
+vehicle's line (``frames dropped: IMU0 152``), and a line comes whenever more are.
+
+Each daemon instance is followed by its Zenoh liveliness token: ``daemon NAME alive`` when first
+seen, ``daemon NAME lost`` within :data:`~protocols.zenoh_adapter.LEASE_MS` (2 s) and the
+router's notice of a kill -9, a stopped process (SIGSTOP) or a network cut (about 2.5 s measured),
+``daemon NAME back`` when it returns. An instance's own status (the vehicles it serves, none
+at first) is summarized as ``daemon NAME serves …`` when first seen and when its vehicles change.
 
 Runs until Ctrl-C or SIGTERM, then prints what it received on stderr. Exit
 status 0; 2 when the router cannot be reached or an option is unusable.
@@ -26,14 +33,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 from service.router_args import add_router_arguments, open_router_session
 
 if TYPE_CHECKING:
     from queue import SimpleQueue
 
-    from protocols.events import Event, Status
+    from protocols.events import Event, ServiceStatus, Status
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -56,6 +63,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 class _Stop:
     """Put on the queue by the SIGINT/SIGTERM handler: the watch ends after what came before it."""
+
+
+class _Alive(NamedTuple):
+    """An instance's liveliness token came (``alive``) or went."""
+
+    service: str
+    alive: bool
 
 
 def _utc(t_unix_s: float) -> str:
@@ -84,6 +98,8 @@ def status_line(status: Status, arrived_unix_s: float) -> str:
         for s in status.imus
     )
     line = f"{_utc(arrived_unix_s)}  {status.vehicle} status from {status.service}: {imus or 'no IMU yet'}"
+    if dropped := frames_dropped(status):
+        line += "; frames dropped: " + ", ".join(f"IMU{i} {n}" for i, n in dropped.items())
     if status.counters.get("service.outbox.unavailable"):
         line += (
             f"; outbox unavailable ({status.counters.get('service.outbox.held_events', 0)} events held,"
@@ -92,17 +108,57 @@ def status_line(status: Status, arrived_unix_s: float) -> str:
     return line
 
 
+def frames_dropped(status: Status) -> dict[int, int]:
+    """IMU → frames the daemon dropped, its queue full (``imu<n>.frames.dropped_overload``), those with any."""
+    out = {}
+    for name, n in status.counters.items():
+        imu, _, rest = name.partition(".")
+        if rest == "frames.dropped_overload" and n and imu[3:].isdigit():
+            out[int(imu[3:])] = n
+    return dict(sorted(out.items()))
+
+
+def service_line(status: ServiceStatus, arrived_unix_s: float) -> str:
+    """The human summary of an instance's own status: the vehicles it serves."""
+    served = ", ".join(status.vehicles) if status.vehicles else "no vehicle yet"
+    return f"{_utc(arrived_unix_s)}  daemon {status.service} serves {served}"
+
+
 def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
     """Print what arrives until a :class:`_Stop`; returns (events, status messages) received."""
     import json
 
-    from protocols.events import Event, Status, event_to_json, status_to_dict
+    from protocols.events import Event, ServiceStatus, Status, event_to_json, status_to_dict
 
     states: dict[tuple[str, str], tuple[object, ...]] = {}
+    alive: dict[str, bool] = {}
+    served: dict[str, tuple[str, ...]] = {}
     events = statuses = 0
     while not isinstance(item := inbox.get(), _Stop):
         now = time.time()
-        if isinstance(item, Event):
+        if isinstance(item, _Alive):
+            word = "alive" if item.service not in alive else ("back" if item.alive else "lost")
+            if alive.get(item.service) != item.alive:
+                alive[item.service] = item.alive
+                print(
+                    json.dumps(
+                        {"type": "ins.health.liveliness", "service": item.service, "state": word}
+                    )
+                    if as_json
+                    else f"{_utc(now)}  daemon {item.service} {word}",
+                    flush=True,
+                )
+        elif isinstance(item, ServiceStatus):
+            if served.get(item.service) != item.vehicles:
+                served[item.service] = item.vehicles
+                print(
+                    json.dumps({"type": "ins.health.service_status", "service": item.service,
+                                "vehicles": list(item.vehicles), "counters": dict(item.counters)})
+                    if as_json
+                    else service_line(item, now),
+                    flush=True,
+                )  # fmt: skip
+        elif isinstance(item, Event):
             events += 1
             print(event_to_json(item) if as_json else event_line(item, now), flush=True)
         elif isinstance(item, Status):
@@ -111,6 +167,7 @@ def _show(inbox: SimpleQueue[object], *, as_json: bool) -> tuple[int, int]:
                 tuple((s.imu, s.state.value) for s in item.imus),
                 tuple((s.imu, c.name, c.ran) for s in item.imus for c in s.coverage),
                 item.counters.get("service.outbox.unavailable", 0),
+                tuple(frames_dropped(item).items()),
             )
             if states.get((item.vehicle, item.service)) != summary:
                 states[(item.vehicle, item.service)] = summary
@@ -128,7 +185,12 @@ def run(args: argparse.Namespace) -> int:
     import signal
 
     from protocols.events import EventError
-    from protocols.zenoh_adapter import EventReceiver, subscribe_status
+    from protocols.zenoh_adapter import (
+        EventReceiver,
+        subscribe_alive,
+        subscribe_service_status,
+        subscribe_status,
+    )
 
     # Handed over from Zenoh's threads and from the signal handler (SimpleQueue.put is reentrant).
     inbox: queue.SimpleQueue[object] = queue.SimpleQueue()
@@ -142,9 +204,13 @@ def run(args: argparse.Namespace) -> int:
             open_router_session(args) as session,
             EventReceiver(session, inbox.put, vehicles=args.vehicle) as receiver,
         ):
-            status_sub = subscribe_status(
-                session, inbox.put, vehicles=args.vehicle, on_reject=bad_status.append
-            )
+            subs = [
+                subscribe_status(
+                    session, inbox.put, vehicles=args.vehicle, on_reject=bad_status.append
+                ),
+                subscribe_service_status(session, inbox.put, on_reject=bad_status.append),
+                subscribe_alive(session, lambda service, up: inbox.put(_Alive(service, up))),
+            ]
             print(
                 f"ins-health watch: {args.router}, vehicles {args.vehicle}: waiting for events",
                 file=sys.stderr,
@@ -153,7 +219,8 @@ def run(args: argparse.Namespace) -> int:
             try:
                 events, statuses = _show(inbox, as_json=args.json)
             finally:
-                status_sub.undeclare()
+                for sub in subs:
+                    sub.undeclare()
             rejected = dict(receiver.rejected)
             duplicates = receiver.duplicates
     finally:
