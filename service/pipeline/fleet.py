@@ -370,6 +370,7 @@ class FleetProcessor:
             np.concatenate([b.accel_mps2 for b in run]),
             np.concatenate([b.gyro_rps for b in run]),
             None if last.temp_c is None else np.concatenate([b.temp_c for b in run]),
+            last.run,
         )
         try:
             events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
