@@ -214,19 +214,25 @@ def test_a_restarted_source_is_followed_after_three_consistent_frames():
     assert fleet.pipelines[(V, 0)].last_t_s == pytest.approx(frames[9].t_s[-1])
 
 
-def _published_twice(frames, *, runs=(None, None)):
+def _published_twice(frames, *, runs, seq_from_0):
     """``frames`` sent as a publisher sends them (seq from 0), then sent again by a new start of the
-    publisher, with the run ids ``runs``; arrival on one clock that goes on."""
+    publisher (``seq_from_0``; else seq goes on, as a log across a reboot has it), with the run ids
+    ``runs``; arrival on one clock that goes on."""
     first = [dataclasses.replace(b, run=runs[0]) for b in frames]
-    second = [dataclasses.replace(b, run=runs[1]) for b in frames]
+    second = [
+        dataclasses.replace(b, run=runs[1], seq=b.seq + (0 if seq_from_0 else len(frames)))
+        for b in frames
+    ]
     end_s = float(frames[-1].t_s[-1]) + 1.0
     return [(b, float(b.t_s[-1])) for b in first] + [(b, end_s + float(b.t_s[-1])) for b in second]
 
 
 @pytest.mark.parametrize(
-    "runs", [(None, None), (1, 2)], ids=["time and seq going back", "a new run id"]
+    ("runs", "seq_from_0"),
+    [((None, None), True), ((None, None), False), ((1, 2), True)],
+    ids=["time and seq going back", "time going back", "a new run id"],
 )
-def test_a_session_published_twice_is_two_runs_not_one_mixed_stream(runs):
+def test_a_session_published_twice_is_two_runs_not_one_mixed_stream(runs, seq_from_0):
     """Issue 34: the same session published twice gave the positions of both runs mixed and an
     error-density warning for the frames that showed the restart. Each run is diagnosed from its
     own positions, the second as the first, and the jump raises nothing."""
@@ -239,7 +245,7 @@ def test_a_session_published_twice_is_two_runs_not_one_mixed_stream(runs):
     one_run = once.pipelines[(V, 0)].n_positions
     fleet = fleet_for(passport, g)
     events = []
-    for b, arrival_s in _published_twice(frames, runs=runs):
+    for b, arrival_s in _published_twice(frames, runs=runs, seq_from_0=seq_from_0):
         events += fleet.process(b, arrival_s=arrival_s)
     events += fleet.finish()
     pipe = fleet.pipelines[(V, 0)]

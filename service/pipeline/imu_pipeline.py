@@ -130,6 +130,7 @@ class ImuPipeline:
         )
         # Frames that do not follow the stream but may start a new one (_restarted): held, not yet rejected.
         self._restart_probe: list[tuple[SampleBatch, float, str]] = []
+        self._jumped_from_t_s: float | None = None  # the stream's time before its last jump forward
         self.timed_out = False
         self.stale: set[tuple[str, str]] = set()
         self.error_dense = False
@@ -330,7 +331,7 @@ class ImuPipeline:
             if len(self._restart_probe) < CLOCK_RESET_FRAMES:
                 return events
             held = self._restart_probe
-            new_run = held[0][0].seq < (self.last_seq or 0)
+            new_run = self._new_run(held[0][0])
             events += self._source_restart(new_run=new_run)
             # The held frames are the new stream's first: taken, not counted as rejected.
             for b, arrival, _ in held:
@@ -346,6 +347,7 @@ class ImuPipeline:
         self._count("frames.accepted", frames)
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
+            self._jumped_from_t_s = self.last_t_s
         self._count("samples.rejected.implausible_value", int((~plausible).sum()))
         self._count("samples.rejected.out_of_order_or_non_finite", int((~keep & plausible).sum()))
         report = self.validity.update(
@@ -476,13 +478,23 @@ class ImuPipeline:
             )
         return events
 
+    def _new_run(self, first: SampleBatch) -> bool:
+        """Whether a restarted source whose first frame is ``first`` began a new run: its ``seq`` went
+        back, or its time went back to before where the stream was ahead of its last jump forward.
+        A stream that goes on from there (one frame or a clock stamped ahead, then the clock as
+        before) is the same run on a stepped clock."""
+        last_seq = self.last_seq if self.last_seq is not None else -1
+        resumes_at_s = self._jumped_from_t_s if self._jumped_from_t_s is not None else math.inf
+        return first.seq < last_seq or float(first.t_s[0]) <= resumes_at_s
+
     def _source_restart(self, *, new_run: bool) -> list[Event]:
-        """The source started again. ``new_run``: a new run of the vehicle or publisher (its ``seq``
-        went back, or its frames carry a new run id): positions and diagnosis start from here, as
+        """The source started again. ``new_run``: a new run of the vehicle or publisher (its time or
+        ``seq`` went back, :meth:`_new_run`, or its frames carry a new run id): positions and diagnosis start from here, as
         for a unit switched on. Otherwise only the clock stepped: the stream is followed on the new
         clock, and the diagnosis keeps the positions it has."""
         self._count("source_restarts")
         self._restart_probe = []
+        self._jumped_from_t_s = None
         self.last_seq = None
         self.last_t_s = None
         # The old stream ended: its pending position is complete.
