@@ -279,3 +279,28 @@ def test_diagnose_through_the_api_is_the_commands_diagnosis(unit_files, capsys):
     assert result.exit_status == 1 and result.verdict == "fault"
     assert json.loads(json.dumps(result.to_dict())) == out
     assert out["session"] == "faulty.csv" and out["unit_id"] == "clean"
+
+
+def test_every_step_of_calibrate_past_the_bound_is_named_on_stderr(
+    unit_files, tmp_path, capsys, monkeypatch
+):
+    """Issue 34: calibrate and audit of the Xsens session said nothing for 15–23 s. A step still
+    running after PROGRESS_AFTER_S is named with its time; with the bound at 0 every step is."""
+    import service.cli
+
+    monkeypatch.setattr(service.cli, "PROGRESS_AFTER_S", 0.0)
+    capsys.readouterr()
+    argv = [str(unit_files / "clean.csv"), "--out", str(tmp_path / "pp.json"), "--replicas", "5"]
+    assert main(["calibrate", *argv, "--latitude", "45"]) == 0
+    steps = [
+        line.split(": ", 1)[1].rsplit(" (", 1)[0]
+        for line in capsys.readouterr().err.splitlines()
+        if line.startswith("ins-health calibrate: ") and line.endswith(" s)")
+    ]
+    assert steps == [
+        "reading clean.csv",
+        "static detection, positions and the fit",
+        "the audit (5 replicas)",
+        "the fit with the audited noise",
+        "the passport's estimates",
+    ]

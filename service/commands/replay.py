@@ -94,11 +94,12 @@ REPLAY_MAX_IMUS = 16
 COVERAGE_TYPE = "ins.health.coverage"
 COVERAGE_VERSION = 2
 """Schema of the ``--json`` summary line, the last of stdout even when no event came: ``type``
-(:data:`COVERAGE_TYPE`), ``v``, ``vehicle``, ``log`` (the file's name), ``verdict`` (a
+(:data:`COVERAGE_TYPE`), ``v``, ``vehicle``, ``log`` (the file's name), ``start_t_s`` (its first
+sample's time on its clock, or null), ``verdict`` (a
 :class:`estimators.coverage.Verdict` value), ``exit_status``, ``untested`` (lines), ``samples``
 (read per IMU, keys the IMU index as text), ``left_out`` (by reason), ``events`` and
 ``findings`` (counts), ``imus`` (:meth:`estimators.coverage.ImuCoverage.to_dict` each).
-Version 1 had neither ``log``, ``samples``, ``left_out``, ``events`` nor ``findings``."""
+Version 1 had neither ``log``, ``start_t_s``, ``samples``, ``left_out``, ``events`` nor ``findings``."""
 PACE_MAX_STEP_S = 60.0
 """Longest step of log time between frames that ``--pace recorded`` waits through, s. A frame of
 :data:`REPLAY_BATCH_SAMPLES` samples of a 4 Hz telemetry stream spans 25 s; a longer step is a
@@ -262,8 +263,27 @@ def replay_events(
     return events, reader
 
 
-def human(event: Event) -> str:
-    return f"t={event.t_s:10.3f} s  {event.severity.name:<8s} {event.text}"
+def human(event: Event, start_t_s: float) -> str:
+    """An event as a person reads it, its time from the log's start (``start_t_s``, s of its clock)."""
+    return f"t={event.t_s - start_t_s:10.3f} s  {event.severity.name:<8s} {event.text}"
+
+
+UNIX_TIME_FROM_S, UNIX_TIME_TO_S = 946_684_800.0, 4_102_444_800.0
+"""Log times in [2000-01-01, 2100-01-01) are taken for Unix times (and dated when said)."""
+
+
+def log_start(t_s: float | None) -> str:
+    """A log's first sample time as said once: seconds of its clock, and the UTC date when the
+    clock is a Unix time (a telemetry log's; a DataFlash log counts from the autopilot's boot)."""
+    import datetime as dt
+
+    if t_s is None:
+        return "no sample"
+    said = f"{t_s:.3f} s of the log's clock"
+    if UNIX_TIME_FROM_S <= t_s < UNIX_TIME_TO_S:
+        utc = dt.datetime.fromtimestamp(t_s, dt.UTC).isoformat(timespec="milliseconds")
+        said += f", {utc.replace('+00:00', ' UTC')}"
+    return said
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,7 +292,8 @@ class ReplayResult:
 
     ``events``: every event in order; ``coverage``: each IMU's coverage; ``verdict`` and
     ``exit_status`` as the command's (module docstring); ``untested``: what applies and was not
-    tested, why; ``samples``: samples read per IMU; ``left_out``: what the reader left out, by
+    tested, why; ``start_t_s``: the log's first sample time on its clock (None: no sample; event
+    times are on that clock); ``samples``: samples read per IMU; ``left_out``: what the reader left out, by
     reason (``skipped_bytes`` among them); ``notes``: what the command says on stderr besides
     progress (passports, the reader's notes, counters, coverage, the verdict), in order.
     """
@@ -285,6 +306,7 @@ class ReplayResult:
     verdict: Verdict
     exit_status: int
     untested: tuple[str, ...]
+    start_t_s: float | None
     samples: dict[int, int]
     left_out: dict[str, int]
     notes: tuple[str, ...]
@@ -311,14 +333,16 @@ def run(args: argparse.Namespace) -> int:
 
     from protocols.events import event_to_json
 
+    start_t_s = [0.0]
     printer = (
         (lambda e: print(event_to_json(e), flush=True))
         if args.json
-        else (lambda e: print(human(e), flush=True))
+        else (lambda e: print(human(e, start_t_s[0]), flush=True))
     )
     result = replay_log(
         args,
         on_event=printer,
+        on_start=lambda t_s: start_t_s.__setitem__(0, t_s),
         say=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
     )
     if args.json:
@@ -330,10 +354,12 @@ def replay_log(
     args: argparse.Namespace,
     *,
     on_event: Callable[[Event], None] | None = None,
+    on_start: Callable[[float], None] | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ReplayResult:
-    """The replay of ``args`` (this command's options): events to ``on_event`` as they come,
-    progress and notes to ``say``; the report written when ``args.report`` is set."""
+    """The replay of ``args`` (this command's options): events to ``on_event`` as they come, the
+    log's first sample time to ``on_start`` before them, progress and notes to ``say``; the
+    report written when ``args.report`` is set."""
     from estimators.coverage import Verdict, untested_lines, verdict
     from estimators.log_health import HealthConfig, ImuHealthAccumulator, pair_differences
     from service.daemon import pipeline_options
@@ -370,8 +396,14 @@ def replay_log(
     )
     health: dict[int, ImuHealthAccumulator] = {}
     health_config = HealthConfig()
+    start_t_s: list[float] = []
 
     def observe(batch: SampleBatch) -> None:
+        if not start_t_s:
+            start_t_s.append(float(batch.t_s[0]))
+            note(f"{args.log.name} starts at {log_start(start_t_s[0])}: times count from there")
+            if on_start is not None:
+                on_start(start_t_s[0])
         if args.report is None:
             return
         acc = health.get(batch.imu)
@@ -453,6 +485,7 @@ def replay_log(
         verdict=Verdict.NO_FAULT,
         exit_status=EXIT_OF_VERDICT[Verdict.NO_FAULT.value],
         untested=tuple(untested),
+        start_t_s=start_t_s[0] if start_t_s else None,
         samples=dict(sorted(reader.stats.samples.items())),
         left_out=_left_out(reader),
         notes=(),
@@ -476,7 +509,7 @@ def replay_log(
             log_format=reader.format.value,
             stats=reader.stats,
             system=reader.system,
-            passport=passport_info,
+            passport={**passport_info, "not_applied": errors},
             gravity_mps2=options.gravity_mps2,
             config=health_config,
             healths=healths,
@@ -484,6 +517,7 @@ def replay_log(
             pairs=pairs,
             events=events,
             coverage=_coverage_map(result),
+            start_t_s=result.start_t_s,
         )
         md = write_report(report, healths, pairs, args.report)
         note(f"report {md}")
@@ -519,6 +553,7 @@ def _coverage_map(result: ReplayResult) -> dict[str, Any]:
         "verdict": result.verdict.value,
         "exit_status": result.exit_status,
         "untested": list(result.untested),
+        "start_t_s": result.start_t_s,
         "samples": {str(imu): n for imu, n in result.samples.items()},
         "left_out": result.left_out,
         "events": len(result.events),
