@@ -12,6 +12,7 @@ from pathlib import Path
 
 from estimators.conventions import Grade, Triad, reference_magnitude
 from service.cli import UsageError, add_output, progress_step, stderr_progress
+from service.grades import FLOOR_GRADE, SENSOR_CLASSES, grade_name
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 
@@ -32,9 +33,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--grade",
-        choices=[g.value for g in Grade],
-        default=Grade.MEMS.value,
-        help="sensor grade for the tolerance floors (default mems)",
+        type=grade_name,
+        choices=SENSOR_CLASSES,
+        default=SENSOR_CLASSES[0],
+        help="sensor class for the tolerance floors (default consumer_mems; both MEMS classes take "
+        "the MEMS floors; 'mems' is taken as consumer_mems)",
     )
     p.add_argument(
         "--json", action="store_true", help="also print the full chain result as JSON on stdout"
@@ -135,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         },
         # The validated samples' rate: a repeated or non-finite time stamp must not set it.
         sample_rate_hz=(result.session or inp.session).rate_hz,
-        grade=Grade(args.grade),
+        grade=Grade(FLOOR_GRADE[args.grade]),
         bias_instability_std=instability,
     )
     write_passport_json(passport, args.out)

@@ -74,6 +74,7 @@ from service.cli import (
     UsageError,
     add_output,
 )
+from service.grades import SENSOR_CLASSES, grade_name
 from service.method_args import add_gravity_options
 
 if TYPE_CHECKING:
@@ -105,9 +106,6 @@ PACE_MAX_STEP_S = 60.0
 :data:`REPLAY_BATCH_SAMPLES` samples of a 4 Hz telemetry stream spans 25 s; a longer step is a
 logging pause or a corrupt time stamp (one a year ahead, or past what a sleep takes), not worth
 the wait."""
-SENSOR_CLASSES = ("consumer_mems", "industrial_mems", "tactical", "navigation")
-"""The values of :class:`estimators.nominal_passport.SensorClass`, the default first (stated here:
-building the parser must not import scipy, service.cli)."""
 
 
 def register(subparsers) -> None:
@@ -140,6 +138,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--grade",
+        type=grade_name,
         choices=SENSOR_CLASSES,
         default=SENSOR_CLASSES[0],
         help="sensor class of the nominal passport used without --passport/--passport-dir (default consumer_mems)",
