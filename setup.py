@@ -45,4 +45,20 @@ class BuildUnderTop(build_py):
                 path.write_text(moved, encoding="utf-8")
 
 
-setup(cmdclass={"build_py": BuildUnderTop})
+try:
+    from setuptools.command.bdist_wheel import bdist_wheel
+except ImportError:  # setuptools before 70.1
+    from wheel.bdist_wheel import bdist_wheel
+
+
+class WheelUnderTop(bdist_wheel):
+    """``bdist_wheel`` whose ``top_level.txt`` names the one package the wheel holds."""
+
+    def egg2dist(self, egginfo_path: str, distinfo_path: str) -> None:
+        super().egg2dist(egginfo_path, distinfo_path)
+        top_level = Path(distinfo_path) / "top_level.txt"
+        if top_level.exists():
+            top_level.write_text(TOP + "\n", encoding="utf-8")
+
+
+setup(cmdclass={"build_py": BuildUnderTop, "bdist_wheel": WheelUnderTop})

@@ -88,6 +88,8 @@ def test_the_wheel_installs_under_ins_health_beside_a_users_service_package(tmp_
     )  # fmt: skip
     installed = sorted(p.name for p in site.iterdir() if not p.name.endswith((".pth", "-info")))
     assert "ins_health" in installed
+    (top_level,) = site.glob("ins_health-*.dist-info/top_level.txt")
+    assert top_level.read_text().split() == ["ins_health"]
     assert not {"service", "protocols", "estimators"} & set(installed)
     user = tmp_path / "project"
     (user / "service").mkdir(parents=True)
