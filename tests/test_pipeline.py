@@ -214,6 +214,20 @@ def test_a_restarted_source_is_followed_after_three_consistent_frames():
     assert fleet.pipelines[(V, 0)].last_t_s == pytest.approx(frames[9].t_s[-1])
 
 
+def test_the_frames_that_showed_a_restart_reach_the_cross_imu_check():
+    """The third held frame decides the restart and takes all three: what the pipeline accepted
+    with it (the cross-IMU check's input) is their samples, not the last frame's alone."""
+    passport, g = calibrated()
+    frames = list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))
+    pipe = ImuPipeline(V, 0, passport=passport, options=options(g))
+    for b in frames[:20]:
+        pipe.process(b, arrival_s=float(b.t_s[-1]))
+    for k, b in enumerate(frames[:3]):
+        pipe.process(dataclasses.replace(b, seq=k), arrival_s=100.0 + k)
+        assert (pipe.accepted is None) == (k < 2)
+    np.testing.assert_array_equal(pipe.accepted.t_s, np.concatenate([b.t_s for b in frames[:3]]))
+
+
 def _published_twice(frames, *, runs, seq_from_0):
     """``frames`` sent as a publisher sends them (seq from 0), then sent again by a new start of the
     publisher (``seq_from_0``; else seq goes on, as a log across a reboot has it), with the run ids

@@ -71,6 +71,20 @@ def _rows(batch: SampleBatch, rows: slice | np.ndarray) -> SampleBatch:
     )  # fmt: skip
 
 
+def join_batches(batches: list[SampleBatch]) -> SampleBatch | None:
+    """Consecutive batches of one IMU as one, numbered and of the run of the last (temperature
+    only when every batch has it); None for none."""
+    if not batches:
+        return None
+    last = batches[-1]
+    temps = [b.temp_c for b in batches if b.temp_c is not None]
+    return SampleBatch(
+        last.vehicle, last.imu, last.seq, np.concatenate([b.t_s for b in batches]),
+        np.concatenate([b.accel_mps2 for b in batches]), np.concatenate([b.gyro_rps for b in batches]),
+        np.concatenate(temps) if len(temps) == len(batches) else None, last.run,
+    )  # fmt: skip
+
+
 @dataclass
 class _Detection:
     """What an :class:`ImuPipeline` builds once the sample rate is known (it sets the detector's window)."""
@@ -333,9 +347,13 @@ class ImuPipeline:
             held = self._restart_probe
             new_run = self._new_run(held[0][0])
             events += self._source_restart(new_run=new_run)
-            # The held frames are the new stream's first: taken, not counted as rejected.
+            # The held frames are the new stream's first: taken, not counted as rejected; the
+            # cross-IMU check sees all they gave.
+            taken: list[SampleBatch] = []
             for b, arrival, _ in held:
                 events += self.process(b, arrival_s=arrival)
+                taken += [] if self.accepted is None else [self.accepted]
+            self.accepted = join_batches(taken)
             return events
         events += self._reject_probe()
         first_seq = batch.seq - frames + 1
