@@ -1,7 +1,7 @@
 """Start-up cost of the CLI: ``ins-health --help`` against ``python -c "import numpy"``, whole processes.
 
 Both commands run as new processes of this interpreter (the installed
-``ins-health`` script is ``python -c "from service.cli import main; main()"``
+``ins-health`` script is ``python -c "from ins_health.__main__ import main; main()"``
 with its arguments), so the figures include the interpreter's own start. The
 two are interleaved, each run ``N`` times (default 21): the median of each and
 their ratio are printed. The goal (issue 10) is a ratio of at most 2; the heavy
@@ -27,7 +27,7 @@ COMMANDS = {
     "ins-health --help": [
         sys.executable,
         "-c",
-        "import sys; from service.cli import main; sys.exit(main(['--help']))",
+        "import sys; from ins_health.__main__ import main; sys.exit(main(['--help']))",
     ],
 }
 

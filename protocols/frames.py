@@ -4,7 +4,7 @@ A *frame* carries a batch of consecutive samples of one IMU of one vehicle, in
 SI units (:mod:`estimators.conventions`). Every source (Zenoh, MAVLink, log
 replay) produces :class:`SampleBatch` values; only this module knows the bytes.
 
-Wire schema, version 1
+Wire schema, version 2
 ----------------------
 One msgpack map with string keys:
 
@@ -12,7 +12,7 @@ One msgpack map with string keys:
 key            msgpack      meaning
 =============  ===========  ==========================================================
 ``type``       str          ``"ins.imu.frame"`` (type tag)
-``v``          int          schema version, ``1``
+``v``          int          schema version, ``1`` or ``2``
 ``vehicle``    str          vehicle id, one key-expression chunk (``[A-Za-z0-9][A-Za-z0-9_.-]{0,63}``)
 ``imu``        int          IMU index on the vehicle, 0..255
 ``seq``        int          frame sequence number per (vehicle, imu), 0..2⁶⁴−1, +1 per frame
@@ -22,7 +22,14 @@ key            msgpack      meaning
 ``accel_mps2`` bin          N×3 values of ``dtype``, row-major (sample, axis x y z), m/s²
 ``gyro_rps``   bin          N×3 values of ``dtype``, row-major, rad/s
 ``temp_c``     bin or nil   N values of ``dtype``, °C; nil when the IMU gives no temperature
+``run``        int          version 2 only: the publisher's run id, 0..2⁶⁴−1, drawn anew each
+                            time it starts; a new id tells the daemon a new run begins there
+                            (its positions and diagnosis start afresh) without waiting for the
+                            ``seq`` and clock going back to show it
 =============  ===========  ==========================================================
+
+A frame is written at the lowest version that holds it: version 1 without a
+run id, version 2 with one. Both are read.
 
 Time stays float64 whatever ``dtype`` says: a float32 time stamp loses
 milliseconds after a few hours. ``"<f4"`` halves the frame for high-rate links;
@@ -65,8 +72,8 @@ from protocols._schema import (
 )
 
 FRAME_TYPE = "ins.imu.frame"
-FRAME_VERSION = 1
-SUPPORTED_FRAME_VERSIONS = (1,)
+FRAME_VERSION = 2
+SUPPORTED_FRAME_VERSIONS = (1, 2)
 MAX_FRAME_BYTES = MAX_MESSAGE_BYTES
 """Default size limit of one encoded frame, bytes."""
 MAX_SAMPLES = 65_536
@@ -98,6 +105,7 @@ class SampleBatch:
     accel_mps2 : (N, 3) specific force, m/s², sensor axes.
     gyro_rps : (N, 3) angular rate, rad/s, sensor axes.
     temp_c : (N,) temperature, °C, or None.
+    run : the publisher's run id (schema version 2), or None when the source gives none.
 
     The arrays are float64 and read-only (a batch is a value that travels;
     nobody converts it in place). Construction checks types and shapes and
@@ -112,12 +120,15 @@ class SampleBatch:
     accel_mps2: np.ndarray
     gyro_rps: np.ndarray
     temp_c: np.ndarray | None = None
+    run: int | None = None
 
     def __post_init__(self) -> None:
         check_vehicle(self.vehicle, error=FrameError)
         check_imu(self.imu, error=FrameError)
         if type(self.seq) is not int or not 0 <= self.seq <= MAX_SEQ:
             raise FrameError(Reason.BAD_VALUE, f"seq must be an int in 0..2^64-1, got {self.seq!r}")
+        if self.run is not None and (type(self.run) is not int or not 0 <= self.run <= MAX_SEQ):
+            raise FrameError(Reason.BAD_VALUE, f"run must be an int in 0..2^64-1, got {self.run!r}")
         t = _frozen_f64(self.t_s, "t_s")
         n = t.shape[0]
         if t.ndim != 1 or not 1 <= n <= MAX_SAMPLES:
@@ -153,7 +164,8 @@ class SampleBatch:
         else:
             same_temp = np.array_equal(self.temp_c, other.temp_c)
         return (
-            (self.vehicle, self.imu, self.seq) == (other.vehicle, other.imu, other.seq)
+            (self.vehicle, self.imu, self.seq, self.run)
+            == (other.vehicle, other.imu, other.seq, other.run)
             and np.array_equal(self.t_s, other.t_s)
             and np.array_equal(self.accel_mps2, other.accel_mps2)
             and np.array_equal(self.gyro_rps, other.gyro_rps)
@@ -234,11 +246,18 @@ def concat_batches(batches: Iterable[SampleBatch]) -> ImuSession:
 
 
 def split_session(
-    session: ImuSession, *, vehicle: str, imu: int, batch_samples: int, first_seq: int = 0
+    session: ImuSession,
+    *,
+    vehicle: str,
+    imu: int,
+    batch_samples: int,
+    first_seq: int = 0,
+    run: int | None = None,
 ) -> Iterator[SampleBatch]:
     """The samples of one IMU's session as consecutive batches of ``batch_samples`` (the last may be shorter).
 
-    The inverse of :func:`concat_batches`; ``seq`` counts from ``first_seq``. Raises
+    The inverse of :func:`concat_batches`; ``seq`` counts from ``first_seq``; every batch
+    carries the run id ``run``. Raises
     ``ValueError`` for a session without accelerometer or gyro samples.
     """
     accel, gyro, temp = session.accel_mps2, session.gyro_rps, session.temp_c
@@ -256,23 +275,26 @@ def split_session(
             accel[cut],
             gyro[cut],
             None if temp is None else temp[cut],
+            run,
         )
         for k, cut in enumerate(cuts)
     )
 
 
 def encode_frame(batch: SampleBatch, *, dtype: SampleDtype = SampleDtype.F64) -> bytes:
-    """Encode a batch as schema version :data:`FRAME_VERSION` (see the module docstring).
+    """Encode a batch at the lowest schema version that holds it (see the module docstring).
 
     Encoding is faithful: non-finite values are written as they are, and it is
     :func:`decode_frame` that rejects them (so tests and fault injectors can
     produce such frames through the ordinary path).
     """
     dt = SampleDtype(dtype)
+    run = {} if batch.run is None else {"run": batch.run}
     return pack(
         {
             "type": FRAME_TYPE,
-            "v": FRAME_VERSION,
+            "v": 1 if batch.run is None else FRAME_VERSION,
+            **run,
             "vehicle": batch.vehicle,
             "imu": batch.imu,
             "seq": batch.seq,
@@ -299,12 +321,17 @@ def decode_frame(data: bytes, *, max_bytes: int = MAX_FRAME_BYTES) -> SampleBatc
     max_bytes : size limit; a larger frame is rejected (``too_large``) before unpacking.
     """
     obj = unpack_map(data, error=FrameError, max_bytes=max_bytes)
-    check_header(obj, type_tag=FRAME_TYPE, versions=SUPPORTED_FRAME_VERSIONS, error=FrameError)
+    version = check_header(
+        obj, type_tag=FRAME_TYPE, versions=SUPPORTED_FRAME_VERSIONS, error=FrameError
+    )
     vehicle = check_vehicle(field(obj, "vehicle", str, error=FrameError), error=FrameError)
     imu = check_imu(field(obj, "imu", int, error=FrameError), error=FrameError)
     seq = field(obj, "seq", int, error=FrameError)
     if not 0 <= seq <= MAX_SEQ:
         raise FrameError(Reason.BAD_VALUE, f"seq {seq} outside 0..2^64-1")
+    run = field(obj, "run", int, error=FrameError, optional=True) if version >= 2 else None
+    if run is not None and not 0 <= run <= MAX_SEQ:
+        raise FrameError(Reason.BAD_VALUE, f"run {run} outside 0..2^64-1")
     n = field(obj, "n", int, error=FrameError)
     if not 1 <= n <= MAX_SAMPLES:
         raise FrameError(Reason.BAD_VALUE, f"sample count n={n} outside 1..{MAX_SAMPLES}")
@@ -327,7 +354,7 @@ def decode_frame(data: bytes, *, max_bytes: int = MAX_FRAME_BYTES) -> SampleBatc
             )
     if n > 1 and not np.all(np.diff(t_s) > 0):
         raise FrameError(Reason.TIME_NOT_INCREASING, "t_s must strictly increase within a frame")
-    return SampleBatch(vehicle, imu, seq, t_s, accel, gyro, temp)
+    return SampleBatch(vehicle, imu, seq, t_s, accel, gyro, temp, run)
 
 
 @overload

@@ -60,7 +60,9 @@ from protocols.mavlink_adapter import (
     MavlinkSettings,
 )
 
-_ROOT = Path(__file__).resolve().parents[1]
+# The folder the top package of this module's name is found in: the checkout for
+# ``protocols.mavlink_process``, site-packages for ``ins_health.protocols.mavlink_process``.
+_ROOT = Path(__file__).resolve().parents[__spec__.name.count(".")]
 START_TIMEOUT_S = 60.0
 """Longest wait for a child to import, open the device and say it is ready."""
 REPLY_TIMEOUT_S = 5.0

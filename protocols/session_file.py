@@ -601,7 +601,7 @@ def load_xsens_sidecar(path: str | os.PathLike[str] | None = None) -> XsensNomin
     and ``scale_si_per_count`` (a number or three).
     """
     if path is None:
-        ref = resources.files("protocols.sidecars").joinpath(DEFAULT_XSENS_SIDECAR)
+        ref = resources.files(f"{__package__}.sidecars").joinpath(DEFAULT_XSENS_SIDECAR)
         text, where = ref.read_text(encoding="utf-8"), f"packaged {DEFAULT_XSENS_SIDECAR}"
     else:
         text, where = _read_text(Path(path)), str(path)

@@ -1,4 +1,5 @@
-"""A Zenoh router as its own process: ``python -m protocols.zenoh_router --listen tcp/127.0.0.1:PORT``.
+"""A Zenoh router as its own process: ``python -m protocols.zenoh_router --listen tcp/127.0.0.1:PORT``
+(installed from the wheel: ``python -m ins_health.router``).
 
 ``--connect ENDPOINT`` (repeatable) meshes it with other routers.
 
@@ -11,7 +12,6 @@ and restart the router (reconnection) use :class:`RouterProcess`.
 from __future__ import annotations
 
 import argparse
-import os
 import select
 import signal
 import socket
@@ -19,6 +19,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 
 from protocols.zenoh_adapter import open_router
 
@@ -50,12 +51,13 @@ class RouterProcess:
         if self.running:
             raise RuntimeError("the router is already running")
         proc = self._proc = subprocess.Popen(
-            [sys.executable, "-m", "protocols.zenoh_router", "--listen", self.endpoint, "--stdin"]
+            [sys.executable, "-m", __spec__.name, "--listen", self.endpoint, "--stdin"]
             + [arg for peer in self.connect for arg in ("--connect", peer)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
-            cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+            # Where the top package of this module's name is found, installed (ins_health) or not.
+            cwd=Path(__file__).resolve().parents[__spec__.name.count(".")],
         )
         if proc.stdout is None:
             raise RuntimeError("the router's stdout is not a pipe")
@@ -105,7 +107,7 @@ class RouterProcess:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m protocols.zenoh_router", description=__doc__.splitlines()[0]
+        prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]
     )
     parser.add_argument("--listen", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
     parser.add_argument(

@@ -212,7 +212,10 @@ def _headline_plot(result: AuditResult, path: Path) -> bool:
 
 
 def _fmt(v) -> str:
-    """A parameter value for the report: numbers to 3 significant digits, lists element-wise."""
+    """A parameter value for the report: numbers to 3 significant digits, lists element-wise, a
+    mapping as its keys with their values ("none" when empty): never a Python repr."""
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_fmt(x)}" for k, x in v.items()) or "none"
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_fmt(x) for x in v) + "]"
     if isinstance(v, (bool, np.bool_)):
@@ -222,6 +225,41 @@ def _fmt(v) -> str:
     if isinstance(v, (float, np.floating)):
         return f"{float(v):.3g}"
     return str(v)
+
+
+def _fitted(params: dict) -> str:
+    """A cause's fitted parameters, each with its standard error (``<name>_se``) when it has one."""
+    return "; ".join(
+        f"{k} {_fmt(v)}" + (f" ± {_fmt(params[k + '_se'])}" if k + "_se" in params else "")
+        for k, v in params.items()
+        if not (k.endswith("_se") and k[: -len("_se")] in params)
+    )
+
+
+GAIN_ROWS = {
+    "heldout_rms_norm": "held-out residual rms (of the reference)",
+    "heldout_chi2": "held-out χ²/dof",
+    "f0_lambda0": "F0 threshold λ0",
+    "f0_false_alarm_rate": "F0 false-alarm rate on the session's rest",
+    "f0_tests": "F0 tests",
+}
+"""The gain's figures compared between the baseline and the extended model, as the table names them."""
+
+
+def _gain_lines(gain: dict) -> list[str]:
+    """The gain as a table, baseline against extended, and its settings in a sentence."""
+    lines = ["| figure | baseline | extended |", "|---|---|---|"]
+    stems = [k[: -len("_baseline")] for k in gain if k.endswith("_baseline")]
+    for stem in stems:
+        lines.append(
+            f"| {GAIN_ROWS.get(stem, stem)} | {_fmt(gain[stem + '_baseline'])} | "
+            f"{_fmt(gain.get(stem + '_extended', '–'))} |"
+        )
+    paired = {f"{stem}_{side}" for stem in stems for side in ("baseline", "extended")}
+    rest = {k: v for k, v in gain.items() if k not in paired}
+    if rest:
+        lines += ["", "With " + "; ".join(f"{k} {_fmt(v)}" for k, v in rest.items()) + "."]
+    return lines
 
 
 def _where(triad: str, axis: str | None) -> str:
@@ -321,9 +359,9 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
         lines += ["## What the simulation gets wrong", "", *_statistics_table(result), ""]
         lines += ["## Named causes", ""]
         for c in data["named_causes"]:
-            params = ", ".join(f"{k} {_fmt(v)}" for k, v in c["params"].items())
             lines.append(
-                f"- **{c['effect']}** ({_where(c['triad'], c['axis'])}): {c['evidence']}. Fitted: {params}."
+                f"- **{c['effect']}** ({_where(c['triad'], c['axis'])}): {c['evidence']}. "
+                f"Fitted: {_fitted(c['params'])}."
             )
         if not data["named_causes"]:
             lines.append("- none: the baseline explains the data")
@@ -336,7 +374,7 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
             }
         ) or ["- (every candidate was tested)"]
         lines += ["", "## Extended model (surviving noise per triad)", "", *_model_table(result)]
-        lines += ["", "## Gain", ""] + [f"- {k}: {_fmt(v)}" for k, v in data["gain"].items()]
+        lines += ["", "## Gain", "", *_gain_lines(data["gain"])]
         lines += ["", "## Plots", ""] + [f"![{Path(name).stem}]({name})\n" for name in written]
     path = d / "audit.md"
     path.write_text("\n".join(lines) + "\n")

@@ -9,12 +9,14 @@ inside the function that runs it (``tests/test_cli_startup.py`` checks it).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +68,47 @@ def stderr_progress(command: str) -> Callable[[str], None]:
             print(f"ins-health {command}: {line}", file=sys.stderr, flush=True)
 
     return say
+
+
+PROGRESS_AFTER_S = 2.0
+"""A step of a command still running after this long is named on stderr, s."""
+
+
+@contextlib.contextmanager
+def progress_step(command: str, what: str) -> Iterator[None]:
+    """Say ``ins-health COMMAND: WHAT (N s)`` on stderr while a step runs longer than
+    :data:`PROGRESS_AFTER_S`, then every :data:`PROGRESS_EVERY_S`: a long step is never silent.
+
+    A thread keeps the time, so a step that never returns to Python code (one long numpy call)
+    is named too; a step that ended past the bound before the thread said it is named at its end.
+    """
+    done = threading.Event()
+    said = threading.Event()
+    t0 = time.monotonic()
+
+    def say() -> None:
+        print(
+            f"ins-health {command}: {what} ({time.monotonic() - t0:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+        said.set()
+
+    def keep_time() -> None:
+        wait_s = PROGRESS_AFTER_S
+        while not done.wait(wait_s):
+            say()
+            wait_s = PROGRESS_EVERY_S
+
+    thread = threading.Thread(target=keep_time, name=f"progress {what}", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        if not said.is_set() and time.monotonic() - t0 >= PROGRESS_AFTER_S:
+            say()
 
 
 class _Version(argparse.Action):

@@ -35,12 +35,15 @@ from estimators.conventions import AXES
 from estimators.log_health import HealthConfig, ImuHealth, PairDifference
 from protocols.events import Event, Severity
 from protocols.logs import LogStats
+from service.commands.replay import log_start
 from service.figures import plt, save_figure
 
 REPORT_TYPE = "ins.health.log_report"
-REPORT_SCHEMA_VERSION = 3
+REPORT_SCHEMA_VERSION = 4
 """2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give);
-3: ``coverage`` (what each check tested, the verdict)."""
+3: ``coverage`` (what each check tested, the verdict); 4: ``log.start_t_s`` (the first sample's
+time on the log's clock, from which the plots and the Markdown count) and ``passport.not_applied``
+(the IMUs no passport applied to, and why)."""
 VIBE_WARN_MPS2 = 30.0
 VIBE_BAD_MPS2 = 60.0
 VIBE_SOURCE = (
@@ -148,8 +151,10 @@ def build_report(
     pairs: Sequence[PairDifference],
     events: Sequence[Event],
     coverage: Mapping[str, Any],
+    start_t_s: float | None,
 ) -> dict[str, Any]:
-    """The plain-dict report (module docstring); ``coverage``: the replay's coverage map."""
+    """The plain-dict report (module docstring); ``coverage``: the replay's coverage map;
+    ``start_t_s``: the log's first sample time (None: no sample)."""
     imus = []
     for imu, h in sorted(healths.items()):
         entry = {"imu": imu, "source": stats.sources.get(imu, ""), **h.to_dict()}
@@ -181,6 +186,7 @@ def build_report(
             "dropped_samples": dict(sorted(stats.dropped.items())),
             "skipped_bytes": stats.skipped_bytes,
             "cut_at_byte": stats.cut_at_byte,
+            "start_t_s": start_t_s,
         },
         "passport": dict(passport),
         "gravity_mps2": gravity_mps2,
@@ -207,7 +213,7 @@ def write_report(
     plots = {
         "gravity_residual.png": _residual_plot(report, healths, out / "gravity_residual.png"),
         "spectra.png": _spectra_plot(healths, out / "spectra.png"),
-        "cross_imu.png": _cross_plot(pairs, out / "cross_imu.png"),
+        "cross_imu.png": _cross_plot(report, pairs, out / "cross_imu.png"),
     }
     md = out / "report.md"
     md.write_text(_markdown(report, plots), encoding="utf-8")
@@ -225,13 +231,13 @@ def _residual_plot(report: Mapping[str, Any], healths: Mapping[int, ImuHealth], 
     fig, ax = plt.subplots(figsize=(8, 3.6))
     for imu, h in sorted(healths.items()):
         b = h.blocks
-        t = (b.k[b.rest] + 0.5) * report["block_s"]
+        t = (b.k[b.rest] + 0.5) * report["block_s"] - _start(report)
         ax.plot(t, np.linalg.norm(b.accel_mean[b.rest], axis=1) - g, ".", ms=3, label=f"IMU{imu}")
         shell = shells.get(imu)
         if shell is not None:
             ax.axhline(shell, color="k", lw=0.8, ls="--")
             ax.axhline(-shell, color="k", lw=0.8, ls="--")
-    ax.set_xlabel("log time, s")
+    ax.set_xlabel(_time_label(report))
     ax.set_ylabel("|a| − g at rest, m/s²")
     ax.set_title("Blocks at rest against F0's shell (dashed)")
     ax.legend(fontsize=8)
@@ -257,17 +263,26 @@ def _spectra_plot(healths: Mapping[int, ImuHealth], path: Path) -> bool:
     return True
 
 
-def _cross_plot(pairs: Sequence[PairDifference], path: Path) -> bool:
+def _start(report: Mapping[str, Any]) -> float:
+    """The time the report's plots count from: the log's first sample, s of its clock."""
+    return float(report["log"]["start_t_s"] or 0.0)
+
+
+def _time_label(report: Mapping[str, Any]) -> str:
+    return f"time from the log's start, s (start: {log_start(report['log']['start_t_s'])})"
+
+
+def _cross_plot(report: Mapping[str, Any], pairs: Sequence[PairDifference], path: Path) -> bool:
     if not pairs:
         return False
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     for p in pairs:
         label = f"IMU{p.imus[0]}−IMU{p.imus[1]}"
-        axes[0].plot(p.t_s, p.accel_mps2, lw=0.8, label=label)
-        axes[1].plot(p.t_s, p.gyro_rps, lw=0.8, label=label)
+        axes[0].plot(p.t_s - _start(report), p.accel_mps2, lw=0.8, label=label)
+        axes[1].plot(p.t_s - _start(report), p.gyro_rps, lw=0.8, label=label)
     axes[0].set_ylabel("|Δa|, m/s²")
     axes[1].set_ylabel("|Δω|, rad/s")
-    axes[1].set_xlabel("log time, s")
+    axes[1].set_xlabel(_time_label(report))
     axes[0].legend(fontsize=8)
     save_figure(fig, path, dpi=90)
     return True
@@ -336,14 +351,31 @@ def _coverage_section(coverage: Mapping[str, Any]) -> list[str]:
     return lines
 
 
+def _passport_lines(pp: Mapping[str, Any], *, n_imus: int) -> list[str]:
+    """What passport applied: none (stream checks only) where the replay applied none, and why."""
+    not_applied = list(pp.get("not_applied", []))
+    if not_applied and len(not_applied) >= n_imus:
+        return [f"No passport applied, stream checks only: {'; '.join(not_applied)}."]
+    lines = [
+        f"Passport: {pp.get('kind')}"
+        + (f", class `{pp['class']}` ({pp['source']})" if pp.get("class") else "")
+        + "."
+    ]
+    if pp.get("class"):
+        lines.append(_tolerances(pp))
+    if not_applied:
+        lines.append(f"Not applied (stream checks only): {'; '.join(not_applied)}.")
+    return lines
+
+
 def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
     log, pp = report["log"], report["passport"]
     lines = [
         f"# IMU health of {log['name']}",
         "",
         f"Format `{log['format']}`" + (f", system {log['system']}" if log["system"] else "") + ".",
-        f"Passport: {pp.get('kind')}" + (f", class `{pp['class']}` ({pp['source']})" if pp.get("class") else "") + ".",
-        *([_tolerances(pp)] if pp.get("class") else []),
+        f"Starts at {log_start(log['start_t_s'])}; the times below count from there.",
+        *_passport_lines(pp, n_imus=len(report["imus"])),
         f"Local gravity {report['gravity_mps2']:.5f} m/s².",
         "",
     ]  # fmt: skip

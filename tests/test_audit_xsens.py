@@ -238,3 +238,18 @@ def test_xsens_states_its_grade_paths_and_its_grid(audit):
     # Output on a grid of 2.418e-3 m/s² with about 3 steps of noise: M2's half-pulse correction holds.
     assert grid.params["half_pulse_correction_holds"]
     assert grid.params["step_si"][0] == pytest.approx(2.418e-3, rel=1e-3)
+
+
+def test_the_report_is_sentences_and_tables_without_python_reprs(audit, tmp_path):
+    """Issue 34: audit.md showed the fitted parameters as Python dict reprs (``gm_loading_lr {'x':
+    2.79…}``) and the gain as raw keys. Each figure is a number with its name, a standard error
+    beside its value, and the gain a table of the baseline against the extended model."""
+    import re
+
+    from service.audit_report import write_report
+
+    md = write_report(audit, tmp_path, title="xsens").read_text()
+    assert not re.search(r"[{}]|'[a-z_]+':", md)
+    assert "gm_loading x -0.2" in md and "gm_loading {}" not in md
+    assert re.search(r"gx_rps_per_mps2 [-\d.e]+ ± [\d.e-]+", md) and "_se " not in md
+    assert "| F0 threshold λ0 | 0.000322 | 0.000848 |" in md

@@ -257,3 +257,50 @@ def test_diagnose_f0_counts_rest_as_the_service_does_not_a_flights_manoeuvres(tm
     main(["diagnose", str(tmp_path / "fl.csv"), "--passport", str(tmp_path / "mp.json"), "--json"])
     f0 = json.loads(capsys.readouterr().out)["f0"]["accel"]
     assert f0["run"] and f0["tested"] > 1000 and f0["failed"] == 0
+
+
+def test_the_verdict_is_headed_with_the_session_files_name(unit_files, capsys):
+    """Issue 34: the faulty session's verdict was headed ``clean:``, the passport's unit id (the
+    passport was calibrated from clean.csv): the header names the file diagnosed, then the unit."""
+    capsys.readouterr()
+    main(["diagnose", str(unit_files / "faulty.csv"), "--passport", str(unit_files / "pp.json")])
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("faulty.csv: 18 positions, against the passport of clean, g = ")
+
+
+def test_diagnose_through_the_api_is_the_commands_diagnosis(unit_files, capsys):
+    """``ins_health.diagnose`` gives what ``diagnose --json`` prints, as a value; nothing printed."""
+    import ins_health
+
+    argv = (str(unit_files / "faulty.csv"), "--passport", str(unit_files / "pp.json"))
+    out = _diagnose_json(capsys, *argv, status=1)
+    result = ins_health.diagnose(unit_files / "faulty.csv", unit_files / "pp.json", latitude=45)
+    assert capsys.readouterr() == ("", "")
+    assert result.exit_status == 1 and result.verdict == "fault"
+    assert json.loads(json.dumps(result.to_dict())) == out
+    assert out["session"] == "faulty.csv" and out["unit_id"] == "clean"
+
+
+def test_every_step_of_calibrate_past_the_bound_is_named_on_stderr(
+    unit_files, tmp_path, capsys, monkeypatch
+):
+    """Issue 34: calibrate and audit of the Xsens session said nothing for 15–23 s. A step still
+    running after PROGRESS_AFTER_S is named with its time; with the bound at 0 every step is."""
+    import service.cli
+
+    monkeypatch.setattr(service.cli, "PROGRESS_AFTER_S", 0.0)
+    capsys.readouterr()
+    argv = [str(unit_files / "clean.csv"), "--out", str(tmp_path / "pp.json"), "--replicas", "5"]
+    assert main(["calibrate", *argv, "--latitude", "45"]) == 0
+    steps = [
+        line.split(": ", 1)[1].rsplit(" (", 1)[0]
+        for line in capsys.readouterr().err.splitlines()
+        if line.startswith("ins-health calibrate: ") and line.endswith(" s)")
+    ]
+    assert steps == [
+        "reading clean.csv",
+        "static detection, positions and the fit",
+        "the audit (5 replicas)",
+        "the fit with the audited noise",
+        "the passport's estimates",
+    ]

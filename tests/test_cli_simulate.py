@@ -29,7 +29,7 @@ def test_default_run_writes_the_library_session_and_a_one_line_summary(tmp_path,
     np.testing.assert_array_equal(loaded.session.gyro_rps, ref.session.gyro_rps)
     assert loaded.session.temp_c is None
     assert loaded.gravity_mps2 == ref.truth.gravity_mps2
-    assert loaded.metadata["grade"] == "mems" and loaded.metadata["seed"] == "3"
+    assert loaded.metadata["grade"] == "consumer_mems" and loaded.metadata["seed"] == "3"
 
 
 def test_config_file_with_temperature_faults_and_effects_and_command_line_override(
@@ -215,3 +215,21 @@ def test_bad_options_exit_2_with_one_line(tmp_path, capsys, argv, config, match)
     assert err.count("\n") == 1 and err.startswith("ins-health simulate: ")
     assert re.search(match, err), err
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_one_grade_vocabulary_and_the_earlier_spelling_taken_with_a_note(tmp_path, capsys):
+    """Issue 34: three vocabularies for one idea (simulate {mems, navigation}, calibrate {mems,
+    tactical, navigation}, replay {consumer_mems, …}). Every command takes the sensor classes;
+    ``mems`` is still taken, as consumer_mems, and said."""
+    out = tmp_path / "s.csv"
+    assert _run(capsys, "--out", out, "--static-s", 5, "--grade", "consumer_mems")[0] == 0
+    same = tmp_path / "same.csv"
+    status, err = _run(capsys, "--out", same, "--static-s", 5, "--grade", "mems")
+    assert status == 0 and "--grade mems is spelled consumer_mems now" in err
+    assert load_session(same).metadata["grade"] == "consumer_mems"
+    assert same.read_text() == out.read_text()
+    cal = ["calibrate", str(out), "--no-audit"]
+    assert main([*cal, "--out", str(tmp_path / "i.json"), "--grade", "industrial_mems"]) == 0
+    assert main([*cal, "--out", str(tmp_path / "m.json"), "--grade", "mems"]) == 0
+    # Both MEMS classes take the MEMS tolerance floors, as 'mems' did.
+    assert (tmp_path / "i.json").read_text() == (tmp_path / "m.json").read_text()

@@ -77,7 +77,17 @@ def test_the_defaults_the_parser_states_are_the_library_s():
     temperature = ("passport", "temperature")
     assert _action(temperature, "orders").default == ",".join(map(str, ORDERS))
     assert _action(temperature, "reference_temp_c").default == DEFAULT_REFERENCE_TEMP_C
-    assert list(_action(("simulate",), "grade").choices) == [g.value for g in GRADES]
+    # One grade vocabulary, the sensor classes (service/grades.py), mapped onto the library's grades.
+    from estimators.conventions import Grade
+    from estimators.nominal_passport import SensorClass
+    from service.grades import FLOOR_GRADE, SENSOR_CLASSES
+
+    assert SENSOR_CLASSES == tuple(c.value for c in SensorClass)
+    assert set(FLOOR_GRADE) == set(SENSOR_CLASSES) and {Grade(g) for g in FLOOR_GRADE.values()}
+    simulated = _action(("simulate",), "grade").choices
+    assert [FLOOR_GRADE[c] for c in simulated] == [g.value for g in GRADES]
+    for command in (("calibrate",), ("replay",), ("passport", "tilt")):
+        assert list(_action(command, "grade").choices) == list(SENSOR_CLASSES)
     assert list(_action(("simulate",), "orientations").choices) == [
         s.value for s in OrientationScheme
     ]

@@ -298,6 +298,30 @@ def test_publish_at_the_recorded_pace_sends_every_frame_in_order(tmp_path):
     )
 
 
+def test_each_publish_is_a_run_of_its_own(tmp_path):
+    """Issue 34: publishing a session again mixed the two runs in the daemon. Each start of
+    publish stamps its frames with a run id of its own (frame schema 2), the daemon's sign of a
+    new run (its positions and diagnosis start afresh: tests/test_pipeline.py)."""
+    session = unit()[2].session.select(unit()[2].session.t_s < 1.0)
+    csv = tmp_path / "short.csv"
+    write_csv_session(csv, session)
+    frames = -(-session.n_samples // 100)
+    with zenoh_router() as port, zenoh.open(zenoh_client_config(port)) as bench:
+        got = []
+        sub = bench.declare_subscriber(
+            frame_key("uav-6", 0), lambda s: got.append(decode_frame(s.payload.to_bytes()))
+        )
+        for _ in range(2):
+            done = cli("publish", csv, "--vehicle", "uav-6", "--pace", "max",
+                       "--router", f"tcp/127.0.0.1:{port}")  # fmt: skip
+            assert done.returncode == 0, done.stderr
+        wait_until(lambda: len(got) >= 2 * frames, timeout_s=10, what="both runs' frames")
+        sub.undeclare()
+    runs = [b.run for b in got]
+    assert None not in runs and len(set(runs[:frames])) == len(set(runs[frames:])) == 1
+    assert runs[0] != runs[-1] and [b.seq for b in got] == 2 * list(range(frames))
+
+
 def test_publish_leaves_out_unusable_samples_and_says_so(tmp_path):
     """A session with one NaN sample and one repeated time stamp: sent as they were, the daemon's
     decoder refused the two frames holding them whole (200 samples) while publish said nothing. They

@@ -59,3 +59,28 @@ def test_demo_passport_is_the_units_own_calibration():
 def test_demo_speed_is_validated(capsys):
     assert main(["demo", "--speed", "1000"]) == 2
     assert "--speed must be within 0.5..100" in capsys.readouterr().err
+
+
+def test_make_demo_installs_the_package_alone_and_make_test_the_test_extras(tmp_path):
+    """Issue 34: ``make demo`` installed the test extras (MAVProxy brings OpenCV and VTK: a 1.7 GB
+    ``.venv`` against 495 MB) and said nothing while it did. What make would run for a new venv:"""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    make = shutil.which("make")
+    if make is None:
+        pytest.skip("make is not installed")
+    root = Path(__file__).resolve().parents[1]
+
+    def planned(target):
+        return subprocess.run(
+            [make, "-n", "-C", str(root), target, f"VENV={tmp_path / 'venv'}"],
+            capture_output=True, text=True, check=True,
+        ).stdout  # fmt: skip
+
+    demo, test = planned("demo"), planned("test")
+    install = [line for line in demo.splitlines() if "pip install" in line]
+    assert len(install) == 1 and install[0].endswith("-e .") and "[test]" not in demo
+    assert "installing ins-health" in demo
+    assert "-e '.[test]'" in test

@@ -1,5 +1,7 @@
 """IMU frame schema: lossless round trip, and every kind of bad input rejected with its reason."""
 
+import dataclasses
+
 import msgpack
 import numpy as np
 import pytest
@@ -91,7 +93,7 @@ BAD = {
     "truncated": (lambda: encode_frame(_batch())[:-10], Reason.MALFORMED),
     "not a map": (msgpack.packb([1, 2, 3]), Reason.NOT_A_MAP),
     "unknown type": (lambda: _raw(_batch(), type="ins.imu.other"), Reason.UNKNOWN_TYPE),
-    "unknown version": (lambda: _raw(_batch(), v=2), Reason.UNKNOWN_VERSION),
+    "unknown version": (lambda: _raw(_batch(), v=3), Reason.UNKNOWN_VERSION),
     "version as str": (lambda: _raw(_batch(), v="1"), Reason.UNKNOWN_VERSION),
     "missing seq": (lambda: _raw(_batch(), seq=_DROP), Reason.MISSING_FIELD),
     "imu as float": (lambda: _raw(_batch(), imu=1.0), Reason.WRONG_TYPE),
@@ -178,9 +180,28 @@ def test_oversized_frame_rejected_before_unpacking():
 
 def test_unknown_version_error_gives_a_hint():
     with pytest.raises(
-        FrameError, match=r"version 2 is not supported \(this build reads \[1\]\); upgrade"
+        FrameError, match=r"version 3 is not supported \(this build reads \[1, 2\]\); upgrade"
     ):
-        decode_frame(_raw(_batch(), v=2))
+        decode_frame(_raw(_batch(), v=3))
+
+
+def test_a_run_id_travels_in_version_2_and_a_frame_without_one_stays_version_1():
+    """Version 2 adds the publisher's run id; a frame without one is written as version 1, which
+    a daemon of the earlier build reads, and a version-1 frame carrying a stray ``run`` key is
+    read as version 1 says (no run id)."""
+    b = _batch()
+    with_run = dataclasses.replace(b, run=2**63 + 5)
+    obj = msgpack.unpackb(encode_frame(with_run), raw=False)
+    assert obj["v"] == 2 and obj["run"] == 2**63 + 5
+    assert decode_frame(encode_frame(with_run)) == with_run != b
+    assert msgpack.unpackb(encode_frame(b), raw=False)["v"] == 1
+    assert decode_frame(_raw(b, run=9)).run is None
+    with pytest.raises(FrameError) as info:
+        decode_frame(_raw(with_run, run="a"))
+    assert info.value.reason is Reason.WRONG_TYPE
+    assert [
+        f.run for f in split_session(b.to_session(), vehicle="v", imu=0, batch_samples=20, run=4)
+    ] == [4] * 3
 
 
 def test_random_corruption_never_escapes_as_another_exception():

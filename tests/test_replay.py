@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import struct
 
 import numpy as np
@@ -16,7 +17,8 @@ from protocols.events import Predicate, event_from_json
 from protocols.logs import write_dataflash_bin, write_dataflash_text, write_tlog
 from protocols.passport_codec import write_passport_json
 from protocols.ulog import write_ulog
-from service.cli import EXIT_FAULT, EXIT_UNTESTED
+from service.cli import EXIT_FAULT, EXIT_UNTESTED, main
+from service.commands.replay import log_start
 from service.demo import demo_passport, demo_scenario
 from service.passport_store import PassportStore
 
@@ -347,3 +349,37 @@ def test_unusable_input_is_a_one_line_error(argv, match, capsys, tmp_path):
     write_dataflash_bin(log, {0: session.select(session.t_s < session.t_s[0] + 1.0)})
     status, lines, err = replay(capsys, *(str(log) if a == "LOG" else a for a in argv))
     assert status == 2 and match in err and lines == []
+
+
+@needs(REAL_TLOG)
+def test_a_telemetry_log_reads_in_times_from_its_start_and_its_report_says_no_passport_applied(
+    capsys, tmp_path
+):
+    """Issue 34: event times were Unix epochs (``t=1710773374.854 s``, plot axes offset by
+    1.7107733e9) and the report said "Passport: nominal" where replay applied none (4 Hz). The
+    start is said once; the events and the plots count from it; the report says what applied."""
+    import re
+
+    tight = tmp_path / "tight.toml"
+    tight.write_text("[validity]\ncross_imu_accel_mps2 = 0.01\ncross_imu_gyro_rps = 0.0005\n")
+    status = main(
+        ["replay", str(REAL_TLOG), "--config", str(tight), "--report", str(tmp_path / "r")]
+    )
+    out = capsys.readouterr()
+    times = [float(re.match(r"t=\s*(-?[\d.]+) s ", line)[1]) for line in out.out.splitlines()]
+    assert status == EXIT_UNTESTED and len(times) >= 4
+    assert all(0.0 <= t <= 210.0 for t in times)  # the flight's 208 s
+    (start,) = re.findall(
+        r"ardupilot-sitl-vtol\.tlog starts at ([\d.]+) s of the log's clock: times count", out.err
+    )
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert report["log"]["start_t_s"] == pytest.approx(float(start), abs=5e-4)
+    md = (tmp_path / "r" / "report.md").read_text()
+    assert "Passport: nominal" not in md
+    assert "No passport applied, stream checks only: replay IMU0: sampled at 4.13 Hz" in md
+    assert f"Starts at {start} s of the log's clock" in md
+    # This log counts from the autopilot's boot; a Unix clock is dated as well.
+    assert (
+        log_start(1710773374.854)
+        == "1710773374.854 s of the log's clock, 2024-03-18T14:49:34.854 UTC"
+    )

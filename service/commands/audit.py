@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
-from service.cli import UsageError, stderr_progress
+from service.cli import UsageError, progress_step, stderr_progress
 from service.session_args import add_session_arguments, load_session_input
 
 DEFAULT_REPLICAS = 20
@@ -46,22 +47,25 @@ def run(args: argparse.Namespace) -> int:
 
     if args.replicas < 5:
         raise UsageError(f"--replicas must be at least 5, got {args.replicas}")
-    inp = load_session_input(args)
+    with progress_step("audit", f"reading {Path(args.session).name}"):
+        inp = load_session_input(args)
     chain = ChainConfig(
         gravity_mps2=inp.gravity_mps2,
         detector=inp.detector,
         accel_limit_mps2=inp.accel_limit_mps2,
         gyro_limit_rps=inp.gyro_limit_rps,
     )
-    result = run_audit(
-        inp.session,
-        AuditConfig(chain, replicas=args.replicas, seed=args.seed),
-        progress=stderr_progress("audit"),
-    )
+    with progress_step("audit", f"the audit ({args.replicas} replicas)"):
+        result = run_audit(
+            inp.session,
+            AuditConfig(chain, replicas=args.replicas, seed=args.seed),
+            progress=stderr_progress("audit"),
+        )
     if args.report:
         from service.audit_report import write_report
 
-        write_report(result, args.report, title=args.session)
+        with progress_step("audit", f"the report in {args.report}"):
+            write_report(result, args.report, title=args.session)
     data = result.to_dict()
     if args.json:
         json.dump(data, sys.stdout, indent=1)

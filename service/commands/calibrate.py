@@ -11,7 +11,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from estimators.conventions import Grade, Triad, reference_magnitude
-from service.cli import UsageError, add_output, stderr_progress
+from service.cli import UsageError, add_output, progress_step, stderr_progress
+from service.grades import FLOOR_GRADE, SENSOR_CLASSES, grade_name
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
 
 
@@ -32,9 +33,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--grade",
-        choices=[g.value for g in Grade],
-        default=Grade.MEMS.value,
-        help="sensor grade for the tolerance floors (default mems)",
+        type=grade_name,
+        choices=SENSOR_CLASSES,
+        default=SENSOR_CLASSES[0],
+        help="sensor class for the tolerance floors (default consumer_mems; both MEMS classes take "
+        "the MEMS floors; 'mems' is taken as consumer_mems)",
     )
     p.add_argument(
         "--json", action="store_true", help="also print the full chain result as JSON on stdout"
@@ -74,12 +77,14 @@ def run(args: argparse.Namespace) -> int:
     from estimators.passport import passport_from_estimates, per_sample_noise_std
     from protocols.passport_codec import write_passport_json
 
-    inp = load_session_input(args)
+    with progress_step("calibrate", f"reading {Path(args.session).name}"):
+        inp = load_session_input(args)
     config = ChainConfig(
         gravity_mps2=inp.gravity_mps2, detector=inp.detector,
         accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
     )  # fmt: skip
-    result = white = run_chain(inp.session, config)
+    with progress_step("calibrate", "static detection, positions and the fit"):
+        result = white = run_chain(inp.session, config)
     instability = None
     if not (math.isfinite(args.turn_deg) and args.turn_deg > 0):
         raise UsageError(f"--turn-deg must be a positive angle, got {args.turn_deg!r}")
@@ -90,11 +95,12 @@ def run(args: argparse.Namespace) -> int:
         # The audit's own first check, on the same positions: too few, and it would only say so.
         why = [f"{n_pos} static positions, it needs ≥ {model_audit.MIN_POSITIONS}"]
         if n_pos >= model_audit.MIN_POSITIONS:
-            audit = model_audit.run_audit(
-                inp.session,
-                model_audit.AuditConfig(chain=config, replicas=args.replicas),
-                progress=stderr_progress("calibrate: audit"),
-            )
+            with progress_step("calibrate", f"the audit ({args.replicas} replicas)"):
+                audit = model_audit.run_audit(
+                    inp.session,
+                    model_audit.AuditConfig(chain=config, replicas=args.replicas),
+                    progress=stderr_progress("calibrate: audit"),
+                )
             why = [] if audit.replica_stats else audit.statements
             if audit.replica_stats:
                 instability = {t: m.excess_sd_norm for t, m in audit.extended_model.items()}
@@ -102,13 +108,17 @@ def run(args: argparse.Namespace) -> int:
                     f"calibrate: audit ({args.replicas} replicas) names {[c.effect for c in audit.named] or 'nothing'}",
                     file=sys.stderr,
                 )
-                result = run_chain(inp.session, replace(config, bias_instability_std=instability))
+                with progress_step("calibrate", "the fit with the audited noise"):
+                    result = run_chain(
+                        inp.session, replace(config, bias_instability_std=instability)
+                    )
         if why:
             print(
                 f"calibrate: audit concluded nothing ({'; '.join(why)}); white-noise model kept",
                 file=sys.stderr,
             )
-    cal = calibration_estimates(result, turn_rad=math.radians(args.turn_deg))
+    with progress_step("calibrate", "the passport's estimates"):
+        cal = calibration_estimates(result, turn_rad=math.radians(args.turn_deg))
     estimates = cal.estimates
     if not estimates:
         reasons = "; ".join(f"{t.value}: {r.estimate.reason}" for t, r in result.triads.items())
@@ -128,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         },
         # The validated samples' rate: a repeated or non-finite time stamp must not set it.
         sample_rate_hz=(result.session or inp.session).rate_hz,
-        grade=Grade(args.grade),
+        grade=Grade(FLOOR_GRADE[args.grade]),
         bias_instability_std=instability,
     )
     write_passport_json(passport, args.out)

@@ -17,6 +17,10 @@ A fault outranks what was not tested. A session whose geometry M1's scalar fit c
 faces, with or without full turns) is diagnosed by the M4 fits that make a six-position passport,
 the method named per parameter. When F0's persistent failure begins after the first positions,
 the positions before and after it are fitted apart and the fault named in the later set.
+
+The text output is headed with the session file's name (and the passport's unit); the JSON
+output holds both (``session``, ``unit_id``). :func:`diagnose_session` is the diagnosis as a
+value (:class:`DiagnoseResult`), behind ``ins_health.diagnose``.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from service.cli import EXIT_FAULT, EXIT_NO_FAULT, EXIT_STATUS_HELP, EXIT_UNTESTED, UsageError
@@ -363,7 +369,56 @@ def exit_status(result: ChainResult, faults: list[dict[str, Any]], untested: lis
     return EXIT_NO_FAULT
 
 
-def run(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class DiagnoseResult:
+    """What :func:`diagnose_session` found (``ins_health.diagnose``).
+
+    ``exit_status`` as the command's (module docstring); ``faults``: each fault found (F0's
+    persistent failures, F1…F9, the gross test's) as the ``--json`` output has them;
+    ``untested``: what applies and was not tested, why; ``coverage``: what each check tested;
+    ``chain``, ``f0``, ``gross``: the offline chain's result, F0's and the gross test's.
+    """
+
+    session: str
+    unit_id: str
+    exit_status: int
+    faults: tuple[dict[str, Any], ...]
+    untested: tuple[str, ...]
+    coverage: ImuCoverage
+    chain: ChainResult
+    f0: dict[str, dict[str, Any]]
+    gross: GrossResult
+    gravity_mps2: float
+    gravity_source: str
+
+    @property
+    def verdict(self) -> str:
+        """The verdict as replay names it: ``fault``, ``no fault`` or ``no finding within coverage``."""
+        return {EXIT_FAULT: "fault", EXIT_NO_FAULT: "no fault"}.get(
+            self.exit_status, "no finding within coverage"
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``--json`` output."""
+        out = self.chain.to_dict()
+        out["session"] = self.session
+        out["unit_id"] = self.unit_id
+        out["gravity_source"] = self.gravity_source
+        out["f0"] = self.f0
+        out["faults"] = list(self.faults)
+        out["not_tested"] = list(self.untested)
+        out["gross"] = {
+            "windows": self.gross.windows,
+            "source": self.gross.config.source,
+            "rejected": self.gross.rejected,
+        }
+        out["coverage"] = self.coverage.to_dict()
+        out["exit_status"] = self.exit_status
+        return out
+
+
+def diagnose_session(args: argparse.Namespace) -> DiagnoseResult:
+    """The diagnosis of ``args`` (this command's options) as a value."""
     from estimators.chain import ChainConfig, run_chain, split_at_onset
     from estimators.conventions import Triad
     from estimators.coverage import Check
@@ -399,50 +454,55 @@ def run(args: argparse.Namespace) -> int:
     untested = not_tested(result, passport, f0) + [
         f"{c.name}: {c.reason}" for c in cover.untested if c.check is Check.GROSS
     ]
-    status = exit_status(result, faults, untested)
+    return DiagnoseResult(
+        session=session_name(args),
+        unit_id=passport.unit_id,
+        exit_status=exit_status(result, faults, untested),
+        faults=tuple(faults),
+        untested=tuple(untested),
+        coverage=cover,
+        chain=result,
+        f0=f0,
+        gross=gross,
+        gravity_mps2=inp.gravity_mps2,
+        gravity_source=inp.gravity_source,
+    )
+
+
+def session_name(args: argparse.Namespace) -> str:
+    """The session as its verdict is headed: the file's name (an Xsens pair: both files')."""
+    names = [Path(args.session).name] + ([Path(args.gyro_file).name] if args.gyro_file else [])
+    return " + ".join(names)
+
+
+def run(args: argparse.Namespace) -> int:
+    d = diagnose_session(args)
     if args.json:
-        out = result.to_dict()
-        out["unit_id"] = passport.unit_id
-        out["gravity_source"] = inp.gravity_source
-        out["f0"] = f0
-        out["faults"] = faults
-        out["not_tested"] = untested
-        out["gross"] = {
-            "windows": gross.windows,
-            "source": gross.config.source,
-            "rejected": gross.rejected,
-        }
-        out["coverage"] = cover.to_dict()
-        out["exit_status"] = status
-        json.dump(out, sys.stdout, indent=1)
+        json.dump(d.to_dict(), sys.stdout, indent=1)
         print()
-        return status
-    _print_text(result, passport, f0, untested, inp.gravity_mps2, inp.gravity_source)
-    for fault in gross_faults(gross):
+        return d.exit_status
+    _print_text(d)
+    for fault in gross_faults(d.gross):
         print(
             f"  FAULT gross: {fault['triad']} {fault['axis'] or ''} {fault['cause']}: window mean "
             f"{fault['estimate']:+.4g} {fault['unit']} vs nominal {fault['nominal']:.4g} beyond "
             f"±{fault['tolerance']:.3g} (σ {fault['sigma']:.2g}) from {fault['first_t_s']:.3f} s "
-            f"for {fault['duration_s']:.1f} s at rest (tolerances: {gross.config.source})"
+            f"for {fault['duration_s']:.1f} s at rest (tolerances: {d.gross.config.source})"
         )
-    for line in cover.lines():
+    for line in d.coverage.lines():
         print(f"  coverage: {line}")
-    return status
+    return d.exit_status
 
 
-def _print_text(
-    result: ChainResult,
-    passport: Passport,
-    f0: dict[str, dict[str, Any]],
-    untested: list[str],
-    gravity_mps2: float,
-    gravity_source: str,
-) -> None:
+def _print_text(d: DiagnoseResult) -> None:
+    result, f0, untested = d.chain, d.f0, list(d.untested)
     print(
-        f"{passport.unit_id}: {len(result.positions)} positions, g = {gravity_mps2:.5f} m/s² ({gravity_source})"
+        f"{d.session}: {len(result.positions)} positions, against the passport of {d.unit_id}, "
+        f"g = {d.gravity_mps2:.5f} m/s² ({d.gravity_source})"
     )
     if result.sample_rejections.total:
-        print(f"  rejected samples: {result.sample_rejections.counts}")
+        counts = ", ".join(f"{k} {n}" for k, n in sorted(result.sample_rejections.counts.items()))
+        print(f"  rejected samples: {counts}")
     if (gaps := time_gap_line(result.detection)) is not None:
         print(gaps)
     onset = result.onset
@@ -503,7 +563,7 @@ def _print_text(
         failed, evaluated = result.predicate_counts()
         print(
             f"  hint: {failed} of {evaluated} predicates fail at once: the passport is probably not this unit's "
-            f"(passport of {passport.unit_id!r})"
+            f"(passport of {d.unit_id!r})"
         )
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from estimators.conventions import PARAM_NAMES, Grade, Triad
 from service.cli import UsageError, add_output
+from service.grades import FLOOR_GRADE, SENSOR_CLASSES, grade_name
 from service.method_args import (
     add_gravity_options,
     add_method_command,
@@ -189,9 +190,11 @@ def _common_options(p: argparse.ArgumentParser) -> None:
     add_passport_options(p)
     p.add_argument(
         "--grade",
-        choices=[g.value for g in Grade],
-        default=Grade.MEMS.value,
-        help="grade for default tolerances (default mems)",
+        type=grade_name,
+        choices=SENSOR_CLASSES,
+        default=SENSOR_CLASSES[0],
+        help="sensor class for the default tolerances (default consumer_mems; both MEMS classes "
+        "take the MEMS floors; 'mems' is taken as consumer_mems)",
     )
     add_output(p, "--plot", help="write a PNG figure of the method's checks")
 
@@ -286,7 +289,11 @@ def run_tilt(args: argparse.Namespace) -> int:
     result = tilt_passport(runs, gravity_mps2=g, correction=correction, level=args.level)
     bias = half_pulse_bias(runs, gravity_mps2=g, level=args.level)
     tp = tilt_triad_passport(
-        result, axis=axis, lsb_mps2=lsb, sample_rate_hz=rate_hz, grade=Grade(args.grade)
+        result,
+        axis=axis,
+        lsb_mps2=lsb,
+        sample_rate_hz=rate_hz,
+        grade=Grade(FLOOR_GRADE[args.grade]),
     )
     write_passport(args, tp)
     if args.plot is not None:
@@ -573,7 +580,7 @@ def run_temperature(args: argparse.Namespace) -> int:
         reference_temp_c=args.reference_temp_c,
     )
     tp = _temperature_passport(
-        fit, series, positions, g, Grade(args.grade), args.level, session.rate_hz
+        fit, series, positions, g, Grade(FLOOR_GRADE[args.grade]), args.level, session.rate_hz
     )
     write_passport(args, tp)
     if args.plot is not None:

@@ -7,7 +7,9 @@ PX4 ULog ``.ulg`` (:class:`protocols.logs.LogReader`; a file is taken for a
 log when its content is one), each of its IMUs published as itself, or only
 IMU ``N`` with ``--imu``. Frames of ``--batch`` samples (:mod:`protocols.frames`) go through
 the router to the daemon's frame subscription; publishing starts once the
-daemon subscribes to each IMU's frames (waiting up to ``--wait-s``).
+daemon subscribes to each IMU's frames (waiting up to ``--wait-s``). Every frame
+carries one run id drawn at the start (:mod:`protocols.frames` version 2): publishing
+again is a new run for the daemon, whose positions and diagnosis start afresh.
 
 ``--pace recorded`` (default) publishes each frame when its last sample's time
 has come, as the vehicle did; ``--pace max`` as fast as the link takes them.
@@ -32,6 +34,8 @@ when interrupted (Ctrl-C, SIGTERM).
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import secrets
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -266,6 +270,7 @@ def run(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, interrupt)
     publishers: dict[int, FramePublisher] = {}
     dropped: dict[int, int] | None = None
+    run_id = secrets.randbits(63)
     try:
         with open_router_session(args) as session:
             before = _unit_frames(session, args.vehicle) or {}
@@ -276,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
                         pace.wait(batch)
                     if batch.imu not in publishers:
                         publishers[batch.imu] = _publisher(session, batch, args.wait_s)
-                    publishers[batch.imu].publish(batch)
+                    publishers[batch.imu].publish(dataclasses.replace(batch, run=run_id))
                     progress.add(batch)
             finally:
                 for pub in publishers.values():

@@ -43,9 +43,12 @@ checks, cross-IMU; what did not run and why) goes to stderr, one line per check,
 and the verdict after it: ``fault`` when a sensor finding was raised (F0…F9,
 gross, stale; not a recovery), ``no fault`` only when every check that applies
 ran, else ``no finding within coverage`` with what was not tested (a warning).
-With ``--json`` the last line of stdout is the coverage as one JSON object of
-type ``ins.health.coverage`` (:data:`COVERAGE_TYPE`), told from the events by
-its ``type``; ``--report`` writes it into the report.
+With ``--json`` the last line of stdout, even when no event came, is one summary
+object of type ``ins.health.coverage`` (:data:`COVERAGE_TYPE`, schema
+:data:`COVERAGE_VERSION`: samples, what was left out, the counts of events and
+findings, the coverage and the verdict), told from the events by its ``type``;
+``--report`` writes it into the report. :func:`replay_log` is the replay as a
+value (:class:`ReplayResult`), behind ``ins_health.replay``.
 
 Exit status (:mod:`service.cli`): 0 tested, no fault; 1 a fault found; 2 an
 unusable log, passport or option, or a log without IMU data (the message names
@@ -71,6 +74,7 @@ from service.cli import (
     UsageError,
     add_output,
 )
+from service.grades import SENSOR_CLASSES, grade_name
 from service.method_args import add_gravity_options
 
 if TYPE_CHECKING:
@@ -89,18 +93,19 @@ if TYPE_CHECKING:
 REPLAY_BATCH_SAMPLES = 100
 REPLAY_MAX_IMUS = 16
 COVERAGE_TYPE = "ins.health.coverage"
-COVERAGE_VERSION = 1
-"""Schema of the ``--json`` coverage line: ``type``, ``v``, ``vehicle``, ``verdict`` (a
-:class:`estimators.coverage.Verdict` value), ``exit_status``, ``untested`` (lines), ``imus``
-(:meth:`estimators.coverage.ImuCoverage.to_dict` each)."""
+COVERAGE_VERSION = 2
+"""Schema of the ``--json`` summary line, the last of stdout even when no event came: ``type``
+(:data:`COVERAGE_TYPE`), ``v``, ``vehicle``, ``log`` (the file's name), ``start_t_s`` (its first
+sample's time on its clock, or null), ``verdict`` (a
+:class:`estimators.coverage.Verdict` value), ``exit_status``, ``untested`` (lines), ``samples``
+(read per IMU, keys the IMU index as text), ``left_out`` (by reason), ``events`` and
+``findings`` (counts), ``imus`` (:meth:`estimators.coverage.ImuCoverage.to_dict` each).
+Version 1 had neither ``log``, ``start_t_s``, ``samples``, ``left_out``, ``events`` nor ``findings``."""
 PACE_MAX_STEP_S = 60.0
 """Longest step of log time between frames that ``--pace recorded`` waits through, s. A frame of
 :data:`REPLAY_BATCH_SAMPLES` samples of a 4 Hz telemetry stream spans 25 s; a longer step is a
 logging pause or a corrupt time stamp (one a year ahead, or past what a sleep takes), not worth
 the wait."""
-SENSOR_CLASSES = ("consumer_mems", "industrial_mems", "tactical", "navigation")
-"""The values of :class:`estimators.nominal_passport.SensorClass`, the default first (stated here:
-building the parser must not import scipy, service.cli)."""
 
 
 def register(subparsers) -> None:
@@ -133,6 +138,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--grade",
+        type=grade_name,
         choices=SENSOR_CLASSES,
         default=SENSOR_CLASSES[0],
         help="sensor class of the nominal passport used without --passport/--passport-dir (default consumer_mems)",
@@ -256,19 +262,115 @@ def replay_events(
     return events, reader
 
 
-def human(event: Event) -> str:
-    return f"t={event.t_s:10.3f} s  {event.severity.name:<8s} {event.text}"
+def human(event: Event, start_t_s: float) -> str:
+    """An event as a person reads it, its time from the log's start (``start_t_s``, s of its clock)."""
+    return f"t={event.t_s - start_t_s:10.3f} s  {event.severity.name:<8s} {event.text}"
+
+
+UNIX_TIME_FROM_S, UNIX_TIME_TO_S = 946_684_800.0, 4_102_444_800.0
+"""Log times in [2000-01-01, 2100-01-01) are taken for Unix times (and dated when said)."""
+
+
+def log_start(t_s: float | None) -> str:
+    """A log's first sample time as said once: seconds of its clock, and the UTC date when the
+    clock is a Unix time (a telemetry log's; a DataFlash log counts from the autopilot's boot)."""
+    import datetime as dt
+
+    if t_s is None:
+        return "no sample"
+    said = f"{t_s:.3f} s of the log's clock"
+    if UNIX_TIME_FROM_S <= t_s < UNIX_TIME_TO_S:
+        utc = dt.datetime.fromtimestamp(t_s, dt.UTC).isoformat(timespec="milliseconds")
+        said += f", {utc.replace('+00:00', ' UTC')}"
+    return said
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplayResult:
+    """What a replay found (:func:`replay_log`; ``ins_health.replay``).
+
+    ``events``: every event in order; ``coverage``: each IMU's coverage; ``verdict`` and
+    ``exit_status`` as the command's (module docstring); ``untested``: what applies and was not
+    tested, why; ``start_t_s``: the log's first sample time on its clock (None: no sample; event
+    times are on that clock); ``samples``: samples read per IMU; ``left_out``: what the reader left out, by
+    reason (``skipped_bytes`` among them); ``notes``: what the command says on stderr besides
+    progress (passports, the reader's notes, counters, coverage, the verdict), in order.
+    """
+
+    log: Path
+    format: str
+    vehicle: str
+    events: tuple[Event, ...]
+    coverage: tuple[ImuCoverage, ...]
+    verdict: Verdict
+    exit_status: int
+    untested: tuple[str, ...]
+    start_t_s: float | None
+    samples: dict[int, int]
+    left_out: dict[str, int]
+    notes: tuple[str, ...]
+
+    @property
+    def findings(self) -> tuple[Event, ...]:
+        """The events that name a sensor fault (F0…F9, gross, stale; not a recovery)."""
+        from protocols.events import StreamCause
+        from service.pipeline.coverage import FAULT_PREDICATES
+
+        return tuple(
+            e
+            for e in self.events
+            if e.predicate.value in FAULT_PREDICATES and e.cause != StreamCause.RECOVERED
+        )
+
+    def summary(self) -> dict[str, Any]:
+        """The last line of ``--json`` (:data:`COVERAGE_VERSION`)."""
+        return _coverage_map(self)
 
 
 def run(args: argparse.Namespace) -> int:
     import json
 
+    from protocols.events import event_to_json
+
+    start_t_s = [0.0]
+    printer = (
+        (lambda e: print(event_to_json(e), flush=True))
+        if args.json
+        else (lambda e: print(human(e, start_t_s[0]), flush=True))
+    )
+    result = replay_log(
+        args,
+        on_event=printer,
+        on_start=lambda t_s: start_t_s.__setitem__(0, t_s),
+        say=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
+    )
+    if args.json:
+        print(json.dumps(result.summary()), flush=True)
+    return result.exit_status
+
+
+def replay_log(
+    args: argparse.Namespace,
+    *,
+    on_event: Callable[[Event], None] | None = None,
+    on_start: Callable[[float], None] | None = None,
+    say: Callable[[str], None] | None = None,
+) -> ReplayResult:
+    """The replay of ``args`` (this command's options): events to ``on_event`` as they come, the
+    log's first sample time to ``on_start`` before them, progress and notes to ``say``; the
+    report written when ``args.report`` is set."""
     from estimators.coverage import Verdict, untested_lines, verdict
     from estimators.log_health import HealthConfig, ImuHealthAccumulator, pair_differences
-    from protocols.events import StreamCause, event_to_json
     from service.daemon import pipeline_options
     from service.pipeline import FleetProcessor, detector_config
-    from service.pipeline.coverage import FAULT_PREDICATES, imu_coverage
+    from service.pipeline.coverage import imu_coverage
+
+    notes: list[str] = []
+
+    def note(line: str) -> None:
+        notes.append(line)
+        if say is not None:
+            say(line)
 
     config = _config(args)
     options = pipeline_options(config)
@@ -291,15 +393,16 @@ def run(args: argparse.Namespace) -> int:
         on_passport_error=lambda v, i, msg: errors.append(f"{v} IMU{i}: {msg}"),
         on_pipeline_error=pipeline_error,
     )
-    printer = (
-        (lambda e: print(event_to_json(e), flush=True))
-        if args.json
-        else (lambda e: print(human(e), flush=True))
-    )
     health: dict[int, ImuHealthAccumulator] = {}
     health_config = HealthConfig()
+    start_t_s: list[float] = []
 
     def observe(batch: SampleBatch) -> None:
+        if not start_t_s:
+            start_t_s.append(float(batch.t_s[0]))
+            note(f"{args.log.name} starts at {log_start(start_t_s[0])}: times count from there")
+            if on_start is not None:
+                on_start(start_t_s[0])
         if args.report is None:
             return
         acc = health.get(batch.imu)
@@ -325,9 +428,9 @@ def run(args: argparse.Namespace) -> int:
         fleet=fleet,
         vehicle=args.vehicle,
         pace_recorded=args.pace == "recorded",
-        on_event=printer,
+        on_event=on_event,
         on_batch=observe,
-        progress=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
+        progress=say,
         on_pace_step=pace_steps.append,
     )
     errors += [
@@ -336,67 +439,65 @@ def run(args: argparse.Namespace) -> int:
         if pipe.nominal_too_slow
     ]
     for line in errors:
-        print(f"ins-health replay: {line}; stream checks only", file=sys.stderr)
+        note(f"{line}; stream checks only")
     for (vehicle, imu, _), (frames, message) in sorted(failed.items()):
-        print(
-            f"ins-health replay: {vehicle} IMU{imu}: the pipeline failed on {frames} frame(s) ({message}); "
-            "their samples were not tested",
-            file=sys.stderr,
+        note(
+            f"{vehicle} IMU{imu}: the pipeline failed on {frames} frame(s) ({message}); "
+            "their samples were not tested"
         )
     if passport_info["kind"] == "nominal":
-        print(
-            f"ins-health replay: no passport: nominal passport of class {passport_info['class']} ({passport_info['source']})",
-            file=sys.stderr,
+        note(
+            f"no passport: nominal passport of class {passport_info['class']} ({passport_info['source']})"
         )
     if pace_steps:
         longest = max(pace_steps, key=abs)
-        print(
-            f"ins-health replay: --pace recorded: {len(pace_steps)} steps of log time over {PACE_MAX_STEP_S:g} s "
-            f"not waited for (longest {longest:+.6g} s); the pacing resumed after each",
-            file=sys.stderr,
+        note(
+            f"--pace recorded: {len(pace_steps)} steps of log time over {PACE_MAX_STEP_S:g} s "
+            f"not waited for (longest {longest:+.6g} s); the pacing resumed after each"
         )
     for key, why in sorted(reader.stats.skipped.items()):
-        print(f"ins-health replay: not replayed: {key} {why}", file=sys.stderr)
+        note(f"not replayed: {key} {why}")
     if cut := reader.stats.cut():
-        print(f"ins-health replay: {args.log.name} is {cut}: read up to there", file=sys.stderr)
-    for said in (reader.stats.logger(), reader.stats.clock()):
-        if said:
-            print(f"ins-health replay: {args.log.name}: {said}", file=sys.stderr)
+        note(f"{args.log.name} is {cut}: read up to there")
+    for said_by_reader in (reader.stats.logger(), reader.stats.clock()):
+        if said_by_reader:
+            note(f"{args.log.name}: {said_by_reader}")
     samples = ", ".join(f"IMU{i} {n}" for i, n in sorted(reader.stats.samples.items())) or "none"
-    print(
-        f"ins-health replay: {args.log.name} ({reader.format.value}): samples {samples}; left out {reader.stats.left_out()}; {len(events)} events",
-        file=sys.stderr,
+    note(
+        f"{args.log.name} ({reader.format.value}): samples {samples}; left out {reader.stats.left_out()}; {len(events)} events"
     )
     for vehicle in fleet.vehicles():
         counters = fleet.status(vehicle, service="replay", now_unix_s=0.0).counters
-        print(
-            "ins-health replay: counters "
-            + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())),
-            file=sys.stderr,
-        )
+        note("counters " + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())))
     pipes = [p for (v, _), p in sorted(fleet.pipelines.items()) if v == args.vehicle]
     coverages = [imu_coverage(p, imus_on_vehicle=len(pipes)) for p in pipes]
-    found = [
-        e
-        for e in events
-        if e.predicate.value in FAULT_PREDICATES and e.cause != StreamCause.RECOVERED
-    ]
-    said = verdict(bool(found), coverages)
     untested = untested_lines(coverages) + [
         f"IMU{imu}: the pipeline failed on {frames} frame(s)"
         for (_, imu, _), (frames, _) in sorted(failed.items())
     ]
+    result = ReplayResult(
+        log=args.log,
+        format=reader.format.value,
+        vehicle=args.vehicle,
+        events=tuple(events),
+        coverage=tuple(coverages),
+        verdict=Verdict.NO_FAULT,
+        exit_status=EXIT_OF_VERDICT[Verdict.NO_FAULT.value],
+        untested=tuple(untested),
+        start_t_s=start_t_s[0] if start_t_s else None,
+        samples=dict(sorted(reader.stats.samples.items())),
+        left_out=_left_out(reader),
+        notes=(),
+    )
+    said = verdict(bool(result.findings), coverages)
     if failed and said is Verdict.NO_FAULT:
         said = Verdict.NO_FINDING
     status = EXIT_OF_VERDICT[said.value]
+    result = dataclasses.replace(result, verdict=said, exit_status=status)
     for cov in coverages:
         for line in cov.lines():
-            print(f"ins-health replay: coverage {line}", file=sys.stderr)
-    print(f"ins-health replay: {_verdict_line(said, len(found), untested)}", file=sys.stderr)
-    if args.json:
-        print(
-            json.dumps(_coverage_map(args.vehicle, said, status, untested, coverages)), flush=True
-        )
+            note(f"coverage {line}")
+    note(_verdict_line(said, len(result.findings), untested))
     if args.report is not None:
         from service.log_report import build_report, write_report
 
@@ -407,18 +508,27 @@ def run(args: argparse.Namespace) -> int:
             log_format=reader.format.value,
             stats=reader.stats,
             system=reader.system,
-            passport=passport_info,
+            passport={**passport_info, "not_applied": errors},
             gravity_mps2=options.gravity_mps2,
             config=health_config,
             healths=healths,
             f0={imu: _f0_summary(fleet, args.vehicle, imu) for imu in healths},
             pairs=pairs,
             events=events,
-            coverage=_coverage_map(args.vehicle, said, status, untested, coverages),
+            coverage=_coverage_map(result),
+            start_t_s=result.start_t_s,
         )
         md = write_report(report, healths, pairs, args.report)
-        print(f"ins-health replay: report {md}", file=sys.stderr)
-    return status
+        note(f"report {md}")
+    return dataclasses.replace(result, notes=tuple(notes))
+
+
+def _left_out(reader: LogReader) -> dict[str, int]:
+    """What the reader left out, by reason, the bytes it skipped among them."""
+    out = dict(sorted(reader.stats.dropped.items()))
+    if reader.stats.skipped_bytes:
+        out["skipped_bytes"] = reader.stats.skipped_bytes
+    return out
 
 
 def _verdict_line(said: Verdict, n_found: int, untested: list[str]) -> str:
@@ -432,18 +542,22 @@ def _verdict_line(said: Verdict, n_found: int, untested: list[str]) -> str:
     return "INFO     verdict: no fault (every check that applies ran)"
 
 
-def _coverage_map(
-    vehicle: str, said: Verdict, status: int, untested: list[str], coverages: list[ImuCoverage]
-) -> dict[str, Any]:
-    """The coverage line of ``--json`` and of the report (:data:`COVERAGE_VERSION`)."""
+def _coverage_map(result: ReplayResult) -> dict[str, Any]:
+    """The summary line of ``--json`` and the report's coverage (:data:`COVERAGE_VERSION`)."""
     return {
         "type": COVERAGE_TYPE,
         "v": COVERAGE_VERSION,
-        "vehicle": vehicle,
-        "verdict": said.value,
-        "exit_status": status,
-        "untested": untested,
-        "imus": [c.to_dict() for c in coverages],
+        "vehicle": result.vehicle,
+        "log": result.log.name,
+        "verdict": result.verdict.value,
+        "exit_status": result.exit_status,
+        "untested": list(result.untested),
+        "start_t_s": result.start_t_s,
+        "samples": {str(imu): n for imu, n in result.samples.items()},
+        "left_out": result.left_out,
+        "events": len(result.events),
+        "findings": len(result.findings),
+        "imus": [c.to_dict() for c in result.coverage],
     }
 
 

@@ -6,7 +6,7 @@ does not fit on one line)::
 
     seed = 7
     rate_hz = 100.0
-    grade = "mems"            # mems | navigation
+    grade = "consumer_mems"   # consumer_mems | navigation ("mems": consumer_mems)
     random_errors = false     # draw the errors from the grade instead of its fixed preset
     quantization = true
     latitude_deg = 45.0
@@ -63,6 +63,7 @@ import numpy as np
 
 from estimators.conventions import PARAM_NAMES, Grade, Triad
 from service.cli import UsageError, add_output
+from service.grades import FLOOR_GRADE, SIMULATED, grade_name
 
 if TYPE_CHECKING:
     from estimators.sim import Fault, FaultKind
@@ -73,8 +74,6 @@ PROFILES = ("multiposition", "static", "flight")
 TEMPERATURE_KINDS = ("constant", "ramp", "warmup", "cycle")
 ORIENTATIONS = ("eighteen", "random")
 """The values of estimators.sim.OrientationScheme."""
-GRADES = ("mems", "navigation")
-"""The grades estimators.sim.GRADES has presets for."""
 # Command-line options that are keys of the [profile] table.
 PROFILE_KEYS = (
     "positions",
@@ -152,7 +151,12 @@ def register(subparsers) -> None:
         "--rest-s", dest="rest_s", type=float, help="rest before and after a flight, s (default 10)"
     )
     p.add_argument("--rate-hz", dest="rate_hz", type=float, help="sample rate, Hz (default 100)")
-    p.add_argument("--grade", choices=GRADES, help="IMU grade preset (default mems)")
+    p.add_argument(
+        "--grade",
+        type=grade_name,
+        choices=SIMULATED,
+        help="sensor class of the error preset (default consumer_mems; 'mems' is taken as consumer_mems)",
+    )
     p.add_argument(
         "--random-errors",
         dest="random_errors",
@@ -332,7 +336,10 @@ def _fault(table: dict) -> Fault:
 def _model(cfg: dict, seed: int):
     from estimators.sim import EnvironmentEffect, grade_error_model, make_effect
 
-    grade = _choice(cfg.get("grade", "mems"), Grade, "grade")
+    name = grade_name(str(cfg.get("grade", SIMULATED[0])), what="grade")
+    if name not in SIMULATED:
+        raise UsageError(f"grade must be one of {list(SIMULATED)}, got {name!r}")
+    grade = Grade(FLOOR_GRADE[name])
     rng = np.random.default_rng([seed, 1]) if cfg.get("random_errors", False) else None
     model = grade_error_model(grade, rng=rng, quantization=bool(cfg.get("quantization", True)))
     for table in cfg.get("effects", []):
@@ -343,7 +350,7 @@ def _model(cfg: dict, seed: int):
         if not isinstance(effect, EnvironmentEffect):
             triad = _choice(triad, Triad, f"effect {name} triad")
         model = model.with_effect(effect, triad)
-    return grade, model
+    return name, model
 
 
 def spec_from_settings(cfg: dict):
@@ -450,7 +457,7 @@ def run(args: argparse.Namespace) -> int:
             "latitude_deg": spec.latitude_deg,
             "height_m": spec.height_m,
             "rate_hz": spec.rate_hz,
-            "grade": grade.value,
+            "grade": grade,
             "seed": seed,
         },
         comments=("simulated by ins-health simulate",),
@@ -462,7 +469,7 @@ def run(args: argparse.Namespace) -> int:
     n_pos = len(result.truth.static_intervals_s)
     print(
         f"simulate: wrote {args.out}: {s.n_samples} samples, {s.t_s[-1] - s.t_s[0]:.1f} s at {spec.rate_hz:g} Hz, "
-        f"{n_pos} static interval(s), grade {grade.value}, seed {seed}, {len(spec.faults)} fault(s)",
+        f"{n_pos} static interval(s), grade {grade}, seed {seed}, {len(spec.faults)} fault(s)",
         file=sys.stderr,
     )
     return 0

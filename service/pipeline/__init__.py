@@ -10,10 +10,18 @@ Per batch of samples, in this order (docs/architecture.md):
    duplicate, a smaller one is out of order (both rejected and counted), a gap
    counts the missing frames; a frame with no sample later than the last
    accepted one is rejected (``no_new_samples``), and so are single samples
-   that go back in time or are not finite. Three rejected frames in a row that
-   form a consistent new stream (consecutive ``seq``, increasing time) are
-   taken as a restart of the source (seq and clock from scratch): the stream
-   restarts, the estimates are kept. A step forward of more than
+   that go back in time or are not finite. Frames that do not follow the
+   stream are held: three in a row that form a consistent new stream
+   (consecutive ``seq``, increasing time) are taken as a restart of the source
+   and become the new stream's first frames (nothing rejected, no error
+   density); otherwise they are rejected as above. A restart whose ``seq`` or
+   time went back (to before where the stream was ahead of its last jump
+   forward), or a frame carrying a new run id (:mod:`protocols.frames`
+   version 2: its first frame is the restart), is a new run (``new_runs``):
+   positions and diagnosis start afresh, as for a unit switched on, and a
+   fault raised stays until the new run's diagnosis clears it; a stream that
+   goes on from before a jump (a frame or the clock stamped ahead, then as
+   before) is the same run on a stepped clock and keeps the estimates. A step forward of more than
    :data:`TIME_JUMP_PERIODS` sample periods is counted as a ``time_jump``; the
    static detector starts a new segment there by itself.
 2. **Stream validity** (:mod:`estimators.stream_validity`): stale axes, error

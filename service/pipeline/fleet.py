@@ -6,8 +6,6 @@ from __future__ import annotations
 from collections.abc import Callable, Collection, Iterator
 from typing import Any
 
-import numpy as np
-
 from estimators.conventions import (
     Triad,
 )
@@ -26,7 +24,7 @@ from protocols.events import (
     make_event,
 )
 from protocols.frames import SampleBatch
-from service.pipeline.imu_pipeline import ImuPipeline
+from service.pipeline.imu_pipeline import ImuPipeline, join_batches
 from service.pipeline.options import (
     RECOVERED_SEVERITY,
     SEVERITY,
@@ -362,15 +360,9 @@ class FleetProcessor:
     ) -> list[Event]:
         last = run[-1]
         self._seen[last.vehicle] = self._frames_routed = self._frames_routed + len(run)
-        joined = SampleBatch(
-            last.vehicle,
-            last.imu,
-            last.seq,
-            np.concatenate([b.t_s for b in run]),
-            np.concatenate([b.accel_mps2 for b in run]),
-            np.concatenate([b.gyro_rps for b in run]),
-            None if last.temp_c is None else np.concatenate([b.temp_c for b in run]),
-        )
+        # joins() keeps a run's frames all with temperature or all without.
+        joined = join_batches(run)
+        assert joined is not None
         try:
             events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
         except Exception as exc:

@@ -64,10 +64,24 @@ from service.pipeline.triad_check import TriadCheck, f0_config, new_estimator
 
 
 def _rows(batch: SampleBatch, rows: slice | np.ndarray) -> SampleBatch:
-    """The samples ``rows`` (a slice or a mask) of ``batch`` as a batch of the same IMU and ``seq``."""
+    """The samples ``rows`` (a slice or a mask) of ``batch`` as a batch of the same IMU, ``seq`` and run."""
     return SampleBatch(
         batch.vehicle, batch.imu, batch.seq, batch.t_s[rows], batch.accel_mps2[rows],
-        batch.gyro_rps[rows], None if batch.temp_c is None else batch.temp_c[rows],
+        batch.gyro_rps[rows], None if batch.temp_c is None else batch.temp_c[rows], batch.run,
+    )  # fmt: skip
+
+
+def join_batches(batches: list[SampleBatch]) -> SampleBatch | None:
+    """Consecutive batches of one IMU as one, numbered and of the run of the last (temperature
+    only when every batch has it); None for none."""
+    if not batches:
+        return None
+    last = batches[-1]
+    temps = [b.temp_c for b in batches if b.temp_c is not None]
+    return SampleBatch(
+        last.vehicle, last.imu, last.seq, np.concatenate([b.t_s for b in batches]),
+        np.concatenate([b.accel_mps2 for b in batches]), np.concatenate([b.gyro_rps for b in batches]),
+        np.concatenate(temps) if len(temps) == len(batches) else None, last.run,
     )  # fmt: skip
 
 
@@ -125,7 +139,12 @@ class ImuPipeline:
         self.accepted: SampleBatch | None = None
         self.last_t_s: float | None = None
         self.last_batch_n = 1
-        self._restart_probe: list[tuple[int, float, float]] = []
+        self.run: int | None = (
+            None  # the run id of the last accepted frame (None: its source gives none)
+        )
+        # Frames that do not follow the stream but may start a new one (_restarted): held, not yet rejected.
+        self._restart_probe: list[tuple[SampleBatch, float, str]] = []
+        self._jumped_from_t_s: float | None = None  # the stream's time before its last jump forward
         self.timed_out = False
         self.stale: set[tuple[str, str]] = set()
         self.error_dense = False
@@ -299,6 +318,9 @@ class ImuPipeline:
         """
         self.accepted = None
         events: list[Event] = []
+        if batch.run is not None and self.run is not None and batch.run != self.run:
+            # The publisher says it started again: a new run from this frame on, nothing to probe.
+            events += self._reject_probe() + self._source_restart(new_run=True)
         if self.timed_out:
             self.timed_out = False
             events.append(
@@ -317,21 +339,33 @@ class ImuPipeline:
         keep = self._ordered(batch, usable)
         problem = self._order_problem(batch, keep)
         if problem is not None:
-            if not self._restarted(batch):
-                self._count(problem)
-                return events + self._validity_events(
-                    self.validity.record_rejected(batch.n_samples), self.last_t_s or 0.0
-                )
-            events += self._source_restart()
-            keep = self._ordered(batch, usable)  # against the new stream: no sample before it
-        self._restart_probe = []
+            if not self._continues_probe(batch):
+                events += self._reject_probe()
+            self._restart_probe.append((batch, arrival_s, problem))
+            if len(self._restart_probe) < CLOCK_RESET_FRAMES:
+                return events
+            held = self._restart_probe
+            new_run = self._new_run(held[0][0])
+            events += self._source_restart(new_run=new_run)
+            # The held frames are the new stream's first: taken, not counted as rejected; the
+            # cross-IMU check sees all they gave.
+            taken: list[SampleBatch] = []
+            for b, arrival, _ in held:
+                events += self.process(b, arrival_s=arrival)
+                taken += [] if self.accepted is None else [self.accepted]
+            self.accepted = join_batches(taken)
+            return events
+        events += self._reject_probe()
         first_seq = batch.seq - frames + 1
         if self.last_seq is not None and first_seq > self.last_seq + 1:
             self._count("frames.missing", first_seq - self.last_seq - 1)
         self.last_seq = batch.seq
+        if batch.run is not None:
+            self.run = batch.run
         self._count("frames.accepted", frames)
         if self.last_t_s is not None and batch.t_s[keep][0] - self.last_t_s > self._jump_s():
             self._count("time_jumps")
+            self._jumped_from_t_s = self.last_t_s
         self._count("samples.rejected.implausible_value", int((~plausible).sum()))
         self._count("samples.rejected.out_of_order_or_non_finite", int((~keep & plausible).sum()))
         report = self.validity.update(
@@ -386,7 +420,7 @@ class ImuPipeline:
         """Whether ``batch`` may join one batch with the frames before it (``prev``: the last of them; None: the first).
 
         Only where joining changes nothing but the cost: the chain is set up and
-        in no timeout, error-density or restart episode, and the frame is finite,
+        in no timeout, error-density or restart episode, and the frame is of the same run, finite,
         in order, the next ``seq`` and within a time jump of the previous one, so
         every per-frame check would have passed it. The chain itself (detector,
         positions, F0, diagnosis) gives the same results however the stream is cut.
@@ -397,6 +431,8 @@ class ImuPipeline:
             (self.last_seq, self.last_t_s) if prev is None else (prev.seq, float(prev.t_s[-1]))
         )
         if prev is not None and (prev.temp_c is None) != (batch.temp_c is None):
+            return False
+        if batch.run != (self.run if prev is None else prev.run):
             return False
         t = batch.t_s
         return (
@@ -436,28 +472,47 @@ class ImuPipeline:
             return "frames.rejected.no_new_samples"
         return None
 
-    def _restarted(self, batch: SampleBatch) -> bool:
-        """Whether rejected frames form a consistent new stream: the source rebooted (seq and clock from scratch).
+    def _continues_probe(self, batch: SampleBatch) -> bool:
+        """Whether ``batch`` continues the held frames as one consistent stream (consecutive ``seq``,
+        increasing time): :data:`CLOCK_RESET_FRAMES` such frames that do not follow the stream are taken
+        as a restart of its source (seq and clock from scratch, or a clock stepped)."""
+        if not self._restart_probe:
+            return True
+        last = self._restart_probe[-1][0]
+        return (
+            batch.seq == last.seq + 1
+            and float(batch.t_s[0]) > float(last.t_s[-1])
+            and bool(np.all(np.diff(batch.t_s) > 0))
+        )
 
-        :data:`CLOCK_RESET_FRAMES` consecutive rejected frames with consecutive ``seq`` and increasing time
-        are taken as a restart; the ones before the decision stay rejected.
-        """
-        probe = self._restart_probe
-        t0, t1 = float(batch.t_s[0]), float(batch.t_s[-1])
-        if (
-            probe
-            and batch.seq == probe[-1][0] + 1
-            and t0 > probe[-1][2]
-            and np.all(np.diff(batch.t_s) > 0)
-        ):
-            probe.append((batch.seq, t0, t1))
-        else:
-            self._restart_probe = probe = [(batch.seq, t0, t1)]
-        return len(probe) >= CLOCK_RESET_FRAMES
+    def _reject_probe(self) -> list[Event]:
+        """The held frames formed no new stream: rejected as they would have been on arrival."""
+        events: list[Event] = []
+        held, self._restart_probe = self._restart_probe, []
+        for b, _, problem in held:
+            self._count(problem)
+            events += self._validity_events(
+                self.validity.record_rejected(b.n_samples), self.last_t_s or 0.0
+            )
+        return events
 
-    def _source_restart(self) -> list[Event]:
+    def _new_run(self, first: SampleBatch) -> bool:
+        """Whether a restarted source whose first frame is ``first`` began a new run: its ``seq`` went
+        back, or its time went back to before where the stream was ahead of its last jump forward.
+        A stream that goes on from there (one frame or a clock stamped ahead, then the clock as
+        before) is the same run on a stepped clock."""
+        last_seq = self.last_seq if self.last_seq is not None else -1
+        resumes_at_s = self._jumped_from_t_s if self._jumped_from_t_s is not None else math.inf
+        return first.seq < last_seq or float(first.t_s[0]) <= resumes_at_s
+
+    def _source_restart(self, *, new_run: bool) -> list[Event]:
+        """The source started again. ``new_run``: a new run of the vehicle or publisher (its time or
+        ``seq`` went back, :meth:`_new_run`, or its frames carry a new run id): positions and diagnosis start from here, as
+        for a unit switched on. Otherwise only the clock stepped: the stream is followed on the new
+        clock, and the diagnosis keeps the positions it has."""
         self._count("source_restarts")
         self._restart_probe = []
+        self._jumped_from_t_s = None
         self.last_seq = None
         self.last_t_s = None
         # The old stream ended: its pending position is complete.
@@ -466,13 +521,19 @@ class ImuPipeline:
         self._probe = []
         if self.detection is not None:
             # The detector and the positions hold the old stream's clock: every sample of the new one
-            # would be older than their last and refused inside them (fault detection would stop). The
-            # diagnosis keeps the positions it has: they are the same unit's.
+            # would be older than their last and refused inside them (fault detection would stop).
             self.detection = self._new_detection(self.detection.rate_hz)
             for check in self.checks.values():
                 check.f0_run, check.f0_run_onset = 0, None
         if self.gross is not None:
             self.gross.restart()
+        if new_run:
+            self._count("new_runs")
+            # A fault raised in the old run stays raised until the new run's diagnosis clears it.
+            self.n_positions = 0
+            for check in self.checks.values():
+                check.estimator = new_estimator(check.passport, self.options)
+                check.since_t_s = -math.inf
         return events
 
     # ------------------------------------------------------------------ the chain
@@ -921,6 +982,7 @@ class ImuPipeline:
             "rate_hz": None if det is None else det.rate_hz,
             "last_seq": self.last_seq,
             "last_t_s": self.last_t_s,
+            "run": self.run,
             "last_batch_n": self.last_batch_n,
             "n_samples": self.n_samples,
             "n_positions": self.n_positions,
@@ -1022,6 +1084,7 @@ class ImuPipeline:
                     self.gross = GrossMonitor.from_state(self.gross.config, state["gross"])
             self.last_seq = state["last_seq"]
             self.last_t_s = state["last_t_s"]
+            self.run = state.get("run")  # absent from checkpoints written before run ids
             self.last_batch_n = int(state["last_batch_n"])
             self.n_samples = int(state["n_samples"])
             self.n_positions = int(state["n_positions"])
