@@ -650,8 +650,11 @@ class ImuPipeline:
         if res.n_tests:
             # The gravity directions F0 saw: its coverage's minimum detectable fault rests on them.
             tested = x[res.state >= 0]
-            u = np.abs(tested) / np.linalg.norm(tested, axis=1, keepdims=True)
-            np.maximum(check.f0_max_abs_u, u.max(axis=0), out=check.f0_max_abs_u)
+            norm = np.linalg.norm(tested, axis=1, keepdims=True)
+            # A dead triad reads exactly 0: it shows no direction, and 0/0 would poison the maximum for good.
+            u = np.abs(tested[norm[:, 0] > 0.0]) / norm[norm[:, 0] > 0.0]
+            if u.size:
+                np.maximum(check.f0_max_abs_u, u.max(axis=0), out=check.f0_max_abs_u)
         self._count(f"f0.{triad.value}.fail", res.n_fail)
         k, run = persistent_failure(res.state, check.f0_run, self.f0_persist)
         events: list[Event] = []

@@ -1,0 +1,46 @@
+"""Verdicts attacked as a hostile user would: inputs on which a verdict once said less than the truth
+(a fault found yet "unusable input", a check that applied but did not run, figures that disagree
+between the outputs of the same data)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from replay_support import replay_with_coverage
+
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
+from estimators.session import ImuSession
+from protocols.events import Predicate
+from protocols.logs import write_tlog
+from service.cli import EXIT_FAULT
+
+G = STANDARD_GRAVITY_MPS2
+
+
+def level_at_rest(n: int, rate_hz: float, seed: int) -> ImuSession:
+    """A level unit at rest: g on z, 0.01 m/s² and 0.002 rad/s of white noise per sample."""
+    rng = np.random.default_rng(seed)
+    accel = np.array([0.0, 0.0, G]) + rng.normal(0.0, 0.01, (n, 3))
+    gyro = rng.normal(0.0, 0.002, (n, 3))
+    return ImuSession(np.arange(n) / rate_hz + 50.0, accel, gyro)
+
+
+def test_an_accelerometer_reading_exactly_zero_is_a_fault_not_unusable_input(capsys, tmp_path):
+    """A dead accelerometer whose every axis reads 0 (a tlog's integer milli-g quantize its noise
+    away): F0 tests its samples, which show no gravity direction. The gross event is raised and the
+    verdict is a fault (exit 1); the coverage once divided 0 by 0 and the replay ended "unusable
+    input" (exit 2) after printing the event."""
+    session = level_at_rest(2000, 100.0, seed=3)
+    session.accel_mps2[:] = 0.0
+    log = tmp_path / "dead.tlog"
+    write_tlog(log, {0: session})
+    status, lines, err, coverage = replay_with_coverage(capsys, log, "--json")
+    assert status == EXIT_FAULT, err
+    assert Predicate.GROSS.value in {json.loads(line)["predicate"] for line in lines}
+    (f0,) = (
+        c
+        for c in coverage["imus"][0]["checks"]
+        if c["check"] == "F0" and c["triad"] == Triad.ACCEL.value
+    )
+    assert f0["ran"] and f0["samples"] > 0
