@@ -8,12 +8,16 @@ import json
 
 import numpy as np
 from replay_support import replay_with_coverage
+from service_support import batches_of, run_fleet
 
-from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Grade, Triad
+from estimators.nominal_passport import SensorClass
 from estimators.session import ImuSession
+from estimators.sim import multi_position_spec, simulate
 from protocols.events import Predicate
 from protocols.logs import write_tlog
 from service.cli import EXIT_FAULT
+from service.pipeline import FleetProcessor, PipelineOptions
 
 G = STANDARD_GRAVITY_MPS2
 
@@ -44,3 +48,22 @@ def test_an_accelerometer_reading_exactly_zero_is_a_fault_not_unusable_input(cap
         if c["check"] == "F0" and c["triad"] == Triad.ACCEL.value
     )
     assert f0["ran"] and f0["samples"] > 0
+
+
+def test_a_healthy_navigation_gyro_passes_f0_through_its_turns():
+    """A navigation-grade unit turned between six positions, against its class's nominal passport
+    (the daemon's default_grade, replay's --grade): F0 tests its gyro against the Earth rate (λ0 ≈
+    0.4) and a turn's first and last 0.2 s reach 0.016 rad/s, 200 Ω. The static detector's MEMS
+    threshold (0.02 rad/s of spread) counted them as rest, and F0 failed at every turn edge of a
+    healthy unit; with the threshold from the gyro's own noise, no F0 event and F0 still tests."""
+    spec = multi_position_spec(grade=Grade.NAVIGATION, n_positions=6, static_s=5.0)
+    res = simulate(spec, seed=11)
+    fleet = FleetProcessor(
+        passports=lambda vehicle, imu: None,
+        options=PipelineOptions(gravity_mps2=res.truth.gravity_mps2),
+        nominal=SensorClass.NAVIGATION,
+    )
+    events = run_fleet(fleet, batches_of(res.session, vehicle="v", imu=0, batch_samples=100))
+    assert [e.text for e in events if e.predicate is Predicate.F0] == []
+    pipe = fleet.pipelines[("v", 0)]
+    assert pipe.counters["f0.gyro.tests"] > 0.5 * res.session.n_samples

@@ -105,7 +105,7 @@ def f0_report(
     options = PipelineOptions(gravity_mps2=config.gravity_mps2)
     static = _f0_static(
         clean,
-        detect_static(clean, config=detector_config(options.detector, passport, clean.rate_hz)),
+        detect_static(clean, config=detector_config(options, passport, clean.rate_hz)),
         options.positions.trim_samples(clean.rate_hz),
     )
     persist = persistence_samples(options.f0_persistence_s, clean.rate_hz)

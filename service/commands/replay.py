@@ -307,7 +307,7 @@ def run(args: argparse.Namespace) -> int:
             # Rest as the pipeline's static detector sees it: its thresholds raised to the passport's noise.
             pipe = fleet.admit(batch.vehicle, batch.imu)
             det = detector_config(
-                options.detector,
+                options,
                 None if pipe is None else pipe.passport_at(_rate(batch)),
                 _rate(batch),
             )

@@ -163,7 +163,7 @@ class ImuPipeline:
         return self.passport
 
     def _new_detection(self, rate_hz: float) -> _Detection:
-        detector = detector_config(self.options.detector, self.passport_at(rate_hz), rate_hz)
+        detector = detector_config(self.options, self.passport_at(rate_hz), rate_hz)
         return _Detection(
             rate_hz,
             PositionAccumulator(

@@ -14,7 +14,7 @@ from estimators.conventions import (
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from estimators.positions import PositionConfig
-from estimators.static_detector import StaticDetectorConfig
+from estimators.static_detector import SPREAD_FLOOR_RPS, StaticDetectorConfig
 from estimators.stream_validity import (
     ValidityLimits,
 )
@@ -105,7 +105,7 @@ class PipelineOptions:
 
 
 def detector_config(
-    base: StaticDetectorConfig, passport: Passport | None, rate_hz: float
+    options: PipelineOptions, passport: Passport | None, rate_hz: float
 ) -> StaticDetectorConfig:
     """The static detector's thresholds for this unit at this rate.
 
@@ -114,7 +114,16 @@ def detector_config(
     moving. Each triad's threshold is therefore the larger of the configured one and
     :data:`DETECTOR_NOISE_FACTOR` × the spread of the passport's noise at ``rate_hz``
     (:meth:`estimators.static_detector.StaticDetectorConfig.from_noise`).
+
+    A gyro F0 tests against the Earth rate (λ0 within :data:`F0_SHELL_LIMIT`: a navigation-grade
+    one) is the exception: the configured threshold, made for MEMS gyros (0.02 rad/s, about 270 Ω),
+    let the first and last 0.2 s of every turn (up to 0.016 rad/s) count as rest, and F0 failed
+    there on a healthy unit. Its threshold is its own noise's alone; the spread is not its zero
+    signal, so no bias fault is hidden by it.
     """
+    from service.pipeline.triad_check import f0_threshold
+
+    base = options.detector
     if passport is None:
         return base
     noise = {}
@@ -128,8 +137,14 @@ def detector_config(
         factor=DETECTOR_NOISE_FACTOR,
         base=base,
     )
+    gyro = passport.triads.get(Triad.GYRO)
+    sees_earth_rate = (
+        gyro is not None and f0_threshold(gyro, options, rate_hz).lambda0 <= F0_SHELL_LIMIT
+    )
     return replace(
         base,
         accel_std_mps2=max(base.accel_std_mps2, scaled.accel_std_mps2),
-        gyro_std_rps=max(base.gyro_std_rps, scaled.gyro_std_rps),
+        gyro_std_rps=max(SPREAD_FLOOR_RPS, scaled.gyro_std_rps)
+        if sees_earth_rate
+        else max(base.gyro_std_rps, scaled.gyro_std_rps),
     )
