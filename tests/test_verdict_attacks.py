@@ -7,16 +7,19 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from replay_support import replay_with_coverage
 from service_support import batches_of, run_fleet
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Grade, Triad
-from estimators.nominal_passport import SensorClass
+from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.session import ImuSession
 from estimators.sim import multi_position_spec, simulate
 from protocols.events import Predicate
 from protocols.logs import write_tlog
-from service.cli import EXIT_FAULT
+from protocols.passport_codec import write_passport_json
+from protocols.session_file import SessionUnits, UnitsError, check_units, write_csv_session
+from service.cli import EXIT_FAULT, EXIT_UNUSABLE, main
 from service.pipeline import FleetProcessor, PipelineOptions
 
 G = STANDARD_GRAVITY_MPS2
@@ -67,3 +70,28 @@ def test_a_healthy_navigation_gyro_passes_f0_through_its_turns():
     assert [e.text for e in events if e.predicate is Predicate.F0] == []
     pipe = fleet.pipelines[("v", 0)]
     assert pipe.counters["f0.gyro.tests"] > 0.5 * res.session.n_samples
+
+
+@pytest.mark.parametrize("magnitude_g", [0.35, 0.0])
+def test_diagnose_and_publish_test_an_accelerometer_no_unit_fits(tmp_path, capsys, magnitude_g):
+    """A unit at rest reading 0.35 g (the dead ArduRover accelerometer) or nothing: its median |a|
+    lies outside 5…20 m/s² in m/s², g and mg alike, so the unit check refused the session as
+    "implausible in every unit" (exit 2) and diagnose never tested it. No unit mistake explains it:
+    diagnose tests it as read and names the gross fault (exit 1); calibrate, a fit, still refuses."""
+    session = level_at_rest(2000, 100.0, seed=5)
+    session.accel_mps2[:, 2] *= magnitude_g
+    csv, passport = tmp_path / "s.csv", tmp_path / "p.json"
+    write_csv_session(csv, session)
+    write_passport_json(nominal_passport(SensorClass.CONSUMER_MEMS), passport)
+    status = main(["diagnose", str(csv), "--passport", str(passport), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert status == EXIT_FAULT == out["exit_status"]
+    assert ("gross", "accel") in {(f["predicate"], f["triad"]) for f in out["faults"]}
+    with pytest.raises(UnitsError, match="every other unit"):
+        check_units(session, SessionUnits())
+    note = check_units(session, SessionUnits(), faulty_accel_ok=True)
+    assert note is not None and "tested as read" in note
+    assert (
+        check_units(level_at_rest(200, 100.0, seed=5), SessionUnits(), faulty_accel_ok=True) is None
+    )
+    assert main(["calibrate", str(csv), "--out", str(tmp_path / "c.json")]) == EXIT_UNUSABLE

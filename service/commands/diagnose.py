@@ -372,7 +372,8 @@ def run(args: argparse.Namespace) -> int:
     from protocols.passport_codec import read_passport_json
 
     passport = read_passport_json(args.passport)
-    inp = load_session_input(args)
+    # A dead accelerometer is what the verdict is for, not unusable input.
+    inp = load_session_input(args, faulty_accel_ok=True)
     config = ChainConfig(
         gravity_mps2=inp.gravity_mps2, false_alarm_prob=args.false_alarm, detector=inp.detector,
         accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
@@ -420,7 +421,7 @@ def run(args: argparse.Namespace) -> int:
     _print_text(result, passport, f0, untested, inp.gravity_mps2, inp.gravity_source)
     for fault in gross_faults(gross):
         print(
-            f"  FAULT gross: {fault['triad']} {fault['axis'] or ''} {fault['cause']}: window mean "
+            f"  FAULT gross: {' '.join(filter(None, (fault['triad'], fault['axis'])))} {fault['cause']}: window mean "
             f"{fault['estimate']:+.4g} {fault['unit']} vs nominal {fault['nominal']:.4g} beyond "
             f"±{fault['tolerance']:.3g} (σ {fault['sigma']:.2g}) from {fault['first_t_s']:.3f} s "
             f"for {fault['duration_s']:.1f} s at rest (tolerances: {gross.config.source})"
