@@ -14,7 +14,7 @@ from service_support import batches_of, run_fleet
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Grade, Triad
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.session import ImuSession
-from estimators.sim import multi_position_spec, simulate
+from estimators.sim import Fault, FaultKind, multi_position_spec, simulate
 from protocols.events import Predicate
 from protocols.logs import write_tlog
 from protocols.passport_codec import write_passport_json
@@ -53,23 +53,36 @@ def test_an_accelerometer_reading_exactly_zero_is_a_fault_not_unusable_input(cap
     assert f0["ran"] and f0["samples"] > 0
 
 
-def test_a_healthy_navigation_gyro_passes_f0_through_its_turns():
-    """A navigation-grade unit turned between six positions, against its class's nominal passport
-    (the daemon's default_grade, replay's --grade): F0 tests its gyro against the Earth rate (λ0 ≈
-    0.4) and a turn's first and last 0.2 s reach 0.016 rad/s, 200 Ω. The static detector's MEMS
-    threshold (0.02 rad/s of spread) counted them as rest, and F0 failed at every turn edge of a
-    healthy unit; with the threshold from the gyro's own noise, no F0 event and F0 still tests."""
-    spec = multi_position_spec(grade=Grade.NAVIGATION, n_positions=6, static_s=5.0)
-    res = simulate(spec, seed=11)
+def navigation_fleet_events(session, gravity_mps2: float):
+    """Events and pipeline of a unit on the nominal navigation passport (the daemon's default_grade)."""
     fleet = FleetProcessor(
         passports=lambda vehicle, imu: None,
-        options=PipelineOptions(gravity_mps2=res.truth.gravity_mps2),
+        options=PipelineOptions(gravity_mps2=gravity_mps2),
         nominal=SensorClass.NAVIGATION,
     )
-    events = run_fleet(fleet, batches_of(res.session, vehicle="v", imu=0, batch_samples=100))
+    events = run_fleet(fleet, batches_of(session, vehicle="v", imu=0, batch_samples=100))
+    return events, fleet.pipelines[("v", 0)]
+
+
+def test_a_healthy_navigation_gyro_passes_f0_through_its_turns_and_a_noisy_one_fails():
+    """A navigation-grade unit turned between six positions against its class's nominal passport:
+    F0 tests its gyro against the Earth rate (λ0 ≈ 0.4, about 1e-4 rad/s) and a turn's first and
+    last 0.2 s reach 0.016 rad/s. The static detector's MEMS spread threshold (0.02 rad/s) counted
+    them as rest and F0 failed at every turn edge of a healthy unit. A static window's mean rate is
+    now bounded at F0's shell, not its spread: the twin whose gyro x gains 1e-4 rad/s of white
+    noise (25× its own) from the third position is still at rest, and F0 finds it there."""
+    spec = multi_position_spec(grade=Grade.NAVIGATION, n_positions=6, static_s=5.0)
+    res = simulate(spec, seed=11)
+    events, pipe = navigation_fleet_events(res.session, res.truth.gravity_mps2)
     assert [e.text for e in events if e.predicate is Predicate.F0] == []
-    pipe = fleet.pipelines[("v", 0)]
     assert pipe.counters["f0.gyro.tests"] > 0.5 * res.session.n_samples
+    onset_s = 2 * (5.0 + 4.0) + 1.0
+    noisy = Fault(FaultKind.NOISE_BURST, Triad.GYRO, 0, onset_s, 1e-4, 100.0)
+    spec = multi_position_spec(grade=Grade.NAVIGATION, n_positions=6, static_s=5.0, faults=[noisy])
+    res = simulate(spec, seed=11)
+    events, _ = navigation_fleet_events(res.session, res.truth.gravity_mps2)
+    (f0,) = [e for e in events if e.predicate is Predicate.F0]
+    assert f0.triad is Triad.GYRO and onset_s <= f0.t_s < onset_s + 1.0
 
 
 @pytest.mark.parametrize("magnitude_g", [0.35, 0.0])

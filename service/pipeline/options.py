@@ -14,7 +14,7 @@ from estimators.conventions import (
 from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from estimators.positions import PositionConfig
-from estimators.static_detector import SPREAD_FLOOR_RPS, StaticDetectorConfig
+from estimators.static_detector import StaticDetectorConfig
 from estimators.stream_validity import (
     ValidityLimits,
 )
@@ -116,10 +116,13 @@ def detector_config(
     (:meth:`estimators.static_detector.StaticDetectorConfig.from_noise`).
 
     A gyro F0 tests against the Earth rate (λ0 within :data:`F0_SHELL_LIMIT`: a navigation-grade
-    one) is the exception: the configured threshold, made for MEMS gyros (0.02 rad/s, about 270 Ω),
-    let the first and last 0.2 s of every turn (up to 0.016 rad/s) count as rest, and F0 failed
-    there on a healthy unit. Its threshold is its own noise's alone; the spread is not its zero
-    signal, so no bias fault is hidden by it.
+    one) also bounds a static window's mean rate about the passport's zero signal, at the largest
+    rate F0's shell passes, ``Ω·√(1 + 2λ0)``, plus :data:`DETECTOR_NOISE_FACTOR` σ of the window
+    mean. The spread threshold, made for MEMS gyros (0.02 rad/s, about 270 Ω), let the first and
+    last 0.2 s of every turn (up to 0.016 rad/s) count as rest, and F0 failed there on a healthy
+    unit. A bound on the mean, not a tighter spread: a gyro whose noise grows is still at rest and
+    F0 finds it, and a zero signal beyond the bound, which this hides from F0, is the gross test's
+    (no gate, bound about one Ω: :mod:`estimators.gross`).
     """
     from service.pipeline.triad_check import f0_threshold
 
@@ -137,14 +140,22 @@ def detector_config(
         factor=DETECTOR_NOISE_FACTOR,
         base=base,
     )
-    gyro = passport.triads.get(Triad.GYRO)
-    sees_earth_rate = (
-        gyro is not None and f0_threshold(gyro, options, rate_hz).lambda0 <= F0_SHELL_LIMIT
-    )
-    return replace(
+    out = replace(
         base,
         accel_std_mps2=max(base.accel_std_mps2, scaled.accel_std_mps2),
-        gyro_std_rps=max(SPREAD_FLOOR_RPS, scaled.gyro_std_rps)
-        if sees_earth_rate
-        else max(base.gyro_std_rps, scaled.gyro_std_rps),
+        gyro_std_rps=max(base.gyro_std_rps, scaled.gyro_std_rps),
+    )
+    gyro = passport.triads.get(Triad.GYRO)
+    if gyro is None:
+        return out
+    lambda0 = f0_threshold(gyro, options, rate_hz).lambda0
+    if lambda0 > F0_SHELL_LIMIT:
+        return out
+    window_noise = noise[Triad.GYRO] / math.sqrt(base.window_samples(rate_hz))
+    zero = gyro.nominal[:3] * gyro.reference
+    return replace(
+        out,
+        gyro_rate_rps=EARTH_RATE_RPS * math.sqrt(1.0 + 2.0 * lambda0)
+        + DETECTOR_NOISE_FACTOR * window_noise,
+        gyro_rate_centre_rps=(float(zero[0]), float(zero[1]), float(zero[2])),
     )
