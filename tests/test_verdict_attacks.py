@@ -4,6 +4,7 @@ between the outputs of the same data)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -15,7 +16,7 @@ from estimators.conventions import STANDARD_GRAVITY_MPS2, Grade, Triad
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.session import ImuSession
 from estimators.sim import Fault, FaultKind, multi_position_spec, simulate
-from protocols.events import Predicate
+from protocols.events import ImuState, Predicate
 from protocols.logs import write_tlog
 from protocols.passport_codec import write_passport_json
 from protocols.session_file import SessionUnits, UnitsError, check_units, write_csv_session
@@ -108,3 +109,43 @@ def test_diagnose_and_publish_test_an_accelerometer_no_unit_fits(tmp_path, capsy
         check_units(level_at_rest(200, 100.0, seed=5), SessionUnits(), faulty_accel_ok=True) is None
     )
     assert main(["calibrate", str(csv), "--out", str(tmp_path / "c.json")]) == EXIT_UNUSABLE
+
+
+def ten_positions_status(grade: Grade, passport_of, seed: int):
+    """The status of a healthy unit turned through ten positions, on ``passport_of(gravity)``."""
+    res = simulate(multi_position_spec(grade=grade, n_positions=10, static_s=5.0), seed=seed)
+    passport = passport_of(res.truth.gravity_mps2)
+    fleet = FleetProcessor(
+        passports=lambda vehicle, imu: passport,
+        options=PipelineOptions(gravity_mps2=res.truth.gravity_mps2),
+    )
+    events = run_fleet(fleet, batches_of(res.session, vehicle="v", imu=0, batch_samples=100))
+    status = fleet.pipelines[("v", 0)].status()
+    assert events == [] and status.positions >= 9
+    return status.state, {c.name: c for c in status.coverage}
+
+
+def without_gyro(sensor_class: SensorClass):
+    def passport_of(gravity_mps2: float):
+        full = nominal_passport(sensor_class, gravity_mps2=gravity_mps2)
+        return dataclasses.replace(full, triads={Triad.ACCEL: full.triads[Triad.ACCEL]})
+
+    return passport_of
+
+
+def test_the_daemon_says_ok_only_when_every_check_that_applies_ran():
+    """A passport without its gyro triad, as ``calibrate`` writes for a gyro that cannot see the
+    Earth rate. On a navigation unit the gyro's F0 and F1…F9 apply and did not run: replay said "no
+    finding within coverage" and the daemon's status "ok"; it is now "warning". On a MEMS unit the
+    gyro's own noise (about 12 Ω per sample) shows that they cannot apply: "ok" in the status and
+    "no fault" in replay, as with a passport that has its MEMS gyro (replay said "not tested")."""
+    state, checks = ten_positions_status(
+        Grade.NAVIGATION, without_gyro(SensorClass.NAVIGATION), seed=13
+    )
+    assert state is ImuState.WARNING
+    assert {name for name, c in checks.items() if c.missing} == {"gyro F0", "gyro F1-F9"}
+    state, checks = ten_positions_status(Grade.MEMS, without_gyro(SensorClass.CONSUMER_MEMS), 13)
+    assert state is ImuState.OK and not any(c.missing for c in checks.values())
+    assert not checks["gyro F0"].applies and "own noise" in checks["gyro F0"].reason
+    full = lambda g: nominal_passport(SensorClass.CONSUMER_MEMS, gravity_mps2=g)  # noqa: E731
+    assert ten_positions_status(Grade.MEMS, full, seed=13)[0] is ImuState.OK

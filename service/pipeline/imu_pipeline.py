@@ -15,6 +15,7 @@ from estimators.conventions import (
     Cause,
     Triad,
 )
+from estimators.coverage import ImuCoverage
 from estimators.diagnosis import Outcome, diagnose
 from estimators.gross import GrossChange, GrossMonitor, gross_config
 from estimators.ninepar import RecursiveNineParam
@@ -846,6 +847,10 @@ class ImuPipeline:
 
     @property
     def state(self) -> ImuState:
+        return self._state_of(None)
+
+    def _state_of(self, coverage: ImuCoverage | None) -> ImuState:
+        """The state; ``coverage``: :func:`imu_coverage`'s, when the caller has it already."""
         if self.gross is not None and self.gross.failing():
             return ImuState.FAULT
         if self.passport is None or self.nominal_too_slow:
@@ -858,6 +863,11 @@ class ImuPipeline:
             return ImuState.WARNING
         if self.detection is None or self.n_positions < self.options.min_positions:
             return ImuState.STARTING
+        # "ok" is the daemon's "no fault": only when every check that applies ran. Otherwise it is
+        # replay's "no finding within coverage", at warning severity (a navigation unit's passport
+        # without its gyro triad left the gyro's F0 and F1…F9 untested, and the status said "ok").
+        if (coverage if coverage is not None else imu_coverage(self)).untested:
+            return ImuState.WARNING
         return ImuState.OK
 
     def status(self) -> ImuStatus:
@@ -903,14 +913,15 @@ class ImuPipeline:
                 f"sample rate changed from {self.rate_changed_from_hz:.4g} to "
                 f"{self.detection.rate_hz:.4g} Hz: detector re-sized"
             )
+        coverage = imu_coverage(self)
         return ImuStatus(
             self.imu,
-            self.state,
+            self._state_of(coverage),
             self.n_samples,
             self.last_t_s,
             self.n_positions,
             "; ".join(p for p in parts if p)[:500],
-            imu_coverage(self).checks,
+            coverage.checks,
         )
 
     def state_dict(self) -> dict[str, Any]:
