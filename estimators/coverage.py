@@ -251,6 +251,14 @@ class ImuCoverage:
         """The checks that apply and did not run in full."""
         return tuple(c for c in self.checks if c.missing)
 
+    def untested_by_reason(self) -> list[tuple[str, list[str]]]:
+        """The untested checks' names grouped by their reason, in order: one reason often stops
+        several checks (no passport: four), and is said once."""
+        by_reason: dict[str, list[str]] = {}
+        for c in self.untested:
+            by_reason.setdefault(c.reason, []).append(c.name)
+        return list(by_reason.items())
+
     def to_dict(self) -> dict[str, Any]:
         return {"imu": self.imu, "checks": [c.to_dict() for c in self.checks]}
 
@@ -266,7 +274,7 @@ class ImuCoverage:
     def summary(self) -> str:
         """A short line for a status: the checks that ran, and those that did not and why."""
         ran = [c.name for c in self.checks if c.ran]
-        untested = [f"{c.name} ({c.reason})" for c in self.untested]
+        untested = [f"{', '.join(names)} ({why})" for why, names in self.untested_by_reason()]
         return "; ".join(
             [
                 *(["tested: " + ", ".join(ran)] if ran else []),
@@ -288,10 +296,9 @@ def untested_lines(coverages: Sequence[ImuCoverage]) -> list[str]:
     """What was not tested and why, one line per IMU and reason (for ``no finding within coverage``)."""
     out = []
     for cov in coverages:
-        by_reason: dict[str, list[str]] = {}
-        for c in cov.untested:
-            by_reason.setdefault(c.reason, []).append(c.name)
-        out += [f"IMU{cov.imu} {', '.join(names)}: {why}" for why, names in by_reason.items()]
+        out += [
+            f"IMU{cov.imu} {', '.join(names)}: {why}" for why, names in cov.untested_by_reason()
+        ]
     return out
 
 

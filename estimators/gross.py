@@ -725,6 +725,16 @@ class GrossMonitor:
             if run.failing
         ]
 
+    def sample_noise_si(self, triad: Triad) -> FloatArray | None:
+        """(3,) per-sample noise of ``triad`` per axis, SI, pooled over its quiet windows so far (module
+        docstring): the noise the stream itself shows; None before its first quiet window."""
+        j = 0 if Triad(triad) is Triad.ACCEL else 1
+        if self._var_n[j] == 0:
+            return None
+        sl = _ACC if j == 0 else _GYR
+        noise: FloatArray = np.sqrt(self._var_sum[sl] / self._var_n[j])
+        return noise
+
     def coverage(self) -> dict[Triad, GrossCoverage]:
         cfg = self.config
         w = cfg.window_samples

@@ -48,7 +48,10 @@ makes sense in another unit is refused with one line naming that unit:
 
 * accelerometers: the median of ``|a|`` over the session must lie in
   ``[5, 20] m/s²`` (a calibration or flight session rests or moves about
-  ``g``); a median near 1 is ``g``, near 1000 ``mg``;
+  ``g``); a median near 1 is ``g``, near 1000 ``mg``. A median no unit puts
+  in that range is no unit mistake but a dead or faulty accelerometer (0.35 g
+  at rest): the verdicts (``diagnose``, ``publish`` to the daemon) test it as
+  read, the fits refuse it;
 * gyros: declared rad/s, a median ``|ω|`` above 5 rad/s (290 °/s: faster on
   average than rate tables and flights turn) or a 99.5th percentile above
   20 rad/s (1150 °/s, beyond what vehicles and fixtures turn at) looks like
@@ -779,15 +782,25 @@ def _refuse(kind: str, declared: StrEnum, looks: StrEnum | None, what: str) -> U
     )
 
 
-def check_units(session: ImuSession, units: SessionUnits, *, time_declared: bool = True) -> None:
+def check_units(
+    session: ImuSession,
+    units: SessionUnits,
+    *,
+    time_declared: bool = True,
+    faulty_accel_ok: bool = False,
+) -> str | None:
     """Refuse a session (SI, read in ``units``) whose values only make sense in other units.
 
     Raises :class:`UnitsError` with one line naming the unit the data look like
     (rules in the module docstring). Non-finite samples are ignored. With
     ``time_declared`` False (no option nor file line said it), a time unit that
-    another unit would beat is refused too.
+    another unit would beat is refused too. With ``faulty_accel_ok`` an
+    accelerometer implausible in every unit is no unit mistake but what a dead or
+    faulty one reads (0.35 g at rest): it passes, for a verdict to test it, and
+    the line saying so is returned (None when there is nothing to say).
     """
     used = units.resolved()
+    note = None
     a = session.accel_mps2
     if a is not None and used.accel is not None:
         with np.errstate(over="ignore"):  # an absurd value's norm is inf: left out below
@@ -797,7 +810,10 @@ def check_units(session: ImuSession, units: SessionUnits, *, time_declared: bool
             raw = float(np.median(norm)) / SI_PER_UNIT[used.accel]
             if not _plausible("accel", raw, used.accel):
                 looks = next((u for u in AccelUnit if _plausible("accel", raw, u)), None)
-                raise _refuse("accel", used.accel, looks, f"median |a| {raw:.4g} {used.accel}")
+                refusal = _refuse("accel", used.accel, looks, f"median |a| {raw:.4g} {used.accel}")
+                if looks is not None or not faulty_accel_ok:
+                    raise refusal
+                note = f"{refusal}: tested as read (a dead or faulty accelerometer reads so)"
     w = session.gyro_rps
     if w is not None and used.gyro is GyroUnit.RPS:
         with np.errstate(over="ignore"):
@@ -834,3 +850,4 @@ def check_units(session: ImuSession, units: SessionUnits, *, time_declared: bool
                 f"({_UNIT_OPTION['time']} {used.time} or {looks_t}, or a '# {UNIT_KEYS['time']} = ...' line)",
                 "time",
             )
+    return note

@@ -135,9 +135,16 @@ def add_unit_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_units_checked(
-    path: str, gyro_file: str | None, sidecar: str | None, args: argparse.Namespace
+    path: str,
+    gyro_file: str | None,
+    sidecar: str | None,
+    args: argparse.Namespace,
+    *,
+    faulty_accel_ok: bool = False,
 ) -> LoadedSession:
-    """The session in SI, refused with one line when its values are implausible in their units."""
+    """The session in SI, refused with one line when its values are implausible in their units;
+    ``faulty_accel_ok``: a verdict's, whose accelerometer no unit fits is tested as read
+    (:func:`protocols.session_file.check_units`, said on stderr)."""
     declared = SessionUnits(args.accel_unit, args.gyro_unit, args.time_unit)
     loaded = load_session(path, gyro_file, sidecar=sidecar, units=declared)
     if "format" in loaded.metadata:
@@ -148,10 +155,11 @@ def load_units_checked(
             file=sys.stderr,
         )
     try:
-        check_units(
+        note = check_units(
             loaded.session,
             loaded.units,
             time_declared=declared.time is not None or UNIT_KEYS["time"] in loaded.metadata,
+            faulty_accel_ok=faulty_accel_ok,
         )
     except UnitsError as exc:
         if exc.kind == "time" or (gyro_file is None and not Path(path).is_dir()):
@@ -164,12 +172,17 @@ def load_units_checked(
             "--gyro-file) or the sidecar's scale factors may not be this unit's",
             exc.kind,
         ) from None
+    if note is not None:
+        print(f"ins-health: {path}: {note}", file=sys.stderr)
     return loaded
 
 
-def load_session_input(args: argparse.Namespace) -> SessionInput:
-    """Read the session and settle the local gravity (the rule in the argument group's title)."""
-    loaded = load_units_checked(args.session, args.gyro_file, args.sidecar, args)
+def load_session_input(args: argparse.Namespace, *, faulty_accel_ok: bool = False) -> SessionInput:
+    """Read the session and settle the local gravity (the rule in the argument group's title);
+    ``faulty_accel_ok`` as :func:`load_units_checked`'s."""
+    loaded = load_units_checked(
+        args.session, args.gyro_file, args.sidecar, args, faulty_accel_ok=faulty_accel_ok
+    )
     if args.gravity is not None:
         gravity, source = args.gravity, "--gravity"
     elif args.latitude is not None:

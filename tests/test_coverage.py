@@ -187,6 +187,24 @@ def test_verdict_says_no_fault_only_when_every_applicable_check_ran():
     assert untested_lines([_imu(f0, gyro, untested)]) == ["IMU0 accel F1-F9: 3 positions, 9 needed"]
 
 
+def test_a_status_summary_says_a_reason_once_for_the_checks_it_stopped():
+    """The daemon's status without a passport (default_grade "none"): four checks stopped by one long
+    reason, which watch's line repeated four times; it is said once, after the checks it stopped."""
+    why = "passport of v1 IMU0 (/srv/passports/v1/imu0.passport.json): missing: no passport file"
+    stopped = [
+        CheckCoverage(check, triad, ran=False, reason=why)
+        for triad in (Triad.ACCEL, Triad.GYRO)
+        for check in (Check.F0, Check.F1_F9)
+    ]
+    gross = CheckCoverage(Check.GROSS, Triad.ACCEL, ran=True, samples=40)
+    summary = _imu(gross, *stopped).summary()
+    assert summary.count(why) == 1
+    assert (
+        summary
+        == f"tested: accel gross; untested: accel F0, accel F1-F9, gyro F0, gyro F1-F9 ({why})"
+    )
+
+
 def test_coverage_round_trips_through_its_dict_with_unseen_axes():
     c = CheckCoverage(
         Check.F0, Triad.ACCEL, ran=True, samples=5, mdf_bias_si=(0.1, math.inf, 0.2),

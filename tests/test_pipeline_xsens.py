@@ -49,7 +49,7 @@ def eroded_static_runs(session, passport, options) -> list[slice]:
     """The static runs of the *batch* detector (thresholds as the pipeline sets them for this unit),
     less the positions' trim at both ends: computed apart from the streaming gate the pipeline uses."""
     rate_hz = session.rate_hz
-    config = detector_config(options.detector, passport, rate_hz)
+    config = detector_config(options, passport, rate_hz)
     det = detect_static(session, config=config, rate_hz=rate_hz)
     edges = np.flatnonzero(np.diff(np.r_[0, det.static.astype(np.int8), 0])).reshape(-1, 2)
     m = options.positions.trim_samples(rate_hz)

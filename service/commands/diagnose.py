@@ -111,7 +111,7 @@ def f0_report(
     options = PipelineOptions(gravity_mps2=config.gravity_mps2)
     static = _f0_static(
         clean,
-        detect_static(clean, config=detector_config(options.detector, passport, clean.rate_hz)),
+        detect_static(clean, config=detector_config(options, passport, clean.rate_hz)),
         options.positions.trim_samples(clean.rate_hz),
     )
     persist = persistence_samples(options.f0_persistence_s, clean.rate_hz)
@@ -427,7 +427,8 @@ def diagnose_session(args: argparse.Namespace) -> DiagnoseResult:
     from protocols.passport_codec import read_passport_json
 
     passport = read_passport_json(args.passport)
-    inp = load_session_input(args)
+    # A dead accelerometer is what the verdict is for, not unusable input.
+    inp = load_session_input(args, faulty_accel_ok=True)
     config = ChainConfig(
         gravity_mps2=inp.gravity_mps2, false_alarm_prob=args.false_alarm, detector=inp.detector,
         accel_limit_mps2=inp.accel_limit_mps2, gyro_limit_rps=inp.gyro_limit_rps,
@@ -484,7 +485,7 @@ def run(args: argparse.Namespace) -> int:
     _print_text(d)
     for fault in gross_faults(d.gross):
         print(
-            f"  FAULT gross: {fault['triad']} {fault['axis'] or ''} {fault['cause']}: window mean "
+            f"  FAULT gross: {' '.join(filter(None, (fault['triad'], fault['axis'])))} {fault['cause']}: window mean "
             f"{fault['estimate']:+.4g} {fault['unit']} vs nominal {fault['nominal']:.4g} beyond "
             f"±{fault['tolerance']:.3g} (σ {fault['sigma']:.2g}) from {fault['first_t_s']:.3f} s "
             f"for {fault['duration_s']:.1f} s at rest (tolerances: {d.gross.config.source})"

@@ -139,7 +139,9 @@ def _session_batches(args: argparse.Namespace) -> tuple[Iterator[SampleBatch], C
     from estimators.session import SessionError, validate_session
     from protocols.frames import split_session
 
-    session = load_units_checked(str(args.recording), None, None, args).session
+    session = load_units_checked(
+        str(args.recording), None, None, args, faulty_accel_ok=True
+    ).session
     try:
         session, rejected = validate_session(session)
     except SessionError as exc:

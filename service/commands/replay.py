@@ -410,7 +410,7 @@ def replay_log(
             # Rest as the pipeline's static detector sees it: its thresholds raised to the passport's noise.
             pipe = fleet.admit(batch.vehicle, batch.imu)
             det = detector_config(
-                options.detector,
+                options,
                 None if pipe is None else pipe.passport_at(_rate(batch)),
                 _rate(batch),
             )

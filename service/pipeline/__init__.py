@@ -42,7 +42,9 @@ Per batch of samples, in this order (docs/architecture.md):
 4. **Static detection and positions**
    (:class:`estimators.positions.PositionAccumulator`, per sample), with the
    detector's thresholds raised to the unit's own noise at the stream's rate
-   (:func:`detector_config`). The rate is measured from the first
+   (:func:`detector_config`; for a gyro F0 tests against the Earth rate, a
+   static window's mean rate is bounded at F0's shell: the MEMS spread
+   threshold let turn edges count as rest). The rate is measured from the first
    :data:`RATE_PROBE_SAMPLES` samples (their median step) and again over every
    :data:`RATE_CHECK_SAMPLES` steps after them (the interquartile mean step,
    :func:`estimators.stream_validity.typical_step_s`): when

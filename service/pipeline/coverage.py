@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from estimators.conventions import Triad
+from estimators.conventions import EARTH_RATE_RPS, Triad
 from estimators.coverage import (
     Check,
     CheckCoverage,
@@ -19,7 +19,8 @@ from estimators.coverage import (
     tolerance_triples,
 )
 from estimators.gross import tolerance_passports
-from service.pipeline.options import TRIAD_WORD
+from estimators.scalar import derive_lambda0
+from service.pipeline.options import F0_SHELL_LIMIT, TRIAD_WORD
 from service.pipeline.triad_check import TriadCheck, f0_threshold
 
 if TYPE_CHECKING:
@@ -36,6 +37,15 @@ def imu_coverage(pipe: ImuPipeline, *, imus_on_vehicle: int | None = None) -> Im
     for triad in (Triad.ACCEL, Triad.GYRO):
         check = pipe.checks.get(triad)
         if check is None:
+            blind = _blind_gyro(pipe, triad)
+            if blind is not None:
+                checks.append(
+                    CheckCoverage(Check.F0, triad, ran=False, applies=False, reason=blind)
+                )
+                checks.append(
+                    CheckCoverage(Check.F1_F9, triad, ran=False, applies=False, reason=blind)
+                )
+                continue
             why = _no_check(pipe, triad)
             checks.append(CheckCoverage(Check.F0, triad, ran=False, reason=why))
             checks.append(CheckCoverage(Check.F1_F9, triad, ran=False, reason=why))
@@ -71,6 +81,33 @@ def _no_check(pipe: ImuPipeline, triad: Triad) -> str:
     if triad in pipe.passport.triads:  # the checks are set up with the sample rate
         return _not_running(pipe) or "not set up"
     return f"the passport has no {TRIAD_WORD[triad]} triad"
+
+
+def _blind_gyro(pipe: ImuPipeline, triad: Triad) -> str | None:
+    """Why the gyro's F0 and F1…F9 cannot apply when the passport left its gyro out, or None.
+
+    ``calibrate`` leaves out a gyro whose session resolved no parameter (a MEMS gyro cannot see the
+    Earth rate); the nominal passport of a MEMS class says the same with λ0 > 1. The passport alone
+    cannot tell such a gyro from a navigation-grade one left out by mistake; the noise the stream
+    shows can: when F0's shell from that noise alone exceeds :data:`F0_SHELL_LIMIT`, neither check
+    could run with any passport, and a verdict must not wait for them."""
+    p = pipe.passport
+    if triad is not Triad.GYRO or p is None or triad in p.triads or pipe.gross is None:
+        return None
+    noise = pipe.gross.sample_noise_si(triad)
+    if noise is None:
+        return None
+    lam = derive_lambda0(
+        noise_std_norm=noise / EARTH_RATE_RPS,
+        false_alarm_prob=pipe.options.false_alarm_probability,
+    ).lambda0
+    if lam <= F0_SHELL_LIMIT:
+        return None
+    return (
+        f"the passport has no gyro triad, and the gyro's own noise ({noise.max():.2g} rad/s per "
+        f"sample, {noise.max() / EARTH_RATE_RPS:.3g} Ω) cannot see the Earth rate: F0's shell "
+        f"from it alone, λ0 {lam:.3g}, exceeds {F0_SHELL_LIMIT:g}"
+    )
 
 
 def _not_running(pipe: ImuPipeline) -> str | None:

@@ -15,6 +15,7 @@ from estimators.conventions import (
     Cause,
     Triad,
 )
+from estimators.coverage import ImuCoverage
 from estimators.diagnosis import Outcome, diagnose
 from estimators.gross import GrossChange, GrossMonitor, gross_config
 from estimators.ninepar import RecursiveNineParam
@@ -182,7 +183,7 @@ class ImuPipeline:
         return self.passport
 
     def _new_detection(self, rate_hz: float) -> _Detection:
-        detector = detector_config(self.options.detector, self.passport_at(rate_hz), rate_hz)
+        detector = detector_config(self.options, self.passport_at(rate_hz), rate_hz)
         return _Detection(
             rate_hz,
             PositionAccumulator(
@@ -711,8 +712,11 @@ class ImuPipeline:
         if res.n_tests:
             # The gravity directions F0 saw: its coverage's minimum detectable fault rests on them.
             tested = x[res.state >= 0]
-            u = np.abs(tested) / np.linalg.norm(tested, axis=1, keepdims=True)
-            np.maximum(check.f0_max_abs_u, u.max(axis=0), out=check.f0_max_abs_u)
+            norm = np.linalg.norm(tested, axis=1, keepdims=True)
+            # A dead triad reads exactly 0: it shows no direction, and 0/0 would poison the maximum for good.
+            u = np.abs(tested[norm[:, 0] > 0.0]) / norm[norm[:, 0] > 0.0]
+            if u.size:
+                np.maximum(check.f0_max_abs_u, u.max(axis=0), out=check.f0_max_abs_u)
         self._count(f"f0.{triad.value}.fail", res.n_fail)
         k, run = persistent_failure(res.state, check.f0_run, self.f0_persist)
         events: list[Event] = []
@@ -904,6 +908,10 @@ class ImuPipeline:
 
     @property
     def state(self) -> ImuState:
+        return self._state_of(None)
+
+    def _state_of(self, coverage: ImuCoverage | None) -> ImuState:
+        """The state; ``coverage``: :func:`imu_coverage`'s, when the caller has it already."""
         if self.gross is not None and self.gross.failing():
             return ImuState.FAULT
         if self.passport is None or self.nominal_too_slow:
@@ -916,6 +924,11 @@ class ImuPipeline:
             return ImuState.WARNING
         if self.detection is None or self.n_positions < self.options.min_positions:
             return ImuState.STARTING
+        # "ok" is the daemon's "no fault": only when every check that applies ran. Otherwise it is
+        # replay's "no finding within coverage", at warning severity (a navigation unit's passport
+        # without its gyro triad left the gyro's F0 and F1…F9 untested, and the status said "ok").
+        if (coverage if coverage is not None else imu_coverage(self)).untested:
+            return ImuState.WARNING
         return ImuState.OK
 
     def status(self) -> ImuStatus:
@@ -961,14 +974,15 @@ class ImuPipeline:
                 f"sample rate changed from {self.rate_changed_from_hz:.4g} to "
                 f"{self.detection.rate_hz:.4g} Hz: detector re-sized"
             )
+        coverage = imu_coverage(self)
         return ImuStatus(
             self.imu,
-            self.state,
+            self._state_of(coverage),
             self.n_samples,
             self.last_t_s,
             self.n_positions,
             "; ".join(p for p in parts if p)[:500],
-            imu_coverage(self).checks,
+            coverage.checks,
         )
 
     def state_dict(self) -> dict[str, Any]:

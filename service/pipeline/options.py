@@ -105,7 +105,7 @@ class PipelineOptions:
 
 
 def detector_config(
-    base: StaticDetectorConfig, passport: Passport | None, rate_hz: float
+    options: PipelineOptions, passport: Passport | None, rate_hz: float
 ) -> StaticDetectorConfig:
     """The static detector's thresholds for this unit at this rate.
 
@@ -114,7 +114,19 @@ def detector_config(
     moving. Each triad's threshold is therefore the larger of the configured one and
     :data:`DETECTOR_NOISE_FACTOR` × the spread of the passport's noise at ``rate_hz``
     (:meth:`estimators.static_detector.StaticDetectorConfig.from_noise`).
+
+    A gyro F0 tests against the Earth rate (λ0 within :data:`F0_SHELL_LIMIT`: a navigation-grade
+    one) also bounds a static window's mean rate about the passport's zero signal, at the largest
+    rate F0's shell passes, ``Ω·√(1 + 2λ0)``, plus :data:`DETECTOR_NOISE_FACTOR` σ of the window
+    mean. The spread threshold, made for MEMS gyros (0.02 rad/s, about 270 Ω), let the first and
+    last 0.2 s of every turn (up to 0.016 rad/s) count as rest, and F0 failed there on a healthy
+    unit. A bound on the mean, not a tighter spread: a gyro whose noise grows is still at rest and
+    F0 finds it, and a zero signal beyond the bound, which this hides from F0, is the gross test's
+    (no gate, bound about one Ω: :mod:`estimators.gross`).
     """
+    from service.pipeline.triad_check import f0_threshold
+
+    base = options.detector
     if passport is None:
         return base
     noise = {}
@@ -128,8 +140,22 @@ def detector_config(
         factor=DETECTOR_NOISE_FACTOR,
         base=base,
     )
-    return replace(
+    out = replace(
         base,
         accel_std_mps2=max(base.accel_std_mps2, scaled.accel_std_mps2),
         gyro_std_rps=max(base.gyro_std_rps, scaled.gyro_std_rps),
+    )
+    gyro = passport.triads.get(Triad.GYRO)
+    if gyro is None:
+        return out
+    lambda0 = f0_threshold(gyro, options, rate_hz).lambda0
+    if lambda0 > F0_SHELL_LIMIT:
+        return out
+    window_noise = noise[Triad.GYRO] / math.sqrt(base.window_samples(rate_hz))
+    zero = gyro.nominal[:3] * gyro.reference
+    return replace(
+        out,
+        gyro_rate_rps=EARTH_RATE_RPS * math.sqrt(1.0 + 2.0 * lambda0)
+        + DETECTOR_NOISE_FACTOR * window_noise,
+        gyro_rate_centre_rps=(float(zero[0]), float(zero[1]), float(zero[2])),
     )
