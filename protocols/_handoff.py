@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable
 from typing import Generic, TypeVar
@@ -12,15 +13,77 @@ T = TypeVar("T")
 K = TypeVar("K")
 
 
-class ThreadToAsyncRing(Generic[T]):
+class _Handoff(ABC, Generic[T]):
+    """What both hand-offs share: one lock, the consumer woken through ``loop.call_soon_threadsafe``
+    once per empty → non-empty transition rather than once per item (a burst costs one wake-up),
+    :meth:`get`/:meth:`get_nowait` over the subclass's :meth:`_pop`, and closing."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop):
+        self._loop = loop
+        self._lock = threading.Lock()
+        self._wake = asyncio.Event()
+        self._wake_pending = False
+        self._closed = False
+
+    @abstractmethod
+    def _has_items(self) -> bool:
+        """Under the lock: whether an item waits."""
+
+    @abstractmethod
+    def _pop(self) -> T:
+        """Under the lock, with an item waiting: the next one."""
+
+    def _wake_needed(self) -> bool:
+        """Under the lock, after an item was added: whether the consumer must be woken (:meth:`_notify`)."""
+        if self._wake_pending:
+            return False
+        self._wake_pending = True
+        return True
+
+    def _notify(self) -> None:
+        try:
+            self._loop.call_soon_threadsafe(self._wake.set)
+        except RuntimeError:
+            # The loop is closed: the consumer is gone, so is the need to wake it.
+            with self._lock:
+                self._closed = True
+
+    async def get(self) -> T:
+        """The next item; waits while empty; raises ``EOFError`` once closed and drained."""
+        while True:
+            with self._lock:
+                if self._has_items():
+                    return self._pop()
+                self._wake_pending = False
+                self._wake.clear()
+                closed = self._closed
+            if closed:
+                raise EOFError("the source is closed")
+            await self._wake.wait()
+
+    def get_nowait(self) -> T | None:
+        """The next item, or ``None`` if nothing waits."""
+        with self._lock:
+            return self._pop() if self._has_items() else None
+
+    def close(self) -> None:
+        """Stop accepting items; a waiting consumer drains what is left, then gets ``EOFError``."""
+        with self._lock:
+            self._closed = True
+        self._notify()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+
+class ThreadToAsyncRing(_Handoff[T]):
     """A bounded ring filled from any thread and drained by one asyncio consumer.
 
     :meth:`put` never blocks the producer: when the ring is full the *oldest*
     items are dropped and counted in :attr:`dropped`. ``capacity`` and
     :attr:`dropped` are in units of ``weight(item)`` (default: items; a
-    source of batches passes their sample count). The consumer is woken
-    through ``loop.call_soon_threadsafe``, once per empty → non-empty
-    transition rather than once per item, so a burst costs one wake-up.
+    source of batches passes their sample count).
     """
 
     def __init__(
@@ -32,15 +95,11 @@ class ThreadToAsyncRing(Generic[T]):
     ):
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
+        super().__init__(loop)
         self._capacity = int(capacity)
-        self._loop = loop
         self._weight = weight
         self._held = 0
         self._items: deque[tuple[T, int]] = deque()
-        self._lock = threading.Lock()
-        self._wake = asyncio.Event()
-        self._wake_pending = False
-        self._closed = False
         self.put_count = 0
         self.dropped = 0
 
@@ -55,9 +114,8 @@ class ThreadToAsyncRing(Generic[T]):
                 self._drop_oldest()
             self._items.append((item, w))
             self._held += w
-            if self._wake_pending:
+            if not self._wake_needed():
                 return
-            self._wake_pending = True
         self._notify()
 
     def _drop_oldest(self) -> None:
@@ -65,53 +123,20 @@ class ThreadToAsyncRing(Generic[T]):
         self._held -= w
         self.dropped += w
 
+    def _has_items(self) -> bool:
+        return bool(self._items)
+
     def _pop(self) -> T:
         item, w = self._items.popleft()
         self._held -= w
         return item
-
-    def _notify(self) -> None:
-        try:
-            self._loop.call_soon_threadsafe(self._wake.set)
-        except RuntimeError:
-            # The loop is closed: the consumer is gone, so is the need to wake it.
-            with self._lock:
-                self._closed = True
-
-    async def get(self) -> T:
-        """The next item; waits while empty; raises ``EOFError`` once closed and drained."""
-        while True:
-            with self._lock:
-                if self._items:
-                    return self._pop()
-                self._wake_pending = False
-                self._wake.clear()
-                closed = self._closed
-            if closed:
-                raise EOFError("the source is closed")
-            await self._wake.wait()
-
-    def get_nowait(self) -> T | None:
-        """The next item, or ``None`` if the ring is empty."""
-        with self._lock:
-            return self._pop() if self._items else None
-
-    def close(self) -> None:
-        """Stop accepting items; a waiting consumer drains what is left, then gets ``EOFError``."""
-        with self._lock:
-            self._closed = True
-        self._notify()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
 
     def __len__(self) -> int:
         with self._lock:
             return len(self._items)
 
 
-class FairQueues(Generic[K, T]):
+class FairQueues(_Handoff[T], Generic[K, T]):
     """One bounded queue per key (a (vehicle, IMU)), filled from any thread and drained by one asyncio
     consumer in turn, so that a key that floods costs no other key its items.
 
@@ -124,22 +149,17 @@ class FairQueues(Generic[K, T]):
       of the longest queue, and one holding its share or more has its new item dropped.
 
     Every drop is counted against the key whose item it was (:attr:`dropped`, :attr:`received`).
-    :meth:`get` takes the keys in turn, one item each, the oldest of each key's queue; the consumer
-    is woken as :class:`ThreadToAsyncRing` does, once per empty → non-empty transition.
+    :meth:`get` takes the keys in turn, one item each, the oldest of each key's queue.
     """
 
     def __init__(self, capacity: int, total: int, loop: asyncio.AbstractEventLoop):
         if capacity < 1 or total < 1:
             raise ValueError(f"capacities must be >= 1, got {capacity} and {total}")
+        super().__init__(loop)
         self._capacity, self._total = int(capacity), int(total)
-        self._loop = loop
         self._queues: dict[K, deque[T]] = {}
         self._turn: deque[K] = deque()
         self._held = 0
-        self._lock = threading.Lock()
-        self._wake = asyncio.Event()
-        self._wake_pending = False
-        self._closed = False
         self.received: dict[K, int] = {}
         self.dropped: dict[K, int] = {}
 
@@ -171,9 +191,8 @@ class FairQueues(Generic[K, T]):
                 self._turn.append(key)
             queue.append(item)
             self._held += 1
-            if self._wake_pending:
+            if not self._wake_needed():
                 return
-            self._wake_pending = True
         self._notify()
 
     def _drop(self, key: K) -> None:
@@ -190,30 +209,8 @@ class FairQueues(Generic[K, T]):
             del self._queues[key]
         return item
 
-    def _notify(self) -> None:
-        try:
-            self._loop.call_soon_threadsafe(self._wake.set)
-        except RuntimeError:
-            with self._lock:
-                self._closed = True
-
-    async def get(self) -> T:
-        """The next item, keys in turn; waits while empty; ``EOFError`` once closed and drained."""
-        while True:
-            with self._lock:
-                if self._turn:
-                    return self._pop()
-                self._wake_pending = False
-                self._wake.clear()
-                closed = self._closed
-            if closed:
-                raise EOFError("the source is closed")
-            await self._wake.wait()
-
-    def get_nowait(self) -> T | None:
-        """The next item, keys in turn, or ``None`` if every queue is empty."""
-        with self._lock:
-            return self._pop() if self._turn else None
+    def _has_items(self) -> bool:
+        return bool(self._turn)
 
     def counts(self) -> tuple[dict[K, int], dict[K, int]]:
         """Snapshots of :attr:`received` and :attr:`dropped` (the producer's thread adds keys)."""
@@ -225,12 +222,6 @@ class FairQueues(Generic[K, T]):
         with self._lock:
             queue = self._queues.get(key)
             return 0 if queue is None else len(queue)
-
-    def close(self) -> None:
-        """Stop accepting items; a waiting consumer drains what is left, then gets ``EOFError``."""
-        with self._lock:
-            self._closed = True
-        self._notify()
 
     def __len__(self) -> int:
         with self._lock:
