@@ -311,10 +311,11 @@ def test_each_publish_is_a_run_of_its_own(tmp_path):
         sub = bench.declare_subscriber(
             frame_key("uav-6", 0), lambda s: got.append(decode_frame(s.payload.to_bytes()))
         )
+        # No daemon here, only a subscriber: publish cannot learn what a daemon took (exit 3).
         for _ in range(2):
-            done = cli("publish", csv, "--vehicle", "uav-6", "--pace", "max",
+            done = cli("publish", csv, "--vehicle", "uav-6", "--pace", "max", "--wait-s", "1",
                        "--router", f"tcp/127.0.0.1:{port}")  # fmt: skip
-            assert done.returncode == 0, done.stderr
+            assert done.returncode == publish.EXIT_UNACCOUNTED, done.stderr
         wait_until(lambda: len(got) >= 2 * frames, timeout_s=10, what="both runs' frames")
         sub.undeclare()
     runs = [b.run for b in got]
