@@ -82,7 +82,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, Protocol, TypeAlias
+from typing import Any, Protocol, TypeAlias, TypeVar
 
 import numpy as np
 import zenoh
@@ -119,6 +119,8 @@ from protocols.frames import (
     decode_frame,
     encode_frame,
 )
+
+_Decoded = TypeVar("_Decoded")
 
 ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
@@ -986,16 +988,31 @@ def subscribe_status(
     Returns the subscriber (undeclare it, or use it as a context manager, to stop).
     """
 
+    return _decoding_subscriber(
+        session, f"{ROOT}/{vehicles}/health/status", decode_status, on_status, on_reject
+    )
+
+
+def _decoding_subscriber(
+    session: zenoh.Session,
+    key: str,
+    decode: Callable[[bytes], _Decoded],
+    on_value: Callable[[_Decoded], None],
+    on_reject: Callable[[EventError], None] | None,
+) -> zenoh.Subscriber[None]:
+    """A subscriber on ``key`` handing each sample ``decode``d to ``on_value``, what does not decode to
+    ``on_reject`` (or nowhere)."""
+
     def callback(sample: zenoh.Sample) -> None:
         try:
-            status = decode_status(sample.payload.to_bytes())
+            value = decode(sample.payload.to_bytes())
         except EventError as exc:
             if on_reject is not None:
                 on_reject(exc)
             return
-        on_status(status)
+        on_value(value)
 
-    return session.declare_subscriber(f"{ROOT}/{vehicles}/health/status", callback)
+    return session.declare_subscriber(key, callback)
 
 
 def query_status(session: zenoh.Session, vehicle: str, *, timeout_s: float) -> list[Status]:
@@ -1032,14 +1049,6 @@ def subscribe_service_status(
     on_reject: Callable[[EventError], None] | None = None,
 ) -> zenoh.Subscriber[None]:
     """Subscribe to the instances' service status (``ins/_service/*/status``)."""
-
-    def callback(sample: zenoh.Sample) -> None:
-        try:
-            status = decode_service_status(sample.payload.to_bytes())
-        except EventError as exc:
-            if on_reject is not None:
-                on_reject(exc)
-            return
-        on_status(status)
-
-    return session.declare_subscriber(f"{SERVICES}/*/status", callback)
+    return _decoding_subscriber(
+        session, f"{SERVICES}/*/status", decode_service_status, on_status, on_reject
+    )
