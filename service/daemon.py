@@ -267,6 +267,7 @@ class Service:
         self._status_pub: StatusPublisher | None = None
         self.mavlink_sink: MavlinkAlertSink | None = None
         self.mavlink_source: MavlinkSource | None = None
+        self._said_running = False
         self._reported: set[str] = set()
         self.events_stored = 0
         # Set when events are stored: their vehicles' state is saved at once, not a period later.
@@ -809,12 +810,39 @@ class Service:
                 sup.start("watchdog", lambda: self._watchdog(stop, period_s=watchdog_s / 2))
             if ready is not None:
                 ready.set()
-            self.notifier.send("READY=1", f"STATUS={cfg.service.name} running")
+            self.notifier.send("READY=1", f"STATUS={self._say_inputs()}")
             await _wait_any(stop, sup.fatal, timeout_s=None)
             stop.set()
             self.notifier.send("STOPPING=1")
             await self._drain(drain)
         return EXIT_TASK_FAILED if sup.fatal.is_set() else 0
+
+    def _say_inputs(self) -> str:
+        """Log ``NAME running`` once an input is connected, ``NAME waiting for …`` before; the line said.
+
+        "running" came once the tasks had started, with no router reached and no link open, where
+        INSTALL.md says it means frames are taken. An input still down beside one that is up is
+        said by its own retries (a warning at the first failed attempt)."""
+        cfg = self.config
+        waiting = []
+        if cfg.zenoh.enabled and self.source is None:
+            waiting.append(
+                f"the Zenoh router at {', '.join(cfg.zenoh.session.connect) or '(none)'}"
+            )
+        if cfg.mavlink.enabled and self.mavlink_source is None:
+            waiting.append(f"the MAVLink link {cfg.mavlink.link.device}")
+        up = (cfg.zenoh.enabled and self.source is not None) or (
+            cfg.mavlink.enabled and self.mavlink_source is not None
+        )
+        line = (
+            f"{cfg.service.name} running"
+            if up
+            else f"{cfg.service.name} waiting for {' and '.join(waiting) or 'an input (none is enabled)'}"
+        )
+        if not (up and self._said_running):
+            log.info("%s", line)
+        self._said_running = up
+        return line
 
     def _zenoh_up(
         self, session: Session, resources: contextlib.ExitStack, drain: asyncio.Event
@@ -947,6 +975,7 @@ class Service:
                 self._mavlink_up(link, resources)
                 self._mavlink_tasks(drain, stop)
                 log.info("mavlink %s: open", self.config.mavlink.link.device)
+                self.notifier.send(f"STATUS={self._say_inputs()}")
                 return
 
     def _start_delivery(self, sink: EventSink, drain: asyncio.Event) -> None:
@@ -975,6 +1004,7 @@ class Service:
                     session.close()
                     return
                 self._zenoh_up(session, resources, drain)
+                self.notifier.send(f"STATUS={self._say_inputs()}")
                 return
             await _wait_any(stop, None, timeout_s=CONNECT_PAUSE_S)
 

@@ -5,27 +5,38 @@ was received, writes the checkpoints and keeps delivering events for a few
 seconds; whatever is still undelivered is sent by the next start. SIGTERM or SIGINT
 ends it within :data:`STOP_BOUND_S` in every state (connecting to an unreachable router
 included); past that bound it logs why and exits with :data:`EXIT_STOP_TIMEOUT`. Exit status
-0 after a clean stop, 2 for an unusable configuration, 1 for a failure outside the tasks
+0 after a clean stop, 2 for an unusable configuration (a ``data_dir`` this user cannot create or
+write included: one line naming the setting and the fix, not a restart loop under
+``Restart=on-failure``), 1 for a failure outside the tasks
 (logged with its traceback), 70 when a task kept failing or the router stayed out of reach
 beyond ``connect_timeout_s`` (:mod:`service.supervisor`), so that systemd starts it afresh.
 
 The log goes to stderr through :mod:`service.log_setup` (one line per record; under
 journald without time stamps and with syslog priorities); ``--log-level`` sets its
-threshold. Once frames are accepted it says ``ins-health: NAME running``.
+threshold. ``--data-dir DIR`` stands for the configuration's ``[service] data_dir`` (a trial as a normal
+user with the deploy's configuration, whose data lives in ``/var/lib/ins-health``). Once an input is
+connected (the Zenoh router, the MAVLink link) it says ``ins-health: NAME running``; until then
+``NAME waiting for …`` naming the inputs it waits for (:meth:`service.daemon.Service.run`).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
+import getpass
 import importlib
+import os
 import signal
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
+from service.cli import UsageError
 from service.log_setup import LEVELS, logger, logging_to
 
 if TYPE_CHECKING:
+    from service.config import ServiceConfig
     from service.daemon import Service
 
 
@@ -37,6 +48,10 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--config", required=True, help="service configuration, TOML (see deploy/ins-health.toml)"
+    )
+    p.add_argument(
+        "--data-dir",
+        help="folder of the outbox and checkpoints, instead of the configuration's [service] data_dir",
     )
     p.add_argument(
         "--log-level",
@@ -78,13 +93,7 @@ async def serve(service: Service) -> int:
             "again); SIGTERM or SIGINT stops it"
         ),
     )
-    ready = asyncio.Event()
-    runner = asyncio.create_task(service.run(stop, ready=ready))
-    await asyncio.wait(
-        [runner, asyncio.create_task(ready.wait())], return_when=asyncio.FIRST_COMPLETED
-    )
-    if ready.is_set():
-        logger("run").info("%s running", service.config.service.name)
+    runner = asyncio.create_task(service.run(stop))
     await asyncio.wait(
         [runner, asyncio.create_task(stop.wait())], return_when=asyncio.FIRST_COMPLETED
     )
@@ -128,6 +137,33 @@ def freeze_imports() -> None:
     gc.freeze()
 
 
+def with_data_dir(config: ServiceConfig, args: argparse.Namespace) -> ServiceConfig:
+    """``config`` with ``--data-dir`` in place of its ``data_dir``, the folder made and checked writable.
+
+    A folder this user may not make or write ended the start in a traceback on one log line
+    (``PermissionError: '/var/lib/ins-health'``), exit 1, which ``Restart=on-failure`` repeats;
+    now it is a configuration error naming the setting and the fix.
+    """
+    if args.data_dir is not None:
+        service = dataclasses.replace(config.service, data_dir=Path(args.data_dir).resolve())
+        config = dataclasses.replace(config, service=service)
+        where = "--data-dir"
+    else:
+        where = f"[service] data_dir of {args.config}"
+    folder = config.service.data_dir
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise PermissionError(f"Permission denied: {str(folder)!r}")
+    except OSError as exc:
+        raise UsageError(
+            f"{where} = {str(folder)!r} cannot be used by user {getpass.getuser()} "
+            f"({exc.strerror or exc}): give --data-dir DIR (a folder of yours, e.g. "
+            f"~/.local/share/ins-health) or set data_dir to a folder this user may write"
+        ) from None
+    return config
+
+
 def run(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -135,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
     from service.daemon import Service
     from service.outbox import OutboxError
 
-    config = load_config(args.config)
+    config = with_data_dir(load_config(args.config), args)
     sys.setswitchinterval(SWITCH_INTERVAL_S)
     freeze_imports()
     with logging_to(sys.stderr, level=args.log_level):
