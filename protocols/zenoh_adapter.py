@@ -82,6 +82,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
+from pathlib import Path
 from typing import Any, Protocol, TypeAlias, TypeVar
 
 import numpy as np
@@ -403,6 +404,41 @@ def open_router(
         yield session
     finally:
         session.close()
+
+
+def router_config_from_file(
+    path: str | Path, *, listen: Sequence[str] = (), connect: Sequence[str] = ()
+) -> zenoh.Config:
+    """A router's ``zenoh.Config`` from a zenohd-style JSON5 file (``deploy/zenoh-router.json5``: its
+    listen endpoints, TLS certificates, access control), ``listen`` and ``connect`` in place of its
+    endpoints when given (zenohd's ``--listen`` and ``--connect``).
+
+    ``ValueError`` naming the file for one Zenoh cannot read or that sets a mode other than router.
+    """
+    try:
+        config = zenoh.Config.from_file(str(path))
+        mode = json.loads(config.get_json("mode") or "null")
+        if mode not in (None, Mode.ROUTER.value):
+            raise ValueError(
+                f'{path}: mode {mode!r}; a router\'s configuration says mode: "router"'
+            )
+        config.insert_json5("mode", json.dumps(Mode.ROUTER.value))
+        if listen:
+            config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if connect:
+            config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    except zenoh.ZError as exc:
+        raise ValueError(f"{path}: not a Zenoh configuration Zenoh can use: {exc}") from None
+    return config
+
+
+def router_endpoints(config: zenoh.Config) -> list[str]:
+    """The endpoints a router configuration listens on."""
+    endpoints = json.loads(config.get_json("listen/endpoints") or "[]")
+    # zenohd's form per mode ({"router": [...]}) as well as the plain list.
+    if isinstance(endpoints, dict):
+        endpoints = endpoints.get(Mode.ROUTER.value) or []
+    return [str(e) for e in endpoints]
 
 
 class _Declared(Protocol):

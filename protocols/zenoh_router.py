@@ -1,9 +1,13 @@
 """A Zenoh router as its own process: ``python -m protocols.zenoh_router --listen tcp/127.0.0.1:PORT``
 (installed from the wheel: ``python -m ins_health.router``).
 
-``--connect ENDPOINT`` (repeatable) meshes it with other routers.
+``--connect ENDPOINT`` (repeatable) meshes it with other routers. ``--config FILE.json5`` reads a
+zenohd-style configuration (``deploy/zenoh-router.json5``: TLS listen endpoints with their
+certificates, access control), so that the fleet's router can be tried without zenohd;
+``--listen`` and ``--connect`` then replace its endpoints. A file Zenoh cannot use is one line on
+stderr, exit 2.
 
-The process prints one line ``ready <endpoint>`` on stdout once it listens,
+The process prints one line ``ready <endpoint> …`` (the endpoints it listens on) on stdout once it listens,
 and runs until SIGTERM or SIGINT (or its stdin closes, when ``--stdin`` is
 given, so a parent that dies takes its router with it). Tests that must stop
 and restart the router (reconnection) use :class:`RouterProcess`.
@@ -21,7 +25,9 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 
-from protocols.zenoh_adapter import open_router
+import zenoh
+
+from protocols.zenoh_adapter import open_router, router_config_from_file, router_endpoints
 
 
 def free_local_port() -> int:
@@ -109,7 +115,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("--listen", required=True, help="endpoint, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        help="endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    parser.add_argument(
+        "--config",
+        help="zenohd-style JSON5 configuration (deploy/zenoh-router.json5); --listen and --connect replace its endpoints",
+    )
     parser.add_argument(
         "--connect",
         action="append",
@@ -130,8 +145,26 @@ def main(argv: list[str] | None = None) -> int:
             done.set()
 
         threading.Thread(target=stop_at_eof, daemon=True).start()
-    with open_router(args.listen, connect=args.connect):
-        print(f"ready {args.listen}", flush=True)
+    if args.config is not None:
+        try:
+            config = router_config_from_file(args.config, listen=args.listen, connect=args.connect)
+        except ValueError as exc:
+            print(f"{parser.prog}: {exc}", file=sys.stderr)
+            return 2
+        listen = router_endpoints(config)
+    elif len(args.listen) == 1:
+        listen = args.listen
+    else:
+        parser.error("give one --listen endpoint, or --config FILE.json5")
+    if not listen:
+        parser.error(f"{args.config} listens on no endpoint: give --listen")
+    router = (
+        zenoh.open(config)
+        if args.config is not None
+        else open_router(listen[0], connect=args.connect)
+    )
+    with router:
+        print(f"ready {' '.join(listen)}", flush=True)
         # wait() with a timeout in a loop so the main thread stays responsive to signals.
         while not done.wait(timeout=0.5):
             pass

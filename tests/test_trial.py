@@ -154,3 +154,90 @@ def test_waiting_for_the_router_then_running(tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.wait(30)
+
+
+def test_the_fleet_router_from_its_json5_configuration_over_tls(tmp_path):
+    """The project's router started from deploy/zenoh-router.json5 (its TLS certificates those
+    make-certs.sh makes, its endpoints on free loopback ports: the only changes), the daemon connected
+    with the deploy's client certificate, and a frame of vehicle uav-1 (its own certificate) taken."""
+    import numpy as np
+    import zenoh
+    from service_support import wait_until
+
+    from protocols.zenoh_adapter import FramePublisher, open_session, query_status
+    from service.config import config_from_dict
+
+    certs = tmp_path / "tls"
+    subprocess.run(
+        ["sh", str(ROOT / "deploy" / "make-certs.sh"), str(certs)],
+        env={"PATH": "/usr/bin:/bin", "ROUTER_NAME": "localhost"},
+        check=True,
+        capture_output=True,
+    )
+    tls_port, tcp_port = free_tcp_port(), free_tcp_port()
+    router_config = tmp_path / "zenoh-router.json5"
+    router_config.write_text(
+        (ROOT / "deploy" / "zenoh-router.json5")
+        .read_text(encoding="utf-8")
+        .replace("/etc/zenoh/tls/", f"{certs}/")
+        .replace("tls/0.0.0.0:7448", f"tls/localhost:{tls_port}")
+        .replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{tcp_port}"),
+        encoding="utf-8",
+    )
+    tls = {
+        "root_ca_certificate": str(certs / "ca.pem"),
+        "enable_mtls": True,
+        "connect_certificate": str(certs / "ins-health-cert.pem"),
+        "connect_private_key": str(certs / "ins-health-key.pem"),
+    }
+    config = tmp_path / "ins-health.toml"
+    config.write_text(
+        '[service]\nname = "fleet"\ndata_dir = "data"\npassport_dir = "passports"\n'
+        f'[zenoh]\nconnect = ["tls/localhost:{tls_port}"]\n'
+        f"tls = {{ {', '.join(f'{k} = {v!r}'.replace(chr(39), chr(34)) for k, v in tls.items())} }}\n"
+        .replace("True", "true"),
+        encoding="utf-8",
+    )  # fmt: skip
+    env = trial_env(tmp_path)
+    router = subprocess.Popen(
+        [sys.executable, "-m", "ins_health.router", "--config", str(router_config)],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    daemon = None
+    try:
+        ready = Lines(router.stdout).wait_for(
+            lambda s: s.startswith("ready "), timeout_s=30, what="ready"
+        )
+        assert ready == f"ready tcp/127.0.0.1:{tcp_port} tls/localhost:{tls_port}"
+        daemon = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "run", "--config", str(config)],
+            cwd=ROOT, env=env, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        Lines(daemon.stderr).wait_for(
+            lambda s: s.endswith(" fleet running"), timeout_s=60, what="running"
+        )
+        vehicle_tls = {
+            **tls,
+            "connect_certificate": str(certs / "uav-1-cert.pem"),
+            "connect_private_key": str(certs / "uav-1-key.pem"),
+        }
+        raw = {"zenoh": {"connect": [f"tls/localhost:{tls_port}"], "tls": vehicle_tls}}
+        with open_session(config_from_dict(raw).zenoh.session) as vehicle:
+            frames = FramePublisher(
+                vehicle, "uav-1", 0, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            t = np.arange(100) / 100.0
+            frames.add(t, np.tile([0.0, 0.0, 9.81], (100, 1)), np.zeros((100, 3)))
+
+            def taken() -> bool:
+                return any(
+                    s.counters.get("imu0.frames.received", 0) >= 1
+                    for s in query_status(vehicle, "uav-1", timeout_s=2.0)
+                )
+
+            wait_until(taken, timeout_s=30.0, what="the daemon's status counting the frame")
+    finally:
+        for proc in (daemon, router):
+            if proc is not None:
+                proc.terminate()
+                proc.wait(30)
