@@ -134,6 +134,14 @@ LEASE_MS = 2000
 """The Zenoh lease of every session opened here: a peer silent this long (killed, stopped, cut off)
 is closed by the other side, and its liveliness tokens go with it. Zenoh's default, 10 s, made a
 stopped daemon look alive for 10 s; keep-alives go every quarter of it."""
+SHARED_MEMORY = False
+"""Zenoh's shared-memory transport, off in every session opened here (``transport/shared_memory/enabled``;
+``extra`` may set it). On, each client on the host puts payloads over 3 KB (a frame of 20 samples is
+about 1 KB, of 100 about 5.6 KB) in a 16 MB pool of its own in ``/dev/shm``, and the router maps
+every pool it routes from and keeps it mapped after the client has gone: the router's resident
+memory grew by about 100 MB per six publishers of 4,000 frames each (51 → 363 MB after three
+rounds of ``benchmarks/bench_memory.py --flood``), where without it it stays at 51–53 MB. Frames are
+small; loopback TCP carries them without it."""
 DRAIN_TIMEOUT_S = 5.0
 """How long :meth:`FramePublisher.drain` waits for the router's answer (it comes in milliseconds)."""
 _IMU_INDEX = re.compile(r"0|[1-9][0-9]{0,3}", re.ASCII)
@@ -340,6 +348,7 @@ def zenoh_config(settings: ZenohSettings | Mapping[str, Any]) -> zenoh.Config:
         entries["listen/endpoints"] = list(settings.listen)
     entries["transport/link/rx/max_message_size"] = ZENOH_MAX_MESSAGE_BYTES
     entries["transport/link/tx/lease"] = LEASE_MS
+    entries["transport/shared_memory/enabled"] = SHARED_MEMORY
     if settings.tls is not None:
         entries["transport/link/tls"] = dict(settings.tls)
     if settings.access_control is not None:
@@ -413,7 +422,8 @@ def router_config_from_file(
     listen endpoints, TLS certificates, access control), ``listen`` and ``connect`` in place of its
     endpoints when given (zenohd's ``--listen`` and ``--connect``).
 
-    ``ValueError`` naming the file for one Zenoh cannot read or that sets a mode other than router.
+    Zenoh's shared memory is off whatever the file says (:data:`SHARED_MEMORY`). ``ValueError``
+    naming the file for one Zenoh cannot read or that sets a mode other than router.
     """
     try:
         config = zenoh.Config.from_file(str(path))
@@ -423,6 +433,8 @@ def router_config_from_file(
                 f'{path}: mode {mode!r}; a router\'s configuration says mode: "router"'
             )
         config.insert_json5("mode", json.dumps(Mode.ROUTER.value))
+        # Whatever the file says (zenohd's default is on): the project's router bounds its memory.
+        config.insert_json5("transport/shared_memory/enabled", json.dumps(SHARED_MEMORY))
         if listen:
             config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if connect:
