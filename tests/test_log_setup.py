@@ -139,16 +139,17 @@ vehicle = "uav-a"
 
 
 def test_a_failure_at_start_is_one_logged_line_with_its_traceback_and_status_1(tmp_path):
-    """A data folder that cannot be made (a file stands where its parent should be): the daemon cannot
+    """A lock file that cannot be opened (a folder stands where it should be): the daemon cannot
     start; it says why in one critical record (the traceback folded into the line) and exits with
     status 1 for systemd to retry. (A MAVLink device not there at start is no longer such a failure:
-    it is opened when it comes, test_service_supervision.)"""
-    (tmp_path / "afile").write_text("")
+    it is opened when it comes, test_service_supervision; nor a data folder the user cannot make,
+    a configuration error, test_trial.)"""
+    (tmp_path / "data" / "lock").mkdir(parents=True)
     config = tmp_path / "service.toml"
     config.write_text(
         f"""
 [service]
-data_dir = "{tmp_path / "afile" / "data"}"
+data_dir = "{tmp_path / "data"}"
 passport_dir = "{tmp_path / "passports"}"
 [zenoh]
 enabled = false
@@ -165,5 +166,5 @@ device = "udpin:127.0.0.1:0"
     assert done.returncode == 1, lines
     assert all(STAMPED.match(line) or " CRITICAL ins-health: " in line for line in lines), lines
     (failed,) = [line for line in lines if " CRITICAL " in line]
-    assert failed.endswith(f"Not a directory: '{tmp_path / 'afile' / 'data'}'")
+    assert failed.endswith(f"Is a directory: '{tmp_path / 'data' / 'lock'}'")
     assert "ins-health: the daemon failed | Traceback (most recent call last):" in failed
