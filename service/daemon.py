@@ -831,9 +831,7 @@ class Service:
             )
         if cfg.mavlink.enabled and self.mavlink_source is None:
             waiting.append(f"the MAVLink link {cfg.mavlink.link.device}")
-        up = (cfg.zenoh.enabled and self.source is not None) or (
-            cfg.mavlink.enabled and self.mavlink_source is not None
-        )
+        up = self.source is not None or self.mavlink_source is not None
         line = (
             f"{cfg.service.name} running"
             if up
