@@ -116,7 +116,8 @@ def publish_blocking(session, batches) -> None:
 
 
 class ServiceProcess:
-    """``ins-health run --config FILE`` as a child process; started when ``running`` is printed."""
+    """``ins-health run --config FILE`` as a child process; started when it says ``running`` (an input
+    connected) or ``waiting for`` (started, its inputs not yet there: a late router)."""
 
     def __init__(self, config_path: Path):
         self.proc = subprocess.Popen(
@@ -129,7 +130,7 @@ class ServiceProcess:
         def read():
             for line in self.proc.stderr:
                 self.lines.append(line.rstrip())
-                if line.rstrip().endswith(" running"):
+                if line.rstrip().endswith(" running") or " waiting for " in line:
                     ready.set()
             ready.set()
 
