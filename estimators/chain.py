@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from estimators._typing import FloatArray
-from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad, reference_magnitude
+from estimators.conventions import N_PARAMS, Triad, reference_magnitude
 from estimators.diagnosis import (
     DEFAULT_FALSE_ALARM_PROB,
     Diagnosis,
@@ -33,6 +33,7 @@ from estimators.ninepar import (
     estimate_refined,
     estimate_triad,
     judged_estimate,
+    not_observable_estimate,
     position_arrays,
 )
 from estimators.passport import Passport
@@ -428,7 +429,13 @@ def _fit_triads(
         except ValueError as exc:
             if passport is None:
                 raise ValueError(f"{triad.value}: {exc}") from None
-            est = _unfitted(triad, config.method, len(positions), reference, str(exc))
+            est = not_observable_estimate(
+                triad,
+                config.method,
+                f"its positions cannot be fitted: {exc}",
+                len(positions),
+                reference,
+            )
             fitted = False
         tp = None if passport is None else passport.triads.get(triad)
         # A fit that left the physical domain is not a geometry M4 completes: it stays SUSPECT.
@@ -451,27 +458,6 @@ def _fit_triads(
         )
         out[triad] = TriadResult(est, residuals, sigma, diag)
     return out
-
-
-def _unfitted(triad: Triad, method: Method, n: int, reference: float, why: str) -> Estimate:
-    """The estimate of a triad whose positions cannot be fitted (:func:`_fit_triads`), saying why."""
-    observable = np.zeros(N_PARAMS, dtype=bool)
-    observable.flags.writeable = False
-    return Estimate(
-        triad=triad,
-        method=method,
-        verdict=Verdict.NOT_OBSERVABLE_YET,
-        reason=f"its positions cannot be fitted: {why}; not observable: {' '.join(PARAM_NAMES)}",
-        n_positions=n,
-        params=None,
-        cov=None,
-        observable=observable,
-        rank=0,
-        condition=float("inf"),
-        chi2=None,
-        dof=max(n - N_PARAMS, 0),
-        reference=reference,
-    )
 
 
 def _with_bias_instability(

@@ -862,21 +862,41 @@ def _unit_hint(params: FloatArray) -> str:
 def _not_observable(
     triad: Triad, method: Method, geo: _Geometry, n: int, reference: float | None
 ) -> Estimate:
+    return not_observable_estimate(
+        triad, method, geo.reason, n, reference,
+        rank=geo.rank, condition=geo.condition,
+        reference_unresolvable=geo.reference_unresolvable,
+    )  # fmt: skip
+
+
+def not_observable_estimate(
+    triad: Triad,
+    method: Method,
+    why: str,
+    n: int,
+    reference: float | None,
+    *,
+    rank: int = 0,
+    condition: float = float("inf"),
+    reference_unresolvable: bool = False,
+) -> Estimate:
+    """An estimate with no parameters from ``n`` positions, saying ``why`` (geometry, noise, a
+    fitter that refused them): nothing observable, every parameter named as not."""
     return Estimate(
         triad=Triad(triad),
         method=method,
         verdict=Verdict.NOT_OBSERVABLE_YET,
-        reason=f"{geo.reason}; not observable: {' '.join(PARAM_NAMES)}",
+        reason=f"{why}; not observable: {' '.join(PARAM_NAMES)}",
         n_positions=n,
         params=None,
         cov=None,
         observable=_frozen(np.zeros(N_PARAMS, dtype=bool)),
-        rank=geo.rank,
-        condition=geo.condition,
+        rank=rank,
+        condition=condition,
         chi2=None,
         dof=max(n - N_PARAMS, 0),
         reference=reference,
-        reference_unresolvable=geo.reference_unresolvable,
+        reference_unresolvable=reference_unresolvable,
     )
 
 
