@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from estimators._typing import BoolArray, FloatArray
+from estimators._typing import BoolArray, FloatArray, IntArray
 
 VIBE_FLOOR_HZ = 5.0
 VIBE_FILTER_HZ = 2.0
@@ -64,7 +64,7 @@ FULL_BLOCK = 0.8
 MIN_REST_SAMPLES = 8
 """Fewest samples a block needs to be judged at rest: a variance of two or three samples says nothing
 (a 4 Hz telemetry log in a steady turn would pass)."""
-_BLOCK_FIELDS = 26  # k, n, mean a(3), mean g(3), var a(3), var g(3), vibe(3), vibe max(3), px4 a, px4 g, temp min, max, t first, t last
+_BLOCK_FIELDS = 27  # k, n, mean a(3), mean g(3), var a(3), var g(3), vibe(3), vibe max(3), px4 a, px4 g, temp min, max, t first, t last, run
 
 
 @dataclass(frozen=True)
@@ -104,6 +104,8 @@ class Blocks:
     full: BoolArray
     """Blocks with samples enough to be judged at rest or not (``FULL_BLOCK`` of a block, at least ``MIN_REST_SAMPLES``)."""
     rest: BoolArray
+    run: IntArray
+    """The run of each block: 0, and one more each time the clock started again (``k`` repeats across runs)."""
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,7 @@ class ImuHealth:
     """Health figures of one IMU (module docstring); ``to_dict`` gives the report's plain form."""
 
     n_samples: int
+    runs: int
     rate_hz: float
     duration_s: float
     gap_count: int
@@ -142,6 +145,7 @@ class ImuHealth:
 
         return {
             "n_samples": self.n_samples,
+            "runs": self.runs,
             "rate_hz": self.rate_hz,
             "duration_s": self.duration_s,
             "gaps": {"count": self.gap_count, "longest_s": self.longest_gap_s},
@@ -200,12 +204,17 @@ class ImuHealthAccumulator:
 
     :meth:`update` takes consecutive samples in time order (``t_s`` (N,) increasing, ``accel_mps2``
     and ``gyro_rps`` (N, 3), ``temp_c`` (N,) or None); :meth:`result` gives :class:`ImuHealth`.
+    Samples that start at or before the last one are a clock that started again (an autopilot
+    reboot, logs joined): a new run, whose blocks, intervals and filters start afresh.
     Memory: the block table (about 200 bytes per ``block_s``) and one periodogram per axis.
     """
 
     def __init__(self, config: HealthConfig = HealthConfig()) -> None:
         self.config = config
         self.n_samples = 0
+        self._run = 0
+        self._runs_s = 0.0
+        """The duration of the runs before this one, s."""
         self._t_first: float | None = None
         self._t_last: float | None = None
         self._last_a: FloatArray | None = None
@@ -242,6 +251,8 @@ class ImuHealthAccumulator:
             self._pending = None
         if t.size == 0:
             return
+        if self._t_last is not None and t[0] <= self._t_last:
+            self._restart()
         if self._t_last is None:
             if t.size < 2:
                 # One sample does not give the sample interval the filters need: wait for the next.
@@ -271,6 +282,18 @@ class ImuHealthAccumulator:
             np.concatenate([c.px4g, px4g]),
             final=False,
         )
+
+    def _restart(self) -> None:
+        """The clock started again: the old run's blocks end, the next run starts as the log did."""
+        c = self._carry
+        self._blocks(c.t, c.a, c.g, c.temp, c.vibe, c.px4a, c.px4g, final=True)
+        assert self._t_first is not None and self._t_last is not None
+        self._runs_s += self._t_last - self._t_first
+        self._run += 1
+        self._t_last = None
+        self._last_a = self._last_g = None
+        # A periodogram segment across the restart would hold the step between two clocks.
+        self._welch_buf, self._welch_n = [], 0
 
     def _start(self, t: FloatArray, a: FloatArray) -> None:
         self._t_first = float(t[0])
@@ -378,6 +401,7 @@ class ImuHealthAccumulator:
             [
                 ids[starts], n, ma, mg, va, vg, mean(vibe), np.maximum.reduceat(vibe[:cut], starts, axis=0),
                 mean(px4a), mean(px4g), tmin, tmax, t[starts], t[np.append(starts[1:], cut) - 1],
+                np.full(starts.size, self._run),
             ]
         )  # fmt: skip
         self._tables.append(table)
@@ -421,12 +445,14 @@ class ImuHealthAccumulator:
         temps = table[:, 22:24]
         finite = np.isfinite(temps)
         psd, freq = self._spectra(rate)
+        this_run_s = (
+            0.0 if self._t_first is None or self._t_last is None else self._t_last - self._t_first
+        )
         return ImuHealth(
             n_samples=self.n_samples,
+            runs=self._run + 1,
             rate_hz=rate,
-            duration_s=0.0
-            if self._t_first is None or self._t_last is None
-            else self._t_last - self._t_first,
+            duration_s=self._runs_s + this_run_s,
             gap_count=int(gaps[:, 1].sum()),
             longest_gap_s=float(gaps[:, 0].max() * 1e-6) if gaps.size else 0.0,
             rest_s=float(blocks.n[rest].sum() / rate) if rate else 0.0,
@@ -490,18 +516,21 @@ class ImuHealthAccumulator:
             temp_max=table[:, 23],
             full=full,
             rest=rest,
+            run=table[:, 26].astype(np.intp),
         )
 
 
 @dataclass(frozen=True)
 class PairDifference:
-    """Disagreement of two IMUs on common blocks: accel (m/s²) and gyro (rad/s) norms of the block-mean differences."""
+    """Disagreement of two IMUs on common blocks: accel (m/s²) and gyro (rad/s) norms of the block-mean
+    differences; ``run``: the run of each block (:attr:`Blocks.run`), ``t_s`` on that run's clock."""
 
     imus: tuple[int, int]
     t_s: FloatArray
     accel_mps2: FloatArray
     gyro_rps: FloatArray
     rest: BoolArray
+    run: IntArray
 
     def to_dict(self) -> dict[str, Any]:
         def stats(x: FloatArray) -> dict[str, float] | None:
@@ -525,14 +554,22 @@ class PairDifference:
 
 
 def pair_difference(imus: tuple[int, int], a: Blocks, b: Blocks, block_s: float) -> PairDifference:
-    """The disagreement of two IMUs (``a``, ``b`` their block tables) on the blocks both have."""
-    common, ia, ib = np.intersect1d(a.k, b.k, assume_unique=True, return_indices=True)
+    """The disagreement of two IMUs (``a``, ``b`` their block tables) on the blocks both have: the
+    same block of the same run (a block index repeats after the clock started again)."""
+
+    def keys(x: Blocks) -> np.ndarray[Any, Any]:
+        out = np.empty(x.k.size, dtype=[("run", np.intp), ("k", np.intp)])
+        out["run"], out["k"] = x.run, x.k
+        return out
+
+    common, ia, ib = np.intersect1d(keys(a), keys(b), return_indices=True)
     return PairDifference(
         imus,
-        (common + 0.5) * block_s,
+        (common["k"] + 0.5) * block_s,
         np.linalg.norm(a.accel_mean[ia] - b.accel_mean[ib], axis=1),
         np.linalg.norm(a.gyro_mean[ia] - b.gyro_mean[ib], axis=1),
         a.rest[ia] & b.rest[ib],
+        common["run"].astype(np.intp),
     )
 
 

@@ -35,7 +35,9 @@ IMU (``time_not_increasing``), a single time stamp far ahead of its
 neighbours (``time_glitch``, :data:`JUMP_HOLD_S`), or one that holds NaN/Inf,
 is left out and counted in :class:`LogStats`; a run of samples whose time
 started again is kept and counted (``clock_restarts``,
-:data:`CLOCK_RESTART_SAMPLES`); so
+:data:`CLOCK_RESTART_SAMPLES`): the batch before it ends there, and the batches from it on carry
+the next run id (:attr:`~protocols.frames.SampleBatch.run`: 0 from the log's start, one more at
+each restart), so the pipeline starts a new run at once and refuses none of them; so
 is a corrupt message (``corrupt_messages``: a DataFlash one that does not decode, a
 tlog packet with a bad CRC), the bytes passed over to the next message
 (``skipped_bytes``) and where a file cut mid-message ends (``cut_at_byte``).
@@ -165,7 +167,8 @@ class LogStats:
     over to the next one; ``cut_at_byte``: where the file ends in the middle of a message;
     ``logger_lost``: how often the autopilot's logger said it lost data (ULog dropout messages,
     with their ``logger_lost_ms``; DataFlash: writes its logger refused, the growth of ``DSF.Dp``);
-    ``clock_restarts``: how often an IMU's time started again (:data:`CLOCK_RESTART_SAMPLES`).
+    ``clock_restarts``: how often the log's time started again (:data:`CLOCK_RESTART_SAMPLES`): the
+    most of any IMU, as a reboot restarts every IMU's clock once.
     """
 
     messages: dict[str, int] = field(default_factory=dict)
@@ -259,6 +262,8 @@ class _Buffer:
     """A sample after a jump of more than :data:`JUMP_HOLD_S`, until the next sample."""
     back: list[ImuRows] = field(default_factory=list)
     """Samples earlier than ``last_t_s``, increasing among themselves: a restarted clock or late samples."""
+    run: int = 0
+    """How often this IMU's clock started again: the run id of its batches (:data:`CLOCK_RESTART_SAMPLES`)."""
 
     @property
     def back_n(self) -> int:
@@ -365,9 +370,19 @@ class LogReader:
             buf = buffers.setdefault(rows.imu, _Buffer())
             finite = finite_rows(rows.t_s, rows.accel_mps2, rows.gyro_rps, rows.temp_c)
             stats._drop("non_finite", int(n - finite.sum()))
-            self._keep(rows.imu, buf, _in_order(buf, rows, finite, stats))
-            while buf.n >= self._batch:
-                yield self._emit(rows.imu, buf, self._batch)
+            for piece in _in_order(buf, rows, finite, stats):
+                if piece is None:
+                    # The clock started again: what came before is the old run's last batch (a batch
+                    # going back in time inside was refused past its turn), what follows a new run's.
+                    if buf.n:
+                        yield self._emit(rows.imu, buf, buf.n)
+                    buf.run += 1
+                    # Every IMU restarts at a reboot: one reboot is one restart, however many IMUs.
+                    stats.clock_restarts = max(stats.clock_restarts, buf.run)
+                    continue
+                self._keep(rows.imu, buf, [piece])
+                while buf.n >= self._batch:
+                    yield self._emit(rows.imu, buf, self._batch)
         for imu in sorted(buffers):
             buf = buffers[imu]
             # The log ended: a held sample had no next one to tell a glitch (it is kept); a run of
@@ -422,7 +437,14 @@ class LogReader:
         rest = _select(rows, slice(n, None))
         buf.parts, buf.n = ([rest] if rest.t_s.size else []), rest.t_s.size
         batch = SampleBatch(
-            self.vehicle, imu, buf.seq, head.t_s, head.accel_mps2, head.gyro_rps, head.temp_c
+            self.vehicle,
+            imu,
+            buf.seq,
+            head.t_s,
+            head.accel_mps2,
+            head.gyro_rps,
+            head.temp_c,
+            buf.run,
         )
         buf.seq += 1
         return batch
@@ -793,9 +815,12 @@ def _note_clipping(msg: Any, fields: list[str], clip: dict[int, list[float]]) ->
         clip.setdefault(imu, [value, value])[1] = value
 
 
-def _in_order(buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats) -> list[ImuRows]:
+def _in_order(
+    buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats
+) -> list[ImuRows | None]:
     """The finite samples of ``rows`` to keep, in time order, with what ``buf`` held before them
     (:data:`JUMP_HOLD_S`, :data:`CLOCK_RESTART_SAMPLES`); ``buf`` carries what waits to the next rows.
+    ``None`` among them: the clock started again there.
 
     A running maximum of the time stamps made one stamp gone wrong (a bit flipped: 2³² µs ahead) refuse
     every later sample of the log as not increasing, and a log across a reboot lost all after it."""
@@ -808,7 +833,7 @@ def _in_order(buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats) -
                 buf.last_t_s = float(t[finite][-1])
                 return [_select(rows, finite)]
             return []
-    out: list[ImuRows] = []
+    out: list[ImuRows | None] = []
     run: list[int] = []  # indices of this block kept in a row, not yet in ``out``
     back: list[int] = []  # indices of this block in the run of earlier samples
     for k in map(int, np.flatnonzero(finite)):
@@ -835,10 +860,9 @@ def _in_order(buf: _Buffer, rows: ImuRows, finite: BoolArray, stats: LogStats) -
                     # The clock started again: the run is the new stream's first samples.
                     if run:
                         out.append(_select(rows, np.array(run)))
-                    out.extend(buf.back)
+                    out += [None, *buf.back]
                     run, buf.back, back = back, [], []
                     last = tk
-                    stats.clock_restarts += 1
                 continue
             else:
                 stats._drop("time_not_increasing", buf.back_n + len(back))

@@ -39,11 +39,12 @@ from service.commands.replay import log_start
 from service.figures import plt, save_figure
 
 REPORT_TYPE = "ins.health.log_report"
-REPORT_SCHEMA_VERSION = 4
+REPORT_SCHEMA_VERSION = 5
 """2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give);
 3: ``coverage`` (what each check tested, the verdict); 4: ``log.start_t_s`` (the first sample's
 time on the log's clock, from which the plots and the Markdown count) and ``passport.not_applied``
-(the IMUs no passport applied to, and why)."""
+(the IMUs no passport applied to, and why); 5: ``log.clock_restarts`` and per IMU ``runs`` (a
+reboot inside the log, :mod:`protocols.logs`)."""
 VIBE_WARN_MPS2 = 30.0
 VIBE_BAD_MPS2 = 60.0
 VIBE_SOURCE = (
@@ -186,6 +187,7 @@ def build_report(
             "dropped_samples": dict(sorted(stats.dropped.items())),
             "skipped_bytes": stats.skipped_bytes,
             "cut_at_byte": stats.cut_at_byte,
+            "clock_restarts": stats.clock_restarts,
             "start_t_s": start_t_s,
         },
         "passport": dict(passport),
@@ -278,8 +280,11 @@ def _cross_plot(report: Mapping[str, Any], pairs: Sequence[PairDifference], path
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     for p in pairs:
         label = f"IMU{p.imus[0]}−IMU{p.imus[1]}"
-        axes[0].plot(p.t_s - _start(report), p.accel_mps2, lw=0.8, label=label)
-        axes[1].plot(p.t_s - _start(report), p.gyro_rps, lw=0.8, label=label)
+        # A run after the clock started again goes back in time: its line starts apart.
+        cuts = np.flatnonzero(np.diff(p.run)) + 1
+        t = np.insert(p.t_s - _start(report), cuts, np.nan)
+        axes[0].plot(t, np.insert(p.accel_mps2, cuts, np.nan), lw=0.8, label=label)
+        axes[1].plot(t, np.insert(p.gyro_rps, cuts, np.nan), lw=0.8, label=label)
     axes[0].set_ylabel("|Δa|, m/s²")
     axes[1].set_ylabel("|Δω|, rad/s")
     axes[1].set_xlabel(_time_label(report))
@@ -310,6 +315,7 @@ def _imu_table(e: Mapping[str, Any]) -> list[str]:
     rows = [
         ("source", e["source"]),
         ("samples", e["n_samples"]),
+        ("runs (the clock started again in between)", e["runs"]),
         ("rate (median), Hz", _f(e["rate_hz"])),
         ("duration, s", _f(e["duration_s"])),
         ("gaps (count, longest s)", f"{e['gaps']['count']}, {_f(e['gaps']['longest_s'])}"),
@@ -388,6 +394,12 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
         damage.append(f"the file is cut mid-message at byte {log['cut_at_byte']}")
     if damage:
         lines += ["Not read: " + "; ".join(damage) + ".", ""]
+    if log["clock_restarts"]:
+        lines += [
+            f"The time of the samples started again {log['clock_restarts']} time(s) (an autopilot reboot, "
+            "or logs joined end to end): each IMU's runs are taken apart, their times overlap in the plots.",
+            "",
+        ]
     lines += ["## Findings", ""]
     if report["findings"]:
         lines += [f"- **{f['severity']}** {f['text']}" for f in report["findings"]]

@@ -180,7 +180,7 @@ def test_a_cut_and_damaged_log_says_in_its_report_what_was_not_read(tmp_path, ca
     log = tmp_path / "damaged.bin"
     log.write_bytes(bytes(data[:cut]))
     report, _ = run_report(capsys, log, tmp_path / "r")
-    assert report["schema_version"] == 4
+    assert report["schema_version"] == 5
     assert report["log"]["skipped_bytes"] >= 4096 - 255
     assert cut - 255 < report["log"]["cut_at_byte"] < cut
     md = (tmp_path / "r" / "report.md").read_text()

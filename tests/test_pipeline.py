@@ -214,6 +214,18 @@ def test_a_restarted_source_is_followed_after_three_consistent_frames():
     assert fleet.pipelines[(V, 0)].last_t_s == pytest.approx(frames[9].t_s[-1])
 
 
+def test_frames_held_as_a_possible_restart_when_the_data_ends_are_counted_not_lost():
+    """Two frames that go back in time at the end of a log could not yet show a restart (three
+    are needed): at the end of the data they are rejected and counted as on arrival."""
+    passport, g = calibrated()
+    frames = list(batches_of(faulty().session, vehicle=V, imu=0, batch_samples=100))
+    back = [dataclasses.replace(b, seq=20 + k) for k, b in enumerate(frames[5:7])]
+    fleet = fleet_for(passport, g)
+    run_fleet(fleet, frames[:20] + back)
+    c = fleet.status(V, service="t", now_unix_s=0.0).counters
+    assert c["imu0.frames.accepted"] == 20 and c["imu0.frames.rejected.no_new_samples"] == 2
+
+
 def test_the_frames_that_showed_a_restart_reach_the_cross_imu_check():
     """The third held frame decides the restart and takes all three: what the pipeline accepted
     with it (the cross-IMU check's input) is their samples, not the last frame's alone."""

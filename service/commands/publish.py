@@ -283,7 +283,10 @@ def run(args: argparse.Namespace) -> int:
                         pace.wait(batch)
                     if batch.imu not in publishers:
                         publishers[batch.imu] = _publisher(session, batch, args.wait_s)
-                    publishers[batch.imu].publish(dataclasses.replace(batch, run=run_id))
+                    # A log whose clock started again inside (a reboot) numbers its runs from 0:
+                    # each is a new run for the daemon too.
+                    run = run_id + (batch.run or 0)
+                    publishers[batch.imu].publish(dataclasses.replace(batch, run=run))
                     progress.add(batch)
             finally:
                 for pub in publishers.values():

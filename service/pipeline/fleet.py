@@ -434,10 +434,11 @@ class FleetProcessor:
         return events
 
     def finish(self) -> list[Event]:
-        """End of data (replay): every pipeline finalizes its pending position."""
+        """End of data (replay): every pipeline finalizes its pending position
+        (:meth:`ImuPipeline.end_of_data`)."""
         events: list[Event] = []
         for key in sorted(self.pipelines):
-            events += self.pipelines[key].finish()
+            events += self.pipelines[key].end_of_data()
         return events
 
     def vehicles(self) -> list[str]:

@@ -893,6 +893,15 @@ class ImuPipeline:
         # The data stopped: the pending position is complete, let it count.
         return events + self.finish()
 
+    def end_of_data(self) -> list[Event]:
+        """The data ended (a replayed log): frames still held as a possible restart formed none and
+        are counted as rejected, by their reason; then :meth:`finish`. No error density is judged
+        on them: no stream follows them."""
+        held, self._restart_probe = self._restart_probe, []
+        for _, _, problem in held:
+            self._count(problem)
+        return self.finish()
+
     def finish(self) -> list[Event]:
         """End of data: finalize the static detector and diagnose the positions still pending."""
         det = self.detection
