@@ -52,6 +52,7 @@ is in the docstring) and the tests read it back with pymavlink's ``DFReader``.
 
 from __future__ import annotations
 
+import array
 import os
 import re
 import struct
@@ -701,6 +702,8 @@ class DataFlashStream:
                         pos += 3
                         continue
                     if type_id != _DF_FMT_ID:
+                        for k in fmt.a_indexes:  # int16[32] fields, as DFReader gives them
+                            elements[k] = array.array("h", elements[k])
                         yield DFReader.DFMessage(fmt, elements, True, None)
                 pos += n
 

@@ -9,9 +9,12 @@ source, :mod:`estimators.nominal_passport`), per IMU an object in ``imus``
 (:mod:`estimators.log_health` defines each figure; plus ``imu``, ``source``,
 ``clipped_samples`` as the log counts them — null when it does not — and the
 F0 shell and counts of the pipeline), per pair of IMUs their disagreement
-(``pairs``), and ``findings``: the events the service raises on the log, then
-the report's own checks (vibration and clipping, with the thresholds'
-source), each with its severity, text and numbers; ``coverage`` (schema 3): the verdict, what
+(``pairs``), ``firmware``: the health data the autopilot logged itself (ArduPilot ``VIBE`` and
+batch sampler, MAVLink ``VIBRATION``, PX4 ``vehicle_imu_status``: :mod:`protocols.firmware_health`),
+and ``findings``: the events the service raises on the log, then the firmware's figures against
+the firmware's own thresholds, then the report's own checks (vibration and clipping recomputed
+from the logged samples, only where the firmware gave none: a recomputation sees below half the
+logged rate only, ``vibration.recomputed_below_hz``), each with its severity, text and numbers; ``coverage`` (schema 3): the verdict, what
 was not tested and why, and per IMU what each check tested with its minimum
 detectable fault (the ``--json`` coverage line of :mod:`service.commands.replay`).
 
@@ -32,8 +35,10 @@ from typing import Any
 import numpy as np
 
 from estimators.conventions import AXES
+from estimators.firmware_health import ARDUPILOT_VIBE_LIMITS_MPS2, ARDUPILOT_VIBE_SOURCE
 from estimators.log_health import HealthConfig, ImuHealth, PairDifference
 from protocols.events import Event, Severity
+from protocols.firmware_health import FirmwareHealth, FirmwareVibration
 from protocols.logs import LogStats
 from service.commands.replay import log_start
 from service.figures import plt, save_figure
@@ -44,13 +49,10 @@ REPORT_SCHEMA_VERSION = 5
 3: ``coverage`` (what each check tested, the verdict); 4: ``log.start_t_s`` (the first sample's
 time on the log's clock, from which the plots and the Markdown count) and ``passport.not_applied``
 (the IMUs no passport applied to, and why); 5: ``log.clock_restarts`` and per IMU ``runs`` (a
-reboot inside the log, :mod:`protocols.logs`)."""
-VIBE_WARN_MPS2 = 30.0
-VIBE_BAD_MPS2 = 60.0
-VIBE_SOURCE = (
-    "ArduPilot wiki, Measuring Vibration: VIBE below 30 m/s² is normally acceptable, "
-    "above 30 may give problems, above 60 nearly always does"
-)
+reboot inside the log, :mod:`protocols.logs`), ``firmware`` (the log's own health data,
+:mod:`protocols.firmware_health`) and per IMU ``vibration.recomputed_below_hz``."""
+VIBE_WARN_MPS2, VIBE_BAD_MPS2 = ARDUPILOT_VIBE_LIMITS_MPS2
+VIBE_SOURCE = ARDUPILOT_VIBE_SOURCE
 PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png")
 
 
@@ -82,10 +84,14 @@ def event_finding(event: Event) -> dict[str, Any]:
     }
 
 
-def health_findings(imu: int, health: ImuHealth, clipped: int | None) -> list[dict[str, Any]]:
-    """The report's own checks of one IMU: in-flight vibration (ArduPilot's thresholds) and clipping."""
+def health_findings(
+    imu: int, health: ImuHealth, clipped: int | None, *, firmware_first: bool = False
+) -> list[dict[str, Any]]:
+    """The report's own checks of one IMU: in-flight vibration (ArduPilot's thresholds) and clipping
+    recomputed from the logged samples; ``firmware_first``: the log has the firmware's own vibration
+    and clipping figures (:func:`firmware_findings`), which these do not repeat."""
     out: list[dict[str, Any]] = []
-    if health.vibe_max_mps2 is not None:
+    if health.vibe_max_mps2 is not None and not firmware_first:
         worst = float(health.vibe_max_mps2.max())
         axis = AXES[int(np.argmax(health.vibe_max_mps2))]
         if worst > VIBE_WARN_MPS2:
@@ -104,7 +110,7 @@ def health_findings(imu: int, health: ImuHealth, clipped: int | None) -> list[di
                     "text": f"IMU{imu} vibration (VIBE) {worst:.1f} m/s² on {axis} in flight, above {limit:g} ({VIBE_SOURCE})",
                 }
             )
-    if clipped:
+    if clipped and not firmware_first:
         out.append(
             {
                 "source": "report",
@@ -138,6 +144,56 @@ def health_findings(imu: int, health: ImuHealth, clipped: int | None) -> list[di
     return out
 
 
+def _who(v: FirmwareVibration) -> str:
+    return "the primary accelerometer" if v.instance is None else f"instance {v.instance}"
+
+
+def firmware_findings(firmware: FirmwareHealth) -> list[dict[str, Any]]:
+    """The firmware's own figures against the firmware's own thresholds: vibration levels above the
+    warning or error limit, and clipped samples."""
+    out: list[dict[str, Any]] = []
+    for v in firmware.vibration:
+        if not v.accel.max:
+            continue
+        worst = max(v.accel.max)
+        warn, bad = v.limits
+        if worst <= warn:
+            continue
+        limit = bad if worst > bad else warn
+        axis = AXES[v.accel.max.index(worst)] if len(v.accel.max) == 3 else None
+        on = f" on {axis}" if axis else ""
+        out.append(
+            {
+                "source": "firmware",
+                "severity": (Severity.ERROR if worst > bad else Severity.WARNING).name.lower(),
+                "imu": v.instance,
+                "predicate": "vibration",
+                "axis": axis,
+                "estimate": worst,
+                "tolerance": limit,
+                "unit": v.unit,
+                "text": f"{v.message} of {_who(v)}: vibration up to {worst:.3g} {v.unit}{on}, above {limit:g} "
+                f"in {v.accel.above[f'{limit:g}']} of {v.accel.n} messages ({v.source})",
+            }
+        )
+    for inst, n in sorted(firmware.clipped.items()):
+        if n:
+            out.append(
+                {
+                    "source": "firmware",
+                    "severity": Severity.WARNING.name.lower(),
+                    "imu": inst,
+                    "predicate": "clipping",
+                    "estimate": n,
+                    "tolerance": 0,
+                    "unit": "samples",
+                    "text": f"accelerometer instance {inst}: {n} clipped samples over the log "
+                    f"({firmware.clip_message} counters; {firmware.clip_source})",
+                }
+            )
+    return out
+
+
 def build_report(
     *,
     log_name: str,
@@ -153,13 +209,18 @@ def build_report(
     events: Sequence[Event],
     coverage: Mapping[str, Any],
     start_t_s: float | None,
+    firmware: FirmwareHealth | None = None,
 ) -> dict[str, Any]:
     """The plain-dict report (module docstring); ``coverage``: the replay's coverage map;
-    ``start_t_s``: the log's first sample time (None: no sample)."""
+    ``start_t_s``: the log's first sample time (None: no sample); ``firmware``: the log's own
+    health data (:mod:`protocols.firmware_health`)."""
     imus = []
     for imu, h in sorted(healths.items()):
         entry = {"imu": imu, "source": stats.sources.get(imu, ""), **h.to_dict()}
         entry["clipped_samples"] = stats.clipped.get(imu)
+        # What the recomputation can show: vibration below half the logged rate (the firmware's
+        # own figures come from the sensor's kHz samples).
+        entry["vibration"]["recomputed_below_hz"] = h.rate_hz / 2.0
         check = f0.get(imu)
         entry["f0_accel"] = (
             None
@@ -172,9 +233,11 @@ def build_report(
             }
         )
         imus.append(entry)
-    findings = [event_finding(e) for e in events]
+    fw = firmware if firmware is not None else FirmwareHealth()
+    findings = [event_finding(e) for e in events] + firmware_findings(fw)
+    first = bool(fw.vibration or fw.clipped)
     for imu, h in sorted(healths.items()):
-        findings += health_findings(imu, h, stats.clipped.get(imu))
+        findings += health_findings(imu, h, stats.clipped.get(imu), firmware_first=first)
     return {
         "type": REPORT_TYPE,
         "schema_version": REPORT_SCHEMA_VERSION,
@@ -196,6 +259,7 @@ def build_report(
         "imus": imus,
         "pairs": [p.to_dict() for p in pairs],
         "findings": findings,
+        "firmware": fw.to_dict(),
         "coverage": dict(coverage),
     }
 
@@ -205,8 +269,10 @@ def write_report(
     healths: Mapping[int, ImuHealth],
     pairs: Sequence[PairDifference],
     out_dir: str | Path,
+    firmware: FirmwareHealth | None = None,
 ) -> Path:
-    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown path."""
+    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown
+    path. ``firmware``: the batch sampler's spectra join the spectra plot."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
@@ -214,7 +280,7 @@ def write_report(
     )
     plots = {
         "gravity_residual.png": _residual_plot(report, healths, out / "gravity_residual.png"),
-        "spectra.png": _spectra_plot(healths, out / "spectra.png"),
+        "spectra.png": _spectra_plot(healths, firmware or FirmwareHealth(), out / "spectra.png"),
         "cross_imu.png": _cross_plot(report, pairs, out / "cross_imu.png"),
     }
     md = out / "report.md"
@@ -247,8 +313,9 @@ def _residual_plot(report: Mapping[str, Any], healths: Mapping[int, ImuHealth], 
     return True
 
 
-def _spectra_plot(healths: Mapping[int, ImuHealth], path: Path) -> bool:
-    if not any(h.freq_hz.size for h in healths.values()):
+def _spectra_plot(healths: Mapping[int, ImuHealth], firmware: FirmwareHealth, path: Path) -> bool:
+    batches = [b for b in firmware.batches if b.stream.freq_hz.size]
+    if not any(h.freq_hz.size for h in healths.values()) and not batches:
         return False
     fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for imu, h in sorted(healths.items()):
@@ -257,10 +324,17 @@ def _spectra_plot(healths: Mapping[int, ImuHealth], path: Path) -> bool:
         for ax, psd in zip(axes, (h.accel_psd, h.gyro_psd), strict=True):
             for k, axis in enumerate(AXES):
                 ax.semilogy(h.freq_hz[1:], psd[1:, k], lw=0.8, label=f"IMU{imu} {axis}")
+    for b in batches:
+        ax = axes[0 if b.sensor == "accel" else 1]
+        for k, axis in enumerate(AXES):
+            label = f"batch {b.sensor}{b.instance} {axis} ({b.stream.rate_hz:.0f} Hz)"
+            ax.semilogy(b.stream.freq_hz[1:], b.stream.psd[1:, k], lw=0.6, ls="--", label=label)
     axes[0].set_ylabel("accel PSD, (m/s²)²/Hz")
     axes[1].set_ylabel("gyro PSD, (rad/s)²/Hz")
     axes[1].set_xlabel("frequency, Hz")
-    axes[0].legend(fontsize=7, ncol=3)
+    for ax in axes:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, ncol=3)
     save_figure(fig, path, dpi=90)
     return True
 
@@ -312,6 +386,7 @@ def _imu_table(e: Mapping[str, Any]) -> list[str]:
     grav = e["gravity_residual_mps2"]
     temp = e["temperature_c"]
     f0 = e["f0_accel"]
+    below = f" from the logged samples (sees below {vib['recomputed_below_hz']:.0f} Hz only)"
     rows = [
         ("source", e["source"]),
         ("samples", e["n_samples"]),
@@ -324,9 +399,9 @@ def _imu_table(e: Mapping[str, Any]) -> list[str]:
         (f"gyro noise x, y, z, rad/s ({e['noise_method']})", _f(e["gyro_noise_rps"])),
         ("|a| − g at rest (median, max abs), m/s²", "—" if grav is None else f"{_f(grav['median'])}, {_f(grav['max_abs'])}"),
         ("gyro bias at rest x, y, z, rad/s", _f(e["gyro_bias_rps"])),
-        ("VIBE in flight x, y, z (median / max), m/s²", "—" if vibe is None else f"{_f(vibe['median'], '.3g')} / {_f(vibe['max'], '.3g')}"),
-        ("PX4 accel vibration metric (median / max), m/s", "—" if vib["px4_accel_vibration_metric_mps"] is None else f"{_f(vib['px4_accel_vibration_metric_mps']['median'])} / {_f(vib['px4_accel_vibration_metric_mps']['max'])}"),
-        ("PX4 gyro vibration metric (median / max), rad", "—" if vib["px4_gyro_vibration_metric_rad"] is None else f"{_f(vib['px4_gyro_vibration_metric_rad']['median'])} / {_f(vib['px4_gyro_vibration_metric_rad']['max'])}"),
+        (f"VIBE recomputed in flight{below} x, y, z (median / max), m/s²", "—" if vibe is None else f"{_f(vibe['median'], '.3g')} / {_f(vibe['max'], '.3g')}"),
+        (f"PX4 accel vibration metric recomputed{below} (median / max), m/s", "—" if vib["px4_accel_vibration_metric_mps"] is None else f"{_f(vib['px4_accel_vibration_metric_mps']['median'])} / {_f(vib['px4_accel_vibration_metric_mps']['max'])}"),
+        (f"PX4 gyro vibration metric recomputed{below} (median / max), rad", "—" if vib["px4_gyro_vibration_metric_rad"] is None else f"{_f(vib['px4_gyro_vibration_metric_rad']['median'])} / {_f(vib['px4_gyro_vibration_metric_rad']['max'])}"),
         ("clipped samples", _f(e["clipped_samples"])),
         ("temperature (min, max), °C", "—" if temp is None else f"{_f(temp['min'])}, {_f(temp['max'])}"),
         ("F0 shell λ0 (|a| − g, m/s²); tests, fails", "not run" if f0 is None or f0["lambda0"] is None else f"{_f(f0['lambda0'])} ({_f(f0['shell_mps2'])}); {f0['tests']}, {f0['fails']}"),
@@ -374,6 +449,69 @@ def _passport_lines(pp: Mapping[str, Any], *, n_imus: int) -> list[str]:
     return lines
 
 
+def _levels(summary: Mapping[str, Any] | None, unit: str | None) -> str:
+    if summary is None or not summary["n"]:
+        return "—"
+    return f"{_f(summary['median'], '.3g')} / {_f(summary['max'], '.3g')} {unit or ''}".strip()
+
+
+def _firmware_section(fw: Mapping[str, Any]) -> list[str]:
+    """The log's own health data: vibration and clipping as the firmware measured them, the batch sampler."""
+    if not (fw["vibration"] or fw["clipped"] or fw["batches"] or fw["unread"]):
+        return []
+    lines = ["", "## The firmware's own health data", ""]
+    if fw["unread"]:
+        lines.append(f"Not read: {fw['unread']}.")
+    if fw["vibration"]:
+        lines += [
+            "Measured by the autopilot on the sensor's own samples (what the logged samples' rate cannot show).",
+            "",
+            "| message | instance | vibration (median / max) | above warning, error (messages) | gyro vibration | coning | clipping x, y, z | rates, Hz |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for v in fw["vibration"]:
+            above = ", ".join(f"{n} > {k}" for k, n in v["accel"]["above"].items())
+            rates = (
+                ", ".join(f"{k.removesuffix('_hz')} {x:.0f}" for k, x in v["rates_hz"].items())
+                or "—"
+            )
+            inst = "primary" if v["instance"] is None else v["instance"]
+            lines.append(
+                f"| {v['message']} | {inst} | {_levels(v['accel'], v['unit'])} | {above} | "
+                f"{_levels(v['gyro'], v['gyro_unit'])} | {_levels(v['coning'], 'rad²')} | {_f(v['clipping_axes'])} | {rates} |"
+            )
+        lines += [
+            "",
+            "Thresholds: "
+            + "; ".join(
+                sorted(
+                    {
+                        f"{v['source']}: {v['limits'][0]:g}, {v['limits'][1]:g} {v['unit']}"
+                        for v in fw["vibration"]
+                    }
+                )
+            )
+            + ".",
+        ]
+    if fw["clipped"]:
+        clipped = ", ".join(f"instance {k} {n}" for k, n in fw["clipped"].items())
+        lines += ["", f"Clipped samples over the log ({fw['clip_message']} counters): {clipped}."]
+    if fw["batches"]:
+        lines += [
+            "",
+            "Batch sampler (ISBH/ISBD: the sensor's raw samples at its own rate):",
+            "",
+            "| sensor | instance | samples (blocks) | rate, Hz | noise x, y, z (first difference) | saturated samples |",
+            "|---|---|---|---|---|---|",
+        ]
+        for b in fw["batches"]:
+            lines.append(
+                f"| {b['sensor']} | {b['instance']} | {b['samples']} ({b['blocks']}) | {_f(b['rate_hz'], '.0f')} | "
+                f"{_f(b['noise'])} {b['unit']} | {b['saturated']} |"
+            )
+    return lines
+
+
 def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
     log, pp = report["log"], report["passport"]
     lines = [
@@ -405,6 +543,7 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
         lines += [f"- **{f['severity']}** {f['text']}" for f in report["findings"]]
     else:
         lines.append("None.")
+    lines += _firmware_section(report["firmware"])
     lines += ["", *_coverage_section(report["coverage"])]
     for e in report["imus"]:
         lines += ["", f"## IMU{e['imu']}", "", *_imu_table(e)]

@@ -499,8 +499,12 @@ def replay_log(
             note(f"coverage {line}")
     note(_verdict_line(said, len(result.findings), untested))
     if args.report is not None:
+        from protocols.firmware_health import read_firmware_health
         from service.log_report import build_report, write_report
 
+        firmware = read_firmware_health(args.log, reader.format)
+        if firmware.unread:
+            note(f"{args.log.name}: the firmware's own health data not read ({firmware.unread})")
         healths = {imu: acc.result(options.gravity_mps2) for imu, acc in sorted(health.items())}
         pairs = pair_differences({i: h.blocks for i, h in healths.items()}, health_config.block_s)
         report = build_report(
@@ -517,8 +521,9 @@ def replay_log(
             events=events,
             coverage=_coverage_map(result),
             start_t_s=result.start_t_s,
+            firmware=firmware,
         )
-        md = write_report(report, healths, pairs, args.report)
+        md = write_report(report, healths, pairs, args.report, firmware)
         note(f"report {md}")
     return dataclasses.replace(result, notes=tuple(notes))
 
