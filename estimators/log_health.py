@@ -18,7 +18,10 @@ else is derived from that table.
 Figures
 -------
 * noise per axis: at rest, the pooled within-block standard deviation
-  ``sqrt(Σ(n−1)var / Σ(n−1))`` (M1's per-sample noise); with no rest, from the
+  ``sqrt(Σ(n−1)var / Σ(n−1))`` (M1's per-sample noise) of the settled blocks: a block
+  at rest whose standard deviation on any axis is more than :data:`SETTLING_SPREAD_RATIO`
+  times the median rest block's is still settling (the ringing after a landing or a knock,
+  within the detector's spread) and does not enter it (``settling_blocks``); with no rest, from the
   first difference (a high-pass): ``rms(x_k − x_{k−1}) / √2``, equal to σ for
   white noise; ``noise_method`` says which.
 * at rest: ``gravity_residual_mps2`` = |mean a| − g per block (median and the
@@ -61,6 +64,10 @@ VIBE_FILTER_HZ = 2.0
 PX4_VIBE_ALPHA = 0.01
 GAP_PERIODS = 1.5
 FULL_BLOCK = 0.8
+SETTLING_SPREAD_RATIO = 2.0
+"""A block at rest with a standard deviation this many times the median rest block's, on any axis, is
+settling, not noise: for white noise the sample standard deviation of a block of ``MIN_REST_SAMPLES``
+(7 degrees of freedom) exceeds twice σ with probability 2·10⁻⁴ (χ²₇ > 28), of 100 samples never."""
 MIN_REST_SAMPLES = 8
 """Fewest samples a block needs to be judged at rest: a variance of two or three samples says nothing
 (a 4 Hz telemetry log in a steady turn would pass)."""
@@ -119,6 +126,7 @@ class ImuHealth:
     gap_count: int
     longest_gap_s: float
     rest_s: float
+    settling_blocks: int
     noise_method: str
     accel_noise_mps2: FloatArray
     gyro_noise_rps: FloatArray
@@ -154,7 +162,9 @@ class ImuHealth:
                 "block_s": self.config.block_s,
                 "accel_spread_mps2": self.config.accel_rest_mps2,
                 "gyro_spread_rps": self.config.gyro_rest_rps,
+                "settling_spread_ratio": SETTLING_SPREAD_RATIO,
             },
+            "settling_blocks": self.settling_blocks,
             "noise_method": self.noise_method,
             "accel_noise_mps2": vec(self.accel_noise_mps2),
             "gyro_noise_rps": vec(self.gyro_noise_rps),
@@ -423,11 +433,12 @@ class ImuHealthAccumulator:
         blocks = self._block_view(table, rate)
         rest = blocks.rest
         dof = np.maximum(blocks.n - 1, 0)[:, None]
+        settled = rest & _settled(blocks, rest)
         if rest.any():
             method = "rest"
-            w = dof[rest]
-            noise_a = np.sqrt((blocks.accel_var[rest] * w).sum(axis=0) / w.sum())
-            noise_g = np.sqrt((blocks.gyro_var[rest] * w).sum(axis=0) / w.sum())
+            w = dof[settled]
+            noise_a = np.sqrt((blocks.accel_var[settled] * w).sum(axis=0) / w.sum())
+            noise_g = np.sqrt((blocks.gyro_var[settled] * w).sum(axis=0) / w.sum())
             wn = blocks.n[rest][:, None]
             resid = np.linalg.norm(blocks.accel_mean[rest], axis=1) - gravity_mps2
             grav: tuple[float | None, float | None] = (
@@ -456,6 +467,7 @@ class ImuHealthAccumulator:
             gap_count=int(gaps[:, 1].sum()),
             longest_gap_s=float(gaps[:, 0].max() * 1e-6) if gaps.size else 0.0,
             rest_s=float(blocks.n[rest].sum() / rate) if rate else 0.0,
+            settling_blocks=int(rest.sum() - settled.sum()),
             noise_method=method,
             accel_noise_mps2=noise_a,
             gyro_noise_rps=noise_g,
@@ -518,6 +530,17 @@ class ImuHealthAccumulator:
             rest=rest,
             run=table[:, 26].astype(np.intp),
         )
+
+
+def _settled(blocks: Blocks, rest: BoolArray) -> BoolArray:
+    """Blocks whose standard deviation on every axis is within :data:`SETTLING_SPREAD_RATIO` times the
+    median rest block's (module docstring); the median rest block is always settled."""
+    spread = np.sqrt(np.hstack([blocks.accel_var, blocks.gyro_var]))
+    if not rest.any():
+        return np.zeros(rest.shape, dtype=bool)
+    typical = np.median(spread[rest], axis=0)
+    settled: BoolArray = np.all(spread <= SETTLING_SPREAD_RATIO * typical, axis=1)
+    return settled
 
 
 @dataclass(frozen=True)

@@ -386,6 +386,9 @@ def _imu_table(e: Mapping[str, Any]) -> list[str]:
     grav = e["gravity_residual_mps2"]
     temp = e["temperature_c"]
     f0 = e["f0_accel"]
+    settling = (
+        f"; {e['settling_blocks']} settling block(s) left out" if e["settling_blocks"] else ""
+    )
     below = f" from the logged samples (sees below {vib['recomputed_below_hz']:.0f} Hz only)"
     rows = [
         ("source", e["source"]),
@@ -395,8 +398,8 @@ def _imu_table(e: Mapping[str, Any]) -> list[str]:
         ("duration, s", _f(e["duration_s"])),
         ("gaps (count, longest s)", f"{e['gaps']['count']}, {_f(e['gaps']['longest_s'])}"),
         ("at rest, s (blocks of spread ≤ accel, gyro)", f"{_f(e['rest_s'])} ({_f(e['rest_test']['accel_spread_mps2'])} m/s², {_f(e['rest_test']['gyro_spread_rps'])} rad/s)"),
-        (f"accel noise x, y, z, m/s² ({e['noise_method']})", _f(e["accel_noise_mps2"])),
-        (f"gyro noise x, y, z, rad/s ({e['noise_method']})", _f(e["gyro_noise_rps"])),
+        (f"accel noise x, y, z, m/s² ({e['noise_method']}{settling})", _f(e["accel_noise_mps2"])),
+        (f"gyro noise x, y, z, rad/s ({e['noise_method']}{settling})", _f(e["gyro_noise_rps"])),
         ("|a| − g at rest (median, max abs), m/s²", "—" if grav is None else f"{_f(grav['median'])}, {_f(grav['max_abs'])}"),
         ("gyro bias at rest x, y, z, rad/s", _f(e["gyro_bias_rps"])),
         (f"VIBE recomputed in flight{below} x, y, z (median / max), m/s²", "—" if vibe is None else f"{_f(vibe['median'], '.3g')} / {_f(vibe['max'], '.3g')}"),

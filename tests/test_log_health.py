@@ -99,6 +99,23 @@ def test_batching_does_not_change_the_figures():
     np.testing.assert_array_equal(one.blocks.k, many.blocks.k)
 
 
+def test_a_block_still_settling_after_motion_is_no_noise():
+    """The ringing after a landing (12 Hz, 0.3 m/s² decaying in 0.25 s on z) keeps the first block
+    after it within a detector's spread (here 0.2 m/s², a replay raises it to the passport's noise)
+    but at five times the noise: it is settling and left out of the noise figure, which then reads
+    the white noise within its own scatter (~80 000 samples: 0.25 %)."""
+    t, a, g = _unit()
+    after = t - 40.0
+    a[:, 2] += np.where(
+        after > 0.0, 0.3 * np.exp(-after / 0.25) * np.sin(2 * np.pi * 12.0 * after), 0.0
+    )
+    acc = ImuHealthAccumulator(HealthConfig(accel_rest_mps2=0.2))
+    acc.update(t, a, g)
+    h = acc.result(G)
+    assert h.settling_blocks == 1 and h.blocks.rest[h.blocks.k == 80].all()
+    np.testing.assert_allclose(h.accel_noise_mps2, 0.02, rtol=0.01)
+
+
 def test_gaps_temperature_and_no_rest():
     t, a, g = _unit(n_s=10.0, fly=(-1.0, 11.0))
     keep = np.ones(t.size, bool)
