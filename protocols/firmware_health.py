@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import os
 import struct
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -123,9 +123,19 @@ class FirmwareHealth:
         }
 
 
-def read_firmware_health(path: str | os.PathLike[str], log_format: LogFormat) -> FirmwareHealth:
-    """The firmware's own health data of a log (module docstring)."""
+FIRMWARE_MESSAGES = frozenset({"VIBE", "ISBH", "ISBD", "VIBRATION", "vehicle_imu_status"})
+"""The message types (ULog topics) read here."""
+
+
+def read_firmware_health(
+    path: str | os.PathLike[str], log_format: LogFormat, held: Collection[str] | None = None
+) -> FirmwareHealth:
+    """The firmware's own health data of a log (module docstring). ``held``: the message types (ULog
+    ``topic.instance``) the log holds, as its reader counted them (:attr:`protocols.logs.LogStats.held`):
+    a log that holds none of :data:`FIRMWARE_MESSAGES` is not read again."""
     path = Path(path)
+    if held is not None and not FIRMWARE_MESSAGES & {k.split(".")[0] for k in held}:
+        return FirmwareHealth()
     try:
         if log_format is LogFormat.ULOG:
             return _ulog(path)

@@ -17,7 +17,8 @@ from pyulog import ULog
 from real_data import REAL_TLOG, SHARED, needs
 
 from estimators.firmware_health import counter_growth
-from protocols.logs import write_tlog
+from protocols.firmware_health import FirmwareHealth, read_firmware_health
+from protocols.logs import LogFormat, write_tlog
 from service.cli import main
 from service.demo import demo_passport, demo_scenario
 
@@ -143,6 +144,16 @@ def test_mavlink_vibration_is_reported_as_pymavlink_reads_it(tmp_path, capsys):
     assert v["accel"]["median"] == pytest.approx(np.median(a[:, :3], axis=0).tolist())
     # The counters hold 67 and 54 from before the log began: the log itself clipped nothing.
     assert report["firmware"]["clipped"] == {"0": 0, "1": 0, "2": 0} and a[0, 3] == 67
+
+
+def test_a_log_without_firmware_health_messages_is_not_read_again(tmp_path):
+    """What the reader counted says the log holds none: no second pass (the file is not opened)."""
+    gone = tmp_path / "read-already.bin"
+    health = read_firmware_health(gone, LogFormat.DATAFLASH_BIN, {"IMU": 900, "PARM": 12})
+    assert health == FirmwareHealth()
+    assert read_firmware_health(gone, LogFormat.DATAFLASH_BIN, {"VIBE": 1}).unread.startswith(
+        "FileNotFoundError"
+    )
 
 
 def test_counter_growth_counts_across_a_cleared_counter():

@@ -502,7 +502,7 @@ def replay_log(
         from protocols.firmware_health import read_firmware_health
         from service.log_report import build_report, write_report
 
-        firmware = read_firmware_health(args.log, reader.format)
+        firmware = read_firmware_health(args.log, reader.format, reader.stats.held)
         if firmware.unread:
             note(f"{args.log.name}: the firmware's own health data not read ({firmware.unread})")
         healths = {imu: acc.result(options.gravity_mps2) for imu, acc in sorted(health.items())}
