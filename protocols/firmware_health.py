@@ -23,6 +23,8 @@ the IMU samples are read on their own (:mod:`protocols.logs`).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import struct
 from collections.abc import Collection, Iterator
@@ -270,7 +272,9 @@ def _tlog(path: Path) -> FirmwareHealth:
 def _ulog(path: Path) -> FirmwareHealth:
     from pyulog import ULog
 
-    log = ULog(str(path), ["vehicle_imu_status"])
+    # pyulog prints its findings on a damaged file to stdout, where --json writes.
+    with contextlib.redirect_stdout(io.StringIO()):
+        log = ULog(str(path), ["vehicle_imu_status"])
     vibration = []
     clipped = {}
     for d in sorted(log.data_list, key=lambda d: d.multi_id):

@@ -146,6 +146,21 @@ def test_mavlink_vibration_is_reported_as_pymavlink_reads_it(tmp_path, capsys):
     assert report["firmware"]["clipped"] == {"0": 0, "1": 0, "2": 0} and a[0, 3] == 67
 
 
+@needs(KNOCK)
+def test_a_damaged_ulog_s_firmware_figures_leave_json_output_clean(tmp_path, capsys):
+    """pyulog prints what it finds in a damaged file to stdout, where ``--json`` writes its lines."""
+    data = bytearray(KNOCK.read_bytes())
+    for k in range(200_000, 200_400, 7):
+        data[k] ^= 0xFF
+    log = tmp_path / "damaged.ulg"
+    log.write_bytes(bytes(data))
+    main(["replay", str(log), "--json", "--report", str(tmp_path / "r")])
+    out = capsys.readouterr().out
+    assert [json.loads(line)["type"] for line in out.splitlines()][-1] == "ins.health.coverage"
+    report = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert [v["instance"] for v in report["firmware"]["vibration"]] == [0, 1]
+
+
 def test_a_log_without_firmware_health_messages_is_not_read_again(tmp_path):
     """What the reader counted says the log holds none: no second pass (the file is not opened)."""
     gone = tmp_path / "read-already.bin"
