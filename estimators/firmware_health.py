@@ -23,6 +23,7 @@ the logged samples cannot (:mod:`estimators.log_health`). Pure functions on arra
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,20 +54,26 @@ or the log saturated."""
 @dataclass(frozen=True)
 class LevelSummary:
     """A logged level over the log: median and maximum, per axis when it has axes; ``above``: the
-    messages above each limit (:func:`level_summary`)."""
+    messages above each limit; ``not_finite``: messages left out for a NaN or infinite value
+    (:func:`level_summary`)."""
 
     n: int
     median: list[float]
     max: list[float]
     above: dict[str, int]
+    not_finite: int = 0
 
 
 def level_summary(values: FloatArray, limits: tuple[float, ...] = ()) -> LevelSummary:
-    """Median and maximum of ``values`` ((N,) or (N, axes)) and how many rows exceed each limit on any axis."""
+    """Median and maximum of ``values`` ((N,) or (N, axes)) and how many rows exceed each limit on
+    any axis; rows with a value that is not finite are left out and counted."""
     v = np.asarray(values, dtype=float)
     v2 = v.reshape(v.shape[0], -1)
+    finite = np.isfinite(v2).all(axis=1)
+    v2 = v2[finite]
     worst = v2.max(axis=1) if v2.size else np.zeros(0)
     return LevelSummary(
+        not_finite=int((~finite).sum()),
         n=int(v2.shape[0]),
         median=[float(x) for x in np.median(v2, axis=0)] if v2.size else [],
         max=[float(x) for x in v2.max(axis=0)] if v2.size else [],
@@ -79,6 +86,7 @@ def counter_growth(values: FloatArray) -> int:
     from before the log). A value lower than the one before is a counter cleared since (a reboot):
     it counts from zero there."""
     v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]  # a value that is no count says nothing of the growth
     if v.size < 2:
         return 0
     step = np.diff(v)
@@ -92,6 +100,7 @@ class BatchStream:
 
     samples: int
     blocks: int
+    unusable_blocks: int
     rate_hz: float
     noise: list[float]
     freq_hz: FloatArray
@@ -103,7 +112,8 @@ class BatchStreamAccumulator:
     """Noise and spectra of a sensor's batch-sampler blocks, block by block (bounded memory).
 
     :meth:`add` takes one block: samples (n, 3) in SI at ``rate_hz``, and how many of its raw values
-    were at the int16 limit. Noise: the first difference within each block (module docstring),
+    were at the int16 limit; a block of fewer than two samples, no finite positive rate or a value
+    that is not finite (a multiplier of 0) gives no noise or spectrum and is counted unusable. Noise: the first difference within each block (module docstring),
     pooled over the blocks; spectra: Welch's average of Hann-windowed periodograms of ``nfft``
     samples within each block (none crosses the gap between two blocks), averaged over the blocks
     of ``nfft`` samples or more; one-sided PSD (unit²/Hz).
@@ -114,6 +124,7 @@ class BatchStreamAccumulator:
         self._samples = 0
         self._blocks = 0
         self._saturated = 0
+        self._unusable = 0
         self._rates: list[float] = []
         self._diff_sq = np.zeros(3)
         self._diff_n = 0
@@ -125,7 +136,8 @@ class BatchStreamAccumulator:
         self._samples += x.shape[0]
         self._blocks += 1
         self._saturated += saturated
-        if x.shape[0] < 2 or not rate_hz > 0.0:
+        if x.shape[0] < 2 or not 0.0 < rate_hz < math.inf or not np.isfinite(x).all():
+            self._unusable += 1
             return
         self._rates.append(rate_hz)
         d = np.diff(x, axis=0)
@@ -141,6 +153,7 @@ class BatchStreamAccumulator:
         return BatchStream(
             samples=self._samples,
             blocks=self._blocks,
+            unusable_blocks=self._unusable,
             rate_hz=float(np.median(self._rates)) if self._rates else 0.0,
             noise=[] if noise is None else [float(v) for v in noise],
             freq_hz=self._freq,

@@ -115,6 +115,7 @@ class FirmwareHealth:
                     "unit": b.unit,
                     "samples": b.stream.samples,
                     "blocks": b.stream.blocks,
+                    "unusable_blocks": b.stream.unusable_blocks,
                     "rate_hz": b.stream.rate_hz,
                     "noise": b.stream.noise,
                     "saturated": b.stream.saturated,
@@ -232,7 +233,8 @@ class _Batches:
         key = (BATCH_SENSORS[int(head.type)], int(head.instance))
         acc = self._acc.setdefault(key, BatchStreamAccumulator())
         saturated = int((np.abs(raw) >= BATCH_SATURATED).sum())
-        acc.add(raw / float(head.mul), float(head.smp_rate), saturated)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a multiplier of 0: counted unusable
+            acc.add(raw / float(head.mul), float(head.smp_rate), saturated)
 
     def result(self) -> list[BatchSensor]:
         self._flush()
@@ -288,9 +290,9 @@ def _ulog(path: Path) -> FirmwareHealth:
             if f"accel_clipping[{k}]" in data
         ]
         rates = {
-            k: float(np.median(data[k]))
+            k: float(np.median(r))
             for k in ("accel_rate_hz", "gyro_rate_hz", "accel_raw_rate_hz", "gyro_raw_rate_hz")
-            if k in data
+            if k in data and (r := data[k][np.isfinite(data[k])]).size
         }
         vibration.append(
             FirmwareVibration(

@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from pyulog import ULog
 from real_data import REAL_TLOG, SHARED, needs
 
-from estimators.firmware_health import counter_growth
+from estimators.firmware_health import BatchStreamAccumulator, counter_growth
 from protocols.firmware_health import FirmwareHealth, read_firmware_health
 from protocols.logs import LogFormat, write_tlog
 from service.cli import main
@@ -169,6 +169,30 @@ def test_a_log_without_firmware_health_messages_is_not_read_again(tmp_path):
     assert read_firmware_health(gone, LogFormat.DATAFLASH_BIN, {"VIBE": 1}).unread.startswith(
         "FileNotFoundError"
     )
+
+
+def test_values_that_are_not_finite_are_left_out_and_counted(tmp_path, capsys):
+    """A VIBRATION message with NaN levels, a batch whose multiplier was 0 (every value infinite):
+    counted, never in a figure (the report's JSON refuses NaN)."""
+    session = demo_scenario(fault_magnitude=0.0).session.select(slice(0, 800, 8))
+    log = tmp_path / "nan.tlog"
+    write_tlog(log, {0: session})
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    with open(log, "ab") as fh:
+        for k, z in enumerate([3.0, float("nan"), 4.0]):
+            msg = mav.vibration_encode(k * 100_000, 1.0, 2.0, z, 0, 0, 0)
+            fh.write(struct.pack(">Q", int(1.7e15) + k * 100_000) + msg.pack(mav))
+    report, _ = report_of(log, tmp_path / "r", "--gravity", demo_passport()[1])
+    capsys.readouterr()
+    (v,) = report["firmware"]["vibration"]
+    assert (v["accel"]["n"], v["accel"]["not_finite"], v["accel"]["max"]) == (2, 1, [1.0, 2.0, 4.0])
+    acc = BatchStreamAccumulator(nfft=32)
+    rng = np.random.default_rng(4)
+    acc.add(rng.normal(0.0, 0.01, (64, 3)), 2000.0, 0)
+    acc.add(np.full((32, 3), np.inf), 2000.0, 0)
+    stream = acc.result()
+    assert (stream.blocks, stream.unusable_blocks, stream.samples) == (2, 1, 96)
+    assert np.isfinite(stream.noise).all() and np.isfinite(stream.psd).all()
 
 
 def test_counter_growth_counts_across_a_cleared_counter():
