@@ -538,7 +538,7 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
     if log["clock_restarts"]:
         lines += [
             f"The time of the samples started again {log['clock_restarts']} time(s) (an autopilot reboot, "
-            "or logs joined end to end): each IMU's runs are taken apart, their times overlap in the plots.",
+            "or logs joined end to end): each IMU's runs are taken apart; in the plots each run keeps its own clock.",
             "",
         ]
     lines += ["## Findings", ""]
