@@ -155,18 +155,22 @@ _UNIT_OPTION = {"accel": "--accel-unit", "gyro": "--gyro-unit", "time": "--time-
 _UNIT_WORD = {"accel": "accelerometer", "gyro": "gyro", "time": "time"}
 
 
-def parse_scale(text: str | float) -> float:
-    """A count's size, a number or a fraction (``1/16384``): what a data sheet states as counts per unit."""
-    num, sep, den = str(text).partition("/")
+def _positive(text: str, what: str, *, fraction: bool = False) -> float:
+    """``text`` as a positive finite number (or ``a/b`` with ``fraction``); the error names ``what``."""
+    num, sep, den = text.partition("/") if fraction else (text, "", "")
     try:
         value = float(num) / (float(den) if sep else 1.0)
     except (ValueError, ZeroDivisionError):
-        raise SessionFileError(
-            f"a scale is a number or a fraction such as 1/16384, got {text!r}"
-        ) from None
+        kind = "a number or a fraction such as 1/16384" if fraction else "a number"
+        raise SessionFileError(f"{what} is not {kind}: {text!r}") from None
     if not (math.isfinite(value) and value > 0.0):
-        raise SessionFileError(f"a scale must be positive and finite, got {text!r}")
+        raise SessionFileError(f"{what} must be positive and finite, got {text!r}")
     return value
+
+
+def parse_scale(text: str | float) -> float:
+    """A count's size, a number or a fraction (``1/16384``): what a data sheet states as counts per unit."""
+    return _positive(str(text), "a scale", fraction=True)
 
 
 @dataclass(frozen=True)
@@ -354,15 +358,7 @@ def _metadata(comments: list[str]) -> dict[str, str]:
 def _gravity_from(metadata: dict[str, str], path: Path) -> float | None:
     if GRAVITY_KEY not in metadata:
         return None
-    try:
-        g = float(metadata[GRAVITY_KEY])
-    except ValueError:
-        raise SessionFileError(
-            f"{path}: comment {GRAVITY_KEY} is not a number: {metadata[GRAVITY_KEY]!r}"
-        ) from None
-    if not (math.isfinite(g) and g > 0):
-        raise SessionFileError(f"{path}: comment {GRAVITY_KEY} must be positive, got {g!r}")
-    return g
+    return _positive(metadata[GRAVITY_KEY], f"{path}: comment {GRAVITY_KEY}")
 
 
 def _all_numbers(fields: list[str]) -> bool:
@@ -716,14 +712,7 @@ def read_csv_session(
         raise problem
     if "t" not in col:
         assert rate is not None  # _check_header refuses a file with neither
-        try:
-            rate_hz = float(rate[1])
-        except ValueError:
-            rate_hz = math.nan
-        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
-            raise SessionFileError(
-                f"{path}: {rate[0]} must be a positive rate in Hz, got {rate[1]!r}"
-            )
+        rate_hz = _positive(rate[1], f"{path}: rate {rate[0]} (Hz)")
         col["t"] = np.arange(data.shape[0]) / rate_hz
         notes.append(
             f"no time column: time from {rate[0]}={rate[1]} Hz (sample k at k/{rate[1]} s)"
