@@ -64,7 +64,8 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sidecar",
         metavar="TOML",
-        help="nominal scale (SI per count) and offset (counts) of a raw-count pair; default: the packaged Xsens MTi sidecar",
+        help="nominal scale (SI per count) and offset (counts) of a raw-count pair (default: the packaged Xsens MTi "
+        "sidecar), or what a CSV session does not say: accel_scale, gyro_scale, the units, fs (protocols/session_file.py)",
     )
     add_unit_arguments(parser)
     g = parser.add_argument_group(
