@@ -51,6 +51,7 @@ from estimators.sixpos import (
     face_positions,
     find_full_turns,
     gyro_nine_from_turns,
+    six_face_session,
     six_position_accel,
 )
 from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
@@ -504,7 +505,7 @@ def calibration_estimates(result: ChainResult, *, turn_rad: float = FULL_TURN_RA
     """The best estimate of each triad the session allows (docs/methods.md, "M4 into the passport").
 
     M1's fit where it resolves all nine parameters. Otherwise the six-position
-    vector fit (accelerometers, when the positions hold all six faces) or the
+    vector fit (accelerometers, when the positions are the six faces) or the
     static means and full turns of ``turn_rad`` (gyros) supply what it does not:
     alone when M1's geometry fails, else for the parameters M1 leaves
     unobservable, M1's value kept for the others. A triad with no observable
@@ -556,9 +557,10 @@ def _accel_vector(
     vector fit for the rest) is a function of the position means ``m``; its
     covariance is ``Σ_k J_k P_k J_kᵀ`` with ``J_k`` its Jacobian by central
     differences and ``P_k`` the covariance of mean ``k`` (the two fits share data,
-    so their cross-covariance is in it).
+    so their cross-covariance is in it). Only in a session of six faces
+    (:func:`~estimators.sixpos.six_face_session`).
     """
-    faces = face_positions(positions)
+    faces = six_face_session(positions)
     if faces is None:
         return None
     index = [positions.index(p) for p in faces]

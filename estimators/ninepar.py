@@ -61,15 +61,25 @@ Observability (M1 leaves it open; decided here)
    so its smallest eigenvalue is at most 1/3) — no scheme could pass: the
    noise of the means, not the rotation axes, is the cause, and the reason
    says so (a MEMS gyro against Ω: the reference is not resolvable by it);
-3. rank of ``HᵀH`` below 9 or its condition number above ``max_condition``
-   (default 1e4), with ``H = regressors(û_k)`` and ``û_k`` the unit directions
-   of the means about their best-fitting sphere centre (the geometry of the
-   scheme, independent of the noise level and of the bias). The reason names
-   the least excited parameter combination (e.g. a six-position scheme does
-   not excite ``d1 d2 d3``). Note that M1's "rotate about at least two axes"
-   means *combined* rotations: two separate circles (turn about one axis,
-   return, turn about another) are still degenerate, since the pair of their
-   planes is a quadric through both, and this check reports it.
+3. rank of ``HᵀH`` below 9, with ``H = regressors(û_k)`` and ``û_k`` the unit
+   directions of the means about their best-fitting sphere centre (the geometry
+   of the scheme, independent of the noise level and of the bias), or a
+   parameter the linear fit's own covariance leaves undetermined: its σ at least
+   :data:`UNDETERMINED_SIGMA` (1/3, normalized), so that its 3σ interval reaches a
+   cosine of 1, a gain error of 100 % or a bias of the whole reference: the
+   positions cannot even place it inside the physical domain (the exact fit
+   then runs off along it, which is no fault of the unit). The reason names the least excited parameter combination
+   and the condition number (e.g. a six-position scheme does not excite
+   ``d1 d2 d3``). Not a fixed condition number: how ill-conditioned a geometry
+   may be depends on the noise of its means, which the covariance weighs (a
+   hand-posed ten-pose session, condition number 4e5, resolves eight of the nine
+   parameters of a MEMS accelerometer; a limit of 1e4 refused all nine and left
+   the session to a six-position fit its tilts contradict). ``max_condition``
+   (default none) remains as a caller's cap. Note that M1's "rotate about at
+   least two axes" means *combined* rotations: two separate circles (turn about
+   one axis, return, turn about another) are still degenerate, since the pair
+   of their planes is a quadric through both: the covariance of the
+   combinations they do not excite leaves them not observable.
 
 *Precision* (per parameter, :class:`ObservabilityRule`): parameter ``j`` is
 observable iff ``σ_j ≤ fraction · range_j``: its standard deviation is at most
@@ -184,17 +194,18 @@ class GeometryRule:
         units of the reference, for the positions to count as two rotation axes (default 0.05).
     noise_factor : that spread must also exceed this many noise standard deviations along
         the plane's normal (default 3).
-    max_condition : largest condition number of ``HᵀH`` accepted (default 1e4).
+    max_condition : largest condition number of ``HᵀH`` accepted (default: none, the covariance
+        judges, item 3).
     """
 
     min_plane_spread: float = 0.05
     noise_factor: float = 3.0
-    max_condition: float = 1.0e4
+    max_condition: float = np.inf
 
     def __post_init__(self) -> None:
         for name in ("min_plane_spread", "noise_factor", "max_condition"):
             value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0.0:
+            if np.isnan(value) or value <= 0.0 or (name != "max_condition" and np.isinf(value)):
                 raise ValueError(
                     f"GeometryRule.{name} must be a positive finite number, got {value!r}"
                 )
@@ -436,6 +447,27 @@ class _Geometry:
     gram: FloatArray | None  # HᵀH of the unit directions about the fitted centre
     centre: FloatArray | None  # best-fitting sphere centre, normalized
     reference_unresolvable: bool = False  # the means' noise exceeds any scheme's spread
+    weakest: str = ""  # the least excited parameter combination
+
+
+UNDETERMINED_SIGMA = 1.0 / 3.0
+"""A parameter whose σ (normalized) reaches this is not determined by the positions: 3σ spans the
+physical domain (module docstring, item 3)."""
+
+
+def _undetermined(geo: _Geometry, cov_p: FloatArray) -> _Geometry:
+    """``geo`` failed when the fit's covariance ``cov_p`` leaves a parameter undetermined."""
+    sigma = np.sqrt(np.clip(np.diag(cov_p), 0.0, None))
+    if np.all(sigma < UNDETERMINED_SIGMA):
+        return geo
+    worst = int(np.argmax(sigma))
+    return replace(
+        geo,
+        ok=False,
+        reason=f"positions do not excite all nine parameters: σ of {PARAM_NAMES[worst]} "
+        f"{sigma[worst]:.3g} from the fit's covariance (normalized; 3σ spans the physical domain "
+        f"from {UNDETERMINED_SIGMA:.3g}), condition number of HᵀH {geo.condition:.3g}; least excited: {geo.weakest}",
+    )
 
 
 MAX_PLANE_SPREAD = 1.0 / np.sqrt(3.0)
@@ -509,8 +541,9 @@ def _check_geometry(
             condition,
             gram,
             centre,
+            weakest=weakest,
         )
-    return _Geometry(True, "", rank, condition, gram, centre)
+    return _Geometry(True, "", rank, condition, gram, centre, weakest=weakest)
 
 
 def _rank_condition(gram: FloatArray) -> tuple[int, float, str]:
@@ -559,6 +592,8 @@ def estimate_linear(
     if not geo.ok:
         return _not_observable(triad, Method.LINEAR, geo, mean.shape[0], reference)
     params, cov_p, chi2 = _linear_solve(mean, cov, np.zeros(3))
+    if not (geo := _undetermined(geo, cov_p)).ok:
+        return _not_observable(triad, Method.LINEAR, geo, mean.shape[0], reference)
     return _finish(
         triad, Method.LINEAR, params, cov_p, chi2, mean.shape[0], geo, observability, reference
     )
@@ -608,7 +643,9 @@ def _refined(
     if not geo.ok:
         return _not_observable(triad, method, geo, mean.shape[0], reference), geo
     assert geo.centre is not None  # a geometry that is ok has its centre
-    start, _, _ = _linear_solve(mean, cov, geo.centre)
+    start, start_cov, _ = _linear_solve(mean, cov, geo.centre)
+    if not (geo := _undetermined(geo, start_cov)).ok:
+        return _not_observable(triad, method, geo, mean.shape[0], reference), geo
     params, cov_p, chi2, note = _refine(mean, cov, start, max_passes)
     if note:
         failed = _Geometry(False, note, geo.rank, geo.condition, geo.gram, geo.centre)

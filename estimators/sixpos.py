@@ -783,6 +783,17 @@ def face_positions(positions: Sequence[Position]) -> tuple[Position, ...] | None
     return tuple(near)
 
 
+def six_face_session(positions: Sequence[Position]) -> tuple[Position, ...] | None:
+    """The positions when every one is a face (within :data:`MAX_FACE_TILT_RAD` of an
+    axis-up/down attitude) and all six faces are among them; None otherwise. Only such a session
+    is the six-position vector fit's: a tilted pose beside the faces is data the vector model
+    does not hold, and a fit of the faces alone can contradict it (issue 30: a hand-posed
+    ten-pose session's z zero signal -0.43 m/s² from its faces, +0.34 from all its poses)."""
+    faces = face_positions(positions)
+    with_accel = [p for p in positions if p.accel_mean_mps2 is not None]
+    return faces if faces is not None and len(faces) == len(with_accel) else None
+
+
 def accel_vector_nine(
     positions: Sequence[Position], *, gravity_mps2: float
 ) -> tuple[FloatArray, FloatArray, int] | None:

@@ -64,6 +64,33 @@ median spread ``s̃`` is the triad's typical static spread. Then
 On the measured Xsens session this gives 0.040 m/s², 0.022 rad/s and a bound of
 0.01 rad/s about its zero signal: the same 38 positions as the fixed defaults.
 
+Hand-held holds
+---------------
+A unit held in the hand between bench rests shakes its gyros (tremor: window spreads of
+0.01–0.03 rad/s on the shared MPU-6050 session, 3–10× its bench rest's, mean rates up to
+0.03 rad/s) while its specific force stays put, so the thresholds of the bench rest miss the
+holds (4 of that session's 10 orientations). M1 needs of a position only that the unit does not
+accelerate and its mean specific force stands still (methods.md M1: "the scalar relation holds
+only for a static unit"), so a hold is a position when its means are stable within the noise:
+
+* a *held window* is a whole window whose accelerometer spread is within its threshold and
+  whose mean specific force differs from each neighbour's by at most
+  ``HELD_MEAN_FACTOR · √2 · s̃_acc / √W`` (the noise of the difference of two window means,
+  ``s̃_acc`` the quiet windows' typical spread): the orientation stands still;
+* a *hold* is at least ``ceil(HELD_MIN_S / window_s)`` consecutive held windows (1.5 s);
+* its *tremor windows* are those whose gyro spread exceeds the bench threshold while their mean
+  rate turns the unit by less than ``orientation_change_deg`` within one window (a turn is
+  no tremor).
+
+With tremor windows, the gyro spread threshold and the mean-rate bound are raised to
+``factor`` times their typical (median) spread and mean rate about the zero signal: the hand's
+tremor sets them as the bench's noise sets them for a rest. A session without holds that tremble
+keeps its thresholds. A turn keeps being seen: about a horizontal axis it moves the specific
+force (no held window); about the vertical, at any rate above the tremor's mean rates, the
+mean-rate bound sees it. On the MPU-6050 session: 0.046 rad/s and 0.012 rad/s, and the 10
+orientations its author's tool found (``static_intervals.csv``), each of its intervals inside one
+of ours.
+
 Orientation jumps
 -----------------
 Two neighbouring static samples belong to one static run only if one quiet
@@ -120,6 +147,10 @@ LOW_MODE_FACTOR = 2.0
 SPREAD_FLOOR_MPS2 = 1e-4
 SPREAD_FLOOR_RPS = 1e-5
 """Smallest derived spread thresholds (a noise-free, quantized simulation has zero spread)."""
+HELD_MIN_S = 1.5
+"""Shortest hand-held hold whose tremor sets the gyro thresholds (module docstring, "Hand-held holds")."""
+HELD_MEAN_FACTOR = 4.0
+"""Neighbouring window means of a held window differ by at most this many times their noise."""
 RATE_BOUND_FLOOR_RPS = 0.01
 """Smallest derived mean-rate bound: above the Earth rate's change between positions (2Ω ≈ 1.5e-4
 rad/s) and a MEMS gyro's g-sensitivity (≈ 1e-3 rad/s), below any hand or fixture turn (≳ 0.1 rad/s)."""
@@ -235,6 +266,7 @@ class StaticDetectorConfig:
         w = out.window_samples(session.rate_hz)
         quiet_means = None
         rate_bound = RATE_BOUND_FLOOR_RPS
+        windows: dict[bool, tuple[FloatArray, FloatArray, float]] = {}
         for x, is_gyro in ((session.accel_mps2, False), (session.gyro_rps, True)):
             if x is None:
                 continue
@@ -243,6 +275,7 @@ class StaticDetectorConfig:
                 continue
             low = spread <= LOW_MODE_FACTOR * np.quantile(spread, LOW_QUANTILE)
             typical = float(np.median(spread[low]))
+            windows[is_gyro] = (spread, means, typical)
             if is_gyro:
                 out = replace(out, gyro_std_rps=max(factor * typical, SPREAD_FLOOR_RPS))
                 quiet_means = means[low]
@@ -252,7 +285,41 @@ class StaticDetectorConfig:
         if quiet_means is not None and quiet_means.size:
             cx, cy, cz = (float(v) for v in np.median(quiet_means, axis=0))
             out = replace(out, gyro_rate_rps=rate_bound, gyro_rate_centre_rps=(cx, cy, cz))
+            if False in windows:
+                out = out._with_tremor(windows[False], windows[True], w, factor)
         return out
+
+    def _with_tremor(
+        self,
+        accel: tuple[FloatArray, FloatArray, float],
+        gyro: tuple[FloatArray, FloatArray, float],
+        w: int,
+        factor: float,
+    ) -> StaticDetectorConfig:
+        """These thresholds raised to the tremor of the session's hand-held holds (module
+        docstring, "Hand-held holds"); unchanged without one."""
+        a_spread, a_means, a_typical = accel
+        g_spread, g_means, _ = gyro
+        step = np.linalg.norm(np.diff(a_means, axis=0), axis=1)
+        still = step <= HELD_MEAN_FACTOR * math.sqrt(2.0) * a_typical / math.sqrt(w)
+        held = a_spread <= self.accel_std_mps2
+        held[1:] &= still
+        held[:-1] &= still
+        need = math.ceil(HELD_MIN_S / self.window_s - 1e-9)
+        # Runs of held windows: the run a window belongs to is counted by the breaks before it.
+        run_id = np.cumsum(~held)
+        run_len = np.bincount(run_id, weights=held)[run_id]
+        in_hold = held & (run_len >= need)
+        rate = np.linalg.norm(g_means - np.array(self.gyro_rate_centre_rps), axis=1)
+        turn_limit_rps = math.radians(self.orientation_change_deg) / self.window_s
+        tremor = in_hold & (g_spread > self.gyro_std_rps) & (rate <= turn_limit_rps)
+        if not np.any(tremor):
+            return self
+        return replace(
+            self,
+            gyro_std_rps=max(self.gyro_std_rps, factor * float(np.median(g_spread[tremor]))),
+            gyro_rate_rps=max(self.gyro_rate_rps or 0.0, factor * float(np.median(rate[tremor]))),
+        )
 
     def window_samples(self, rate_hz: float) -> int:
         """W, samples per window at ``rate_hz`` (at least 2)."""

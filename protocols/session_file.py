@@ -146,20 +146,51 @@ SI_PER_UNIT: dict[StrEnum, float] = {
 
 UNIT_KEYS = {"accel": "accel_unit", "gyro": "gyro_unit", "time": "time_unit"}
 """The ``# key = value`` comment of a CSV file that declares each unit."""
+SCALE_KEYS = {"accel": "accel_scale", "gyro": "gyro_scale"}
+"""The ``# key = value`` comment (or ``key,value`` line, or sidecar key) that states a count's size."""
+RATE_KEYS = ("fs", "rate_hz", "sample_rate_hz", "sampling_rate_hz", "rate")
+"""Metadata keys (any case) whose value is the sample rate, Hz: the time of a file without a time column."""
 
 _UNIT_OPTION = {"accel": "--accel-unit", "gyro": "--gyro-unit", "time": "--time-unit"}
 _UNIT_WORD = {"accel": "accelerometer", "gyro": "gyro", "time": "time"}
 
 
+def _positive(text: str, what: str, *, fraction: bool = False) -> float:
+    """``text`` as a positive finite number (or ``a/b`` with ``fraction``); the error names ``what``."""
+    num, sep, den = text.partition("/") if fraction else (text, "", "")
+    try:
+        value = float(num) / (float(den) if sep else 1.0)
+    except (ValueError, ZeroDivisionError):
+        kind = "a number or a fraction such as 1/16384" if fraction else "a number"
+        raise SessionFileError(f"{what} is not {kind}: {text!r}") from None
+    if not (math.isfinite(value) and value > 0.0):
+        raise SessionFileError(f"{what} must be positive and finite, got {text!r}")
+    return value
+
+
+def parse_scale(text: str | float) -> float:
+    """A count's size, a number or a fraction (``1/16384``): what a data sheet states as counts per unit."""
+    return _positive(str(text), "a scale", fraction=True)
+
+
 @dataclass(frozen=True)
 class SessionUnits:
-    """Units of a session file's columns; None: not declared (the file's comment, else SI)."""
+    """Units of a session file's columns; None: not declared (the file's comment, else SI).
+
+    ``accel_scale``, ``gyro_scale``: the size of one count in the triad's unit when its columns hold
+    raw counts (``1/16384`` with ``accel = g`` for a ±2 g MPU-6050); None: the columns hold values.
+    """
 
     accel: AccelUnit | None = None
     gyro: GyroUnit | None = None
     time: TimeUnit | None = None
+    accel_scale: float | None = None
+    gyro_scale: float | None = None
 
     def __post_init__(self) -> None:
+        for name in ("accel_scale", "gyro_scale"):
+            if (value := getattr(self, name)) is not None:
+                object.__setattr__(self, name, parse_scale(value))
         for name, kind in (("accel", AccelUnit), ("gyro", GyroUnit), ("time", TimeUnit)):
             value = getattr(self, name)
             if value is not None:
@@ -174,30 +205,40 @@ class SessionUnits:
     def over(self, other: SessionUnits) -> SessionUnits:
         """These units where declared, else ``other``'s."""
         return SessionUnits(
-            self.accel or other.accel, self.gyro or other.gyro, self.time or other.time
+            self.accel or other.accel,
+            self.gyro or other.gyro,
+            self.time or other.time,
+            self.accel_scale or other.accel_scale,
+            self.gyro_scale or other.gyro_scale,
         )
 
     def resolved(self) -> SessionUnits:
-        """Undeclared units as SI."""
+        """Undeclared units as SI (an undeclared scale stays None: the columns hold values)."""
         return self.over(SessionUnits(AccelUnit.MPS2, GyroUnit.RPS, TimeUnit.S))
 
     def to_si(self, session: ImuSession) -> ImuSession:
         """A new session in SI (the input arrays are not modified)."""
         u = self.resolved()
 
-        def scaled(x: np.ndarray | None, unit: StrEnum | None) -> np.ndarray | None:
-            return None if x is None or unit is None else x * SI_PER_UNIT[unit]
+        def scaled(
+            x: np.ndarray | None, unit: StrEnum | None, count: float | None
+        ) -> np.ndarray | None:
+            if x is None or unit is None:
+                return None
+            return x * (SI_PER_UNIT[unit] * (1.0 if count is None else count))
 
         return replace(
             session,
             t_s=session.t_s * SI_PER_UNIT[u.time or TimeUnit.S],
-            accel_mps2=scaled(session.accel_mps2, u.accel),
-            gyro_rps=scaled(session.gyro_rps, u.gyro),
+            accel_mps2=scaled(session.accel_mps2, u.accel, u.accel_scale),
+            gyro_rps=scaled(session.gyro_rps, u.gyro, u.gyro_scale),
         )
 
     def to_dict(self) -> dict[str, str]:
         u = self.resolved()
-        return {k: str(getattr(u, k)) for k in UNIT_KEYS}
+        out = {k: str(getattr(u, k)) for k in UNIT_KEYS}
+        out.update({SCALE_KEYS[k]: repr(v) for k in SCALE_KEYS if (v := getattr(u, f"{k}_scale"))})
+        return out
 
 
 @dataclass(frozen=True)
@@ -211,6 +252,8 @@ class LoadedSession:
     metadata : ``key = value`` comment lines of a CSV file (strings).
     source : the file or files read.
     units : the units the columns were read in (converted to SI in ``session``).
+    notes : what the reader did that a user must be told (metadata lines read, the time made
+        from a rate, columns not read, rows dropped, with their counts): one line each.
     """
 
     session: ImuSession
@@ -218,6 +261,7 @@ class LoadedSession:
     metadata: dict[str, str] = field(default_factory=dict)
     source: str = ""
     units: SessionUnits = field(default_factory=lambda: SessionUnits().resolved())
+    notes: tuple[str, ...] = ()
 
 
 # --- generic numeric table ---------------------------------------------------
@@ -314,15 +358,7 @@ def _metadata(comments: list[str]) -> dict[str, str]:
 def _gravity_from(metadata: dict[str, str], path: Path) -> float | None:
     if GRAVITY_KEY not in metadata:
         return None
-    try:
-        g = float(metadata[GRAVITY_KEY])
-    except ValueError:
-        raise SessionFileError(
-            f"{path}: comment {GRAVITY_KEY} is not a number: {metadata[GRAVITY_KEY]!r}"
-        ) from None
-    if not (math.isfinite(g) and g > 0):
-        raise SessionFileError(f"{path}: comment {GRAVITY_KEY} must be positive, got {g!r}")
-    return g
+    return _positive(metadata[GRAVITY_KEY], f"{path}: comment {GRAVITY_KEY}")
 
 
 def _all_numbers(fields: list[str]) -> bool:
@@ -333,7 +369,7 @@ def _all_numbers(fields: list[str]) -> bool:
     return True
 
 
-def _check_header(path: Path, lineno: int, names: list[str]) -> None:
+def _check_header(path: Path, lineno: int, names: list[str], *, has_rate: bool = False) -> None:
     expected = "t,ax,ay,az,gx,gy,gz[,temp]"
     if len(names) == 1 and (sep := next((c for c in ";\t" if c in names[0]), None)):
         # A spreadsheet's export in a locale whose list separator is ';' (its decimals then ',').
@@ -350,8 +386,11 @@ def _check_header(path: Path, lineno: int, names: list[str]) -> None:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise SessionFileError(f"{path}: line {lineno}: duplicate column {dup[0]!r}")
-    if "t" not in names:
-        raise SessionFileError(f"{path}: line {lineno}: missing column 't' (expected {expected})")
+    if "t" not in names and not has_rate:
+        raise SessionFileError(
+            f"{path}: line {lineno}: missing column 't' (expected {expected}), and no rate line "
+            f"({', '.join(RATE_KEYS)}) to give the time"
+        )
     for triad in (ACCEL_COLUMNS, GYRO_COLUMNS):
         present = [c for c in triad if c in names]
         if present and len(present) < 3:
@@ -374,6 +413,10 @@ class CsvDialect:
     units: SessionUnits
     ignored_prefixes: tuple[str, ...] = ()
     """Columns of the format that hold nothing read here (a ROS message's other fields)."""
+    ignore_others: bool = False
+    """Any column not in ``columns`` is not read (and said), rather than not this format."""
+    delimiter: str | None = ","
+    """Between fields (None: white space)."""
 
     def ours(self, names: list[str]) -> list[str | None] | None:
         """Our column for each of ``names`` (None: ignored), or None when they are not this format."""
@@ -381,11 +424,12 @@ class CsvDialect:
         for n in names:
             if n in self.columns:
                 out.append(self.columns[n])
-            elif n.startswith(self.ignored_prefixes):  # False for no prefixes
+            elif self.ignore_others or n.startswith(self.ignored_prefixes):  # False for no prefixes
                 out.append(None)
             else:
                 return None
-        return out
+        kept = [n for n in out if n is not None]
+        return out if len(kept) == len(set(kept)) else None
 
 
 _SI_NS = SessionUnits(AccelUnit.MPS2, GyroUnit.RPS, TimeUnit.NS)
@@ -427,6 +471,30 @@ EuRoC's header line starts with ``#`` (a comment here): it is taken as the heade
 names that format's columns."""
 
 
+WHITESPACE_TABLE = CsvDialect(
+    "whitespace-separated table with a '#' header",
+    {
+        **{name: "t" for name in ("t", "time", "timestamp", "time_s")},
+        **{
+            pattern.format(axis): f"{ours}{axis}"
+            for axis in "xyz"
+            for ours, patterns in (
+                ("a", ("a{}", "t{}", "acc_{}", "accel_{}")),
+                ("g", ("g{}", "w{}", "gyr_{}", "gyro_{}")),
+            )
+            for pattern in patterns
+        },
+    },
+    SessionUnits(AccelUnit.MPS2, GyroUnit.RPS, None),
+    ignore_others=True,
+    delimiter=None,
+)
+"""A space-separated table whose ``#`` line names its columns, TUM-style (``# time tx ty tz wx wy wz
+mx my mz qw qx qy qz``: ``t`` for the translational acceleration, ``w`` the angular rate), in SI
+with the time in s unless declared; columns not named here (magnetometer, quaternion) are not read,
+and said."""
+
+
 def _dialect_of(names: list[str]) -> tuple[CsvDialect, list[str | None]] | None:
     for dialect in CSV_DIALECTS:
         ours = dialect.ours(names)
@@ -446,50 +514,179 @@ def _commented_header(text: str) -> tuple[int, str] | None:
     return None
 
 
+def _meta_get(metadata: dict[str, str], *keys: str) -> tuple[str, str] | None:
+    """The first of ``keys`` the metadata holds, in any case: (its key as written, its value)."""
+    lower = {k.lower(): k for k in metadata}
+    for key in keys:
+        if key in lower:
+            return lower[key], metadata[lower[key]]
+    return None
+
+
 def _file_units(metadata: dict[str, str], path: Path) -> SessionUnits:
-    declared = [metadata.get(UNIT_KEYS[k]) for k in ("accel", "gyro", "time")]
+    declared = [
+        None if (kv := _meta_get(metadata, key)) is None else kv[1]
+        for key in (*UNIT_KEYS.values(), *SCALE_KEYS.values())
+    ]
     try:
-        return SessionUnits(*(None if v is None else v for v in declared))  # type: ignore[arg-type]
+        return SessionUnits(*declared)  # type: ignore[arg-type]
     except SessionFileError as exc:
         raise SessionFileError(f"{path}: comment {exc}") from None
 
 
+def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
+    """The ``#`` line just above the first data line, when it names a :data:`WHITESPACE_TABLE`'s
+    columns and that data line is whitespace-separated with as many fields."""
+    previous: tuple[int, str] | None = None
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s:
+            continue
+        if not s.startswith("#"):
+            if previous is None or "," in s or "," in previous[1]:
+                return None
+            names = previous[1].lstrip("#").lower().split()
+            ours = WHITESPACE_TABLE.ours(names)
+            fits = ours is not None and "t" in ours and len(s.split()) == len(names)
+            return (previous[0], names) if fits else None
+        previous = (lineno, s)
+    return None
+
+
+def _metadata_rows(rows: list[tuple[int, str]]) -> int:
+    """How many leading rows are ``key,value`` metadata (an Arduino logger's ``Fs,100``): rows of
+    two fields, the first not a number, before a header of more fields that is not all numbers."""
+    k = 0
+    while (
+        k < len(rows) and len(fields := rows[k][1].split(",")) == 2 and not _all_numbers(fields[:1])
+    ):
+        k += 1
+    if k == 0 or k == len(rows):
+        return 0
+    header = rows[k][1].split(",")
+    return k if len(header) > 2 and not _all_numbers(header) else 0
+
+
+def _trailing_junk(rows: list[tuple[int, str]], delimiter: str | None) -> int:
+    """How many rows at the end hold no number at all (a spreadsheet's empty ``,,,,,,`` rows, a
+    label): junk, not data. A row with a number in it is a damaged sample, refused by name."""
+    k = len(rows)
+    while k > 0 and not any(_all_numbers([f]) for f in rows[k - 1][1].split(delimiter)):
+        k -= 1
+    return len(rows) - k
+
+
+def _counts_without_scale(
+    path: Path, data: dict[str, np.ndarray], declared: SessionUnits
+) -> SessionFileError | None:
+    """Whole-number triads no unit or scale was declared for, implausible as SI: raw counts (an
+    MPU-6050's ±16384 per g), whose scale only the user knows. The error names what is missing."""
+    missing = []
+    for kind, cols, word in (
+        ("accel", ACCEL_COLUMNS, "accelerometer"),
+        ("gyro", GYRO_COLUMNS, "gyro"),
+    ):
+        if cols[0] not in data or getattr(declared, kind) or getattr(declared, f"{kind}_scale"):
+            continue
+        x = np.column_stack([data[c] for c in cols])
+        x = x[np.all(np.isfinite(x), axis=1)]
+        if not x.size or np.any(x != np.round(x)):
+            continue
+        norm = np.linalg.norm(x, axis=1)
+        median = float(np.median(norm))
+        si_plausible = (
+            _plausible("accel", median, AccelUnit.MPS2)
+            if kind == "accel"
+            else median <= GYRO_MEDIAN_LIMIT_RPS
+            and float(np.percentile(norm, 99.5)) <= GYRO_P995_LIMIT_RPS
+        )
+        if not si_plausible:
+            missing.append((kind, word, median))
+    if not missing:
+        return None
+    said = " and ".join(
+        f"the {word} values are whole numbers (median {m:.6g})" for _, word, m in missing
+    )
+    what = ", ".join(f"--{kind}-scale (one count in --{kind}-unit)" for kind, _, _ in missing)
+    keys = " and ".join(f"'{SCALE_KEYS[kind]}'" for kind, _, _ in missing)
+    return SessionFileError(
+        f"{path}: {said}: raw counts, whose scale is not stated; missing: {what}, or {keys} "
+        "in the file or a sidecar (e.g. an MPU-6050 at ±2 g and ±250 °/s: --accel-scale 1/16384 "
+        "--accel-unit g --gyro-scale 1/131 --gyro-unit deg/s)"
+    )
+
+
 def read_csv_session(
-    path: str | os.PathLike[str], *, units: SessionUnits = SessionUnits()
+    path: str | os.PathLike[str],
+    *,
+    units: SessionUnits = SessionUnits(),
+    sidecar: dict[str, str] | None = None,
 ) -> LoadedSession:
     """Read a CSV session file (format in the module docstring) and convert it to SI.
 
-    ``units`` declares the columns' units; where it leaves one None the file's
-    ``# <triad>_unit = …`` comment applies, else SI. The units used are in
-    ``LoadedSession.units``; call :func:`check_units` to refuse implausible ones.
+    ``units`` declares the columns' units and count sizes; where it leaves one None the
+    ``sidecar``'s key applies, then the file's ``# <triad>_unit = …`` comment or ``key,value``
+    line, else SI. The units used are in ``LoadedSession.units``; call :func:`check_units` to
+    refuse implausible ones. What the reader did beyond reading (metadata lines, a time made from
+    the rate, columns not read, trailing rows dropped) is in ``LoadedSession.notes``.
     """
     path = Path(path)
     text = _read_text(path)
     rows, comments = _split_lines(path, text)
+    notes: list[str] = []
+    delimiter: str | None = ","
     if (commented := _commented_header(text)) is not None:
         rows.insert(0, commented)
         comments.remove(commented[1][1:].strip())
+    elif (spaced := _whitespace_header(text)) is not None:
+        rows.insert(0, (spaced[0], " ".join(spaced[1])))
+        delimiter = None
+    meta = _metadata(comments)
+    if n_meta := _metadata_rows(rows):
+        pairs = [tuple(f.strip() for f in text.split(",")) for _, text in rows[:n_meta]]
+        meta.update({k: v for k, v in pairs if k not in meta})
+        notes.append(
+            f"{n_meta} metadata line(s) before the header read: "
+            + ", ".join(f"{k}={v}" for k, v in pairs)
+        )
+        del rows[:n_meta]
+    meta.update(sidecar or {})
     if not rows:
         raise SessionFileError(f"{path}: empty file (no header row t,ax,ay,az,gx,gy,gz[,temp])")
     header_line, header = rows[0]
-    if _all_numbers(header.split()):
+    if delimiter == "," and _all_numbers(header.split()):
         raise SessionFileError(
             f"{path}: line {header_line}: no header row; this looks like one file of a raw-count pair "
-            "(give the gyro file too, or the directory holding both)"
+            "(give the gyro file too, or the directory holding both); a space-separated table needs "
+            "a '#' line naming its columns just above the first row (# time ax ay az gx gy gz)"
         )
-    names = [n.strip().lower() for n in header.split(",")]
-    meta = _metadata(comments)
+    names = [n.strip().lower() for n in header.split(delimiter)]
+    n_fields = len(names)
     file_units = _file_units(meta, path)
     used_cols: list[int] | None = None
-    if (found := _dialect_of(names)) is not None:
-        dialect, ours = found
+    found = (
+        (WHITESPACE_TABLE, WHITESPACE_TABLE.ours(names))
+        if delimiter is None
+        else _dialect_of(names)
+    )
+    if found is not None and found[1] is not None:
+        dialect, ours = found[0], found[1]
         used_cols = [k for k, n in enumerate(ours) if n is not None]
+        if ignored := [n for n, o in zip(names, ours, strict=True) if o is None]:
+            if dialect.ignore_others:
+                notes.append(f"{len(ignored)} column(s) not read: {' '.join(ignored)}")
         names = [n for n in ours if n is not None]
         # The format fixes its units: written down as if the file had said them.
         file_units = file_units.over(dialect.units)
-        meta = {"format": dialect.name, **dialect.units.to_dict(), **meta}
+        said = {
+            k: v
+            for k, v in dialect.units.to_dict().items()
+            if k != "time_unit" or dialect.units.time
+        }
+        meta = {"format": dialect.name, **said, **meta}
+    rate = _meta_get(meta, *RATE_KEYS)
     try:
-        _check_header(path, header_line, names)
+        _check_header(path, header_line, names, has_rate=rate is not None)
     except SessionFileError as exc:
         if found is None:
             raise
@@ -499,8 +696,37 @@ def read_csv_session(
         ) from None
     if len(rows) == 1:
         raise SessionFileError(f"{path}: no data rows after the header (line {header_line})")
-    data = _parse_rows(path, rows[1:], tuple(names), ",", used_cols, header.count(",") + 1)
+    used = list(range(n_fields)) if used_cols is None else used_cols
+    junk = _trailing_junk(rows[1:], delimiter)
+    # Rows that are all junk are a wrong file, not a spreadsheet's tail: the first is named below.
+    if 0 < junk < len(rows) - 1:
+        first, last = rows[-junk][0], rows[-1][0]
+        notes.append(
+            f"{junk} row(s) at the end that are no data dropped (lines {first}-{last}, "
+            f"first {rows[-junk][1][:40]!r})"
+        )
+        del rows[-junk:]
+    data = _parse_rows(path, rows[1:], tuple(names), delimiter, used_cols, n_fields)
     col = {n: data[:, k] for k, n in enumerate(names)}
+    if (problem := _counts_without_scale(path, col, units.over(file_units))) is not None:
+        raise problem
+    if "t" not in col:
+        assert rate is not None  # _check_header refuses a file with neither
+        rate_hz = _positive(rate[1], f"{path}: rate {rate[0]} (Hz)")
+        col["t"] = np.arange(data.shape[0]) / rate_hz
+        notes.append(
+            f"no time column: time from {rate[0]}={rate[1]} Hz (sample k at k/{rate[1]} s)"
+        )
+        file_units = file_units.over(SessionUnits(time=TimeUnit.S))
+        meta.setdefault(UNIT_KEYS["time"], "s")
+    elif "e" in (first_t := rows[1][1].split(delimiter)[used[names.index("t")]]).lower():
+        # A spreadsheet writes large stamps so, rounded to its digits: repeats are dropped and
+        # counted by the validation, as any repeated stamp.
+        repeats = int(np.count_nonzero(np.diff(col["t"]) <= 0))
+        notes.append(
+            f"time stamps in E-notation (first {first_t.strip()!r}): {repeats} repeat an earlier "
+            "one or go back at the precision written"
+        )
 
     def triad(cols: tuple[str, ...]) -> np.ndarray | None:
         return np.column_stack([col[c] for c in cols]) if cols[0] in col else None
@@ -511,8 +737,15 @@ def read_csv_session(
         triad(GYRO_COLUMNS),
         col["temp"].copy() if "temp" in col else None,
     )
-    used = units.over(file_units).resolved()
-    return LoadedSession(used.to_si(session), _gravity_from(meta, path), meta, str(path), used)
+    used_units = units.over(file_units).resolved()
+    return LoadedSession(
+        used_units.to_si(session),
+        _gravity_from(meta, path),
+        meta,
+        str(path),
+        used_units,
+        tuple(notes),
+    )
 
 
 def write_csv_session(
@@ -716,12 +949,13 @@ def load_session(
     * ``path`` + ``gyro_path``: an Xsens raw-count pair (accelerometer file, gyro file);
     * a directory: the raw-count pair inside it (see :func:`find_xsens_pair`),
       with the directory's own ``*.toml`` sidecar if it has one;
-    * a file: a CSV session file.
+    * a file: a CSV session file (or a space-separated table with a ``#`` header).
 
     The nominal conversion of a pair is ``nominal`` if given, else the
     ``sidecar`` file, else the directory's sidecar, else the packaged default.
     ``units`` declares the units of a CSV file's columns (a raw-count pair is
-    converted by its sidecar: declaring units for it is an error).
+    converted by its sidecar: declaring units for it is an error); a CSV file's
+    ``sidecar`` states what the file does not (:func:`load_csv_sidecar`).
     """
     path = Path(path)
     if gyro_path is None and path.is_dir():
@@ -737,7 +971,27 @@ def load_session(
         return read_xsens_pair(path, gyro_path, nominal=nominal)
     if not path.exists():
         raise FileNotFoundError(f"no such session file: {path}")
-    return read_csv_session(path, units=units)
+    return read_csv_session(
+        path, units=units, sidecar=None if sidecar is None else load_csv_sidecar(sidecar)
+    )
+
+
+CSV_SIDECAR_KEYS = (*UNIT_KEYS.values(), *SCALE_KEYS.values(), *RATE_KEYS, GRAVITY_KEY)
+
+
+def load_csv_sidecar(path: str | os.PathLike[str]) -> dict[str, str]:
+    """A CSV session's TOML sidecar: what its file does not say (``accel_scale = "1/16384"``,
+    ``accel_unit = "g"``, ``fs = 100`` …, keys :data:`CSV_SIDECAR_KEYS`), as metadata strings."""
+    try:
+        doc = tomllib.loads(_read_text(Path(path)))
+    except tomllib.TOMLDecodeError as exc:
+        raise SessionFileError(f"{path}: not valid TOML: {exc}") from None
+    unknown = sorted(set(doc) - set(CSV_SIDECAR_KEYS))
+    if unknown:
+        raise SessionFileError(
+            f"{path}: unknown sidecar key(s) {', '.join(unknown)} (known: {', '.join(CSV_SIDECAR_KEYS)})"
+        )
+    return {k: str(v) for k, v in doc.items()}
 
 
 def read_session(

@@ -16,11 +16,13 @@ from protocols.session_file import (
     AccelUnit,
     GyroUnit,
     LoadedSession,
+    SessionFileError,
     SessionUnits,
     TimeUnit,
     UnitsError,
     check_units,
     load_session,
+    parse_scale,
 )
 from service.cli import UsageError
 
@@ -62,7 +64,8 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sidecar",
         metavar="TOML",
-        help="nominal scale (SI per count) and offset (counts) of a raw-count pair; default: the packaged Xsens MTi sidecar",
+        help="nominal scale (SI per count) and offset (counts) of a raw-count pair (default: the packaged Xsens MTi "
+        "sidecar), or what a CSV session does not say: accel_scale, gyro_scale, the units, fs (protocols/session_file.py)",
     )
     add_unit_arguments(parser)
     g = parser.add_argument_group(
@@ -132,6 +135,25 @@ def add_unit_arguments(parser: argparse.ArgumentParser) -> None:
             metavar="UNIT",
             help=f"unit of the {what} columns ({', '.join(k.value for k in kind)})",
         )
+    for name, example in (
+        ("accel", "1/16384 with --accel-unit g"),
+        ("gyro", "1/131 with --gyro-unit deg/s"),
+    ):
+        u.add_argument(
+            f"--{name}-scale",
+            type=_scale,
+            metavar="SIZE",
+            help=f"the columns hold raw counts of this size in the {name} unit, a number or a "
+            f"fraction (MPU-6050 ±2 g / ±250 °/s: {example}); whole numbers implausible as SI "
+            "without a scale are refused",
+        )
+
+
+def _scale(text: str) -> float:
+    try:
+        return parse_scale(text)
+    except SessionFileError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def load_units_checked(
@@ -145,8 +167,16 @@ def load_units_checked(
     """The session in SI, refused with one line when its values are implausible in their units;
     ``faulty_accel_ok``: a verdict's, whose accelerometer no unit fits is tested as read
     (:func:`protocols.session_file.check_units`, said on stderr)."""
-    declared = SessionUnits(args.accel_unit, args.gyro_unit, args.time_unit)
+    declared = SessionUnits(
+        args.accel_unit,
+        args.gyro_unit,
+        args.time_unit,
+        args.accel_scale,
+        args.gyro_scale,
+    )
     loaded = load_session(path, gyro_file, sidecar=sidecar, units=declared)
+    for said in loaded.notes:
+        print(f"ins-health: {path}: {said}", file=sys.stderr)
     if "format" in loaded.metadata:
         u = loaded.units
         print(

@@ -13,8 +13,12 @@ from pathlib import Path
 import pytest
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
-XSENS = SHARED / "data" / "measured" / "xsens-multiposition"
-LOGS = SHARED / "data" / "logs"
+DATA = SHARED / "data"
+XSENS = DATA / "measured" / "xsens-multiposition"
+LOGS = DATA / "logs"
+FIELD = DATA / "field"
+MPU6050 = FIELD / "mpu6050-multiposition"
+MPU6050_SESSION = MPU6050 / "example_data_calibration.csv"
 REAL_BIN = LOGS / "ardupilot-test.BIN"
 REAL_TLOG = LOGS / "ardupilot-sitl-vtol.tlog"
 

@@ -303,4 +303,5 @@ def test_every_step_of_calibrate_past_the_bound_is_named_on_stderr(
         "the audit (5 replicas)",
         "the fit with the audited noise",
         "the passport's estimates",
+        "the passport against its own session",
     ]

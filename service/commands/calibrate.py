@@ -9,11 +9,17 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from estimators.conventions import Grade, Triad, reference_magnitude
 from service.cli import UsageError, add_output, progress_step, stderr_progress
 from service.grades import FLOOR_GRADE, SENSOR_CLASSES, grade_name
 from service.session_args import add_session_arguments, load_session_input, time_gap_line
+
+if TYPE_CHECKING:
+    from estimators.chain import ChainConfig, ChainResult
+    from estimators.ninepar import Estimate
+    from estimators.passport import Passport
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -68,6 +74,36 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="Monte Carlo replicas of the audit (default 20)",
     )
     p.set_defaults(func=run)
+
+
+def own_session_check(
+    result: ChainResult, passport: Passport, config: ChainConfig, estimates: dict[Triad, Estimate]
+) -> str | None:
+    """Why ``passport`` must not be written, or None: F0 of its own session against it, as
+    ``diagnose`` runs it, fails persistently (a fit its positions contradict: a six-position fit
+    of a session's faces that its tilts do not obey, a session with a fault in it). Healthy
+    data leave F0's false-alarm rate, not a persistent failure."""
+    from service.commands.diagnose import f0_faults, f0_report
+
+    with progress_step("calibrate", "the passport against its own session"):
+        failed = f0_faults(f0_report(result, passport, config))
+    if not failed:
+        return None
+    parts = []
+    for f in failed:
+        est = estimates[Triad(f["triad"])]
+        methods = sorted(set(est.sources or (est.method.value,)))
+        parts.append(
+            f"F0 fails persistently on {f['failed']} of {f['tested']} static samples of the "
+            f"{f['triad']} triad from {f['first_t_s']:.3f} s (worst |½(|ã|²−1)| {f['worst']:.3g} "
+            f"against λ0 {f['tolerance']:.3g}) with its {' and '.join(methods)}"
+        )
+    return (
+        "the passport contradicts its own session, not written: "
+        + "; ".join(parts)
+        + ": its parameters do not explain the session's positions (a fault in the session, or "
+        "poses the fit does not hold; `diagnose` of the session says which)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -141,6 +177,9 @@ def run(args: argparse.Namespace) -> int:
         grade=Grade(FLOOR_GRADE[args.grade]),
         bias_instability_std=instability,
     )
+    refusal = own_session_check(result, passport, config, estimates)
+    if refusal is not None:
+        raise UsageError(refusal)
     write_passport_json(passport, args.out)
     print(
         f"calibrate: {len(result.positions)} positions ({len(result.position_rejections)} intervals rejected or merged), g = {inp.gravity_mps2:.5f} m/s² ({inp.gravity_source})",
