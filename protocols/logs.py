@@ -530,6 +530,12 @@ class LogReader:
                 self.stats.skipped[f"{accel}.{inst}"] = (
                     f"{pairer.unpaired_accel} samples without a {gyro} sample near in time"
                 )
+        for name in ("ISBH", "ISBD"):
+            if held := self.stats.held.get(name):
+                self.stats.skipped[name] = (
+                    f"{held} messages of the batch sampler's raw samples: read into the report's firmware "
+                    "section (noise, spectra, clipping), not replayed through the pipeline"
+                )
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
         self.stats.logger_lost = refused[1] if refused else 0
 
