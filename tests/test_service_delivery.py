@@ -11,6 +11,7 @@ import pytest
 import zenoh
 from pymavlink import mavutil
 from service_support import (
+    EventStream,
     free_udp_port,
     mavlink_packets,
     of_type,
@@ -220,3 +221,43 @@ def test_a_data_directory_turned_read_only_past_storage_timeout_ends_the_daemon_
         "storage unavailable for" in line and "storage_timeout_s = 5" in line
         for line in daemon.lines
     )
+
+
+def test_the_same_fault_at_the_same_uptime_after_a_reboot_is_a_new_event_delivered_once(tmp_path):
+    """The vehicle reboots (its seq and time since boot start again) and the same fault returns at the
+    same uptime (class 4). Its event is a new one of the new epoch and reaches the ground station
+    (before: it had the first one's id, and the outbox dropped it as already delivered); every event
+    arrives once, as the same frames give offline."""
+    v = "uav-e"
+    frames = to_the_fault(v, batch_samples=200)
+    offline = offline_fleet()
+    first = [e.event_id for e in run_fleet(offline, frames, finish=False)]
+    after = run_fleet(offline, frames, finish=False)
+    assert [e.epoch for e in after] == [1] * len(after) and after[-1].predicate is Predicate.F0
+    want = first + [e.event_id for e in after]
+    with ground_and_vehicle(tmp_path, put_store(tmp_path, [(v, 0)])) as (
+        config,
+        ground,
+        vehicle,
+        status,
+    ):
+        got = []
+        wire = EventStream(ground)
+        with EventReceiver(ground, lambda e: got.append(e.event_id)):
+            daemon = ServiceProcess(config)
+            try:
+                wait_subscribed(vehicle, frame_key(v, 0))
+                publish_blocking(vehicle, frames)
+                wait_until(
+                    lambda: got == first,
+                    timeout_s=DELIVERY_BOUND_S,
+                    what=lambda: f"the first fault ({got})",
+                )
+                publish_blocking(vehicle, frames)
+                wait_until(lambda: got == want, timeout_s=DELIVERY_BOUND_S,
+                           what=lambda: f"the fault after the reboot (got {got}, want {want})")  # fmt: skip
+                wait_until(lambda: status.counter(v, "imu0.new_runs") == 1, timeout_s=30,
+                           what=lambda: f"the new run counted ({status.get(v)})")  # fmt: skip
+            finally:
+                assert daemon.terminate() == 0, daemon.lines
+    assert wire.snapshot() == want
