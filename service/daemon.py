@@ -12,12 +12,13 @@ Tasks of :meth:`Service.run`
   "thread"``). Each
   frame goes through its (vehicle, IMU) pipeline (:class:`service.intake.Intake`); the events it raises are written to the
   outbox in one transaction *before* any sink sees them. While the outbox cannot take them (disk
-  full, file locked by another process) they are held in memory and retried, and no frame is taken
-  (back-pressure), no checkpoint written and no timeout checked until it can
-  (:mod:`service.outbox_writer`); the status topic says ``outbox.unavailable``.
-* **delivery**, one per sink (:mod:`service.sinks`) — reads the sink's pending events from the outbox
-  in order, hands each to its transport, acks what the transport accepted,
-  and retries the rest every ``delivery_retry_s``. Zenoh: the event stream on
+  full or read-only, file locked by another process, data directory gone) they are held in memory
+  and delivered from there while frames are still taken (detection goes on), and no checkpoint is
+  written ahead of an event not yet with every sink (:mod:`service.outbox_writer`); the status
+  topic says ``outbox.unavailable``.
+* **delivery**, one per sink (:mod:`service.sinks`, :mod:`service.delivery`) — a lane per vehicle
+  with pending events: its events in order to the transport, acks what the transport accepted; a
+  vehicle whose event is refused is retried after ``delivery_retry_s`` while the others go on. Zenoh: the event stream on
   ``ins/<vehicle>/health/events``, acknowledged end to end by the receiving
   application (:class:`protocols.zenoh_adapter.EventPublisher`, ``[zenoh]
   event_ack``); each attempt puts the event again, so a plain subscriber that
@@ -39,6 +40,9 @@ Tasks of :meth:`Service.run`
   store cannot write (disk full, file locked by another process) ends neither the task nor the
   daemon: the state stays in memory and is saved by the next attempt, retried with back-off
   (:class:`service.checkpoint.SaveFailures`); the status topic says ``checkpoints.unavailable``.
+* **storage** — the held events written once the outbox takes them again (back-off), the data
+  directory checked (removed or replaced: a storage fault, its stores' writes refused); storage
+  away past ``storage_timeout_s`` stops the daemon with :data:`EXIT_STORAGE`.
 * **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
 * **mavlink-open** — only while the MAVLink device cannot be opened (a serial adapter not plugged
   in yet, an autopilot's TCP port not up yet): an attempt every :data:`CONNECT_PAUSE_S`, logged once
@@ -62,7 +66,8 @@ restart it. Each task's last progress is on the status topic
 SIGTERM (``stop`` set) drains: the sources stop, the frames already received
 are processed, the checkpoints are written, and delivery continues for up to
 :data:`DRAIN_TIMEOUT_S` before the outbox is closed; whatever is still pending is
-re-sent by the next start. ``kill -9`` loses only the frames in flight and the
+re-sent by the next start; events held in memory that could not be stored make the exit status
+:data:`EXIT_STORAGE`. ``kill -9`` loses only the frames in flight and the
 state since the last checkpoint; no event that reached the outbox is lost, and
 events are never stored twice (their ids derive from the data, see
 :mod:`protocols.events`).
