@@ -102,8 +102,11 @@ class OutboxWriter:
         """Store ``events`` after any held ones; held (and delivered from memory) when the outbox cannot take them."""
         if not events:
             return
+        # While events are held the service's storage task retries (with back-off): a write tried
+        # here for every event raised would hold the loop for the outbox's busy timeout each time.
+        retrying = self.holding
         self._held.extend(HeldEvent(e, encode_event(e)) for e in events)
-        if not self.flush():
+        if retrying or not self.flush():
             self._bound()
             self._on_held()
 

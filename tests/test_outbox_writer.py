@@ -32,7 +32,8 @@ def test_events_are_held_in_order_delivered_from_memory_and_written_once_the_fil
         assert writer.holding and len(held) == 2
         assert writer.counters() == {
             "outbox.unavailable": 1,
-            "outbox.write_failures": 2,
+            # Once events are held the service's storage task retries, not every write.
+            "outbox.write_failures": 1,
             "outbox.held_events": 3,
             "outbox.held_dropped_delivered": 0,
             "outbox.held_lost": 0,
