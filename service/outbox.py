@@ -418,30 +418,20 @@ class Outbox:
 
     def ack(self, sink: str, seqs: Iterable[int]) -> None:
         """Mark events delivered to ``sink`` (they will not be sent to it again); :class:`OutboxUnavailable` as :meth:`put_many`."""
-        self._check_sink(sink)
-        rows = [(sink, int(s)) for s in seqs]
-        if not rows:
-            return
-
-        def delete() -> None:
-            self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", rows)
-            self._prune_locked(keep=self._retain)
-
-        self._writable()
-        with self._lock, _unavailable_on_error():
-            self._transaction(delete)
+        self._ack(sink, "?", [int(s) for s in seqs])
 
     def ack_ids(self, sink: str, event_ids: Iterable[str]) -> None:
         """:meth:`ack` by event id (an event delivered from memory and stored meanwhile)."""
+        self._ack(sink, "(SELECT seq FROM events WHERE id = ?)", [str(i) for i in event_ids])
+
+    def _ack(self, sink: str, seq_sql: str, keys: list[int] | list[str]) -> None:
         self._check_sink(sink)
-        rows = [(sink, str(i)) for i in event_ids]
-        if not rows:
+        if not keys:
             return
 
         def delete() -> None:
             self._db.executemany(
-                "DELETE FROM pending WHERE sink = ? AND seq = (SELECT seq FROM events WHERE id = ?)",
-                rows,
+                f"DELETE FROM pending WHERE sink = ? AND seq = {seq_sql}", [(sink, k) for k in keys]
             )
             self._prune_locked(keep=self._retain)
 

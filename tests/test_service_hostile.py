@@ -9,6 +9,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,7 +35,7 @@ from test_service_faults import (
     write_config,
 )
 
-from protocols.events import Predicate, Severity, StreamCause, encode_event, make_event
+from protocols.events import Event, Predicate, Severity, StreamCause, encode_event, make_event
 from protocols.frames import encode_frame
 from protocols.zenoh_adapter import ZENOH_MAX_MESSAGE_BYTES, EventReceiver, frame_key
 from service.checkpoint import CheckpointStore
@@ -292,21 +293,12 @@ FULL_PAGES = 40
 """Size of the full outbox of the disk-full test, in SQLite pages of 4096 bytes."""
 
 
-def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
-    """The outbox is full (its ``outbox_max_mb`` reached: SQLite's own 'database or disk is full', as on
-    a full disk) of events of another vehicle that no receiver has acknowledged yet. The faulty
-    vehicle's F0 event cannot be stored: the daemon says ``outbox unavailable`` and holds it. A receiver
-    comes up: the waiting events are delivered, their history gives way, the F0 event is stored and
-    arrives, exactly once, and the daemon says the outbox is back."""
-    v = "uav-d"
-    frames = to_the_fault(v, batch_samples=200)
-    expected = run_fleet(offline_fleet(), frames, finish=False)
-    want = [e.event_id for e in expected]
-    fillers = []
-    (tmp_path / "data").mkdir()
-    with Outbox(
-        tmp_path / "data" / "outbox.sqlite", sinks=("zenoh",), max_bytes=FULL_PAGES * 4096
-    ) as ob:
+def fill_outbox(data: Path, sinks: tuple[str, ...]) -> tuple[list[str], Event]:
+    """An outbox of :data:`FULL_PAGES` in ``data`` filled with another vehicle's events pending for
+    ``sinks``: their ids, and the last event, which did not fit."""
+    fillers: list[str] = []
+    data.mkdir()
+    with Outbox(data / "outbox.sqlite", sinks=sinks, max_bytes=FULL_PAGES * 4096) as ob:
         # Large events until one does not fit, then events smaller than F0's until none does.
         for text in ("x" * 900, "x"):
             while True:
@@ -318,8 +310,22 @@ def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
                     assert "database or disk is full" in str(exc)
                     break
                 fillers.append(filler.event_id)
+    return fillers, filler
+
+
+def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
+    """The outbox is full (its ``outbox_max_mb`` reached: SQLite's own 'database or disk is full', as on
+    a full disk) of events of another vehicle that no receiver has acknowledged yet. The faulty
+    vehicle's F0 event cannot be stored: the daemon says ``outbox unavailable`` and holds it. A receiver
+    comes up: the waiting events are delivered, their history gives way, the F0 event is stored and
+    arrives, exactly once, and the daemon says the outbox is back."""
+    v = "uav-d"
+    frames = to_the_fault(v, batch_samples=200)
+    expected = run_fleet(offline_fleet(), frames, finish=False)
+    want = [e.event_id for e in expected]
+    fillers, last = fill_outbox(tmp_path / "data", ("zenoh",))
     # The last that did not fit is smaller than the F0 event: F0 cannot fit either.
-    assert len(encode_event(filler)) < len(encode_event(expected[0]))
+    assert len(encode_event(last)) < len(encode_event(expected[0]))
     passports = put_store(tmp_path, [(v, 0)])
     limit = f"outbox_max_mb = {FULL_PAGES * 4096 / 1e6!r}\n"
     with ground_and_vehicle(tmp_path, passports, service=limit) as (
