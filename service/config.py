@@ -106,6 +106,9 @@ class ServiceSection:
     outbox_max_pending : events each sink (Zenoh, MAVLink) may have waiting in the outbox
         (default 100000, at most :data:`OUTBOX_MAX_PENDING_MAX`); beyond it that sink gives up its
         oldest (logged, counted as ``outbox.given_up.<sink>``), the other sinks still deliver them.
+        With ``outbox_max_mb`` set, keep the backlogs within it (an event takes about 1 KB of the
+        file): a file full of one sink's backlog holds the new events in memory (delivered from
+        there to the other sinks) and, past ``storage_timeout_s``, ends the daemon.
     max_held_events : events held in memory while the outbox cannot take them, delivered from there
         (default 10000, at most :data:`MAX_HELD_EVENTS_MAX`; :mod:`service.outbox_writer`).
     storage_timeout_s : how long the outbox or the checkpoints may refuse writes (or the data
