@@ -98,6 +98,8 @@ class SinkDelivery:
                         started = True
                 if not started:
                     self._sent()
+                for vehicle in [v for v, t in retry_at.items() if t <= now and v not in lanes]:
+                    del retry_at[vehicle]  # due with nothing pending (given up meanwhile)
                 later = [t for t in retry_at.values() if math.isfinite(t)]
                 if not lanes and stop.is_set() and not later:
                     return

@@ -77,3 +77,34 @@ def test_a_refused_vehicle_holds_up_only_its_own_events_and_memory_is_delivered_
     assert sink.refused >= 2  # b was tried again meanwhile
     # Only b's event is left; a's held event was stored as delivered.
     assert pending == [event("b", 0).event_id] and event("a", 4).event_id in stored
+
+
+def test_a_vehicle_whose_waiting_events_were_given_up_is_not_waited_for_in_a_spin(tmp_path):
+    """A refused vehicle's retry came due with nothing of it pending any more (its events given up
+    meanwhile): the delivery's wait had a timeout of 0 from then on and turned the loop for good."""
+
+    async def scenario() -> int:
+        sink = Sink(offline={"b"})
+        wake, stop = asyncio.Event(), asyncio.Event()
+        beats = []
+        with Outbox(tmp_path / "o.sqlite", sinks=("s",)) as outbox:
+            writer = OutboxWriter(outbox, on_stored=lambda n, v: wake.set(), on_held=wake.set,
+                                  clock=time.monotonic)  # fmt: skip
+            delivery = SinkDelivery(sink, outbox, writer, retry_s=0.05, idle=lambda: None,
+                                    sent=lambda: None, count=lambda name: None,
+                                    transport_error=print, beat=lambda: beats.append(1))  # fmt: skip
+            task = asyncio.create_task(delivery.run(wake, stop))
+            writer.write([event("b", 0)])
+            while sink.refused == 0:
+                await asyncio.sleep(0.01)
+            outbox.ack_ids("s", [event("b", 0).event_id])  # as a sink's backlog bound gives it up
+            await asyncio.sleep(0.3)
+            before = len(beats)
+            await asyncio.sleep(0.5)
+            stop.set()
+            wake.set()
+            await asyncio.wait_for(task, 5.0)
+            return len(beats) - before
+
+    # Idle: no turn at all (a spin made thousands in 0.5 s).
+    assert asyncio.run(scenario()) <= 2
