@@ -10,9 +10,16 @@ Event id
 ``event_id`` is 32 lowercase hex digits: the first 16 bytes of BLAKE2b over the
 msgpack encoding of ``[tag, vehicle, imu, predicate, triad, axis, cause, t_s]``
 where ``t_s`` is the *data* time (seconds, the time stamp of the sample that
-completed the detection, packed as float64) — never a wall clock. The same
-detection therefore gets the same id in a retry, after a restart, and in a
-replay of the same log; the outbox and every receiver deduplicate by it.
+completed the detection, packed as float64) — never a wall clock — followed by
+``epoch`` when it is not 0. The same detection therefore gets the same id in a
+retry, after a restart, and in a replay of the same log; the outbox and every
+receiver deduplicate by it.
+
+``epoch`` counts the source's new runs as the pipeline detects them (a reboot of the vehicle:
+its time since boot or its ``seq`` went back; a new run id of the publisher), checkpointed with
+the unit's state. A time since boot repeats across reboots: without the epoch the same fault at
+the same uptime after a reboot had the id of the first and was dropped as already delivered.
+Epoch 0 (a stream's first run, every replay of a log without a restart) leaves the id as it was.
 
 Wire schema, version 2 (msgpack map; JSON lines use the same map)
 -----------------------------------------------------------------
@@ -26,11 +33,12 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 ``"m/s^2"``, ``"rad/s"``, ``"count"``, ``"degC"``), ``severity`` (str, lower-case
 :class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
 
-Version 2 adds the predicate ``gross`` (gross plausibility at rest, :mod:`estimators.gross`) and the
+Version 3 adds ``epoch`` (int ≥ 1, present only then: an event of epoch 0 is written at version
+1 or 2 as before). Version 2 adds the predicate ``gross`` (gross plausibility at rest, :mod:`estimators.gross`) and the
 cause ``gravity_magnitude``; nothing else changed. An event is written with the lowest version that
 holds it (:func:`event_version`): a version-1 reader keeps reading every other event, and is told a
-gross event is of a newer schema rather than given an unknown predicate. Both versions are read; a
-version-1 map naming what only version 2 has is refused.
+gross event is of a newer schema rather than given an unknown predicate. All three versions are
+read; a map naming what only a later version has is refused.
 
 Status schema, version 2: ``type`` = ``"ins.health.status"``, ``v`` = 2,
 ``vehicle``, ``service`` (instance name), ``t_s`` (service clock, s since the
@@ -81,8 +89,9 @@ if TYPE_CHECKING:  # the diagnosis pulls in scipy.stats: too heavy an import for
     from estimators.diagnosis import Finding
 
 EVENT_TYPE = "ins.health.event"
-EVENT_VERSION = 2
-SUPPORTED_EVENT_VERSIONS = (1, 2)
+EVENT_VERSION = 3
+SUPPORTED_EVENT_VERSIONS = (1, 2, 3)
+MAX_EPOCH = 2**32 - 1
 STATUS_TYPE = "ins.health.status"
 STATUS_VERSION = 2
 SUPPORTED_STATUS_VERSIONS = (1, 2)
@@ -184,6 +193,7 @@ class Event:
     unit : unit of those four numbers.
     severity : :class:`Severity` (MAV_SEVERITY values).
     text : one human sentence.
+    epoch : the source's run (module docstring; 0: its first).
     """
 
     event_id: str
@@ -201,9 +211,14 @@ class Event:
     unit: str
     severity: Severity
     text: str
+    epoch: int = 0
 
     def __post_init__(self) -> None:
         check_vehicle(self.vehicle, error=EventError)
+        if type(self.epoch) is not int or not 0 <= self.epoch <= MAX_EPOCH:
+            raise EventError(
+                Reason.BAD_VALUE, f"epoch must be an int in [0, {MAX_EPOCH}], got {self.epoch!r}"
+            )
         check_imu(self.imu, error=EventError)
         if not (
             isinstance(self.event_id, str)
@@ -266,20 +281,20 @@ def event_id(
     axis: str | None,
     cause: EventCause,
     t_s: float,
+    epoch: int = 0,
 ) -> str:
     """The stable id of a detection (module docstring): 32 hex digits."""
-    key = pack(
-        [
-            EVENT_TYPE,
-            vehicle,
-            int(imu),
-            Predicate.parse(predicate).value,
-            None if triad is None else Triad(triad).value,
-            axis,
-            _parse_cause(cause).value,
-            struct.pack("<d", float(t_s)),
-        ]
-    )
+    fields = [
+        EVENT_TYPE,
+        vehicle,
+        int(imu),
+        Predicate.parse(predicate).value,
+        None if triad is None else Triad(triad).value,
+        axis,
+        _parse_cause(cause).value,
+        struct.pack("<d", float(t_s)),
+    ]
+    key = pack([*fields, int(epoch)] if epoch else fields)
     return hashlib.blake2b(key, digest_size=16).hexdigest()
 
 
@@ -299,17 +314,25 @@ def make_event(
     sigma: float | None = None,
     unit: str = "1",
     text: str | None = None,
+    epoch: int = 0,
 ) -> Event:
     """The generic constructor: any predicate (F0, stream validity, cross-IMU, …), id derived, text defaulted.
 
-    ``t_s`` is the data time of the sample that completed the detection (it
-    enters the id); ``text`` defaults to :func:`describe` of the event.
+    ``t_s`` is the data time of the sample that completed the detection and ``epoch`` the
+    source's run (both enter the id); ``text`` defaults to :func:`describe` of the event.
     """
     predicate = Predicate.parse(predicate)
     cause = _parse_cause(cause)
     triad = None if triad is None else Triad(triad)
     eid = event_id(
-        vehicle=vehicle, imu=imu, predicate=predicate, triad=triad, axis=axis, cause=cause, t_s=t_s
+        vehicle=vehicle,
+        imu=imu,
+        predicate=predicate,
+        triad=triad,
+        axis=axis,
+        cause=cause,
+        t_s=t_s,
+        epoch=epoch,
     )
     event = Event(
         eid,
@@ -327,12 +350,19 @@ def make_event(
         unit,
         Severity(severity),
         text or "",
+        epoch,
     )
     return event if text is not None else replace(event, text=describe(event))
 
 
 def event_from_finding(
-    finding: Finding, *, vehicle: str, imu: int, t_s: float, severity: Severity = Severity.ERROR
+    finding: Finding,
+    *,
+    vehicle: str,
+    imu: int,
+    t_s: float,
+    severity: Severity = Severity.ERROR,
+    epoch: int = 0,
 ) -> Event:
     """An event for a failed predicate F1…F9 of the M1 diagnosis (``estimators.diagnosis.Finding``).
 
@@ -354,6 +384,7 @@ def event_from_finding(
         tolerance=finding.tolerance,
         sigma=finding.sigma,
         unit="1",
+        epoch=epoch,
     )
 
 
@@ -408,12 +439,14 @@ def describe(event: Event) -> str:
 
 def event_version(event: Event) -> int:
     """The lowest schema version that holds ``event`` (module docstring)."""
+    if event.epoch:
+        return 3
     return 2 if event.predicate in _V2_ONLY or event.cause in _V2_ONLY else 1
 
 
 def event_to_dict(event: Event) -> dict[str, Any]:
     """The schema map (module docstring) of an event, at :func:`event_version`."""
-    return {
+    out = {
         "type": EVENT_TYPE,
         "v": event_version(event),
         "id": event.event_id,
@@ -432,6 +465,9 @@ def event_to_dict(event: Event) -> dict[str, Any]:
         "severity": event.severity.name.lower(),
         "text": event.text,
     }
+    if event.epoch:
+        out["epoch"] = event.epoch
+    return out
 
 
 def event_from_dict(obj: Mapping[str, Any]) -> Event:
@@ -472,7 +508,10 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
         unit=field(obj, "unit", str, error=EventError),
         severity=Severity[severity_name.upper()],
         text=field(obj, "text", str, error=EventError),
+        epoch=field(obj, "epoch", int, error=EventError) if version >= 3 else 0,
     )
+    if version >= 3 and event.epoch == 0:
+        raise EventError(Reason.BAD_VALUE, "an event of schema version 3 has an epoch >= 1")
     expected = event_id(
         vehicle=event.vehicle,
         imu=event.imu,
@@ -481,6 +520,7 @@ def event_from_dict(obj: Mapping[str, Any]) -> Event:
         axis=event.axis,
         cause=event.cause,
         t_s=event.t_s,
+        epoch=event.epoch,
     )
     if event.event_id != expected:
         raise EventError(

@@ -142,6 +142,10 @@ class SaveFailures:
         """Whether the last checkpoint attempt failed."""
         return self._outage.ongoing
 
+    def unavailable_s(self) -> float | None:
+        """How long saves have failed, s (None: the last one was saved)."""
+        return self._outage.lasted()
+
     def failed(self, exc: CheckpointUnavailable, units: int) -> None:
         """An attempt to save ``units`` units' state failed: counted, :attr:`retry_s` set for the next one."""
         if self._outage.failed():

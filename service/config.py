@@ -103,6 +103,17 @@ class ServiceSection:
     delivery_retry_s : delay before a sink retries events its transport did not accept, s (default 0.5).
     outbox_max_mb : the largest the outbox file may grow, MB (default 0: as large as the disk allows);
         beyond it the outbox is full as on a full disk (:mod:`service.outbox_writer`).
+    outbox_max_pending : events each sink (Zenoh, MAVLink) may have waiting in the outbox
+        (default 100000, at most :data:`OUTBOX_MAX_PENDING_MAX`); beyond it that sink gives up its
+        oldest (logged, counted as ``outbox.given_up.<sink>``), the other sinks still deliver them.
+        With ``outbox_max_mb`` set, keep the backlogs within it (an event takes about 1 KB of the
+        file): a file full of one sink's backlog holds the new events in memory (delivered from
+        there to the other sinks) and, past ``storage_timeout_s``, ends the daemon.
+    max_held_events : events held in memory while the outbox cannot take them, delivered from there
+        (default 10000, at most :data:`MAX_HELD_EVENTS_MAX`; :mod:`service.outbox_writer`).
+    storage_timeout_s : how long the outbox or the checkpoints may refuse writes (or the data
+        directory be gone) before the daemon stops feeding the watchdog and exits with status 74
+        for the service manager to restart it, s (default 300, in [1, 86400]).
     vehicles : vehicle ids served; empty (default) serves every vehicle the key expression delivers.
         A frame of a vehicle outside a non-empty list is counted as ``frames.rejected.unknown_vehicle``; the
         passport of IMU 0 of each listed vehicle is checked at startup.
@@ -121,6 +132,9 @@ class ServiceSection:
     checkpoint_period_s: float = 30.0
     delivery_retry_s: float = 0.5
     outbox_max_mb: float = 0.0
+    outbox_max_pending: int = 100_000
+    max_held_events: int = 10_000
+    storage_timeout_s: float = 300.0
     vehicles: tuple[str, ...] = ()
     default_grade: str = SensorClass.CONSUMER_MEMS.value
 
@@ -540,6 +554,11 @@ def _positive(errors: list[str], where: str, value: float) -> None:
         errors.append(f"{where} must be > 0, got {value!r}")
 
 
+OUTBOX_MAX_PENDING_MAX = 10_000_000
+"""A sink's backlog at most: with events of about 1 KB, 10 GB of outbox."""
+MAX_HELD_EVENTS_MAX = 1_000_000
+"""Events held in memory at most: about 1.5 KB each (``benchmarks/bench_delivery.py``), 1.5 GB."""
+
 PERIOD_MIN_S = 0.01
 """The shortest period of a task's loop (status, checkpoints, delivery retries, heartbeat): 1e-300 s
 passed as > 0, and the task then ran at every turn of the event loop, the frames' loop."""
@@ -579,6 +598,17 @@ def _check(cfg: ServiceConfig) -> list[str]:
     if not (math.isfinite(s.outbox_max_mb) and s.outbox_max_mb >= 0):
         errors.append(
             f"[service] outbox_max_mb must be a finite number >= 0, got {s.outbox_max_mb!r}"
+        )
+    for name, top in (
+        ("outbox_max_pending", OUTBOX_MAX_PENDING_MAX),
+        ("max_held_events", MAX_HELD_EVENTS_MAX),
+    ):
+        value = getattr(s, name)
+        if not (type(value) is int and 1 <= value <= top):
+            errors.append(f"[service] {name} must be an integer in [1, {top}], got {value!r}")
+    if not (math.isfinite(s.storage_timeout_s) and 1.0 <= s.storage_timeout_s <= 86_400.0):
+        errors.append(
+            f"[service] storage_timeout_s must be in [1, 86400] s, got {s.storage_timeout_s!r}"
         )
     for name in (
         "queue_capacity",

@@ -12,12 +12,13 @@ Tasks of :meth:`Service.run`
   "thread"``). Each
   frame goes through its (vehicle, IMU) pipeline (:class:`service.intake.Intake`); the events it raises are written to the
   outbox in one transaction *before* any sink sees them. While the outbox cannot take them (disk
-  full, file locked by another process) they are held in memory and retried, and no frame is taken
-  (back-pressure), no checkpoint written and no timeout checked until it can
-  (:mod:`service.outbox_writer`); the status topic says ``outbox.unavailable``.
-* **delivery**, one per sink (:mod:`service.sinks`) — reads the sink's pending events from the outbox
-  in order, hands each to its transport, acks what the transport accepted,
-  and retries the rest every ``delivery_retry_s``. Zenoh: the event stream on
+  full or read-only, file locked by another process, data directory gone) they are held in memory
+  and delivered from there while frames are still taken (detection goes on), and no checkpoint is
+  written ahead of an event not yet with every sink (:mod:`service.outbox_writer`); the status
+  topic says ``outbox.unavailable``.
+* **delivery**, one per sink (:mod:`service.sinks`, :mod:`service.delivery`) — a lane per vehicle
+  with pending events: its events in order to the transport, acks what the transport accepted; a
+  vehicle whose event is refused is retried after ``delivery_retry_s`` while the others go on. Zenoh: the event stream on
   ``ins/<vehicle>/health/events``, acknowledged end to end by the receiving
   application (:class:`protocols.zenoh_adapter.EventPublisher`, ``[zenoh]
   event_ack``); each attempt puts the event again, so a plain subscriber that
@@ -39,6 +40,9 @@ Tasks of :meth:`Service.run`
   store cannot write (disk full, file locked by another process) ends neither the task nor the
   daemon: the state stays in memory and is saved by the next attempt, retried with back-off
   (:class:`service.checkpoint.SaveFailures`); the status topic says ``checkpoints.unavailable``.
+* **storage** — the held events written once the outbox takes them again (back-off), the data
+  directory checked (removed or replaced: a storage fault, its stores' writes refused); storage
+  away past ``storage_timeout_s`` stops the daemon with :data:`EXIT_STORAGE`.
 * **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
 * **mavlink-open** — only while the MAVLink device cannot be opened (a serial adapter not plugged
   in yet, an autopilot's TCP port not up yet): an attempt every :data:`CONNECT_PAUSE_S`, logged once
@@ -62,7 +66,8 @@ restart it. Each task's last progress is on the status topic
 SIGTERM (``stop`` set) drains: the sources stop, the frames already received
 are processed, the checkpoints are written, and delivery continues for up to
 :data:`DRAIN_TIMEOUT_S` before the outbox is closed; whatever is still pending is
-re-sent by the next start. ``kill -9`` loses only the frames in flight and the
+re-sent by the next start; events held in memory that could not be stored make the exit status
+:data:`EXIT_STORAGE`. ``kill -9`` loses only the frames in flight and the
 state since the last checkpoint; no event that reached the outbox is lost, and
 events are never stored twice (their ids derive from the data, see
 :mod:`protocols.events`).
@@ -72,7 +77,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import threading
 import time
 from collections.abc import Callable, Collection, Iterable
@@ -84,9 +88,7 @@ from estimators.passport import Passport
 from protocols.checkpoint_codec import encode_state
 from protocols.events import (
     Event,
-    EventError,
     ServiceStatus,
-    decode_event,
 )
 from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
@@ -109,15 +111,20 @@ from service.checkpoint import (
     open_checkpoints,
 )
 from service.config import MavlinkReader, ServiceConfig
+from service.delivery import SinkDelivery
 from service.intake import COALESCE_MAX, COALESCE_WINDOW_S, Intake
 from service.log_setup import logger
 from service.notify import FramePathWatch, Notifier
-from service.outbox import Outbox, OutboxUnavailable, lock_data_dir
-from service.outbox_writer import OutboxWriter
+from service.outbox import DataDirLock, Outbox, OutboxUnavailable
+from service.outbox_writer import RETRY_MAX_S, RETRY_MIN_S, OutboxWriter
 from service.passport_store import PassportStore
 from service.pipeline import FleetProcessor, PipelineOptions
 from service.sinks import TRANSPORT_ERRORS, EventSink, MavlinkAlertSink, ZenohEventSink
-from service.supervisor import EXIT_TASK_FAILED, Supervisor
+from service.supervisor import Supervisor
+
+EXIT_STORAGE = 74
+"""Exit status when storage stayed away past ``storage_timeout_s``, or the daemon stopped with events
+it could not store (EX_IOERR of sysexits.h): the service manager restarts it and the operator sees it."""
 
 DRAIN_TIMEOUT_S = 5.0
 """How long SIGTERM keeps delivering before the service exits (the rest is re-sent at the next start)."""
@@ -136,6 +143,8 @@ The deliveries send from worker threads (a Zenoh put, a write to the MAVLink rea
 for the interpreter while the loop goes on with the group's other IMUs: under 50 k MAVLink
 messages/s the Zenoh delivery took p90 1.4 ms to reach its thread and 1.4 ms more to put
 (``bench_mavlink_e2e.py``, 40 trials)."""
+STORAGE_CHECK_S = 1.0
+"""How often the data directory is checked (removed or replaced under the daemon)."""
 EVENT_CHECKPOINT_DELAY_S = 0.003
 """How long the checkpoint of the vehicles whose events were just stored waits for their delivery to start."""
 
@@ -205,10 +214,12 @@ class _Wake:
 class _Run:
     """What :meth:`Service.run` opens before any frame is taken, for its whole duration."""
 
+    lock: DataDirLock
     outbox: Outbox
     checkpoints: CheckpointStore
     wake: _Wake
     writer: OutboxWriter
+    deliveries: dict[str, SinkDelivery]
 
 
 class Service:
@@ -256,7 +267,6 @@ class Service:
         self.intake = Intake(
             self.fleet,
             store=self._store,
-            writable=self._writable,
             handed_over=self._handed_over,
             clock=clock,
             say=log.warning,
@@ -275,6 +285,9 @@ class Service:
         self._checkpoint_vehicles: set[str] = set()
         self._saves = SaveFailures(clock=clock)
         self._drops_log = LogRate()
+        self._given_up_log = LogRate()
+        self._data_dir_lost_s: float | None = None
+        self._unstored = 0
 
     @property
     def outbox(self) -> Outbox | None:
@@ -411,17 +424,11 @@ class Service:
 
     # ------------------------------------------------------------------ events
 
-    def _store(self, events: list[Event]) -> bool:
-        """Events into the outbox; False if they are held (:mod:`service.outbox_writer`)."""
+    def _store(self, events: list[Event]) -> None:
+        """Events into the outbox, or held in memory and delivered from there (:mod:`service.outbox_writer`)."""
         # Every frame taken (processed or rejected) ends here: the progress of the frame path.
         self.supervisor.beat()
-        return self._running().writer.write(events)
-
-    async def _writable(self) -> bool:
-        # Waiting for the outbox (said on the status topic and in the log) is not a hung frame
-        # path: each retry is its progress, so the watchdog does not restart a daemon that holds
-        # events in memory.
-        return await self._running().writer.until_written(on_retry=self.supervisor.beat)
+        self._running().writer.write(events)
 
     async def _handed_over(self) -> None:
         """Until the events just stored are in the transports' hands (at most :data:`HANDOFF_WAIT_S`)."""
@@ -440,6 +447,10 @@ class Service:
         self._checkpoint_vehicles |= vehicles
         self._checkpoint_soon.set()
 
+    def _held(self) -> None:
+        """Events held in memory: the deliveries take them from there."""
+        self._running().wake.set()
+
     async def _heartbeat(self, sink: MavlinkAlertSink, stop: asyncio.Event) -> None:
         while not stop.is_set():
             try:
@@ -456,77 +467,6 @@ class Service:
         if kind not in self._reported:
             self._reported.add(kind)
             log.warning("sending on %s (retrying; counted as delivery.%s.errors)", kind, name)
-
-    async def _deliver(self, sink: EventSink, wake: asyncio.Event, stop: asyncio.Event) -> None:
-        retry_s = self.config.service.delivery_retry_s
-        outbox, wakes = self._running().outbox, self._running().wake
-        loop = asyncio.get_running_loop()
-
-        def sent() -> None:
-            # From the transport's worker thread.
-            loop.call_soon_threadsafe(wakes.sent, sink.name)
-
-        while True:
-            try:
-                pending = outbox.pending(sink.name, limit=64)
-            except OutboxUnavailable:
-                if stop.is_set():
-                    return
-                await _wait_any(stop, None, timeout_s=retry_s)
-                continue
-            if not pending:
-                if stop.is_set():
-                    return
-                # The wake alone (the drain sets it after ``stop``): one turn of the loop from the events'
-                # commit to their delivery, which the intake waits for before the rest of a group
-                # (_handed_over). _wait_any on both took three turns (two tasks, then asyncio.wait's callback).
-                wakes.idle(sink.name)
-                await wake.wait()
-                wake.clear()
-                continue
-            acked: list[int] = []
-            refused = None
-            for p in pending:
-                try:
-                    # The last one taken is in the transport's hands: the intake may go on.
-                    ok = await sink.deliver(
-                        decode_event(p.payload), sent=sent if p is pending[-1] else _not_last
-                    )
-                except EventError:
-                    self.fleet.count_service("outbox.undecodable")
-                    ok = True
-                except TRANSPORT_ERRORS as exc:
-                    self._transport_error(sink.name, exc)
-                    ok = False
-                if not ok:
-                    refused = p
-                    break
-                acked.append(p.seq)
-            wakes.sent(sink.name)
-            if not await self._ack(outbox, sink.name, acked, stop):
-                return
-            self.supervisor.beat()
-            if refused is not None:
-                with contextlib.suppress(OutboxUnavailable):
-                    # Only a count for the status topic: nothing is lost when it cannot be written.
-                    outbox.record_attempt(sink.name, [refused.seq])
-                self.fleet.count_service(f"delivery.{sink.name}.retries")
-                if stop.is_set():
-                    return
-                await _wait_any(stop, None, timeout_s=retry_s)
-
-    async def _ack(self, outbox: Outbox, sink: str, seqs: list[int], stop: asyncio.Event) -> bool:
-        """Ack delivered events; while the outbox cannot take the write it is retried, and nothing is sent
-        meanwhile (so nothing is sent twice). False if the service stops first: they are sent again at the
-        next start, and the receiver drops the repeat by id."""
-        while True:
-            try:
-                outbox.ack(sink, seqs)
-                return True
-            except OutboxUnavailable:
-                if stop.is_set():
-                    return False
-                await _wait_any(stop, None, timeout_s=self.config.service.delivery_retry_s)
 
     async def _publish_status(self, publisher: StatusPublisher) -> None:
         extra = (
@@ -565,6 +505,7 @@ class Service:
             extra.update(
                 {f"service.outbox.pending.{s}": n for s, n in counts.pending_by_sink.items()}
             )
+        extra.update(self._delivery_counters())
         now = time.time()
         name = self.config.service.name
         vehicles = self.fleet.vehicles()
@@ -580,14 +521,42 @@ class Service:
             )
         )
         units = self._unit_frames()
+        waiting = {s: d.pending_vehicles() for s, d in run.deliveries.items()}
         for vehicle in vehicles:
+            own = {f"outbox.pending.{s}": by.get(vehicle, 0) for s, by in waiting.items()}
             publisher.publish(
                 self.fleet.status(
-                    vehicle, service=name, now_unix_s=now, extra=extra | units.get(vehicle, {})
+                    vehicle,
+                    service=name,
+                    now_unix_s=now,
+                    extra=extra | units.get(vehicle, {}) | own,
                 )
             )
             # One vehicle at a time: frames waiting behind a large fleet's status are not held up.
             await asyncio.sleep(0)
+
+    def _delivery_counters(self) -> dict[str, int]:
+        """The storage state and what the sinks gave up, for the status topic; a sink's new
+        give-ups logged (:class:`~protocols.log_rate.LogRate`)."""
+        run = self._running()
+        away_s = self._storage_away_s()
+        out = {
+            "service.storage.fault": int(away_s is not None),
+            "service.storage.unavailable_s": 0 if away_s is None else int(away_s),
+            **{f"service.outbox.given_up.{s}": n for s, n in run.outbox.given_up.items()},
+            **{
+                f"service.delivery.{s}.acks_unrecorded": d.unrecorded
+                for s, d in run.deliveries.items()
+            },
+        }
+        if new := self._given_up_log.due(dict(run.outbox.given_up)):
+            log.warning(
+                "outbox: %s; a sink's backlog beyond outbox_max_pending = %d gives up its oldest "
+                "events (the other sinks still deliver them), counted as outbox.given_up.<sink>",
+                ", ".join(f"{n} given up for {s}" for s, n in sorted(new.items())),
+                self.config.service.outbox_max_pending,
+            )  # fmt: skip
+        return out
 
     def _unit_frames(self) -> dict[str, dict[str, int]]:
         """Each vehicle's frames from Zenoh per IMU: ``imu<n>.frames.received`` (dropped ones
@@ -626,10 +595,8 @@ class Service:
 
     async def _status(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
-            # Not while frames wait for the outbox: their silence is the service's, not the IMUs'.
-            if not (self._running().writer.holding or self.intake.stalled):
-                async with self.intake.group_lock:
-                    self._store(self.fleet.tick(self._clock()))
+            async with self.intake.group_lock:
+                self._store(self.fleet.tick(self._clock()))
             self._track_router()
             self._check_mavlink_reader()
             self.intake.log_refusals()
@@ -649,8 +616,9 @@ class Service:
         units are written by the next checkpoint, with their state then, even if they do not
         change meanwhile.
         """
-        if self._running().writer.holding:
-            # State ahead of the events in the outbox would, after kill -9, resume past events never stored.
+        if self._running().writer.undelivered:
+            # State ahead of events neither stored nor delivered everywhere would, after kill -9,
+            # resume past events that exist nowhere.
             self.fleet.count_service("checkpoints.deferred")
             return
         payloads: dict[str, bytes] = {}
@@ -662,7 +630,7 @@ class Service:
         for vehicle, imus in sorted(changed.items()):
             # A vehicle of many units, one of them streaming, cost every unit's encoding (1.5 ms each).
             async with self.intake.group_lock:
-                if self._running().writer.holding:
+                if self._running().writer.undelivered:
                     # A group run while the loop yielded had its events held: a state taken now
                     # would be ahead of them. Nothing is written; the next checkpoint takes them all.
                     self.fleet.mark_unsaved(keys)
@@ -684,6 +652,47 @@ class Service:
             self._saves.failed(exc, len(payloads))
             return
         self._saves.saved(len(payloads))
+
+    async def _storage(self, stop: asyncio.Event) -> None:
+        """Storage faults degrade, never silence: the held events written as soon as the outbox takes
+        them (retried with back-off, :data:`~service.outbox_writer.RETRY_MIN_S` doubling to
+        :data:`~service.outbox_writer.RETRY_MAX_S`), the data directory checked every
+        :data:`STORAGE_CHECK_S` (:meth:`DataDirLock.problem`: removed or replaced, its stores' writes
+        are refused from then on, they would be lost at the next start), and past
+        ``storage_timeout_s`` of the outbox, the checkpoints or the data directory away the daemon
+        stops (the watchdog is no longer fed) and exits with :data:`EXIT_STORAGE`."""
+        run = self._running()
+        limit_s = self.config.service.storage_timeout_s
+        delay_s = RETRY_MIN_S
+        while not stop.is_set():
+            if self._data_dir_lost_s is None and (problem := run.lock.problem()) is not None:
+                self._data_dir_lost_s = self._clock()
+                run.outbox.refuse_writes(problem)
+                self.fleet.count_service("storage.data_dir_lost")
+                log.error(
+                    "%s: a storage fault; new events are held in memory and delivered from there, "
+                    "and the daemon exits after storage_timeout_s = %g s unless stopped before "
+                    "(counted as service.storage.data_dir_lost)",
+                    problem, limit_s,
+                )  # fmt: skip
+            flushed = run.writer.flush()
+            if (away_s := self._storage_away_s()) is not None and away_s >= limit_s:
+                self.supervisor.fail(
+                    f"storage unavailable for {away_s:.1f} s (storage_timeout_s = {limit_s:g} s); "
+                    "the watchdog is no longer fed",
+                    code=EXIT_STORAGE,
+                )
+                return
+            self.supervisor.beat()
+            delay_s = RETRY_MIN_S if flushed else min(2.0 * delay_s, RETRY_MAX_S)
+            await _wait_any(stop, None, timeout_s=STORAGE_CHECK_S if flushed else delay_s)
+
+    def _storage_away_s(self) -> float | None:
+        """How long the longest storage fault going on has lasted, s (None: none is)."""
+        run = self._running()
+        lost = None if self._data_dir_lost_s is None else self._clock() - self._data_dir_lost_s
+        away = [run.writer.unavailable_s(), self._saves.unavailable_s(), lost]
+        return max((t for t in away if t is not None), default=None)
 
     async def _checkpoints(self, stop: asyncio.Event) -> None:
         """A checkpoint every ``checkpoint_period_s``, and of the vehicles whose events were stored
@@ -730,16 +739,24 @@ class Service:
 
         ``ready`` is set (and ``READY=1`` sent) once frames are accepted from every input that is
         up: a router that does not answer the first attempt is connected to in the background.
-        Returns 0 after the drain, or :data:`~service.supervisor.EXIT_TASK_FAILED` when a task
-        kept failing or the router stayed out of reach beyond ``connect_timeout_s``.
+        Returns 0 after the drain, :data:`~service.supervisor.EXIT_TASK_FAILED` when a task
+        kept failing or the router stayed out of reach beyond ``connect_timeout_s``, and
+        :data:`EXIT_STORAGE` when storage stayed away beyond ``storage_timeout_s`` or events held
+        in memory could not be stored before the exit.
         """
         cfg = self.config
         with contextlib.ExitStack() as resources:
             names = self.sink_names()
             # Closed in reverse order on the way out, whatever happened in between.
-            resources.callback(os.close, lock_data_dir(cfg.service.data_dir))
+            lock = DataDirLock(cfg.service.data_dir)
+            resources.callback(lock.close)
             outbox = resources.enter_context(
-                Outbox(cfg.outbox_path, sinks=names, max_bytes=cfg.service.outbox_max_bytes)
+                Outbox(
+                    cfg.outbox_path,
+                    sinks=names,
+                    max_bytes=cfg.service.outbox_max_bytes,
+                    max_pending=cfg.service.outbox_max_pending,
+                )
             )
             if outbox.over_limit_bytes:
                 log.warning(
@@ -758,10 +775,18 @@ class Service:
                 self.fleet.count_service("checkpoints.store_replaced")
                 log.error("checkpoints: %s; every unit starts fresh", replaced)
             run = self._run = _Run(
+                lock,
                 outbox,
                 resources.enter_context(checkpoints),
                 _Wake(names),
-                OutboxWriter(outbox, on_stored=self._stored, clock=self._clock),
+                OutboxWriter(
+                    outbox,
+                    on_stored=self._stored,
+                    on_held=self._held,
+                    clock=self._clock,
+                    max_held=cfg.service.max_held_events,
+                ),
+                {},
             )
             resources.callback(self.notifier.close)
             # Before the outbox and the checkpoints close, whatever ended the run.
@@ -801,6 +826,7 @@ class Service:
                 sup.start("mavlink-open", lambda: self._mavlink_open(resources, drain, stop))
             sup.start("status", lambda: self._status(stop))
             sup.start("checkpoints", lambda: self._checkpoints(stop))
+            sup.start("storage", lambda: self._storage(stop))
             if connector is not None and session is None:
                 sup.start(
                     "zenoh-connect",
@@ -815,7 +841,9 @@ class Service:
             stop.set()
             self.notifier.send("STOPPING=1")
             await self._drain(drain)
-        return EXIT_TASK_FAILED if sup.fatal.is_set() else 0
+        if sup.fatal.is_set():
+            return sup.exit_code
+        return EXIT_STORAGE if self._unstored else 0
 
     def _say_inputs(self) -> str:
         """Log ``NAME running`` once an input is connected, ``NAME waiting for …`` before; the line said.
@@ -853,6 +881,7 @@ class Service:
             ack=cfg.zenoh.event_ack,
             ack_timeout_s=cfg.zenoh.ack_timeout_s,
             min_acks=cfg.zenoh.min_acks,
+            max_lanes=cfg.pipeline.max_vehicles,
         )
         resources.callback(zsink.close)
         self.sinks.insert(0, zsink)
@@ -977,8 +1006,27 @@ class Service:
                 return
 
     def _start_delivery(self, sink: EventSink, drain: asyncio.Event) -> None:
-        wake = self._running().wake.events[sink.name]
-        self.supervisor.start(f"deliver-{sink.name}", lambda: self._deliver(sink, wake, drain))
+        run = self._running()
+        loop = asyncio.get_running_loop()
+        name = sink.name
+
+        def sent() -> None:
+            # From the transport's worker thread too.
+            loop.call_soon_threadsafe(run.wake.sent, name)
+
+        delivery = run.deliveries[name] = SinkDelivery(
+            sink,
+            run.outbox,
+            run.writer,
+            retry_s=self.config.service.delivery_retry_s,
+            idle=lambda: run.wake.idle(name),
+            sent=sent,
+            count=self.fleet.count_service,
+            transport_error=lambda exc: self._transport_error(name, exc),
+            beat=self.supervisor.beat,
+        )
+        wake = run.wake.events[name]
+        self.supervisor.start(f"deliver-{name}", lambda: delivery.run(wake, drain))
 
     async def _connect(
         self,
@@ -1085,12 +1133,9 @@ class Service:
             await asyncio.to_thread(self.mavlink_source.close)
         # The sources are closed: the input tasks finish what is queued, then end. Should the
         # outbox still be unavailable after DRAIN_TIMEOUT_S, they stop waiting for it.
-        inputs = [t for n, t in tasks.items() if n in INPUT_TASKS]
-        if inputs:
-            _done, waiting = await asyncio.wait(inputs, timeout=DRAIN_TIMEOUT_S)
-            if waiting:
-                self._running().writer.abandon()
-            await asyncio.gather(*inputs, return_exceptions=True)
+        await asyncio.gather(
+            *[t for n, t in tasks.items() if n in INPUT_TASKS], return_exceptions=True
+        )
         try:
             await self.checkpoint()
         except Exception:
@@ -1112,6 +1157,8 @@ class Service:
         for t in list(pending) + [t for t in tasks.values() if t not in deliveries]:
             t.cancel()
         await asyncio.gather(*tasks.values(), return_exceptions=True)
+        run.writer.flush()
+        self._unstored = run.writer.stop()
         left = 0
         with contextlib.suppress(OutboxUnavailable):
             left = sum(run.outbox.counts().pending_by_sink.values())
@@ -1170,10 +1217,6 @@ def _warn_short_rcvbuf(link: MavlinkLink | MavlinkProcessLink) -> None:
             "net.core.rmem_max caps it: sysctl -w net.core.rmem_max=%d",
             link.settings.device, granted, asked, asked,
         )  # fmt: skip
-
-
-def _not_last() -> None:
-    """``sent`` of an event delivered before the last one taken: nothing to say yet."""
 
 
 async def _wait_any(a: asyncio.Event, b: asyncio.Event | None, *, timeout_s: float | None) -> None:

@@ -1,6 +1,6 @@
 """Sources to pipelines: Zenoh frames and MAVLink batches (the samples of :data:`COALESCE_WINDOW_S` per IMU)
-into the :class:`~service.pipeline.FleetProcessor`; decoder rejections counted for their IMU; back-pressure
-while the outbox cannot take events (:mod:`service.outbox_writer`)."""
+into the :class:`~service.pipeline.FleetProcessor`; decoder rejections counted for their IMU. Events the
+outbox cannot take are held and delivered from memory (:mod:`service.outbox_writer`): detection goes on."""
 
 from __future__ import annotations
 
@@ -34,20 +34,14 @@ async def _one_turn() -> None:
 class Intake:
     """Frames from the sources into the fleet's pipelines; the events they raise go to ``store`` (the outbox).
 
-    No frame is taken while events wait for the outbox (back-pressure): before
-    each group of frames the intake awaits ``writable``, and it stops taking
-    frames into a group as soon as ``store`` held events. Frames then wait in
-    the sources' bounded queues; beyond them frames are dropped and counted (the
+    Frames beyond what the sources' bounded queues hold are dropped and counted (the
     Zenoh source's new frames of the unit whose queue is full,
     :class:`protocols._handoff.FairQueues`; the MAVLink source's oldest).
 
     Parameters
     ----------
     fleet : the pipelines.
-    store : where the events of each frame go, in one call per frame; False when they are
-        held because the outbox cannot take them now.
-    writable : waits until no event is held (True), or until the service gives up on the
-        outbox while stopping (False: the intake ends).
+    store : where the events of each frame go, in one call per frame.
     clock : the monotonic clock that stamps arrivals (timeouts).
     say : where one-line notices go.
     handed_over : awaited after each IMU whose frames raised events, before the rest of the group:
@@ -59,15 +53,13 @@ class Intake:
         self,
         fleet: FleetProcessor,
         *,
-        store: Callable[[list[Event]], bool],
-        writable: Callable[[], Awaitable[bool]],
+        store: Callable[[list[Event]], None],
         clock: Callable[[], float],
         say: Callable[[str], None],
         handed_over: Callable[[], Awaitable[None]] = _one_turn,
     ):
         self.fleet = fleet
         self._store = store
-        self._writable = writable
         self._handed_over = handed_over
         self._clock = clock
         self._say = say
@@ -76,24 +68,10 @@ class Intake:
         self._refused_log = LogRate()
         self._last_refusal: tuple[str, str] | None = None
         self._taken: list[SampleBatch] = []
-        self._holding = False
-        self.stalled = False
-        """Set when events were held, until the frames queued meanwhile are taken (the silence was ours)."""
         self.group_lock = asyncio.Lock()
         """Held while a group of frames goes through the pipelines, IMU by IMU with the loop turning between
         them (:meth:`_process_group`). Whatever else reads a unit's whole state or adds to it from the loop
         (checkpoints, the timeout checks) takes it: the group's cross-IMU check comes only at its end."""
-
-    def _put(self, events: list[Event]) -> None:
-        if not self._store(events):
-            self._holding = self.stalled = True
-
-    async def _resume(self) -> bool:
-        """Wait until the outbox takes events (False: the service gave up on it while stopping)."""
-        if not await self._writable():
-            return False
-        self._holding = False
-        return True
 
     def reject(self, key: str, error: FrameError) -> None:
         """A frame the decoder rejected (``FrameSource``'s ``on_reject``): counted for its IMU when the key names one."""
@@ -103,7 +81,7 @@ class Intake:
             vehicle, imu = parse_frame_key(key)
         except SchemaError:
             vehicle, imu = None, None
-        self._put(self.fleet.reject(vehicle, imu, error.reason.value))
+        self._store(self.fleet.reject(vehicle, imu, error.reason.value))
         reason = error.reason.value
         self._refused[reason] = self._refused.get(reason, 0) + 1
         self._last_refusal = (reason, f"{key}: {error}")
@@ -143,7 +121,7 @@ class Intake:
         through (:meth:`FleetProcessor.queued_steps`), and a step ends after each IMU that raised any."""
         try:
             for events in self.fleet.queued_steps(batches, arrival_s=self._clock()):
-                self._put(events)
+                self._store(events)
                 if events:
                     yield
         except Exception as exc:
@@ -173,7 +151,7 @@ class Intake:
         await self._frames(source)
 
     async def _frames(self, source: FrameSource | MavlinkSource) -> None:
-        while await self._resume():
+        while True:
             try:
                 batch = await source.get()
             except EOFError:
@@ -182,17 +160,11 @@ class Intake:
             # budget of samples that bounds the delay of the last one: consecutive frames
             # of an IMU then cost the chain one batch (FleetProcessor.process_queued).
             self._taken, n = [batch], batch.n_samples
-            while (
-                n < QUEUED_SAMPLES_MAX
-                and not self._holding
-                and (more := source.get_nowait()) is not None
-            ):
+            while n < QUEUED_SAMPLES_MAX and (more := source.get_nowait()) is not None:
                 self._taken.append(more)
                 n += more.n_samples
             await self._process_group()
             self.log_refusals()
-            if not self._holding and source.queued == 0:
-                self.stalled = False
             # Let the delivery and status tasks run between groups.
             await asyncio.sleep(0)
 

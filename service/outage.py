@@ -22,6 +22,10 @@ class Outage:
     def ongoing(self) -> bool:
         return self._since is not None
 
+    def lasted(self) -> float | None:
+        """How long the episode going on has lasted, s (None: none is)."""
+        return None if self._since is None else self._clock() - self._since
+
     def failed(self) -> bool:
         """A write failed; True when it begins an episode (the writer logs it then)."""
         self.write_failures += 1

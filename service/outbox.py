@@ -17,6 +17,13 @@ itself (SQLite's ``max_page_count``): beyond it a write fails as on a full disk.
 A file already larger than a newly lowered ``max_bytes`` is pruned and compacted
 when opened (:attr:`Outbox.over_limit_bytes` says what could not be given up).
 
+Delivery is per (sink, vehicle): :meth:`Outbox.pending` takes one vehicle's events, and
+:meth:`Outbox.pending_vehicles` says which vehicles have events waiting for a sink, so that a
+vehicle nobody acknowledges holds up only its own events. Each sink's backlog is bounded on its
+own (``max_pending``): beyond it the sink gives up its oldest pending events (the other sinks
+still deliver them), counted in :attr:`Outbox.given_up`, so a ground station offline for days
+neither fills the file nor withholds another sink's events.
+
 A write the outbox cannot make now — the disk (or ``max_bytes``) full, the file
 locked by another process, an I/O error — raises :class:`OutboxUnavailable`
 and changes nothing; the same call succeeds once space or the lock returns.
@@ -29,10 +36,13 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import hashlib
 import os
+import socket
 import sqlite3
+import struct
 import threading
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,6 +62,7 @@ CREATE TABLE IF NOT EXISTS pending (
     PRIMARY KEY (sink, seq)
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE INDEX IF NOT EXISTS events_vehicle ON events (vehicle, seq);
 """
 
 OUTBOX_SCHEMA_VERSION = 1
@@ -64,28 +75,83 @@ class OutboxError(RuntimeError):
 
 
 class DataDirInUse(OutboxError):
-    """Another process holds the data directory (:func:`lock_data_dir`)."""
+    """Another process holds the data directory (:class:`DataDirLock`)."""
 
 
-def lock_data_dir(data_dir: Path) -> int:
-    """Hold ``data_dir/lock`` for the life of the process: a file descriptor to keep open.
+class DataDirLock:
+    """Hold ``data_dir`` for the life of the process, and tell when it vanishes or is replaced.
 
     Two daemons on one data directory would both take frames, checkpoint the same units and publish
     the same status under one name; the second is refused (:class:`DataDirInUse`, naming the holder).
+    Two holds: ``flock`` on ``data_dir/lock`` (the pid written in it), and a Unix socket in the
+    abstract namespace named after the directory's absolute path. The file alone did not hold once
+    the folder was deleted under the first daemon: a second one made it anew, locked the new file and
+    ran beside the first; the name is not in the file system and goes only with the process.
+
+    :meth:`problem` compares the lock file at its path with the one held (device and inode): a data
+    directory removed or replaced under the daemon is a storage fault (the stores' open files are
+    then ones the next start will not see).
     """
-    path = private_file(data_dir / "lock")
-    fd = os.open(path, os.O_RDWR)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
-        os.close(fd)
-        raise DataDirInUse(
-            f"{data_dir} is in use by another ins-health daemon (pid {holder}): give each its own data_dir"
-        ) from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, str(os.getpid()).encode(), 0)
-    return fd
+
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = Path(data_dir)
+        self._path = self.data_dir / "lock"
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        name = hashlib.sha256(os.path.abspath(self.data_dir).encode()).hexdigest()
+        address = f"\0ins-health/data/{name}"
+        try:
+            self._sock.bind(address)
+        except OSError:
+            self._sock.close()
+            raise DataDirInUse(self._in_use(_peer_pid(address))) from None
+        self._sock.listen(4)
+        try:
+            self._fd = os.open(private_file(self._path), os.O_RDWR)
+        except BaseException:
+            self._sock.close()
+            raise
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(self._fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+            self.close()
+            raise DataDirInUse(self._in_use(holder)) from None
+        os.ftruncate(self._fd, 0)
+        os.pwrite(self._fd, str(os.getpid()).encode(), 0)
+        st = os.fstat(self._fd)
+        self._identity = (st.st_dev, st.st_ino)
+
+    def _in_use(self, holder: str) -> str:
+        return f"{self.data_dir} is in use by another ins-health daemon (pid {holder}): give each its own data_dir"
+
+    def problem(self) -> str | None:
+        """Why the data directory is not the one held any more (None: it is)."""
+        try:
+            st = os.stat(self._path)
+        except FileNotFoundError:
+            return f"the data directory {self.data_dir} (or its lock file) was removed"
+        except OSError as exc:
+            return f"the data directory {self.data_dir} cannot be read ({exc})"
+        if (st.st_dev, st.st_ino) != self._identity:
+            return f"the data directory {self.data_dir} was replaced (its lock file is another)"
+        return None
+
+    def close(self) -> None:
+        os.close(self._fd)
+        self._sock.close()
+
+
+def _peer_pid(address: str) -> str:
+    """The pid of the process listening at an abstract Unix socket (SO_PEERCRED), or ``"unknown"``."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        try:
+            probe.connect(address)
+            pid, _uid, _gid = struct.unpack(
+                "3i", probe.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12)
+            )
+        except OSError:
+            return "unknown"
+    return str(pid)
 
 
 class OutboxUnavailable(OutboxError):
@@ -128,6 +194,8 @@ class Outbox:
     sinks : names of the sinks every new event must reach (e.g. ``("zenoh", "mavlink")``).
     retain_delivered : how many delivered events to keep before pruning the oldest.
     max_bytes : the largest the file may grow (None: as large as the disk allows).
+    max_pending : the most events each sink may have pending (None: unbounded); beyond it the
+        sink's oldest are given up (:attr:`given_up`).
     busy_timeout_s : how long a write waits for another process's lock (:data:`BUSY_TIMEOUT_S`).
 
     Thread-safe: the connection is used under a lock, so a transport callback
@@ -142,12 +210,18 @@ class Outbox:
         sinks: Sequence[str],
         retain_delivered: int = 10_000,
         max_bytes: int | None = None,
+        max_pending: int | None = None,
         busy_timeout_s: float = BUSY_TIMEOUT_S,
     ) -> None:
         if not sinks:
             raise ValueError("an outbox needs at least one sink")
         if retain_delivered < 0:
             raise ValueError(f"retain_delivered must be >= 0, got {retain_delivered!r}")
+        if max_pending is not None and max_pending < 1:
+            raise ValueError(f"max_pending must be >= 1, got {max_pending!r}")
+        self._max_pending = max_pending
+        self.given_up: dict[str, int] = {}
+        """Pending events each sink gave up (its backlog beyond ``max_pending``), since opened."""
         self._sinks = tuple(dict.fromkeys(str(s) for s in sinks))
         self._retain = int(retain_delivered)
         self._lock = threading.Lock()
@@ -167,6 +241,7 @@ class Outbox:
                 f"outbox {path} cannot be opened ({type(exc).__name__}: {exc}); it may hold events not "
                 "yet delivered: move it aside (and look into it) to start with an empty outbox"
             ) from None
+        self._refusal: str | None = None
         self.over_limit_bytes = 0
         """How far the file is above ``max_bytes`` once opened (0: within it); see :meth:`_bound`."""
         if max_bytes is not None:
@@ -201,6 +276,15 @@ class Outbox:
         got = int(self._db.execute(f"PRAGMA max_page_count = {want}").fetchone()[0])
         self.over_limit_bytes = (got - want) * page_bytes
 
+    def refuse_writes(self, reason: str) -> None:
+        """Every later write is :class:`OutboxUnavailable` (``reason``); reads go on. For a file the next
+        start will not see (its data directory removed or replaced): what it would take is lost there."""
+        self._refusal = reason
+
+    def _writable(self) -> None:
+        if self._refusal is not None:
+            raise OutboxUnavailable(self._refusal)
+
     @property
     def sinks(self) -> tuple[str, ...]:
         return self._sinks
@@ -217,24 +301,36 @@ class Outbox:
         """
         return self.put_many([(event_id, vehicle, payload)]) == 1
 
-    def put_many(self, events: Iterable[tuple[str, str, bytes]]) -> int:
+    def put_many(
+        self,
+        events: Iterable[tuple[str, str, bytes]],
+        *,
+        delivered: Mapping[str, Collection[str]] | None = None,
+    ) -> int:
         """Store several events in one transaction; returns how many were new.
 
+        ``delivered``: event id → the sinks that already have it (delivered from memory while
+        the outbox was unavailable): no pending row is made for those.
         :class:`OutboxUnavailable` if they cannot be stored now (none is then).
         """
         rows = [(str(i), str(v), bytes(p)) for i, v, p in events]
+        done = {} if delivered is None else delivered
+        self._writable()
         with self._lock, _unavailable_on_error():
             try:
-                return self._put_locked(rows)
+                return self._put_locked(rows, done)
             except sqlite3.OperationalError as exc:
                 if exc.sqlite_errorname != "SQLITE_FULL":
                     raise
             # Full: the delivered history gives way to the events still to deliver.
             self._transaction(lambda: self._prune_locked(keep=0))
-            return self._put_locked(rows)
+            return self._put_locked(rows, done)
 
-    def _put_locked(self, rows: list[tuple[str, str, bytes]]) -> int:
+    def _put_locked(
+        self, rows: list[tuple[str, str, bytes]], done: Mapping[str, Collection[str]]
+    ) -> int:
         new = 0
+        given_up: dict[str, int] = {}
 
         def insert() -> None:
             nonlocal new
@@ -247,11 +343,33 @@ class Outbox:
                     new += 1
                     self._db.executemany(
                         "INSERT INTO pending (seq, sink) VALUES (?, ?)",
-                        [(cur.lastrowid, s) for s in self._sinks],
+                        [
+                            (cur.lastrowid, s)
+                            for s in self._sinks
+                            if s not in done.get(event_id, ())
+                        ],
                     )
+            if self._max_pending is not None:
+                given_up.update(self._bound_pending_locked(self._max_pending))
+            self._prune_locked(keep=self._retain)
 
         self._transaction(insert)
+        for sink, n in given_up.items():
+            self.given_up[sink] = self.given_up.get(sink, 0) + n
         return new
+
+    def _bound_pending_locked(self, max_pending: int) -> dict[str, int]:
+        """Each sink's oldest pending rows beyond ``max_pending`` deleted; how many per sink."""
+        out: dict[str, int] = {}
+        for sink in self._sinks:
+            cur = self._db.execute(
+                "DELETE FROM pending WHERE sink = ? AND seq <= (SELECT seq FROM pending WHERE sink = ? "
+                "ORDER BY seq DESC LIMIT 1 OFFSET ?)",
+                (sink, sink, max_pending),
+            )
+            if cur.rowcount > 0:
+                out[sink] = cur.rowcount
+        return out
 
     def _transaction(self, work: Callable[[], None]) -> None:
         """``work`` in one write transaction (the lock held): committed, or rolled back and raised."""
@@ -265,16 +383,30 @@ class Outbox:
                 self._db.execute("ROLLBACK")
             raise
 
-    def pending(self, sink: str, *, limit: int = 100) -> list[PendingEvent]:
-        """The oldest events not yet acked by ``sink``, in insertion order."""
+    def pending(
+        self, sink: str, *, vehicle: str | None = None, limit: int = 100
+    ) -> list[PendingEvent]:
+        """The oldest events not yet acked by ``sink`` (of ``vehicle`` only, when given), in insertion order."""
         self._check_sink(sink)
+        where, args = ("", ()) if vehicle is None else (" AND e.vehicle = ?", (vehicle,))
         with self._lock, _unavailable_on_error():
             rows = self._db.execute(
                 "SELECT e.seq, e.id, e.vehicle, e.payload, p.attempts FROM pending p JOIN events e ON e.seq = p.seq "
-                "WHERE p.sink = ? ORDER BY p.seq LIMIT ?",
-                (sink, int(limit)),
+                f"WHERE p.sink = ?{where} ORDER BY p.seq LIMIT ?",
+                (sink, *args, int(limit)),
             ).fetchall()
         return [PendingEvent(int(s), i, v, bytes(p), int(a)) for s, i, v, p, a in rows]
+
+    def pending_vehicles(self, sink: str) -> dict[str, int]:
+        """The vehicles with events pending for ``sink``, each with how many, oldest waiting first."""
+        self._check_sink(sink)
+        with self._lock, _unavailable_on_error():
+            rows = self._db.execute(
+                "SELECT e.vehicle, COUNT(*) FROM pending p JOIN events e ON e.seq = p.seq "
+                "WHERE p.sink = ? GROUP BY e.vehicle ORDER BY MIN(p.seq)",
+                (sink,),
+            ).fetchall()
+        return {str(v): int(n) for v, n in rows}
 
     def stored(self, *, limit: int = 1000) -> list[PendingEvent]:
         """The retained events (delivered or not), oldest first; ``attempts`` is 0 here."""
@@ -286,21 +418,31 @@ class Outbox:
 
     def ack(self, sink: str, seqs: Iterable[int]) -> None:
         """Mark events delivered to ``sink`` (they will not be sent to it again); :class:`OutboxUnavailable` as :meth:`put_many`."""
+        self._ack(sink, "?", [int(s) for s in seqs])
+
+    def ack_ids(self, sink: str, event_ids: Iterable[str]) -> None:
+        """:meth:`ack` by event id (an event delivered from memory and stored meanwhile)."""
+        self._ack(sink, "(SELECT seq FROM events WHERE id = ?)", [str(i) for i in event_ids])
+
+    def _ack(self, sink: str, seq_sql: str, keys: list[int] | list[str]) -> None:
         self._check_sink(sink)
-        rows = [(sink, int(s)) for s in seqs]
-        if not rows:
+        if not keys:
             return
 
         def delete() -> None:
-            self._db.executemany("DELETE FROM pending WHERE sink = ? AND seq = ?", rows)
+            self._db.executemany(
+                f"DELETE FROM pending WHERE sink = ? AND seq = {seq_sql}", [(sink, k) for k in keys]
+            )
             self._prune_locked(keep=self._retain)
 
+        self._writable()
         with self._lock, _unavailable_on_error():
             self._transaction(delete)
 
     def record_attempt(self, sink: str, seqs: Iterable[int]) -> None:
         """Count a failed delivery attempt (for the status topic and back-off)."""
         self._check_sink(sink)
+        self._writable()
         with self._lock, _unavailable_on_error():
             self._db.executemany(
                 "UPDATE pending SET attempts = attempts + 1 WHERE sink = ? AND seq = ?",

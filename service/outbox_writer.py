@@ -1,35 +1,32 @@
-"""The service's events into the outbox, in the order they were raised; what it cannot take now is held.
+"""The service's events into the outbox, in the order they were raised; what it cannot take now is
+held in memory and delivered from there.
 
 A write the outbox cannot make (:class:`~service.outbox.OutboxUnavailable`: the disk
-full, the file locked by another process, an I/O error) loses nothing: the events
-are held in memory, in order, every event raised after them is held behind them,
-and :meth:`OutboxWriter.until_written` writes them, retrying with back-off
-(:data:`RETRY_MIN_S` doubling up to :data:`RETRY_MAX_S`), once the outbox takes
-writes again. While events are held the outbox is *unavailable*, and the rest of
-the service holds back so that state never gets ahead of the events:
+full or read-only, the file locked by another process, an I/O error, the data directory
+gone) loses nothing and silences nothing: the events are held in memory, in order,
+every event raised after them is held behind them, and the deliveries take them from
+memory (:meth:`OutboxWriter.next_held`) while detection goes on. :meth:`OutboxWriter.flush`
+(retried by the service with back-off, :data:`RETRY_MIN_S` doubling up to
+:data:`RETRY_MAX_S`) writes them once the outbox takes writes again, each with a pending
+row only for the sinks that do not have it yet.
 
-* the intake takes no frame (back-pressure: frames wait in the sources' bounded
-  queues, and beyond them are dropped and counted as ``dropped_overload``), so a
-  frame is either processed with its events in the outbox or not processed;
-* checkpoints wait: a checkpoint of state whose events are not in the outbox
-  would, after ``kill -9``, resume past events that were never stored;
-* the timeout checks wait (the silence is the service's, not the IMUs').
-
-The memory held is bounded by construction: while events are held no frame is
-taken, so they are at most the events of one group of frames (the intake's
-``QUEUED_SAMPLES_MAX`` samples) and of one timeout check of the fleet.
+The memory is bounded: beyond ``max_held`` events the oldest that every sink already has
+are given up first (their place in the delivered history is lost: counted as
+``outbox.held_dropped_delivered``), then the oldest (``outbox.held_lost``: a sink never
+had it); both are said in the log. Checkpoints wait while a held event is not yet with
+every sink (:attr:`OutboxWriter.undelivered`): a checkpoint ahead of it would, after
+``kill -9``, resume past an event that exists nowhere.
 
 The status topic carries ``outbox.unavailable`` (1 while events are held),
-``outbox.write_failures`` (writes that failed), ``outbox.held_events`` and
-``outbox.unavailable_episodes``; the log says when the outbox becomes
-unavailable (with the reason) and when it is back (after how long, how many
-events it then took).
+``outbox.write_failures``, ``outbox.held_events``, ``outbox.unavailable_episodes`` and
+the two counts of events given up; the log says when the outbox becomes unavailable
+(with the reason) and when it is back (after how long, how many events it then took).
 """
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Callable
+from collections.abc import Callable, Collection
+from dataclasses import dataclass, field
 
 from protocols.events import Event, encode_event
 from service.log_setup import logger
@@ -38,19 +35,32 @@ from service.outbox import Outbox, OutboxUnavailable
 
 RETRY_MIN_S = 0.05
 RETRY_MAX_S = 2.0
+MAX_HELD_DEFAULT = 10_000
+"""Events held in memory at most while the outbox is unavailable (``[service] max_held_events``)."""
 
 log = logger("outbox")
 
 
+@dataclass
+class HeldEvent:
+    """An event the outbox could not take yet, and the sinks that have it already."""
+
+    event: Event
+    payload: bytes
+    done: set[str] = field(default_factory=set)
+
+
 class OutboxWriter:
-    """Events into ``outbox`` in order, held while it is unavailable (module docstring).
+    """Events into ``outbox`` in order, held and delivered from memory while it is unavailable (module docstring).
 
     Parameters
     ----------
     outbox : the durable outbox.
     on_stored : told how many new events each successful write stored and the vehicles of the
         events it wrote (wakes the deliveries, saves those vehicles' state).
+    on_held : called when events are held (wakes the deliveries: they take them from memory).
     clock : a monotonic clock (how long the outbox was unavailable).
+    max_held : events held in memory at most (module docstring).
     """
 
     def __init__(
@@ -58,23 +68,47 @@ class OutboxWriter:
         outbox: Outbox,
         *,
         on_stored: Callable[[int, set[str]], None],
+        on_held: Callable[[], None],
         clock: Callable[[], float],
+        max_held: int = MAX_HELD_DEFAULT,
     ) -> None:
+        if max_held < 1:
+            raise ValueError(f"max_held must be >= 1, got {max_held!r}")
         self._outbox = outbox
+        self._sinks = frozenset(outbox.sinks)
         self._on_stored = on_stored
-        self._held: list[Event] = []
+        self._on_held = on_held
+        self._max_held = int(max_held)
+        self._held: list[HeldEvent] = []
         self._outage = Outage(clock)
-        self._abandoned = False
+        self.dropped_delivered = 0
+        self.lost = 0
 
     @property
     def holding(self) -> bool:
         """Whether events wait for the outbox (it is unavailable)."""
         return bool(self._held)
 
-    def write(self, events: list[Event]) -> bool:
-        """Store ``events`` after any held ones; False if they are held (the outbox is unavailable)."""
-        self._held.extend(events)
-        return self.flush()
+    @property
+    def undelivered(self) -> bool:
+        """Whether a held event is not yet with every sink."""
+        return any(h.done < self._sinks for h in self._held)
+
+    def unavailable_s(self) -> float | None:
+        """How long the outbox has refused the held events, s (None: it takes them)."""
+        return self._outage.lasted() if self._held else None
+
+    def write(self, events: Collection[Event]) -> None:
+        """Store ``events`` after any held ones; held (and delivered from memory) when the outbox cannot take them."""
+        if not events:
+            return
+        # While events are held the service's storage task retries (with back-off): a write tried
+        # here for every event raised would hold the loop for the outbox's busy timeout each time.
+        retrying = self.holding
+        self._held.extend(HeldEvent(e, encode_event(e)) for e in events)
+        if retrying or not self.flush():
+            self._bound()
+            self._on_held()
 
     def flush(self) -> bool:
         """Try once to write the held events; True when none is held any more."""
@@ -82,58 +116,85 @@ class OutboxWriter:
             return True
         try:
             new = self._outbox.put_many(
-                (e.event_id, e.vehicle, encode_event(e)) for e in self._held
+                ((h.event.event_id, h.event.vehicle, h.payload) for h in self._held),
+                delivered={h.event.event_id: h.done for h in self._held if h.done},
             )
         except OutboxUnavailable as exc:
             if self._outage.failed():
                 log.error(
-                    "outbox unavailable (%s): %d event(s) held in memory, frames wait "
-                    "(dropped beyond the queue, counted); retrying",
+                    "outbox unavailable (%s): %d event(s) held in memory and delivered from there, "
+                    "detection goes on; retrying",
                     exc, len(self._held),
                 )  # fmt: skip
             return False
         written, self._held = self._held, []
         if (lasted := self._outage.ended()) is not None:
             log.warning(
-                "outbox available again after %.1f s: %d held event(s) written, frames taken again",
+                "outbox available again after %.1f s: %d held event(s) written",
                 lasted, len(written),
             )  # fmt: skip
         if new:
-            self._on_stored(new, {e.vehicle for e in written})
+            self._on_stored(new, {h.event.vehicle for h in written})
         return True
 
-    async def until_written(self, *, on_retry: Callable[[], None] | None = None) -> bool:
-        """Retry with back-off until nothing is held (True), or until :meth:`abandon` (False).
+    def _bound(self) -> None:
+        """At most ``max_held`` events: the oldest every sink has go first, then the oldest (module docstring)."""
+        excess = len(self._held) - self._max_held
+        if excess <= 0:
+            return
+        delivered = [h for h in self._held if h.done >= self._sinks][:excess]
+        gone = {id(h) for h in delivered}
+        lost = [h for h in self._held if id(h) not in gone][: excess - len(delivered)]
+        gone |= {id(h) for h in lost}
+        self._held = [h for h in self._held if id(h) not in gone]
+        self.dropped_delivered += len(delivered)
+        self.lost += len(lost)
+        log.warning(
+            "outbox unavailable and %d events held (max_held_events): %d delivered everywhere are "
+            "not kept for the history, %d not yet delivered everywhere are given up (%s); counted "
+            "as outbox.held_dropped_delivered and outbox.held_lost",
+            self._max_held, len(delivered), len(lost),
+            ", ".join(sorted({h.event.event_id for h in lost})) or "none",
+        )  # fmt: skip
 
-        ``on_retry`` is called before each wait (the waiting task is alive: a supervisor's beat).
-        """
-        delay_s = RETRY_MIN_S
-        while not self.flush():
-            if self._abandoned:
-                return False
-            if on_retry is not None:
-                on_retry()
-            await asyncio.sleep(delay_s)
-            delay_s = min(2.0 * delay_s, RETRY_MAX_S)
+    def next_held(self, sink: str, vehicle: str) -> HeldEvent | None:
+        """The oldest held event of ``vehicle`` that ``sink`` does not have yet."""
+        return next(
+            (h for h in self._held if h.event.vehicle == vehicle and sink not in h.done), None
+        )
+
+    def held_vehicles(self, sink: str) -> dict[str, int]:
+        """The vehicles with held events ``sink`` does not have yet, each with how many."""
+        out: dict[str, int] = {}
+        for h in self._held:
+            if sink not in h.done:
+                out[h.event.vehicle] = out.get(h.event.vehicle, 0) + 1
+        return out
+
+    def delivered(self, sink: str, held: HeldEvent) -> bool:
+        """``sink`` has ``held``: True when it is still held (marked so), False when the outbox took it meanwhile."""
+        if not any(h is held for h in self._held):
+            return False
+        held.done.add(sink)
         return True
 
-    def abandon(self) -> None:
-        """Stop waiting (the service is stopping): the held events are lost, and the log says how many.
-
-        The checkpoints waited for them, so the next start resumes from before the frames
-        that raised them.
-        """
-        self._abandoned = True
+    def stop(self) -> int:
+        """The service stops: the held events are said (how many every sink has, how many are lost); their number."""
         if self._held:
+            everywhere = sum(h.done >= self._sinks for h in self._held)
             log.error(
-                "stopping with the outbox unavailable: %d held event(s) could not be stored and are lost",
-                len(self._held),
-            )
+                "stopping with the outbox unavailable: %d held event(s) could not be stored (%d of "
+                "them delivered to every sink, %d lost for at least one); exiting non-zero",
+                len(self._held), everywhere, len(self._held) - everywhere,
+            )  # fmt: skip
+        return len(self._held)
 
     def counters(self) -> dict[str, int]:
         """For the status topic (module docstring)."""
         return {
             "outbox.unavailable": int(self.holding),
             "outbox.held_events": len(self._held),
+            "outbox.held_dropped_delivered": self.dropped_delivered,
+            "outbox.held_lost": self.lost,
             **self._outage.counters("outbox"),
         }

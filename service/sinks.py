@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 from protocols.events import Event
@@ -36,20 +38,37 @@ class EventSink(Protocol):
 
 
 class ZenohEventSink:
-    """Events on ``ins/<vehicle>/health/events`` (reliable, blocking), acknowledged as configured."""
+    """Events on ``ins/<vehicle>/health/events`` (reliable, blocking), acknowledged as configured.
+
+    Each publish waits for its acknowledgements (up to ``ack_timeout_s``) in a thread of the sink's
+    own pool of up to ``max_lanes`` threads (one per vehicle delivering at once,
+    :mod:`service.delivery`): in the loop's default pool (6 threads on 2 cores) six vehicles whose
+    ground stations are offline held every thread, and the others' events waited behind them.
+    """
 
     name = "zenoh"
 
-    def __init__(self, session: Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
+    def __init__(
+        self,
+        session: Session,
+        *,
+        ack: AckMode,
+        ack_timeout_s: float,
+        min_acks: int,
+        max_lanes: int,
+    ):
         self._publisher = EventPublisher(
             session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
         )
+        self._pool = ThreadPoolExecutor(max_workers=max_lanes, thread_name_prefix="zenoh-events")
 
     async def deliver(self, event: Event, *, sent: Callable[[], None]) -> bool:
         # publish() blocks up to the acknowledgement timeout: keep it off the loop.
-        return await asyncio.to_thread(self._publisher.publish, event, on_put=sent)
+        publish = functools.partial(self._publisher.publish, event, on_put=sent)
+        return await asyncio.get_running_loop().run_in_executor(self._pool, publish)
 
     def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
         self._publisher.close()
 
 

@@ -66,6 +66,8 @@ class Supervisor:
         self.health: dict[str, TaskHealth] = {}
         self.tasks: dict[str, asyncio.Task[None]] = {}
         self.fatal = asyncio.Event()
+        self.exit_code = EXIT_TASK_FAILED
+        """The daemon's exit status once :attr:`fatal` is set."""
         self._stopping = asyncio.Event()
 
     def start(self, name: str, work: Callable[[], Awaitable[None]]) -> asyncio.Task[None]:
@@ -85,9 +87,10 @@ class Supervisor:
         for task in self.tasks.values():
             task.cancel()
 
-    def fail(self, reason: str) -> None:
-        """A condition no restart of a task can mend: logged, and the daemon exits (:attr:`fatal`)."""
-        log.critical("%s; the daemon exits with status %d", reason, EXIT_TASK_FAILED)
+    def fail(self, reason: str, *, code: int = EXIT_TASK_FAILED) -> None:
+        """A condition no restart of a task can mend: logged, and the daemon exits (:attr:`fatal`) with ``code``."""
+        log.critical("%s; the daemon exits with status %d", reason, code)
+        self.exit_code = code
         self.fatal.set()
 
     def beats(self, *names: str) -> int:

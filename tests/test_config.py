@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import tomllib
 from pathlib import Path
 
@@ -296,3 +297,21 @@ def test_signing_key_file_is_read_relative_to_the_configuration_and_checked(tmp_
     ):
         with pytest.raises(ConfigError, match=rf"\[mavlink\] mavlink signing_key_file.*{match}"):
             config_from_dict({"mavlink": {"signing_key_file": name}}, base_dir=tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "said"),
+    [
+        ("storage_timeout_s", 0.5, "storage_timeout_s must be in [1, 86400] s"),
+        ("storage_timeout_s", 1e9, "storage_timeout_s must be in [1, 86400] s"),
+        ("max_held_events", 0, "max_held_events must be an integer in [1, 1000000]"),
+        ("max_held_events", 10**12, "max_held_events must be an integer in [1, 1000000]"),
+        ("outbox_max_pending", 10**9, "outbox_max_pending must be an integer in [1, 10000000]"),
+    ],
+)
+def test_the_delivery_and_storage_bounds_are_checked_at_start(key, value, said):
+    """Issue 29's keys: memory held while storage is away, a sink's backlog, and how long storage may
+    be away before the daemon exits for systemd to restart it, each bounded."""
+    with pytest.raises(ConfigError, match=re.escape(said)):
+        config_from_dict({"service": {key: value}})
+    assert getattr(config_from_dict({"service": {}}).service, key) > 0

@@ -71,6 +71,20 @@ def test_id_is_stable_and_depends_on_every_identifying_field():
     assert _event(severity=Severity.CRITICAL).event_id == e.event_id
 
 
+def test_the_same_fault_at_the_same_uptime_after_a_reboot_is_a_new_event():
+    """The id held the time since boot only: the first fault after a reboot at the uptime of one before
+    it had the old id, and the outbox dropped it as delivered. The source's epoch (its runs) now enters
+    the id; epoch 0 keeps the ids events had, and is written at the schema versions it was."""
+    first, rebooted = _event(), _event(epoch=1)
+    assert rebooted.event_id != first.event_id
+    assert rebooted.event_id == _event(epoch=1).event_id  # a retry keeps its id
+    assert event_to_dict(first)["v"] == 1 and "epoch" not in event_to_dict(first)
+    assert event_to_dict(rebooted)["v"] == 3 and event_to_dict(rebooted)["epoch"] == 1
+    assert decode_event(encode_event(rebooted)) == rebooted
+    # A map of an older version naming no epoch is epoch 0, whatever else it holds.
+    assert decode_event(encode_event(first)).epoch == 0
+
+
 def test_finding_maps_onto_event_fields():
     e = _event()
     assert (e.predicate, e.triad, e.axis, e.cause) == (
@@ -187,6 +201,11 @@ BAD_MAPS = {
     "forged id": (_mutate(id="0" * 32), Reason.BAD_VALUE),
     "id changed field": (_mutate(axis="z"), Reason.BAD_VALUE),
     "short id": (_mutate(id="abc"), Reason.BAD_VALUE),
+    "version 3 without epoch": (_mutate(v=3), Reason.MISSING_FIELD),
+    "version 3 of epoch 0": (_mutate(v=3, epoch=0), Reason.BAD_VALUE),
+    "epoch as str": (_mutate(v=3, epoch="1"), Reason.WRONG_TYPE),
+    "negative epoch": (_mutate(v=3, epoch=-1), Reason.BAD_VALUE),
+    "epoch the id lacks": (_mutate(v=3, epoch=2), Reason.BAD_VALUE),
 }
 
 

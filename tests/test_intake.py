@@ -68,21 +68,17 @@ def test_an_imu_s_event_is_delivered_before_the_other_imus_of_its_group_are_proc
         at_delivery: list[int | None] = []
         wake = asyncio.Event()
 
-        def store(events: list[Event]) -> bool:
+        def store(events: list[Event]) -> None:
             if events:
                 stored.extend(events)
                 at_store.append(other.last_seq)
                 wake.set()
-            return True
-
-        async def writable() -> bool:
-            return True
 
         async def deliver() -> None:
             await wake.wait()
             at_delivery.append(other.last_seq)
 
-        intake = Intake(f, store=store, writable=writable, clock=lambda: 0.0, say=print)
+        intake = Intake(f, store=store, clock=lambda: 0.0, say=print)
         delivery = asyncio.create_task(deliver())
         await intake.mavlink_frames(ListSource(group))  # type: ignore[arg-type]
         await delivery
@@ -106,9 +102,6 @@ def test_the_rest_of_the_group_waits_until_the_events_are_handed_over():
         seen: list[tuple[str, int | None]] = []
         loop = asyncio.get_running_loop()
 
-        async def writable() -> bool:
-            return True
-
         async def handed_over() -> None:
             seen.append(("asked", other.last_seq))
             handed = asyncio.Event()
@@ -118,8 +111,7 @@ def test_the_rest_of_the_group_waits_until_the_events_are_handed_over():
 
         intake = Intake(
             f,
-            store=lambda events: True,
-            writable=writable,
+            store=lambda events: None,
             clock=lambda: 0.0,
             say=print,
             handed_over=handed_over,
@@ -139,7 +131,7 @@ def test_refused_frames_are_logged_a_new_reason_at_once_and_more_at_a_bounded_ra
     most once per LOG_PERIOD_S, with the last refusal's key and reason."""
     said: list[str] = []
     f = demo_fleet(max_vehicles=1)
-    intake = Intake(f, store=lambda events: True, writable=None, clock=lambda: 0.0, say=said.append)  # type: ignore[arg-type]
+    intake = Intake(f, store=lambda events: None, clock=lambda: 0.0, say=said.append)
     error = FrameError(
         Reason.UNKNOWN_VERSION, "frame schema version 2 is newer than this service's 1"
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -11,7 +12,7 @@ import threading
 
 import pytest
 
-from service.outbox import Outbox, OutboxError, OutboxUnavailable
+from service.outbox import DataDirInUse, DataDirLock, Outbox, OutboxError, OutboxUnavailable
 
 
 def ids(events):
@@ -223,3 +224,47 @@ def test_events_pending_for_a_sink_no_longer_configured_are_reported(tmp_path):
     with Outbox(tmp_path / "o.sqlite", sinks=("zenoh",)) as ob:
         assert ob.pending_elsewhere() == {"mavlink": 5}
         assert ob.counts().pending_by_sink == {"zenoh": 0}
+
+
+def test_pending_per_vehicle_and_each_sinks_backlog_bounded_on_its_own(tmp_path):
+    """Delivery per (sink, vehicle) reads one vehicle's events; a sink's backlog beyond ``max_pending``
+    gives up its oldest (counted) while the other sink still has them all."""
+    with Outbox(tmp_path / "o.sqlite", sinks=("zenoh", "mavlink"), max_pending=3) as ob:
+        ob.put_many([(f"{k:032x}", "va" if k % 2 else "vb", bytes([k])) for k in range(3)])
+        assert ob.pending_vehicles("zenoh") == {"vb": 2, "va": 1}
+        assert ids(ob.pending("zenoh", vehicle="vb")) == [f"{k:032x}" for k in (0, 2)]
+        ob.ack_ids("mavlink", [f"{k:032x}" for k in range(3)])
+        ob.put_many([(f"{k:032x}", "va", b"x") for k in range(3, 6)])
+        # zenoh had 6 pending: its 3 oldest given up; mavlink had 3: nothing given up.
+        assert ob.given_up == {"zenoh": 3}
+        assert ids(ob.pending("zenoh")) == [f"{k:032x}" for k in (3, 4, 5)]
+        assert ids(ob.pending("mavlink")) == [f"{k:032x}" for k in (3, 4, 5)]
+        # An event a sink had from memory while the outbox was unavailable gets no pending row for it.
+        ob.put_many([("f" * 32, "vb", b"F")], delivered={"f" * 32: {"mavlink"}})
+        assert "f" * 32 in ids(ob.pending("zenoh")) and "f" * 32 not in ids(ob.pending("mavlink"))
+        ob.refuse_writes("the data directory was removed")
+        with pytest.raises(OutboxUnavailable, match="was removed"):
+            ob.put("e" * 32, "va", b"E")
+        assert ids(ob.pending("mavlink")) == [f"{k:032x}" for k in (3, 4, 5)]  # reads go on
+
+
+def test_a_data_directory_is_held_also_once_deleted_and_its_replacement_is_told(tmp_path):
+    """The lock file alone did not hold once the folder was deleted: a second daemon made it anew and
+    ran beside the first."""
+    data = tmp_path / "data"
+    data.mkdir()
+    lock = DataDirLock(data)
+    try:
+        assert lock.problem() is None
+        with pytest.raises(DataDirInUse, match=f"pid {os.getpid()}"):
+            DataDirLock(data)
+        shutil.rmtree(data)
+        assert "was removed" in lock.problem()
+        data.mkdir()
+        with pytest.raises(DataDirInUse):
+            DataDirLock(data)
+        (data / "lock").write_text("")
+        assert "was replaced" in lock.problem()
+    finally:
+        lock.close()
+    DataDirLock(data).close()  # free once the holder let go

@@ -9,11 +9,13 @@ import sqlite3
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
 from service_support import (
+    EventStream,
     batches_of,
     run_fleet,
     wait_subscribed,
@@ -33,7 +35,7 @@ from test_service_faults import (
     write_config,
 )
 
-from protocols.events import Predicate, Severity, StreamCause, encode_event, make_event
+from protocols.events import Event, Predicate, Severity, StreamCause, encode_event, make_event
 from protocols.frames import encode_frame
 from protocols.zenoh_adapter import ZENOH_MAX_MESSAGE_BYTES, EventReceiver, frame_key
 from service.checkpoint import CheckpointStore
@@ -228,12 +230,14 @@ def test_oversized_zenoh_puts_are_dropped_by_zenoh_or_refused_and_counted(tmp_pa
     assert counters["service.frames.received"] == len(frames) + too_large
 
 
-def test_an_outbox_locked_by_another_process_holds_the_events_then_delivers_each_once(tmp_path):
+def test_an_outbox_locked_by_another_process_delays_no_event_and_stores_each_once_when_released(
+    tmp_path,
+):
     """Another process holds the outbox's write lock (``BEGIN EXCLUSIVE``) while a faulty vehicle and a
-    second one publish: the F0 event cannot be stored, the daemon says ``outbox unavailable`` on the
-    status topic and in its log and takes no frame meanwhile (they wait in its queue). The lock is
-    released: every event of both vehicles arrives exactly once, as the same frames give offline (the
-    frames fit the queue of 256: none is dropped)."""
+    second one publish: the events cannot be stored. The daemon says ``outbox unavailable`` on the status
+    topic and in its log, goes on taking frames (both vehicles' are all processed) and delivers both
+    events from memory while the lock is held (before, it held them and took no frame until the lock
+    went). The lock is released: the events are stored as delivered, none is put on the wire again."""
     faulty, other = "uav-f", "uav-o"
     frames = {v: to_the_fault(v, batch_samples=200) for v in (faulty, other)}
     want = sorted(
@@ -243,6 +247,7 @@ def test_an_outbox_locked_by_another_process_holds_the_events_then_delivers_each
     passports = put_store(tmp_path, [(faulty, 0), (other, 0)])
     with ground_and_vehicle(tmp_path, passports) as (config, ground, vehicle, status):
         got = []
+        wire = EventStream(ground)
         with EventReceiver(ground, lambda e: got.append(e.event_id)):
             daemon = ServiceProcess(config)
             try:
@@ -252,32 +257,30 @@ def test_an_outbox_locked_by_another_process_holds_the_events_then_delivers_each
                     wait_subscribed(vehicle, frame_key(faulty, 0))
                     publish_blocking(vehicle, frames[faulty])
                     publish_blocking(vehicle, frames[other])
-                    wait_until(lambda: status.counter(faulty, "service.outbox.unavailable") == 1,
-                               timeout_s=60, what=lambda: f"outbox unavailable on the status topic ({status.get(faulty)})")  # fmt: skip
-                    held = status.get(faulty).counters
-                    assert got == [] and held["service.outbox.write_failures"] >= 1
-                    # The queues of the two vehicles are taken in turn: the group whose event could
-                    # not be stored may hold the other vehicle's fault too, and no frame is taken after it.
-                    assert 1 <= held["service.outbox.held_events"] <= len(want)
+                    wait_until(lambda: sorted(got) == want, timeout_s=60,
+                               what=lambda: f"both vehicles' events from memory (got {got})")  # fmt: skip
+                    n = {v: sum(b.n_samples for b in frames[v]) for v in frames}
+                    wait_until(lambda: all(status.counter(v, "imu0.samples.accepted") == n[v] for v in frames)
+                               and status.counter(other, "service.outbox.held_events") == 2,
+                               timeout_s=60, what=lambda: f"every frame taken ({status.get(other)})")  # fmt: skip
+                    held = status.get(other).counters
+                    assert held["service.outbox.unavailable"] == 1 == held["service.storage.fault"]
+                    assert held["service.outbox.write_failures"] >= 1
                 finally:
                     lock.execute("ROLLBACK")
                     lock.close()
-                wait_until(lambda: sorted(got) == want, timeout_s=60,
-                           what=lambda: f"both vehicles' events (got {got})")  # fmt: skip
-                n = sum(b.n_samples for b in frames[other])
                 wait_until(
-                    lambda: (
-                        status.counter(other, "imu0.samples.accepted") == n
-                        and status.counter(other, "service.outbox.unavailable") == 0
-                    ),
+                    lambda: status.counter(other, "service.outbox.unavailable") == 0,
                     timeout_s=30,
                     what=lambda: f"the outbox available again ({status.get(other)})",
                 )
                 after = status.get(other).counters
+                with Outbox(tmp_path / "data" / "outbox.sqlite", sinks=("zenoh",)) as ob:
+                    assert sorted(p.id for p in ob.stored()) == want and ob.pending("zenoh") == []
             finally:
                 code = daemon.terminate()
     assert code == 0, daemon.lines
-    assert len(got) == len(set(got)) == 2
+    assert len(got) == len(set(got)) == 2 and sorted(wire.snapshot()) == want
     assert after["service.outbox.unavailable_episodes"] == 1
     assert after.get("service.frames.dropped_overload", 0) == 0
     assert any("outbox unavailable (database is locked)" in line for line in daemon.lines), (
@@ -290,21 +293,12 @@ FULL_PAGES = 40
 """Size of the full outbox of the disk-full test, in SQLite pages of 4096 bytes."""
 
 
-def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
-    """The outbox is full (its ``outbox_max_mb`` reached: SQLite's own 'database or disk is full', as on
-    a full disk) of events of another vehicle that no receiver has acknowledged yet. The faulty
-    vehicle's F0 event cannot be stored: the daemon says ``outbox unavailable`` and holds it. A receiver
-    comes up: the waiting events are delivered, their history gives way, the F0 event is stored and
-    arrives, exactly once, and the daemon says the outbox is back."""
-    v = "uav-d"
-    frames = to_the_fault(v, batch_samples=200)
-    expected = run_fleet(offline_fleet(), frames, finish=False)
-    want = [e.event_id for e in expected]
-    fillers = []
-    (tmp_path / "data").mkdir()
-    with Outbox(
-        tmp_path / "data" / "outbox.sqlite", sinks=("zenoh",), max_bytes=FULL_PAGES * 4096
-    ) as ob:
+def fill_outbox(data: Path, sinks: tuple[str, ...]) -> tuple[list[str], Event]:
+    """An outbox of :data:`FULL_PAGES` in ``data`` filled with another vehicle's events pending for
+    ``sinks``: their ids, and the last event, which did not fit."""
+    fillers: list[str] = []
+    data.mkdir()
+    with Outbox(data / "outbox.sqlite", sinks=sinks, max_bytes=FULL_PAGES * 4096) as ob:
         # Large events until one does not fit, then events smaller than F0's until none does.
         for text in ("x" * 900, "x"):
             while True:
@@ -316,8 +310,22 @@ def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
                     assert "database or disk is full" in str(exc)
                     break
                 fillers.append(filler.event_id)
+    return fillers, filler
+
+
+def test_a_full_outbox_holds_the_events_until_deliveries_make_room(tmp_path):
+    """The outbox is full (its ``outbox_max_mb`` reached: SQLite's own 'database or disk is full', as on
+    a full disk) of events of another vehicle that no receiver has acknowledged yet. The faulty
+    vehicle's F0 event cannot be stored: the daemon says ``outbox unavailable`` and holds it. A receiver
+    comes up: the waiting events are delivered, their history gives way, the F0 event is stored and
+    arrives, exactly once, and the daemon says the outbox is back."""
+    v = "uav-d"
+    frames = to_the_fault(v, batch_samples=200)
+    expected = run_fleet(offline_fleet(), frames, finish=False)
+    want = [e.event_id for e in expected]
+    fillers, last = fill_outbox(tmp_path / "data", ("zenoh",))
     # The last that did not fit is smaller than the F0 event: F0 cannot fit either.
-    assert len(encode_event(filler)) < len(encode_event(expected[0]))
+    assert len(encode_event(last)) < len(encode_event(expected[0]))
     passports = put_store(tmp_path, [(v, 0)])
     limit = f"outbox_max_mb = {FULL_PAGES * 4096 / 1e6!r}\n"
     with ground_and_vehicle(tmp_path, passports, service=limit) as (

@@ -42,13 +42,14 @@ from test_service_faults import (
     write_config,
 )
 
-from protocols.events import Predicate
+from protocols.events import Predicate, Severity, StreamCause, encode_event, make_event
 from protocols.mavlink_adapter import ImuMessage, use_mavlink2
 from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key
 from service.checkpoint import CheckpointStore, CheckpointUnavailable
 from service.commands.run import STOP_BOUND_S
 from service.daemon import CONNECT_PAUSE_S, Service
 from service.notify import Notifier
+from service.outbox_writer import HeldEvent
 from service.supervisor import EXIT_TASK_FAILED, Supervisor
 
 pytestmark = pytest.mark.network
@@ -533,10 +534,13 @@ def test_a_checkpoint_is_not_taken_ahead_of_events_held_while_it_yields(tmp_path
         svc.call(s.intake.process, frames)
         writer = s._running().writer
         taken = s.fleet.checkpoint_states
+        held = make_event(vehicle="uav-b", imu=0, t_s=1.0, predicate=Predicate.TIMEOUT,
+                          cause=StreamCause.NO_DATA, severity=Severity.WARNING)  # fmt: skip
 
         def held_after_the_first(vehicle, imus):
             out = taken(vehicle, imus)
-            writer._held.append(b"an event the outbox did not take")  # what the yield let happen
+            # What the yield let happen: an event the outbox did not take, not yet delivered.
+            writer._held.append(HeldEvent(held, encode_event(held)))
             return out
 
         s.fleet.checkpoint_states = held_after_the_first

@@ -9,7 +9,9 @@ included); past that bound it logs why and exits with :data:`EXIT_STOP_TIMEOUT`.
 write included: one line naming the setting and the fix, not a restart loop under
 ``Restart=on-failure``), 1 for a failure outside the tasks
 (logged with its traceback), 70 when a task kept failing or the router stayed out of reach
-beyond ``connect_timeout_s`` (:mod:`service.supervisor`), so that systemd starts it afresh.
+beyond ``connect_timeout_s`` (:mod:`service.supervisor`), 74 when storage stayed away beyond
+``storage_timeout_s`` or events held in memory could not be stored before the exit
+(:data:`service.daemon.EXIT_STORAGE`), so that systemd starts it afresh.
 
 The log goes to stderr through :mod:`service.log_setup` (one line per record; under
 journald without time stamps and with syslog priorities); ``--log-level`` sets its

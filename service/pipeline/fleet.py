@@ -36,7 +36,7 @@ PassportLookup = Callable[[str, int], Passport | None]
 
 
 def _cross_imu_event(
-    vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str
+    vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str, *, epoch: int
 ) -> Event:
     t_s = report.bin_start_s + limits.cross_imu_window_s
     accel_ratio = report.accel_dev_mps2 / limits.cross_imu_accel_mps2
@@ -59,13 +59,13 @@ def _cross_imu_event(
     if report.consistent:
         text = f"{vehicle} IMU{report.imu}: agrees again with {others} [cross_imu]"
         return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.RECOVERED,
-                          severity=RECOVERED_SEVERITY, triad=triad, estimate=value, tolerance=limit, unit=unit, text=text)  # fmt: skip
+                          severity=RECOVERED_SEVERITY, triad=triad, estimate=value, tolerance=limit, unit=unit, text=text, epoch=epoch)  # fmt: skip
     word = "accelerometer" if triad is Triad.ACCEL else "gyro"
     text = f"{vehicle} IMU{report.imu} {word}: disagrees with {others} by {value:.3g} {unit} (limit {limit:.3g}) [cross_imu]"
     if scalar_note:
         text += f"; scalar checks: {scalar_note}"
     return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.DISAGREEMENT,
-                      severity=SEVERITY[Predicate.CROSS_IMU], triad=triad, estimate=value, tolerance=limit, unit=unit, text=text)  # fmt: skip
+                      severity=SEVERITY[Predicate.CROSS_IMU], triad=triad, estimate=value, tolerance=limit, unit=unit, text=text, epoch=epoch)  # fmt: skip
 
 
 class FleetProcessor:
@@ -397,7 +397,11 @@ class FleetProcessor:
         reports = self.cross[good.vehicle].add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
         return [
             _cross_imu_event(
-                good.vehicle, r, self.options.validity, self._scalar_note(good.vehicle, r.imu)
+                good.vehicle,
+                r,
+                self.options.validity,
+                self._scalar_note(good.vehicle, r.imu),
+                epoch=self.pipelines[(good.vehicle, r.imu)].epoch,
             )
             for r in reports
         ]

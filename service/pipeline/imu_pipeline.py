@@ -160,6 +160,12 @@ class ImuPipeline:
         if n:
             self.counters[name] = self.counters.get(name, 0) + int(n)
 
+    @property
+    def epoch(self) -> int:
+        """The source's run: the new runs seen (checkpointed with the counters). It enters the ids of
+        the unit's events, so a fault at the same time since boot after a reboot is a new event."""
+        return self.counters.get("new_runs", 0)
+
     def _event(
         self, t_s: float, predicate: Predicate, cause: EventCause, severity: Severity, **kw: Any
     ) -> Event:
@@ -170,6 +176,7 @@ class ImuPipeline:
             predicate=predicate,
             cause=cause,
             severity=severity,
+            epoch=self.epoch,
             **kw,
         )
 
@@ -801,6 +808,7 @@ class ImuPipeline:
                         imu=self.imu,
                         t_s=t_s,
                         severity=FINDING_SEVERITY,
+                        epoch=self.epoch,
                     )
                 )
         for result in diag.results:

@@ -1,0 +1,195 @@
+"""Delivery latency per vehicle with 1 of 16 ground stations offline, against all online; memory held
+per event while storage is down (issue 29).
+
+* **Latency** — a Zenoh router process on 127.0.0.1; in this process the daemon's delivery as it runs
+  it (the SQLite outbox with fsync, :class:`~service.outbox_writer.OutboxWriter`,
+  :class:`~service.delivery.SinkDelivery` and :class:`~service.sinks.ZenohEventSink` with the
+  defaults ``ack_timeout_s`` 1 s and ``delivery_retry_s`` 0.5 s) and, on a second session, an
+  acknowledging :class:`~protocols.zenoh_adapter.EventReceiver` per ground station that is up.
+  Every :data:`PERIOD_S` each of the 16 vehicles raises one event, written as the intake writes
+  them; latency = received by its ground station − written. Two runs: every ground station up;
+  vehicle 0's down (its events wait, retried), alternated :data:`PAIRS` times. p50/p99 over the vehicles that are up, and the
+  ratio of the two runs (≈ 1: the offline vehicle holds up only its own events). Before issue 29
+  delivery stopped at the first unacknowledged event: every vehicle waited.
+* **Memory** — the outbox locked by another connection (``BEGIN EXCLUSIVE``, as another process
+  holding it, a read-only or full disk): :data:`HELD` F0-like events written are held in memory
+  (and delivered from there); tracemalloc's growth per event.
+
+Run: ``python benchmarks/bench_delivery.py`` (``--quick``: fewer rounds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sqlite3
+import sys
+import tempfile
+import threading
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from host_steal import percentiles  # noqa: E402
+
+from protocols.events import Event, Predicate, Severity, StreamCause, make_event  # noqa: E402
+from protocols.zenoh_adapter import (  # noqa: E402
+    AckMode,
+    EventReceiver,
+    Mode,
+    ZenohSettings,
+    zenoh_config,
+)
+from protocols.zenoh_router import RouterProcess, free_local_port  # noqa: E402
+from service.delivery import SinkDelivery  # noqa: E402
+from service.outbox import Outbox  # noqa: E402
+from service.outbox_writer import OutboxWriter  # noqa: E402
+from service.sinks import ZenohEventSink  # noqa: E402
+
+VEHICLES = 16
+PERIOD_S = 0.1
+ROUNDS = 100
+QUICK_ROUNDS = 20
+ACK_TIMEOUT_S = 1.0
+RETRY_S = 0.5
+HELD = 10_000
+PAIRS = 3
+"""Runs of each kind, alternated (one with ``--quick``)."""
+
+
+def event(vehicle: str, k: int) -> Event:
+    """An F0-like event with the text and numbers of a real one."""
+    return make_event(vehicle=vehicle, imu=0, t_s=64.5 + k, predicate=Predicate.F0,
+                      cause=StreamCause.OUT_OF_SHELL, severity=Severity.WARNING, triad="accel",
+                      estimate=0.0319, nominal=0.0, tolerance=0.00452, unit="1")  # fmt: skip
+
+
+def client(port: int) -> zenoh.Config:
+    return zenoh_config(ZenohSettings(mode=Mode.CLIENT, connect=(f"tcp/127.0.0.1:{port}",)))
+
+
+def latency_run(port: int, *, offline: set[int], rounds: int) -> np.ndarray:
+    """Latencies (ms) of the events of the vehicles whose ground station is up."""
+    vehicles = [f"veh-{k:02d}" for k in range(VEHICLES)]
+    written: dict[str, float] = {}
+    received: dict[str, float] = {}
+    lock = threading.Lock()
+
+    def got(e: Event) -> None:
+        with lock:
+            received[e.event_id] = time.monotonic()
+
+    with (
+        tempfile.TemporaryDirectory() as tmp,
+        zenoh.open(client(port)) as onboard,
+        zenoh.open(client(port)) as ground,
+    ):
+        receivers = [
+            EventReceiver(ground, got, vehicles=v)
+            for k, v in enumerate(vehicles)
+            if k not in offline
+        ]
+        time.sleep(1.0)  # the receivers' queryables reach the daemon's session
+
+        async def run() -> None:
+            wake, stop = asyncio.Event(), asyncio.Event()
+            with Outbox(Path(tmp) / "outbox.sqlite", sinks=("zenoh",)) as outbox:
+                writer = OutboxWriter(outbox, on_stored=lambda n, v: wake.set(),
+                                      on_held=wake.set, clock=time.monotonic)  # fmt: skip
+                sink = ZenohEventSink(onboard, ack=AckMode.RECEIVER, ack_timeout_s=ACK_TIMEOUT_S,
+                                      min_acks=1, max_lanes=VEHICLES)  # fmt: skip
+                delivery = SinkDelivery(sink, outbox, writer, retry_s=RETRY_S, idle=lambda: None,
+                                        sent=lambda: None, count=lambda name: None,
+                                        transport_error=print, beat=lambda: None)  # fmt: skip
+                task = asyncio.create_task(delivery.run(wake, stop))
+                for r in range(rounds):
+                    for v in vehicles:
+                        e = event(v, r)
+                        written[e.event_id] = time.monotonic()
+                        writer.write([e])
+                    await asyncio.sleep(PERIOD_S)
+                online = {
+                    event(v, r).event_id
+                    for r in range(rounds)
+                    for k, v in enumerate(vehicles)
+                    if k not in offline
+                }
+                deadline = time.monotonic() + 10.0
+                while not online <= received.keys() and time.monotonic() < deadline:
+                    await asyncio.sleep(0.05)
+                stop.set()
+                wake.set()
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+                sink.close()
+
+        asyncio.run(run())
+        for r in receivers:
+            r.close()
+    with lock:
+        lat = [received[i] - written[i] for i in received if i in written]
+    return 1e3 * np.asarray(lat)
+
+
+def memory_per_held_event(n: int) -> float:
+    """Bytes of Python heap per event held while the outbox refuses writes."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "outbox.sqlite"
+        with Outbox(path, sinks=("zenoh", "mavlink")) as outbox:
+            writer = OutboxWriter(outbox, on_stored=lambda n, v: None, on_held=lambda: None,
+                                  clock=time.monotonic, max_held=n)  # fmt: skip
+            other = sqlite3.connect(path, isolation_level=None)
+            other.execute("BEGIN EXCLUSIVE")
+            events = [event(f"veh-{k % VEHICLES:02d}", k) for k in range(n)]
+            tracemalloc.start()
+            before = tracemalloc.take_snapshot()
+            writer.write(events[:1])
+            for e in events[1:]:
+                writer.write([e])
+            after = tracemalloc.take_snapshot()
+            tracemalloc.stop()
+            grown = sum(s.size_diff for s in after.compare_to(before, "filename"))
+            assert writer.counters()["outbox.held_events"] == n
+            other.execute("ROLLBACK")
+            other.close()
+    # The events themselves are made by the pipeline either way; what holding adds is counted
+    # together with them here (their encoding, the bookkeeping): an upper bound.
+    return grown / n
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--quick", action="store_true", help=f"{QUICK_ROUNDS} rounds instead of {ROUNDS}"
+    )
+    args = parser.parse_args()
+    rounds = QUICK_ROUNDS if args.quick else ROUNDS
+    port = free_local_port()
+    print(f"delivery latency: {VEHICLES} vehicles, one event each every {PERIOD_S * 1e3:.0f} ms, "
+          f"{rounds} rounds; ack_timeout_s {ACK_TIMEOUT_S:g}, delivery_retry_s {RETRY_S:g}")  # fmt: skip
+    all_up, one_down = [], []
+    with RouterProcess(f"tcp/127.0.0.1:{port}"):
+        # Alternated: the load of a shared machine drifts over minutes.
+        for _ in range(1 if args.quick else PAIRS):
+            all_up.append(latency_run(port, offline=set(), rounds=rounds))
+            one_down.append(latency_run(port, offline={0}, rounds=rounds))
+    all_up, one_down = np.concatenate(all_up), np.concatenate(one_down)
+    print(f"  all {VEHICLES} ground stations up ({all_up.size} events):{percentiles(all_up)}")
+    print(f"  vehicle 0's down, the other 15 ({one_down.size} events):{percentiles(one_down)}")
+    for q in (50, 99):
+        ratio = np.percentile(one_down, q) / np.percentile(all_up, q)
+        print(f"  p{q} ratio one down / all up: {ratio:.2f}")
+    per_event = memory_per_held_event(HELD if not args.quick else HELD // 10)
+    print(
+        f"memory while storage is down: {per_event:.0f} bytes per held event (tracemalloc, event included)"
+    )
+
+
+if __name__ == "__main__":
+    main()
