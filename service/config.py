@@ -44,6 +44,7 @@ from protocols.zenoh_adapter import (
     Mode,
     ZenohSettings,
     check_frames_selector,
+    check_receiver_name,
     check_service_name,
 )
 
@@ -173,7 +174,13 @@ class ZenohSection:
         acknowledged it, :class:`protocols.zenoh_adapter.AckMode`) or ``"matched"`` (once the
         reliable put found a subscriber).
     ack_timeout_s : how long one delivery waits for acknowledgements (default 1.0 s).
-    min_acks : acknowledgements needed per event (default 1).
+    min_acks : distinct receivers whose acknowledgements an event needs (default 1; one receiver
+        answering twice, or under two names, counts once:
+        :func:`protocols.zenoh_adapter.distinct_receivers`).
+    ack_from : the names of the receivers (ground stations, ``ins-health watch --receiver NAME``)
+        whose acknowledgements count (default empty: any receiver's); another's answer is refused,
+        counted (``service.zenoh.acks_refused``) and logged. Under the deploy's access control a
+        name is bound to a ground station's certificate (``deploy/zenoh-router.json5``).
     session : the session itself, from the other keys of the table, read by
         :meth:`protocols.zenoh_adapter.ZenohSettings.from_dict`: ``mode`` (default ``"client"``),
         ``connect`` (default ``["tcp/127.0.0.1:7447"]`` in client mode), ``listen``,
@@ -186,6 +193,7 @@ class ZenohSection:
     event_ack: AckMode = AckMode.RECEIVER
     ack_timeout_s: float = 1.0
     min_acks: int = 1
+    ack_from: tuple[str, ...] = ()
     session: ZenohSettings = DEFAULT_ZENOH_SESSION
 
 
@@ -624,5 +632,17 @@ def _check(cfg: ServiceConfig) -> list[str]:
         errors.append(
             f"[zenoh] needs 0 < ack_timeout_s <= {ACK_TIMEOUT_MAX_S:g} and min_acks >= 1, got "
             f"{z.ack_timeout_s!r} and {z.min_acks!r}"
+        )
+    for name in z.ack_from:
+        try:
+            check_receiver_name(name)
+        except ValueError as exc:
+            errors.append(f"[zenoh] ack_from: {exc}")
+    if z.ack_from and z.event_ack is not AckMode.RECEIVER:
+        errors.append('[zenoh] ack_from names receivers: it needs event_ack = "receiver"')
+    if z.ack_from and len(set(z.ack_from)) < z.min_acks:
+        errors.append(
+            f"[zenoh] min_acks {z.min_acks} cannot be met by the {len(set(z.ack_from))} "
+            f"receiver(s) of ack_from {list(z.ack_from)}"
         )
     return errors

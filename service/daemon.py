@@ -275,6 +275,7 @@ class Service:
         self._checkpoint_vehicles: set[str] = set()
         self._saves = SaveFailures(clock=clock)
         self._drops_log = LogRate()
+        self._refused_log = LogRate()
 
     @property
     def outbox(self) -> Outbox | None:
@@ -555,6 +556,8 @@ class Service:
         extra.update(
             {f"service.passports.rejected.{k}": n for k, n in self.store.rejected_counts().items()}
         )
+        if (zsink := self._zenoh_sink()) is not None:
+            extra["service.zenoh.acks_refused"] = zsink.refused[0]
         run = self._running()
         extra.update(self.supervisor.counters())
         extra.update({f"service.{k}": n for k, n in run.writer.counters().items()})
@@ -624,6 +627,23 @@ class Service:
                 ", ".join(f"{n} of {unit}" for unit, n in sorted(new.items())),
             )  # fmt: skip
 
+    def _zenoh_sink(self) -> ZenohEventSink | None:
+        return next((s for s in self.sinks if isinstance(s, ZenohEventSink)), None)
+
+    def _log_refused_acks(self) -> None:
+        """Acknowledgements from receivers ``[zenoh] ack_from`` does not name, said as they grow (at
+        most once per period, :class:`~protocols.log_rate.LogRate`) with the last one's receiver."""
+        sink = self._zenoh_sink()
+        if sink is None:
+            return
+        n, last = sink.refused
+        if new := self._refused_log.due({"acks": n} if n else {}):
+            log.warning(
+                "%d acknowledgement(s) refused, their receiver not in [zenoh] ack_from %s (the last "
+                "from %s); counted as service.zenoh.acks_refused",
+                new["acks"], list(self.config.zenoh.ack_from), last,
+            )  # fmt: skip
+
     async def _status(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             # Not while frames wait for the outbox: their silence is the service's, not the IMUs'.
@@ -634,6 +654,7 @@ class Service:
             self._check_mavlink_reader()
             self.intake.log_refusals()
             self._log_drops()
+            self._log_refused_acks()
             if self._status_pub is not None:
                 await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
@@ -853,6 +874,7 @@ class Service:
             ack=cfg.zenoh.event_ack,
             ack_timeout_s=cfg.zenoh.ack_timeout_s,
             min_acks=cfg.zenoh.min_acks,
+            ack_from=cfg.zenoh.ack_from,
         )
         resources.callback(zsink.close)
         self.sinks.insert(0, zsink)

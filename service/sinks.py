@@ -10,6 +10,7 @@ from protocols.events import Event
 from protocols.mavlink_adapter import ImuLink
 from protocols.zenoh_adapter import (
     AckMode,
+    Acknowledgement,
     EventPublisher,
     Session,
     ZenohError,
@@ -40,10 +41,23 @@ class ZenohEventSink:
 
     name = "zenoh"
 
-    def __init__(self, session: Session, *, ack: AckMode, ack_timeout_s: float, min_acks: int):
+    def __init__(
+        self,
+        session: Session,
+        *,
+        ack: AckMode,
+        ack_timeout_s: float,
+        min_acks: int,
+        ack_from: tuple[str, ...] = (),
+    ):
         self._publisher = EventPublisher(
-            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
+            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks, ack_from=ack_from
         )
+
+    @property
+    def refused(self) -> tuple[int, Acknowledgement | None]:
+        """Acknowledgements refused (their receiver not in ``ack_from``) and the last one."""
+        return self._publisher.refused, self._publisher.last_refused
 
     async def deliver(self, event: Event, *, sent: Callable[[], None]) -> bool:
         # publish() blocks up to the acknowledgement timeout: keep it off the loop.

@@ -152,6 +152,18 @@ stale_run_samples = 50
             r"\[mavlink\] signing_key_file: '~nosuchuser",
         ),
         ({"zenoh": {"ack_timeout_s": 1e300}}, r"\[zenoh\] needs 0 < ack_timeout_s <= 86400"),
+        (
+            {"zenoh": {"ack_from": ["gs/1"]}},
+            r"^\[zenoh\] ack_from: receiver name 'gs/1' must match",
+        ),
+        (
+            {"zenoh": {"ack_from": ["gs-1", "gs-1"], "min_acks": 2}},
+            r"^\[zenoh\] min_acks 2 cannot be met by the 1 receiver\(s\) of ack_from",
+        ),
+        (
+            {"zenoh": {"ack_from": ["gs-1"], "event_ack": "matched"}},
+            r'^\[zenoh\] ack_from names receivers: it needs event_ack = "receiver"$',
+        ),
         ({"mavlink": {"enabled": True, "messages": []}}, r"\[mavlink\] messages is empty"),
         # pymavlink took it for a UDP address and failed at start ("UDP ports must be specified ...").
         ({"mavlink": {"device": "bogus:://"}}, r"mavlink device 'bogus:://' is no live link"),
