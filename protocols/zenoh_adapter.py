@@ -92,7 +92,7 @@ import json
 import re
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -238,6 +238,14 @@ def check_frames_selector(key_expr: str) -> str:
     if not key_expr.startswith(f"{ROOT}/"):
         raise ValueError(f"must be under '{ROOT}/' ({ROOT}/<vehicle>/imu/<n>), got {key_expr!r}")
     return key_expr
+
+
+def _frame_vehicle(key: str) -> str | None:
+    """The vehicle of a frame key, None for a key that is not one (the decoder then says why)."""
+    try:
+        return parse_frame_key(key)[0]
+    except FrameError:
+        return None
 
 
 def parse_frame_key(key: str) -> tuple[str, int]:
@@ -525,7 +533,8 @@ class FrameSource(BatchSource):
     (:class:`~protocols._handoff.FairQueues`: the drop policy) and decoded by the
     consumer, the units taken in turn, so a flood costs the receiving thread only a
     copy and no other unit its frames. Rejected frames (bad bytes, or a payload whose vehicle/imu differ
-    from its key: ``key_mismatch``) are counted by reason in :attr:`counters`
+    from its key: ``key_mismatch``; a vehicle of ``refused_vehicles``, fed by another input: ``other_source``,
+    refused unread) are counted by reason in :attr:`counters`
     and reported to ``on_reject`` (an ``(key, FrameError)`` callable, called in
     the consumer); they never stop the source.
 
@@ -537,6 +546,8 @@ class FrameSource(BatchSource):
         dropped and counted (:attr:`dropped_by_unit`).
     total : frames held for all units together; beyond it a unit over its fair share loses its newest.
     max_frame_bytes : size limit passed to :func:`~protocols.frames.decode_frame`.
+    refused_vehicles : vehicles whose frames are refused here: another input owns their streams
+        (the daemon's MAVLink vehicle), and frames from anyone on the router would be merged into them.
     """
 
     def __init__(
@@ -549,7 +560,9 @@ class FrameSource(BatchSource):
         max_frame_bytes: int = MAX_FRAME_BYTES,
         on_reject: Callable[[str, FrameError], None] | None = None,
         loop: asyncio.AbstractEventLoop | None = None,
+        refused_vehicles: Collection[str] = (),
     ):
+        self._refused_vehicles = frozenset(refused_vehicles)
         self._ring: FairQueues[tuple[str, int] | None, tuple[str, bytes]] = FairQueues(
             capacity, total, loop or asyncio.get_running_loop()
         )
@@ -565,6 +578,9 @@ class FrameSource(BatchSource):
             unit: tuple[str, int] | None = parse_frame_key(key)
         except FrameError:
             # Queued together, and refused by the decoder in turn.
+            unit = None
+        if unit is not None and unit[0] in self._refused_vehicles:
+            # Refused in turn too (the consumer counts and reports), never in the owner's queue.
             unit = None
         self._ring.put(unit, (key, sample.payload.to_bytes()))
 
@@ -605,6 +621,12 @@ class FrameSource(BatchSource):
 
     def _decode(self, key: str, payload: bytes) -> SampleBatch | None:
         try:
+            owner = _frame_vehicle(key)
+            if owner in self._refused_vehicles:
+                raise FrameError(
+                    Reason.OTHER_SOURCE,
+                    f"vehicle {owner} is fed by another input (MAVLink): its frames on Zenoh are refused",
+                )
             batch = decode_frame(payload, max_bytes=self._max_bytes)
             if parse_frame_key(key) != (batch.vehicle, batch.imu):
                 raise FrameError(

@@ -276,6 +276,7 @@ class Service:
         self._saves = SaveFailures(clock=clock)
         self._drops_log = LogRate()
         self._refused_log = LogRate()
+        self._cross_off: set[tuple[str, int]] = set()
 
     @property
     def outbox(self) -> Outbox | None:
@@ -630,6 +631,18 @@ class Service:
     def _zenoh_sink(self) -> ZenohEventSink | None:
         return next((s for s in self.sinks if isinstance(s, ZenohEventSink)), None)
 
+    def _log_cross_imu(self) -> None:
+        """An IMU the cross-IMU check stops comparing (another clock, its offset not steady or still
+        measured, a lag) said once with why, and when it compares it again."""
+        for vehicle, imu in sorted(self.fleet.pipelines):
+            why = self.fleet.cross_not_running(vehicle, imu)
+            if why is not None and (vehicle, imu) not in self._cross_off:
+                self._cross_off.add((vehicle, imu))
+                log.warning("%s IMU%d: cross-IMU check not running: %s", vehicle, imu, why)
+            elif why is None and (vehicle, imu) in self._cross_off:
+                self._cross_off.discard((vehicle, imu))
+                log.info("%s IMU%d: cross-IMU check running again", vehicle, imu)
+
     def _log_refused_acks(self) -> None:
         """Acknowledgements from receivers ``[zenoh] ack_from`` does not name, said as they grow (at
         most once per period, :class:`~protocols.log_rate.LogRate`) with the last one's receiver."""
@@ -655,6 +668,7 @@ class Service:
             self.intake.log_refusals()
             self._log_drops()
             self._log_refused_acks()
+            self._log_cross_imu()
             if self._status_pub is not None:
                 await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
@@ -885,6 +899,7 @@ class Service:
             capacity=cfg.pipeline.queue_capacity,
             total=cfg.pipeline.instance_queue_capacity,
             on_reject=self.intake.reject,
+            refused_vehicles=(cfg.mavlink.link.vehicle,) if cfg.mavlink.enabled else (),
         )
         resources.callback(source.close)
         self._start_delivery(zsink, drain)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable, Iterator
 
-from protocols._schema import SchemaError
+from protocols._schema import Reason, SchemaError
 from protocols.events import Event
 from protocols.frames import FrameError, SampleBatch
 from protocols.log_rate import LogRate
@@ -103,7 +103,10 @@ class Intake:
             vehicle, imu = parse_frame_key(key)
         except SchemaError:
             vehicle, imu = None, None
-        self._put(self.fleet.reject(vehicle, imu, error.reason.value))
+        # Another input's frames are not the owner's stream: counted for the vehicle, not its IMU
+        # (whose error density would see them).
+        owned = error.reason is Reason.OTHER_SOURCE
+        self._put(self.fleet.reject(vehicle, None if owned else imu, error.reason.value))
         reason = error.reason.value
         self._refused[reason] = self._refused.get(reason, 0) + 1
         self._last_refusal = (reason, f"{key}: {error}")

@@ -62,7 +62,10 @@ stale_run_samples = 50
     assert cfg.zenoh.session.mode is Mode.PEER and cfg.zenoh.session.listen == ("tcp/127.0.0.1:0",)
     assert cfg.zenoh.session.connect == ()
     assert cfg.mavlink.enabled and cfg.mavlink.link.signing_key == bytes.fromhex("ab" * 32)
-    assert cfg.mavlink.link.device == "udpin:127.0.0.1:0" and cfg.mavlink.link.vehicle == "mav1"
+    assert (
+        cfg.mavlink.link.device == "udpin:127.0.0.1:0"
+        and cfg.mavlink.link.vehicle == "mavlink.autopilot"
+    )
     assert cfg.validity.stale_run_samples == 50
 
 
