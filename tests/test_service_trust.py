@@ -5,6 +5,8 @@ vehicle's stream, which configuration values it takes."""
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 
 import pytest
 import zenoh
@@ -17,12 +19,14 @@ from service_support import (
     wait_until,
 )
 from test_service_faults import (
+    ROOT,
     ServiceProcess,
     ground_and_vehicle,
     offline_fleet,
     publish_blocking,
     put_store,
     unit,
+    write_config,
 )
 from test_service_hostile import to_the_fault
 
@@ -186,3 +190,17 @@ def test_zenoh_frames_of_the_mavlink_vehicle_are_refused(tmp_path):
 def test_the_default_mavlink_vehicle_is_no_plausible_fleet_name():
     """It was "mav1": a name a fleet's vehicle could have, and a frame key anyone could publish on."""
     assert ServiceConfig().mavlink.link.vehicle == "mavlink.autopilot"
+
+
+def test_a_window_beyond_memory_is_refused_at_start_in_one_line(tmp_path):
+    """``[validity] error_window_samples = 1000000000000`` passed validation: the daemon said running,
+    then every frame failed on a 931 GiB allocation. Now the start refuses it: one line, exit 2."""
+    config = write_config(tmp_path, 7447, tmp_path / "passports")
+    config.write_text(config.read_text() + "error_window_samples = 1000000000000\n")
+    run = subprocess.run(
+        [sys.executable, "-m", "service.cli", "run", "--config", str(config)],
+        cwd=ROOT, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2, run.stderr
+    assert len(lines) == 1 and "[validity] error_window_samples must be at most 600000" in lines[0]
