@@ -271,4 +271,3 @@ def _check_regular(st: os.stat_result) -> None:
         raise PassportEntryError(
             f"{st.st_size} bytes exceeds the limit of {MAX_ENTRY_BYTES}", EntryProblem.TOO_LARGE
         )
-
