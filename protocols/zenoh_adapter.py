@@ -547,7 +547,8 @@ class FrameSource(BatchSource):
     total : frames held for all units together; beyond it a unit over its fair share loses its newest.
     max_frame_bytes : size limit passed to :func:`~protocols.frames.decode_frame`.
     refused_vehicles : vehicles whose frames are refused here: another input owns their streams
-        (the daemon's MAVLink vehicle), and frames from anyone on the router would be merged into them.
+        (the vehicle the daemon's MAVLink link feeds), and frames from anyone on the router would be
+        merged into them. Held, not copied: a vehicle added later is refused from then on.
     """
 
     def __init__(
@@ -562,7 +563,7 @@ class FrameSource(BatchSource):
         loop: asyncio.AbstractEventLoop | None = None,
         refused_vehicles: Collection[str] = (),
     ):
-        self._refused_vehicles = frozenset(refused_vehicles)
+        self._refused_vehicles = refused_vehicles
         self._ring: FairQueues[tuple[str, int] | None, tuple[str, bytes]] = FairQueues(
             capacity, total, loop or asyncio.get_running_loop()
         )

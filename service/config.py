@@ -199,8 +199,8 @@ class ZenohSection:
 
 DEFAULT_MAVLINK_VEHICLE = "mavlink.autopilot"
 """The vehicle id of the MAVLink link's IMUs when ``[mavlink] vehicle`` is not set. It was ``"mav1"``,
-a plausible fleet name and so a Zenoh frame key any local process could feed (its frames are now
-refused for the MAVLink vehicle, ``other_source``); a configuration that relied on it and keeps
+a plausible fleet name and so a Zenoh frame key any local process could feed (such frames are now
+refused once the link has fed the vehicle, ``other_source``); a configuration that relied on it and keeps
 passports or history under ``mav1`` sets ``vehicle = "mav1"``."""
 DEFAULT_MAVLINK_LINK = MavlinkSettings(
     device="udpin:127.0.0.1:14550", vehicle=DEFAULT_MAVLINK_VEHICLE
@@ -235,7 +235,7 @@ class MavlinkSection:
         :meth:`protocols.mavlink_adapter.MavlinkSettings.from_dict`: ``device`` (pymavlink
         connection string, default ``"udpin:127.0.0.1:14550"``; ``tcp:…``, or a serial device
         with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default :data:`DEFAULT_MAVLINK_VEHICLE`; Zenoh
-        frames under the same id are refused while the link is enabled),
+        frames under the same id are refused once the link has fed it IMU samples),
         ``source_system``, ``source_component`` (default 191, MAV_COMP_ID_ONBOARD_COMPUTER),
         ``autopilot_system`` (the one system whose IMU messages are read; unset, the first
         heard: other systems' are counted as ``service.mavlink.rejected.other_system`` and each

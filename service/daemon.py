@@ -899,7 +899,7 @@ class Service:
             capacity=cfg.pipeline.queue_capacity,
             total=cfg.pipeline.instance_queue_capacity,
             on_reject=self.intake.reject,
-            refused_vehicles=(cfg.mavlink.link.vehicle,) if cfg.mavlink.enabled else (),
+            refused_vehicles=self.intake.mavlink_fed,
         )
         resources.callback(source.close)
         self._start_delivery(zsink, drain)

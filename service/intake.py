@@ -79,6 +79,9 @@ class Intake:
         self._holding = False
         self.stalled = False
         """Set when events were held, until the frames queued meanwhile are taken (the silence was ours)."""
+        self.mavlink_fed: set[str] = set()
+        """Vehicles the MAVLink link has fed IMU samples: they own their streams, and the Zenoh source
+        refuses their frames from then on (``FrameSource(refused_vehicles=…)``, one owner per stream)."""
         self.group_lock = asyncio.Lock()
         """Held while a group of frames goes through the pipelines, IMU by IMU with the loop turning between
         them (:meth:`_process_group`). Whatever else reads a unit's whole state or adds to it from the loop
@@ -173,14 +176,16 @@ class Intake:
 
     async def mavlink_frames(self, source: MavlinkSource) -> None:
         """Every batch of the MAVLink source, until it is closed and drained."""
-        await self._frames(source)
+        await self._frames(source, owner=True)
 
-    async def _frames(self, source: FrameSource | MavlinkSource) -> None:
+    async def _frames(self, source: FrameSource | MavlinkSource, *, owner: bool = False) -> None:
         while await self._resume():
             try:
                 batch = await source.get()
             except EOFError:
                 return
+            if owner:
+                self.mavlink_fed.add(batch.vehicle)
             # Frames already waiting (the service is behind) are taken together, up to a
             # budget of samples that bounds the delay of the last one: consecutive frames
             # of an IMU then cost the chain one batch (FleetProcessor.process_queued).

@@ -10,10 +10,12 @@ import sys
 
 import pytest
 import zenoh
+from pymavlink import mavutil
 from service_support import (
     batches_of,
     disagreeing_pair,
     free_udp_port,
+    mavlink_packets,
     run_fleet,
     wait_subscribed,
     wait_until,
@@ -31,6 +33,7 @@ from test_service_faults import (
 from test_service_hostile import to_the_fault
 
 from protocols.events import Predicate
+from protocols.mavlink_adapter import ImuMessage
 from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key
 from service.config import ServiceConfig
 
@@ -157,30 +160,43 @@ def test_cross_imu_on_mixed_clocks_in_the_daemon(tmp_path):
 
 
 def test_zenoh_frames_of_the_mavlink_vehicle_are_refused(tmp_path):
-    """The daemon reads vehicle mav1 over MAVLink; a local process publishes healthy frames as mav1 on
-    Zenoh (they hid the autopilot's stuck gyro and made a false recovery): refused unread, counted
-    as frames.rejected.other_source and logged, while another vehicle's Zenoh frames are taken."""
-    healthy = list(batches_of(unit()[2].session, vehicle="mav1", imu=0, batch_samples=100))[:20]
-    other = list(batches_of(unit()[2].session, vehicle="uav-z", imu=0, batch_samples=100))[:5]
+    """The daemon reads vehicle mav1's IMU over MAVLink; a local process then publishes healthy frames
+    as mav1 on Zenoh (they hid the autopilot's stuck gyro and made a false recovery): refused unread,
+    counted as frames.rejected.other_source and logged, none in mav1's stream, while another
+    vehicle's Zenoh frames are taken."""
+    sc = unit()[2]
+    healthy = list(batches_of(sc.session, vehicle="mav1", imu=0, batch_samples=100))[:20]
+    other = list(batches_of(sc.session, vehicle="uav-z", imu=0, batch_samples=100))[:5]
+    packets = mavlink_packets(sc.session.select(sc.session.t_s < 2.0), ImuMessage.SCALED_IMU)
+    port = free_udp_port()
     passports = put_store(tmp_path, [])
     with ground_and_vehicle(tmp_path, passports) as (config, _ground, vehicle, status):
-        mavlink = f'[mavlink]\nenabled = true\ndevice = "udpin:127.0.0.1:{free_udp_port()}"\nvehicle = "mav1"\n'
+        mavlink = (
+            f'[mavlink]\nenabled = true\ndevice = "udpin:127.0.0.1:{port}"\nvehicle = "mav1"\n'
+        )
         config.write_text(config.read_text() + mavlink)
         daemon = ServiceProcess(config)
+        autopilot = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1)
         try:
-            wait_subscribed(vehicle, frame_key("mav1", 0))
+            for k in range(0, len(packets), 20):
+                autopilot.write(b"".join(packets[k : k + 20]))
+            wait_until(lambda: status.counter("mav1", "imu0.samples.accepted") == len(packets),
+                       timeout_s=60, what=lambda: f"mav1 over MAVLink ({status.get('mav1')})")  # fmt: skip
+            wait_subscribed(vehicle, frame_key("uav-z", 0))
             publish_blocking(vehicle, healthy)
             publish_blocking(vehicle, other)
             wait_until(
                 lambda: (
-                    status.counter("uav-z", "service.frames.rejected.other_source") == len(healthy)
+                    status.counter("mav1", "frames.rejected.other_source") == len(healthy)
                     and status.counter("uav-z", "imu0.frames.accepted") == len(other)
                 ),
                 timeout_s=60,
-                what=lambda: f"the refusals on the status topic ({status.get('uav-z')})",
+                what=lambda: f"the refusals on the status topic ({status.get('mav1')})",
             )
-            assert status.get("mav1") is None  # no pipeline was fed from Zenoh
+            assert status.counter("mav1", "imu0.samples.accepted") == len(packets)
+            assert status.counter("mav1", "imu0.frames.rejected.other_source") == 0
         finally:
+            autopilot.close()
             code = daemon.terminate()
     assert code == 0, daemon.lines
     refused = [line for line in daemon.lines if "other_source" in line]

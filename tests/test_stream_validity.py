@@ -404,3 +404,23 @@ def test_best_clock_offset_is_the_lag_of_the_rotation_both_imus_saw():
         )
         is None
     )
+
+
+def test_cross_imu_state_of_version_1_is_resumed_without_clocks():
+    """A checkpoint written before the clock offsets (version 1) resumes: the same bins and streaks,
+    the reference taken afresh."""
+    limits = ValidityLimits(cross_imu_persist_windows=4)
+    items = list(_offset_stream(9))
+    whole = CrossImuMonitor(limits=limits)
+    want = [r for item in items for r in whole.add(*item)]
+    first = CrossImuMonitor(limits=limits)
+    got = [r for item in items[:16] for r in first.add(*item)]
+    v2 = first.state_dict()
+    v1 = {
+        k: v
+        for k, v in v2.items()
+        if k in ("open", "span", "closed", "streak", "flagged", "last_compared")
+    }
+    second = CrossImuMonitor.from_state({**v1, "version": 1}, limits=limits)
+    got += [r for item in items[16:] for r in second.add(*item)]
+    assert got == want
