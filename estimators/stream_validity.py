@@ -409,8 +409,70 @@ class CrossImuReport:
     consistent: bool
 
 
-CROSS_IMU_STATE_VERSION = 1
-"""Version of :meth:`CrossImuMonitor.state_dict` (a checkpointed state of another version is not resumed)."""
+def best_clock_offset(
+    measured: tuple[FloatArray, FloatArray],
+    reference: tuple[FloatArray, FloatArray],
+    *,
+    lowest_s: float,
+    highest_s: float,
+) -> float | None:
+    """The offset of one IMU's clock against another's, from the rotation both measured.
+
+    Each is ``(t_s[N], gyro_rps[N, 3])`` on its own clock; the offset ``c`` (``t_measured −
+    t_reference`` for one instant) is searched in ``[lowest_s, highest_s]`` on a grid of the
+    reference's median sample step, minimizing the mean squared difference of the angular rates
+    (each axis less its mean over the overlap: a bias or a fault of one IMU does not move it)
+    with the measured IMU's interpolated at ``t_reference + c``. This is the lag of largest
+    cross-correlation of the two rate records (the time-offset calibration of Furgale et al.,
+    Kalibr, by correlation). None when the records do not overlap by half the reference's span at
+    every candidate, or when they do not tell one offset: the best is not below half the worst
+    (a vehicle at rest turns at the Earth rate only: every offset fits as well).
+    """
+    tm, gm = measured
+    tr, gr = reference
+    if tm.size < 2 or tr.size < 2 or not highest_s >= lowest_s:
+        return None
+    step = float(np.median(np.diff(tr)))
+    if not step > 0:
+        return None
+    candidates = np.arange(lowest_s, highest_s + step, step)
+    costs = np.full(candidates.size, np.inf)
+    for k, c in enumerate(candidates):
+        inside = (tr + c >= tm[0]) & (tr + c <= tm[-1])
+        if inside.sum() * 2 < tr.size:
+            return None
+        moved = np.column_stack([np.interp(tr[inside] + c, tm, gm[:, j]) for j in range(3)])
+        diff = (moved - moved.mean(axis=0)) - (gr[inside] - gr[inside].mean(axis=0))
+        costs[k] = float(np.mean(diff**2))
+    best = int(np.argmin(costs))
+    if not costs[best] < 0.5 * costs.max():
+        return None
+    return float(candidates[best])
+
+
+CROSS_IMU_STATE_VERSION = 2
+"""Version of :meth:`CrossImuMonitor.state_dict` (2 adds the clock offsets, the offsets being measured
+and the agreeing streaks; version 1 is read with none; a state of another version is not resumed)."""
+
+CLOCK_BASE_MIN_S = 600.0
+"""Two IMUs whose newest sample times differ by more than this are taken to stamp time on different
+clocks (one Unix time, one since boot; or a clock that restarted) rather than to lag: no queue of
+the service holds ten minutes of an IMU's frames, and a clock base differs by far more (a boot
+counter from a Unix time by 1.7e9 s; an uptime from another by the time between boots)."""
+REFERENCE_SILENT_FRAMES = 64
+"""Frames of the other IMUs since the reference IMU's last after which the next IMU to send becomes
+the reference (a reference that stopped would otherwise make every other IMU's clock look far off)."""
+CLOCK_FRAMES = 8
+"""Frames of an IMU on another clock, and of the reference, measured before its offset is taken: each
+of its frames bounds the offset from above (its newest time minus the reference's newest), each of
+the reference's from below; steady when each bound's spread lies within the lag the comparison waits
+for anyway. The offset is the middle of the tightest bounds."""
+CLOCK_SAMPLES_MAX = 4096
+"""Samples of each IMU kept while an offset is measured, for :func:`best_clock_offset` (a few seconds
+at the rates served; 4096 x 4 floats x 8 bytes = 128 KiB per IMU, and only while measuring)."""
+CLOCK_ERROR_WINDOWS = 0.25
+"""Largest uncertainty of a measured offset (half the gap between the bounds), in bins: beyond it a
+moving vehicle's bins would be compared a good part of a bin apart."""
 
 
 @dataclass
@@ -433,6 +495,19 @@ class CrossImuMonitor:
     that stopped sending holds the others back by that much at most (its timeout
     is reported by :class:`StreamValidity`). State: per IMU one open bin (sums
     and count) and the closed bin means not compared yet.
+
+    A report of disagreement needs ``cross_imu_persist_windows`` disagreeing bins in a row, and so
+    does its recovery in agreeing bins: a disagreement near the limit (or two IMUs slightly skewed
+    in time while the vehicle moves) does not flap between the two.
+
+    Clocks: the first IMU added is the reference (until it falls silent,
+    :data:`REFERENCE_SILENT_FRAMES`). Another whose newest sample time differs from the
+    reference's by more than :data:`CLOCK_BASE_MIN_S` when its frame comes stamps time on another
+    clock. Its offset is measured over :data:`CLOCK_FRAMES` frames of each (bounds from both
+    sides); when steady and known to :data:`CLOCK_ERROR_WINDOWS` of a bin its samples are
+    compared at its time minus the offset. Until then, or when the offset does not hold still or
+    cannot be told closely enough (long frames), it is not compared, and
+    :meth:`not_compared` says why (and why an IMU on the same clock that lags the others is not).
     """
 
     def __init__(self, *, limits: ValidityLimits = ValidityLimits()) -> None:
@@ -442,17 +517,27 @@ class CrossImuMonitor:
         self._closed: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
         self._streak: dict[int, int] = {}
         self._flagged: set[int] = set()
+        self._agree: dict[int, int] = {}
         self._last_compared = -(2**62)
+        self._ref: int | None = None
+        self._ref_silent = 0  # frames of other IMUs since the reference's last
+        self._newest_s: dict[int, float] = {}  # imu -> newest sample time on its own clock
+        self._offset_s: dict[int, float] = {}  # imu -> its clock minus the reference's
+        # imu -> the offsets its frames and the reference's bound it by, while measured
+        self._measured: dict[int, tuple[list[float], list[float]]] = {}
+        self._why_not: dict[int, str] = {}
+        # imu -> its last frames' times and angular rates while an offset is measured
+        self._recent: dict[int, tuple[list[FloatArray], list[FloatArray]]] = {}
 
     def add(
         self, imu: int, t_s: FloatArray, accel_mps2: FloatArray, gyro_rps: FloatArray
     ) -> list[CrossImuReport]:
         """Add one IMU's good samples (sample time, SI); returns the reports of newly compared bins."""
-        t = np.asarray(t_s, float).reshape(-1)
-        if t.size == 0:
-            return []
         a = np.asarray(accel_mps2, float).reshape(-1, 3)
         g = np.asarray(gyro_rps, float).reshape(-1, 3)
+        t = self._aligned(imu, np.asarray(t_s, float).reshape(-1), g)
+        if t is None:
+            return []
         w = self.limits.cross_imu_window_s
         bins = np.floor(t / w).astype(np.int64)
         # Samples are in time order (the pipeline guarantees it), so bins are sorted.
@@ -480,6 +565,132 @@ class CrossImuMonitor:
         for old in [k for k in closed if k < oldest_kept]:
             del closed[old]
         return self._compare_ready()
+
+    def _aligned(self, imu: int, t: FloatArray, gyro_rps: FloatArray) -> FloatArray | None:
+        """``t`` on the reference's clock; None (nothing to compare) when empty, or while the IMU's
+        clock is not aligned (class docstring)."""
+        if t.size == 0:
+            return None
+        if self._ref is None or self._ref_silent > REFERENCE_SILENT_FRAMES:
+            self._rebase(imu)
+        self._newest_s[imu] = float(t[-1])
+        ref = self._ref
+        if self._measured:
+            self._keep_recent(imu, t, gyro_rps)
+        if ref is None or imu == ref:
+            self._ref_silent = 0
+            # The IMUs being measured had their newest samples before these: lower bounds.
+            for other, (_, lower) in self._measured.items():
+                lower.append(self._newest_s[other] - float(t[-1]))
+                del lower[:-CLOCK_FRAMES]
+            return t
+        self._ref_silent += 1
+        offset = self._offset_s.get(imu, 0.0)
+        measured = float(t[-1]) - self._newest_s[ref]
+        if abs(measured - offset) <= CLOCK_BASE_MIN_S and imu not in self._measured:
+            self._why_not.pop(imu, None)
+            return t - offset if offset else t
+        self._forget(imu)
+        if imu not in self._measured:
+            self._keep_recent(imu, t, gyro_rps)
+        upper, lower = self._measured.setdefault(imu, ([], []))
+        upper.append(measured)
+        del upper[:-CLOCK_FRAMES]
+        self._offset_s.pop(imu, None)
+        waited_s = self._lag_bins() * self.limits.cross_imu_window_s
+        why = f"IMU{imu} stamps time on another clock than IMU{ref} (offset {measured:.6g} s): "
+        if len(upper) < CLOCK_FRAMES or len(lower) < CLOCK_FRAMES:
+            why += f"measuring the offset ({min(len(upper), len(lower))} of {CLOCK_FRAMES} frames)"
+            self._why_not[imu] = why
+            return None
+        spread = max(max(upper) - min(upper), max(lower) - min(lower))
+        # The offset lies between what the IMU's frames and the reference's bound it by, when
+        # both streams take as long to arrive: within half their gap.
+        error = abs(min(upper) - max(lower)) / 2
+        best = None
+        if spread <= waited_s:
+            # Arrival tells it to half a frame at best: the rotation both IMUs saw tells it to a
+            # sample, if they saw one.
+            margin = self.limits.cross_imu_window_s * CLOCK_ERROR_WINDOWS
+            best = best_clock_offset(
+                self._recent_of(imu),
+                self._recent_of(ref),
+                lowest_s=min(min(upper), max(lower)) - margin,
+                highest_s=max(min(upper), max(lower)) + margin,
+            )
+        if best is not None:
+            self._offset_s[imu] = best
+            self._measuring_done(imu)
+            return t - best
+        if spread > waited_s:
+            why += f"offset not steady ({spread:.3g} s over {CLOCK_FRAMES} frames, more than {waited_s:.3g} s)"
+        elif error > self.limits.cross_imu_window_s * CLOCK_ERROR_WINDOWS:
+            why += (
+                f"offset known to ±{error:.3g} s only, more than {CLOCK_ERROR_WINDOWS:g} of the "
+                f"{self.limits.cross_imu_window_s:g} s bins (shorter frames tell it better)"
+            )
+        else:
+            self._offset_s[imu] = (min(upper) + max(lower)) / 2
+            self._measuring_done(imu)
+            return t - self._offset_s[imu]
+        self._why_not[imu] = why
+        return None
+
+    def _keep_recent(self, imu: int, t: FloatArray, gyro_rps: FloatArray) -> None:
+        """The IMU's last samples while an offset is measured (at most CLOCK_SAMPLES_MAX)."""
+        times, rates = self._recent.setdefault(imu, ([], []))
+        times.append(t.copy())
+        rates.append(gyro_rps.copy())
+        while sum(len(x) for x in times) - len(times[0]) >= CLOCK_SAMPLES_MAX:
+            del times[0], rates[0]
+
+    def _recent_of(self, imu: int) -> tuple[FloatArray, FloatArray]:
+        """The kept samples (none after a restart: they are not checkpointed)."""
+        times, rates = self._recent.get(imu, ([], []))
+        if not times:
+            return np.empty(0), np.empty((0, 3))
+        return np.concatenate(times), np.concatenate(rates)
+
+    def _measuring_done(self, imu: int) -> None:
+        del self._measured[imu]
+        self._why_not.pop(imu, None)
+        if not self._measured:
+            self._recent.clear()
+
+    def _rebase(self, imu: int) -> None:
+        """``imu`` the reference from now on (the first IMU, or the reference fell silent): the
+        offsets taken against the old one are kept, made relative to the new one."""
+        base = self._offset_s.pop(imu, 0.0)
+        self._offset_s = {i: o - base for i, o in self._offset_s.items()}
+        self._measured.clear()
+        self._recent.clear()
+        self._ref, self._ref_silent = imu, 0
+
+    def _forget(self, imu: int) -> None:
+        """An IMU's bins on a time base no longer its own: they are compared with nothing."""
+        self._open.pop(imu, None)
+        self._span.pop(imu, None)
+        self._closed.pop(imu, None)
+
+    def not_compared(self, imu: int) -> str | None:
+        """Why the IMU's samples are not compared now (its clock, or it lags the others), or None."""
+        why = self._why_not.get(imu)
+        own = self._open.get(imu)
+        if why is None and own is not None and len(self._open) >= 2:
+            newest = max(o.index for o in self._open.values())
+            lag = newest - own.index
+            if lag > self._lag_bins():
+                w = self.limits.cross_imu_window_s
+                why = (
+                    f"IMU{imu} lags the newest IMU by {lag * w:.3g} s, beyond the "
+                    f"{self._lag_bins() * w:.3g} s the comparison waits for"
+                )
+        return why
+
+    @property
+    def clock_offsets_s(self) -> dict[int, float]:
+        """The offsets in use: an IMU's clock minus the reference IMU's, s (IMUs on another clock only)."""
+        return dict(self._offset_s)
 
     def _lag_bins(self) -> int:
         """How many bins an IMU may lag the newest and still be waited for (class docstring)."""
@@ -519,6 +730,7 @@ class CrossImuMonitor:
         for j, imu in enumerate(v.imus):
             others = tuple(i for i in v.imus if i != imu)
             if imu in v.disagreeing:
+                self._agree.pop(imu, None)
                 self._streak[imu] = self._streak.get(imu, 0) + 1
                 if (
                     self._streak[imu] >= self.limits.cross_imu_persist_windows
@@ -537,8 +749,12 @@ class CrossImuMonitor:
                     )
             else:
                 self._streak[imu] = 0
-                if imu in self._flagged:
+                if imu not in self._flagged:
+                    continue
+                self._agree[imu] = self._agree.get(imu, 0) + 1
+                if self._agree[imu] >= self.limits.cross_imu_persist_windows:
                     self._flagged.discard(imu)
+                    self._agree.pop(imu)
                     out.append(
                         CrossImuReport(
                             imu,
@@ -578,6 +794,14 @@ class CrossImuMonitor:
             "streak": sorted([imu, n] for imu, n in self._streak.items()),
             "flagged": sorted(self._flagged),
             "last_compared": self._last_compared,
+            "agree": sorted([imu, n] for imu, n in self._agree.items()),
+            "reference": self._ref,
+            "reference_silent": self._ref_silent,
+            "newest": sorted([imu, t] for imu, t in self._newest_s.items()),
+            "offsets": sorted([imu, o] for imu, o in self._offset_s.items()),
+            "measuring": sorted(
+                [imu, list(u), list(lo)] for imu, (u, lo) in self._measured.items()
+            ),
         }
 
     @classmethod
@@ -585,10 +809,10 @@ class CrossImuMonitor:
         cls, state: dict[str, Any], *, limits: ValidityLimits = ValidityLimits()
     ) -> CrossImuMonitor:
         """Restore from :meth:`state_dict`; ``ValueError`` for another version or a malformed state."""
-        if not isinstance(state, dict) or state.get("version") != CROSS_IMU_STATE_VERSION:
+        if not isinstance(state, dict) or state.get("version") not in (1, CROSS_IMU_STATE_VERSION):
             version = state.get("version") if isinstance(state, dict) else None
             raise ValueError(
-                f"cross-IMU state version {version!r} is not {CROSS_IMU_STATE_VERSION}"
+                f"cross-IMU state version {version!r} is not 1 or {CROSS_IMU_STATE_VERSION}"
             )
         out = cls(limits=limits)
         try:
@@ -606,6 +830,17 @@ class CrossImuMonitor:
             out._streak = {int(imu): int(n) for imu, n in state["streak"]}
             out._flagged = {int(imu) for imu in state["flagged"]}
             out._last_compared = int(state["last_compared"])
+            if state["version"] >= 2:
+                out._agree = {int(imu): int(n) for imu, n in state["agree"]}
+                ref = state["reference"]
+                out._ref = None if ref is None else int(ref)
+                out._ref_silent = int(state["reference_silent"])
+                out._newest_s = {int(imu): float(t) for imu, t in state["newest"]}
+                out._offset_s = {int(imu): float(o) for imu, o in state["offsets"]}
+                out._measured = {
+                    int(imu): ([float(x) for x in u], [float(x) for x in lo])
+                    for imu, u, lo in state["measuring"]
+                }
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"cross-IMU state is malformed: {type(exc).__name__}: {exc}") from None
         return out

@@ -45,6 +45,8 @@ class Reason(StrEnum):
     NON_FINITE = "non_finite"
     TIME_NOT_INCREASING = "time_not_increasing"
     KEY_MISMATCH = "key_mismatch"
+    OTHER_SOURCE = "other_source"
+    """A frame of a vehicle another input (MAVLink) feeds: one owner per vehicle stream."""
 
 
 class SchemaError(ValueError):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 from estimators.passport import Passport, PassportError
 from protocols._schema import MAX_MESSAGE_BYTES, SchemaError, pack, unpack_map
@@ -25,6 +26,21 @@ MAX_PASSPORT_BYTES = MAX_MESSAGE_BYTES
 
 class PassportCodecError(SchemaError):
     """Passport bytes that are not a msgpack map (``reason`` says why)."""
+
+
+class JsonNestingError(ValueError):
+    """JSON nested deeper than the parser can follow (Python's recursion limit)."""
+
+
+def parse_json(text: str) -> Any:
+    """Strict JSON of a passport or a store entry: ``ValueError`` for non-finite constants (NaN,
+    Infinity) and invalid JSON (``json.JSONDecodeError``), :class:`JsonNestingError` for nesting
+    beyond the parser's recursion limit (``[[[…]]]`` a few thousand deep: a ``RecursionError``
+    traceback in every command that read it)."""
+    try:
+        return json.loads(text, parse_constant=_reject_constant)
+    except RecursionError:
+        raise JsonNestingError("JSON nested too deeply to parse") from None
 
 
 def write_passport_json(passport: Passport, path: str | os.PathLike[str]) -> None:
@@ -50,7 +66,7 @@ def read_passport_json(path: str | os.PathLike[str]) -> Passport:
             "a passport is the JSON file `ins-health calibrate` writes"
         ) from None
     try:
-        obj = json.loads(text, parse_constant=_reject_constant)
+        obj = parse_json(text)
     except json.JSONDecodeError as exc:
         raise PassportError(
             f"{source}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})"
@@ -78,4 +94,4 @@ def decode_passport(data: bytes, *, max_bytes: int = MAX_PASSPORT_BYTES) -> Pass
 
 
 def _reject_constant(name: str) -> None:
-    raise ValueError(f"non-finite number {name} is not allowed in a passport")
+    raise ValueError(f"non-finite number {name} is not allowed")

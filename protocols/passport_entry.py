@@ -45,6 +45,7 @@ from typing import Any
 from estimators.passport import Passport, PassportError
 from protocols._schema import MAX_IMU_INDEX, SchemaError, check_imu, check_vehicle
 from protocols.atomic_file import atomic_write_bytes
+from protocols.passport_codec import JsonNestingError, parse_json
 
 ENTRY_TYPE = "ins.health.passport-entry"
 ENTRY_VERSION = 1
@@ -162,11 +163,9 @@ def read_entry(path: Path, vehicle: str, imu: int) -> Passport:
     """
     text = _read_regular(path)
     try:
-        entry = json.loads(text.decode("utf-8"), parse_constant=_reject_constant)
-    except RecursionError:
-        raise PassportEntryError(
-            "corrupt: JSON nested too deeply to parse", EntryProblem.NESTED
-        ) from None
+        entry = parse_json(text.decode("utf-8"))
+    except JsonNestingError as exc:
+        raise PassportEntryError(f"corrupt: {exc}", EntryProblem.NESTED) from None
     except (UnicodeDecodeError, ValueError) as exc:
         raise PassportEntryError(f"corrupt: not valid JSON ({exc})", EntryProblem.CORRUPT) from None
     if not isinstance(entry, dict):
@@ -272,7 +271,3 @@ def _check_regular(st: os.stat_result) -> None:
         raise PassportEntryError(
             f"{st.st_size} bytes exceeds the limit of {MAX_ENTRY_BYTES}", EntryProblem.TOO_LARGE
         )
-
-
-def _reject_constant(name: str) -> None:
-    raise ValueError(f"non-finite number {name} is not allowed")

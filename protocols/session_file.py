@@ -267,7 +267,35 @@ class LoadedSession:
 # --- generic numeric table ---------------------------------------------------
 
 
+MAX_LINE_BYTES = 1 << 16
+"""Longest line of a session file, bytes. A line holds one sample: eight numbers of ours, or a ROS
+``rostopic echo -p`` row of sensor_msgs/Imu with its three covariances (about 40 fields, 1 KB);
+64 KiB is sixty times that. The whole file was read and split before a line was looked at: one
+200 MB line took 1.4 GB before it was refused."""
+_SCAN_BYTES = 1 << 20
+
+
+def _check_line_lengths(path: Path) -> None:
+    """:class:`SessionFileError` naming the first line longer than :data:`MAX_LINE_BYTES`, found
+    reading 1 MiB at a time (nothing else held)."""
+    with open(path, "rb") as f:
+        lineno, run = 1, 0  # the line under way and its bytes so far
+        while chunk := f.read(_SCAN_BYTES):
+            ends = np.flatnonzero(np.frombuffer(chunk, np.uint8) == 0x0A)
+            starts = np.concatenate([[-run], ends[:-1] + 1])
+            too_long = np.flatnonzero(ends - starts > MAX_LINE_BYTES)
+            run = run + len(chunk) if ends.size == 0 else len(chunk) - int(ends[-1]) - 1
+            if too_long.size or run > MAX_LINE_BYTES:
+                at = lineno + (int(too_long[0]) if too_long.size else ends.size)
+                raise SessionFileError(
+                    f"{path}: line {at} is longer than {MAX_LINE_BYTES} bytes: not a session "
+                    "file (a line holds one sample)"
+                )
+            lineno += ends.size
+
+
 def _read_text(path: Path) -> str:
+    _check_line_lengths(path)
     try:
         # utf-8-sig: a byte-order mark (Windows editors and spreadsheets save one) is not text.
         return path.read_text(encoding="utf-8-sig")

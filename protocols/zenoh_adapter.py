@@ -37,10 +37,24 @@ nothing. :class:`EventPublisher.publish` therefore does two things:
 2. with :attr:`AckMode.RECEIVER` (the default) it sends a query carrying the
    same encoded event to ``ins/<vehicle>/health/ack``. Each
    :class:`EventReceiver` with ``acknowledge=True`` decodes it, hands it to its
-   application callback (exactly once per id: it deduplicates) and only then
-   replies with the event id. The event counts as acknowledged when at least
-   ``min_acks`` replies carrying its id arrive within ``ack_timeout_s``: an
+   application callback (exactly once per id: it deduplicates) and only once the
+   callback has returned replies with the event id (a callback that raised gets
+   the event again with the retry). The event counts as acknowledged when at least
+   ``min_acks`` *distinct* receivers reply with its id within ``ack_timeout_s``: an
    end-to-end acknowledgement by the receiving application.
+
+Who acknowledged: a receiver given a name answers on
+``ins/<vehicle>/health/ack/<name>`` (the querier accepts replies on keys other
+than the one asked), and Zenoh tells the answering session's id
+(:class:`Acknowledgement`). One session answering twice, or under two names,
+counts once; so do two sessions claiming one name (:func:`distinct_receivers`).
+``ack_from`` names the receivers that count; others' answers are refused and
+counted. A name alone is a claim; the router's access control binds it to a
+certificate (``deploy/zenoh-router.json5``: a ground station's certificate may
+answer only on the key of its own name). The certificate's name itself does not
+reach the publisher: eclipse-zenoh's Python API exposes the certificate of a
+*direct* link only (``Session.info.links()``, ``Link.auth_identifier``), and a
+receiver's link ends at the router, not at the publisher.
 
 With :attr:`AckMode.MATCHED` the acknowledgement is weaker: ``put`` returned
 without error on the reliable/blocking publisher *and* Zenoh reported at least
@@ -78,7 +92,7 @@ import json
 import re
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -170,8 +184,20 @@ def events_key(vehicle: str) -> str:
 
 
 def ack_key(vehicle: str) -> str:
-    """``ins/<vehicle>/health/ack`` (acknowledgement queries, see the module docstring)."""
+    """``ins/<vehicle>/health/ack``: where acknowledgements are asked (and unnamed receivers answer)."""
     return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/health/ack"
+
+
+def named_ack_key(vehicle: str, receiver: str) -> str:
+    """``ins/<vehicle>/health/ack/<receiver>``: the key a named receiver answers on (module docstring)."""
+    return f"{ack_key(vehicle)}/{check_receiver_name(receiver)}"
+
+
+def check_receiver_name(name: str) -> str:
+    """A receiver's name (one key chunk, the vehicle id's alphabet); ``ValueError`` naming the rule."""
+    if not isinstance(name, str) or not VEHICLE_ID_PATTERN.fullmatch(name):
+        raise ValueError(f"receiver name {name!r} must match {VEHICLE_ID_PATTERN.pattern}")
+    return name
 
 
 def status_key(vehicle: str) -> str:
@@ -212,6 +238,14 @@ def check_frames_selector(key_expr: str) -> str:
     if not key_expr.startswith(f"{ROOT}/"):
         raise ValueError(f"must be under '{ROOT}/' ({ROOT}/<vehicle>/imu/<n>), got {key_expr!r}")
     return key_expr
+
+
+def _frame_vehicle(key: str) -> str | None:
+    """The vehicle of a frame key, None for a key that is not one (the decoder then says why)."""
+    try:
+        return parse_frame_key(key)[0]
+    except FrameError:
+        return None
 
 
 def parse_frame_key(key: str) -> tuple[str, int]:
@@ -499,7 +533,8 @@ class FrameSource(BatchSource):
     (:class:`~protocols._handoff.FairQueues`: the drop policy) and decoded by the
     consumer, the units taken in turn, so a flood costs the receiving thread only a
     copy and no other unit its frames. Rejected frames (bad bytes, or a payload whose vehicle/imu differ
-    from its key: ``key_mismatch``) are counted by reason in :attr:`counters`
+    from its key: ``key_mismatch``; a vehicle of ``refused_vehicles``, fed by another input: ``other_source``,
+    refused unread) are counted by reason in :attr:`counters`
     and reported to ``on_reject`` (an ``(key, FrameError)`` callable, called in
     the consumer); they never stop the source.
 
@@ -511,6 +546,9 @@ class FrameSource(BatchSource):
         dropped and counted (:attr:`dropped_by_unit`).
     total : frames held for all units together; beyond it a unit over its fair share loses its newest.
     max_frame_bytes : size limit passed to :func:`~protocols.frames.decode_frame`.
+    refused_vehicles : vehicles whose frames are refused here: another input owns their streams
+        (the vehicle the daemon's MAVLink link feeds), and frames from anyone on the router would be
+        merged into them. Held, not copied: a vehicle added later is refused from then on.
     """
 
     def __init__(
@@ -523,7 +561,9 @@ class FrameSource(BatchSource):
         max_frame_bytes: int = MAX_FRAME_BYTES,
         on_reject: Callable[[str, FrameError], None] | None = None,
         loop: asyncio.AbstractEventLoop | None = None,
+        refused_vehicles: Collection[str] = (),
     ):
+        self._refused_vehicles = refused_vehicles
         self._ring: FairQueues[tuple[str, int] | None, tuple[str, bytes]] = FairQueues(
             capacity, total, loop or asyncio.get_running_loop()
         )
@@ -539,6 +579,9 @@ class FrameSource(BatchSource):
             unit: tuple[str, int] | None = parse_frame_key(key)
         except FrameError:
             # Queued together, and refused by the decoder in turn.
+            unit = None
+        if unit is not None and unit[0] in self._refused_vehicles:
+            # Refused in turn too (the consumer counts and reports), never in the owner's queue.
             unit = None
         self._ring.put(unit, (key, sample.payload.to_bytes()))
 
@@ -579,6 +622,12 @@ class FrameSource(BatchSource):
 
     def _decode(self, key: str, payload: bytes) -> SampleBatch | None:
         try:
+            owner = _frame_vehicle(key)
+            if owner in self._refused_vehicles:
+                raise FrameError(
+                    Reason.OTHER_SOURCE,
+                    f"vehicle {owner} is fed by another input (MAVLink): its frames on Zenoh are refused",
+                )
             batch = decode_frame(payload, max_bytes=self._max_bytes)
             if parse_frame_key(key) != (batch.vehicle, batch.imu):
                 raise FrameError(
@@ -767,11 +816,59 @@ class AckMode(StrEnum):
     MATCHED = "matched"
 
 
+@dataclass(frozen=True)
+class Acknowledgement:
+    """Who answered an acknowledgement query.
+
+    Attributes
+    ----------
+    receiver : the receiver's name, the last chunk of the key it answered on
+        (``ins/<vehicle>/health/ack/<receiver>``); ``None`` for an unnamed receiver
+        (``ins/<vehicle>/health/ack``). Under the deploy's access control a name is bound to a
+        certificate: only that certificate's holder may answer on that key.
+    zid : the Zenoh id of the answering session (``Reply.replier_id``).
+    """
+
+    receiver: str | None
+    zid: str
+
+    def __str__(self) -> str:
+        name = "an unnamed receiver" if self.receiver is None else self.receiver
+        return f"{name} (zenoh id {self.zid})"
+
+
+def _acknowledgement(reply: zenoh.Reply, vehicle: str) -> Acknowledgement | None:
+    """Who answered, from the reply's key; None for a key that is not the vehicle's acknowledgement key."""
+    assert reply.ok is not None
+    key, own = str(reply.ok.key_expr), ack_key(vehicle)
+    replier = reply.replier_id
+    zid = "unknown" if replier is None else str(replier.zid)
+    if key == own:
+        return Acknowledgement(None, zid)
+    name = key[len(own) + 1 :]
+    if key.startswith(own + "/") and VEHICLE_ID_PATTERN.fullmatch(name):
+        return Acknowledgement(name, zid)
+    return None
+
+
+def distinct_receivers(acks: Iterable[Acknowledgement]) -> int:
+    """How many distinct receivers answered: a receiver is new only with a name *and* a Zenoh id not
+    counted yet (one session answering under two names counts once, and so do two sessions
+    claiming one name); an unnamed receiver is named by its Zenoh id."""
+    acks = list(acks)
+    names = {a.receiver if a.receiver is not None else f"zid:{a.zid}" for a in acks}
+    return min(len(names), len({a.zid for a in acks}))
+
+
 class EventPublisher:
     """Publishes events reliably (``CongestionControl.BLOCK``) and reports whether each was acknowledged.
 
     :meth:`publish` blocks (up to ``ack_timeout_s`` plus the BLOCK wait):
     call it from a worker thread (``asyncio.to_thread``) in a service.
+
+    ``min_acks`` distinct receivers (:func:`distinct_receivers`) must acknowledge an event; with
+    ``ack_from`` only receivers of those names count, and any other answer is refused: counted in
+    :attr:`refused`, the last one kept in :attr:`last_refused`.
     """
 
     def __init__(
@@ -781,6 +878,7 @@ class EventPublisher:
         ack: AckMode = AckMode.RECEIVER,
         ack_timeout_s: float = 1.0,
         min_acks: int = 1,
+        ack_from: Iterable[str] = (),
     ):
         if min_acks < 1 or ack_timeout_s <= 0:
             raise ValueError(
@@ -790,8 +888,11 @@ class EventPublisher:
         self._ack = AckMode(ack)
         self._timeout_s = float(ack_timeout_s)
         self._min_acks = int(min_acks)
+        self._ack_from = frozenset(check_receiver_name(n) for n in ack_from)
         self._entities: dict[str, tuple[zenoh.Publisher, zenoh.Querier]] = {}
         self._lock = threading.Lock()
+        self.refused = 0
+        self.last_refused: Acknowledgement | None = None
 
     def _declared(self, vehicle: str) -> tuple[zenoh.Publisher, zenoh.Querier]:
         with self._lock:
@@ -804,8 +905,10 @@ class EventPublisher:
                         reliability=zenoh.Reliability.RELIABLE,
                         priority=zenoh.Priority.DATA_HIGH,
                     ),
+                    # Named receivers answer on a key below the one asked (EventReceiver).
                     self._session.declare_querier(
                         ack_key(vehicle),
+                        accept_replies=zenoh.ReplyKeyExpr.ANY,
                         target=zenoh.QueryTarget.ALL,
                         consolidation=zenoh.ConsolidationMode.NONE,
                         timeout=self._timeout_s,
@@ -839,12 +942,20 @@ class EventPublisher:
         if self._ack is AckMode.MATCHED:
             return _matching(pub)
         expected = event.event_id.encode()
-        acks = sum(
-            1
-            for reply in querier.get(payload=payload)
-            if reply.ok is not None and reply.ok.payload.to_bytes() == expected
-        )
-        return acks >= self._min_acks
+        counted = []
+        for reply in querier.get(payload=payload):
+            if reply.ok is None or reply.ok.payload.to_bytes() != expected:
+                continue
+            ack = _acknowledgement(reply, event.vehicle)
+            if ack is None:
+                continue
+            if self._ack_from and ack.receiver not in self._ack_from:
+                with self._lock:
+                    self.refused += 1
+                    self.last_refused = ack
+                continue
+            counted.append(ack)
+        return distinct_receivers(counted) >= self._min_acks
 
     def close(self) -> None:
         with self._lock:
@@ -864,7 +975,10 @@ class EventReceiver:
     """The receiving side of events: subscribes, deduplicates by id, acknowledges (module docstring).
 
     ``on_event`` is called once per event id (from a Zenoh thread; keep it
-    short or hand over to your own queue). Ids are remembered up to
+    short or hand over to your own queue). An event is taken, and acknowledged, only once
+    ``on_event`` has returned: if it raises, the event is not remembered, the acknowledgement
+    query is answered with an error (the publisher retries) and the next copy is handed over
+    again; such failures are counted in :attr:`failed`. Ids are remembered up to
     ``dedup_capacity`` (oldest forgotten first). Undecodable payloads are
     counted in :attr:`rejected` by reason and answered with an error reply.
 
@@ -872,6 +986,9 @@ class EventReceiver:
     ----------
     vehicles : a vehicle id or a chunk pattern (``"*"``, ``"fleetA-$*"``) selecting whose events to receive.
     acknowledge : declare the ack queryable (be one of the ``min_acks`` receivers).
+    name : answer as this receiver: on ``ins/<vehicle>/health/ack/<name>`` (:class:`Acknowledgement`),
+        not on the key asked; a publisher's ``ack_from`` counts only named receivers it lists.
+        ``None``: unnamed (and counted by its Zenoh id).
     """
 
     def __init__(
@@ -881,14 +998,17 @@ class EventReceiver:
         *,
         vehicles: str = "*",
         acknowledge: bool = True,
+        name: str | None = None,
         dedup_capacity: int = 100_000,
     ):
         self._on_event = on_event
         self._seen: OrderedDict[str, None] = OrderedDict()
         self._capacity = int(dedup_capacity)
         self._lock = threading.Lock()
+        self.name = None if name is None else check_receiver_name(name)
         self.received = 0
         self.duplicates = 0
+        self.failed = 0
         self.rejected: dict[str, int] = {}
         self._entities: list[_Declared] = [
             session.declare_subscriber(f"{ROOT}/{vehicles}/health/events", self._on_sample)
@@ -898,7 +1018,8 @@ class EventReceiver:
                 session.declare_queryable(f"{ROOT}/{vehicles}/health/ack", self._on_query)
             )
 
-    def _accept(self, payload: bytes) -> Event:
+    def _accept(self, payload: bytes) -> Event | None:
+        """The event, once handed over (now or before); None when ``on_event`` raised."""
         event = decode_event(payload)
         # One lock around check-and-deliver: the subscriber and the queryable
         # threads may carry the same event at the same time.
@@ -906,11 +1027,15 @@ class EventReceiver:
             if event.event_id in self._seen:
                 self.duplicates += 1
                 return event
+            try:
+                self._on_event(event)
+            except Exception:  # the application did not take it: not remembered, asked again
+                self.failed += 1
+                return None
             self._seen[event.event_id] = None
             if len(self._seen) > self._capacity:
                 self._seen.popitem(last=False)
             self.received += 1
-            self._on_event(event)
         return event
 
     def _reject(self, exc: EventError) -> None:
@@ -934,7 +1059,13 @@ class EventReceiver:
             self._reject(exc)
             query.reply_err(str(exc).encode())
             return
-        query.reply(query.key_expr, event.event_id.encode())
+        if event is None:
+            query.reply_err(b"the application did not take the event")
+            return
+        key = (
+            ack_key(event.vehicle) if self.name is None else named_ack_key(event.vehicle, self.name)
+        )
+        query.reply(key, event.event_id.encode())
 
     @property
     def seen_ids(self) -> set[str]:

@@ -36,7 +36,7 @@ from typing import Any
 from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
 from estimators.nominal_passport import SensorClass
 from estimators.stream_validity import ValidityLimits
-from protocols._schema import SchemaError, check_vehicle
+from protocols._schema import MAX_IMU_INDEX, SchemaError, check_vehicle
 from protocols.mavlink_adapter import UDP_RCVBUF_MIN_BYTES, MavlinkSettings
 from protocols.zenoh_adapter import (
     ALL_FRAMES,
@@ -44,6 +44,7 @@ from protocols.zenoh_adapter import (
     Mode,
     ZenohSettings,
     check_frames_selector,
+    check_receiver_name,
     check_service_name,
 )
 
@@ -187,7 +188,13 @@ class ZenohSection:
         acknowledged it, :class:`protocols.zenoh_adapter.AckMode`) or ``"matched"`` (once the
         reliable put found a subscriber).
     ack_timeout_s : how long one delivery waits for acknowledgements (default 1.0 s).
-    min_acks : acknowledgements needed per event (default 1).
+    min_acks : distinct receivers whose acknowledgements an event needs (default 1; one receiver
+        answering twice, or under two names, counts once:
+        :func:`protocols.zenoh_adapter.distinct_receivers`).
+    ack_from : the names of the receivers (ground stations, ``ins-health watch --receiver NAME``)
+        whose acknowledgements count (default empty: any receiver's); another's answer is refused,
+        counted (``service.zenoh.acks_refused``) and logged. Under the deploy's access control a
+        name is bound to a ground station's certificate (``deploy/zenoh-router.json5``).
     session : the session itself, from the other keys of the table, read by
         :meth:`protocols.zenoh_adapter.ZenohSettings.from_dict`: ``mode`` (default ``"client"``),
         ``connect`` (default ``["tcp/127.0.0.1:7447"]`` in client mode), ``listen``,
@@ -200,10 +207,18 @@ class ZenohSection:
     event_ack: AckMode = AckMode.RECEIVER
     ack_timeout_s: float = 1.0
     min_acks: int = 1
+    ack_from: tuple[str, ...] = ()
     session: ZenohSettings = DEFAULT_ZENOH_SESSION
 
 
-DEFAULT_MAVLINK_LINK = MavlinkSettings(device="udpin:127.0.0.1:14550", vehicle="mav1")
+DEFAULT_MAVLINK_VEHICLE = "mavlink.autopilot"
+"""The vehicle id of the MAVLink link's IMUs when ``[mavlink] vehicle`` is not set. It was ``"mav1"``,
+a plausible fleet name and so a Zenoh frame key any local process could feed (such frames are now
+refused once the link has fed the vehicle, ``other_source``); a configuration that relied on it and keeps
+passports or history under ``mav1`` sets ``vehicle = "mav1"``."""
+DEFAULT_MAVLINK_LINK = MavlinkSettings(
+    device="udpin:127.0.0.1:14550", vehicle=DEFAULT_MAVLINK_VEHICLE
+)
 
 
 class MavlinkReader(StrEnum):
@@ -233,7 +248,8 @@ class MavlinkSection:
     link : the link itself, from the other keys of the table, read by
         :meth:`protocols.mavlink_adapter.MavlinkSettings.from_dict`: ``device`` (pymavlink
         connection string, default ``"udpin:127.0.0.1:14550"``; ``tcp:…``, or a serial device
-        with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default ``"mav1"``),
+        with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default :data:`DEFAULT_MAVLINK_VEHICLE`; Zenoh
+        frames under the same id are refused once the link has fed it IMU samples),
         ``source_system``, ``source_component`` (default 191, MAV_COMP_ID_ONBOARD_COMPUTER),
         ``autopilot_system`` (the one system whose IMU messages are read; unset, the first
         heard: other systems' are counted as ``service.mavlink.rejected.other_system`` and each
@@ -569,6 +585,92 @@ def _period(errors: list[str], where: str, value: float) -> None:
         errors.append(f"{where} must be at least {PERIOD_MIN_S} s, got {value!r}")
 
 
+SQLITE_MAX_MB = 4_294_967_294 * 4096 / 1e6
+"""The largest SQLite database of 4 KiB pages, MB (its largest page count times the page size): an
+``outbox_max_mb`` above it bounds nothing."""
+UNITS_MAX = 16_384
+"""Pipelines at most (``max_vehicles`` × ``max_imus_per_vehicle``): a unit's pipeline held 0.22 MB
+after 120 s at 200 Hz (deploy/SCALING.md, "Memory": 144 MB with one IMU, 158 MB with 64), so this
+many fill 3.6 GB, the whole memory of the smaller companion computers (4 GB)."""
+QUEUE_FRAMES_MAX = 65_536
+"""Frames queued at most (``queue_capacity``, ``instance_queue_capacity``): 65,536 frames of 100
+samples (5.6 KB each, deploy/SCALING.md) are 367 MB, more than the unit's MemoryMax (320M)."""
+
+_UPPER_BOUNDS: dict[tuple[str, str], tuple[float, str]] = {
+    # The periods: a task run less than hourly is not a periodic task an operator can watch.
+    ("service", "status_period_s"): (
+        3_600.0,
+        "an hour: the status is how a silent vehicle is told",
+    ),
+    ("service", "delivery_retry_s"): (3_600.0, "an hour between tries of an undelivered event"),
+    # A checkpoint older than REVIVE_MAX_AGE_S is not revived at start (service.daemon): a longer
+    # period would make every restart start afresh.
+    ("service", "checkpoint_period_s"): (
+        7 * 86_400.0,
+        "7 days: older checkpoints are not revived (REVIVE_MAX_AGE_S)",
+    ),
+    ("service", "outbox_max_mb"): (SQLITE_MAX_MB, "the largest SQLite file of 4 KiB pages"),
+    ("site", "height_m"): (
+        50_000.0,
+        "50 km: above any vehicle's flight and the normal-gravity model",
+    ),
+    ("zenoh", "min_acks"): (256, "256 ground stations, each answering every event"),
+    ("mavlink", "alert_min_interval_s"): (86_400.0, "a day: a repeat later than that is news"),
+    # STATUSTEXT is 59 bytes with its header: a 115,200-baud link carries about 195 a second.
+    ("mavlink", "alert_max_per_s"): (200.0, "a 115200-baud link carries about 195 STATUSTEXT/s"),
+    # Ground stations call a component lost after a few missed HEARTBEATs (QGroundControl, 3.5 s).
+    ("mavlink", "heartbeat_period_s"): (60.0, "a minute: ground stations call it lost long before"),
+    ("pipeline", "queue_capacity"): (QUEUE_FRAMES_MAX, "QUEUE_FRAMES_MAX: 367 MB of frames"),
+    ("pipeline", "instance_queue_capacity"): (
+        QUEUE_FRAMES_MAX,
+        "QUEUE_FRAMES_MAX: 367 MB of frames",
+    ),
+    # Positions are kept until the fit runs; a session holds tens, a calibration 12 to 24.
+    ("pipeline", "min_positions"): (1_000, "1000 positions: no session holds so many at rest"),
+    ("pipeline", "max_imus_per_vehicle"): (MAX_IMU_INDEX + 1, "IMU indices are 0..255"),
+    ("pipeline", "max_vehicles"): (UNITS_MAX, "UNITS_MAX pipelines: 3.6 GB"),
+    ("validity", "timeout_s"): (3_600.0, "an hour: a stream silent longer is long timed out"),
+    # A stale run is counted, not buffered: bounded by meaning, an hour at the highest rate.
+    ("validity", "stale_run_samples"): (36_000_000, "an hour at 10 kHz"),
+    # The error window is a ring of flags (1 B a sample, checkpointed) and a running sum of int64s
+    # over it and a batch at each frame (8 B a sample): 9 B a sample of transient memory per IMU.
+    # A minute at the highest rate, 600,000 samples, is 5.4 MB: 4e8 took 1.3-1.7 GB, 1e12 failed.
+    ("validity", "error_window_samples"): (600_000, "a minute at 10 kHz, 5.4 MB per IMU"),
+    # A limit beyond twice the widest range of an autopilot IMU (±32 g, ±4000 °/s) is never
+    # exceeded: it turns the comparison off.
+    ("validity", "cross_imu_accel_mps2"): (628.0, "twice a ±32 g accelerometer's range"),
+    ("validity", "cross_imu_gyro_rps"): (139.6, "twice a ±4000 °/s gyro's range"),
+    ("validity", "cross_imu_window_s"): (60.0, "a minute: the bins are means over it"),
+    ("validity", "cross_imu_persist_windows"): (7_200, "an hour of 0.5 s bins before a report"),
+    # Detector windows and position buffers are sized in samples from the rate.
+    ("validity", "max_rate_hz"): (100_000.0, "100 kHz: no IMU samples faster"),
+}
+"""The largest value of each numeric key and why (memory, or where a larger value means nothing or
+turns a check off); checked at start with the other range errors (exit 2)."""
+
+
+def _upper_bounds(cfg: ServiceConfig) -> list[str]:
+    errors = []
+    for (section, key), (bound, why) in _UPPER_BOUNDS.items():
+        value = getattr(getattr(cfg, section), key)
+        if isinstance(value, (int, float)) and value > bound:
+            errors.append(f"[{section}] {key} must be at most {bound:g} ({why}), got {value!r}")
+    v = cfg.validity
+    if v.cross_imu_window_s * v.cross_imu_persist_windows > 3_600.0:
+        errors.append(
+            "[validity] cross_imu_window_s x cross_imu_persist_windows must be at most 3600 s (a "
+            f"disagreement reported an hour late is no check), got {v.cross_imu_window_s!r} x "
+            f"{v.cross_imu_persist_windows!r}"
+        )
+    p = cfg.pipeline
+    if p.max_vehicles * p.max_imus_per_vehicle > UNITS_MAX:
+        errors.append(
+            f"[pipeline] max_vehicles x max_imus_per_vehicle must be at most {UNITS_MAX} (0.22 MB a "
+            f"pipeline: UNITS_MAX), got {p.max_vehicles} x {p.max_imus_per_vehicle}"
+        )
+    return errors
+
+
 def _check(cfg: ServiceConfig) -> list[str]:
     """Every range error of a typed configuration, one line each."""
     errors: list[str] = []
@@ -654,5 +756,18 @@ def _check(cfg: ServiceConfig) -> list[str]:
         errors.append(
             f"[zenoh] needs 0 < ack_timeout_s <= {ACK_TIMEOUT_MAX_S:g} and min_acks >= 1, got "
             f"{z.ack_timeout_s!r} and {z.min_acks!r}"
+        )
+    errors += _upper_bounds(cfg)
+    for name in z.ack_from:
+        try:
+            check_receiver_name(name)
+        except ValueError as exc:
+            errors.append(f"[zenoh] ack_from: {exc}")
+    if z.ack_from and z.event_ack is not AckMode.RECEIVER:
+        errors.append('[zenoh] ack_from names receivers: it needs event_ack = "receiver"')
+    if z.ack_from and len(set(z.ack_from)) < z.min_acks:
+        errors.append(
+            f"[zenoh] min_acks {z.min_acks} cannot be met by the {len(set(z.ack_from))} "
+            f"receiver(s) of ack_from {list(z.ack_from)}"
         )
     return errors

@@ -288,6 +288,8 @@ class Service:
         self._given_up_log = LogRate()
         self._data_dir_lost_s: float | None = None
         self._unstored = 0
+        self._refused_log = LogRate()
+        self._cross_off: set[tuple[str, int]] = set()
 
     @property
     def outbox(self) -> Outbox | None:
@@ -495,6 +497,8 @@ class Service:
         extra.update(
             {f"service.passports.rejected.{k}": n for k, n in self.store.rejected_counts().items()}
         )
+        if (zsink := self._zenoh_sink()) is not None:
+            extra["service.zenoh.acks_refused"] = zsink.refused[0]
         run = self._running()
         extra.update(self.supervisor.counters())
         extra.update({f"service.{k}": n for k, n in run.writer.counters().items()})
@@ -593,6 +597,35 @@ class Service:
                 ", ".join(f"{n} of {unit}" for unit, n in sorted(new.items())),
             )  # fmt: skip
 
+    def _zenoh_sink(self) -> ZenohEventSink | None:
+        return next((s for s in self.sinks if isinstance(s, ZenohEventSink)), None)
+
+    def _log_cross_imu(self) -> None:
+        """An IMU the cross-IMU check stops comparing (another clock, its offset not steady or still
+        measured, a lag) said once with why, and when it compares it again."""
+        for vehicle, imu in sorted(self.fleet.pipelines):
+            why = self.fleet.cross_not_running(vehicle, imu)
+            if why is not None and (vehicle, imu) not in self._cross_off:
+                self._cross_off.add((vehicle, imu))
+                log.warning("%s IMU%d: cross-IMU check not running: %s", vehicle, imu, why)
+            elif why is None and (vehicle, imu) in self._cross_off:
+                self._cross_off.discard((vehicle, imu))
+                log.info("%s IMU%d: cross-IMU check running again", vehicle, imu)
+
+    def _log_refused_acks(self) -> None:
+        """Acknowledgements from receivers ``[zenoh] ack_from`` does not name, said as they grow (at
+        most once per period, :class:`~protocols.log_rate.LogRate`) with the last one's receiver."""
+        sink = self._zenoh_sink()
+        if sink is None:
+            return
+        n, last = sink.refused
+        if new := self._refused_log.due({"acks": n} if n else {}):
+            log.warning(
+                "%d acknowledgement(s) refused, their receiver not in [zenoh] ack_from %s (the last "
+                "from %s); counted as service.zenoh.acks_refused",
+                new["acks"], list(self.config.zenoh.ack_from), last,
+            )  # fmt: skip
+
     async def _status(self, stop: asyncio.Event) -> None:
         while not stop.is_set():
             async with self.intake.group_lock:
@@ -601,6 +634,8 @@ class Service:
             self._check_mavlink_reader()
             self.intake.log_refusals()
             self._log_drops()
+            self._log_refused_acks()
+            self._log_cross_imu()
             if self._status_pub is not None:
                 await self._publish_status(self._status_pub)
             await _wait_any(stop, None, timeout_s=self.config.service.status_period_s)
@@ -882,6 +917,7 @@ class Service:
             ack_timeout_s=cfg.zenoh.ack_timeout_s,
             min_acks=cfg.zenoh.min_acks,
             max_lanes=cfg.pipeline.max_vehicles,
+            ack_from=cfg.zenoh.ack_from,
         )
         resources.callback(zsink.close)
         self.sinks.insert(0, zsink)
@@ -892,6 +928,7 @@ class Service:
             capacity=cfg.pipeline.queue_capacity,
             total=cfg.pipeline.instance_queue_capacity,
             on_reject=self.intake.reject,
+            refused_vehicles=self.intake.mavlink_fed,
         )
         resources.callback(source.close)
         self._start_delivery(zsink, drain)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable, Iterator
 
-from protocols._schema import SchemaError
+from protocols._schema import Reason, SchemaError
 from protocols.events import Event
 from protocols.frames import FrameError, SampleBatch
 from protocols.log_rate import LogRate
@@ -68,6 +68,9 @@ class Intake:
         self._refused_log = LogRate()
         self._last_refusal: tuple[str, str] | None = None
         self._taken: list[SampleBatch] = []
+        self.mavlink_fed: set[str] = set()
+        """Vehicles the MAVLink link has fed IMU samples: they own their streams, and the Zenoh source
+        refuses their frames from then on (``FrameSource(refused_vehicles=…)``, one owner per stream)."""
         self.group_lock = asyncio.Lock()
         """Held while a group of frames goes through the pipelines, IMU by IMU with the loop turning between
         them (:meth:`_process_group`). Whatever else reads a unit's whole state or adds to it from the loop
@@ -81,7 +84,10 @@ class Intake:
             vehicle, imu = parse_frame_key(key)
         except SchemaError:
             vehicle, imu = None, None
-        self._store(self.fleet.reject(vehicle, imu, error.reason.value))
+        # Another input's frames are not the owner's stream: counted for the vehicle, not its IMU
+        # (whose error density would see them).
+        owned = error.reason is Reason.OTHER_SOURCE
+        self._store(self.fleet.reject(vehicle, None if owned else imu, error.reason.value))
         reason = error.reason.value
         self._refused[reason] = self._refused.get(reason, 0) + 1
         self._last_refusal = (reason, f"{key}: {error}")
@@ -148,14 +154,16 @@ class Intake:
 
     async def mavlink_frames(self, source: MavlinkSource) -> None:
         """Every batch of the MAVLink source, until it is closed and drained."""
-        await self._frames(source)
+        await self._frames(source, owner=True)
 
-    async def _frames(self, source: FrameSource | MavlinkSource) -> None:
+    async def _frames(self, source: FrameSource | MavlinkSource, *, owner: bool = False) -> None:
         while True:
             try:
                 batch = await source.get()
             except EOFError:
                 return
+            if owner:
+                self.mavlink_fed.add(batch.vehicle)
             # Frames already waiting (the service is behind) are taken together, up to a
             # budget of samples that bounds the delay of the last one: consecutive frames
             # of an IMU then cost the chain one batch (FleetProcessor.process_queued).

@@ -12,6 +12,7 @@ from protocols.events import Event
 from protocols.mavlink_adapter import ImuLink
 from protocols.zenoh_adapter import (
     AckMode,
+    Acknowledgement,
     EventPublisher,
     Session,
     ZenohError,
@@ -56,11 +57,17 @@ class ZenohEventSink:
         ack_timeout_s: float,
         min_acks: int,
         max_lanes: int,
+        ack_from: tuple[str, ...] = (),
     ):
         self._publisher = EventPublisher(
-            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks
+            session, ack=ack, ack_timeout_s=ack_timeout_s, min_acks=min_acks, ack_from=ack_from
         )
         self._pool = ThreadPoolExecutor(max_workers=max_lanes, thread_name_prefix="zenoh-events")
+
+    @property
+    def refused(self) -> tuple[int, Acknowledgement | None]:
+        """Acknowledgements refused (their receiver not in ``ack_from``) and the last one."""
+        return self._publisher.refused, self._publisher.last_refused
 
     async def deliver(self, event: Event, *, sent: Callable[[], None]) -> bool:
         # publish() blocks up to the acknowledgement timeout: keep it off the loop.

@@ -63,7 +63,10 @@ stale_run_samples = 50
     assert cfg.zenoh.session.mode is Mode.PEER and cfg.zenoh.session.listen == ("tcp/127.0.0.1:0",)
     assert cfg.zenoh.session.connect == ()
     assert cfg.mavlink.enabled and cfg.mavlink.link.signing_key == bytes.fromhex("ab" * 32)
-    assert cfg.mavlink.link.device == "udpin:127.0.0.1:0" and cfg.mavlink.link.vehicle == "mav1"
+    assert (
+        cfg.mavlink.link.device == "udpin:127.0.0.1:0"
+        and cfg.mavlink.link.vehicle == "mavlink.autopilot"
+    )
     assert cfg.validity.stale_run_samples == 50
 
 
@@ -153,6 +156,47 @@ stale_run_samples = 50
             r"\[mavlink\] signing_key_file: '~nosuchuser",
         ),
         ({"zenoh": {"ack_timeout_s": 1e300}}, r"\[zenoh\] needs 0 < ack_timeout_s <= 86400"),
+        # Bounds from memory or meaning (service.config._UPPER_BOUNDS): each passed before, and
+        # 1e12 samples then failed every frame on a 931 GiB allocation, 4e8 took 1.3-1.7 GB.
+        (
+            {"validity": {"error_window_samples": 10**12}},
+            r"^\[validity\] error_window_samples must be at most 600000 \(a minute at 10 kHz",
+        ),
+        (
+            {"validity": {"error_window_samples": 4 * 10**8}},
+            r"error_window_samples must be at most",
+        ),
+        ({"validity": {"cross_imu_accel_mps2": 1e6}}, r"cross_imu_accel_mps2 must be at most 628"),
+        ({"validity": {"timeout_s": 1e9}}, r"^\[validity\] timeout_s must be at most 3600"),
+        (
+            {"validity": {"cross_imu_window_s": 30.0, "cross_imu_persist_windows": 1000}},
+            r"cross_imu_window_s x cross_imu_persist_windows must be at most 3600 s",
+        ),
+        (
+            {"pipeline": {"queue_capacity": 10**9}},
+            r"^\[pipeline\] queue_capacity must be at most 65536",
+        ),
+        (
+            {"pipeline": {"max_vehicles": 10_000, "max_imus_per_vehicle": 8}},
+            r"max_vehicles x max_imus_per_vehicle must be at most 16384",
+        ),
+        ({"pipeline": {"min_positions": 10**7}}, r"min_positions must be at most 1000"),
+        ({"service": {"checkpoint_period_s": 1e9}}, r"checkpoint_period_s must be at most 604800"),
+        ({"service": {"outbox_max_mb": 1e12}}, r"outbox_max_mb must be at most 1.759"),
+        ({"mavlink": {"alert_max_per_s": 1e6}}, r"alert_max_per_s must be at most 200"),
+        ({"zenoh": {"min_acks": 10**6}}, r"min_acks must be at most 256"),
+        (
+            {"zenoh": {"ack_from": ["gs/1"]}},
+            r"^\[zenoh\] ack_from: receiver name 'gs/1' must match",
+        ),
+        (
+            {"zenoh": {"ack_from": ["gs-1", "gs-1"], "min_acks": 2}},
+            r"^\[zenoh\] min_acks 2 cannot be met by the 1 receiver\(s\) of ack_from",
+        ),
+        (
+            {"zenoh": {"ack_from": ["gs-1"], "event_ack": "matched"}},
+            r'^\[zenoh\] ack_from names receivers: it needs event_ack = "receiver"$',
+        ),
         ({"mavlink": {"enabled": True, "messages": []}}, r"\[mavlink\] messages is empty"),
         # pymavlink took it for a UDP address and failed at start ("UDP ports must be specified ...").
         ({"mavlink": {"device": "bogus:://"}}, r"mavlink device 'bogus:://' is no live link"),

@@ -84,6 +84,23 @@ def check_json5(path: Path, tmp_path: Path) -> None:
         assert allowed.get(timeout=5.0) == b"after"
         assert denied.empty(), f"other/x was routed: {denied.get()!r}"
         assert not other.matching_status.matching
+        # A tool on the router's host (the loopback subject) sees the events but its
+        # acknowledgement does not reach the service: only a ground station's certificate answers.
+        event = make_event(vehicle="v1", imu=0, t_s=1.0, predicate=Predicate.STALE,
+                           cause=StreamCause.STUCK_VALUE, severity=Severity.ERROR)  # fmt: skip
+        seen = queue.Queue()
+        with (
+            EventReceiver(sub_s, seen.put, vehicles="v1", name="ground-station"),
+            EventPublisher(pub_s, ack_timeout_s=1.0) as publisher,
+            EventPublisher(pub_s, ack=AckMode.MATCHED) as probe,
+        ):
+            # Declared after the receiver's queryable on the same link: once it is routed, the
+            # queryable would be too.
+            sub_s.declare_subscriber("ins/v2/health/events", lambda s: None)
+            wait_until(lambda: probe.ready("v2"), timeout_s=5.0, what="the events' route")
+            assert not publisher.ready("v1")
+            assert publisher.publish(event) is False
+            assert seen.get(timeout=5.0) == event
         # A ground station sees a service's liveliness token come and go, and its own status; a
         # vehicle's last status is answered to a query (what ins-health publish reads at its end).
         alive, own = queue.Queue(), queue.Queue()
@@ -209,6 +226,7 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
     policies = [
         {**{k: v for k, v in p.items() if v is not None}, "subjects": [s for s in p["subjects"] if s in names]}
         for p in json.loads(conf.get_json("access_control/policies"))
+        if set(p["subjects"]) & names
     ]  # fmt: skip
     conf.insert_json5("access_control/subjects", json.dumps(named))
     conf.insert_json5("access_control/policies", json.dumps(policies))
@@ -240,16 +258,23 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
         zenoh.open(conf),
         member("ins-health") as service,
         member("ground-station") as ground,
+        member("ground-station") as second_ground,
         member("uav-1") as vehicle,
         member("intruder") as intruder,
     ):
         frames, events = queue.Queue(), queue.Queue()
         service.declare_subscriber("ins/*/imu/*", lambda s: frames.put(s.payload.to_bytes()))
-        receiver = EventReceiver(ground, lambda e: events.put(e.text))
+        receiver = EventReceiver(ground, lambda e: events.put(e.text), name="ground-station")
+        # The same certificate under a name not its own (a second holder): the router drops its
+        # answers, so it never counts as a second receiver.
+        other_name = EventReceiver(second_ground, lambda e: None, name="gs-other")
         own = vehicle.declare_publisher("ins/uav-1/imu/0")
         other = vehicle.declare_publisher("ins/uav-2/imu/0")
         fake = vehicle.declare_publisher("ins/uav-1/health/events")
-        publisher = EventPublisher(service, ack=AckMode.RECEIVER, ack_timeout_s=5.0)
+        publisher = EventPublisher(
+            service, ack=AckMode.RECEIVER, ack_timeout_s=5.0, ack_from=["ground-station"]
+        )
+        two = EventPublisher(service, ack=AckMode.RECEIVER, ack_timeout_s=1.0, min_acks=2)
         route(own, "the vehicle's frames to the service")
         route(fake, "the declaration of the ground station's subscriber")
         other.put(b"frame of uav-2")
@@ -261,12 +286,14 @@ def check_certificates(path: Path, tmp_path: Path) -> None:
         assert FramePublisher(vehicle, "uav-1", 0).drain(timeout_s=5.0)
         assert publisher.publish(real), "the ground station did not acknowledge the event"
         assert events.get(timeout=5.0) == "real"
+        assert not two.publish(real), "an answer under a name not the certificate's counted"
+        assert publisher.refused == 0
         assert frames.empty() and events.empty() and receiver.rejected == {}
         # An unlisted member of the same authority is routed nothing, frames or events.
         assert not intruder.declare_publisher("ins/uav-1/imu/0").matching_status.matching
         assert not intruder.declare_publisher("ins/uav-1/health/events").matching_status.matching
-        publisher.close()
-        receiver.close()
+        for entity in (publisher, two, receiver, other_name):
+            entity.close()
 
 
 CHECKS = {

@@ -7,9 +7,11 @@ import pytest
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
 from estimators.stream_validity import (
+    CLOCK_FRAMES,
     CrossImuMonitor,
     StreamValidity,
     ValidityLimits,
+    best_clock_offset,
     compare_imus,
     run_lengths,
 )
@@ -189,12 +191,13 @@ def test_compare_two_imus_flags_the_pair():
 
 
 def test_cross_imu_monitor_persistence_and_recovery():
-    """Three IMUs in 0.5 s bins; IMU 1 has a 1 m/s² offset for 3 s, then recovers."""
+    """Three IMUs in 0.5 s bins; IMU 1 has a 1 m/s² offset for 3 s, then recovers (after as many
+    agreeing bins as disagreeing ones raised it)."""
     rng = np.random.default_rng(5)
     limits = ValidityLimits(cross_imu_persist_windows=4)
     mon = CrossImuMonitor(limits=limits)
     reports = []
-    for step in range(20):  # 20 batches of 0.25 s at 1 kHz
+    for step in range(28):  # 28 batches of 0.25 s at 1 kHz
         t0 = step * 0.25
         for imu in (0, 1, 2):
             t, a, g = static_samples(rng, 250, t0_s=t0)
@@ -207,14 +210,15 @@ def test_cross_imu_monitor_persistence_and_recovery():
     assert bad[0].accel_dev_mps2 == pytest.approx(1.0, abs=5 * ACCEL_NOISE_MPS2)
     # Flagged after the 4th consecutive disagreeing bin (bins at 1.0, 1.5, 2.0, 2.5 s).
     assert bad[0].bin_start_s == pytest.approx(2.5)
-    assert [r.imu for r in good] == [1] and good[0].bin_start_s == pytest.approx(4.0)
+    # Recovered after the 4th agreeing bin (bins at 4.0, 4.5, 5.0, 5.5 s).
+    assert [r.imu for r in good] == [1] and good[0].bin_start_s == pytest.approx(5.5)
     assert mon.flagged == frozenset()
 
 
 def _offset_stream(seed: int):
-    """Three IMUs in 0.25 s batches at 1 kHz; IMU 1 off by 1 m/s² from 1 to 4 s (flagged at 2.5 s, recovers at 4 s)."""
+    """Three IMUs in 0.25 s batches at 1 kHz; IMU 1 off by 1 m/s² from 1 to 4 s (flagged at 2.5 s, recovers at 5.5 s)."""
     rng = np.random.default_rng(seed)
-    for step in range(20):
+    for step in range(28):
         for imu in (0, 1, 2):
             t, a, g = static_samples(rng, 250, t0_s=step * 0.25)
             if imu == 1 and 1.0 <= step * 0.25 < 4.0:
@@ -222,7 +226,7 @@ def _offset_stream(seed: int):
             yield imu, t, a, g
 
 
-@pytest.mark.parametrize("cut", [5, 16, 31, 37, 44])
+@pytest.mark.parametrize("cut", [5, 16, 31, 37, 44, 52, 60])
 def test_cross_imu_monitor_resumes_from_its_checkpoint_exactly(cut):
     """Cut anywhere (mid-bin, mid-streak, while flagged), the state through checkpoint bytes and a new
     monitor: the same reports as one monitor over the whole stream, none raised again."""
@@ -283,6 +287,140 @@ def test_cross_imu_monitor_compares_every_bin_when_each_imu_sends_long_frames():
             reports.extend(mon.add(imu, t, a, g))
     bad = [r for r in reports if not r.consistent]
     good = [r for r in reports if r.consistent]
-    # Both IMUs disagree with the only other one: both flagged after the 4th bin (60.0, 60.5, 61.0, 61.5 s), both recover at 70 s.
+    # Both IMUs disagree with the only other one: both flagged after the 4th bin (60.0, 60.5, 61.0, 61.5 s),
+    # both recover after the 4th agreeing one (70.0 … 71.5 s).
     assert sorted(r.imu for r in bad) == [0, 1] and {r.bin_start_s for r in bad} == {61.5}
-    assert sorted(r.imu for r in good) == [0, 1] and {r.bin_start_s for r in good} == {70.0}
+    assert sorted(r.imu for r in good) == [0, 1] and {r.bin_start_s for r in good} == {71.5}
+
+
+UNIX_S, BOOT_S = 1.7e9, 100.0
+"""Where two clocks of one vehicle start: one IMU stamps Unix time, the other time since boot."""
+
+
+def _two_clocks(seed: int, *, base1_s, steps: int = 200, fault_from_s: float = 5.0):
+    """Two IMUs in 0.1 s frames at 1 kHz, taken in turn, IMU 0 on a Unix clock and IMU 1 at
+    ``base1_s(step)``; IMU 1 off by 0.1 g on x from ``fault_from_s`` of its own time."""
+    rng = np.random.default_rng(seed)
+    for step in range(steps):
+        for imu in (0, 1):
+            t, a, g = static_samples(rng, 100, t0_s=step * 0.1)
+            if imu == 1:
+                a[t >= fault_from_s, 0] += 0.1 * STANDARD_GRAVITY_MPS2
+            yield imu, t + (UNIX_S if imu == 0 else base1_s(step)), a, g
+
+
+def test_cross_imu_aligns_two_clocks_with_a_steady_offset():
+    """Unix time against time since boot: the offset bounded by CLOCK_FRAMES frames of each IMU, then
+    compared bin for bin; a 0.1 g disagreement is reported (both IMUs: with two, neither is the
+    reference)."""
+    mon = CrossImuMonitor(limits=ValidityLimits(cross_imu_persist_windows=4))
+    reports, why = [], []
+    for imu, t, a, g in _two_clocks(3, base1_s=lambda step: BOOT_S):
+        reports += mon.add(imu, t, a, g)
+        why.append(mon.not_compared(1))
+    assert why[1].startswith("IMU1 stamps time on another clock than IMU0")
+    assert "measuring the offset (0 of 8 frames)" in why[1]
+    # Its 8 frames and the reference's 8 after its first: aligned at its 9th.
+    aligned = why.index(None, 2)
+    assert aligned == 2 * CLOCK_FRAMES + 1 and set(why[aligned:]) == {None}
+    # The bounds are one 0.1 s frame apart: the middle is right within half of it.
+    assert mon.clock_offsets_s[1] == pytest.approx(BOOT_S - UNIX_S, abs=0.05 + 1e-6)
+    assert sorted((r.imu, r.consistent) for r in reports) == [(0, False), (1, False)]
+    # The bin means of 500 samples: their noise (0.02 / sqrt(500) m/s²) is far below 0.05.
+    assert [r.accel_dev_mps2 for r in reports] == pytest.approx(
+        [0.1 * STANDARD_GRAVITY_MPS2] * 2, abs=0.05
+    )
+
+
+def test_cross_imu_on_clocks_whose_offset_does_not_hold_still_is_not_running_and_says_why():
+    """IMU 1's clock jumps by tens of seconds from frame to frame: no offset is taken, the 0.1 g
+    disagreement cannot be seen, and the monitor says why rather than nothing."""
+    jumps = np.random.default_rng(4).uniform(-30.0, 30.0, size=200)
+    mon = CrossImuMonitor(limits=ValidityLimits(cross_imu_persist_windows=4))
+    reports = []
+    for imu, t, a, g in _two_clocks(3, base1_s=lambda step: BOOT_S + jumps[step]):
+        reports += mon.add(imu, t, a, g)
+    assert reports == [] and mon.clock_offsets_s == {}
+    why = mon.not_compared(1)
+    assert why is not None and "offset not steady" in why and "over 8 frames" in why
+
+
+def test_cross_imu_offset_survives_a_checkpoint():
+    limits = ValidityLimits(cross_imu_persist_windows=4)
+    items = list(_two_clocks(5, base1_s=lambda step: BOOT_S))
+    whole = CrossImuMonitor(limits=limits)
+    want = [r for item in items for r in whole.add(*item)]
+    first = CrossImuMonitor(limits=limits)
+    got = [r for item in items[:17] for r in first.add(*item)]
+    second = CrossImuMonitor.from_state(
+        decode_state(encode_state(first.state_dict())), limits=limits
+    )
+    got += [r for item in items[30:] for r in second.add(*item)]
+    assert got == want and len(want) == 2
+
+
+def test_cross_imu_skewed_by_0_7_s_while_moving_does_not_flap():
+    """Two IMUs on one clock, IMU 1's stamps 0.7 s late, the vehicle swaying (0.5 m/s² at 0.25 Hz on
+    x): the skew alone moves the bin means apart by up to 0.52 m/s², under the 0.75 limit. IMU 1
+    off by 0.1 g from 10 to 50 s: the difference swings between 0.46 and 1.5 m/s², under the limit
+    for at most 3 bins of each 8 s cycle. One report of the disagreement and one of its end."""
+    rng = np.random.default_rng(11)
+    mon = CrossImuMonitor(limits=ValidityLimits(cross_imu_persist_windows=4))
+    reports = []
+    for step in range(240):
+        for imu in (0, 1):
+            t, a, g = static_samples(rng, 250, t0_s=step * 0.25)
+            true_t = t - (0.7 if imu == 1 else 0.0)
+            a[:, 0] += 0.5 * np.sin(2 * np.pi * 0.25 * true_t)
+            if imu == 1:
+                a[(true_t >= 10.0) & (true_t < 50.0), 0] += 0.1 * STANDARD_GRAVITY_MPS2
+            reports += mon.add(imu, t, a, g)
+    per_imu = {imu: [r.consistent for r in reports if r.imu == imu] for imu in (0, 1)}
+    assert per_imu == {0: [False, True], 1: [False, True]}
+
+
+def test_best_clock_offset_is_the_lag_of_the_rotation_both_imus_saw():
+    """A turn rate record (sum of sines, 200 Hz) seen by two IMUs whose clocks differ by 12.3456 s,
+    each with its own bias and noise: the offset found within one sample step (5 ms) of it; at rest
+    (noise only) no offset is told."""
+    rng = np.random.default_rng(12)
+    t = np.arange(0.0, 8.0, 0.005)
+    turn = np.column_stack(
+        [np.sin(2 * np.pi * f * t + p) for f, p in ((0.7, 0.0), (1.3, 1.0), (0.4, 2.0))]
+    )
+    offset = 12.3456
+
+    def seen(rate, bias):
+        return rate + bias + 1e-3 * rng.standard_normal(rate.shape)
+
+    ref = (t, seen(turn, 0.01))
+    measured = (t[:-200] + offset, seen(turn[:-200], -0.02))
+    found = best_clock_offset(measured, ref, lowest_s=offset - 0.3, highest_s=offset + 0.3)
+    assert found == pytest.approx(offset, abs=0.005)
+    rest = (t + offset, seen(np.zeros_like(turn), 0.0))
+    assert (
+        best_clock_offset(
+            rest, (t, seen(np.zeros_like(turn), 0.0)), lowest_s=offset - 0.3, highest_s=offset + 0.3
+        )
+        is None
+    )
+
+
+def test_cross_imu_state_of_version_1_is_resumed_without_clocks():
+    """A checkpoint written before the clock offsets (version 1) resumes: the same bins and streaks,
+    the reference taken afresh."""
+    limits = ValidityLimits(cross_imu_persist_windows=4)
+    items = list(_offset_stream(9))
+    whole = CrossImuMonitor(limits=limits)
+    want = [r for item in items for r in whole.add(*item)]
+    first = CrossImuMonitor(limits=limits)
+    got = [r for item in items[:16] for r in first.add(*item)]
+    v2 = first.state_dict()
+    v1 = {
+        k: v
+        for k, v in v2.items()
+        if k in ("open", "span", "closed", "streak", "flagged", "last_compared")
+    }
+    second = CrossImuMonitor.from_state({**v1, "version": 1}, limits=limits)
+    got += [r for item in items[16:] for r in second.add(*item)]
+    assert got == want

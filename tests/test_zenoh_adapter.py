@@ -427,6 +427,83 @@ def test_matched_mode_acknowledges_when_a_subscriber_is_routed(pair):
         assert got in ([routed], [unrouted, routed])
 
 
+def _answering(session, event_id: bytes, keys):
+    """A hostile peer: queryables on the acknowledgement key answering every query with ``event_id``,
+    one reply per key of ``keys`` each (no receiver, nothing handed to any application)."""
+
+    def answer(query):
+        for key in keys:
+            query.reply(key, event_id)
+
+    return session.declare_queryable("ins/v1/health/ack", answer)
+
+
+def test_min_acks_counts_distinct_receivers_not_replies(pair, router):
+    a, b = pair
+    event = _event(20.0)
+    # One session answers twice on the key asked, and again under two names of its own.
+    keys = [
+        "ins/v1/health/ack",
+        "ins/v1/health/ack",
+        "ins/v1/health/ack/gs-1",
+        "ins/v1/health/ack/gs-2",
+    ]
+    hostile = _answering(b, event.event_id.encode(), keys)
+    with EventPublisher(a, ack_timeout_s=1.0, min_acks=2) as pub:
+        wait_until(lambda: pub.ready("v1"))
+        assert pub.publish(event) is False  # four replies, one receiver
+        got = []
+        with client(router) as c, EventReceiver(c, got.append, vehicles="v1", name="gs-3"):
+            # A second session: two receivers, once the router routes the query to it too.
+            wait_until(lambda: pub.publish(event))
+            assert [e.event_id for e in got] == [event.event_id]
+    hostile.undeclare()
+
+
+def test_ack_from_counts_only_the_named_receivers(pair, router):
+    a, b = pair
+    event = _event(21.0)
+    intruder, station = [], []
+    with (
+        EventReceiver(b, intruder.append, vehicles="v1", name="intruder"),
+        EventPublisher(a, ack_timeout_s=1.0, ack_from=["gs-1"]) as pub,
+    ):
+        wait_until(lambda: pub.ready("v1"))
+        assert pub.publish(event) is False
+        assert pub.refused == 1 and pub.last_refused is not None
+        assert pub.last_refused.receiver == "intruder"
+        assert pub.last_refused.zid == str(b.info.zid())
+        with client(router) as c, EventReceiver(c, station.append, vehicles="v1", name="gs-1"):
+            # Retried until the router routes the query to gs-1 too.
+            wait_until(lambda: pub.publish(event))
+        assert pub.refused >= 2  # the intruder answered every retry too, and was refused again
+    assert [e.event_id for e in station] == [event.event_id]
+
+
+def test_receiver_acknowledges_only_what_its_application_took(pair):
+    """A callback that raises takes nothing: no acknowledgement, and the retry is handed over again."""
+    a, b = pair
+    event, got, fail = _event(22.0), [], [True]
+
+    def take(e):
+        if fail.pop() if fail else False:
+            raise RuntimeError("the application's queue is full")
+        got.append(e)
+
+    with (
+        EventReceiver(b, take, vehicles="v1") as receiver,
+        EventPublisher(a, ack_timeout_s=WAIT_S) as pub,
+    ):
+        wait_until(lambda: pub.ready("v1"))
+        # The put or the query meets the failure, whichever comes first; an acknowledgement
+        # only ever follows the event's handing over.
+        for _ in range(2):
+            if pub.publish(event):
+                assert [e.event_id for e in got] == [event.event_id]
+        assert pub.publish(event) is True
+        assert [e.event_id for e in got] == [event.event_id] and receiver.failed == 1
+
+
 def test_receiver_rejects_and_answers_bad_ack_queries(pair):
     a, b = pair
     with EventReceiver(b, lambda e: None) as receiver, EventPublisher(a) as pub:

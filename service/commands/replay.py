@@ -470,7 +470,14 @@ def replay_log(
         counters = fleet.status(vehicle, service="replay", now_unix_s=0.0).counters
         note("counters " + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())))
     pipes = [p for (v, _), p in sorted(fleet.pipelines.items()) if v == args.vehicle]
-    coverages = [imu_coverage(p, imus_on_vehicle=len(pipes)) for p in pipes]
+    coverages = [
+        imu_coverage(
+            p,
+            imus_on_vehicle=len(pipes),
+            cross_not_running=fleet.cross_not_running(p.vehicle, p.imu),
+        )
+        for p in pipes
+    ]
     untested = untested_lines(coverages) + [
         f"IMU{imu}: the pipeline failed on {frames} frame(s)"
         for (_, imu, _), (frames, _) in sorted(failed.items())

@@ -1,11 +1,13 @@
-"""``ins-health watch [--vehicle V] [--json] [--router ENDPOINT]``: a deployed daemon's events and status, as a ground station sees them.
+"""``ins-health watch [--vehicle V] [--receiver NAME] [--json] [--router ENDPOINT]``: a deployed daemon's events and status, as a ground station sees them.
 
 Connects to the Zenoh router, subscribes to the events and the status of the
 vehicles ``V`` (a vehicle id or a pattern such as ``fleetA-$*``; default all)
 and acknowledges each event the way a ground station does
 (:class:`protocols.zenoh_adapter.EventReceiver`): the daemon counts an event as
 delivered once a receiver acknowledged it and retries it until then, and the
-receiver drops repeats by id, so each event is printed once.
+receiver drops repeats by id, so each event is printed once. With ``--receiver
+NAME`` it acknowledges as that ground station (a daemon's ``[zenoh] ack_from``
+counts only the names it lists).
 
 One line per event: the time it arrived (UTC), vehicle, IMU, severity, its data
 time and its text; with ``--json`` the event as one JSON object per line (the
@@ -55,6 +57,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default="*",
         metavar="V",
         help="a vehicle id or a pattern such as 'fleetA-$*' (default: every vehicle)",
+    )
+    p.add_argument(
+        "--receiver",
+        metavar="NAME",
+        help="acknowledge as this ground station (counted by a daemon whose [zenoh] ack_from names "
+        "it; under the fleet router's access control, the name of this host's certificate); "
+        "default: unnamed",
     )
     p.add_argument("--json", action="store_true", help="one JSON object per line")
     add_router_arguments(p)
@@ -202,7 +211,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         with (
             open_router_session(args) as session,
-            EventReceiver(session, inbox.put, vehicles=args.vehicle) as receiver,
+            EventReceiver(
+                session, inbox.put, vehicles=args.vehicle, name=args.receiver
+            ) as receiver,
         ):
             subs = [
                 subscribe_status(

@@ -30,9 +30,13 @@ FAULT_PREDICATES = frozenset({"F0", *(f"F{j}" for j in range(1, 10)), "stale", "
 """Predicates whose (not recovered) event is a sensor finding: the verdict is then a fault."""
 
 
-def imu_coverage(pipe: ImuPipeline, *, imus_on_vehicle: int | None = None) -> ImuCoverage:
+def imu_coverage(
+    pipe: ImuPipeline, *, imus_on_vehicle: int | None = None, cross_not_running: str | None = None
+) -> ImuCoverage:
     """The coverage of one IMU's pipeline; ``imus_on_vehicle``: IMUs its vehicle streams, for the
-    cross-IMU check (None: left out, a check of the vehicle rather than of this IMU)."""
+    cross-IMU check (None: left out, a check of the vehicle rather than of this IMU);
+    ``cross_not_running``: why the cross-IMU check does not compare this IMU now
+    (:meth:`estimators.stream_validity.CrossImuMonitor.not_compared`)."""
     checks: list[CheckCoverage] = []
     for triad in (Triad.ACCEL, Triad.GYRO):
         check = pipe.checks.get(triad)
@@ -60,7 +64,9 @@ def imu_coverage(pipe: ImuPipeline, *, imus_on_vehicle: int | None = None) -> Im
     )
     if imus_on_vehicle is not None:
         checks.append(
-            CheckCoverage(Check.CROSS_IMU, None, ran=True, samples=pipe.n_samples)
+            CheckCoverage(Check.CROSS_IMU, None, ran=False, reason=cross_not_running)
+            if imus_on_vehicle >= 2 and cross_not_running is not None
+            else CheckCoverage(Check.CROSS_IMU, None, ran=True, samples=pipe.n_samples)
             if imus_on_vehicle >= 2
             else CheckCoverage(
                 Check.CROSS_IMU,

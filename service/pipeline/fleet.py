@@ -3,12 +3,14 @@ status and checkpoints."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Collection, Iterator
 from typing import Any
 
 from estimators.conventions import (
     Triad,
 )
+from estimators.coverage import Check, CheckCoverage
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.passport import Passport, check_references
 from estimators.stream_validity import (
@@ -18,6 +20,8 @@ from estimators.stream_validity import (
 )
 from protocols.events import (
     Event,
+    ImuState,
+    ImuStatus,
     Predicate,
     Status,
     StreamCause,
@@ -445,6 +449,12 @@ class FleetProcessor:
             events += self.pipelines[key].end_of_data()
         return events
 
+    def cross_not_running(self, vehicle: str, imu: int) -> str | None:
+        """Why the vehicle's cross-IMU check does not compare this IMU now (its clock, its lag), or None."""
+        if len(self._by_vehicle.get(vehicle, {})) < 2 or vehicle not in self.cross:
+            return None
+        return self.cross[vehicle].not_compared(imu)
+
     def vehicles(self) -> list[str]:
         return sorted(self.vehicle_counters)
 
@@ -461,9 +471,22 @@ class FleetProcessor:
         counters.update(self.vehicle_counters.get(vehicle, {}))
         counters.update({f"service.{k}": v for k, v in self.service_counters.items()})
         counters.update(extra or {})
-        imus = tuple(p.status() for p in pipes)
+        imus = tuple(self._with_cross(p.status(), vehicle) for p in pipes)
         return Status(
             vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus
+        )
+
+    def _with_cross(self, st: ImuStatus, vehicle: str) -> ImuStatus:
+        """An IMU's status with the cross-IMU check said when it does not run (it is a vehicle's)."""
+        why = self.cross_not_running(vehicle, st.imu)
+        if why is None:
+            return st
+        return dataclasses.replace(
+            st,
+            # A check that applies did not run: not ok (as the pipeline's own checks).
+            state=ImuState.WARNING if st.state is ImuState.OK else st.state,
+            detail="; ".join(d for d in (st.detail, f"cross-IMU not running: {why}") if d),
+            coverage=(*st.coverage, CheckCoverage(Check.CROSS_IMU, None, ran=False, reason=why)),
         )
 
     def state_dicts(self, *, changed_only: bool = False) -> dict[str, dict[str, Any]]:
