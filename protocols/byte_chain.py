@@ -16,6 +16,22 @@ from __future__ import annotations
 
 import numpy as np
 
+STRUCT_TO_NUMPY = {
+    "b": "i1",
+    "B": "u1",
+    "h": "<i2",
+    "H": "<u2",
+    "i": "<i4",
+    "I": "<u4",
+    "q": "<i8",
+    "Q": "<u8",
+    "e": "<f2",
+    "f": "<f4",
+    "d": "<f8",
+}
+"""Python ``struct`` codes (little-endian, packed) as numpy types: the messages' own struct formats
+(pymavlink's ``DFFormat.msg_struct``, a MAVLink message's ``unpacker``) as structured dtypes."""
+
 ROUNDS = 12
 """Rounds of the set iteration before :func:`chain` walks instead (a round costs about as much as
 walking a tenth of the candidates in Python)."""

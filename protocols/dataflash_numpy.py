@@ -34,15 +34,15 @@ from typing import Any
 import numpy as np
 from pymavlink import DFReader
 
-from protocols.byte_chain import chain
+from protocols.byte_chain import STRUCT_TO_NUMPY, chain
 from protocols.logs import (
     _DF_FMT_ID,
     _DF_MAX_INSTANCE,
     _DF_MAX_MESSAGE,
     DATAFLASH_IMU_NAMES,
-    _concat,
     _df_format,
     _fmt_of_fmt,
+    _Sample,
     _StreamCounts,
 )
 from protocols.ulog import ImuRows
@@ -58,20 +58,6 @@ reader's memory stays that of a block."""
 # body does not unpack (BAD: corrupt, resume after the header), an FMT, or the file ends in it.
 _SKIP, _MSG, _BAD, _FMT, _CUT = range(5)
 
-_STRUCT_TO_NUMPY = {
-    "b": "i1",
-    "B": "u1",
-    "h": "<i2",
-    "H": "<u2",
-    "i": "<i4",
-    "I": "<u4",
-    "q": "<i8",
-    "Q": "<u8",
-    "e": "<f2",
-    "f": "<f4",
-    "d": "<f8",
-}
-"""Python struct codes (those of ``DFReader.FORMAT_TO_STRUCT``) as numpy types; a string code is bytes."""
 _INTEGER_CODES = frozenset("bBhHiIqQM")
 """Format characters whose ``DFMessage`` value is an int (the instance field must be one)."""
 _NUMERIC_CODES = _INTEGER_CODES | frozenset("fdgcCeEL")
@@ -109,7 +95,7 @@ class _ImuLayout:
             col = [c for c, k in cols.items() if k == i]
             if col:
                 names.append(col[0])
-                formats.append(_STRUCT_TO_NUMPY.get(s, f"S{struct.calcsize(s)}"))
+                formats.append(STRUCT_TO_NUMPY.get(s, f"S{struct.calcsize(s)}"))
                 offsets.append(at)
             at += struct.calcsize(s)
         dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": at})
@@ -152,7 +138,12 @@ _Part = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 whether their type has a temperature."""
 
 
-class _Blocker:
+def _take(part: _Part, index: np.ndarray | slice) -> _Part:
+    kind, t_s, values, with_temp = part
+    return kind[index], t_s[index], values[index], with_temp[index]
+
+
+class Blocker:
     """Cuts each IMU's samples into blocks of ``flush`` as ``_rows_from_samples`` does with the
     stream's per-message samples: a block when an IMU's ``flush``-th sample comes, named after the
     message types in it, its temperature only when every message of it has one."""
@@ -162,46 +153,84 @@ class _Blocker:
         self.names = names
         self.pending: dict[int, list[_Part]] = {}
 
-    def add(self, seq: np.ndarray, imu: np.ndarray, part: _Part) -> list[tuple[int, ImuRows]]:
+    def add(
+        self, seq: np.ndarray, imu: np.ndarray, part: _Part, barriers: np.ndarray
+    ) -> list[tuple[int, ImuRows]]:
         """Samples in file order (``seq`` their place among the block's messages); the blocks they
-        complete, each with the ``seq`` of the sample that completed it."""
-        out: list[tuple[int, ImuRows]] = []
+        complete, each with the ``seq`` of the sample that completed it. Blocks of an IMU that
+        follow each other with no other block, nor a message at ``barriers`` (seqs, sorted),
+        between them come as one: the reader cuts the same batches from them in the same order (a
+        batch is all or nothing in temperature, so only blocks alike in it and in name join)."""
+        blocks: list[tuple[int, int, str, bool, list[_Part]]] = []
         for u in np.unique(imu).tolist():
             sel = np.flatnonzero(imu == u)
-            mine = tuple(a[sel] for a in part)
+            mine = _take(part, sel)
             waiting = self.pending.setdefault(u, [])
             start = 0
             for end in range(
                 self.flush - sum(w[1].size for w in waiting), sel.size + 1, self.flush
             ):
-                waiting.append(tuple(a[start:end] for a in mine))  # type: ignore[arg-type]
-                out.append((int(seq[sel[end - 1]]), self._rows(u, waiting)))
+                parts = [*waiting, _take(mine, slice(start, end))]
+                kind = parts[0][0] if len(parts) == 1 else np.concatenate([q[0] for q in parts])
+                temp = all(bool(q[3].all()) for q in parts)
+                blocks.append((int(seq[sel[end - 1]]), u, self._name(kind), temp, parts))
                 waiting.clear()
                 start = end
             if start < sel.size:
-                waiting.append(tuple(a[start:] for a in mine))  # type: ignore[arg-type]
+                waiting.append(_take(mine, slice(start, None)))
+        blocks.sort(key=lambda b: b[0])
+        out: list[tuple[int, ImuRows]] = []
+        run: list[_Part] = []
+        for i, (end_seq, u, name, temp, parts) in enumerate(blocks):
+            run += parts
+            nxt = blocks[i + 1] if i + 1 < len(blocks) else None
+            if (
+                nxt is not None
+                and nxt[1:4] == (u, name, temp)
+                and (
+                    not barriers.size
+                    or np.searchsorted(barriers, end_seq) == np.searchsorted(barriers, nxt[0])
+                )
+            ):
+                continue
+            out.append((end_seq, self._rows(u, name, temp, run)))
+            run = []
         return out
 
-    def remainders(self) -> Iterator[ImuRows]:
-        for u in sorted(self.pending):
-            if self.pending[u]:
-                yield self._rows(u, self.pending[u])
-
-    def _rows(self, imu: int, parts: list[_Part]) -> ImuRows:
-        kind, t_s, values, with_temp = (
-            parts[0]
-            if len(parts) == 1
-            else tuple(np.concatenate(a) for a in zip(*parts, strict=True))
-        )
+    def _name(self, kind: np.ndarray) -> str:
+        """A block's name: its message type, or the types in it joined by ``/``."""
         codes = np.unique(kind).tolist() if kind.min() != kind.max() else [int(kind[0])]
-        names = sorted(self.names[k] for k in codes)
+        return "/".join(sorted(self.names[k] for k in codes))
+
+    def pending_samples(self) -> Iterator[_Sample]:
+        """The samples of blocks not complete, as the per-message samples of ``_rows_from_samples``
+        (which then cuts them as it would have: at the end of the log, or where the per-message
+        path takes over), and none left here."""
+        for u in sorted(self.pending):
+            for kind, t_s, values, with_temp in self.pending.pop(u):
+                for k, t, v, w in zip(
+                    kind.tolist(), t_s.tolist(), values.tolist(), with_temp.tolist(), strict=True
+                ):
+                    yield (
+                        self.names[k],
+                        u,
+                        t,
+                        (v[0], v[1], v[2]),
+                        (v[3], v[4], v[5]),
+                        v[6] if w else None,
+                    )
+
+    @staticmethod
+    def _rows(imu: int, name: str, temp: bool, parts: list[_Part]) -> ImuRows:
+        t_s = parts[0][1] if len(parts) == 1 else np.concatenate([q[1] for q in parts])
+        values = parts[0][2] if len(parts) == 1 else np.concatenate([q[2] for q in parts])
         return ImuRows(
-            names[0] if len(names) == 1 else "/".join(names),
+            name,
             imu,
             t_s,
             values[:, 0:3],
             values[:, 3:6],
-            values[:, 6] if with_temp.all() else None,
+            values[:, 6] if temp else None,
             np.zeros(t_s.size, dtype=bool),
         )
 
@@ -211,7 +240,7 @@ class DataFlashScan(_StreamCounts):
 
     Yields pymavlink ``DFMessage`` values, as :class:`protocols.logs.DataFlashStream` does, except
     for the IMU messages it decodes itself: those come as :class:`~protocols.ulog.ImuRows` blocks of
-    ``flush`` samples of an IMU where the last sample of the block was; :meth:`remainders` gives
+    ``flush`` samples of an IMU where the last sample of the block was; :meth:`pending_samples` gives
     the rest after the iteration. Counts as the stream's: ``held``, :attr:`corrupt`,
     :attr:`skipped_bytes`, :attr:`cut_at_byte`; :attr:`offset` the bytes read so far.
     """
@@ -221,10 +250,10 @@ class DataFlashScan(_StreamCounts):
     ) -> None:
         super().__init__(path, wanted, held)
         self._names: list[str] = []
-        self._blocker = _Blocker(flush, self._names)
+        self._blocker = Blocker(flush, self._names)
 
-    def remainders(self) -> Iterator[ImuRows]:
-        return self._blocker.remainders()
+    def pending_samples(self) -> Iterator[_Sample]:
+        return self._blocker.pending_samples()
 
     def __iter__(self) -> Iterator[Any]:
         formats = {_DF_FMT_ID: _fmt_of_fmt()}
@@ -370,6 +399,7 @@ class DataFlashScan(_StreamCounts):
             order = np.argsort(seq, kind="stable")
             kind = np.concatenate([np.full(f[0].size, f[5]) for f in fast])
             with_temp = np.concatenate([np.full(f[0].size, f[4]) for f in fast])
+            barriers = np.array(sorted(k for k, _ in items), dtype=np.int64)
             blocks = self._blocker.add(
                 seq[order],
                 np.concatenate([f[1] for f in fast])[order],
@@ -379,30 +409,8 @@ class DataFlashScan(_StreamCounts):
                     np.concatenate([f[3] for f in fast])[order],
                     with_temp[order],
                 ),
+                barriers,
             )
             items.extend(blocks)
         items.sort(key=lambda item: item[0])
-        return _merged([item for _, item in items])
-
-
-def _merged(items: list[Any]) -> list[Any]:
-    """Blocks of one IMU that follow each other with nothing between them, as one block: the reader
-    cuts the same batches from them, in the same order (a batch is all or nothing in temperature, so
-    only blocks alike in it and in their name are joined)."""
-    out: list[Any] = []
-    run: list[ImuRows] = []
-    for item in [*items, None]:
-        if (
-            run
-            and isinstance(item, ImuRows)
-            and (item.imu, item.kind, item.temp_c is None)
-            == (run[0].imu, run[0].kind, run[0].temp_c is None)
-        ):
-            run.append(item)
-            continue
-        if run:
-            out.append(_concat(run))
-        run = [item] if isinstance(item, ImuRows) else []
-        if item is not None and not run:
-            out.append(item)
-    return out
+        return [item for _, item in items]

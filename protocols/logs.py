@@ -109,8 +109,8 @@ _DF_MAX_INSTANCE = 256
 _MESSAGE_NAME = re.compile(r"[A-Za-z0-9_.]+")
 """A message type or topic name a log can hold; another "name" is the first field of a damaged line or record."""
 NUMPY_DECODING = True
-"""Binary DataFlash IMU messages decoded with numpy (:mod:`protocols.dataflash_numpy`); False:
-pymavlink's ``DFMessage`` for every message (the tests' oracle)."""
+"""Binary DataFlash and tlog IMU messages decoded with numpy (:mod:`protocols.dataflash_numpy`,
+:mod:`protocols.tlog_numpy`); False: pymavlink's decoding of every message (the tests' oracle)."""
 _HOLDS_SHOWN = 40
 """Message types listed in :meth:`LogStats.holds`: a damaged text log makes a "type" of every garbled line."""
 
@@ -431,10 +431,32 @@ class LogReader:
         return batch
 
     def _tlog_samples(self) -> Iterator[_Sample | ImuRows]:
+        size = max(os.path.getsize(self.path), 1)
+        start = 0
+        if NUMPY_DECODING:
+            # Imported here: the numpy decoder builds on this module's definitions.
+            from protocols.tlog_numpy import TlogScan
+
+            scan = TlogScan(
+                self.path,
+                held=self.stats.held,
+                dropped=self.stats.dropped,
+                flush=min(self._batch, _FLUSH_MESSAGES),
+                raw_scale=self._raw_scale,
+                imu_index=self._imu_index,
+            )
+            self._fraction = lambda: scan.offset / size
+            yield from scan
+            yield from scan.pending_samples()
+            if scan.stopped_at is None:
+                return
+            start = scan.stopped_at
         # mavlogfile reads sequentially (flat memory) and, unlike mavutil.mavlink_connection's
         # mmap reader, parses nothing before use_mavlink2 has given it its own MAVLink 2 parser.
         conn = use_mavlink2(mavutil.mavlogfile(str(self.path), notimestamps=False))
-        size = max(os.path.getsize(self.path), 1)
+        conn.f.seek(
+            start
+        )  # where the numpy decoder stopped: a record's start, as after a good message
         self._fraction = lambda: conn.f.tell() / size
         types = {m.value for m in ImuMessage}
         stats = self.stats
@@ -509,7 +531,7 @@ class LogReader:
         for inst in sorted({i for i, _ in raw}):
             yield from _pair_raw(raw, pairs, inst, suffix[inst])
         if isinstance(stream, DataFlashScan):
-            yield from stream.remainders()
+            yield from stream.pending_samples()
         self.stats._drop("corrupt_messages", corrupt + stream.corrupt)
         self.stats.skipped_bytes += stream.skipped_bytes
         self.stats.cut_at_byte = stream.cut_at_byte
