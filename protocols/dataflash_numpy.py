@@ -78,7 +78,8 @@ class _ImuLayout:
     def of(cls, fmt: Any) -> _ImuLayout | None:
         """The layout, or None where the numpy path does not apply (the stream decodes those):
         a needed field missing (every message corrupt) or not a plain number (``_imu_sample``'s
-        conversions of text or arrays), or a body size the struct does not have."""
+        conversions of text or arrays). (A body size the struct does not have never gets here:
+        those messages are corrupt, :meth:`DataFlashScan._tables`.)"""
         cols: dict[str, int] = fmt.colhash
         time_field = "TimeUS" if "TimeUS" in cols else "TimeMS"
         needed = [time_field] + [f"{p}{a}" for p in ("Acc", "Gyr") for a in "XYZ"]
@@ -86,8 +87,6 @@ class _ImuLayout:
         if any(c not in cols or fmt.msg_fmts[cols[c]] not in _NUMERIC_CODES for c in needed):
             return None
         if "I" in cols and fmt.msg_fmts[cols["I"]] not in _INTEGER_CODES:
-            return None
-        if struct.calcsize(fmt.msg_struct) != fmt.len - 3:
             return None
         names, formats, offsets, at = [], [], [], 0
         for i, code in enumerate(fmt.msg_fmts):
@@ -105,9 +104,8 @@ class _ImuLayout:
     def value(self, rec: np.ndarray, column: str) -> np.ndarray:
         """A column as ``float(DFMessage.<column>)``: pymavlink's value type, its multiplier, float."""
         i = self.fmt.colhash[column]
-        v = rec[column].astype(
-            np.float64
-        )  # float(int) and float(float) alike: exact, or rounded once
+        # float(int) and float(float) alike: exact, or rounded once to nearest
+        v = rec[column].astype(np.float64)
         mult = self.fmt.msg_mults[i]
         if mult is not None:
             # pymavlink divides by 1/mult below 1 (a more accurate result than multiplying)
