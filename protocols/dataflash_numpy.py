@@ -78,8 +78,8 @@ class _ImuLayout:
     def of(cls, fmt: Any) -> _ImuLayout | None:
         """The layout, or None where the numpy path does not apply (the stream decodes those):
         a needed field missing (every message corrupt) or not a plain number (``_imu_sample``'s
-        conversions of text or arrays). (A body size the struct does not have never gets here:
-        those messages are corrupt, :meth:`DataFlashScan._tables`.)"""
+        conversions of text or arrays). (A type whose body size the struct does not have has
+        only corrupt messages, :meth:`DataFlashScan._tables`: none to decode.)"""
         cols: dict[str, int] = fmt.colhash
         time_field = "TimeUS" if "TimeUS" in cols else "TimeMS"
         needed = [time_field] + [f"{p}{a}" for p in ("Acc", "Gyr") for a in "XYZ"]
@@ -375,6 +375,8 @@ class DataFlashScan(_StreamCounts):
             if fmt.name not in self.wanted:
                 continue
             seq = np.flatnonzero((type_id == t) & (action == _MSG))
+            if not seq.size:  # all of them corrupt (a body size the format does not have)
+                continue
             layout = _ImuLayout.of(fmt) if fmt.name in DATAFLASH_IMU_NAMES else None
             if layout is None:
                 unpack = struct.Struct(fmt.msg_struct).unpack
