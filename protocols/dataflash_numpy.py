@@ -164,14 +164,21 @@ class Blocker:
             sel = np.flatnonzero(imu == u)
             mine = _take(part, sel)
             waiting = self.pending.setdefault(u, [])
+            # One type, and temperature all or nothing, here (the usual case): every block of
+            # these samples alone has the same name and temperature, found once.
+            alike = mine[0].min() == mine[0].max() and mine[3].min() == mine[3].max()
+            alike_name, alike_temp = self._name(mine[0][:1]), bool(mine[3][0])
             start = 0
             for end in range(
                 self.flush - sum(w[1].size for w in waiting), sel.size + 1, self.flush
             ):
                 parts = [*waiting, _take(mine, slice(start, end))]
-                kind = parts[0][0] if len(parts) == 1 else np.concatenate([q[0] for q in parts])
-                temp = all(bool(q[3].all()) for q in parts)
-                blocks.append((int(seq[sel[end - 1]]), u, self._name(kind), temp, parts))
+                if alike and len(parts) == 1:
+                    name, temp = alike_name, alike_temp
+                else:
+                    kind = np.concatenate([q[0] for q in parts])
+                    name, temp = self._name(kind), all(bool(q[3].all()) for q in parts)
+                blocks.append((int(seq[sel[end - 1]]), u, name, temp, parts))
                 waiting.clear()
                 start = end
             if start < sel.size:
