@@ -111,6 +111,9 @@ _DF_MAX_INSTANCE = 256
 """Instance numbers (``I``, ``VIBE``'s ``IMU``) are a uint8 in ArduPilot's formats; another value is a corrupt message."""
 _MESSAGE_NAME = re.compile(r"[A-Za-z0-9_.]+")
 """A message type or topic name a log can hold; another "name" is the first field of a damaged line or record."""
+NUMPY_DECODING = True
+"""Binary DataFlash and tlog IMU messages decoded with numpy (:mod:`protocols.dataflash_numpy`,
+:mod:`protocols.tlog_numpy`); False: pymavlink's decoding of every message (the tests' oracle)."""
 _HOLDS_SHOWN = 40
 """Message types listed in :meth:`LogStats.holds`: a damaged text log makes a "type" of every garbled line."""
 
@@ -451,10 +454,32 @@ class LogReader:
         return batch
 
     def _tlog_samples(self) -> Iterator[_Sample | ImuRows]:
+        size = max(os.path.getsize(self.path), 1)
+        start = 0
+        if NUMPY_DECODING:
+            # Imported here: the numpy decoder builds on this module's definitions.
+            from protocols.tlog_numpy import TlogScan
+
+            scan = TlogScan(
+                self.path,
+                held=self.stats.held,
+                dropped=self.stats.dropped,
+                flush=min(self._batch, _FLUSH_MESSAGES),
+                raw_scale=self._raw_scale,
+                imu_index=self._imu_index,
+            )
+            self._fraction = lambda: scan.offset / size
+            yield from scan
+            yield from scan.pending_samples()
+            if scan.stopped_at is None:
+                return
+            start = scan.stopped_at
         # mavlogfile reads sequentially (flat memory) and, unlike mavutil.mavlink_connection's
         # mmap reader, parses nothing before use_mavlink2 has given it its own MAVLink 2 parser.
         conn = use_mavlink2(mavutil.mavlogfile(str(self.path), notimestamps=False))
-        size = max(os.path.getsize(self.path), 1)
+        conn.f.seek(
+            start
+        )  # where the numpy decoder stopped: a record's start, as after a good message
         self._fraction = lambda: conn.f.tell() / size
         types = {m.value for m in ImuMessage}
         stats = self.stats
@@ -481,12 +506,17 @@ class LogReader:
             conn.close()
 
     def _dataflash_samples(self) -> Iterator[_Sample | ImuRows]:
-        stream = DataFlashStream(
-            self.path,
-            binary=self.format is LogFormat.DATAFLASH_BIN,
-            wanted=frozenset([*DATAFLASH_IMU_NAMES, *DATAFLASH_RAW_NAMES, "VIBE", "DSF"]),
-            held=self.stats.held,
-        )
+        # Imported here: the numpy decoder builds on this module's definitions (formats, limits).
+        from protocols.dataflash_numpy import DataFlashScan
+
+        wanted = frozenset([*DATAFLASH_IMU_NAMES, *DATAFLASH_RAW_NAMES, "VIBE", "DSF"])
+        stream: DataFlashStream | DataFlashScan
+        if self.format is LogFormat.DATAFLASH_BIN and NUMPY_DECODING:
+            flush = min(self._batch, _FLUSH_MESSAGES)
+            stream = DataFlashScan(self.path, wanted=wanted, held=self.stats.held, flush=flush)
+        else:
+            binary = self.format is LogFormat.DATAFLASH_BIN
+            stream = DataFlashStream(self.path, binary=binary, wanted=wanted, held=self.stats.held)
         size = max(os.path.getsize(self.path), 1)
         self._fraction = lambda: stream.offset / size
         clip: dict[int, list[float]] = {}
@@ -496,6 +526,9 @@ class LogReader:
         suffix: dict[int, str] = {}  # per instance: "" (ACC/GYR) or its number (ACC1/GYR1 ...)
         corrupt = 0
         for msg in stream:
+            if isinstance(msg, ImuRows):  # IMU messages DataFlashScan decoded
+                yield msg
+                continue
             name = msg.get_type()
             fields = msg.get_fieldnames()
             try:
@@ -520,6 +553,8 @@ class LogReader:
                 yield from _pair_raw(raw, pairs, inst, suffix[inst])
         for inst in sorted({i for i, _ in raw}):
             yield from _pair_raw(raw, pairs, inst, suffix[inst])
+        if isinstance(stream, DataFlashScan):
+            yield from stream.pending_samples()
         self.stats._drop("corrupt_messages", corrupt + stream.corrupt)
         self.stats.skipped_bytes += stream.skipped_bytes
         self.stats.cut_at_byte = stream.cut_at_byte
@@ -613,7 +648,20 @@ def _fmt_of_fmt() -> Any:
     return DFReader.DFFormat(f.type_id, f.name, f.length, f.fmt, ",".join(f.columns))
 
 
-class DataFlashStream:
+class _StreamCounts:
+    """What a DataFlash reader read so far: :class:`DataFlashStream`'s attributes."""
+
+    def __init__(self, path: Path, wanted: frozenset[str], held: dict[str, int]) -> None:
+        self.path = path
+        self.wanted = wanted
+        self.held = held
+        self.offset = 0
+        self.corrupt = 0
+        self.skipped_bytes = 0
+        self.cut_at_byte: int | None = None
+
+
+class DataFlashStream(_StreamCounts):
     """The messages of a DataFlash log (binary or text) in file order, read as a stream.
 
     pymavlink's ``DFReader_binary`` and ``DFReader_text`` index a whole log when they open it (an
@@ -644,14 +692,8 @@ class DataFlashStream:
     def __init__(
         self, path: Path, *, binary: bool, wanted: frozenset[str], held: dict[str, int]
     ) -> None:
-        self.path = path
+        _StreamCounts.__init__(self, path, wanted, held)
         self.binary = binary
-        self.wanted = wanted
-        self.held = held
-        self.offset = 0
-        self.corrupt = 0
-        self.skipped_bytes = 0
-        self.cut_at_byte: int | None = None
 
     def __iter__(self) -> Iterator[Any]:
         return self._binary() if self.binary else self._text()

@@ -650,12 +650,16 @@ class LinkCounters:
 # Fields of each IMU message in the order ImuBatcher reads them: time, accel xyz, gyro xyz, temperature,
 # then the HIGHRES_IMU validity bits and the instance id of the messages that carry one.
 _COMMON_FIELDS = ("xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro", "temperature")
+FIELD_NAMES: Mapping[ImuMessage, tuple[str, ...]] = {
+    ImuMessage.RAW_IMU: ("time_usec", *_COMMON_FIELDS, "id"),
+    ImuMessage.SCALED_IMU: ("time_boot_ms", *_COMMON_FIELDS),
+    ImuMessage.SCALED_IMU2: ("time_boot_ms", *_COMMON_FIELDS),
+    ImuMessage.SCALED_IMU3: ("time_boot_ms", *_COMMON_FIELDS),
+    ImuMessage.HIGHRES_IMU: ("time_usec", *_COMMON_FIELDS, "fields_updated", "id"),
+}
+"""The fields of each IMU message :func:`imu_fields_si` takes, in its columns' order."""
 _FIELDS: Mapping[ImuMessage, Callable[[MavlinkMessage], tuple[float, ...]]] = {
-    ImuMessage.RAW_IMU: attrgetter("time_usec", *_COMMON_FIELDS, "id"),
-    ImuMessage.SCALED_IMU: attrgetter("time_boot_ms", *_COMMON_FIELDS),
-    ImuMessage.SCALED_IMU2: attrgetter("time_boot_ms", *_COMMON_FIELDS),
-    ImuMessage.SCALED_IMU3: attrgetter("time_boot_ms", *_COMMON_FIELDS),
-    ImuMessage.HIGHRES_IMU: attrgetter("time_usec", *_COMMON_FIELDS, "fields_updated", "id"),
+    kind: attrgetter(*names) for kind, names in FIELD_NAMES.items()
 }
 
 
@@ -767,6 +771,47 @@ class ImuBatcher:
         return [b for kind, a in self.take_fields() for b in self.converter.batches(kind, a)]
 
 
+@dataclass(frozen=True)
+class ImuFieldsSI:
+    """One message type's messages in SI (:func:`imu_fields_si`), the HIGHRES_IMU ones without all
+    six triad fields updated left out (``kept`` says which rows stay, ``not_updated`` counts the
+    others); ``ids`` the ``id`` field of the types that have one (the IMU is the message's base
+    index plus it), else None."""
+
+    kept: np.ndarray
+    not_updated: int
+    t_s: np.ndarray
+    accel_mps2: np.ndarray
+    gyro_rps: np.ndarray
+    temp_c: np.ndarray
+    has_temp: np.ndarray
+    ids: np.ndarray | None
+
+
+def imu_fields_si(kind: ImuMessage, a: np.ndarray, raw_scale: ImuScale) -> ImuFieldsSI:
+    """The fields of ``kind`` messages (float64, a row per message, columns :data:`FIELD_NAMES`) in SI,
+    with the units of :func:`decode_imu_message` and its floating-point operations (the same values
+    to the bit)."""
+    kept = np.ones(a.shape[0], dtype=bool)
+    if kind is ImuMessage.HIGHRES_IMU:
+        kept = np.asarray(_triads_updated(a[:, 8].astype(np.int64)), dtype=bool)
+        if not kept.all():
+            a = a[kept]
+        t_s, acc, gyr = a[:, 0] * 1e-6, a[:, 1:4], a[:, 4:7]
+        has_temp = (a[:, 8].astype(np.int64) & _HIGHRES_TEMPERATURE_BIT) != 0
+        temp = a[:, 7]
+    else:
+        scale = raw_scale if kind is ImuMessage.RAW_IMU else MILLI_UNITS
+        t_s = a[:, 0] * (1e-6 if kind is ImuMessage.RAW_IMU else 1e-3)
+        acc = a[:, 1:4] * scale.accel_mps2_per_lsb
+        gyr = a[:, 4:7] * scale.gyro_rps_per_lsb
+        # 0 is "no temperature" (decode_imu_message).
+        has_temp = a[:, 7] != 0
+        temp = a[:, 7] * scale.temp_c_per_lsb
+    ids = a[:, -1].astype(np.int64) if kind in _WITH_ID else None
+    return ImuFieldsSI(kept, int((~kept).sum()), t_s, acc, gyr, temp, has_temp, ids)
+
+
 class ImuConverter:
     """The fields of one message type's messages (:meth:`ImuBatcher.take_fields`) as one
     :class:`~protocols.frames.SampleBatch` per IMU (no I/O).
@@ -785,25 +830,14 @@ class ImuConverter:
 
     def batches(self, kind: ImuMessage, a: np.ndarray) -> list[SampleBatch]:
         base = self.settings.imu_index[kind]
-        if kind is ImuMessage.HIGHRES_IMU:
-            updated = _triads_updated(a[:, 8].astype(np.int64))
-            if not updated.all():
-                self.counters.reject(LinkRejection.FIELDS_NOT_UPDATED, int((~updated).sum()))
-                a = a[updated]
-                if not a.shape[0]:
-                    return []
-            t_s, acc, gyr = a[:, 0] * 1e-6, a[:, 1:4], a[:, 4:7]
-            has_temp = (a[:, 8].astype(np.int64) & _HIGHRES_TEMPERATURE_BIT) != 0
-            temp = a[:, 7]
-        else:
-            scale = self.settings.raw_scale if kind is ImuMessage.RAW_IMU else MILLI_UNITS
-            t_s = a[:, 0] * (1e-6 if kind is ImuMessage.RAW_IMU else 1e-3)
-            acc = a[:, 1:4] * scale.accel_mps2_per_lsb
-            gyr = a[:, 4:7] * scale.gyro_rps_per_lsb
-            # 0 is "no temperature" (decode_imu_message).
-            has_temp = a[:, 7] != 0
-            temp = a[:, 7] * scale.temp_c_per_lsb
-        ids = a[:, -1].astype(np.int64) if kind in _WITH_ID else None
+        si = imu_fields_si(kind, a, self.settings.raw_scale)
+        if si.not_updated:
+            self.counters.reject(LinkRejection.FIELDS_NOT_UPDATED, si.not_updated)
+            if not si.t_s.size:
+                return []
+        t_s, acc, gyr, temp, has_temp, ids = (
+            si.t_s, si.accel_mps2, si.gyro_rps, si.temp_c, si.has_temp, si.ids
+        )  # fmt: skip
         parts: list[tuple[int, slice | np.ndarray]] = [(base, slice(None))]
         if ids is not None and ids.any():
             first = np.unique(ids, return_index=True)[1]
