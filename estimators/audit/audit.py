@@ -52,10 +52,14 @@ from estimators.sim import (
     Bias,
     BiasDrift,
     BiasInstability,
+    BiasStep,
+    Clipping,
     ColouredNoise,
+    CrossAxisNonlinearity,
     ErrorModel,
     GSensitivity,
     NonOrthogonality,
+    NonOrthogonalityChange,
     NonstaticPositions,
     Quantization,
     RecordedTemperature,
@@ -64,6 +68,7 @@ from estimators.sim import (
     ScaleNonlinearity,
     SessionSpec,
     TemperatureBias,
+    TemperatureHysteresis,
     TemperatureScale,
     TriadErrorModel,
     WhiteNoise,
@@ -75,13 +80,16 @@ from estimators.sim import (
 from .candidates import (
     FAMILY_ALPHA,
     Candidate,
+    ResidualStructure,
     VarianceData,
     accel_records,
+    clipping_candidates,
     count_tests,
     disturbed_positions,
     earth_rate_records,
     gyro_records,
     mean_variance_factor,
+    residual_structure,
     temperature_reason,
     variance_candidates,
     variance_effects,
@@ -624,6 +632,8 @@ class AuditResult:
     left_out: tuple[int, ...] = ()
     left_out_reason: str = ""
     grade_paths: dict[Triad, dict[str, str | float]] = field(default_factory=dict)
+    # Per triad on a scalar path: its residual's structure between and inside positions.
+    structure: list[ResidualStructure] = field(default_factory=list)
 
     @property
     def named(self) -> list[Candidate]:
@@ -652,6 +662,7 @@ class AuditResult:
             "replicas": self.replicas,
             "baseline": block(self.baseline_cmp, self.baseline),
             "candidates": [c.to_dict() for c in self.candidates],
+            "structured_residual": [st.to_dict() for st in self.structure],
             "named_causes": [
                 {
                     "effect": c.effect,
@@ -841,6 +852,15 @@ def find_candidates(
         )
     n_typical = float(np.median(tab_a.n_samples))
     cands += [quantization_candidate(t, baselines[t], n_typical) for t in triads]
+    for t in triads:
+        cands += clipping_candidates(
+            t,
+            triad_samples(session, t),
+            tab_a.spans,
+            baselines[t].white_sd_si,
+            baselines[t].quant_step_si,
+            n_tests,
+        )
     return cands
 
 
@@ -949,7 +969,7 @@ def run_audit(
     temp_reason = temperature_reason(tab_a)
     if temp_reason is not None:
         res.statements.append(
-            f"temperature effects (temperature_bias, temperature_scale) are {temp_reason}"
+            f"temperature effects (temperature_bias, temperature_scale, temperature_hysteresis) are {temp_reason}"
         )
     if chain.triads[Triad.ACCEL].estimate.params is None:
         res.statements.append(
@@ -986,7 +1006,13 @@ def run_audit(
     ]
 
     res.candidates = find_candidates(session, chain, res.baseline)
-    ext_model, res.extended_model = extend_model(model, res.baseline, res.candidates, tab_a, g)
+    res.structure = structure_of(session, chain, res.baseline)
+    res.statements += [structure_statement(st, res.named) for st in res.structure if st.structured]
+    hold, turns = simulated_timing(chain)
+    turn_mid_s = simulated_hold_starts_s(hold, turns)[1:] - 0.5 * turns
+    ext_model, res.extended_model = extend_model(
+        model, res.baseline, res.candidates, tab_a, g, turn_mid_s
+    )
     res.extension = [
         {"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params}
         for c in res.named
@@ -1001,7 +1027,6 @@ def run_audit(
             )
             for t in triads
         }
-        hold, turns = simulated_timing(chain)
         start = simulated_hold_starts_s(hold, turns)
         left_out_s = np.column_stack([start, start + hold])[list(res.left_out)]
         ext_reps, res.replica_curves["extended"] = replica_statistics(
@@ -1028,6 +1053,44 @@ def run_audit(
     return res
 
 
+def structure_of(
+    session: ImuSession, chain: ChainResult, baselines: dict[Triad, TriadBaseline]
+) -> list[ResidualStructure]:
+    """:func:`estimators.audit.candidates.residual_structure` of every triad on a scalar path (the
+    accelerometers; a gyro that resolves the Earth rate), on the candidates' tables."""
+    out = []
+    tab_a = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
+    gyro = baselines.get(Triad.GYRO)
+    n_tests = count_tests(
+        gyro is not None,
+        temperature_reason(tab_a) is None,
+        gyro is not None and gyro.scalar_resolved,
+    )
+    for t, b in baselines.items():
+        if not b.scalar_resolved:
+            continue
+        tab = tab_a if t is Triad.ACCEL else candidate_table(chain, session, t, b)
+        r, sd, jac, _ = scalar_residuals(b.params, tab)
+        out.append(residual_structure(t, tab, jac, r, sd, n_tests))
+    return out
+
+
+def structure_statement(st: ResidualStructure, named: list[Candidate]) -> str:
+    """What the audit made of a structured residual: the deterministic effects named on its triad, or that none was."""
+    own = [c for c in named if c.triad is st.triad and c.effect not in ("quantization",)]
+    det = [c for c in own if c.effect not in ("bias_instability", "nonstatic_positions")]
+    if det:
+        return f"{st.sentence}; explained by {', '.join(f'{c.effect} ({c.axis or st.triad.value})' for c in det)}"
+    wander = [c for c in own if c.effect == "bias_instability"]
+    if wander:
+        return (
+            f"{st.sentence}; no listed deterministic candidate passed, and the {', '.join(c.axis or '' for c in wander)} "
+            "bias_instability named rests on scatter between positions: a deterministic effect the audit does not "
+            "list would leave the same"
+        )
+    return f"{st.sentence}; no listed candidate passed its threshold"
+
+
 def left_out_positions(cands: list[Candidate]) -> tuple[tuple[int, ...], str]:
     """The positions the extended model does not describe inside, and why: those ``nonstatic_positions`` names
     as moved by hand (the simulator moves every position or none, so no replica moves them).
@@ -1052,20 +1115,35 @@ def extend_model(
     cands: list[Candidate],
     tab_a: PositionTable,
     g: float,
+    turn_mid_s: FloatArray | None = None,
 ) -> tuple[ErrorModel, dict[Triad, TriadBaseline]]:
     """The simulator's error model with every selected effect at its fitted parameters, and the surviving noise per triad.
 
     Physical units of the simulator (:mod:`estimators.sim.errors`) from the
     candidates' normalized fits: a bias instability becomes a Gauss–Markov bias
     per axis, moving the other axes it loads too; temperature polynomials refer to the session's mean temperature.
+    A change between positions (bias step, non-orthogonality change) happens in the middle of the
+    simulated turn before its position, ``turn_mid_s`` (P − 1,) (the measured turn's without it); the
+    cross-axis term, whose axis the norm does not tell, is shared equally by the three axes; a rail
+    is a symmetric clip.
     """
     ext = model
     base = dict(baseline)
     drift = {t: np.zeros(3) for t in Triad}
     temp_bias = {t: np.zeros(3) for t in Triad}
     temp_scale = {t: np.zeros(3) for t in Triad}
-    k2, k3 = np.zeros(3), np.zeros(3)
+    k2, k3, kc = np.zeros(3), np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
+    step, t_step = np.zeros(3), np.zeros(3)
+    hysteresis = np.zeros(3)
+    cosine_change, t_cosine = np.zeros(3), 0.0
+    rails = {t: np.full(3, np.inf) for t in Triad}
+
+    def change_time(c: Candidate) -> float:
+        if turn_mid_s is None:
+            return float(c.params["t_change_s"])
+        return float(turn_mid_s[c.params["after_position"] - 1])
+
     excess = {t: np.zeros(3) for t in Triad}
     gm_sigma = {t: np.zeros(3) for t in Triad}
     gm_tau = {t: np.ones(3) for t in Triad}
@@ -1099,6 +1177,17 @@ def extend_model(
             k2[i], k3[i] = c.params["k2_norm"] / g, c.params["k3_norm"] / g**2
         elif c.effect == "g_sensitivity":
             gsens[i] = [c.params[f"g{a}_rps_per_mps2"] for a in AXES]
+        elif c.effect == "cross_axis_nonlinearity":
+            kc[:] = c.params["kc_norm"] / g / 3.0
+        elif c.effect == "bias_step":
+            step[i], t_step[i] = c.params["step_norm"] * g, change_time(c)
+        elif c.effect == "nonorthogonality_change":
+            cosine_change = np.array([c.params[f"d_{p}_change"] for p in ("xy", "xz", "yz")])
+            t_cosine = change_time(c)
+        elif c.effect == "temperature_hysteresis":
+            hysteresis[i] = c.params["offset_norm"] * g
+        elif c.effect == "clipping":
+            rails[c.triad][i] = abs(c.params["rail_si"])
         elif c.effect == "nonstatic_positions" and c.params["angle_rms_rad"] > 0:
             # Disturbed single positions are not simulated: the simulator moves every position or none.
             ext = ext.with_effect(
@@ -1129,8 +1218,18 @@ def extend_model(
             ext = ext.with_effect(TemperatureBias(temp_bias[t][:, None], t_ref_c=t_ref), t)
         if np.any(temp_scale[t]):
             ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
+        if np.any(np.isfinite(rails[t])):
+            ext = ext.with_effect(Clipping(rails[t]), t)
     if np.any(k2) or np.any(k3):
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
+    if np.any(kc):
+        ext = ext.with_effect(CrossAxisNonlinearity(kc), Triad.ACCEL)
+    if np.any(step):
+        ext = ext.with_effect(BiasStep(t_step, step), Triad.ACCEL)
+    if np.any(cosine_change):
+        ext = ext.with_effect(NonOrthogonalityChange(t_cosine, cosine_change), Triad.ACCEL)
+    if np.any(hysteresis):
+        ext = ext.with_effect(TemperatureHysteresis(hysteresis), Triad.ACCEL)
     if np.any(gsens):
         ext = ext.with_effect(GSensitivity(gsens), Triad.GYRO)
     return ext, base

@@ -33,6 +33,15 @@ effect-free session of the same seed (what the data can resolve):
   its step: every size resolves; beyond ~30 a static output freezes on one
   count, which the chain refuses).
 
+The deterministic classes of issue 31 (:data:`MECHANISM_KINDS`), each named as its mechanism:
+
+* ``cross_axis_nonlinearity`` (``y_i += Kc y_j y_k``), ``temperature_hysteresis`` (``±h`` heating
+  and cooling): the standard error of the candidate's coefficient, as for the mean effects;
+* ``bias_step`` (one axis) and ``nonorthogonality_change`` (one cosine: x→xy, y→xz, z→yz; named
+  for the triad): in the turn before a position drawn from the seed among the middle half, the
+  standard error of the step at that break (:func:`change_se`);
+* ``clipping``: symmetric rails on the axis, ``size`` static samples beyond them (held on one).
+
 A hidden ``quantization`` is named by the baseline (it is part of it): a trial
 counts it named when the baseline found a grid on that triad.
 """
@@ -54,12 +63,16 @@ from estimators.sim import (
     Bias,
     BiasDrift,
     BiasInstability,
+    BiasStep,
+    Clipping,
+    CrossAxisNonlinearity,
     CycleTemperature,
     Effect,
     ErrorModel,
     Grade,
     GSensitivity,
     NonOrthogonality,
+    NonOrthogonalityChange,
     NonstaticPositions,
     Quantization,
     Rounding,
@@ -67,6 +80,7 @@ from estimators.sim import (
     ScaleNonlinearity,
     SessionSpec,
     TemperatureBias,
+    TemperatureHysteresis,
     TemperatureScale,
     TriadErrorModel,
     WhiteNoise,
@@ -115,6 +129,15 @@ HIDDEN_KINDS: tuple[tuple[str, Triad], ...] = (
 )
 """What a trial can hide: (effect, triad). Temperature effects need the temperature cycle; gyro scale effects need a known rate."""
 
+MECHANISM_KINDS: tuple[tuple[str, Triad], ...] = (
+    ("cross_axis_nonlinearity", Triad.ACCEL),
+    ("bias_step", Triad.ACCEL),
+    ("nonorthogonality_change", Triad.ACCEL),
+    ("temperature_hysteresis", Triad.ACCEL),
+    ("clipping", Triad.ACCEL),
+)
+"""The deterministic classes of issue 31: wander was named for them before they were candidates."""
+
 TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
     ("temperature_bias", Triad.ACCEL),
     ("temperature_scale", Triad.ACCEL),
@@ -124,20 +147,26 @@ TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
 
 
 def kinds_of(grade: Grade) -> tuple[tuple[str, Triad], ...]:
-    """Every kind a trial of ``grade`` can hide: :data:`HIDDEN_KINDS`, the gyro temperature bias, and at
-    navigation grade the gyro temperature scale (the Earth rate is a known rate)."""
+    """Every kind a trial of ``grade`` can hide: :data:`HIDDEN_KINDS`, the gyro temperature bias, at
+    navigation grade the gyro temperature scale (the Earth rate is a known rate), and :data:`MECHANISM_KINDS`."""
     extra = [("temperature_bias", Triad.GYRO)]
     if grade is not Grade.MEMS:
         extra.append(("temperature_scale", Triad.GYRO))
-    return tuple((e, t) for e, t in HIDDEN_KINDS if t is not None) + tuple(extra)
+    return HIDDEN_KINDS + tuple(extra) + MECHANISM_KINDS
 
 
 _AXIS_FREE = ("nonstatic_positions", "quantization")
+_TRIAD_LEVEL = ("nonorthogonality_change", "cross_axis_nonlinearity")
+"""Named for the triad: the scalar residual tells their size, not their axis."""
+_CHANGE_COSINE = {"x": 0, "y": 1, "z": 2}
+"""The cosine a hidden ``nonorthogonality_change`` moves for the axis drawn: xy, xz, yz."""
 _COEF_KEY = {
     ("bias_drift", Triad.ACCEL): "rate_norm_per_s",
     ("temperature_bias", Triad.ACCEL): "coef_norm_per_c",
     ("temperature_scale", Triad.ACCEL): "coef_per_c",
     ("scale_nonlinearity", Triad.ACCEL): "k2_norm",
+    ("cross_axis_nonlinearity", Triad.ACCEL): "kc_norm",
+    ("temperature_hysteresis", Triad.ACCEL): "offset_norm",
     ("bias_drift", Triad.GYRO): "rate_rps_per_s",
     ("temperature_bias", Triad.GYRO): "coef_rps_per_c",
     ("temperature_scale", Triad.GYRO): "coef_per_c",
@@ -279,11 +308,12 @@ class HiddenEffect:
 
     @property
     def expected(self) -> set[tuple[str, Triad, str | None]]:
-        return {(self.effect, self.triad, self.axis)}
+        axis = None if self.effect in _TRIAD_LEVEL else self.axis
+        return {(self.effect, self.triad, axis)}
 
 
 def _clean_candidate(
-    session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str
+    session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str | None
 ) -> Candidate:
     baselines = fit_baselines(session, chain, colour=False)
     return next(
@@ -409,7 +439,9 @@ def _hide(
     if axis is None:
         raise ValueError(f"{effect} is hidden on one axis: give axis x, y or z")
     i = AXES.index(axis)
-    cand = _clean_candidate(session, chain, effect, triad, axis)
+    if effect in ("bias_step", "nonorthogonality_change", "clipping"):
+        return _hide_change(seed, effect, axis, size, sign, model, session, chain)
+    cand = _clean_candidate(session, chain, effect, triad, None if effect in _TRIAD_LEVEL else axis)
     ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS
     if effect == "bias_instability":
         tau = float(
@@ -439,6 +471,18 @@ def _hide(
         return HiddenEffect(
             effect, triad, axis, size, value, model.with_effect(GSensitivity(gs), triad)
         )
+    if effect == "cross_axis_nonlinearity":
+        kc = np.zeros(3)
+        kc[i] = value / GRAVITY_MPS2
+        return HiddenEffect(
+            effect, triad, axis, size, value, model.with_effect(CrossAxisNonlinearity(kc), triad)
+        )
+    if effect == "temperature_hysteresis":
+        h = np.zeros(3)
+        h[i] = value * GRAVITY_MPS2
+        return HiddenEffect(
+            effect, triad, axis, size, value, model.with_effect(TemperatureHysteresis(h), triad)
+        )
     if effect == "scale_nonlinearity":
         k2 = np.zeros(3)
         k2[i] = value / GRAVITY_MPS2
@@ -460,6 +504,76 @@ def _hide(
         "temperature_scale": TemperatureScale,
     }[effect]
     return HiddenEffect(effect, triad, axis, size, value, model.with_effect(cls(coef), triad))
+
+
+def change_se(
+    session: ImuSession, chain: ChainResult, columns: FloatArray, after: int
+) -> FloatArray:
+    """Standard errors of a change of ``columns`` (n, k) from position ``after`` on, next to the nine parameters,
+    on the effect-free session (the weights of the baseline's scalar residuals taken as exact)."""
+    baselines = fit_baselines(session, chain, colour=False)
+    tab = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
+    _, sd, jac, _ = scalar_residuals(baselines[Triad.ACCEL].params, tab)
+    step = columns * (np.arange(sd.size) >= after)[:, None]
+    a = np.hstack([jac, step]) / sd[:, None]
+    cov = np.linalg.inv(a.T @ a)
+    out: FloatArray = np.sqrt(np.diag(cov)[jac.shape[1] :])
+    return out
+
+
+def _hide_change(
+    seed: int,
+    effect: str,
+    axis: str,
+    size: float,
+    sign: float,
+    model: ErrorModel,
+    session: ImuSession,
+    chain: ChainResult,
+) -> HiddenEffect:
+    """A bias step, a change of non-orthogonality or a rail on accelerometer ``axis`` (module docstring)."""
+    i = AXES.index(axis)
+    tri = Triad.ACCEL
+    if effect == "clipping":
+        x = triad_samples(session, tri)[:, i]
+        # The rails are symmetric (a converter's full scale): the side nearest one of the positions clips.
+        static = np.concatenate([x[p.index_start : p.index_stop] for p in chain.positions])
+        top = np.sort(np.abs(static))[::-1]
+        k = max(round(size), 1)
+        rail = float(0.5 * (top[k - 1] + top[k]))
+        rails = np.full(3, np.inf)
+        rails[i] = rail
+        return HiddenEffect(effect, tri, axis, size, rail, model.with_effect(Clipping(rails), tri))
+    n = len(chain.positions)
+    after = int(np.random.default_rng([seed, 4]).integers(n // 4, 3 * n // 4 + 1))
+    t_change = 0.5 * (chain.positions[after - 1].t_end_s + chain.positions[after].t_start_s)
+    tab = position_table(chain, triad_samples(session, tri), session.t_s, tri)
+    baselines = fit_baselines(session, chain, colour=False)
+    _, _, jac, _ = scalar_residuals(baselines[tri].params, tab)
+    if effect == "bias_step":
+        value = sign * size * float(change_se(session, chain, jac[:, [i]], after)[0])
+        step = np.zeros(3)
+        step[i] = value * GRAVITY_MPS2
+        return HiddenEffect(
+            effect,
+            tri,
+            axis,
+            size,
+            value,
+            model.with_effect(BiasStep(np.full(3, t_change), step), tri),
+        )
+    c = _CHANGE_COSINE[axis]
+    value = sign * size * float(change_se(session, chain, jac[:, 6:9], after)[c])
+    change = np.zeros(3)
+    change[c] = value
+    return HiddenEffect(
+        effect,
+        tri,
+        axis,
+        size,
+        value,
+        model.with_effect(NonOrthogonalityChange(t_change, change), tri),
+    )
 
 
 def draw(
