@@ -752,6 +752,7 @@ AUDIT_EFFECTS = {
     "nonorthogonality_change",
     "temperature_hysteresis",
     "clipping",
+    "spectral_line",
 }
 
 

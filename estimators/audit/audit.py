@@ -67,6 +67,7 @@ from estimators.sim import (
     ScaleFactor,
     ScaleNonlinearity,
     SessionSpec,
+    SpectralLine,
     TemperatureBias,
     TemperatureHysteresis,
     TemperatureScale,
@@ -88,6 +89,7 @@ from .candidates import (
     disturbed_positions,
     earth_rate_records,
     gyro_records,
+    line_candidates,
     mean_variance_factor,
     residual_structure,
     temperature_reason,
@@ -861,6 +863,9 @@ def find_candidates(
             baselines[t].quant_step_si,
             n_tests,
         )
+        cands += line_candidates(
+            t, triad_samples(session, t), tab_a.spans, session.rate_hz, n_tests
+        )
     return cands
 
 
@@ -1047,10 +1052,30 @@ def run_audit(
         ]
     else:
         res.extended_cmp = res.baseline_cmp
+    excess = unexplained_excess(res.extended_cmp)
+    if excess:
+        res.statements.append(excess)
     res.gain = _gain(
         session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g
     )
     return res
+
+
+def unexplained_excess(cmp: list[Comparison]) -> str | None:
+    """``unexplained excess`` when the extended model's headline lies outside its replicas' band, with every
+    statistic outside it (the named effects do not account for the data: never a silent headline)."""
+    head = next((c for c in cmp if c.statistic == "chi2_per_dof"), None)
+    if head is None or head.inside:
+        return None
+    out = [c for c in cmp if not c.inside]
+    return (
+        f"unexplained excess: with the named effects the headline χ²/dof is {head.measured:.3g} against the replicas' "
+        f"{head.simulated_p05:.3g}–{head.simulated_p95:.3g}; outside the band: "
+        + ", ".join(
+            f"{c.statistic} ({c.triad.value}{'' if c.axis is None else ' ' + c.axis}: ratio {c.ratio:.2g})"
+            for c in out
+        )
+    )
 
 
 def structure_of(
@@ -1125,7 +1150,7 @@ def extend_model(
     A change between positions (bias step, non-orthogonality change) happens in the middle of the
     simulated turn before its position, ``turn_mid_s`` (P − 1,) (the measured turn's without it); the
     cross-axis term, whose axis the norm does not tell, is shared equally by the three axes; a rail
-    is a symmetric clip.
+    is a symmetric clip; a spectral line is simulated and its variance ``A²/2`` leaves the white noise.
     """
     ext = model
     base = dict(baseline)
@@ -1138,6 +1163,8 @@ def extend_model(
     hysteresis = np.zeros(3)
     cosine_change, t_cosine = np.zeros(3), 0.0
     rails = {t: np.full(3, np.inf) for t in Triad}
+    line_hz = {t: np.zeros(3) for t in Triad}
+    line_amp = {t: np.zeros(3) for t in Triad}
 
     def change_time(c: Candidate) -> float:
         if turn_mid_s is None:
@@ -1188,6 +1215,9 @@ def extend_model(
             hysteresis[i] = c.params["offset_norm"] * g
         elif c.effect == "clipping":
             rails[c.triad][i] = abs(c.params["rail_si"])
+        elif c.effect == "spectral_line":
+            line_hz[c.triad][i] = c.params["freq_hz"]
+            line_amp[c.triad][i] = c.params["amplitude_si"]
         elif c.effect == "nonstatic_positions" and c.params["angle_rms_rad"] > 0:
             # Disturbed single positions are not simulated: the simulator moves every position or none.
             ext = ext.with_effect(
@@ -1220,6 +1250,17 @@ def extend_model(
             ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
         if np.any(np.isfinite(rails[t])):
             ext = ext.with_effect(Clipping(rails[t]), t)
+        wn = ext.triad(t).find(WhiteNoise)
+        if np.any(line_amp[t]) and wn is not None:
+            # The line's variance A²/2 was read as white noise: it moves to the line.
+            line_var = 0.5 * line_amp[t] ** 2
+            white = np.sqrt(np.clip(wn.sample_sd(1.0) ** 2 - line_var, 0.0, None))
+            ext = ext.with_effect(SpectralLine(line_hz[t], line_amp[t]), t).with_effect(
+                WhiteNoise.from_sample_sd(white, 1.0, wn.correlation), t
+            )
+            base[t] = replace(
+                base[t], white_sd_si=np.sqrt(np.clip(b.white_sd_si**2 - line_var, 0.0, None))
+            )
     if np.any(k2) or np.any(k3):
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
     if np.any(kc):

@@ -63,6 +63,7 @@ direction of gravity in the sensor axes, ``ΔT`` temperature about its mean):
   single test's margin (:func:`forward_select`): a deterministic effect is not beaten by one that
   explains less behind a lower threshold;
 * ``clipping``: samples held on a rail, read from the samples (:func:`clipping_candidates`);
+* ``spectral_line``: a peak of the static samples' spectrum over its floor (:func:`line_candidates`);
 * ``g_sensitivity``: per gyro axis, the mean on the specific force ``[f_x, f_y, f_z]`` (M4),
   after the vertical Earth rate ``c·Ω·u_i`` with ``|c| ≤ 1`` (:func:`vertical_earth_rate`);
 * ``bias_instability``: per sensor axis, bias wander that does not average
@@ -127,6 +128,7 @@ CANDIDATE_NAMES = (
     "nonorthogonality_change",
     "temperature_hysteresis",
     "clipping",
+    "spectral_line",
     "g_sensitivity",
     "quantization",
     "gravity_mismatch",
@@ -197,18 +199,20 @@ def _loo_rss(a: FloatArray, z: FloatArray) -> tuple[float, float, FloatArray]:
 
 
 def mean_test(
-    base: FloatArray, extra: FloatArray, z: FloatArray
+    base: FloatArray, extra: FloatArray, z: FloatArray, known_scale: bool = False
 ) -> tuple[float, float, FloatArray, FloatArray]:
-    """Likelihood ratio (common scale free), held-out ratio, the extra coefficients and their standard errors.
+    """Likelihood ratio, held-out ratio, the extra coefficients and their standard errors.
 
     ``base`` (n, p) and ``extra`` (n, k) are already weighted regressors, ``z`` (n,) the weighted data.
+    The LR is the common scale's free (``n ln(RSS₀/RSS₁)``), or with ``known_scale`` the weights' own
+    (``RSS₀ − RSS₁``, χ²ₖ under the null): then what another effect leaves does not dilute it.
     The standard errors take the weights as exact (the detection scale of the effect).
     """
     rss0, loo0, _ = _loo_rss(base, z)
     full = np.hstack([base, extra])
     rss1, loo1, coef = _loo_rss(full, z)
     n = z.size
-    lr = float(n * np.log(rss0 / max(rss1, 1e-300)))
+    lr = float(rss0 - rss1) if known_scale else float(n * np.log(rss0 / max(rss1, 1e-300)))
     # numpy's stub types every mode as QRResult; mode="r" returns R alone.
     r: FloatArray = np.linalg.qr(full, mode="r")  # type: ignore[assignment]
     rinv = np.linalg.solve(r, np.eye(r.shape[0]))
@@ -240,6 +244,7 @@ def forward_select(
     regs: dict[int, FloatArray],
     n_tests: int,
     multiplicity: dict[int, int] | None = None,
+    known_scale: bool = False,
 ) -> dict[int, MeanTest]:
     """Greedy forward selection of mean effects (weighted columns ``regs[key]`` (n, k)).
 
@@ -255,20 +260,28 @@ def forward_select(
     splits its share of the family-wise rate over them, but it is ranked against
     the others on the single test's margin, so a profiled effect that explains
     more is not beaten by one with a lower threshold that explains less.
+
+    ``known_scale``: the weights are the data's sd (:func:`mean_test`): each effect is tested on what
+    it explains, not against a scale the others' leftovers inflate, so effects that are there
+    together are found together; thresholds χ²ₖ at the same split rate.
     """
     mult = multiplicity or {}
+
+    def threshold(k: int, p: int, tests_: int) -> float:
+        return _threshold(k, tests_) if known_scale else _threshold_mean(k, z.size, p, tests_)
+
     tests: dict[int, MeanTest] = {}
     single: dict[int, float] = {}
     current = base
     remaining = list(regs)
     while remaining:
         for key in remaining:
-            lr, cv, coef, se = mean_test(current, regs[key], z)
+            lr, cv, coef, se = mean_test(current, regs[key], z, known_scale)
             k, p = regs[key].shape[1], current.shape[1]
-            single[key] = _threshold_mean(k, z.size, p, n_tests)
+            single[key] = threshold(k, p, n_tests)
             tests[key] = MeanTest(
                 lr,
-                _threshold_mean(k, z.size, p, n_tests * mult.get(key, 1)),
+                threshold(k, p, n_tests * mult.get(key, 1)),
                 cv,
                 coef,
                 se,
@@ -614,6 +627,11 @@ def fit_loading(halves: VarianceData, axis: int, other: int) -> tuple[float, flo
 
 # --- structure of the residual -------------------------------------------------
 
+WITHIN_ABSENT_LR = 3.84
+"""Largest LR of an excess inside positions (any axis) for it to count as absent: χ²₁ at 5 %. Absence must
+be shown, not merely not significant at the family-wise rate: a slow wander shows inside positions
+weakly (LR 5–10), and the known scale it would make wrong names its between-position scatter deterministic."""
+
 
 @dataclass(frozen=True)
 class ResidualStructure:
@@ -622,9 +640,10 @@ class ResidualStructure:
     ``lr_between`` (3,): the LR of an excess on the baseline's scalar residuals along sensor axis ``i``
     (weights ``J_b_i²``), the within-position noise the known scale; ``lr_within`` (3,): of an excess of
     axis ``i`` on the half-to-half differences. ``structured``: the residual holds structure between
-    positions (the largest ``lr_between`` beyond ``threshold``) and none inside them (that axis'
-    ``lr_within`` below it) — the signature of a deterministic effect, not of wander, which shows inside
-    positions too. ``t_mid_s``, ``up`` (n, 3), ``residual_norm`` and ``sigma_norm``: the residual against
+    positions (the largest ``lr_between`` beyond ``threshold``) and none inside them (every axis'
+    ``lr_within`` below :data:`WITHIN_ABSENT_LR`) — the signature of a deterministic effect, not of wander, which shows inside
+    positions too (on any axis, a wander makes the within-position noise too small a scale). ``axis``:
+    the axis whose excess fits best (the scalar residual tells the axes apart only through the orientations). ``t_mid_s``, ``up`` (n, 3), ``residual_norm`` and ``sigma_norm``: the residual against
     time and orientation, for the plot.
     """
 
@@ -655,8 +674,8 @@ class ResidualStructure:
         return (
             f"structured_residual: the {self.triad.value} scalar residual is structured between positions along "
             f"{self.axis} (LR {self.lr_between[i]:.1f}, threshold {self.threshold:.1f}) and absent inside them "
-            f"(LR {self.lr_within[i]:.1f}): a deterministic effect's signature; the deterministic candidates are "
-            "tested on it before any wander"
+            f"(LR at most {float(np.max(self.lr_within)):.1f}): a deterministic effect's signature; the deterministic "
+            "candidates are tested on it at the within-position noise before any wander"
         )
 
 
@@ -700,7 +719,7 @@ def residual_structure(
         lr_b,
         lr_w,
         thr,
-        bool(lr_b[i] > thr and lr_w[i] < thr),
+        bool(lr_b[i] > thr and np.all(lr_w < WITHIN_ABSENT_LR)),
         tab.t_mid_s,
         u,
         residual,
@@ -790,6 +809,142 @@ def clipping_candidates(
     return out
 
 
+# --- spectral lines -------------------------------------------------------------
+
+LINE_SEGMENT = 256
+"""Longest periodogram segment of the line test, samples (shorter positions: the largest power of two they hold)."""
+LINE_FLOOR_BINS = 17
+"""Width of the running median that is the line test's noise floor, bins: wide against a line's three bins
+(Hann window), narrow against the bend of a sensor filter's roll-off."""
+LINE_SKIP_BINS = 3
+"""Lowest bins left out of the line test: the mean, and the wander the segment's detrend leaves."""
+LINE_CONCENTRATION = 0.8
+"""Least share of a peak's excess (over ±4 bins) in its three central bins for a line: a sinusoid puts ≥ 98 %
+there through the Hann window wherever it falls between bins; a resonance's narrowband noise spreads wider."""
+
+
+def line_spectrum(
+    x: FloatArray, spans: IntArray, rate_hz: float
+) -> tuple[FloatArray, FloatArray, int]:
+    """(frequencies (m,), one-sided PSD (m, 3) in SI²/Hz, segments averaged) of the static samples.
+
+    Non-overlapping Hann segments of :data:`LINE_SEGMENT` samples (or the largest power of two every usable
+    position holds, at least 32), each linearly detrended, averaged over every segment of every position:
+    independent segments, so each bin is its level times ``χ²_ν/ν``, ``ν = 2 × segments``.
+    """
+    from scipy.signal import detrend
+
+    lengths = np.array([b - a for a, b in spans])
+    usable = lengths[lengths >= 32]
+    if usable.size == 0:
+        return np.zeros(0), np.zeros((0, 3)), 0
+    nseg = int(min(LINE_SEGMENT, 2 ** int(np.floor(np.log2(np.median(usable))))))
+    segs = [x[a + j * nseg : a + (j + 1) * nseg] for a, b in spans for j in range((b - a) // nseg)]
+    if not segs:
+        return np.zeros(0), np.zeros((0, 3)), 0
+    w = np.hanning(nseg)
+    y = detrend(np.stack(segs), axis=1) * w[None, :, None]
+    psd = np.mean(np.abs(np.fft.rfft(y, axis=1)) ** 2, axis=0) / (rate_hz * np.sum(w**2))
+    psd[1:-1] *= 2.0
+    freq: FloatArray = np.fft.rfftfreq(nseg, 1.0 / rate_hz).astype(np.float64)
+    return freq, np.asarray(psd, dtype=np.float64), len(segs)
+
+
+def line_candidates(
+    triad: Triad, x_si: FloatArray, spans: IntArray, rate_hz: float, n_tests: int
+) -> list[Candidate]:
+    """``spectral_line`` per axis: a peak of the static samples' spectrum above its noise floor (:func:`line_spectrum`).
+
+    The floor is the running median over :data:`LINE_FLOOR_BINS` bins (a coloured noise, a sensor filter's
+    roll-off, bends it; a line does not move it), corrected for the median of ``χ²_ν/ν``; the bins within
+    half its window of either end are not tried (a line there is not seen: said in ``reason``). A bin is a line
+    when ``P/floor`` lies beyond the ``F(ν, ν_floor)`` quantile (the floor's own scatter counted) at the
+    audit's family-wise rate split over the tests,
+    the three axes and the bins tried; ``LR = −2 ln p`` of the highest bin. The amplitude is ``√(2 Σ (P −
+    floor) Δf)`` over the peak's three bins (the line's variance ``A²/2``), its frequency the bins' power
+    centroid, good to a bin (``Δf``). A peak whose excess spreads beyond its three bins
+    (:data:`LINE_CONCENTRATION`) is narrowband noise (a resonance), not a line: it is not named.
+    """
+    from scipy.ndimage import median_filter
+    from scipy.stats import f as f_dist
+
+    freq, psd, m = line_spectrum(x_si, spans, rate_hz)
+    out = []
+    edge = max(LINE_SKIP_BINS, LINE_FLOOR_BINS // 2)
+    if m == 0 or freq.size <= 2 * edge + 1:
+        return [
+            not_identifiable(
+                "spectral_line", triad, ax, "not identifiable: no position holds a spectrum segment"
+            )
+            for ax in AXES
+        ]
+    nu = 2 * m
+    # The floor is itself an estimate: a median of the window's bins has the variance of a mean of
+    # 2/π of them, so the ratio is F-distributed with the floor's degrees of freedom.
+    nu_floor = nu * LINE_FLOOR_BINS * 2.0 / np.pi
+    # Where the running median's window is cut by an end of the spectrum the floor is not a median of its
+    # neighbours: those bins (near 0 and near Nyquist) are not tried.
+    tried = slice(edge, freq.size - edge)
+    n_bins = freq.size - 2 * edge
+    alpha = FAMILY_ALPHA / (max(n_tests, 1) * 3 * n_bins)
+    thr = float(-2.0 * np.log(alpha))
+    df = float(freq[1] - freq[0])
+    for i, ax in enumerate(AXES):
+        p_i = psd[:, i]
+        floor = (
+            median_filter(p_i, size=LINE_FLOOR_BINS, mode="nearest") / (1.0 - 2.0 / (9.0 * nu)) ** 3
+        )
+        logp = f_dist.logsf(p_i[tried] / floor[tried], nu, nu_floor)
+        k = edge + int(np.argmin(logp))
+        lr = float(-2.0 * np.min(logp))
+        near = slice(max(k - 1, 1), min(k + 2, freq.size))
+        excess = np.clip(p_i[near] - floor[near], 0.0, None)
+        wide = slice(max(k - 4, 1), min(k + 5, freq.size))
+        share = float(
+            np.sum(excess) / max(np.sum(np.clip(p_i[wide] - floor[wide], 0.0, None)), 1e-300)
+        )
+        amp = float(np.sqrt(2.0 * np.sum(excess) * df))
+        f_line = (
+            float(np.sum(freq[near] * excess) / np.sum(excess))
+            if np.sum(excess) > 0
+            else float(freq[k])
+        )
+        out.append(
+            Candidate(
+                "spectral_line",
+                triad,
+                ax,
+                True,
+                lr,
+                thr,
+                1.0,
+                {
+                    "freq_hz": f_line,
+                    "freq_resolution_hz": df,
+                    "amplitude_si": amp,
+                    "peak_over_floor": float(p_i[k] / floor[k]),
+                    "share_in_three_bins": share,
+                    "segments": m,
+                    "bins_tried": n_bins,
+                    "band_tried_hz": [float(freq[edge]), float(freq[-edge - 1])],
+                    "spectrum_freq_hz": [float(v) for v in freq],
+                    "spectrum_psd_si2_per_hz": [float(v) for v in p_i],
+                    "floor_psd_si2_per_hz": [float(v) for v in floor],
+                },
+                lr > thr and share >= LINE_CONCENTRATION,
+                f"{triad.value} {ax}: the static spectrum peaks {p_i[k] / floor[k]:.3g}× its floor at {f_line:.4g} Hz "
+                f"(±{df:.2g} Hz; amplitude {amp:.3g} SI, {m} segments; {freq[edge]:.3g}–{freq[-edge - 1]:.3g} Hz tried): "
+                f"LR {lr:.1f} (threshold {thr:.1f})"
+                + (
+                    ""
+                    if share >= LINE_CONCENTRATION
+                    else f"; {100 * share:.0f} % of its excess in the three central bins: narrowband noise, not a line"
+                ),
+            )
+        )
+    return out
+
+
 # --- the candidates of each triad ---------------------------------------------
 
 
@@ -810,13 +965,13 @@ def temperature_reason(tab: PositionTable) -> str | None:
 def count_tests(has_gyro: bool, temperature: bool, earth_rate: bool = False) -> int:
     """Candidates tried (the Bonferroni split): per accelerometer axis drift, non-linearity,
     bias step, instability (+ temperature bias, scale and hysteresis); the cross-axis term, a change
-    of non-orthogonality, clipping and nonstatic positions; per gyro axis drift, g-sensitivity, instability
+    of non-orthogonality and nonstatic positions; per gyro axis drift, g-sensitivity, instability
     (+ temperature bias, and temperature scale when the gyro resolves the Earth rate:
-    ``earth_rate``), and gyro clipping. A step profiled over the breaks counts once here; its own threshold splits
+    ``earth_rate``); per triad clipping and a spectral line. A step profiled over the breaks counts once here; its own threshold splits
     its share over the breaks (:func:`forward_select`)."""
-    accel = 3 * (4 + (3 if temperature else 0)) + 4
+    accel = 3 * (4 + (3 if temperature else 0)) + 5
     gyro_temp = (2 if earth_rate else 1) if temperature else 0
-    gyro = 3 * (3 + gyro_temp) + 1 if has_gyro else 0
+    gyro = 3 * (3 + gyro_temp) + 2 if has_gyro else 0
     return accel + gyro
 
 
@@ -1000,6 +1155,7 @@ def _select_means(
     sd: FloatArray,
     n_tests: int,
     n_halves: int,
+    known_scale: bool = False,
 ) -> tuple[dict[int, MeanTest], FloatArray, FloatArray]:
     """Forward selection (weights ``1/sd``); returns the tests, the chosen columns and the chosen effects' halves means (n, n_halves)."""
     w = 1.0 / sd
@@ -1009,6 +1165,7 @@ def _select_means(
         {k: e.reg * w[:, None] for k, e in enumerate(effects)},
         n_tests,
         {k: e.breaks for k, e in enumerate(effects)},
+        known_scale,
     )
     chosen = [effects[k].reg for k, t in tests.items() if t.selected]
     halves_mean = np.zeros((data.size, n_halves))
@@ -1031,6 +1188,7 @@ def _means_with_excess(
     excess_weight: FloatArray,
     n_tests: int,
     n_halves: int,
+    known_scale: bool = False,
 ) -> tuple[dict[int, MeanTest], FloatArray, FloatArray, FloatArray]:
     """Mean selection whose weights carry the variance excess left after the chosen effects, iterated to a fixed point.
 
@@ -1039,12 +1197,15 @@ def _means_with_excess(
     after it): from white weights, select, fit the excess ``v`` (components
     ``excess_weight`` (m, n)) on what is left, reselect with
     ``sd² = var0 + vᵀ·excess_weight``; stop when the chosen set repeats.
+    ``known_scale`` (:func:`forward_select`) for a residual whose structure is between positions only.
     Returns the tests, the chosen columns, their halves means and the final sd (n,).
     """
     comps = excess_weight[:, :, None, None]
     sd, seen = np.sqrt(var0), None
     for _ in range(MEAN_PASSES):
-        tests, chosen, halves_mean = _select_means(effects, base, data, sd, n_tests, n_halves)
+        tests, chosen, halves_mean = _select_means(
+            effects, base, data, sd, n_tests, n_halves, known_scale
+        )
         keys = frozenset(k for k, t in tests.items() if t.selected)
         r = leverage_residual(np.hstack([base, chosen]), data, sd)
         v, _ = fit_variance([VarianceData.finite(r[:, None], var0[:, None, None], comps)])
@@ -1408,10 +1569,16 @@ def _scalar_records(
     g_b2 = (
         jac[:, :3] ** 2
     )  # a bias wander of axis i moves f by ∂f/∂b_i (≈ −u_i for the accelerometers)
+    # Structure between positions and none inside them: the within-position noise is the residual's scale,
+    # and each deterministic candidate is tested on what it explains (several at once are found together).
+    known = residual_structure(triad, tab, jac, residual, sigma, n_tests).structured
     tests, chosen, halves_mean, sd = _means_with_excess(
-        effects, jac, residual, var0, g_b2.T, n_tests, 3
+        effects, jac, residual, var0, g_b2.T, n_tests, 3, known
     )
-    out = _mean_candidates(effects, tests, triad, to_si, f"{triad.value} scalar residuals")
+    what = f"{triad.value} scalar residuals" + (
+        " (structured between positions only: tested at the within-position noise)" if known else ""
+    )
+    out = _mean_candidates(effects, tests, triad, to_si, what)
     # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
     design = np.hstack([jac, chosen])
     between = VarianceData.finite(

@@ -42,6 +42,9 @@ The deterministic classes of issue 31 (:data:`MECHANISM_KINDS`), each named as i
   standard error of the step at that break (:func:`change_se`);
 * ``clipping``: symmetric rails on the axis, ``size`` static samples beyond them (held on one).
 
+``spectral_line`` (:data:`LINE_KIND`): a 50 Hz sinusoid on a 200 Hz session, ``size`` its amplitude in
+per-sample noise sd.
+
 A hidden ``quantization`` is named by the baseline (it is part of it): a trial
 counts it named when the baseline found a grid on that triad.
 """
@@ -79,6 +82,7 @@ from estimators.sim import (
     ScaleFactor,
     ScaleNonlinearity,
     SessionSpec,
+    SpectralLine,
     TemperatureBias,
     TemperatureHysteresis,
     TemperatureScale,
@@ -137,6 +141,12 @@ MECHANISM_KINDS: tuple[tuple[str, Triad], ...] = (
     ("clipping", Triad.ACCEL),
 )
 """The deterministic classes of issue 31: wander was named for them before they were candidates."""
+
+LINE_KIND = ("spectral_line", Triad.ACCEL)
+"""A mains or rotor line (issue 31): :data:`LINE_FREQ_HZ` on a :data:`LINE_RATE_HZ` session, ``size`` its
+amplitude in per-sample noise sd (the issue's case: 1.5)."""
+LINE_FREQ_HZ = 50.0
+LINE_RATE_HZ = 200.0
 
 TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
     ("temperature_bias", Triad.ACCEL),
@@ -255,16 +265,22 @@ def trial_chain_config(grade: Grade, session: ImuSession) -> ChainConfig:
 
 
 def session_of(
-    model: ErrorModel, seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS
+    model: ErrorModel,
+    seed: int,
+    *,
+    temperature: bool = True,
+    grade: Grade = Grade.MEMS,
+    rate_hz: float = RATE_HZ,
 ) -> tuple[ImuSession, ChainResult]:
     """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain.
 
     ``temperature=False`` drops the temperature column (the unit is still on the same cycle: a
-    temperature effect is then in the data but nothing can name it).
+    temperature effect is then in the data but nothing can name it). ``rate_hz``: the sampling rate
+    (the white noise keeps its density: at 200 Hz its per-sample sd doubles).
     """
     profile = multi_position_profile(trial_attitudes(seed), static_s=HOLD_S, transition_s=TURN_S)
     spec = SessionSpec(
-        profile, model, rate_hz=RATE_HZ, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
+        profile, model, rate_hz=rate_hz, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
     )
     s = simulate(spec, seed).session
     if not temperature:
@@ -305,6 +321,7 @@ class HiddenEffect:
     value: float
     model: ErrorModel
     grade: Grade = Grade.MEMS
+    rate_hz: float = RATE_HZ
 
     @property
     def expected(self) -> set[tuple[str, Triad, str | None]]:
@@ -411,6 +428,21 @@ def _hide(
     seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float, grade: Grade
 ) -> HiddenEffect:
     model = baseline_model(np.random.default_rng(seed), grade)
+    if effect == "spectral_line":
+        if axis is None:
+            raise ValueError("a spectral line is hidden on one axis: give axis x, y or z")
+        amp = np.zeros(3)
+        sd = TRIAL_UNITS[grade].accel_sd_mps2 * np.sqrt(LINE_RATE_HZ / RATE_HZ)
+        amp[AXES.index(axis)] = size * sd
+        return HiddenEffect(
+            effect,
+            triad,
+            axis,
+            size,
+            float(size * sd),
+            model.with_effect(SpectralLine(np.full(3, LINE_FREQ_HZ), amp), triad),
+            rate_hz=LINE_RATE_HZ,
+        )
     session, chain = session_of(model, seed, grade=grade)
     if effect in _AXIS_FREE:
         axis = None
@@ -576,6 +608,47 @@ def _hide_change(
     )
 
 
+PAIRS: tuple[tuple[tuple[str, Triad, str], tuple[str, Triad, str]], ...] = (
+    (("bias_drift", Triad.ACCEL, "x"), ("scale_nonlinearity", Triad.ACCEL, "z")),
+    (("temperature_bias", Triad.ACCEL, "y"), ("bias_drift", Triad.GYRO, "z")),
+    (("cross_axis_nonlinearity", Triad.ACCEL, "x"), ("bias_instability", Triad.ACCEL, "y")),
+    (("bias_step", Triad.ACCEL, "z"), ("temperature_scale", Triad.ACCEL, "x")),
+)
+"""Two effects at once (issue 31): the issue's two pairs, a deterministic effect with wander, a step with a temperature scale."""
+
+
+@dataclass(frozen=True)
+class HiddenPair:
+    """Two hidden effects in one model, each of its own size on the effect-free session (:func:`hide`)."""
+
+    first: HiddenEffect
+    second: HiddenEffect
+    model: ErrorModel
+
+    @property
+    def expected(self) -> set[tuple[str, Triad, str | None]]:
+        return self.first.expected | self.second.expected
+
+
+def hide_pair(
+    seed: int, first: tuple[str, Triad, str], second: tuple[str, Triad, str], size: float
+) -> HiddenPair:
+    """Both effects of :data:`PAIRS` (triad effects of the simulator) at ``size`` standard errors each, signs from the seed."""
+    rng = np.random.default_rng([seed, 5])
+    a, b = (
+        hide(seed, e, t, ax, size, float(rng.choice([-1.0, 1.0]))) for e, t, ax in (first, second)
+    )
+    added = b.model.triad(b.triad).find(b.effect)
+    if added is None:
+        raise ValueError(f"{b.effect} is not a triad effect of the simulator: it cannot be paired")
+    return HiddenPair(a, b, a.model.with_effect(added, b.triad))
+
+
+def pair_trial(pair: HiddenPair, seed: int) -> bool:
+    """True when the audit names exactly both hidden effects."""
+    return named_effects(*session_of(pair.model, seed)) == pair.expected
+
+
 def draw(
     seed: int, size: float, kind: tuple[str, Triad] | None = None, grade: Grade = Grade.MEMS
 ) -> HiddenEffect:
@@ -596,12 +669,22 @@ def draw(
 def trial(hidden: HiddenEffect, seed: int, *, temperature: bool = True) -> bool:
     """True when the audit names exactly the hidden effect on its session (with or without its temperature column)."""
     got = named_effects(
-        *session_of(hidden.model, seed, temperature=temperature, grade=hidden.grade)
+        *session_of(
+            hidden.model,
+            seed,
+            temperature=temperature,
+            grade=hidden.grade,
+            rate_hz=hidden.rate_hz,
+        )
     )
     return got == hidden.expected
 
 
-def clean_trial(seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS) -> bool:
-    """True when the audit names nothing on the effect-free session of ``seed``."""
+def clean_trial(
+    seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS, rate_hz: float = RATE_HZ
+) -> bool:
+    """True when the audit names nothing on the effect-free session of ``seed`` (at ``rate_hz``)."""
     model = baseline_model(np.random.default_rng(seed), grade)
-    return not named_effects(*session_of(model, seed, temperature=temperature, grade=grade))
+    return not named_effects(
+        *session_of(model, seed, temperature=temperature, grade=grade, rate_hz=rate_hz)
+    )

@@ -25,6 +25,7 @@ stage  name                     what it does to ``y`` (per sensor axis ``i``)
 34     ``g_sensitivity``        gyros: ``y += G f_b`` (M4's Bg, rad/s per m/s²)
 40     ``white_noise``          ``y_i += σ_i n_i``, ``σ_i = density_i·√rate``, ``corr(n) = R``
 41     ``coloured_noise``       ``y_i +=`` a sum of short Gauss–Markov terms (noise colour), driven with ``R``
+42     ``spectral_line``        ``y_i += A_i sin(2π f_i t + φ_i)`` (mains or rotor pickup; φ from the stream)
 45     (noise-burst faults)     see :mod:`estimators.sim.faults`
 48     ``clipping``             ``y_i`` held on the rails ``±r_i`` (the converter's full scale)
 50     ``quantization``         ``y_i = k_i·Entier(y_i / k_i)`` (M2)
@@ -656,6 +657,26 @@ def half_pulse_correction(mean_counts: FloatArray, rounding: Rounding) -> FloatA
 
 
 @dataclass(frozen=True)
+class SpectralLine(Effect):
+    """A sinusoid per axis, ``y_i += A_i sin(2π f_i t + φ_i)``: mains or rotor pickup (φ_i uniform from the stream)."""
+
+    freq_hz: ArrayLike = (50.0,) * 3
+    amplitude_si: ArrayLike = (0.0,) * 3
+    name: ClassVar[str] = "spectral_line"
+    stage: ClassVar[int] = 42
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "freq_hz", _floats(self.freq_hz, 3, "freq_hz"))
+        object.__setattr__(self, "amplitude_si", _floats(self.amplitude_si, 3, "amplitude_si"))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        phase = ctx.rng.uniform(0.0, 2.0 * np.pi, 3)
+        arg = 2.0 * np.pi * ctx.t_s[:, None] * np.array(self.freq_hz, dtype=np.float64) + phase
+        out: FloatArray = y + np.array(self.amplitude_si, dtype=np.float64) * np.sin(arg)
+        return out
+
+
+@dataclass(frozen=True)
 class Clipping(Effect):
     """The output held on the rails ``±rail_si`` per axis (the converter's full scale): ``y_i = clip(y_i, −r_i, r_i)``."""
 
@@ -813,6 +834,7 @@ EFFECTS: dict[str, type[Effect] | type[EnvironmentEffect]] = {
         GSensitivity,
         WhiteNoise,
         ColouredNoise,
+        SpectralLine,
         Clipping,
         Quantization,
         GravityMismatch,
