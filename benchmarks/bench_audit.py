@@ -12,7 +12,9 @@ Run: ``python benchmarks/bench_audit.py [--quick] [--no-times | --no-rates]``. P
    false-naming rate on effect-free sessions (:mod:`estimators.audit.hidden`
    defines them);
 3. the two-effect pairs of :data:`estimators.audit.hidden.PAIRS` at 10 standard errors each
-   (both named, nothing else).
+   (both named, nothing else);
+4. the 50 Hz line on 200 Hz sessions (:data:`estimators.audit.hidden.LINE_KIND`) against its
+   amplitude in noise sd, and effect-free 200 Hz sessions naming nothing.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ import numpy as np
 
 from estimators.audit import AuditConfig, run_audit
 from estimators.audit.hidden import (
+    LINE_KIND,
+    LINE_RATE_HZ,
     PAIRS,
     clean_trial,
     draw,
@@ -159,6 +163,36 @@ def pair_rates(trials: int, workers: int) -> None:
             print("    " + label.ljust(70) + f"{np.mean(hits):7.2f}")
 
 
+LINE_SIZES = (0.5, 1.0, 1.5, 2.0)
+"""Line amplitudes in per-sample noise sd (the issue's case: 1.5)."""
+
+
+def _line(args) -> bool:
+    seed, size = args
+    return trial(draw(seed, size, LINE_KIND), seed)
+
+
+def _clean_line_rate(seed: int) -> bool:
+    return clean_trial(seed, temperature=seed % 2 == 0, rate_hz=LINE_RATE_HZ)
+
+
+def line_rates(trials: int, workers: int) -> None:
+    print(
+        f"50 Hz line on accel, 200 Hz sessions, {trials} trials, against its amplitude in noise sd:"
+    )
+    with ProcessPoolExecutor(workers) as pool:
+        rates = [
+            np.mean(list(pool.map(_line, [(500_000 + t, size) for t in range(trials)])))
+            for size in LINE_SIZES
+        ]
+        print("    " + "".join(f"{s:>7.1f}" for s in LINE_SIZES))
+        print("    " + "".join(f"{r:7.2f}" for r in rates))
+        clean = list(pool.map(_clean_line_rate, range(600_000, 600_000 + 2 * trials)))
+        print(
+            f"    effect-free 200 Hz sessions naming nothing: {np.mean(clean):.3f} of {len(clean)}"
+        )
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer replica counts, lengths and trials")
@@ -190,3 +224,4 @@ if __name__ == "__main__":
         sizes = tuple(args.size) if args.size else SIZES
         hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades, sizes)
         pair_rates(args.trials or (8 if args.quick else 20), args.workers)
+        line_rates(args.trials or (8 if args.quick else 20), args.workers)

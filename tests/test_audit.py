@@ -418,7 +418,8 @@ def test_report_writes_the_plots_the_markdown_shows(tmp_path, capsys):
     assert "CAUSE bias_drift accel z" in capsys.readouterr().out
     md = (out / "audit.md").read_text()
     shown = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", md)
-    assert shown == list(PLOTS)
+    # The statistics' plots, then one per named cause (issue 31).
+    assert shown == [*PLOTS, "mechanism_bias_drift_accel_z.png"]
     for name in shown:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

@@ -66,6 +66,13 @@ def test_the_named_change_carries_its_size_and_the_turn_it_happened_in(tmp_path)
     assert [e["effect"] for e in res.extension] == ["bias_step"]
     said = [m for m in res.statements if m.startswith("structured_residual")]
     assert len(said) == 1 and "explained by bias_step (y)" in said[0], res.statements
+    # Every triad says what it can see on this session: the step's own figure is its se (√threshold + 1.645).
+    stated = [m for m in res.statements if m.startswith("minimum detectable on this session (")]
+    assert [m.split("(")[1].split(",")[0] for m in stated] == ["accel", "gyro"]
+    assert p["step_norm_min_detectable"] == pytest.approx(
+        p["step_norm_se"] * (np.sqrt(c.threshold) + 1.645)
+    )
+    assert "bias_step y step_norm" in stated[0] and "bias_drift x" in stated[1]
     # The report shows the mechanism: the residual against time (the turn marked) and orientation.
     md = write_report(res, tmp_path, title="step").read_text()
     assert "![mechanism_bias_step_accel_y](mechanism_bias_step_accel_y.png)" in md

@@ -1012,6 +1012,7 @@ def run_audit(
 
     res.candidates = find_candidates(session, chain, res.baseline)
     res.structure = structure_of(session, chain, res.baseline)
+    res.statements += detectable_statements(res.candidates)
     res.statements += [structure_statement(st, res.named) for st in res.structure if st.structured]
     hold, turns = simulated_timing(chain)
     turn_mid_s = simulated_hold_starts_s(hold, turns)[1:] - 0.5 * turns
@@ -1059,6 +1060,32 @@ def run_audit(
         session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g
     )
     return res
+
+
+def detectable_statements(cands: list[Candidate]) -> list[str]:
+    """Per triad, what each identifiable effect needs to be named on this session (95 % power): no blind spot unsaid.
+
+    Each candidate's ``*_min_detectable`` parameters (:func:`estimators.audit.candidates.min_detectable`), the
+    first of each effect and axis; the grade path a triad took decides which are there.
+    """
+    out = []
+    for t in Triad:
+        parts = []
+        for c in cands:
+            if c.triad is not t or not c.identifiable:
+                continue
+            for k, v in c.params.items():
+                if k.endswith("_min_detectable") or k.endswith("_min_detectable_norm2"):
+                    parts.append(
+                        f"{c.effect}{'' if c.axis is None else ' ' + c.axis} {k.replace('_min_detectable', '')} {v:.2g}"
+                    )
+                    break
+        if parts:
+            out.append(
+                f"minimum detectable on this session ({t.value}, 95 % power; units in each name): "
+                + "; ".join(parts)
+            )
+    return out
 
 
 def unexplained_excess(cmp: list[Comparison]) -> str | None:

@@ -1216,6 +1216,17 @@ def _means_with_excess(
     return tests, chosen, halves_mean, sd
 
 
+POWER_Z = 1.645
+"""Standard normal quantile of the 95 % power the minimum detectable size is stated at."""
+
+
+def min_detectable(se: float, threshold: float) -> float:
+    """Size named with 95 % power on this session: ``se (√threshold + z₀.₉₅)`` (the LR of a one-parameter
+    effect is about its size over its standard error, squared; a stated approximation for the F form
+    and for a variance component, whose LR grows more slowly at large sizes)."""
+    return float(abs(se) * (np.sqrt(max(threshold, 0.0)) + POWER_Z))
+
+
 CHANGE_TIME_LR = 3.84
 """Profile-LR drop that bounds the time of a change (χ²₁ at 95 %)."""
 
@@ -1248,9 +1259,14 @@ def _mean_candidates(
     for k in shown.values():
         t, e = tests[k], effects[k]
         ax = None if e.triad_level else AXES[e.axis]
-        fitted = {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)} | {
-            f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)
-        }
+        fitted = (
+            {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)}
+            | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)}
+            | {
+                f"{key}_min_detectable": float(min_detectable(s * to_si, t.threshold))
+                for key, s in zip(e.keys, t.se, strict=True)
+            }
+        )
         when = ""
         if e.after is not None:
             profile = t.rivals or {j: u.lr for j, u in tests.items()}
@@ -1423,6 +1439,9 @@ def variance_candidates(
         params: CandidateParams = {
             "between_sd_norm": float(np.sqrt(vb)),
             "between_var_se_norm2": variance_se_at_zero(records[rb], i),
+            "between_var_min_detectable_norm2": min_detectable(
+                variance_se_at_zero(records[rb], i), t.threshold
+            ),
             "within_halves_sd_norm": float(np.sqrt(vh)),
             "lr_between": float(t.lrs[rb]),
             "lr_within": float(t.lrs[rh]),
