@@ -222,20 +222,11 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
     p = cause.params
     if cause.effect == "spectral_line":
         fig, ax = plt.subplots(figsize=(8, 3.4))
-        ax.semilogy(
-            p["spectrum_freq_hz"],
-            p["spectrum_psd_si2_per_hz"],
-            "k-",
-            lw=0.8,
-            label="static samples",
-        )
-        ax.semilogy(
-            p["spectrum_freq_hz"],
-            p["floor_psd_si2_per_hz"],
-            "C1--",
-            lw=1.0,
-            label="noise floor (running median)",
-        )
+        for key, style, label in (
+            ("spectrum_psd_si2_per_hz", "k-", "static samples"),
+            ("floor_psd_si2_per_hz", "C1--", "noise floor (running median)"),
+        ):
+            ax.semilogy(p["spectrum_freq_hz"], p[key], style, lw=0.8, label=label)
         ax.axvline(
             p["freq_hz"],
             color="C3",
