@@ -10,7 +10,11 @@ Run: ``python benchmarks/bench_audit.py [--quick] [--no-times | --no-rates]``. P
    against its size in detection standard errors (2–10), with and without the
    temperature column; the coarse grid against its step in noise sd; and the
    false-naming rate on effect-free sessions (:mod:`estimators.audit.hidden`
-   defines them).
+   defines them);
+3. the two-effect pairs of :data:`estimators.audit.hidden.PAIRS` at 10 standard errors each
+   (both named, nothing else);
+4. the 50 Hz line on 200 Hz sessions (:data:`estimators.audit.hidden.LINE_KIND`) against its
+   amplitude in noise sd, and effect-free 200 Hz sessions naming nothing.
 """
 
 from __future__ import annotations
@@ -23,7 +27,18 @@ from pathlib import Path
 import numpy as np
 
 from estimators.audit import AuditConfig, run_audit
-from estimators.audit.hidden import clean_trial, draw, hide, kinds_of, trial
+from estimators.audit.hidden import (
+    LINE_KIND,
+    LINE_RATE_HZ,
+    PAIRS,
+    clean_trial,
+    draw,
+    hide,
+    hide_pair,
+    kinds_of,
+    pair_trial,
+    trial,
+)
 from estimators.chain import ChainConfig
 from estimators.conventions import Triad
 from estimators.sim import Grade, OrientationScheme, multi_position_spec, simulate
@@ -79,19 +94,21 @@ def _clean(args) -> bool:
     return clean_trial(seed, temperature=temperature, grade=grade)
 
 
-def hit_rates(trials: int, workers: int, grades: tuple[Grade, ...]) -> None:
+def hit_rates(
+    trials: int, workers: int, grades: tuple[Grade, ...], sizes: tuple[float, ...] = SIZES
+) -> None:
     print(
         f"Hit rate (exactly the hidden effect named) against size in detection standard errors, {trials} trials each:"
     )
     with ProcessPoolExecutor(workers) as pool:
         for grade in grades:
-            print(f"  {grade.value} grade".ljust(50) + "".join(f"{s:>7.0f}" for s in SIZES))
+            print(f"  {grade.value} grade".ljust(50) + "".join(f"{s:>7.0f}" for s in sizes))
             for k, kind in enumerate(kinds_of(grade)):
                 for temperature in (True, False):
                     if kind[0].startswith("temperature") and not temperature:
                         continue
                     rates = []
-                    for size in SIZES:
+                    for size in sizes:
                         jobs = [
                             (100_000 + 1000 * k + t, size, kind, grade, temperature)
                             for t in range(trials)
@@ -130,6 +147,52 @@ def hit_rates(trials: int, workers: int, grades: tuple[Grade, ...]) -> None:
                 )
 
 
+def _pair(args) -> bool:
+    seed, k = args
+    return pair_trial(hide_pair(seed, *PAIRS[k], 10.0), seed)
+
+
+def pair_rates(trials: int, workers: int) -> None:
+    print(
+        f"Two effects at 10 standard errors each (MEMS), both named and nothing else, {trials} trials:"
+    )
+    with ProcessPoolExecutor(workers) as pool:
+        for k, (a, b) in enumerate(PAIRS):
+            hits = list(pool.map(_pair, [(400_000 + 1000 * k + t, k) for t in range(trials)]))
+            label = f"{a[0]} ({a[1].value} {a[2]}) + {b[0]} ({b[1].value} {b[2]})"
+            print("    " + label.ljust(70) + f"{np.mean(hits):7.2f}")
+
+
+LINE_SIZES = (0.5, 1.0, 1.5, 2.0)
+"""Line amplitudes in per-sample noise sd (the issue's case: 1.5)."""
+
+
+def _line(args) -> bool:
+    seed, size = args
+    return trial(draw(seed, size, LINE_KIND), seed)
+
+
+def _clean_line_rate(seed: int) -> bool:
+    return clean_trial(seed, temperature=seed % 2 == 0, rate_hz=LINE_RATE_HZ)
+
+
+def line_rates(trials: int, workers: int) -> None:
+    print(
+        f"50 Hz line on accel, 200 Hz sessions, {trials} trials, against its amplitude in noise sd:"
+    )
+    with ProcessPoolExecutor(workers) as pool:
+        rates = [
+            np.mean(list(pool.map(_line, [(500_000 + t, size) for t in range(trials)])))
+            for size in LINE_SIZES
+        ]
+        print("    " + "".join(f"{s:>7.1f}" for s in LINE_SIZES))
+        print("    " + "".join(f"{r:7.2f}" for r in rates))
+        clean = list(pool.map(_clean_line_rate, range(600_000, 600_000 + 2 * trials)))
+        print(
+            f"    effect-free 200 Hz sessions naming nothing: {np.mean(clean):.3f} of {len(clean)}"
+        )
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer replica counts, lengths and trials")
@@ -145,6 +208,12 @@ if __name__ == "__main__":
         action="append",
         help="grade of the hit-rate sweep (repeatable; default both)",
     )
+    ap.add_argument(
+        "--size",
+        type=float,
+        action="append",
+        help="size of the hit-rate sweep in standard errors (repeatable; default 2-10)",
+    )
     ap.add_argument("--no-times", action="store_true", help="skip the wall-time part")
     ap.add_argument("--no-rates", action="store_true", help="skip the hit-rate sweep")
     args = ap.parse_args()
@@ -152,4 +221,7 @@ if __name__ == "__main__":
         wall_times(args.quick)
     grades = tuple(Grade(g) for g in args.grade) if args.grade else (Grade.MEMS, Grade.NAVIGATION)
     if not args.no_rates:
-        hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades)
+        sizes = tuple(args.size) if args.size else SIZES
+        hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades, sizes)
+        pair_rates(args.trials or (8 if args.quick else 20), args.workers)
+        line_rates(args.trials or (8 if args.quick else 20), args.workers)

@@ -211,6 +211,76 @@ def _headline_plot(result: AuditResult, path: Path) -> bool:
     return True
 
 
+MECHANISM_PLOT = "mechanism_{effect}_{where}.png"
+"""One plot per named cause a person reads its mechanism from: the residual against time and orientation, or the spectrum."""
+
+
+def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
+    """A named cause's evidence: a line's spectrum over its floor; any other cause of a triad on a scalar path,
+    that triad's scalar residual per position against time (the change's turn marked) and against the
+    orientation of the cause's axis (for the triad's cross-axis term, ``u_x u_y u_z``)."""
+    p = cause.params
+    if cause.effect == "spectral_line":
+        fig, ax = plt.subplots(figsize=(8, 3.4))
+        for key, style, label in (
+            ("spectrum_psd_si2_per_hz", "k-", "static samples"),
+            ("floor_psd_si2_per_hz", "C1--", "noise floor (running median)"),
+        ):
+            ax.semilogy(p["spectrum_freq_hz"], p[key], style, lw=0.8, label=label)
+        ax.axvline(
+            p["freq_hz"],
+            color="C3",
+            lw=0.6,
+            label=f"line {p['freq_hz']:.4g} Hz, amplitude {p['amplitude_si']:.3g}",
+        )
+        ax.set_xlabel("frequency (Hz)")
+        ax.set_ylabel(f"PSD ({UNIT[cause.triad]}²/Hz)")
+        ax.set_title(f"{cause.triad.value} {cause.axis}: spectrum of the static samples")
+        ax.legend(fontsize=7)
+        save_figure(fig, path, dpi=100)
+        return True
+    st = next((x for x in result.structure if x.triad is cause.triad), None)
+    if st is None:
+        return False
+    z = st.residual_norm / st.sigma_norm
+    fig, (a_t, a_u) = plt.subplots(1, 2, figsize=(10, 3.4))
+    a_t.plot(st.t_mid_s, z, "ko-", ms=3, lw=0.6)
+    if "t_change_s" in p:
+        a_t.axvspan(
+            p["t_change_s"] - p["t_change_se_s"],
+            p["t_change_s"] + p["t_change_se_s"],
+            color="C3",
+            alpha=0.3,
+            label="the change's turn",
+        )
+        a_t.legend(fontsize=7)
+    a_t.set_xlabel("time of the position (s)")
+    a_t.set_ylabel("scalar residual / σ within positions (–)")
+    if cause.axis is None:
+        u, label = np.prod(st.up, axis=1), "u_x u_y u_z"
+    else:
+        u, label = st.up[:, AXES.index(cause.axis)], f"u_{cause.axis} (gravity on the axis)"
+    a_u.plot(u, z, "ko", ms=3)
+    a_u.set_xlabel(label)
+    for a in (a_t, a_u):
+        a.axhline(0.0, color="k", lw=0.5)
+    fig.suptitle(
+        f"{cause.effect} ({cause.triad.value}{'' if cause.axis is None else ' ' + cause.axis}): baseline residual per position"
+    )
+    save_figure(fig, path, dpi=100)
+    return True
+
+
+def _mechanism_plots(result: AuditResult, d: Path) -> list[str]:
+    """:func:`_mechanism_plot` of every named cause that has one; the file names written."""
+    out = []
+    for c in result.named:
+        name = MECHANISM_PLOT.format(effect=c.effect, where=f"{c.triad.value}_{c.axis or 'triad'}")
+        if _mechanism_plot(result, c, d / name):
+            out.append(name)
+    return out
+
+
 def _fmt(v) -> str:
     """A parameter value for the report: numbers to 3 significant digits, lists element-wise, a
     mapping as its keys with their values ("none" when empty): never a Python repr."""
@@ -227,12 +297,16 @@ def _fmt(v) -> str:
     return str(v)
 
 
+PLOTTED_ONLY = ("spectrum_freq_hz", "spectrum_psd_si2_per_hz", "floor_psd_si2_per_hz")
+"""Parameters that are a plot's data (the mechanism plot shows them), not a figure for the text."""
+
+
 def _fitted(params: dict) -> str:
     """A cause's fitted parameters, each with its standard error (``<name>_se``) when it has one."""
     return "; ".join(
         f"{k} {_fmt(v)}" + (f" ± {_fmt(params[k + '_se'])}" if k + "_se" in params else "")
         for k, v in params.items()
-        if not (k.endswith("_se") and k[: -len("_se")] in params)
+        if not (k.endswith("_se") and k[: -len("_se")] in params) and k not in PLOTTED_ONLY
     )
 
 
@@ -343,7 +417,7 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
                 strict=False,
             )
             if plot(result, d / name)
-        ]
+        ] + _mechanism_plots(result, d)
         data = result.to_dict()
         lines += [f"Positions: {result.n_positions}; Monte Carlo replicas: {result.replicas}.", ""]
         lines += [

@@ -747,6 +747,12 @@ AUDIT_EFFECTS = {
     "quantization",
     "gravity_mismatch",
     "nonstatic_positions",
+    "cross_axis_nonlinearity",
+    "bias_step",
+    "nonorthogonality_change",
+    "temperature_hysteresis",
+    "clipping",
+    "spectral_line",
 }
 
 

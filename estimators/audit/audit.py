@@ -52,10 +52,14 @@ from estimators.sim import (
     Bias,
     BiasDrift,
     BiasInstability,
+    BiasStep,
+    Clipping,
     ColouredNoise,
+    CrossAxisNonlinearity,
     ErrorModel,
     GSensitivity,
     NonOrthogonality,
+    NonOrthogonalityChange,
     NonstaticPositions,
     Quantization,
     RecordedTemperature,
@@ -63,7 +67,9 @@ from estimators.sim import (
     ScaleFactor,
     ScaleNonlinearity,
     SessionSpec,
+    SpectralLine,
     TemperatureBias,
+    TemperatureHysteresis,
     TemperatureScale,
     TriadErrorModel,
     WhiteNoise,
@@ -75,13 +81,17 @@ from estimators.sim import (
 from .candidates import (
     FAMILY_ALPHA,
     Candidate,
+    ResidualStructure,
     VarianceData,
     accel_records,
+    clipping_candidates,
     count_tests,
     disturbed_positions,
     earth_rate_records,
     gyro_records,
+    line_candidates,
     mean_variance_factor,
+    residual_structure,
     temperature_reason,
     variance_candidates,
     variance_effects,
@@ -624,6 +634,8 @@ class AuditResult:
     left_out: tuple[int, ...] = ()
     left_out_reason: str = ""
     grade_paths: dict[Triad, dict[str, str | float]] = field(default_factory=dict)
+    # Per triad on a scalar path: its residual's structure between and inside positions.
+    structure: list[ResidualStructure] = field(default_factory=list)
 
     @property
     def named(self) -> list[Candidate]:
@@ -652,6 +664,7 @@ class AuditResult:
             "replicas": self.replicas,
             "baseline": block(self.baseline_cmp, self.baseline),
             "candidates": [c.to_dict() for c in self.candidates],
+            "structured_residual": [st.to_dict() for st in self.structure],
             "named_causes": [
                 {
                     "effect": c.effect,
@@ -841,6 +854,18 @@ def find_candidates(
         )
     n_typical = float(np.median(tab_a.n_samples))
     cands += [quantization_candidate(t, baselines[t], n_typical) for t in triads]
+    for t in triads:
+        cands += clipping_candidates(
+            t,
+            triad_samples(session, t),
+            tab_a.spans,
+            baselines[t].white_sd_si,
+            baselines[t].quant_step_si,
+            n_tests,
+        )
+        cands += line_candidates(
+            t, triad_samples(session, t), tab_a.spans, session.rate_hz, n_tests
+        )
     return cands
 
 
@@ -949,7 +974,7 @@ def run_audit(
     temp_reason = temperature_reason(tab_a)
     if temp_reason is not None:
         res.statements.append(
-            f"temperature effects (temperature_bias, temperature_scale) are {temp_reason}"
+            f"temperature effects (temperature_bias, temperature_scale, temperature_hysteresis) are {temp_reason}"
         )
     if chain.triads[Triad.ACCEL].estimate.params is None:
         res.statements.append(
@@ -986,7 +1011,14 @@ def run_audit(
     ]
 
     res.candidates = find_candidates(session, chain, res.baseline)
-    ext_model, res.extended_model = extend_model(model, res.baseline, res.candidates, tab_a, g)
+    res.structure = structure_of(session, chain, res.baseline)
+    res.statements += detectable_statements(res.candidates)
+    res.statements += [structure_statement(st, res.named) for st in res.structure if st.structured]
+    hold, turns = simulated_timing(chain)
+    turn_mid_s = simulated_hold_starts_s(hold, turns)[1:] - 0.5 * turns
+    ext_model, res.extended_model = extend_model(
+        model, res.baseline, res.candidates, tab_a, g, turn_mid_s
+    )
     res.extension = [
         {"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params}
         for c in res.named
@@ -1001,7 +1033,6 @@ def run_audit(
             )
             for t in triads
         }
-        hold, turns = simulated_timing(chain)
         start = simulated_hold_starts_s(hold, turns)
         left_out_s = np.column_stack([start, start + hold])[list(res.left_out)]
         ext_reps, res.replica_curves["extended"] = replica_statistics(
@@ -1022,10 +1053,94 @@ def run_audit(
         ]
     else:
         res.extended_cmp = res.baseline_cmp
+    excess = unexplained_excess(res.extended_cmp)
+    if excess:
+        res.statements.append(excess)
     res.gain = _gain(
         session, candidate_table(chain, session, Triad.ACCEL, res.baseline[Triad.ACCEL]), res, g
     )
     return res
+
+
+def detectable_statements(cands: list[Candidate]) -> list[str]:
+    """Per triad, what each identifiable effect needs to be named on this session (95 % power): no blind spot unsaid.
+
+    Each candidate's ``*_min_detectable`` parameters (:func:`estimators.audit.candidates.min_detectable`), the
+    first of each effect and axis; the grade path a triad took decides which are there.
+    """
+    out = []
+    for t in Triad:
+        parts = []
+        for c in cands:
+            if c.triad is not t or not c.identifiable:
+                continue
+            for k, v in c.params.items():
+                if k.endswith("_min_detectable") or k.endswith("_min_detectable_norm2"):
+                    parts.append(
+                        f"{c.effect}{'' if c.axis is None else ' ' + c.axis} {k.replace('_min_detectable', '')} {v:.2g}"
+                    )
+                    break
+        if parts:
+            out.append(
+                f"minimum detectable on this session ({t.value}, 95 % power; units in each name): "
+                + "; ".join(parts)
+            )
+    return out
+
+
+def unexplained_excess(cmp: list[Comparison]) -> str | None:
+    """``unexplained excess`` when the extended model's headline lies outside its replicas' band, with every
+    statistic outside it (the named effects do not account for the data: never a silent headline)."""
+    head = next((c for c in cmp if c.statistic == "chi2_per_dof"), None)
+    if head is None or head.inside:
+        return None
+    out = [c for c in cmp if not c.inside]
+    return (
+        f"unexplained excess: with the named effects the headline χ²/dof is {head.measured:.3g} against the replicas' "
+        f"{head.simulated_p05:.3g}–{head.simulated_p95:.3g}; outside the band: "
+        + ", ".join(
+            f"{c.statistic} ({c.triad.value}{'' if c.axis is None else ' ' + c.axis}: ratio {c.ratio:.2g})"
+            for c in out
+        )
+    )
+
+
+def structure_of(
+    session: ImuSession, chain: ChainResult, baselines: dict[Triad, TriadBaseline]
+) -> list[ResidualStructure]:
+    """:func:`estimators.audit.candidates.residual_structure` of every triad on a scalar path (the
+    accelerometers; a gyro that resolves the Earth rate), on the candidates' tables."""
+    out = []
+    tab_a = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
+    gyro = baselines.get(Triad.GYRO)
+    n_tests = count_tests(
+        gyro is not None,
+        temperature_reason(tab_a) is None,
+        gyro is not None and gyro.scalar_resolved,
+    )
+    for t, b in baselines.items():
+        if not b.scalar_resolved:
+            continue
+        tab = tab_a if t is Triad.ACCEL else candidate_table(chain, session, t, b)
+        r, sd, jac, _ = scalar_residuals(b.params, tab)
+        out.append(residual_structure(t, tab, jac, r, sd, n_tests))
+    return out
+
+
+def structure_statement(st: ResidualStructure, named: list[Candidate]) -> str:
+    """What the audit made of a structured residual: the deterministic effects named on its triad, or that none was."""
+    own = [c for c in named if c.triad is st.triad and c.effect not in ("quantization",)]
+    det = [c for c in own if c.effect not in ("bias_instability", "nonstatic_positions")]
+    if det:
+        return f"{st.sentence}; explained by {', '.join(f'{c.effect} ({c.axis or st.triad.value})' for c in det)}"
+    wander = [c for c in own if c.effect == "bias_instability"]
+    if wander:
+        return (
+            f"{st.sentence}; no listed deterministic candidate passed, and the {', '.join(c.axis or '' for c in wander)} "
+            "bias_instability named rests on scatter between positions: a deterministic effect the audit does not "
+            "list would leave the same"
+        )
+    return f"{st.sentence}; no listed candidate passed its threshold"
 
 
 def left_out_positions(cands: list[Candidate]) -> tuple[tuple[int, ...], str]:
@@ -1052,20 +1167,37 @@ def extend_model(
     cands: list[Candidate],
     tab_a: PositionTable,
     g: float,
+    turn_mid_s: FloatArray | None = None,
 ) -> tuple[ErrorModel, dict[Triad, TriadBaseline]]:
     """The simulator's error model with every selected effect at its fitted parameters, and the surviving noise per triad.
 
     Physical units of the simulator (:mod:`estimators.sim.errors`) from the
     candidates' normalized fits: a bias instability becomes a Gauss–Markov bias
     per axis, moving the other axes it loads too; temperature polynomials refer to the session's mean temperature.
+    A change between positions (bias step, non-orthogonality change) happens in the middle of the
+    simulated turn before its position, ``turn_mid_s`` (P − 1,) (the measured turn's without it); the
+    cross-axis term, whose axis the norm does not tell, is shared equally by the three axes; a rail
+    is a symmetric clip; a spectral line is simulated and its variance ``A²/2`` leaves the white noise.
     """
     ext = model
     base = dict(baseline)
     drift = {t: np.zeros(3) for t in Triad}
     temp_bias = {t: np.zeros(3) for t in Triad}
     temp_scale = {t: np.zeros(3) for t in Triad}
-    k2, k3 = np.zeros(3), np.zeros(3)
+    k2, k3, kc = np.zeros(3), np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
+    step, t_step = np.zeros(3), np.zeros(3)
+    hysteresis = np.zeros(3)
+    cosine_change, t_cosine = np.zeros(3), 0.0
+    rails = {t: np.full(3, np.inf) for t in Triad}
+    line_hz = {t: np.zeros(3) for t in Triad}
+    line_amp = {t: np.zeros(3) for t in Triad}
+
+    def change_time(c: Candidate) -> float:
+        if turn_mid_s is None:
+            return float(c.params["t_change_s"])
+        return float(turn_mid_s[c.params["after_position"] - 1])
+
     excess = {t: np.zeros(3) for t in Triad}
     gm_sigma = {t: np.zeros(3) for t in Triad}
     gm_tau = {t: np.ones(3) for t in Triad}
@@ -1099,6 +1231,20 @@ def extend_model(
             k2[i], k3[i] = c.params["k2_norm"] / g, c.params["k3_norm"] / g**2
         elif c.effect == "g_sensitivity":
             gsens[i] = [c.params[f"g{a}_rps_per_mps2"] for a in AXES]
+        elif c.effect == "cross_axis_nonlinearity":
+            kc[:] = c.params["kc_norm"] / g / 3.0
+        elif c.effect == "bias_step":
+            step[i], t_step[i] = c.params["step_norm"] * g, change_time(c)
+        elif c.effect == "nonorthogonality_change":
+            cosine_change = np.array([c.params[f"d_{p}_change"] for p in ("xy", "xz", "yz")])
+            t_cosine = change_time(c)
+        elif c.effect == "temperature_hysteresis":
+            hysteresis[i] = c.params["offset_norm"] * g
+        elif c.effect == "clipping":
+            rails[c.triad][i] = abs(c.params["rail_si"])
+        elif c.effect == "spectral_line":
+            line_hz[c.triad][i] = c.params["freq_hz"]
+            line_amp[c.triad][i] = c.params["amplitude_si"]
         elif c.effect == "nonstatic_positions" and c.params["angle_rms_rad"] > 0:
             # Disturbed single positions are not simulated: the simulator moves every position or none.
             ext = ext.with_effect(
@@ -1129,8 +1275,29 @@ def extend_model(
             ext = ext.with_effect(TemperatureBias(temp_bias[t][:, None], t_ref_c=t_ref), t)
         if np.any(temp_scale[t]):
             ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
+        if np.any(np.isfinite(rails[t])):
+            ext = ext.with_effect(Clipping(rails[t]), t)
+        wn = ext.triad(t).find(WhiteNoise)
+        if np.any(line_amp[t]) and wn is not None:
+            # The line's variance A²/2 was read as white noise: it moves to the line.
+            line_var = 0.5 * line_amp[t] ** 2
+            white = np.sqrt(np.clip(wn.sample_sd(1.0) ** 2 - line_var, 0.0, None))
+            ext = ext.with_effect(SpectralLine(line_hz[t], line_amp[t]), t).with_effect(
+                WhiteNoise.from_sample_sd(white, 1.0, wn.correlation), t
+            )
+            base[t] = replace(
+                base[t], white_sd_si=np.sqrt(np.clip(b.white_sd_si**2 - line_var, 0.0, None))
+            )
     if np.any(k2) or np.any(k3):
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
+    if np.any(kc):
+        ext = ext.with_effect(CrossAxisNonlinearity(kc), Triad.ACCEL)
+    if np.any(step):
+        ext = ext.with_effect(BiasStep(t_step, step), Triad.ACCEL)
+    if np.any(cosine_change):
+        ext = ext.with_effect(NonOrthogonalityChange(t_cosine, cosine_change), Triad.ACCEL)
+    if np.any(hysteresis):
+        ext = ext.with_effect(TemperatureHysteresis(hysteresis), Triad.ACCEL)
     if np.any(gsens):
         ext = ext.with_effect(GSensitivity(gsens), Triad.GYRO)
     return ext, base

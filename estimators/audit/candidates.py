@@ -54,6 +54,16 @@ direction of gravity in the sensor axes, ``ΔT`` temperature about its mean):
   ``J_e_i·ΔT_k`` (M3); gyro: ``ΔT_k`` on the mean; only with a temperature
   span of at least :data:`MIN_TEMP_SPAN_C`;
 * ``scale_nonlinearity``: per axis, ``J_e_i·[ã_i, ã_i²]`` (M3's K2, K3);
+* ``cross_axis_nonlinearity``: for the triad, ``Σ_i J_b_i·ã_j ã_k`` (the second-order cross terms Kxy;
+  the norm sees them only through ``u_x u_y u_z``, the same for every axis: :func:`cross_axis_effect`);
+* ``temperature_hysteresis``: per axis, ``J_b_i·sign(dT/dt)_k`` (a bias that differs heating and cooling);
+* ``bias_step`` / ``nonorthogonality_change``: per axis ``J_b_i``, for the triad ``J_d`` (three
+  cosines), from position ``b`` on, profiled over the ``n − 1`` breaks (a knock or a mounting slip in a
+  turn); the threshold splits the candidate's share of the rate over the breaks, the ranking uses the
+  single test's margin (:func:`forward_select`): a deterministic effect is not beaten by one that
+  explains less behind a lower threshold;
+* ``clipping``: samples held on a rail, read from the samples (:func:`clipping_candidates`);
+* ``spectral_line``: a peak of the static samples' spectrum over its floor (:func:`line_candidates`);
 * ``g_sensitivity``: per gyro axis, the mean on the specific force ``[f_x, f_y, f_z]`` (M4),
   after the vertical Earth rate ``c·Ω·u_i`` with ``|c| ≤ 1`` (:func:`vertical_earth_rate`);
 * ``bias_instability``: per sensor axis, bias wander that does not average
@@ -113,6 +123,12 @@ CANDIDATE_NAMES = (
     "temperature_bias",
     "temperature_scale",
     "scale_nonlinearity",
+    "cross_axis_nonlinearity",
+    "bias_step",
+    "nonorthogonality_change",
+    "temperature_hysteresis",
+    "clipping",
+    "spectral_line",
     "g_sensitivity",
     "quantization",
     "gravity_mismatch",
@@ -183,18 +199,20 @@ def _loo_rss(a: FloatArray, z: FloatArray) -> tuple[float, float, FloatArray]:
 
 
 def mean_test(
-    base: FloatArray, extra: FloatArray, z: FloatArray
+    base: FloatArray, extra: FloatArray, z: FloatArray, known_scale: bool = False
 ) -> tuple[float, float, FloatArray, FloatArray]:
-    """Likelihood ratio (common scale free), held-out ratio, the extra coefficients and their standard errors.
+    """Likelihood ratio, held-out ratio, the extra coefficients and their standard errors.
 
     ``base`` (n, p) and ``extra`` (n, k) are already weighted regressors, ``z`` (n,) the weighted data.
+    The LR is the common scale's free (``n ln(RSS₀/RSS₁)``), or with ``known_scale`` the weights' own
+    (``RSS₀ − RSS₁``, χ²ₖ under the null): then what another effect leaves does not dilute it.
     The standard errors take the weights as exact (the detection scale of the effect).
     """
     rss0, loo0, _ = _loo_rss(base, z)
     full = np.hstack([base, extra])
     rss1, loo1, coef = _loo_rss(full, z)
     n = z.size
-    lr = float(n * np.log(rss0 / max(rss1, 1e-300)))
+    lr = float(rss0 - rss1) if known_scale else float(n * np.log(rss0 / max(rss1, 1e-300)))
     # numpy's stub types every mode as QRResult; mode="r" returns R alone.
     r: FloatArray = np.linalg.qr(full, mode="r")  # type: ignore[assignment]
     rinv = np.linalg.solve(r, np.eye(r.shape[0]))
@@ -205,7 +223,11 @@ def mean_test(
 
 @dataclass(frozen=True)
 class MeanTest:
-    """One mean-structure candidate's last test (see :func:`forward_select`)."""
+    """One mean-structure candidate's last test (see :func:`forward_select`).
+
+    ``rivals``: for a selected candidate, every candidate's LR in the round it joined (against the
+    same model): a profiled change's likelihood over its breaks, for the interval of its time.
+    """
 
     lr: float
     threshold: float
@@ -213,28 +235,53 @@ class MeanTest:
     coef: FloatArray
     se: FloatArray
     selected: bool
+    rivals: dict[int, float] = field(default_factory=dict)
 
 
 def forward_select(
-    base: FloatArray, z: FloatArray, regs: dict[int, FloatArray], n_tests: int
+    base: FloatArray,
+    z: FloatArray,
+    regs: dict[int, FloatArray],
+    n_tests: int,
+    multiplicity: dict[int, int] | None = None,
+    known_scale: bool = False,
 ) -> dict[int, MeanTest]:
     """Greedy forward selection of mean effects (weighted columns ``regs[key]`` (n, k)).
 
     Every remaining candidate is tested against the baseline plus the effects
-    already selected; the one with the largest margin over its threshold that
-    also lowers the held-out residual joins; repeat until none does. A sibling
-    that only rides on a selected effect's correlation (e.g. ``temperature_scale``
-    next to ``temperature_bias`` of the same axis) is then judged on what it adds.
+    already selected; of those that pass their threshold and also lower the
+    held-out residual, the one with the largest margin over the threshold of a
+    single test joins; repeat until none does. A sibling that only rides on a
+    selected effect's correlation (e.g. ``temperature_scale`` next to
+    ``temperature_bias`` of the same axis) is then judged on what it adds.
+
+    ``multiplicity[key]`` (default 1): the candidate is one of that many tried for
+    one effect (a step profiled over the breaks between positions): its threshold
+    splits its share of the family-wise rate over them, but it is ranked against
+    the others on the single test's margin, so a profiled effect that explains
+    more is not beaten by one with a lower threshold that explains less.
+
+    ``known_scale``: the weights are the data's sd (:func:`mean_test`): each effect is tested on what
+    it explains, not against a scale the others' leftovers inflate, so effects that are there
+    together are found together; thresholds χ²ₖ at the same split rate.
     """
+    mult = multiplicity or {}
+
+    def threshold(k: int, p: int, tests_: int) -> float:
+        return _threshold(k, tests_) if known_scale else _threshold_mean(k, z.size, p, tests_)
+
     tests: dict[int, MeanTest] = {}
+    single: dict[int, float] = {}
     current = base
     remaining = list(regs)
     while remaining:
         for key in remaining:
-            lr, cv, coef, se = mean_test(current, regs[key], z)
+            lr, cv, coef, se = mean_test(current, regs[key], z, known_scale)
+            k, p = regs[key].shape[1], current.shape[1]
+            single[key] = threshold(k, p, n_tests)
             tests[key] = MeanTest(
                 lr,
-                _threshold_mean(regs[key].shape[1], z.size, current.shape[1], n_tests),
+                threshold(k, p, n_tests * mult.get(key, 1)),
                 cv,
                 coef,
                 se,
@@ -245,9 +292,10 @@ def forward_select(
         ]
         if not passing:
             break
-        best = max(passing, key=lambda k: tests[k].lr - tests[k].threshold)
+        best = max(passing, key=lambda k: tests[k].lr - single[k])
         t = tests[best]
-        tests[best] = MeanTest(t.lr, t.threshold, t.cv_ratio, t.coef, t.se, True)
+        rivals = {k: tests[k].lr for k in remaining}
+        tests[best] = MeanTest(t.lr, t.threshold, t.cv_ratio, t.coef, t.se, True, rivals)
         current = np.hstack([current, regs[best]])
         remaining.remove(best)
     return tests
@@ -577,6 +625,326 @@ def fit_loading(halves: VarianceData, axis: int, other: int) -> tuple[float, flo
     return best_l, 2.0 * (nll0 - best)
 
 
+# --- structure of the residual -------------------------------------------------
+
+WITHIN_ABSENT_LR = 3.84
+"""Largest LR of an excess inside positions (any axis) for it to count as absent: χ²₁ at 5 %. Absence must
+be shown, not merely not significant at the family-wise rate: a slow wander shows inside positions
+weakly (LR 5–10), and the known scale it would make wrong names its between-position scatter deterministic."""
+
+
+@dataclass(frozen=True)
+class ResidualStructure:
+    """Where a triad's scalar residual departs from the within-position noise: between positions, inside them.
+
+    ``lr_between`` (3,): the LR of an excess on the baseline's scalar residuals along sensor axis ``i``
+    (weights ``J_b_i²``), the within-position noise the known scale; ``lr_within`` (3,): of an excess of
+    axis ``i`` on the half-to-half differences. ``structured``: the residual holds structure between
+    positions (the largest ``lr_between`` beyond ``threshold``) and none inside them (every axis'
+    ``lr_within`` below :data:`WITHIN_ABSENT_LR`) — the signature of a deterministic effect, not of wander, which shows inside
+    positions too (on any axis, a wander makes the within-position noise too small a scale). ``axis``:
+    the axis whose excess fits best (the scalar residual tells the axes apart only through the orientations). ``t_mid_s``, ``up`` (n, 3), ``residual_norm`` and ``sigma_norm``: the residual against
+    time and orientation, for the plot.
+    """
+
+    triad: Triad
+    axis: str
+    lr_between: FloatArray
+    lr_within: FloatArray
+    threshold: float
+    structured: bool
+    t_mid_s: FloatArray
+    up: FloatArray
+    residual_norm: FloatArray
+    sigma_norm: FloatArray
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "triad": self.triad.value,
+            "axis": self.axis,
+            "structured": self.structured,
+            "lr_between": [float(v) for v in self.lr_between],
+            "lr_within": [float(v) for v in self.lr_within],
+            "threshold": self.threshold,
+        }
+
+    @property
+    def sentence(self) -> str:
+        i = AXES.index(self.axis)
+        return (
+            f"structured_residual: the {self.triad.value} scalar residual is structured between positions along "
+            f"{self.axis} (LR {self.lr_between[i]:.1f}, threshold {self.threshold:.1f}) and absent inside them "
+            f"(LR at most {float(np.max(self.lr_within)):.1f}): a deterministic effect's signature; the deterministic "
+            "candidates are tested on it at the within-position noise before any wander"
+        )
+
+
+def residual_structure(
+    triad: Triad,
+    tab: PositionTable,
+    jac: FloatArray,
+    residual: FloatArray,
+    sigma: FloatArray,
+    n_tests: int,
+) -> ResidualStructure:
+    """The structure test of one triad's baseline scalar residual (:class:`ResidualStructure`).
+
+    Each axis' excess is one variance component (:func:`fit_variance`), the between record after the
+    nine parameters' fit (:func:`leverage_residual`), the halves record at the baseline's noise; each
+    LR against χ²₁ at the audit's family-wise rate over its tests (Bonferroni).
+    """
+    weight = jac[:, :3] ** 2
+    between = VarianceData.finite(
+        leverage_residual(jac, residual, sigma)[:, None],
+        (sigma**2)[:, None, None],
+        leverage_components(jac, sigma, weight.T)[:, :, None, None],
+    )
+    n = tab.t_mid_s.size
+    halves = _halves_record(tab, np.zeros((n, 3)), np.zeros((n, 3, 3)))
+    lr_b, lr_w = np.zeros(3), np.zeros(3)
+    _, nll_b0 = fit_variance([between.subset(np.zeros(3, bool))])
+    _, nll_w0 = fit_variance([halves.subset(np.zeros(4, bool))])
+    for i in range(3):
+        _, nll = fit_variance([between.subset(np.arange(3) == i)])
+        lr_b[i] = max(2.0 * (nll_b0 - nll), 0.0)
+        if halves.y.shape[0]:
+            _, nll = fit_variance([halves.subset(np.arange(4) == i)])
+            lr_w[i] = max(2.0 * (nll_w0 - nll), 0.0)
+    thr = _threshold(1, n_tests)
+    i = int(np.argmax(lr_b))
+    u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
+    return ResidualStructure(
+        triad,
+        AXES[i],
+        lr_b,
+        lr_w,
+        thr,
+        bool(lr_b[i] > thr and np.all(lr_w < WITHIN_ABSENT_LR)),
+        tab.t_mid_s,
+        u,
+        residual,
+        sigma,
+    )
+
+
+# --- clipping -------------------------------------------------------------------
+
+
+def clipping_candidates(
+    triad: Triad,
+    x_si: FloatArray,
+    spans: IntArray,
+    sample_sd_si: FloatArray,
+    step_si: FloatArray | None,
+    n_tests: int,
+) -> list[Candidate]:
+    """``clipping`` per axis: static samples held on a rail, read from the samples themselves.
+
+    The extreme value of an axis over the static samples (``spans`` (n, 2)) is its rail candidate, on
+    the side where it is larger in magnitude. Without a rail the samples at that level besides the
+    extreme itself are a Poisson count of mean ``E = Σ_k n_k P(level)``, each position's samples
+    normal about its mean with the baseline's per-sample sd, the level one output step wide (the
+    grid's, or float32's resolution off a grid): a clipped output stacks samples there that the noise
+    would have spread beyond. ``LR = −2 ln p`` of the count, against ``−2 ln(α/(tests·3))``
+    (three axes per triad). The rail is exact to half a step. On a grid coarser than the noise the
+    levels' counts hang on where each mean falls between two levels: not identifiable there.
+    """
+    from scipy.stats import norm, poisson
+
+    thr = float(-2.0 * np.log(FAMILY_ALPHA / (max(n_tests, 1) * 3)))
+    out = []
+    for i, ax in enumerate(AXES):
+        if step_si is not None and step_si[i] > sample_sd_si[i]:
+            out.append(
+                not_identifiable(
+                    "clipping",
+                    triad,
+                    ax,
+                    f"not identifiable: the output grid ({step_si[i]:.3g} SI) is coarser than the noise "
+                    f"({sample_sd_si[i]:.3g} SI): a position's samples stack on a level or two whatever the rail",
+                )
+            )
+            continue
+        pieces = [x_si[a:b, i] for a, b in spans]
+        static = np.concatenate(pieces)
+        hi, lo = float(static.max()), float(static.min())
+        rail = hi if abs(hi) >= abs(lo) else lo
+        step = 0.0 if step_si is None else float(step_si[i])
+        width = max(step, 2.0 * float(np.spacing(np.float32(abs(rail)))))
+        on = np.abs(static - rail) <= 0.5 * width
+        count = int(on.sum())
+        means = np.array([p.mean() for p in pieces])
+        n_k = np.array([p.size for p in pieces])
+        z_hi = (abs(rail) + 0.5 * width - np.sign(rail) * means) / sample_sd_si[i]
+        z_lo = (abs(rail) - 0.5 * width - np.sign(rail) * means) / sample_sd_si[i]
+        expected = float(np.sum(n_k * (norm.sf(z_lo) - norm.sf(z_hi))))
+        # The extreme sample itself is on the level by construction: the count is of the others.
+        p = float(poisson.sf(count - 2, expected)) if count >= 2 else 1.0
+        lr = float(-2.0 * np.log(max(p, 1e-300)))
+        touched = [
+            k for k, piece in enumerate(pieces) if np.any(np.abs(piece - rail) <= 0.5 * width)
+        ]
+        out.append(
+            Candidate(
+                "clipping",
+                triad,
+                ax,
+                True,
+                lr,
+                thr,
+                1.0,
+                {
+                    "rail_si": rail,
+                    "rail_se_si": 0.5 * step,
+                    "samples_on_rail": count,
+                    "expected_without_rail": expected,
+                    "positions_on_rail": touched,
+                },
+                lr > thr,
+                f"{triad.value} {ax}: {count} static samples on {rail:.6g} SI, the extreme level "
+                f"({expected:.2g} expected there without a rail; positions {', '.join(f'#{k}' for k in touched[:5])}"
+                f"{', …' if len(touched) > 5 else ''}): LR {lr:.1f} (threshold {thr:.1f})",
+            )
+        )
+    return out
+
+
+# --- spectral lines -------------------------------------------------------------
+
+LINE_SEGMENT = 256
+"""Longest periodogram segment of the line test, samples (shorter positions: the largest power of two they hold)."""
+LINE_FLOOR_BINS = 17
+"""Width of the running median that is the line test's noise floor, bins: wide against a line's three bins
+(Hann window), narrow against the bend of a sensor filter's roll-off."""
+LINE_SKIP_BINS = 3
+"""Lowest bins left out of the line test: the mean, and the wander the segment's detrend leaves."""
+LINE_CONCENTRATION = 0.8
+"""Least share of a peak's excess (over ±4 bins) in its three central bins for a line: a sinusoid puts ≥ 98 %
+there through the Hann window wherever it falls between bins; a resonance's narrowband noise spreads wider."""
+
+
+def line_spectrum(
+    x: FloatArray, spans: IntArray, rate_hz: float
+) -> tuple[FloatArray, FloatArray, int]:
+    """(frequencies (m,), one-sided PSD (m, 3) in SI²/Hz, segments averaged) of the static samples.
+
+    Non-overlapping Hann segments of :data:`LINE_SEGMENT` samples (or the largest power of two every usable
+    position holds, at least 32), each linearly detrended, averaged over every segment of every position:
+    independent segments, so each bin is its level times ``χ²_ν/ν``, ``ν = 2 × segments``.
+    """
+    from scipy.signal import detrend
+
+    lengths = np.array([b - a for a, b in spans])
+    usable = lengths[lengths >= 32]
+    if usable.size == 0:
+        return np.zeros(0), np.zeros((0, 3)), 0
+    nseg = int(min(LINE_SEGMENT, 2 ** int(np.floor(np.log2(np.median(usable))))))
+    segs = [x[a + j * nseg : a + (j + 1) * nseg] for a, b in spans for j in range((b - a) // nseg)]
+    if not segs:
+        return np.zeros(0), np.zeros((0, 3)), 0
+    w = np.hanning(nseg)
+    y = detrend(np.stack(segs), axis=1) * w[None, :, None]
+    psd = np.mean(np.abs(np.fft.rfft(y, axis=1)) ** 2, axis=0) / (rate_hz * np.sum(w**2))
+    psd[1:-1] *= 2.0
+    freq: FloatArray = np.fft.rfftfreq(nseg, 1.0 / rate_hz).astype(np.float64)
+    return freq, np.asarray(psd, dtype=np.float64), len(segs)
+
+
+def line_candidates(
+    triad: Triad, x_si: FloatArray, spans: IntArray, rate_hz: float, n_tests: int
+) -> list[Candidate]:
+    """``spectral_line`` per axis: a peak of the static samples' spectrum above its noise floor (:func:`line_spectrum`).
+
+    The floor is the running median over :data:`LINE_FLOOR_BINS` bins (a coloured noise, a sensor filter's
+    roll-off, bends it; a line does not move it), corrected for the median of ``χ²_ν/ν``; the bins within
+    half its window of either end are not tried (a line there is not seen: said in ``reason``). A bin is a line
+    when ``P/floor`` lies beyond the ``F(ν, ν_floor)`` quantile (the floor's own scatter counted) at the
+    audit's family-wise rate split over the tests,
+    the three axes and the bins tried; ``LR = −2 ln p`` of the highest bin. The amplitude is ``√(2 Σ (P −
+    floor) Δf)`` over the peak's three bins (the line's variance ``A²/2``), its frequency the bins' power
+    centroid, good to a bin (``Δf``). A peak whose excess spreads beyond its three bins
+    (:data:`LINE_CONCENTRATION`) is narrowband noise (a resonance), not a line: it is not named.
+    """
+    from scipy.ndimage import median_filter
+    from scipy.stats import f as f_dist
+
+    freq, psd, m = line_spectrum(x_si, spans, rate_hz)
+    out = []
+    edge = max(LINE_SKIP_BINS, LINE_FLOOR_BINS // 2)
+    if m == 0 or freq.size <= 2 * edge + 1:
+        return [
+            not_identifiable(
+                "spectral_line", triad, ax, "not identifiable: no position holds a spectrum segment"
+            )
+            for ax in AXES
+        ]
+    nu = 2 * m
+    # The floor is itself an estimate: a median of the window's bins has the variance of a mean of
+    # 2/π of them, so the ratio is F-distributed with the floor's degrees of freedom.
+    nu_floor = nu * LINE_FLOOR_BINS * 2.0 / np.pi
+    # Where the running median's window is cut by an end of the spectrum the floor is not a median of its
+    # neighbours: those bins (near 0 and near Nyquist) are not tried.
+    tried = slice(edge, freq.size - edge)
+    n_bins = freq.size - 2 * edge
+    alpha = FAMILY_ALPHA / (max(n_tests, 1) * 3 * n_bins)
+    thr = float(-2.0 * np.log(alpha))
+    df = float(freq[1] - freq[0])
+    for i, ax in enumerate(AXES):
+        p_i = psd[:, i]
+        floor = (
+            median_filter(p_i, size=LINE_FLOOR_BINS, mode="nearest") / (1.0 - 2.0 / (9.0 * nu)) ** 3
+        )
+        logp = f_dist.logsf(p_i[tried] / floor[tried], nu, nu_floor)
+        k = edge + int(np.argmin(logp))
+        lr = float(-2.0 * np.min(logp))
+        near = slice(max(k - 1, 1), min(k + 2, freq.size))
+        excess = np.clip(p_i[near] - floor[near], 0.0, None)
+        wide = slice(max(k - 4, 1), min(k + 5, freq.size))
+        share = float(
+            np.sum(excess) / max(np.sum(np.clip(p_i[wide] - floor[wide], 0.0, None)), 1e-300)
+        )
+        amp = float(np.sqrt(2.0 * np.sum(excess) * df))
+        f_line = (
+            float(np.sum(freq[near] * excess) / np.sum(excess))
+            if np.sum(excess) > 0
+            else float(freq[k])
+        )
+        out.append(
+            Candidate(
+                "spectral_line",
+                triad,
+                ax,
+                True,
+                lr,
+                thr,
+                1.0,
+                {
+                    "freq_hz": f_line,
+                    "freq_resolution_hz": df,
+                    "amplitude_si": amp,
+                    "peak_over_floor": float(p_i[k] / floor[k]),
+                    "share_in_three_bins": share,
+                    "segments": m,
+                    "bins_tried": n_bins,
+                    "band_tried_hz": [float(freq[edge]), float(freq[-edge - 1])],
+                    "spectrum_freq_hz": [float(v) for v in freq],
+                    "spectrum_psd_si2_per_hz": [float(v) for v in p_i],
+                    "floor_psd_si2_per_hz": [float(v) for v in floor],
+                },
+                lr > thr and share >= LINE_CONCENTRATION,
+                f"{triad.value} {ax}: the static spectrum peaks {p_i[k] / floor[k]:.3g}× its floor at {f_line:.4g} Hz "
+                f"(±{df:.2g} Hz; amplitude {amp:.3g} SI, {m} segments; {freq[edge]:.3g}–{freq[-edge - 1]:.3g} Hz tried): "
+                f"LR {lr:.1f} (threshold {thr:.1f})"
+                + (
+                    ""
+                    if share >= LINE_CONCENTRATION
+                    else f"; {100 * share:.0f} % of its excess in the three central bins: narrowband noise, not a line"
+                ),
+            )
+        )
+    return out
+
+
 # --- the candidates of each triad ---------------------------------------------
 
 
@@ -596,12 +964,14 @@ def temperature_reason(tab: PositionTable) -> str | None:
 
 def count_tests(has_gyro: bool, temperature: bool, earth_rate: bool = False) -> int:
     """Candidates tried (the Bonferroni split): per accelerometer axis drift, non-linearity,
-    instability (+ two temperature effects); nonstatic positions; per gyro axis drift,
-    g-sensitivity, instability (+ temperature bias, and temperature scale when the gyro
-    resolves the Earth rate: ``earth_rate``)."""
-    accel = 3 * (3 + (2 if temperature else 0)) + 1
+    bias step, instability (+ temperature bias, scale and hysteresis); the cross-axis term, a change
+    of non-orthogonality and nonstatic positions; per gyro axis drift, g-sensitivity, instability
+    (+ temperature bias, and temperature scale when the gyro resolves the Earth rate:
+    ``earth_rate``); per triad clipping and a spectral line. A step profiled over the breaks counts once here; its own threshold splits
+    its share over the breaks (:func:`forward_select`)."""
+    accel = 3 * (4 + (3 if temperature else 0)) + 5
     gyro_temp = (2 if earth_rate else 1) if temperature else 0
-    gyro = 3 * (3 + gyro_temp) if has_gyro else 0
+    gyro = 3 * (3 + gyro_temp) + 2 if has_gyro else 0
     return accel + gyro
 
 
@@ -615,6 +985,96 @@ class _MeanEffect:
     reg: FloatArray  # (n, k) on the residual (accel) or the mean (gyro)
     halves: FloatArray  # (n, k) first-half minus second-half change of axis ``axis`` per unit physical parameter
     sign: float  # physical parameter = sign · regression coefficient
+    after: int | None = (
+        None  # a change between positions after - 1 and after (profiled over the breaks)
+    )
+    window_s: tuple[float, float] = (
+        0.0,
+        0.0,
+    )  # the turn the change lies in: end of after - 1, start of after
+    breaks: int = 1  # how many breaks the change is profiled over (its threshold's multiplicity)
+    triad_level: bool = False  # named without an axis (the three columns are the triad's)
+
+
+def _change_effects(
+    tab: PositionTable,
+    name: str,
+    axis: int,
+    keys: tuple[str, ...],
+    columns: FloatArray,
+    triad_level: bool = False,
+) -> list[_MeanEffect]:
+    """A change of the effect ``columns`` (n, k) between two positions, one candidate per break.
+
+    Break ``b`` (1 … n − 1) lies in the turn before position ``b``: the regressor is the columns
+    from position ``b`` on (the first positions are the reference). The halves do not see a change
+    in a turn; a change inside a position (a knock) splits it, or leaves it for ``nonstatic_positions``.
+    """
+    n, k = columns.shape
+    end = tab.t_mid_s + 0.5 * tab.duration_s
+    start = tab.t_mid_s - 0.5 * tab.duration_s
+    return [
+        _MeanEffect(
+            name,
+            axis,
+            keys,
+            columns * (np.arange(n) >= b)[:, None],
+            np.zeros((n, k)),
+            -1.0,
+            after=b,
+            window_s=(float(end[b - 1]), float(start[b])),
+            breaks=n - 1,
+            triad_level=triad_level,
+        )
+        for b in range(1, n)
+    ]
+
+
+def heating_sign_of_positions(tab: PositionTable) -> FloatArray:
+    """(n,) +1 for a position the unit was heating in, −1 cooling (the temperature's slope through its neighbours)."""
+    assert tab.temp_c is not None
+    out: FloatArray = np.sign(np.gradient(tab.temp_c, tab.t_mid_s))
+    return out
+
+
+def cross_axis_effect(tab: PositionTable, jac: FloatArray) -> _MeanEffect:
+    """The second-order cross-axis term ``y_i += Kc_i y_j y_k`` of the triad (normalized ``kc_norm = Σ Kc_i·g``).
+
+    The scalar residual sees a bias of axis ``i`` through ``∂f/∂b_i ≈ u_i``: each axis' term enters as
+    ``Kc_i u_x u_y u_z``, the same regressor for all three. The norm tells the sum, not the axis: one
+    candidate for the triad, its regressor ``⅓ Σ_i J_b_i Π_{j≠i} ã_j`` (the exact Jacobian; ≈ ``u_x u_y u_z``
+    whichever axis carries the term).
+    """
+    others = np.column_stack([np.prod(np.delete(tab.mean, i, axis=1), axis=1) for i in range(3)])
+    n = tab.t_mid_s.size
+    return _MeanEffect(
+        "cross_axis_nonlinearity",
+        0,
+        ("kc_norm",),
+        np.mean(jac[:, :3] * others, axis=1, keepdims=True),
+        np.zeros((n, 1)),
+        -1.0,
+        triad_level=True,
+    )
+
+
+def accel_changes(tab: PositionTable, jac: FloatArray) -> list[_MeanEffect]:
+    """The accelerometers' changes between positions: a bias step per axis and a change of the three cosines (a mounting slip)."""
+    out = [
+        e
+        for i in range(3)
+        for e in _change_effects(tab, "bias_step", i, ("step_norm",), jac[:, [i]])
+    ]
+    out.append(cross_axis_effect(tab, jac))
+    out += _change_effects(
+        tab,
+        "nonorthogonality_change",
+        0,
+        tuple(f"d_{a}_change" for a in ("xy", "xz", "yz")),
+        jac[:, 6:9],
+        triad_level=True,
+    )
+    return out
 
 
 def _mean_effects(
@@ -649,6 +1109,14 @@ def _mean_effects(
         ]
         if dtemp is not None and th is not None:
             out += [
+                _MeanEffect(
+                    "temperature_hysteresis",
+                    i,
+                    ("offset_norm",),
+                    jac[:, [i]] * heating_sign_of_positions(tab)[:, None],
+                    np.zeros((n, 1)),
+                    -1.0,
+                ),
                 _MeanEffect(
                     "temperature_bias", i, ("coef_norm_per_c",), jac[:, [i]] * dtemp, th, -1.0
                 ),
@@ -687,11 +1155,17 @@ def _select_means(
     sd: FloatArray,
     n_tests: int,
     n_halves: int,
+    known_scale: bool = False,
 ) -> tuple[dict[int, MeanTest], FloatArray, FloatArray]:
     """Forward selection (weights ``1/sd``); returns the tests, the chosen columns and the chosen effects' halves means (n, n_halves)."""
     w = 1.0 / sd
     tests = forward_select(
-        base * w[:, None], data * w, {k: e.reg * w[:, None] for k, e in enumerate(effects)}, n_tests
+        base * w[:, None],
+        data * w,
+        {k: e.reg * w[:, None] for k, e in enumerate(effects)},
+        n_tests,
+        {k: e.breaks for k, e in enumerate(effects)},
+        known_scale,
     )
     chosen = [effects[k].reg for k, t in tests.items() if t.selected]
     halves_mean = np.zeros((data.size, n_halves))
@@ -714,6 +1188,7 @@ def _means_with_excess(
     excess_weight: FloatArray,
     n_tests: int,
     n_halves: int,
+    known_scale: bool = False,
 ) -> tuple[dict[int, MeanTest], FloatArray, FloatArray, FloatArray]:
     """Mean selection whose weights carry the variance excess left after the chosen effects, iterated to a fixed point.
 
@@ -722,12 +1197,15 @@ def _means_with_excess(
     after it): from white weights, select, fit the excess ``v`` (components
     ``excess_weight`` (m, n)) on what is left, reselect with
     ``sd² = var0 + vᵀ·excess_weight``; stop when the chosen set repeats.
+    ``known_scale`` (:func:`forward_select`) for a residual whose structure is between positions only.
     Returns the tests, the chosen columns, their halves means and the final sd (n,).
     """
     comps = excess_weight[:, :, None, None]
     sd, seen = np.sqrt(var0), None
     for _ in range(MEAN_PASSES):
-        tests, chosen, halves_mean = _select_means(effects, base, data, sd, n_tests, n_halves)
+        tests, chosen, halves_mean = _select_means(
+            effects, base, data, sd, n_tests, n_halves, known_scale
+        )
         keys = frozenset(k for k, t in tests.items() if t.selected)
         r = leverage_residual(np.hstack([base, chosen]), data, sd)
         v, _ = fit_variance([VarianceData.finite(r[:, None], var0[:, None, None], comps)])
@@ -738,6 +1216,21 @@ def _means_with_excess(
     return tests, chosen, halves_mean, sd
 
 
+POWER_Z = 1.645
+"""Standard normal quantile of the 95 % power the minimum detectable size is stated at."""
+
+
+def min_detectable(se: float, threshold: float) -> float:
+    """Size named with 95 % power on this session: ``se (√threshold + z₀.₉₅)`` (the LR of a one-parameter
+    effect is about its size over its standard error, squared; a stated approximation for the F form
+    and for a variance component, whose LR grows more slowly at large sizes)."""
+    return float(abs(se) * (np.sqrt(max(threshold, 0.0)) + POWER_Z))
+
+
+CHANGE_TIME_LR = 3.84
+"""Profile-LR drop that bounds the time of a change (χ²₁ at 95 %)."""
+
+
 def _mean_candidates(
     effects: list[_MeanEffect],
     tests: dict[int, MeanTest],
@@ -745,14 +1238,53 @@ def _mean_candidates(
     to_si: float,
     what: str,
 ) -> list[Candidate]:
-    """One candidate per mean effect; ``to_si`` turns the fitted coefficients into the units of their keys."""
-    out = []
+    """One candidate per mean effect; ``to_si`` turns the fitted coefficients into the units of their keys.
+
+    A change profiled over the breaks is one candidate: the break selected, else the one of the largest LR,
+    with when it happened: from the first to the last turn whose break's profile LR is within
+    :data:`CHANGE_TIME_LR` of the best (a 95 % profile-likelihood set; a break only positions blind to
+    the axis lie next to is as likely as the best), its middle ± half its span.
+    """
+    shown: dict[tuple[str, int], int] = {}
     for k, t in tests.items():
         e = effects[k]
-        ax = AXES[e.axis]
-        fitted = {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)} | {
-            f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)
-        }
+        key = (e.name, e.axis)
+        if e.after is None or key not in shown:
+            shown.setdefault(key, k)
+            continue
+        best = tests[shown[key]]
+        if t.selected or (not best.selected and t.lr > best.lr):
+            shown[key] = k
+    out = []
+    for k in shown.values():
+        t, e = tests[k], effects[k]
+        ax = None if e.triad_level else AXES[e.axis]
+        fitted = (
+            {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)}
+            | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)}
+            | {
+                f"{key}_min_detectable": float(min_detectable(s * to_si, t.threshold))
+                for key, s in zip(e.keys, t.se, strict=True)
+            }
+        )
+        when = ""
+        if e.after is not None:
+            profile = t.rivals or {j: u.lr for j, u in tests.items()}
+            near = [
+                effects[j].window_s
+                for j, lr in profile.items()
+                if (effects[j].name, effects[j].axis) == (e.name, e.axis)
+                and lr >= t.lr - CHANGE_TIME_LR
+            ]
+            lo, hi = min(w[0] for w in near), max(w[1] for w in near)
+            fitted |= {
+                "after_position": e.after,
+                "t_change_s": 0.5 * (lo + hi),
+                "t_change_se_s": 0.5 * (hi - lo),
+                "breaks_tried": e.breaks,
+            }
+            when = f" in the turn before position {e.after} ({lo:.1f}–{hi:.1f} s; {e.breaks} breaks tried)"
+        where = "the triad" if ax is None else f"axis {ax}"
         out.append(
             Candidate(
                 e.name,
@@ -764,7 +1296,7 @@ def _mean_candidates(
                 t.cv_ratio,
                 fitted,
                 t.selected,
-                f"{what} of axis {ax} follow the {e.name} regressor: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}",
+                f"{what} of {where} follow the {e.name} regressor{when}: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}",
             )
         )
     return out
@@ -907,6 +1439,9 @@ def variance_candidates(
         params: CandidateParams = {
             "between_sd_norm": float(np.sqrt(vb)),
             "between_var_se_norm2": variance_se_at_zero(records[rb], i),
+            "between_var_min_detectable_norm2": min_detectable(
+                variance_se_at_zero(records[rb], i), t.threshold
+            ),
             "within_halves_sd_norm": float(np.sqrt(vh)),
             "lr_between": float(t.lrs[rb]),
             "lr_within": float(t.lrs[rh]),
@@ -1053,10 +1588,16 @@ def _scalar_records(
     g_b2 = (
         jac[:, :3] ** 2
     )  # a bias wander of axis i moves f by ∂f/∂b_i (≈ −u_i for the accelerometers)
+    # Structure between positions and none inside them: the within-position noise is the residual's scale,
+    # and each deterministic candidate is tested on what it explains (several at once are found together).
+    known = residual_structure(triad, tab, jac, residual, sigma, n_tests).structured
     tests, chosen, halves_mean, sd = _means_with_excess(
-        effects, jac, residual, var0, g_b2.T, n_tests, 3
+        effects, jac, residual, var0, g_b2.T, n_tests, 3, known
     )
-    out = _mean_candidates(effects, tests, triad, to_si, f"{triad.value} scalar residuals")
+    what = f"{triad.value} scalar residuals" + (
+        " (structured between positions only: tested at the within-position noise)" if known else ""
+    )
+    out = _mean_candidates(effects, tests, triad, to_si, what)
     # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
     design = np.hstack([jac, chosen])
     between = VarianceData.finite(
@@ -1079,7 +1620,9 @@ def accel_records(
     n_tests : candidates tried (:func:`count_tests`).
     """
     tri = Triad.ACCEL
-    effects = [e for i in range(3) for e in _mean_effects(tab, jac, None, i)]
+    effects = [e for i in range(3) for e in _mean_effects(tab, jac, None, i)] + accel_changes(
+        tab, jac
+    )
     u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
     perp = np.eye(3)[None] - np.einsum("ka,kb->kab", u, u)
     out, between, halves = _scalar_records(
@@ -1090,7 +1633,7 @@ def accel_records(
         out += [
             not_identifiable(name, tri, ax, reason)
             for ax in AXES
-            for name in ("temperature_bias", "temperature_scale")
+            for name in ("temperature_bias", "temperature_scale", "temperature_hysteresis")
         ]
     out.append(
         not_identifiable(

@@ -33,6 +33,18 @@ effect-free session of the same seed (what the data can resolve):
   its step: every size resolves; beyond ~30 a static output freezes on one
   count, which the chain refuses).
 
+The deterministic classes of issue 31 (:data:`MECHANISM_KINDS`), each named as its mechanism:
+
+* ``cross_axis_nonlinearity`` (``y_i += Kc y_j y_k``), ``temperature_hysteresis`` (``±h`` heating
+  and cooling): the standard error of the candidate's coefficient, as for the mean effects;
+* ``bias_step`` (one axis) and ``nonorthogonality_change`` (one cosine: x→xy, y→xz, z→yz; named
+  for the triad): in the turn before a position drawn from the seed among the middle half, the
+  standard error of the step at that break (:func:`change_se`);
+* ``clipping``: symmetric rails on the axis, ``size`` static samples beyond them (held on one).
+
+``spectral_line`` (:data:`LINE_KIND`): a 50 Hz sinusoid on a 200 Hz session, ``size`` its amplitude in
+per-sample noise sd.
+
 A hidden ``quantization`` is named by the baseline (it is part of it): a trial
 counts it named when the baseline found a grid on that triad.
 """
@@ -54,19 +66,25 @@ from estimators.sim import (
     Bias,
     BiasDrift,
     BiasInstability,
+    BiasStep,
+    Clipping,
+    CrossAxisNonlinearity,
     CycleTemperature,
     Effect,
     ErrorModel,
     Grade,
     GSensitivity,
     NonOrthogonality,
+    NonOrthogonalityChange,
     NonstaticPositions,
     Quantization,
     Rounding,
     ScaleFactor,
     ScaleNonlinearity,
     SessionSpec,
+    SpectralLine,
     TemperatureBias,
+    TemperatureHysteresis,
     TemperatureScale,
     TriadErrorModel,
     WhiteNoise,
@@ -115,6 +133,21 @@ HIDDEN_KINDS: tuple[tuple[str, Triad], ...] = (
 )
 """What a trial can hide: (effect, triad). Temperature effects need the temperature cycle; gyro scale effects need a known rate."""
 
+MECHANISM_KINDS: tuple[tuple[str, Triad], ...] = (
+    ("cross_axis_nonlinearity", Triad.ACCEL),
+    ("bias_step", Triad.ACCEL),
+    ("nonorthogonality_change", Triad.ACCEL),
+    ("temperature_hysteresis", Triad.ACCEL),
+    ("clipping", Triad.ACCEL),
+)
+"""The deterministic classes of issue 31: wander was named for them before they were candidates."""
+
+LINE_KIND = ("spectral_line", Triad.ACCEL)
+"""A mains or rotor line (issue 31): :data:`LINE_FREQ_HZ` on a :data:`LINE_RATE_HZ` session, ``size`` its
+amplitude in per-sample noise sd (the issue's case: 1.5)."""
+LINE_FREQ_HZ = 50.0
+LINE_RATE_HZ = 200.0
+
 TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
     ("temperature_bias", Triad.ACCEL),
     ("temperature_scale", Triad.ACCEL),
@@ -124,20 +157,26 @@ TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
 
 
 def kinds_of(grade: Grade) -> tuple[tuple[str, Triad], ...]:
-    """Every kind a trial of ``grade`` can hide: :data:`HIDDEN_KINDS`, the gyro temperature bias, and at
-    navigation grade the gyro temperature scale (the Earth rate is a known rate)."""
+    """Every kind a trial of ``grade`` can hide: :data:`HIDDEN_KINDS`, the gyro temperature bias, at
+    navigation grade the gyro temperature scale (the Earth rate is a known rate), and :data:`MECHANISM_KINDS`."""
     extra = [("temperature_bias", Triad.GYRO)]
     if grade is not Grade.MEMS:
         extra.append(("temperature_scale", Triad.GYRO))
-    return tuple((e, t) for e, t in HIDDEN_KINDS if t is not None) + tuple(extra)
+    return HIDDEN_KINDS + tuple(extra) + MECHANISM_KINDS
 
 
 _AXIS_FREE = ("nonstatic_positions", "quantization")
+_TRIAD_LEVEL = ("nonorthogonality_change", "cross_axis_nonlinearity")
+"""Named for the triad: the scalar residual tells their size, not their axis."""
+_CHANGE_COSINE = {"x": 0, "y": 1, "z": 2}
+"""The cosine a hidden ``nonorthogonality_change`` moves for the axis drawn: xy, xz, yz."""
 _COEF_KEY = {
     ("bias_drift", Triad.ACCEL): "rate_norm_per_s",
     ("temperature_bias", Triad.ACCEL): "coef_norm_per_c",
     ("temperature_scale", Triad.ACCEL): "coef_per_c",
     ("scale_nonlinearity", Triad.ACCEL): "k2_norm",
+    ("cross_axis_nonlinearity", Triad.ACCEL): "kc_norm",
+    ("temperature_hysteresis", Triad.ACCEL): "offset_norm",
     ("bias_drift", Triad.GYRO): "rate_rps_per_s",
     ("temperature_bias", Triad.GYRO): "coef_rps_per_c",
     ("temperature_scale", Triad.GYRO): "coef_per_c",
@@ -226,16 +265,22 @@ def trial_chain_config(grade: Grade, session: ImuSession) -> ChainConfig:
 
 
 def session_of(
-    model: ErrorModel, seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS
+    model: ErrorModel,
+    seed: int,
+    *,
+    temperature: bool = True,
+    grade: Grade = Grade.MEMS,
+    rate_hz: float = RATE_HZ,
 ) -> tuple[ImuSession, ChainResult]:
     """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain.
 
     ``temperature=False`` drops the temperature column (the unit is still on the same cycle: a
-    temperature effect is then in the data but nothing can name it).
+    temperature effect is then in the data but nothing can name it). ``rate_hz``: the sampling rate
+    (the white noise keeps its density: at 200 Hz its per-sample sd doubles).
     """
     profile = multi_position_profile(trial_attitudes(seed), static_s=HOLD_S, transition_s=TURN_S)
     spec = SessionSpec(
-        profile, model, rate_hz=RATE_HZ, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
+        profile, model, rate_hz=rate_hz, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
     )
     s = simulate(spec, seed).session
     if not temperature:
@@ -276,14 +321,16 @@ class HiddenEffect:
     value: float
     model: ErrorModel
     grade: Grade = Grade.MEMS
+    rate_hz: float = RATE_HZ
 
     @property
     def expected(self) -> set[tuple[str, Triad, str | None]]:
-        return {(self.effect, self.triad, self.axis)}
+        axis = None if self.effect in _TRIAD_LEVEL else self.axis
+        return {(self.effect, self.triad, axis)}
 
 
 def _clean_candidate(
-    session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str
+    session: ImuSession, chain: ChainResult, effect: str, triad: Triad, axis: str | None
 ) -> Candidate:
     baselines = fit_baselines(session, chain, colour=False)
     return next(
@@ -381,6 +428,21 @@ def _hide(
     seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float, grade: Grade
 ) -> HiddenEffect:
     model = baseline_model(np.random.default_rng(seed), grade)
+    if effect == "spectral_line":
+        if axis is None:
+            raise ValueError("a spectral line is hidden on one axis: give axis x, y or z")
+        amp = np.zeros(3)
+        sd = TRIAL_UNITS[grade].accel_sd_mps2 * np.sqrt(LINE_RATE_HZ / RATE_HZ)
+        amp[AXES.index(axis)] = size * sd
+        return HiddenEffect(
+            effect,
+            triad,
+            axis,
+            size,
+            float(size * sd),
+            model.with_effect(SpectralLine(np.full(3, LINE_FREQ_HZ), amp), triad),
+            rate_hz=LINE_RATE_HZ,
+        )
     session, chain = session_of(model, seed, grade=grade)
     if effect in _AXIS_FREE:
         axis = None
@@ -409,7 +471,9 @@ def _hide(
     if axis is None:
         raise ValueError(f"{effect} is hidden on one axis: give axis x, y or z")
     i = AXES.index(axis)
-    cand = _clean_candidate(session, chain, effect, triad, axis)
+    if effect in ("bias_step", "nonorthogonality_change", "clipping"):
+        return _hide_change(seed, effect, axis, size, sign, model, session, chain)
+    cand = _clean_candidate(session, chain, effect, triad, None if effect in _TRIAD_LEVEL else axis)
     ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS
     if effect == "bias_instability":
         tau = float(
@@ -439,6 +503,18 @@ def _hide(
         return HiddenEffect(
             effect, triad, axis, size, value, model.with_effect(GSensitivity(gs), triad)
         )
+    if effect == "cross_axis_nonlinearity":
+        kc = np.zeros(3)
+        kc[i] = value / GRAVITY_MPS2
+        return HiddenEffect(
+            effect, triad, axis, size, value, model.with_effect(CrossAxisNonlinearity(kc), triad)
+        )
+    if effect == "temperature_hysteresis":
+        h = np.zeros(3)
+        h[i] = value * GRAVITY_MPS2
+        return HiddenEffect(
+            effect, triad, axis, size, value, model.with_effect(TemperatureHysteresis(h), triad)
+        )
     if effect == "scale_nonlinearity":
         k2 = np.zeros(3)
         k2[i] = value / GRAVITY_MPS2
@@ -462,6 +538,117 @@ def _hide(
     return HiddenEffect(effect, triad, axis, size, value, model.with_effect(cls(coef), triad))
 
 
+def change_se(
+    session: ImuSession, chain: ChainResult, columns: FloatArray, after: int
+) -> FloatArray:
+    """Standard errors of a change of ``columns`` (n, k) from position ``after`` on, next to the nine parameters,
+    on the effect-free session (the weights of the baseline's scalar residuals taken as exact)."""
+    baselines = fit_baselines(session, chain, colour=False)
+    tab = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
+    _, sd, jac, _ = scalar_residuals(baselines[Triad.ACCEL].params, tab)
+    step = columns * (np.arange(sd.size) >= after)[:, None]
+    a = np.hstack([jac, step]) / sd[:, None]
+    cov = np.linalg.inv(a.T @ a)
+    out: FloatArray = np.sqrt(np.diag(cov)[jac.shape[1] :])
+    return out
+
+
+def _hide_change(
+    seed: int,
+    effect: str,
+    axis: str,
+    size: float,
+    sign: float,
+    model: ErrorModel,
+    session: ImuSession,
+    chain: ChainResult,
+) -> HiddenEffect:
+    """A bias step, a change of non-orthogonality or a rail on accelerometer ``axis`` (module docstring)."""
+    i = AXES.index(axis)
+    tri = Triad.ACCEL
+    if effect == "clipping":
+        x = triad_samples(session, tri)[:, i]
+        # The rails are symmetric (a converter's full scale): the side nearest one of the positions clips.
+        static = np.concatenate([x[p.index_start : p.index_stop] for p in chain.positions])
+        top = np.sort(np.abs(static))[::-1]
+        k = max(round(size), 1)
+        rail = float(0.5 * (top[k - 1] + top[k]))
+        rails = np.full(3, np.inf)
+        rails[i] = rail
+        return HiddenEffect(effect, tri, axis, size, rail, model.with_effect(Clipping(rails), tri))
+    n = len(chain.positions)
+    after = int(np.random.default_rng([seed, 4]).integers(n // 4, 3 * n // 4 + 1))
+    t_change = 0.5 * (chain.positions[after - 1].t_end_s + chain.positions[after].t_start_s)
+    tab = position_table(chain, triad_samples(session, tri), session.t_s, tri)
+    baselines = fit_baselines(session, chain, colour=False)
+    _, _, jac, _ = scalar_residuals(baselines[tri].params, tab)
+    if effect == "bias_step":
+        value = sign * size * float(change_se(session, chain, jac[:, [i]], after)[0])
+        step = np.zeros(3)
+        step[i] = value * GRAVITY_MPS2
+        return HiddenEffect(
+            effect,
+            tri,
+            axis,
+            size,
+            value,
+            model.with_effect(BiasStep(np.full(3, t_change), step), tri),
+        )
+    c = _CHANGE_COSINE[axis]
+    value = sign * size * float(change_se(session, chain, jac[:, 6:9], after)[c])
+    change = np.zeros(3)
+    change[c] = value
+    return HiddenEffect(
+        effect,
+        tri,
+        axis,
+        size,
+        value,
+        model.with_effect(NonOrthogonalityChange(t_change, change), tri),
+    )
+
+
+PAIRS: tuple[tuple[tuple[str, Triad, str], tuple[str, Triad, str]], ...] = (
+    (("bias_drift", Triad.ACCEL, "x"), ("scale_nonlinearity", Triad.ACCEL, "z")),
+    (("temperature_bias", Triad.ACCEL, "y"), ("bias_drift", Triad.GYRO, "z")),
+    (("cross_axis_nonlinearity", Triad.ACCEL, "x"), ("bias_instability", Triad.ACCEL, "y")),
+    (("bias_step", Triad.ACCEL, "z"), ("temperature_scale", Triad.ACCEL, "x")),
+)
+"""Two effects at once (issue 31): the issue's two pairs, a deterministic effect with wander, a step with a temperature scale."""
+
+
+@dataclass(frozen=True)
+class HiddenPair:
+    """Two hidden effects in one model, each of its own size on the effect-free session (:func:`hide`)."""
+
+    first: HiddenEffect
+    second: HiddenEffect
+    model: ErrorModel
+
+    @property
+    def expected(self) -> set[tuple[str, Triad, str | None]]:
+        return self.first.expected | self.second.expected
+
+
+def hide_pair(
+    seed: int, first: tuple[str, Triad, str], second: tuple[str, Triad, str], size: float
+) -> HiddenPair:
+    """Both effects of :data:`PAIRS` (triad effects of the simulator) at ``size`` standard errors each, signs from the seed."""
+    rng = np.random.default_rng([seed, 5])
+    a, b = (
+        hide(seed, e, t, ax, size, float(rng.choice([-1.0, 1.0]))) for e, t, ax in (first, second)
+    )
+    added = b.model.triad(b.triad).find(b.effect)
+    if added is None:
+        raise ValueError(f"{b.effect} is not a triad effect of the simulator: it cannot be paired")
+    return HiddenPair(a, b, a.model.with_effect(added, b.triad))
+
+
+def pair_trial(pair: HiddenPair, seed: int) -> bool:
+    """True when the audit names exactly both hidden effects."""
+    return named_effects(*session_of(pair.model, seed)) == pair.expected
+
+
 def draw(
     seed: int, size: float, kind: tuple[str, Triad] | None = None, grade: Grade = Grade.MEMS
 ) -> HiddenEffect:
@@ -482,12 +669,22 @@ def draw(
 def trial(hidden: HiddenEffect, seed: int, *, temperature: bool = True) -> bool:
     """True when the audit names exactly the hidden effect on its session (with or without its temperature column)."""
     got = named_effects(
-        *session_of(hidden.model, seed, temperature=temperature, grade=hidden.grade)
+        *session_of(
+            hidden.model,
+            seed,
+            temperature=temperature,
+            grade=hidden.grade,
+            rate_hz=hidden.rate_hz,
+        )
     )
     return got == hidden.expected
 
 
-def clean_trial(seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS) -> bool:
-    """True when the audit names nothing on the effect-free session of ``seed``."""
+def clean_trial(
+    seed: int, *, temperature: bool = True, grade: Grade = Grade.MEMS, rate_hz: float = RATE_HZ
+) -> bool:
+    """True when the audit names nothing on the effect-free session of ``seed`` (at ``rate_hz``)."""
     model = baseline_model(np.random.default_rng(seed), grade)
-    return not named_effects(*session_of(model, seed, temperature=temperature, grade=grade))
+    return not named_effects(
+        *session_of(model, seed, temperature=temperature, grade=grade, rate_hz=rate_hz)
+    )

@@ -11,17 +11,23 @@ physical order of the signal path:
 stage  name                     what it does to ``y`` (per sensor axis ``i``)
 ====== ======================== ===========================================================
 0      ``non_orthogonality``    ``y_i = s_i · x_b``: projection on the sensitive axes (M1)
+1      ``nonorthogonality_change`` from ``t_change``: the axes' cosines change by ``Δd`` (a mounting slip)
 10     ``scale_nonlinearity``   ``y_i += K2_i y_i² + K3_i y_i³`` (M3's K2, K3)
+11     ``cross_axis_nonlinearity`` ``y_i += Kc_i y_j y_k`` (``j, k`` the other two axes)
 20     ``scale_factor``         ``y_i *= 1 + e_i``
 25     ``temperature_scale``    ``y_i *= 1 + Σ_j k_ij (T − T_ref)^j`` (M3, j ≥ 1)
 30     ``bias``                 ``y_i += b_i``
 31     ``bias_drift``           ``y_i += Σ_j c_ij (t − t_0)^j`` (j ≥ 1)
+31     ``bias_step``            ``y_i += s_i`` from ``t_step`` on (a knock, a turn that shifts the bias)
 32     ``temperature_bias``     ``y_i += Σ_j d_ij (T − T_ref)^j`` (M3, j ≥ 1)
+32     ``temperature_hysteresis`` ``y_i += h_i sign(dT/dt)`` (heating +h, cooling −h)
 33     ``bias_instability``     ``y_i +=`` Gauss–Markov + random walk + flicker noise
 34     ``g_sensitivity``        gyros: ``y += G f_b`` (M4's Bg, rad/s per m/s²)
 40     ``white_noise``          ``y_i += σ_i n_i``, ``σ_i = density_i·√rate``, ``corr(n) = R``
 41     ``coloured_noise``       ``y_i +=`` a sum of short Gauss–Markov terms (noise colour), driven with ``R``
+42     ``spectral_line``        ``y_i += A_i sin(2π f_i t + φ_i)`` (mains or rotor pickup; φ from the stream)
 45     (noise-burst faults)     see :mod:`estimators.sim.faults`
+48     ``clipping``             ``y_i`` held on the rails ``±r_i`` (the converter's full scale)
 50     ``quantization``         ``y_i = k_i·Entier(y_i / k_i)`` (M2)
 ====== ======================== ===========================================================
 
@@ -258,6 +264,48 @@ class ScaleNonlinearity(Effect):
 
 
 @dataclass(frozen=True)
+class NonOrthogonalityChange(Effect):
+    """The axes' cosines ``[d_xy, d_xz, d_yz]`` change by ``cosine_change`` from ``t_change_s`` on (a mounting slip).
+
+    With x on body x and y in the x-y plane (the convention of the nine parameters), axis y turns toward x
+    and axis z toward x and y: ``y_y += Δd_xy y_x``, ``y_z += Δd_xz y_x + Δd_yz y_y`` (first order).
+    """
+
+    t_change_s: float = 0.0
+    cosine_change: ArrayLike = (0.0,) * 3
+    name: ClassVar[str] = "nonorthogonality_change"
+    stage: ClassVar[int] = 1
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_change_s", float(self.t_change_s))
+        object.__setattr__(self, "cosine_change", _floats(self.cosine_change, 3, "cosine_change"))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        d_xy, d_xz, d_yz = np.array(self.cosine_change, dtype=np.float64)
+        turn = np.array([[0.0, 0.0, 0.0], [d_xy, 0.0, 0.0], [d_xz, d_yz, 0.0]])
+        after = (ctx.t_s >= self.t_change_s)[:, None]
+        out: FloatArray = y + after * (y @ turn.T)
+        return out
+
+
+@dataclass(frozen=True)
+class CrossAxisNonlinearity(Effect):
+    """Second-order cross-axis term ``y_i += Kc_i y_j y_k`` (``j < k`` the other two axes), Kc in 1/SI."""
+
+    kc_per_si: ArrayLike = (0.0,) * 3
+    name: ClassVar[str] = "cross_axis_nonlinearity"
+    stage: ClassVar[int] = 11
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "kc_per_si", _floats(self.kc_per_si, 3, "kc_per_si"))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        cross = np.column_stack([y[:, 1] * y[:, 2], y[:, 0] * y[:, 2], y[:, 0] * y[:, 1]])
+        out: FloatArray = y + np.array(self.kc_per_si, dtype=np.float64) * cross
+        return out
+
+
+@dataclass(frozen=True)
 class ScaleFactor(Effect):
     """``y_i *= 1 + e_i`` with the relative scale-factor errors ``e`` (3,)."""
 
@@ -349,6 +397,55 @@ class TemperatureBias(Effect):
 
     def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
         return y + _poly(self.coef_si_per_c, ctx.temperature(self.name) - self.t_ref_c)
+
+
+@dataclass(frozen=True)
+class BiasStep(Effect):
+    """``y_i += step_si_i`` from ``t_step_s_i`` on (session time, per axis): a bias that jumps in a turn or a knock."""
+
+    t_step_s: ArrayLike = (0.0,) * 3
+    step_si: ArrayLike = (0.0,) * 3
+    name: ClassVar[str] = "bias_step"
+    stage: ClassVar[int] = 31
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "t_step_s", _floats(self.t_step_s, 3, "t_step_s"))
+        object.__setattr__(self, "step_si", _floats(self.step_si, 3, "step_si"))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        after = ctx.t_s[:, None] >= np.array(self.t_step_s, dtype=np.float64)
+        out: FloatArray = y + after * np.array(self.step_si, dtype=np.float64)
+        return out
+
+
+@dataclass(frozen=True)
+class TemperatureHysteresis(Effect):
+    """``y_i += h_i sign(dT/dt)``: the bias depends on whether the unit is heating (+h) or cooling (−h).
+
+    The rate's sign is read from the temperature record over ``smooth_s`` (a held temperature: 0).
+    """
+
+    offset_si: ArrayLike = (0.0,) * 3
+    smooth_s: float = 1.0
+    name: ClassVar[str] = "temperature_hysteresis"
+    stage: ClassVar[int] = 32
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "offset_si", _floats(self.offset_si, 3, "offset_si"))
+        object.__setattr__(self, "smooth_s", float(self.smooth_s))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        sense = heating_sign(ctx.t_s, ctx.temperature(self.name), self.smooth_s)
+        out: FloatArray = y + sense[:, None] * np.array(self.offset_si, dtype=np.float64)
+        return out
+
+
+def heating_sign(t_s: FloatArray, temp_c: FloatArray, smooth_s: float) -> FloatArray:
+    """(N,) +1 where the temperature rises over ``smooth_s`` about each sample, −1 where it falls, 0 where it holds."""
+    later = np.interp(t_s + 0.5 * smooth_s, t_s, temp_c)
+    earlier = np.interp(t_s - 0.5 * smooth_s, t_s, temp_c)
+    out: FloatArray = np.sign(later - earlier)
+    return out
 
 
 @dataclass(frozen=True)
@@ -560,6 +657,46 @@ def half_pulse_correction(mean_counts: FloatArray, rounding: Rounding) -> FloatA
 
 
 @dataclass(frozen=True)
+class SpectralLine(Effect):
+    """A sinusoid per axis, ``y_i += A_i sin(2π f_i t + φ_i)``: mains or rotor pickup (φ_i uniform from the stream)."""
+
+    freq_hz: ArrayLike = (50.0,) * 3
+    amplitude_si: ArrayLike = (0.0,) * 3
+    name: ClassVar[str] = "spectral_line"
+    stage: ClassVar[int] = 42
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "freq_hz", _floats(self.freq_hz, 3, "freq_hz"))
+        object.__setattr__(self, "amplitude_si", _floats(self.amplitude_si, 3, "amplitude_si"))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        phase = ctx.rng.uniform(0.0, 2.0 * np.pi, 3)
+        arg = 2.0 * np.pi * ctx.t_s[:, None] * np.array(self.freq_hz, dtype=np.float64) + phase
+        out: FloatArray = y + np.array(self.amplitude_si, dtype=np.float64) * np.sin(arg)
+        return out
+
+
+@dataclass(frozen=True)
+class Clipping(Effect):
+    """The output held on the rails ``±rail_si`` per axis (the converter's full scale): ``y_i = clip(y_i, −r_i, r_i)``."""
+
+    rail_si: ArrayLike = (np.inf,) * 3
+    name: ClassVar[str] = "clipping"
+    stage: ClassVar[int] = 48
+
+    def __post_init__(self) -> None:
+        rail = tuple(float(v) for v in np.broadcast_to(np.asarray(self.rail_si, float), (3,)))
+        if min(rail) <= 0 or any(np.isnan(rail)):
+            raise ValueError(f"clipping rail_si must be positive, got {rail!r}")
+        object.__setattr__(self, "rail_si", rail)
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        r = np.array(self.rail_si, dtype=np.float64)
+        out: FloatArray = np.clip(y, -r, r)
+        return out
+
+
+@dataclass(frozen=True)
 class Quantization(Effect):
     """Output on a grid of whole counts (M2): ``N = round(y / k)``, output ``N·k``.
 
@@ -683,16 +820,22 @@ EFFECTS: dict[str, type[Effect] | type[EnvironmentEffect]] = {
     cls.name: cls
     for cls in (
         NonOrthogonality,
+        NonOrthogonalityChange,
         ScaleNonlinearity,
+        CrossAxisNonlinearity,
         ScaleFactor,
         TemperatureScale,
         Bias,
         BiasDrift,
+        BiasStep,
         TemperatureBias,
+        TemperatureHysteresis,
         BiasInstability,
         GSensitivity,
         WhiteNoise,
         ColouredNoise,
+        SpectralLine,
+        Clipping,
         Quantization,
         GravityMismatch,
         NonstaticPositions,
