@@ -184,7 +184,8 @@ class NoiseModel:
 class Evaluations:
     """The epochs judged by one update (``M`` epochs, ``W`` windows).
 
-    ``d_mps2`` (M, W) is ``D_L`` at the fitted latency (at zero latency while learning);
+    ``d_mps2`` (M, W) is ``D_L`` of the tested epochs at the fitted latency (at zero latency while
+    learning; NaN where excluded);
     ``z`` (M,) is ``max_L |D_L|/σ_L`` (NaN before the noise is learned or when excluded);
     ``excluded`` (M,) the :class:`Exclusion` code.
     """
@@ -472,7 +473,8 @@ class ThrustAxisMonitor:
                 imu.transitions_s.append(float(t[a]))
                 imu.resting = False
             bias[a:b] = self.gyro_bias_rps
-            g0[a:b] = np.nan if self.baseline_mps2 is None else self.baseline_mps2
+            # A rest is never judged: its samples carry no baseline, so both paths agree on them.
+            g0[a:b] = np.nan if rest[a] or self.baseline_mps2 is None else self.baseline_mps2
         moving = ~rest
         self._flight_samples += int(moving.sum())
         self._share_sums += ((f[moving] / mag[moving, None]) ** 2).sum(axis=0)
@@ -509,7 +511,7 @@ class ThrustAxisMonitor:
         lo = tk - cfg.span_s
         code = np.zeros(tk.size, np.intp)
         history = (lo < imu.first_t_s) | (lo < g.first_t_s)
-        g0 = np.interp(lo, imu.t_s, imu.g0) if imu.t_s.size else np.full(tk.size, np.nan)
+        g0 = np.interp(tk, imu.t_s, imu.g0)
         counts = [_count_between(imu.t_s, imu.counts[:, k], lo, tk) for k in range(3)]
         trans = np.asarray(imu.transitions_s, float)
         near = np.zeros(tk.size, bool)
@@ -519,13 +521,14 @@ class ThrustAxisMonitor:
                 trans[np.minimum(first_after, trans.size - 1)] <= tk + cfg.transient_s
             )
         gnss_gaps = _count_between(g.t_s, g.gaps, lo, tk)
-        # The first reason that applies is the one counted: a window at rest is not a transient's.
+        # The last reason that applies is the one counted: a window too early for its span is
+        # history whatever it holds, and one holding rest has no baseline by construction.
         for reason, mask in (
             (Exclusion.GAP, (counts[_GAP] > 0) | (gnss_gaps > 0)),
             (Exclusion.CLIPPED, counts[_CLIP] > 0),
             (Exclusion.TRANSIENT, near),
-            (Exclusion.REST, counts[_REST] > 0),
             (Exclusion.NO_BASELINE, ~np.isfinite(g0)),
+            (Exclusion.REST, counts[_REST] > 0),
             (Exclusion.HISTORY, history),
         ):
             code[mask] = reason
@@ -542,7 +545,7 @@ class ThrustAxisMonitor:
         """
         imu, g, cfg = self._imu, self._gnss, self.config
         a_n = _kernel_means(tk, g.t_s, g.v_int, cfg.end_s, self._windows)
-        a_n[..., 2] += np.interp(tk - cfg.span_s, imu.t_s, imu.g0)[:, None]
+        a_n[..., 2] += np.interp(tk, imu.t_s, imu.g0)[:, None]
         at_epochs = _interp3(g.t_s[:, None] - latency_s, imu.t_s, imu.f_int)
         steps = 0.5 * (at_epochs[1:] + at_epochs[:-1]) * np.diff(g.t_s)[:, None, None]
         w_int = np.concatenate([np.zeros((1, *at_epochs.shape[1:])), np.cumsum(steps, axis=0)])
@@ -619,10 +622,8 @@ class ThrustAxisMonitor:
             scored[np.flatnonzero(tested)[:learned]] = False
         latency = np.array([0.0 if self.noise is None else self.noise.latency_s])
         d = np.full((tk.size, self._windows.size), np.nan)
-        computable = code != Exclusion.HISTORY
-        computable &= code != Exclusion.NO_BASELINE
-        if computable.any():
-            d[computable] = self._residuals(tk[computable], latency)[:, 0, :]
+        if tested.any():
+            d[tested] = self._residuals(tk[tested], latency)[:, 0, :]
         z = np.full(tk.size, np.nan)
         if self.noise is not None and scored.any():
             z[scored] = np.max(np.abs(d[scored]) / self._running_sigma(d[scored]), axis=1)
