@@ -57,7 +57,11 @@ per-test probability is ``p = λ / (3600·r·W)`` and ``h = Φ⁻¹(1 − p/2)``
 Minimum detectable fault (MDF), a step on the thrust axis detected with probability
 95 % within ``t`` seconds of its onset::
 
-    MDF(t) = min_L (h + 1.645)·σ_L·L / min(t, L)
+    MDF(t) = min_L (h + 1.645)·σ_L / κ_L(t − τ)
+
+``κ_L(t)`` the share of the window's kernel within the last ``t`` seconds
+(:func:`kernel_fraction`: ``min(t, L)/L`` but for the end averages). It uses the learned ``σ_L``;
+the running one can only raise it.
 
 Excluded: rest (the vehicle still: ``D`` is zero by construction and says nothing of
 flight; a rest period ≥ :attr:`ThrustAxisConfig.min_rest_s` sets the baseline),
@@ -84,6 +88,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
 from estimators._typing import BoolArray, FloatArray, IntArray
+from estimators.conventions import Triad
+from estimators.coverage import IN_FLIGHT_WITHIN_S, Check, CheckCoverage
 from estimators.strapdown import IDENTITY_QUAT, cumulative_product, quat_from_rotvec
 
 OBSERVABLE_SHARE = 0.5
@@ -236,6 +242,7 @@ class Summary:
     latency_s: float | None
     baseline_mps2: float | None
     threshold: float
+    false_alarms_per_hour: float
     mdf_10s_mps2: float | None
     alarms: int
     first_alarm_t_s: float | None
@@ -276,6 +283,34 @@ def _kernel_means(
         + _interp3(xw - windows_s - end_s, t, integral)
     )
     out: FloatArray = total / (end_s * windows_s)[:, None]
+    return out
+
+
+def up_velocity_from_altitude(t_s: FloatArray, alt_m: FloatArray) -> FloatArray:
+    """(M,) vertical velocity, m/s, from altitudes: the centred difference
+    ``(h_{k+1} − h_{k−1})/(t_{k+1} − t_{k−1})`` (one-sided at the ends), the mean velocity over
+    the neighbouring epochs, for a receiver that reports no vertical velocity (GPS_RAW_INT)."""
+    t = np.asarray(t_s, float)
+    h = np.asarray(alt_m, float)
+    if t.ndim != 1 or h.shape != t.shape or t.size < 2 or np.any(np.diff(t) <= 0):
+        raise ValueError(
+            f"need (M,) increasing times and (M,) altitudes, M >= 2; got {t.shape}, {h.shape}"
+        )
+    out: FloatArray = np.gradient(h, t) if t.size < 3 else np.empty(t.size)
+    if t.size >= 3:
+        out[1:-1] = (h[2:] - h[:-2]) / (t[2:] - t[:-2])
+        out[0] = (h[1] - h[0]) / (t[1] - t[0])
+        out[-1] = (h[-1] - h[-2]) / (t[-1] - t[-2])
+    return out
+
+
+def kernel_fraction(t_s: float, end_s: float, windows_s: FloatArray) -> FloatArray:
+    """(W,) the share of each window's trapezoidal kernel within the last ``t_s`` seconds: how
+    much of a step ``t_s`` old ``D_L`` shows (``box_L ∗ box_E``, rising over ``min(E, L)``)."""
+    windows = np.asarray(windows_s, float)
+    s = np.linspace(0.0, 1.0, 2001)[:, None] * (windows + end_s)
+    k = np.clip(np.minimum(s, windows + end_s - s), 0.0, np.minimum(end_s, windows))
+    out: FloatArray = np.sum(k * (s <= max(t_s, 0.0)), axis=0) / np.sum(k, axis=0)
     return out
 
 
@@ -377,8 +412,9 @@ class ThrustAxisMonitor:
     ) -> Evaluations:
         """Take IMU samples (SI, body axes, finite; ``t_s`` increasing past the last one)."""
         t = np.asarray(t_s, float)
-        f = np.asarray(accel_mps2, float)
-        w = np.asarray(gyro_rps, float)
+        # Copies: scipy's rotations refuse a read-only buffer (a frame's arrays are frozen).
+        f = np.array(accel_mps2, dtype=float)
+        w = np.array(gyro_rps, dtype=float)
         if t.ndim != 1 or f.shape != (t.size, 3) or w.shape != (t.size, 3):
             raise ValueError(
                 f"t_s (N,), accel_mps2 and gyro_rps (N, 3) expected, got {t.shape}, {f.shape}, {w.shape}"
@@ -663,15 +699,10 @@ class ThrustAxisMonitor:
         """``MDF(t)`` on the thrust axis, m/s² (module docstring); None before the noise is learned."""
         if self.noise is None:
             return None
-        reach = np.minimum(within_s, self._windows)
-        return float(
-            np.min(
-                (self.threshold + DETECTION_QUANTILE)
-                * self.noise.sigma_mps2
-                * self._windows
-                / reach
-            )
-        )
+        seen = kernel_fraction(within_s - self.noise.latency_s, self.config.end_s, self._windows)
+        with np.errstate(divide="ignore"):
+            mdf = (self.threshold + DETECTION_QUANTILE) * self.noise.sigma_mps2 / seen
+        return float(np.min(mdf))
 
     def summary(self) -> Summary:
         n = max(self._flight_samples, 1)
@@ -685,7 +716,8 @@ class ThrustAxisMonitor:
             latency_s=None if self.noise is None else self.noise.latency_s,
             baseline_mps2=self.baseline_mps2,
             threshold=self.threshold,
-            mdf_10s_mps2=self.mdf_mps2(10.0),
+            false_alarms_per_hour=self.config.false_alarms_per_hour,
+            mdf_10s_mps2=self.mdf_mps2(IN_FLIGHT_WITHIN_S),
             alarms=self.alarms,
             first_alarm_t_s=self.first_alarm_t_s,
         )
@@ -715,3 +747,63 @@ def thrust_axis_batch(
         monitor.update_gnss(gt, vel_enu_mps),
     ]
     return Evaluations.concatenate(parts, w), monitor
+
+
+def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckCoverage:
+    """The check's line in a verdict's coverage (:mod:`estimators.coverage`).
+
+    Per axis the MDF of ``D`` in :data:`~estimators.coverage.IN_FLIGHT_WITHIN_S` over the axis's
+    share: a zero signal ``MDF/rms(uᵢ)``, a scale ``MDF/(g₀·rms(uᵢ)²)`` (module docstring); an
+    axis below :data:`OBSERVABLE_SHARE` is not observable (infinite). ``summary`` None: no GNSS,
+    the check does not apply (``reason`` says why); nothing judged: it did not run, and the
+    reason names the exclusion that took most epochs.
+    """
+    if summary is None:
+        return CheckCoverage(
+            Check.THRUST_AXIS, Triad.ACCEL, ran=False, applies=False, reason=reason
+        )
+    if summary.mdf_10s_mps2 is None or summary.baseline_mps2 is None:
+        why = reason or _not_judged(summary)
+        return CheckCoverage(Check.THRUST_AXIS, Triad.ACCEL, ran=False, applies=False, reason=why)
+    share = np.where(summary.observable, summary.share, np.nan)
+    bias = summary.mdf_10s_mps2 / share
+    scale = summary.mdf_10s_mps2 / (summary.baseline_mps2 * share**2)
+    return CheckCoverage(
+        Check.THRUST_AXIS,
+        Triad.ACCEL,
+        ran=True,
+        samples=summary.tested_epochs,
+        mdf_bias_si=_triple(bias),
+        mdf_scale=_triple(scale),
+        false_alarm_prob=summary.false_alarms_per_hour,
+        reason=reason,
+    )
+
+
+def _triple(v: FloatArray) -> tuple[float, float, float]:
+    x = [float(a) if np.isfinite(a) else np.inf for a in v]
+    return (x[0], x[1], x[2])
+
+
+def _not_judged(summary: Summary) -> str:
+    if summary.tested_epochs:
+        return (
+            f"{summary.tested_epochs} epochs of flight, fewer than the learning period's: "
+            "the noise was not learned"
+        )
+    counted = {k: n for k, n in summary.exclusions.items() if n}
+    if not counted:
+        return "no GNSS epoch in flight"
+    worst = max(counted, key=lambda k: counted[k])
+    listed = ", ".join(f"{k.replace('_', ' ')} {n}" for k, n in counted.items())
+    return f"no epoch judged ({listed}): mostly {_WHY[worst]}"
+
+
+_WHY = {
+    "history": "a flight shorter than the windows' span",
+    "no_baseline": "no rest before the flight to set the ground baseline",
+    "rest": "the vehicle at rest",
+    "transient": "take-off and touch-down",
+    "clipped": "a clipped accelerometer",
+    "gap": "gaps in the IMU or GNSS stream",
+}

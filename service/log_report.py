@@ -50,7 +50,17 @@ VIBE_SOURCE = (
     "ArduPilot wiki, Measuring Vibration: VIBE below 30 m/s² is normally acceptable, "
     "above 30 may give problems, above 60 nearly always does"
 )
-PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png")
+PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png", "thrust_axis.png")
+
+
+@dataclass(frozen=True)
+class ThrustStatistic:
+    """One IMU's thrust-axis statistic through the flight: epoch times (s of the log's clock), ``z``
+    (NaN where not judged) and the threshold."""
+
+    t_s: np.ndarray
+    z: np.ndarray
+    threshold: float
 
 
 @dataclass(frozen=True)
@@ -203,8 +213,10 @@ def write_report(
     healths: Mapping[int, ImuHealth],
     pairs: Sequence[PairDifference],
     out_dir: str | Path,
+    thrust: Mapping[int, ThrustStatistic] | None = None,
 ) -> Path:
-    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown path."""
+    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown
+    path. ``thrust``: per IMU the thrust-axis statistic through the flight (None: no GNSS)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
@@ -214,6 +226,7 @@ def write_report(
         "gravity_residual.png": _residual_plot(report, healths, out / "gravity_residual.png"),
         "spectra.png": _spectra_plot(healths, out / "spectra.png"),
         "cross_imu.png": _cross_plot(report, pairs, out / "cross_imu.png"),
+        "thrust_axis.png": _thrust_plot(report, thrust or {}, out / "thrust_axis.png"),
     }
     md = out / "report.md"
     md.write_text(_markdown(report, plots), encoding="utf-8")
@@ -284,6 +297,23 @@ def _cross_plot(report: Mapping[str, Any], pairs: Sequence[PairDifference], path
     axes[1].set_ylabel("|Δω|, rad/s")
     axes[1].set_xlabel(_time_label(report))
     axes[0].legend(fontsize=8)
+    save_figure(fig, path, dpi=90)
+    return True
+
+
+def _thrust_plot(
+    report: Mapping[str, Any], thrust: Mapping[int, ThrustStatistic], path: Path
+) -> bool:
+    if not any(np.isfinite(s.z).any() for s in thrust.values()):
+        return False
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for imu, s in sorted(thrust.items()):
+        ax.plot(s.t_s - _start(report), s.z, lw=0.8, label=f"IMU{imu}")
+        ax.axhline(s.threshold, color="k", lw=0.8, ls="--")
+    ax.set_xlabel(_time_label(report))
+    ax.set_ylabel("max over windows |D_L| / σ_L")
+    ax.set_title("In flight: |f| against GNSS, the statistic and its threshold (dashed)")
+    ax.legend(fontsize=8)
     save_figure(fig, path, dpi=90)
     return True
 
@@ -411,6 +441,7 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
         "gravity_residual.png": "|a| − g at rest against the F0 shell",
         "spectra.png": "Accelerometer and gyro spectra",
         "cross_imu.png": "Cross-IMU differences over time",
+        "thrust_axis.png": "Thrust axis against GNSS in flight",
     }
     for name in PLOTS:
         if plots.get(name):
