@@ -22,6 +22,8 @@ unknown, a time not after the previous epoch's.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import struct
 from dataclasses import dataclass, field
@@ -83,9 +85,9 @@ def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
         if fmt is LogFormat.TLOG:
             return _tlog(path)
         return _dataflash(path)
-    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
-        if isinstance(exc, GnssLogError):
-            raise
+    except GnssLogError:
+        raise
+    except Exception as exc:  # pyulog and pymavlink raise their own, struct and index errors
         raise GnssLogError(f"{os.fspath(path)}: GNSS records unreadable: {exc}") from exc
 
 
@@ -93,7 +95,9 @@ def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     from pyulog import ULog
 
     topic = "vehicle_gps_position"
-    log = ULog(os.fspath(path), [topic], disable_str_exceptions=True)
+    # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
+    with contextlib.redirect_stdout(io.StringIO()):
+        log = ULog(os.fspath(path), [topic], disable_str_exceptions=True)
     data = next((d for d in log.data_list if d.name == topic and d.multi_id == 0), None)
     if data is None:
         return None

@@ -28,7 +28,7 @@ from estimators.thrust_gnss import (
 )
 from protocols.events import Event, Predicate, StreamCause, make_event
 from protocols.frames import SampleBatch
-from protocols.gnss_logs import GnssLogError, read_gnss_track
+from protocols.gnss_logs import GnssLogError, GnssTrack, read_gnss_track
 from service.log_report import ThrustStatistic
 from service.pipeline.options import SEVERITY
 
@@ -113,6 +113,7 @@ class ThrustAxisReplay:
     that IMU's check, said in a note."""
 
     def __init__(self, log: Path, vehicle: str, on_event: Callable[[Event], None] | None):
+        self.log = log
         self.vehicle = vehicle
         self.on_event = on_event
         self.events: list[Event] = []
@@ -120,25 +121,35 @@ class ThrustAxisReplay:
         self.checks: dict[int, ThrustAxisCheck] = {}
         self.fed: dict[int, int] = {}
         self.stopped: dict[int, str] = {}
+        self.why_not = "no IMU sample read"
+        self.track: GnssTrack | None = None
+        self._opened = False
+
+    def _open(self) -> None:
+        """Read the GNSS once the IMU reader has taken the file (its errors are the ones said)."""
+        self._opened = True
         self.why_not = "no GNSS velocity in the log"
         try:
-            self.track = read_gnss_track(log)
+            track = read_gnss_track(self.log)
         except GnssLogError as exc:
-            self.track = None
             self.why_not = str(exc)
             self.notes.append(f"thrust axis not tested: {exc}")
-        if self.track is not None:
-            if self.track.t_s.size < 2:
-                self.why_not = f"{self.track.t_s.size} GNSS epoch(s) with a 3D fix"
-                self.track = None
-            else:
-                left = ", ".join(f"{k} {n}" for k, n in self.track.rejected.items()) or "none"
-                self.notes.append(
-                    f"GNSS: {self.track.t_s.size} epochs of {self.track.source} at "
-                    f"{self.track.rate_hz:.3g} Hz; left out {left}"
-                )
+            return
+        if track is None:
+            return
+        if track.t_s.size < 2:
+            self.why_not = f"{track.t_s.size} GNSS epoch(s) with a 3D fix"
+            return
+        left = ", ".join(f"{k} {n}" for k, n in track.rejected.items()) or "none"
+        self.notes.append(
+            f"GNSS: {track.t_s.size} epochs of {track.source} at {track.rate_hz:.3g} Hz; "
+            f"left out {left}"
+        )
+        self.track = track
 
     def batch(self, batch: SampleBatch) -> None:
+        if not self._opened:
+            self._open()
         track = self.track
         if track is None or batch.vehicle != self.vehicle or batch.imu in self.stopped:
             return
