@@ -250,9 +250,14 @@ def _residual_plot(report: Mapping[str, Any], healths: Mapping[int, ImuHealth], 
         if shell is not None:
             ax.axhline(shell, color="k", lw=0.8, ls="--")
             ax.axhline(-shell, color="k", lw=0.8, ls="--")
+    return _finish_in_time(fig, ax, report, path, "|a| − g at rest, m/s²", "Blocks at rest against F0's shell (dashed)")  # fmt: skip
+
+
+def _finish_in_time(fig: Any, ax: Any, report: Mapping[str, Any], path: Path, ylabel: str, title: str) -> bool:  # fmt: skip
+    """Label a plot against the log's time, save it: True (it was written)."""
     ax.set_xlabel(_time_label(report))
-    ax.set_ylabel("|a| − g at rest, m/s²")
-    ax.set_title("Blocks at rest against F0's shell (dashed)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.legend(fontsize=8)
     save_figure(fig, path, dpi=90)
     return True
@@ -310,12 +315,7 @@ def _thrust_plot(
     for imu, s in sorted(thrust.items()):
         ax.plot(s.t_s - _start(report), s.z, lw=0.8, label=f"IMU{imu}")
         ax.axhline(s.threshold, color="k", lw=0.8, ls="--")
-    ax.set_xlabel(_time_label(report))
-    ax.set_ylabel("max over windows |D_L| / σ_L")
-    ax.set_title("In flight: |f| against GNSS, the statistic and its threshold (dashed)")
-    ax.legend(fontsize=8)
-    save_figure(fig, path, dpi=90)
-    return True
+    return _finish_in_time(fig, ax, report, path, "max over windows |D_L| / σ_L", "In flight: |f| against GNSS, the statistic and its threshold (dashed)")  # fmt: skip
 
 
 # --------------------------------------------------------------------------- Markdown
