@@ -132,6 +132,7 @@ class ThrustAxisConfig:
     transient_s : windows this close to a rest ↔ motion change are excluded, s.
     clip_mps2 : an accelerometer axis at or beyond this is clipped.
     max_gap_s : a step between samples of either stream longer than this is a gap, s.
+    gnss_late_s : GNSS epochs this far behind the IMU are not judged (its history is let go), s.
     sigma_floor_mps2 : the smallest ``σ_L`` trusted.
     """
 
@@ -148,6 +149,7 @@ class ThrustAxisConfig:
     transient_s: float = 2.0
     clip_mps2: float = 150.0
     max_gap_s: float = 0.5
+    gnss_late_s: float = 10.0
     sigma_floor_mps2: float = 0.002
 
     def __post_init__(self) -> None:
@@ -345,7 +347,6 @@ class _Imu:
     f_int: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
     g0: FloatArray = field(default_factory=lambda: np.empty(0))
     counts: FloatArray = field(default_factory=lambda: np.zeros((1, 3)))
-    first_t_s: float = np.nan
     quat_rb: FloatArray = field(default_factory=lambda: IDENTITY_QUAT.copy())
     f_r: FloatArray = field(default_factory=lambda: np.zeros(3))
     int_f_r: FloatArray = field(default_factory=lambda: np.zeros(3))
@@ -363,7 +364,6 @@ class _Gnss:
     t_s: FloatArray = field(default_factory=lambda: np.empty(0))
     v_int: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
     gaps: FloatArray = field(default_factory=lambda: np.zeros(1))
-    first_t_s: float = np.nan
     last_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
     pending: int = 0
     """How many of the newest epochs still wait for the accelerometer to pass them."""
@@ -430,7 +430,9 @@ class ThrustAxisMonitor:
             rest = self._rest_mask(t, f, w)
             bias, g0 = self._baselines(t, f, w, rest)
             self._integrate(t, f, w - bias, rest, g0)
-        return self._evaluate_ready()
+        out = self._evaluate_ready()
+        self._trim()
+        return out
 
     def update_gnss(self, t_s: FloatArray, vel_enu_mps: FloatArray) -> Evaluations:
         """Take GNSS velocity epochs (m/s, East-North-Up, the receiver's own: not a filter's)."""
@@ -446,8 +448,6 @@ class ThrustAxisMonitor:
         if t.size and (t[0] <= last or np.any(np.diff(t) <= 0)):
             raise ValueError(f"GNSS times must increase (last {last}, got {t[0]} first)")
         if t.size:
-            if not have_prev:
-                g.first_t_s = float(t[0])
             t_prev = np.concatenate([[g.t_s[-1] if have_prev else t[0]], t])
             dt = np.diff(t_prev)
             start = g.v_int[-1] if have_prev else np.zeros(3)
@@ -458,7 +458,9 @@ class ThrustAxisMonitor:
             g.t_s = np.concatenate([g.t_s, t])
             g.last_vel = v[-1]
             g.pending += t.size
-        return self._evaluate_ready()
+        out = self._evaluate_ready()
+        self._trim()
+        return out
 
     # --- the accelerometer's integration -----------------------------------------------
 
@@ -523,7 +525,6 @@ class ThrustAxisMonitor:
         imu = self._imu
         have_prev = imu.t_s.size > 0
         if not have_prev:
-            imu.first_t_s = float(t[0])
             imu.gyro_rps = w[0]
         dt = np.diff(np.r_[imu.t_s[-1] if have_prev else t[0], t])
         steps = quat_from_rotvec(0.5 * (np.vstack([imu.gyro_rps, w[:-1]]) + w) * dt[:, None])
@@ -546,7 +547,7 @@ class ThrustAxisMonitor:
         imu, g, cfg = self._imu, self._gnss, self.config
         lo = tk - cfg.span_s
         code = np.zeros(tk.size, np.intp)
-        history = (lo < imu.first_t_s) | (lo < g.first_t_s)
+        history = (lo < imu.t_s[0]) | (lo < g.t_s[0])
         g0 = np.interp(tk, imu.t_s, imu.g0)
         counts = [_count_between(imu.t_s, imu.counts[:, k], lo, tk) for k in range(3)]
         trans = np.asarray(imu.transitions_s, float)
@@ -668,16 +669,19 @@ class ThrustAxisMonitor:
         self.alarms += int(alarm.sum())
         if alarm.any() and self.first_alarm_t_s is None:
             self.first_alarm_t_s = float(tk[np.argmax(alarm)])
-        self._trim()
         return Evaluations(tk, d, z, code, alarm)
 
     def _trim(self) -> None:
-        """Drop what no epoch to come can reach (the oldest waiting one, or the next, minus the span)."""
+        """Drop what no epoch to come can reach (the oldest waiting one, or the next, minus the span),
+        and what an epoch later than ``gnss_late_s`` behind the IMU would need (it is history)."""
         imu, g = self._imu, self._gnss
         keep_from = (
             g.t_s[g.t_s.size - g.pending] if g.pending else (g.t_s[-1] if g.t_s.size else -np.inf)
         )
         keep_from -= self.config.span_s + 1.0
+        if imu.t_s.size:
+            # A receiver that stopped, or fell behind, does not hold the IMU's history forever.
+            keep_from = max(keep_from, imu.t_s[-1] - self.config.span_s - self.config.gnss_late_s)
         k = min(int(np.searchsorted(imu.t_s, keep_from)), imu.t_s.size - 2)
         if k > 0:
             imu.t_s, imu.f_int, imu.g0, imu.counts = (
@@ -742,9 +746,10 @@ def thrust_axis_batch(
         gnss_rate_hz = 1.0 / float(np.median(np.diff(gt))) if gt.size > 1 else 1.0
     monitor = ThrustAxisMonitor(config, gnss_rate_hz=gnss_rate_hz)
     w = len(monitor.config.windows_s)
+    # The receiver first: the IMU's history is then kept until every epoch is judged.
     parts = [
-        monitor.update_imu(imu_t_s, accel_mps2, gyro_rps),
         monitor.update_gnss(gt, vel_enu_mps),
+        monitor.update_imu(imu_t_s, accel_mps2, gyro_rps),
     ]
     return Evaluations.concatenate(parts, w), monitor
 

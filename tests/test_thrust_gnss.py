@@ -182,3 +182,20 @@ def test_bad_input_is_refused_with_the_reason():
         monitor.update_imu(np.array([0.005]), np.array([[0.0, 0.0, 9.8]]), np.zeros((1, 3)))
     with pytest.raises(ValueError, match=r"vel_enu_mps \(M, 3\)"):
         monitor.update_gnss(np.array([0.0]), np.zeros(3))
+
+
+def test_a_receiver_that_stops_does_not_hold_the_imu_history(flights):
+    """The daemon's path with GNSS for the first 60 s only: the IMU kept stays within the windows'
+    span and the lateness allowed (17.4 + 10 s at 100 Hz, a frame's samples more), where it grew by
+    every sample before."""
+    session, gt, gv = flights[0]
+    monitor = ThrustAxisMonitor(gnss_rate_hz=10.0)
+    early = gt < 60.0
+    monitor.update_gnss(gt[early], gv[early])
+    kept = []
+    for i in range(0, session.t_s.size, 100):
+        sl = slice(i, i + 100)
+        monitor.update_imu(session.t_s[sl], session.accel_mps2[sl], session.gyro_rps[sl])
+        kept.append(monitor._imu.t_s.size)
+    cfg = monitor.config
+    assert max(kept) <= (cfg.span_s + cfg.gnss_late_s + 2.0) * 100.0
