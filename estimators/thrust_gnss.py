@@ -149,7 +149,7 @@ class ThrustAxisConfig:
     transient_s: float = 2.0
     clip_mps2: float = 150.0
     max_gap_s: float = 0.5
-    gnss_late_s: float = 10.0
+    gnss_late_s: float = 60.0
     sigma_floor_mps2: float = 0.002
 
     def __post_init__(self) -> None:

@@ -37,6 +37,7 @@ from protocols.events import Event, Severity
 from protocols.logs import LogStats
 from service.commands.replay import log_start
 from service.figures import plt, save_figure
+from service.pipeline.thrust_axis import ThrustStatistic
 
 REPORT_TYPE = "ins.health.log_report"
 REPORT_SCHEMA_VERSION = 4
@@ -51,16 +52,6 @@ VIBE_SOURCE = (
     "above 30 may give problems, above 60 nearly always does"
 )
 PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png", "thrust_axis.png")
-
-
-@dataclass(frozen=True)
-class ThrustStatistic:
-    """One IMU's thrust-axis statistic through the flight: epoch times (s of the log's clock), ``z``
-    (NaN where not judged) and the threshold."""
-
-    t_s: np.ndarray
-    z: np.ndarray
-    threshold: float
 
 
 @dataclass(frozen=True)

@@ -186,7 +186,7 @@ def test_bad_input_is_refused_with_the_reason():
 
 def test_a_receiver_that_stops_does_not_hold_the_imu_history(flights):
     """The daemon's path with GNSS for the first 60 s only: the IMU kept stays within the windows'
-    span and the lateness allowed (17.4 + 10 s at 100 Hz, a frame's samples more), where it grew by
+    span and the lateness allowed (17.4 + 60 s at 100 Hz, a frame's samples more), where it grew by
     every sample before."""
     session, gt, gv = flights[0]
     monitor = ThrustAxisMonitor(gnss_rate_hz=10.0)

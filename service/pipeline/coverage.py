@@ -72,6 +72,8 @@ def imu_coverage(pipe: ImuPipeline, *, imus_on_vehicle: int | None = None) -> Im
                 reason="one IMU: nothing to compare",
             )
         )
+    if pipe.thrust is not None:
+        checks.append(pipe.thrust.coverage())
     return ImuCoverage(pipe.imu, tuple(checks))
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,18 +30,30 @@ from estimators.thrust_gnss import (
 from protocols.events import Event, Predicate, StreamCause, make_event
 from protocols.frames import SampleBatch
 from protocols.gnss_logs import GnssLogError, GnssTrack, read_gnss_track
-from service.log_report import ThrustStatistic
 from service.pipeline.options import SEVERITY
+
+THRUST_CONFIG = ThrustAxisConfig()
+"""The check's settings in the daemon and in replay (estimators.thrust_gnss's defaults)."""
 
 EPISODE_GAP_S = 10.0
 """Alarms this far apart are separate episodes (separate events), s."""
+
+
+@dataclass(frozen=True)
+class ThrustStatistic:
+    """One IMU's thrust-axis statistic through the flight: epoch times (s of the log's clock), ``z``
+    (NaN where not judged) and the threshold."""
+
+    t_s: np.ndarray
+    z: np.ndarray
+    threshold: float
 
 
 class ThrustAxisCheck:
     """One IMU's check against a GNSS track; feed frames in time order (:meth:`imu`, :meth:`gnss`)."""
 
     def __init__(
-        self, vehicle: str, imu: int, gnss_rate_hz: float, config: ThrustAxisConfig | None = None
+        self, vehicle: str, imu: int, gnss_rate_hz: float, config: ThrustAxisConfig = THRUST_CONFIG
     ):
         self.vehicle = vehicle
         self.imu_index = imu
