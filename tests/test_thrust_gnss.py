@@ -99,7 +99,7 @@ def test_a_thrust_axis_fault_mid_flight_is_found_within_10_s(flights, kind, rate
 
 def test_fault_free_flights_raise_nothing(flights):
     """Ten fault-free flights at 10 and at 5 Hz, about 0.9 h of judged epochs: no alarm. At the
-    design rate of 0.01 false alarms per flight hour the expected count is 0.009."""
+    design rate of 0.001 false alarms per flight hour the expected count is 0.0009."""
     judged_h = 0.0
     for session, gt, gv in flights:
         for step in (1, 2):
