@@ -81,23 +81,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
+from statistics import NormalDist
 
 import numpy as np
-from scipy.optimize import nnls
-from scipy.signal import lfilter
-from scipy.spatial.transform import Rotation
-from scipy.stats import norm
 
+# scipy (signal, optimize, spatial.transform, and the strapdown module through it) is imported
+# where it is used: together about a second to import, and the daemon and replay import this
+# module for every run, GNSS or not.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import Triad
 from estimators.coverage import IN_FLIGHT_WITHIN_S, Check, CheckCoverage
-from estimators.strapdown import IDENTITY_QUAT, cumulative_product, quat_from_rotvec
 
 OBSERVABLE_SHARE = 0.5
 """An axis whose share of the specific force, rms of ``f̃_i/|f̃|`` in flight, is below this is not
 observable: its MDF would be more than twice the norm's."""
 
-DETECTION_QUANTILE = float(norm.isf(0.05))
+DETECTION_QUANTILE = NormalDist().inv_cdf(0.95)
 """The MDF's margin above the threshold: a step at the MDF is detected with probability 95 %."""
 
 THRUST_AXIS = 2
@@ -176,7 +175,7 @@ class ThrustAxisConfig:
 def threshold(false_alarms_per_hour: float, gnss_rate_hz: float, n_windows: int) -> float:
     """``h = Φ⁻¹(1 − p/2)``, ``p = λ / (3600·r·W)`` (the module docstring's derivation)."""
     p = false_alarms_per_hour / (3600.0 * gnss_rate_hz * n_windows)
-    return float(norm.isf(0.5 * p))
+    return NormalDist().inv_cdf(1.0 - 0.5 * p)
 
 
 @dataclass(frozen=True)
@@ -348,7 +347,7 @@ class _Imu:
     f_int: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
     g0: FloatArray = field(default_factory=lambda: np.empty(0))
     counts: FloatArray = field(default_factory=lambda: np.zeros((1, 3)))
-    quat_rb: FloatArray = field(default_factory=lambda: IDENTITY_QUAT.copy())
+    quat_rb: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     f_r: FloatArray = field(default_factory=lambda: np.zeros(3))
     int_f_r: FloatArray = field(default_factory=lambda: np.zeros(3))
     gyro_rps: FloatArray = field(default_factory=lambda: np.zeros(3))
@@ -467,6 +466,8 @@ class ThrustAxisMonitor:
 
     def _rest_mask(self, t: FloatArray, f: FloatArray, w: FloatArray) -> BoolArray:
         """Rest: the exponential averages of ``|f̃|``, ``|f̃|²`` and ``|ω̃|`` quiet (carried across frames)."""
+        from scipy.signal import lfilter
+
         imu = self._imu
         mag = np.linalg.norm(f, axis=1)
         x = np.stack([mag, mag * mag, np.linalg.norm(w, axis=1)])
@@ -523,6 +524,10 @@ class ThrustAxisMonitor:
         self, t: FloatArray, f: FloatArray, w: FloatArray, rest: BoolArray, g0: FloatArray
     ) -> None:
         """Append ``∫ C_rb f̃`` at the new samples (trapezoids; the carries make frames seamless)."""
+        from scipy.spatial.transform import Rotation
+
+        from estimators.strapdown import cumulative_product, quat_from_rotvec
+
         imu = self._imu
         have_prev = imu.t_s.size > 0
         if not have_prev:
@@ -599,6 +604,8 @@ class ThrustAxisMonitor:
 
     def _learn(self, tk: FloatArray) -> int:
         """Accumulate the learning epochs among ``tk`` (all tested); the index where learning ended."""
+        from scipy.optimize import nnls
+
         need = self._learn_target - self._learn_n
         take = tk[:need]
         self._learn_sq += (self._residuals(take, self._latencies) ** 2).sum(axis=0)
@@ -628,6 +635,8 @@ class ThrustAxisMonitor:
         read before the epoch's own ``D``; it catches noise that grows after the learning period
         (a manoeuvre the learning did not see).
         """
+        from scipy.signal import lfilter
+
         assert self.noise is not None
         learned = self.noise.sigma_mps2
         a = float(np.exp(-1.0 / (self.gnss_rate_hz * self.config.noise_memory_s)))

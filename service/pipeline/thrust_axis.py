@@ -15,6 +15,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,7 +30,9 @@ from estimators.thrust_gnss import (
 )
 from protocols.events import Event, Predicate, StreamCause, make_event
 from protocols.frames import SampleBatch
-from protocols.gnss_logs import GnssLogError, GnssTrack, read_gnss_track
+
+if TYPE_CHECKING:
+    from protocols.gnss_logs import GnssTrack
 from service.pipeline.options import SEVERITY
 
 THRUST_CONFIG = ThrustAxisConfig()
@@ -140,6 +143,8 @@ class ThrustAxisReplay:
 
     def _open(self) -> None:
         """Read the GNSS once the IMU reader has taken the file (its errors are the ones said)."""
+        from protocols.gnss_logs import GnssLogError, read_gnss_track
+
         self._opened = True
         self.why_not = "no GNSS velocity in the log"
         try:
