@@ -520,7 +520,21 @@ class SourceCounters:
         return out
 
 
-class FrameSource(BatchSource):
+class _Subscriptions:
+    """Zenoh subscribers feeding one set of queues (:class:`FrameSource`, :class:`GnssSource`)."""
+
+    _subscribers: list[zenoh.Subscriber[None]]
+    _ring: FairQueues[Any, Any]
+
+    def close(self) -> None:
+        """Undeclare the subscribers; a waiting consumer finishes what is queued, then stops."""
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._subscribers = []
+        self._ring.close()
+
+
+class FrameSource(_Subscriptions, BatchSource):
     """IMU frames from Zenoh as validated :class:`~protocols.frames.SampleBatch` values, for asyncio.
 
     Use as ``async for batch in source`` or ``await source.get()``; create it
@@ -627,15 +641,8 @@ class FrameSource(BatchSource):
     def queued(self) -> int:
         return len(self._ring)
 
-    def close(self) -> None:
-        """Undeclare the subscribers; a waiting consumer finishes what is queued, then stops."""
-        for sub in self._subscribers:
-            sub.undeclare()
-        self._subscribers = []
-        self._ring.close()
 
-
-class GnssSource:
+class GnssSource(_Subscriptions):
     """GNSS frames from Zenoh as validated :class:`~protocols.gnss_frames.GnssFrame` values, for
     asyncio: payloads copied from Zenoh's thread into one bounded queue per vehicle (its newest
     dropped when full, counted) and decoded by the consumer; a frame that fails its check, or names
@@ -686,12 +693,6 @@ class GnssSource:
                 continue
             self.accepted += 1
             return frame
-
-    def close(self) -> None:
-        for sub in self._subscribers:
-            sub.undeclare()
-        self._subscribers = []
-        self._ring.close()
 
 
 class GnssPublisher:
