@@ -40,7 +40,10 @@ mean centripetal term): ``var D_L = α/L² + β/L + γ``. The three are fitted
 (non-negative least squares) on the mean squares of ``D_L`` in the learning period,
 the first :attr:`ThrustAxisConfig.learn_s` seconds of tested flight, so a fault
 present from take-off hides in the noise: it is the check of a fault that appears
-in flight.
+in flight. After it each epoch is judged with the larger of the learned ``σ_L`` and a running one
+(``D_L²`` winsorized at ``3σ_L``, memory :attr:`ThrustAxisConfig.noise_memory_s`): the noise of a
+manoeuvre the learning did not see (the unit's own x, y errors under a larger tilt) is then no
+alarm.
 
 Detector: a generalized likelihood ratio for a step of unknown size, its onset
 maximized over the windows ``L`` (a step ``δ`` that started ``t`` seconds ago gives
