@@ -41,9 +41,10 @@ mean centripetal term): ``var D_L = α/L² + β/L + γ``. The three are fitted
 the first :attr:`ThrustAxisConfig.learn_s` seconds of tested flight, so a fault
 present from take-off hides in the noise: it is the check of a fault that appears
 in flight. After it each epoch is judged with the larger of the learned ``σ_L`` and a running one
-(``D_L²`` winsorized at ``3σ_L``, memory :attr:`ThrustAxisConfig.noise_memory_s`): the noise of a
-manoeuvre the learning did not see (the unit's own x, y errors under a larger tilt) is then no
-alarm.
+(``D_L²`` winsorized at ``3σ_L``, memory :attr:`ThrustAxisConfig.noise_memory_s`, read
+:attr:`ThrustAxisConfig.noise_lag_s` behind the epoch so a fault does not raise the σ it is judged
+with): the noise of a manoeuvre the learning did not see (the unit's own x, y errors under a
+larger tilt) is then no alarm.
 
 Detector: a generalized likelihood ratio for a step of unknown size, its onset
 maximized over the windows ``L`` (a step ``δ`` that started ``t`` seconds ago gives
@@ -64,8 +65,8 @@ Minimum detectable fault (MDF), a step on the thrust axis detected with probabil
     MDF(t) = min_L (h + 1.645)·σ_L / κ_L(t − τ)
 
 ``κ_L(t)`` the share of the window's kernel within the last ``t`` seconds
-(:func:`kernel_fraction`: ``min(t, L)/L`` but for the end averages). It uses the learned ``σ_L``;
-the running one can only raise it.
+(:func:`kernel_fraction`: ``min(t, L)/L`` but for the end averages), ``σ_L`` the mean of those
+the epochs were judged with (the learned one, or the running one where larger).
 
 Excluded: rest (the vehicle still: ``D`` is zero by construction and says nothing of
 flight; a rest period ≥ :attr:`ThrustAxisConfig.min_rest_s` sets the baseline),
@@ -128,6 +129,8 @@ class ThrustAxisConfig:
     end_s : the end averages ``E``, s.
     latency_grid_s : GNSS latencies tried, s.
     learn_s : tested flight time that learns the noise and the latency, s.
+    noise_memory_s, noise_lag_s : the running noise estimate's memory and how far behind the
+        epoch it judges it is read, s.
     false_alarms_per_hour : ``λ``, the design rate of false alarms per flight hour.
     rest_accel_sd_mps2, rest_gyro_rps : rest is a spread of ``|f̃|`` and a mean ``|ω̃|``
         below these (exponential averages of ``rest_tau_s``).
@@ -144,6 +147,7 @@ class ThrustAxisConfig:
     latency_grid_s: tuple[float, ...] = tuple(np.round(np.arange(0.0, 0.401, 0.02), 3))
     learn_s: float = 60.0
     noise_memory_s: float = 120.0
+    noise_lag_s: float = 20.0
     false_alarms_per_hour: float = 0.001
     rest_accel_sd_mps2: float = 0.15
     rest_gyro_rps: float = 0.05
@@ -406,6 +410,9 @@ class ThrustAxisMonitor:
         self._learn_sq = np.zeros((self._latencies.size, self._windows.size))
         self._learn_n = 0
         self._running_state: FloatArray | None = None
+        self._running_lagged = np.empty((0, self._windows.size))
+        self._sigma_sums = np.zeros(self._windows.size)
+        self._sigma_n = 0
         self._learn_target = max(1, round(self.config.learn_s * self.gnss_rate_hz))
 
     # --- inputs ----------------------------------------------------------------------
@@ -634,9 +641,10 @@ class ThrustAxisMonitor:
         one if larger.
 
         The running mean square (exponential, memory ``noise_memory_s``) takes each ``D_L²``
-        winsorized at ``(3σ_L)²``, so a fault above three sigmas does not teach the noise, and is
-        read before the epoch's own ``D``; it catches noise that grows after the learning period
-        (a manoeuvre the learning did not see).
+        winsorized at ``(3σ_L)²`` and is read ``noise_lag_s`` behind the epoch it judges: it
+        catches noise that grows after the learning period (a manoeuvre the learning did not see),
+        and a fault is judged against the noise from before it (read at once, a step's own ramp
+        raised σ by a third within the 10 s it had to be found in).
         """
         from scipy.signal import lfilter
 
@@ -645,14 +653,14 @@ class ThrustAxisMonitor:
         a = float(np.exp(-1.0 / (self.gnss_rate_hz * self.config.noise_memory_s)))
         if self._running_state is None:
             self._running_state = a * learned**2
-        before = np.vstack([self._running_state / a, np.zeros_like(d)])
+            lag = max(1, round(self.config.noise_lag_s * self.gnss_rate_hz))
+            self._running_lagged = np.tile(learned**2, (lag, 1))
         x = np.minimum(d**2, 9.0 * learned**2)
-        y, self._running_state = lfilter(
-            [1.0 - a], [1.0, -a], x, axis=0, zi=self._running_state[None]
-        )
-        self._running_state = self._running_state[0]
-        before[1:] = y
-        out: FloatArray = np.maximum(learned, np.sqrt(before[:-1]))
+        y, state = lfilter([1.0 - a], [1.0, -a], x, axis=0, zi=self._running_state[None])
+        self._running_state = state[0]
+        lagged = np.vstack([self._running_lagged, y])
+        self._running_lagged = lagged[d.shape[0] :]
+        out: FloatArray = np.maximum(learned, np.sqrt(lagged[: d.shape[0]]))
         return out
 
     def _evaluate_ready(self) -> Evaluations:
@@ -676,7 +684,10 @@ class ThrustAxisMonitor:
             d[tested] = self._residuals(tk[tested], latency)[:, 0, :]
         z = np.full(tk.size, np.nan)
         if self.noise is not None and scored.any():
-            z[scored] = np.max(np.abs(d[scored]) / self._running_sigma(d[scored]), axis=1)
+            sigma = self._running_sigma(d[scored])
+            self._sigma_sums += sigma.sum(axis=0)
+            self._sigma_n += sigma.shape[0]
+            z[scored] = np.max(np.abs(d[scored]) / sigma, axis=1)
         alarm = np.nan_to_num(z, nan=0.0) > self.threshold
         self.exclusions += np.bincount(code, minlength=len(Exclusion))
         self.alarms += int(alarm.sum())
@@ -713,12 +724,14 @@ class ThrustAxisMonitor:
     # --- what it says ---------------------------------------------------------------------
 
     def mdf_mps2(self, within_s: float) -> float | None:
-        """``MDF(t)`` on the thrust axis, m/s² (module docstring); None before the noise is learned."""
+        """``MDF(t)`` on the thrust axis, m/s² (module docstring), with the ``σ_L`` the epochs were
+        judged with on average (the learned one before any); None before the noise is learned."""
         if self.noise is None:
             return None
+        sigma = self._sigma_sums / self._sigma_n if self._sigma_n else self.noise.sigma_mps2
         seen = kernel_fraction(within_s - self.noise.latency_s, self.config.end_s, self._windows)
         with np.errstate(divide="ignore"):
-            mdf = (self.threshold + DETECTION_QUANTILE) * self.noise.sigma_mps2 / seen
+            mdf = (self.threshold + DETECTION_QUANTILE) * sigma / seen
         return float(np.min(mdf))
 
     def summary(self) -> Summary:
