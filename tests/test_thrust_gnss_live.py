@@ -15,13 +15,10 @@ import numpy as np
 import pytest
 import zenoh
 from service_support import (
-    ServiceThread,
     batches_of,
-    service_config,
+    served_vehicle,
     wait_subscribed,
     wait_until,
-    zenoh_client_config,
-    zenoh_router,
 )
 
 from estimators.nominal_passport import SensorClass
@@ -120,60 +117,55 @@ def test_the_daemon_takes_gnss_frames_from_zenoh_and_the_fault_arrives(tmp_path)
     flight lets the IMU frames through before any GNSS one, as a live vehicle never does)."""
     v = "uav-1"
     items = list(_interleaved(v))
-    with zenoh_router() as port:
-        cfg = service_config(
-            tmp_path, port=port, passport_dir=tmp_path / "passports", validity={"timeout_s": 60.0}
-        )
-        with (
-            ServiceThread(cfg),
-            zenoh.open(zenoh_client_config(port)) as vehicle,
-            zenoh.open(zenoh_client_config(port)) as ground,
-        ):
-            got, statuses, instance = [], [], []
-            lock = threading.Lock()
+    with served_vehicle(tmp_path, tmp_path / "passports", validity={"timeout_s": 60.0}) as (
+        vehicle,
+        ground,
+    ):
+        got, statuses, instance = [], [], []
+        lock = threading.Lock()
 
-            def keep(into: list):
-                return lambda s: (lock.acquire(), into.append(s), lock.release())
+        def keep(into: list):
+            return lambda s: (lock.acquire(), into.append(s), lock.release())
 
-            def counter(of: list, name: str) -> int:
-                with lock:
-                    return of[-1].counters.get(name, 0) if of else 0
+        def counter(of: list, name: str) -> int:
+            with lock:
+                return of[-1].counters.get(name, 0) if of else 0
 
-            with EventReceiver(ground, lambda e: got.append(e)):
-                subscribe_status(ground, keep(statuses))
-                subscribe_service_status(ground, keep(instance))
-                wait_subscribed(vehicle, frame_key(v, 0))
-                wait_subscribed(vehicle, gnss_key(v))
-                gnss = GnssPublisher(vehicle, v, rate_hz=10.0)
-                samples = gnss_frames = 0
-                with FramePublisher(
-                    vehicle, v, 0, congestion_control=zenoh.CongestionControl.BLOCK
-                ) as frames:
-                    for start in range(0, len(items), 20):
-                        piece = items[start : start + 20]
-                        for item in piece:
-                            if isinstance(item, GnssFrame):
-                                gnss.publish(item.t_s, item.vel_enu_mps)
-                                gnss_frames += 1
-                        wait_until(
-                            lambda: counter(instance, "service.gnss.frames") >= gnss_frames,
-                            timeout_s=10,
-                            what="the GNSS frames counted",
-                        )
-                        for item in piece:
-                            if not isinstance(item, GnssFrame):
-                                frames.publish(item)
-                                samples += item.n_samples
-                        wait_until(
-                            lambda: counter(statuses, "imu0.samples.accepted") >= samples,
-                            timeout_s=10,
-                            what="the IMU frames counted",
-                        )
-                gnss.close()
-                wait_until(
-                    lambda: any(e.predicate is Predicate.THRUST_AXIS for e in got),
-                    timeout_s=30,
-                    what="the thrust_axis event",
-                )
-            (e,) = [e for e in got if e.predicate is Predicate.THRUST_AXIS]
-            assert e.vehicle == v and e.axis == "z" and ONSET_S <= e.t_s <= ONSET_S + 10.0
+        with EventReceiver(ground, lambda e: got.append(e)):
+            subscribe_status(ground, keep(statuses))
+            subscribe_service_status(ground, keep(instance))
+            wait_subscribed(vehicle, frame_key(v, 0))
+            wait_subscribed(vehicle, gnss_key(v))
+            gnss = GnssPublisher(vehicle, v, rate_hz=10.0)
+            samples = gnss_frames = 0
+            with FramePublisher(
+                vehicle, v, 0, congestion_control=zenoh.CongestionControl.BLOCK
+            ) as frames:
+                for start in range(0, len(items), 20):
+                    piece = items[start : start + 20]
+                    for item in piece:
+                        if isinstance(item, GnssFrame):
+                            gnss.publish(item.t_s, item.vel_enu_mps)
+                            gnss_frames += 1
+                    wait_until(
+                        lambda: counter(instance, "service.gnss.frames") >= gnss_frames,
+                        timeout_s=10,
+                        what="the GNSS frames counted",
+                    )
+                    for item in piece:
+                        if not isinstance(item, GnssFrame):
+                            frames.publish(item)
+                            samples += item.n_samples
+                    wait_until(
+                        lambda: counter(statuses, "imu0.samples.accepted") >= samples,
+                        timeout_s=10,
+                        what="the IMU frames counted",
+                    )
+            gnss.close()
+            wait_until(
+                lambda: any(e.predicate is Predicate.THRUST_AXIS for e in got),
+                timeout_s=30,
+                what="the thrust_axis event",
+            )
+        (e,) = [e for e in got if e.predicate is Predicate.THRUST_AXIS]
+        assert e.vehicle == v and e.axis == "z" and ONSET_S <= e.t_s <= ONSET_S + 10.0
