@@ -85,6 +85,9 @@ DEFAULT_POWER = 0.95
 
 Triple = tuple[float, float, float]
 
+IN_FLIGHT_WITHIN_S = 10.0
+"""The in-flight checks state the fault they find within this time of its onset, s."""
+
 
 class Check(StrEnum):
     """A check a verdict may rest on."""
@@ -94,6 +97,7 @@ class Check(StrEnum):
     GROSS = "gross"
     STREAM = "stream"
     CROSS_IMU = "cross_imu"
+    THRUST_AXIS = "thrust_axis"
 
 
 class Verdict(StrEnum):
@@ -200,6 +204,8 @@ class CheckCoverage:
             return f"{self.name}: does not apply ({self.reason})"
         if not self.ran and self.mdf_bias_si is None:
             return f"{self.name}: NOT TESTED ({self.reason})"
+        if self.check is Check.THRUST_AXIS and self.mdf_bias_si is not None:
+            return self._in_flight_line(self.mdf_bias_si, unit)
         amount = (
             f"{self.positions} position{'s' * (self.positions != 1)}"
             if self.check is Check.F1_F9
@@ -220,6 +226,29 @@ class CheckCoverage:
             )
         if self.false_alarm_prob is not None:
             parts.append(f"false alarm {self.false_alarm_prob:.2g}")
+        if self.reason:
+            parts.append(self.reason)
+        return "; ".join(parts)
+
+    def _in_flight_line(self, mdf: Triple, unit: str) -> str:
+        """``in flight: z accelerometer tested against GNSS …, MDF … in 10 s; x, y not observable``."""
+        scale = self.mdf_scale or (math.inf,) * 3
+        seen = [
+            f"{AXES[k]} {mdf[k]:.2g}{unit}"
+            + (f" (scale {100.0 * scale[k]:.2g} %)" if math.isfinite(scale[k]) else "")
+            for k in range(3)
+            if math.isfinite(mdf[k])
+        ]
+        blind = [AXES[k] for k in range(3) if not math.isfinite(mdf[k])]
+        tested = " ".join(AXES[k] for k in range(3) if math.isfinite(mdf[k]))
+        parts = [
+            f"{self.name}: in flight: {tested} accelerometer tested against GNSS on "
+            f"{self.samples:,} epochs, MDF {', '.join(seen)} in {IN_FLIGHT_WITHIN_S:g} s"
+        ]
+        if blind:
+            parts.append(f"{', '.join(blind)} not observable")
+        if self.false_alarm_prob is not None:
+            parts.append(f"false alarms {self.false_alarm_prob:.2g} per flight hour")
         if self.reason:
             parts.append(self.reason)
         return "; ".join(parts)

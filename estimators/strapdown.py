@@ -197,7 +197,7 @@ def _inclusive_scan(quats: FloatArray) -> FloatArray:
     return out
 
 
-def _cumulative_product(quats: FloatArray) -> FloatArray:
+def cumulative_product(quats: FloatArray) -> FloatArray:
     """``q_0 ⊗ q_1 ⊗ … ⊗ q_k`` along axis -2: scans inside blocks of 16, then across the block totals.
 
     About log2(16) + 2 passes over the samples instead of log2(N).
@@ -244,7 +244,7 @@ def integrate_attitude(
         )
     q0 = np.broadcast_to(q0 / np.linalg.norm(q0, axis=-1, keepdims=True), (*phi.shape[:-2], 4))
     steps = np.concatenate([q0[..., None, :], quat_from_rotvec(phi)], axis=-2)
-    q = _cumulative_product(steps)
+    q = cumulative_product(steps)
     unit: FloatArray = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return unit
 

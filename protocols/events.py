@@ -34,8 +34,9 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 :class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
 
 Version 3 adds ``epoch`` (int ≥ 1, present only then: an event of epoch 0 is written at version
-1 or 2 as before). Version 2 adds the predicate ``gross`` (gross plausibility at rest, :mod:`estimators.gross`) and the
-cause ``gravity_magnitude``; nothing else changed. An event is written with the lowest version that
+1 or 2 as before). Version 2 adds the predicates ``gross`` (gross plausibility at rest,
+:mod:`estimators.gross`) and ``thrust_axis`` (in flight against GNSS, :mod:`estimators.thrust_gnss`)
+and the cause ``gravity_magnitude``; nothing else changed. An event is written with the lowest version that
 holds it (:func:`event_version`): a version-1 reader keeps reading every other event, and is told a
 gross event is of a newer schema rather than given an unknown predicate. All three versions are
 read; a map naming what only a later version has is refused.
@@ -140,6 +141,9 @@ class Predicate(StrEnum):
     CROSS_IMU = "cross_imu"
     TEMPERATURE = "temperature"
     GROSS = "gross"
+    THRUST_AXIS = "thrust_axis"
+    """In flight, the accelerometer's magnitude against GNSS (:mod:`estimators.thrust_gnss`); the
+    axis named is the one it sees (z, the thrust axis)."""
 
     @classmethod
     def parse(cls, value: Any) -> Predicate:
@@ -172,7 +176,9 @@ class StreamCause(StrEnum):
     mean off its zero signal is :attr:`Cause.ZERO_SIGNAL`)."""
 
 
-_V2_ONLY: frozenset[Enum] = frozenset({Predicate.GROSS, StreamCause.GRAVITY_MAGNITUDE})
+_V2_ONLY: frozenset[Enum] = frozenset(
+    {Predicate.GROSS, Predicate.THRUST_AXIS, StreamCause.GRAVITY_MAGNITUDE}
+)
 """What only schema version 2 holds (module docstring)."""
 
 EventCause = Cause | StreamCause

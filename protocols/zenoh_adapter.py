@@ -4,6 +4,7 @@ Key expressions
 ---------------
 =================================  ==========================================
 ``ins/<vehicle>/imu/<n>``          IMU frames (:mod:`protocols.frames`)
+``ins/<vehicle>/gnss``             GNSS velocity frames (:mod:`protocols.gnss_frames`)
 ``ins/<vehicle>/health/events``    events (:mod:`protocols.events`), full stream
 ``ins/<vehicle>/health/ack``       event acknowledgement queries (below)
 ``ins/<vehicle>/health/status``    periodic :class:`~protocols.events.Status`
@@ -134,11 +135,13 @@ from protocols.frames import (
     decode_frame,
     encode_frame,
 )
+from protocols.gnss_frames import GnssFrame, decode_gnss_frame, encode_gnss_frame
 
 _Decoded = TypeVar("_Decoded")
 
 ROOT = "ins"
 ALL_FRAMES = f"{ROOT}/*/imu/*"
+ALL_GNSS = f"{ROOT}/*/gnss"
 ALL_EVENTS = f"{ROOT}/*/health/events"
 ALL_STATUS = f"{ROOT}/*/health/status"
 SERVICES = f"{ROOT}/_service"
@@ -231,6 +234,33 @@ def frame_selectors(vehicles: Iterable[str] | None = None) -> tuple[str, ...]:
     if vehicles is None:
         return (ALL_FRAMES,)
     return tuple(f"{ROOT}/{check_vehicle(v, error=SchemaError)}/imu/*" for v in vehicles)
+
+
+def gnss_key(vehicle: str) -> str:
+    """``ins/<vehicle>/gnss``."""
+    return f"{ROOT}/{check_vehicle(vehicle, error=SchemaError)}/gnss"
+
+
+def gnss_selector(frames_key: str) -> str:
+    """The GNSS key expression beside a frame subscription: its vehicle chunk with ``gnss``
+    (``ins/uav-7/imu/*`` → ``ins/uav-7/gnss``); the whole fleet's for any other shape."""
+    parts = frames_key.split("/")
+    if len(parts) == 4 and parts[0] == ROOT and parts[2] == "imu" and "*" not in parts[1][:1]:
+        return f"{ROOT}/{parts[1]}/gnss"
+    return ALL_GNSS
+
+
+def parse_gnss_key(key: str) -> str:
+    """The vehicle of a concrete GNSS key; :class:`~protocols.frames.FrameError` (``key_mismatch``) otherwise."""
+    parts = str(key).split("/")
+    if (
+        len(parts) != 3
+        or parts[0] != ROOT
+        or parts[2] != "gnss"
+        or not VEHICLE_ID_PATTERN.match(parts[1])
+    ):
+        raise FrameError(Reason.KEY_MISMATCH, f"{key!r} is not a GNSS key ins/<vehicle>/gnss")
+    return parts[1]
 
 
 def check_frames_selector(key_expr: str) -> str:
@@ -524,7 +554,21 @@ class SourceCounters:
         return out
 
 
-class FrameSource(BatchSource):
+class _Subscriptions:
+    """Zenoh subscribers feeding one set of queues (:class:`FrameSource`, :class:`GnssSource`)."""
+
+    _subscribers: list[zenoh.Subscriber[None]]
+    _ring: FairQueues[Any, Any]
+
+    def close(self) -> None:
+        """Undeclare the subscribers; a waiting consumer finishes what is queued, then stops."""
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._subscribers = []
+        self._ring.close()
+
+
+class FrameSource(_Subscriptions, BatchSource):
     """IMU frames from Zenoh as validated :class:`~protocols.frames.SampleBatch` values, for asyncio.
 
     Use as ``async for batch in source`` or ``await source.get()``; create it
@@ -646,12 +690,77 @@ class FrameSource(BatchSource):
     def queued(self) -> int:
         return len(self._ring)
 
+
+class GnssSource(_Subscriptions):
+    """GNSS frames from Zenoh as validated :class:`~protocols.gnss_frames.GnssFrame` values, for
+    asyncio: payloads copied from Zenoh's thread into one bounded queue per vehicle (its newest
+    dropped when full, counted) and decoded by the consumer; a frame that fails its check, or names
+    another vehicle than its key, is counted by reason and told to ``on_reject``."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_exprs: Iterable[str],
+        *,
+        capacity: int = 1024,
+        total: int = 16384,
+        on_reject: Callable[[str, FrameError], None] | None = None,
+        loop: asyncio.AbstractEventLoop | None = None,
+    ):
+        # A frame is a few hundred bytes: 100 s of a 10 Hz receiver's single-epoch frames a vehicle
+        # ride out the IMU frames' groups that hold the fleet's lock.
+        self._ring: FairQueues[str, tuple[str, bytes]] = FairQueues(
+            capacity, total, loop or asyncio.get_running_loop()
+        )
+        self._on_reject = on_reject
+        self.accepted = 0
+        self.rejected: dict[str, int] = {}
+        self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in key_exprs]
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        self._ring.put(key, (key, sample.payload.to_bytes()))
+
+    @property
+    def dropped(self) -> int:
+        return sum(self._ring.counts()[1].values())
+
+    async def get(self) -> GnssFrame:
+        """The next valid frame (waits); ``EOFError`` after :meth:`close`."""
+        while True:
+            key, payload = await self._ring.get()
+            try:
+                frame = decode_gnss_frame(payload)
+                if parse_gnss_key(key) != frame.vehicle:
+                    raise FrameError(
+                        Reason.KEY_MISMATCH, f"GNSS frame of {frame.vehicle} published on {key}"
+                    )
+            except FrameError as exc:
+                self.rejected[exc.reason.value] = self.rejected.get(exc.reason.value, 0) + 1
+                if self._on_reject is not None:
+                    self._on_reject(key, exc)
+                continue
+            self.accepted += 1
+            return frame
+
+
+class GnssPublisher:
+    """Publishes one vehicle's receiver velocity as GNSS frames (``seq`` +1 a frame; DROP, as IMU
+    frames: a congested link sheds them rather than block the vehicle)."""
+
+    def __init__(self, session: zenoh.Session, vehicle: str, *, rate_hz: float):
+        self.vehicle, self.rate_hz, self.seq = vehicle, float(rate_hz), 0
+        self._publisher = session.declare_publisher(
+            gnss_key(vehicle), congestion_control=zenoh.CongestionControl.DROP
+        )
+
+    def publish(self, t_s: np.ndarray, vel_enu_mps: np.ndarray) -> None:
+        frame = GnssFrame(self.vehicle, self.seq, self.rate_hz, t_s, vel_enu_mps)
+        self._publisher.put(encode_gnss_frame(frame))
+        self.seq += 1
+
     def close(self) -> None:
-        """Undeclare the subscribers; a waiting consumer finishes what is queued, then stops."""
-        for sub in self._subscribers:
-            sub.undeclare()
-        self._subscribers = []
-        self._ring.close()
+        self._publisher.undeclare()
 
 
 # ---------------------------------------------------------------------- frames out

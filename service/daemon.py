@@ -95,10 +95,12 @@ from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
 from protocols.mavlink_process import MavlinkProcessLink
 from protocols.zenoh_adapter import (
     FrameSource,
+    GnssSource,
     Session,
     StatusPublisher,
     ZenohSettings,
     connected_nodes,
+    gnss_selector,
     open_session_within,
 )
 from service.alert_policy import AlertPolicy
@@ -931,8 +933,13 @@ class Service:
             refused_vehicles=self.intake.mavlink_fed,
         )
         resources.callback(source.close)
+        gnss = GnssSource(
+            session, (gnss_selector(cfg.zenoh.frames_key),), on_reject=self.intake.gnss_reject
+        )
+        resources.callback(gnss.close)
         self._start_delivery(zsink, drain)
         self.supervisor.start("frames", lambda: self.intake.zenoh_frames(source))
+        self.supervisor.start("gnss", lambda: self.intake.gnss_frames(gnss))
 
     async def _try_mavlink(self, stop: asyncio.Event) -> MavlinkLink | MavlinkProcessLink | None:
         """The MAVLink link opened, or None when its device cannot be opened now (logged once per kind

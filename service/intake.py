@@ -14,6 +14,7 @@ from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import MavlinkSource
 from protocols.zenoh_adapter import (
     FrameSource,
+    GnssSource,
     parse_frame_key,
 )
 from service.pipeline import FleetProcessor
@@ -155,6 +156,29 @@ class Intake:
     async def mavlink_frames(self, source: MavlinkSource) -> None:
         """Every batch of the MAVLink source, until it is closed and drained."""
         await self._frames(source, owner=True)
+
+    async def gnss_frames(self, source: GnssSource) -> None:
+        """Every GNSS frame of the Zenoh source into the thrust-axis checks, under
+        :attr:`group_lock` (they read the IMUs' pipelines), until it is closed and drained; frames
+        the source dropped (its queue full) counted as ``gnss.dropped``."""
+        while True:
+            try:
+                frame = await source.get()
+            except EOFError:
+                return
+            async with self.group_lock:
+                self._store(self.fleet.gnss(frame))
+            if source.dropped:
+                self.fleet.service_counters["gnss.dropped"] = source.dropped
+            await asyncio.sleep(0)
+
+    def gnss_reject(self, key: str, error: FrameError) -> None:
+        """A GNSS frame the decoder refused: counted as ``gnss.rejected.<reason>``, a new reason said."""
+        reason = error.reason.value
+        self.fleet.count_service(f"gnss.rejected.{reason}")
+        if f"gnss:{reason}" not in self._reported:
+            self._reported.add(f"gnss:{reason}")
+            self._say(f"GNSS frame refused: {key}: {error} (counted as gnss.rejected.{reason})")
 
     async def _frames(self, source: FrameSource | MavlinkSource, *, owner: bool = False) -> None:
         while True:

@@ -42,6 +42,7 @@ from protocols.firmware_health import FirmwareHealth, FirmwareVibration
 from protocols.logs import LogStats
 from service.commands.replay import log_start
 from service.figures import plt, save_figure
+from service.pipeline.thrust_axis import ThrustStatistic
 
 REPORT_TYPE = "ins.health.log_report"
 REPORT_SCHEMA_VERSION = 5
@@ -53,7 +54,7 @@ reboot inside the log, :mod:`protocols.logs`), ``firmware`` (the log's own healt
 :mod:`protocols.firmware_health`) and per IMU ``vibration.recomputed_below_hz``."""
 VIBE_WARN_MPS2, VIBE_BAD_MPS2 = ARDUPILOT_VIBE_LIMITS_MPS2
 VIBE_SOURCE = ARDUPILOT_VIBE_SOURCE
-PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png")
+PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png", "thrust_axis.png")
 
 
 @dataclass(frozen=True)
@@ -270,9 +271,11 @@ def write_report(
     pairs: Sequence[PairDifference],
     out_dir: str | Path,
     firmware: FirmwareHealth | None = None,
+    thrust: Mapping[int, ThrustStatistic] | None = None,
 ) -> Path:
     """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown
-    path. ``firmware``: the batch sampler's spectra join the spectra plot."""
+    path. ``firmware``: the batch sampler's spectra join the spectra plot; ``thrust``: per IMU the
+    thrust-axis statistic through the flight (None: no GNSS)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
@@ -282,6 +285,7 @@ def write_report(
         "gravity_residual.png": _residual_plot(report, healths, out / "gravity_residual.png"),
         "spectra.png": _spectra_plot(healths, firmware or FirmwareHealth(), out / "spectra.png"),
         "cross_imu.png": _cross_plot(report, pairs, out / "cross_imu.png"),
+        "thrust_axis.png": _thrust_plot(report, thrust or {}, out / "thrust_axis.png"),
     }
     md = out / "report.md"
     md.write_text(_markdown(report, plots), encoding="utf-8")
@@ -305,9 +309,14 @@ def _residual_plot(report: Mapping[str, Any], healths: Mapping[int, ImuHealth], 
         if shell is not None:
             ax.axhline(shell, color="k", lw=0.8, ls="--")
             ax.axhline(-shell, color="k", lw=0.8, ls="--")
+    return _finish_in_time(fig, ax, report, path, "|a| − g at rest, m/s²", "Blocks at rest against F0's shell (dashed)")  # fmt: skip
+
+
+def _finish_in_time(fig: Any, ax: Any, report: Mapping[str, Any], path: Path, ylabel: str, title: str) -> bool:  # fmt: skip
+    """Label a plot against the log's time, save it: True (it was written)."""
     ax.set_xlabel(_time_label(report))
-    ax.set_ylabel("|a| − g at rest, m/s²")
-    ax.set_title("Blocks at rest against F0's shell (dashed)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
     ax.legend(fontsize=8)
     save_figure(fig, path, dpi=90)
     return True
@@ -365,6 +374,18 @@ def _cross_plot(report: Mapping[str, Any], pairs: Sequence[PairDifference], path
     axes[0].legend(fontsize=8)
     save_figure(fig, path, dpi=90)
     return True
+
+
+def _thrust_plot(
+    report: Mapping[str, Any], thrust: Mapping[int, ThrustStatistic], path: Path
+) -> bool:
+    if not any(np.isfinite(s.z).any() for s in thrust.values()):
+        return False
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    for imu, s in sorted(thrust.items()):
+        ax.plot(s.t_s - _start(report), s.z, lw=0.8, label=f"IMU{imu}")
+        ax.axhline(s.threshold, color="k", lw=0.8, ls="--")
+    return _finish_in_time(fig, ax, report, path, "max over windows |D_L| / σ_L", "In flight: |f| against GNSS, the statistic and its threshold (dashed)")  # fmt: skip
 
 
 # --------------------------------------------------------------------------- Markdown
@@ -565,6 +586,7 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
         "gravity_residual.png": "|a| − g at rest against the F0 shell",
         "spectra.png": "Accelerometer and gyro spectra",
         "cross_imu.png": "Cross-IMU differences over time",
+        "thrust_axis.png": "Thrust axis against GNSS in flight",
     }
     for name in PLOTS:
         if plots.get(name):

@@ -346,3 +346,19 @@ def receive_until(
 def of_type(messages: list, kind: str) -> list:
     """The MAVLink messages of one type, in arrival order."""
     return [m for m in messages if m.get_type() == kind]
+
+
+@contextmanager
+def served_vehicle(
+    tmp_path, passport_dir, **sections
+) -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """A router on 127.0.0.1, an in-process service of it (``service_config``'s sections) and two
+    client sessions: a vehicle's and a ground station's."""
+    with zenoh_router() as port:
+        cfg = service_config(tmp_path, port=port, passport_dir=passport_dir, **sections)
+        with (
+            ServiceThread(cfg),
+            zenoh.open(zenoh_client_config(port)) as vehicle,
+            zenoh.open(zenoh_client_config(port)) as ground,
+        ):
+            yield vehicle, ground

@@ -364,6 +364,7 @@ def replay_log(
     from service.daemon import pipeline_options
     from service.pipeline import FleetProcessor, detector_config
     from service.pipeline.coverage import imu_coverage
+    from service.pipeline.thrust_axis import ThrustAxisReplay
 
     notes: list[str] = []
 
@@ -396,8 +397,10 @@ def replay_log(
     health: dict[int, ImuHealthAccumulator] = {}
     health_config = HealthConfig()
     start_t_s: list[float] = []
+    thrust = ThrustAxisReplay(args.log, args.vehicle, on_event)
 
     def observe(batch: SampleBatch) -> None:
+        thrust.batch(batch)
         if not start_t_s:
             start_t_s.append(float(batch.t_s[0]))
             note(f"{args.log.name} starts at {log_start(start_t_s[0])}: times count from there")
@@ -433,6 +436,7 @@ def replay_log(
         progress=say,
         on_pace_step=pace_steps.append,
     )
+    events = thrust.merged(events)
     errors += [
         f"{v} IMU{i}: {pipe.nominal_too_slow}"
         for (v, i), pipe in sorted(fleet.pipelines.items())
@@ -471,13 +475,17 @@ def replay_log(
         note("counters " + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())))
     pipes = [p for (v, _), p in sorted(fleet.pipelines.items()) if v == args.vehicle]
     coverages = [
-        imu_coverage(
-            p,
-            imus_on_vehicle=len(pipes),
-            cross_not_running=fleet.cross_not_running(p.vehicle, p.imu),
+        thrust.covered(
+            imu_coverage(
+                p,
+                imus_on_vehicle=len(pipes),
+                cross_not_running=fleet.cross_not_running(p.vehicle, p.imu),
+            )
         )
         for p in pipes
     ]
+    for line in thrust.notes:
+        note(line)
     untested = untested_lines(coverages) + [
         f"IMU{imu}: the pipeline failed on {frames} frame(s)"
         for (_, imu, _), (frames, _) in sorted(failed.items())
@@ -530,7 +538,7 @@ def replay_log(
             start_t_s=result.start_t_s,
             firmware=firmware,
         )
-        md = write_report(report, healths, pairs, args.report, firmware)
+        md = write_report(report, healths, pairs, args.report, firmware, thrust=thrust.statistics())
         note(f"report {md}")
     return dataclasses.replace(result, notes=tuple(notes))
 

@@ -26,7 +26,9 @@ from service.pipeline.triad_check import TriadCheck, f0_threshold
 if TYPE_CHECKING:
     from service.pipeline.imu_pipeline import ImuPipeline
 
-FAULT_PREDICATES = frozenset({"F0", *(f"F{j}" for j in range(1, 10)), "stale", "gross"})
+FAULT_PREDICATES = frozenset(
+    {"F0", *(f"F{j}" for j in range(1, 10)), "stale", "gross", "thrust_axis"}
+)
 """Predicates whose (not recovered) event is a sensor finding: the verdict is then a fault."""
 
 
@@ -76,6 +78,8 @@ def imu_coverage(
                 reason="one IMU: nothing to compare",
             )
         )
+    if pipe.thrust is not None:
+        checks.append(pipe.thrust.coverage())
     return ImuCoverage(pipe.imu, tuple(checks))
 
 

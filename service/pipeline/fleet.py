@@ -4,6 +4,7 @@ status and checkpoints."""
 from __future__ import annotations
 
 import dataclasses
+from collections import deque
 from collections.abc import Callable, Collection, Iterator
 from typing import Any
 
@@ -28,12 +29,14 @@ from protocols.events import (
     make_event,
 )
 from protocols.frames import SampleBatch
+from protocols.gnss_frames import GnssFrame
 from service.pipeline.imu_pipeline import ImuPipeline, join_batches
 from service.pipeline.options import (
     RECOVERED_SEVERITY,
     SEVERITY,
     PipelineOptions,
 )
+from service.pipeline.thrust_axis import THRUST_CONFIG, ThrustAxisCheck
 
 PassportLookup = Callable[[str, int], Passport | None]
 """``(vehicle, imu) -> Passport``; raises ``ValueError`` (e.g. ``PassportStoreError``) with the reason."""
@@ -129,6 +132,10 @@ class FleetProcessor:
         self._frames_routed = 0
         self.pipelines: dict[tuple[str, int], ImuPipeline] = {}
         self.cross: dict[str, CrossImuMonitor] = {}
+        self._gnss_rate: dict[str, float] = {}
+        """Vehicles whose GNSS frames came, and their receivers' rate (the thrust-axis threshold)."""
+        self._gnss_recent: dict[str, deque[GnssFrame]] = {}
+        """Each vehicle's GNSS frames of the span a new thrust-axis check can still use."""
         self.vehicle_counters: dict[str, dict[str, int]] = {}
         self.service_counters: dict[str, int] = {}
         self._restore: Callable[[str, int], dict[str, Any] | None] | None = None
@@ -288,10 +295,58 @@ class FleetProcessor:
             return [], None
         self._seen[batch.vehicle] = self._frames_routed = self._frames_routed + 1
         try:
-            return pipe.process(batch, arrival_s=arrival_s), pipe.accepted
+            events = pipe.process(batch, arrival_s=arrival_s)
         except Exception as exc:
             self._start_afresh(pipe, exc)
             return [], None
+        return events + self._thrust_imu(pipe), pipe.accepted
+
+    def gnss(self, frame: GnssFrame) -> list[Event]:
+        """A vehicle's GNSS frame into the thrust-axis check of each of its IMUs (the first makes
+        them: :mod:`service.pipeline.thrust_axis`); returns the events raised."""
+        if self._vehicles and frame.vehicle not in self._vehicles:
+            self.count_service("gnss.rejected.unknown_vehicle")
+            return []
+        self._gnss_rate[frame.vehicle] = frame.rate_hz
+        self.count_service("gnss.frames")
+        recent = self._gnss_recent.setdefault(frame.vehicle, deque())
+        recent.append(frame)
+        keep_s = THRUST_CONFIG.span_s + THRUST_CONFIG.gnss_late_s
+        while recent[0].t_s[-1] < frame.t_s[-1] - keep_s:
+            recent.popleft()
+        events: list[Event] = []
+        for pipe in self._by_vehicle.get(frame.vehicle, {}).values():
+            check = self._thrust_of(pipe)
+            try:
+                events += check.gnss(frame.t_s, frame.vel_enu_mps)
+            except ValueError:
+                self._thrust_restart(pipe)
+        return events
+
+    def _thrust_of(self, pipe: ImuPipeline) -> ThrustAxisCheck:
+        """The pipeline's check; a new one is given the vehicle's recent GNSS frames (an IMU that
+        comes after the receiver, or starts afresh, still finds the epochs its windows need)."""
+        if pipe.thrust is None:
+            pipe.thrust = ThrustAxisCheck(pipe.vehicle, pipe.imu, self._gnss_rate[pipe.vehicle])
+            for frame in self._gnss_recent.get(pipe.vehicle, ()):
+                pipe.thrust.gnss(frame.t_s, frame.vel_enu_mps)
+        return pipe.thrust
+
+    def _thrust_imu(self, pipe: ImuPipeline) -> list[Event]:
+        """The samples a pipeline accepted into its thrust-axis check, when its vehicle has GNSS."""
+        good = pipe.accepted
+        if good is None or pipe.vehicle not in self._gnss_rate:
+            return []
+        try:
+            return self._thrust_of(pipe).imu(good)
+        except ValueError:
+            self._thrust_restart(pipe)
+            return []
+
+    def _thrust_restart(self, pipe: ImuPipeline) -> None:
+        """A stream the check refuses (its clock went back: a restarted source) starts it afresh."""
+        pipe.thrust = None
+        pipe.counters["thrust_axis.restarts"] = pipe.counters.get("thrust_axis.restarts", 0) + 1
 
     def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
         """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
@@ -373,7 +428,7 @@ class FleetProcessor:
             self._start_afresh(pipe, exc)
             return []
         pipe.last_batch_n = last.n_samples
-        return events
+        return events + self._thrust_imu(pipe)
 
     def _start_afresh(self, pipe: ImuPipeline, exc: Exception) -> None:
         """An IMU whose chain raised: a half-updated chain would refuse every later frame (a detector
@@ -388,6 +443,7 @@ class FleetProcessor:
             nominal_class=pipe.nominal_class,
         )
         fresh.counters = pipe.counters
+        fresh.thrust = pipe.thrust
         fresh.counters["pipeline.errors"] = fresh.counters.get("pipeline.errors", 0) + 1
         self.pipelines[(pipe.vehicle, pipe.imu)] = fresh
         self._by_vehicle[pipe.vehicle][pipe.imu] = fresh

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -62,6 +62,9 @@ from service.pipeline.options import (
 )
 from service.pipeline.static_gate import StaticGate
 from service.pipeline.triad_check import TriadCheck, f0_config, new_estimator
+
+if TYPE_CHECKING:
+    from service.pipeline.thrust_axis import ThrustAxisCheck
 
 
 def _rows(batch: SampleBatch, rows: slice | np.ndarray) -> SampleBatch:
@@ -138,6 +141,9 @@ class ImuPipeline:
         self.rate_changed_from_hz: float | None = None
         self.last_seq: int | None = None
         self.accepted: SampleBatch | None = None
+        self.thrust: ThrustAxisCheck | None = None
+        """The thrust-axis check against the vehicle's GNSS, once GNSS frames come (not checkpointed:
+        after a restart it learns its noise again)."""
         self.last_t_s: float | None = None
         self.last_batch_n = 1
         self.run: int | None = (

@@ -1,0 +1,202 @@
+"""GNSS velocity from logged flights, for the thrust-axis check (:mod:`estimators.thrust_gnss`).
+
+The receiver's own velocity, never a filter's (the EKF's velocity is built from the accelerometer
+under test and would agree with its fault). Converted here to SI, East-North-Up, on the log's IMU
+clock:
+
+* PX4 ULog (pyulog): topic ``vehicle_gps_position`` (instance 0), ``timestamp`` µs,
+  ``vel_n_m_s``, ``vel_e_m_s``, ``vel_d_m_s``; an epoch counts with ``fix_type`` ≥ 3 and
+  ``vel_ned_valid``.
+* ArduPilot DataFlash ``.bin``/``.log`` (pymavlink): message ``GPS`` (instance ``I`` 0 where the
+  format has it), ``TimeUS`` µs (ArduCopter 3.1: ``T`` ms), ground speed ``Spd`` m/s along the course ``GCrs`` (degrees from
+  north), ``VZ`` m/s down; ``Status`` ≥ 3 (3D fix).
+* MAVLink ``.tlog`` (pymavlink) and a live link: ``GPS_RAW_INT``, ``time_usec`` (the autopilot's
+  boot clock, as its IMU messages), ``vel`` cm/s along ``cog`` cdeg; ``fix_type`` ≥ 3. It has no
+  vertical velocity: the vertical is the centred difference of ``alt`` (mm), the mean vertical
+  velocity over the two neighbouring epochs (:func:`estimators.thrust_gnss.up_velocity_from_altitude`).
+  Unknown speed or course (``UINT16_MAX``) leaves the epoch out.
+
+Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a value not finite or
+unknown, a time not after the previous epoch's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pymavlink import mavutil
+
+from estimators._typing import FloatArray
+from estimators.thrust_gnss import up_velocity_from_altitude
+from protocols.logs import LogFormat, detect_format
+
+GPS_FIX_3D = 3
+UNKNOWN_U16 = 65535
+
+
+class GnssLogError(ValueError):
+    """A log whose GNSS records cannot be read (the reason, with the file)."""
+
+
+@dataclass(frozen=True)
+class GnssTrack:
+    """GNSS velocity epochs of one receiver: ``t_s`` (M,) s on the IMU clock, ``vel_enu_mps``
+    (M, 3); ``source`` the message or topic; ``rejected`` epochs left out by reason."""
+
+    t_s: FloatArray
+    vel_enu_mps: FloatArray
+    source: str
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def rate_hz(self) -> float:
+        return 1.0 / float(np.median(np.diff(self.t_s))) if self.t_s.size > 1 else 0.0
+
+
+def _track(t_s: FloatArray, vel: FloatArray, fix_ok: np.ndarray, source: str) -> GnssTrack:
+    """The epochs with a 3D fix and finite values, in increasing time; the rest counted."""
+    rejected: dict[str, int] = {}
+    keep = np.asarray(fix_ok, bool)
+    rejected["no_3d_fix"] = int((~keep).sum())
+    finite = np.all(np.isfinite(vel), axis=1) & np.isfinite(t_s)
+    rejected["not_finite"] = int((keep & ~finite).sum())
+    keep &= finite
+    t, v = t_s[keep], vel[keep]
+    later = np.r_[True, t[1:] > np.maximum.accumulate(t)[:-1]] if t.size else np.empty(0, bool)
+    rejected["time_not_increasing"] = int((~later).sum())
+    return GnssTrack(t[later], v[later], source, {k: n for k, n in rejected.items() if n})
+
+
+def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
+    """The GNSS velocity of a log, or None when it holds no GNSS velocity record at all.
+
+    Raises :class:`GnssLogError` when the records are there and cannot be read.
+    """
+    fmt = detect_format(path)
+    try:
+        if fmt is LogFormat.ULOG:
+            return _ulog(path)
+        if fmt is LogFormat.TLOG:
+            return _tlog(path)
+        return _dataflash(path)
+    except GnssLogError:
+        raise
+    except Exception as exc:  # pyulog and pymavlink raise their own, struct and index errors
+        raise GnssLogError(f"{os.fspath(path)}: GNSS records unreadable: {exc}") from exc
+
+
+def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
+    from pyulog import ULog
+
+    topic = "vehicle_gps_position"
+    # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
+    with contextlib.redirect_stdout(io.StringIO()):
+        log = ULog(os.fspath(path), [topic], disable_str_exceptions=True)
+    data = next((d for d in log.data_list if d.name == topic and d.multi_id == 0), None)
+    if data is None:
+        return None
+    f = data.data
+    vel = np.column_stack([f["vel_e_m_s"], f["vel_n_m_s"], -np.asarray(f["vel_d_m_s"], float)])
+    fix_ok = (np.asarray(f["fix_type"]) >= GPS_FIX_3D) & (np.asarray(f["vel_ned_valid"]) != 0)
+    return _track(np.asarray(f["timestamp"], float) * 1e-6, vel.astype(float), fix_ok, topic)
+
+
+def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
+    conn = mavutil.mavlink_connection(os.fspath(path))
+    try:
+        out = []
+        while (msg := conn.recv_match(type=kind)) is not None:
+            out.append(msg)
+        return out
+    finally:
+        conn.close()
+
+
+def _dataflash(path: str | os.PathLike[str]) -> GnssTrack | None:
+    msgs = [m for m in _messages(path, "GPS") if int(getattr(m, "I", 0)) == 0]
+    if not msgs:
+        return None
+    rows = np.array([[_boot_time_us(m), m.Status, m.Spd, m.GCrs, m.VZ] for m in msgs], float)
+    course = np.radians(rows[:, 3])
+    vel = np.column_stack([rows[:, 2] * np.sin(course), rows[:, 2] * np.cos(course), -rows[:, 4]])
+    return _track(rows[:, 0] * 1e-6, vel, rows[:, 1] >= GPS_FIX_3D, "GPS")
+
+
+def _boot_time_us(msg: Any) -> float:
+    """The boot clock of a DataFlash GPS record: ``TimeUS``; before it (ArduCopter 3.1) ``TimeMS``
+    was the GPS week's time and ``T`` the boot clock in ms."""
+    if hasattr(msg, "TimeUS"):
+        return float(msg.TimeUS)
+    return float(msg.T) * 1e3
+
+
+def gps_raw_int_rows(msgs: list[Any]) -> FloatArray:
+    """(M, 5) ``[t_s, fix_type, speed m/s, course rad, alt m]`` of GPS_RAW_INT messages; unknown
+    speed or course are NaN."""
+    rows = np.array([[m.time_usec, m.fix_type, m.vel, m.cog, m.alt] for m in msgs], float)
+    out = np.column_stack(
+        [
+            rows[:, 0] * 1e-6,
+            rows[:, 1],
+            np.where(rows[:, 2] == UNKNOWN_U16, np.nan, rows[:, 2] * 1e-2),
+            np.where(rows[:, 3] == UNKNOWN_U16, np.nan, np.radians(rows[:, 3] * 1e-2)),
+            rows[:, 4] * 1e-3,
+        ]
+    )
+    return out
+
+
+def gps_raw_int_track(rows: FloatArray) -> GnssTrack:
+    """A track from :func:`gps_raw_int_rows` (the vertical from the altitude; module docstring)."""
+    fix_ok = rows[:, 1] >= GPS_FIX_3D
+    t = rows[:, 0]
+    up = np.full(t.size, np.nan)
+    # Differences only across epochs with a fix and an increasing clock.
+    good = np.flatnonzero(fix_ok & np.r_[True, np.diff(t) > 0])
+    if good.size >= 3:
+        up[good] = up_velocity_from_altitude(t[good], rows[good, 4])
+    speed, course = rows[:, 2], rows[:, 3]
+    vel = np.column_stack([speed * np.sin(course), speed * np.cos(course), up])
+    return _track(t, vel, fix_ok, "GPS_RAW_INT")
+
+
+def _tlog(path: str | os.PathLike[str]) -> GnssTrack | None:
+    msgs = _messages(path, "GPS_RAW_INT")
+    return gps_raw_int_track(gps_raw_int_rows(msgs)) if msgs else None
+
+
+def append_gps_raw_int(
+    path: str | os.PathLike[str],
+    t_s: FloatArray,
+    vel_enu_mps: FloatArray,
+    alt_m: FloatArray,
+    *,
+    wall_start_s: float = 1.7e9,
+    source_system: int = 1,
+) -> int:
+    """Append GPS_RAW_INT records (3D fix) to a telemetry log (for tests and the demo, beside
+    :func:`protocols.logs.write_tlog`'s IMU records; record stamps ``wall_start_s + t_s``);
+    returns the number written. Speed, course and altitude quantize to cm/s, cdeg and mm."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    mav = mavlink2.MAVLink(
+        None, srcSystem=source_system, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1
+    )
+    v = np.asarray(vel_enu_mps, float)
+    speed = np.hypot(v[:, 0], v[:, 1])
+    course_cdeg = np.round(np.degrees(np.arctan2(v[:, 0], v[:, 1])) * 100.0) % 36000
+    with open(path, "ab") as fh:
+        for k, t in enumerate(np.asarray(t_s, float)):
+            msg = mavlink2.MAVLink_gps_raw_int_message(
+                time_usec=round(t * 1e6), fix_type=GPS_FIX_3D, lat=0, lon=0,
+                alt=round(alt_m[k] * 1e3), eph=100, epv=150, vel=round(speed[k] * 100.0),
+                cog=int(course_cdeg[k]), satellites_visible=12,
+            )  # fmt: skip
+            fh.write(struct.pack(">Q", round((wall_start_s + t) * 1e6)) + msg.pack(mav))
+    return int(np.size(t_s))

@@ -1,0 +1,139 @@
+"""The thrust-axis check in ``replay`` (issue 32): GNSS velocity read from the log, an in-flight
+fault as a ``thrust_axis`` event, the coverage line and the report's plot; the shared real logs
+with GNSS read, and replayed without an in-flight alarm.
+
+The simulated log: the project's flight profile (10 s rest, 170 s of ``Fly``, 10 s rest) of a
+consumer-MEMS unit as HIGHRES_IMU at 100 Hz and a receiver's GPS_RAW_INT at 10 Hz (0.05 m/s of
+velocity noise, 0.15 s latency; the vertical from the altitude) in one tlog.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from real_data import LOGS, SHARED, needs
+from replay_support import replay_with_coverage
+
+from estimators.session import ImuSession
+from estimators.sim import Fly, flight_spec, simulate
+from estimators.sim.gnss import gnss_velocity
+from estimators.thrust_gnss import up_velocity_from_altitude
+from protocols.events import Predicate, event_from_json, event_to_dict
+from protocols.gnss_logs import append_gps_raw_int, read_gnss_track
+from protocols.logs import write_tlog
+from protocols.mavlink_adapter import ImuMessage
+from service.cli import EXIT_FAULT, EXIT_UNTESTED
+
+ONSET_S = 140.0
+T0_S = 1000.0
+
+
+def _tlog(path, *, fault: bool):
+    res = simulate(flight_spec(fly=Fly(170.0), rest_s=10.0), 4)
+    s = res.session
+    gt, gv = gnss_velocity(
+        res.truth, rate_hz=10.0, vel_sd_mps=0.05, latency_s=0.15, rng=np.random.default_rng(4)
+    )
+    alt = 100.0 + np.r_[0.0, np.cumsum(0.5 * (gv[1:, 2] + gv[:-1, 2]) * np.diff(gt))]
+    accel = s.accel_mps2.copy()
+    if fault:
+        accel[s.t_s >= ONSET_S, 2] += 0.1
+    write_tlog(
+        path,
+        {0: ImuSession(s.t_s + T0_S, accel, s.gyro_rps)},
+        messages={0: ImuMessage.HIGHRES_IMU},
+    )
+    append_gps_raw_int(path, gt + T0_S, gv, alt)
+    return path
+
+
+def _thrust_check(coverage):
+    (imu,) = coverage["imus"]
+    (check,) = [c for c in imu["checks"] if c["check"] == "thrust_axis"]
+    return check
+
+
+def test_a_thrust_axis_fault_in_a_logged_flight_is_an_event(capsys, tmp_path):
+    """z + 0.1 m/s² from 140 s: one thrust_axis event on the accelerometer's z within 10 s (schema
+    version 2), verdict fault; the coverage says z was tested in flight and x, y not."""
+    log = _tlog(tmp_path / "flight.tlog", fault=True)
+    status, lines, err, coverage = replay_with_coverage(capsys, log, "--json")
+    events = [event_from_json(line) for line in lines]
+    thrust = [e for e in events if e.predicate is Predicate.THRUST_AXIS]
+    assert status == EXIT_FAULT and len(thrust) == 1
+    (e,) = thrust
+    assert (e.triad.value, e.axis) == ("accel", "z") and event_to_dict(e)["v"] == 2
+    assert T0_S + ONSET_S <= e.t_s <= T0_S + ONSET_S + 10.0
+    check = _thrust_check(coverage)
+    assert check["ran"] and check["mdf_bias_si"][:2] == [None, None]
+    assert 0.0 < check["mdf_bias_si"][2] < 0.1
+    assert "GNSS: 1899 epochs of GPS_RAW_INT at 10 Hz; left out none" in err
+    assert "in flight: z accelerometer tested against GNSS on" in err
+    assert "x, y not observable" in err
+
+
+def test_the_fault_free_flight_raises_nothing_and_its_report_plots_the_statistic(capsys, tmp_path):
+    log = _tlog(tmp_path / "flight.tlog", fault=False)
+    status, lines, _, coverage = replay_with_coverage(
+        capsys, log, "--json", "--report", tmp_path / "report"
+    )
+    assert status == EXIT_UNTESTED and lines == []
+    assert _thrust_check(coverage)["ran"]
+    assert (tmp_path / "report" / "thrust_axis.png").stat().st_size > 0
+    assert (
+        "![Thrust axis against GNSS in flight](thrust_axis.png)"
+        in (tmp_path / "report" / "report.md").read_text()
+    )
+
+
+def test_the_vertical_from_the_altitude_is_the_centred_difference():
+    """A climb at constant acceleration: the centred difference is the velocity at the middle
+    epoch exactly; the ends are one-sided."""
+    t = np.arange(0.0, 2.0, 0.2)
+    v = up_velocity_from_altitude(t, 0.5 * 1.5 * t**2)
+    np.testing.assert_allclose(v[1:-1], 1.5 * t[1:-1], atol=1e-12)
+    assert v[0] == pytest.approx(1.5 * 0.1) and v[-1] == pytest.approx(1.5 * (t[-1] - 0.1))
+
+
+@needs(LOGS)
+@needs(SHARED / "data" / "field")
+def test_the_shared_logs_gnss_is_read_on_their_imu_clock():
+    """ULog's vehicle_gps_position (no-fix epochs left out), DataFlash GPS (ArduCopter 3.1's boot
+    clock T), the tlog's GPS_RAW_INT: ENU, m/s, seconds of the autopilot's boot clock."""
+    px4 = read_gnss_track(LOGS / "px4-events.ulg")
+    assert (px4.source, px4.t_s.size, px4.rejected) == (
+        "vehicle_gps_position",
+        423,
+        {"no_3d_fix": 160},
+    )
+    tlog = read_gnss_track(LOGS / "ardupilot-sitl-vtol.tlog")
+    assert (tlog.source, tlog.t_s.size) == ("GPS_RAW_INT", 798)
+    assert 608.0 < tlog.t_s[0] < 609.0 and 4.9 < tlog.rate_hz < 5.1
+    old = read_gnss_track(LOGS / "ardupilot-copter31-no-imu.log")
+    assert old.t_s[0] == pytest.approx(66.937) and old.t_s.size == 551
+    assert read_gnss_track(LOGS / "ardupilot-test.BIN").t_s.size == 5
+    fmu = read_gnss_track(SHARED / "data" / "field" / "px4-fmuv3-10hz.ulg")
+    assert fmu.rate_hz == pytest.approx(5.0, rel=1e-3)
+    assert np.all(np.linalg.norm(fmu.vel_enu_mps, axis=1) < 30.0)
+
+
+REAL_LOGS_WITH_GNSS = [
+    LOGS / "px4-events.ulg",
+    LOGS / "ardupilot-sitl-vtol.tlog",
+    SHARED / "data" / "field" / "px4-fmuv3-10hz.ulg",
+    SHARED / "data" / "field" / "px4-fmuv5-knock.ulg",
+]
+
+
+@needs(LOGS)
+@needs(SHARED / "data" / "field")
+@pytest.mark.parametrize("path", REAL_LOGS_WITH_GNSS, ids=lambda p: p.name)
+def test_real_logs_with_gnss_raise_no_in_flight_alarm_and_say_why(capsys, path):
+    """None of the shared logs holds the minute of flight with a rest before it that the check
+    needs (the longest flies 43 s with no rest): no thrust_axis event, and the coverage says why."""
+    _, lines, err, coverage = replay_with_coverage(capsys, path, "--json")
+    assert all(event_from_json(line).predicate is not Predicate.THRUST_AXIS for line in lines)
+    check = _thrust_check(coverage) if len(coverage["imus"]) == 1 else None
+    if check is not None:
+        assert not check["ran"] and not check["applies"] and check["reason"]
+    assert "accel thrust_axis: does not apply (" in err
