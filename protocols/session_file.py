@@ -553,12 +553,22 @@ def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
     return None
 
 
+def _metadata_fields(text: str) -> list[str]:
+    """A row's fields, less the empty ones a spreadsheet pads it with to the widest row (``Fs,100,,,,``)."""
+    fields = [f.strip() for f in text.split(",")]
+    while len(fields) > 2 and not fields[-1]:
+        fields.pop()
+    return fields
+
+
 def _metadata_rows(rows: list[tuple[int, str]]) -> int:
     """How many leading rows are ``key,value`` metadata (an Arduino logger's ``Fs,100``): rows of
     two fields, the first not a number, before a header of more fields that is not all numbers."""
     k = 0
     while (
-        k < len(rows) and len(fields := rows[k][1].split(",")) == 2 and not _all_numbers(fields[:1])
+        k < len(rows)
+        and len(fields := _metadata_fields(rows[k][1])) == 2
+        and not _all_numbers(fields[:1])
     ):
         k += 1
     if k == 0 or k == len(rows):
@@ -643,7 +653,7 @@ def read_csv_session(
         delimiter = None
     meta = _metadata(comments)
     if n_meta := _metadata_rows(rows):
-        pairs = [tuple(f.strip() for f in text.split(",")) for _, text in rows[:n_meta]]
+        pairs = [_metadata_fields(text) for _, text in rows[:n_meta]]
         meta.update({k: v for k, v in pairs if k not in meta})
         notes.append(
             f"{n_meta} metadata line(s) before the header read: "

@@ -67,6 +67,20 @@ def test_metadata_lines_a_rate_and_stated_scales_read_an_arduino_loggers_raw_cou
     assert f"no time column: time from Fs={rate_hz:g} Hz" in said
 
 
+def test_the_arduino_file_resaved_by_a_spreadsheet_keeps_its_metadata_lines(tmp_path, simulated):
+    """A spreadsheet saves every row as wide as the widest, its metadata lines too (``Fs,100,,,,``):
+    still metadata, read as before, not a header ("unknown column 'fs'")."""
+    s = simulated.session
+    rate_hz = 1.0 / float(np.median(np.diff(s.t_s)))
+    path = _arduino_file(tmp_path, s, rate_hz)
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([line + ",,,," for line in lines[:4]] + lines[4:]) + "\n")
+    loaded = load_session(path, units=SessionUnits("g", "deg/s", None, "1/16384", "1/131"))
+    np.testing.assert_allclose(loaded.session.t_s, np.arange(s.t_s.size) / rate_hz)
+    assert loaded.metadata["Fs"] == f"{rate_hz:g}" and loaded.metadata["Waiting time"] == "3"
+    assert "4 metadata line(s) before the header read: Fs=" in "\n".join(loaded.notes)
+
+
 def test_raw_counts_without_a_scale_are_refused_naming_what_is_missing(tmp_path, simulated):
     path = _arduino_file(tmp_path, simulated.session, 100.0)
     with pytest.raises(SessionFileError, match=r"raw counts.*missing: --accel-scale.*--gyro-scale"):
