@@ -498,7 +498,14 @@ def _firmware_section(fw: Mapping[str, Any]) -> list[str]:
         ]
     if fw["clipped"]:
         clipped = ", ".join(f"instance {k} {n}" for k, n in fw["clipped"].items())
-        lines += ["", f"Clipped samples over the log ({fw['clip_message']} counters): {clipped}."]
+        before = ", ".join(f"instance {k} {n}" for k, n in fw["clipped_before_log"].items() if n)
+        since = f"; before the log's first message the counters held {before} (since boot)"
+        lines += [
+            "",
+            f"Clipped samples over the log ({fw['clip_message']} counters): {clipped}"
+            + (since if before else "")
+            + ".",
+        ]
     if fw["batches"]:
         lines += [
             "",

@@ -146,6 +146,18 @@ def test_mavlink_vibration_is_reported_as_pymavlink_reads_it(tmp_path, capsys):
     assert report["firmware"]["clipped"] == {"0": 0, "1": 0, "2": 0} and a[0, 3] == 67
 
 
+@needs(REAL_TLOG)
+def test_clips_the_counters_held_before_the_log_are_said_beside_the_growth(tmp_path, capsys):
+    """A ground station's log starts when it connects: its VIBRATION clip counters (since boot)
+    read 67 and 54 from the first message on. "0 clipped over the log" alone hid what the firmware
+    counted; the report says both."""
+    report, md = report_of(REAL_TLOG, tmp_path / "r")
+    capsys.readouterr()
+    assert report["firmware"]["clipped_before_log"] == {"0": 67, "1": 54, "2": 0}
+    assert "instance 0 0, instance 1 0, instance 2 0" in md
+    assert "before the log's first message the counters held instance 0 67, instance 1 54" in md
+
+
 @needs(KNOCK)
 def test_a_damaged_ulog_s_firmware_figures_leave_json_output_clean(tmp_path, capsys):
     """pyulog prints what it finds in a damaged file to stdout, where ``--json`` writes its lines."""
