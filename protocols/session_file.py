@@ -535,21 +535,25 @@ def _file_units(metadata: dict[str, str], path: Path) -> SessionUnits:
 
 
 def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
-    """The ``#`` line just above the first data line, when it names a :data:`WHITESPACE_TABLE`'s
-    columns and that data line is whitespace-separated with as many fields."""
-    previous: tuple[int, str] | None = None
+    """The last ``#`` line above the first data line that names a :data:`WHITESPACE_TABLE`'s
+    columns, as many as that data line's whitespace-separated fields (a line of units may follow it)."""
+    comments: list[tuple[int, str]] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if not s:
             continue
         if not s.startswith("#"):
-            if previous is None or "," in s or "," in previous[1]:
+            if "," in s:
                 return None
-            names = previous[1].lstrip("#").lower().split()
-            ours = WHITESPACE_TABLE.ours(names)
-            fits = ours is not None and "t" in ours and len(s.split()) == len(names)
-            return (previous[0], names) if fits else None
-        previous = (lineno, s)
+            for number, comment in reversed(comments):
+                names = comment.lstrip("#").lower().split()
+                ours = WHITESPACE_TABLE.ours(names)
+                # The time and a triad at least: a comment's words are no header ("# time series").
+                named = [] if ours is None else [o for o in ours if o is not None]
+                if "," not in comment and "t" in named and len(named) >= 4:
+                    return (number, names) if len(s.split()) == len(names) else None
+            return None
+        comments.append((lineno, s))
     return None
 
 
@@ -664,11 +668,17 @@ def read_csv_session(
     if not rows:
         raise SessionFileError(f"{path}: empty file (no header row t,ax,ay,az,gx,gy,gz[,temp])")
     header_line, header = rows[0]
-    if delimiter == "," and _all_numbers(header.split()):
+    if delimiter == "," and _all_numbers(fields := header.split()):
+        # A raw-count pair's files hold time x y z: four fields.
+        pair = (
+            "this looks like one file of a raw-count pair (give the gyro file too, or the "
+            "directory holding both); "
+            if len(fields) == 4
+            else ""
+        )
         raise SessionFileError(
-            f"{path}: line {header_line}: no header row; this looks like one file of a raw-count pair "
-            "(give the gyro file too, or the directory holding both); a space-separated table needs "
-            "a '#' line naming its columns just above the first row (# time ax ay az gx gy gz)"
+            f"{path}: line {header_line}: no header row; {pair}a space-separated table needs "
+            "a '#' line naming its columns above the first row (# time ax ay az gx gy gz)"
         )
     names = [n.strip().lower() for n in header.split(delimiter)]
     n_fields = len(names)

@@ -134,6 +134,33 @@ def test_a_space_separated_table_with_a_hash_header_reads_its_columns_and_says_t
     assert loaded.metadata["format"].startswith("whitespace-separated table")
 
 
+def test_a_hash_header_followed_by_a_units_line_is_still_the_header(tmp_path, simulated):
+    """Loggers write a line of units under the names (``# [s] [m/s^2] ...``): the names are the
+    header, the comment between them and the first row no reason to refuse the file."""
+    s = simulated.session
+    path = tmp_path / "imu.txt"
+    rows = [
+        " ".join(repr(float(v)) for v in (t, *a, *w))
+        for t, a, w in zip(s.t_s, s.accel_mps2, s.gyro_rps, strict=True)
+    ]
+    header = ["# time tx ty tz wx wy wz", "# [s] [m/s^2] [m/s^2] [m/s^2] [rad/s] [rad/s] [rad/s]"]
+    path.write_text("\n".join([*header, *rows]) + "\n")
+    loaded = load_session(path)
+    np.testing.assert_array_equal(loaded.session.accel_mps2, s.accel_mps2)
+    np.testing.assert_array_equal(loaded.session.t_s, s.t_s)
+
+
+def test_a_wide_table_without_named_columns_is_not_taken_for_half_a_raw_count_pair(tmp_path):
+    """A raw-count pair's files hold four fields a line (time x y z); a line of fourteen is a
+    table whose '#' line is missing or not understood, and the message says only that."""
+    path = tmp_path / "imu.txt"
+    path.write_text("# time[s] ax[m/s^2] ay az gx gy gz mx my mz qw qx qy qz\n" + "0 " * 13 + "0\n")
+    with pytest.raises(SessionFileError) as refused:
+        load_session(path)
+    assert "raw-count pair" not in str(refused.value)
+    assert "a space-separated table needs a '#' line naming its columns" in str(refused.value)
+
+
 def test_a_euroc_file_resaved_by_a_spreadsheet_drops_and_counts_its_junk_rows(
     tmp_path, simulated, capsys
 ):
