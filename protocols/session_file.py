@@ -151,6 +151,10 @@ SCALE_KEYS = {"accel": "accel_scale", "gyro": "gyro_scale"}
 RATE_KEYS = ("fs", "rate_hz", "sample_rate_hz", "sampling_rate_hz", "rate")
 """Metadata keys (any case) whose value is the sample rate, Hz: the time of a file without a time column."""
 
+RATE_AGREEMENT = 0.05
+"""A stated rate and a time column's median step disagree beyond this fraction: said (a logger's
+clock runs a few per mille off its nominal rate; a header left at another rate's value is off by far more)."""
+
 _UNIT_OPTION = {"accel": "--accel-unit", "gyro": "--gyro-unit", "time": "--time-unit"}
 _UNIT_WORD = {"accel": "accelerometer", "gyro": "gyro", "time": "time"}
 
@@ -747,6 +751,19 @@ def read_csv_session(
             f"time stamps in E-notation (first {first_t.strip()!r}): {repeats} repeat an earlier "
             "one or go back at the precision written"
         )
+
+    if rate is not None and "t" in names:
+        step = np.diff(col["t"]) * SI_PER_UNIT[units.over(file_units).resolved().time or TimeUnit.S]
+        step = step[np.isfinite(step) & (step > 0)]
+        try:
+            stated_hz = _positive(rate[1], "")
+        except SessionFileError:  # a comment's "rate" that is no number gives no time here
+            stated_hz = math.nan
+        if step.size and abs(1.0 / float(np.median(step)) / stated_hz - 1.0) > RATE_AGREEMENT:
+            notes.append(
+                f"{rate[0]}={rate[1]} Hz stated, but the time column's median step is a rate of "
+                f"{1.0 / float(np.median(step)):.4g} Hz: the time column is the time"
+            )
 
     def triad(cols: tuple[str, ...]) -> np.ndarray | None:
         return np.column_stack([col[c] for c in cols]) if cols[0] in col else None

@@ -113,6 +113,28 @@ def test_a_file_without_time_column_nor_rate_is_refused_naming_both(tmp_path):
         load_session(path)
 
 
+def test_a_rate_line_the_time_column_contradicts_is_said(tmp_path, simulated):
+    """A file with both: the time column is the time; a stated rate it contradicts (a logger's
+    header left at its default) is said, not silently passed over."""
+    s = simulated.session
+    rate_hz = 1.0 / float(np.median(np.diff(s.t_s)))
+    rows = [
+        ",".join(repr(float(v)) for v in (t, *a, *w))
+        for t, a, w in zip(s.t_s, s.accel_mps2, s.gyro_rps, strict=True)
+    ]
+    path = tmp_path / "both.csv"
+    path.write_text("\n".join([f"Fs,{rate_hz / 2:g}", "t,ax,ay,az,gx,gy,gz", *rows]) + "\n")
+    loaded = load_session(path)
+    np.testing.assert_array_equal(loaded.session.t_s, s.t_s)
+    said = "\n".join(loaded.notes)
+    assert (
+        f"Fs={rate_hz / 2:g} Hz stated, but the time column's median step is a rate of {rate_hz:.4g} Hz"
+        in said
+    )
+    path.write_text("\n".join([f"Fs,{rate_hz:g}", "t,ax,ay,az,gx,gy,gz", *rows]) + "\n")
+    assert "time column" not in "\n".join(load_session(path).notes)
+
+
 def test_a_space_separated_table_with_a_hash_header_reads_its_columns_and_says_the_others(
     tmp_path, simulated
 ):
