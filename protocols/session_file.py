@@ -741,7 +741,11 @@ def read_csv_session(
         notes.append(
             f"no time column: time from {rate[0]}={rate[1]} Hz (sample k at k/{rate[1]} s)"
         )
-        file_units = file_units.over(SessionUnits(time=TimeUnit.S))
+        if (declared_time := units.time or file_units.time) not in (None, TimeUnit.S):
+            notes.append(
+                f"the declared time unit {declared_time} is not used: the time comes from the rate"
+            )
+        units, file_units = replace(units, time=None), replace(file_units, time=TimeUnit.S)
         meta.setdefault(UNIT_KEYS["time"], "s")
     elif "e" in (first_t := rows[1][1].split(delimiter)[used[names.index("t")]]).lower():
         # A spreadsheet writes large stamps so, rounded to its digits: repeats are dropped and

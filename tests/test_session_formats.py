@@ -81,6 +81,18 @@ def test_the_arduino_file_resaved_by_a_spreadsheet_keeps_its_metadata_lines(tmp_
     assert "4 metadata line(s) before the header read: Fs=" in "\n".join(loaded.notes)
 
 
+def test_a_declared_time_unit_does_not_scale_the_time_a_rate_gives(tmp_path, simulated):
+    """The time made from Fs is in seconds (the rate is in Hz): a --time-unit given for every file
+    of a batch is said not to apply, not applied (it made the 100 Hz file a 100 kHz one)."""
+    s = simulated.session
+    rate_hz = 1.0 / float(np.median(np.diff(s.t_s)))
+    path = _arduino_file(tmp_path, s, rate_hz)
+    loaded = load_session(path, units=SessionUnits("g", "deg/s", "ms", "1/16384", "1/131"))
+    np.testing.assert_allclose(loaded.session.t_s, np.arange(s.t_s.size) / rate_hz)
+    assert loaded.units.time == "s"
+    assert "the declared time unit ms is not used" in "\n".join(loaded.notes)
+
+
 def test_raw_counts_without_a_scale_are_refused_naming_what_is_missing(tmp_path, simulated):
     path = _arduino_file(tmp_path, simulated.session, 100.0)
     with pytest.raises(SessionFileError, match=r"raw counts.*missing: --accel-scale.*--gyro-scale"):
