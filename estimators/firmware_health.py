@@ -93,6 +93,14 @@ def counter_growth(values: FloatArray) -> int:
     return int(np.where(step >= 0.0, step, v[1:]).sum())
 
 
+def counter_start(values: FloatArray) -> int:
+    """A cumulative counter's first value: what it had counted before the log began (since the
+    autopilot booted; a ground station's log starts when it connects). 0 without a finite value."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    return int(v[0]) if v.size else 0
+
+
 @dataclass(frozen=True)
 class BatchStream:
     """One sensor's batch-sampler data (:class:`BatchStreamAccumulator`): samples, blocks, rate, noise

@@ -21,7 +21,9 @@ Figures
   ``sqrt(Σ(n−1)var / Σ(n−1))`` (M1's per-sample noise) of the settled blocks: a block
   at rest whose standard deviation on any axis is more than :data:`SETTLING_SPREAD_RATIO`
   times the median rest block's is still settling (the ringing after a landing or a knock,
-  within the detector's spread) and does not enter it (``settling_blocks``); with no rest, from the
+  within the detector's spread) and does not enter it (``settling_blocks``); on an output
+  quantized below its noise the median is at least half a step (the smallest change between
+  consecutive samples): one count's flip is no ringing; with no rest, from the
   first difference (a high-pass): ``rms(x_k − x_{k−1}) / √2``, equal to σ for
   white noise; ``noise_method`` says which.
 * at rest: ``gravity_residual_mps2`` = |mean a| − g per block (median and the
@@ -240,6 +242,8 @@ class ImuHealthAccumulator:
         self._psd_count = 0
         self._diff_sq = np.zeros(6)
         self._diff_n = 0
+        self._step = np.full(6, np.inf)
+        """The smallest change between consecutive samples per axis: the output's step, if quantized."""
         self._pending: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
 
     def update(
@@ -343,6 +347,8 @@ class ImuHealthAccumulator:
             b, den, np.linalg.norm(diff_g, axis=1) * dt, zi=self._zi["px4g"]
         )
         self._diff_sq += (np.hstack([diff_a, diff_g]) ** 2).sum(axis=0)
+        moved = np.abs(np.hstack([diff_a, diff_g]))
+        self._step = np.fmin(self._step, np.where(moved > 0.0, moved, np.inf).min(axis=0))
         self._diff_n += diff_a.shape[0] - (1 if self._last_a is None else 0)
         self._last_a, self._last_g = a[-1], g[-1]
         return np.sqrt(np.maximum(level, 0.0)), px4a, px4g
@@ -433,7 +439,7 @@ class ImuHealthAccumulator:
         blocks = self._block_view(table, rate)
         rest = blocks.rest
         dof = np.maximum(blocks.n - 1, 0)[:, None]
-        settled = rest & _settled(blocks, rest)
+        settled = rest & _settled(blocks, rest, self._step)
         if rest.any():
             method = "rest"
             w = dof[settled]
@@ -532,13 +538,18 @@ class ImuHealthAccumulator:
         )
 
 
-def _settled(blocks: Blocks, rest: BoolArray) -> BoolArray:
+def _settled(blocks: Blocks, rest: BoolArray, step: FloatArray) -> BoolArray:
     """Blocks whose standard deviation on every axis is within :data:`SETTLING_SPREAD_RATIO` times the
-    median rest block's (module docstring); the median rest block is always settled."""
+    median rest block's, or half the output's ``step`` per axis where more (module docstring); the
+    median rest block is always settled."""
     spread = np.sqrt(np.hstack([blocks.accel_var, blocks.gyro_var]))
     if not rest.any():
         return np.zeros(rest.shape, dtype=bool)
-    typical = np.median(spread[rest], axis=0)
+    # Quantized below its noise, most blocks never change a count and one flip (a spread of up to
+    # half a step) would double the median's: no ringing is told from less.
+    typical = np.maximum(
+        np.median(spread[rest], axis=0), 0.5 * np.where(np.isfinite(step), step, 0.0)
+    )
     settled: BoolArray = np.all(spread <= SETTLING_SPREAD_RATIO * typical, axis=1)
     return settled
 

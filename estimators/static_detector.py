@@ -80,7 +80,8 @@ only for a static unit"), so a hold is a position when its means are stable with
 * a *hold* is at least ``ceil(HELD_MIN_S / window_s)`` consecutive held windows (1.5 s);
 * its *tremor windows* are those whose gyro spread exceeds the bench threshold while their mean
   rate turns the unit by less than ``orientation_change_deg`` within one window (a turn is
-  no tremor).
+  no tremor), in a hold that trembles: at least half its windows and 1.5 s of them do (a knock
+  on the bench shakes a window or two of a rest, and must not raise the thresholds of a session).
 
 With tremor windows, the gyro spread threshold and the mean-rate bound are raised to
 ``factor`` times their typical (median) spread and mean rate about the zero signal: the hand's
@@ -313,6 +314,9 @@ class StaticDetectorConfig:
         rate = np.linalg.norm(g_means - np.array(self.gyro_rate_centre_rps), axis=1)
         turn_limit_rps = math.radians(self.orientation_change_deg) / self.window_s
         tremor = in_hold & (g_spread > self.gyro_std_rps) & (rate <= turn_limit_rps)
+        # A hand trembles through its hold; a knock on the bench shakes a window or two of a rest.
+        shaking = np.bincount(run_id, weights=tremor)[run_id]
+        tremor &= (shaking >= need) & (2.0 * shaking >= run_len)
         if not np.any(tremor):
             return self
         return replace(

@@ -46,6 +46,7 @@ from estimators.firmware_health import (
     BatchStreamAccumulator,
     LevelSummary,
     counter_growth,
+    counter_start,
     level_summary,
 )
 from protocols.logs import DataFlashStream, LogFormat
@@ -92,10 +93,13 @@ class BatchSensor:
 @dataclass(frozen=True)
 class FirmwareHealth:
     """What the log's own health data say (module docstring): ``clipped`` accelerometer instance →
-    clipped samples over the log (the growth of the firmware's counters); ``unread``: why none was read."""
+    clipped samples over the log (the growth of the firmware's counters); ``clipped_before_log``: what
+    the counters held at the log's first message (clips since boot before it); ``unread``: why none
+    was read."""
 
     vibration: list[FirmwareVibration] = field(default_factory=list)
     clipped: dict[int, int] = field(default_factory=dict)
+    clipped_before_log: dict[int, int] = field(default_factory=dict)
     clip_message: str = ""
     clip_source: str = ""
     batches: list[BatchSensor] = field(default_factory=list)
@@ -106,6 +110,7 @@ class FirmwareHealth:
         return {
             "vibration": [asdict(v) for v in self.vibration],
             "clipped": {str(k): n for k, n in sorted(self.clipped.items())},
+            "clipped_before_log": {str(k): n for k, n in sorted(self.clipped_before_log.items())},
             "clip_message": self.clip_message,
             "clip_source": self.clip_source,
             "batches": [
@@ -198,6 +203,7 @@ def _dataflash(path: Path, *, binary: bool) -> FirmwareHealth:
     return FirmwareHealth(
         vibration=[_ardupilot_vibe("VIBE", i, v) for i, v in sorted(levels.items(), key=_key)],
         clipped={k: counter_growth(np.array(v)) for k, v in sorted(counters.items())},
+        clipped_before_log={k: counter_start(np.array(v)) for k, v in sorted(counters.items())},
         clip_message="VIBE" if counters else "",
         clip_source=ARDUPILOT_CLIP_SOURCE if counters else "",
         batches=batches.result(),
@@ -266,6 +272,7 @@ def _tlog(path: Path) -> FirmwareHealth:
     return FirmwareHealth(
         vibration=[_ardupilot_vibe("VIBRATION", None, levels)],
         clipped={k: counter_growth(np.array(v)) for k, v in sorted(counters.items())},
+        clipped_before_log={k: counter_start(np.array(v)) for k, v in sorted(counters.items())},
         clip_message="VIBRATION",
         clip_source=ARDUPILOT_CLIP_SOURCE,
     )
@@ -278,7 +285,7 @@ def _ulog(path: Path) -> FirmwareHealth:
     with contextlib.redirect_stdout(io.StringIO()):
         log = ULog(str(path), ["vehicle_imu_status"])
     vibration = []
-    clipped = {}
+    clipped, before = {}, {}
     for d in sorted(log.data_list, key=lambda d: d.multi_id):
         data = d.data
         new = "delta_angle_coning_metric" in data
@@ -311,9 +318,15 @@ def _ulog(path: Path) -> FirmwareHealth:
         )
         if accel_clip:
             clipped[int(d.multi_id)] = sum(accel_clip)
+            before[int(d.multi_id)] = sum(
+                counter_start(data[f"accel_clipping[{k}]"])
+                for k in range(3)
+                if f"accel_clipping[{k}]" in data
+            )
     return FirmwareHealth(
         vibration=vibration,
         clipped=clipped,
+        clipped_before_log=before,
         clip_message="vehicle_imu_status" if clipped else "",
         clip_source="PX4 vehicle_imu_status accel_clipping: samples at the end of the range, per axis"
         if clipped

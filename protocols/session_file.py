@@ -151,6 +151,10 @@ SCALE_KEYS = {"accel": "accel_scale", "gyro": "gyro_scale"}
 RATE_KEYS = ("fs", "rate_hz", "sample_rate_hz", "sampling_rate_hz", "rate")
 """Metadata keys (any case) whose value is the sample rate, Hz: the time of a file without a time column."""
 
+RATE_AGREEMENT = 0.05
+"""A stated rate and a time column's median step disagree beyond this fraction: said (a logger's
+clock runs a few per mille off its nominal rate; a header left at another rate's value is off by far more)."""
+
 _UNIT_OPTION = {"accel": "--accel-unit", "gyro": "--gyro-unit", "time": "--time-unit"}
 _UNIT_WORD = {"accel": "accelerometer", "gyro": "gyro", "time": "time"}
 
@@ -563,22 +567,34 @@ def _file_units(metadata: dict[str, str], path: Path) -> SessionUnits:
 
 
 def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
-    """The ``#`` line just above the first data line, when it names a :data:`WHITESPACE_TABLE`'s
-    columns and that data line is whitespace-separated with as many fields."""
-    previous: tuple[int, str] | None = None
+    """The last ``#`` line above the first data line that names a :data:`WHITESPACE_TABLE`'s
+    columns, as many as that data line's whitespace-separated fields (a line of units may follow it)."""
+    comments: list[tuple[int, str]] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if not s:
             continue
         if not s.startswith("#"):
-            if previous is None or "," in s or "," in previous[1]:
+            if "," in s:
                 return None
-            names = previous[1].lstrip("#").lower().split()
-            ours = WHITESPACE_TABLE.ours(names)
-            fits = ours is not None and "t" in ours and len(s.split()) == len(names)
-            return (previous[0], names) if fits else None
-        previous = (lineno, s)
+            for number, comment in reversed(comments):
+                names = comment.lstrip("#").lower().split()
+                ours = WHITESPACE_TABLE.ours(names)
+                # The time and a triad at least: a comment's words are no header ("# time series").
+                named = [] if ours is None else [o for o in ours if o is not None]
+                if "," not in comment and "t" in named and len(named) >= 4:
+                    return (number, names) if len(s.split()) == len(names) else None
+            return None
+        comments.append((lineno, s))
     return None
+
+
+def _metadata_fields(text: str) -> list[str]:
+    """A row's fields, less the empty ones a spreadsheet pads it with to the widest row (``Fs,100,,,,``)."""
+    fields = [f.strip() for f in text.split(",")]
+    while len(fields) > 2 and not fields[-1]:
+        fields.pop()
+    return fields
 
 
 def _metadata_rows(rows: list[tuple[int, str]]) -> int:
@@ -586,7 +602,9 @@ def _metadata_rows(rows: list[tuple[int, str]]) -> int:
     two fields, the first not a number, before a header of more fields that is not all numbers."""
     k = 0
     while (
-        k < len(rows) and len(fields := rows[k][1].split(",")) == 2 and not _all_numbers(fields[:1])
+        k < len(rows)
+        and len(fields := _metadata_fields(rows[k][1])) == 2
+        and not _all_numbers(fields[:1])
     ):
         k += 1
     if k == 0 or k == len(rows):
@@ -671,7 +689,7 @@ def read_csv_session(
         delimiter = None
     meta = _metadata(comments)
     if n_meta := _metadata_rows(rows):
-        pairs = [tuple(f.strip() for f in text.split(",")) for _, text in rows[:n_meta]]
+        pairs = [_metadata_fields(text) for _, text in rows[:n_meta]]
         meta.update({k: v for k, v in pairs if k not in meta})
         notes.append(
             f"{n_meta} metadata line(s) before the header read: "
@@ -682,11 +700,17 @@ def read_csv_session(
     if not rows:
         raise SessionFileError(f"{path}: empty file (no header row t,ax,ay,az,gx,gy,gz[,temp])")
     header_line, header = rows[0]
-    if delimiter == "," and _all_numbers(header.split()):
+    if delimiter == "," and _all_numbers(fields := header.split()):
+        # A raw-count pair's files hold time x y z: four fields.
+        pair = (
+            "this looks like one file of a raw-count pair (give the gyro file too, or the "
+            "directory holding both); "
+            if len(fields) == 4
+            else ""
+        )
         raise SessionFileError(
-            f"{path}: line {header_line}: no header row; this looks like one file of a raw-count pair "
-            "(give the gyro file too, or the directory holding both); a space-separated table needs "
-            "a '#' line naming its columns just above the first row (# time ax ay az gx gy gz)"
+            f"{path}: line {header_line}: no header row; {pair}a space-separated table needs "
+            "a '#' line naming its columns above the first row (# time ax ay az gx gy gz)"
         )
     names = [n.strip().lower() for n in header.split(delimiter)]
     n_fields = len(names)
@@ -745,7 +769,11 @@ def read_csv_session(
         notes.append(
             f"no time column: time from {rate[0]}={rate[1]} Hz (sample k at k/{rate[1]} s)"
         )
-        file_units = file_units.over(SessionUnits(time=TimeUnit.S))
+        if (declared_time := units.time or file_units.time) not in (None, TimeUnit.S):
+            notes.append(
+                f"the declared time unit {declared_time} is not used: the time comes from the rate"
+            )
+        units, file_units = replace(units, time=None), replace(file_units, time=TimeUnit.S)
         meta.setdefault(UNIT_KEYS["time"], "s")
     elif "e" in (first_t := rows[1][1].split(delimiter)[used[names.index("t")]]).lower():
         # A spreadsheet writes large stamps so, rounded to its digits: repeats are dropped and
@@ -755,6 +783,19 @@ def read_csv_session(
             f"time stamps in E-notation (first {first_t.strip()!r}): {repeats} repeat an earlier "
             "one or go back at the precision written"
         )
+
+    if rate is not None and "t" in names:
+        step = np.diff(col["t"]) * SI_PER_UNIT[units.over(file_units).resolved().time or TimeUnit.S]
+        step = step[np.isfinite(step) & (step > 0)]
+        try:
+            stated_hz = _positive(rate[1], "")
+        except SessionFileError:  # a comment's "rate" that is no number gives no time here
+            stated_hz = math.nan
+        if step.size and abs(1.0 / float(np.median(step)) / stated_hz - 1.0) > RATE_AGREEMENT:
+            notes.append(
+                f"{rate[0]}={rate[1]} Hz stated, but the time column's median step is a rate of "
+                f"{1.0 / float(np.median(step)):.4g} Hz: the time column is the time"
+            )
 
     def triad(cols: tuple[str, ...]) -> np.ndarray | None:
         return np.column_stack([col[c] for c in cols]) if cols[0] in col else None

@@ -86,13 +86,18 @@ def event_finding(event: Event) -> dict[str, Any]:
 
 
 def health_findings(
-    imu: int, health: ImuHealth, clipped: int | None, *, firmware_first: bool = False
+    imu: int,
+    health: ImuHealth,
+    clipped: int | None,
+    *,
+    firmware_vibration: bool = False,
+    firmware_clipping: bool = False,
 ) -> list[dict[str, Any]]:
     """The report's own checks of one IMU: in-flight vibration (ArduPilot's thresholds) and clipping
-    recomputed from the logged samples; ``firmware_first``: the log has the firmware's own vibration
-    and clipping figures (:func:`firmware_findings`), which these do not repeat."""
+    recomputed from the logged samples; ``firmware_vibration``, ``firmware_clipping``: the log has the
+    firmware's own figures of this IMU (:func:`firmware_findings`), which these do not repeat."""
     out: list[dict[str, Any]] = []
-    if health.vibe_max_mps2 is not None and not firmware_first:
+    if health.vibe_max_mps2 is not None and not firmware_vibration:
         worst = float(health.vibe_max_mps2.max())
         axis = AXES[int(np.argmax(health.vibe_max_mps2))]
         if worst > VIBE_WARN_MPS2:
@@ -111,7 +116,7 @@ def health_findings(
                     "text": f"IMU{imu} vibration (VIBE) {worst:.1f} m/s² on {axis} in flight, above {limit:g} ({VIBE_SOURCE})",
                 }
             )
-    if clipped and not firmware_first:
+    if clipped and not firmware_clipping:
         out.append(
             {
                 "source": "report",
@@ -236,9 +241,17 @@ def build_report(
         imus.append(entry)
     fw = firmware if firmware is not None else FirmwareHealth()
     findings = [event_finding(e) for e in events] + firmware_findings(fw)
-    first = bool(fw.vibration or fw.clipped)
+    # The firmware's figures stand for the instances they name (VIBRATION, and VIBE before
+    # ArduPilot 4.0: the primary accelerometer, IMU0); any other IMU's recomputed ones are its only.
+    vibrations = {0 if v.instance is None else v.instance for v in fw.vibration}
     for imu, h in sorted(healths.items()):
-        findings += health_findings(imu, h, stats.clipped.get(imu), firmware_first=first)
+        findings += health_findings(
+            imu,
+            h,
+            stats.clipped.get(imu),
+            firmware_vibration=imu in vibrations,
+            firmware_clipping=imu in fw.clipped,
+        )
     return {
         "type": REPORT_TYPE,
         "schema_version": REPORT_SCHEMA_VERSION,
@@ -519,7 +532,14 @@ def _firmware_section(fw: Mapping[str, Any]) -> list[str]:
         ]
     if fw["clipped"]:
         clipped = ", ".join(f"instance {k} {n}" for k, n in fw["clipped"].items())
-        lines += ["", f"Clipped samples over the log ({fw['clip_message']} counters): {clipped}."]
+        before = ", ".join(f"instance {k} {n}" for k, n in fw["clipped_before_log"].items() if n)
+        since = f"; before the log's first message the counters held {before} (since boot)"
+        lines += [
+            "",
+            f"Clipped samples over the log ({fw['clip_message']} counters): {clipped}"
+            + (since if before else "")
+            + ".",
+        ]
     if fw["batches"]:
         lines += [
             "",

@@ -6,6 +6,8 @@ ends with a documented exit status (0-3) and no traceback, writes its report, re
 samples as the format's own library (pyulog, pymavlink) holds of the messages it names as its
 sources (those it leaves out counted), at the rate of the library's time stamps, one IMU per
 instance, and names every other IMU message the log holds as left out (its count in the report).
+Its firmware section reads every vibration message and batch-sampler header the library reads,
+and nothing of it went unread.
 Sessions (a folder whose sidecar says ``kind = "session"``): ``calibrate`` writes a passport
 from the positions its SOURCE.md states, ``diagnose`` of the session against that passport fails
 no F0 beyond its false-alarm rate, ``audit`` runs.
@@ -237,6 +239,32 @@ def test_replay_rates_are_the_library_stamps_rates(log, reports):
         steps = np.diff(np.sort(_library_stream(imu, report, stamps)))
         low, high = np.percentile(steps[steps > 0], [25, 75])
         assert low * (1 - 1e-9) <= 1.0 / imu["rate_hz"] <= high * (1 + 1e-9)
+
+
+FIRMWARE_LEVELS = ("VIBE", "VIBRATION", "vehicle_imu_status")
+"""The firmware's own vibration messages (protocols/firmware_health.py): one level a message."""
+
+
+@pytest.mark.parametrize("log", LOGS, ids=_ids(LOGS))
+def test_the_firmware_s_own_health_data_are_read_as_the_format_library_reads_them(log, reports):
+    """Nothing of the firmware section went unread (its reader turns a decoding error into a line
+    of the report, which would hide a reader gone wrong), every vibration message the library reads
+    is a level of the report or left out as not finite, and the batch sampler's blocks are its
+    ``ISBH`` headers with at most 32 samples an ``ISBD``."""
+    report = _replayed_report(log, reports)
+    firmware = report["firmware"]
+    assert firmware["unread"] == ""
+    read = _ulog_stamps if log.suffix.lower() == ".ulg" else _mavlink_stamps
+    held: dict[str, int] = {}
+    for (name, _), s in read(log, {*FIRMWARE_LEVELS, "ISBH", "ISBD"}).items():
+        held[name] = held.get(name, 0) + len(s)
+    levels: dict[str, int] = {}
+    for v in firmware["vibration"]:
+        levels[v["message"]] = levels.get(v["message"], 0) + v["accel"]["n"]
+        levels[v["message"]] += v["accel"]["not_finite"]
+    assert levels == {k: n for k, n in held.items() if k in FIRMWARE_LEVELS}
+    assert sum(b["blocks"] for b in firmware["batches"]) == held.get("ISBH", 0)
+    assert sum(b["samples"] for b in firmware["batches"]) <= 32 * held.get("ISBD", 0)
 
 
 def _imu_keys(report: dict[str, Any]) -> dict[str, str]:

@@ -6,6 +6,7 @@ and the findings against the firmware's own thresholds on a generated telemetry 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import struct
 
@@ -146,6 +147,18 @@ def test_mavlink_vibration_is_reported_as_pymavlink_reads_it(tmp_path, capsys):
     assert report["firmware"]["clipped"] == {"0": 0, "1": 0, "2": 0} and a[0, 3] == 67
 
 
+@needs(REAL_TLOG)
+def test_clips_the_counters_held_before_the_log_are_said_beside_the_growth(tmp_path, capsys):
+    """A ground station's log starts when it connects: its VIBRATION clip counters (since boot)
+    read 67 and 54 from the first message on. "0 clipped over the log" alone hid what the firmware
+    counted; the report says both."""
+    report, md = report_of(REAL_TLOG, tmp_path / "r")
+    capsys.readouterr()
+    assert report["firmware"]["clipped_before_log"] == {"0": 67, "1": 54, "2": 0}
+    assert "instance 0 0, instance 1 0, instance 2 0" in md
+    assert "before the log's first message the counters held instance 0 67, instance 1 54" in md
+
+
 @needs(KNOCK)
 def test_a_damaged_ulog_s_firmware_figures_leave_json_output_clean(tmp_path, capsys):
     """pyulog prints what it finds in a damaged file to stdout, where ``--json`` writes its lines."""
@@ -229,3 +242,24 @@ def test_a_tlog_s_vibration_messages_are_judged_by_ardupilot_s_thresholds(tmp_pa
     ]
     assert report["imus"][0]["vibration"]["recomputed_below_hz"] == pytest.approx(12.5)
     assert "VIBE recomputed in flight from the logged samples (sees below 12 Hz only)" in md
+
+
+def test_the_primary_s_vibration_does_not_silence_another_imu_s(tmp_path, capsys):
+    """VIBRATION is the primary accelerometer's (IMU0): quiet here (3, 4, 5 m/s²). IMU1's samples
+    shake at 8 Hz, 90 m/s², a recomputed VIBE of 42 m/s² on x, above ArduPilot's 30: its finding
+    stays, as no firmware figure speaks for IMU1 (the firmware's presence silenced it)."""
+    session = demo_scenario(fault_magnitude=0.0).session.select(slice(0, 4000, 8))
+    a = session.accel_mps2.copy()
+    a[:, 0] += 90.0 * np.sin(2 * np.pi * 8.0 * session.t_s)
+    log = tmp_path / "two.tlog"
+    write_tlog(log, {0: session, 1: dataclasses.replace(session, accel_mps2=a)})
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    with open(log, "ab") as fh:
+        for k in range(60):
+            msg = mav.vibration_encode(k * 100_000, 3.0, 4.0, 5.0, 0, 0, 0)
+            fh.write(struct.pack(">Q", int(1.7e15) + k * 100_000) + msg.pack(mav))
+    report, _ = report_of(log, tmp_path / "r", "--gravity", demo_passport()[1])
+    capsys.readouterr()
+    vibration = [f for f in report["findings"] if f["predicate"] == "vibration"]
+    assert [(f["source"], f["imu"], f["axis"]) for f in vibration] == [("report", 1, "x")]
+    assert vibration[0]["estimate"] > 30.0

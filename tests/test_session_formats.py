@@ -67,6 +67,32 @@ def test_metadata_lines_a_rate_and_stated_scales_read_an_arduino_loggers_raw_cou
     assert f"no time column: time from Fs={rate_hz:g} Hz" in said
 
 
+def test_the_arduino_file_resaved_by_a_spreadsheet_keeps_its_metadata_lines(tmp_path, simulated):
+    """A spreadsheet saves every row as wide as the widest, its metadata lines too (``Fs,100,,,,``):
+    still metadata, read as before, not a header ("unknown column 'fs'")."""
+    s = simulated.session
+    rate_hz = 1.0 / float(np.median(np.diff(s.t_s)))
+    path = _arduino_file(tmp_path, s, rate_hz)
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([line + ",,,," for line in lines[:4]] + lines[4:]) + "\n")
+    loaded = load_session(path, units=SessionUnits("g", "deg/s", None, "1/16384", "1/131"))
+    np.testing.assert_allclose(loaded.session.t_s, np.arange(s.t_s.size) / rate_hz)
+    assert loaded.metadata["Fs"] == f"{rate_hz:g}" and loaded.metadata["Waiting time"] == "3"
+    assert "4 metadata line(s) before the header read: Fs=" in "\n".join(loaded.notes)
+
+
+def test_a_declared_time_unit_does_not_scale_the_time_a_rate_gives(tmp_path, simulated):
+    """The time made from Fs is in seconds (the rate is in Hz): a --time-unit given for every file
+    of a batch is said not to apply, not applied (it made the 100 Hz file a 100 kHz one)."""
+    s = simulated.session
+    rate_hz = 1.0 / float(np.median(np.diff(s.t_s)))
+    path = _arduino_file(tmp_path, s, rate_hz)
+    loaded = load_session(path, units=SessionUnits("g", "deg/s", "ms", "1/16384", "1/131"))
+    np.testing.assert_allclose(loaded.session.t_s, np.arange(s.t_s.size) / rate_hz)
+    assert loaded.units.time == "s"
+    assert "the declared time unit ms is not used" in "\n".join(loaded.notes)
+
+
 def test_raw_counts_without_a_scale_are_refused_naming_what_is_missing(tmp_path, simulated):
     path = _arduino_file(tmp_path, simulated.session, 100.0)
     with pytest.raises(SessionFileError, match=r"raw counts.*missing: --accel-scale.*--gyro-scale"):
@@ -99,6 +125,28 @@ def test_a_file_without_time_column_nor_rate_is_refused_naming_both(tmp_path):
         load_session(path)
 
 
+def test_a_rate_line_the_time_column_contradicts_is_said(tmp_path, simulated):
+    """A file with both: the time column is the time; a stated rate it contradicts (a logger's
+    header left at its default) is said, not silently passed over."""
+    s = simulated.session
+    rate_hz = 1.0 / float(np.median(np.diff(s.t_s)))
+    rows = [
+        ",".join(repr(float(v)) for v in (t, *a, *w))
+        for t, a, w in zip(s.t_s, s.accel_mps2, s.gyro_rps, strict=True)
+    ]
+    path = tmp_path / "both.csv"
+    path.write_text("\n".join([f"Fs,{rate_hz / 2:g}", "t,ax,ay,az,gx,gy,gz", *rows]) + "\n")
+    loaded = load_session(path)
+    np.testing.assert_array_equal(loaded.session.t_s, s.t_s)
+    said = "\n".join(loaded.notes)
+    assert (
+        f"Fs={rate_hz / 2:g} Hz stated, but the time column's median step is a rate of {rate_hz:.4g} Hz"
+        in said
+    )
+    path.write_text("\n".join([f"Fs,{rate_hz:g}", "t,ax,ay,az,gx,gy,gz", *rows]) + "\n")
+    assert "time column" not in "\n".join(load_session(path).notes)
+
+
 def test_a_space_separated_table_with_a_hash_header_reads_its_columns_and_says_the_others(
     tmp_path, simulated
 ):
@@ -118,6 +166,33 @@ def test_a_space_separated_table_with_a_hash_header_reads_its_columns_and_says_t
     np.testing.assert_array_equal(loaded.session.t_s, s.t_s)
     assert "7 column(s) not read: mx my mz qw qx qy qz" in loaded.notes
     assert loaded.metadata["format"].startswith("whitespace-separated table")
+
+
+def test_a_hash_header_followed_by_a_units_line_is_still_the_header(tmp_path, simulated):
+    """Loggers write a line of units under the names (``# [s] [m/s^2] ...``): the names are the
+    header, the comment between them and the first row no reason to refuse the file."""
+    s = simulated.session
+    path = tmp_path / "imu.txt"
+    rows = [
+        " ".join(repr(float(v)) for v in (t, *a, *w))
+        for t, a, w in zip(s.t_s, s.accel_mps2, s.gyro_rps, strict=True)
+    ]
+    header = ["# time tx ty tz wx wy wz", "# [s] [m/s^2] [m/s^2] [m/s^2] [rad/s] [rad/s] [rad/s]"]
+    path.write_text("\n".join([*header, *rows]) + "\n")
+    loaded = load_session(path)
+    np.testing.assert_array_equal(loaded.session.accel_mps2, s.accel_mps2)
+    np.testing.assert_array_equal(loaded.session.t_s, s.t_s)
+
+
+def test_a_wide_table_without_named_columns_is_not_taken_for_half_a_raw_count_pair(tmp_path):
+    """A raw-count pair's files hold four fields a line (time x y z); a line of fourteen is a
+    table whose '#' line is missing or not understood, and the message says only that."""
+    path = tmp_path / "imu.txt"
+    path.write_text("# time[s] ax[m/s^2] ay az gx gy gz mx my mz qw qx qy qz\n" + "0 " * 13 + "0\n")
+    with pytest.raises(SessionFileError) as refused:
+        load_session(path)
+    assert "raw-count pair" not in str(refused.value)
+    assert "a space-separated table needs a '#' line naming its columns" in str(refused.value)
 
 
 def test_a_euroc_file_resaved_by_a_spreadsheet_drops_and_counts_its_junk_rows(
