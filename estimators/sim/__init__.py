@@ -66,9 +66,10 @@ from .scenarios import (
     flight_spec,
     multi_position_spec,
     position_attitudes,
+    second_imu,
     static_spec,
 )
-from .session import SessionSpec, SimResult, Truth, earth_rate_n_rps, simulate
+from .session import Mounting, SessionSpec, SimResult, Truth, earth_rate_n_rps, simulate
 from .temperature import (
     ConstantTemperature,
     CycleTemperature,
@@ -101,6 +102,7 @@ __all__ = [
     "Hold",
     "Motion",
     "MotionProfile",
+    "Mounting",
     "NonOrthogonality",
     "NonstaticPositions",
     "OrientationScheme",
@@ -136,6 +138,7 @@ __all__ = [
     "multi_position_spec",
     "position_attitudes",
     "random_attitudes",
+    "second_imu",
     "simulate",
     "static_profile",
     "static_spec",

@@ -7,9 +7,11 @@ argument is keyword-only and has a typical default.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from enum import StrEnum
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estimators._typing import FloatArray
 from estimators.conventions import Grade
@@ -26,7 +28,7 @@ from .motion import (
     random_attitudes,
     static_profile,
 )
-from .session import SessionSpec
+from .session import Mounting, SessionSpec
 from .temperature import TemperatureProfile
 
 
@@ -172,4 +174,25 @@ def flight_spec(
         gravity_mps2,
         temperature,
         faults,
+    )
+
+
+def second_imu(
+    spec: SessionSpec,
+    *,
+    lever_arm_b_m: ArrayLike,
+    mat_sb: ArrayLike,
+    model: ErrorModel | None = None,
+    faults: Sequence[Fault] = (),
+    unit: str = "imu1",
+) -> SessionSpec:
+    """A second IMU on the vehicle of ``spec``: the same motion (same seed), its own place and turn
+    (:class:`~estimators.sim.session.Mounting`), errors (``model``, default ``spec``'s) and faults, and
+    noise of its own (``unit``)."""
+    return replace(
+        spec,
+        mounting=Mounting(lever_arm_b_m, mat_sb),
+        unit=unit,
+        model=spec.model if model is None else model,
+        faults=tuple(faults),
     )
