@@ -26,14 +26,15 @@ constant. Dividing by ``2m``, ``m = max(|f₀|, f_floor)``, makes the statistic
 m/s² (≈ ``|f₁| − |f₀|``; ``c`` is negligible against ``g²``)::
 
     y_a = (|f₁|² − |f₀|²) / 2m
-    x_a = [ (ω (ω·f₀) − |ω|² f₀ + f₀ × ω̇) / m,   f₀ / m,   q(f₀) / 2m ]       θ_a = [r, Δb, Q]
+    x_a = [ (ω (ω·f₀) − |ω|² f₀ + f₀ × ω̇) / m,  f₀ / m,  q(f₀) / 2m,  LᵀL / 2m ]    θ_a = [r, Δb, Q, ρ]
 
-with ``q(v) = [vx², vy², vz², 2vxvy, 2vxvz, 2vyvz]`` (``vᵀQv = q(v)·Q``). The
-quadratic ``|L r|² / 2m = rᵀ (LᵀL / 2m) r`` (up to 0.02 m/s² in the simulated
-flight's turns: ``|L r|`` reaches 1 m/s²) is taken off ``y_a`` with the lever
-arm found so far, from the block mean of ``LᵀL / 2m``, once each axis of it is
-known to ``lever_known_sd_m`` (before, a wrong ``r`` fed back through it and
-diverged). The gyro
+with ``q(v) = [vx², vy², vz², 2vxvy, 2vxvz, 2vyvz]`` (``vᵀQv = q(v)·Q``), and the
+quadratic ``|L r|² / 2m = rᵀ (LᵀL / 2m) r`` (up to 0.05 m/s² in the simulated
+flight's turns: ``|L r|`` reaches 1 m/s²) made linear by lifting: its six
+products ``ρ = [rx², ry², rz², rxry, rxrz, ryrz]`` are unknowns of their own, with
+the block mean of ``LᵀL / 2m`` (off-diagonal entries twice) as their regressors.
+The fit stays an exact linear least squares (taking ``|L r|²`` off with the ``r``
+found so far fed a wrong early ``r`` back into the fit for good). The gyro
 likewise, ``m_g = max(|ω₀|, ω_floor)`` (rad/s), ``c`` kept (the norms are small
 near rest)::
 
@@ -143,7 +144,6 @@ class NormCheckConfig:
     max_pair_gap_s : IMU 1 is not interpolated across a gap longer than this, nor ``ω̇`` taken.
     max_pending : samples each stream may run ahead of the other (the oldest beyond are dropped, counted).
     f_floor_mps2, w_floor_rps : the divisors' floors ``f_floor``, ``ω_floor``.
-    lever_known_sd_m : the lever arm's standard deviation below which its quadratic term is used.
     lever_prior_m, accel_bias_prior_mps2, gyro_bias_prior_rps, const_prior_rps2, quad_prior :
         prior standard deviations of the parameters.
     initial_noise_mps2, initial_noise_rps : the block noise assumed before any difference is seen.
@@ -160,7 +160,6 @@ class NormCheckConfig:
     f_floor_mps2: float = 1.0
     w_floor_rps: float = 0.05
     lever_prior_m: float = 0.3
-    lever_known_sd_m: float = 0.01
     accel_bias_prior_mps2: float = 0.5
     gyro_bias_prior_rps: float = 0.1
     const_prior_rps2: float = 0.01
@@ -381,7 +380,7 @@ def _cusum_step(g: float, step: float, e: float, run: list[float]) -> tuple[floa
 N_QUAD = 6
 """Entries of the symmetric ``Q`` (module docstring)."""
 N_ACCEL = 6 + N_QUAD
-"""Accelerometer regressors: lever arm (3), zero-signal difference (3), ``Q``."""
+"""Accelerometer regressors summed as such: lever arm (3), zero-signal difference (3), ``Q``."""
 N_GYRO = 4 + N_QUAD
 """Gyro regressors: zero-signal difference (3), constant, ``Q``."""
 N_SUMS = 2 + N_ACCEL + N_GYRO + N_QUAD
@@ -389,6 +388,8 @@ N_SUMS = 2 + N_ACCEL + N_GYRO + N_QUAD
 _GYRO_AT = 1 + N_ACCEL
 _LTL_AT = 2 + N_ACCEL + N_GYRO
 _W2_AT = _GYRO_AT + 5
+_RHO_WEIGHTS = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
+"""``rᵀAr = ρ · (A's diagonal, 2 × its upper entries)``."""
 
 
 @dataclass
@@ -406,7 +407,10 @@ class _Blocks:
         h = cfg.threshold
         self.accel = _Channel(
             NormChannel.ACCEL,
-            [cfg.lever_prior_m] * 3 + [cfg.accel_bias_prior_mps2] * 3 + [cfg.quad_prior] * N_QUAD,
+            [cfg.lever_prior_m] * 3
+            + [cfg.accel_bias_prior_mps2] * 3
+            + [cfg.quad_prior] * N_QUAD
+            + [cfg.lever_prior_m**2] * N_QUAD,
             cfg.initial_noise_mps2,
             cfg,
             h,
@@ -426,18 +430,13 @@ class _Blocks:
             return None
         mean = sums / n
         t_end = (index + 1) * self.cfg.block_s
-        r = self.accel.theta[:3]
-        quadratic = 0.0
-        # A lever arm not yet found would feed back through the quadratic (a wrong r makes a wrong y).
-        if np.all(np.diag(self.accel.cov)[:3] < self.cfg.lever_known_sd_m**2):
-            quadratic = float(mean[_LTL_AT:] @ _quad(r[None, :])[0])
-        x_a = mean[1:_GYRO_AT]
+        x_a = np.concatenate([mean[1:_GYRO_AT], mean[_LTL_AT:] * _RHO_WEIGHTS])
         # |ω| of the block (the gyro's q(ω)/2m_g diagonal sums to |ω|/2 above the floor): a vehicle
         # at rest has lever-arm regressors of pure ω̇ noise, which would walk r away (errors in variables).
         if 2.0 * float(mean[_W2_AT : _W2_AT + 3].sum()) < self.cfg.w_floor_rps:
-            x_a = x_a.copy()
             x_a[:3] = 0.0
-        acc, a_alarm = self.accel.block(float(mean[0]) - quadratic, x_a, t_end)
+            x_a[N_ACCEL:] = 0.0
+        acc, a_alarm = self.accel.block(float(mean[0]), x_a, t_end)
         gyr, g_alarm = self.gyro.block(float(mean[_GYRO_AT]), mean[_GYRO_AT + 1 : _LTL_AT], t_end)
         return NormBlock(
             t_end,
@@ -583,7 +582,7 @@ class CrossImuNorm:
         w1 = v1[3] * v1[3] + v1[4] * v1[4] + v1[5] * v1[5]
         h = 0.5 / m
         hg = 0.5 / mg
-        # L = [ω̇]× + ω ωᵀ − |ω|² I, and LᵀL / 2m for the quadratic term.
+        # L = [ω̇]× + ω ωᵀ − |ω|² I, and LᵀL / 2m for the lifted quadratic term.
         l00, l01, l02 = wx * wx - ww, wx * wy - dz, wx * wz + dy
         l10, l11, l12 = wy * wx + dz, wy * wy - ww, wy * wz - dx
         l20, l21, l22 = wz * wx - dy, wz * wy + dx, wz * wz - ww
