@@ -100,8 +100,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -117,6 +118,9 @@ MAD_TO_SIGMA = 1.0 / (0.6744897501960817 * math.sqrt(2.0))
 
 NOISE_FLOOR_FRACTION = 1.0e-4
 """The block noise is taken as at least this fraction of the initial guess (1e-4: far below any sensor's)."""
+
+NORM_STATE_VERSION = 1
+"""Version of :meth:`CrossImuNorm.state_dict` (a checkpointed state of another version is not resumed)."""
 
 N_ONE_SIDED = 4
 """One-sided CUSUMs the check runs: two channels, two signs (the false-alarm budget is shared)."""
@@ -183,6 +187,15 @@ class NormCheckConfig:
                 f"NormCheckConfig needs warmup_blocks >= 2, min_block_samples >= 1, max_pending >= 2, got "
                 f"{self.warmup_blocks}, {self.min_block_samples}, {self.max_pending}"
             )
+
+    @classmethod
+    def for_rate(cls, rate_hz: float) -> NormCheckConfig:
+        """The settings for a stream of ``rate_hz``: a block holds at least 8 samples (1 s from 8 Hz;
+        a 4 Hz telemetry log's 1.9 s) and IMU 1 is interpolated across at most 2.5 sample periods
+        (0.1 s from 25 Hz): one lost sample is bridged, not two."""
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"rate_hz must be positive and finite, got {rate_hz!r}")
+        return cls(block_s=max(1.0, 8.0 / rate_hz), max_pair_gap_s=max(0.1, 2.5 / rate_hz))
 
     @property
     def threshold(self) -> float:
@@ -314,6 +327,36 @@ class _Channel:
         self.run_pos: list[float] = [0.0, 0.0]  # blocks, sum of innovations since g⁺ last left zero
         self.run_neg: list[float] = [0.0, 0.0]
         self.alarmed = False
+
+    _SCALARS = ("last_e", "blocks", "tested", "g_pos", "g_neg", "alarmed")
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "theta": self.theta.copy(),
+            "cov": self.cov.copy(),
+            "fast": list(self.fast),
+            "slow": list(self.slow),
+            "run_pos": list(self.run_pos),
+            "run_neg": list(self.run_neg),
+            **{k: getattr(self, k) for k in self._SCALARS},
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        theta = np.array(state["theta"], float).reshape(-1)
+        cov = np.array(state["cov"], float)
+        if theta.shape != self.theta.shape or cov.shape != self.cov.shape:
+            raise ValueError(
+                f"a {self.channel.value} channel of {self.theta.size} parameters, got {theta.shape}"
+            )
+        self.theta, self.cov = theta, cov
+        self.fast.extend(float(v) for v in state["fast"])
+        self.slow.extend(float(v) for v in state["slow"])
+        self.run_pos = [float(v) for v in state["run_pos"]]
+        self.run_neg = [float(v) for v in state["run_neg"]]
+        self.last_e = None if state["last_e"] is None else float(state["last_e"])
+        self.blocks, self.tested = int(state["blocks"]), int(state["tested"])
+        self.g_pos, self.g_neg = float(state["g_pos"]), float(state["g_neg"])
+        self.alarmed = bool(state["alarmed"])
 
     @property
     def sigma(self) -> float:
@@ -475,6 +518,52 @@ class CrossImuNorm:
     @property
     def counts(self) -> _Counts:
         return self._blocks.counts
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything :meth:`from_state` needs to go on exactly where this check is (for checkpoints):
+        the settings, the samples waiting to be paired, the open block, both channels."""
+        return {
+            "version": NORM_STATE_VERSION,
+            "config": asdict(self.config),
+            "pending0": [list(x) for x in self._pending0],
+            "buf1": [list(x) for x in self._buf1],
+            "prev0": None if self._prev0 is None else list(self._prev0),
+            "cur0": None if self._cur0 is None else list(self._cur0),
+            "index": self._index,
+            "n": self._n,
+            "sums": list(self._sums),
+            "counts": asdict(self.counts),
+            "accel": self._blocks.accel.state_dict(),
+            "gyro": self._blocks.gyro.state_dict(),
+        }
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any]) -> CrossImuNorm:
+        """Restore from :meth:`state_dict`; ``ValueError`` for another version or a malformed state."""
+        version = state.get("version") if isinstance(state, dict) else None
+        if version != NORM_STATE_VERSION:
+            raise ValueError(
+                f"cross-IMU norm state version {version!r} is not {NORM_STATE_VERSION}"
+            )
+        try:
+            out = cls(NormCheckConfig(**state["config"]))
+            out._pending0.extend(tuple(float(v) for v in x) for x in state["pending0"])
+            out._buf1.extend(tuple(float(v) for v in x) for x in state["buf1"])
+            out._prev0 = None if state["prev0"] is None else tuple(float(v) for v in state["prev0"])
+            out._cur0 = None if state["cur0"] is None else tuple(float(v) for v in state["cur0"])
+            out._index = None if state["index"] is None else int(state["index"])
+            out._n = int(state["n"])
+            out._sums = [float(v) for v in state["sums"]]
+            if len(out._sums) != N_SUMS:
+                raise ValueError(f"{N_SUMS} sums, got {len(out._sums)}")
+            out._blocks.counts = _Counts(**{k: int(v) for k, v in state["counts"].items()})
+            out._blocks.accel.load_state(state["accel"])
+            out._blocks.gyro.load_state(state["gyro"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(
+                f"cross-IMU norm state is malformed: {type(exc).__name__}: {exc}"
+            ) from None
+        return out
 
     def lever_arm(self) -> tuple[FloatArray, FloatArray]:
         """``r`` (3,) m and its covariance (3, 3), m², IMU 0's axes."""

@@ -27,7 +27,8 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 :class:`Severity` name), ``text`` (str, ≤ :data:`MAX_TEXT_CHARS`).
 
 Version 2 adds the predicate ``gross`` (gross plausibility at rest, :mod:`estimators.gross`) and the
-cause ``gravity_magnitude``; nothing else changed. An event is written with the lowest version that
+cause ``gravity_magnitude``, and the predicate ``cross_imu_norm`` (two IMUs' norms compared in
+flight, :mod:`estimators.cross_imu_norm`); nothing else changed. An event is written with the lowest version that
 holds it (:func:`event_version`): a version-1 reader keeps reading every other event, and is told a
 gross event is of a newer schema rather than given an unknown predicate. Both versions are read; a
 version-1 map naming what only version 2 has is refused.
@@ -131,6 +132,8 @@ class Predicate(StrEnum):
     CROSS_IMU = "cross_imu"
     TEMPERATURE = "temperature"
     GROSS = "gross"
+    CROSS_IMU_NORM = "cross_imu_norm"
+    """Two IMUs' norms moved apart in flight (:mod:`estimators.cross_imu_norm`)."""
 
     @classmethod
     def parse(cls, value: Any) -> Predicate:
@@ -163,7 +166,9 @@ class StreamCause(StrEnum):
     mean off its zero signal is :attr:`Cause.ZERO_SIGNAL`)."""
 
 
-_V2_ONLY: frozenset[Enum] = frozenset({Predicate.GROSS, StreamCause.GRAVITY_MAGNITUDE})
+_V2_ONLY: frozenset[Enum] = frozenset(
+    {Predicate.GROSS, StreamCause.GRAVITY_MAGNITUDE, Predicate.CROSS_IMU_NORM}
+)
 """What only schema version 2 holds (module docstring)."""
 
 EventCause = Cause | StreamCause

@@ -15,10 +15,15 @@ source), each with its severity, text and numbers; ``coverage`` (schema 3): the 
 was not tested and why, and per IMU what each check tested with its minimum
 detectable fault (the ``--json`` coverage line of :mod:`service.commands.replay`).
 
+``cross_imu_norm`` (schema 5; null for fewer than two IMUs) is the in-flight norm comparison of
+the first two IMUs (:mod:`estimators.cross_imu_norm`): the pair, the CUSUM threshold, seconds
+tested, the minimum detectable shifts and the lever arm found with its standard deviations.
+
 ``report.md`` shows it as a flight review reads: a table per IMU, |a| − g of
 the blocks at rest against F0's shell, the accelerometer and gyro spectra, the
-cross-IMU differences over time (``gravity_residual.png``, ``spectra.png``,
-``cross_imu.png``).
+cross-IMU differences over time, and the norm comparison's CUSUM statistic through
+the flight against its threshold (``gravity_residual.png``, ``spectra.png``,
+``cross_imu.png``, ``cross_imu_norm.png``).
 """
 
 from __future__ import annotations
@@ -32,25 +37,27 @@ from typing import Any
 import numpy as np
 
 from estimators.conventions import AXES
+from estimators.cross_imu_norm import NormBlock
 from estimators.log_health import HealthConfig, ImuHealth, PairDifference
 from protocols.events import Event, Severity
 from protocols.logs import LogStats
 from service.commands.replay import log_start
 from service.figures import plt, save_figure
+from service.pipeline.norm_check import VehicleNorm
 
 REPORT_TYPE = "ins.health.log_report"
-REPORT_SCHEMA_VERSION = 4
+REPORT_SCHEMA_VERSION = 5
 """2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give);
 3: ``coverage`` (what each check tested, the verdict); 4: ``log.start_t_s`` (the first sample's
 time on the log's clock, from which the plots and the Markdown count) and ``passport.not_applied``
-(the IMUs no passport applied to, and why)."""
+(the IMUs no passport applied to, and why); 5: ``cross_imu_norm`` (module docstring)."""
 VIBE_WARN_MPS2 = 30.0
 VIBE_BAD_MPS2 = 60.0
 VIBE_SOURCE = (
     "ArduPilot wiki, Measuring Vibration: VIBE below 30 m/s² is normally acceptable, "
     "above 30 may give problems, above 60 nearly always does"
 )
-PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png")
+PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png", "cross_imu_norm.png")
 
 
 @dataclass(frozen=True)
@@ -137,6 +144,25 @@ def health_findings(imu: int, health: ImuHealth, clipped: int | None) -> list[di
     return out
 
 
+def norm_summary(norm: VehicleNorm | None) -> dict[str, Any] | None:
+    """The report's ``cross_imu_norm`` (module docstring) of a vehicle's norm check."""
+    if norm is None:
+        return None
+    r, cov = norm.check.lever_arm()
+    mdf_a, mdf_g = norm.check.mdf()
+    return {
+        "imus": list(norm.pair),
+        "block_s": norm.config.block_s,
+        "threshold": norm.config.threshold,
+        "false_alarms_per_hour": norm.config.false_alarms_per_hour,
+        "tested_s": norm.check.tested_s(),
+        "mdf_mps2": mdf_a,
+        "mdf_rps": mdf_g,
+        "lever_arm_m": [float(v) for v in r],
+        "lever_arm_sd_m": [float(v) for v in np.sqrt(np.diag(cov))],
+    }
+
+
 def build_report(
     *,
     log_name: str,
@@ -152,9 +178,11 @@ def build_report(
     events: Sequence[Event],
     coverage: Mapping[str, Any],
     start_t_s: float | None,
+    cross_imu_norm: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The plain-dict report (module docstring); ``coverage``: the replay's coverage map;
-    ``start_t_s``: the log's first sample time (None: no sample)."""
+    ``start_t_s``: the log's first sample time (None: no sample); ``cross_imu_norm``:
+    :func:`norm_summary`."""
     imus = []
     for imu, h in sorted(healths.items()):
         entry = {"imu": imu, "source": stats.sources.get(imu, ""), **h.to_dict()}
@@ -193,6 +221,7 @@ def build_report(
         "block_s": config.block_s,
         "imus": imus,
         "pairs": [p.to_dict() for p in pairs],
+        "cross_imu_norm": None if cross_imu_norm is None else dict(cross_imu_norm),
         "findings": findings,
         "coverage": dict(coverage),
     }
@@ -203,8 +232,10 @@ def write_report(
     healths: Mapping[int, ImuHealth],
     pairs: Sequence[PairDifference],
     out_dir: str | Path,
+    norm_blocks: Sequence[NormBlock] = (),
 ) -> Path:
-    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown path."""
+    """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown
+    path. ``norm_blocks``: the cross-IMU norm check's blocks, for its plot."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
@@ -214,6 +245,7 @@ def write_report(
         "gravity_residual.png": _residual_plot(report, healths, out / "gravity_residual.png"),
         "spectra.png": _spectra_plot(healths, out / "spectra.png"),
         "cross_imu.png": _cross_plot(report, pairs, out / "cross_imu.png"),
+        "cross_imu_norm.png": _norm_plot(report, norm_blocks, out / "cross_imu_norm.png"),
     }
     md = out / "report.md"
     md.write_text(_markdown(report, plots), encoding="utf-8")
@@ -284,6 +316,37 @@ def _cross_plot(report: Mapping[str, Any], pairs: Sequence[PairDifference], path
     axes[1].set_ylabel("|Δω|, rad/s")
     axes[1].set_xlabel(_time_label(report))
     axes[0].legend(fontsize=8)
+    save_figure(fig, path, dpi=90)
+    return True
+
+
+def _norm_plot(report: Mapping[str, Any], blocks: Sequence[NormBlock], path: Path) -> bool:
+    norm = report.get("cross_imu_norm")
+    if norm is None or not blocks:
+        return False
+    t = np.array([b.t_s for b in blocks]) - _start(report)
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    channels = ((axes[0], "accel", "|f|"), (axes[1], "gyro", "|ω|"))
+    for ax, name, word in channels:
+        stat = [max(getattr(b, name).cusum_pos, getattr(b, name).cusum_neg) for b in blocks]
+        ax.plot(
+            t, stat, lw=0.8, label=f"CUSUM of {word}{norm['imus'][1]} − {word}{norm['imus'][0]}"
+        )
+        ax.axhline(norm["threshold"], color="k", lw=0.8, ls="--", label="threshold")
+        alarms = [
+            a.t_s - _start(report) for b in blocks for a in b.alarms if a.channel.value == name
+        ]
+        for x in alarms:
+            ax.axvline(x, color="r", lw=1.0)
+        ax.set_ylabel(f"{name} CUSUM, σ")
+        ax.legend(fontsize=7, loc="upper left")
+    r, sd = norm["lever_arm_m"], norm["lever_arm_sd_m"]
+    axes[0].set_title(
+        "Lever arm found: "
+        + ", ".join(f"{100 * v:.1f} ± {100 * e:.1f} cm" for v, e in zip(r, sd, strict=True)),
+        fontsize=9,
+    )
+    axes[1].set_xlabel(_time_label(report))
     save_figure(fig, path, dpi=90)
     return True
 
@@ -407,10 +470,28 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
                 f"| IMU{p['imus'][0]}–IMU{p['imus'][1]} | {pm(p['accel_mps2']['flight'])} | {pm(p['accel_mps2']['rest'])} "
                 f"| {pm(p['gyro_rps']['flight'])} | {pm(p['gyro_rps']['rest'])} |"
             )
+    if (norm := report.get("cross_imu_norm")) is not None:
+        i0, i1 = norm["imus"]
+        lines += [
+            "",
+            "## Cross-IMU norm in flight",
+            "",
+            f"IMU{i1} against IMU{i0}, rotation-invariant (no mounting needed): tested on "
+            f"{norm['tested_s']:.0f} s, minimum detectable shift {_f(norm['mdf_mps2'], '.2g')} m/s² "
+            f"and {_f(norm['mdf_rps'], '.2g')} rad/s (5 s mean delay) at {norm['false_alarms_per_hour']:g} "
+            f"false alarms per flight hour (CUSUM threshold {norm['threshold']:.3g} σ). Lever arm found "
+            "(IMU0's axes): "
+            + ", ".join(
+                f"{100 * v:.1f} ± {100 * e:.1f} cm"
+                for v, e in zip(norm["lever_arm_m"], norm["lever_arm_sd_m"], strict=True)
+            )
+            + ".",
+        ]
     titles = {
         "gravity_residual.png": "|a| − g at rest against the F0 shell",
         "spectra.png": "Accelerometer and gyro spectra",
         "cross_imu.png": "Cross-IMU differences over time",
+        "cross_imu_norm.png": "Cross-IMU norm: CUSUM through the flight against its threshold",
     }
     for name in PLOTS:
         if plots.get(name):

@@ -81,6 +81,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from estimators.coverage import ImuCoverage, Verdict
+    from estimators.cross_imu_norm import NormBlock
     from estimators.nominal_passport import SensorClass
     from estimators.passport import Passport
     from protocols.events import Event
@@ -384,7 +385,14 @@ def replay_log(
         failed.setdefault((vehicle, imu, message.split(":", 1)[0]), [0, message])[0] += 1
 
     lookup, nominal, passport_info = _lookup(args)
+    norm_blocks: list[NormBlock] = []
+
+    def norm_block(vehicle: str, _pair: tuple[int, int], block: NormBlock) -> None:
+        if args.report is not None and vehicle == args.vehicle:
+            norm_blocks.append(block)
+
     fleet = FleetProcessor(
+        on_norm_block=norm_block,
         passports=lookup,
         nominal=nominal,
         options=options,
@@ -470,7 +478,14 @@ def replay_log(
         counters = fleet.status(vehicle, service="replay", now_unix_s=0.0).counters
         note("counters " + ", ".join(f"{k} {n}" for k, n in sorted(counters.items())))
     pipes = [p for (v, _), p in sorted(fleet.pipelines.items()) if v == args.vehicle]
-    coverages = [imu_coverage(p, imus_on_vehicle=len(pipes)) for p in pipes]
+    coverages = [
+        imu_coverage(
+            p,
+            imus_on_vehicle=len(pipes),
+            vehicle_checks=fleet.norm_coverage(args.vehicle, p.imu),
+        )
+        for p in pipes
+    ]
     untested = untested_lines(coverages) + [
         f"IMU{imu}: the pipeline failed on {frames} frame(s)"
         for (_, imu, _), (frames, _) in sorted(failed.items())
@@ -499,7 +514,7 @@ def replay_log(
             note(f"coverage {line}")
     note(_verdict_line(said, len(result.findings), untested))
     if args.report is not None:
-        from service.log_report import build_report, write_report
+        from service.log_report import build_report, norm_summary, write_report
 
         healths = {imu: acc.result(options.gravity_mps2) for imu, acc in sorted(health.items())}
         pairs = pair_differences({i: h.blocks for i, h in healths.items()}, health_config.block_s)
@@ -517,8 +532,9 @@ def replay_log(
             events=events,
             coverage=_coverage_map(result),
             start_t_s=result.start_t_s,
+            cross_imu_norm=norm_summary(fleet.norms.get(args.vehicle)),
         )
-        md = write_report(report, healths, pairs, args.report)
+        md = write_report(report, healths, pairs, args.report, norm_blocks)
         note(f"report {md}")
     return dataclasses.replace(result, notes=tuple(notes))
 
