@@ -109,6 +109,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import brentq
 
 from estimators._typing import FloatArray
+from estimators.session import ImuSession
 
 SIEGMUND_CORRECTION = 1.166
 """``2 · 0.583``: the overshoot correction of Siegmund's ARL approximation (module docstring)."""
@@ -885,3 +886,13 @@ def cross_imu_norm_batch(
         acc.cov[:3, :3].copy(),
         tuple(a for b in out for a in b.alarms),
     )
+
+
+def cross_imu_norm_sessions(
+    imu0: ImuSession, imu1: ImuSession, config: NormCheckConfig = NormCheckConfig()
+) -> NormTrace:
+    """:func:`cross_imu_norm_batch` of two IMUs' sessions (both triads needed)."""
+    a0, g0, a1, g1 = imu0.accel_mps2, imu0.gyro_rps, imu1.accel_mps2, imu1.gyro_rps
+    if a0 is None or g0 is None or a1 is None or g1 is None:
+        raise ValueError("the cross-IMU norm check needs both triads of both IMUs")
+    return cross_imu_norm_batch(imu0.t_s, a0, g0, imu1.t_s, a1, g1, config)

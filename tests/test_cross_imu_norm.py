@@ -29,12 +29,20 @@ from estimators.cross_imu_norm import (
     NormCheckConfig,
     NormTrace,
     cross_imu_norm_batch,
+    cross_imu_norm_sessions,
     cusum_arl,
     cusum_threshold,
 )
 from estimators.nominal_passport import SensorClass
 from estimators.session import ImuSession
-from estimators.sim import Fault, FaultKind, Fly, flight_spec, second_imu, simulate
+from estimators.sim import (
+    PAIR_LEVER_ARM_M,
+    PAIR_MOUNT_ZX_DEG,
+    Fault,
+    FaultKind,
+    pair_flight_specs,
+    simulate,
+)
 from estimators.stream_validity import ValidityLimits, compare_imus
 from protocols.checkpoint_codec import decode_state, encode_state
 from protocols.events import Predicate, decode_event, encode_event, event_version
@@ -42,8 +50,8 @@ from protocols.frames import SampleBatch, split_session
 from protocols.logs import read_log_sessions, write_tlog
 from service.pipeline import FleetProcessor
 
-LEVER_ARM_M = np.array([0.06, -0.04, 0.03])
-MOUNT = Rotation.from_euler("zx", [30.0, 90.0], degrees=True).as_matrix()
+LEVER_ARM_M = np.array(PAIR_LEVER_ARM_M)
+MOUNT = Rotation.from_euler("zx", PAIR_MOUNT_ZX_DEG, degrees=True).as_matrix()
 FLY_S = 100.0
 REST_S = 10.0
 
@@ -56,15 +64,12 @@ def thrust_axis(mat_sb: np.ndarray) -> int:
 def flight_pair(
     seed: int, *, faults: tuple[Fault, ...] = (), mat_sb: np.ndarray = MOUNT
 ) -> tuple[ImuSession, ImuSession]:
-    spec0 = flight_spec(fly=Fly(FLY_S), rest_s=REST_S)
-    spec1 = second_imu(spec0, lever_arm_b_m=LEVER_ARM_M, mat_sb=mat_sb, faults=faults)
+    spec0, spec1 = pair_flight_specs(fly_s=FLY_S, rest_s=REST_S, mat_sb=mat_sb, faults=faults)
     return simulate(spec0, seed).session, simulate(spec1, seed).session
 
 
 def batch(s0: ImuSession, s1: ImuSession) -> NormTrace:
-    return cross_imu_norm_batch(
-        s0.t_s, s0.accel_mps2, s0.gyro_rps, s1.t_s, s1.accel_mps2, s1.gyro_rps
-    )
+    return cross_imu_norm_sessions(s0, s1)
 
 
 def test_siegmund_run_length_matches_a_simulated_cusum() -> None:

@@ -62,9 +62,12 @@ from .motion import (
     tilt_sequence,
 )
 from .scenarios import (
+    PAIR_LEVER_ARM_M,
+    PAIR_MOUNT_ZX_DEG,
     OrientationScheme,
     flight_spec,
     multi_position_spec,
+    pair_flight_specs,
     position_attitudes,
     second_imu,
     static_spec,
@@ -82,6 +85,8 @@ from .temperature import (
 __all__ = [
     "EFFECTS",
     "GRADES",
+    "PAIR_LEVER_ARM_M",
+    "PAIR_MOUNT_ZX_DEG",
     "Bias",
     "BiasDrift",
     "BiasInstability",
@@ -136,6 +141,7 @@ __all__ = [
     "make_effect",
     "multi_position_profile",
     "multi_position_spec",
+    "pair_flight_specs",
     "position_attitudes",
     "random_attitudes",
     "second_imu",
