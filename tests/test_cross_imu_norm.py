@@ -144,6 +144,23 @@ def test_scale_fault_of_the_thrust_axis_is_found_within_5_s() -> None:
     assert detected >= 17
 
 
+def test_scale_fault_of_the_yaw_gyro_is_found_by_the_gyro_norm() -> None:
+    """IMU 1's gyro scale +1 % on the axis body z falls on (the flight's turns are mostly yaw) from
+    60 s: found by the gyro channel within 5 s in at least 8 of 10 flights (P(X <= 7 | p = 0.95) =
+    0.012). A gyro zero signal shows only along the rotation, so the norm says little of it in hover."""
+    axis = thrust_axis(MOUNT)
+    detected = 0
+    for seed in range(10):
+        s0, s1 = flight_pair(
+            seed, faults=(Fault(FaultKind.STEP, Triad.GYRO, 3 + axis, 60.0, 0.01),)
+        )
+        alarms = [a for a in batch(s0, s1).alarms if a.channel is NormChannel.GYRO]
+        assert all(a.t_s > 60.0 for a in alarms)
+        detected += bool(alarms) and alarms[0].t_s - 60.0 <= 5.0
+    assert binom.cdf(7, 10, 0.95) < 0.02
+    assert detected >= 8
+
+
 def test_fault_free_flights_with_a_turned_imu_raise_nothing() -> None:
     """12 fault-free flights (24 min) with IMU 1 turned another 10°: at 1e-4 false alarms per flight
     hour 4e-5 are expected, so any alarm fails. The autopilots' vector comparison flags that pair."""
