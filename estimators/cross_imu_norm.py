@@ -77,15 +77,18 @@ Detector and its threshold (derivation)
 Each channel runs a two-sided CUSUM on the standardized innovation ``z_j``
 (``g⁺ = max(0, g⁺ + z − k)``, ``g⁻ = max(0, g⁻ − z − k)``, alarm at ``g > h``).
 For i.i.d. ``z ~ N(μ, 1)`` Siegmund's approximation of a one-sided CUSUM's
-average run length is (Siegmund 1985, Basseville & Nikiforov 1993 eq. 5.2.44)::
+average run length is (D. Siegmund, *Sequential Analysis*, 1985)::
 
     ARL(μ) = (exp(−2Δb) + 2Δb − 1) / (2Δ²),   Δ = μ − k,  b = h + 1.166   (b² at Δ = 0)
 
 The check runs four one-sided CUSUMs (two channels, two signs), each a renewal
 process alarming about once per ``ARL(0)`` blocks, so the false alarms per flight
 hour are ``λ = 4 · (3600 / T) / ARL(0)``; ``h`` solves ``ARL(0) = 4 · 3600 / (T λ)``
-(:func:`cusum_threshold`). At ``λ = 1e-4`` per flight hour (the default), ``k = 1``, ``T = 1 s``: ``h = 8.57``, and
-``μ* = 2.90`` for a mean delay of 5 s (1e-3: 7.42 and 2.66).
+(:func:`cusum_threshold`). At ``λ = 1e-4`` per flight hour (the default), ``k = 1``,
+``T = 1 s``: ``h = 8.57``, and ``μ* = 2.90`` for a mean delay of 5 s (1e-3: 7.42 and 2.66).
+A channel alarms once a flight (the fault stays); its CUSUMs then start again, for the plot.
+The innovations are not quite i.i.d. (σ̂ is estimated, the parameters still settle), so
+the rate holds as far as the simulated flights measure it (``benchmarks/bench_inflight.py``).
 
 Minimum detectable fault
 ------------------------
@@ -93,7 +96,10 @@ The shift of the statistic (the norm difference) that the CUSUM detects within
 ``detect_within_s`` on average: ``μ*`` solves ``ARL(μ*) = detect_within_s / T``
 and ``MDF = μ* σ̂`` (m/s² or rad/s; :func:`cusum_shift`). A scale fault ``e`` of
 an axis carrying the specific force ``|f|`` moves ``y_a`` by ``e |f|`` (0.5 % in
-hover: 0.049 m/s²); a zero signal ``b`` along the specific force by ``b``.
+hover: 0.049 m/s²); a zero signal ``b`` along the specific force by ``b``. A gyro
+scale fault moves ``y_g`` by ``e ω_i²/|ω|`` on the axis turning, a gyro zero signal by
+its component along the rotation: in hover, where the rates are small and turn about
+every axis, the gyro norm says little of a zero signal.
 """
 
 from __future__ import annotations
