@@ -604,10 +604,6 @@ class CrossImuNorm:
         """The minimum detectable shift of ``|f₁| − |f₀|`` (m/s²) and ``|ω₁| − |ω₀|`` (rad/s) now."""
         return self._blocks.accel.mdf(), self._blocks.gyro.mdf()
 
-    @property
-    def alarmed(self) -> tuple[bool, bool]:
-        return self._blocks.accel.alarmed, self._blocks.gyro.alarmed
-
     def add(
         self, slot: int, t_s: ArrayLike, accel_mps2: ArrayLike, gyro_rps: ArrayLike
     ) -> list[NormBlock]:
@@ -823,7 +819,7 @@ def _quad(v: FloatArray) -> FloatArray:
 
 @dataclass(frozen=True)
 class NormTrace:
-    """The check over a whole flight (:func:`cross_imu_norm_batch`), arrays for a report.
+    """The check over a whole flight (:func:`cross_imu_norm_batch`).
 
     Attributes
     ----------
@@ -833,6 +829,7 @@ class NormTrace:
     tested_s : time the test ran on, s.
     mdf_mps2, mdf_rps : the minimum detectable shifts at the end.
     lever_arm_m, lever_arm_cov_m2 : ``r`` (3,) and its covariance (3, 3) at the end.
+    alarms : every block's alarms, in order.
     """
 
     blocks: tuple[NormBlock, ...]
@@ -845,20 +842,6 @@ class NormTrace:
     lever_arm_m: FloatArray
     lever_arm_cov_m2: FloatArray
     alarms: tuple[NormAlarm, ...] = field(default_factory=tuple)
-
-    @property
-    def t_s(self) -> FloatArray:
-        return np.array([b.t_s for b in self.blocks])
-
-    def statistic(self, channel: NormChannel) -> FloatArray:
-        """(B,) ``max(g⁺, g⁻)`` of a channel per block (0 during the warm-up)."""
-        return np.array(
-            [max(c.cusum_pos, c.cusum_neg) for c in (_of(b, channel) for b in self.blocks)]
-        )
-
-
-def _of(block: NormBlock, channel: NormChannel) -> ChannelBlock:
-    return block.accel if channel is NormChannel.ACCEL else block.gyro
 
 
 def cross_imu_norm_batch(
