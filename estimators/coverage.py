@@ -50,6 +50,11 @@ when ``|ê_j − ν_j| > λ_j + z s_j``; for a true deviation ``Δ`` the estimat
 (the other tail is negligible). ``s_j = (threshold_j − λ_j)/z`` is read back
 from the diagnosis; zero signals are given in SI (× the estimate's reference).
 
+**Cross-IMU norm** (in flight, :mod:`estimators.cross_imu_norm`): the shift of the
+norm difference its CUSUM finds within a mean delay of 5 s, ``μ* σ̂`` (derived there);
+a zero signal along the specific force (or the rotation) moves the norm by itself, a scale
+error ``e`` of an axis carrying the specific force ``|f|`` by ``e |f|``: :func:`norm_coverage`.
+
 **Gross plausibility** (the gross test on window means at rest). The test fails
 where the mean of a rest window departs from its reference by more than the
 tolerance plus ``z_α σ_mean`` (``z_α = Φ⁻¹(1 − α/2)``, two-sided, α the false
@@ -98,6 +103,7 @@ class Check(StrEnum):
     STREAM = "stream"
     CROSS_IMU = "cross_imu"
     THRUST_AXIS = "thrust_axis"
+    CROSS_IMU_NORM = "cross_imu_norm"
 
 
 class Verdict(StrEnum):
@@ -119,7 +125,7 @@ class CheckCoverage:
     ran : the check ran in full.
     applies : False when the check cannot apply to this sensor at all (a MEMS gyro
         against the Earth rate): then its not running is no missing coverage.
-    samples : samples tested (the gross test: windows at rest).
+    samples : samples tested (the gross test: windows at rest; the cross-IMU norm: seconds).
     positions : positions used (F1…F9).
     mdf_bias_si : per axis, minimum detectable zero signal, m/s² or rad/s (inf: axis not seen).
     mdf_scale : per axis, minimum detectable relative scale error (0.02 = 2 %).
@@ -206,6 +212,11 @@ class CheckCoverage:
             return f"{self.name}: NOT TESTED ({self.reason})"
         if self.check is Check.THRUST_AXIS and self.mdf_bias_si is not None:
             return self._in_flight_line(self.mdf_bias_si, unit)
+        if self.check is Check.CROSS_IMU_NORM and self.mdf_bias_si is not None:
+            return (
+                f"{self.name}: in flight tested on {self.samples:,} s, MDF "
+                f"{self.mdf_bias_si[0]:.2g}{unit} of the norm ({self.reason})"
+            )
         amount = (
             f"{self.positions} position{'s' * (self.positions != 1)}"
             if self.check is Check.F1_F9
@@ -507,3 +518,34 @@ def ninepar_coverage(
 
 def _triple(v: FloatArray) -> Triple:
     return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def norm_coverage(
+    triad: Triad,
+    *,
+    tested_s: float,
+    mdf_si: float,
+    reference_si: float | None,
+    false_alarms_per_hour: float,
+    pair: tuple[int, int],
+    reason: str = "",
+) -> CheckCoverage:
+    """The cross-IMU norm's coverage for one triad (module docstring): tested seconds (in
+    ``samples``), the MDF of the norm as a zero signal along the sensed vector on every axis, and,
+    given the magnitude it was sensed at (``reference_si``: g in hover), the scale MDF ``mdf/ref``.
+    Not run (``tested_s`` 0) it says why (``reason``)."""
+    where = (
+        f"IMU{pair[1]} against IMU{pair[0]}, {false_alarms_per_hour:g} false alarms per flight hour"
+    )
+    if tested_s <= 0.0:
+        return CheckCoverage(Check.CROSS_IMU_NORM, triad, ran=False, reason=reason or where)
+    scale = None if reference_si is None else (mdf_si / reference_si,) * 3
+    return CheckCoverage(
+        Check.CROSS_IMU_NORM,
+        triad,
+        ran=True,
+        samples=round(tested_s),
+        mdf_bias_si=(mdf_si,) * 3,
+        mdf_scale=scale,
+        reason=where,
+    )

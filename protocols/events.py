@@ -35,8 +35,9 @@ nil), ``axis`` (``x y z xy xz yz`` or nil), ``cause`` (str, a
 
 Version 3 adds ``epoch`` (int ≥ 1, present only then: an event of epoch 0 is written at version
 1 or 2 as before). Version 2 adds the predicates ``gross`` (gross plausibility at rest,
-:mod:`estimators.gross`) and ``thrust_axis`` (in flight against GNSS, :mod:`estimators.thrust_gnss`)
-and the cause ``gravity_magnitude``; nothing else changed. An event is written with the lowest version that
+:mod:`estimators.gross`), ``thrust_axis`` (in flight against GNSS, :mod:`estimators.thrust_gnss`)
+the cause ``gravity_magnitude``, and the predicate ``cross_imu_norm`` (two IMUs' norms compared
+in flight, :mod:`estimators.cross_imu_norm`); nothing else changed. An event is written with the lowest version that
 holds it (:func:`event_version`): a version-1 reader keeps reading every other event, and is told a
 gross event is of a newer schema rather than given an unknown predicate. All three versions are
 read; a map naming what only a later version has is refused.
@@ -144,6 +145,8 @@ class Predicate(StrEnum):
     THRUST_AXIS = "thrust_axis"
     """In flight, the accelerometer's magnitude against GNSS (:mod:`estimators.thrust_gnss`); the
     axis named is the one it sees (z, the thrust axis)."""
+    CROSS_IMU_NORM = "cross_imu_norm"
+    """Two IMUs' norms moved apart in flight (:mod:`estimators.cross_imu_norm`)."""
 
     @classmethod
     def parse(cls, value: Any) -> Predicate:
@@ -177,7 +180,12 @@ class StreamCause(StrEnum):
 
 
 _V2_ONLY: frozenset[Enum] = frozenset(
-    {Predicate.GROSS, Predicate.THRUST_AXIS, StreamCause.GRAVITY_MAGNITUDE}
+    {
+        Predicate.GROSS,
+        Predicate.THRUST_AXIS,
+        StreamCause.GRAVITY_MAGNITUDE,
+        Predicate.CROSS_IMU_NORM,
+    }
 )
 """What only schema version 2 holds (module docstring)."""
 

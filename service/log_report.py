@@ -18,10 +18,15 @@ logged rate only, ``vibration.recomputed_below_hz``), each with its severity, te
 was not tested and why, and per IMU what each check tested with its minimum
 detectable fault (the ``--json`` coverage line of :mod:`service.commands.replay`).
 
+``cross_imu_norm`` (schema 5; null for fewer than two IMUs) is the in-flight norm comparison of
+the first two IMUs (:mod:`estimators.cross_imu_norm`): the pair, the CUSUM threshold, seconds
+tested, the minimum detectable shifts and the lever arm found with its standard deviations.
+
 ``report.md`` shows it as a flight review reads: a table per IMU, |a| − g of
 the blocks at rest against F0's shell, the accelerometer and gyro spectra, the
-cross-IMU differences over time (``gravity_residual.png``, ``spectra.png``,
-``cross_imu.png``).
+cross-IMU differences over time, and the norm comparison's CUSUM statistic through
+the flight against its threshold (``gravity_residual.png``, ``spectra.png``,
+``cross_imu.png``, ``cross_imu_norm.png``).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from estimators.conventions import AXES
+from estimators.cross_imu_norm import NormBlock
 from estimators.firmware_health import ARDUPILOT_VIBE_LIMITS_MPS2, ARDUPILOT_VIBE_SOURCE
 from estimators.log_health import HealthConfig, ImuHealth, PairDifference
 from protocols.events import Event, Severity
@@ -42,19 +48,26 @@ from protocols.firmware_health import FirmwareHealth, FirmwareVibration
 from protocols.logs import LogStats
 from service.commands.replay import log_start
 from service.figures import plt, save_figure
+from service.pipeline.norm_check import VehicleNorm
 from service.pipeline.thrust_axis import ThrustStatistic
 
 REPORT_TYPE = "ins.health.log_report"
-REPORT_SCHEMA_VERSION = 5
+REPORT_SCHEMA_VERSION = 6
 """2: ``log.skipped_bytes`` and ``log.cut_at_byte`` (what a damaged log did not give);
 3: ``coverage`` (what each check tested, the verdict); 4: ``log.start_t_s`` (the first sample's
 time on the log's clock, from which the plots and the Markdown count) and ``passport.not_applied``
 (the IMUs no passport applied to, and why); 5: ``log.clock_restarts`` and per IMU ``runs`` (a
 reboot inside the log, :mod:`protocols.logs`), ``firmware`` (the log's own health data,
-:mod:`protocols.firmware_health`) and per IMU ``vibration.recomputed_below_hz``."""
+:mod:`protocols.firmware_health`) and per IMU ``vibration.recomputed_below_hz``; 6: ``cross_imu_norm`` (module docstring)."""
 VIBE_WARN_MPS2, VIBE_BAD_MPS2 = ARDUPILOT_VIBE_LIMITS_MPS2
 VIBE_SOURCE = ARDUPILOT_VIBE_SOURCE
-PLOTS = ("gravity_residual.png", "spectra.png", "cross_imu.png", "thrust_axis.png")
+PLOTS = (
+    "gravity_residual.png",
+    "spectra.png",
+    "cross_imu.png",
+    "thrust_axis.png",
+    "cross_imu_norm.png",
+)
 
 
 @dataclass(frozen=True)
@@ -200,6 +213,25 @@ def firmware_findings(firmware: FirmwareHealth) -> list[dict[str, Any]]:
     return out
 
 
+def norm_summary(norm: VehicleNorm | None) -> dict[str, Any] | None:
+    """The report's ``cross_imu_norm`` (module docstring) of a vehicle's norm check."""
+    if norm is None:
+        return None
+    r, cov = norm.check.lever_arm()
+    mdf_a, mdf_g = norm.check.mdf()
+    return {
+        "imus": list(norm.pair),
+        "block_s": norm.config.block_s,
+        "threshold": norm.config.threshold,
+        "false_alarms_per_hour": norm.config.false_alarms_per_hour,
+        "tested_s": norm.check.tested_s(),
+        "mdf_mps2": mdf_a,
+        "mdf_rps": mdf_g,
+        "lever_arm_m": [float(v) for v in r],
+        "lever_arm_sd_m": [float(v) for v in np.sqrt(np.diag(cov))],
+    }
+
+
 def build_report(
     *,
     log_name: str,
@@ -216,10 +248,11 @@ def build_report(
     coverage: Mapping[str, Any],
     start_t_s: float | None,
     firmware: FirmwareHealth | None = None,
+    cross_imu_norm: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The plain-dict report (module docstring); ``coverage``: the replay's coverage map;
     ``start_t_s``: the log's first sample time (None: no sample); ``firmware``: the log's own
-    health data (:mod:`protocols.firmware_health`)."""
+    health data (:mod:`protocols.firmware_health`); ``cross_imu_norm``: :func:`norm_summary`."""
     imus = []
     for imu, h in sorted(healths.items()):
         entry = {"imu": imu, "source": stats.sources.get(imu, ""), **h.to_dict()}
@@ -272,6 +305,7 @@ def build_report(
         "block_s": config.block_s,
         "imus": imus,
         "pairs": [p.to_dict() for p in pairs],
+        "cross_imu_norm": None if cross_imu_norm is None else dict(cross_imu_norm),
         "findings": findings,
         "firmware": fw.to_dict(),
         "coverage": dict(coverage),
@@ -285,10 +319,12 @@ def write_report(
     out_dir: str | Path,
     firmware: FirmwareHealth | None = None,
     thrust: Mapping[int, ThrustStatistic] | None = None,
+    norm_blocks: Sequence[NormBlock] = (),
 ) -> Path:
     """Write report.json, report.md and the plots into ``out_dir`` (created); returns the Markdown
     path. ``firmware``: the batch sampler's spectra join the spectra plot; ``thrust``: per IMU the
-    thrust-axis statistic through the flight (None: no GNSS)."""
+    thrust-axis statistic through the flight (None: no GNSS); ``norm_blocks``: the cross-IMU norm
+    check's blocks, for its plot."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "report.json").write_text(
@@ -299,6 +335,7 @@ def write_report(
         "spectra.png": _spectra_plot(healths, firmware or FirmwareHealth(), out / "spectra.png"),
         "cross_imu.png": _cross_plot(report, pairs, out / "cross_imu.png"),
         "thrust_axis.png": _thrust_plot(report, thrust or {}, out / "thrust_axis.png"),
+        "cross_imu_norm.png": _norm_plot(report, norm_blocks, out / "cross_imu_norm.png"),
     }
     md = out / "report.md"
     md.write_text(_markdown(report, plots), encoding="utf-8")
@@ -399,6 +436,37 @@ def _thrust_plot(
         ax.plot(s.t_s - _start(report), s.z, lw=0.8, label=f"IMU{imu}")
         ax.axhline(s.threshold, color="k", lw=0.8, ls="--")
     return _finish_in_time(fig, ax, report, path, "max over windows |D_L| / σ_L", "In flight: |f| against GNSS, the statistic and its threshold (dashed)")  # fmt: skip
+
+
+def _norm_plot(report: Mapping[str, Any], blocks: Sequence[NormBlock], path: Path) -> bool:
+    norm = report.get("cross_imu_norm")
+    if norm is None or not blocks:
+        return False
+    t = np.array([b.t_s for b in blocks]) - _start(report)
+    fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    channels = ((axes[0], "accel", "|f|"), (axes[1], "gyro", "|ω|"))
+    for ax, name, word in channels:
+        stat = [max(getattr(b, name).cusum_pos, getattr(b, name).cusum_neg) for b in blocks]
+        ax.plot(
+            t, stat, lw=0.8, label=f"CUSUM of {word}{norm['imus'][1]} − {word}{norm['imus'][0]}"
+        )
+        ax.axhline(norm["threshold"], color="k", lw=0.8, ls="--", label="threshold")
+        alarms = [
+            a.t_s - _start(report) for b in blocks for a in b.alarms if a.channel.value == name
+        ]
+        for x in alarms:
+            ax.axvline(x, color="r", lw=1.0)
+        ax.set_ylabel(f"{name} CUSUM, σ")
+        ax.legend(fontsize=7, loc="upper left")
+    r, sd = norm["lever_arm_m"], norm["lever_arm_sd_m"]
+    axes[0].set_title(
+        "Lever arm found: "
+        + ", ".join(f"{100 * v:.1f} ± {100 * e:.1f} cm" for v, e in zip(r, sd, strict=True)),
+        fontsize=9,
+    )
+    axes[1].set_xlabel(_time_label(report))
+    save_figure(fig, path, dpi=90)
+    return True
 
 
 # --------------------------------------------------------------------------- Markdown
@@ -602,11 +670,29 @@ def _markdown(report: Mapping[str, Any], plots: Mapping[str, bool]) -> str:
                 f"| IMU{p['imus'][0]}–IMU{p['imus'][1]} | {pm(p['accel_mps2']['flight'])} | {pm(p['accel_mps2']['rest'])} "
                 f"| {pm(p['gyro_rps']['flight'])} | {pm(p['gyro_rps']['rest'])} |"
             )
+    if (norm := report.get("cross_imu_norm")) is not None:
+        i0, i1 = norm["imus"]
+        lines += [
+            "",
+            "## Cross-IMU norm in flight",
+            "",
+            f"IMU{i1} against IMU{i0}, rotation-invariant (no mounting needed): tested on "
+            f"{norm['tested_s']:.0f} s, minimum detectable shift {_f(norm['mdf_mps2'], '.2g')} m/s² "
+            f"and {_f(norm['mdf_rps'], '.2g')} rad/s (5 s mean delay) at {norm['false_alarms_per_hour']:g} "
+            f"false alarms per flight hour (CUSUM threshold {norm['threshold']:.3g} σ). Lever arm found "
+            "(IMU0's axes): "
+            + ", ".join(
+                f"{100 * v:.1f} ± {100 * e:.1f} cm"
+                for v, e in zip(norm["lever_arm_m"], norm["lever_arm_sd_m"], strict=True)
+            )
+            + ".",
+        ]
     titles = {
         "gravity_residual.png": "|a| − g at rest against the F0 shell",
         "spectra.png": "Accelerometer and gyro spectra",
         "cross_imu.png": "Cross-IMU differences over time",
         "thrust_axis.png": "Thrust axis against GNSS in flight",
+        "cross_imu_norm.png": "Cross-IMU norm: CUSUM through the flight against its threshold",
     }
     for name in PLOTS:
         if plots.get(name):

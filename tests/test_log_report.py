@@ -78,10 +78,14 @@ def test_the_same_faulty_flight_in_four_formats_gives_the_same_findings(tmp_path
         assert report["coverage"]["exit_status"] == EXIT_FAULT
     assert findings["tlog"] == findings["bin"] == findings["log"] == findings["ulg"]
     # Without a passport, from the class's tolerances: F0 then F6 (z scale factor) on IMU0, and the
-    # disagreement with its healthy twin; nothing on the healthy IMU of its own.
+    # disagreement with its healthy twin (the vector bins and, in flight, the norms: issue 32);
+    # nothing on the healthy IMU of its own.
     assert ("pipeline", 0, "F0", "accel", None) in findings["bin"]
     assert ("pipeline", 0, "F6", "accel", "z") in findings["bin"]
-    assert not [k for k in findings["bin"] if k[1] == 1 and k[2] not in ("cross_imu",)]
+    assert ("pipeline", 1, "cross_imu_norm", "accel", None) in findings["bin"]
+    assert not [
+        k for k in findings["bin"] if k[1] == 1 and k[2] not in ("cross_imu", "cross_imu_norm")
+    ]
 
 
 def test_report_is_deterministic_and_complete(tmp_path, capsys):
@@ -182,7 +186,7 @@ def test_a_cut_and_damaged_log_says_in_its_report_what_was_not_read(tmp_path, ca
     log = tmp_path / "damaged.bin"
     log.write_bytes(bytes(data[:cut]))
     report, _ = run_report(capsys, log, tmp_path / "r")
-    assert report["schema_version"] == 5
+    assert report["schema_version"] == 6
     assert report["log"]["skipped_bytes"] >= 4096 - 255
     assert cut - 255 < report["log"]["cut_at_byte"] < cut
     md = (tmp_path / "r" / "report.md").read_text()

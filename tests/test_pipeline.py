@@ -875,7 +875,7 @@ def test_a_checkpoint_during_a_cross_imu_disagreement_resumes_without_raising_it
     passport, g = calibrated()
     frames = disagreeing_pair(V)
     whole = run_fleet(fleet_for(passport, g), frames, finish=False)
-    disagree = [e for e in whole if e.cause is StreamCause.DISAGREEMENT]
+    disagree = [e for e in whole if e.predicate is Predicate.CROSS_IMU]
     assert sorted(e.imu for e in disagree) == [0, 1]
     cut = next(k for k, b in enumerate(frames) if b.t_s[0] > disagree[0].t_s + 5.0)
     first = fleet_for(passport, g)
@@ -895,7 +895,7 @@ def test_a_checkpoint_during_a_cross_imu_disagreement_resumes_without_raising_it
     after = run_fleet(resumed(True), frames[cut:], finish=False)
     assert [e.event_id for e in before + after] == [e.event_id for e in whole]
     again = run_fleet(resumed(False), frames[cut:], finish=False)
-    assert [e.imu for e in again if e.cause is StreamCause.DISAGREEMENT] != []
+    assert [e.imu for e in again if e.predicate is Predicate.CROSS_IMU] != []
 
 
 def test_a_vehicles_checkpoint_holds_its_changed_units_and_its_cross_imu_state():

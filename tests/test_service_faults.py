@@ -29,7 +29,7 @@ from service_support import (
     zenoh_router,
 )
 
-from protocols.events import Predicate, StreamCause
+from protocols.events import Predicate
 from protocols.frames import SampleBatch, encode_frame
 from protocols.zenoh_adapter import EventReceiver, FramePublisher, frame_key, subscribe_status
 from protocols.zenoh_router import RouterProcess
@@ -260,12 +260,16 @@ def test_kill_9_at_random_moments_every_event_once_and_a_disagreement_never_rais
     offline, expected, raised_at = offline_fleet(), [], None
     for n, (key, k) in enumerate(order):
         expected += offline.process(frames[key][k], arrival_s=float(frames[key][k].t_s[-1]))
-        if raised_at is None and any(e.cause is StreamCause.DISAGREEMENT for e in expected):
+        if raised_at is None and any(e.predicate is Predicate.CROSS_IMU for e in expected):
             raised_at = n
     want = [e.event_id for e in expected]
-    assert [(e.vehicle, e.imu) for e in expected if e.cause is StreamCause.DISAGREEMENT] == [
+    assert [(e.vehicle, e.imu) for e in expected if e.predicate is Predicate.CROSS_IMU] == [
         ("uav-c", 0),
         ("uav-c", 1),
+    ]
+    # The norms of the two units moved apart too, once (its state is in the vehicle's checkpoint).
+    assert [(e.vehicle, e.imu) for e in expected if e.predicate is Predicate.CROSS_IMU_NORM] == [
+        ("uav-c", 1)
     ]
     assert {e.vehicle for e in expected} == {"uav-c", "uav-k"}
     kill_at = sorted(

@@ -68,13 +68,17 @@ from .motion import (
     tilt_sequence,
 )
 from .scenarios import (
+    PAIR_LEVER_ARM_M,
+    PAIR_MOUNT_ZX_DEG,
     OrientationScheme,
     flight_spec,
     multi_position_spec,
+    pair_flight_specs,
     position_attitudes,
+    second_imu,
     static_spec,
 )
-from .session import SessionSpec, SimResult, Truth, earth_rate_n_rps, simulate
+from .session import Mounting, SessionSpec, SimResult, Truth, earth_rate_n_rps, simulate
 from .temperature import (
     ConstantTemperature,
     CycleTemperature,
@@ -87,6 +91,8 @@ from .temperature import (
 __all__ = [
     "EFFECTS",
     "GRADES",
+    "PAIR_LEVER_ARM_M",
+    "PAIR_MOUNT_ZX_DEG",
     "Bias",
     "BiasDrift",
     "BiasInstability",
@@ -110,6 +116,7 @@ __all__ = [
     "Hold",
     "Motion",
     "MotionProfile",
+    "Mounting",
     "NonOrthogonality",
     "NonOrthogonalityChange",
     "NonstaticPositions",
@@ -146,8 +153,10 @@ __all__ = [
     "make_effect",
     "multi_position_profile",
     "multi_position_spec",
+    "pair_flight_specs",
     "position_attitudes",
     "random_attitudes",
+    "second_imu",
     "simulate",
     "static_profile",
     "static_spec",

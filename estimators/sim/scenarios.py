@@ -7,9 +7,11 @@ argument is keyword-only and has a typical default.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from enum import StrEnum
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estimators._typing import FloatArray
 from estimators.conventions import Grade
@@ -26,7 +28,7 @@ from .motion import (
     random_attitudes,
     static_profile,
 )
-from .session import SessionSpec
+from .session import Mounting, SessionSpec
 from .temperature import TemperatureProfile
 
 
@@ -173,3 +175,49 @@ def flight_spec(
         temperature,
         faults,
     )
+
+
+def second_imu(
+    spec: SessionSpec,
+    *,
+    lever_arm_b_m: ArrayLike,
+    mat_sb: ArrayLike,
+    model: ErrorModel | None = None,
+    faults: Sequence[Fault] = (),
+    unit: str = "imu1",
+) -> SessionSpec:
+    """A second IMU on the vehicle of ``spec``: the same motion (same seed), its own place and turn
+    (:class:`~estimators.sim.session.Mounting`), errors (``model``, default ``spec``'s) and faults, and
+    noise of its own (``unit``)."""
+    return replace(
+        spec,
+        mounting=Mounting(lever_arm_b_m, mat_sb),
+        unit=unit,
+        model=spec.model if model is None else model,
+        faults=tuple(faults),
+    )
+
+
+PAIR_LEVER_ARM_M = (0.06, -0.04, 0.03)
+"""The two-IMU flight's lever arm, m, body axes (7.8 cm)."""
+PAIR_MOUNT_ZX_DEG = (30.0, 90.0)
+"""The two-IMU flight's second unit turned 30° about body z, then 90° about x: body z (the thrust)
+falls on its y axis."""
+
+
+def pair_flight_specs(
+    *,
+    fly_s: float,
+    rest_s: float = 10.0,
+    mat_sb: ArrayLike | None = None,
+    faults: Sequence[Fault] = (),
+) -> tuple[SessionSpec, SessionSpec]:
+    """Two IMUs on one vehicle flying :func:`flight_spec` (MEMS, 100 Hz): IMU 0 at the body point,
+    IMU 1 at :data:`PAIR_LEVER_ARM_M` turned by ``mat_sb`` (default :data:`PAIR_MOUNT_ZX_DEG`) with
+    ``faults`` and noise of its own; :func:`~estimators.sim.session.simulate` both with the same seed."""
+    from scipy.spatial.transform import Rotation
+
+    if mat_sb is None:
+        mat_sb = Rotation.from_euler("zx", PAIR_MOUNT_ZX_DEG, degrees=True).as_matrix()
+    spec0 = flight_spec(fly=Fly(fly_s), rest_s=rest_s)
+    return spec0, second_imu(spec0, lever_arm_b_m=PAIR_LEVER_ARM_M, mat_sb=mat_sb, faults=faults)

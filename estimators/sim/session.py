@@ -11,7 +11,12 @@ Neglected, because they are below a small vehicle's concern at the accuracy
 this project checks: the transport rate ``v / R`` (3e-6 rad/s at 20 m/s), the
 Coriolis acceleration ``2Ω×v`` (3e-3 m/s² at 20 m/s) and the change of gravity
 with the vehicle's excursions. The unit rotates about its sensor point (no
-lever arm).
+lever arm) unless the spec has a :class:`Mounting`: a unit at the lever arm
+``r`` (body axes) from the body point and mounted with its axes at ``mat_sb``
+reads ``f_s = mat_sb (f_b + ω̇ × r + ω × (ω × r))`` and ``ω_s = mat_sb ω_ib_b``,
+``ω̇`` the central difference of the sampled body rate (``np.gradient``). Two
+specs differing only in their mounting, ``unit`` and the unit's own model and
+faults are two IMUs on one vehicle: the motion is drawn from the same stream.
 
 Randomness: each consumer (the motion, each effect of each triad, the faults)
 draws from its own stream derived from the seed and the consumer's name, so
@@ -51,6 +56,43 @@ from .temperature import TemperatureProfile
 
 
 @dataclass(frozen=True)
+class Mounting:
+    """A unit's place on the vehicle: lever arm ``lever_arm_b_m`` (3,) m from the body point, body
+    axes, and its axes' attitude ``mat_sb`` (3, 3), sensor ← body (module docstring)."""
+
+    lever_arm_b_m: ArrayLike = (0.0, 0.0, 0.0)
+    mat_sb: ArrayLike = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.lever_arm_b_m, dtype=float)
+        m = np.asarray(self.mat_sb, dtype=float)
+        if r.shape != (3,) or not np.all(np.isfinite(r)):
+            raise ValueError(
+                f"Mounting.lever_arm_b_m must be a finite 3-vector, got {self.lever_arm_b_m!r}"
+            )
+        if (
+            m.shape != (3, 3)
+            or not np.allclose(m @ m.T, np.eye(3), atol=1e-9)
+            or np.linalg.det(m) <= 0
+        ):
+            raise ValueError(
+                f"Mounting.mat_sb must be a (3, 3) rotation matrix, got {self.mat_sb!r}"
+            )
+        object.__setattr__(self, "lever_arm_b_m", tuple(r))
+        object.__setattr__(self, "mat_sb", tuple(map(tuple, m)))
+
+    def sensed(
+        self, t_s: FloatArray, f_b: FloatArray, w_b: FloatArray, rate_nb_b: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """The unit's specific force and angular rate (N, 3) from the body point's (module docstring)."""
+        r = np.array(self.lever_arm_b_m)
+        m = np.array(self.mat_sb)
+        wdot = np.gradient(rate_nb_b, t_s, axis=0) if t_s.size > 1 else np.zeros_like(rate_nb_b)
+        at_r = f_b + np.cross(wdot, r) + np.cross(w_b, np.cross(w_b, r))
+        return at_r @ m.T, w_b @ m.T
+
+
+@dataclass(frozen=True)
 class SessionSpec:
     """Everything that defines a simulated session.
 
@@ -67,6 +109,9 @@ class SessionSpec:
     temperature : temperature profile, or None (the session then has no temperature).
     faults : injected faults.
     t0_s : time of the first sample, s.
+    mounting : where the unit sits on the body and how it is turned (None: at the body point, body axes).
+    unit : the name the unit's own random streams are drawn under (``""``: the streams of a single
+        unit); the motion's stream does not depend on it.
     """
 
     profile: MotionProfile
@@ -78,6 +123,8 @@ class SessionSpec:
     temperature: TemperatureProfile | None = None
     faults: tuple[Fault, ...] = ()
     t0_s: float = 0.0
+    mounting: Mounting | None = None
+    unit: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "faults", tuple(self.faults))
@@ -169,7 +216,8 @@ class SimResult:
 class RandomStreams:
     """Independent generators keyed by name, all derived from one seed."""
 
-    def __init__(self, seed: int | np.random.Generator):
+    def __init__(self, seed: int | np.random.Generator, prefix: tuple[str, ...] = ()):
+        self.prefix = prefix
         if isinstance(seed, np.random.Generator):
             self.entropy = int(seed.integers(0, 2**63))
         elif isinstance(seed, (int, np.integer)) and seed >= 0:
@@ -180,7 +228,7 @@ class RandomStreams:
             )
 
     def rng(self, *keys: str) -> np.random.Generator:
-        key = tuple(zlib.crc32(k.encode()) for k in keys)
+        key = tuple(zlib.crc32(k.encode()) for k in (*self.prefix, *keys))
         return np.random.default_rng(np.random.SeedSequence(self.entropy, spawn_key=key))
 
 
@@ -255,9 +303,12 @@ def simulate(spec: SessionSpec, seed: int | np.random.Generator) -> SimResult:
     mat_bn = np.swapaxes(motion.mat_nb, 1, 2)
     f_b = np.einsum("nij,nj->ni", mat_bn, motion.accel_n_mps2 + np.array([0.0, 0.0, g_true]))
     w_ib_b = motion.rate_nb_b_rps + mat_bn @ earth_rate_n_rps(spec.latitude_deg)
+    if spec.mounting is not None:
+        f_b, w_ib_b = spec.mounting.sensed(t, f_b, w_ib_b, motion.rate_nb_b_rps)
     temp = None if spec.temperature is None else spec.temperature.temp_c_at(t - t[0])
-    accel = _sensor_output(spec, Triad.ACCEL, f_b, f_b, t, temp, g_true, streams)
-    gyro = _sensor_output(spec, Triad.GYRO, w_ib_b, f_b, t, temp, EARTH_RATE_RPS, streams)
+    unit_streams = RandomStreams(streams.entropy, ("unit", spec.unit)) if spec.unit else streams
+    accel = _sensor_output(spec, Triad.ACCEL, f_b, f_b, t, temp, g_true, unit_streams)
+    gyro = _sensor_output(spec, Triad.GYRO, w_ib_b, f_b, t, temp, EARTH_RATE_RPS, unit_streams)
     truth = Truth(
         t_s=t,
         mat_nb=motion.mat_nb,

@@ -81,6 +81,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from estimators.coverage import ImuCoverage, Verdict
+    from estimators.cross_imu_norm import NormBlock
     from estimators.nominal_passport import SensorClass
     from estimators.passport import Passport
     from protocols.events import Event
@@ -385,7 +386,14 @@ def replay_log(
         failed.setdefault((vehicle, imu, message.split(":", 1)[0]), [0, message])[0] += 1
 
     lookup, nominal, passport_info = _lookup(args)
+    norm_blocks: list[NormBlock] = []
+
+    def norm_block(vehicle: str, _pair: tuple[int, int], block: NormBlock) -> None:
+        if args.report is not None and vehicle == args.vehicle:
+            norm_blocks.append(block)
+
     fleet = FleetProcessor(
+        on_norm_block=norm_block,
         passports=lookup,
         nominal=nominal,
         options=options,
@@ -480,6 +488,7 @@ def replay_log(
                 p,
                 imus_on_vehicle=len(pipes),
                 cross_not_running=fleet.cross_not_running(p.vehicle, p.imu),
+                vehicle_checks=fleet.norm_coverage(args.vehicle, p.imu),
             )
         )
         for p in pipes
@@ -515,7 +524,7 @@ def replay_log(
     note(_verdict_line(said, len(result.findings), untested))
     if args.report is not None:
         from protocols.firmware_health import read_firmware_health
-        from service.log_report import build_report, write_report
+        from service.log_report import build_report, norm_summary, write_report
 
         firmware = read_firmware_health(args.log, reader.format, reader.stats.held)
         if firmware.unread:
@@ -537,8 +546,17 @@ def replay_log(
             coverage=_coverage_map(result),
             start_t_s=result.start_t_s,
             firmware=firmware,
+            cross_imu_norm=norm_summary(fleet.norms.get(args.vehicle)),
         )
-        md = write_report(report, healths, pairs, args.report, firmware, thrust=thrust.statistics())
+        md = write_report(
+            report,
+            healths,
+            pairs,
+            args.report,
+            firmware,
+            thrust=thrust.statistics(),
+            norm_blocks=norm_blocks,
+        )
         note(f"report {md}")
     return dataclasses.replace(result, notes=tuple(notes))
 

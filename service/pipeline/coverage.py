@@ -27,18 +27,24 @@ if TYPE_CHECKING:
     from service.pipeline.imu_pipeline import ImuPipeline
 
 FAULT_PREDICATES = frozenset(
-    {"F0", *(f"F{j}" for j in range(1, 10)), "stale", "gross", "thrust_axis"}
+    {"F0", *(f"F{j}" for j in range(1, 10)), "stale", "gross", "thrust_axis", "cross_imu_norm"}
 )
 """Predicates whose (not recovered) event is a sensor finding: the verdict is then a fault."""
 
 
 def imu_coverage(
-    pipe: ImuPipeline, *, imus_on_vehicle: int | None = None, cross_not_running: str | None = None
+    pipe: ImuPipeline,
+    *,
+    imus_on_vehicle: int | None = None,
+    cross_not_running: str | None = None,
+    vehicle_checks: tuple[CheckCoverage, ...] = (),
 ) -> ImuCoverage:
     """The coverage of one IMU's pipeline; ``imus_on_vehicle``: IMUs its vehicle streams, for the
     cross-IMU check (None: left out, a check of the vehicle rather than of this IMU);
     ``cross_not_running``: why the cross-IMU check does not compare this IMU now
-    (:meth:`estimators.stream_validity.CrossImuMonitor.not_compared`)."""
+    (:meth:`estimators.stream_validity.CrossImuMonitor.not_compared`);
+    ``vehicle_checks``: the vehicle's checks this IMU takes part in (the cross-IMU norm,
+    :meth:`~service.pipeline.FleetProcessor.norm_coverage`), added at the end."""
     checks: list[CheckCoverage] = []
     for triad in (Triad.ACCEL, Triad.GYRO):
         check = pipe.checks.get(triad)
@@ -80,7 +86,7 @@ def imu_coverage(
         )
     if pipe.thrust is not None:
         checks.append(pipe.thrust.coverage())
-    return ImuCoverage(pipe.imu, tuple(checks))
+    return ImuCoverage(pipe.imu, (*checks, *vehicle_checks))
 
 
 def _no_check(pipe: ImuPipeline, triad: Triad) -> str:

@@ -31,6 +31,7 @@ from protocols.events import (
 from protocols.frames import SampleBatch
 from protocols.gnss_frames import GnssFrame
 from service.pipeline.imu_pipeline import ImuPipeline, join_batches
+from service.pipeline.norm_check import NormBlockSink, VehicleNorm
 from service.pipeline.options import (
     RECOVERED_SEVERITY,
     SEVERITY,
@@ -85,6 +86,7 @@ class FleetProcessor:
         :func:`~estimators.passport.check_references`) refuses it, reported once through
         ``on_passport_error``.
     options : pipeline options.
+    on_norm_block : told every block of each vehicle's cross-IMU norm check (:mod:`service.pipeline.norm_check`).
     nominal : sensor class whose nominal passport (:func:`~estimators.nominal_passport.nominal_passport`)
         a unit without a usable passport of its own runs on (None: stream validity checks only). A
         refused entry falls back to it too: a corrupt or altered file must not switch F0 off, and the
@@ -112,8 +114,13 @@ class FleetProcessor:
         on_pipeline_error: Callable[[str, int, str], None] | None = None,
         on_evicted: Callable[[str, str], None] | None = None,
         nominal: SensorClass | None = None,
+        on_norm_block: NormBlockSink | None = None,
     ):
         self.options = options
+        self._on_norm_block = on_norm_block
+        self.norms: dict[str, VehicleNorm] = {}
+        # A vehicle's checkpointed norm check, resumed when its pair is known again (_new_norm).
+        self._saved_norms: dict[str, dict[str, Any]] = {}
         self._passports = passports
         self.nominal = None if nominal is None else SensorClass(nominal)
         self._nominal_passport = (
@@ -259,6 +266,7 @@ class FleetProcessor:
             self._saved.pop((victim, imu_of), None)
         self.vehicle_counters.pop(victim, None)
         self.cross.pop(victim, None)
+        self.norms.pop(victim, None)
         self._seen.pop(victim, None)
         self.count_service("vehicles.evicted_without_passport")
         if self._on_evicted is not None:
@@ -271,6 +279,8 @@ class FleetProcessor:
         state = None if self._restore_cross is None else self._restore_cross(vehicle)
         if state is None:
             return CrossImuMonitor(limits=limits)
+        if isinstance(state, dict) and isinstance(state.get("norm"), dict):
+            self._saved_norms[vehicle] = state["norm"]
         try:
             monitor = CrossImuMonitor.from_state(state, limits=limits)
         except ValueError as exc:
@@ -451,11 +461,12 @@ class FleetProcessor:
             self._on_pipeline_error(pipe.vehicle, pipe.imu, f"{type(exc).__name__}: {exc}")
 
     def _cross(self, good: SampleBatch) -> list[Event]:
-        """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle)."""
+        """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle):
+        the vector comparison of bin means, then the norm comparison in flight."""
         if len(self._by_vehicle.get(good.vehicle, {})) < 2:
             return []
         reports = self.cross[good.vehicle].add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
-        return [
+        events = [
             _cross_imu_event(
                 good.vehicle,
                 r,
@@ -465,6 +476,62 @@ class FleetProcessor:
             )
             for r in reports
         ]
+        norm = self.norms.get(good.vehicle) or self._new_norm(good.vehicle)
+        return events if norm is None else events + norm.add(good)
+
+    def _new_norm(self, vehicle: str) -> VehicleNorm | None:
+        """The vehicle's norm check, once its two lowest-numbered IMUs know their sample rates."""
+        pipes = self._by_vehicle[vehicle]
+        i0, i1 = sorted(pipes)[:2]
+        rates = [pipes[i].detection for i in (i0, i1)]
+        if rates[0] is None or rates[1] is None:
+            return None
+        saved = self._saved_norms.pop(vehicle, None)
+        if saved is not None:
+            try:
+                norm = VehicleNorm.from_state(
+                    vehicle,
+                    saved,
+                    gravity_mps2=self.options.gravity_mps2,
+                    on_block=self._on_norm_block,
+                )
+                if norm.pair == (i0, i1):
+                    self.norms[vehicle] = norm
+                    return norm
+                raise ValueError(
+                    f"it compares IMU{norm.pair[0]} and IMU{norm.pair[1]}, not IMU{i0} and IMU{i1}"
+                )
+            except ValueError as exc:
+                self.count_vehicle(vehicle, "checkpoints.discarded")
+                if self._on_cross_error is not None:
+                    self._on_cross_error(vehicle, f"cross-IMU norm: {exc}")
+        norm = self.norms[vehicle] = VehicleNorm(
+            vehicle,
+            (i0, i1),
+            min(rates[0].rate_hz, rates[1].rate_hz),
+            gravity_mps2=self.options.gravity_mps2,
+            on_block=self._on_norm_block,
+        )
+        return norm
+
+    def norm_coverage(self, vehicle: str, imu: int) -> tuple[CheckCoverage, ...]:
+        """The cross-IMU norm's coverage for ``imu`` of ``vehicle``: both channels for an IMU of the
+        compared pair (not run yet, with why, before both rates are known), nothing otherwise."""
+        pipes = self._by_vehicle.get(vehicle, {})
+        if len(pipes) < 2 or imu not in sorted(pipes)[:2]:
+            return ()
+        norm = self.norms.get(vehicle)
+        if norm is None:
+            return tuple(
+                CheckCoverage(
+                    Check.CROSS_IMU_NORM,
+                    t,
+                    ran=False,
+                    reason="the sample rates are not measured yet",
+                )
+                for t in (Triad.ACCEL, Triad.GYRO)
+            )
+        return norm.coverage()
 
     def _scalar_note(self, vehicle: str, imu: int) -> str:
         pipe = self.pipelines.get((vehicle, imu))
@@ -527,7 +594,10 @@ class FleetProcessor:
         counters.update(self.vehicle_counters.get(vehicle, {}))
         counters.update({f"service.{k}": v for k, v in self.service_counters.items()})
         counters.update(extra or {})
-        imus = tuple(self._with_cross(p.status(), vehicle) for p in pipes)
+        imus = tuple(
+            dataclasses.replace(st, coverage=st.coverage + self.norm_coverage(vehicle, st.imu))
+            for st in (self._with_cross(p.status(), vehicle) for p in pipes)
+        )
         return Status(
             vehicle=vehicle, service=service, t_s=now_unix_s, counters=counters, imus=imus
         )
@@ -568,7 +638,13 @@ class FleetProcessor:
             if imus is None or imu in imus
         }
         cross = self.cross.get(vehicle)
-        return units, (cross.state_dict() if cross is not None and len(pipes) >= 2 else None)
+        if cross is None or len(pipes) < 2:
+            return units, None
+        state = cross.state_dict()
+        norm = self.norms.get(vehicle)
+        if norm is not None:
+            state["norm"] = norm.state_dict()
+        return units, state
 
     def mark_unsaved(self, keys: list[tuple[str, int]]) -> None:
         """These units' checkpoint could not be written: :meth:`changed_keys` lists them again."""

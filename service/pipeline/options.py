@@ -34,11 +34,13 @@ SEVERITY: dict[Predicate, Severity] = {
     Predicate.TEMPERATURE: Severity.WARNING,
     Predicate.GROSS: Severity.ERROR,
     Predicate.THRUST_AXIS: Severity.ERROR,
+    Predicate.CROSS_IMU_NORM: Severity.ERROR,
 }
 """MAV_SEVERITY of each predicate's event: F0 says *that* a triad failed (warning); F1…F9 name the
 sensor and the cause (:data:`FINDING_SEVERITY`), as the gross test does (an accelerometer off g or a
-gyro off its zero signal at rest, whatever the passport) and the thrust axis against GNSS in flight;
-a stuck axis is critical; recoveries are info."""
+gyro off its zero signal at rest, whatever the passport), the thrust axis against GNSS in flight and
+the cross-IMU norm (a scale or zero signal moved in flight); a stuck axis is critical; recoveries are
+info."""
 
 FINDING_SEVERITY = Severity.ERROR
 TRIAD_WORD = {Triad.ACCEL: "accelerometer", Triad.GYRO: "gyro"}
