@@ -659,7 +659,8 @@ class Service:
         them (retried with back-off, :data:`~service.outbox_writer.RETRY_MIN_S` doubling to
         :data:`~service.outbox_writer.RETRY_MAX_S`), the data directory checked every
         :data:`STORAGE_CHECK_S` (:meth:`DataDirLock.problem`: removed or replaced, its stores' writes
-        are refused from then on, they would be lost at the next start), and past
+        are refused until its own lock file is back at its path, they would be lost at the next
+        start), and past
         ``storage_timeout_s`` of the outbox, the checkpoints or the data directory away the daemon
         stops (the watchdog is no longer fed) and exits with :data:`EXIT_STORAGE`."""
         run = self._running()
