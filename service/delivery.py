@@ -119,6 +119,8 @@ class SinkDelivery:
                     del retry_at[vehicle]  # due with nothing pending (given up meanwhile)
                 later = [t for t in retry_at.values() if math.isfinite(t)]
                 if not lanes and stop.is_set() and not later:
+                    if self._unrecorded:
+                        self._ack([])
                     return
                 if not lanes:
                     self._idle()
@@ -149,8 +151,6 @@ class SinkDelivery:
             for task in lanes.values():
                 task.cancel()
             await asyncio.gather(*lanes.values(), return_exceptions=True)
-            if self._unrecorded:
-                self._ack([])
 
     async def _lane(self, vehicle: str) -> bool:
         """``vehicle``'s events to the transport in order until none is left (True) or one is refused (False)."""
