@@ -137,6 +137,8 @@ class MavlinkProcessLink:
         self._proc: subprocess.Popen[bytes] | None = None
         self._data: Connection | None = None
         self._cmd: Connection | None = None
+        self._calls = 0
+        """Commands sent to a child so far: each reply names its command's number."""
         self._closed = False
         self._start()
 
@@ -244,13 +246,21 @@ class MavlinkProcessLink:
                 raise ReaderProcessEnded(
                     f"mavlink {self.settings.device}: no reader process to send through"
                 )
+            self._calls += 1
+            tag = self._calls
+            deadline_s = time.monotonic() + REPLY_TIMEOUT_S
             try:
-                cmd.send((name, *args))
-                if not cmd.poll(REPLY_TIMEOUT_S):
-                    raise TimeoutError(
-                        f"mavlink {self.settings.device}: the reader process did not write within {REPLY_TIMEOUT_S:.0f} s"
-                    )
-                ok, result = cmd.recv()
+                cmd.send((tag, name, *args))
+                while True:
+                    if not cmd.poll(max(0.0, deadline_s - time.monotonic())):
+                        raise TimeoutError(
+                            f"mavlink {self.settings.device}: the reader process did not write within {REPLY_TIMEOUT_S:.0f} s"
+                        )
+                    # A reply to a call that timed out before is not this call's: an alert whose
+                    # write failed would be taken for one sent (and acked).
+                    replied, ok, result = cmd.recv()
+                    if replied == tag:
+                        break
             except EOFError:
                 raise ReaderProcessEnded(
                     f"mavlink {self.settings.device}: the reader process is gone"
@@ -344,16 +354,17 @@ _COMMANDS = ("send_heartbeat", "send_text", "send_alert")
 
 
 def _commands(link: MavlinkLink, cmd: Connection, stop: threading.Event) -> None:
-    """Write what the service asks and answer (True, result) or (False, the error); the pipe's end stops the child."""
+    """Write what the service asks and answer (its number, True, result) or (its number, False, the
+    error); the pipe's end stops the child."""
     try:
         while True:
-            name, *args = cmd.recv()
+            tag, name, *args = cmd.recv()
             try:
                 if name not in _COMMANDS:
                     raise ValueError(f"unknown command {name!r}")
-                reply = (True, getattr(link, name)(*args))
+                reply = (tag, True, getattr(link, name)(*args))
             except Exception as exc:
-                reply = (False, f"{type(exc).__name__}: {exc}")
+                reply = (tag, False, f"{type(exc).__name__}: {exc}")
             cmd.send(reply)
     except (EOFError, OSError):
         pass

@@ -66,8 +66,9 @@ restart it. Each task's last progress is on the status topic
 SIGTERM (``stop`` set) drains: the sources stop, the frames already received
 are processed, the checkpoints are written, and delivery continues for up to
 :data:`DRAIN_TIMEOUT_S` before the outbox is closed; whatever is still pending is
-re-sent by the next start; events held in memory that could not be stored make the exit status
-:data:`EXIT_STORAGE`. ``kill -9`` loses only the frames in flight and the
+re-sent by the next start; events held in memory that could not be stored, or a data directory
+removed or replaced (its pending events are in a file the next start will not see), make the exit
+status :data:`EXIT_STORAGE`. ``kill -9`` loses only the frames in flight and the
 state since the last checkpoint; no event that reached the outbox is lost, and
 events are never stored twice (their ids derive from the data, see
 :mod:`protocols.events`).
@@ -695,14 +696,25 @@ class Service:
         them (retried with back-off, :data:`~service.outbox_writer.RETRY_MIN_S` doubling to
         :data:`~service.outbox_writer.RETRY_MAX_S`), the data directory checked every
         :data:`STORAGE_CHECK_S` (:meth:`DataDirLock.problem`: removed or replaced, its stores' writes
-        are refused from then on, they would be lost at the next start), and past
+        are refused until its own lock file is back at its path, they would be lost at the next
+        start), and past
         ``storage_timeout_s`` of the outbox, the checkpoints or the data directory away the daemon
         stops (the watchdog is no longer fed) and exits with :data:`EXIT_STORAGE`."""
         run = self._running()
         limit_s = self.config.service.storage_timeout_s
         delay_s = RETRY_MIN_S
         while not stop.is_set():
-            if self._data_dir_lost_s is None and (problem := run.lock.problem()) is not None:
+            problem = run.lock.problem()
+            if self._data_dir_lost_s is not None and problem is None:
+                # The same lock file (device and inode) at its path: the folder held, moved back or
+                # uncovered by an unmount; its outbox is the one the next start sees.
+                lasted_s, self._data_dir_lost_s = self._clock() - self._data_dir_lost_s, None
+                run.outbox.refuse_writes(None)
+                log.warning(
+                    "the data directory %s is back after %.1f s (the lock file held); its outbox "
+                    "takes writes again", run.lock.data_dir, lasted_s,
+                )  # fmt: skip
+            if self._data_dir_lost_s is None and problem is not None:
                 self._data_dir_lost_s = self._clock()
                 run.outbox.refuse_writes(problem)
                 self.fleet.count_service("storage.data_dir_lost")
@@ -880,7 +892,7 @@ class Service:
             await self._drain(drain)
         if sup.fatal.is_set():
             return sup.exit_code
-        return EXIT_STORAGE if self._unstored else 0
+        return EXIT_STORAGE if self._unstored or self._data_dir_lost_s is not None else 0
 
     def _say_inputs(self) -> str:
         """Log ``NAME running`` once an input is connected, ``NAME waiting for …`` before; the line said.
@@ -1206,7 +1218,12 @@ class Service:
         left = 0
         with contextlib.suppress(OutboxUnavailable):
             left = sum(run.outbox.counts().pending_by_sink.values())
-        if left:
+        if left and self._data_dir_lost_s is not None:
+            log.error(
+                "%d event deliveries still pending, in the outbox of a data directory the next start "
+                "will not see: lost; exiting non-zero", left,
+            )  # fmt: skip
+        elif left:
             log.warning("%d event deliveries still pending; they are sent at the next start", left)
 
 

@@ -13,8 +13,9 @@ all online (``benchmarks/bench_delivery.py``); before, delivery took the outbox 
 stopped at the first event without an acknowledgement, for every vehicle.
 
 An ack the outbox cannot record now (it is unavailable) is kept in memory and recorded with the
-next one; the event is not sent again meanwhile (after a ``kill -9`` it is, and receivers drop the
-repeat by id). Once ``stop`` is set, a refused vehicle is not tried again, and :meth:`SinkDelivery.run`
+next one, or by a retry every :data:`RECORD_RETRY_S` and once more as the delivery ends; the event is
+not sent again meanwhile, and its vehicle's lane is not started again for it (after a ``kill -9`` it
+is sent again, and receivers drop the repeat by id). Once ``stop`` is set, a refused vehicle is not tried again, and :meth:`SinkDelivery.run`
 returns when no lane is left.
 """
 
@@ -27,12 +28,15 @@ from collections.abc import Callable
 from typing import Any
 
 from protocols.events import Event, EventError, decode_event
-from service.outbox import Outbox, OutboxUnavailable
+from service.outbox import Outbox, OutboxUnavailable, PendingEvent
 from service.outbox_writer import HeldEvent, OutboxWriter
 from service.sinks import TRANSPORT_ERRORS, EventSink
 
 LANE_BATCH = 16
 """Stored events a lane reads from the outbox at a time."""
+RECORD_RETRY_S = 1.0
+"""How often acks the outbox refused are tried again while nothing else records them, s (a locked
+file holds the loop for the outbox's busy timeout at each try)."""
 
 
 class SinkDelivery:
@@ -80,17 +84,30 @@ class SinkDelivery:
         out = self._writer.held_vehicles(self.sink.name)
         with contextlib.suppress(OutboxUnavailable):
             for v, n in self._outbox.pending_vehicles(self.sink.name).items():
-                out[v] = out.get(v, 0) + n
+                # A vehicle whose pending rows are all delivered (acks not recorded) has no lane to run.
+                if n > len(self._unrecorded) or self._stored(v):
+                    out[v] = out.get(v, 0) + n
         return out
+
+    def _stored(self, vehicle: str) -> list[PendingEvent]:
+        """``vehicle``'s oldest stored events still to deliver (not those delivered, acks unrecorded)."""
+        stored = self._outbox.pending(
+            self.sink.name, vehicle=vehicle, limit=LANE_BATCH + len(self._unrecorded)
+        )
+        return [p for p in stored if p.id not in self._unrecorded][:LANE_BATCH]
 
     async def run(self, wake: asyncio.Event, stop: asyncio.Event) -> None:
         """Lanes until ``stop`` is set and none is left (module docstring); ``wake`` is set when events come."""
         loop = asyncio.get_running_loop()
         lanes: dict[str, asyncio.Task[bool]] = {}
         retry_at: dict[str, float] = {}
+        record_at = -math.inf
         try:
             while True:
                 now = loop.time()
+                if self._unrecorded and record_at <= now:
+                    self._ack([])
+                    record_at = now + RECORD_RETRY_S
                 started = False
                 for vehicle in self.pending_vehicles():
                     if vehicle not in lanes and retry_at.get(vehicle, -math.inf) <= now:
@@ -102,11 +119,15 @@ class SinkDelivery:
                     del retry_at[vehicle]  # due with nothing pending (given up meanwhile)
                 later = [t for t in retry_at.values() if math.isfinite(t)]
                 if not lanes and stop.is_set() and not later:
+                    if self._unrecorded:
+                        self._ack([])
                     return
                 if not lanes:
                     self._idle()
                 woken = asyncio.ensure_future(wake.wait())
                 waits: list[asyncio.Future[Any]] = [woken, *lanes.values()]
+                if self._unrecorded:
+                    later.append(record_at)
                 timeout_s = None if not later else max(0.0, min(later) - now)
                 try:
                     await asyncio.wait(
@@ -136,10 +157,7 @@ class SinkDelivery:
         while True:
             stored = []
             with contextlib.suppress(OutboxUnavailable):
-                stored = self._outbox.pending(
-                    self.sink.name, vehicle=vehicle, limit=LANE_BATCH + len(self._unrecorded)
-                )
-            stored = [p for p in stored if p.id not in self._unrecorded][:LANE_BATCH]
+                stored = self._stored(vehicle)
             if stored:
                 acked: list[str] = []
                 for p in stored:

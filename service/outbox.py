@@ -276,9 +276,10 @@ class Outbox:
         got = int(self._db.execute(f"PRAGMA max_page_count = {want}").fetchone()[0])
         self.over_limit_bytes = (got - want) * page_bytes
 
-    def refuse_writes(self, reason: str) -> None:
+    def refuse_writes(self, reason: str | None) -> None:
         """Every later write is :class:`OutboxUnavailable` (``reason``); reads go on. For a file the next
-        start will not see (its data directory removed or replaced): what it would take is lost there."""
+        start will not see (its data directory removed or replaced): what it would take is lost there.
+        ``None``: writes are taken again (the directory is back)."""
         self._refusal = reason
 
     def _writable(self) -> None:

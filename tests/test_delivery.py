@@ -108,3 +108,49 @@ def test_a_vehicle_whose_waiting_events_were_given_up_is_not_waited_for_in_a_spi
 
     # Idle: no turn at all (a spin made thousands in 0.5 s).
     assert asyncio.run(scenario()) <= 2
+
+
+def test_an_ack_the_outbox_refused_is_recorded_once_it_takes_writes_and_not_waited_for_in_a_spin(
+    tmp_path,
+):
+    """An event delivered while the outbox takes no write (locked here; read-only or removed in the
+    field): its ack is kept in memory. The vehicle has nothing else to deliver, so the delivery waits
+    (before: its pending row started a lane that found nothing, again and again, thousands of turns in
+    0.5 s), and once the outbox takes writes again the ack is recorded without another event coming
+    (before: only with the next ack, so a restart sent the event a second time)."""
+    path = tmp_path / "o.sqlite"
+
+    async def scenario() -> tuple[int, bool, int]:
+        sink = Sink(offline=set())
+        wake, stop = asyncio.Event(), asyncio.Event()
+        beats = []
+        with Outbox(path, sinks=("s",)) as outbox:
+            writer = OutboxWriter(outbox, on_stored=lambda n, v: wake.set(), on_held=wake.set,
+                                  clock=time.monotonic)  # fmt: skip
+            writer.write([event("a", 0)])
+            lock = sqlite3.connect(path, isolation_level=None)
+            lock.execute("BEGIN EXCLUSIVE")
+            delivery = SinkDelivery(sink, outbox, writer, retry_s=0.05, idle=lambda: None,
+                                    sent=lambda: None, count=lambda name: None,
+                                    transport_error=print, beat=lambda: beats.append(1))  # fmt: skip
+            task = asyncio.create_task(delivery.run(wake, stop))
+            while not sink.accepted:
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.3)
+            before = len(beats)
+            await asyncio.sleep(0.5)
+            turns = len(beats) - before
+            lock.execute("ROLLBACK")
+            lock.close()
+            for _ in range(500):
+                if not outbox.pending("s"):
+                    break
+                await asyncio.sleep(0.01)
+            recorded = not outbox.pending("s")
+            stop.set()
+            wake.set()
+            await asyncio.wait_for(task, 5.0)
+            return turns, recorded, len(sink.accepted)
+
+    turns, recorded, sent = asyncio.run(scenario())
+    assert turns <= 2 and recorded and sent == 1, (turns, recorded, sent)

@@ -8,7 +8,9 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
+from multiprocessing import Pipe
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +28,8 @@ from service_support import (
 from estimators.conventions import Cause, Triad
 from estimators.diagnosis import Finding
 from estimators.sim import simulate, static_spec
-from protocols.events import Severity, event_from_finding
+from protocols import mavlink_process
+from protocols.events import Predicate, Severity, StreamCause, event_from_finding, make_event
 from protocols.mavlink_adapter import (
     DEFAULT_IMU_INDEX,
     UDP_RCVBUF_MIN_BYTES,
@@ -330,3 +333,45 @@ def test_the_child_ends_when_the_service_is_killed(tmp_path):
     finally:
         service.kill()
         service.wait(10)
+
+
+class _StalledDevice:
+    """A device whose first write stalls past the reply bound (a peer that stopped reading) and whose
+    next one fails (the link then gone)."""
+
+    def __init__(self):
+        self.writes = 0
+        self.release = threading.Event()
+
+    def send_alert(self, event):
+        self.writes += 1
+        if self.writes == 1:
+            self.release.wait(10.0)
+            return "the first alert"
+        raise OSError("the link is gone")
+
+
+def test_a_reply_that_comes_after_its_call_timed_out_is_not_taken_for_the_next_calls(
+    linked, monkeypatch
+):
+    """An alert whose write stalled past the reply bound is a TimeoutError (retried); its late reply
+    must not answer the retry: the retry's write failed, so it is an error, not an alert sent (before:
+    the stale 'sent' was its answer, the failed alert was acked and lost, and every later call got the
+    answer of the one before)."""
+    link, _peer = linked
+    monkeypatch.setattr(mavlink_process, "REPLY_TIMEOUT_S", 0.2)
+    device = _StalledDevice()
+    ours, childs = Pipe()
+    link._cmd.close()  # the real child ends; the device's commands are served by a thread here
+    link._cmd = ours
+    threading.Thread(
+        target=mavlink_process._commands, args=(device, childs, threading.Event()), daemon=True
+    ).start()
+    alert = make_event(vehicle="v1", imu=0, t_s=1.0, predicate=Predicate.TIMEOUT,
+                       cause=StreamCause.NO_DATA, severity=Severity.WARNING)  # fmt: skip
+    with pytest.raises(TimeoutError):
+        link.send_alert(alert)
+    device.release.set()
+    wait_until(lambda: ours.poll(), timeout_s=10, what="the late reply")
+    with pytest.raises(ReaderProcessFailed, match="the link is gone"):
+        link.send_alert(alert)

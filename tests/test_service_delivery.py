@@ -3,9 +3,11 @@ degrade without silencing, against real router, daemon and MAVLink peer processe
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import subprocess
 import sys
+import time
 
 import pytest
 import zenoh
@@ -39,6 +41,7 @@ from protocols.events import Predicate
 from protocols.mavlink_adapter import ImuMessage, use_mavlink2
 from protocols.zenoh_adapter import EventReceiver, frame_key
 from service.daemon import EXIT_STORAGE
+from service.outbox import Outbox
 
 pytestmark = pytest.mark.network
 
@@ -157,6 +160,86 @@ def test_a_data_directory_removed_under_the_daemon_is_said_refused_to_a_second_a
                for line in daemon.lines), daemon.lines  # fmt: skip
 
 
+@contextlib.contextmanager
+def _receiving_daemon(tmp_path, v: str, service: str):
+    """A router, the ground's receiver of every event (their ids in ``got``), and the daemon (``service``:
+    more ``[service]`` lines) taking ``v``'s frames; stopped at the end if it still runs."""
+    with ground_and_vehicle(tmp_path, put_store(tmp_path, [(v, 0)]), service=service) as (
+        config, ground, vehicle, status,
+    ):  # fmt: skip
+        got: list[str] = []
+        with EventReceiver(ground, lambda e: got.append(e.event_id)):
+            daemon = ServiceProcess(config)
+            try:
+                wait_subscribed(vehicle, frame_key(v, 0))
+                yield daemon, vehicle, status, got
+            finally:
+                if daemon.proc.poll() is None:
+                    daemon.terminate()
+
+
+def test_a_data_directory_moved_away_and_back_is_storage_again_and_its_held_event_stored_once(
+    tmp_path,
+):
+    """The data directory is moved away while the daemon runs (a mount over it and its removal, as a
+    card's remount shows it) and comes back, the same folder, before ``storage_timeout_s`` (4 s here).
+    The fault raised while it was away is delivered from memory; once it is back the daemon says so,
+    stores the held event (delivered: nothing pending), goes on past the timeout and exits 0 at SIGTERM
+    (before: the fault was never cleared, the daemon ended itself with 74 four seconds later and the
+    event, never stored, was said lost)."""
+    v = "uav-m"
+    want = fault_ids(v)
+    data, away = tmp_path / "data", tmp_path / "away"
+    with _receiving_daemon(tmp_path, v, "storage_timeout_s = 4.0\n") as (
+        daemon,
+        vehicle,
+        status,
+        got,
+    ):
+        data.rename(away)
+        wait_until(lambda: any("was removed" in line for line in daemon.lines), timeout_s=30,
+                   what=lambda: f"the removal said ({daemon.lines[-3:]})")  # fmt: skip
+        publish_blocking(vehicle, to_the_fault(v, batch_samples=200))
+        wait_until(lambda: got == want, timeout_s=DELIVERY_BOUND_S,
+                   what=lambda: f"the fault while the folder is away (got {got})")  # fmt: skip
+        away.rename(data)
+        wait_until(lambda: any("is back after" in line for line in daemon.lines)
+                   or daemon.proc.poll() is not None, timeout_s=30,
+                   what=lambda: f"storage back said ({daemon.lines[-3:]})")  # fmt: skip
+        assert daemon.proc.poll() is None, "\n".join(daemon.lines)
+        wait_until(lambda: status.counter(v, "service.outbox.stored") == 1, timeout_s=30,
+                   what=lambda: f"the held event stored ({status.get(v)})")  # fmt: skip
+        time.sleep(4.0)  # past storage_timeout_s: the daemon goes on
+        code = daemon.terminate()
+    assert code == 0, "\n".join(daemon.lines)
+    with Outbox(data / "outbox.sqlite", sinks=("zenoh",)) as outbox:
+        assert [p.id for p in outbox.stored()] == want and outbox.pending("zenoh") == []
+
+
+def test_events_pending_in_a_removed_data_directory_are_said_lost_at_sigterm_and_exit_74(tmp_path):
+    """The ground station is offline, so the fault's event waits in the outbox; then the data directory
+    is deleted and the daemon stopped. The pending event is in a file no later start sees: the daemon
+    says it is lost and exits 74 (before: 0, saying it would be sent at the next start)."""
+    v = "uav-p"
+    with ground_and_vehicle(tmp_path, put_store(tmp_path, [(v, 0)])) as peers:
+        config, _ground, vehicle, status = peers
+        daemon = ServiceProcess(config)
+        try:
+            wait_subscribed(vehicle, frame_key(v, 0))
+            publish_blocking(vehicle, to_the_fault(v, batch_samples=200))
+            wait_until(lambda: status.counter(v, "outbox.pending.zenoh") == 1, timeout_s=60,
+                       what=lambda: f"the fault pending ({status.get(v)})")  # fmt: skip
+            shutil.rmtree(tmp_path / "data")
+            wait_until(lambda: any("was removed" in line for line in daemon.lines), timeout_s=30,
+                       what=lambda: f"the removal said ({daemon.lines[-3:]})")  # fmt: skip
+        finally:
+            code = daemon.terminate()
+    assert code == EXIT_STORAGE, "\n".join(daemon.lines)
+    assert any(
+        "1 event deliveries still pending" in line and "lost" in line for line in daemon.lines
+    )
+
+
 def _mount_read_only_tmpfs(path) -> str | None:
     """A read-only tmpfs mounted over ``path``; None, or why the machine forbids it."""
     proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(path)],
@@ -174,26 +257,21 @@ def test_a_data_directory_turned_read_only_past_storage_timeout_ends_the_daemon_
     v = "uav-r"
     want = fault_ids(v)
     data = tmp_path / "data"
-    with ground_and_vehicle(tmp_path, put_store(tmp_path, [(v, 0)]), service="storage_timeout_s = 5.0\n") as (
-        config, ground, vehicle, _status,
-    ):  # fmt: skip
-        got = []
-        with EventReceiver(ground, lambda e: got.append(e.event_id)):
-            daemon = ServiceProcess(config)
-            try:
-                wait_subscribed(vehicle, frame_key(v, 0))
-                if (why := _mount_read_only_tmpfs(data)) is not None:
-                    pytest.skip(why)
-                try:
-                    publish_blocking(vehicle, to_the_fault(v, batch_samples=200))
-                    wait_until(lambda: got == want, timeout_s=DELIVERY_BOUND_S,
-                               what=lambda: f"the fault after the storage went (got {got})")  # fmt: skip
-                    code = daemon.proc.wait(60)
-                finally:
-                    subprocess.run(["umount", "-l", str(data)], check=False)
-            finally:
-                if daemon.proc.poll() is None:
-                    daemon.terminate()
+    with _receiving_daemon(tmp_path, v, "storage_timeout_s = 5.0\n") as (
+        daemon,
+        vehicle,
+        _status,
+        got,
+    ):
+        if (why := _mount_read_only_tmpfs(data)) is not None:
+            pytest.skip(why)
+        try:
+            publish_blocking(vehicle, to_the_fault(v, batch_samples=200))
+            wait_until(lambda: got == want, timeout_s=DELIVERY_BOUND_S,
+                       what=lambda: f"the fault after the storage went (got {got})")  # fmt: skip
+            code = daemon.proc.wait(60)
+        finally:
+            subprocess.run(["umount", "-l", str(data)], check=False)
     assert code == EXIT_STORAGE, daemon.lines
     assert any(
         "storage unavailable for" in line and "storage_timeout_s = 5" in line
