@@ -461,9 +461,7 @@ class FleetProcessor:
         """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle)."""
         if len(self._by_vehicle.get(good.vehicle, {})) < 2:
             return []
-        monitor = self.cross[good.vehicle]
-        reports = monitor.add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
-        offsets = monitor.clock_offsets_s
+        reports = self.cross[good.vehicle].add(good.imu, good.t_s, good.accel_mps2, good.gyro_rps)
         return [
             _cross_imu_event(
                 good.vehicle,
@@ -471,7 +469,7 @@ class FleetProcessor:
                 self.options.validity,
                 self._scalar_note(good.vehicle, r.imu),
                 epoch=self.pipelines[(good.vehicle, r.imu)].epoch,
-                clock_offset_s=offsets.get(r.imu, 0.0),
+                clock_offset_s=self.cross[good.vehicle].clock_offsets_s.get(r.imu, 0.0),
             )
             for r in reports
         ]
