@@ -49,7 +49,10 @@ Unix epoch), ``counters`` (map str → int ≥ 0), ``imus`` (array of maps
 an array of maps, one per check of the IMU
 (:meth:`estimators.coverage.CheckCoverage.to_dict`: what ran, on how much, its
 minimum detectable fault, and why a check did not run). Version 1 (no
-``coverage``) is still read, with no coverage.
+``coverage``) is still read, with no coverage. A coverage entry whose ``check`` is a name this
+reader does not know is a newer writer's check (new checks are added within version 2): it is
+kept as read in ``ImuStatus.unknown_coverage`` and written back unchanged, and the rest of the
+status is read; any other unusable entry refuses the status.
 
 Service status schema, version 1: ``type`` = ``"ins.health.service_status"``, ``v`` = 1, ``service``
 (instance name), ``t_s`` (s since the Unix epoch), ``vehicles`` (array of the vehicle ids it
@@ -71,7 +74,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from estimators.conventions import AXES, Cause, Triad
-from estimators.coverage import CheckCoverage
+from estimators.coverage import Check, CheckCoverage
 from protocols._schema import (
     MAX_MESSAGE_BYTES,
     Reason,
@@ -629,6 +632,8 @@ class ImuStatus:
     positions : static positions accumulated for the diagnosis.
     detail : short free text (e.g. the last failed predicate).
     coverage : what each check of the IMU tested so far (empty from a version-1 status).
+    unknown_coverage : coverage entries of checks this reader does not know, as read (a newer
+        writer's: each names its ``check``; module docstring).
     """
 
     imu: int
@@ -638,6 +643,7 @@ class ImuStatus:
     positions: int = 0
     detail: str = ""
     coverage: tuple[CheckCoverage, ...] = ()
+    unknown_coverage: tuple[dict[str, Any], ...] = ()
 
     def __post_init__(self) -> None:
         check_imu(self.imu, error=EventError)
@@ -700,7 +706,7 @@ def status_to_dict(status: Status) -> dict[str, Any]:
                 "last_t_s": s.last_t_s,
                 "positions": s.positions,
                 "detail": s.detail,
-                "coverage": [c.to_dict() for c in s.coverage],
+                "coverage": [c.to_dict() for c in s.coverage] + list(s.unknown_coverage),
             }
             for s in status.imus
         ],
@@ -724,6 +730,9 @@ def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
             raise EventError(
                 Reason.WRONG_TYPE, f"each imus entry must be a map, got {type(item).__name__}"
             )
+        known, unknown = (
+            ((), ()) if version < 2 else _coverage(field(item, "coverage", list, error=EventError))
+        )
         imus.append(
             ImuStatus(
                 imu=field(item, "imu", int, error=EventError),
@@ -732,9 +741,8 @@ def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
                 last_t_s=float_field(item, "last_t_s", optional=True, error=EventError),
                 positions=field(item, "positions", int, error=EventError),
                 detail=field(item, "detail", str, error=EventError),
-                coverage=()
-                if version < 2
-                else _coverage(field(item, "coverage", list, error=EventError)),
+                coverage=known,
+                unknown_coverage=unknown,
             )
         )
     return Status(
@@ -746,12 +754,25 @@ def decode_status(data: bytes, *, max_bytes: int = MAX_STATUS_BYTES) -> Status:
     )
 
 
-def _coverage(items: list[Any]) -> tuple[CheckCoverage, ...]:
-    """The ``coverage`` of a version-2 status IMU entry; :class:`EventError` for an entry it cannot read."""
-    try:
-        return tuple(CheckCoverage.from_dict(c) for c in items)
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise EventError(Reason.BAD_VALUE, f"unusable coverage entry: {exc!r}") from None
+_CHECKS = frozenset(c.value for c in Check)
+
+
+def _coverage(
+    items: list[Any],
+) -> tuple[tuple[CheckCoverage, ...], tuple[dict[str, Any], ...]]:
+    """The ``coverage`` of a version-2 status IMU entry: the entries of known checks, and those of
+    checks a newer writer added, as read; :class:`EventError` for an entry it cannot read."""
+    known: list[CheckCoverage] = []
+    unknown: list[dict[str, Any]] = []
+    for c in items:
+        if isinstance(c, dict) and isinstance(c.get("check"), str) and c["check"] not in _CHECKS:
+            unknown.append(c)
+            continue
+        try:
+            known.append(CheckCoverage.from_dict(c))
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise EventError(Reason.BAD_VALUE, f"unusable coverage entry: {exc!r}") from None
+    return tuple(known), tuple(unknown)
 
 
 @dataclass(frozen=True)

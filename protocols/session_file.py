@@ -19,7 +19,10 @@ overrides the file's). Values are converted to SI here, once
 (``g`` = 9.80665 m/s², the unit a data sheet means). Columns may come in any order; a file may
 hold one triad only (all three of its columns). Blank lines are skipped.
 ``nan``/``inf`` values are passed through: :func:`estimators.session.validate_session`
-counts and drops them — this reader never drops a row.
+counts and drops them. The only rows this reader drops are those with no number in any field
+(a spreadsheet's empty ``,,,,,,`` rows, a label), wherever they are, counted in
+``LoadedSession.notes``: they hold no sample. A row with some numbers and some text is a damaged
+sample whose meaning is unknown (which column slipped?), refused naming its line and column.
 
 **Other tools' IMU CSV files** (read, :data:`CSV_DIALECTS`): EuRoC/ASL
 ``imu0/data.csv`` (``#timestamp [ns],w_RS_S_x [rad s^-1],…,a_RS_S_z [m s^-2]``,
@@ -384,6 +387,9 @@ def _metadata(comments: list[str]) -> dict[str, str]:
         key, sep, value = c.partition("=")
         if sep and key.strip() and " " not in key.strip():
             out[key.strip()] = value.strip()
+        elif not sep and len(words := c.split()) == 2 and words[0].lower() in RATE_KEYS:
+            # A rate as a space-separated table's logger writes it: ``# rate_hz 100``.
+            out[words[0]] = words[1]
     return out
 
 
@@ -568,58 +574,84 @@ def _file_units(metadata: dict[str, str], path: Path) -> SessionUnits:
 
 def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
     """The last ``#`` line above the first data line that names a :data:`WHITESPACE_TABLE`'s
-    columns, as many as that data line's whitespace-separated fields (a line of units may follow it)."""
+    columns, as many as that data line's whitespace-separated fields (a line of units may follow it;
+    ``key value`` metadata lines such as ``Fs 100`` may come before it). Without a time column the
+    names are a header only when a rate line above gives the time."""
     comments: list[tuple[int, str]] = []
+    rate_said = False
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if not s:
             continue
+        words = s.lstrip("#").replace("=", " ").split()
+        rate_said |= len(words) == 2 and words[0].lower() in RATE_KEYS
         if not s.startswith("#"):
             if "," in s:
                 return None
+            if len(words) == 2 and not _all_numbers(words[:1]):
+                continue
             for number, comment in reversed(comments):
                 names = comment.lstrip("#").lower().split()
                 ours = WHITESPACE_TABLE.ours(names)
-                # The time and a triad at least: a comment's words are no header ("# time series").
+                # The time or a rate line, and a triad: a comment's words are no header ("# time
+                # series").
                 named = [] if ours is None else [o for o in ours if o is not None]
-                if "," not in comment and "t" in named and len(named) >= 4:
+                if (
+                    "," not in comment
+                    and len(named) >= 3 + ("t" in named)
+                    and ("t" in named or rate_said)
+                ):
                     return (number, names) if len(s.split()) == len(names) else None
             return None
         comments.append((lineno, s))
     return None
 
 
-def _metadata_fields(text: str) -> list[str]:
+def _metadata_fields(text: str, delimiter: str | None = ",") -> list[str]:
     """A row's fields, less the empty ones a spreadsheet pads it with to the widest row (``Fs,100,,,,``)."""
-    fields = [f.strip() for f in text.split(",")]
+    fields = [f.strip() for f in text.split(delimiter)]
     while len(fields) > 2 and not fields[-1]:
         fields.pop()
     return fields
 
 
-def _metadata_rows(rows: list[tuple[int, str]]) -> int:
-    """How many leading rows are ``key,value`` metadata (an Arduino logger's ``Fs,100``): rows of
-    two fields, the first not a number, before a header of more fields that is not all numbers."""
+def _metadata_rows(rows: list[tuple[int, str]], delimiter: str | None) -> int:
+    """How many leading rows are ``key,value`` metadata (an Arduino logger's ``Fs,100``, or
+    ``Fs 100`` above a space-separated table): rows of two fields, the first not a number, before
+    a header of more fields that is not all numbers."""
     k = 0
     while (
         k < len(rows)
-        and len(fields := _metadata_fields(rows[k][1])) == 2
+        and len(fields := _metadata_fields(rows[k][1], delimiter)) == 2
         and not _all_numbers(fields[:1])
     ):
         k += 1
     if k == 0 or k == len(rows):
         return 0
-    header = rows[k][1].split(",")
+    header = rows[k][1].split(delimiter)
     return k if len(header) > 2 and not _all_numbers(header) else 0
 
 
-def _trailing_junk(rows: list[tuple[int, str]], delimiter: str | None) -> int:
-    """How many rows at the end hold no number at all (a spreadsheet's empty ``,,,,,,`` rows, a
-    label): junk, not data. A row with a number in it is a damaged sample, refused by name."""
-    k = len(rows)
-    while k > 0 and not any(_all_numbers([f]) for f in rows[k - 1][1].split(delimiter)):
-        k -= 1
-    return len(rows) - k
+def _no_data_rows(rows: list[tuple[int, str]], delimiter: str | None) -> list[int]:
+    """Indices of the rows that hold no number at all (a spreadsheet's empty ``,,,,,,`` rows, a
+    label, a separator line), wherever they are: no sample, so nothing is lost by dropping them.
+    A row with a number in it is a damaged sample, refused by name."""
+    return [
+        k
+        for k, (_, text) in enumerate(rows)
+        if not any(_all_numbers([f]) for f in text.split(delimiter))
+    ]
+
+
+def _line_spans(lines: list[int]) -> str:
+    """Ascending line numbers as runs: ``7, 1003-1008``."""
+    spans: list[list[int]] = []
+    for n in lines:
+        if spans and n == spans[-1][1] + 1:
+            spans[-1][1] = n
+        else:
+            spans.append([n, n])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in spans)
 
 
 def _counts_without_scale(
@@ -674,7 +706,7 @@ def read_csv_session(
     ``sidecar``'s key applies, then the file's ``# <triad>_unit = …`` comment or ``key,value``
     line, else SI. The units used are in ``LoadedSession.units``; call :func:`check_units` to
     refuse implausible ones. What the reader did beyond reading (metadata lines, a time made from
-    the rate, columns not read, trailing rows dropped) is in ``LoadedSession.notes``.
+    the rate, columns not read, rows with no number dropped) is in ``LoadedSession.notes``.
     """
     path = Path(path)
     text = _read_text(path)
@@ -685,11 +717,13 @@ def read_csv_session(
         rows.insert(0, commented)
         comments.remove(commented[1][1:].strip())
     elif (spaced := _whitespace_header(text)) is not None:
-        rows.insert(0, (spaced[0], " ".join(spaced[1])))
+        # In file order: ``key value`` metadata lines may come before the header.
+        rows.append((spaced[0], " ".join(spaced[1])))
+        rows.sort()
         delimiter = None
     meta = _metadata(comments)
-    if n_meta := _metadata_rows(rows):
-        pairs = [_metadata_fields(text) for _, text in rows[:n_meta]]
+    if n_meta := _metadata_rows(rows, delimiter):
+        pairs = [_metadata_fields(text, delimiter) for _, text in rows[:n_meta]]
         meta.update({k: v for k, v in pairs if k not in meta})
         notes.append(
             f"{n_meta} metadata line(s) before the header read: "
@@ -710,7 +744,8 @@ def read_csv_session(
         )
         raise SessionFileError(
             f"{path}: line {header_line}: no header row; {pair}a space-separated table needs "
-            "a '#' line naming its columns above the first row (# time ax ay az gx gy gz)"
+            "a '#' line naming its columns above the first row (# time ax ay az gx gy gz; "
+            f"without a time column, a rate line above it: # {RATE_KEYS[1]} 100)"
         )
     names = [n.strip().lower() for n in header.split(delimiter)]
     n_fields = len(names)
@@ -749,15 +784,16 @@ def read_csv_session(
     if len(rows) == 1:
         raise SessionFileError(f"{path}: no data rows after the header (line {header_line})")
     used = list(range(n_fields)) if used_cols is None else used_cols
-    junk = _trailing_junk(rows[1:], delimiter)
-    # Rows that are all junk are a wrong file, not a spreadsheet's tail: the first is named below.
-    if 0 < junk < len(rows) - 1:
-        first, last = rows[-junk][0], rows[-1][0]
+    junk = _no_data_rows(rows[1:], delimiter)
+    # Rows that are all junk are a wrong file, not a spreadsheet's padding: the first is named below.
+    if 0 < len(junk) < len(rows) - 1:
+        lines = [rows[1 + k][0] for k in junk]
         notes.append(
-            f"{junk} row(s) at the end that are no data dropped (lines {first}-{last}, "
-            f"first {rows[-junk][1][:40]!r})"
+            f"{len(junk)} row(s) that are no data dropped (lines {_line_spans(lines)}, "
+            f"first {rows[1 + junk[0]][1][:40]!r})"
         )
-        del rows[-junk:]
+        dropped = set(junk)
+        rows = rows[:1] + [r for k, r in enumerate(rows[1:]) if k not in dropped]
     data = _parse_rows(path, rows[1:], tuple(names), delimiter, used_cols, n_fields)
     col = {n: data[:, k] for k, n in enumerate(names)}
     if (problem := _counts_without_scale(path, col, units.over(file_units))) is not None:

@@ -614,7 +614,17 @@ _UPPER_BOUNDS: dict[tuple[str, str], tuple[float, str]] = {
         50_000.0,
         "50 km: above any vehicle's flight and the normal-gravity model",
     ),
+    # Latitude is an angle from the equator: past a pole it names no place (the normal-gravity
+    # model raised ValueError there, ending the start without the key's section or other errors).
+    ("site", "latitude_deg"): (90.0, "the north pole"),
     ("zenoh", "min_acks"): (256, "256 ground stations, each answering every event"),
+    # Past it the daemon exits for systemd to restart it (storage_timeout_s's role for the disk, and
+    # its bound): a router away longer is the absent key, waiting for it; 1e300 s overflowed the
+    # milliseconds Zenoh takes.
+    ("zenoh", "connect_timeout_s"): (
+        86_400.0,
+        "a day, as storage_timeout_s: omit the key to wait for the router",
+    ),
     ("mavlink", "alert_min_interval_s"): (86_400.0, "a day: a repeat later than that is news"),
     # STATUSTEXT is 59 bytes with its header: a 115,200-baud link carries about 195 a second.
     ("mavlink", "alert_max_per_s"): (200.0, "a 115200-baud link carries about 195 STATUSTEXT/s"),
@@ -652,7 +662,9 @@ turns a check off); checked at start with the other range errors (exit 2)."""
 def _upper_bounds(cfg: ServiceConfig) -> list[str]:
     errors = []
     for (section, key), (bound, why) in _UPPER_BOUNDS.items():
-        value = getattr(getattr(cfg, section), key)
+        table = getattr(cfg, section)
+        # [zenoh]'s session keys are read into its ZenohSettings.
+        value = getattr(table, key) if hasattr(table, key) else getattr(table.session, key)
         if isinstance(value, (int, float)) and value > bound:
             errors.append(f"[{section}] {key} must be at most {bound:g} ({why}), got {value!r}")
     v = cfg.validity
@@ -731,9 +743,27 @@ def _check(cfg: ServiceConfig) -> list[str]:
         errors.append(
             f"[pipeline] min_positions must be >= 9 (nine parameters, M1), got {p.min_positions}"
         )
-    g = cfg.site.local_gravity_mps2
-    if not 9.7 < g < 9.9:
-        errors.append(f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)")
+    site = cfg.site
+    latitude = 0.0 if site.latitude_deg is None else site.latitude_deg
+    if latitude < -90.0:
+        errors.append(
+            f"[site] latitude_deg must be at least -90 (the south pole), got {latitude!r}"
+        )
+    if site.height_m <= -10_000.0:
+        errors.append(
+            f"[site] height_m must be above -10000 (below any ground), got {site.height_m!r}"
+        )
+    # Normal gravity is defined there only; beyond, the bounds said the key (it raised ValueError,
+    # which ended the start without its section nor the other errors).
+    if (
+        abs(latitude) <= 90.0
+        and -10_000.0 < site.height_m <= _UPPER_BOUNDS[("site", "height_m")][0]
+    ):
+        g = site.local_gravity_mps2
+        if not 9.7 < g < 9.9:
+            errors.append(
+                f"[site] gravity {g!r} m/s² is not a value on the Earth's surface (9.7..9.9)"
+            )
     for name in ("alert_min_interval_s", "alert_max_per_s"):
         _positive(errors, f"[mavlink] {name}", getattr(m, name))
     _period(errors, "[mavlink] heartbeat_period_s", m.heartbeat_period_s)

@@ -185,6 +185,14 @@ stale_run_samples = 50
         ({"service": {"outbox_max_mb": 1e12}}, r"outbox_max_mb must be at most 1.759"),
         ({"mavlink": {"alert_max_per_s": 1e6}}, r"alert_max_per_s must be at most 200"),
         ({"zenoh": {"min_acks": 10**6}}, r"min_acks must be at most 256"),
+        # The normal-gravity model's ValueError ended the check: no section, no other error said.
+        ({"site": {"latitude_deg": 1000.0}}, r"^\[site\] latitude_deg must be at most 90 \(the "),
+        ({"site": {"latitude_deg": -90.5}}, r"^\[site\] latitude_deg must be at least -90 \(the "),
+        ({"site": {"height_m": -2e4}}, r"^\[site\] height_m must be above -10000 \(below any "),
+        (
+            {"zenoh": {"connect_timeout_s": 1e300}},
+            r"^\[zenoh\] connect_timeout_s must be at most 86400 \(a day, as storage_timeout_s",
+        ),
         (
             {"zenoh": {"ack_from": ["gs/1"]}},
             r"^\[zenoh\] ack_from: receiver name 'gs/1' must match",
@@ -273,6 +281,22 @@ def test_every_error_is_reported_on_its_own_line(tmp_path, capsys):
     assert len(err) == 3 and all(line.startswith("ins-health run: [") for line in err), err
     assert any("autopilot_system" in line for line in err)
     assert any("delivery_retry_s must be a finite number" in line for line in err)
+
+
+def test_a_latitude_past_a_pole_and_an_endless_connect_timeout_stop_run_with_status_2(
+    tmp_path, capsys
+):
+    """Before, the latitude ended the check in the normal-gravity model's ValueError (one line
+    without its section, the timeout's unsaid) and 1e300 s passed. One line each, exit 2."""
+    path = tmp_path / "svc.toml"
+    path.write_text("[site]\nlatitude_deg = 1000.0\n[zenoh]\nconnect_timeout_s = 1e300\n")
+    from service.cli import main
+
+    assert main(["run", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2, err
+    assert err[0].startswith("ins-health run: [site] latitude_deg must be at most 90")
+    assert err[1].startswith("ins-health run: [zenoh] connect_timeout_s must be at most 86400")
 
 
 def test_a_configuration_that_is_not_utf8_names_the_file(tmp_path):

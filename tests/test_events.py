@@ -31,6 +31,7 @@ from protocols.events import (
     event_to_dict,
     event_to_json,
     make_event,
+    status_to_dict,
 )
 
 FINDING = Finding("F5", Triad.ACCEL, "y", Cause.SCALE_FACTOR, 2.1e-3, 0.0, 1.0e-3, 1.0e-4)
@@ -284,10 +285,30 @@ def test_status_carries_each_imus_coverage_and_older_statuses_still_decode():
     # A version-1 status (before coverage) decodes, with no coverage.
     old = {**wire, "v": 1, "imus": [{k: v for k, v in wire["imus"][0].items() if k != "coverage"}]}
     assert decode_status(msgpack.packb(old)).imus[0].coverage == ()
-    wire["imus"][0]["coverage"][0]["check"] = "F42"
+    wire["imus"][0]["coverage"][0]["triad"] = "magnetometer"
     with pytest.raises(EventError, match="unusable coverage entry") as info:
         decode_status(msgpack.packb(wire))
     assert info.value.reason is Reason.BAD_VALUE
+
+
+def test_a_status_with_a_check_this_reader_does_not_know_is_read_and_keeps_it():
+    """A newer daemon adds checks within status version 2 (the thrust axis, the cross-IMU norm):
+    an older reader reads the rest of its status, keeps the entry as it came and writes it back
+    (``watch --json``), and a person is told a newer daemon's check is not understood here."""
+    from estimators.coverage import Check, CheckCoverage
+    from service.commands.watch import status_line
+
+    f0 = CheckCoverage(Check.F0, Triad.ACCEL, ran=True, samples=900)
+    st = Status("v1", "svc", 1.7e9, imus=(ImuStatus(0, ImuState.OK, samples=900, coverage=(f0,)),))
+    wire = msgpack.unpackb(encode_status(st), raw=False)
+    newer = {"check": "cross_imu_heading", "triad": None, "ran": True, "samples": 12, "extra": [1]}
+    wire["imus"][0]["coverage"].append(newer)
+    read = decode_status(msgpack.packb(wire))
+    assert read.imus[0].coverage == (f0,) and read.imus[0].samples == 900
+    assert read.imus[0].unknown_coverage == (newer,)
+    assert status_to_dict(read)["imus"][0]["coverage"] == wire["imus"][0]["coverage"]
+    said = status_line(read, 1.7e9)
+    assert "checks unknown to this watch (a newer daemon's): cross_imu_heading" in said
 
 
 def test_event_construction_rejects_non_finite_numbers():

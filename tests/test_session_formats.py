@@ -168,6 +168,32 @@ def test_a_space_separated_table_with_a_hash_header_reads_its_columns_and_says_t
     assert loaded.metadata["format"].startswith("whitespace-separated table")
 
 
+@pytest.mark.parametrize(
+    "rate_line", ["# rate_hz 100", "# rate_hz = 100", "Fs 100"], ids=["comment", "key=", "line"]
+)
+def test_a_space_separated_table_without_time_takes_its_time_from_a_rate_line(
+    tmp_path, simulated, rate_line
+):
+    """As a comma-separated file: with no time column, a rate line (a ``#`` comment or a leading
+    ``key value`` line) gives sample k the time k/rate, and says so."""
+    s = simulated.session
+    path = tmp_path / "imu.txt"
+    rows = [
+        " ".join(repr(float(v)) for v in (*a, *w))
+        for a, w in zip(s.accel_mps2, s.gyro_rps, strict=True)
+    ]
+    path.write_text("\n".join([rate_line, "# ax ay az gx gy gz", *rows]) + "\n")
+    loaded = load_session(path)
+    np.testing.assert_array_equal(loaded.session.accel_mps2, s.accel_mps2)
+    np.testing.assert_array_equal(loaded.session.gyro_rps, s.gyro_rps)
+    np.testing.assert_allclose(loaded.session.t_s, np.arange(s.t_s.size) / 100.0)
+    key = rate_line.lstrip("# ").split()[0]
+    assert f"no time column: time from {key}=100 Hz (sample k at k/100 s)" in loaded.notes
+    path.write_text("\n".join(["# ax ay az gx gy gz", *rows]) + "\n")
+    with pytest.raises(SessionFileError, match=r"without a time column, a rate line above it"):
+        load_session(path)
+
+
 def test_a_hash_header_followed_by_a_units_line_is_still_the_header(tmp_path, simulated):
     """Loggers write a line of units under the names (``# [s] [m/s^2] ...``): the names are the
     header, the comment between them and the first row no reason to refuse the file."""
@@ -215,14 +241,34 @@ def test_a_euroc_file_resaved_by_a_spreadsheet_drops_and_counts_its_junk_rows(
     assert loaded.session.t_s.size == s.t_s.size
     assert np.max(np.abs(np.diff(loaded.session.t_s) - np.diff(s.t_s))) < 2e-5
     said = "\n".join(loaded.notes)
-    assert f"6 row(s) at the end that are no data dropped (lines {len(rows) + 2}-" in said
+    assert f"6 row(s) that are no data dropped (lines {len(rows) + 2}-" in said
     assert "time stamps in E-notation" in said and ": 0 repeat" in said
     assert main(["calibrate", str(path), "--out", str(tmp_path / "p.json")]) in (0, 3)
-    assert "6 row(s) at the end that are no data dropped" in capsys.readouterr().err
-    bad = tmp_path / "middle.csv"
-    bad.write_text("\n".join([head, *rows[:5], ",,,,,,", *rows[5:10]]) + "\n")
-    with pytest.raises(SessionFileError, match=r"line 7, column 't': not a number"):
-        load_session(bad)
+    assert "6 row(s) that are no data dropped" in capsys.readouterr().err
+
+
+def test_rows_with_no_number_are_dropped_and_counted_wherever_they_are(tmp_path, simulated):
+    """A row with no number holds no sample (a spreadsheet's empty row, a label between blocks):
+    dropped and counted in the middle as at the end, the samples around it read unchanged. A row
+    with numbers and text is a damaged sample: which column slipped is unknown, so it is refused
+    naming its line and column."""
+    s = simulated.session
+    head = "t,ax,ay,az,gx,gy,gz"
+    rows = [
+        ",".join(repr(float(v)) for v in (t, *a, *w))
+        for t, a, w in zip(s.t_s, s.accel_mps2, s.gyro_rps, strict=True)
+    ]
+    path = tmp_path / "middle.csv"
+    path.write_text("\n".join([head, *rows[:5], ",,,,,,", "block 2,,,,,,", *rows[5:], ",,,,,,"]))
+    loaded = load_session(path)
+    np.testing.assert_array_equal(loaded.session.t_s, s.t_s)
+    np.testing.assert_array_equal(loaded.session.accel_mps2, s.accel_mps2)
+    n = len(rows) + 4
+    assert f"3 row(s) that are no data dropped (lines 7-8, {n}, first ',,,,,,')" in loaded.notes
+    damaged = tmp_path / "damaged.csv"
+    damaged.write_text("\n".join([head, *rows[:5], "0.05,,x,,,,", *rows[5:10]]) + "\n")
+    with pytest.raises(SessionFileError, match=r"line 7, column 'ax': not a number"):
+        load_session(damaged)
 
 
 @needs(MPU6050_SESSION)

@@ -272,14 +272,14 @@ UNIX_TIME_FROM_S, UNIX_TIME_TO_S = 946_684_800.0, 4_102_444_800.0
 """Log times in [2000-01-01, 2100-01-01) are taken for Unix times (and dated when said)."""
 
 
-def log_start(t_s: float | None) -> str:
+def log_start(t_s: float | None, clock: str = "the log's clock") -> str:
     """A log's first sample time as said once: seconds of its clock, and the UTC date when the
     clock is a Unix time (a telemetry log's; a DataFlash log counts from the autopilot's boot)."""
     import datetime as dt
 
     if t_s is None:
         return "no sample"
-    said = f"{t_s:.3f} s of the log's clock"
+    said = f"{t_s:.3f} s of {clock}"
     if UNIX_TIME_FROM_S <= t_s < UNIX_TIME_TO_S:
         utc = dt.datetime.fromtimestamp(t_s, dt.UTC).isoformat(timespec="milliseconds")
         said += f", {utc.replace('+00:00', ' UTC')}"
@@ -293,7 +293,7 @@ class ReplayResult:
     ``events``: every event in order; ``coverage``: each IMU's coverage; ``verdict`` and
     ``exit_status`` as the command's (module docstring); ``untested``: what applies and was not
     tested, why; ``start_t_s``: the log's first sample time on its clock (None: no sample; event
-    times are on that clock); ``samples``: samples read per IMU; ``left_out``: what the reader left out, by
+    times are on that clock, an IMU's on another clock on its own); ``samples``: samples read per IMU; ``left_out``: what the reader left out, by
     reason (``skipped_bytes`` among them); ``notes``: what the command says on stderr besides
     progress (passports, the reader's notes, counters, coverage, the verdict), in order.
     """
@@ -333,16 +333,16 @@ def run(args: argparse.Namespace) -> int:
 
     from protocols.events import event_to_json
 
-    start_t_s = [0.0]
+    starts: dict[int, float] = {}
     printer = (
         (lambda e: print(event_to_json(e), flush=True))
         if args.json
-        else (lambda e: print(human(e, start_t_s[0]), flush=True))
+        else (lambda e: print(human(e, starts.get(e.imu, 0.0)), flush=True))
     )
     result = replay_log(
         args,
         on_event=printer,
-        on_start=lambda t_s: start_t_s.__setitem__(0, t_s),
+        on_start=starts.__setitem__,
         say=lambda line: print(f"ins-health replay: {line}", file=sys.stderr, flush=True),
     )
     if args.json:
@@ -354,14 +354,15 @@ def replay_log(
     args: argparse.Namespace,
     *,
     on_event: Callable[[Event], None] | None = None,
-    on_start: Callable[[float], None] | None = None,
+    on_start: Callable[[int, float], None] | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ReplayResult:
-    """The replay of ``args`` (this command's options): events to ``on_event`` as they come, the
-    log's first sample time to ``on_start`` before them, progress and notes to ``say``; the
-    report written when ``args.report`` is set."""
+    """The replay of ``args`` (this command's options): events to ``on_event`` as they come, each
+    IMU's start (the log's first sample time, or the IMU's own on another clock) to ``on_start``
+    before its events, progress and notes to ``say``; the report written when ``args.report`` is set."""
     from estimators.coverage import Verdict, untested_lines, verdict
     from estimators.log_health import HealthConfig, ImuHealthAccumulator, pair_differences
+    from estimators.stream_validity import CLOCK_BASE_MIN_S
     from service.daemon import pipeline_options
     from service.pipeline import FleetProcessor, detector_config
     from service.pipeline.coverage import imu_coverage
@@ -407,13 +408,27 @@ def replay_log(
     start_t_s: list[float] = []
     thrust = ThrustAxisReplay(args.log, args.vehicle, on_event)
 
+    starts: dict[int, float] = {}
+
     def observe(batch: SampleBatch) -> None:
         thrust.batch(batch)
-        if not start_t_s:
-            start_t_s.append(float(batch.t_s[0]))
-            note(f"{args.log.name} starts at {log_start(start_t_s[0])}: times count from there")
+        if batch.imu not in starts:
+            first = float(batch.t_s[0])
+            if not start_t_s:
+                start_t_s.append(first)
+                note(f"{args.log.name} starts at {log_start(first)}: times count from there")
+            elif abs(first - start_t_s[0]) > CLOCK_BASE_MIN_S:
+                # One IMU on Unix time, one since boot: each time from the log's start would be
+                # 1.7e9 s off.
+                note(
+                    f"IMU{batch.imu} stamps another clock (or started late): it starts at "
+                    f"{log_start(first, 'its clock')}: its times count from there"
+                )
+            else:
+                first = start_t_s[0]
+            starts[batch.imu] = first
             if on_start is not None:
-                on_start(start_t_s[0])
+                on_start(batch.imu, first)
         if args.report is None:
             return
         acc = health.get(batch.imu)

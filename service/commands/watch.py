@@ -103,7 +103,14 @@ def status_line(status: Status, arrived_unix_s: float) -> str:
     imus = "; ".join(
         f"IMU{s.imu} {s.state.value} ({s.samples} samples, {s.positions} positions"
         + (f", {s.detail}" if s.detail else "")
-        + (f"; {ImuCoverage(s.imu, s.coverage).summary()})" if s.coverage else ")")
+        + (f"; {ImuCoverage(s.imu, s.coverage).summary()}" if s.coverage else "")
+        + (
+            "; checks unknown to this watch (a newer daemon's): "
+            + ", ".join(str(c["check"]) for c in s.unknown_coverage)
+            if s.unknown_coverage
+            else ""
+        )
+        + ")"
         for s in status.imus
     )
     line = f"{_utc(arrived_unix_s)}  {status.vehicle} status from {status.service}: {imus or 'no IMU yet'}"

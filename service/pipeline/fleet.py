@@ -44,9 +44,16 @@ PassportLookup = Callable[[str, int], Passport | None]
 
 
 def _cross_imu_event(
-    vehicle: str, report: CrossImuReport, limits: ValidityLimits, scalar_note: str, *, epoch: int
+    vehicle: str,
+    report: CrossImuReport,
+    limits: ValidityLimits,
+    scalar_note: str,
+    *,
+    epoch: int,
+    clock_offset_s: float = 0.0,
 ) -> Event:
-    t_s = report.bin_start_s + limits.cross_imu_window_s
+    # The bins are on the reference IMU's clock: the event is on its own IMU's, as its others are.
+    t_s = report.bin_start_s + limits.cross_imu_window_s + clock_offset_s
     accel_ratio = report.accel_dev_mps2 / limits.cross_imu_accel_mps2
     gyro_ratio = report.gyro_dev_rps / limits.cross_imu_gyro_rps
     if accel_ratio >= gyro_ratio:
@@ -473,6 +480,7 @@ class FleetProcessor:
                 self.options.validity,
                 self._scalar_note(good.vehicle, r.imu),
                 epoch=self.pipelines[(good.vehicle, r.imu)].epoch,
+                clock_offset_s=self.cross[good.vehicle].clock_offsets_s.get(r.imu, 0.0),
             )
             for r in reports
         ]
