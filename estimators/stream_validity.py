@@ -687,6 +687,11 @@ class CrossImuMonitor:
                 )
         return why
 
+    def clock_unaligned(self, imu: int) -> str | None:
+        """Why the IMU's clock is not aligned with the reference's yet (another clock, its offset
+        still measured or not steady), or None: its samples, less its offset, are on the reference's."""
+        return self._why_not.get(imu)
+
     @property
     def clock_offsets_s(self) -> dict[int, float]:
         """The offsets in use: an IMU's clock minus the reference IMU's, s (IMUs on another clock only)."""

@@ -485,7 +485,12 @@ class FleetProcessor:
             for r in reports
         ]
         norm = self.norms.get(good.vehicle) or self._new_norm(good.vehicle)
-        return events if norm is None else events + norm.add(good)
+        cross = self.cross[good.vehicle]
+        # An IMU on another clock joins the norm check once its offset is taken (not_running says
+        # why until then): paired by time on two clocks, its samples would meet none of the other's.
+        if norm is None or cross.clock_unaligned(good.imu) is not None:
+            return events
+        return events + norm.add(good, cross.clock_offsets_s)
 
     def _new_norm(self, vehicle: str) -> VehicleNorm | None:
         """The vehicle's norm check, once its two lowest-numbered IMUs know their sample rates."""
@@ -537,6 +542,12 @@ class FleetProcessor:
                     ran=False,
                     reason="the sample rates are not measured yet",
                 )
+                for t in (Triad.ACCEL, Triad.GYRO)
+            )
+        waiting = [why for i in norm.pair if (why := self.cross[vehicle].clock_unaligned(i))]
+        if waiting:
+            return tuple(
+                CheckCoverage(Check.CROSS_IMU_NORM, t, ran=False, reason=waiting[0])
                 for t in (Triad.ACCEL, Triad.GYRO)
             )
         return norm.coverage()

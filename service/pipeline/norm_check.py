@@ -12,7 +12,7 @@ differences and the CUSUMs where they were, and raises nothing twice.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from estimators.conventions import Triad
@@ -86,21 +86,27 @@ class VehicleNorm:
             vehicle, (i0, i1), rate, gravity_mps2=gravity_mps2, on_block=on_block, state=state
         )
 
-    def add(self, batch: SampleBatch) -> list[Event]:
-        """One IMU's accepted samples; the events of the blocks they completed."""
+    def add(self, batch: SampleBatch, offsets_s: Mapping[int, float]) -> list[Event]:
+        """One IMU's accepted samples; the events of the blocks they completed. ``offsets_s``: per
+        IMU on another clock its clock minus the reference's (the cross-IMU check's,
+        :attr:`~estimators.stream_validity.CrossImuMonitor.clock_offsets_s`): the pair is compared
+        on one clock, and each event is stamped on its own IMU's."""
         if batch.imu not in self.pair:
             return []
         blocks = self.check.add(
-            self.pair.index(batch.imu), batch.t_s, batch.accel_mps2, batch.gyro_rps
+            self.pair.index(batch.imu),
+            batch.t_s - offsets_s.get(batch.imu, 0.0),
+            batch.accel_mps2,
+            batch.gyro_rps,
         )
         events: list[Event] = []
         for block in blocks:
             if self._on_block is not None:
                 self._on_block(self.vehicle, self.pair, block)
-            events += [self._event(a) for a in block.alarms]
+            events += [self._event(a, offsets_s.get(self.pair[1], 0.0)) for a in block.alarms]
         return events
 
-    def _event(self, alarm: NormAlarm) -> Event:
+    def _event(self, alarm: NormAlarm, offset_s: float) -> Event:
         triad, word, unit = _WORDS[alarm.channel]
         i0, i1 = self.pair
         text = (
@@ -108,7 +114,7 @@ class VehicleNorm:
             f"{alarm.shift_si:+.3g} {unit} in flight (noise {alarm.sigma_si:.2g}, "
             f"MDF {alarm.mdf_si:.2g}) [cross_imu_norm]"
         )
-        return make_event(vehicle=self.vehicle, imu=i1, t_s=alarm.t_s, predicate=Predicate.CROSS_IMU_NORM,
+        return make_event(vehicle=self.vehicle, imu=i1, t_s=alarm.t_s + offset_s, predicate=Predicate.CROSS_IMU_NORM,
                           cause=StreamCause.DISAGREEMENT, severity=SEVERITY[Predicate.CROSS_IMU_NORM],
                           triad=triad, estimate=alarm.shift_si, tolerance=alarm.mdf_si,
                           sigma=alarm.sigma_si, unit=unit, text=text)  # fmt: skip
