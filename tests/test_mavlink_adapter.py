@@ -568,7 +568,7 @@ def test_async_source_over_tcp():
 class ScriptedLink:
     """An ImuLink without a device: each read adds the next rejections (and kernel drops, and IMU
     messages of other systems as ``"system N"``, the link reading system 1) of ``steps`` and
-    returns nothing."""
+    returns nothing (no GNSS either)."""
 
     def __init__(self, steps: list[dict[str, int]], **settings):
         self.settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", **settings)
@@ -591,6 +591,9 @@ class ScriptedLink:
             self.done.set()
             time.sleep(timeout_s)
         return []
+
+    def take_gnss(self) -> None:
+        return None
 
 
 def warnings_while_read(link: ScriptedLink, caplog) -> list[str]:
