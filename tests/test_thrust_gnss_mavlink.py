@@ -13,12 +13,30 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+import pytest
+import zenoh
+from pymavlink import mavutil
+from service_support import (
+    ServiceThread,
+    free_udp_port,
+    mavlink_packets,
+    receive_until,
+    service_config,
+    wait_until,
+    zenoh_client_config,
+    zenoh_router,
+)
+from test_service_faults import Statuses
+from test_service_mavlink import stored_events
 
+from estimators.session import ImuSession
 from estimators.sim import Fly, flight_spec, simulate
 from estimators.sim.gnss import gnss_velocity
-from protocols.gnss_logs import gps_raw_int_si, gps_raw_int_track
-from protocols.mavlink_adapter import LinkCounters
+from protocols.events import Predicate
+from protocols.gnss_logs import gps_raw_int_messages, gps_raw_int_si, gps_raw_int_track
+from protocols.mavlink_adapter import ImuMessage, LinkCounters, alert_text, use_mavlink2
 from protocols.mavlink_gnss import GpsRawIntStream
+from protocols.zenoh_adapter import EventReceiver
 
 ONSET_S = 80.0
 
@@ -65,3 +83,101 @@ def test_gps_raw_int_in_pieces_gives_the_epochs_of_the_whole_track():
     assert counters.rejected == {f"gnss_{k}": n for k, n in whole.rejected.items()}
     assert set(whole.rejected) == {"no_3d_fix", "not_finite"}  # the repeat has no vertical
     np.testing.assert_allclose([f.rate_hz for f in frames[5:]], 10.0, rtol=1e-6)
+
+
+def autopilot_packets(*, fault: bool) -> tuple[list[bytes], int, int]:
+    """The flight as its autopilot sends it, HIGHRES_IMU and GPS_RAW_INT in time order; with the
+    counts of each."""
+    session, gt, gv, alt = flight()
+    accel = session.accel_mps2.copy()
+    if fault:
+        accel[session.t_s >= ONSET_S, 2] += 0.1
+    imu = mavlink_packets(ImuSession(session.t_s, accel, session.gyro_rps), ImuMessage.HIGHRES_IMU)
+    gnss = gps_raw_int_messages(gt, gv, alt)
+    order = np.argsort(np.r_[session.t_s, gt], kind="stable")
+    both = imu + gnss
+    return [both[k] for k in order], len(imu), len(gnss)
+
+
+@pytest.mark.network
+@pytest.mark.parametrize("fault", [True, False], ids=["fault", "fault-free"])
+def test_a_thrust_axis_fault_over_the_mavlink_link_reaches_the_ground_station(
+    tmp_path, caplog, fault
+):
+    """A daemon reading vehicle mav1 over UDP (its reader process), sent the flight 20 messages to a
+    datagram: every GPS_RAW_INT is read and becomes GNSS frames of mav1 (status topic); with the
+    fault, one thrust_axis event on the accelerometer's z within 10 s of the onset reaches the
+    ground station (Zenoh) and its alert the MAVLink peer; the fault-free twin raises none, and its
+    status says the check ran. The twin's stream begins with GPS_RAW_INT of another system (another
+    clock than the IMUs'): they are counted and logged, not used."""
+    packets, n_imu, n_gnss = autopilot_packets(fault=fault)
+    other = [] if fault else gps_raw_int_messages(*flight()[1:], source_system=2)[:5]
+    packets, n_gnss = other + packets, n_gnss + len(other)
+    mav_port = free_udp_port()
+    link = {"enabled": True, "device": f"udpin:127.0.0.1:{mav_port}", "vehicle": "mav1"}
+    with zenoh_router() as zport, zenoh.open(zenoh_client_config(zport)) as ground:
+        cfg = service_config(
+            tmp_path, port=zport, passport_dir=tmp_path / "passports",
+            validity={"timeout_s": 60.0}, mavlink=link,
+        )  # fmt: skip
+        status, got = Statuses(ground), []
+        with (
+            caplog.at_level("WARNING", logger="ins_health"),
+            ServiceThread(cfg) as svc,
+            EventReceiver(ground, got.append),
+        ):
+            peer = use_mavlink2(mavutil.mavlink_connection(f"udpout:127.0.0.1:{mav_port}"))
+            try:
+                for k in range(0, len(packets), 20):
+                    # Paced by the daemon's reading: the socket's buffer never overflows.
+                    wait_until(lambda: k - read(status) <= 1000, timeout_s=60, what="the reading")
+                    peer.write(b"".join(packets[k : k + 20]))
+                wait_until(
+                    lambda: (
+                        status.counter("mav1", "imu0.samples.accepted") == n_imu
+                        and status.counter("mav1", "service.mavlink.gnss_messages") == n_gnss
+                    ),
+                    timeout_s=60,
+                    what=lambda: f"every message counted: {status.get('mav1')}",
+                )
+                counters = status.get("mav1").counters
+                assert counters["service.gnss.frames"] > 0
+                rejected = {k: n for k, n in counters.items() if "gnss" in k and "rejected" in k}
+                assert rejected == (
+                    {} if fault else {"service.mavlink.rejected.gnss_other_system": 5}
+                )
+                if fault:
+                    wait_until(
+                        lambda: any(e.predicate is Predicate.THRUST_AXIS for e in got),
+                        timeout_s=30,
+                        what="the thrust_axis event",
+                    )
+                    (e,) = [e for e in got if e.predicate is Predicate.THRUST_AXIS]
+                    assert e.vehicle == "mav1" and e.axis == "z"
+                    assert ONSET_S <= e.t_s <= ONSET_S + 10.0
+                    texts = receive_until(
+                        peer, ["STATUSTEXT"],
+                        lambda m: any(x.text == alert_text(e) for x in m),
+                        timeout_s=30, what="the thrust_axis alert",
+                    )  # fmt: skip
+                    assert texts
+                else:
+                    stored = stored_events(svc)
+                    assert not [e for e in stored if e.predicate is Predicate.THRUST_AXIS]
+                    assert not [e for e in got if e.predicate is Predicate.THRUST_AXIS]
+                    lines = [
+                        c for c in status.get("mav1").imus[0].coverage
+                        if c.check.value == "thrust_axis"
+                    ]  # fmt: skip
+                    assert len(lines) == 1 and lines[0].ran
+                    said = [r.getMessage() for r in caplog.records]
+                    assert [m for m in said if "5 gnss_other_system" in m], said
+            finally:
+                peer.close()
+
+
+def read(status: Statuses) -> int:
+    """Messages of mav1 the daemon read (IMU and GNSS), from its status."""
+    return status.counter("mav1", "service.mavlink.messages") + status.counter(
+        "mav1", "service.mavlink.gnss_messages"
+    )
