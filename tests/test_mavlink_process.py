@@ -26,6 +26,7 @@ from service_support import (
 from estimators.conventions import Cause, Triad
 from estimators.diagnosis import Finding
 from estimators.sim import simulate, static_spec
+from protocols import mavlink_process
 from protocols.events import Severity, event_from_finding
 from protocols.mavlink_adapter import (
     DEFAULT_IMU_INDEX,
@@ -283,6 +284,16 @@ def test_a_device_that_cannot_be_opened_is_one_error_naming_it_and_no_child_is_l
     children = _children()
     with pytest.raises(ReaderProcessFailed, match=r"/dev/ins-health-no-such-port: SerialException"):
         MavlinkProcessLink(MavlinkSettings(device="/dev/ins-health-no-such-port", vehicle="v1"))
+    assert _children() == children
+
+
+def test_a_child_of_another_pipe_version_is_refused_naming_both(monkeypatch):
+    """A reader process from other files than the service's (the package replaced under it, then a
+    child started) speaks another pipe version: refused with both said, no child left, not misread."""
+    children = _children()
+    monkeypatch.setattr(mavlink_process, "PROTOCOL_VERSION", mavlink_process.PROTOCOL_VERSION + 1)
+    with pytest.raises(ReaderProcessFailed, match=r"speaks version 2, this service 3"):
+        MavlinkProcessLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1"))
     assert _children() == children
 
 
