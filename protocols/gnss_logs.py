@@ -163,8 +163,12 @@ def gps_raw_int_si(raw: FloatArray) -> FloatArray:
 
 def gps_raw_int_altitudes(rows: FloatArray) -> np.ndarray:
     """Indices of the rows of :func:`gps_raw_int_rows` whose altitudes give the vertical: those with
-    a fix and a clock later than the row before."""
-    return np.flatnonzero((rows[:, 1] >= GPS_FIX_3D) & np.r_[True, np.diff(rows[:, 0]) > 0])
+    a fix and a clock later than every row with a fix before (a clock that went back and forward
+    again gave the centred difference times out of order)."""
+    idx = np.flatnonzero(rows[:, 1] >= GPS_FIX_3D)
+    t = rows[idx, 0]
+    later = np.r_[True, t[1:] > np.maximum.accumulate(t)[:-1]] if t.size else np.empty(0, bool)
+    return idx[later]
 
 
 def gps_raw_int_track(rows: FloatArray) -> GnssTrack:

@@ -41,6 +41,8 @@ class GpsRawIntStream:
         self._context = np.empty((0, 5))
         """The last two epochs with an altitude (the newest not given yet: its vertical waits for
         the next; the other its centred difference's earlier side)."""
+        self._judged = 0
+        """The first context epochs that were in a track already (their left-out counted)."""
         self._given_t = -np.inf
         self._times: deque[float] = deque(maxlen=RATE_EPOCHS)
 
@@ -48,17 +50,21 @@ class GpsRawIntStream:
         rows = np.vstack([self._context, gps_raw_int_si(raw)])
         good = gps_raw_int_altitudes(rows)
         if good.size < 3:
-            # Too few altitudes for a centred difference: the epochs with a fix wait for the next.
-            fix = rows[:, 1] >= GPS_FIX_3D
-            self._reject("no_3d_fix", int((~fix).sum()))
-            self._context = rows[fix]
+            # Too few altitudes for a centred difference: those wait for the next epochs, the
+            # others are left out as the track leaves them (no fix; a clock not later: no vertical).
+            fix = int((rows[:, 1] >= GPS_FIX_3D).sum())
+            self._reject("no_3d_fix", len(rows) - fix)
+            self._reject("not_finite", fix - good.size)
+            self._context = rows[good]
             return []
         track = gps_raw_int_track(rows)
-        held = len(self._context) - int(np.isin(self._context[:, 0], track.t_s).sum())
+        judged = self._context[: self._judged]
+        held = len(judged) - int(np.isin(judged[:, 0], track.t_s).sum())
         for reason, n in track.rejected.items():
-            # A context epoch's left-out was counted when it came (the only reason it can have).
+            # A context epoch left out was counted when it was judged (the only reason it can have).
             self._reject(reason, n - held if reason == "not_finite" else n)
         self._context = rows[good[-2:]]
+        self._judged = len(self._context)
         new = (track.t_s > self._given_t) & (track.t_s < rows[good[-1], 0])
         if not new.any():
             return []

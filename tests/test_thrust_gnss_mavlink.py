@@ -53,7 +53,7 @@ def flight():
 
 def test_gps_raw_int_in_pieces_gives_the_epochs_of_the_whole_track():
     """GPS_RAW_INT fields cut into pieces of 1 to 7 messages, with epochs without a fix, of unknown
-    course and of a repeated time among them: the frames hold the whole track's epochs (the log's
+    course, of a repeated time and of a clock gone back among them: the frames hold the whole track's epochs (the log's
     reading) but the last (its vertical waits for the next epoch), left-out epochs counted by the
     same reasons, and the receiver's rate."""
     rng = np.random.default_rng(1)
@@ -67,6 +67,8 @@ def test_gps_raw_int_in_pieces_gives_the_epochs_of_the_whole_track():
     )
     raw[rng.choice(gt.size, 10, replace=False), 3] = 65535
     raw = np.insert(raw, 300, raw[299], axis=0)
+    # The clock back by 0.3 s and forward again, short of where it was.
+    raw = np.insert(raw, 500, raw[[497, 498]] + [[0, 0, 0, 0, 0], [50_000, 0, 0, 0, 0]], axis=0)
     whole = gps_raw_int_track(gps_raw_int_si(raw))
     counters = LinkCounters()
     stream = GpsRawIntStream("mav1", counters)
