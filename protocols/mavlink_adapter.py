@@ -1340,10 +1340,10 @@ def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:
 
 
 READER_RETRY_S = 1.0
+"""The pause of :class:`MavlinkSource`'s reader after a failed read."""
 GNSS_CAPACITY = 1024
 """GPS_RAW_INT epochs a :class:`MavlinkSource` holds for the GNSS task (100 s of a 10 Hz receiver:
 it rides out the IMU groups that hold the fleet's lock, as :class:`protocols.zenoh_adapter.GnssSource`)."""
-"""The pause of :class:`MavlinkSource`'s reader after a failed read."""
 
 
 class ImuLink(Protocol):
