@@ -35,6 +35,7 @@ from pymavlink import mavutil
 from estimators._typing import FloatArray
 from estimators.thrust_gnss import up_velocity_from_altitude
 from protocols.logs import LogFormat, detect_format
+from protocols.mavlink_adapter import GPS_RAW_INT_FIELDS
 
 GPS_FIX_3D = 3
 UNKNOWN_U16 = 65535
@@ -139,7 +140,15 @@ def _boot_time_us(msg: Any) -> float:
 def gps_raw_int_rows(msgs: list[Any]) -> FloatArray:
     """(M, 5) ``[t_s, fix_type, speed m/s, course rad, alt m]`` of GPS_RAW_INT messages; unknown
     speed or course are NaN."""
-    rows = np.array([[m.time_usec, m.fix_type, m.vel, m.cog, m.alt] for m in msgs], float)
+    return gps_raw_int_si(
+        np.array([[getattr(m, f) for f in GPS_RAW_INT_FIELDS] for m in msgs], float)
+    )
+
+
+def gps_raw_int_si(raw: FloatArray) -> FloatArray:
+    """:func:`gps_raw_int_rows` of the messages' fields (M, 5), columns :data:`GPS_RAW_INT_FIELDS`
+    (what a live link's reader keeps, :mod:`protocols.mavlink_gnss`)."""
+    rows = np.asarray(raw, float)
     out = np.column_stack(
         [
             rows[:, 0] * 1e-6,
@@ -152,13 +161,22 @@ def gps_raw_int_rows(msgs: list[Any]) -> FloatArray:
     return out
 
 
+def gps_raw_int_altitudes(rows: FloatArray) -> np.ndarray:
+    """Indices of the rows of :func:`gps_raw_int_rows` whose altitudes give the vertical: those with
+    a fix and a clock later than every row with a fix before (a clock that went back and forward
+    again gave the centred difference times out of order)."""
+    idx = np.flatnonzero(rows[:, 1] >= GPS_FIX_3D)
+    t = rows[idx, 0]
+    later = np.r_[True, t[1:] > np.maximum.accumulate(t)[:-1]] if t.size else np.empty(0, bool)
+    return idx[later]
+
+
 def gps_raw_int_track(rows: FloatArray) -> GnssTrack:
     """A track from :func:`gps_raw_int_rows` (the vertical from the altitude; module docstring)."""
     fix_ok = rows[:, 1] >= GPS_FIX_3D
     t = rows[:, 0]
     up = np.full(t.size, np.nan)
-    # Differences only across epochs with a fix and an increasing clock.
-    good = np.flatnonzero(fix_ok & np.r_[True, np.diff(t) > 0])
+    good = gps_raw_int_altitudes(rows)
     if good.size >= 3:
         up[good] = up_velocity_from_altitude(t[good], rows[good, 4])
     speed, course = rows[:, 2], rows[:, 3]
@@ -171,6 +189,29 @@ def _tlog(path: str | os.PathLike[str]) -> GnssTrack | None:
     return gps_raw_int_track(gps_raw_int_rows(msgs)) if msgs else None
 
 
+def gps_raw_int_messages(
+    t_s: FloatArray, vel_enu_mps: FloatArray, alt_m: FloatArray, *, source_system: int = 1
+) -> list[bytes]:
+    """Packed MAVLink 2 GPS_RAW_INT messages (3D fix) of a receiver, as an autopilot sends them (for
+    tests and the demo). Speed, course and altitude quantize to cm/s, cdeg and mm."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    mav = mavlink2.MAVLink(
+        None, srcSystem=source_system, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1
+    )
+    v = np.asarray(vel_enu_mps, float)
+    speed = np.hypot(v[:, 0], v[:, 1])
+    course_cdeg = np.round(np.degrees(np.arctan2(v[:, 0], v[:, 1])) * 100.0) % 36000
+    return [
+        mavlink2.MAVLink_gps_raw_int_message(
+            time_usec=round(t * 1e6), fix_type=GPS_FIX_3D, lat=0, lon=0,
+            alt=round(alt_m[k] * 1e3), eph=100, epv=150, vel=round(speed[k] * 100.0),
+            cog=int(course_cdeg[k]), satellites_visible=12,
+        ).pack(mav)
+        for k, t in enumerate(np.asarray(t_s, float))
+    ]  # fmt: skip
+
+
 def append_gps_raw_int(
     path: str | os.PathLike[str],
     t_s: FloatArray,
@@ -180,23 +221,11 @@ def append_gps_raw_int(
     wall_start_s: float = 1.7e9,
     source_system: int = 1,
 ) -> int:
-    """Append GPS_RAW_INT records (3D fix) to a telemetry log (for tests and the demo, beside
+    """Append :func:`gps_raw_int_messages` to a telemetry log (beside
     :func:`protocols.logs.write_tlog`'s IMU records; record stamps ``wall_start_s + t_s``);
-    returns the number written. Speed, course and altitude quantize to cm/s, cdeg and mm."""
-    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-
-    mav = mavlink2.MAVLink(
-        None, srcSystem=source_system, srcComponent=mavlink2.MAV_COMP_ID_AUTOPILOT1
-    )
-    v = np.asarray(vel_enu_mps, float)
-    speed = np.hypot(v[:, 0], v[:, 1])
-    course_cdeg = np.round(np.degrees(np.arctan2(v[:, 0], v[:, 1])) * 100.0) % 36000
+    returns the number written."""
+    packets = gps_raw_int_messages(t_s, vel_enu_mps, alt_m, source_system=source_system)
     with open(path, "ab") as fh:
-        for k, t in enumerate(np.asarray(t_s, float)):
-            msg = mavlink2.MAVLink_gps_raw_int_message(
-                time_usec=round(t * 1e6), fix_type=GPS_FIX_3D, lat=0, lon=0,
-                alt=round(alt_m[k] * 1e3), eph=100, epv=150, vel=round(speed[k] * 100.0),
-                cog=int(course_cdeg[k]), satellites_visible=12,
-            )  # fmt: skip
-            fh.write(struct.pack(">Q", round((wall_start_s + t) * 1e6)) + msg.pack(mav))
-    return int(np.size(t_s))
+        for t, packet in zip(np.asarray(t_s, float), packets, strict=True):
+            fh.write(struct.pack(">Q", round((wall_start_s + t) * 1e6)) + packet)
+    return len(packets)

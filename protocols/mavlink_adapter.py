@@ -603,9 +603,13 @@ class LinkRejection(StrEnum):
     MALFORMED = "malformed"
     """Packets with a length or flags no MAVLink packet has."""
     UNSIGNED = "unsigned"
-    """IMU messages without a signature while a signing key is configured."""
+    """IMU and GPS_RAW_INT messages without a signature while a signing key is configured."""
     BAD_SIGNATURE = "bad_signature"
-    """IMU messages signed with another key, or replayed (a time stamp not newer than the stream's last)."""
+    """IMU and GPS_RAW_INT messages signed with another key, or replayed (a time stamp not newer
+    than the stream's last)."""
+    GNSS_OTHER_SYSTEM = "gnss_other_system"
+    """GPS_RAW_INT messages of a system other than the one whose IMU messages are read, or sent
+    before any IMU message chose it: another clock than the IMUs'."""
     FIELDS_NOT_UPDATED = "fields_not_updated"
     """HIGHRES_IMU messages whose ``fields_updated`` does not flag all six accelerometer and gyro
     fields: what they hold there is no new measurement (a held or zeroed value)."""
@@ -634,6 +638,8 @@ class LinkCounters:
     signing_stale: int = 0
     """IMU and other packets signed with the key but refused for their time stamp (counted in
     ``rejected`` too): replays, or an autopilot whose clock went back (:func:`keep_replay_window`)."""
+    gnss_messages: int = 0
+    """GPS_RAW_INT messages read (of any system)."""
     alerts_sent: int = 0
     texts_sent: int = 0
     heartbeats_sent: int = 0
@@ -662,6 +668,11 @@ _FIELDS: Mapping[ImuMessage, Callable[[MavlinkMessage], tuple[float, ...]]] = {
     kind: attrgetter(*names) for kind, names in FIELD_NAMES.items()
 }
 
+
+GPS_RAW_INT_FIELDS = ("time_usec", "fix_type", "vel", "cog", "alt")
+"""The GPS_RAW_INT fields a link keeps (:meth:`ImuBatcher.take_gnss`), in the column order of
+:func:`protocols.gnss_logs.gps_raw_int_si`."""
+_GPS_FIELDS = attrgetter(*GPS_RAW_INT_FIELDS)
 
 _WITH_ID = (ImuMessage.RAW_IMU, ImuMessage.HIGHRES_IMU)
 _IMU_MSG_IDS = {
@@ -706,6 +717,7 @@ class ImuBatcher:
         self.converter = ImuConverter(settings, counters)
         self._types = {m.value: m for m in settings.messages}
         self._rows: dict[ImuMessage, list[tuple[float, ...]]] = {}
+        self._gnss: list[tuple[float, ...]] = []
         self.pending = 0
         """Messages kept since the last :meth:`take_fields`."""
 
@@ -721,6 +733,8 @@ class ImuBatcher:
             if kind is None:
                 if isinstance(msg, mavlink2.MAVLink_bad_data):
                     self._refused(msg)
+                elif isinstance(msg, mavlink2.MAVLink_gps_raw_int_message):
+                    self._gnss_message(msg)
                 continue
             seen += 1
             source = msg.get_srcSystem()
@@ -737,6 +751,21 @@ class ImuBatcher:
             kept += 1
         counters.messages += seen
         self.pending += kept
+
+    def _gnss_message(self, msg: MavlinkMessage) -> None:
+        """Keep a GPS_RAW_INT of the IMUs' system (its clock is theirs); one of another system, or
+        before any IMU message chose the system, is counted (:attr:`LinkRejection.GNSS_OTHER_SYSTEM`)."""
+        self.counters.gnss_messages += 1
+        if msg.get_srcSystem() != self.counters.imu_system:
+            self.counters.reject(LinkRejection.GNSS_OTHER_SYSTEM)
+            return
+        self._gnss.append(_GPS_FIELDS(msg))
+
+    def take_gnss(self) -> np.ndarray | None:
+        """The GPS_RAW_INT messages kept since the last call (float64, a row per message, columns
+        :data:`GPS_RAW_INT_FIELDS`); None when there were none."""
+        rows, self._gnss = self._gnss, []
+        return np.array(rows, dtype=np.float64) if rows else None
 
     def _refused(self, bad: MavlinkMessage) -> None:
         reason = str(bad.reason)
@@ -895,7 +924,7 @@ class MavlinkLink:
     left incomplete at a datagram's end from their second byte, so a stray
     start byte or a packet cut short does not swallow the good packets after it.
 
-    With a signing key, unsigned and wrongly signed IMU messages are refused
+    With a signing key, unsigned and wrongly signed IMU and GPS_RAW_INT messages are refused
     (pymavlink's check, :class:`LinkRejection`) unless ``accept_unsigned``;
     other message types are not read, so they may come unsigned (a radio's
     RADIO_STATUS, as the MAVLink signing rules allow).
@@ -916,7 +945,10 @@ class MavlinkLink:
         )
         use_mavlink2(self._conn)
         if settings.signing_key is not None:
-            imu_ids = frozenset(_IMU_MSG_IDS[m] for m in settings.messages)
+            # GNSS velocity is an input of a check that raises events: it must be signed too.
+            imu_ids = frozenset(_IMU_MSG_IDS[m] for m in settings.messages) | {
+                mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT
+            }
             self._conn.setup_signing(
                 settings.signing_key,
                 sign_outgoing=True,
@@ -970,6 +1002,10 @@ class MavlinkLink:
         what a reader process sends, for an :class:`ImuConverter` on the service's side."""
         self._gather(timeout_s, gather_s)
         return self._batcher.take_fields()
+
+    def take_gnss(self) -> np.ndarray | None:
+        """The GPS_RAW_INT fields read with the last :meth:`read` (:meth:`ImuBatcher.take_gnss`)."""
+        return self._batcher.take_gnss()
 
     def _gather(self, timeout_s: float, gather_s: float) -> None:
         conn, batcher = self._conn, self._batcher
@@ -1305,6 +1341,9 @@ def use_mavlink2(conn: mavutil.mavfile) -> mavutil.mavfile:
 
 READER_RETRY_S = 1.0
 """The pause of :class:`MavlinkSource`'s reader after a failed read."""
+GNSS_CAPACITY = 1024
+"""GPS_RAW_INT epochs a :class:`MavlinkSource` holds for the GNSS task (100 s of a 10 Hz receiver:
+it rides out the IMU groups that hold the fleet's lock, as :class:`protocols.zenoh_adapter.GnssSource`)."""
 
 
 class ImuLink(Protocol):
@@ -1315,6 +1354,8 @@ class ImuLink(Protocol):
     counters: LinkCounters
 
     def read(self, timeout_s: float, *, gather_s: float = 0.0) -> list[SampleBatch]: ...
+
+    def take_gnss(self) -> np.ndarray | None: ...
 
     def send_heartbeat(self) -> None: ...
 
@@ -1366,6 +1407,12 @@ class MavlinkSource(BatchSource):
         self._drops_log = LogRate()
         self._stale_log = LogRate()
         self._systems_logged: set[int] = set()
+        self.gnss_rows: ThreadToAsyncRing[np.ndarray] = ThreadToAsyncRing(
+            GNSS_CAPACITY, loop or asyncio.get_running_loop(), weight=len
+        )
+        """The link's GPS_RAW_INT fields (:meth:`ImuLink.take_gnss`), for
+        :class:`protocols.mavlink_gnss.MavlinkGnssSource`; epochs dropped when full counted in its
+        ``dropped``."""
         self._thread = threading.Thread(
             target=self._run, name=f"mavlink-{link.settings.device}", daemon=True
         )
@@ -1385,6 +1432,8 @@ class MavlinkSource(BatchSource):
                 continue
             for batch in batches:
                 self._ring.put(batch)
+            if (gnss := self.link.take_gnss()) is not None:
+                self.gnss_rows.put(gnss)
             self._log_rejections()
             self._log_kernel_drops()
             self._log_signing_stale()
@@ -1467,3 +1516,4 @@ class MavlinkSource(BatchSource):
         self._stop.set()
         self._thread.join(timeout_s)
         self._ring.close()
+        self.gnss_rows.close()

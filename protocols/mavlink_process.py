@@ -25,6 +25,11 @@ counters of what the child read (deltas with every batch and at least every
 :attr:`counters` is the link's whole history whatever the child's. A child that dies (killed, out of
 memory) makes the next :meth:`MavlinkProcessLink.read` raise
 :class:`ReaderProcessEnded`; the read after that starts a new child.
+The GPS_RAW_INT messages of the IMUs' system go over the same pipe, their fields as they are
+(``("gnss", rows)`` before the fields and counters they were read with), for
+:meth:`MavlinkProcessLink.take_gnss`. The pipe's messages are those of :data:`PROTOCOL_VERSION`, which
+the child says when it is ready: a child of another version (the package replaced under a running
+service, then a child restarted) is refused with that said, rather than misread.
 The system whose IMU messages are read (``autopilot_system``, else the first
 heard: :class:`~protocols.mavlink_adapter.ImuBatcher`) is chosen in the child,
 which leaves the others' messages out before they cost the pipe anything, and
@@ -50,6 +55,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from protocols.events import Event, Severity
 from protocols.frames import SampleBatch
 from protocols.mavlink_adapter import (
@@ -63,6 +70,9 @@ from protocols.mavlink_adapter import (
 # The folder the top package of this module's name is found in: the checkout for
 # ``protocols.mavlink_process``, site-packages for ``ins_health.protocols.mavlink_process``.
 _ROOT = Path(__file__).resolve().parents[__spec__.name.count(".")]
+PROTOCOL_VERSION = 2
+"""The pipe's messages: 1 ``ready``, ``fields``, ``failure``, ``error``; 2 adds ``gnss`` (and the
+version in ``ready``, which version 1 left out)."""
 START_TIMEOUT_S = 60.0
 """Longest wait for a child to import, open the device and say it is ready."""
 REPLY_TIMEOUT_S = 5.0
@@ -82,7 +92,7 @@ class ReaderProcessFailed(OSError):
 
 
 # What the child reads; what it sends is counted here when it answers (so at once, not with the next batch).
-_SCALARS = ("messages", "dropped_kernel", "signing_stale")
+_SCALARS = ("messages", "gnss_messages", "dropped_kernel", "signing_stale")
 _TABLES = ("imu_samples", "rejected", "ignored_systems")
 
 
@@ -133,6 +143,7 @@ class MavlinkProcessLink:
         self._gather_s = float(gather_s)
         self._poll_s = float(poll_s)
         self._converter = ImuConverter(settings, self.counters)
+        self._gnss: list[np.ndarray] = []
         self._lock = threading.Lock()
         self._proc: subprocess.Popen[bytes] | None = None
         self._data: Connection | None = None
@@ -178,6 +189,12 @@ class MavlinkProcessLink:
             first = data_conn.recv()
             if first[0] != "ready":
                 raise ReaderProcessFailed(f"mavlink {self.settings.device}: {first[1]}")
+            version = first[2] if len(first) > 2 else 1
+            if version != PROTOCOL_VERSION:
+                raise ReaderProcessFailed(
+                    f"mavlink {self.settings.device}: the reader process speaks version {version}, "
+                    f"this service {PROTOCOL_VERSION} (the package was replaced: restart the service)"
+                )
             self.udp_rcvbuf_granted_bytes = first[1]
         except (EOFError, OSError) as exc:
             data_conn.close()
@@ -214,9 +231,18 @@ class MavlinkProcessLink:
             raise self._ended() from None
         if message[0] == "failure":
             raise ReaderProcessFailed(f"mavlink {self.settings.device}: {message[1]}")
+        if message[0] == "gnss":
+            self._gnss.append(message[1])
+            return []
         fields, delta = message[1], message[2]
         _add(self.counters, delta)
         return [b for kind, a in fields for b in self._converter.batches(kind, a)]
+
+    def take_gnss(self) -> np.ndarray | None:
+        """The GPS_RAW_INT fields the child sent since the last call
+        (:meth:`~protocols.mavlink_adapter.MavlinkLink.take_gnss`); None when it sent none."""
+        rows, self._gnss = self._gnss, []
+        return np.concatenate(rows) if rows else None
 
     def _ended(self) -> ReaderProcessEnded:
         return ReaderProcessEnded(
@@ -331,7 +357,7 @@ def serve(data: Connection, cmd: Connection) -> None:
     threading.Thread(target=_commands, args=(link, cmd, stop), daemon=True).start()
     reported = LinkCounters()
     try:
-        data.send(("ready", link.udp_rcvbuf_granted_bytes))
+        data.send(("ready", link.udp_rcvbuf_granted_bytes, PROTOCOL_VERSION))
         last_s = time.monotonic()
         while not stop.is_set():
             try:
@@ -340,6 +366,8 @@ def serve(data: Connection, cmd: Connection) -> None:
                 data.send(("failure", traceback.format_exc()))
                 stop.wait(READER_RETRY_S)
                 continue
+            if (gnss := link.take_gnss()) is not None:
+                data.send(("gnss", gnss))
             now = time.monotonic()
             if fields or now - last_s >= COUNTERS_PERIOD_S:
                 data.send(("fields", fields, _delta(link.counters, reported)))

@@ -44,6 +44,9 @@ Tasks of :meth:`Service.run`
   directory checked (removed or replaced: a storage fault, its stores' writes refused); storage
   away past ``storage_timeout_s`` stops the daemon with :data:`EXIT_STORAGE`.
 * **heartbeat** — MAVLink HEARTBEAT every ``heartbeat_period_s``.
+* **gnss** (Zenoh) and **mavlink-gnss** — a receiver's velocity into the thrust-axis checks of
+  its vehicle's IMUs: GNSS frames on ``ins/<vehicle>/gnss`` (:class:`protocols.zenoh_adapter.GnssSource`)
+  and the MAVLink link's ``GPS_RAW_INT`` (:class:`protocols.mavlink_gnss.MavlinkGnssSource`).
 * **mavlink-open** — only while the MAVLink device cannot be opened (a serial adapter not plugged
   in yet, an autopilot's TCP port not up yet): an attempt every :data:`CONNECT_PAUSE_S`, logged once
   per kind of failure and counted as ``service.mavlink.open_failures``; the rest of the service runs
@@ -93,6 +96,7 @@ from protocols.events import (
 )
 from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import READER_RETRY_S, MavlinkLink, MavlinkSource
+from protocols.mavlink_gnss import MavlinkGnssSource
 from protocols.mavlink_process import MavlinkProcessLink
 from protocols.zenoh_adapter import (
     FrameSource,
@@ -491,6 +495,7 @@ class Service:
             extra["service.mavlink.alerts_suppressed"] = self.mavlink_sink.policy.suppressed
             extra["service.mavlink.alerts_deferred"] = self.mavlink_sink.policy.deferred
             extra["service.mavlink.heartbeats_sent"] = link.heartbeats_sent
+            extra["service.mavlink.gnss_messages"] = link.gnss_messages
             extra["service.mavlink.dropped_overload"] = self.mavlink_source.dropped_overload
             extra["service.mavlink.dropped_kernel"] = link.dropped_kernel
             extra["service.mavlink.signing_stale"] = link.signing_stale
@@ -1040,6 +1045,11 @@ class Service:
         self._start_delivery(sink, drain)
         self.supervisor.start("heartbeat", lambda: self._heartbeat(sink, stop))
         self.supervisor.start("mavlink-frames", lambda: self.intake.mavlink_frames(source))
+        gnss = MavlinkGnssSource(source)
+        self.supervisor.start(
+            "mavlink-gnss",
+            lambda: self.intake.gnss_frames(gnss, dropped_as="mavlink.gnss_dropped"),
+        )
 
     async def _mavlink_open(
         self, resources: contextlib.ExitStack, drain: asyncio.Event, stop: asyncio.Event

@@ -12,6 +12,7 @@ from protocols.events import Event
 from protocols.frames import FrameError, SampleBatch
 from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import MavlinkSource
+from protocols.mavlink_gnss import MavlinkGnssSource
 from protocols.zenoh_adapter import (
     FrameSource,
     GnssSource,
@@ -157,10 +158,12 @@ class Intake:
         """Every batch of the MAVLink source, until it is closed and drained."""
         await self._frames(source, owner=True)
 
-    async def gnss_frames(self, source: GnssSource) -> None:
-        """Every GNSS frame of the Zenoh source into the thrust-axis checks, under
-        :attr:`group_lock` (they read the IMUs' pipelines), until it is closed and drained; frames
-        the source dropped (its queue full) counted as ``gnss.dropped``."""
+    async def gnss_frames(
+        self, source: GnssSource | MavlinkGnssSource, *, dropped_as: str = "gnss.dropped"
+    ) -> None:
+        """Every GNSS frame of the source (Zenoh's, or the MAVLink link's GPS_RAW_INT) into the
+        thrust-axis checks, under :attr:`group_lock` (they read the IMUs' pipelines), until it is
+        closed and drained; what the source dropped (its queue full) counted as ``dropped_as``."""
         while True:
             try:
                 frame = await source.get()
@@ -169,7 +172,7 @@ class Intake:
             async with self.group_lock:
                 self._store(self.fleet.gnss(frame))
             if source.dropped:
-                self.fleet.service_counters["gnss.dropped"] = source.dropped
+                self.fleet.service_counters[dropped_as] = source.dropped
             await asyncio.sleep(0)
 
     def gnss_reject(self, key: str, error: FrameError) -> None:

@@ -21,6 +21,7 @@ from estimators.conventions import STANDARD_GRAVITY_MPS2, Cause, Triad
 from estimators.diagnosis import Finding
 from protocols import mavlink_adapter
 from protocols.events import Severity, StreamCause, event_from_finding, make_event
+from protocols.gnss_logs import gps_raw_int_messages
 from protocols.mavlink_adapter import (
     REREADS_MAX,
     STATUSTEXT_MAX_CHARS,
@@ -568,7 +569,7 @@ def test_async_source_over_tcp():
 class ScriptedLink:
     """An ImuLink without a device: each read adds the next rejections (and kernel drops, and IMU
     messages of other systems as ``"system N"``, the link reading system 1) of ``steps`` and
-    returns nothing."""
+    returns nothing (no GNSS either)."""
 
     def __init__(self, steps: list[dict[str, int]], **settings):
         self.settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", **settings)
@@ -591,6 +592,9 @@ class ScriptedLink:
             self.done.set()
             time.sleep(timeout_s)
         return []
+
+    def take_gnss(self) -> None:
+        return None
 
 
 def warnings_while_read(link: ScriptedLink, caplog) -> list[str]:
@@ -956,3 +960,38 @@ def test_a_packet_carried_in_another_dialects_message_stays_its_payload():
         peer.close()
     assert [t for b in got for t in b.t_s] == [2000.0]
     assert link.counters.rejected == {}
+
+
+def test_gps_raw_int_of_the_imus_system_is_kept_signed_others_counted():
+    """A link read in the service's thread (``reader = "thread"``) with a signing key keeps the
+    GPS_RAW_INT fields of the system its IMU messages come from, signed; one before any IMU
+    message, one of another system and an unsigned one are counted, not kept."""
+    settings = MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1", signing_key=KEY)
+    (packed,) = gps_raw_int_messages([2.0], [[3.0, 4.0, 0.0]], [100.0])
+    gps = mavlink2.MAVLink(None).decode(bytearray(packed))  # each peer packs it as its own
+    with MavlinkLink(settings) as link:
+        port = link.connection.port.getsockname()[1]
+        autopilot, unsigned = _peer(port), _peer(port)
+        other = use_mavlink2(
+            mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=2)
+        )
+        for peer, link_id in ((autopilot, 1), (other, 2)):
+            peer.setup_signing(KEY, sign_outgoing=True, link_id=link_id)
+        autopilot.mav.send(gps)  # before any IMU message
+        autopilot.mav.send(
+            imu_message(ImuMessage.SCALED_IMU, t_s=1.0, accel_mps2=ACC, gyro_rps=GYR)
+        )
+        _read(link, 1)
+        for peer in (autopilot, other, unsigned):
+            peer.mav.send(gps)
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline and (
+            link.counters.gnss_messages < 3 or "unsigned" not in link.counters.rejected
+        ):
+            link.read(0.1)
+        rows = link.take_gnss()
+        for peer in (autopilot, other, unsigned):
+            peer.close()
+    np.testing.assert_array_equal(rows, [[2e6, 3, 500, 3687, 100e3]])
+    assert link.counters.gnss_messages == 3  # the unsigned one is pymavlink's refusal
+    assert link.counters.rejected == {"gnss_other_system": 2, "unsigned": 1}

@@ -289,6 +289,16 @@ def test_a_device_that_cannot_be_opened_is_one_error_naming_it_and_no_child_is_l
     assert _children() == children
 
 
+def test_a_child_of_another_pipe_version_is_refused_naming_both(monkeypatch):
+    """A reader process from other files than the service's (the package replaced under it, then a
+    child started) speaks another pipe version: refused with both said, no child left, not misread."""
+    children = _children()
+    monkeypatch.setattr(mavlink_process, "PROTOCOL_VERSION", mavlink_process.PROTOCOL_VERSION + 1)
+    with pytest.raises(ReaderProcessFailed, match=r"speaks version 2, this service 3"):
+        MavlinkProcessLink(MavlinkSettings(device="udpin:127.0.0.1:0", vehicle="v1"))
+    assert _children() == children
+
+
 def _children():
     me = str(os.getpid())
     return {
