@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
+import re
 
 import numpy as np
 import pytest
@@ -47,7 +47,7 @@ from estimators.stream_validity import ValidityLimits, compare_imus
 from protocols.checkpoint_codec import decode_state, encode_state
 from protocols.events import Predicate, decode_event, encode_event, event_version
 from protocols.frames import SampleBatch, split_session
-from protocols.logs import read_log_sessions, write_tlog
+from protocols.logs import read_log_sessions
 from service.pipeline import FleetProcessor
 
 LEVER_ARM_M = np.array(PAIR_LEVER_ARM_M)
@@ -237,32 +237,29 @@ def test_a_pair_too_short_to_test_says_so() -> None:
 
 
 @needs(REAL_TLOG)
-def test_a_real_two_imu_log_replays_without_alarm_and_its_injected_fault_is_found(tmp_path) -> None:
-    """ArduPlane SITL's VTOL telemetry log (RAW_IMU and SCALED_IMU2 at 4.2 Hz, 208 s): replayed as it
-    is, no cross_imu_norm event; written again with IMU 1's z accelerometer (its thrust axis: |a_z| ≈
-    9.9 m/s²) 0.5 % larger from 120 s on, the replay finds it within 5 s. The other logs with two
-    IMUs hold 1 s or less of them (tests/real_data.py's REAL_BIN: 45 samples each)."""
+def test_a_real_telemetry_log_at_4_hz_is_said_too_slow_for_the_check_not_passed(tmp_path) -> None:
+    """ArduPlane SITL's VTOL telemetry log (RAW_IMU and SCALED_IMU2 snapshots at 4.2 Hz, 208 s): fed
+    from its first samples (as a live link gives them, one sample a frame), one manoeuvre's snapshots
+    put a block's gyro norm difference 7 σ off and raised a false cross_imu_norm alarm at 786.5 s.
+    Below :data:`~estimators.cross_imu_norm.MIN_RATE_HZ` the check does not apply, and the coverage
+    and the report say so with the rate, in replay and in one-sample frames alike. The other logs with
+    two IMUs hold 1 s or less of them (tests/real_data.py's REAL_BIN: 45 samples each)."""
     sessions, _ = read_log_sessions(REAL_TLOG)
-    s1 = sessions[1]
-    onset = float(s1.t_s[0]) + 120.0
-    accel = s1.accel_mps2.copy()
-    accel[s1.t_s >= onset, 2] *= 1.005
-    faulty = tmp_path / "faulty.tlog"
-    write_tlog(faulty, {0: sessions[0], 1: replace(s1, accel_mps2=accel)})
-    for path, found in ((REAL_TLOG, False), (faulty, True)):
-        report = tmp_path / path.stem
-        result = ins_health.replay(path, report=report)
-        events = [e for e in result.events if e.predicate is Predicate.CROSS_IMU_NORM]
-        # The report states the check (the lever arm found, to a few cm at 4 Hz) and plots it.
-        norm = json.loads((report / "report.json").read_text())["cross_imu_norm"]
-        assert norm["imus"] == [0, 1] and norm["tested_s"] > 100.0
-        assert len(norm["lever_arm_m"]) == 3 and max(norm["lever_arm_sd_m"]) < 0.03
-        assert (report / "cross_imu_norm.png").is_file()
-        if not found:
-            assert events == []
-            continue
-        assert [(e.imu, e.triad) for e in events] == [(1, Triad.ACCEL)]
-        assert onset < events[0].t_s <= onset + 5.0
+    report = tmp_path / "report"
+    result = ins_health.replay(REAL_TLOG, report=report)
+    assert [e for e in result.events if e.predicate is Predicate.CROSS_IMU_NORM] == []
+    assert json.loads((report / "report.json").read_text())["cross_imu_norm"] is None
+    one_sample = [
+        b
+        for imu in (0, 1)
+        for b in split_session(sessions[imu], vehicle="uav", imu=imu, batch_samples=1)
+    ]
+    fleet = FleetProcessor(passports=lambda v, i: None)
+    events = run_fleet(fleet, sorted(one_sample, key=lambda b: float(b.t_s[0])))
+    assert [e for e in events if e.predicate is Predicate.CROSS_IMU_NORM] == []
+    for imu in (0, 1):
+        for c in fleet.norm_coverage("uav", imu):
+            assert not c.ran and not c.applies and re.search(r"samples at 4\.\d+ Hz", c.reason), c
 
 
 def test_a_checkpointed_check_goes_on_where_it_was() -> None:

@@ -12,6 +12,7 @@ from estimators.conventions import (
     Triad,
 )
 from estimators.coverage import Check, CheckCoverage
+from estimators.cross_imu_norm import MIN_RATE_HZ
 from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.passport import Passport, check_references
 from estimators.stream_validity import (
@@ -81,6 +82,18 @@ def _cross_imu_event(
         text += f"; scalar checks: {scalar_note}"
     return make_event(vehicle=vehicle, imu=report.imu, t_s=t_s, predicate=Predicate.CROSS_IMU, cause=StreamCause.DISAGREEMENT,
                       severity=SEVERITY[Predicate.CROSS_IMU], triad=triad, estimate=value, tolerance=limit, unit=unit, text=text, epoch=epoch)  # fmt: skip
+
+
+def _norm_too_slow(rate0_hz: float, rate1_hz: float) -> str | None:
+    """Why the cross-IMU norm check does not apply to a pair of these rates, or None
+    (:data:`estimators.cross_imu_norm.MIN_RATE_HZ`)."""
+    slowest = min(rate0_hz, rate1_hz)
+    if slowest >= MIN_RATE_HZ:
+        return None
+    return (
+        f"IMU samples at {slowest:.3g} Hz: snapshots that far apart cannot be paired through a "
+        f"manoeuvre (the check needs {MIN_RATE_HZ:g} Hz or more)"
+    )
 
 
 class FleetProcessor:
@@ -497,7 +510,11 @@ class FleetProcessor:
         pipes = self._by_vehicle[vehicle]
         i0, i1 = sorted(pipes)[:2]
         rates = [pipes[i].detection for i in (i0, i1)]
-        if rates[0] is None or rates[1] is None:
+        if (
+            rates[0] is None
+            or rates[1] is None
+            or _norm_too_slow(rates[0].rate_hz, rates[1].rate_hz)
+        ):
             return None
         saved = self._saved_norms.pop(vehicle, None)
         if saved is not None:
@@ -535,12 +552,19 @@ class FleetProcessor:
             return ()
         norm = self.norms.get(vehicle)
         if norm is None:
+            rates = [pipes[i].detection for i in sorted(pipes)[:2]]
+            slow = (
+                None
+                if rates[0] is None or rates[1] is None
+                else _norm_too_slow(rates[0].rate_hz, rates[1].rate_hz)
+            )
             return tuple(
                 CheckCoverage(
                     Check.CROSS_IMU_NORM,
                     t,
                     ran=False,
-                    reason="the sample rates are not measured yet",
+                    applies=slow is None,
+                    reason=slow or "the sample rates are not measured yet",
                 )
                 for t in (Triad.ACCEL, Triad.GYRO)
             )
