@@ -206,9 +206,13 @@ TRIAL_UNITS = {
 gyro resolves the Earth rate to ~0.4 % per position, so its scale and axes matter (M1)."""
 
 
-def baseline_model(rng: np.random.Generator, grade: Grade = Grade.MEMS) -> ErrorModel:
-    """A random effect-free unit of ``grade``: bias, scale, non-orthogonality and white noise (module docstring)."""
-    u = TRIAL_UNITS[grade]
+def baseline_model(
+    rng: np.random.Generator, grade: Grade = Grade.MEMS, unit: TrialUnit | None = None
+) -> ErrorModel:
+    """A random effect-free unit of ``grade``: bias, scale, non-orthogonality and white noise (module docstring).
+
+    ``unit``: the sd of its errors and noise, when not the grade's :data:`TRIAL_UNITS`."""
+    u = TRIAL_UNITS[grade] if unit is None else unit
     acc = TriadErrorModel(
         (
             NonOrthogonality(rng.normal(0, u.accel_nonorth_rad, 6)),
