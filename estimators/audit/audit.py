@@ -80,6 +80,7 @@ from estimators.sim import (
 
 from .candidates import (
     FAMILY_ALPHA,
+    TEMPERATURE_ORDERS,
     Candidate,
     ResidualStructure,
     VarianceData,
@@ -1246,7 +1247,7 @@ def extend_model(
     ext = model
     base = dict(baseline)
     drift = {t: np.zeros(3) for t in Triad}
-    temp_bias = {t: np.zeros(3) for t in Triad}
+    temp_bias = {t: np.zeros((3, len(TEMPERATURE_ORDERS))) for t in Triad}
     temp_scale = {t: np.zeros(3) for t in Triad}
     k2, k3, kc = np.zeros(3), np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
@@ -1283,12 +1284,13 @@ def extend_model(
                 if c.triad is Triad.ACCEL
                 else c.params["rate_rps_per_s"]
             )
+        elif c.effect == "temperature_bias" and c.triad is Triad.ACCEL:
+            # The polynomial's powers 1…n (candidates.temperature_bias_order).
+            for k in range(len(TEMPERATURE_ORDERS)):
+                key = "coef_norm_per_c" if k == 0 else f"coef{k + 1}_norm_per_c{k + 1}"
+                temp_bias[c.triad][i, k] = c.params.get(key, 0.0) * g
         elif c.effect == "temperature_bias":
-            temp_bias[c.triad][i] = (
-                c.params["coef_norm_per_c"] * g
-                if c.triad is Triad.ACCEL
-                else c.params["coef_rps_per_c"]
-            )
+            temp_bias[c.triad][i, 0] = c.params["coef_rps_per_c"]
         elif c.effect == "temperature_scale":
             temp_scale[c.triad][i] = c.params["coef_per_c"]
         elif c.effect == "scale_nonlinearity":
@@ -1341,7 +1343,7 @@ def extend_model(
         if np.any(drift[t]):
             ext = ext.with_effect(BiasDrift(drift[t][:, None]), t)
         if np.any(temp_bias[t]):
-            ext = ext.with_effect(TemperatureBias(temp_bias[t][:, None], t_ref_c=t_ref), t)
+            ext = ext.with_effect(TemperatureBias(temp_bias[t], t_ref_c=t_ref), t)
         if np.any(temp_scale[t]):
             ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
         if np.any(np.isfinite(rails[t])):
