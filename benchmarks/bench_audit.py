@@ -14,7 +14,9 @@ Run: ``python benchmarks/bench_audit.py [--quick] [--no-times | --no-rates]``. P
 3. the two-effect pairs of :data:`estimators.audit.hidden.PAIRS` at 10 standard errors each
    (both named, nothing else);
 4. the 50 Hz line on 200 Hz sessions (:data:`estimators.audit.hidden.LINE_KIND`) against its
-   amplitude in noise sd, and effect-free 200 Hz sessions naming nothing.
+   amplitude in noise sd, and effect-free 200 Hz sessions naming nothing;
+5. a gyro drift on each side of the chain's nine-parameter σ limit (the gyro's path is continuous),
+   and a quadratic accelerometer temperature bias (its order chosen on held-out temperatures).
 """
 
 from __future__ import annotations
@@ -30,17 +32,20 @@ from estimators.audit import AuditConfig, run_audit
 from estimators.audit.hidden import (
     LINE_KIND,
     LINE_RATE_HZ,
+    NEAR_LIMIT_GYRO_SD_RPS,
     PAIRS,
     clean_trial,
     draw,
     hide,
     hide_pair,
     kinds_of,
+    near_limit_drift_named,
     pair_trial,
+    quadratic_temperature_named,
     trial,
 )
 from estimators.chain import ChainConfig
-from estimators.conventions import Triad
+from estimators.conventions import AXES, Triad
 from estimators.sim import Grade, OrientationScheme, multi_position_spec, simulate
 from protocols.session_file import load_session
 
@@ -193,6 +198,42 @@ def line_rates(trials: int, workers: int) -> None:
         )
 
 
+NEAR_LIMIT_SIZES = (4.0, 6.0, 10.0)
+QUADRATIC_COEFS = (2.5e-5, 5e-5, 1e-4)
+"""Quadratic temperature bias trials, m/s² per °C² about 30 °C (1e-4: 0.01 m/s² at the cycle's ends)."""
+
+
+def _near_limit(args) -> tuple[bool, bool]:
+    return near_limit_drift_named(*args)
+
+
+def _quadratic(args) -> bool:
+    seed, coef = args
+    return quadratic_temperature_named(seed, AXES[seed % 3], coef)
+
+
+def gyro_path_and_temperature_order_rates(trials: int, workers: int) -> None:
+    print(
+        f"Gyro x drift on each side of the nine-parameter σ limit (navigation unit, gyro noise "
+        f"{NEAR_LIMIT_GYRO_SD_RPS[0]:g} and {NEAR_LIMIT_GYRO_SD_RPS[1]:g} rad/s), {trials} trials, against "
+        "its size in the first's standard errors:"
+    )
+    with ProcessPoolExecutor(workers) as pool:
+        for size in NEAR_LIMIT_SIZES:
+            hits = np.array(
+                list(pool.map(_near_limit, [(700_000 + t, size) for t in range(trials)]))
+            )
+            print(
+                f"    {size:4.0f} SE: {hits[:, 0].mean():.2f} below the limit, {hits[:, 1].mean():.2f} above"
+            )
+        print(f"Quadratic accelerometer temperature bias (MEMS, 20–40 °C), {trials} trials:")
+        for coef in QUADRATIC_COEFS:
+            hits = list(pool.map(_quadratic, [(710_000 + t, coef) for t in range(trials)]))
+            print(
+                f"    {coef:g} m/s² per °C²: {np.mean(hits):.2f} named temperature_bias on its axis"
+            )
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer replica counts, lengths and trials")
@@ -225,3 +266,6 @@ if __name__ == "__main__":
         hit_rates(args.trials or (8 if args.quick else 40), args.workers, grades, sizes)
         pair_rates(args.trials or (8 if args.quick else 20), args.workers)
         line_rates(args.trials or (8 if args.quick else 20), args.workers)
+        gyro_path_and_temperature_order_rates(
+            args.trials or (8 if args.quick else 20), args.workers
+        )

@@ -52,7 +52,7 @@ service therefore also stops checking samples taken outside the range
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,23 +151,70 @@ def _series(
 
 
 def _normalized_sq_errors(
-    temp_c: FloatArray,
-    values: FloatArray,
-    std: FloatArray,
-    train: IntArray,
-    test: IntArray,
-    ref_c: float,
-    half_span_c: float,
-    order: int,
+    h: FloatArray, values: FloatArray, std: FloatArray, train: IntArray, test: IntArray
 ) -> FloatArray:
-    """(n_test·6,) squared prediction errors at ``test`` of the fit on ``train``, over their variance."""
-    h_train = _vander(temp_c[train], ref_c, half_span_c, order)
-    h_test = _vander(temp_c[test], ref_c, half_span_c, order)
+    """(n_test·S,) squared prediction errors at rows ``test`` of the fits of design ``h`` on ``train``, over their variance."""
     out = []
     for s in range(values.shape[1]):
-        coef, _ = _fit_series(h_train, values[train, s], std[train, s])
-        out.append(((values[test, s] - h_test @ coef) / std[test, s]) ** 2)
+        coef, _ = _fit_series(h[train], values[train, s], std[train, s])
+        out.append(((values[test, s] - h[test] @ coef) / std[test, s]) ** 2)
     return np.concatenate(out)
+
+
+def held_out_scores(
+    temp_c: FloatArray,
+    design: Callable[[int], FloatArray],
+    values: FloatArray,
+    std: FloatArray,
+    orders: Sequence[int] = ORDERS,
+) -> list[OrderScore]:
+    """M3's regularity criterion (GMDH, module docstring) of each order the temperatures support.
+
+    The rows sorted by temperature are split into alternate halves; each half's weighted fit predicts the
+    other. ``design(n)``: the (T, p) design of order ``n`` (the polynomial's powers, and whatever else the
+    series is fitted with); ``values``, ``std``: (T, S) series and their sd. An order is scored only when each
+    half has at least as many rows as the design has columns; none: an empty list.
+    """
+    t = np.asarray(temp_c, dtype=float)
+    by_temp = np.argsort(t, kind="stable")
+    half_a, half_b = by_temp[0::2], by_temp[1::2]
+    scores = []
+    for n in sorted(set(int(o) for o in orders)):
+        if n < 0:
+            continue
+        h = design(n)
+        if min(half_a.size, half_b.size) < h.shape[1]:
+            continue
+        errs = np.concatenate(
+            [
+                _normalized_sq_errors(h, values, std, half_a, half_b),
+                _normalized_sq_errors(h, values, std, half_b, half_a),
+            ]
+        )
+        train = np.mean(
+            [
+                np.mean(
+                    ((values[:, s] - h @ _fit_series(h, values[:, s], std[:, s])[0]) / std[:, s])
+                    ** 2
+                )
+                for s in range(values.shape[1])
+            ]
+        )
+        scores.append(
+            OrderScore(
+                order=n,
+                regularity=float(errs.mean()),
+                regularity_se=float(errs.std(ddof=1) / np.sqrt(errs.size)),
+                training=float(train),
+            )
+        )
+    return scores
+
+
+def chosen_order(scores: list[OrderScore]) -> tuple[OrderScore, OrderScore]:
+    """The order M3 takes and the best-scoring one: the lowest order within one standard error of the best."""
+    best = min(scores, key=lambda s: s.regularity)
+    return next(s for s in scores if s.regularity <= best.regularity + best.regularity_se), best
 
 
 def fit_temperature_model(
@@ -232,50 +279,14 @@ def fit_temperature_model(
             f"reference_temp_c {reference_temp_c:g} °C is outside the tested temperatures {t_min_c:g}…{t_max_c:g} °C; choose one within them"
         )
     values, std = _series(*arrays)
-    order_idx = np.argsort(t, kind="stable")
-    half_a, half_b = order_idx[0::2], order_idx[1::2]
     ref = float(reference_temp_c)
     span = float(max(np.max(np.abs(t - ref)), 1e-9))
-    usable = [
-        n
-        for n in sorted(set(int(o) for o in orders))
-        if n >= 0 and min(half_a.size, half_b.size) > n
-    ]
-    if not usable:
+    scores = held_out_scores(t, lambda n: _vander(t, ref, span, n), values, std, orders)
+    if not scores:
         raise ValueError(
             f"{t.size} temperatures cannot compare orders {tuple(orders)}: each held-out half needs at least as many temperatures as coefficients"
         )
-    scores = []
-    for n in usable:
-        errs = np.concatenate(
-            [
-                _normalized_sq_errors(t, values, std, half_a, half_b, ref, span, n),
-                _normalized_sq_errors(t, values, std, half_b, half_a, ref, span, n),
-            ]
-        )
-        h_all = _vander(t, ref, span, n)
-        train = np.mean(
-            [
-                np.mean(
-                    (
-                        (values[:, s] - h_all @ _fit_series(h_all, values[:, s], std[:, s])[0])
-                        / std[:, s]
-                    )
-                    ** 2
-                )
-                for s in range(6)
-            ]
-        )
-        scores.append(
-            OrderScore(
-                order=n,
-                regularity=float(errs.mean()),
-                regularity_se=float(errs.std(ddof=1) / np.sqrt(errs.size)),
-                training=float(train),
-            )
-        )
-    best = min(scores, key=lambda s: s.regularity)
-    chosen = next(s for s in scores if s.regularity <= best.regularity + best.regularity_se)
+    chosen, best = chosen_order(scores)
     lower = [s for s in scores if s.order < chosen.order]
     reason = f"order {chosen.order}: held-out criterion {chosen.regularity:.3g}"
     if lower:

@@ -19,6 +19,7 @@ from estimators.audit.hidden import (
     draw,
     hide,
     named_effects,
+    near_limit_drift_named,
     session_of,
     trial,
     trial_chain_config,
@@ -166,7 +167,7 @@ def test_navigation_grade_gyro_effects_are_named_against_the_earth_rate():
 
 
 def test_each_triad_states_its_grade_path_and_why():
-    paths = {}
+    paths, blind = {}, {}
     for grade in (Grade.MEMS, Grade.NAVIGATION):
         s, _ = session_of(baseline_model(np.random.default_rng(2), grade), 8500, grade=grade)
         res = run_audit(s, AuditConfig(trial_chain_config(grade, s), replicas=5))
@@ -174,6 +175,9 @@ def test_each_triad_states_its_grade_path_and_why():
         paths[grade] = {t: p["path"] for t, p in data["grade_paths"].items()}
         assert all(p["reason"] for p in data["grade_paths"].values())
         assert res.named == []
+        # The path that cannot resolve the Earth rate says what it cannot see.
+        blind[grade] = [st for st in res.statements if st.startswith("gyro blind spot")]
+    assert len(blind[Grade.MEMS]) == 1 and blind[Grade.NAVIGATION] == []
     assert paths[Grade.MEMS] == {"accel": "gravity_scalar", "gyro": "earth_rate_as_noise"}
     assert paths[Grade.NAVIGATION] == {"accel": "gravity_scalar", "gyro": "earth_rate_scalar"}
 
@@ -224,3 +228,14 @@ def test_bias_instability_is_named_on_its_axis_and_nothing_else():
             trial(draw(seed, _size(seed, DETECTION), kind, grade), seed, temperature=t % 8 < 4)
         )
     assert sum(hits) >= REQUIRED, [t for t, h in enumerate(hits) if not h]
+
+
+# --- the gyro's path is continuous in its parameters' σ -----------------------------------
+
+
+def test_a_gyro_drift_is_named_on_both_sides_of_the_nine_parameter_sigma_limit():
+    # A navigation-grade unit with a noisier gyro: at 1.0e-5 rad/s per sample every gyro parameter's σ is
+    # below the chain's 0.01 (observable), at 1.3e-5 the largest is 0.0115 (partially observable). Its
+    # position means resolve Ω to ~1 % either way; the Earth rate taken as noise (Ω²/3) would hide this
+    # drift (10 SE of the scalar path's, 0.4 of the means').
+    assert near_limit_drift_named(8450, 10.0) == (True, True)

@@ -80,6 +80,7 @@ from estimators.sim import (
 
 from .candidates import (
     FAMILY_ALPHA,
+    TEMPERATURE_ORDERS,
     Candidate,
     ResidualStructure,
     VarianceData,
@@ -159,8 +160,8 @@ class TriadBaseline:
     noise_correlation : (3, 3) correlation of the axes' per-sample noise at the same sample, white and colour
         alike (on a grid, of the output: the rounding, independent per axis, dilutes it by its share of the
         variance). F0 sees it: it projects the noise on the gravity direction, ``uᵀ Σ u``.
-    scalar_resolved : the chain resolved all nine parameters against the triad's reference (always for
-        the accelerometers the audit goes on with; for a gyro, navigation grade: :func:`grade_path`).
+    scalar_resolved : the triad takes its scalar path (the accelerometers: the chain resolved all nine
+        parameters against g, always so when the audit goes on; a gyro: :func:`earth_rate_resolved`, :func:`grade_path`).
     resolution_reason : the chain's observability verdict, one line.
     """
 
@@ -271,8 +272,12 @@ def fit_baseline(
     *,
     window_s: float = NOISE_WINDOW_S,
     colour: bool = True,
+    left_out: tuple[int, ...] = (),
 ) -> TriadBaseline:
     """Baseline model of ``triad`` (module docstring, step 1).
+
+    ``left_out``: positions whose samples the noise is not read from (disturbed: their motion is not the
+    sensor's noise, and would move every replica position).
 
     White noise: the per-sample spread about a ``window_s`` moving mean
     (:func:`estimators.noise.sample_noise_sd`), pooled over the positions, the
@@ -290,7 +295,7 @@ def fit_baseline(
     leaves it out (white noise only: the candidates do not use it, the simulation does).
     """
     x = triad_samples(session, triad)
-    spans = [position_span(p) for p in chain.positions]
+    spans = [position_span(p) for k, p in enumerate(chain.positions) if k not in left_out]
     window = max(2, round(window_s * session.rate_hz))
     usable = [(a, b) for a, b in spans if b - a >= 2 * window]
     if not usable:
@@ -333,7 +338,11 @@ def fit_baseline(
         ref = reference_magnitude(triad, chain.gravity_mps2)
         params = np.zeros(9)
         params[:3] = np.median([p.mean(triad) for p in chain.positions], axis=0) / ref
-    resolved = est.params is not None and est.verdict is Verdict.OBSERVABLE
+    resolved = (
+        earth_rate_resolved(chain)
+        if triad is Triad.GYRO
+        else est.params is not None and est.verdict is Verdict.OBSERVABLE
+    )
     return TriadBaseline(
         params,
         white,
@@ -358,6 +367,32 @@ def fit_baseline(
     )
 
 
+EARTH_RATE_RESOLVED_SD = 0.2
+"""Largest noise of a typical gyro position mean, per axis as a share of Ω, at which the Earth rate counts as
+resolved per position and the gyro takes the scalar path ``|ω − b − G f| = Ω``. Up to it the norm's noise
+bias (≈ σ²/Ω, the same at every position, taken by the scale) stays within a fifth of the scalar's sd, and
+the scalar's power exceeds the position means' with the Earth rate as noise (variance Ω²/3) by
+``√(σ² + Ω²/3)/σ`` ≥ 3; the nine parameters' σ only set how much of an effect they take in
+(:func:`estimators.audit.statistics.scalar_residuals`' Jacobian), never which path."""
+
+
+def earth_rate_resolved(chain: ChainResult) -> bool:
+    """The gyro's position means resolve the Earth rate (:data:`EARTH_RATE_RESOLVED_SD`) and the chain fitted its
+    nine parameters with a finite covariance (however wide: a continuous path, not a verdict on their σ)."""
+    result = chain.triads.get(Triad.GYRO)
+    if result is None:
+        return False
+    est = result.estimate
+    if est.params is None or est.cov is None or not np.all(np.isfinite(np.diag(est.cov))):
+        return False
+    sd = [
+        np.sqrt(np.max(np.diag(p.gyro_cov_rps)))
+        for p in chain.positions
+        if p.gyro_cov_rps is not None
+    ]
+    return bool(sd) and float(np.median(sd)) <= EARTH_RATE_RESOLVED_SD * EARTH_RATE_RPS
+
+
 def colour_threshold() -> float:
     """Likelihood ratio a colour term must exceed: χ² with two degrees of freedom (its variance and correlation
     time) at the family-wise false-naming rate split over the terms tried on one triad's three axes (Bonferroni,
@@ -373,11 +408,12 @@ def grade_path(
     """Which candidate path a triad took and why (issue 13): the audit JSON's ``grade_paths``.
 
     * ``gravity_scalar`` (accelerometers): effects on the exact scalar residual of M1;
-    * ``earth_rate_scalar`` (a gyro that resolves the Earth rate, navigation grade): effects on
+    * ``earth_rate_scalar`` (a gyro whose position means resolve the Earth rate, :func:`earth_rate_resolved`): effects on
       ``|ω − b − G f| = Ω``, the heading of each position eliminated
       (:func:`estimators.audit.candidates.earth_rate_records`);
-    * ``earth_rate_as_noise`` (a MEMS gyro): position means regressed per axis, the Earth rate's
-      unknown horizontal projection an extra variance ``Ω²/3`` (:func:`estimators.audit.candidates.gyro_records`).
+    * ``earth_rate_as_noise`` (a gyro whose position means do not resolve it, MEMS): position means regressed per
+      axis, the Earth rate's unknown horizontal projection an extra variance ``Ω²/3``
+      (:func:`estimators.audit.candidates.gyro_records`); what that path cannot see is in the audit's statements.
 
     ``n_typical``: a typical position's sample count; ``reference``: g or Ω.
     """
@@ -391,13 +427,13 @@ def grade_path(
         return {
             "path": "earth_rate_scalar",
             "mean_noise_over_reference": noise,
-            "reason": "the Earth rate is resolved (navigation grade): effects on |ω − b − G f| = Ω, "
+            "reason": "the Earth rate is resolved per position: effects on |ω − b − G f| = Ω, "
             f"each position's heading eliminated; {where}",
         }
     return {
         "path": "earth_rate_as_noise",
         "mean_noise_over_reference": noise,
-        "reason": "the Earth rate is not resolved (MEMS): position means per axis, its unknown projection "
+        "reason": f"the Earth rate is not resolved (a position mean's noise above {EARTH_RATE_RESOLVED_SD:g} Ω): position means per axis, its unknown projection "
         f"a variance Ω²/3; {where}",
     }
 
@@ -419,6 +455,15 @@ def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
     if base.quant_step_si is not None:
         effects.append(Quantization(base.quant_step_si, Rounding.NEAREST))
     return TriadErrorModel(tuple(effects))
+
+
+def baseline_error_model(baselines: dict[Triad, TriadBaseline], g: float) -> ErrorModel:
+    """The simulator's model of the baselines (:func:`triad_model` per triad; no gyro model without a gyro)."""
+    gyro = baselines.get(Triad.GYRO)
+    return ErrorModel(
+        accel=triad_model(baselines[Triad.ACCEL], g),
+        gyro=TriadErrorModel() if gyro is None else triad_model(gyro, EARTH_RATE_RPS),
+    )
 
 
 def same_session_spec(chain: ChainResult, session: ImuSession, model: ErrorModel) -> SessionSpec:
@@ -491,18 +536,18 @@ def simulated_hold_starts_s(hold_s: FloatArray, turn_s: FloatArray) -> FloatArra
 def measured_attitudes(chain: ChainResult) -> tuple[np.ndarray, float]:
     """(P, 3, 3) ``mat_nb`` of the measured positions and the latitude, degrees (45 when unknown).
 
-    Up is each position's accelerometer mean. When the chain resolves all nine
-    gyro parameters against Ω (navigation grade), each position's heading is
+    Up is each position's accelerometer mean. When the gyro's position means
+    resolve the Earth rate (:func:`earth_rate_resolved`), each position's heading is
     gyrocompassed: north is the horizontal part of its bias-free gyro mean and
     ``sin φ`` the median vertical share of the Earth rate — so the replicas see
     the Earth rate on each axis as the unit did. Otherwise the positions are
     reached by tilts from an arbitrary heading at 45°.
     """
     up = np.array([p.accel_mean_mps2 for p in chain.positions], float)
-    gyro = chain.triads.get(Triad.GYRO)
-    est = None if gyro is None else gyro.estimate
-    if est is None or est.params is None or est.verdict is not Verdict.OBSERVABLE:
+    if not earth_rate_resolved(chain):
         return tilt_sequence(up), 45.0
+    est = chain.triads[Triad.GYRO].estimate
+    assert est.params is not None
     u = up / np.linalg.norm(up, axis=1, keepdims=True)
     w = (
         np.array([p.gyro_mean_rps for p in chain.positions], float)
@@ -702,10 +747,11 @@ def fit_baselines(
     *,
     window_s: float = NOISE_WINDOW_S,
     colour: bool = True,
+    left_out: tuple[int, ...] = (),
 ) -> dict[Triad, TriadBaseline]:
     """:func:`fit_baseline` of every triad the session has."""
     return {
-        t: fit_baseline(session, chain, t, window_s=window_s, colour=colour)
+        t: fit_baseline(session, chain, t, window_s=window_s, colour=colour, left_out=left_out)
         for t in _present(session)
     }
 
@@ -909,6 +955,7 @@ def _with_disturbed(c: Candidate, tab_a: PositionTable, disturbed: BoolArray) ->
         f"#{k} ({t:.1f} s)" for k, t in zip(np.flatnonzero(disturbed), t0, strict=True)
     )
     params = c.params | {
+        "common_wobble": c.selected,
         "disturbed_positions": [int(k) for k in np.flatnonzero(disturbed)],
         "disturbed_t_start_s": [float(t) for t in t0],
     }
@@ -987,12 +1034,7 @@ def run_audit(
     res.grade_paths = {
         t: grade_path(t, b, n_typical, reference_magnitude(t, g)) for t, b in res.baseline.items()
     }
-    model = ErrorModel(
-        accel=triad_model(res.baseline[Triad.ACCEL], g),
-        gyro=triad_model(res.baseline[Triad.GYRO], EARTH_RATE_RPS)
-        if Triad.GYRO in triads
-        else TriadErrorModel(),
-    )
+    model = baseline_error_model(res.baseline, g)
     res.measured_stats["baseline"] = {}
     for t in triads:
         x = triad_samples(session, t)
@@ -1013,18 +1055,30 @@ def run_audit(
     res.candidates = find_candidates(session, chain, res.baseline)
     res.structure = structure_of(session, chain, res.baseline)
     res.statements += detectable_statements(res.candidates)
+    if res.grade_paths.get(Triad.GYRO, {}).get("path") == "earth_rate_as_noise":
+        res.statements.append(earth_rate_blind_spot(res.grade_paths[Triad.GYRO]))
     res.statements += [structure_statement(st, res.named) for st in res.structure if st.structured]
     hold, turns = simulated_timing(chain)
     turn_mid_s = simulated_hold_starts_s(hold, turns)[1:] - 0.5 * turns
+    res.left_out, res.left_out_reason = left_out_positions(res.candidates)
+    # The extension's noise is read without the disturbed positions: their motion, taken for noise, would
+    # move every replica position (no replica moves them; they are left out on both sides).
+    ext_base = (
+        fit_baselines(session, chain, left_out=res.left_out) if res.left_out else res.baseline
+    )
     ext_model, res.extended_model = extend_model(
-        model, res.baseline, res.candidates, tab_a, g, turn_mid_s
+        baseline_error_model(ext_base, g) if res.left_out else model,
+        ext_base,
+        res.candidates,
+        tab_a,
+        g,
+        turn_mid_s,
     )
     res.extension = [
         {"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params}
         for c in res.named
     ]
     if res.named:
-        res.left_out, res.left_out_reason = left_out_positions(res.candidates)
         described = np.ones(n, bool)
         described[list(res.left_out)] = False
         res.measured_stats["extended"] = {
@@ -1086,6 +1140,17 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
                 + "; ".join(parts)
             )
     return out
+
+
+def earth_rate_blind_spot(path: dict[str, str | float]) -> str:
+    """What the gyro's ``earth_rate_as_noise`` path cannot see (:func:`grade_path`): said, with where its sizes are."""
+    return (
+        f"gyro blind spot: a position mean's noise is {float(path['mean_noise_over_reference']):.2g} Ω (the Earth rate "
+        f"is resolved per position below {EARTH_RATE_RESOLVED_SD:g} Ω), so each axis carries the Earth rate's unknown "
+        "projection as noise (Ω²/3): a gyro drift, g-sensitivity, temperature bias or bias instability smaller than "
+        "the gyro's minimum detectable sizes stated here is invisible, and its temperature scale and scale "
+        "nonlinearity are not identifiable"
+    )
 
 
 def unexplained_excess(cmp: list[Comparison]) -> str | None:
@@ -1182,7 +1247,7 @@ def extend_model(
     ext = model
     base = dict(baseline)
     drift = {t: np.zeros(3) for t in Triad}
-    temp_bias = {t: np.zeros(3) for t in Triad}
+    temp_bias = {t: np.zeros((3, len(TEMPERATURE_ORDERS))) for t in Triad}
     temp_scale = {t: np.zeros(3) for t in Triad}
     k2, k3, kc = np.zeros(3), np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
@@ -1219,12 +1284,13 @@ def extend_model(
                 if c.triad is Triad.ACCEL
                 else c.params["rate_rps_per_s"]
             )
+        elif c.effect == "temperature_bias" and c.triad is Triad.ACCEL:
+            # The polynomial's powers 1…n (candidates.temperature_bias_order).
+            for k in range(len(TEMPERATURE_ORDERS)):
+                key = "coef_norm_per_c" if k == 0 else f"coef{k + 1}_norm_per_c{k + 1}"
+                temp_bias[c.triad][i, k] = c.params.get(key, 0.0) * g
         elif c.effect == "temperature_bias":
-            temp_bias[c.triad][i] = (
-                c.params["coef_norm_per_c"] * g
-                if c.triad is Triad.ACCEL
-                else c.params["coef_rps_per_c"]
-            )
+            temp_bias[c.triad][i, 0] = c.params["coef_rps_per_c"]
         elif c.effect == "temperature_scale":
             temp_scale[c.triad][i] = c.params["coef_per_c"]
         elif c.effect == "scale_nonlinearity":
@@ -1245,8 +1311,13 @@ def extend_model(
         elif c.effect == "spectral_line":
             line_hz[c.triad][i] = c.params["freq_hz"]
             line_amp[c.triad][i] = c.params["amplitude_si"]
-        elif c.effect == "nonstatic_positions" and c.params["angle_rms_rad"] > 0:
-            # Disturbed single positions are not simulated: the simulator moves every position or none.
+        elif (
+            c.effect == "nonstatic_positions"
+            and c.params.get("common_wobble", True)
+            and c.params["angle_rms_rad"] > 0
+        ):
+            # Disturbed single positions are not simulated (left out on both sides): the simulator moves every
+            # position or none, and only a wobble common to every position, itself selected, moves them all.
             ext = ext.with_effect(
                 NonstaticPositions(
                     angle_rms_rad=c.params["angle_rms_rad"], band_hz=tuple(c.params["band_hz"])
@@ -1272,7 +1343,7 @@ def extend_model(
         if np.any(drift[t]):
             ext = ext.with_effect(BiasDrift(drift[t][:, None]), t)
         if np.any(temp_bias[t]):
-            ext = ext.with_effect(TemperatureBias(temp_bias[t][:, None], t_ref_c=t_ref), t)
+            ext = ext.with_effect(TemperatureBias(temp_bias[t], t_ref_c=t_ref), t)
         if np.any(temp_scale[t]):
             ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
         if np.any(np.isfinite(rails[t])):

@@ -97,6 +97,7 @@ import numpy as np
 # `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
+from estimators.temperature import chosen_order, held_out_scores
 
 from .statistics import PositionTable
 
@@ -1077,10 +1078,44 @@ def accel_changes(tab: PositionTable, jac: FloatArray) -> list[_MeanEffect]:
     return out
 
 
+TEMPERATURE_ORDERS = (1, 2, 3)
+"""Polynomial orders of an accelerometer's temperature bias the held-out criterion compares (M3)."""
+
+
+def temperature_bias_order(
+    tab: PositionTable, jac: FloatArray, residual: FloatArray, sigma: FloatArray, axis: int
+) -> int:
+    """The order of axis ``axis``' temperature bias on the scalar residual, chosen as M3 chooses it
+    (:func:`estimators.temperature.held_out_scores`: positions sorted by temperature, alternate halves
+    predicting each other, the lowest order within one standard error of the best), next to the nine
+    parameters. A quadratic left at first order is a structured residual the wander would take."""
+    assert tab.temp_c is not None
+    dtemp = tab.temp_c - tab.temp_c.mean()
+    x = dtemp / max(float(np.max(np.abs(dtemp))), 1e-9)
+
+    def design(n: int) -> FloatArray:
+        return np.hstack([jac, jac[:, [axis]] * x[:, None] ** np.arange(1, n + 1)])
+
+    scores = held_out_scores(
+        tab.temp_c, design, residual[:, None], sigma[:, None], TEMPERATURE_ORDERS
+    )
+    return chosen_order(scores)[0].order if scores else 1
+
+
+def _temperature_bias_keys(order: int) -> tuple[str, ...]:
+    return ("coef_norm_per_c", *(f"coef{k}_norm_per_c{k}" for k in range(2, order + 1)))
+
+
 def _mean_effects(
-    tab: PositionTable, jac: FloatArray | None, f_b_mps2: FloatArray | None, axis: int
+    tab: PositionTable,
+    jac: FloatArray | None,
+    f_b_mps2: FloatArray | None,
+    axis: int,
+    temperature_order: int = 1,
 ) -> list[_MeanEffect]:
-    """Mean effects of one axis: accelerometer when ``jac`` is given (exact scalar residual), else gyro."""
+    """Mean effects of one axis: accelerometer when ``jac`` is given (exact scalar residual), else gyro.
+
+    ``temperature_order``: the accelerometer temperature bias' polynomial order (:func:`temperature_bias_order`)."""
     n = tab.t_mid_s.size
     dt = (tab.t_mid_s - tab.t_mid_s.mean())[:, None]
     drift_halves = -0.5 * tab.duration_s[:, None]
@@ -1118,7 +1153,15 @@ def _mean_effects(
                     -1.0,
                 ),
                 _MeanEffect(
-                    "temperature_bias", i, ("coef_norm_per_c",), jac[:, [i]] * dtemp, th, -1.0
+                    "temperature_bias",
+                    i,
+                    _temperature_bias_keys(temperature_order),
+                    jac[:, [i]] * dtemp ** np.arange(1, temperature_order + 1),
+                    # d(ΔT^k) over a position's halves: k ΔT^(k−1) times the temperature's change.
+                    np.arange(1, temperature_order + 1)
+                    * dtemp ** np.arange(temperature_order)
+                    * th,
+                    -1.0,
                 ),
                 _MeanEffect(
                     "temperature_scale",
@@ -1620,9 +1663,15 @@ def accel_records(
     n_tests : candidates tried (:func:`count_tests`).
     """
     tri = Triad.ACCEL
-    effects = [e for i in range(3) for e in _mean_effects(tab, jac, None, i)] + accel_changes(
-        tab, jac
-    )
+    orders = [
+        1
+        if temperature_reason(tab) is not None
+        else temperature_bias_order(tab, jac, residual, sigma, i)
+        for i in range(3)
+    ]
+    effects = [
+        e for i in range(3) for e in _mean_effects(tab, jac, None, i, orders[i])
+    ] + accel_changes(tab, jac)
     u = tab.mean / np.linalg.norm(tab.mean, axis=1, keepdims=True)
     perp = np.eye(3)[None] - np.einsum("ka,kb->kab", u, u)
     out, between, halves = _scalar_records(

@@ -206,9 +206,13 @@ TRIAL_UNITS = {
 gyro resolves the Earth rate to ~0.4 % per position, so its scale and axes matter (M1)."""
 
 
-def baseline_model(rng: np.random.Generator, grade: Grade = Grade.MEMS) -> ErrorModel:
-    """A random effect-free unit of ``grade``: bias, scale, non-orthogonality and white noise (module docstring)."""
-    u = TRIAL_UNITS[grade]
+def baseline_model(
+    rng: np.random.Generator, grade: Grade = Grade.MEMS, unit: TrialUnit | None = None
+) -> ErrorModel:
+    """A random effect-free unit of ``grade``: bias, scale, non-orthogonality and white noise (module docstring).
+
+    ``unit``: the sd of its errors and noise, when not the grade's :data:`TRIAL_UNITS`."""
+    u = TRIAL_UNITS[grade] if unit is None else unit
     acc = TriadErrorModel(
         (
             NonOrthogonality(rng.normal(0, u.accel_nonorth_rad, 6)),
@@ -688,3 +692,43 @@ def clean_trial(
     return not named_effects(
         *session_of(model, seed, temperature=temperature, grade=grade, rate_hz=rate_hz)
     )
+
+
+NEAR_LIMIT_GYRO_SD_RPS = (1.0e-5, 1.3e-5)
+"""Gyro white noise per sample of a navigation-grade trial unit on each side of the chain's nine-parameter
+σ limit (0.01): every σ below it at the first (observable), the largest 0.011-0.012 at the second."""
+
+
+def near_limit_drift_named(seed: int, size: float) -> tuple[bool, bool]:
+    """Is a gyro x drift of ``size`` standard errors (of the scalar path at the first noise of
+    :data:`NEAR_LIMIT_GYRO_SD_RPS`) named, and only it, on the unit of ``seed`` at each noise?"""
+    grade = Grade.NAVIGATION
+    se = None
+    out = []
+    for sd in NEAR_LIMIT_GYRO_SD_RPS:
+        model = baseline_model(
+            np.random.default_rng(seed), grade, replace(TRIAL_UNITS[grade], gyro_sd_rps=sd)
+        )
+        if se is None:
+            se = _clean_candidate(
+                *session_of(model, seed, grade=grade), "bias_drift", Triad.GYRO, "x"
+            ).params["rate_rps_per_s_se"]
+        drift = BiasDrift(np.array([[size * se], [0.0], [0.0]]))
+        named = named_effects(*session_of(model.with_effect(drift, Triad.GYRO), seed, grade=grade))
+        out.append(named == {("bias_drift", Triad.GYRO, "x")})
+    return out[0], out[1]
+
+
+QUADRATIC_T_REF_C = 30.0
+"""Centre of the quadratic temperature bias trials (the middle of :data:`TEMPERATURE`)."""
+
+
+def quadratic_temperature_named(seed: int, axis: str, coef_mps2_per_c2: float) -> bool:
+    """Is a purely quadratic accelerometer temperature bias about :data:`QUADRATIC_T_REF_C` named as
+    ``temperature_bias`` on ``axis``, and nothing else?"""
+    coef = np.zeros((3, 2))
+    coef[AXES.index(axis), 1] = coef_mps2_per_c2
+    model = baseline_model(np.random.default_rng(seed)).with_effect(
+        TemperatureBias(coef, t_ref_c=QUADRATIC_T_REF_C), Triad.ACCEL
+    )
+    return named_effects(*session_of(model, seed)) == {("temperature_bias", Triad.ACCEL, axis)}
