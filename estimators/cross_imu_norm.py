@@ -118,7 +118,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import brentq
 
 from estimators._typing import FloatArray
 from estimators.session import ImuSession
@@ -252,6 +251,9 @@ def cusum_threshold(arl0_blocks: float, k: float) -> float:
     hi = 1.0
     while cusum_arl(0.0, k, hi) < arl0_blocks:
         hi = 2.0 * hi
+    # scipy is imported here: the fleet imports this module's constants in every command.
+    from scipy.optimize import brentq
+
     return float(brentq(lambda h: cusum_arl(0.0, k, h) - arl0_blocks, 0.0, hi))
 
 
@@ -262,6 +264,8 @@ def cusum_shift(delay_blocks: float, k: float, h: float) -> float:
     hi = k + 1.0
     while cusum_arl(hi, k, h) > delay_blocks:
         hi = 2.0 * hi
+    from scipy.optimize import brentq
+
     return float(brentq(lambda mu: cusum_arl(mu, k, h) - delay_blocks, k, hi))
 
 

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -63,19 +64,12 @@ from estimators.passport import TemperatureModel
 from estimators.positions import Position
 from estimators.repeatability import fit_linear
 from estimators.session import ImuSession
-from estimators.sim import (
-    Bias,
-    ConstantTemperature,
-    ErrorModel,
-    NonOrthogonality,
-    ScaleFactor,
-    TemperatureBias,
-    TemperatureScale,
-    TriadErrorModel,
-    WhiteNoise,
-    simulate,
-)
 from estimators.sixpos import AccelSixPosition, six_position_accel, six_position_spec
+
+# The simulator is imported by the functions that simulate: the service's pipeline imports this
+# module (to_reference_temperature) and must not load it.
+if TYPE_CHECKING:
+    from estimators.sim import ErrorModel
 
 ORDERS = (1, 2, 3, 4, 5)
 """Polynomial degrees compared (the paper's five models)."""
@@ -505,6 +499,17 @@ def hidden_quartic_model(
     0.5–1 mg, scale 1e-4, axes off by 20 µrad; white noise 10 µg/√Hz; no
     quantization. Gyros: none of interest (noise only).
     """
+    from estimators.sim import (
+        Bias,
+        ErrorModel,
+        NonOrthogonality,
+        ScaleFactor,
+        TemperatureBias,
+        TemperatureScale,
+        TriadErrorModel,
+        WhiteNoise,
+    )
+
     temps = np.linspace(PAPER_TEMPS_C[0], PAPER_TEMPS_C[-1], 241)
     bias_c = _scaled_coefs(_BIAS_SHAPES, PAPER_ZERO_ERROR_G * gravity_mps2, t_ref_c, temps)
     scale_c = _scaled_coefs(_SCALE_SHAPES, PAPER_SCALE_ERROR, t_ref_c, temps)
@@ -528,6 +533,14 @@ def temperature_truth(model: ErrorModel, temp_c: FloatArray) -> tuple[FloatArray
     ``b(T) = b0 + Σ d_j (T − T_ref)^j`` and ``S(T) = (1 + e0)(1 + Σ k_j (T − T_ref)^j)·s_ii − 1``
     (the effect chain of :mod:`estimators.sim.errors`).
     """
+    from estimators.sim import (
+        Bias,
+        NonOrthogonality,
+        ScaleFactor,
+        TemperatureBias,
+        TemperatureScale,
+    )
+
     chain = model.accel
     t = np.asarray(temp_c, dtype=float).reshape(-1)
 
@@ -578,6 +591,8 @@ def simulate_chamber(
     at a constant temperature; the tests follow each other with a 60 s gap
     (the chamber settling), so the static detector never joins two of them.
     """
+    from estimators.sim import ConstantTemperature, simulate
+
     ss = np.random.SeedSequence(seed)
     parts, t0 = [], 0.0
     for temp, child in zip(temps_c, ss.spawn(len(temps_c)), strict=True):
