@@ -15,7 +15,15 @@ per event while storage is down (issue 29).
   holding it, a read-only or full disk): :data:`HELD` F0-like events written are held in memory
   (and delivered from there); tracemalloc's growth per event.
 
-Run: ``python benchmarks/bench_delivery.py`` (``--quick``: fewer rounds).
+* **Backlog** (``--backlog N``) — the outbox alone with N events pending for one vehicle nobody
+  acknowledges (the default ``outbox_max_pending`` is 100,000): the cost of ``put``, ``ack``,
+  ``pending_vehicles`` and of another vehicle's turn through the outbox (its event put, the
+  vehicles read, its lane's events read and acked: what the delivery does per event besides the
+  transport). Outbox schema 1 read the whole backlog on each (pruning, the vehicles of the pending
+  rows); schema 2 keys the lanes in ``pending`` and prunes only the events just delivered.
+
+Run: ``python benchmarks/bench_delivery.py`` (``--quick``: fewer rounds; ``--backlog N``: the backlog
+figures only).
 """
 
 from __future__ import annotations
@@ -163,12 +171,57 @@ def memory_per_held_event(n: int) -> float:
     return grown / n
 
 
+def backlog_costs(n: int, *, turns: int = 200) -> dict[str, float]:
+    """Median ms per call with ``n`` events pending for one vehicle (module docstring); at ``n`` beyond
+    ``turns``, as at the bound ``outbox_max_pending``, each put gives up one of the backlog."""
+    stuck, other = "veh-stuck", "veh-other"
+    payload = bytes(200)
+    with tempfile.TemporaryDirectory() as tmp:
+        with Outbox(
+            Path(tmp) / "outbox.sqlite", sinks=("zenoh",), max_pending=max(n, turns)
+        ) as outbox:
+            for start in range(0, n, 10_000):
+                outbox.put_many(
+                    (f"{k:032x}", stuck, payload) for k in range(start, min(n, start + 10_000))
+                )
+            times: dict[str, list[float]] = {
+                k: [] for k in ("put", "ack", "pending_vehicles", "turn")
+            }
+            for k in range(turns):
+                t0 = time.perf_counter()
+                outbox.put(f"{n + k:032x}", other, payload)
+                t1 = time.perf_counter()
+                outbox.pending_vehicles("zenoh")
+                t2 = time.perf_counter()
+                lane = outbox.pending("zenoh", vehicle=other, limit=16)
+                t3 = time.perf_counter()
+                outbox.ack_ids("zenoh", [p.id for p in lane])
+                t4 = time.perf_counter()
+                times["put"].append(t1 - t0)
+                times["pending_vehicles"].append(t2 - t1)
+                times["ack"].append(t4 - t3)
+                times["turn"].append(t4 - t0)
+    return {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--quick", action="store_true", help=f"{QUICK_ROUNDS} rounds instead of {ROUNDS}"
     )
+    parser.add_argument(
+        "--backlog",
+        type=int,
+        metavar="N",
+        help="only the outbox costs with N events pending for one vehicle",
+    )
     args = parser.parse_args()
+    if args.backlog is not None:
+        for n in (1, args.backlog):
+            costs = backlog_costs(n)
+            print(f"outbox, {n} events pending for one vehicle: median ms per call: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in costs.items()))  # fmt: skip
+        return
     rounds = QUICK_ROUNDS if args.quick else ROUNDS
     port = free_local_port()
     print(f"delivery latency: {VEHICLES} vehicles, one event each every {PERIOD_S * 1e3:.0f} ms, "
