@@ -69,13 +69,19 @@ def test_events_are_held_in_order_delivered_from_memory_and_written_once_the_fil
         assert writer.counters()["outbox.unavailable_episodes"] == 2
 
 
+def _held_by_a_lock(ob, path, *, max_held):
+    """A writer holding at most ``max_held`` events, and another connection's lock on the file."""
+    writer = OutboxWriter(ob, on_stored=lambda n, v: None, on_held=lambda: None,
+                          clock=lambda: 0.0, max_held=max_held)  # fmt: skip
+    other = sqlite3.connect(path, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")
+    return writer, other
+
+
 def test_memory_is_bounded_giving_up_the_oldest_delivered_everywhere_first(tmp_path):
     path = tmp_path / "o.sqlite"
     with Outbox(path, sinks=("a",)) as ob:
-        writer = OutboxWriter(ob, on_stored=lambda n, v: None, on_held=lambda: None,
-                              clock=lambda: 0.0, max_held=3)  # fmt: skip
-        other = sqlite3.connect(path, isolation_level=None)
-        other.execute("BEGIN EXCLUSIVE")
+        writer, other = _held_by_a_lock(ob, path, max_held=3)
         writer.write([event(k) for k in range(3)])
         middle = writer.next_held("a", "v")
         assert middle is not None
@@ -98,10 +104,7 @@ def test_events_given_up_past_the_bound_are_logged_at_a_bounded_rate(tmp_path, c
     says all that was given up since (the counts and the ids), at the latest at a status tick."""
     path = tmp_path / "o.sqlite"
     with Outbox(path, sinks=("a",)) as ob:
-        writer = OutboxWriter(ob, on_stored=lambda n, v: None, on_held=lambda: None,
-                              clock=lambda: 0.0, max_held=2)  # fmt: skip
-        other = sqlite3.connect(path, isolation_level=None)
-        other.execute("BEGIN EXCLUSIVE")
+        writer, other = _held_by_a_lock(ob, path, max_held=2)
         with caplog.at_level(logging.WARNING, logger="ins_health.outbox"):
             for k in range(50):
                 writer.write([event(k)])
