@@ -20,7 +20,9 @@ per event while storage is down (issue 29).
   ``pending_vehicles`` and of another vehicle's turn through the outbox (its event put, the
   vehicles read, its lane's events read and acked: what the delivery does per event besides the
   transport). Outbox schema 1 read the whole backlog on each (pruning, the vehicles of the pending
-  rows); schema 2 keys the lanes in ``pending`` and prunes only the events just delivered.
+  rows); schema 2 keys the lanes in ``pending`` and prunes only the events just delivered. Then
+  the latency run with vehicle 0's ground station down, without and with N of its events pending
+  at the start.
 
 Run: ``python benchmarks/bench_delivery.py`` (``--quick``: fewer rounds; ``--backlog N``: the backlog
 figures only).
@@ -46,7 +48,14 @@ sys.path.insert(0, str(ROOT))
 
 from host_steal import percentiles  # noqa: E402
 
-from protocols.events import Event, Predicate, Severity, StreamCause, make_event  # noqa: E402
+from protocols.events import (  # noqa: E402
+    Event,
+    Predicate,
+    Severity,
+    StreamCause,
+    encode_event,
+    make_event,
+)
 from protocols.zenoh_adapter import (  # noqa: E402
     AckMode,
     EventReceiver,
@@ -82,8 +91,9 @@ def client(port: int) -> zenoh.Config:
     return zenoh_config(ZenohSettings(mode=Mode.CLIENT, connect=(f"tcp/127.0.0.1:{port}",)))
 
 
-def latency_run(port: int, *, offline: set[int], rounds: int) -> np.ndarray:
-    """Latencies (ms) of the events of the vehicles whose ground station is up."""
+def latency_run(port: int, *, offline: set[int], rounds: int, backlog: int = 0) -> np.ndarray:
+    """Latencies (ms) of the events of the vehicles whose ground station is up; ``backlog`` events of
+    the first offline vehicle already pending when the run starts."""
     vehicles = [f"veh-{k:02d}" for k in range(VEHICLES)]
     written: dict[str, float] = {}
     received: dict[str, float] = {}
@@ -107,7 +117,13 @@ def latency_run(port: int, *, offline: set[int], rounds: int) -> np.ndarray:
 
         async def run() -> None:
             wake, stop = asyncio.Event(), asyncio.Event()
-            with Outbox(Path(tmp) / "outbox.sqlite", sinks=("zenoh",)) as outbox:
+            path = Path(tmp) / "outbox.sqlite"
+            if backlog:
+                # Filled before the run and closed (its log checkpointed into the file), as a
+                # backlog that grew over hours would be.
+                with Outbox(path, sinks=("zenoh",)) as outbox:
+                    fill(outbox, vehicles[min(offline)], backlog)
+            with Outbox(path, sinks=("zenoh",)) as outbox:
                 writer = OutboxWriter(outbox, on_stored=lambda n, v: wake.set(),
                                       on_held=wake.set, clock=time.monotonic)  # fmt: skip
                 sink = ZenohEventSink(onboard, ack=AckMode.RECEIVER, ack_timeout_s=ACK_TIMEOUT_S,
@@ -171,6 +187,13 @@ def memory_per_held_event(n: int) -> float:
     return grown / n
 
 
+def fill(outbox: Outbox, vehicle: str, n: int) -> None:
+    """``n`` events of ``vehicle`` pending in ``outbox`` (raised before any of a run's)."""
+    for start in range(0, n, 10_000):
+        batch = [event(vehicle, -1 - k) for k in range(start, min(n, start + 10_000))]
+        outbox.put_many((e.event_id, vehicle, encode_event(e)) for e in batch)
+
+
 def backlog_costs(n: int, *, turns: int = 200) -> dict[str, float]:
     """Median ms per call with ``n`` events pending for one vehicle (module docstring); at ``n`` beyond
     ``turns``, as at the bound ``outbox_max_pending``, each put gives up one of the backlog."""
@@ -180,10 +203,7 @@ def backlog_costs(n: int, *, turns: int = 200) -> dict[str, float]:
         with Outbox(
             Path(tmp) / "outbox.sqlite", sinks=("zenoh",), max_pending=max(n, turns)
         ) as outbox:
-            for start in range(0, n, 10_000):
-                outbox.put_many(
-                    (f"{k:032x}", stuck, payload) for k in range(start, min(n, start + 10_000))
-                )
+            fill(outbox, stuck, n)
             times: dict[str, list[float]] = {
                 k: [] for k in ("put", "ack", "pending_vehicles", "turn")
             }
@@ -216,13 +236,19 @@ def main() -> None:
         help="only the outbox costs with N events pending for one vehicle",
     )
     args = parser.parse_args()
+    rounds = QUICK_ROUNDS if args.quick else ROUNDS
     if args.backlog is not None:
         for n in (1, args.backlog):
             costs = backlog_costs(n)
             print(f"outbox, {n} events pending for one vehicle: median ms per call: "
                   + ", ".join(f"{k} {v:.2f}" for k, v in costs.items()))  # fmt: skip
+        port = free_local_port()
+        with RouterProcess(f"tcp/127.0.0.1:{port}"):
+            for n in (0, args.backlog):
+                lat = latency_run(port, offline={0}, rounds=rounds, backlog=n)
+                print(f"  vehicle 0's down with {n} events pending, the other 15 ({lat.size} events):"
+                      f"{percentiles(lat)}")  # fmt: skip
         return
-    rounds = QUICK_ROUNDS if args.quick else ROUNDS
     port = free_local_port()
     print(f"delivery latency: {VEHICLES} vehicles, one event each every {PERIOD_S * 1e3:.0f} ms, "
           f"{rounds} rounds; ack_timeout_s {ACK_TIMEOUT_S:g}, delivery_retry_s {RETRY_S:g}")  # fmt: skip
