@@ -15,7 +15,17 @@ per event while storage is down (issue 29).
   holding it, a read-only or full disk): :data:`HELD` F0-like events written are held in memory
   (and delivered from there); tracemalloc's growth per event.
 
-Run: ``python benchmarks/bench_delivery.py`` (``--quick``: fewer rounds).
+* **Backlog** (``--backlog N``) — the outbox alone with N events pending for one vehicle nobody
+  acknowledges (the default ``outbox_max_pending`` is 100,000): the cost of ``put``, ``ack``,
+  ``pending_vehicles`` and of another vehicle's turn through the outbox (its event put, the
+  vehicles read, its lane's events read and acked: what the delivery does per event besides the
+  transport). Outbox schema 1 read the whole backlog on each (pruning, the vehicles of the pending
+  rows); schema 2 keys the lanes in ``pending`` and prunes only the events just delivered. Then
+  the latency run with vehicle 0's ground station down, without and with N of its events pending
+  at the start.
+
+Run: ``python benchmarks/bench_delivery.py`` (``--quick``: fewer rounds; ``--backlog N``: the backlog
+figures only).
 """
 
 from __future__ import annotations
@@ -38,7 +48,14 @@ sys.path.insert(0, str(ROOT))
 
 from host_steal import percentiles  # noqa: E402
 
-from protocols.events import Event, Predicate, Severity, StreamCause, make_event  # noqa: E402
+from protocols.events import (  # noqa: E402
+    Event,
+    Predicate,
+    Severity,
+    StreamCause,
+    encode_event,
+    make_event,
+)
 from protocols.zenoh_adapter import (  # noqa: E402
     AckMode,
     EventReceiver,
@@ -74,8 +91,9 @@ def client(port: int) -> zenoh.Config:
     return zenoh_config(ZenohSettings(mode=Mode.CLIENT, connect=(f"tcp/127.0.0.1:{port}",)))
 
 
-def latency_run(port: int, *, offline: set[int], rounds: int) -> np.ndarray:
-    """Latencies (ms) of the events of the vehicles whose ground station is up."""
+def latency_run(port: int, *, offline: set[int], rounds: int, backlog: int = 0) -> np.ndarray:
+    """Latencies (ms) of the events of the vehicles whose ground station is up; ``backlog`` events of
+    the first offline vehicle already pending when the run starts."""
     vehicles = [f"veh-{k:02d}" for k in range(VEHICLES)]
     written: dict[str, float] = {}
     received: dict[str, float] = {}
@@ -99,7 +117,13 @@ def latency_run(port: int, *, offline: set[int], rounds: int) -> np.ndarray:
 
         async def run() -> None:
             wake, stop = asyncio.Event(), asyncio.Event()
-            with Outbox(Path(tmp) / "outbox.sqlite", sinks=("zenoh",)) as outbox:
+            path = Path(tmp) / "outbox.sqlite"
+            if backlog:
+                # Filled before the run and closed (its log checkpointed into the file), as a
+                # backlog that grew over hours would be.
+                with Outbox(path, sinks=("zenoh",)) as outbox:
+                    fill(outbox, vehicles[min(offline)], backlog)
+            with Outbox(path, sinks=("zenoh",)) as outbox:
                 writer = OutboxWriter(outbox, on_stored=lambda n, v: wake.set(),
                                       on_held=wake.set, clock=time.monotonic)  # fmt: skip
                 sink = ZenohEventSink(onboard, ack=AckMode.RECEIVER, ack_timeout_s=ACK_TIMEOUT_S,
@@ -163,13 +187,68 @@ def memory_per_held_event(n: int) -> float:
     return grown / n
 
 
+def fill(outbox: Outbox, vehicle: str, n: int) -> None:
+    """``n`` events of ``vehicle`` pending in ``outbox`` (raised before any of a run's)."""
+    for start in range(0, n, 10_000):
+        batch = [event(vehicle, -1 - k) for k in range(start, min(n, start + 10_000))]
+        outbox.put_many((e.event_id, vehicle, encode_event(e)) for e in batch)
+
+
+def backlog_costs(n: int, *, turns: int = 200) -> dict[str, float]:
+    """Median ms per call with ``n`` events pending for one vehicle (module docstring); at ``n`` beyond
+    ``turns``, as at the bound ``outbox_max_pending``, each put gives up one of the backlog."""
+    stuck, other = "veh-stuck", "veh-other"
+    payload = bytes(200)
+    with tempfile.TemporaryDirectory() as tmp:
+        with Outbox(
+            Path(tmp) / "outbox.sqlite", sinks=("zenoh",), max_pending=max(n, turns)
+        ) as outbox:
+            fill(outbox, stuck, n)
+            times: dict[str, list[float]] = {
+                k: [] for k in ("put", "ack", "pending_vehicles", "turn")
+            }
+            for k in range(turns):
+                t0 = time.perf_counter()
+                outbox.put(f"{n + k:032x}", other, payload)
+                t1 = time.perf_counter()
+                outbox.pending_vehicles("zenoh")
+                t2 = time.perf_counter()
+                lane = outbox.pending("zenoh", vehicle=other, limit=16)
+                t3 = time.perf_counter()
+                outbox.ack_ids("zenoh", [p.id for p in lane])
+                t4 = time.perf_counter()
+                times["put"].append(t1 - t0)
+                times["pending_vehicles"].append(t2 - t1)
+                times["ack"].append(t4 - t3)
+                times["turn"].append(t4 - t0)
+    return {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--quick", action="store_true", help=f"{QUICK_ROUNDS} rounds instead of {ROUNDS}"
     )
+    parser.add_argument(
+        "--backlog",
+        type=int,
+        metavar="N",
+        help="only the outbox costs with N events pending for one vehicle",
+    )
     args = parser.parse_args()
     rounds = QUICK_ROUNDS if args.quick else ROUNDS
+    if args.backlog is not None:
+        for n in (1, args.backlog):
+            costs = backlog_costs(n)
+            print(f"outbox, {n} events pending for one vehicle: median ms per call: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in costs.items()))  # fmt: skip
+        port = free_local_port()
+        with RouterProcess(f"tcp/127.0.0.1:{port}"):
+            for n in (0, args.backlog):
+                lat = latency_run(port, offline={0}, rounds=rounds, backlog=n)
+                print(f"  vehicle 0's down with {n} events pending, the other 15 ({lat.size} events):"
+                      f"{percentiles(lat)}")  # fmt: skip
+        return
     port = free_local_port()
     print(f"delivery latency: {VEHICLES} vehicles, one event each every {PERIOD_S * 1e3:.0f} ms, "
           f"{rounds} rounds; ack_timeout_s {ACK_TIMEOUT_S:g}, delivery_retry_s {RETRY_S:g}")  # fmt: skip

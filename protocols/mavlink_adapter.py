@@ -49,7 +49,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from operator import attrgetter
-from typing import Any, Protocol, TypeAlias
+from typing import Any, Literal, Protocol, TypeAlias
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -615,6 +615,10 @@ class LinkRejection(StrEnum):
     fields: what they hold there is no new measurement (a held or zeroed value)."""
 
 
+_SENT_LOCK = threading.Lock()
+"""Guards the links' counts of what they sent (:meth:`LinkCounters.count_sent`)."""
+
+
 @dataclass
 class LinkCounters:
     """What a :class:`MavlinkLink` saw and sent.
@@ -651,6 +655,14 @@ class LinkCounters:
 
     def reject(self, reason: str, n: int = 1) -> None:
         self.rejected[reason] = self.rejected.get(reason, 0) + n
+
+    def count_sent(
+        self, name: Literal["alerts_sent", "texts_sent", "heartbeats_sent"], n: int = 1
+    ) -> None:
+        """``name`` += ``n`` under a lock: the delivery lanes and the heartbeat send from worker
+        threads at once, and an unlocked ``+=`` loses counts."""
+        with _SENT_LOCK:
+            setattr(self, name, getattr(self, name) + n)
 
 
 # Fields of each IMU message in the order ImuBatcher reads them: time, accel xyz, gyro xyz, temperature,
@@ -1060,7 +1072,7 @@ class MavlinkLink:
     def send_heartbeat(self) -> None:
         """One HEARTBEAT (the service sends it at 1 Hz)."""
         self.send(heartbeat_message())
-        self.counters.heartbeats_sent += 1
+        self.counters.count_sent("heartbeats_sent")
 
     def send_text(self, text: str, severity: Severity) -> int:
         """Send free text as STATUSTEXT (chunked beyond 50 characters); returns messages sent."""
@@ -1070,14 +1082,14 @@ class MavlinkLink:
         messages = statustext_messages(text, severity=severity, chunk_id=chunk_id)
         for msg in messages:
             self.send(msg)
-        self.counters.texts_sent += len(messages)
+        self.counters.count_sent("texts_sent", len(messages))
         return len(messages)
 
     def send_alert(self, event: Event) -> str:
         """Send the event's :func:`alert_text` as one STATUSTEXT with its severity; returns the text."""
         text = alert_text(event)
         self.send(statustext_messages(text, severity=event.severity)[0])
-        self.counters.alerts_sent += 1
+        self.counters.count_sent("alerts_sent")
         return text
 
     def close(self) -> None:

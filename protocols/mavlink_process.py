@@ -298,18 +298,18 @@ class MavlinkProcessLink:
     def send_heartbeat(self) -> None:
         """One HEARTBEAT (the service sends it at 1 Hz)."""
         self._call("send_heartbeat")
-        self.counters.heartbeats_sent += 1
+        self.counters.count_sent("heartbeats_sent")
 
     def send_text(self, text: str, severity: Severity) -> int:
         """Free text as STATUSTEXT (chunked beyond 50 characters); returns messages sent."""
         n = int(self._call("send_text", text, severity))
-        self.counters.texts_sent += n
+        self.counters.count_sent("texts_sent", n)
         return n
 
     def send_alert(self, event: Event) -> str:
         """The event's :func:`~protocols.mavlink_adapter.alert_text` as one STATUSTEXT; returns the text."""
         text = str(self._call("send_alert", event))
-        self.counters.alerts_sent += 1
+        self.counters.count_sent("alerts_sent")
         return text
 
     def close(self) -> None:

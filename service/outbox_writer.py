@@ -13,7 +13,10 @@ row only for the sinks that do not have it yet.
 The memory is bounded: beyond ``max_held`` events the oldest that every sink already has
 are given up first (their place in the delivered history is lost: counted as
 ``outbox.held_dropped_delivered``), then the oldest (``outbox.held_lost``: a sink never
-had it); both are said in the log. Checkpoints wait while a held event is not yet with
+had it); both are said in the log, at most one line per
+:data:`~protocols.log_rate.LOG_PERIOD_S` (a storm of events past the bound would otherwise log a
+line each; what grew since is said by the next line, at the latest at the next status tick,
+:meth:`OutboxWriter.counters`). Checkpoints wait while a held event is not yet with
 every sink (:attr:`OutboxWriter.undelivered`): a checkpoint ahead of it would, after
 ``kill -9``, resume past an event that exists nowhere.
 
@@ -29,6 +32,7 @@ from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
 from protocols.events import Event, encode_event
+from protocols.log_rate import LogRate
 from service.log_setup import logger
 from service.outage import Outage
 from service.outbox import Outbox, OutboxUnavailable
@@ -37,6 +41,8 @@ RETRY_MIN_S = 0.05
 RETRY_MAX_S = 2.0
 MAX_HELD_DEFAULT = 10_000
 """Events held in memory at most while the outbox is unavailable (``[service] max_held_events``)."""
+LOST_IDS_LOGGED = 20
+"""Ids of the events given up named in one log line at most (the count says all)."""
 
 log = logger("outbox")
 
@@ -83,6 +89,9 @@ class OutboxWriter:
         self._outage = Outage(clock)
         self.dropped_delivered = 0
         self.lost = 0
+        self._bound_log = LogRate()
+        self._lost_ids: list[str] = []
+        """The first ids given up since the last log line (:data:`LOST_IDS_LOGGED`)."""
 
     @property
     def holding(self) -> bool:
@@ -149,13 +158,25 @@ class OutboxWriter:
         self._held = [h for h in self._held if id(h) not in gone]
         self.dropped_delivered += len(delivered)
         self.lost += len(lost)
+        room = LOST_IDS_LOGGED - len(self._lost_ids)
+        self._lost_ids.extend(h.event.event_id for h in lost[: max(0, room)])
+        self._log_bound()
+
+    def _log_bound(self) -> None:
+        """Say the events given up since the last line, when a line is due (module docstring)."""
+        new = self._bound_log.due({"delivered": self.dropped_delivered, "lost": self.lost})
+        if not new:
+            return
+        lost = new.get("lost", 0)
+        more = f" and {lost - len(self._lost_ids)} more" if lost > len(self._lost_ids) else ""
         log.warning(
             "outbox unavailable and %d events held (max_held_events): %d delivered everywhere are "
-            "not kept for the history, %d not yet delivered everywhere are given up (%s); counted "
+            "not kept for the history, %d not yet delivered everywhere are given up (%s%s); counted "
             "as outbox.held_dropped_delivered and outbox.held_lost",
-            self._max_held, len(delivered), len(lost),
-            ", ".join(sorted({h.event.event_id for h in lost})) or "none",
+            self._max_held, new.get("delivered", 0), lost,
+            ", ".join(self._lost_ids) or "none", more,
         )  # fmt: skip
+        self._lost_ids = []
 
     def next_held(self, sink: str, vehicle: str) -> HeldEvent | None:
         """The oldest held event of ``vehicle`` that ``sink`` does not have yet."""
@@ -190,7 +211,8 @@ class OutboxWriter:
         return len(self._held)
 
     def counters(self) -> dict[str, int]:
-        """For the status topic (module docstring)."""
+        """For the status topic (module docstring); the events given up since the last log line are said when due."""
+        self._log_bound()
         return {
             "outbox.unavailable": int(self.holding),
             "outbox.held_events": len(self._held),

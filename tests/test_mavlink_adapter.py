@@ -103,6 +103,32 @@ def test_statustext_alert_arrives_with_its_severity(gcs, severity):
     assert msg.id == 0  # a single chunk
 
 
+class _SlowReadCounters(LinkCounters):
+    """Reading ``alerts_sent`` gives the interpreter to another thread: a count not made under a
+    lock then loses updates every time."""
+
+    def __getattribute__(self, name):
+        value = super().__getattribute__(name)
+        if name == "alerts_sent":
+            time.sleep(0.001)
+        return value
+
+
+def test_alerts_sent_from_several_lanes_at_once_are_each_counted(gcs):
+    _conn, port = gcs
+    with MavlinkLink(MavlinkSettings(device=f"udpout:127.0.0.1:{port}", vehicle="v1")) as link:
+        link.counters = _SlowReadCounters()
+        lanes = [
+            threading.Thread(target=lambda: [link.send_alert(_finding_event()) for _ in range(10)])
+            for _ in range(4)
+        ]
+        for lane in lanes:
+            lane.start()
+        for lane in lanes:
+            lane.join()
+        assert link.counters.alerts_sent == 40
+
+
 def test_signed_messages_verify_with_the_key_and_fail_with_another(gcs):
     conn, port = gcs
     conn.setup_signing(KEY, sign_outgoing=False, allow_unsigned_callback=None)

@@ -157,7 +157,7 @@ def test_a_locked_file_is_unavailable_at_once_changes_nothing_and_is_written_onc
                 ob.ack("s", [ob.pending("s")[0].seq])
             with pytest.raises(OutboxUnavailable, match="locked"):
                 ob.record_attempt("s", [ob.pending("s")[0].seq])
-            assert ids(ob.pending("s")) == ["a" * 32]
+            assert ids(ob.pending("s")) == ["a" * 32] and ob.pending_vehicles("s") == {"v": 1}
         finally:
             other.execute("ROLLBACK")
             other.close()
@@ -192,6 +192,8 @@ def test_a_full_outbox_is_unavailable_and_the_delivered_history_gives_way(tmp_pa
         assert ob.put("f" * 32, "v", bytes(1000))
         counts = ob.counts()
         assert counts.stored == n + 1 - 20 and counts.pending_by_sink == {"s": n + 1 - 20}
+        # The write refused first counted nothing.
+        assert ob.pending_vehicles("s") == {"v": n + 1 - 20}
 
 
 def test_a_limit_lowered_below_the_files_size_holds_from_the_next_open(tmp_path):
@@ -237,6 +239,7 @@ def test_pending_per_vehicle_and_each_sinks_backlog_bounded_on_its_own(tmp_path)
         ob.put_many([(f"{k:032x}", "va", b"x") for k in range(3, 6)])
         # zenoh had 6 pending: its 3 oldest given up; mavlink had 3: nothing given up.
         assert ob.given_up == {"zenoh": 3}
+        assert ob.pending_vehicles("zenoh") == ob.pending_vehicles("mavlink") == {"va": 3}
         assert ids(ob.pending("zenoh")) == [f"{k:032x}" for k in (3, 4, 5)]
         assert ids(ob.pending("mavlink")) == [f"{k:032x}" for k in (3, 4, 5)]
         # An event a sink had from memory while the outbox was unavailable gets no pending row for it.
@@ -268,3 +271,73 @@ def test_a_data_directory_is_held_also_once_deleted_and_its_replacement_is_told(
     finally:
         lock.close()
     DataDirLock(data).close()  # free once the holder let go
+
+
+_V1_DDL = """
+CREATE TABLE events (seq INTEGER PRIMARY KEY AUTOINCREMENT, id TEXT NOT NULL UNIQUE,
+                     vehicle TEXT NOT NULL, payload BLOB NOT NULL);
+CREATE TABLE pending (seq INTEGER NOT NULL, sink TEXT NOT NULL, attempts INTEGER NOT NULL DEFAULT 0,
+                      PRIMARY KEY (sink, seq));
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE INDEX events_vehicle ON events (vehicle, seq);
+INSERT INTO meta VALUES ('schema_version', '1');
+"""
+"""The schema of an outbox written before the lanes were keyed in ``pending`` (version 1)."""
+
+
+def test_a_version_1_file_is_migrated_and_delivers_what_it_held(tmp_path):
+    """A file written by outbox schema 1: its events pending per (sink, vehicle) and its delivered
+    history are read as they were, once, in order; then everything delivered is pruned."""
+    path = tmp_path / "o.sqlite"
+    db = sqlite3.connect(path)
+    db.executescript(_V1_DDL)
+    old = [
+        ("c" * 32, "va", b"C"),
+        ("a" * 32, "va", b"A"),
+        ("b" * 32, "vb", b"B"),
+        ("d" * 32, "va", b"D"),
+    ]
+    db.executemany("INSERT INTO events (id, vehicle, payload) VALUES (?, ?, ?)", old)
+    # c: delivered to both sinks; a, d: pending for both; b: for zenoh only, tried twice.
+    db.executescript(
+        "INSERT INTO pending (seq, sink) VALUES (2, 'zenoh'), (2, 'mavlink'), (4, 'zenoh'), (4, 'mavlink');"
+        "INSERT INTO pending VALUES (3, 'zenoh', 2);"
+    )
+    db.commit()
+    db.close()
+    with Outbox(path, sinks=("zenoh", "mavlink"), retain_delivered=0) as ob:
+        assert ob.pending_vehicles("zenoh") == {"va": 2, "vb": 1}
+        assert ob.pending_vehicles("mavlink") == {"va": 2}
+        assert ids(ob.pending("zenoh", vehicle="va")) == ["a" * 32, "d" * 32]
+        assert [(e.id, e.payload, e.attempts) for e in ob.pending("zenoh", vehicle="vb")] == [
+            ("b" * 32, b"B", 2)
+        ]
+        ob.put("e" * 32, "vb", b"E")
+        ob.ack_ids("zenoh", ["a" * 32, "b" * 32, "d" * 32, "e" * 32])
+        assert ob.counts().stored == 3  # a, d, e still pending for mavlink; c pruned as delivered
+        ob.ack_ids("mavlink", ["a" * 32, "d" * 32, "e" * 32])
+        assert ob.counts().stored == 0
+    db = sqlite3.connect(path)
+    assert db.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() == ("2",)
+    db.close()
+
+
+def test_delivery_and_pruning_read_only_the_rows_they_touch(tmp_path):
+    """With a backlog nobody acks, no statement of a delivery turn (put, the sink's vehicles, a
+    lane's events, its ack and the pruning) scans the events or pending table: each is an index
+    search, so another vehicle's delivery does not slow with the backlog."""
+    with Outbox(tmp_path / "o.sqlite", sinks=("zenoh",), max_pending=50, retain_delivered=5) as ob:
+        ob.put_many([(f"{k:032x}", "stuck", b"x") for k in range(60)])
+        statements: list[str] = []
+        ob._db.set_trace_callback(statements.append)
+        ob.put("f" * 32, "other", b"F")
+        ob.pending_vehicles("zenoh")
+        ob.ack_ids("zenoh", [e.id for e in ob.pending("zenoh", vehicle="other")])
+        ob._db.set_trace_callback(None)
+        plans = {
+            sql: [row[3] for row in ob._db.execute(f"EXPLAIN QUERY PLAN {sql}")]
+            for sql in statements
+            if sql.split()[0] in ("SELECT", "INSERT", "UPDATE", "DELETE")
+        }
+        scans = {sql: p for sql, p in plans.items() if any(d.startswith("SCAN") for d in p)}
+        assert plans and not scans

@@ -3,9 +3,13 @@ written once it is back with a pending row only for the sinks that do not have t
 
 from __future__ import annotations
 
+import logging
 import sqlite3
+import time
+from unittest import mock
 
 from protocols.events import Predicate, Severity, StreamCause, make_event
+from protocols.log_rate import LOG_PERIOD_S
 from service.outbox import Outbox
 from service.outbox_writer import OutboxWriter
 
@@ -65,13 +69,19 @@ def test_events_are_held_in_order_delivered_from_memory_and_written_once_the_fil
         assert writer.counters()["outbox.unavailable_episodes"] == 2
 
 
+def _held_by_a_lock(ob, path, *, max_held):
+    """A writer holding at most ``max_held`` events, and another connection's lock on the file."""
+    writer = OutboxWriter(ob, on_stored=lambda n, v: None, on_held=lambda: None,
+                          clock=lambda: 0.0, max_held=max_held)  # fmt: skip
+    other = sqlite3.connect(path, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")
+    return writer, other
+
+
 def test_memory_is_bounded_giving_up_the_oldest_delivered_everywhere_first(tmp_path):
     path = tmp_path / "o.sqlite"
     with Outbox(path, sinks=("a",)) as ob:
-        writer = OutboxWriter(ob, on_stored=lambda n, v: None, on_held=lambda: None,
-                              clock=lambda: 0.0, max_held=3)  # fmt: skip
-        other = sqlite3.connect(path, isolation_level=None)
-        other.execute("BEGIN EXCLUSIVE")
+        writer, other = _held_by_a_lock(ob, path, max_held=3)
         writer.write([event(k) for k in range(3)])
         middle = writer.next_held("a", "v")
         assert middle is not None
@@ -87,3 +97,25 @@ def test_memory_is_bounded_giving_up_the_oldest_delivered_everywhere_first(tmp_p
         other.close()
         assert writer.flush()
         assert [p.id for p in ob.pending("a")] == [event(k).event_id for k in (2, 3, 4)]
+
+
+def test_events_given_up_past_the_bound_are_logged_at_a_bounded_rate(tmp_path, caplog):
+    """A storm past ``max_held``: one line at once, then none until the period is over; the next line
+    says all that was given up since (the counts and the ids), at the latest at a status tick."""
+    path = tmp_path / "o.sqlite"
+    with Outbox(path, sinks=("a",)) as ob:
+        writer, other = _held_by_a_lock(ob, path, max_held=2)
+        with caplog.at_level(logging.WARNING, logger="ins_health.outbox"):
+            for k in range(50):
+                writer.write([event(k)])
+            lines = [r.getMessage() for r in caplog.records if "max_held_events" in r.getMessage()]
+            assert len(lines) == 1 and "1 not yet delivered everywhere are given up" in lines[0]
+            with mock.patch(
+                "protocols.log_rate.time.monotonic", return_value=time.monotonic() + LOG_PERIOD_S
+            ):
+                assert writer.counters()["outbox.held_lost"] == 48
+            lines = [r.getMessage() for r in caplog.records if "max_held_events" in r.getMessage()]
+        other.execute("ROLLBACK")
+        other.close()
+        assert len(lines) == 2 and "47 not yet delivered everywhere are given up" in lines[1]
+        assert event(1).event_id in lines[1] and "and 27 more" in lines[1]
