@@ -94,11 +94,7 @@ import numpy as np
 # module for every run, GNSS or not.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import Triad
-from estimators.coverage import IN_FLIGHT_WITHIN_S, Check, CheckCoverage
-
-OBSERVABLE_SHARE = 0.5
-"""An axis whose share of the specific force, rms of ``f̃_i/|f̃|`` in flight, is below this is not
-observable: its MDF would be more than twice the norm's."""
+from estimators.coverage import IN_FLIGHT_WITHIN_S, OBSERVABLE_SHARE, Check, CheckCoverage
 
 DETECTION_QUANTILE = NormalDist().inv_cdf(0.95)
 """The MDF's margin above the threshold: a step at the MDF is detected with probability 95 %."""

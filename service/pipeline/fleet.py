@@ -531,7 +531,7 @@ class FleetProcessor:
                 )
                 for t in (Triad.ACCEL, Triad.GYRO)
             )
-        return norm.coverage()
+        return norm.coverage(imu)
 
     def _scalar_note(self, vehicle: str, imu: int) -> str:
         pipe = self.pipelines.get((vehicle, imu))
