@@ -217,11 +217,18 @@ class CheckCoverage:
         if self.check is Check.THRUST_AXIS and self.mdf_bias_si is not None:
             return self._in_flight_line(self.mdf_bias_si, unit)
         if self.check is Check.CROSS_IMU_NORM and self.mdf_bias_si is not None:
-            blind = [AXES[k] for k in range(3) if not math.isfinite(self.mdf_bias_si[k])]
+            mdf = self.mdf_bias_si
+            blind = [AXES[k] for k in range(3) if not math.isfinite(mdf[k])]
+            seen = ", ".join(
+                f"{AXES[k]} {mdf[k]:.2g}{unit}" for k in range(3) if AXES[k] not in blind
+            )
             return (
                 f"{self.name}: in flight tested on {self.samples:,} s, MDF "
-                f"{min(self.mdf_bias_si):.2g}{unit} of the norm"
-                + (f"; {', '.join(blind)} not observable" if blind else "")
+                + (
+                    f"{seen}; {', '.join(blind)} not observable"
+                    if blind
+                    else f"{mdf[0]:.2g}{unit} of the norm"
+                )
                 + f" ({self.reason})"
             )
         amount = (
