@@ -183,8 +183,8 @@ def test_fault_free_flights_with_a_turned_imu_raise_nothing() -> None:
 
 def test_lever_arm_is_found_with_its_covariance() -> None:
     """The lever arm of 7.8 cm is estimated in flight: within 5 stated standard deviations per axis,
-    each below 3 mm (the fit's model error — the simulated ω̇ is a central difference, the check's a
-    backward one — is within the covariance's reach at this size)."""
+    each below 3 mm (the fit's model error — the check's ω̇ is a central difference of sampled rates —
+    is within the covariance's reach at this size)."""
     s0, s1 = flight_pair(7)
     trace = batch(s0, s1)
     sd = np.sqrt(np.diag(trace.lever_arm_cov_m2))
