@@ -49,6 +49,7 @@ from protocols.events import Predicate, decode_event, encode_event, event_versio
 from protocols.frames import SampleBatch, split_session
 from protocols.logs import read_log_sessions, write_tlog
 from service.pipeline import FleetProcessor
+from service.pipeline.norm_check import VehicleNorm
 
 LEVER_ARM_M = np.array(PAIR_LEVER_ARM_M)
 MOUNT = Rotation.from_euler("zx", PAIR_MOUNT_ZX_DEG, degrees=True).as_matrix()
@@ -301,3 +302,19 @@ def test_a_checkpointed_check_goes_on_where_it_was() -> None:
     assert any(b.alarms for b in after)
     with pytest.raises(ValueError, match="version 0 is not 1"):
         CrossImuNorm.from_state({**first.state_dict(), "version": 0})
+
+
+def test_the_axes_shares_of_the_specific_force_go_through_the_checkpoint() -> None:
+    """The vehicle's norm check keeps each IMU's share of the specific force (its coverage's
+    observable axes) in its checkpoint; one written before the shares were kept starts them afresh,
+    a malformed one is refused with the reason."""
+    norm = VehicleNorm("uav", (0, 1), 100.0, gravity_mps2=9.8)
+    t = np.arange(50) * 0.01
+    norm.add(SampleBatch("uav", 1, 0, t, np.tile([0.0, 9.8, 0.0], (50, 1)), np.zeros((50, 3))))
+    saved = decode_state(encode_state(norm.state_dict()))
+    back = VehicleNorm.from_state("uav", saved, gravity_mps2=9.8)
+    assert (back.accel_share_sums, back.accel_share_n) == ([[0.0] * 3, [0.0, 50.0, 0.0]], [0, 50])
+    older = {k: v for k, v in saved.items() if not k.startswith("accel_share")}
+    assert VehicleNorm.from_state("uav", older, gravity_mps2=9.8).accel_share_n == [0, 0]
+    with pytest.raises(ValueError, match="malformed"):
+        VehicleNorm.from_state("uav", {**saved, "accel_share_n": [1]}, gravity_mps2=9.8)
