@@ -93,6 +93,10 @@ Triple = tuple[float, float, float]
 IN_FLIGHT_WITHIN_S = 10.0
 """The in-flight checks state the fault they find within this time of its onset, s."""
 
+OBSERVABLE_SHARE = 0.5
+"""An axis whose share of the specific force, rms of ``f̃_i/|f̃|`` in flight, is below this is not
+observable by an in-flight check on ``|f̃|``: its MDF would be more than twice the norm's."""
+
 
 class Check(StrEnum):
     """A check a verdict may rest on."""
@@ -213,9 +217,19 @@ class CheckCoverage:
         if self.check is Check.THRUST_AXIS and self.mdf_bias_si is not None:
             return self._in_flight_line(self.mdf_bias_si, unit)
         if self.check is Check.CROSS_IMU_NORM and self.mdf_bias_si is not None:
+            mdf = self.mdf_bias_si
+            blind = [AXES[k] for k in range(3) if not math.isfinite(mdf[k])]
+            seen = ", ".join(
+                f"{AXES[k]} {mdf[k]:.2g}{unit}" for k in range(3) if AXES[k] not in blind
+            )
             return (
                 f"{self.name}: in flight tested on {self.samples:,} s, MDF "
-                f"{self.mdf_bias_si[0]:.2g}{unit} of the norm ({self.reason})"
+                + (
+                    f"{seen}; {', '.join(blind)} not observable"
+                    if blind
+                    else f"{mdf[0]:.2g}{unit} of the norm"
+                )
+                + f" ({self.reason})"
             )
         amount = (
             f"{self.positions} position{'s' * (self.positions != 1)}"
@@ -529,23 +543,33 @@ def norm_coverage(
     false_alarms_per_hour: float,
     pair: tuple[int, int],
     reason: str = "",
+    share: ArrayLike | None = None,
 ) -> CheckCoverage:
     """The cross-IMU norm's coverage for one triad (module docstring): tested seconds (in
-    ``samples``), the MDF of the norm as a zero signal along the sensed vector on every axis, and,
-    given the magnitude it was sensed at (``reference_si``: g in hover), the scale MDF ``mdf/ref``.
-    Not run (``tested_s`` 0) it says why (``reason``)."""
+    ``samples``), the MDF of the norm as a zero signal along the sensed vector, and, given the
+    magnitude it was sensed at (``reference_si``: g in hover), the scale MDF ``mdf/ref``. Given
+    the IMU's ``share`` of the sensed vector per axis (rms of ``v_i/|v|``), an axis's zero signal
+    moves the norm by ``share_i`` of itself and its scale by ``share_i²``: ``mdf/share_i`` and
+    ``mdf/(ref·share_i²)``, an axis below :data:`OBSERVABLE_SHARE` not observable (infinite), as
+    the thrust-axis check states it; without it every axis gets the norm's MDF. Not run
+    (``tested_s`` 0) it says why (``reason``)."""
     where = (
         f"IMU{pair[1]} against IMU{pair[0]}, {false_alarms_per_hour:g} false alarms per flight hour"
     )
     if tested_s <= 0.0:
         return CheckCoverage(Check.CROSS_IMU_NORM, triad, ran=False, reason=reason or where)
-    scale = None if reference_si is None else (mdf_si / reference_si,) * 3
+    u = np.ones(3) if share is None else np.asarray(share, float)
+    u = np.where(u >= OBSERVABLE_SHARE, u, 0.0)
+    with np.errstate(divide="ignore"):
+        bias, scale = mdf_si / u, mdf_si / ((reference_si or 1.0) * u**2)
     return CheckCoverage(
         Check.CROSS_IMU_NORM,
         triad,
         ran=True,
         samples=round(tested_s),
-        mdf_bias_si=(mdf_si,) * 3,
-        mdf_scale=scale,
+        mdf_bias_si=(float(bias[0]), float(bias[1]), float(bias[2])),
+        mdf_scale=None
+        if reference_si is None
+        else (float(scale[0]), float(scale[1]), float(scale[2])),
         reason=where,
     )

@@ -94,11 +94,7 @@ import numpy as np
 # module for every run, GNSS or not.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import Triad
-from estimators.coverage import IN_FLIGHT_WITHIN_S, Check, CheckCoverage
-
-OBSERVABLE_SHARE = 0.5
-"""An axis whose share of the specific force, rms of ``f̃_i/|f̃|`` in flight, is below this is not
-observable: its MDF would be more than twice the norm's."""
+from estimators.coverage import IN_FLIGHT_WITHIN_S, OBSERVABLE_SHARE, Check, CheckCoverage
 
 DETECTION_QUANTILE = NormalDist().inv_cdf(0.95)
 """The MDF's margin above the threshold: a step at the MDF is detected with probability 95 %."""
@@ -787,7 +783,8 @@ def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckC
     share: a zero signal ``MDF/rms(uᵢ)``, a scale ``MDF/(g₀·rms(uᵢ)²)`` (module docstring); an
     axis below :data:`OBSERVABLE_SHARE` is not observable (infinite). ``summary`` None: no GNSS,
     the check does not apply (``reason`` says why); nothing judged: it did not run, and the
-    reason names the exclusion that took most epochs.
+    reason names the exclusion that took most epochs; it applies (not tested: the verdict cannot
+    say "no fault") once the vehicle flew, as in a log cut in the air or a daemon restarted there.
     """
     if summary is None:
         return CheckCoverage(
@@ -795,7 +792,8 @@ def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckC
         )
     if summary.mdf_10s_mps2 is None or summary.baseline_mps2 is None:
         why = reason or _not_judged(summary)
-        return CheckCoverage(Check.THRUST_AXIS, Triad.ACCEL, ran=False, applies=False, reason=why)
+        flew = bool(np.any(summary.share > 0.0))
+        return CheckCoverage(Check.THRUST_AXIS, Triad.ACCEL, ran=False, applies=flew, reason=why)
     share = np.where(summary.observable, summary.share, np.nan)
     bias = summary.mdf_10s_mps2 / share
     scale = summary.mdf_10s_mps2 / (summary.baseline_mps2 * share**2)

@@ -18,15 +18,16 @@ logged rate only, ``vibration.recomputed_below_hz``), each with its severity, te
 was not tested and why, and per IMU what each check tested with its minimum
 detectable fault (the ``--json`` coverage line of :mod:`service.commands.replay`).
 
-``cross_imu_norm`` (schema 5; null for fewer than two IMUs) is the in-flight norm comparison of
+``cross_imu_norm`` (schema 6; null for fewer than two IMUs) is the in-flight norm comparison of
 the first two IMUs (:mod:`estimators.cross_imu_norm`): the pair, the CUSUM threshold, seconds
 tested, the minimum detectable shifts and the lever arm found with its standard deviations.
 
 ``report.md`` shows it as a flight review reads: a table per IMU, |a| − g of
 the blocks at rest against F0's shell, the accelerometer and gyro spectra, the
-cross-IMU differences over time, and the norm comparison's CUSUM statistic through
-the flight against its threshold (``gravity_residual.png``, ``spectra.png``,
-``cross_imu.png``, ``cross_imu_norm.png``).
+cross-IMU differences over time, the thrust-axis statistic against GNSS and the norm
+comparison's CUSUM statistic through the flight against their thresholds
+(``gravity_residual.png``, ``spectra.png``, ``cross_imu.png``, ``thrust_axis.png``,
+``cross_imu_norm.png``).
 """
 
 from __future__ import annotations

@@ -49,6 +49,7 @@ from protocols.events import Predicate, decode_event, encode_event, event_versio
 from protocols.frames import SampleBatch, split_session
 from protocols.logs import read_log_sessions
 from service.pipeline import FleetProcessor
+from service.pipeline.norm_check import VehicleNorm
 
 LEVER_ARM_M = np.array(PAIR_LEVER_ARM_M)
 MOUNT = Rotation.from_euler("zx", PAIR_MOUNT_ZX_DEG, degrees=True).as_matrix()
@@ -183,8 +184,8 @@ def test_fault_free_flights_with_a_turned_imu_raise_nothing() -> None:
 
 def test_lever_arm_is_found_with_its_covariance() -> None:
     """The lever arm of 7.8 cm is estimated in flight: within 5 stated standard deviations per axis,
-    each below 3 mm (the fit's model error — the simulated ω̇ is a central difference, the check's a
-    backward one — is within the covariance's reach at this size)."""
+    each below 3 mm (the fit's model error — the check's ω̇ is a central difference of sampled rates —
+    is within the covariance's reach at this size)."""
     s0, s1 = flight_pair(7)
     trace = batch(s0, s1)
     sd = np.sqrt(np.diag(trace.lever_arm_cov_m2))
@@ -218,11 +219,17 @@ def test_the_fleet_raises_a_cross_imu_norm_event_and_states_its_coverage() -> No
         assert [(e.imu, e.triad) for e in norm] == [(1, Triad.ACCEL)]
         assert onset < norm[0].t_s <= onset + 5.0 and norm[0].estimate > 0.0
         assert decode_event(encode_event(norm[0])) == norm[0] and event_version(norm[0]) == 2
-    for imu in (0, 1):
+    # A zero signal moves |f| by its component along the specific force: each IMU's thrust axis
+    # (IMU 0's z, IMU 1's y) is tested, the two across it are not observable (0.02 m/s², 3 times
+    # the norm's MDF, on them was not found in two simulated flights; the thrust-axis convention).
+    for imu, thrust in ((0, 2), (1, thrust_axis(MOUNT))):
         accel, gyro = covered[imu]
         assert accel.ran and gyro.ran and accel.samples >= FLY_S - 1.0
-        assert 0.0 < accel.mdf_bias_si[0] < 0.049 and 0.0 < gyro.mdf_bias_si[0] < 0.01
+        assert 0.0 < accel.mdf_bias_si[thrust] < 0.049 and 0.0 < gyro.mdf_bias_si[0] < 0.01
+        assert [math.isfinite(m) for m in accel.mdf_bias_si] == [k == thrust for k in range(3)]
+        blind = ", ".join("xyz"[k] for k in range(3) if k != thrust)
         assert "cross_imu_norm: in flight tested on" in accel.line(" m/s²")
+        assert f"{blind} not observable" in accel.line(" m/s²")
 
 
 def test_a_pair_too_short_to_test_says_so() -> None:
@@ -292,3 +299,19 @@ def test_a_checkpointed_check_goes_on_where_it_was() -> None:
     assert any(b.alarms for b in after)
     with pytest.raises(ValueError, match="version 0 is not 1"):
         CrossImuNorm.from_state({**first.state_dict(), "version": 0})
+
+
+def test_the_axes_shares_of_the_specific_force_go_through_the_checkpoint() -> None:
+    """The vehicle's norm check keeps each IMU's share of the specific force (its coverage's
+    observable axes) in its checkpoint; one written before the shares were kept starts them afresh,
+    a malformed one is refused with the reason."""
+    norm = VehicleNorm("uav", (0, 1), 100.0, gravity_mps2=9.8)
+    t = np.arange(50) * 0.01
+    norm.add(SampleBatch("uav", 1, 0, t, np.tile([0.0, 9.8, 0.0], (50, 1)), np.zeros((50, 3))))
+    saved = decode_state(encode_state(norm.state_dict()))
+    back = VehicleNorm.from_state("uav", saved, gravity_mps2=9.8)
+    assert (back.accel_share_sums, back.accel_share_n) == ([[0.0] * 3, [0.0, 50.0, 0.0]], [0, 50])
+    older = {k: v for k, v in saved.items() if not k.startswith("accel_share")}
+    assert VehicleNorm.from_state("uav", older, gravity_mps2=9.8).accel_share_n == [0, 0]
+    with pytest.raises(ValueError, match="malformed"):
+        VehicleNorm.from_state("uav", {**saved, "accel_share_n": [1]}, gravity_mps2=9.8)

@@ -27,6 +27,7 @@ from estimators.thrust_gnss import (
     ThrustAxisMonitor,
     threshold,
     thrust_axis_batch,
+    thrust_axis_coverage,
 )
 
 N_FLIGHTS = 10
@@ -165,6 +166,15 @@ def test_clipped_windows_and_a_flight_without_rest_are_not_tested(flights):
     )
     assert monitor.baseline_mps2 is None and monitor.summary().tested_epochs == 0
     assert monitor.summary().exclusions["no_baseline"] > 0
+    # It flew and was not tested (a daemon restarted in the air is this case): the verdict cannot
+    # say "no fault". Only a vehicle that never flew is one the in-flight check does not apply to.
+    cut = thrust_axis_coverage(monitor.summary())
+    assert cut.missing and "no rest before the flight" in cut.reason
+    ground = session.t_s < REST_S
+    _, monitor = thrust_axis_batch(
+        session.t_s[ground], session.accel_mps2[ground], session.gyro_rps[ground], gt, gv
+    )
+    assert not thrust_axis_coverage(monitor.summary()).applies
 
 
 def test_the_threshold_follows_the_false_alarm_rate():

@@ -39,6 +39,7 @@ from protocols.zenoh_adapter import (
     subscribe_status,
 )
 from service.pipeline import FleetProcessor
+from service.pipeline.thrust_axis import ThrustAxisCheck
 
 ONSET_S = 140.0
 
@@ -108,6 +109,23 @@ def test_the_fleet_checks_each_imu_against_its_vehicles_gnss():
     lines = [c for c in status.imus[0].coverage if c.check.value == "thrust_axis"]
     assert len(lines) == 1 and lines[0].ran
     assert status.counters["service.gnss.frames"] > 0
+
+
+def test_the_event_names_the_axis_the_thrust_falls_on():
+    """A unit mounted turned 90° about x (body z, the thrust, on its y axis) with the same fault on
+    its y: the event names y, the axis the coverage says was tested, not z, which saw nothing."""
+    session, gt, gv = flight()
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    turned = ImuSession(session.t_s, session.accel_mps2 @ turn.T, session.gyro_rps @ turn.T)
+    check = ThrustAxisCheck("uav-1", 1, 10.0)
+    events = check.gnss(gt, gv)
+    for batch in batches_of(turned, vehicle="uav-1", imu=1, batch_samples=100):
+        events += check.imu(batch)
+    assert [(e.axis, e.imu) for e in events] == [("y", 1)]
+    assert "accelerometer y:" in events[0].text
+    assert (
+        check.coverage().line(" m/s²").startswith("accel thrust_axis: in flight: y accelerometer")
+    )
 
 
 @pytest.mark.network

@@ -574,7 +574,7 @@ class FleetProcessor:
                 CheckCoverage(Check.CROSS_IMU_NORM, t, ran=False, reason=waiting[0])
                 for t in (Triad.ACCEL, Triad.GYRO)
             )
-        return norm.coverage()
+        return norm.coverage(imu)
 
     def _scalar_note(self, vehicle: str, imu: int) -> str:
         pipe = self.pipelines.get((vehicle, imu))

@@ -15,6 +15,8 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
+
 from estimators.conventions import Triad
 from estimators.coverage import CheckCoverage, norm_coverage
 from estimators.cross_imu_norm import (
@@ -61,10 +63,21 @@ class VehicleNorm:
         self.config = self.check.config
         self._gravity = gravity_mps2
         self._on_block = on_block
+        # Per IMU of the pair: sums of (f/|f|)² per axis and their count, for the share of the
+        # specific force each axis carries (the axes the norm sees: coverage).
+        self.accel_share_sums = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+        self.accel_share_n = [0, 0]
 
     def state_dict(self) -> dict[str, Any]:
-        """The pair and the check's state (:meth:`~estimators.cross_imu_norm.CrossImuNorm.state_dict`)."""
-        return {"pair": list(self.pair), "rate_hz": self.rate_hz, "state": self.check.state_dict()}
+        """The pair, the check's state (:meth:`~estimators.cross_imu_norm.CrossImuNorm.state_dict`)
+        and the axes' shares of the specific force so far."""
+        return {
+            "pair": list(self.pair),
+            "rate_hz": self.rate_hz,
+            "state": self.check.state_dict(),
+            "accel_share_sums": self.accel_share_sums,
+            "accel_share_n": self.accel_share_n,
+        }
 
     @classmethod
     def from_state(
@@ -80,11 +93,20 @@ class VehicleNorm:
             i0, i1 = (int(i) for i in saved["pair"])
             rate = float(saved["rate_hz"])
             state = saved["state"]
+            # A checkpoint written before the shares were kept starts them afresh.
+            sums = [
+                [float(v) for v in row] for row in saved.get("accel_share_sums", [[0.0] * 3] * 2)
+            ]
+            counts = [int(n) for n in saved.get("accel_share_n", [0, 0])]
+            if [len(row) for row in sums] != [3, 3] or len(counts) != 2:
+                raise ValueError(f"shares {sums!r}, {counts!r}")
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"cross-IMU norm checkpoint is malformed: {exc}") from None
-        return cls(
+        norm = cls(
             vehicle, (i0, i1), rate, gravity_mps2=gravity_mps2, on_block=on_block, state=state
         )
+        norm.accel_share_sums, norm.accel_share_n = sums, counts
+        return norm
 
     def add(self, batch: SampleBatch, offsets_s: Mapping[int, float]) -> list[Event]:
         """One IMU's accepted samples; the events of the blocks they completed. ``offsets_s``: per
@@ -93,11 +115,17 @@ class VehicleNorm:
         on one clock, and each event is stamped on its own IMU's."""
         if batch.imu not in self.pair:
             return []
+        slot = self.pair.index(batch.imu)
+        f = batch.accel_mps2
+        mag2 = np.einsum("ij,ij->i", f, f)
+        seen = mag2 > 0.0
+        sums = (f[seen] ** 2 / mag2[seen, None]).sum(axis=0)
+        self.accel_share_sums[slot] = [
+            a + float(b) for a, b in zip(self.accel_share_sums[slot], sums, strict=True)
+        ]
+        self.accel_share_n[slot] += int(seen.sum())
         blocks = self.check.add(
-            self.pair.index(batch.imu),
-            batch.t_s - offsets_s.get(batch.imu, 0.0),
-            batch.accel_mps2,
-            batch.gyro_rps,
+            slot, batch.t_s - offsets_s.get(batch.imu, 0.0), batch.accel_mps2, batch.gyro_rps
         )
         events: list[Event] = []
         for block in blocks:
@@ -119,8 +147,12 @@ class VehicleNorm:
                           triad=triad, estimate=alarm.shift_si, tolerance=alarm.mdf_si,
                           sigma=alarm.sigma_si, unit=unit, text=text)  # fmt: skip
 
-    def coverage(self) -> tuple[CheckCoverage, CheckCoverage]:
-        """Both channels' coverage now: seconds tested and the MDF, or why not yet."""
+    def coverage(self, imu: int) -> tuple[CheckCoverage, CheckCoverage]:
+        """Both channels' coverage of ``imu`` (one of the pair) now: seconds tested and the MDF
+        (the accelerometer's per axis by its share of the specific force), or why not yet."""
+        slot = self.pair.index(imu)
+        n = self.accel_share_n[slot]
+        share = np.sqrt(np.asarray(self.accel_share_sums[slot]) / n) if n else None
         tested = self.check.tested_s()
         mdf_a, mdf_g = self.check.mdf()
         cfg = self.config
@@ -131,7 +163,9 @@ class VehicleNorm:
             f"IMU{self.pair[1]}; the test starts after {cfg.warmup_blocks * cfg.block_s:.3g} s of them"
         )
 
-        def of(triad: Triad, mdf_si: float, reference_si: float | None) -> CheckCoverage:
+        def of(
+            triad: Triad, mdf_si: float, reference_si: float | None, share: np.ndarray | None
+        ) -> CheckCoverage:
             return norm_coverage(
                 triad,
                 tested_s=tested,
@@ -140,7 +174,8 @@ class VehicleNorm:
                 false_alarms_per_hour=cfg.false_alarms_per_hour,
                 pair=self.pair,
                 reason=reason,
+                share=share,
             )
 
         # The accelerometers' scale MDF is stated at g, the thrust of a hover.
-        return of(Triad.ACCEL, mdf_a, self._gravity), of(Triad.GYRO, mdf_g, None)
+        return of(Triad.ACCEL, mdf_a, self._gravity, share), of(Triad.GYRO, mdf_g, None, None)

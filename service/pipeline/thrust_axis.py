@@ -1,8 +1,9 @@
 """The thrust-axis check of one IMU against its vehicle's GNSS (:mod:`estimators.thrust_gnss`) as
 events: IMU frames and GNSS epochs in, ``thrust_axis`` events out.
 
-An alarm episode raises one event, at its first alarmed epoch: the accelerometer's z axis (the one
-the check sees), cause ``disagreement``, the estimate the window's ``D_L`` (m/s²), the tolerance its
+An alarm episode raises one event, at its first alarmed epoch: the accelerometer's axis the check
+sees (the one the specific force falls on, as the coverage says: z for a unit mounted level, y for
+one turned 90° about x; none named when two share it), cause ``disagreement``, the estimate the window's ``D_L`` (m/s²), the tolerance its
 threshold ``h·σ_L`` and the sigma ``σ_L``. The episode ends when no epoch has alarmed for
 :data:`EPISODE_GAP_S`; a later alarm is a new episode and a new event. The evaluations are kept
 (time, statistic ``z``) for the replay report's plot of the statistic against its threshold.
@@ -22,7 +23,6 @@ import numpy as np
 from estimators.conventions import AXES, Triad
 from estimators.coverage import CheckCoverage, ImuCoverage
 from estimators.thrust_gnss import (
-    THRUST_AXIS,
     Evaluations,
     ThrustAxisConfig,
     ThrustAxisMonitor,
@@ -83,6 +83,7 @@ class ThrustAxisCheck:
             self._last_alarm_t_s = t
             if not new or noise is None:
                 continue
+            seen = [AXES[i] for i in np.flatnonzero(self.monitor.summary().observable)]
             window = int(np.argmax(np.abs(ev.d_mps2[k]) / noise.sigma_mps2))
             sigma = float(noise.sigma_mps2[window])
             length = self.monitor.config.windows_s[window]
@@ -95,14 +96,15 @@ class ThrustAxisCheck:
                     cause=StreamCause.DISAGREEMENT,
                     severity=SEVERITY[Predicate.THRUST_AXIS],
                     triad=Triad.ACCEL,
-                    axis=AXES[THRUST_AXIS],
+                    axis=seen[0] if len(seen) == 1 else None,
                     estimate=float(ev.d_mps2[k, window]),
                     nominal=0.0,
                     tolerance=self.monitor.threshold * sigma,
                     sigma=sigma,
                     unit="m/s^2",
                     text=(
-                        f"{self.vehicle} IMU{self.imu_index} accelerometer z: |f| in flight off "
+                        f"{self.vehicle} IMU{self.imu_index} accelerometer {', '.join(seen)}: "
+                        f"|f| in flight off "
                         f"GNSS by {ev.d_mps2[k, window]:+.3f} m/s^2 over {length:g} s "
                         f"({ev.z[k]:.1f} sigma, threshold {self.monitor.threshold:.1f}) [thrust_axis]"
                     ),
