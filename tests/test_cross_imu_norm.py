@@ -307,7 +307,7 @@ def test_the_axes_shares_of_the_specific_force_go_through_the_checkpoint() -> No
     a malformed one is refused with the reason."""
     norm = VehicleNorm("uav", (0, 1), 100.0, gravity_mps2=9.8)
     t = np.arange(50) * 0.01
-    norm.add(SampleBatch("uav", 1, 0, t, np.tile([0.0, 9.8, 0.0], (50, 1)), np.zeros((50, 3))))
+    norm.add(SampleBatch("uav", 1, 0, t, np.tile([0.0, 9.8, 0.0], (50, 1)), np.zeros((50, 3))), {})
     saved = decode_state(encode_state(norm.state_dict()))
     back = VehicleNorm.from_state("uav", saved, gravity_mps2=9.8)
     assert (back.accel_share_sums, back.accel_share_n) == ([[0.0] * 3, [0.0, 50.0, 0.0]], [0, 50])
