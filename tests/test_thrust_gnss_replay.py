@@ -18,6 +18,7 @@ from estimators.session import ImuSession
 from estimators.sim import Fly, flight_spec, simulate
 from estimators.sim.gnss import gnss_velocity
 from estimators.thrust_gnss import up_velocity_from_altitude
+from protocols import gnss_logs
 from protocols.events import Predicate, event_from_json, event_to_dict
 from protocols.gnss_logs import append_gps_raw_int, read_gnss_track
 from protocols.logs import write_tlog
@@ -115,6 +116,40 @@ def test_the_shared_logs_gnss_is_read_on_their_imu_clock():
     fmu = read_gnss_track(SHARED / "data" / "field" / "px4-fmuv3-10hz.ulg")
     assert fmu.rate_hz == pytest.approx(5.0, rel=1e-3)
     assert np.all(np.linalg.norm(fmu.vel_enu_mps, axis=1) < 30.0)
+
+
+def _damaged(src, tmp_path):
+    """The log, the log with bytes overwritten by a false header and garbage a third in, and the
+    log cut two thirds in, mid-message."""
+    data = src.read_bytes()
+    third = len(data) // 3
+    garbage = b"\xa3\x95\x00garbage\xa3"
+    variants = {
+        "whole": data,
+        "garbage": data[:third] + garbage + data[third + len(garbage) :],
+        "cut": data[: 2 * third + 5],
+    }
+    for name, content in variants.items():
+        path = tmp_path / f"{src.stem}-{name}.bin"
+        path.write_bytes(content)
+        yield path
+
+
+@needs(LOGS)
+@needs(SHARED / "data" / "field")
+@pytest.mark.parametrize(
+    "src",
+    [LOGS / "ardupilot-test.BIN", SHARED / "data" / "field" / "ardupilot-copter462-cut.bin"],
+    ids=lambda p: p.name,
+)
+def test_a_binary_logs_gps_messages_are_pymavlinks(tmp_path, src):
+    """The numpy scan hands out the GPS messages pymavlink's reader finds, field for field, whole,
+    with garbage in the middle and cut short."""
+    for path in _damaged(src, tmp_path):
+        oracle = gnss_logs._messages(path, "GPS")
+        found = gnss_logs._bin_gps_messages(path)
+        assert oracle, path.name
+        assert [m.to_dict() for m in found] == [m.to_dict() for m in oracle], path.name
 
 
 REAL_LOGS_WITH_GNSS = [
