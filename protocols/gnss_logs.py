@@ -37,6 +37,8 @@ from estimators._typing import FloatArray
 from estimators.thrust_gnss import up_velocity_from_altitude
 from protocols.dataflash_numpy import DataFlashScan
 from protocols.logs import LogFormat, detect_format
+from protocols.mavlink_adapter import MILLI_UNITS
+from protocols.tlog_numpy import TlogScan
 
 GPS_FIX_3D = 3
 UNKNOWN_U16 = 65535
@@ -154,7 +156,11 @@ def _boot_time_us(msg: Any) -> float:
 def gps_raw_int_rows(msgs: list[Any]) -> FloatArray:
     """(M, 5) ``[t_s, fix_type, speed m/s, course rad, alt m]`` of GPS_RAW_INT messages; unknown
     speed or course are NaN."""
-    rows = np.array([[m.time_usec, m.fix_type, m.vel, m.cog, m.alt] for m in msgs], float)
+    return _si_rows(np.array([[m.time_usec, m.fix_type, m.vel, m.cog, m.alt] for m in msgs], float))
+
+
+def _si_rows(rows: FloatArray) -> FloatArray:
+    """GPS_RAW_INT's ``[time_usec, fix_type, vel, cog, alt]`` (M, 5) in :func:`gps_raw_int_rows`' units."""
     out = np.column_stack(
         [
             rows[:, 0] * 1e-6,
@@ -182,8 +188,38 @@ def gps_raw_int_track(rows: FloatArray) -> GnssTrack:
 
 
 def _tlog(path: str | os.PathLike[str]) -> GnssTrack | None:
-    msgs = _messages(path, "GPS_RAW_INT")
-    return gps_raw_int_track(gps_raw_int_rows(msgs)) if msgs else None
+    rows = _scanned_gps_raw_int_rows(path)
+    if rows is None:
+        msgs = _messages(path, "GPS_RAW_INT")
+        rows = gps_raw_int_rows(msgs) if msgs else np.zeros((0, 5))
+    return gps_raw_int_track(rows) if rows.shape[0] else None
+
+
+def _scanned_gps_raw_int_rows(path: str | os.PathLike[str]) -> FloatArray | None:
+    """:func:`gps_raw_int_rows` of a tlog's GPS_RAW_INT records found by the numpy scan of
+    :mod:`protocols.tlog_numpy` (pymavlink's reader builds a message of every record, the IMU's at
+    1 kHz, to hand out the few GPS ones); None where the scan stops short of the end (damage,
+    signed packets): pymavlink reads that file. pymavlink stays the oracle
+    (tests/test_thrust_gnss_replay.py)."""
+    scan = TlogScan(
+        Path(path),
+        held={},
+        dropped={},
+        flush=1,
+        raw_scale=MILLI_UNITS,
+        imu_index={},
+        records=frozenset(["GPS_RAW_INT"]),
+    )
+    for _ in scan:
+        pass
+    if scan.stopped_at is not None:
+        return None
+    rec = scan.records["GPS_RAW_INT"]
+    if not rec:
+        return np.zeros((0, 5))
+    r = np.concatenate(rec)
+    fields = ("time_usec", "fix_type", "vel", "cog", "alt")
+    return _si_rows(np.column_stack([r[f].astype(float) for f in fields]))
 
 
 def append_gps_raw_int(

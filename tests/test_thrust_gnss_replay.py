@@ -130,7 +130,7 @@ def _damaged(src, tmp_path):
         "cut": data[: 2 * third + 5],
     }
     for name, content in variants.items():
-        path = tmp_path / f"{src.stem}-{name}.bin"
+        path = tmp_path / f"{src.stem}-{name}{src.suffix}"
         path.write_bytes(content)
         yield path
 
@@ -150,6 +150,38 @@ def test_a_binary_logs_gps_messages_are_pymavlinks(tmp_path, src):
         found = gnss_logs._bin_gps_messages(path)
         assert oracle, path.name
         assert [m.to_dict() for m in found] == [m.to_dict() for m in oracle], path.name
+
+
+def _pymavlink_track(path):
+    msgs = gnss_logs._messages(path, "GPS_RAW_INT")
+    return gnss_logs.gps_raw_int_track(gnss_logs.gps_raw_int_rows(msgs))
+
+
+def _same_track(a, b):
+    assert (a.source, a.rejected) == (b.source, b.rejected)
+    np.testing.assert_array_equal(a.t_s, b.t_s)
+    np.testing.assert_array_equal(a.vel_enu_mps, b.vel_enu_mps)
+
+
+def test_a_tlogs_gps_raw_int_records_are_pymavlinks(tmp_path):
+    """The numpy scan reads the simulated flight's GPS_RAW_INT as pymavlink does, to the bit; with
+    garbage in the middle the scan stops and pymavlink reads the file."""
+    path = _tlog(tmp_path / "flight.tlog", fault=False)
+    rows = gnss_logs._scanned_gps_raw_int_rows(path)
+    np.testing.assert_array_equal(
+        rows, gnss_logs.gps_raw_int_rows(gnss_logs._messages(path, "GPS_RAW_INT"))
+    )
+    _same_track(read_gnss_track(path), _pymavlink_track(path))
+    (damaged,) = [p for p in _damaged(path, tmp_path) if p.stem.endswith("garbage")]
+    assert gnss_logs._scanned_gps_raw_int_rows(damaged) is None
+    _same_track(read_gnss_track(damaged), _pymavlink_track(damaged))
+
+
+@needs(LOGS)
+def test_the_shared_tlogs_gps_raw_int_records_are_pymavlinks():
+    path = LOGS / "ardupilot-sitl-vtol.tlog"
+    assert gnss_logs._scanned_gps_raw_int_rows(path) is not None
+    _same_track(read_gnss_track(path), _pymavlink_track(path))
 
 
 REAL_LOGS_WITH_GNSS = [
