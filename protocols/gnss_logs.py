@@ -27,6 +27,7 @@ import io
 import os
 import struct
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,8 +35,10 @@ from pymavlink import mavutil
 
 from estimators._typing import FloatArray
 from estimators.thrust_gnss import up_velocity_from_altitude
+from protocols.dataflash_numpy import DataFlashScan
 from protocols.logs import LogFormat, detect_format
-from protocols.mavlink_adapter import GPS_RAW_INT_FIELDS
+from protocols.mavlink_adapter import GPS_RAW_INT_FIELDS, MILLI_UNITS
+from protocols.tlog_numpy import TlogScan
 
 GPS_FIX_3D = 3
 UNKNOWN_U16 = 65535
@@ -85,7 +88,7 @@ def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
             return _ulog(path)
         if fmt is LogFormat.TLOG:
             return _tlog(path)
-        return _dataflash(path)
+        return _dataflash(path, fmt)
     except GnssLogError:
         raise
     except Exception as exc:  # pyulog and pymavlink raise their own, struct and index errors
@@ -119,14 +122,27 @@ def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
         conn.close()
 
 
-def _dataflash(path: str | os.PathLike[str]) -> GnssTrack | None:
-    msgs = [m for m in _messages(path, "GPS") if int(getattr(m, "I", 0)) == 0]
+def _dataflash(path: str | os.PathLike[str], fmt: LogFormat) -> GnssTrack | None:
+    if fmt is LogFormat.DATAFLASH_BIN:
+        msgs = _bin_gps_messages(path)
+    else:
+        msgs = _messages(path, "GPS")
+    msgs = [m for m in msgs if int(getattr(m, "I", 0)) == 0]
     if not msgs:
         return None
     rows = np.array([[_boot_time_us(m), m.Status, m.Spd, m.GCrs, m.VZ] for m in msgs], float)
     course = np.radians(rows[:, 3])
     vel = np.column_stack([rows[:, 2] * np.sin(course), rows[:, 2] * np.cos(course), -rows[:, 4]])
     return _track(rows[:, 0] * 1e-6, vel, rows[:, 1] >= GPS_FIX_3D, "GPS")
+
+
+def _bin_gps_messages(path: str | os.PathLike[str]) -> list[Any]:
+    """The ``GPS`` messages of a binary log as pymavlink ``DFMessage`` values, found by the numpy
+    scan of :mod:`protocols.dataflash_numpy`: pymavlink's reader builds a message of every record
+    (the IMU's at 1 kHz) to hand out the few GPS ones, half of a replay's time on a 1 kHz log.
+    pymavlink stays the oracle (tests/test_thrust_gnss_replay.py)."""
+    scan = DataFlashScan(Path(path), wanted=frozenset(["GPS"]), held={}, flush=1)
+    return list(scan)
 
 
 def _boot_time_us(msg: Any) -> float:
@@ -185,8 +201,37 @@ def gps_raw_int_track(rows: FloatArray) -> GnssTrack:
 
 
 def _tlog(path: str | os.PathLike[str]) -> GnssTrack | None:
-    msgs = _messages(path, "GPS_RAW_INT")
-    return gps_raw_int_track(gps_raw_int_rows(msgs)) if msgs else None
+    rows = _scanned_gps_raw_int_rows(path)
+    if rows is None:
+        msgs = _messages(path, "GPS_RAW_INT")
+        rows = gps_raw_int_rows(msgs) if msgs else np.zeros((0, 5))
+    return gps_raw_int_track(rows) if rows.shape[0] else None
+
+
+def _scanned_gps_raw_int_rows(path: str | os.PathLike[str]) -> FloatArray | None:
+    """:func:`gps_raw_int_rows` of a tlog's GPS_RAW_INT records found by the numpy scan of
+    :mod:`protocols.tlog_numpy` (pymavlink's reader builds a message of every record, the IMU's at
+    1 kHz, to hand out the few GPS ones); None where the scan stops short of the end (damage,
+    signed packets): pymavlink reads that file. pymavlink stays the oracle
+    (tests/test_thrust_gnss_replay.py)."""
+    scan = TlogScan(
+        Path(path),
+        held={},
+        dropped={},
+        flush=1,
+        raw_scale=MILLI_UNITS,
+        imu_index={},
+        records=frozenset(["GPS_RAW_INT"]),
+    )
+    for _ in scan:
+        pass
+    if scan.stopped_at is not None:
+        return None
+    rec = scan.records["GPS_RAW_INT"]
+    if not rec:
+        return np.zeros((0, 5))
+    r = np.concatenate(rec)
+    return gps_raw_int_si(np.column_stack([r[f].astype(float) for f in GPS_RAW_INT_FIELDS]))
 
 
 def gps_raw_int_messages(

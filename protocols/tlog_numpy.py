@@ -93,7 +93,8 @@ def _dtype(cls: Any) -> np.dtype | None:
 
 
 class TlogScan:
-    """The IMU messages of a tlog's longest clean start (module docstring) as blocks of rows.
+    """The IMU messages of a tlog's longest clean start (module docstring) as blocks of rows, or
+    with ``records`` the messages of those names instead, as structured arrays in :attr:`records`.
 
     Yields :class:`~protocols.ulog.ImuRows` blocks as ``_rows_from_samples`` would cut them;
     counts every message by type in ``held`` and HIGHRES_IMU messages without their triads
@@ -110,6 +111,7 @@ class TlogScan:
         flush: int,
         raw_scale: ImuScale,
         imu_index: Mapping[ImuMessage, int],
+        records: frozenset[str] = frozenset(),
     ) -> None:
         self.path = path
         self.held = held
@@ -123,8 +125,9 @@ class TlogScan:
         self._imu = {
             mavlink2.mavlink_map[mid].msgname: ImuMessage(mavlink2.mavlink_map[mid].msgname)
             for mid in mavlink2.mavlink_map
-            if mavlink2.mavlink_map[mid].msgname in names
+            if mavlink2.mavlink_map[mid].msgname in names and not records
         }
+        self.records: dict[str, list[np.ndarray]] = {name: [] for name in records}
 
     def pending_samples(self) -> Iterator[Any]:
         return self._blocker.pending_samples()
@@ -230,9 +233,10 @@ class TlogScan:
             cls = mavlink2.mavlink_map[mid]
             sel = np.flatnonzero(msgid == mid)
             self.held[cls.msgname] = self.held.get(cls.msgname, 0) + sel.size
+            kept = self.records.get(cls.msgname)
             kind = self._imu.get(cls.msgname)
-            dtype = _dtype(cls) if kind is not None else None
-            if kind is None or dtype is None:
+            dtype = _dtype(cls) if kind is not None or kept is not None else None
+            if dtype is None:
                 continue
             size = cls.unpacker.size
             payload = r[sel] + _STAMP + header[sel]
@@ -240,6 +244,10 @@ class TlogScan:
             # pymavlink pads a payload shorter than the message's (MAVLink 2 cuts trailing zeros).
             body[np.arange(size)[None, :] >= length[sel][:, None]] = 0
             rec = body.view(dtype)[:, 0]
+            if kept is not None:
+                kept.append(rec)
+            if kind is None:
+                continue
             a = np.column_stack([rec[f].astype(np.float64) for f in FIELD_NAMES[kind]])
             si = imu_fields_si(kind, a, self.raw_scale)
             if si.not_updated:

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from estimators import log_health
 from estimators.conventions import EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Triad
 from estimators.log_health import (
     HealthConfig,
@@ -97,6 +98,49 @@ def test_batching_does_not_change_the_figures():
     np.testing.assert_allclose(one.vibe_max_mps2, many.vibe_max_mps2, rtol=1e-12)
     np.testing.assert_allclose(one.accel_psd, many.accel_psd, rtol=1e-12)
     np.testing.assert_array_equal(one.blocks.k, many.blocks.k)
+
+
+def _frames(fly, seed=3):
+    """Frames as a replay hands them: mostly 100 samples, some short, empty or of one sample,
+    with a lost second, a frame without temperature and a clock that starts again."""
+    t, a, g = _unit(n_s=30.0, fly=fly)
+    t = np.concatenate([t[:4000], t[4400:8000], t[8000:] - 20.0])
+    a, g = np.vstack([a[:4000], a[4400:]]), np.vstack([g[:4000], g[4400:]])
+    temp = np.linspace(30.0, 35.0, t.size)
+    sizes = np.random.default_rng(seed).choice([100, 100, 100, 37, 1, 0], size=t.size)
+    cuts = np.unique(np.r_[np.cumsum(sizes)[np.cumsum(sizes) < t.size], 7600, t.size])
+    lo = 0
+    for k, hi in enumerate(cuts.tolist()):
+        yield t[lo:hi], a[lo:hi], g[lo:hi], None if k % 17 == 0 else temp[lo:hi]
+        lo = hi
+
+
+def _figures(acc):
+    h = acc.result(G)
+    return h.to_dict(), [
+        np.asarray(getattr(h.blocks, f)).tolist() for f in h.blocks.__dataclass_fields__
+    ]
+
+
+@pytest.mark.parametrize("fly", [(8.0, 16.0), (-1.0, 31.0)], ids=["rest", "no_rest"])
+def test_frames_taken_in_passes_give_the_figures_of_a_pass_per_frame(monkeypatch, fly):
+    """Consecutive frames are filtered, blocked and summed in one pass of PASS_SAMPLES: the same
+    figures to the bit as a pass per frame (what a replay's report held before), restart included;
+    without rest the noise is the first difference's, its sums those of a pass per frame."""
+    calls = []
+    per_frame = ImuHealthAccumulator(HealthConfig())
+    monkeypatch.setattr(log_health, "PASS_SAMPLES", 1)
+    for frame in _frames(fly):
+        per_frame.update(*frame)
+    monkeypatch.undo()
+    passes = ImuHealthAccumulator(HealthConfig())
+    vibration = passes._vibration
+    passes._vibration = lambda *args: calls.append(args[0].shape[0]) or vibration(*args)
+    frames = list(_frames(fly))
+    for frame in frames:
+        passes.update(*frame)
+    assert _figures(passes) == _figures(per_frame)
+    assert len(calls) < len(frames) / 10 and max(calls) >= log_health.PASS_SAMPLES
 
 
 def test_a_block_still_settling_after_motion_is_no_noise():

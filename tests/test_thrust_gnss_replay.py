@@ -18,6 +18,7 @@ from estimators.session import ImuSession
 from estimators.sim import Fly, flight_spec, simulate
 from estimators.sim.gnss import gnss_velocity
 from estimators.thrust_gnss import up_velocity_from_altitude
+from protocols import gnss_logs
 from protocols.events import Predicate, event_from_json, event_to_dict
 from protocols.gnss_logs import append_gps_raw_int, read_gnss_track
 from protocols.logs import write_tlog
@@ -115,6 +116,72 @@ def test_the_shared_logs_gnss_is_read_on_their_imu_clock():
     fmu = read_gnss_track(SHARED / "data" / "field" / "px4-fmuv3-10hz.ulg")
     assert fmu.rate_hz == pytest.approx(5.0, rel=1e-3)
     assert np.all(np.linalg.norm(fmu.vel_enu_mps, axis=1) < 30.0)
+
+
+def _damaged(src, tmp_path):
+    """The log, the log with bytes overwritten by a false header and garbage a third in, and the
+    log cut two thirds in, mid-message."""
+    data = src.read_bytes()
+    third = len(data) // 3
+    garbage = b"\xa3\x95\x00garbage\xa3"
+    variants = {
+        "whole": data,
+        "garbage": data[:third] + garbage + data[third + len(garbage) :],
+        "cut": data[: 2 * third + 5],
+    }
+    for name, content in variants.items():
+        path = tmp_path / f"{src.stem}-{name}{src.suffix}"
+        path.write_bytes(content)
+        yield path
+
+
+@needs(LOGS)
+@needs(SHARED / "data" / "field")
+@pytest.mark.parametrize(
+    "src",
+    [LOGS / "ardupilot-test.BIN", SHARED / "data" / "field" / "ardupilot-copter462-cut.bin"],
+    ids=lambda p: p.name,
+)
+def test_a_binary_logs_gps_messages_are_pymavlinks(tmp_path, src):
+    """The numpy scan hands out the GPS messages pymavlink's reader finds, field for field, whole,
+    with garbage in the middle and cut short."""
+    for path in _damaged(src, tmp_path):
+        oracle = gnss_logs._messages(path, "GPS")
+        found = gnss_logs._bin_gps_messages(path)
+        assert oracle, path.name
+        assert [m.to_dict() for m in found] == [m.to_dict() for m in oracle], path.name
+
+
+def _pymavlink_track(path):
+    msgs = gnss_logs._messages(path, "GPS_RAW_INT")
+    return gnss_logs.gps_raw_int_track(gnss_logs.gps_raw_int_rows(msgs))
+
+
+def _same_track(a, b):
+    assert (a.source, a.rejected) == (b.source, b.rejected)
+    np.testing.assert_array_equal(a.t_s, b.t_s)
+    np.testing.assert_array_equal(a.vel_enu_mps, b.vel_enu_mps)
+
+
+def test_a_tlogs_gps_raw_int_records_are_pymavlinks(tmp_path):
+    """The numpy scan reads the simulated flight's GPS_RAW_INT as pymavlink does, to the bit; with
+    garbage in the middle the scan stops and pymavlink reads the file."""
+    path = _tlog(tmp_path / "flight.tlog", fault=False)
+    rows = gnss_logs._scanned_gps_raw_int_rows(path)
+    np.testing.assert_array_equal(
+        rows, gnss_logs.gps_raw_int_rows(gnss_logs._messages(path, "GPS_RAW_INT"))
+    )
+    _same_track(read_gnss_track(path), _pymavlink_track(path))
+    (damaged,) = [p for p in _damaged(path, tmp_path) if p.stem.endswith("garbage")]
+    assert gnss_logs._scanned_gps_raw_int_rows(damaged) is None
+    _same_track(read_gnss_track(damaged), _pymavlink_track(damaged))
+
+
+@needs(LOGS)
+def test_the_shared_tlogs_gps_raw_int_records_are_pymavlinks():
+    path = LOGS / "ardupilot-sitl-vtol.tlog"
+    assert gnss_logs._scanned_gps_raw_int_rows(path) is not None
+    _same_track(read_gnss_track(path), _pymavlink_track(path))
 
 
 REAL_LOGS_WITH_GNSS = [
