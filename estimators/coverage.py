@@ -222,6 +222,11 @@ class CheckCoverage:
             seen = ", ".join(
                 f"{AXES[k]} {mdf[k]:.2g}{unit}" for k in range(3) if AXES[k] not in blind
             )
+            if len(blind) == 3:
+                return (
+                    f"{self.name}: in flight tested on {self.samples:,} s; a zero signal on "
+                    f"{', '.join(blind)} not observable ({self.reason})"
+                )
             return (
                 f"{self.name}: in flight tested on {self.samples:,} s, MDF "
                 + (
@@ -551,14 +556,27 @@ def norm_coverage(
     the IMU's ``share`` of the sensed vector per axis (rms of ``v_i/|v|``), an axis's zero signal
     moves the norm by ``share_i`` of itself and its scale by ``share_i²``: ``mdf/share_i`` and
     ``mdf/(ref·share_i²)``, an axis below :data:`OBSERVABLE_SHARE` not observable (infinite), as
-    the thrust-axis check states it; without it every axis gets the norm's MDF. Not run
+    the thrust-axis check states it; without it (a gyro) no axis's zero signal is claimed. Not run
     (``tested_s`` 0) it says why (``reason``)."""
     where = (
         f"IMU{pair[1]} against IMU{pair[0]}, {false_alarms_per_hour:g} false alarms per flight hour"
     )
     if tested_s <= 0.0:
         return CheckCoverage(Check.CROSS_IMU_NORM, triad, ran=False, reason=reason or where)
-    u = np.ones(3) if share is None else np.asarray(share, float)
+    if share is None:
+        # A gyro: a zero signal δ_i moves |ω|² by 2 ω_i δ_i, whose block mean cancels wherever the
+        # rotation about the axis changes sign (a yaw left then right), so no axis is claimed;
+        # a 0.002 rad/s zero signal went unfound in mostly-yaw simulated flights.
+        return CheckCoverage(
+            Check.CROSS_IMU_NORM,
+            triad,
+            ran=True,
+            samples=round(tested_s),
+            mdf_bias_si=(math.inf, math.inf, math.inf),
+            reason=f"{where}; the norm's MDF {mdf_si:.2g}, an axis's zero signal seen only while "
+            "the rotation about it keeps one sign",
+        )
+    u = np.asarray(share, float)
     u = np.where(u >= OBSERVABLE_SHARE, u, 0.0)
     with np.errstate(divide="ignore"):
         bias, scale = mdf_si / u, mdf_si / ((reference_si or 1.0) * u**2)
