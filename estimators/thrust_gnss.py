@@ -75,6 +75,18 @@ epoch is judged that long after it, so a touch-down's impact is known), windows
 holding a clipped accelerometer sample or a gap in either stream. Each exclusion is
 counted by reason.
 
+GNSS outliers. A receiver's velocity can jump where the vehicle's cannot (a vertical taken from
+altitude differences turns a 0.5 m altitude step into a 2.5 m/s pulse): every IMU of the vehicle
+would then disagree with it at once and the accelerometer be blamed. The GNSS is therefore gated
+against its own noise, without the accelerometer under test: the second difference
+``Δ²v_k = v_k − 2v_{k−1} + v_{k−2}`` (the innovation of a constant-acceleration prediction) is an
+outlier on an axis where ``|Δ²v_k| > c·s_{k−1}``, ``c`` = :attr:`ThrustAxisConfig.gnss_outlier_sigmas`,
+``s`` the axis's running rms of ``Δ²v`` (memory :attr:`ThrustAxisConfig.gnss_memory_s`, each term
+winsorized at ``c·s`` so an outlier does not widen its own gate, floored at
+:attr:`ThrustAxisConfig.gnss_noise_floor_mps`). A window holding an outlier epoch is not judged.
+An accelerometer fault does not move the GNSS, so the gate costs no detection, only the windows
+around the outlier (counted).
+
 One monitor serves both paths: :func:`thrust_axis_batch` feeds a whole flight in one
 call (every step vectorized over the samples); the daemon calls
 :meth:`ThrustAxisMonitor.update_imu` and :meth:`ThrustAxisMonitor.update_gnss` per
@@ -113,6 +125,7 @@ class Exclusion(IntEnum):
     TRANSIENT = 4
     CLIPPED = 5
     GAP = 6
+    GNSS_OUTLIER = 7
 
 
 @dataclass(frozen=True)
@@ -133,6 +146,8 @@ class ThrustAxisConfig:
     min_rest_s : a rest this long sets the ground baseline, s.
     transient_s : windows this close to a rest ↔ motion change are excluded, s.
     clip_mps2 : an accelerometer axis at or beyond this is clipped.
+    gnss_outlier_sigmas, gnss_memory_s, gnss_noise_floor_mps : the GNSS outlier gate's ``c``, its
+        running rms's memory (s) and that rms's floor (m/s) (module docstring).
     max_gap_s : a step between samples of either stream longer than this is a gap, s.
     gnss_late_s : GNSS epochs this far behind the IMU are not judged (its history is let go), s.
     sigma_floor_mps2 : the smallest ``σ_L`` trusted.
@@ -151,6 +166,9 @@ class ThrustAxisConfig:
     min_rest_s: float = 2.0
     transient_s: float = 2.0
     clip_mps2: float = 150.0
+    gnss_outlier_sigmas: float = 6.0
+    gnss_memory_s: float = 60.0
+    gnss_noise_floor_mps: float = 0.02
     max_gap_s: float = 0.5
     gnss_late_s: float = 60.0
     sigma_floor_mps2: float = 0.002
@@ -164,7 +182,16 @@ class ThrustAxisConfig:
         grid = np.asarray(self.latency_grid_s, float)
         if grid.ndim != 1 or grid.size == 0 or np.any(grid < 0):
             raise ValueError(f"latency_grid_s must be non-negative, got {self.latency_grid_s!r}")
-        for name in ("end_s", "learn_s", "false_alarms_per_hour", "rest_tau_s", "max_gap_s"):
+        for name in (
+            "end_s",
+            "learn_s",
+            "false_alarms_per_hour",
+            "rest_tau_s",
+            "max_gap_s",
+            "gnss_outlier_sigmas",
+            "gnss_memory_s",
+            "gnss_noise_floor_mps",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be positive, got {value!r}")
@@ -367,7 +394,12 @@ class _Gnss:
     t_s: FloatArray = field(default_factory=lambda: np.empty(0))
     v_int: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
     gaps: FloatArray = field(default_factory=lambda: np.zeros(1))
+    outliers: FloatArray = field(default_factory=lambda: np.zeros(1))
     last_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
+    recent_vel: list[FloatArray] = field(default_factory=list)
+    """The last two velocities (the second difference's history)."""
+    jerk_ms: FloatArray | None = None
+    """The running mean square of ``Δ²v`` per axis (None before the first second difference)."""
     pending: int = 0
     """How many of the newest epochs still wait for the accelerometer to pass them."""
 
@@ -461,11 +493,29 @@ class ThrustAxisMonitor:
                 [g.v_int, _carry_integral(start, g.last_vel if have_prev else v[0], v, dt)]
             )
             g.gaps = np.concatenate([g.gaps, g.gaps[-1] + np.cumsum(dt > self.config.max_gap_s)])
+            g.outliers = np.concatenate([g.outliers, g.outliers[-1] + np.cumsum(self._outliers(v))])
             g.t_s = np.concatenate([g.t_s, t])
             g.last_vel = v[-1]
             g.pending += t.size
         out = self._evaluate_ready()
         self._trim()
+        return out
+
+    def _outliers(self, v: FloatArray) -> BoolArray:
+        """(M,) the new epochs whose velocity is a GNSS outlier (module docstring: ``Δ²v`` against
+        its own running rms; a recursion, since the winsorizing depends on the rms so far)."""
+        g, cfg = self._gnss, self.config
+        c = cfg.gnss_outlier_sigmas
+        a = float(np.exp(-1.0 / (self.gnss_rate_hz * cfg.gnss_memory_s)))
+        floor = cfg.gnss_noise_floor_mps**2
+        out = np.zeros(v.shape[0], bool)
+        for k, vk in enumerate(v):
+            if len(g.recent_vel) == 2:
+                jerk = vk - 2.0 * g.recent_vel[1] + g.recent_vel[0]
+                ms = np.full(3, floor) if g.jerk_ms is None else np.maximum(g.jerk_ms, floor)
+                out[k] = bool(np.any(jerk * jerk > c * c * ms))
+                g.jerk_ms = a * ms + (1.0 - a) * np.minimum(jerk * jerk, c * c * ms)
+            g.recent_vel = [*g.recent_vel[-1:], vk]
         return out
 
     # --- the accelerometer's integration -----------------------------------------------
@@ -570,9 +620,11 @@ class ThrustAxisMonitor:
                 trans[np.minimum(first_after, trans.size - 1)] <= tk + cfg.transient_s
             )
         gnss_gaps = _count_between(g.t_s, g.gaps, lo, tk)
+        outliers = _count_between(g.t_s, g.outliers, lo, tk)
         # The last reason that applies is the one counted: a window too early for its span is
         # history whatever it holds, and one holding rest has no baseline by construction.
         for reason, mask in (
+            (Exclusion.GNSS_OUTLIER, outliers > 0),
             (Exclusion.GAP, (counts[_GAP] > 0) | (gnss_gaps > 0)),
             (Exclusion.CLIPPED, counts[_CLIP] > 0),
             (Exclusion.TRANSIENT, near),
@@ -712,7 +764,12 @@ class ThrustAxisMonitor:
             )
         j = min(int(np.searchsorted(g.t_s, keep_from)), g.t_s.size - 2)
         if j > 0:
-            g.t_s, g.v_int, g.gaps = g.t_s[j:], g.v_int[j:], g.gaps[j:]
+            g.t_s, g.v_int, g.gaps, g.outliers = (
+                g.t_s[j:],
+                g.v_int[j:],
+                g.gaps[j:],
+                g.outliers[j:],
+            )
         trans = imu.transitions_s
         while len(trans) > 1 and trans[1] < keep_from - self.config.transient_s:
             trans.pop(0)
@@ -835,4 +892,5 @@ _WHY = {
     "transient": "take-off and touch-down",
     "clipped": "a clipped accelerometer",
     "gap": "gaps in the IMU or GNSS stream",
+    "gnss_outlier": "GNSS velocity outliers",
 }
