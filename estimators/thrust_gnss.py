@@ -70,10 +70,19 @@ the epochs were judged with (the learned one, or the running one where larger).
 
 Excluded: rest (the vehicle still: ``D`` is zero by construction and says nothing of
 flight; a rest period ≥ :attr:`ThrustAxisConfig.min_rest_s` sets the baseline),
-windows within :attr:`ThrustAxisConfig.transient_s` of take-off or touch-down (an
-epoch is judged that long after it, so a touch-down's impact is known), windows
+windows within :attr:`ThrustAxisConfig.transient_s` of take-off or touch-down, windows
 holding a clipped accelerometer sample or a gap in either stream. Each exclusion is
 counted by reason.
+
+Take-off and touch-down. Rest is declared once the averaged spread has decayed, which after an
+impact takes seconds (a 50 m/s² spike in ``|f̃|²`` needs ``τ·ln(10⁴) ≈ 4.6 τ``); motion is
+declared as soon as the spread rises. So a take-off is dated when motion is declared, and a
+touch-down at the raw signal's last loud sample before the rest (a sample with
+``|ω̃| ≥`` :attr:`ThrustAxisConfig.rest_gyro_rps` or ``|f̃|`` off the previous sample's by
+:attr:`ThrustAxisConfig.rest_accel_sd_mps2` or more): the impact is then inside the excluded
+neighbourhood. An epoch is judged once the accelerometer has passed it by ``transient_s`` and,
+unless the vehicle is at rest, once a loud sample has come that late: while the signal is quiet a
+rest may be declared and dated back over it.
 
 GNSS outliers. A receiver's velocity can jump where the vehicle's cannot (a vertical taken from
 altitude differences turns a 0.5 m altitude step into a 2.5 m/s pulse): every IMU of the vehicle
@@ -384,6 +393,8 @@ class _Imu:
     filter_state: FloatArray | None = None
     filter_a: float = 0.0
     resting: bool = False
+    last_loud_s: float = -np.inf
+    last_mag_mps2: float = np.nan
     rest_start_s: float = np.nan
     rest_sums: FloatArray = field(default_factory=lambda: np.zeros(5))
     transitions_s: list[float] = field(default_factory=list)
@@ -412,7 +423,7 @@ class ThrustAxisMonitor:
 
     Feed both streams in time order, in frames of any size; each update returns the epochs it
     could judge (:class:`Evaluations`). An epoch is judged once the accelerometer has passed it
-    by ``transient_s``.
+    by ``transient_s`` (and, in motion, a loud sample has come that late: module docstring).
     """
 
     def __init__(self, config: ThrustAxisConfig | None = None, *, gnss_rate_hz: float = 10.0):
@@ -465,8 +476,10 @@ class ThrustAxisMonitor:
         if t.size and (t[0] <= last or np.any(np.diff(t) <= 0)):
             raise ValueError(f"IMU times must increase (last {last}, got {t[0]} first)")
         if t.size:
-            rest = self._rest_mask(t, f, w)
-            bias, g0 = self._baselines(t, f, w, rest)
+            rest, loud = self._rest_mask(t, f, w)
+            loud_t = np.maximum.accumulate(np.r_[self._imu.last_loud_s, np.where(loud, t, -np.inf)])
+            bias, g0 = self._baselines(t, f, w, rest, loud_t[:-1])
+            self._imu.last_loud_s = float(loud_t[-1])
             self._integrate(t, f, w - bias, rest, g0)
         out = self._evaluate_ready()
         self._trim()
@@ -520,8 +533,11 @@ class ThrustAxisMonitor:
 
     # --- the accelerometer's integration -----------------------------------------------
 
-    def _rest_mask(self, t: FloatArray, f: FloatArray, w: FloatArray) -> BoolArray:
-        """Rest: the exponential averages of ``|f̃|``, ``|f̃|²`` and ``|ω̃|`` quiet (carried across frames)."""
+    def _rest_mask(
+        self, t: FloatArray, f: FloatArray, w: FloatArray
+    ) -> tuple[BoolArray, BoolArray]:
+        """Rest: the exponential averages of ``|f̃|``, ``|f̃|²`` and ``|ω̃|`` quiet (carried across
+        frames); and the loud samples (module docstring: the raw signal not quiet)."""
         from scipy.signal import lfilter
 
         imu = self._imu
@@ -538,16 +554,23 @@ class ThrustAxisMonitor:
         rest: BoolArray = (spread < self.config.rest_accel_sd_mps2) & (
             y[2] < self.config.rest_gyro_rps
         )
-        return rest
+        # Against the previous sample, not the average: the average still carries the impact.
+        step = np.abs(np.diff(np.r_[imu.last_mag_mps2, mag]))
+        imu.last_mag_mps2 = float(mag[-1])
+        loud: BoolArray = (step >= self.config.rest_accel_sd_mps2) | (
+            x[2] >= self.config.rest_gyro_rps
+        )
+        return rest, loud
 
     def _baselines(
-        self, t: FloatArray, f: FloatArray, w: FloatArray, rest: BoolArray
+        self, t: FloatArray, f: FloatArray, w: FloatArray, rest: BoolArray, loud_before: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         """Per sample, the gyro zero signal it is integrated with and the ground baseline ``g₀``.
 
         A rest of ``min_rest_s`` or more sets ``g₀`` (its mean ``|f̃|``) and the gyro zero
         signal (its mean ``ω̃``) for the flight that follows; each rest ↔ motion change is a
-        transition whose neighbourhood is excluded.
+        transition whose neighbourhood is excluded, a rest's start dated back to the last loud
+        sample before it (``loud_before``, the time of the last loud sample before each sample).
         """
         imu = self._imu
         bias = np.empty((t.size, 3))
@@ -557,7 +580,9 @@ class ThrustAxisMonitor:
         for a, b in zip(np.r_[0, edges], np.r_[edges, t.size], strict=True):
             if rest[a]:
                 if not imu.resting:
-                    imu.transitions_s.append(float(t[a]))
+                    quiet_from = loud_before[a] if np.isfinite(loud_before[a]) else t[a]
+                    last = imu.transitions_s[-1] if imu.transitions_s else -np.inf
+                    imu.transitions_s.append(float(max(quiet_from, last)))
                     imu.rest_start_s = float(t[a])
                     imu.rest_sums[:] = 0.0
                     imu.resting = True
@@ -716,7 +741,8 @@ class ThrustAxisMonitor:
         if not (g.pending and imu.t_s.size):
             return Evaluations.empty(self._windows.size)
         waiting = g.t_s[g.t_s.size - g.pending :]
-        tk = waiting[waiting + cfg.transient_s <= imu.t_s[-1]]
+        known = imu.t_s[-1] if imu.resting else min(imu.t_s[-1], imu.last_loud_s)
+        tk = waiting[waiting + cfg.transient_s <= known]
         if not tk.size:
             return Evaluations.empty(self._windows.size)
         g.pending -= tk.size
