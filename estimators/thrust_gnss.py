@@ -868,6 +868,7 @@ def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckC
     the check does not apply (``reason`` says why); nothing judged: it did not run, and the
     reason names the exclusion that took most epochs; it applies (not tested: the verdict cannot
     say "no fault") once the vehicle flew, as in a log cut in the air or a daemon restarted there.
+    Epochs left out for GNSS outliers are said in the reason (the receiver's, not the unit's).
     """
     if summary is None:
         return CheckCoverage(
@@ -877,6 +878,10 @@ def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckC
         why = reason or _not_judged(summary)
         flew = bool(np.any(summary.share > 0.0))
         return CheckCoverage(Check.THRUST_AXIS, Triad.ACCEL, ran=False, applies=flew, reason=why)
+    outliers = summary.exclusions.get("gnss_outlier", 0)
+    if outliers:
+        said = f"{outliers:,} epochs not judged: windows holding a GNSS velocity outlier"
+        reason = f"{reason}; {said}" if reason else said
     share = np.where(summary.observable, summary.share, np.nan)
     bias = summary.mdf_10s_mps2 / share
     scale = summary.mdf_10s_mps2 / (summary.baseline_mps2 * share**2)

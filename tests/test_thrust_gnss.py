@@ -144,6 +144,7 @@ def test_a_gnss_glitch_is_gated_and_a_fault_after_it_still_found(flights, glitch
         assert np.any(alarms <= ONSET_S + DETECT_WITHIN_S)
         gated = ev.t_s[ev.excluded == Exclusion.GNSS_OUTLIER]
         assert np.any((gated >= at_s) & (gated <= at_s + monitor.config.span_s))
+        assert "GNSS velocity outlier" in thrust_axis_coverage(monitor.summary()).reason
 
 
 def test_no_window_holding_the_touch_down_is_judged(flights):
