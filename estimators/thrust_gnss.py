@@ -407,10 +407,10 @@ class _Gnss:
     gaps: FloatArray = field(default_factory=lambda: np.zeros(1))
     outliers: FloatArray = field(default_factory=lambda: np.zeros(1))
     last_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
-    recent_vel: list[FloatArray] = field(default_factory=list)
+    recent_vel: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
     """The last two velocities (the second difference's history)."""
-    jerk_ms: FloatArray | None = None
-    """The running mean square of ``Δ²v`` per axis (None before the first second difference)."""
+    jerk_ms: list[float] = field(default_factory=list)
+    """The running mean square of ``Δ²v`` per axis (empty before the first second difference)."""
     pending: int = 0
     """How many of the newest epochs still wait for the accelerometer to pass them."""
 
@@ -516,19 +516,23 @@ class ThrustAxisMonitor:
 
     def _outliers(self, v: FloatArray) -> BoolArray:
         """(M,) the new epochs whose velocity is a GNSS outlier (module docstring: ``Δ²v`` against
-        its own running rms; a recursion, since the winsorizing depends on the rms so far)."""
+        its own running rms). The rms is a recursion (the winsorizing depends on the rms so far),
+        run on plain floats: numpy per epoch cost a microsecond per IMU sample."""
         g, cfg = self._gnss, self.config
-        c = cfg.gnss_outlier_sigmas
+        c2 = cfg.gnss_outlier_sigmas**2
         a = float(np.exp(-1.0 / (self.gnss_rate_hz * cfg.gnss_memory_s)))
         floor = cfg.gnss_noise_floor_mps**2
+        history = np.concatenate([g.recent_vel, v])
+        g.recent_vel = history[-2:]
+        jerk_sq = (np.diff(history, n=2, axis=0) ** 2).tolist()
         out = np.zeros(v.shape[0], bool)
-        for k, vk in enumerate(v):
-            if len(g.recent_vel) == 2:
-                jerk = vk - 2.0 * g.recent_vel[1] + g.recent_vel[0]
-                ms = np.full(3, floor) if g.jerk_ms is None else np.maximum(g.jerk_ms, floor)
-                out[k] = bool(np.any(jerk * jerk > c * c * ms))
-                g.jerk_ms = a * ms + (1.0 - a) * np.minimum(jerk * jerk, c * c * ms)
-            g.recent_vel = [*g.recent_vel[-1:], vk]
+        ms = g.jerk_ms
+        first = v.shape[0] - len(jerk_sq)
+        for k, sq in enumerate(jerk_sq, start=first):
+            ms = [max(m, floor) for m in ms] if ms else [floor] * 3
+            out[k] = any(q > c2 * m for q, m in zip(sq, ms, strict=True))
+            ms = [a * m + (1.0 - a) * min(q, c2 * m) for q, m in zip(sq, ms, strict=True)]
+        g.jerk_ms = ms
         return out
 
     # --- the accelerometer's integration -----------------------------------------------
