@@ -70,10 +70,31 @@ the epochs were judged with (the learned one, or the running one where larger).
 
 Excluded: rest (the vehicle still: ``D`` is zero by construction and says nothing of
 flight; a rest period ≥ :attr:`ThrustAxisConfig.min_rest_s` sets the baseline),
-windows within :attr:`ThrustAxisConfig.transient_s` of take-off or touch-down (an
-epoch is judged that long after it, so a touch-down's impact is known), windows
+windows within :attr:`ThrustAxisConfig.transient_s` of take-off or touch-down, windows
 holding a clipped accelerometer sample or a gap in either stream. Each exclusion is
 counted by reason.
+
+Take-off and touch-down. Rest is declared once the averaged spread has decayed, which after an
+impact takes seconds (a 50 m/s² spike in ``|f̃|²`` needs ``τ·ln(10⁴) ≈ 4.6 τ``); motion is
+declared as soon as the spread rises. So a take-off is dated when motion is declared, and a
+touch-down at the raw signal's last loud sample before the rest (a sample with
+``|ω̃| ≥`` :attr:`ThrustAxisConfig.rest_gyro_rps` or ``|f̃|`` off the previous sample's by
+:attr:`ThrustAxisConfig.rest_accel_sd_mps2` or more): the impact is then inside the excluded
+neighbourhood. An epoch is judged once the accelerometer has passed it by ``transient_s`` and,
+unless the vehicle is at rest, once a loud sample has come that late: while the signal is quiet a
+rest may be declared and dated back over it.
+
+GNSS outliers. A receiver's velocity can jump where the vehicle's cannot (a vertical taken from
+altitude differences turns a 0.5 m altitude step into a 2.5 m/s pulse): every IMU of the vehicle
+would then disagree with it at once and the accelerometer be blamed. The GNSS is therefore gated
+against its own noise, without the accelerometer under test: the second difference
+``Δ²v_k = v_k − 2v_{k−1} + v_{k−2}`` (the innovation of a constant-acceleration prediction) is an
+outlier on an axis where ``|Δ²v_k| > c·s_{k−1}``, ``c`` = :attr:`ThrustAxisConfig.gnss_outlier_sigmas`,
+``s`` the axis's running rms of ``Δ²v`` (memory :attr:`ThrustAxisConfig.gnss_memory_s`, each term
+winsorized at ``c·s`` so an outlier does not widen its own gate, floored at
+:attr:`ThrustAxisConfig.gnss_noise_floor_mps`). A window holding an outlier epoch is not judged.
+An accelerometer fault does not move the GNSS, so the gate costs no detection, only the windows
+around the outlier (counted).
 
 One monitor serves both paths: :func:`thrust_axis_batch` feeds a whole flight in one
 call (every step vectorized over the samples); the daemon calls
@@ -113,6 +134,7 @@ class Exclusion(IntEnum):
     TRANSIENT = 4
     CLIPPED = 5
     GAP = 6
+    GNSS_OUTLIER = 7
 
 
 @dataclass(frozen=True)
@@ -133,6 +155,8 @@ class ThrustAxisConfig:
     min_rest_s : a rest this long sets the ground baseline, s.
     transient_s : windows this close to a rest ↔ motion change are excluded, s.
     clip_mps2 : an accelerometer axis at or beyond this is clipped.
+    gnss_outlier_sigmas, gnss_memory_s, gnss_noise_floor_mps : the GNSS outlier gate's ``c``, its
+        running rms's memory (s) and that rms's floor (m/s) (module docstring).
     max_gap_s : a step between samples of either stream longer than this is a gap, s.
     gnss_late_s : GNSS epochs this far behind the IMU are not judged (its history is let go), s.
     sigma_floor_mps2 : the smallest ``σ_L`` trusted.
@@ -151,6 +175,9 @@ class ThrustAxisConfig:
     min_rest_s: float = 2.0
     transient_s: float = 2.0
     clip_mps2: float = 150.0
+    gnss_outlier_sigmas: float = 6.0
+    gnss_memory_s: float = 60.0
+    gnss_noise_floor_mps: float = 0.02
     max_gap_s: float = 0.5
     gnss_late_s: float = 60.0
     sigma_floor_mps2: float = 0.002
@@ -164,7 +191,16 @@ class ThrustAxisConfig:
         grid = np.asarray(self.latency_grid_s, float)
         if grid.ndim != 1 or grid.size == 0 or np.any(grid < 0):
             raise ValueError(f"latency_grid_s must be non-negative, got {self.latency_grid_s!r}")
-        for name in ("end_s", "learn_s", "false_alarms_per_hour", "rest_tau_s", "max_gap_s"):
+        for name in (
+            "end_s",
+            "learn_s",
+            "false_alarms_per_hour",
+            "rest_tau_s",
+            "max_gap_s",
+            "gnss_outlier_sigmas",
+            "gnss_memory_s",
+            "gnss_noise_floor_mps",
+        ):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be positive, got {value!r}")
@@ -357,6 +393,8 @@ class _Imu:
     filter_state: FloatArray | None = None
     filter_a: float = 0.0
     resting: bool = False
+    last_loud_s: float = -np.inf
+    last_mag_mps2: float = np.nan
     rest_start_s: float = np.nan
     rest_sums: FloatArray = field(default_factory=lambda: np.zeros(5))
     transitions_s: list[float] = field(default_factory=list)
@@ -367,7 +405,12 @@ class _Gnss:
     t_s: FloatArray = field(default_factory=lambda: np.empty(0))
     v_int: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
     gaps: FloatArray = field(default_factory=lambda: np.zeros(1))
+    outliers: FloatArray = field(default_factory=lambda: np.zeros(1))
     last_vel: FloatArray = field(default_factory=lambda: np.zeros(3))
+    recent_vel: FloatArray = field(default_factory=lambda: np.empty((0, 3)))
+    """The last two velocities (the second difference's history)."""
+    jerk_ms: list[float] = field(default_factory=list)
+    """The running mean square of ``Δ²v`` per axis (empty before the first second difference)."""
     pending: int = 0
     """How many of the newest epochs still wait for the accelerometer to pass them."""
 
@@ -380,7 +423,7 @@ class ThrustAxisMonitor:
 
     Feed both streams in time order, in frames of any size; each update returns the epochs it
     could judge (:class:`Evaluations`). An epoch is judged once the accelerometer has passed it
-    by ``transient_s``.
+    by ``transient_s`` (and, in motion, a loud sample has come that late: module docstring).
     """
 
     def __init__(self, config: ThrustAxisConfig | None = None, *, gnss_rate_hz: float = 10.0):
@@ -433,8 +476,10 @@ class ThrustAxisMonitor:
         if t.size and (t[0] <= last or np.any(np.diff(t) <= 0)):
             raise ValueError(f"IMU times must increase (last {last}, got {t[0]} first)")
         if t.size:
-            rest = self._rest_mask(t, f, w)
-            bias, g0 = self._baselines(t, f, w, rest)
+            rest, loud = self._rest_mask(t, f, w)
+            loud_t = np.maximum.accumulate(np.r_[self._imu.last_loud_s, np.where(loud, t, -np.inf)])
+            bias, g0 = self._baselines(t, f, w, rest, loud_t[:-1])
+            self._imu.last_loud_s = float(loud_t[-1])
             self._integrate(t, f, w - bias, rest, g0)
         out = self._evaluate_ready()
         self._trim()
@@ -461,6 +506,7 @@ class ThrustAxisMonitor:
                 [g.v_int, _carry_integral(start, g.last_vel if have_prev else v[0], v, dt)]
             )
             g.gaps = np.concatenate([g.gaps, g.gaps[-1] + np.cumsum(dt > self.config.max_gap_s)])
+            g.outliers = np.concatenate([g.outliers, g.outliers[-1] + np.cumsum(self._outliers(v))])
             g.t_s = np.concatenate([g.t_s, t])
             g.last_vel = v[-1]
             g.pending += t.size
@@ -468,10 +514,34 @@ class ThrustAxisMonitor:
         self._trim()
         return out
 
+    def _outliers(self, v: FloatArray) -> BoolArray:
+        """(M,) the new epochs whose velocity is a GNSS outlier (module docstring: ``Δ²v`` against
+        its own running rms). The rms is a recursion (the winsorizing depends on the rms so far),
+        run on plain floats: numpy per epoch cost a microsecond per IMU sample."""
+        g, cfg = self._gnss, self.config
+        c2 = cfg.gnss_outlier_sigmas**2
+        a = float(np.exp(-1.0 / (self.gnss_rate_hz * cfg.gnss_memory_s)))
+        floor = cfg.gnss_noise_floor_mps**2
+        history = np.concatenate([g.recent_vel, v])
+        g.recent_vel = history[-2:]
+        jerk_sq = (np.diff(history, n=2, axis=0) ** 2).tolist()
+        out = np.zeros(v.shape[0], bool)
+        ms = g.jerk_ms
+        first = v.shape[0] - len(jerk_sq)
+        for k, sq in enumerate(jerk_sq, start=first):
+            ms = [max(m, floor) for m in ms] if ms else [floor] * 3
+            out[k] = any(q > c2 * m for q, m in zip(sq, ms, strict=True))
+            ms = [a * m + (1.0 - a) * min(q, c2 * m) for q, m in zip(sq, ms, strict=True)]
+        g.jerk_ms = ms
+        return out
+
     # --- the accelerometer's integration -----------------------------------------------
 
-    def _rest_mask(self, t: FloatArray, f: FloatArray, w: FloatArray) -> BoolArray:
-        """Rest: the exponential averages of ``|f̃|``, ``|f̃|²`` and ``|ω̃|`` quiet (carried across frames)."""
+    def _rest_mask(
+        self, t: FloatArray, f: FloatArray, w: FloatArray
+    ) -> tuple[BoolArray, BoolArray]:
+        """Rest: the exponential averages of ``|f̃|``, ``|f̃|²`` and ``|ω̃|`` quiet (carried across
+        frames); and the loud samples (module docstring: the raw signal not quiet)."""
         from scipy.signal import lfilter
 
         imu = self._imu
@@ -488,16 +558,23 @@ class ThrustAxisMonitor:
         rest: BoolArray = (spread < self.config.rest_accel_sd_mps2) & (
             y[2] < self.config.rest_gyro_rps
         )
-        return rest
+        # Against the previous sample, not the average: the average still carries the impact.
+        step = np.abs(np.diff(np.r_[imu.last_mag_mps2, mag]))
+        imu.last_mag_mps2 = float(mag[-1])
+        loud: BoolArray = (step >= self.config.rest_accel_sd_mps2) | (
+            x[2] >= self.config.rest_gyro_rps
+        )
+        return rest, loud
 
     def _baselines(
-        self, t: FloatArray, f: FloatArray, w: FloatArray, rest: BoolArray
+        self, t: FloatArray, f: FloatArray, w: FloatArray, rest: BoolArray, loud_before: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         """Per sample, the gyro zero signal it is integrated with and the ground baseline ``g₀``.
 
         A rest of ``min_rest_s`` or more sets ``g₀`` (its mean ``|f̃|``) and the gyro zero
         signal (its mean ``ω̃``) for the flight that follows; each rest ↔ motion change is a
-        transition whose neighbourhood is excluded.
+        transition whose neighbourhood is excluded, a rest's start dated back to the last loud
+        sample before it (``loud_before``, the time of the last loud sample before each sample).
         """
         imu = self._imu
         bias = np.empty((t.size, 3))
@@ -507,7 +584,9 @@ class ThrustAxisMonitor:
         for a, b in zip(np.r_[0, edges], np.r_[edges, t.size], strict=True):
             if rest[a]:
                 if not imu.resting:
-                    imu.transitions_s.append(float(t[a]))
+                    quiet_from = loud_before[a] if np.isfinite(loud_before[a]) else t[a]
+                    last = imu.transitions_s[-1] if imu.transitions_s else -np.inf
+                    imu.transitions_s.append(float(max(quiet_from, last)))
                     imu.rest_start_s = float(t[a])
                     imu.rest_sums[:] = 0.0
                     imu.resting = True
@@ -570,9 +649,11 @@ class ThrustAxisMonitor:
                 trans[np.minimum(first_after, trans.size - 1)] <= tk + cfg.transient_s
             )
         gnss_gaps = _count_between(g.t_s, g.gaps, lo, tk)
+        outliers = _count_between(g.t_s, g.outliers, lo, tk)
         # The last reason that applies is the one counted: a window too early for its span is
         # history whatever it holds, and one holding rest has no baseline by construction.
         for reason, mask in (
+            (Exclusion.GNSS_OUTLIER, outliers > 0),
             (Exclusion.GAP, (counts[_GAP] > 0) | (gnss_gaps > 0)),
             (Exclusion.CLIPPED, counts[_CLIP] > 0),
             (Exclusion.TRANSIENT, near),
@@ -664,7 +745,8 @@ class ThrustAxisMonitor:
         if not (g.pending and imu.t_s.size):
             return Evaluations.empty(self._windows.size)
         waiting = g.t_s[g.t_s.size - g.pending :]
-        tk = waiting[waiting + cfg.transient_s <= imu.t_s[-1]]
+        known = imu.t_s[-1] if imu.resting else min(imu.t_s[-1], imu.last_loud_s)
+        tk = waiting[waiting + cfg.transient_s <= known]
         if not tk.size:
             return Evaluations.empty(self._windows.size)
         g.pending -= tk.size
@@ -712,7 +794,12 @@ class ThrustAxisMonitor:
             )
         j = min(int(np.searchsorted(g.t_s, keep_from)), g.t_s.size - 2)
         if j > 0:
-            g.t_s, g.v_int, g.gaps = g.t_s[j:], g.v_int[j:], g.gaps[j:]
+            g.t_s, g.v_int, g.gaps, g.outliers = (
+                g.t_s[j:],
+                g.v_int[j:],
+                g.gaps[j:],
+                g.outliers[j:],
+            )
         trans = imu.transitions_s
         while len(trans) > 1 and trans[1] < keep_from - self.config.transient_s:
             trans.pop(0)
@@ -785,6 +872,7 @@ def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckC
     the check does not apply (``reason`` says why); nothing judged: it did not run, and the
     reason names the exclusion that took most epochs; it applies (not tested: the verdict cannot
     say "no fault") once the vehicle flew, as in a log cut in the air or a daemon restarted there.
+    Epochs left out for GNSS outliers are said in the reason (the receiver's, not the unit's).
     """
     if summary is None:
         return CheckCoverage(
@@ -794,6 +882,10 @@ def thrust_axis_coverage(summary: Summary | None, *, reason: str = "") -> CheckC
         why = reason or _not_judged(summary)
         flew = bool(np.any(summary.share > 0.0))
         return CheckCoverage(Check.THRUST_AXIS, Triad.ACCEL, ran=False, applies=flew, reason=why)
+    outliers = summary.exclusions.get("gnss_outlier", 0)
+    if outliers:
+        said = f"{outliers:,} epochs not judged: windows holding a GNSS velocity outlier"
+        reason = f"{reason}; {said}" if reason else said
     share = np.where(summary.observable, summary.share, np.nan)
     bias = summary.mdf_10s_mps2 / share
     scale = summary.mdf_10s_mps2 / (summary.baseline_mps2 * share**2)
@@ -835,4 +927,5 @@ _WHY = {
     "transient": "take-off and touch-down",
     "clipped": "a clipped accelerometer",
     "gap": "gaps in the IMU or GNSS stream",
+    "gnss_outlier": "GNSS velocity outliers",
 }
