@@ -107,6 +107,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import IntEnum
 from statistics import NormalDist
+from typing import Any
 
 import numpy as np
 
@@ -784,22 +785,8 @@ class ThrustAxisMonitor:
         if imu.t_s.size:
             # A receiver that stopped, or fell behind, does not hold the IMU's history forever.
             keep_from = max(keep_from, imu.t_s[-1] - self.config.span_s - self.config.gnss_late_s)
-        k = min(int(np.searchsorted(imu.t_s, keep_from)), imu.t_s.size - 2)
-        if k > 0:
-            imu.t_s, imu.f_int, imu.g0, imu.counts = (
-                imu.t_s[k:],
-                imu.f_int[k:],
-                imu.g0[k:],
-                imu.counts[k:],
-            )
-        j = min(int(np.searchsorted(g.t_s, keep_from)), g.t_s.size - 2)
-        if j > 0:
-            g.t_s, g.v_int, g.gaps, g.outliers = (
-                g.t_s[j:],
-                g.v_int[j:],
-                g.gaps[j:],
-                g.outliers[j:],
-            )
+        _drop_before(imu, ("t_s", "f_int", "g0", "counts"), keep_from)
+        _drop_before(g, ("t_s", "v_int", "gaps", "outliers"), keep_from)
         trans = imu.transitions_s
         while len(trans) > 1 and trans[1] < keep_from - self.config.transient_s:
             trans.pop(0)
@@ -929,3 +916,13 @@ _WHY = {
     "gap": "gaps in the IMU or GNSS stream",
     "gnss_outlier": "GNSS velocity outliers",
 }
+
+
+def _drop_before(history: Any, columns: tuple[str, ...], keep_from: float) -> None:
+    """Drop a history's rows before ``keep_from`` (its ``t_s``, s), keeping at least its last two:
+    the columns named, arrays of one length, are cut alike."""
+    t_s = history.t_s
+    k = min(int(np.searchsorted(t_s, keep_from)), t_s.size - 2)
+    if k > 0:
+        for name in columns:
+            setattr(history, name, getattr(history, name)[k:])
