@@ -28,7 +28,7 @@ demo: $(DEMO_STAMP)
 	$(BIN)/ins-health demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 # ruff (rules and their exceptions in pyproject.toml), the formatter's check, and mypy
 # (strict on estimators/ and protocols/, default on service/: pyproject.toml).
