@@ -1,4 +1,4 @@
-"""The gyro's deterministic mechanisms (issue 31, items 1 and 4).
+"""The gyro's deterministic mechanisms and the temperature panel (issue 31, items 1, 4 and 5).
 
 A gyro that resolves the Earth rate (navigation grade) carries a bias step, a temperature hysteresis
 and a rail in its scalar residual ``|ω − b − G f| = Ω``: each is named as its mechanism on its axis,
@@ -6,6 +6,7 @@ not as wander. A MEMS gyro does not resolve it: its blind-spot statement names t
 audit states their minimum detectable sizes. benchmarks/bench_audit.py runs 20 trials per class.
 """
 
+import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ from estimators.audit.audit import (
     extend_model,
     find_candidates,
     fit_baselines,
+    structure_of,
 )
 from estimators.audit.hidden import (
     GYRO_MECHANISM_KINDS,
@@ -26,8 +28,10 @@ from estimators.audit.hidden import (
     trial,
     trial_chain_config,
 )
+from estimators.chain import ChainConfig
 from estimators.conventions import EARTH_RATE_RPS, Triad
 from estimators.sim import BiasStep, Grade
+from service.audit_report import temperature_panel, write_report
 
 G = 9.80665
 NAV = Grade.NAVIGATION
@@ -88,3 +92,45 @@ def test_a_mems_gyro_states_what_its_path_cannot_see_with_the_new_mechanisms():
         assert (
             f"bias_step {ax} step_rps" in gyro and f"temperature_hysteresis {ax} offset_rps" in gyro
         )
+
+
+def test_a_temperature_hysteresis_report_shows_the_residual_against_temperature(tmp_path):
+    h = hide(9920, "temperature_hysteresis", Triad.ACCEL, "z", 10.0)
+    s, _ = session_of(h.model, 9920)
+    res = run_audit(s, AuditConfig(ChainConfig(gravity_mps2=G), replicas=2))
+    (c,) = res.named
+    assert (c.effect, c.axis) == ("temperature_hysteresis", "z")
+    (st,) = [x for x in res.structure if x.triad is Triad.ACCEL]
+    panel = temperature_panel(c, st, G)
+    assert panel is not None
+    # Heating and cooling apart, each against its fitted level ±h (the baseline's bias takes their mean).
+    h_si = c.params["offset_norm"] * G
+    for side, level in ((panel.heating > 0, h_si), (panel.heating < 0, -h_si)):
+        w = 1.0 / panel.sd_si[side] ** 2
+        mean = np.sum(w * panel.effect_si[side]) / np.sum(w)
+        assert abs(mean - level) < 4.0 / np.sqrt(np.sum(w)), (mean, level)
+    assert [v.tolist() for v in panel.curve_si] == [[h_si, h_si], [-h_si, -h_si]]
+    md = write_report(res, tmp_path, title="hysteresis").read_text()
+    name = "mechanism_temperature_hysteresis_accel_z.png"
+    assert f"]({name})" in md
+    # Three panels: time, orientation, temperature (two without one, 1000 px at 100 dpi).
+    assert mpimg.imread(tmp_path / name).shape[1] == 1500
+
+
+def test_a_gyro_temperature_effect_has_its_panel_too():
+    h = hide(9930, "temperature_hysteresis", Triad.GYRO, "x", 10.0, grade=NAV)
+    s, chain = session_of(h.model, 9930, grade=NAV)
+    base = fit_baselines(s, chain, colour=False)
+    (c,) = [c for c in find_candidates(s, chain, base) if c.selected]
+    assert (c.effect, c.triad, c.axis) == ("temperature_hysteresis", Triad.GYRO, "x")
+    (st,) = [x for x in structure_of(s, chain, base) if x.triad is Triad.GYRO]
+    panel = temperature_panel(c, st, G)
+    assert panel is not None and panel.unit == "rad/s"
+    hot, cold = panel.heating > 0, panel.heating < 0
+    assert hot.any() and cold.any()
+    # The rad/s of the points: heating minus cooling about twice the fitted offset, in its noise.
+    diff = panel.effect_si[hot].mean() - panel.effect_si[cold].mean()
+    sd = np.sqrt(
+        np.mean(panel.sd_si[hot] ** 2) / hot.sum() + np.mean(panel.sd_si[cold] ** 2) / cold.sum()
+    )
+    assert abs(diff - 2.0 * c.params["offset_rps"]) < 4.0 * sd, (diff, c.params)

@@ -646,7 +646,8 @@ class ResidualStructure:
     ``lr_within`` below :data:`WITHIN_ABSENT_LR`) — the signature of a deterministic effect, not of wander, which shows inside
     positions too (on any axis, a wander makes the within-position noise too small a scale). ``axis``:
     the axis whose excess fits best (the scalar residual tells the axes apart only through the orientations). ``t_mid_s``, ``up`` (n, 3), ``residual_norm`` and ``sigma_norm``: the residual against
-    time and orientation, for the plot.
+    time and orientation, for the plot; ``temp_c`` (None without a temperature), ``heating`` (+1 heating, −1
+    cooling) and ``jac`` (n, 9) the scalar equation's Jacobian: the residual against temperature, per axis.
     """
 
     triad: Triad
@@ -659,6 +660,9 @@ class ResidualStructure:
     up: FloatArray
     residual_norm: FloatArray
     sigma_norm: FloatArray
+    temp_c: FloatArray | None = None
+    heating: FloatArray | None = None
+    jac: FloatArray | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -726,6 +730,9 @@ def residual_structure(
         u,
         residual,
         sigma,
+        tab.temp_c,
+        None if temperature_reason(tab) is not None else heating_sign_of_positions(tab),
+        jac,
     )
 
 
