@@ -98,8 +98,10 @@ def test_a_temperature_hysteresis_report_shows_the_residual_against_temperature(
     h = hide(9920, "temperature_hysteresis", Triad.ACCEL, "z", 10.0)
     s, _ = session_of(h.model, 9920)
     res = run_audit(s, AuditConfig(ChainConfig(gravity_mps2=G), replicas=2))
-    (c,) = res.named
-    assert (c.effect, c.axis) == ("temperature_hysteresis", "z")
+    assert [(c.effect, c.triad, c.axis) for c in res.named] == [
+        ("temperature_hysteresis", Triad.ACCEL, "z")
+    ]
+    c = res.named[0]
     (st,) = [x for x in res.structure if x.triad is Triad.ACCEL]
     panel = temperature_panel(c, st, G)
     assert panel is not None

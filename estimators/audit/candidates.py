@@ -1061,6 +1061,23 @@ def heating_sign_of_positions(tab: PositionTable) -> FloatArray:
     return out
 
 
+def hysteresis_effect(
+    tab: PositionTable, axis: int, key: str, d_bias: FloatArray | None = None
+) -> _MeanEffect:
+    """``temperature_hysteresis`` of ``axis``: a bias ``±h`` heating and cooling, on the scalar residual through
+    ``d_bias`` (n,) = ∂f/∂b_axis (sign −1: the baseline lacks it), or on a gyro mean (``None``: the bias itself)."""
+    heating = heating_sign_of_positions(tab)[:, None]
+    reg = heating if d_bias is None else d_bias[:, None] * heating
+    return _MeanEffect(
+        "temperature_hysteresis",
+        axis,
+        (key,),
+        reg,
+        np.zeros((tab.t_mid_s.size, 1)),
+        1.0 if d_bias is None else -1.0,
+    )
+
+
 def cross_axis_effect(tab: PositionTable, jac: FloatArray) -> _MeanEffect:
     """The second-order cross-axis term ``y_i += Kc_i y_j y_k`` of the triad (normalized ``kc_norm = Σ Kc_i·g``).
 
@@ -1167,14 +1184,7 @@ def _mean_effects(
         ]
         if dtemp is not None and th is not None:
             out += [
-                _MeanEffect(
-                    "temperature_hysteresis",
-                    i,
-                    ("offset_norm",),
-                    jac[:, [i]] * heating_sign_of_positions(tab)[:, None],
-                    np.zeros((n, 1)),
-                    -1.0,
-                ),
+                hysteresis_effect(tab, i, "offset_norm", jac[:, i]),
                 _MeanEffect(
                     "temperature_bias",
                     i,
@@ -1213,14 +1223,7 @@ def _mean_effects(
     if dtemp is not None and th is not None:
         out += [
             _MeanEffect("temperature_bias", i, ("coef_rps_per_c",), dtemp, th, 1.0),
-            _MeanEffect(
-                "temperature_hysteresis",
-                i,
-                ("offset_rps",),
-                heating_sign_of_positions(tab)[:, None],
-                np.zeros((n, 1)),
-                1.0,
-            ),
+            hysteresis_effect(tab, i, "offset_rps"),
         ]
     return out
 
@@ -1829,14 +1832,7 @@ def _earth_rate_effects(
         th = tab.temp_halves_c[:, None]
         out += [
             _MeanEffect("temperature_bias", i, ("coef_rps_per_c",), jac[:, [i]] * dtemp, th, -1.0),
-            _MeanEffect(
-                "temperature_hysteresis",
-                i,
-                ("offset_rps",),
-                jac[:, [i]] * heating_sign_of_positions(tab)[:, None],
-                np.zeros((n, 1)),
-                -1.0,
-            ),
+            hysteresis_effect(tab, i, "offset_rps", jac[:, i]),
             _MeanEffect(
                 "temperature_scale",
                 i,
