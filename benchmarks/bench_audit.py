@@ -16,7 +16,10 @@ Run: ``python benchmarks/bench_audit.py [--quick] [--no-times | --no-rates]``. P
 4. the 50 Hz line on 200 Hz sessions (:data:`estimators.audit.hidden.LINE_KIND`) against its
    amplitude in noise sd, and effect-free 200 Hz sessions naming nothing;
 5. a gyro drift on each side of the chain's nine-parameter σ limit (the gyro's path is continuous),
-   and a quadratic accelerometer temperature bias (its order chosen on held-out temperatures).
+   and a quadratic accelerometer temperature bias (its order chosen on held-out temperatures);
+6. ``--mechanisms``: only the deterministic classes of both triads at 10 standard errors (the
+   accelerometer's on MEMS sessions, the gyro's where it resolves the Earth rate, g-sensitivity at both
+   grades), each named as its mechanism on its axis, and the effect-free sessions of both grades.
 """
 
 from __future__ import annotations
@@ -30,8 +33,10 @@ import numpy as np
 
 from estimators.audit import AuditConfig, run_audit
 from estimators.audit.hidden import (
+    GYRO_MECHANISM_KINDS,
     LINE_KIND,
     LINE_RATE_HZ,
+    MECHANISM_KINDS,
     NEAR_LIMIT_GYRO_SD_RPS,
     PAIRS,
     clean_trial,
@@ -234,6 +239,31 @@ def gyro_path_and_temperature_order_rates(trials: int, workers: int) -> None:
             )
 
 
+MECHANISM_TABLE = (
+    *((k, Grade.MEMS) for k in MECHANISM_KINDS),
+    (("g_sensitivity", Triad.GYRO), Grade.MEMS),
+    *((k, Grade.NAVIGATION) for k in (*GYRO_MECHANISM_KINDS, ("g_sensitivity", Triad.GYRO))),
+)
+"""The deterministic classes of issue 31 and the grade each is hidden at (a gyro's at the grade that resolves the Earth rate)."""
+
+
+def mechanism_rates(trials: int, workers: int) -> None:
+    print(
+        f"Deterministic classes at 10 standard errors, named as their mechanism on their axis, {trials} trials:"
+    )
+    with ProcessPoolExecutor(workers) as pool:
+        for k, (kind, grade) in enumerate(MECHANISM_TABLE):
+            jobs = [(800_000 + 1000 * k + t, 10.0, kind, grade, True) for t in range(trials)]
+            hits = list(pool.map(_hit, jobs))
+            label = f"{kind[0]} ({kind[1].value}, {grade.value})"
+            print("    " + label.ljust(50) + f"{np.mean(hits):7.2f}")
+        for grade in (Grade.MEMS, Grade.NAVIGATION):
+            clean = list(pool.map(_clean, [(200_000 + t, grade, True) for t in range(2 * trials)]))
+            print(
+                f"    effect-free {grade.value} sessions naming nothing: {sum(clean)} of {len(clean)}"
+            )
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer replica counts, lengths and trials")
@@ -257,7 +287,15 @@ if __name__ == "__main__":
     )
     ap.add_argument("--no-times", action="store_true", help="skip the wall-time part")
     ap.add_argument("--no-rates", action="store_true", help="skip the hit-rate sweep")
+    ap.add_argument(
+        "--mechanisms",
+        action="store_true",
+        help="only the deterministic classes at 10 standard errors (default 20 trials) and effect-free sessions",
+    )
     args = ap.parse_args()
+    if args.mechanisms:
+        mechanism_rates(args.trials or 20, args.workers)
+        raise SystemExit(0)
     if not args.no_times:
         wall_times(args.quick)
     grades = tuple(Grade(g) for g in args.grade) if args.grade else (Grade.MEMS, Grade.NAVIGATION)

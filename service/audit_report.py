@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -215,10 +216,107 @@ MECHANISM_PLOT = "mechanism_{effect}_{where}.png"
 """One plot per named cause a person reads its mechanism from: the residual against time and orientation, or the spectrum."""
 
 
+TEMPERATURE_EFFECTS = ("temperature_bias", "temperature_scale", "temperature_hysteresis")
+SEEN_SHARE = 0.5
+"""Smallest |∂f/∂θ| of a position for its residual to stand for the axis' effect in the temperature panel
+(≈ |u_i| for a bias, u_i² for a scale): where the axis barely sees the effect the quotient is noise."""
+
+
+@dataclass(frozen=True)
+class TemperaturePanel:
+    """A temperature effect of one axis read position by position: ``effect_si`` = −residual / (∂f/∂θ), in the
+    effect's units (a bias in SI, a scale relative), with its sd, for the positions that see the axis
+    (:data:`SEEN_SHARE`); ``heating`` of each; the fitted curve ``curve_t_c`` → ``curve_si`` (for a hysteresis,
+    +h heating and −h cooling, each over the temperatures it was met at)."""
+
+    temp_c: np.ndarray
+    effect_si: np.ndarray
+    sd_si: np.ndarray
+    heating: np.ndarray
+    curve_t_c: list[np.ndarray]
+    curve_si: list[np.ndarray]
+    unit: str
+
+
+def temperature_panel(cause, st, gravity_mps2: float) -> TemperaturePanel | None:
+    """The temperature panel of a named temperature effect on a triad's scalar residual, or None (another
+    effect, a triad off the scalar path, no temperature)."""
+    if cause.effect not in TEMPERATURE_EFFECTS or cause.axis is None or st.temp_c is None:
+        return None
+    if st.jac is None or st.heating is None:
+        return None
+    i = AXES.index(cause.axis)
+    p = cause.params
+    ref = reference_magnitude(cause.triad, gravity_mps2)
+    scale = cause.effect == "temperature_scale"
+    d = st.jac[:, 3 + i] if scale else st.jac[:, i]
+    seen = np.abs(d) >= SEEN_SHARE
+    # The scalar residual is f ≈ J δp − J θ for an effect θ the baseline lacks.
+    to_unit = 1.0 if scale else ref
+    t = st.temp_c[seen]
+    grid = np.linspace(float(st.temp_c.min()), float(st.temp_c.max()), 50)
+    dt = grid - float(np.mean(st.temp_c))
+    if cause.effect == "temperature_hysteresis":
+        h = p["offset_norm"] * ref if cause.triad is Triad.ACCEL else p["offset_rps"]
+        sides = [st.heating > 0, st.heating < 0]
+        curve_t = [np.array([st.temp_c[k].min(), st.temp_c[k].max()]) for k in sides if k.any()]
+        curve = [np.full(2, v) for v, k in zip((h, -h), sides, strict=True) if k.any()]
+    elif scale:
+        curve_t, curve = [grid], [p["coef_per_c"] * dt]
+    elif cause.triad is Triad.ACCEL:
+        coefs = [p.get("coef_norm_per_c", 0.0)] + [
+            p.get(f"coef{k}_norm_per_c{k}", 0.0) for k in range(2, 4)
+        ]
+        curve_t, curve = [grid], [ref * sum(c * dt ** (k + 1) for k, c in enumerate(coefs))]
+    else:
+        curve_t, curve = [grid], [p["coef_rps_per_c"] * dt]
+    unit = "–" if scale else UNIT[cause.triad]
+    return TemperaturePanel(
+        t,
+        -st.residual_norm[seen] / d[seen] * to_unit,
+        st.sigma_norm[seen] / np.abs(d[seen]) * to_unit,
+        st.heating[seen],
+        curve_t,
+        curve,
+        unit,
+    )
+
+
+def _draw_temperature(ax, cause, panel: TemperaturePanel) -> None:
+    hyst = cause.effect == "temperature_hysteresis"
+    groups = (
+        [(panel.heating > 0, "C3", "heating"), (panel.heating < 0, "C0", "cooling")]
+        if hyst
+        else [(np.ones(panel.temp_c.size, bool), "k", "positions")]
+    )
+    for k, colour, label in groups:
+        ax.errorbar(
+            panel.temp_c[k],
+            panel.effect_si[k],
+            panel.sd_si[k],
+            fmt="o",
+            ms=3,
+            lw=0.6,
+            color=colour,
+            label=label,
+        )
+    colours = ("C3", "C0") if hyst else ("C1",)
+    for t, v, colour in zip(panel.curve_t_c, panel.curve_si, colours, strict=False):
+        ax.plot(t, v, "-", color=colour, lw=1.2)
+    ax.plot(
+        [], [], "-", color="k" if hyst else "C1", lw=1.2, label="fitted ±h" if hyst else "fitted"
+    )
+    ax.set_xlabel("temperature of the position (°C)")
+    ax.set_ylabel(f"{cause.effect} {cause.axis} ({panel.unit})")
+    ax.legend(fontsize=7)
+
+
 def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
     """A named cause's evidence: a line's spectrum over its floor; any other cause of a triad on a scalar path,
     that triad's scalar residual per position against time (the change's turn marked) and against the
-    orientation of the cause's axis (for the triad's cross-axis term, ``u_x u_y u_z``)."""
+    orientation of the cause's axis (for the triad's cross-axis term, ``u_x u_y u_z``); a temperature effect
+    also against temperature with its fitted curve (:func:`temperature_panel`; a hysteresis heating and cooling
+    apart)."""
     p = cause.params
     if cause.effect == "spectral_line":
         fig, ax = plt.subplots(figsize=(8, 3.4))
@@ -243,7 +341,13 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
     if st is None:
         return False
     z = st.residual_norm / st.sigma_norm
-    fig, (a_t, a_u) = plt.subplots(1, 2, figsize=(10, 3.4))
+    panel = temperature_panel(cause, st, result.gravity_mps2)
+    fig, axes = plt.subplots(
+        1, 2 if panel is None else 3, figsize=(10 if panel is None else 15, 3.4)
+    )
+    a_t, a_u = axes[0], axes[1]
+    if panel is not None:
+        _draw_temperature(axes[2], cause, panel)
     a_t.plot(st.t_mid_s, z, "ko-", ms=3, lw=0.6)
     if "t_change_s" in p:
         a_t.axvspan(
@@ -262,7 +366,7 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
         u, label = st.up[:, AXES.index(cause.axis)], f"u_{cause.axis} (gravity on the axis)"
     a_u.plot(u, z, "ko", ms=3)
     a_u.set_xlabel(label)
-    for a in (a_t, a_u):
+    for a in axes:
         a.axhline(0.0, color="k", lw=0.5)
     fig.suptitle(
         f"{cause.effect} ({cause.triad.value}{'' if cause.axis is None else ' ' + cause.axis}): baseline residual per position"

@@ -1147,9 +1147,10 @@ def earth_rate_blind_spot(path: dict[str, str | float]) -> str:
     return (
         f"gyro blind spot: a position mean's noise is {float(path['mean_noise_over_reference']):.2g} Ω (the Earth rate "
         f"is resolved per position below {EARTH_RATE_RESOLVED_SD:g} Ω), so each axis carries the Earth rate's unknown "
-        "projection as noise (Ω²/3): a gyro drift, g-sensitivity, temperature bias or bias instability smaller than "
-        "the gyro's minimum detectable sizes stated here is invisible, and its temperature scale and scale "
-        "nonlinearity are not identifiable"
+        "projection as noise (Ω²/3): a gyro drift, g-sensitivity, bias step, temperature bias, temperature "
+        "hysteresis or bias instability smaller than the gyro's minimum detectable sizes stated here is invisible, "
+        "and its temperature scale and scale nonlinearity are not identifiable (clipping is read from the samples "
+        "on either path)"
     )
 
 
@@ -1251,8 +1252,9 @@ def extend_model(
     temp_scale = {t: np.zeros(3) for t in Triad}
     k2, k3, kc = np.zeros(3), np.zeros(3), np.zeros(3)
     gsens = np.zeros((3, 3))
-    step, t_step = np.zeros(3), np.zeros(3)
-    hysteresis = np.zeros(3)
+    step = {t: np.zeros(3) for t in Triad}
+    t_step = {t: np.zeros(3) for t in Triad}
+    hysteresis = {t: np.zeros(3) for t in Triad}
     cosine_change, t_cosine = np.zeros(3), 0.0
     rails = {t: np.full(3, np.inf) for t in Triad}
     line_hz = {t: np.zeros(3) for t in Triad}
@@ -1300,12 +1302,17 @@ def extend_model(
         elif c.effect == "cross_axis_nonlinearity":
             kc[:] = c.params["kc_norm"] / g / 3.0
         elif c.effect == "bias_step":
-            step[i], t_step[i] = c.params["step_norm"] * g, change_time(c)
+            step[c.triad][i] = (
+                c.params["step_norm"] * g if c.triad is Triad.ACCEL else c.params["step_rps"]
+            )
+            t_step[c.triad][i] = change_time(c)
         elif c.effect == "nonorthogonality_change":
             cosine_change = np.array([c.params[f"d_{p}_change"] for p in ("xy", "xz", "yz")])
             t_cosine = change_time(c)
         elif c.effect == "temperature_hysteresis":
-            hysteresis[i] = c.params["offset_norm"] * g
+            hysteresis[c.triad][i] = (
+                c.params["offset_norm"] * g if c.triad is Triad.ACCEL else c.params["offset_rps"]
+            )
         elif c.effect == "clipping":
             rails[c.triad][i] = abs(c.params["rail_si"])
         elif c.effect == "spectral_line":
@@ -1348,6 +1355,10 @@ def extend_model(
             ext = ext.with_effect(TemperatureScale(temp_scale[t][:, None], t_ref_c=t_ref), t)
         if np.any(np.isfinite(rails[t])):
             ext = ext.with_effect(Clipping(rails[t]), t)
+        if np.any(step[t]):
+            ext = ext.with_effect(BiasStep(t_step[t], step[t]), t)
+        if np.any(hysteresis[t]):
+            ext = ext.with_effect(TemperatureHysteresis(hysteresis[t]), t)
         wn = ext.triad(t).find(WhiteNoise)
         if np.any(line_amp[t]) and wn is not None:
             # The line's variance A²/2 was read as white noise: it moves to the line.
@@ -1363,12 +1374,8 @@ def extend_model(
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
     if np.any(kc):
         ext = ext.with_effect(CrossAxisNonlinearity(kc), Triad.ACCEL)
-    if np.any(step):
-        ext = ext.with_effect(BiasStep(t_step, step), Triad.ACCEL)
     if np.any(cosine_change):
         ext = ext.with_effect(NonOrthogonalityChange(t_cosine, cosine_change), Triad.ACCEL)
-    if np.any(hysteresis):
-        ext = ext.with_effect(TemperatureHysteresis(hysteresis), Triad.ACCEL)
     if np.any(gsens):
         ext = ext.with_effect(GSensitivity(gsens), Triad.GYRO)
     return ext, base

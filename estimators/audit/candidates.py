@@ -57,9 +57,10 @@ direction of gravity in the sensor axes, ``ΔT`` temperature about its mean):
 * ``cross_axis_nonlinearity``: for the triad, ``Σ_i J_b_i·ã_j ã_k`` (the second-order cross terms Kxy;
   the norm sees them only through ``u_x u_y u_z``, the same for every axis: :func:`cross_axis_effect`);
 * ``temperature_hysteresis``: per axis, ``J_b_i·sign(dT/dt)_k`` (a bias that differs heating and cooling);
-* ``bias_step`` / ``nonorthogonality_change``: per axis ``J_b_i``, for the triad ``J_d`` (three
-  cosines), from position ``b`` on, profiled over the ``n − 1`` breaks (a knock or a mounting slip in a
-  turn); the threshold splits the candidate's share of the rate over the breaks, the ranking uses the
+  on a gyro mean ``sign(dT/dt)_k``;
+* ``bias_step`` / ``nonorthogonality_change``: per axis ``J_b_i`` (a gyro mean: 1), for the accelerometer
+  triad ``J_d`` (three cosines), from position ``b`` on, profiled over the ``n − 1`` breaks (a knock or a
+  mounting slip in a turn); the threshold splits the candidate's share of the rate over the breaks, the ranking uses the
   single test's margin (:func:`forward_select`): a deterministic effect is not beaten by one that
   explains less behind a lower threshold;
 * ``clipping``: samples held on a rail, read from the samples (:func:`clipping_candidates`);
@@ -645,7 +646,8 @@ class ResidualStructure:
     ``lr_within`` below :data:`WITHIN_ABSENT_LR`) — the signature of a deterministic effect, not of wander, which shows inside
     positions too (on any axis, a wander makes the within-position noise too small a scale). ``axis``:
     the axis whose excess fits best (the scalar residual tells the axes apart only through the orientations). ``t_mid_s``, ``up`` (n, 3), ``residual_norm`` and ``sigma_norm``: the residual against
-    time and orientation, for the plot.
+    time and orientation, for the plot; ``temp_c`` (None without a temperature), ``heating`` (+1 heating, −1
+    cooling) and ``jac`` (n, 9) the scalar equation's Jacobian: the residual against temperature, per axis.
     """
 
     triad: Triad
@@ -658,6 +660,9 @@ class ResidualStructure:
     up: FloatArray
     residual_norm: FloatArray
     sigma_norm: FloatArray
+    temp_c: FloatArray | None = None
+    heating: FloatArray | None = None
+    jac: FloatArray | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -725,6 +730,9 @@ def residual_structure(
         u,
         residual,
         sigma,
+        tab.temp_c,
+        None if temperature_reason(tab) is not None else heating_sign_of_positions(tab),
+        jac,
     )
 
 
@@ -741,18 +749,19 @@ def clipping_candidates(
 ) -> list[Candidate]:
     """``clipping`` per axis: static samples held on a rail, read from the samples themselves.
 
-    The extreme value of an axis over the static samples (``spans`` (n, 2)) is its rail candidate, on
-    the side where it is larger in magnitude. Without a rail the samples at that level besides the
-    extreme itself are a Poisson count of mean ``E = Σ_k n_k P(level)``, each position's samples
-    normal about its mean with the baseline's per-sample sd, the level one output step wide (the
-    grid's, or float32's resolution off a grid): a clipped output stacks samples there that the noise
-    would have spread beyond. ``LR = −2 ln p`` of the count, against ``−2 ln(α/(tests·3))``
-    (three axes per triad). The rail is exact to half a step. On a grid coarser than the noise the
+    The extreme values of an axis over the static samples (``spans`` (n, 2)), the highest and the lowest,
+    are its rail candidates. Without a rail the samples at such a level besides the extreme itself are
+    a Poisson count of mean ``E = Σ_k n_k P(level)``, each position's samples normal about its mean
+    with the baseline's per-sample sd, the level one output step wide (the grid's, or float32's
+    resolution off a grid): a clipped output stacks samples there that the noise would have spread
+    beyond. ``LR = −2 ln p`` of the count, the larger of the two sides, against
+    ``−2 ln(α/(tests·6))`` (two sides of three axes per triad): both are tried because symmetric rails
+    clip both sides of an axis whose positions reach either (a gyro's Earth rate projects on an axis
+    with either sign, so its extremes are alike in magnitude and the stack may be on the smaller
+    one). The rail is exact to half a step. On a grid coarser than the noise the
     levels' counts hang on where each mean falls between two levels: not identifiable there.
     """
-    from scipy.stats import norm, poisson
-
-    thr = float(-2.0 * np.log(FAMILY_ALPHA / (max(n_tests, 1) * 3)))
+    thr = float(-2.0 * np.log(FAMILY_ALPHA / (max(n_tests, 1) * 6)))
     out = []
     for i, ax in enumerate(AXES):
         if step_si is not None and step_si[i] > sample_sd_si[i]:
@@ -768,20 +777,13 @@ def clipping_candidates(
             continue
         pieces = [x_si[a:b, i] for a, b in spans]
         static = np.concatenate(pieces)
-        hi, lo = float(static.max()), float(static.min())
-        rail = hi if abs(hi) >= abs(lo) else lo
         step = 0.0 if step_si is None else float(step_si[i])
-        width = max(step, 2.0 * float(np.spacing(np.float32(abs(rail)))))
-        on = np.abs(static - rail) <= 0.5 * width
-        count = int(on.sum())
-        means = np.array([p.mean() for p in pieces])
-        n_k = np.array([p.size for p in pieces])
-        z_hi = (abs(rail) + 0.5 * width - np.sign(rail) * means) / sample_sd_si[i]
-        z_lo = (abs(rail) - 0.5 * width - np.sign(rail) * means) / sample_sd_si[i]
-        expected = float(np.sum(n_k * (norm.sf(z_lo) - norm.sf(z_hi))))
-        # The extreme sample itself is on the level by construction: the count is of the others.
-        p = float(poisson.sf(count - 2, expected)) if count >= 2 else 1.0
-        lr = float(-2.0 * np.log(max(p, 1e-300)))
+        sides = {
+            r: _rail_level(static, pieces, float(sample_sd_si[i]), step, r)
+            for r in (float(static.max()), float(static.min()))
+        }
+        rail = max(sides, key=lambda r: (sides[r][0], abs(r)))
+        lr, width, count, expected = sides[rail]
         touched = [
             k for k, piece in enumerate(pieces) if np.any(np.abs(piece - rail) <= 0.5 * width)
         ]
@@ -808,6 +810,25 @@ def clipping_candidates(
             )
         )
     return out
+
+
+def _rail_level(
+    static: FloatArray, pieces: list[FloatArray], sd: float, step: float, rail: float
+) -> tuple[float, float, int, float]:
+    """(LR, level width, count, expected count) of the static samples on the level of ``rail``
+    (:func:`clipping_candidates`); ``pieces`` are the positions' samples, ``sd`` their per-sample noise."""
+    from scipy.stats import norm, poisson
+
+    width = max(step, 2.0 * float(np.spacing(np.float32(abs(rail)))))
+    count = int(np.sum(np.abs(static - rail) <= 0.5 * width))
+    means = np.array([p.mean() for p in pieces])
+    n_k = np.array([p.size for p in pieces])
+    z_hi = (abs(rail) + 0.5 * width - np.sign(rail) * means) / sd
+    z_lo = (abs(rail) - 0.5 * width - np.sign(rail) * means) / sd
+    expected = float(np.sum(n_k * (norm.sf(z_lo) - norm.sf(z_hi))))
+    # The extreme sample itself is on the level by construction: the count is of the others.
+    p = float(poisson.sf(count - 2, expected)) if count >= 2 else 1.0
+    return float(-2.0 * np.log(max(p, 1e-300))), width, count, expected
 
 
 # --- spectral lines -------------------------------------------------------------
@@ -966,13 +987,13 @@ def temperature_reason(tab: PositionTable) -> str | None:
 def count_tests(has_gyro: bool, temperature: bool, earth_rate: bool = False) -> int:
     """Candidates tried (the Bonferroni split): per accelerometer axis drift, non-linearity,
     bias step, instability (+ temperature bias, scale and hysteresis); the cross-axis term, a change
-    of non-orthogonality and nonstatic positions; per gyro axis drift, g-sensitivity, instability
-    (+ temperature bias, and temperature scale when the gyro resolves the Earth rate:
-    ``earth_rate``); per triad clipping and a spectral line. A step profiled over the breaks counts once here; its own threshold splits
+    of non-orthogonality and nonstatic positions; per gyro axis drift, g-sensitivity, bias step,
+    instability (+ temperature bias and hysteresis, and temperature scale when the gyro resolves the
+    Earth rate: ``earth_rate``); per triad clipping and a spectral line. A step profiled over the breaks counts once here; its own threshold splits
     its share over the breaks (:func:`forward_select`)."""
     accel = 3 * (4 + (3 if temperature else 0)) + 5
-    gyro_temp = (2 if earth_rate else 1) if temperature else 0
-    gyro = 3 * (3 + gyro_temp) + 2 if has_gyro else 0
+    gyro_temp = (3 if earth_rate else 2) if temperature else 0
+    gyro = 3 * (4 + gyro_temp) + 2 if has_gyro else 0
     return accel + gyro
 
 
@@ -1004,12 +1025,14 @@ def _change_effects(
     keys: tuple[str, ...],
     columns: FloatArray,
     triad_level: bool = False,
+    sign: float = -1.0,
 ) -> list[_MeanEffect]:
     """A change of the effect ``columns`` (n, k) between two positions, one candidate per break.
 
     Break ``b`` (1 … n − 1) lies in the turn before position ``b``: the regressor is the columns
     from position ``b`` on (the first positions are the reference). The halves do not see a change
     in a turn; a change inside a position (a knock) splits it, or leaves it for ``nonstatic_positions``.
+    ``sign``: physical parameter over regression coefficient (−1 on a scalar residual, +1 on a gyro mean).
     """
     n, k = columns.shape
     end = tab.t_mid_s + 0.5 * tab.duration_s
@@ -1021,7 +1044,7 @@ def _change_effects(
             keys,
             columns * (np.arange(n) >= b)[:, None],
             np.zeros((n, k)),
-            -1.0,
+            sign,
             after=b,
             window_s=(float(end[b - 1]), float(start[b])),
             breaks=n - 1,
@@ -1036,6 +1059,23 @@ def heating_sign_of_positions(tab: PositionTable) -> FloatArray:
     assert tab.temp_c is not None
     out: FloatArray = np.sign(np.gradient(tab.temp_c, tab.t_mid_s))
     return out
+
+
+def hysteresis_effect(
+    tab: PositionTable, axis: int, key: str, d_bias: FloatArray | None = None
+) -> _MeanEffect:
+    """``temperature_hysteresis`` of ``axis``: a bias ``±h`` heating and cooling, on the scalar residual through
+    ``d_bias`` (n,) = ∂f/∂b_axis (sign −1: the baseline lacks it), or on a gyro mean (``None``: the bias itself)."""
+    heating = heating_sign_of_positions(tab)[:, None]
+    reg = heating if d_bias is None else d_bias[:, None] * heating
+    return _MeanEffect(
+        "temperature_hysteresis",
+        axis,
+        (key,),
+        reg,
+        np.zeros((tab.t_mid_s.size, 1)),
+        1.0 if d_bias is None else -1.0,
+    )
 
 
 def cross_axis_effect(tab: PositionTable, jac: FloatArray) -> _MeanEffect:
@@ -1144,14 +1184,7 @@ def _mean_effects(
         ]
         if dtemp is not None and th is not None:
             out += [
-                _MeanEffect(
-                    "temperature_hysteresis",
-                    i,
-                    ("offset_norm",),
-                    jac[:, [i]] * heating_sign_of_positions(tab)[:, None],
-                    np.zeros((n, 1)),
-                    -1.0,
-                ),
+                hysteresis_effect(tab, i, "offset_norm", jac[:, i]),
                 _MeanEffect(
                     "temperature_bias",
                     i,
@@ -1186,8 +1219,12 @@ def _mean_effects(
             1.0,
         ),
     ]
+    out += _change_effects(tab, "bias_step", i, ("step_rps",), np.ones((n, 1)), sign=1.0)
     if dtemp is not None and th is not None:
-        out.append(_MeanEffect("temperature_bias", i, ("coef_rps_per_c",), dtemp, th, 1.0))
+        out += [
+            _MeanEffect("temperature_bias", i, ("coef_rps_per_c",), dtemp, th, 1.0),
+            hysteresis_effect(tab, i, "offset_rps"),
+        ]
     return out
 
 
@@ -1713,7 +1750,8 @@ def earth_rate_records(
     eliminated): each effect enters the baseline's scalar residual through
     ``∂f/∂b_i`` (the Earth rate's direction on axis ``i``) times its
     regressor — ``t`` (drift), ``f`` (g-sensitivity, three columns), ``ΔT``
-    (temperature bias) — or through ``∂f/∂e_i·ΔT`` (temperature scale: the
+    (temperature bias), ``sign(dT/dt)`` (temperature hysteresis), a step from a
+    turn on (bias step, profiled over the breaks) — or through ``∂f/∂e_i·ΔT`` (temperature scale: the
     Earth rate is a known rate). Bias instability is the wander of the
     scalar residual along ``(∂f/∂b_i)²`` and of the half-to-half differences,
     as for the accelerometers. What this gives up: the component of an effect
@@ -1745,7 +1783,7 @@ def earth_rate_records(
         if reason is not None:
             out += [
                 not_identifiable(e, tri, ax, reason)
-                for e in ("temperature_bias", "temperature_scale")
+                for e in ("temperature_bias", "temperature_scale", "temperature_hysteresis")
             ]
         out.append(
             not_identifiable(
@@ -1786,6 +1824,7 @@ def _earth_rate_effects(
             np.zeros((n, 3)),
             -1.0,
         ),
+        *_change_effects(tab, "bias_step", i, ("step_rps",), jac[:, [i]]),
     ]
     if temperature_reason(tab) is None:
         assert tab.temp_c is not None and tab.temp_halves_c is not None
@@ -1793,6 +1832,7 @@ def _earth_rate_effects(
         th = tab.temp_halves_c[:, None]
         out += [
             _MeanEffect("temperature_bias", i, ("coef_rps_per_c",), jac[:, [i]] * dtemp, th, -1.0),
+            hysteresis_effect(tab, i, "offset_rps", jac[:, i]),
             _MeanEffect(
                 "temperature_scale",
                 i,
@@ -1828,7 +1868,10 @@ def gyro_records(tab: PositionTable, f_b_mps2: FloatArray, n_tests: int) -> Tria
         resid[:, i] = leverage_residual(np.hstack([ones, chosen]), y, sd)
         out += _mean_candidates(effects, tests, tri, EARTH_RATE_RPS, f"gyro {ax} position means")
         if reason is not None:
-            out.append(not_identifiable("temperature_bias", tri, ax, reason))
+            out += [
+                not_identifiable(e, tri, ax, reason)
+                for e in ("temperature_bias", "temperature_hysteresis")
+            ]
         out.append(
             not_identifiable(
                 "temperature_scale",

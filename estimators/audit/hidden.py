@@ -42,6 +42,9 @@ The deterministic classes of issue 31 (:data:`MECHANISM_KINDS`), each named as i
   standard error of the step at that break (:func:`change_se`);
 * ``clipping``: symmetric rails on the axis, ``size`` static samples beyond them (held on one).
 
+Their gyro versions (:data:`GYRO_MECHANISM_KINDS`: bias step, temperature hysteresis, clipping) are hidden
+at navigation grade on the gyro's scalar residual ``|ω − b − G f| = Ω``, sized as above.
+
 ``spectral_line`` (:data:`LINE_KIND`): a 50 Hz sinusoid on a 200 Hz session, ``size`` its amplitude in
 per-sample noise sd.
 
@@ -142,6 +145,14 @@ MECHANISM_KINDS: tuple[tuple[str, Triad], ...] = (
 )
 """The deterministic classes of issue 31: wander was named for them before they were candidates."""
 
+GYRO_MECHANISM_KINDS: tuple[tuple[str, Triad], ...] = (
+    ("bias_step", Triad.GYRO),
+    ("temperature_hysteresis", Triad.GYRO),
+    ("clipping", Triad.GYRO),
+)
+"""Their gyro versions: hidden at navigation grade, where the gyro resolves the Earth rate and its scalar
+residual carries them (a MEMS gyro's blind-spot statement gives their minimum detectable sizes instead)."""
+
 LINE_KIND = ("spectral_line", Triad.ACCEL)
 """A mains or rotor line (issue 31): :data:`LINE_FREQ_HZ` on a :data:`LINE_RATE_HZ` session, ``size`` its
 amplitude in per-sample noise sd (the issue's case: 1.5)."""
@@ -158,11 +169,13 @@ TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
 
 def kinds_of(grade: Grade) -> tuple[tuple[str, Triad], ...]:
     """Every kind a trial of ``grade`` can hide: :data:`HIDDEN_KINDS`, the gyro temperature bias, at
-    navigation grade the gyro temperature scale (the Earth rate is a known rate), and :data:`MECHANISM_KINDS`."""
+    navigation grade the gyro temperature scale (the Earth rate is a known rate), :data:`MECHANISM_KINDS`,
+    and at navigation grade :data:`GYRO_MECHANISM_KINDS`."""
     extra = [("temperature_bias", Triad.GYRO)]
     if grade is not Grade.MEMS:
         extra.append(("temperature_scale", Triad.GYRO))
-    return HIDDEN_KINDS + tuple(extra) + MECHANISM_KINDS
+    gyro = GYRO_MECHANISM_KINDS if grade is not Grade.MEMS else ()
+    return HIDDEN_KINDS + tuple(extra) + MECHANISM_KINDS + gyro
 
 
 _AXIS_FREE = ("nonstatic_positions", "quantization")
@@ -177,6 +190,7 @@ _COEF_KEY = {
     ("scale_nonlinearity", Triad.ACCEL): "k2_norm",
     ("cross_axis_nonlinearity", Triad.ACCEL): "kc_norm",
     ("temperature_hysteresis", Triad.ACCEL): "offset_norm",
+    ("temperature_hysteresis", Triad.GYRO): "offset_rps",
     ("bias_drift", Triad.GYRO): "rate_rps_per_s",
     ("temperature_bias", Triad.GYRO): "coef_rps_per_c",
     ("temperature_scale", Triad.GYRO): "coef_per_c",
@@ -476,7 +490,7 @@ def _hide(
         raise ValueError(f"{effect} is hidden on one axis: give axis x, y or z")
     i = AXES.index(axis)
     if effect in ("bias_step", "nonorthogonality_change", "clipping"):
-        return _hide_change(seed, effect, axis, size, sign, model, session, chain)
+        return _hide_change(seed, effect, triad, axis, size, sign, model, session, chain)
     cand = _clean_candidate(session, chain, effect, triad, None if effect in _TRIAD_LEVEL else axis)
     ref = GRAVITY_MPS2 if triad is Triad.ACCEL else EARTH_RATE_RPS
     if effect == "bias_instability":
@@ -515,7 +529,7 @@ def _hide(
         )
     if effect == "temperature_hysteresis":
         h = np.zeros(3)
-        h[i] = value * GRAVITY_MPS2
+        h[i] = value * (GRAVITY_MPS2 if triad is Triad.ACCEL else 1.0)
         return HiddenEffect(
             effect, triad, axis, size, value, model.with_effect(TemperatureHysteresis(h), triad)
         )
@@ -543,13 +557,20 @@ def _hide(
 
 
 def change_se(
-    session: ImuSession, chain: ChainResult, columns: FloatArray, after: int
+    session: ImuSession,
+    chain: ChainResult,
+    columns: FloatArray,
+    after: int,
+    triad: Triad = Triad.ACCEL,
 ) -> FloatArray:
     """Standard errors of a change of ``columns`` (n, k) from position ``after`` on, next to the nine parameters,
-    on the effect-free session (the weights of the baseline's scalar residuals taken as exact)."""
+    on the effect-free session (the weights of ``triad``'s baseline scalar residuals taken as exact; a gyro's
+    must resolve the Earth rate)."""
     baselines = fit_baselines(session, chain, colour=False)
-    tab = candidate_table(chain, session, Triad.ACCEL, baselines[Triad.ACCEL])
-    _, sd, jac, _ = scalar_residuals(baselines[Triad.ACCEL].params, tab)
+    if not baselines[triad].scalar_resolved:
+        raise ValueError(f"the {triad.value} scalar residual does not resolve its reference")
+    tab = candidate_table(chain, session, triad, baselines[triad])
+    _, sd, jac, _ = scalar_residuals(baselines[triad].params, tab)
     step = columns * (np.arange(sd.size) >= after)[:, None]
     a = np.hstack([jac, step]) / sd[:, None]
     cov = np.linalg.inv(a.T @ a)
@@ -560,6 +581,7 @@ def change_se(
 def _hide_change(
     seed: int,
     effect: str,
+    tri: Triad,
     axis: str,
     size: float,
     sign: float,
@@ -567,9 +589,8 @@ def _hide_change(
     session: ImuSession,
     chain: ChainResult,
 ) -> HiddenEffect:
-    """A bias step, a change of non-orthogonality or a rail on accelerometer ``axis`` (module docstring)."""
+    """A bias step, a change of non-orthogonality (accelerometers) or a rail on ``axis`` of ``tri`` (module docstring)."""
     i = AXES.index(axis)
-    tri = Triad.ACCEL
     if effect == "clipping":
         x = triad_samples(session, tri)[:, i]
         # The rails are symmetric (a converter's full scale): the side nearest one of the positions clips.
@@ -587,9 +608,9 @@ def _hide_change(
     baselines = fit_baselines(session, chain, colour=False)
     _, _, jac, _ = scalar_residuals(baselines[tri].params, tab)
     if effect == "bias_step":
-        value = sign * size * float(change_se(session, chain, jac[:, [i]], after)[0])
+        value = sign * size * float(change_se(session, chain, jac[:, [i]], after, tri)[0])
         step = np.zeros(3)
-        step[i] = value * GRAVITY_MPS2
+        step[i] = value * (GRAVITY_MPS2 if tri is Triad.ACCEL else EARTH_RATE_RPS)
         return HiddenEffect(
             effect,
             tri,

@@ -1,0 +1,138 @@
+"""The gyro's deterministic mechanisms and the temperature panel (issue 31, items 1, 4 and 5).
+
+A gyro that resolves the Earth rate (navigation grade) carries a bias step, a temperature hysteresis
+and a rail in its scalar residual ``|ω − b − G f| = Ω``: each is named as its mechanism on its axis,
+not as wander. A MEMS gyro does not resolve it: its blind-spot statement names these effects and the
+audit states their minimum detectable sizes. benchmarks/bench_audit.py runs 20 trials per class.
+"""
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+from estimators.audit import AuditConfig, run_audit
+from estimators.audit.audit import (
+    baseline_error_model,
+    candidate_table,
+    extend_model,
+    find_candidates,
+    fit_baselines,
+    structure_of,
+)
+from estimators.audit.hidden import (
+    GYRO_MECHANISM_KINDS,
+    baseline_model,
+    draw,
+    hide,
+    session_of,
+    trial,
+    trial_chain_config,
+)
+from estimators.chain import ChainConfig
+from estimators.conventions import EARTH_RATE_RPS, Triad
+from estimators.sim import BiasStep, Grade
+from service.audit_report import temperature_panel, write_report
+
+G = 9.80665
+NAV = Grade.NAVIGATION
+
+
+@pytest.mark.parametrize("kind", GYRO_MECHANISM_KINDS, ids=[k for k, _ in GYRO_MECHANISM_KINDS])
+def test_each_gyro_mechanism_is_named_on_its_axis_where_the_gyro_resolves_the_earth_rate(kind):
+    # 4 seeded trials at 10 SE: ≥ 3 of 4 passes a class named at the 90 % asked with probability 95 %
+    # (binomial); before the gyro had these candidates a step and a hysteresis were named as
+    # bias_instability or nothing.
+    hits = [trial(draw(9900 + t, 10.0, kind, NAV), 9900 + t) for t in range(4)]
+    assert sum(hits) >= 3, hits
+
+
+def test_a_gyro_step_carries_its_size_and_turn_and_is_re_simulated():
+    h = hide(9910, "bias_step", Triad.GYRO, "y", 10.0, grade=NAV)
+    s, chain = session_of(h.model, 9910, grade=NAV)
+    base = fit_baselines(s, chain, colour=False)
+    cands = find_candidates(s, chain, base)
+    (c,) = [c for c in cands if c.selected]
+    assert (c.effect, c.triad, c.axis) == ("bias_step", Triad.GYRO, "y")
+    # The hidden step (normalized by Ω) within 4 of its standard errors; the hidden time inside the named turn.
+    p = c.params
+    assert abs(p["step_rps"] - h.value * EARTH_RATE_RPS) < 4.0 * p["step_rps_se"], p
+    step_t = h.model.gyro.find(BiasStep).t_step_s[1] - s.t_s[0]
+    assert abs(step_t - p["t_change_s"]) <= p["t_change_se_s"], (step_t, p)
+    # The extended model steps the gyro (not the accelerometers) by the fitted step at the fitted time.
+    tab_a = candidate_table(chain, s, Triad.ACCEL, base[Triad.ACCEL])
+    ext, _ = extend_model(baseline_error_model(base, G), base, cands, tab_a, G)
+    assert ext.accel.find(BiasStep) is None
+    np.testing.assert_allclose(ext.gyro.find(BiasStep).step_si, [0.0, p["step_rps"], 0.0])
+    assert ext.gyro.find(BiasStep).t_step_s[1] == p["t_change_s"]
+
+
+def test_a_gyro_rail_is_found_on_the_side_its_samples_stack():
+    # The Earth rate projects on a gyro axis with either sign: symmetric rails clip both extremes, and the
+    # stack can lie on the side of the smaller magnitude (here the maximum is one sample on the rail, the
+    # stack at the minimum). Tried on the larger magnitude only, these rails went unnamed.
+    for seed in (902003, 902008):
+        h = hide(seed, "clipping", Triad.GYRO, "x", 10.0, grade=NAV)
+        s, chain = session_of(h.model, seed, grade=NAV)
+        cands = find_candidates(s, chain, fit_baselines(s, chain, colour=False))
+        (c,) = [
+            c for c in cands if c.effect == "clipping" and c.triad is Triad.GYRO and c.axis == "x"
+        ]
+        assert c.selected and abs(c.params["rail_si"]) == pytest.approx(h.value), c.reason
+
+
+def test_a_mems_gyro_states_what_its_path_cannot_see_with_the_new_mechanisms():
+    s, _ = session_of(baseline_model(np.random.default_rng(2)), 8500)
+    res = run_audit(s, AuditConfig(trial_chain_config(Grade.MEMS, s), replicas=2))
+    (blind,) = [st for st in res.statements if st.startswith("gyro blind spot")]
+    assert "bias step" in blind and "temperature hysteresis" in blind, blind
+    (gyro,) = [
+        st for st in res.statements if st.startswith("minimum detectable on this session (gyro")
+    ]
+    for ax in "xyz":
+        assert (
+            f"bias_step {ax} step_rps" in gyro and f"temperature_hysteresis {ax} offset_rps" in gyro
+        )
+
+
+def test_a_temperature_hysteresis_report_shows_the_residual_against_temperature(tmp_path):
+    h = hide(9920, "temperature_hysteresis", Triad.ACCEL, "z", 10.0)
+    s, _ = session_of(h.model, 9920)
+    res = run_audit(s, AuditConfig(ChainConfig(gravity_mps2=G), replicas=2))
+    assert [(c.effect, c.triad, c.axis) for c in res.named] == [
+        ("temperature_hysteresis", Triad.ACCEL, "z")
+    ]
+    c = res.named[0]
+    (st,) = [x for x in res.structure if x.triad is Triad.ACCEL]
+    panel = temperature_panel(c, st, G)
+    assert panel is not None
+    # Heating and cooling apart, each against its fitted level ±h (the baseline's bias takes their mean).
+    h_si = c.params["offset_norm"] * G
+    for side, level in ((panel.heating > 0, h_si), (panel.heating < 0, -h_si)):
+        w = 1.0 / panel.sd_si[side] ** 2
+        mean = np.sum(w * panel.effect_si[side]) / np.sum(w)
+        assert abs(mean - level) < 4.0 / np.sqrt(np.sum(w)), (mean, level)
+    assert [v.tolist() for v in panel.curve_si] == [[h_si, h_si], [-h_si, -h_si]]
+    md = write_report(res, tmp_path, title="hysteresis").read_text()
+    name = "mechanism_temperature_hysteresis_accel_z.png"
+    assert f"]({name})" in md
+    # Three panels: time, orientation, temperature (two without one, 1000 px at 100 dpi).
+    assert mpimg.imread(tmp_path / name).shape[1] == 1500
+
+
+def test_a_gyro_temperature_effect_has_its_panel_too():
+    h = hide(9930, "temperature_hysteresis", Triad.GYRO, "x", 10.0, grade=NAV)
+    s, chain = session_of(h.model, 9930, grade=NAV)
+    base = fit_baselines(s, chain, colour=False)
+    (c,) = [c for c in find_candidates(s, chain, base) if c.selected]
+    assert (c.effect, c.triad, c.axis) == ("temperature_hysteresis", Triad.GYRO, "x")
+    (st,) = [x for x in structure_of(s, chain, base) if x.triad is Triad.GYRO]
+    panel = temperature_panel(c, st, G)
+    assert panel is not None and panel.unit == "rad/s"
+    hot, cold = panel.heating > 0, panel.heating < 0
+    assert hot.any() and cold.any()
+    # The rad/s of the points: heating minus cooling about twice the fitted offset, in its noise.
+    diff = panel.effect_si[hot].mean() - panel.effect_si[cold].mean()
+    sd = np.sqrt(
+        np.mean(panel.sd_si[hot] ** 2) / hot.sum() + np.mean(panel.sd_si[cold] ** 2) / cold.sum()
+    )
+    assert abs(diff - 2.0 * c.params["offset_rps"]) < 4.0 * sd, (diff, c.params)
