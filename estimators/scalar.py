@@ -577,18 +577,40 @@ _NCX2_MIN_SIGMA = 1e-4
 1/σ² exceeds 1e8); the Gaussian with the exact two moments is then exact to O(σ)."""
 
 
+def _ncx2_tails() -> tuple[Any, Any]:
+    """The non-central χ² survival function and CDF ``(sf, cdf)(x, df, nc)`` that scipy.stats' ``ncx2`` evaluates.
+
+    Its ``sf`` is the ufunc ``scipy.special._ufuncs._ncx2_sf`` (Boost's), its ``cdf``
+    ``scipy.special.chndtr``: called directly they give its values bit for bit
+    (tests/test_scalar.py holds them to ``scipy.stats``), and scipy.special loads in a
+    fraction of the time scipy.stats takes (benchmarks/bench_sixpos_calibrate.py). A scipy
+    without that private ufunc gets scipy.stats' own.
+    """
+    from scipy import special
+
+    sf = getattr(special._ufuncs, "_ncx2_sf", None)
+    if sf is None:
+        from scipy import stats
+
+        return stats.ncx2.sf, stats.ncx2.cdf
+    return sf, special.chndtr
+
+
 def _noise_tail(x: float, sigma: float) -> float:
     """``P(|s| > x)`` for ``s = ½(|u + n|² − 1)``, ``|u| = 1``, ``n ~ N(0, σ² I₃)``."""
-    from scipy import stats  # loaded when λ0 is derived: it takes most of a second to import
+    from scipy import special  # loaded when λ0 is derived, not with the module
 
     if sigma >= _NCX2_MIN_SIGMA:
         nc = 1.0 / (sigma * sigma)
-        up = stats.ncx2.sf((1.0 + 2.0 * x) * nc, 3, nc)
-        lo = stats.ncx2.cdf((1.0 - 2.0 * x) * nc, 3, nc) if 2.0 * x < 1.0 else 0.0
+        sf, cdf = _ncx2_tails()
+        with np.errstate(over="ignore"):  # as scipy.stats calls them (its gh-17432)
+            up = sf((1.0 + 2.0 * x) * nc, 3, nc)
+            lo = cdf((1.0 - 2.0 * x) * nc, 3, nc) if 2.0 * x < 1.0 else 0.0
         return float(up + lo)
     mean = 1.5 * sigma**2
     sd = math.sqrt(sigma**2 + 1.5 * sigma**4)
-    return float(stats.norm.sf((x - mean) / sd) + stats.norm.cdf((-x - mean) / sd))
+    # The normal's sf(z) and cdf(z) as scipy.stats.norm takes them: ndtr(−z) and ndtr(z).
+    return float(special.ndtr(-((x - mean) / sd)) + special.ndtr((-x - mean) / sd))
 
 
 def _worst_first_order(tol: FloatArray) -> float:
