@@ -833,6 +833,26 @@ def derive_lambda0(
         raise ValueError(f"reference_rel_err must be in [0, 1), got {reference_rel_err!r}")
 
     sigma = math.sqrt(float(var.max()) / n_avg)
+    # A service derives each unit's λ0 more than once (the static detector's gyro bound, F0's
+    # configuration, its coverage): the answer depends on these numbers alone.
+    return _lambda0(
+        sigma,
+        float(false_alarm_prob),
+        tuple(float(t) for t in tol),
+        float(reference_rel_err),
+        int(n_avg),
+    )
+
+
+@functools.lru_cache(maxsize=256)
+def _lambda0(
+    sigma: float,
+    false_alarm_prob: float,
+    tolerance: tuple[float, ...],
+    reference_rel_err: float,
+    n_avg: int,
+) -> Lambda0:
+    tol = np.asarray(tolerance)
     hi = 10.0 * sigma + sigma**2
     while _noise_tail(hi, sigma) > false_alarm_prob:
         hi *= 2.0
@@ -854,6 +874,6 @@ def derive_lambda0(
         tolerance_first_order=first,
         tolerance_second_order=second,
         reference_offset=ref,
-        false_alarm_prob=float(false_alarm_prob),
-        n_avg=int(n_avg),
+        false_alarm_prob=false_alarm_prob,
+        n_avg=n_avg,
     )
