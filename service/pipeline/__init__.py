@@ -105,17 +105,16 @@ __all__ = [
     "detector_config",
 ]
 
-_MODULE = {
-    "FleetProcessor": "fleet",
-    "ImuPipeline": "imu_pipeline",
-    "PassportLookup": "fleet",
-    "PipelineOptions": "options",
-    "StaticGate": "static_gate",
-    "detector_config": "options",
+_SUBMODULE_NAMES = {
+    "fleet": ("FleetProcessor", "PassportLookup"),
+    "imu_pipeline": ("ImuPipeline",),
+    "options": ("PipelineOptions", "detector_config"),
+    "static_gate": ("StaticGate",),
 }
 
 
 def __getattr__(name: str) -> Any:
-    if name not in _MODULE:
+    module = next((m for m, names in _SUBMODULE_NAMES.items() if name in names), None)
+    if module is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f".{_MODULE[name]}", __name__), name)
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
