@@ -577,18 +577,40 @@ _NCX2_MIN_SIGMA = 1e-4
 1/σ² exceeds 1e8); the Gaussian with the exact two moments is then exact to O(σ)."""
 
 
+def _ncx2_tails() -> tuple[Any, Any]:
+    """The non-central χ² survival function and CDF ``(sf, cdf)(x, df, nc)`` that scipy.stats' ``ncx2`` evaluates.
+
+    Its ``sf`` is the ufunc ``scipy.special._ufuncs._ncx2_sf`` (Boost's), its ``cdf``
+    ``scipy.special.chndtr``: called directly they give its values bit for bit
+    (tests/test_scalar.py holds them to ``scipy.stats``), and scipy.special loads in a
+    fraction of the time scipy.stats takes (benchmarks/bench_sixpos_calibrate.py). A scipy
+    without that private ufunc gets scipy.stats' own.
+    """
+    from scipy import special
+
+    sf = getattr(special._ufuncs, "_ncx2_sf", None)
+    if sf is None:
+        from scipy import stats
+
+        return stats.ncx2.sf, stats.ncx2.cdf
+    return sf, special.chndtr
+
+
 def _noise_tail(x: float, sigma: float) -> float:
     """``P(|s| > x)`` for ``s = ½(|u + n|² − 1)``, ``|u| = 1``, ``n ~ N(0, σ² I₃)``."""
-    from scipy import stats  # loaded when λ0 is derived: it takes most of a second to import
+    from scipy import special  # loaded when λ0 is derived, not with the module
 
     if sigma >= _NCX2_MIN_SIGMA:
         nc = 1.0 / (sigma * sigma)
-        up = stats.ncx2.sf((1.0 + 2.0 * x) * nc, 3, nc)
-        lo = stats.ncx2.cdf((1.0 - 2.0 * x) * nc, 3, nc) if 2.0 * x < 1.0 else 0.0
+        sf, cdf = _ncx2_tails()
+        with np.errstate(over="ignore"):  # as scipy.stats calls them (its gh-17432)
+            up = sf((1.0 + 2.0 * x) * nc, 3, nc)
+            lo = cdf((1.0 - 2.0 * x) * nc, 3, nc) if 2.0 * x < 1.0 else 0.0
         return float(up + lo)
     mean = 1.5 * sigma**2
     sd = math.sqrt(sigma**2 + 1.5 * sigma**4)
-    return float(stats.norm.sf((x - mean) / sd) + stats.norm.cdf((-x - mean) / sd))
+    # The normal's sf(z) and cdf(z) as scipy.stats.norm takes them: ndtr(−z) and ndtr(z).
+    return float(special.ndtr(-((x - mean) / sd)) + special.ndtr((-x - mean) / sd))
 
 
 def _worst_first_order(tol: FloatArray) -> float:
@@ -811,6 +833,26 @@ def derive_lambda0(
         raise ValueError(f"reference_rel_err must be in [0, 1), got {reference_rel_err!r}")
 
     sigma = math.sqrt(float(var.max()) / n_avg)
+    # A service derives each unit's λ0 more than once (the static detector's gyro bound, F0's
+    # configuration, its coverage): the answer depends on these numbers alone.
+    return _lambda0(
+        sigma,
+        float(false_alarm_prob),
+        tuple(float(t) for t in tol),
+        float(reference_rel_err),
+        int(n_avg),
+    )
+
+
+@functools.lru_cache(maxsize=256)
+def _lambda0(
+    sigma: float,
+    false_alarm_prob: float,
+    tolerance: tuple[float, ...],
+    reference_rel_err: float,
+    n_avg: int,
+) -> Lambda0:
+    tol = np.asarray(tolerance)
     hi = 10.0 * sigma + sigma**2
     while _noise_tail(hi, sigma) > false_alarm_prob:
         hi *= 2.0
@@ -832,6 +874,6 @@ def derive_lambda0(
         tolerance_first_order=first,
         tolerance_second_order=second,
         reference_offset=ref,
-        false_alarm_prob=float(false_alarm_prob),
-        n_avg=int(n_avg),
+        false_alarm_prob=false_alarm_prob,
+        n_avg=n_avg,
     )

@@ -84,7 +84,6 @@ import os
 import tomllib
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -784,9 +783,14 @@ def read_csv_session(
     if len(rows) == 1:
         raise SessionFileError(f"{path}: no data rows after the header (line {header_line})")
     used = list(range(n_fields)) if used_cols is None else used_cols
-    junk = _no_data_rows(rows[1:], delimiter)
-    # Rows that are all junk are a wrong file, not a spreadsheet's padding: the first is named below.
-    if 0 < len(junk) < len(rows) - 1:
+    try:
+        data = _parse_rows(path, rows[1:], tuple(names), delimiter, used_cols, n_fields)
+    except SessionFileError:
+        # A table that parses whole has no row without a number: they are looked for only now.
+        junk = _no_data_rows(rows[1:], delimiter)
+        # Rows that are all junk are a wrong file, not a spreadsheet's padding: the first is named.
+        if not 0 < len(junk) < len(rows) - 1:
+            raise
         lines = [rows[1 + k][0] for k in junk]
         notes.append(
             f"{len(junk)} row(s) that are no data dropped (lines {_line_spans(lines)}, "
@@ -794,7 +798,7 @@ def read_csv_session(
         )
         dropped = set(junk)
         rows = rows[:1] + [r for k, r in enumerate(rows[1:]) if k not in dropped]
-    data = _parse_rows(path, rows[1:], tuple(names), delimiter, used_cols, n_fields)
+        data = _parse_rows(path, rows[1:], tuple(names), delimiter, used_cols, n_fields)
     col = {n: data[:, k] for k, n in enumerate(names)}
     if (problem := _counts_without_scale(path, col, units.over(file_units))) is not None:
         raise problem
@@ -942,6 +946,9 @@ def load_xsens_sidecar(path: str | os.PathLike[str] | None = None) -> XsensNomin
     and ``scale_si_per_count`` (a number or three).
     """
     if path is None:
+        # Imported here: importlib.resources brings tempfile and random, which reading a CSV does not need.
+        from importlib import resources
+
         ref = resources.files(f"{__package__}.sidecars").joinpath(DEFAULT_XSENS_SIDECAR)
         text, where = ref.read_text(encoding="utf-8"), f"packaged {DEFAULT_XSENS_SIDECAR}"
     else:

@@ -126,7 +126,7 @@ import json, sys
 from service.cli import main
 status = main(["calibrate", sys.argv[1], "--out", sys.argv[2]])
 print(json.dumps({"status": status, "loaded": sorted({name.split(".")[0] for name in sys.modules}),
-                  "simulator": "estimators.sim" in sys.modules}))
+                  "modules": sorted(sys.modules)}))
 """
 
 
@@ -134,7 +134,9 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     # Six faces are too few positions for the model audit (on by default), which then concludes
     # nothing: the default command must not pay for importing the simulator for it
     # (benchmarks/bench_sixpos_calibrate.py). scipy it loads: the passport is checked against its own
-    # session's F0 before it is written (issue 30), and F0's λ0 is scipy's non-central χ² quantile.
+    # session's F0 before it is written (issue 30), and F0's λ0 is a non-central χ² quantile. But
+    # only scipy.special and scipy.optimize for it, not scipy.stats; and of the service's pipeline
+    # only F0's configuration, not the fleet's monitors (thrust axis, cross-IMU norm).
     import numpy as np
 
     from estimators.conventions import Grade
@@ -163,7 +165,8 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
     heavy = set(HEAVY) - {"scipy"}
     assert set(out["loaded"]).isdisjoint(heavy), sorted(set(out["loaded"]) & heavy)
-    assert not out["simulator"]
+    not_needed = {"estimators.sim", "scipy.stats", "service.pipeline.fleet"}
+    assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
 
 
 LOADED_BY_A_UNIT = """

@@ -3,6 +3,10 @@
 import itertools
 import json
 import math
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -159,6 +163,53 @@ def test_lambda0_rejects_bad_input():
         derive_lambda0(noise_std_norm=[1e-3] * 3, false_alarm_prob=1e-3, tolerance_norm=[1e-3] * 8)
     with pytest.raises(ValueError, match="n_avg"):
         derive_lambda0(noise_std_norm=[1e-3] * 3, false_alarm_prob=1e-3, n_avg=0)
+
+
+NOISE_TAIL_ALONE = """
+import json, sys
+from estimators.scalar import _noise_tail
+tails = [_noise_tail(x, sigma) for x, sigma in json.loads(sys.argv[1])]
+print(json.dumps({"tails": tails, "scipy.stats": "scipy.stats" in sys.modules}))
+"""
+
+
+def _stats_noise_tail(x: float, sigma: float) -> float:
+    """``P(|s| > x)`` of derive_lambda0's noise model from scipy.stats' distributions (its docstring)."""
+    if sigma >= 1e-4:
+        nc = 1.0 / sigma**2
+        up = stats.ncx2.sf((1.0 + 2.0 * x) * nc, 3, nc)
+        lo = stats.ncx2.cdf((1.0 - 2.0 * x) * nc, 3, nc) if 2.0 * x < 1.0 else 0.0
+        return float(up + lo)
+    mean, sd = 1.5 * sigma**2, math.sqrt(sigma**2 + 1.5 * sigma**4)
+    return float(stats.norm.sf((x - mean) / sd) + stats.norm.cdf((-x - mean) / sd))
+
+
+def test_lambda0_s_noise_tail_is_scipy_stats_bit_for_bit_without_importing_it(monkeypatch):
+    # scipy.stats takes most of a second to import, and calibrate derives λ0 for its own-session
+    # check: the same functions are taken from scipy.special. Navigation-grade noise (the Gaussian
+    # below σ = 1e-4), MEMS, and noise near the reference (both tails of the χ², x past ½).
+    grid = [
+        (k * sigma + 1.5 * sigma**2, sigma)
+        for sigma in (3e-5, 1e-4, 1e-3, 0.05, 0.3)
+        for k in np.linspace(0.0, 12.0, 25)
+    ]
+    run = subprocess.run(
+        [sys.executable, "-c", NOISE_TAIL_ALONE, json.dumps(grid)],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    out = json.loads(run.stdout)
+    assert not out["scipy.stats"]
+    assert out["tails"] == [_stats_noise_tail(x, sigma) for x, sigma in grid]
+    # A scipy whose scipy.special lacks the private Boost ufunc (older ones): scipy.stats' own.
+    import scipy.special
+
+    from estimators.scalar import _noise_tail
+
+    monkeypatch.setattr(scipy.special, "_ufuncs", SimpleNamespace())
+    assert [_noise_tail(x, sigma) for x, sigma in grid] == out["tails"]
 
 
 # --- λ0: false alarms on fault-free static data ---------------------------------------------------

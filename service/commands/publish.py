@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import secrets
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -255,6 +254,7 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    import secrets  # here, not with the parser every command builds: it brings hmac and hashlib
     import signal
 
     if args.batch < 1:

@@ -79,12 +79,22 @@ Everything here is synchronous and deterministic: the same batches with the
 same arrival times give the same events (ids included), which is what makes
 ``ins-health replay`` reproducible and lets the daemon re-derive, after a crash,
 events whose ids the outbox already holds.
+
+The submodules load on first use of one of their names: ``calibrate`` and ``diagnose`` take F0's
+configuration from :mod:`~service.pipeline.options` and :mod:`~service.pipeline.triad_check`
+and do not pay for importing the fleet's monitors (thrust axis, cross-IMU norm).
 """
 
-from service.pipeline.fleet import FleetProcessor, PassportLookup
-from service.pipeline.imu_pipeline import ImuPipeline
-from service.pipeline.options import PipelineOptions, detector_config
-from service.pipeline.static_gate import StaticGate
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from service.pipeline.fleet import FleetProcessor, PassportLookup
+    from service.pipeline.imu_pipeline import ImuPipeline
+    from service.pipeline.options import PipelineOptions, detector_config
+    from service.pipeline.static_gate import StaticGate
 
 __all__ = [
     "FleetProcessor",
@@ -94,3 +104,17 @@ __all__ = [
     "StaticGate",
     "detector_config",
 ]
+
+_SUBMODULE_NAMES = {
+    "fleet": ("FleetProcessor", "PassportLookup"),
+    "imu_pipeline": ("ImuPipeline",),
+    "options": ("PipelineOptions", "detector_config"),
+    "static_gate": ("StaticGate",),
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = next((m for m, names in _SUBMODULE_NAMES.items() if name in names), None)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
