@@ -25,6 +25,12 @@ def read_log(path, numpy_decoding: bool, monkeypatch, **options):
 def assert_same_as_pymavlink(path, monkeypatch, **options) -> None:
     fast, fast_stats = read_log(path, True, monkeypatch, **options)
     oracle, oracle_stats = read_log(path, False, monkeypatch, **options)
+    assert_same_reading((fast, fast_stats), (oracle, oracle_stats))
+
+
+def assert_same_reading(fast, oracle) -> None:
+    """Two readings (batches or the NoImuDataError's message, and stats) are the same to the bit."""
+    (fast, fast_stats), (oracle, oracle_stats) = fast, oracle
     assert fast_stats == oracle_stats
     if isinstance(oracle, str):
         assert fast == oracle
