@@ -46,7 +46,7 @@ from protocols.logs import (
 MIN_BLOCK = 1 << 16
 """Bytes of the first block and of the one after an ``FMT`` line: a whole line of the longest the
 stream reads (:data:`protocols.logs._MAX_TEXT_LINE`) fits in it."""
-MAX_BLOCK = 1 << 20
+MAX_BLOCK = 1 << 18
 """Bytes of a block once no ``FMT`` line came for a while (each block without one doubles the next)."""
 
 _PAD = 32
