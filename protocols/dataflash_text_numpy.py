@@ -47,7 +47,9 @@ MIN_BLOCK = 1 << 16
 """Bytes of the first block and of the one after an ``FMT`` line: a whole line of the longest the
 stream reads (:data:`protocols.logs._MAX_TEXT_LINE`) fits in it."""
 MAX_BLOCK = 1 << 18
-"""Bytes of a block once no ``FMT`` line came for a while (each block without one doubles the next)."""
+"""Bytes of a block once no ``FMT`` line came for a while (each block without one doubles the next):
+no faster above (the 5-minute benchmark log reads in 0.6 s at 256 KB and 0.8 s at 1 MB), and the
+arrays of a block's fields peak at a few MB (the read's RSS 56 MB at 256 KB, 66 MB at 1 MB)."""
 
 _PAD = 32
 """Bytes before and after a block's data: the digits of a field are read eight at a time, as the
