@@ -394,10 +394,9 @@ class DataFlashTextScan(DataFlashStream):
                 continue
             lines = np.flatnonzero(mine)
             if lines.size:
-                samples, ok = self._parse(block, layout, name, lines, starts, content_end)
-                fast[lines[~ok]] = False
-                seq, imu, code, t_s, values, with_temp = (a[ok] for a in samples)
-                fast_samples.append((seq, imu, code, t_s, values, with_temp))
+                samples, left = self._parse(block, layout, name, lines, starts, content_end)
+                fast[left] = False
+                fast_samples.append(samples)
         counts = np.bincount(kind[fast], minlength=len(self._key_names))
         for code in np.flatnonzero(counts).tolist():
             name = self._key_names[code]
@@ -484,14 +483,18 @@ class DataFlashTextScan(DataFlashStream):
         starts: np.ndarray,
         content_end: np.ndarray,
     ) -> tuple[_Samples, np.ndarray]:
-        """The samples of the IMU lines ``lines`` of type ``name``, and which ones the grammar read."""
+        """The samples of the IMU lines ``lines`` of type ``name`` the grammar reads, and the lines
+        it does not (too few fields, or one outside it)."""
         fmt = self.formats[name]
         bounds = self._bounds(block)
-        dl = len(self.delimiter)
         first = np.searchsorted(bounds, starts[lines])
         n_bounds = np.searchsorted(bounds, content_end[lines]) - first
-        ok = n_bounds >= len(fmt.format)
-        last = np.append(bounds, 0)
+        few = n_bounds < len(fmt.format)
+        left = lines[few]
+        if left.size:
+            lines, first, n_bounds = lines[~few], first[~few], n_bounds[~few]
+        after = np.append(bounds, 0)  # the field after the last delimiter ends at the line's end
+        ok = np.ones(lines.size, dtype=bool)
         # A field the format lacks (instance, temperature) stays NaN.
         values = [np.full(lines.size, np.nan)] * len(layout.fields)
         for integer in (True, False):
@@ -503,14 +506,13 @@ class DataFlashTextScan(DataFlashStream):
             ]
             if not which:
                 continue
-            field = np.array([layout.fields[k] for k in which])
-            begin = last[np.minimum(first[:, None] + field, bounds.size)] + dl
+            field = first[:, None] + np.array([layout.fields[k] for k in which])
+            begin = bounds[field] + len(self.delimiter)
             end = np.where(
-                field + 1 < n_bounds[:, None],
-                last[np.minimum(first[:, None] + field + 1, bounds.size)],
+                field + 1 < (first + n_bounds)[:, None],
+                after[field + 1],
                 content_end[lines][:, None],
             )
-            begin = np.where(ok[:, None], begin, end)
             value, good = parse_numbers(block, begin.ravel(), end.ravel(), integer)
             ok &= good.reshape(begin.shape).all(axis=1)
             for j, k in enumerate(which):
@@ -520,11 +522,19 @@ class DataFlashTextScan(DataFlashStream):
             imu = np.full(lines.size, layout.imu, dtype=np.int64)
         else:
             ok &= (values[1] >= 0) & (values[1] < 256)
-            imu = np.where(ok, values[1], 0).astype(np.int64)
-        data = np.column_stack(values[2:])
-        code = np.full(lines.size, self._code(name), dtype=np.int64)
-        with_temp = np.full(lines.size, layout.fields[8] >= 0)
-        return (lines, imu, code, t_s, data, with_temp), ok
+            imu = values[1].astype(np.int64)
+        samples: _Samples = (
+            lines,
+            imu,
+            np.full(lines.size, self._code(name), dtype=np.int64),
+            t_s,
+            np.column_stack(values[2:]),
+            np.full(lines.size, layout.fields[8] >= 0),
+        )
+        if ok.all():
+            return samples, left
+        seq, imu, code, t_s, data, with_temp = (a[ok] for a in samples)
+        return (seq, imu, code, t_s, data, with_temp), np.concatenate([left, lines[~ok]])
 
     def _bounds(self, block: _Block) -> np.ndarray:
         """Where the delimiters of the block are (``", "`` never overlaps itself: ``split`` finds them all)."""
