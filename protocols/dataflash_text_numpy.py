@@ -522,7 +522,7 @@ class DataFlashTextScan(DataFlashStream):
             imu = np.full(lines.size, layout.imu, dtype=np.int64)
         else:
             ok &= (values[1] >= 0) & (values[1] < 256)
-            imu = values[1].astype(np.int64)
+            imu = np.where(ok, values[1], 0).astype(np.int64)
         samples: _Samples = (
             lines,
             imu,
