@@ -508,12 +508,15 @@ class LogReader:
     def _dataflash_samples(self) -> Iterator[_Sample | ImuRows]:
         # Imported here: the numpy decoder builds on this module's definitions (formats, limits).
         from protocols.dataflash_numpy import DataFlashScan
+        from protocols.dataflash_text_numpy import DataFlashTextScan
 
         wanted = frozenset([*DATAFLASH_IMU_NAMES, *DATAFLASH_RAW_NAMES, "VIBE", "DSF"])
-        stream: DataFlashStream | DataFlashScan
+        stream: DataFlashStream | DataFlashScan | DataFlashTextScan
+        flush = min(self._batch, _FLUSH_MESSAGES)
         if self.format is LogFormat.DATAFLASH_BIN and NUMPY_DECODING:
-            flush = min(self._batch, _FLUSH_MESSAGES)
             stream = DataFlashScan(self.path, wanted=wanted, held=self.stats.held, flush=flush)
+        elif NUMPY_DECODING:
+            stream = DataFlashTextScan(self.path, wanted=wanted, held=self.stats.held, flush=flush)
         else:
             binary = self.format is LogFormat.DATAFLASH_BIN
             stream = DataFlashStream(self.path, binary=binary, wanted=wanted, held=self.stats.held)
@@ -543,8 +546,7 @@ class LogReader:
                     suffix[inst] = name[3:]
                 else:
                     sample = _imu_sample(msg, fields)
-            except (ValueError, TypeError, AttributeError):
-                # A field that is not a number (text, or a string or array in the format), or missing.
+            except FIELD_ERRORS:
                 corrupt += 1
                 continue
             if name not in DATAFLASH_RAW_NAMES:
@@ -553,7 +555,7 @@ class LogReader:
                 yield from _pair_raw(raw, pairs, inst, suffix[inst])
         for inst in sorted({i for i, _ in raw}):
             yield from _pair_raw(raw, pairs, inst, suffix[inst])
-        if isinstance(stream, DataFlashScan):
+        if isinstance(stream, DataFlashScan | DataFlashTextScan):
             yield from stream.pending_samples()
         self.stats._drop("corrupt_messages", corrupt + stream.corrupt)
         self.stats.skipped_bytes += stream.skipped_bytes
@@ -573,6 +575,11 @@ class LogReader:
                 )
         self.stats.clipped = {imu: int(last - first) for imu, (first, last) in sorted(clip.items())}
         self.stats.logger_lost = refused[1] if refused else 0
+
+
+FIELD_ERRORS = (ValueError, TypeError, AttributeError, OverflowError)
+"""What reading a DataFlash message's fields raises for a corrupt one: a field that is not a number
+(text, or a string or array in the format), missing, or a text log's integer too large for a float."""
 
 
 def _whole(value: Any, limit: int) -> int:
@@ -694,6 +701,10 @@ class DataFlashStream(_StreamCounts):
     ) -> None:
         _StreamCounts.__init__(self, path, wanted, held)
         self.binary = binary
+        self.formats: dict[str, Any] = {"FMT": _fmt_of_fmt()}
+        """Text: the formats defined so far, by name."""
+        self.delimiter = ""
+        """Text: what separates the fields (``", "`` or ``","``, as the first ``FMT`` line has it)."""
 
     def __iter__(self) -> Iterator[Any]:
         return self._binary() if self.binary else self._text()
@@ -756,9 +767,6 @@ class DataFlashStream(_StreamCounts):
                 pos += n
 
     def _text(self) -> Iterator[Any]:
-        formats = {"FMT": _fmt_of_fmt()}
-        held, wanted = self.held, self.wanted
-        delimiter = ""
         with open(self.path, "rb") as fh:
             for line in _bounded_lines(fh, _MAX_TEXT_LINE):
                 start, self.offset = self.offset, fh.tell()
@@ -768,40 +776,46 @@ class DataFlashStream(_StreamCounts):
                 if not line.endswith(b"\n"):
                     self.cut_at_byte = start
                     return
-                if not delimiter:
-                    if not line.startswith(b"FMT,"):
-                        continue  # the firmware's header lines
-                    delimiter = ", " if line.startswith(b"FMT, ") else ","
-                fields = line.rstrip().decode("utf-8", "backslashreplace").split(delimiter)
-                if len(fields) < 2:
-                    continue
-                name, values = fields[0], fields[1:]
-                held[name] = held.get(name, 0) + 1
-                fmt = formats.get(name)
-                if fmt is None:
-                    continue
-                if len(values) < len(fmt.format):
-                    # A line cut short (a field lost): counted where it was wanted, as a binary
-                    # message that does not decode is.
-                    if name == "FMT" or name in wanted:
-                        self.corrupt += 1
-                    continue
-                if name == "FMT":
-                    if delimiter == ",":  # the columns, themselves comma-separated, were split too
-                        values = [*values[:4], ",".join(values[4:])]
-                    columns = values[4]
-                    if values[2] == "FMT" and columns == "Type,Length,Name,Format":
-                        columns += ",Columns"  # some text logs leave the column out
-                    try:
-                        defined = _df_format(
-                            int(values[0]), values[2], int(values[1]), values[3], columns
-                        )
-                    except ValueError:
-                        self.corrupt += 1
-                        continue
-                    formats[defined.name] = defined
-                elif name in wanted:
-                    yield DFReader.DFMessage(fmt, values, False, None)
+                if (msg := self._text_line(line)) is not None:
+                    yield msg
+
+    def _text_line(self, line: bytes) -> Any | None:
+        """Read one whole text line (its line break included): counted, a format defined, or the
+        ``DFMessage`` of a wanted message returned."""
+        if not self.delimiter:
+            if not line.startswith(b"FMT,"):
+                return None  # the firmware's header lines
+            self.delimiter = ", " if line.startswith(b"FMT, ") else ","
+        delimiter = self.delimiter
+        fields = line.rstrip().decode("utf-8", "backslashreplace").split(delimiter)
+        if len(fields) < 2:
+            return None
+        name, values = fields[0], fields[1:]
+        self.held[name] = self.held.get(name, 0) + 1
+        fmt = self.formats.get(name)
+        if fmt is None:
+            return None
+        if len(values) < len(fmt.format):
+            # A line cut short (a field lost): counted where it was wanted, as a binary
+            # message that does not decode is.
+            if name == "FMT" or name in self.wanted:
+                self.corrupt += 1
+            return None
+        if name == "FMT":
+            if delimiter == ",":  # the columns, themselves comma-separated, were split too
+                values = [*values[:4], ",".join(values[4:])]
+            columns = values[4]
+            if values[2] == "FMT" and columns == "Type,Length,Name,Format":
+                columns += ",Columns"  # some text logs leave the column out
+            try:
+                defined = _df_format(int(values[0]), values[2], int(values[1]), values[3], columns)
+            except ValueError:
+                self.corrupt += 1
+                return None
+            self.formats[defined.name] = defined
+        elif name in self.wanted:
+            return DFReader.DFMessage(fmt, values, False, None)
+        return None
 
 
 def _bounded_lines(fh: BinaryIO, limit: int) -> Iterator[bytes | None]:

@@ -70,11 +70,16 @@ import numpy as np
 from pyulog import ULog
 
 from estimators.session import ImuSession
+from protocols.ulog_numpy import message_run
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 SYNC_BYTES = b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"
 FLUSH_MESSAGES = 16384
 """Wanted data messages collected before they are decoded (bounds the memory of a read)."""
+RUN_WINDOW_MIN = 1 << 12
+RUN_WINDOW_MAX = 1 << 20
+"""Bytes searched for a run of messages (:func:`protocols.ulog_numpy.message_run`): from the
+smaller after a run that ended short (a subscription, damage), doubled after each that did not."""
 MIN_IMU_RATE_HZ = 20.0
 """Slowest logging rate at which a per-instance IMU topic is replayed, Hz."""
 RATE_PROBE_SAMPLES = 16
@@ -261,8 +266,9 @@ class UlogImuStream:
     def _records(self) -> Iterator[dict[tuple[str, int], np.ndarray]]:
         """Decoded records of the wanted topics, per (topic, multi_id), a flush at a time."""
         subs: dict[int, tuple[str, int, np.dtype[Any] | None]] = {}
-        pending: dict[int, list[bytes]] = {}
+        pending: dict[int, list[np.ndarray]] = {}  # per msg_id, rows of payload bytes
         n_pending = 0
+        window = RUN_WINDOW_MIN
         topics = self.contents.topics
         with open(self.path, "rb") as fh:
             fh.seek(16)
@@ -277,6 +283,46 @@ class UlogImuStream:
                     if len(buf) > pos:
                         self.contents.cut_at_byte = self.size - (len(buf) - pos)
                     break
+                # The messages this loop would read in a row, found at once (ulog_numpy), in a
+                # window that grows while the runs fill it (a subscription or damage ends one).
+                stop = len(buf) if eof else len(buf) - 2 - MAX_MESSAGE_BYTES
+                at, kinds, sizes = message_run(buf, pos, min(stop, pos + window), MAX_MESSAGE_BYTES)
+                full = at.size and at[-1] + 3 + sizes[-1] + MAX_MESSAGE_BYTES >= pos + window
+                window = min(2 * window, RUN_WINDOW_MAX) if full else RUN_WINDOW_MIN
+                if at.size:
+                    pos = int(at[-1] + 3 + sizes[-1])
+                    d = np.frombuffer(buf, dtype=np.uint8)
+                    dropout = at[(kinds == 0x4F) & (sizes >= 2)] + 3
+                    self.contents.dropouts += dropout.size
+                    self.contents.dropout_ms += int(d[dropout].sum() + 256 * d[dropout + 1].sum())
+                    data = at[kinds == 0x44]
+                    msg_ids = d[data + 3].astype(np.int64) | (d[data + 4].astype(np.int64) << 8)
+                    wanted = np.zeros(data.size, dtype=bool)
+                    for msg_id in np.unique(msg_ids).tolist():
+                        mine = msg_ids == msg_id
+                        sub = subs.get(msg_id)
+                        if sub is None:
+                            self.contents.unsubscribed_data += int(mine.sum())
+                            continue
+                        key = f"{sub[0]}.{sub[1]}"
+                        topics[key] = topics.get(key, 0) + int(mine.sum())
+                        wanted |= mine if sub[2] is not None else False
+                    kept = np.flatnonzero(wanted)
+                    while kept.size:
+                        now, kept = (
+                            kept[: FLUSH_MESSAGES - n_pending],
+                            kept[FLUSH_MESSAGES - n_pending :],
+                        )
+                        n_pending += now.size
+                        for msg_id in np.unique(msg_ids[now]).tolist():
+                            rows = now[msg_ids[now] == msg_id]
+                            self._pend(
+                                pending, subs, msg_id, d, data[rows], sizes[kinds == 0x44][rows]
+                            )
+                        if n_pending >= FLUSH_MESSAGES:
+                            yield self._decode(subs, pending)
+                            pending, n_pending = {}, 0
+                    continue
                 size, mtype = struct.unpack_from("<HB", buf, pos)
                 if size == 0 or size > MAX_MESSAGE_BYTES or not 0x41 <= mtype <= 0x5A:
                     self.contents.corrupt_messages += 1
@@ -305,7 +351,8 @@ class UlogImuStream:
                         key = f"{sub[0]}.{sub[1]}"
                         topics[key] = topics.get(key, 0) + 1
                         if sub[2] is not None:
-                            pending.setdefault(msg_id, []).append(buf[pos + 5 : end])
+                            d = np.frombuffer(buf, dtype=np.uint8)
+                            self._pend(pending, subs, msg_id, d, np.array([pos]), np.array([size]))
                             n_pending += 1
                             if n_pending >= FLUSH_MESSAGES:
                                 yield self._decode(subs, pending)
@@ -342,20 +389,35 @@ class UlogImuStream:
                 return None
         return dtype
 
+    def _pend(
+        self,
+        pending: dict[int, list[np.ndarray]],
+        subs: Mapping[int, tuple[str, int, np.dtype[Any] | None]],
+        msg_id: int,
+        d: np.ndarray,
+        at: np.ndarray,
+        size: np.ndarray,
+    ) -> None:
+        """Keep the payloads of the data messages of ``msg_id`` at ``at`` (sizes ``size``) for
+        decoding; one shorter than the topic's format is corrupt."""
+        dtype = subs[msg_id][2]
+        assert dtype is not None
+        good = size - 2 >= dtype.itemsize
+        self.contents.corrupt_messages += int(good.size - good.sum())
+        # A newer logger may pad a message past its format: the format's fields come first.
+        rows = np.lib.stride_tricks.sliding_window_view(d, dtype.itemsize)[at[good] + 5]
+        pending.setdefault(msg_id, []).append(rows)
+
     def _decode(
         self,
         subs: Mapping[int, tuple[str, int, np.dtype[Any] | None]],
-        pending: Mapping[int, list[bytes]],
+        pending: Mapping[int, list[np.ndarray]],
     ) -> dict[tuple[str, int], np.ndarray]:
         out: dict[tuple[str, int], np.ndarray] = {}
-        for msg_id, payloads in pending.items():
+        for msg_id, rows in pending.items():
             name, multi_id, dtype = subs[msg_id]
             assert dtype is not None
-            good = [p for p in payloads if len(p) >= dtype.itemsize]
-            self.contents.corrupt_messages += len(payloads) - len(good)
-            # A newer logger may pad a message past its format: the format's fields come first.
-            raw = b"".join(p[: dtype.itemsize] for p in good)
-            out[(name, multi_id)] = np.frombuffer(raw, dtype=dtype)
+            out[(name, multi_id)] = np.concatenate(rows).view(dtype).reshape(-1)
         return out
 
     # ------------------------------------------------------------------ IMU rows

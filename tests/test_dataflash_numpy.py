@@ -13,69 +13,25 @@ import struct
 
 import numpy as np
 import pytest
+from log_oracle import assert_same_as_pymavlink, current_and_legacy
 from real_data import SHARED, needs
 
-from estimators.session import ImuSession
-from protocols import logs
 from protocols.byte_chain import chain, walk
-from protocols.logs import LogReader, NoImuDataError, write_dataflash_bin
+from protocols.logs import write_dataflash_bin
 
 REAL_BINS = sorted(SHARED.glob("data/logs/*.BIN")) + sorted(SHARED.glob("data/field/*.bin"))
-
-
-def _read(path, numpy_decoding: bool, monkeypatch, **options):
-    monkeypatch.setattr(logs, "NUMPY_DECODING", numpy_decoding)
-    reader = LogReader(path, **options)
-    try:
-        out = [(b.imu, b.seq, b.t_s, b.accel_mps2, b.gyro_rps, b.temp_c) for b in reader]
-    except NoImuDataError as e:
-        out = str(e)
-    return out, reader.stats
-
-
-def _assert_same_as_pymavlink(path, monkeypatch, **options):
-    fast, fast_stats = _read(path, True, monkeypatch, **options)
-    oracle, oracle_stats = _read(path, False, monkeypatch, **options)
-    assert fast_stats == oracle_stats
-    if isinstance(oracle, str):
-        assert fast == oracle
-        return
-    assert len(fast) == len(oracle)
-    for got, want in zip(fast, oracle, strict=True):
-        assert got[:2] == want[:2]
-        for g, w in zip(got[2:], want[2:], strict=True):
-            assert (g is None) == (w is None)
-            if w is not None:
-                np.testing.assert_array_equal(g, w)
-
-
-def _sessions(n: int, seed: int, temp: bool = True) -> dict[int, ImuSession]:
-    rng = np.random.default_rng(seed)
-    out = {}
-    for imu in (0, 1, 2):
-        t = 5.0 + imu * 1e-4 + np.arange(n) / 400.0
-        acc = rng.normal([0.1, -0.2, -9.8], 0.05, (n, 3))
-        gyr = rng.normal(0.0, 0.01, (n, 3))
-        out[imu] = ImuSession(t, acc, gyr, 25.0 + 0.01 * np.arange(n) if temp else None)
-    return out
 
 
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory) -> dict[str, bytes]:
     """Three IMUs, in current ArduPilot's ``IMU`` with instance and in the legacy IMU/IMU2/IMU3 names."""
-    folder = tmp_path_factory.mktemp("df")
-    out = {}
-    for legacy in (False, True):
-        path = folder / f"legacy{legacy}.bin"
-        write_dataflash_bin(path, _sessions(700, seed=int(legacy)), legacy_names=legacy)
-        out[f"legacy{legacy}"] = path.read_bytes()
-    return out
+    return current_and_legacy(tmp_path_factory.mktemp("df"), write_dataflash_bin, "bin", 700)
 
 
 @pytest.mark.parametrize("path", REAL_BINS, ids=lambda p: p.name)
 @needs(SHARED / "data" / "logs")
 def test_every_real_binary_log_reads_as_pymavlink_reads_it(path, monkeypatch):
-    _assert_same_as_pymavlink(path, monkeypatch)
+    assert_same_as_pymavlink(path, monkeypatch)
 
 
 @pytest.mark.parametrize("batch", [1, 100, 1000])
@@ -83,7 +39,7 @@ def test_every_real_binary_log_reads_as_pymavlink_reads_it(path, monkeypatch):
 def test_clean_logs_of_three_imus_in_every_batch_size(tmp_path, clean, monkeypatch, legacy, batch):
     path = tmp_path / "flight.bin"
     path.write_bytes(clean[f"legacy{legacy}"])
-    _assert_same_as_pymavlink(path, monkeypatch, batch_samples=batch)
+    assert_same_as_pymavlink(path, monkeypatch, batch_samples=batch)
 
 
 def _damaged(data: bytes, how: str, rng: np.random.Generator) -> bytes:
@@ -116,7 +72,7 @@ def test_damaged_logs_read_as_pymavlink_reads_them(tmp_path, clean, monkeypatch,
     path = tmp_path / "flight.bin"
     for data in clean.values():
         path.write_bytes(_damaged(data, how, rng))
-        _assert_same_as_pymavlink(path, monkeypatch, batch_samples=64)
+        assert_same_as_pymavlink(path, monkeypatch, batch_samples=64)
 
 
 def _fmt(type_id: int, length: int, name: bytes, fmt: bytes, columns: bytes) -> bytes:
@@ -152,7 +108,7 @@ def test_formats_defined_mid_log(tmp_path, clean, monkeypatch, middle):
     }[middle]
     path = tmp_path / "flight.bin"
     path.write_bytes(data[:half] + extra + data[half:])
-    _assert_same_as_pymavlink(path, monkeypatch, batch_samples=50)
+    assert_same_as_pymavlink(path, monkeypatch, batch_samples=50)
 
 
 def test_the_chain_is_the_walk_also_beside_a_long_false_chain():

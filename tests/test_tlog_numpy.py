@@ -12,8 +12,9 @@ import struct
 
 import numpy as np
 import pytest
+from log_oracle import assert_same_as_pymavlink, three_imus
 from real_data import REAL_TLOG, needs
-from test_dataflash_numpy import _assert_same_as_pymavlink, _damaged, _sessions
+from test_dataflash_numpy import _damaged
 
 from protocols.logs import write_tlog
 from protocols.mavlink_adapter import ImuMessage, imu_message, mavlink2
@@ -32,15 +33,15 @@ def clean(tmp_path_factory) -> dict[str, bytes]:
     for name, messages in MESSAGES.items():
         for temp in (True, False):
             path = folder / f"{name}{temp}.tlog"
-            write_tlog(path, _sessions(500, seed=len(out), temp=temp), messages=messages)
+            write_tlog(path, three_imus(500, seed=len(out), temp=temp), messages=messages)
             out[f"{name}{temp}"] = path.read_bytes()
     return out
 
 
 @needs(REAL_TLOG)
 def test_the_real_mavlink1_tlog_reads_as_pymavlink_reads_it(monkeypatch):
-    _assert_same_as_pymavlink(REAL_TLOG, monkeypatch)
-    _assert_same_as_pymavlink(REAL_TLOG, monkeypatch, batch_samples=7)
+    assert_same_as_pymavlink(REAL_TLOG, monkeypatch)
+    assert_same_as_pymavlink(REAL_TLOG, monkeypatch, batch_samples=7)
 
 
 @pytest.mark.parametrize("batch", [1, 100, 1000])
@@ -48,7 +49,7 @@ def test_clean_tlogs_of_every_imu_message(tmp_path, clean, monkeypatch, batch):
     path = tmp_path / "flight.tlog"
     for data in clean.values():
         path.write_bytes(data)
-        _assert_same_as_pymavlink(path, monkeypatch, batch_samples=batch)
+        assert_same_as_pymavlink(path, monkeypatch, batch_samples=batch)
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -63,7 +64,7 @@ def test_damaged_tlogs_read_as_pymavlink_reads_them(tmp_path, clean, monkeypatch
         else:
             data = _damaged(data, how, rng)
         path.write_bytes(data)
-        _assert_same_as_pymavlink(path, monkeypatch, batch_samples=64)
+        assert_same_as_pymavlink(path, monkeypatch, batch_samples=64)
 
 
 def _record(msg, mav, t_us: int) -> bytes:
@@ -89,7 +90,7 @@ def test_a_signed_packet_and_highres_without_updated_triads(tmp_path, monkeypatc
     records.insert(400, _record(signed, signer, 1_700_000_002_000_000))
     path = tmp_path / "flight.tlog"
     path.write_bytes(b"".join(records))
-    _assert_same_as_pymavlink(path, monkeypatch, batch_samples=50)
+    assert_same_as_pymavlink(path, monkeypatch, batch_samples=50)
 
 
 def test_the_crc_table_steps_as_pymavlink_does():

@@ -1,0 +1,49 @@
+"""The messages of a ULog data section found in bulk, for :class:`protocols.ulog.UlogImuStream`.
+
+The stream reads a message (``uint16 msg_size, uint8 msg_type``, the payload) where the one before
+it ends, one Python step per message: 0.5 µs each, most of reading a ULog whose IMU topics are
+then decoded with numpy. Which positions of a buffer start the messages the stream would read in a
+row is the walk of :func:`protocols.byte_chain.chain`: the candidates are the positions whose header
+the stream takes (a size of 1 … :data:`protocols.ulog.MAX_MESSAGE_BYTES`, a type letter ``A`` … ``Z``),
+each leading to the one where its message ends. The run stops before anything the stream does one
+step at a time: a header it takes as corrupt, a subscription (``A``: it changes what later data
+messages are), a message the buffer does not hold whole, or one starting past ``stop``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from protocols.byte_chain import chain
+
+SUBSCRIBE = ord("A")
+
+
+def message_run(
+    buf: bytes, pos: int, stop: int, max_size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, types, sizes) of the messages read in a row from ``pos`` (module docstring):
+    each starting before ``stop``, a size of 1 … ``max_size``, whole in ``buf``, none a subscription."""
+    d = np.frombuffer(buf, dtype=np.uint8)
+    end = min(stop, d.size - 3)
+    if end <= pos:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.uint8), np.zeros(0, dtype=np.int64)
+    n = end - pos
+    head = d[pos : end + 2]
+    kind = head[2 : n + 2]
+    # The size's high byte first: max_size < 2**16 leaves few positions to look at closely.
+    maybe = (head[1 : n + 1] <= max_size >> 8) & (kind >= ord("A")) & (kind <= ord("Z"))
+    maybe &= kind != SUBSCRIBE
+    at = np.flatnonzero(maybe)
+    size = head[at].astype(np.int64) | (head[at + 1].astype(np.int64) << 8)
+    good = (size > 0) & (size <= max_size) & (pos + at + 3 + size <= d.size)
+    at, size = at[good], size[good]
+    if not at.size or at[0] != 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.uint8), np.zeros(0, dtype=np.int64)
+    nxt = at + 3 + size
+    k = np.searchsorted(at, nxt)
+    found = k < at.size
+    found[found] = at[k[found]] == nxt[found]
+    path = chain(0, np.where(found, k, -1))
+    starts = pos + at[path]
+    return starts, d[starts + 2], size[path]
