@@ -255,14 +255,16 @@ def forward_select(
     the held-out residual, the one with the largest margin over the threshold of
     a single test joins. Backward: each selected effect is then tested against
     all the others (refitted jointly); while one fails, the one with the least
-    margin leaves. Swap: a selected effect is replaced by an unselected one that
-    passes in its place with the larger margin (the forward step's ranking; on
-    their own thresholds a profiled step would lose to a drift that explains
-    less). Repeat until no step changes the set, or a set comes back. An effect chosen early can be a
-    proxy of two that are there together (a step taking half of a drift, a
-    change of the cosines half of a drift and half of a K2): once the others
-    are in, it explains nothing of its own and leaves, and the effect it stood
-    for is found in its place.
+    margin leaves. Swap, when no effect joins: a selected effect is replaced by
+    an unselected one that passes in its place with the larger margin (the
+    forward step's ranking; on their own thresholds a profiled step would lose
+    to a drift that explains less). Repeat until a set comes back. An effect
+    chosen early can be a proxy of two that are there together (a step taking
+    half of a drift, a change of the cosines half of a drift and half of a K2):
+    once the others are in, it explains nothing of its own and leaves, and the
+    effect it stood for is found in its place. The set kept is the one visited
+    with the best joint fit less a single test's threshold per effect: a swap
+    back to such a proxy, which then drops both, does not end the search on it.
 
     ``multiplicity[key]`` (default 1): the candidate is one of that many tried for
     one effect (a step profiled over the breaks between positions): its threshold
@@ -296,15 +298,26 @@ def forward_select(
     def passes(t: MeanTest) -> bool:
         return t.lr > t.threshold and t.cv_ratio < 1.0
 
+    def score(sel: list[int]) -> float:
+        """The joint fit's LR less a single test's threshold per effect; −∞ when one fails against the others."""
+        if not sel:
+            return 0.0
+        if any(not passes(test(k, [j for j in sel if j != k])) for k in sel):
+            return -np.inf
+        lr = mean_test(base, np.hstack([regs[j] for j in sel]), z, known_scale)[0]
+        return lr - sum(threshold(regs[j].shape[1], base.shape[1], n_tests) for j in sel)
+
     selected: list[int] = []
     seen: set[frozenset[int]] = {frozenset()}
+    best: tuple[float, list[int]] = (0.0, [])
     while True:
         outside = [k for k in regs if k not in selected]
         tests = {k: test(k, selected) for k in outside}
         passing = [k for k in outside if passes(tests[k])]
-        if not passing:
-            break
-        selected.append(max(passing, key=lambda k: single_margin(k, tests[k], selected)))
+        if passing:
+            selected = [*selected, max(passing, key=lambda k: single_margin(k, tests[k], selected))]
+        else:
+            selected = _swapped(selected, regs, test, passes, single_margin)
         while len(selected) > 1:
             joint = {k: test(k, [j for j in selected if j != k]) for k in selected}
             failing = [k for k in selected if not passes(joint[k])]
@@ -316,10 +329,11 @@ def forward_select(
                     key=lambda k: single_margin(k, joint[k], [j for j in selected if j != k]),
                 )
             )
-        selected = _swapped(selected, regs, test, passes, single_margin)
         if frozenset(selected) in seen:
             break
         seen.add(frozenset(selected))
+        best = max(best, (score(selected), selected), key=lambda b: b[0])
+    selected = best[1]
     out = {k: test(k, selected) for k in regs if k not in selected}
     for k in selected:
         others = [j for j in selected if j != k]
