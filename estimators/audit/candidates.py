@@ -89,6 +89,7 @@ match the data, fitted by :func:`fit_gauss_markov` on the same likelihood.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeAlias
 
@@ -248,14 +249,23 @@ def forward_select(
     multiplicity: dict[int, int] | None = None,
     known_scale: bool = False,
 ) -> dict[int, MeanTest]:
-    """Greedy forward selection of mean effects (weighted columns ``regs[key]`` (n, k)).
+    """Stepwise selection of mean effects (weighted columns ``regs[key]`` (n, k)), every step a joint refit.
 
-    Every remaining candidate is tested against the baseline plus the effects
-    already selected; of those that pass their threshold and also lower the
-    held-out residual, the one with the largest margin over the threshold of a
-    single test joins; repeat until none does. A sibling that only rides on a
-    selected effect's correlation (e.g. ``temperature_scale`` next to
-    ``temperature_bias`` of the same axis) is then judged on what it adds.
+    Forward: every remaining candidate is tested against the baseline plus the
+    effects already selected; of those that pass their threshold and also lower
+    the held-out residual, the one with the largest margin over the threshold of
+    a single test joins. Backward: each selected effect is then tested against
+    all the others (refitted jointly); while one fails, the one with the least
+    margin leaves. Swap, when no effect joins: a selected effect is replaced by
+    an unselected one that passes in its place with the larger margin (the
+    forward step's ranking; on their own thresholds a profiled step would lose
+    to a drift that explains less). Repeat until a set comes back. An effect
+    chosen early can be a proxy of two that are there together (a step taking
+    half of a drift, a change of the cosines half of a drift and half of a K2):
+    once the others are in, it explains nothing of its own and leaves, and the
+    effect it stood for is found in its place. The set kept is the one visited
+    with the best joint fit less a single test's threshold per effect: a swap
+    back to such a proxy, which then drops both, does not end the search on it.
 
     ``multiplicity[key]`` (default 1): the candidate is one of that many tried for
     one effect (a step profiled over the breaks between positions): its threshold
@@ -266,41 +276,99 @@ def forward_select(
     ``known_scale``: the weights are the data's sd (:func:`mean_test`): each effect is tested on what
     it explains, not against a scale the others' leftovers inflate, so effects that are there
     together are found together; thresholds χ²ₖ at the same split rate.
+
+    Every selected effect's test is the last joint one (against all the others); a change's ``rivals``
+    are every candidate's LR against the same model (the profile of its break); an unselected
+    candidate's test is against the final set.
     """
     mult = multiplicity or {}
 
     def threshold(k: int, p: int, tests_: int) -> float:
         return _threshold(k, tests_) if known_scale else _threshold_mean(k, z.size, p, tests_)
 
-    tests: dict[int, MeanTest] = {}
-    single: dict[int, float] = {}
-    current = base
-    remaining = list(regs)
-    while remaining:
-        for key in remaining:
-            lr, cv, coef, se = mean_test(current, regs[key], z, known_scale)
-            k, p = regs[key].shape[1], current.shape[1]
-            single[key] = threshold(k, p, n_tests)
-            tests[key] = MeanTest(
-                lr,
-                threshold(k, p, n_tests * mult.get(key, 1)),
-                cv,
-                coef,
-                se,
-                False,
+    def test(key: int, given: list[int]) -> MeanTest:
+        current = np.hstack([base, *(regs[j] for j in given)])
+        lr, cv, coef, se = mean_test(current, regs[key], z, known_scale)
+        k, p = regs[key].shape[1], current.shape[1]
+        return MeanTest(lr, threshold(k, p, n_tests * mult.get(key, 1)), cv, coef, se, False)
+
+    def single_margin(key: int, t: MeanTest, given: list[int]) -> float:
+        p = base.shape[1] + sum(regs[j].shape[1] for j in given)
+        return t.lr - threshold(regs[key].shape[1], p, n_tests)
+
+    def passes(t: MeanTest) -> bool:
+        return t.lr > t.threshold and t.cv_ratio < 1.0
+
+    def score(sel: list[int]) -> float:
+        """The joint fit's LR less a single test's threshold per effect; −∞ when one fails against the others."""
+        if not sel:
+            return 0.0
+        if any(not passes(test(k, [j for j in sel if j != k])) for k in sel):
+            return -np.inf
+        lr = mean_test(base, np.hstack([regs[j] for j in sel]), z, known_scale)[0]
+        return lr - sum(threshold(regs[j].shape[1], base.shape[1], n_tests) for j in sel)
+
+    selected: list[int] = []
+    seen: set[frozenset[int]] = {frozenset()}
+    best: tuple[float, list[int]] = (0.0, [])
+    while True:
+        outside = [k for k in regs if k not in selected]
+        tests = {k: test(k, selected) for k in outside}
+        passing = [k for k in outside if passes(tests[k])]
+        if passing:
+            selected = [*selected, max(passing, key=lambda k: single_margin(k, tests[k], selected))]
+        else:
+            selected = _swapped(selected, regs, test, passes, single_margin)
+        while len(selected) > 1:
+            joint = {k: test(k, [j for j in selected if j != k]) for k in selected}
+            failing = [k for k in selected if not passes(joint[k])]
+            if not failing:
+                break
+            selected.remove(
+                min(
+                    failing,
+                    key=lambda k: single_margin(k, joint[k], [j for j in selected if j != k]),
+                )
             )
-        passing = [
-            k for k in remaining if tests[k].lr > tests[k].threshold and tests[k].cv_ratio < 1.0
-        ]
-        if not passing:
+        if frozenset(selected) in seen:
             break
-        best = max(passing, key=lambda k: tests[k].lr - single[k])
-        t = tests[best]
-        rivals = {k: tests[k].lr for k in remaining}
-        tests[best] = MeanTest(t.lr, t.threshold, t.cv_ratio, t.coef, t.se, True, rivals)
-        current = np.hstack([current, regs[best]])
-        remaining.remove(best)
-    return tests
+        seen.add(frozenset(selected))
+        best = max(best, (score(selected), selected), key=lambda b: b[0])
+    selected = best[1]
+    out = {k: test(k, selected) for k in regs if k not in selected}
+    for k in selected:
+        others = [j for j in selected if j != k]
+        t = test(k, others)
+        rivals = (
+            {j: test(j, others).lr for j in regs if j not in others} if mult.get(k, 1) > 1 else {}
+        )
+        out[k] = MeanTest(t.lr, t.threshold, t.cv_ratio, t.coef, t.se, True, rivals)
+    return out
+
+
+def _swapped(
+    selected: list[int],
+    regs: dict[int, FloatArray],
+    test: Callable[[int, list[int]], MeanTest],
+    passes: Callable[[MeanTest], bool],
+    margin: Callable[[int, MeanTest, list[int]], float],
+) -> list[int]:
+    """``selected`` with the one exchange of a selected effect for an unselected one that most raises the
+    joint fit (:func:`forward_select`), or unchanged when none does: the new effect passes against the
+    others, and its ``margin`` (the forward step's ranking) exceeds the old one's."""
+    best, gain = None, 0.0
+    for s in selected:
+        others = [j for j in selected if j != s]
+        own = margin(s, test(s, others), others)
+        for c in regs:
+            if c in selected:
+                continue
+            t = test(c, others)
+            if passes(t) and margin(c, t, others) - own > gain:
+                best, gain = (s, c), margin(c, t, others) - own
+    if best is None:
+        return selected
+    return [best[1] if j == best[0] else j for j in selected]
 
 
 def leverage_residual(design: FloatArray, data: FloatArray, sd: FloatArray) -> FloatArray:
