@@ -43,6 +43,7 @@ is the bare predicate.
 from __future__ import annotations
 
 import functools
+import inspect
 import math
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -805,6 +806,69 @@ def derive_lambda0(
         None: zero.
     reference_rel_err : bound of the relative error of the reference, ≥ 0.
     """
+    # A service derives each unit's λ0 more than once (the static detector's gyro bound, F0's
+    # configuration, its coverage): the answer depends on these numbers alone.
+    return _lambda0(
+        *_lambda0_inputs(
+            noise_std_norm,
+            false_alarm_prob,
+            quantization_norm,
+            n_avg,
+            tolerance_norm,
+            reference_rel_err,
+        )
+    )
+
+
+def lambda0_lower_bound(**inputs: Any) -> float:
+    """A lower bound of :func:`derive_lambda0`'s λ0 for the same keyword arguments, without scipy (methods.md M1).
+
+    ``σ·Φ⁻¹(1 − p)·(1 − 1e-9) + r + r²/2``, with σ the worst axis as λ0 takes it and ``r`` the
+    reference's relative error. Whoever needs to know only that no statistic exceeds λ0, or
+    that λ0 exceeds a limit, learns it from this bound when it holds, in microseconds, and
+    needs the exact λ0 (scipy's χ² tails, root finding and the tolerances' worst case, a
+    few hundred ms in a fresh process) only when it does not.
+
+    Proof, term by term of λ0 = x_p + T + (r + r²/2) (:func:`derive_lambda0`):
+
+    * **Noise.** ``x_p`` solves ``P(|s| > x) = p`` for ``s = ½(|u + n|² − 1)``, ``|u| = 1``,
+      ``n ~ N(0, σ² I₃)`` (M1's equation with the deterministic errors at zero). Split
+      ``n = n₁u + n⊥`` (``n₁ ~ N(0, σ²)``, ``n⊥ ⊥ u``): ``|u + n|² = (1 + n₁)² + |n⊥|² ≥
+      (1 + n₁)²``, so ``s ≥ n₁ + ½n₁²``, and for ``x ≥ 0`` every ``n₁ > x`` makes ``s > x``:
+      ``P(|s| > x) ≥ P(s > x) ≥ P(n₁ > x) = 1 − Φ(x/σ)``. At ``x = σΦ⁻¹(1 − p)`` the tail is
+      thus at least ``p``; it falls with ``x``, so its root ``x_p`` lies at or beyond. The
+      Gaussian λ0 takes below σ = 1e-4 (mean ``3σ²/2 ≥ 0``, standard deviation ``≥ σ``)
+      obeys the same: its upper tail at ``σΦ⁻¹(1 − p)`` is at least ``p`` too. The factor
+      ``1 − 1e-9`` leaves room for the root finder's tolerance (relative 1e-12) and the
+      tails' rounding; for ``p ≥ ½`` the noise term is bounded by 0.
+    * **Tolerances.** ``T = max(s_max, −s_min)`` of :func:`tolerance_extremes`, and
+      ``s_max ≥ s_min`` (both are the extremes of one set of values, the search's start
+      included), so ``T ≥ (s_max − s_min)/2 ≥ 0``: bounded by 0.
+    * **Reference.** The same closed form as λ0's.
+
+    tests/test_scalar.py holds the bound below the exact λ0 on random inputs (both tail paths,
+    quantization, averaging, tolerances).
+    """
+    # derive_lambda0's own checks and defaults, so that both read the same inputs alike.
+    args = inspect.signature(derive_lambda0).bind(**inputs)
+    args.apply_defaults()
+    sigma, p, _, ref_err, _ = _lambda0_inputs(**args.arguments)
+    from statistics import NormalDist  # the standard library's, not scipy's: the point of it
+
+    noise = max(0.0, sigma * NormalDist().inv_cdf(1.0 - p) * (1.0 - 1e-9))
+    return noise + ref_err + 0.5 * ref_err**2
+
+
+def _lambda0_inputs(
+    noise_std_norm: ArrayLike,
+    false_alarm_prob: float,
+    quantization_norm: ArrayLike | None,
+    n_avg: int,
+    tolerance_norm: ArrayLike | None,
+    reference_rel_err: float,
+) -> tuple[float, float, tuple[float, ...], float, int]:
+    """:func:`derive_lambda0`'s inputs checked, as :func:`_lambda0` takes them: σ of the worst
+    axis after quantization and averaging, p, the nine tolerances, the reference's error, n_avg."""
     sig = np.asarray(noise_std_norm, dtype=float).reshape(-1)
     if sig.shape != (3,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
         raise ValueError(
@@ -833,9 +897,7 @@ def derive_lambda0(
         raise ValueError(f"reference_rel_err must be in [0, 1), got {reference_rel_err!r}")
 
     sigma = math.sqrt(float(var.max()) / n_avg)
-    # A service derives each unit's λ0 more than once (the static detector's gyro bound, F0's
-    # configuration, its coverage): the answer depends on these numbers alone.
-    return _lambda0(
+    return (
         sigma,
         float(false_alarm_prob),
         tuple(float(t) for t in tol),

@@ -133,10 +133,11 @@ print(json.dumps({"status": status, "loaded": sorted({name.split(".")[0] for nam
 def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     # Six faces are too few positions for the model audit (on by default), which then concludes
     # nothing: the default command must not pay for importing the simulator for it
-    # (benchmarks/bench_sixpos_calibrate.py). scipy it loads: the passport is checked against its own
-    # session's F0 before it is written (issue 30), and F0's λ0 is a non-central χ² quantile. But
-    # only scipy.special and scipy.optimize for it, not scipy.stats; and of the service's pipeline
-    # only F0's configuration, not the fleet's monitors (thrust axis, cross-IMU norm).
+    # (benchmarks/bench_sixpos_calibrate.py). Nor scipy: the passport is checked against its own
+    # session's F0 before it is written (issue 30), and F0's λ0 is a non-central χ² quantile, but
+    # its session stays inside the shell of λ0's lower bound, which needs none (issue 33). And of
+    # the service's pipeline only F0's configuration, not the fleet's monitors (thrust axis,
+    # cross-IMU norm).
     import numpy as np
 
     from estimators.conventions import Grade
@@ -163,9 +164,8 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     out = json.loads(run.stdout)
     assert out["status"] == 0 and (tmp_path / "p.json").exists()
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
-    heavy = set(HEAVY) - {"scipy"}
-    assert set(out["loaded"]).isdisjoint(heavy), sorted(set(out["loaded"]) & heavy)
-    not_needed = {"estimators.sim", "scipy.stats", "service.pipeline.fleet"}
+    assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
+    not_needed = {"estimators.sim", "service.pipeline.fleet"}
     assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
 
 

@@ -11,15 +11,20 @@ shared MPU-6050 session its author's calibration by Tedaldi et al.'s method.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from estimators.conventions import STANDARD_GRAVITY_MPS2, Triad
+from estimators.conventions import STANDARD_GRAVITY_MPS2, Grade, Triad
+from estimators.sim import grade_error_model, simulate
+from estimators.sixpos import ferraris_spec
 from protocols.passport_codec import read_passport_json
 from protocols.session_file import write_csv_session
 from service.cli import main
+from service.commands import diagnose
 from tests.hand_held import hand_posed_session
-from tests.real_data import MPU6050, MPU6050_SESSION, needs
+from tests.real_data import MPU6050, MPU6050_SESSION, XSENS, needs
 
 MPU_SCALES = ["--accel-scale", "1/16384", "--accel-unit", "g"]
 MPU_SCALES += ["--gyro-scale", "1/131", "--gyro-unit", "deg/s"]
@@ -64,6 +69,92 @@ def test_hand_posed_faces_alone_make_a_passport_that_is_refused_and_not_written(
     assert "the passport contradicts its own session, not written: F0 fails persistently" in err
     assert "M4 six-position vector fit" in err
     assert not passport.exists()
+
+
+def _own_session_decisions(monkeypatch):
+    """What calibrate's own-session check decides from λ0's lower bound, next to what F0 with the
+    exact λ0 decides (diagnose's report), and the check's inputs, per call."""
+    screen = diagnose.f0_clear_below_bound
+    seen = []
+
+    def both(result, passport, config):
+        clear = screen(result, passport, config)
+        exact = not diagnose.f0_faults(diagnose.f0_report(result, passport, config))
+        seen.append({"bound": clear, "exact": exact, "args": (result, passport, config)})
+        return clear
+
+    monkeypatch.setattr(diagnose, "f0_clear_below_bound", both)
+    return seen
+
+
+def _bench_session():
+    """benchmarks/bench_sixpos_calibrate.py's session: six faces with full turns, 100 Hz."""
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    return simulate(ferraris_spec(model, static_s=6.0, transition_s=4.0, turn_s=6.0), seed=1)
+
+
+@pytest.mark.parametrize(
+    "name, sim, status",
+    [
+        ("bench", _bench_session, 0),
+        ("ten", lambda: hand_posed_session(2, tremor=True), 0),
+        ("faces", lambda: hand_posed_session(1, tremor=False, poses=slice(0, 6)), 2),
+    ],
+)
+def test_the_own_session_check_decides_from_lambda0_s_lower_bound_as_from_lambda0(
+    tmp_path, monkeypatch, name, sim, status
+):
+    """A healthy passport's own session stays inside the shell of λ0's lower bound: passed without
+    the exact λ0 (scipy). The faces' vector fit its session fails persistently under the bound
+    too, and then the exact λ0 decides: refused (exit 2), as before."""
+    seen = _own_session_decisions(monkeypatch)
+    assert _calibrate(tmp_path, sim(), name)[3] == status
+    assert [(s["bound"], s["exact"]) for s in seen] == [(status == 0, status == 0)]
+
+
+@pytest.mark.parametrize(
+    "session, options",
+    [
+        pytest.param(
+            MPU6050_SESSION, [*MPU_SCALES, "--gravity", "9.80665"], marks=needs(MPU6050_SESSION)
+        ),
+        pytest.param(XSENS, ["--no-audit"], marks=needs(XSENS)),
+    ],
+    ids=["mpu6050", "xsens"],
+)
+def test_the_shared_sessions_pass_their_own_check_below_lambda0_s_lower_bound(
+    tmp_path, monkeypatch, session, options
+):
+    """The measured Xsens unit and the MPU-6050 pass their own session's check from the bound
+    alone, as the exact λ0 passes them."""
+    seen = _own_session_decisions(monkeypatch)
+    assert main(["calibrate", str(session), *options, "--out", str(tmp_path / "p.json")]) == 0
+    assert [(s["bound"], s["exact"]) for s in seen] == [(True, True)]
+
+
+def test_the_lower_bound_passes_only_what_the_exact_lambda0_passes(tmp_path, monkeypatch):
+    """The bench session against its passport with the accelerometer's zero signals moved
+    along (1, 1, 1) by 0 to 2λ0: the bound passes a passport only where the exact λ0 passes it,
+    and the steps between (the exact λ0 passes, the bound cannot tell) go to the exact check."""
+    from service.pipeline import PipelineOptions
+    from service.pipeline.triad_check import f0_threshold
+
+    seen = _own_session_decisions(monkeypatch)
+    sim = _bench_session()
+    assert _calibrate(tmp_path, sim, "bench")[3] == 0
+    result, passport, config = seen[0]["args"]
+    accel = passport.triads[Triad.ACCEL]
+    rate = result.session.rate_hz
+    lam = f0_threshold(accel, PipelineOptions(gravity_mps2=config.gravity_mps2), rate).lambda0
+    outcomes = set()
+    for shift in np.linspace(0.0, 2.0 * lam, 25):
+        moved = replace(accel, nominal=accel.nominal + np.r_[[shift / 3**0.5] * 3, np.zeros(6)])
+        moved_passport = replace(passport, triads={**passport.triads, Triad.ACCEL: moved})
+        clear = diagnose.f0_clear_below_bound(result, moved_passport, config)
+        outcomes.add(
+            (clear, not diagnose.f0_faults(diagnose.f0_report(result, moved_passport, config)))
+        )
+    assert outcomes == {(True, True), (False, True), (False, False)}
 
 
 def _tedaldi_as_nine(path_acc, counts_per_g):

@@ -27,6 +27,7 @@ from estimators.scalar import (
     derive_lambda0,
     f0_batch,
     f0_session,
+    lambda0_lower_bound,
     normalize,
     persistent_failure,
     scalar_residual,
@@ -163,6 +164,32 @@ def test_lambda0_rejects_bad_input():
         derive_lambda0(noise_std_norm=[1e-3] * 3, false_alarm_prob=1e-3, tolerance_norm=[1e-3] * 8)
     with pytest.raises(ValueError, match="n_avg"):
         derive_lambda0(noise_std_norm=[1e-3] * 3, false_alarm_prob=1e-3, n_avg=0)
+
+
+def test_lambda0_lower_bound_lies_below_the_exact_lambda0():
+    """lambda0_lower_bound's proof (σΦ⁻¹(1 − p) of the noise part, the tolerance part ≥ 0, the
+    reference term exact) against derive_lambda0 on random inputs: noise from the Gaussian path
+    (σ < 1e-4) to noise larger than the reference (a MEMS gyro against the Earth rate), p from
+    1e-12 to 0.4, unequal axes, quantization, averaging, the reference's error; tolerances on a
+    few (their worst case costs 0.1 s each). And it is close where it serves: within 7 % of λ0's
+    noise part for an accelerometer's noise (σ < 0.01) at p ≤ 1e-3 (the one-sided tail it takes
+    is half the two-sided one there)."""
+    rng = np.random.default_rng(33)
+    for k in range(80):
+        sigma = 10.0 ** rng.uniform(-6.0, 2.0) * rng.uniform(0.3, 1.0, 3)
+        inputs = {
+            "noise_std_norm": sigma,
+            "false_alarm_prob": 10.0 ** rng.uniform(-12.0, math.log10(0.4)),
+            "quantization_norm": sigma * rng.uniform(0.0, 3.0, 3) if k % 3 == 0 else None,
+            "n_avg": int(rng.integers(1, 9)) if k % 4 == 0 else 1,
+            "reference_rel_err": float(rng.uniform(0.0, 0.01)) if k % 2 else 0.0,
+            "tolerance_norm": rng.uniform(0.0, 0.02, 9) if k % 40 == 0 else None,
+        }
+        bound = lambda0_lower_bound(**inputs)
+        lam = derive_lambda0(**inputs)
+        assert 0.0 < bound <= lam.lambda0, inputs
+        if lam.noise_std < 0.01 and lam.false_alarm_prob <= 1e-3:
+            assert bound - lam.reference_offset >= 0.93 * lam.noise_threshold, inputs
 
 
 NOISE_TAIL_ALONE = """

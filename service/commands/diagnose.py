@@ -44,6 +44,7 @@ if TYPE_CHECKING:
     from estimators.passport import Passport
     from estimators.session import ImuSession
     from estimators.static_detector import StaticDetection
+    from service.pipeline import PipelineOptions
 
 DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 """estimators.diagnosis.DEFAULT_FALSE_ALARM_PROB, stated here so that the parser does not load
@@ -100,21 +101,10 @@ def f0_report(
     """
     import numpy as np
 
-    from estimators.scalar import f0_session, persistence_samples
-    from estimators.static_detector import detect_static
-    from service.pipeline import PipelineOptions, detector_config
+    from estimators.scalar import f0_session
     from service.pipeline.triad_check import f0_config, f0_threshold
 
-    clean = result.session
-    if clean is None:
-        raise ValueError("the chain result does not carry its session")
-    options = PipelineOptions(gravity_mps2=config.gravity_mps2)
-    static = _f0_static(
-        clean,
-        detect_static(clean, config=detector_config(options, passport, clean.rate_hz)),
-        options.positions.trim_samples(clean.rate_hz),
-    )
-    persist = persistence_samples(options.f0_persistence_s, clean.rate_hz)
+    clean, options, static, persist = _f0_tested(result, passport, config)
     out: dict[str, dict[str, Any]] = {}
     for triad, tp in passport.triads.items():
         x = clean.accel_mps2 if triad.value == "accel" else clean.gyro_rps
@@ -153,6 +143,53 @@ def f0_report(
             "note": note,
         }
     return out
+
+
+def f0_clear_below_bound(result: ChainResult, passport: Passport, config: ChainConfig) -> bool:
+    """True when F0 of :func:`f0_report` provably fails persistently on no triad, learnt without
+    its exact λ0 (scipy's χ² tails, root finding and the tolerances' worst case); False when
+    only :func:`f0_report` can tell.
+
+    The same samples tested with λ0's lower bound in its place
+    (:func:`estimators.scalar.lambda0_lower_bound`, ``f0_config(lower_bound=True)``): a sample
+    failing the exact shell, ``|s| > λ0 ≥ bound``, fails this one too, so every run of failures
+    in a row under λ0 lies within one under the bound, and no persistent run under the bound
+    means none under λ0. A triad the bound does not run (above the shell limit) the exact λ0
+    does not run either.
+    """
+    from estimators.scalar import f0_session
+    from service.pipeline.triad_check import f0_config
+
+    clean, options, static, persist = _f0_tested(result, passport, config)
+    for triad, tp in passport.triads.items():
+        x = clean.accel_mps2 if triad.value == "accel" else clean.gyro_rps
+        if x is None:
+            continue
+        cfg, _, _ = f0_config(tp, options, clean.rate_hz, lower_bound=True)
+        if cfg is not None and f0_session(clean.t_s, x, static, cfg, persist).persistent:
+            return False
+    return True
+
+
+def _f0_tested(
+    result: ChainResult, passport: Passport, config: ChainConfig
+) -> tuple[ImuSession, PipelineOptions, BoolArray, int]:
+    """What F0 of a session against ``passport`` tests, as :func:`f0_report` says: the session,
+    the service's options, the static samples and the failures in a row that persist."""
+    from estimators.scalar import persistence_samples
+    from estimators.static_detector import detect_static
+    from service.pipeline import PipelineOptions, detector_config
+
+    clean = result.session
+    if clean is None:
+        raise ValueError("the chain result does not carry its session")
+    options = PipelineOptions(gravity_mps2=config.gravity_mps2)
+    static = _f0_static(
+        clean,
+        detect_static(clean, config=detector_config(options, passport, clean.rate_hz)),
+        options.positions.trim_samples(clean.rate_hz),
+    )
+    return clean, options, static, persistence_samples(options.f0_persistence_s, clean.rate_hz)
 
 
 def _f0_static(clean: ImuSession, detection: StaticDetection, margin: int) -> BoolArray:

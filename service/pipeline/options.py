@@ -128,7 +128,7 @@ def detector_config(
     F0 finds it, and a zero signal beyond the bound, which this hides from F0, is the gross test's
     (no gate, bound about one Ω: :mod:`estimators.gross`).
     """
-    from service.pipeline.triad_check import f0_threshold
+    from service.pipeline.triad_check import f0_threshold, f0_threshold_bound
 
     base = options.detector
     if passport is None:
@@ -150,7 +150,8 @@ def detector_config(
         gyro_std_rps=max(base.gyro_std_rps, scaled.gyro_std_rps),
     )
     gyro = passport.triads.get(Triad.GYRO)
-    if gyro is None:
+    # A MEMS gyro's λ0 lower bound alone exceeds the limit: its exact λ0 (scipy) is not needed here.
+    if gyro is None or f0_threshold_bound(gyro, options, rate_hz) > F0_SHELL_LIMIT:
         return out
     lambda0 = f0_threshold(gyro, options, rate_hz).lambda0
     if lambda0 > F0_SHELL_LIMIT:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from estimators.conventions import (
 )
 from estimators.ninepar import RecursiveNineParam, canonical_triad_matrix
 from estimators.passport import TriadPassport
-from estimators.scalar import F0Config, Lambda0, derive_lambda0
+from estimators.scalar import F0Config, Lambda0, derive_lambda0, lambda0_lower_bound
 from service.pipeline.options import (
     F0_SHELL_LIMIT,
     PipelineOptions,
@@ -70,8 +71,8 @@ class TriadCheck:
         return skip
 
 
-def f0_threshold(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> Lambda0:
-    """F0's threshold for one triad at ``rate_hz`` and what it is made of (module docstring step 5)."""
+def _lambda0_inputs(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> dict[str, Any]:
+    """:func:`estimators.scalar.derive_lambda0`'s arguments for one triad at ``rate_hz`` (module docstring step 5)."""
     ref = options.reference(tp.triad)
     # Per-sample white noise scales with the square root of the rate it is sampled at; the
     # audited bias wander (passport.bias_instability_std, docs/audit-xsens.md) does not.
@@ -80,36 +81,54 @@ def f0_threshold(tp: TriadPassport, options: PipelineOptions, rate_hz: float) ->
     quant = None if tp.quantization_step is None else tp.quantization_step * tp.reference / ref
     tol = tp.tolerance.copy()
     tol[:3] *= tp.reference / ref
-    return derive_lambda0(
-        noise_std_norm=noise_norm,
-        false_alarm_prob=options.false_alarm_probability,
-        quantization_norm=quant,
-        tolerance_norm=tol,
-        reference_rel_err=options.gravity_rel_err if tp.triad is Triad.ACCEL else 0.0,
-    )
+    return {
+        "noise_std_norm": noise_norm,
+        "false_alarm_prob": options.false_alarm_probability,
+        "quantization_norm": quant,
+        "tolerance_norm": tol,
+        "reference_rel_err": options.gravity_rel_err if tp.triad is Triad.ACCEL else 0.0,
+    }
+
+
+def f0_threshold(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> Lambda0:
+    """F0's threshold for one triad at ``rate_hz`` and what it is made of (module docstring step 5)."""
+    return derive_lambda0(**_lambda0_inputs(tp, options, rate_hz))
+
+
+def f0_threshold_bound(tp: TriadPassport, options: PipelineOptions, rate_hz: float) -> float:
+    """A lower bound of :func:`f0_threshold`'s λ0 that needs no scipy (:func:`estimators.scalar.lambda0_lower_bound`)."""
+    return lambda0_lower_bound(**_lambda0_inputs(tp, options, rate_hz))
 
 
 def f0_config(
-    tp: TriadPassport, options: PipelineOptions, rate_hz: float
+    tp: TriadPassport, options: PipelineOptions, rate_hz: float, *, lower_bound: bool = False
 ) -> tuple[F0Config | None, float, str]:
-    """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5)."""
+    """F0's configuration for one triad (λ0 derived from the passport, module docstring step 5).
+
+    ``lower_bound``: the configuration with λ0's lower bound (:func:`f0_threshold_bound`) in its
+    place: every sample F0 fails with the exact λ0 it fails too, and a triad it does not run
+    (bound above :data:`F0_SHELL_LIMIT`) the exact λ0 does not run either.
+    """
     ref = options.reference(tp.triad)
     nominal = tp.nominal.copy()
     nominal[:3] *= tp.reference / ref
-    lam = f0_threshold(tp, options, rate_hz)
-    if lam.lambda0 > F0_SHELL_LIMIT:
+    if lower_bound:
+        lambda0 = f0_threshold_bound(tp, options, rate_hz)
+    else:
+        lambda0 = f0_threshold(tp, options, rate_hz).lambda0
+    if lambda0 > F0_SHELL_LIMIT:
         return (
             None,
-            lam.lambda0,
-            f"F0 {tp.triad.value}: not resolvable (λ0 {lam.lambda0:.3g} > {F0_SHELL_LIMIT:g})",
+            lambda0,
+            f"F0 {tp.triad.value}: not resolvable (λ0 {lambda0:.3g} > {F0_SHELL_LIMIT:g})",
         )
     cfg = F0Config(
-        lambda0=lam.lambda0,
+        lambda0=lambda0,
         reference=ref,
         bias_norm=tuple(nominal[:3]),
         matrix=tuple(map(tuple, canonical_triad_matrix(nominal))),
     )
-    return cfg, lam.lambda0, f"F0 {tp.triad.value}: λ0 {lam.lambda0:.3g}"
+    return cfg, lambda0, f"F0 {tp.triad.value}: λ0 {lambda0:.3g}"
 
 
 def new_estimator(tp: TriadPassport, options: PipelineOptions) -> RecursiveNineParam | None:
