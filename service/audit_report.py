@@ -360,10 +360,13 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
         a_t.legend(fontsize=7)
     a_t.set_xlabel("time of the position (s)")
     a_t.set_ylabel("scalar residual / σ within positions (–)")
-    if cause.axis is None:
+    axis = cause.axis or p.get("fitted_axis")
+    # The direction of the triad's own reference: gravity for the accelerometers, the Earth rate for a gyro.
+    on = "gravity" if cause.triad is Triad.ACCEL else "the Earth rate"
+    if axis is None:
         u, label = np.prod(st.up, axis=1), "u_x u_y u_z"
     else:
-        u, label = st.up[:, AXES.index(cause.axis)], f"u_{cause.axis} (gravity on the axis)"
+        u, label = st.up[:, AXES.index(axis)], f"u_{axis} ({on} on the axis)"
     a_u.plot(u, z, "ko", ms=3)
     a_u.set_xlabel(label)
     for a in axes:

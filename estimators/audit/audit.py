@@ -1272,7 +1272,9 @@ def extend_model(
     for c in cands:
         if not c.selected:
             continue
-        i = None if c.axis is None else AXES.index(c.axis)
+        # A change whose axis is not identifiable is re-simulated on the axis fitted: the scalar alike.
+        axis = c.axis or c.params.get("fitted_axis")
+        i = None if axis is None else AXES.index(axis)
         ref = g if c.triad is Triad.ACCEL else EARTH_RATE_RPS
         if c.effect == "bias_instability":
             excess[c.triad][i] = c.params["between_sd_norm"]

@@ -1323,7 +1323,10 @@ def _mean_candidates(
     A change profiled over the breaks is one candidate: the break selected, else the one of the largest LR,
     with when it happened: from the first to the last turn whose break's profile LR is within
     :data:`CHANGE_TIME_LR` of the best (a 95 % profile-likelihood set; a break only positions blind to
-    the axis lie next to is as likely as the best), its middle ± half its span.
+    the axis lie next to is as likely as the best), its middle ± half its span. A selected change whose
+    break another axis explains as well (its LR within :data:`CHANGE_TIME_LR` in the round it joined) is
+    named for the triad, the axes in ``axes_alike`` and the one fitted in ``fitted_axis``
+    (:func:`alike_axes`).
     """
     shown: dict[tuple[str, int], int] = {}
     for k, t in tests.items():
@@ -1339,7 +1342,7 @@ def _mean_candidates(
     for k in shown.values():
         t, e = tests[k], effects[k]
         ax = None if e.triad_level else AXES[e.axis]
-        fitted = (
+        fitted: CandidateParams = (
             {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)}
             | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)}
             | {
@@ -1364,6 +1367,14 @@ def _mean_candidates(
                 "breaks_tried": e.breaks,
             }
             when = f" in the turn before position {e.after} ({lo:.1f}–{hi:.1f} s; {e.breaks} breaks tried)"
+        alike = alike_axes(effects, t, k) if t.selected and not e.triad_level else []
+        if len(alike) > 1:
+            ax = None
+            fitted |= {"axes_alike": alike, "fitted_axis": AXES[e.axis]}
+            when += (
+                f"; its axis is not identifiable: {', '.join(alike)} explain it alike (one position on "
+                "one side of the turn, or their columns alike there)"
+            )
         where = "the triad" if ax is None else f"axis {ax}"
         out.append(
             Candidate(
@@ -1379,6 +1390,21 @@ def _mean_candidates(
                 f"{what} of {where} follow the {e.name} regressor{when}: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}",
             )
         )
+    return out
+
+
+def alike_axes(effects: list[_MeanEffect], test: MeanTest, k: int) -> list[str]:
+    """The axes whose change at the break of the selected ``effects[k]`` explained the data within
+    :data:`CHANGE_TIME_LR` of it when it joined (its own first). On a scalar residual a change in the first
+    or last turn moves one position: one datum, which every axis' column explains alike once the baseline's
+    bias is fitted (the LR does not depend on a column's scale), so which axis joined was a tie."""
+    e = effects[k]
+    out = [AXES[e.axis]]
+    for j, lr in test.rivals.items():
+        o = effects[j]
+        if (o.name, o.after) == (e.name, e.after) and o.axis != e.axis:
+            if lr >= test.lr - CHANGE_TIME_LR:
+                out.append(AXES[o.axis])
     return out
 
 
