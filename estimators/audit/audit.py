@@ -1130,8 +1130,15 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
                 continue
             for k, v in c.params.items():
                 if k.endswith("_min_detectable") or k.endswith("_min_detectable_norm2"):
+                    best = c.params.get(f"{k}_best")
+                    # A change's size depends on the turn it falls in: the range, the hardest turn first.
+                    by_turn = (
+                        ""
+                        if best is None
+                        else f" (at the easiest turn {best:.2g}; named for the triad where the axes' columns are alike)"
+                    )
                     parts.append(
-                        f"{c.effect}{'' if c.axis is None else ' ' + c.axis} {k.replace('_min_detectable', '')} {v:.2g}"
+                        f"{c.effect}{'' if c.axis is None else ' ' + c.axis} {k.replace('_min_detectable', '')} {v:.2g}{by_turn}"
                     )
                     break
         if parts:
