@@ -1367,7 +1367,8 @@ def _mean_candidates(
                 "breaks_tried": e.breaks,
             } | change_min_detectable(effects, tests, k, to_si)
             when = f" in the turn before position {e.after} ({lo:.1f}–{hi:.1f} s; {e.breaks} breaks tried)"
-        alike = alike_axes(effects, tests, k) if t.selected and not e.triad_level else []
+        changed = e.after is not None and not e.triad_level
+        alike = alike_axes(effects, tests, k) if t.selected and changed else []
         if len(alike) > 1:
             ax = None
             fitted |= {"axes_alike": alike, "fitted_axis": AXES[e.axis]}
