@@ -16,6 +16,7 @@ from estimators.audit import AuditConfig, run_audit
 from estimators.audit.audit import (
     baseline_error_model,
     candidate_table,
+    detectable_statements,
     extend_model,
     find_candidates,
     fit_baselines,
@@ -161,14 +162,14 @@ def test_a_gyro_step_in_the_first_or_last_turn_is_named_for_the_triad_not_on_an_
         s2, chain2 = session_of(
             m.with_effect(BiasStep(np.full(3, t), step), Triad.GYRO), seed, grade=NAV
         )
-        (c,) = [
-            c
-            for c in find_candidates(s2, chain2, fit_baselines(s2, chain2, colour=False))
-            if c.selected
-        ]
+        cands = find_candidates(s2, chain2, fit_baselines(s2, chain2, colour=False))
+        (c,) = [c for c in cands if c.selected]
         assert (c.effect, c.triad, c.axis) == ("bias_step", Triad.GYRO, None), c.reason
         assert "z" in c.params["axes_alike"] and c.params["after_position"] == after, c.params
         assert "not identifiable" in c.reason
+        # What each axis could see is still said per axis, the step's fitted one included.
+        (gyro,) = [m for m in detectable_statements(cands) if "(gyro" in m]
+        assert all(f"bias_step {ax} step_rps" in gyro for ax in "xyz"), gyro
 
 
 def test_a_step_s_stated_minimum_detectable_size_holds_at_every_turn_tried():

@@ -1137,8 +1137,10 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
                         if best is None
                         else f" (at the easiest turn {best:.2g}; named for the triad where the axes' columns are alike)"
                     )
+                    # A change named for the triad states the size of the axis it was fitted on.
+                    axis = c.axis or c.params.get("fitted_axis")
                     parts.append(
-                        f"{c.effect}{'' if c.axis is None else ' ' + c.axis} {k.replace('_min_detectable', '')} {v:.2g}{by_turn}"
+                        f"{c.effect}{'' if axis is None else ' ' + axis} {k.replace('_min_detectable', '')} {v:.2g}{by_turn}"
                     )
                     break
         if parts:
