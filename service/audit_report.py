@@ -388,6 +388,21 @@ def _mechanism_plots(result: AuditResult, d: Path) -> list[str]:
     return out
 
 
+def _unplotted(result: AuditResult, written: list[str]) -> list[str]:
+    """A line per named cause without a mechanism plot, and why: silence is never a plot that was left out."""
+    out = []
+    for c in result.named:
+        where = f"{c.triad.value}_{c.axis or 'triad'}"
+        if MECHANISM_PLOT.format(effect=c.effect, where=where) in written:
+            continue
+        path = result.grade_paths.get(c.triad, {}).get("path", "no scalar")
+        out.append(
+            f"- no mechanism plot for {c.effect} ({_where(c.triad.value, c.axis)}): the {c.triad.value} took the "
+            f"`{path}` path, which has no scalar residual per position to plot; its fit is under Named causes"
+        )
+    return out
+
+
 def _fmt(v) -> str:
     """A parameter value for the report: numbers to 3 significant digits, lists element-wise, a
     mapping as its keys with their values ("none" when empty): never a Python repr."""
@@ -557,6 +572,7 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
         lines += ["", "## Extended model (surviving noise per triad)", "", *_model_table(result)]
         lines += ["", "## Gain", "", *_gain_lines(data["gain"])]
         lines += ["", "## Plots", ""] + [f"![{Path(name).stem}]({name})\n" for name in written]
+        lines += _unplotted(result, written)
     path = d / "audit.md"
     path.write_text("\n".join(lines) + "\n")
     return path

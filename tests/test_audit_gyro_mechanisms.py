@@ -36,7 +36,7 @@ from estimators.audit.hidden import (
 from estimators.audit.statistics import scalar_residuals
 from estimators.chain import ChainConfig
 from estimators.conventions import EARTH_RATE_RPS, Triad
-from estimators.sim import BiasStep, Grade
+from estimators.sim import BiasStep, Grade, TemperatureHysteresis
 from service.audit_report import temperature_panel, write_report
 
 G = 9.80665
@@ -226,3 +226,22 @@ def test_only_a_change_is_named_for_the_triad_when_its_axes_explain_it_alike():
         c for c in find_candidates(s, chain, fit_baselines(s, chain, colour=False)) if c.selected
     ]
     assert all(c.axis is not None for c in named), [(c.effect, c.axis) for c in named]
+
+
+def test_a_mems_gyro_mechanism_without_a_plot_says_so_in_the_report(tmp_path):
+    # A MEMS gyro's means carry the Earth rate as noise: no scalar residual, so no mechanism plot. The
+    # report listed none and said nothing (issue 31, item 5: one plot per named effect).
+    seed = 430000
+    m = baseline_model(np.random.default_rng(seed), Grade.MEMS)
+    model = m.with_effect(TemperatureHysteresis([3.0e-4, 0.0, 0.0]), Triad.GYRO)
+    s, _ = session_of(model, seed)
+    res = run_audit(s, AuditConfig(trial_chain_config(Grade.MEMS, s), replicas=2))
+    assert ("temperature_hysteresis", Triad.GYRO, "x") in {
+        (c.effect, c.triad, c.axis) for c in res.named
+    }
+    md = write_report(res, tmp_path, title="mems gyro").read_text()
+    assert not (tmp_path / "mechanism_temperature_hysteresis_gyro_x.png").exists()
+    assert (
+        "no mechanism plot for temperature_hysteresis (gyro x)" in md
+        and "earth_rate_as_noise" in md
+    )
