@@ -1132,11 +1132,7 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
                 if k.endswith("_min_detectable") or k.endswith("_min_detectable_norm2"):
                     best = c.params.get(f"{k}_best")
                     # A change's size depends on the turn it falls in: the range, the hardest turn first.
-                    by_turn = (
-                        ""
-                        if best is None
-                        else f" (at the easiest turn {best:.2g}; named for the triad where the axes' columns are alike)"
-                    )
+                    by_turn = "" if best is None else f" (at the easiest turn {best:.2g})"
                     # A change named for the triad states the size of the axis it was fitted on.
                     axis = c.axis or c.params.get("fitted_axis")
                     parts.append(
