@@ -245,3 +245,23 @@ def test_a_mems_gyro_mechanism_without_a_plot_says_so_in_the_report(tmp_path):
         "no mechanism plot for temperature_hysteresis (gyro x)" in md
         and "earth_rate_as_noise" in md
     )
+
+
+def test_a_gyro_mechanism_plot_puts_the_earth_rate_on_its_orientation_axis(tmp_path, monkeypatch):
+    # A gyro's scalar residual is plotted against its means' direction (the Earth rate's), which the
+    # label called gravity's.
+    import service.audit_report as report
+
+    h = hide(9930, "temperature_hysteresis", Triad.GYRO, "x", 10.0, grade=NAV)
+    s, _ = session_of(h.model, 9930, grade=NAV)
+    res = run_audit(s, AuditConfig(trial_chain_config(NAV, s), replicas=2))
+    labels = {}
+
+    def keep_labels(fig, path, **_):
+        labels[path.name] = [a.get_xlabel() for a in fig.axes]
+        report.plt.close(fig)
+
+    monkeypatch.setattr(report, "save_figure", keep_labels)
+    write_report(res, tmp_path, title="gyro")
+    xlabels = labels["mechanism_temperature_hysteresis_gyro_x.png"]
+    assert "u_x (the Earth rate on the axis)" in xlabels, xlabels
