@@ -360,10 +360,13 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
         a_t.legend(fontsize=7)
     a_t.set_xlabel("time of the position (s)")
     a_t.set_ylabel("scalar residual / σ within positions (–)")
-    if cause.axis is None:
+    axis = cause.axis or p.get("fitted_axis")
+    # The direction of the triad's own reference: gravity for the accelerometers, the Earth rate for a gyro.
+    on = "gravity" if cause.triad is Triad.ACCEL else "the Earth rate"
+    if axis is None:
         u, label = np.prod(st.up, axis=1), "u_x u_y u_z"
     else:
-        u, label = st.up[:, AXES.index(cause.axis)], f"u_{cause.axis} (gravity on the axis)"
+        u, label = st.up[:, AXES.index(axis)], f"u_{axis} ({on} on the axis)"
     a_u.plot(u, z, "ko", ms=3)
     a_u.set_xlabel(label)
     for a in axes:
@@ -382,6 +385,21 @@ def _mechanism_plots(result: AuditResult, d: Path) -> list[str]:
         name = MECHANISM_PLOT.format(effect=c.effect, where=f"{c.triad.value}_{c.axis or 'triad'}")
         if _mechanism_plot(result, c, d / name):
             out.append(name)
+    return out
+
+
+def _unplotted(result: AuditResult, written: list[str]) -> list[str]:
+    """A line per named cause without a mechanism plot, and why: silence is never a plot that was left out."""
+    out = []
+    for c in result.named:
+        where = f"{c.triad.value}_{c.axis or 'triad'}"
+        if MECHANISM_PLOT.format(effect=c.effect, where=where) in written:
+            continue
+        path = result.grade_paths.get(c.triad, {}).get("path", "no scalar")
+        out.append(
+            f"- no mechanism plot for {c.effect} ({_where(c.triad.value, c.axis)}): the {c.triad.value} took the "
+            f"`{path}` path, which has no scalar residual per position to plot; its fit is under Named causes"
+        )
     return out
 
 
@@ -554,6 +572,7 @@ def write_report(result: AuditResult, out_dir: str | Path, *, title: str) -> Pat
         lines += ["", "## Extended model (surviving noise per triad)", "", *_model_table(result)]
         lines += ["", "## Gain", "", *_gain_lines(data["gain"])]
         lines += ["", "## Plots", ""] + [f"![{Path(name).stem}]({name})\n" for name in written]
+        lines += _unplotted(result, written)
     path = d / "audit.md"
     path.write_text("\n".join(lines) + "\n")
     return path

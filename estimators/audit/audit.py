@@ -1130,8 +1130,13 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
                 continue
             for k, v in c.params.items():
                 if k.endswith("_min_detectable") or k.endswith("_min_detectable_norm2"):
+                    best = c.params.get(f"{k}_best")
+                    # A change's size depends on the turn it falls in: the range, the hardest turn first.
+                    by_turn = "" if best is None else f" (at the easiest turn {best:.2g})"
+                    # A change named for the triad states the size of the axis it was fitted on.
+                    axis = c.axis or c.params.get("fitted_axis")
                     parts.append(
-                        f"{c.effect}{'' if c.axis is None else ' ' + c.axis} {k.replace('_min_detectable', '')} {v:.2g}"
+                        f"{c.effect}{'' if axis is None else ' ' + axis} {k.replace('_min_detectable', '')} {v:.2g}{by_turn}"
                     )
                     break
         if parts:
@@ -1272,7 +1277,9 @@ def extend_model(
     for c in cands:
         if not c.selected:
             continue
-        i = None if c.axis is None else AXES.index(c.axis)
+        # A change whose axis is not identifiable is re-simulated on the axis fitted: the scalar alike.
+        axis = c.axis or c.params.get("fitted_axis")
+        i = None if axis is None else AXES.index(axis)
         ref = g if c.triad is Triad.ACCEL else EARTH_RATE_RPS
         if c.effect == "bias_instability":
             excess[c.triad][i] = c.params["between_sd_norm"]

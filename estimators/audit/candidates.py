@@ -1385,13 +1385,20 @@ def _mean_candidates(
     triad: Triad,
     to_si: float,
     what: str,
+    scalar_tests: int | None = None,
 ) -> list[Candidate]:
     """One candidate per mean effect; ``to_si`` turns the fitted coefficients into the units of their keys.
+
+    ``scalar_tests`` (on a scalar residual: :func:`count_tests`): the minimum detectable sizes are stated at the
+    known-scale threshold (:func:`detect_threshold`), else at each test's own.
 
     A change profiled over the breaks is one candidate: the break selected, else the one of the largest LR,
     with when it happened: from the first to the last turn whose break's profile LR is within
     :data:`CHANGE_TIME_LR` of the best (a 95 % profile-likelihood set; a break only positions blind to
-    the axis lie next to is as likely as the best), its middle ± half its span.
+    the axis lie next to is as likely as the best), its middle ± half its span. A selected change whose
+    break another axis explains as well (its LR within :data:`CHANGE_TIME_LR` in the round it joined) is
+    named for the triad, the axes in ``axes_alike`` and the one fitted in ``fitted_axis``
+    (:func:`alike_axes`).
     """
     shown: dict[tuple[str, int], int] = {}
     for k, t in tests.items():
@@ -1407,11 +1414,13 @@ def _mean_candidates(
     for k in shown.values():
         t, e = tests[k], effects[k]
         ax = None if e.triad_level else AXES[e.axis]
-        fitted = (
+        fitted: CandidateParams = (
             {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)}
             | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)}
             | {
-                f"{key}_min_detectable": float(min_detectable(s * to_si, t.threshold))
+                f"{key}_min_detectable": float(
+                    min_detectable(s * to_si, detect_threshold(t, e, scalar_tests))
+                )
                 for key, s in zip(e.keys, t.se, strict=True)
             }
         )
@@ -1430,8 +1439,17 @@ def _mean_candidates(
                 "t_change_s": 0.5 * (lo + hi),
                 "t_change_se_s": 0.5 * (hi - lo),
                 "breaks_tried": e.breaks,
-            }
+            } | change_min_detectable(effects, tests, k, to_si, scalar_tests)
             when = f" in the turn before position {e.after} ({lo:.1f}–{hi:.1f} s; {e.breaks} breaks tried)"
+        changed = e.after is not None and not e.triad_level
+        alike = alike_axes(effects, tests, k) if t.selected and changed else []
+        if len(alike) > 1:
+            ax = None
+            fitted |= {"axes_alike": alike, "fitted_axis": AXES[e.axis]}
+            when += (
+                f"; its axis is not identifiable: {', '.join(alike)} explain it alike (one position on "
+                "one side of the turn, or their columns alike there)"
+            )
         where = "the triad" if ax is None else f"axis {ax}"
         out.append(
             Candidate(
@@ -1447,6 +1465,60 @@ def _mean_candidates(
                 f"{what} of {where} follow the {e.name} regressor{when}: LR {t.lr:.1f} (threshold {t.threshold:.1f}), held-out ratio {t.cv_ratio:.3f}",
             )
         )
+    return out
+
+
+def detect_threshold(test: MeanTest, effect: _MeanEffect, scalar_tests: int | None) -> float:
+    """The threshold a minimum detectable size is stated at. On a scalar residual an effect between positions
+    makes it structured, and it is then tested at the known scale (χ²ₖ at the split, :func:`forward_select`);
+    the effect-free session's own test (the F form, the scale estimated) stated sizes 1.2x too large there
+    (a navigation gyro's step at 0.5x the stated size was named in 4 of 12 trials, its threshold 20.0
+    against the 32.6 stated). Elsewhere (a MEMS gyro's means) the test's own."""
+    if scalar_tests is None:
+        return test.threshold
+    return _threshold(len(effect.keys), scalar_tests * effect.breaks)
+
+
+def change_min_detectable(
+    effects: list[_MeanEffect],
+    tests: dict[int, MeanTest],
+    k: int,
+    to_si: float,
+    scalar_tests: int | None = None,
+) -> dict[str, float]:
+    """A change's ``*_min_detectable`` at the turn it is hardest to see in and ``*_min_detectable_best`` at the
+    easiest, over the turns with two positions on each side (in the first or last turn no axis is told:
+    :func:`alike_axes`). The standard error of a step at a turn next to the session's ends or to positions
+    blind to the axis is several times that of a middle one: one break's size,
+    stated for all, was too large for a middle turn (0.5x of it named in 6 of 10 trials) and too small for
+    another (1.5x named in 1 of 10)."""
+    e = effects[k]
+    sizes = np.array(
+        [
+            [min_detectable(s * to_si, detect_threshold(u, effects[j], scalar_tests)) for s in u.se]
+            for j, u in tests.items()
+            if (effects[j].name, effects[j].axis) == (e.name, e.axis)
+            and 2 <= (effects[j].after or 0) <= e.breaks - 1
+        ]
+    )
+    return {f"{key}_min_detectable": float(sizes[:, c].max()) for c, key in enumerate(e.keys)} | {
+        f"{key}_min_detectable_best": float(sizes[:, c].min()) for c, key in enumerate(e.keys)
+    }
+
+
+def alike_axes(effects: list[_MeanEffect], tests: dict[int, MeanTest], k: int) -> list[str]:
+    """The axes whose change at the break of the selected ``effects[k]`` explained the data within
+    :data:`CHANGE_TIME_LR` of it when it joined (its own first; an axis selected at that break too is
+    named on its own: a knock that moved two axes). On a scalar residual a change in the first or last
+    turn moves one position: one datum, which every axis' column explains alike once the baseline's bias
+    is fitted (the LR does not depend on a column's scale), so which axis joined was a tie."""
+    e, test = effects[k], tests[k]
+    out = [AXES[e.axis]]
+    for j, lr in test.rivals.items():
+        o = effects[j]
+        if (o.name, o.after) == (e.name, e.after) and o.axis != e.axis and not tests[j].selected:
+            if lr >= test.lr - CHANGE_TIME_LR:
+                out.append(AXES[o.axis])
     return out
 
 
@@ -1745,7 +1817,7 @@ def _scalar_records(
     what = f"{triad.value} scalar residuals" + (
         " (structured between positions only: tested at the within-position noise)" if known else ""
     )
-    out = _mean_candidates(effects, tests, triad, to_si, what)
+    out = _mean_candidates(effects, tests, triad, to_si, what, n_tests)
     # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
     design = np.hstack([jac, chosen])
     between = VarianceData.finite(
