@@ -615,10 +615,15 @@ def _coverage_map(result: ReplayResult) -> dict[str, Any]:
 
 
 def _rate(batch: SampleBatch) -> float:
-    """The rate a frame was sampled at (median interval), Hz; 1 Hz for a one-sample frame."""
+    """The rate an IMU's first frame was sampled at (the median interval of its first
+    :data:`~estimators.log_health.RUN_START_SAMPLES`, as the report's filters take it, whatever
+    the frame's size), Hz; 1 Hz for a one-sample frame."""
     import numpy as np
 
-    return float(1.0 / np.median(np.diff(batch.t_s))) if batch.n_samples > 1 else 1.0
+    from estimators.log_health import RUN_START_SAMPLES
+
+    head = batch.t_s[:RUN_START_SAMPLES]
+    return float(1.0 / np.median(np.diff(head))) if head.size > 1 else 1.0
 
 
 def _f0_summary(fleet: FleetProcessor, vehicle: str, imu: int) -> ImuF0 | None:
