@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import mmap
 import os
 import struct
 from dataclasses import dataclass, field
@@ -95,10 +96,24 @@ def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
         raise GnssLogError(f"{os.fspath(path)}: GNSS records unreadable: {exc}") from exc
 
 
+def _mentions(path: str | os.PathLike[str], name: bytes) -> bool:
+    """Whether the file's bytes hold ``name`` anywhere: a topic or message of that name cannot be
+    in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every record
+    in Python to find the few GNSS ones, as long as reading the IMU again: a log without GNSS
+    skips that (a search of the mapped file, at the disk's speed)."""
+    with open(path, "rb") as fh:
+        if os.fstat(fh.fileno()).st_size == 0:
+            return False
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            return data.find(name) >= 0
+
+
 def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     from pyulog import ULog
 
     topic = "vehicle_gps_position"
+    if not _mentions(path, topic.encode()):
+        return None
     # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
     with contextlib.redirect_stdout(io.StringIO()):
         log = ULog(os.fspath(path), [topic], disable_str_exceptions=True)
@@ -125,8 +140,10 @@ def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
 def _dataflash(path: str | os.PathLike[str], fmt: LogFormat) -> GnssTrack | None:
     if fmt is LogFormat.DATAFLASH_BIN:
         msgs = _bin_gps_messages(path)
-    else:
+    elif _mentions(path, b"GPS"):
         msgs = _messages(path, "GPS")
+    else:
+        return None
     msgs = [m for m in msgs if int(getattr(m, "I", 0)) == 0]
     if not msgs:
         return None
