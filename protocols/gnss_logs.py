@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import io
-import mmap
 import os
 import struct
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from protocols.mavlink_adapter import GPS_RAW_INT_FIELDS, MILLI_UNITS
 from protocols.tlog_numpy import TlogScan
 
 GPS_FIX_3D = 3
+SEARCH_BLOCK_BYTES = 1 << 20
 UNKNOWN_U16 = 65535
 
 
@@ -100,12 +100,16 @@ def _mentions(path: str | os.PathLike[str], name: bytes) -> bool:
     """Whether the file's bytes hold ``name`` anywhere: a topic or message of that name cannot be
     in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every record
     in Python to find the few GNSS ones, as long as reading the IMU again: a log without GNSS
-    skips that (a search of the mapped file, at the disk's speed)."""
+    skips that. Read in blocks of :data:`SEARCH_BLOCK_BYTES` (a mapped file's pages would count
+    in the process's resident memory), each searched with the last bytes before it."""
+    tail = b""
     with open(path, "rb") as fh:
-        if os.fstat(fh.fileno()).st_size == 0:
-            return False
-        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
-            return data.find(name) >= 0
+        while block := fh.read(SEARCH_BLOCK_BYTES):
+            window = tail + block
+            if name in window:
+                return True
+            tail = window[max(0, len(window) - len(name) + 1) :]
+    return False
 
 
 def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:

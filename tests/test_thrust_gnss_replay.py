@@ -229,3 +229,6 @@ def test_a_log_without_gnss_is_not_decoded_a_second_time(tmp_path, monkeypatch):
     monkeypatch.setattr("pyulog.ULog", decoded_again)
     monkeypatch.setattr(gnss_logs, "_messages", decoded_again)
     assert read_gnss_track(ulg) is None and read_gnss_track(text) is None
+    # The search reads the file in blocks: a name across two of them is found.
+    monkeypatch.setattr(gnss_logs, "SEARCH_BLOCK_BYTES", 7)
+    assert gnss_logs._mentions(ulg, b"sensor_combined")
