@@ -13,7 +13,7 @@ import functools
 import json
 
 import pytest
-from real_data import LOGS, needs
+from real_data import FIELD, LOGS, needs
 from replay_support import replay_with_coverage
 
 import service.commands.replay as replay_command
@@ -48,7 +48,9 @@ def _boots():
     return first, dataclasses.replace(second, t_s=second.t_s - second.t_s[0] + 3.0)
 
 
-def test_events_and_report_are_the_same_however_the_frames_are_grouped(capsys, monkeypatch, tmp_path):
+def test_events_and_report_are_the_same_however_the_frames_are_grouped(
+    capsys, monkeypatch, tmp_path
+):
     """A fault, a gap and a reboot in a DataFlash log: frame by frame, in groups of 1000 samples
     and of replay's own give the same events (ids included), coverage line and report.json, to
     the bit."""
@@ -75,15 +77,20 @@ def test_events_and_report_are_the_same_however_the_frames_are_grouped(capsys, m
 
 
 @pytest.mark.parametrize(
-    "name",
+    "log",
     [
-        pytest.param(name, marks=needs(LOGS / name))
-        for name in ("ardupilot-sitl-vtol.tlog", "ardupilot-test.BIN", "px4-events.ulg")
+        pytest.param(path, marks=needs(path), id=path.name)
+        for path in (
+            LOGS / "px4-events.ulg",
+            FIELD / "px4-fmuv3-10hz.ulg",
+            FIELD / "px4-fmuv5-knock.ulg",
+            LOGS / "ardupilot-test.BIN",
+        )
     ],
 )
-def test_a_shared_log_replays_as_it_did_frame_by_frame(name, capsys, monkeypatch, tmp_path):
-    """Every shared log with IMU data: replay's events, coverage line and report.json are those of
-    the previous path (frame by frame)."""
-    log = LOGS / name
+def test_a_shared_log_replays_as_it_did_frame_by_frame(log, capsys, monkeypatch, tmp_path):
+    """The shared logs of one IMU (grouped) and a small one of two (frame by frame): replay's
+    events, coverage line and report.json are those of the previous path. The SITL tlog of two
+    IMUs goes frame by frame as before; it is left to the replay tests' own checks."""
     before = _replay(capsys, monkeypatch, tmp_path, log, FRAME_BY_FRAME)
     assert _replay(capsys, monkeypatch, tmp_path, log, None) == before
