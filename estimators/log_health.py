@@ -51,7 +51,6 @@ Figures
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -78,6 +77,11 @@ PASS_SAMPLES = 4096
 """Samples of consecutive frames taken in one pass (:meth:`ImuHealthAccumulator.update`): the
 filters, block tables and periodograms carry their state sample to sample, so one pass over the
 frames gives what a pass per frame gives, with a tenth of the calls on 100-sample frames."""
+RUN_START_SAMPLES = 100
+"""A run's first samples whose median step sets the filters' sample interval, and the blocks of the
+first difference's sum of squares, counted from the run's start: the figures then do not depend on
+how the samples are cut into frames (these are the frames of 100 that replay handed the report
+before it took larger ones, so its figures stay those it gave)."""
 _BLOCK_FIELDS = 27  # k, n, mean a(3), mean g(3), var a(3), var g(3), vibe(3), vibe max(3), px4 a, px4 g, temp min, max, t first, t last, run
 
 
@@ -247,6 +251,9 @@ class ImuHealthAccumulator:
         self._psd_sum: FloatArray | None = None
         self._psd_count = 0
         self._diff_sq = np.zeros(6)
+        self._diff_open = np.zeros(6)
+        """The sum of squares of the run's block of :data:`RUN_START_SAMPLES` not yet complete."""
+        self._diff_open_n = 0
         self._diff_n = 0
         self._step = np.full(6, np.inf)
         """The smallest change between consecutive samples per axis: the output's step, if quantized."""
@@ -278,26 +285,33 @@ class ImuHealthAccumulator:
         self._flush()
         if self._pending is not None:
             pt, pa, pg, ptemp = self._pending
-            t, a, g, temp = (
-                np.concatenate([pt, t]), np.vstack([pa, a]), np.vstack([pg, g]), np.concatenate([ptemp, temp]),
-            )  # fmt: skip
             self._pending = None
+            if t.size and t[0] <= pt[-1] and pt.size >= 2:
+                # A run shorter than RUN_START_SAMPLES, ended by a restart: taken on its own.
+                self._begin(pt, pa, pg, ptemp)
+            else:
+                t, a, g, temp = (
+                    np.concatenate([pt, t]), np.vstack([pa, a]), np.vstack([pg, g]), np.concatenate([ptemp, temp]),
+                )  # fmt: skip
         if t.size == 0:
             return
         if self._t_last is not None and t[0] <= self._t_last:
             self._restart()
         if self._t_last is None:
-            if t.size < 2:
-                # One sample does not give the sample interval the filters need: wait for the next.
+            if t.size < RUN_START_SAMPLES:
+                # The sample interval the filters need is the median of the run's first samples: wait for them.
                 self._pending = (t, a, g, temp)
                 return
-            self._start(t, a)
-            dt = np.diff(t, prepend=t[0])
-            intervals = dt[1:]
-        else:
-            dt = np.diff(t, prepend=self._t_last)
-            intervals = dt
-        self._pass(t, a, g, temp, dt, intervals, np.zeros(1, dtype=np.int64))
+            self._begin(t, a, g, temp)
+            return
+        dt = np.diff(t, prepend=self._t_last)
+        self._pass(t, a, g, temp, dt, dt)
+
+    def _begin(self, t: FloatArray, a: FloatArray, g: FloatArray, temp: FloatArray) -> None:
+        """A run's first samples (two at least): the filters start on them."""
+        self._start(t, a)
+        dt = np.diff(t, prepend=t[0])
+        self._pass(t, a, g, temp, dt, dt[1:])
 
     def _flush(self) -> None:
         """The queued frames in one pass (:data:`PASS_SAMPLES`)."""
@@ -305,12 +319,10 @@ class ImuHealthAccumulator:
             return
         frames, self._queue, self._queued = self._queue, [], 0
         assert self._t_last is not None  # frames wait only once the run has started
-        sizes = [f[0].size for f in frames]
         t = np.concatenate([f[0] for f in frames])
         dt = np.diff(t, prepend=self._t_last)
-        starts = np.cumsum([0, *sizes[:-1]])
         a, g = np.vstack([f[1] for f in frames]), np.vstack([f[2] for f in frames])
-        self._pass(t, a, g, np.concatenate([f[3] for f in frames]), dt, dt, starts)
+        self._pass(t, a, g, np.concatenate([f[3] for f in frames]), dt, dt)
 
     def _pass(
         self,
@@ -320,15 +332,14 @@ class ImuHealthAccumulator:
         temp: FloatArray,
         dt: FloatArray,
         intervals: FloatArray,
-        starts: np.ndarray,
     ) -> None:
-        """Frames of one run starting at ``starts`` in ``t``, after the last sample taken."""
+        """Consecutive samples of one run, after the last sample taken."""
         us, counts = np.unique(np.round(intervals * 1e6).astype(np.int64), return_counts=True)
         for u, c in zip(us.tolist(), counts.tolist(), strict=True):
             self._dt_us[u] = self._dt_us.get(u, 0) + c
         self._t_last = float(t[-1])
         self.n_samples += t.size
-        vibe, px4a, px4g = self._vibration(a, g, dt, starts)
+        vibe, px4a, px4g = self._vibration(a, g, dt)
         self._welch(np.hstack([a, g]))
         c = self._carry
         self._blocks(
@@ -346,6 +357,8 @@ class ImuHealthAccumulator:
         """The clock started again: the old run's blocks end, the next run starts as the log did."""
         c = self._carry
         self._blocks(c.t, c.a, c.g, c.temp, c.vibe, c.px4a, c.px4g, final=True)
+        self._diff_sq += self._diff_open
+        self._diff_open, self._diff_open_n = np.zeros(6), 0
         assert self._t_first is not None and self._t_last is not None
         self._runs_s += self._t_last - self._t_first
         self._run += 1
@@ -356,7 +369,7 @@ class ImuHealthAccumulator:
 
     def _start(self, t: FloatArray, a: FloatArray) -> None:
         self._t_first = float(t[0])
-        self._dt_s = float(np.median(np.diff(t)))
+        self._dt_s = float(np.median(np.diff(t[:RUN_START_SAMPLES])))
         # The filters start settled on the first sample (no start-up transient in the figures):
         # a first-order low-pass y = α·x + (1 − α)·y₋₁ fed a constant x₀ has the state (1 − α)·x₀.
         self._zi = {
@@ -372,11 +385,12 @@ class ImuHealthAccumulator:
         return self._dt_s / (self._dt_s + 1.0 / (2.0 * math.pi * fc_hz))
 
     def _vibration(
-        self, a: FloatArray, g: FloatArray, dt: FloatArray, starts: np.ndarray
+        self, a: FloatArray, g: FloatArray, dt: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Per sample: ArduPilot's VIBE (N, 3), PX4's accel and gyro vibration metrics (N,) (module
-        docstring). The squared differences are summed per frame (frames at ``starts``), then the
-        frames' sums in turn: the additions a pass per frame makes."""
+        docstring). The squared differences are summed in blocks of :data:`RUN_START_SAMPLES`
+        from the run's start, then the blocks' sums in turn: the same additions however the
+        samples are framed."""
         a5, a2 = self._alpha(VIBE_FLOOR_HZ), self._alpha(VIBE_FILTER_HZ)
         floor, self._zi["floor"] = lfilter([a5], [1.0, a5 - 1.0], a, axis=0, zi=self._zi["floor"])
         level, self._zi["vibe"] = lfilter(
@@ -394,9 +408,17 @@ class ImuHealthAccumulator:
             b, den, np.linalg.norm(diff_g, axis=1) * dt, zi=self._zi["px4g"]
         )
         sq = np.hstack([diff_a, diff_g]) ** 2
-        # sum, not add.reduceat: a frame's rows are added in turn, as the pass per frame did.
-        for lo, hi in itertools.pairwise([*starts.tolist(), sq.shape[0]]):
-            self._diff_sq += sq[lo:hi].sum(axis=0)
+        # Sums over axis 0 and cumsum add the rows in turn (add.reduceat does not, to the bit).
+        head = min(sq.shape[0], RUN_START_SAMPLES - self._diff_open_n)
+        self._diff_open = np.vstack([self._diff_open, sq[:head]]).sum(axis=0)
+        self._diff_open_n += head
+        if self._diff_open_n == RUN_START_SAMPLES:
+            m = (sq.shape[0] - head) // RUN_START_SAMPLES
+            whole = sq[head : head + m * RUN_START_SAMPLES].reshape(m, RUN_START_SAMPLES, 6)
+            sums = np.vstack([self._diff_sq, self._diff_open, whole.sum(axis=1)])
+            self._diff_sq = sums.cumsum(axis=0)[-1]
+            rest = sq[head + m * RUN_START_SAMPLES :]
+            self._diff_open, self._diff_open_n = rest.sum(axis=0), rest.shape[0]
         moved = np.abs(np.hstack([diff_a, diff_g]))
         self._step = np.fmin(self._step, np.where(moved > 0.0, moved, np.inf).min(axis=0))
         self._diff_n += diff_a.shape[0] - (1 if self._last_a is None else 0)
@@ -475,6 +497,9 @@ class ImuHealthAccumulator:
     def result(self, gravity_mps2: float) -> ImuHealth:
         """The figures (module docstring); ``gravity_mps2`` is the local gravity the residual refers to."""
         self._flush()
+        if self._pending is not None and self._pending[0].size >= 2:
+            self._begin(*self._pending)
+            self._pending = None
         c = self._carry
         self._blocks(c.t, c.a, c.g, c.temp, c.vibe, c.px4a, c.px4g, final=True)
         table = np.vstack(self._tables) if self._tables else np.zeros((0, _BLOCK_FIELDS))
@@ -505,7 +530,7 @@ class ImuHealthAccumulator:
             bias = (blocks.gyro_mean[rest] * wn).sum(axis=0) / wn.sum()
         else:
             method = "first_difference"
-            rms = np.sqrt(self._diff_sq / max(self._diff_n, 1) / 2.0)
+            rms = np.sqrt((self._diff_sq + self._diff_open) / max(self._diff_n, 1) / 2.0)
             noise_a, noise_g = rms[:3], rms[3:]
             grav, bias = (None, None), None
         flight = ~rest

@@ -41,6 +41,7 @@ from protocols.mavlink_adapter import GPS_RAW_INT_FIELDS, MILLI_UNITS
 from protocols.tlog_numpy import TlogScan
 
 GPS_FIX_3D = 3
+SEARCH_BLOCK_BYTES = 1 << 20
 UNKNOWN_U16 = 65535
 
 
@@ -95,10 +96,28 @@ def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
         raise GnssLogError(f"{os.fspath(path)}: GNSS records unreadable: {exc}") from exc
 
 
+def _mentions(path: str | os.PathLike[str], name: bytes) -> bool:
+    """Whether the file's bytes hold ``name`` anywhere: a topic or message of that name cannot be
+    in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every record
+    in Python to find the few GNSS ones, as long as reading the IMU again: a log without GNSS
+    skips that. Read in blocks of :data:`SEARCH_BLOCK_BYTES` (a mapped file's pages would count
+    in the process's resident memory), each searched with the last bytes before it."""
+    tail = b""
+    with open(path, "rb") as fh:
+        while block := fh.read(SEARCH_BLOCK_BYTES):
+            window = tail + block
+            if name in window:
+                return True
+            tail = window[max(0, len(window) - len(name) + 1) :]
+    return False
+
+
 def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     from pyulog import ULog
 
     topic = "vehicle_gps_position"
+    if not _mentions(path, topic.encode()):
+        return None
     # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
     with contextlib.redirect_stdout(io.StringIO()):
         log = ULog(os.fspath(path), [topic], disable_str_exceptions=True)
@@ -125,8 +144,10 @@ def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
 def _dataflash(path: str | os.PathLike[str], fmt: LogFormat) -> GnssTrack | None:
     if fmt is LogFormat.DATAFLASH_BIN:
         msgs = _bin_gps_messages(path)
-    else:
+    elif _mentions(path, b"GPS"):
         msgs = _messages(path, "GPS")
+    else:
+        return None
     msgs = [m for m in msgs if int(getattr(m, "I", 0)) == 0]
     if not msgs:
         return None

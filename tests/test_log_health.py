@@ -143,6 +143,39 @@ def test_frames_taken_in_passes_give_the_figures_of_a_pass_per_frame(monkeypatch
     assert len(calls) < len(frames) / 10 and max(calls) >= log_health.PASS_SAMPLES
 
 
+def _stream(fly, seed=5):
+    """A logger's stamps (jittered by 0.2 of a step, so a run's median step depends on which samples
+    give it), a lost second and a clock that starts again."""
+    t, a, g = _unit(n_s=30.0, fly=fly, seed=seed)
+    t = t + np.random.default_rng(seed).uniform(-0.1, 0.1, t.size) / FS
+    keep = np.r_[0:4000, 4400 : t.size]
+    t, a, g = t[keep], a[keep], g[keep]
+    t[7600:] -= 20.0
+    return t, a, g
+
+
+@pytest.mark.parametrize("fly", [(8.0, 16.0), (-1.0, 31.0)], ids=["rest", "no_rest"])
+def test_the_figures_do_not_depend_on_the_frame_size(fly):
+    """Replay's report is the same to the bit whether its frames hold 100 samples (what it fed the
+    report before), 1000, 4096 or the whole log in one: the filters' sample interval is the median
+    of each run's first RUN_START_SAMPLES steps and the first difference's squares are summed in
+    blocks counted from the run's start, not per frame."""
+    t, a, g = _stream(fly)
+    temp = np.linspace(30.0, 35.0, t.size)
+    figures = []
+    for size in (100, 1000, 4096, t.size):
+        acc = ImuHealthAccumulator(HealthConfig())
+        # As the log reader cuts them: frames of `size` and a short one before the clock restart.
+        for lo, hi in (r for run in ((0, 7600), (7600, t.size)) for r in _cuts(*run, size)):
+            acc.update(t[lo:hi], a[lo:hi], g[lo:hi], temp[lo:hi])
+        figures.append(_figures(acc))
+    assert all(f == figures[0] for f in figures[1:])
+
+
+def _cuts(lo, hi, size):
+    return [(k, min(k + size, hi)) for k in range(lo, hi, size)]
+
+
 def test_a_block_still_settling_after_motion_is_no_noise():
     """The ringing after a landing (12 Hz, 0.3 m/s² decaying in 0.25 s on z) keeps the first block
     after it within a detector's spread (here 0.2 m/s², a replay raises it to the passport's noise)

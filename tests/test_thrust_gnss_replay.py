@@ -21,8 +21,9 @@ from estimators.thrust_gnss import up_velocity_from_altitude
 from protocols import gnss_logs
 from protocols.events import Predicate, event_from_json, event_to_dict
 from protocols.gnss_logs import append_gps_raw_int, read_gnss_track
-from protocols.logs import write_tlog
+from protocols.logs import write_dataflash_text, write_tlog
 from protocols.mavlink_adapter import ImuMessage
+from protocols.ulog import write_ulog
 from service.cli import EXIT_FAULT, EXIT_UNTESTED
 
 ONSET_S = 140.0
@@ -205,3 +206,29 @@ def test_real_logs_with_gnss_raise_no_in_flight_alarm_and_say_why(capsys, path):
     if check is not None:
         assert not check["ran"] and check["applies"] and check["reason"]
     assert "accel thrust_axis: NOT TESTED (" in err
+
+
+def test_a_log_without_gnss_is_not_decoded_a_second_time(tmp_path, monkeypatch):
+    """A ULog and a DataFlash text log whose bytes name no GNSS topic or message hold no GNSS
+    velocity, as pyulog finds: read_gnss_track says so without pyulog's or pymavlink's pass over
+    every record (as long as replay's own read of the IMU)."""
+    from pyulog import ULog
+
+    n = 500
+    still = ImuSession(
+        np.arange(n) / 100.0, np.tile([0.0, 0.0, 9.8], (n, 1)), np.zeros((n, 3)), None
+    )
+    ulg, text = tmp_path / "imu.ulg", tmp_path / "imu.log"
+    write_ulog(ulg, {0: still}, topics=["sensor_combined"])
+    write_dataflash_text(text, {0: still})
+    assert not [d for d in ULog(str(ulg), ["vehicle_gps_position"]).data_list]
+
+    def decoded_again(*_args, **_kwargs):
+        raise AssertionError("the whole log decoded again")
+
+    monkeypatch.setattr("pyulog.ULog", decoded_again)
+    monkeypatch.setattr(gnss_logs, "_messages", decoded_again)
+    assert read_gnss_track(ulg) is None and read_gnss_track(text) is None
+    # The search reads the file in blocks: a name across two of them is found.
+    monkeypatch.setattr(gnss_logs, "SEARCH_BLOCK_BYTES", 7)
+    assert gnss_logs._mentions(ulg, b"sensor_combined")

@@ -1,0 +1,96 @@
+"""Replay's events and report do not depend on how the log's frames are grouped (issue 33).
+
+Replay hands each IMU's pipeline its frames joined up to :data:`~service.commands.replay.REPLAY_GROUP_SAMPLES`
+(it took them one by one before): every stage whose result depended on where the pipeline's batches
+were cut would change its events or ``report.json``. The previous path, frame by frame, is the
+oracle, run inside each test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+
+import pytest
+from real_data import FIELD, LOGS, needs
+from replay_support import replay_with_coverage
+
+import service.commands.replay as replay_command
+from protocols.logs import write_dataflash_bin
+from protocols.passport_codec import write_passport_json
+from service.demo import DEMO_FAULT_MAGNITUDE, demo_passport, demo_scenario
+
+FRAME_BY_FRAME = replay_command.REPLAY_BATCH_SAMPLES
+"""A group of one frame: the path replay took before issue 33."""
+
+
+def _replay(capsys, monkeypatch, tmp_path, log, group_samples, *options):
+    """Status, events, the coverage line and report.json of a replay whose pipelines take the frames
+    in groups of ``group_samples`` (None: the command's own)."""
+    out = tmp_path / f"report-{group_samples}"
+    with monkeypatch.context() as m:
+        if group_samples is not None:
+            m.setattr(replay_command, "REPLAY_GROUP_SAMPLES", group_samples)
+        status, lines, _, coverage = replay_with_coverage(
+            capsys, log, "--json", "--report", out, *options
+        )
+    return status, lines, coverage, json.loads((out / "report.json").read_text())
+
+
+@functools.cache
+def _boots():
+    """The demo unit at 100 Hz with its accelerometer fault, 2 s lost in flight, then the autopilot
+    rebooted (the clock starts again at 3 s)."""
+    s = demo_scenario(fault_magnitude=DEMO_FAULT_MAGNITUDE).session.select(slice(0, None, 2))
+    s = s.select((s.t_s < 40.0) | (s.t_s >= 42.0))
+    first, second = s.select(s.t_s < 81.3), s.select(s.t_s >= 81.3)
+    return first, dataclasses.replace(second, t_s=second.t_s - second.t_s[0] + 3.0)
+
+
+def test_events_and_report_are_the_same_however_the_frames_are_grouped(
+    capsys, monkeypatch, tmp_path
+):
+    """A fault, a gap and a reboot in a DataFlash log: frame by frame, in groups of 1000 samples
+    and of replay's own give the same events (ids included), coverage line and report.json, to
+    the bit."""
+    parts = []
+    for k, boot in enumerate(_boots()):
+        part = tmp_path / f"boot{k}.bin"
+        write_dataflash_bin(part, {0: boot})
+        parts.append(part.read_bytes())
+    log = tmp_path / "joined.bin"
+    log.write_bytes(b"".join(parts))
+    passport, g = demo_passport()
+    pfile = tmp_path / "passport.json"
+    write_passport_json(passport, pfile)
+    options = ("--passport", pfile, "--gravity", g)
+    runs = [
+        _replay(capsys, monkeypatch, tmp_path, log, size, *options)
+        for size in (FRAME_BY_FRAME, 1000, replay_command.REPLAY_GROUP_SAMPLES)
+    ]
+    status, lines, _, report = runs[0]
+    # The log holds what the test is about: the fault found, the reboot and the gap seen.
+    assert status == 1 and any('"predicate":"F0"' in line for line in lines)
+    assert report["log"]["clock_restarts"] == 1 and report["imus"][0]["gaps"]["count"] >= 1
+    assert all(run == runs[0] for run in runs[1:])
+
+
+@pytest.mark.parametrize(
+    "log",
+    [
+        pytest.param(path, marks=needs(path), id=path.name)
+        for path in (
+            LOGS / "px4-events.ulg",
+            FIELD / "px4-fmuv3-10hz.ulg",
+            FIELD / "px4-fmuv5-knock.ulg",
+            LOGS / "ardupilot-test.BIN",
+        )
+    ],
+)
+def test_a_shared_log_replays_as_it_did_frame_by_frame(log, capsys, monkeypatch, tmp_path):
+    """The shared logs of one IMU (grouped) and a small one of two (frame by frame): replay's
+    events, coverage line and report.json are those of the previous path. The SITL tlog of two
+    IMUs goes frame by frame as before; it is left to the replay tests' own checks."""
+    before = _replay(capsys, monkeypatch, tmp_path, log, FRAME_BY_FRAME)
+    assert _replay(capsys, monkeypatch, tmp_path, log, None) == before
