@@ -82,6 +82,7 @@ import io
 import math
 import os
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
@@ -540,9 +541,26 @@ def _dialect_of(names: list[str]) -> tuple[CsvDialect, list[str | None]] | None:
     return None
 
 
+def _head_lines(text: str) -> Iterator[str]:
+    """``text.splitlines()`` one line at a time, splitting only as far as the reader gets: a
+    header is found in the first lines, and a session holds thousands more."""
+    start, size = 0, 4096
+    while start < len(text):
+        chunk = text[start : start + size]
+        ended = chunk.splitlines(keepends=True)
+        # The chunk's last line may go on past it (or its "\r" be half a "\r\n"): read it again
+        # with the next chunk.
+        n = len(ended) if start + size >= len(text) else len(ended) - 1
+        if n == 0:
+            size *= 2
+            continue
+        yield from chunk.splitlines()[:n]
+        start += sum(map(len, ended[:n]))
+
+
 def _commented_header(text: str) -> tuple[int, str] | None:
     """The first line, when it is a ``#``-commented header of a :data:`CSV_DIALECTS` format (EuRoC's)."""
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(_head_lines(text), start=1):
         s = line.strip()
         if not s:
             continue
@@ -578,7 +596,7 @@ def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
     names are a header only when a rate line above gives the time."""
     comments: list[tuple[int, str]] = []
     rate_said = False
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(_head_lines(text), start=1):
         s = line.strip()
         if not s:
             continue
