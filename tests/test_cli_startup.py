@@ -168,12 +168,12 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     not_needed = {"estimators.sim", "service.pipeline.fleet"}
     # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
     # commands listed from their folder), nor numpy.ma (np.median's and np.quantile's first
-    # call: estimators.quantiles).
+    # call: estimators.quantiles), nor tomllib (a sidecar's, and the session has none).
     not_needed |= {f"service.commands.{name}" for name in command_modules()} - {
         "service.commands.calibrate",
         "service.commands.diagnose",  # the passport against its own session, as diagnose runs F0
     }
-    not_needed |= {"pkgutil", "numpy.ma"}
+    not_needed |= {"pkgutil", "numpy.ma", "tomllib"}
     assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
 
 
