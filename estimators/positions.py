@@ -605,11 +605,7 @@ def _rotation_between(
         return None
     rot = RotationIntegrator(bias)
     rows = acc[last_end : first + 1]
-    tt = t[rows].tolist()
-    ww = gyro[rows].tolist()
-    for k in range(1, len(tt)):
-        wx, wy, wz = ww[k]
-        rot.add(wx, wy, wz, tt[k] - tt[k - 1])
+    rot.add_many(gyro[rows[1:]].tolist(), np.diff(t[rows]).tolist())
     return rot.angle_deg
 
 

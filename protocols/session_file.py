@@ -81,7 +81,7 @@ from __future__ import annotations
 import io
 import math
 import os
-import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
@@ -89,6 +89,7 @@ from pathlib import Path
 import numpy as np
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2
+from estimators.quantiles import median, percentile
 from estimators.session import ImuSession, SessionError
 from estimators.stream_validity import ValidityLimits
 from protocols.atomic_file import atomic_write_bytes
@@ -540,9 +541,26 @@ def _dialect_of(names: list[str]) -> tuple[CsvDialect, list[str | None]] | None:
     return None
 
 
+def _head_lines(text: str) -> Iterator[str]:
+    """``text.splitlines()`` one line at a time, splitting only as far as the reader gets: a
+    header is found in the first lines, and a session holds thousands more."""
+    start, size = 0, 4096
+    while start < len(text):
+        chunk = text[start : start + size]
+        ended = chunk.splitlines(keepends=True)
+        # The chunk's last line may go on past it (or its "\r" be half a "\r\n"): read it again
+        # with the next chunk.
+        n = len(ended) if start + size >= len(text) else len(ended) - 1
+        if n == 0:
+            size *= 2
+            continue
+        yield from chunk.splitlines()[:n]
+        start += sum(map(len, ended[:n]))
+
+
 def _commented_header(text: str) -> tuple[int, str] | None:
     """The first line, when it is a ``#``-commented header of a :data:`CSV_DIALECTS` format (EuRoC's)."""
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(_head_lines(text), start=1):
         s = line.strip()
         if not s:
             continue
@@ -578,7 +596,7 @@ def _whitespace_header(text: str) -> tuple[int, list[str]] | None:
     names are a header only when a rate line above gives the time."""
     comments: list[tuple[int, str]] = []
     rate_said = False
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(_head_lines(text), start=1):
         s = line.strip()
         if not s:
             continue
@@ -953,6 +971,8 @@ def load_xsens_sidecar(path: str | os.PathLike[str] | None = None) -> XsensNomin
         text, where = ref.read_text(encoding="utf-8"), f"packaged {DEFAULT_XSENS_SIDECAR}"
     else:
         text, where = _read_text(Path(path)), str(path)
+    import tomllib  # here: a session without a sidecar does not pay for it (1.4 ms of calibrate)
+
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -1094,6 +1114,8 @@ CSV_SIDECAR_KEYS = (*UNIT_KEYS.values(), *SCALE_KEYS.values(), *RATE_KEYS, GRAVI
 def load_csv_sidecar(path: str | os.PathLike[str]) -> dict[str, str]:
     """A CSV session's TOML sidecar: what its file does not say (``accel_scale = "1/16384"``,
     ``accel_unit = "g"``, ``fs = 100`` …, keys :data:`CSV_SIDECAR_KEYS`), as metadata strings."""
+    import tomllib  # here: a session without a sidecar does not pay for it
+
     try:
         doc = tomllib.loads(_read_text(Path(path)))
     except tomllib.TOMLDecodeError as exc:
@@ -1173,7 +1195,7 @@ def check_units(
             norm = np.linalg.norm(a, axis=1)
         norm = norm[np.isfinite(norm)]
         if norm.size:
-            raw = float(np.median(norm)) / SI_PER_UNIT[used.accel]
+            raw = float(median(norm)) / SI_PER_UNIT[used.accel]
             if not _plausible("accel", raw, used.accel):
                 looks = next((u for u in AccelUnit if _plausible("accel", raw, u)), None)
                 refusal = _refuse("accel", used.accel, looks, f"median |a| {raw:.4g} {used.accel}")
@@ -1186,7 +1208,7 @@ def check_units(
             rate = np.linalg.norm(w, axis=1)
         rate = rate[np.isfinite(rate)]
         if rate.size:
-            med, p995 = (float(v) for v in np.percentile(rate, [50.0, 99.5]))
+            med, p995 = (float(v) for v in percentile(rate, [50.0, 99.5]))
             if med > GYRO_MEDIAN_LIMIT_RPS or p995 > GYRO_P995_LIMIT_RPS:
                 raise _refuse(
                     "gyro",
@@ -1197,7 +1219,7 @@ def check_units(
     dt = np.diff(session.t_s)
     dt = dt[np.isfinite(dt) & (dt > 0)]
     if dt.size and used.time is not None:
-        raw = float(np.median(dt)) / SI_PER_UNIT[used.time]
+        raw = float(median(dt)) / SI_PER_UNIT[used.time]
         looks_t = min(
             (u for u in TimeUnit if _plausible("time", raw, u)),
             key=lambda u: abs(math.log(raw * SI_PER_UNIT[u] / _TYPICAL_INTERVAL_S)),

@@ -3,7 +3,8 @@
 Starting it stays cheap (``benchmarks/bench_startup.py``): this module and each
 command's ``register`` import only the standard library, numpy and modules that
 import nothing heavier; a command imports scipy, matplotlib, zenoh or pymavlink
-inside the function that runs it (``tests/test_cli_startup.py`` checks it).
+inside the function that runs it (``tests/test_cli_startup.py`` checks it). A command line
+naming a command builds that command's parser alone (:func:`build_parser`).
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import argparse
 import contextlib
 import importlib
 import os
-import pkgutil
 import sys
 import threading
 import time
@@ -144,20 +144,39 @@ def check_outputs(args: argparse.Namespace) -> None:
             raise UsageError(f"{flag} {path}: the folder {path.parent} does not exist")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_modules() -> list[str]:
+    """The modules of :mod:`service.commands`, sorted: what ``pkgutil.iter_modules`` lists of a
+    folder of plain modules, without the import of ``inspect`` it costs (about 5 ms)."""
+    return sorted(
+        name.removesuffix(".py")
+        for folder in commands.__path__
+        for name in os.listdir(folder)
+        if name.endswith(".py") and not name.startswith("_")
+    )
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or of ``command`` alone when it names one.
+
+    Each module of :mod:`service.commands` registers the command of its name: a command line
+    that names one parses the same with that module alone, and the other modules are neither
+    imported nor built (about 10 ms of a command's start).
+    """
     parser = argparse.ArgumentParser(
         prog="ins-health",
         description="Streaming fault detection for strapdown IMUs (scalar method).",
     )
     parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for mod in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
-        importlib.import_module(f"{commands.__name__}.{mod.name}").register(sub)
+    names = command_modules()
+    for name in [command] if command in names else names:
+        importlib.import_module(f"{commands.__name__}.{name}").register(sub)
     return parser
 
 
 def _run(argv: list[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser(argv[0] if argv else None).parse_args(argv)
     try:
         check_outputs(args)
         return int(args.func(args) or 0)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import build_parser
+from service.cli import build_parser, command_modules, main
 
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("scipy", "matplotlib", "zenoh", "pymavlink", "filterpy")
@@ -166,7 +166,55 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
     assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
     not_needed = {"estimators.sim", "service.pipeline.fleet"}
+    # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
+    # commands listed from their folder), nor numpy.ma (np.median's and np.quantile's first
+    # call: estimators.quantiles), nor tomllib (a sidecar's, and the session has none).
+    not_needed |= {f"service.commands.{name}" for name in command_modules()} - {
+        "service.commands.calibrate",
+        "service.commands.diagnose",  # the passport against its own session, as diagnose runs F0
+    }
+    not_needed |= {"pkgutil", "numpy.ma", "tomllib"}
     assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
+
+
+def test_the_modules_listed_as_commands_are_pkgutil_s_and_each_registers_its_name():
+    import pkgutil
+
+    from service import commands
+
+    names = command_modules()
+    assert names == sorted(m.name for m in pkgutil.iter_modules(commands.__path__))
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    assert list(sub.choices) == names
+
+
+def _help(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit):
+        main(argv)
+    return capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", command_modules())
+def test_a_command_s_help_is_the_same_from_its_parser_alone(command, capsys, monkeypatch):
+    # main builds the named command's parser alone; the whole parser says the same.
+    (alone,) = [
+        a for a in build_parser(command)._actions if isinstance(a, argparse._SubParsersAction)
+    ]
+    assert list(alone.choices) == [command]
+    whole = build_parser()
+    monkeypatch.setattr("service.cli.build_parser", lambda command=None: whole)
+    said_by_the_whole = _help([command, "--help"], capsys)
+    monkeypatch.undo()
+    assert _help([command, "--help"], capsys) == said_by_the_whole
+    (sub,) = [a for a in whole._actions if isinstance(a, argparse._SubParsersAction)]
+    for leaf in [
+        a for a in sub.choices[command]._actions if isinstance(a, argparse._SubParsersAction)
+    ]:
+        for name in leaf.choices:
+            monkeypatch.setattr("service.cli.build_parser", lambda command=None: whole)
+            said_by_the_whole = _help([command, name, "--help"], capsys)
+            monkeypatch.undo()
+            assert _help([command, name, "--help"], capsys) == said_by_the_whole
 
 
 LOADED_BY_A_UNIT = """

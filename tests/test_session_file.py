@@ -236,3 +236,15 @@ def test_the_measured_xsens_session_reads_with_nominal_scales_within_a_few_perce
     assert abs(fit.x[3] / loaded.gravity_mps2 - 1) < 0.03
     # Static gyro output is small against the ±300 °/s range (its zero signals).
     assert np.abs(s.gyro_rps[:3000].mean(axis=0)).max() < 0.1
+
+
+def test_the_header_sniffers_lines_are_splitlines_ones_read_a_chunk_at_a_time():
+    # The sniffers read a session's first lines without splitting its thousands of others: the
+    # lines they see are str.splitlines()'s, whichever line ending straddles a chunk's end.
+    from protocols.session_file import _head_lines
+
+    rng = np.random.default_rng(5)
+    pieces = ["1.5,2,3", "# ax", " ", "\r", "\n", "\r\n", "\x0c", "\u2028", "x" * 3000]
+    for _ in range(60):
+        text = "".join(rng.choice(pieces, size=rng.integers(0, 1000)))
+        assert list(_head_lines(text)) == text.splitlines()
