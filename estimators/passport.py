@@ -84,7 +84,6 @@ from estimators.conventions import (
 )
 from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method, physical
 from estimators.positions import Position
-from estimators.quantiles import median
 from estimators.stream_validity import ValidityLimits
 
 PASSPORT_TYPE = "ins.health.passport"
@@ -761,7 +760,7 @@ def per_sample_noise_std(
         )
     if not variances:
         raise PassportError("no positions to estimate the noise from")
-    return np.sqrt(median(np.array(variances), axis=0)) / reference
+    return np.sqrt(np.median(np.array(variances), axis=0)) / reference
 
 
 def passport_from_estimates(
