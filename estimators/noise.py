@@ -241,7 +241,9 @@ def dequantized_white_sd(quantized_sd: FloatArray, step: FloatArray) -> FloatArr
     return out
 
 
-def segment_periodogram(records: list[FloatArray], segment: int) -> tuple[FloatArray, int]:
+def segment_periodogram(
+    records: list[FloatArray], segment: int, *, taper: bool = False
+) -> tuple[FloatArray, int]:
     """(K, k) mean periodogram of whole ``segment``-sample pieces of the records, and the number of pieces.
 
     Each record (a static interval, (N_r, k)) is cut into consecutive pieces of
@@ -249,15 +251,18 @@ def segment_periodogram(records: list[FloatArray], segment: int) -> tuple[FloatA
     ``|Σ_t x_t e^{−2πi j t/L}|² / L`` at the frequencies ``j = 1 … ⌈L/2⌉ − 1``
     (no mean, no Nyquist bin, so a piece's own mean and its wander slower than
     the piece drop out) is averaged over every piece of every record. Per-sample
-    units: white noise of sd ``σ`` gives ``σ²`` in every bin.
+    units: white noise of sd ``σ`` gives ``σ²`` in every bin. ``taper``: each piece weighted by
+    :func:`taper_window` (``|Σ_t w_t x_t e^{…}|² / Σ w_t²``): a slow process's leakage falls below
+    −92 dB beyond the window's four bins, and the piece's mean leaves the bins ``j ≥ 4`` exactly.
     """
     if segment < 4:
         raise ValueError(f"a periodogram segment needs at least 4 samples, got {segment}")
+    w = taper_window(segment) if taper else np.ones(segment)
     total: FloatArray | None = None
     count = 0
     for pieces in _pieces(records, segment, at_least=1):
-        spec = np.fft.rfft(pieces, axis=1)[:, 1 : (segment + 1) // 2]
-        p: FloatArray = np.sum(np.abs(spec) ** 2, axis=0) / segment
+        spec = np.fft.rfft(pieces * w[None, :, None], axis=1)[:, 1 : (segment + 1) // 2]
+        p: FloatArray = np.sum(np.abs(spec) ** 2, axis=0) / float(np.sum(w**2))
         total = p if total is None else total + p
         count += pieces.shape[0]
     if total is None:
@@ -276,28 +281,35 @@ def gauss_markov_periodogram(phi: float, segment: int) -> FloatArray:
     return fejer_periodogram(np.power(phi, np.arange(segment), dtype=np.float64), segment)
 
 
-def fejer_periodogram(acov: FloatArray, segment: int) -> FloatArray:
+def taper_window(segment: int) -> FloatArray:
+    """The periodic 4-term Blackman–Harris window of ``segment`` samples (:func:`scipy.signal.windows.blackmanharris`):
+    sidelobes below −92 dB, its transform zero beyond three bins of 0."""
+    from scipy.signal.windows import blackmanharris
+
+    out: FloatArray = np.asarray(blackmanharris(segment, sym=False), dtype=np.float64)
+    return out
+
+
+def fejer_periodogram(acov: FloatArray, segment: int, *, taper: bool = False) -> FloatArray:
     """(K,) expected periodogram of :func:`segment_periodogram` for a sequence of autocovariance ``acov`` (lags 0…L−1).
 
-    ``E I_j = Σ_{|h|<L} (1 − |h|/L) r(h) cos(2π j h / L)``: exact for the finite piece of ``L`` samples.
+    ``E I_j = Σ_{|h|<L} c(h) r(h) cos(2π j h / L)`` with the window's lag weights ``c(h) = Σ_t w_t w_{t+h} / Σ w_t²``
+    (``1 − |h|/L`` untapered: Fejér's): exact for the finite piece of ``L`` samples.
     """
     h = np.arange(1, segment)
     j = np.arange(1, (segment + 1) // 2)
-    w = (1.0 - h / segment) * acov[1:segment]
+    if taper:
+        tw = taper_window(segment)
+        lag = np.correlate(tw, tw, mode="full")[segment:] / float(np.sum(tw**2))
+    else:
+        lag = 1.0 - h / segment
+    w = lag * acov[1:segment]
     out: FloatArray = acov[0] + 2.0 * np.cos(2.0 * np.pi * np.outer(j, h) / segment) @ w
     return out
 
 
 LOWPASS_ORDERS = (1, 2, 3, 4)
 """Orders of the firmware low-pass :func:`fit_lowpass` tries (Butterworth, as IMU firmware designs them)."""
-
-
-def lowpass_gain2(order: int, cutoff_hz: float, rate_hz: float, freq_hz: FloatArray) -> FloatArray:
-    """``|H(f)|²`` of the digital Butterworth low-pass of :class:`estimators.sim.LowPass` (bilinear design):
-    ``1/(1 + (tan(πf/f_s)/tan(πf_c/f_s))^{2n})``."""
-    ratio = np.tan(np.pi * np.clip(np.asarray(freq_hz, float) / rate_hz, 0.0, 0.5 - 1e-12))
-    out: FloatArray = 1.0 / (1.0 + (ratio / np.tan(np.pi * cutoff_hz / rate_hz)) ** (2 * order))
-    return out
 
 
 def lowpass_autocovariance(order: int, cutoff_hz: float, rate_hz: float, lags: int) -> FloatArray:
@@ -507,7 +519,10 @@ def lowpass_spread_share(order: int, cutoff_hz: float, rate_hz: float, window: i
     return float(kept / (1.0 - 1.0 / window))
 
 
-LOWPASS_GRID = 40
+LOWPASS_SKIP_BINS = 3
+"""Lowest bins of the tapered periodogram :func:`fit_lowpass` leaves out: the taper's own width (its transform
+spans three bins of 0), where the pieces' means and anything slower than a piece lie."""
+LOWPASS_GRID = 24
 """Cut-offs on :func:`fit_lowpass`'s log grid per order (refined between the best one's neighbours)."""
 LOWPASS_INTERVAL_LR = 3.84
 """Profile-likelihood drop that bounds the low-pass's stated cut-off and orders: χ²₁ at 95 %."""
@@ -559,34 +574,40 @@ def fit_lowpass(
     floor_var_si2: FloatArray,
     *,
     orders: tuple[int, ...] = LOWPASS_ORDERS,
-    interval: bool = True,
+    interval_above: float = 0.0,
 ) -> LowPassFit:
     """White noise through a Butterworth low-pass (order, cut-off) against white noise, on the periodogram of the static records.
 
-    The periodogram of ``segment``-sample pieces (:func:`segment_periodogram`) pooled over the
-    records; per axis the Whittle likelihood (:func:`_whittle_fit`) of ``S_j = θ_i E_j(n, f_c) +
+    The tapered periodogram of ``segment``-sample pieces (:func:`segment_periodogram`) pooled over the
+    records, from its bin :data:`LOWPASS_SKIP_BINS` + 1 on (below, a wander or a hand's wobble far above the
+    noise leaks, and it is no filter's business); per axis the Whittle likelihood (:func:`_whittle_fit`) of ``S_j = θ_i E_j(n, f_c) +
     q_i²/12``: ``E_j`` the filter's exact expectation for the finite piece (:func:`fejer_periodogram`
     of :func:`lowpass_autocovariance`), ``θ_i`` the input's per-sample variance, the floor the output
     grid's rounding (``floor_var_si2`` (3,), white after the filter; 0 off a grid). The filter is
     the same on the three axes (one firmware filter per triad): their likelihoods are summed and the
-    cut-off profiled on a log grid from two bins to 0.45 of the rate, then refined; each order of
+    cut-off profiled on a log grid from the first bin fitted to 0.45 of the rate, then refined; each order of
     ``orders`` likewise. The null is white noise, ``S_j = θ_i + q_i²/12``.
 
-    ``interval``: the cut-off's interval and the orders consistent with the data are read from the
-    likelihood scaled by the share of its information the data bear out: the cut-off refitted without
-    each of :data:`LOWPASS_JACKKNIFE_GROUPS` groups of records (jackknife variance of ``ln f_c``) against
-    the likelihood's curvature. False: the likelihood as it is (a test that needs the LR alone).
+    The cut-off's interval and the orders consistent with the data are read from the likelihood scaled
+    by the share of its information the data bear out: the cut-off refitted without each of
+    :data:`LOWPASS_JACKKNIFE_GROUPS` groups of records (jackknife variance of ``ln f_c``) against the
+    likelihood's curvature, for a fit whose LR exceeds ``interval_above`` (a filter that will be named;
+    below it the likelihood as it is: nothing is stated of a filter that is not there).
     """
     from scipy.optimize import brentq, minimize_scalar
     from scipy.stats import t as student_t
 
     floor = np.asarray(floor_var_si2, float)
-    low, high = 2.0 * rate_hz / segment, 0.45 * rate_hz
+    low, high = (LOWPASS_SKIP_BINS + 1) * rate_hz / segment, 0.45 * rate_hz
     grid = np.linspace(np.log(low), np.log(high), LOWPASS_GRID)
+
+    def periodogram(recs: list[FloatArray]) -> tuple[FloatArray, int]:
+        pgram, n_seg = segment_periodogram(recs, segment, taper=True)
+        return pgram[LOWPASS_SKIP_BINS:], n_seg
 
     def expectation(order: int, log_fc: float) -> FloatArray:
         r = lowpass_autocovariance(order, float(np.exp(log_fc)), rate_hz, segment)
-        return fejer_periodogram(r, segment)[:, None]
+        return fejer_periodogram(r, segment, taper=True)[LOWPASS_SKIP_BINS:, None]
 
     def nll_of(pgram: FloatArray, n_seg: int) -> Callable[[int, float], float]:
         def nll(order: int, log_fc: float) -> float:
@@ -608,7 +629,7 @@ def fit_lowpass(
         )
         return float(opt.x), float(opt.fun)
 
-    pgram, n_seg = segment_periodogram(records, segment)
+    pgram, n_seg = periodogram(records)
     nll = nll_of(pgram, n_seg)
     ones = np.ones((pgram.shape[0], 1))
     null = sum(
@@ -624,7 +645,7 @@ def fit_lowpass(
     m = int(np.argmin(nlls))
     order, (log_fc, top) = orders[m], best[m]
     share, jackknifed = 1.0, False
-    if interval:
+    if 2.0 * (null - top) > interval_above:
         # The likelihood's variance of ln f_c from its curvature; the data's from the jackknife.
         h = 1e-3
         curv = (nll(order, log_fc + h) - 2.0 * top + nll(order, log_fc - h)) / h**2
@@ -634,9 +655,7 @@ def fit_lowpass(
                 [
                     refine(
                         nll_of(
-                            *segment_periodogram(
-                                [r for k, g in enumerate(groups) if k != left for r in g], segment
-                            )
+                            *periodogram([r for k, g in enumerate(groups) if k != left for r in g])
                         ),
                         order,
                         max(log_fc - 0.5, grid[0]),
@@ -677,7 +696,9 @@ def fit_lowpass(
         max(float(2.0 * (null - top)), 0.0),
         np.clip(2.0 * (null - nlls), 0.0, None),
         np.sqrt(theta),
-        np.arange(1, pgram.shape[0] + 1) * rate_hz / segment,
+        np.arange(LOWPASS_SKIP_BINS + 1, LOWPASS_SKIP_BINS + pgram.shape[0] + 1)
+        * rate_hz
+        / segment,
         pgram,
         e * theta[None, :] + floor[None, :],
         (low, high),
