@@ -102,10 +102,10 @@ def test_a_profiled_change_that_explains_more_wins_over_a_single_test_with_a_low
 
 def test_the_bonferroni_split_counts_the_new_candidates():
     # accel: drift, K2/K3, bias step, instability per axis (+ temperature bias, scale, hysteresis);
-    # cross-axis, non-orthogonality change, nonstatic, clipping, a line; gyro: drift, g-sensitivity,
-    # instability per axis (+ temperature bias), clipping and a line.
-    assert count_tests(True, True) == 3 * 7 + 5 + 3 * 4 + 2
-    assert count_tests(False, False) == 3 * 4 + 5
+    # cross-axis, non-orthogonality change, nonstatic, clipping, a line, a low-pass; gyro: drift,
+    # g-sensitivity, instability per axis (+ temperature bias), clipping, a line and a low-pass.
+    assert count_tests(True, True) == 3 * 7 + 6 + 3 * 4 + 3
+    assert count_tests(False, False) == 3 * 4 + 6
 
 
 def test_the_new_simulator_effects_do_what_they_say():
