@@ -20,6 +20,10 @@ Run: ``python benchmarks/bench_audit.py [--quick] [--no-times | --no-rates]``. P
 6. ``--mechanisms``: only the deterministic classes of both triads at 10 standard errors (the
    accelerometer's on MEMS sessions, the gyro's where it resolves the Earth rate, g-sensitivity at both
    grades), each named as its mechanism on its axis, and the effect-free sessions of both grades.
+7. issue 31's effect-free session shapes (:data:`estimators.audit.hidden.SHAPES`: 12 positions at 200 Hz,
+   30 at 50 Hz, MEMS and navigation, with and without the temperature column, and with the firmware's
+   20 Hz low-pass, which must then be named on both triads and nothing else). ``--shapes`` runs this
+   part alone (``--trials`` per shape, default 40).
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from estimators.audit.hidden import (
     MECHANISM_KINDS,
     NEAR_LIMIT_GYRO_SD_RPS,
     PAIRS,
+    SHAPES,
     clean_trial,
     draw,
     hide,
@@ -47,6 +52,7 @@ from estimators.audit.hidden import (
     near_limit_drift_named,
     pair_trial,
     quadratic_temperature_named,
+    shape_trial,
     trial,
 )
 from estimators.chain import ChainConfig
@@ -264,6 +270,27 @@ def mechanism_rates(trials: int, workers: int) -> None:
             )
 
 
+def _shape(args) -> bool:
+    k, seed = args
+    return shape_trial(SHAPES[k], seed)
+
+
+def shape_rates(trials: int, workers: int) -> None:
+    print(
+        f"Issue 31's session shapes, {trials} seeded sessions each: exactly what the shape holds named "
+        "(nothing; the low-pass on both triads where it has one):"
+    )
+    with ProcessPoolExecutor(workers) as pool:
+        for k, shape in enumerate(SHAPES):
+            t0 = time.perf_counter()
+            hits = list(pool.map(_shape, [(k, 800_000 + 1000 * k + t) for t in range(trials)]))
+            print(
+                "    "
+                + shape.label.ljust(58)
+                + f"{sum(hits):4d} of {trials}  ({time.perf_counter() - t0:.0f} s)"
+            )
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer replica counts, lengths and trials")
@@ -292,9 +319,17 @@ if __name__ == "__main__":
         action="store_true",
         help="only the deterministic classes at 10 standard errors (default 20 trials) and effect-free sessions",
     )
+    ap.add_argument(
+        "--shapes",
+        action="store_true",
+        help="only issue 31's session shapes (--trials each, default 40)",
+    )
     args = ap.parse_args()
     if args.mechanisms:
         mechanism_rates(args.trials or 20, args.workers)
+        raise SystemExit(0)
+    if args.shapes:
+        shape_rates(args.trials or 40, args.workers)
         raise SystemExit(0)
     if not args.no_times:
         wall_times(args.quick)
@@ -307,3 +342,4 @@ if __name__ == "__main__":
         gyro_path_and_temperature_order_rates(
             args.trials or (8 if args.quick else 20), args.workers
         )
+        shape_rates(args.trials or (8 if args.quick else 40), args.workers)

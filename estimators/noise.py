@@ -7,7 +7,7 @@ fit the baseline noise model from the data itself.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -241,7 +241,9 @@ def dequantized_white_sd(quantized_sd: FloatArray, step: FloatArray) -> FloatArr
     return out
 
 
-def segment_periodogram(records: list[FloatArray], segment: int) -> tuple[FloatArray, int]:
+def segment_periodogram(
+    records: list[FloatArray], segment: int, *, taper: bool = False
+) -> tuple[FloatArray, int]:
     """(K, k) mean periodogram of whole ``segment``-sample pieces of the records, and the number of pieces.
 
     Each record (a static interval, (N_r, k)) is cut into consecutive pieces of
@@ -249,15 +251,18 @@ def segment_periodogram(records: list[FloatArray], segment: int) -> tuple[FloatA
     ``|Σ_t x_t e^{−2πi j t/L}|² / L`` at the frequencies ``j = 1 … ⌈L/2⌉ − 1``
     (no mean, no Nyquist bin, so a piece's own mean and its wander slower than
     the piece drop out) is averaged over every piece of every record. Per-sample
-    units: white noise of sd ``σ`` gives ``σ²`` in every bin.
+    units: white noise of sd ``σ`` gives ``σ²`` in every bin. ``taper``: each piece weighted by
+    :func:`taper_window` (``|Σ_t w_t x_t e^{…}|² / Σ w_t²``): a slow process's leakage falls below
+    −92 dB beyond the window's four bins, and the piece's mean leaves the bins ``j ≥ 4`` exactly.
     """
     if segment < 4:
         raise ValueError(f"a periodogram segment needs at least 4 samples, got {segment}")
+    w = taper_window(segment) if taper else np.ones(segment)
     total: FloatArray | None = None
     count = 0
     for pieces in _pieces(records, segment, at_least=1):
-        spec = np.fft.rfft(pieces, axis=1)[:, 1 : (segment + 1) // 2]
-        p: FloatArray = np.sum(np.abs(spec) ** 2, axis=0) / segment
+        spec = np.fft.rfft(pieces * w[None, :, None], axis=1)[:, 1 : (segment + 1) // 2]
+        p: FloatArray = np.sum(np.abs(spec) ** 2, axis=0) / float(np.sum(w**2))
         total = p if total is None else total + p
         count += pieces.shape[0]
     if total is None:
@@ -273,11 +278,63 @@ def gauss_markov_periodogram(phi: float, segment: int) -> FloatArray:
     Fejér weights: ``E I_j = Σ_{|h|<L} (1 − |h|/L) φ^{|h|} cos(2π j h / L)``
     (exact for the finite piece: no leakage approximation).
     """
+    return fejer_periodogram(np.power(phi, np.arange(segment), dtype=np.float64), segment)
+
+
+def taper_window(segment: int) -> FloatArray:
+    """The periodic 4-term Blackman–Harris window of ``segment`` samples (:func:`scipy.signal.windows.blackmanharris`):
+    sidelobes below −92 dB, its transform zero beyond three bins of 0."""
+    from scipy.signal.windows import blackmanharris
+
+    out: FloatArray = np.asarray(blackmanharris(segment, sym=False), dtype=np.float64)
+    return out
+
+
+def fejer_periodogram(acov: FloatArray, segment: int, *, taper: bool = False) -> FloatArray:
+    """(K,) expected periodogram of :func:`segment_periodogram` for a sequence of autocovariance ``acov`` (lags 0…L−1).
+
+    ``E I_j = Σ_{|h|<L} c(h) r(h) cos(2π j h / L)`` with the window's lag weights ``c(h) = Σ_t w_t w_{t+h} / Σ w_t²``
+    (``1 − |h|/L`` untapered: Fejér's): exact for the finite piece of ``L`` samples.
+    """
     h = np.arange(1, segment)
     j = np.arange(1, (segment + 1) // 2)
-    w = (1.0 - h / segment) * phi**h
-    out: FloatArray = 1.0 + 2.0 * np.cos(2.0 * np.pi * np.outer(j, h) / segment) @ w
+    if taper:
+        tw = taper_window(segment)
+        lag = np.correlate(tw, tw, mode="full")[segment:] / float(np.sum(tw**2))
+    else:
+        lag = 1.0 - h / segment
+    w = lag * acov[1:segment]
+    out: FloatArray = acov[0] + 2.0 * np.cos(2.0 * np.pi * np.outer(j, h) / segment) @ w
     return out
+
+
+LOWPASS_ORDERS = (1, 2, 3, 4)
+"""Orders of the firmware low-pass :func:`fit_lowpass` tries (Butterworth, as IMU firmware designs them)."""
+
+
+def lowpass_autocovariance(order: int, cutoff_hz: float, rate_hz: float, lags: int) -> FloatArray:
+    """(lags,) autocovariance ``r(h) = Σ_k g_k g_{k+h}`` of unit-variance white noise through the low-pass
+    (``g`` its impulse response, :func:`scipy.signal.butter`; ``r(0) = ∫|H|²`` the per-sample variance it
+    leaves, ``Σ_h r(h) = |H(0)|² = 1`` the level of long averages)."""
+    from scipy.signal import butter, sosfilt
+
+    # The slowest pole's envelope decays by e per 1/(2π f_c sin(π/2n)) s: 40 of those leave nothing.
+    tail = int(np.ceil(40.0 * rate_hz / (2.0 * np.pi * cutoff_hz * np.sin(np.pi / (2 * order)))))
+    n = lags + tail
+    impulse = np.zeros(n)
+    impulse[0] = 1.0
+    g = sosfilt(butter(order, cutoff_hz, fs=rate_hz, output="sos"), impulse)
+    spec = np.fft.rfft(g, 2 * n)
+    out: FloatArray = np.fft.irfft(np.abs(spec) ** 2, 2 * n)[:lags]
+    return out
+
+
+def lowpass_mean_variance(order: int, cutoff_hz: float, rate_hz: float, n: int) -> float:
+    """Variance of the mean of ``n`` consecutive samples of unit-variance white noise through the low-pass:
+    ``(n r(0) + 2 Σ_{h<n} (n − h) r(h)) / n²`` (:func:`lowpass_autocovariance`)."""
+    r = lowpass_autocovariance(order, cutoff_hz, rate_hz, n)
+    h = np.arange(1, n)
+    return float((n * r[0] + 2.0 * np.sum((n - h) * r[1:])) / (n * n))
 
 
 def gm_mean_variance(phi: FloatArray, n: int) -> FloatArray:
@@ -319,23 +376,30 @@ class NoiseColour:
 
 
 def _whittle_fit(
-    design: FloatArray, pgram: FloatArray, n_seg: int, max_iter: int = 60
+    design: FloatArray,
+    pgram: FloatArray,
+    n_seg: int,
+    max_iter: int = 60,
+    offset: float = 0.0,
 ) -> tuple[FloatArray, float]:
-    """Variances ``θ ≥ 0`` of ``S = design θ`` maximizing the Whittle likelihood of a mean periodogram over ``n_seg`` pieces.
+    """Variances ``θ ≥ 0`` of ``S = design θ + offset`` maximizing the Whittle likelihood of a mean periodogram over ``n_seg`` pieces.
 
     ``−ℓ = n Σ_j [ln S_j + Ī_j / S_j]``; projected Fisher scoring (information
     ``n Σ_j a_j a_jᵀ / S_j²``), each step halved until the likelihood improves.
+    ``offset``: a known floor of every bin (an output grid's rounding, white after any filter).
     """
     theta = np.zeros(design.shape[1])
-    theta[0] = float(np.mean(pgram))
+    theta[0] = max(float(np.mean(pgram)) - offset, 1e-12 * float(np.mean(pgram))) / float(
+        np.mean(design[:, 0])
+    )
 
     def nll(th: FloatArray) -> float:
-        s = design @ th
+        s = design @ th + offset
         return float(n_seg * np.sum(np.log(s) + pgram / s))
 
     cur = nll(theta)
     for _ in range(max_iter):
-        s = design @ theta
+        s = design @ theta + offset
         grad = n_seg * design.T @ (1.0 / s - pgram / s**2)
         info = n_seg * (design / s[:, None] ** 2).T @ design
         free = (theta > 0.0) | (grad < 0.0)
@@ -346,7 +410,7 @@ def _whittle_fit(
         t = 1.0
         while t > 1e-6:
             cand = np.maximum(theta + t * step, 0.0)
-            if np.all(design @ cand > 0.0) and (new := nll(cand)) <= cur:
+            if np.all(design @ cand + offset > 0.0) and (new := nll(cand)) <= cur:
                 break
             t *= 0.5
         else:
@@ -435,3 +499,207 @@ def fit_noise_colour(
         if total > 0.0:
             ratio[i] = np.sqrt((theta[0] + np.sum(theta[1:] * (1.0 + phi) / (1.0 - phi))) / total)
     return NoiseColour(white, sigma, tau_out, lrs, threshold, ratio)
+
+
+def lowpass_spread_share(order: int, cutoff_hz: float, rate_hz: float, window: int) -> float:
+    """What :func:`sample_noise_sd` reads, squared, of unit-variance white noise through the low-pass.
+
+    About a centred moving mean of ``w`` samples a sample keeps ``r(0) − (2/w) Σ_j r(|j|) + V_w`` (``j`` its
+    offsets in the window, ``V_w`` the window mean's variance, :func:`lowpass_mean_variance`), read over
+    ``1 − 1/w``: below ``r(0)`` by about the mean's share ``1/w`` of the input (white noise's ``r(0) = 1``
+    hides that in the ``1 − 1/w``).
+    """
+    r = lowpass_autocovariance(order, cutoff_hz, rate_hz, window)
+    offsets = np.abs(np.arange(window) - window // 2)
+    kept = (
+        r[0]
+        - 2.0 * float(np.mean(r[offsets]))
+        + lowpass_mean_variance(order, cutoff_hz, rate_hz, window)
+    )
+    return float(kept / (1.0 - 1.0 / window))
+
+
+LOWPASS_SKIP_BINS = 3
+"""Lowest bins of the tapered periodogram :func:`fit_lowpass` leaves out: the taper's own width (its transform
+spans three bins of 0), where the pieces' means and anything slower than a piece lie."""
+LOWPASS_GRID = 24
+"""Cut-offs on :func:`fit_lowpass`'s log grid per order (refined between the best one's neighbours)."""
+LOWPASS_INTERVAL_LR = 3.84
+"""Profile-likelihood drop that bounds the low-pass's stated cut-off and orders: χ²₁ at 95 %."""
+LOWPASS_JACKKNIFE_GROUPS = 8
+"""Groups of records the low-pass's cut-off is refitted without, one at a time (its jackknife variance)."""
+
+
+@dataclass(frozen=True)
+class LowPassFit:
+    """The firmware low-pass one triad's static noise went through (:func:`fit_lowpass`).
+
+    Attributes
+    ----------
+    order, cutoff_hz : the Butterworth filter of highest likelihood.
+    cutoff_interval_hz : (low, high) the cut-offs of that order within :data:`LOWPASS_INTERVAL_LR` of it (95 %),
+        the likelihood scaled by ``information_share`` (then Student's t² with the jackknife's G − 1 degrees of
+        freedom in place of χ²₁); an end of the tried band where it does not fall that far.
+    orders_consistent : the orders whose best fit lies within the same limit of the best (scaled alike).
+    information_share : the Whittle likelihood's variance of ``ln f_c`` over its jackknife variance, at most 1
+        (the periodogram's bins are not independent where the spectrum falls steeply: the likelihood alone
+        overstates what they tell); 1 when not asked for.
+    lr : ``2(ℓ₁ − ℓ₀)`` against white noise (the three axes' Whittle likelihoods summed), 0 where white fits
+        better (the bilinear filter's zero at Nyquist keeps even the highest cut-off tried off white noise).
+    lr_by_order : (len(orders),) each order's best ``lr`` (0 likewise).
+    input_sd_si : (3,) per-sample sd of the white noise before the filter, SI (the level long averages keep).
+    freq_hz : (K,) the periodogram's frequencies; pgram_si2 : (K, 3) its mean in per-sample units (white
+        noise of sd σ gives σ² in every bin); fitted_si2 : (K, 3) the fitted filter's expectation plus the floor.
+    band_hz : (low, high) the cut-offs tried.
+    """
+
+    order: int
+    cutoff_hz: float
+    cutoff_interval_hz: tuple[float, float]
+    orders_consistent: tuple[int, ...]
+    information_share: float
+    lr: float
+    lr_by_order: FloatArray
+    input_sd_si: FloatArray
+    freq_hz: FloatArray
+    pgram_si2: FloatArray
+    fitted_si2: FloatArray
+    band_hz: tuple[float, float]
+
+
+def fit_lowpass(
+    records: list[FloatArray],
+    rate_hz: float,
+    segment: int,
+    floor_var_si2: FloatArray,
+    *,
+    orders: tuple[int, ...] = LOWPASS_ORDERS,
+    interval_above: float = 0.0,
+) -> LowPassFit:
+    """White noise through a Butterworth low-pass (order, cut-off) against white noise, on the periodogram of the static records.
+
+    The tapered periodogram of ``segment``-sample pieces (:func:`segment_periodogram`) pooled over the
+    records, from its bin :data:`LOWPASS_SKIP_BINS` + 1 on (below, a wander or a hand's wobble far above the
+    noise leaks, and it is no filter's business); per axis the Whittle likelihood (:func:`_whittle_fit`) of ``S_j = θ_i E_j(n, f_c) +
+    q_i²/12``: ``E_j`` the filter's exact expectation for the finite piece (:func:`fejer_periodogram`
+    of :func:`lowpass_autocovariance`), ``θ_i`` the input's per-sample variance, the floor the output
+    grid's rounding (``floor_var_si2`` (3,), white after the filter; 0 off a grid). The filter is
+    the same on the three axes (one firmware filter per triad): their likelihoods are summed and the
+    cut-off profiled on a log grid from the first bin fitted to 0.45 of the rate, then refined; each order of
+    ``orders`` likewise. The null is white noise, ``S_j = θ_i + q_i²/12``.
+
+    The cut-off's interval and the orders consistent with the data are read from the likelihood scaled
+    by the share of its information the data bear out: the cut-off refitted without each of
+    :data:`LOWPASS_JACKKNIFE_GROUPS` groups of records (jackknife variance of ``ln f_c``) against the
+    likelihood's curvature, for a fit whose LR exceeds ``interval_above`` (a filter that will be named;
+    below it the likelihood as it is: nothing is stated of a filter that is not there).
+    """
+    from scipy.optimize import brentq, minimize_scalar
+    from scipy.stats import t as student_t
+
+    floor = np.asarray(floor_var_si2, float)
+    low, high = (LOWPASS_SKIP_BINS + 1) * rate_hz / segment, 0.45 * rate_hz
+    grid = np.linspace(np.log(low), np.log(high), LOWPASS_GRID)
+
+    def periodogram(recs: list[FloatArray]) -> tuple[FloatArray, int]:
+        pgram, n_seg = segment_periodogram(recs, segment, taper=True)
+        return pgram[LOWPASS_SKIP_BINS:], n_seg
+
+    def expectation(order: int, log_fc: float) -> FloatArray:
+        r = lowpass_autocovariance(order, float(np.exp(log_fc)), rate_hz, segment)
+        return fejer_periodogram(r, segment, taper=True)[LOWPASS_SKIP_BINS:, None]
+
+    def nll_of(pgram: FloatArray, n_seg: int) -> Callable[[int, float], float]:
+        def nll(order: int, log_fc: float) -> float:
+            e = expectation(order, log_fc)
+            return float(
+                sum(
+                    _whittle_fit(e, pgram[:, i], n_seg, offset=floor[i])[1]
+                    for i in range(pgram.shape[1])
+                )
+            )
+
+        return nll
+
+    def refine(
+        nll: Callable[[int, float], float], order: int, lo: float, hi: float
+    ) -> tuple[float, float]:
+        opt = minimize_scalar(
+            lambda v: nll(order, v), bounds=(lo, hi), method="bounded", options={"xatol": 1e-4}
+        )
+        return float(opt.x), float(opt.fun)
+
+    pgram, n_seg = periodogram(records)
+    nll = nll_of(pgram, n_seg)
+    ones = np.ones((pgram.shape[0], 1))
+    null = sum(
+        _whittle_fit(ones, pgram[:, i], n_seg, offset=floor[i])[1] for i in range(pgram.shape[1])
+    )
+    best: list[tuple[float, float]] = []
+    for order in orders:
+        values = [nll(order, v) for v in grid]
+        j = int(np.argmin(values))
+        fine = refine(nll, order, grid[max(j - 1, 0)], grid[min(j + 1, grid.size - 1)])
+        best.append(fine if fine[1] < values[j] else (grid[j], values[j]))
+    nlls = np.array([b[1] for b in best])
+    m = int(np.argmin(nlls))
+    order, (log_fc, top) = orders[m], best[m]
+    share, jackknifed = 1.0, False
+    if 2.0 * (null - top) > interval_above:
+        # The likelihood's variance of ln f_c from its curvature; the data's from the jackknife.
+        h = 1e-3
+        curv = (nll(order, log_fc + h) - 2.0 * top + nll(order, log_fc - h)) / h**2
+        groups = [records[g::LOWPASS_JACKKNIFE_GROUPS] for g in range(LOWPASS_JACKKNIFE_GROUPS)]
+        if curv > 0 and all(groups):
+            loo = np.array(
+                [
+                    refine(
+                        nll_of(
+                            *periodogram([r for k, g in enumerate(groups) if k != left for r in g])
+                        ),
+                        order,
+                        max(log_fc - 0.5, grid[0]),
+                        min(log_fc + 0.5, grid[-1]),
+                    )[0]
+                    for left in range(LOWPASS_JACKKNIFE_GROUPS)
+                ]
+            )
+            g = LOWPASS_JACKKNIFE_GROUPS
+            var_jack = (g - 1) / g * float(np.sum((loo - loo.mean()) ** 2))
+            share = float(min(1.0, (1.0 / curv) / max(var_jack, 1e-300)))
+            jackknifed = True
+
+    # The jackknife's variance has G − 1 degrees of freedom: Student's quantile, not the normal one.
+    limit = (
+        float(student_t.ppf(0.975, LOWPASS_JACKKNIFE_GROUPS - 1)) ** 2
+        if jackknifed
+        else LOWPASS_INTERVAL_LR
+    )
+
+    def drop(v: float) -> float:
+        return 2.0 * share * (nll(order, v) - top) - limit
+
+    ends = [
+        float(np.exp(edge if drop(edge) <= 0 else brentq(drop, *sorted((log_fc, edge)), xtol=1e-4)))
+        for edge in (grid[0], grid[-1])
+    ]
+    e = expectation(order, log_fc)
+    theta = np.array(
+        [_whittle_fit(e, pgram[:, i], n_seg, offset=floor[i])[0][0] for i in range(pgram.shape[1])]
+    )
+    return LowPassFit(
+        order,
+        float(np.exp(log_fc)),
+        (ends[0], ends[1]),
+        tuple(o for o, v in zip(orders, nlls, strict=True) if 2.0 * share * (v - top) <= limit),
+        share,
+        max(float(2.0 * (null - top)), 0.0),
+        np.clip(2.0 * (null - nlls), 0.0, None),
+        np.sqrt(theta),
+        np.arange(LOWPASS_SKIP_BINS + 1, LOWPASS_SKIP_BINS + pgram.shape[0] + 1)
+        * rate_hz
+        / segment,
+        pgram,
+        e * theta[None, :] + floor[None, :],
+        (low, high),
+    )

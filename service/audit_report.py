@@ -312,7 +312,8 @@ def _draw_temperature(ax, cause, panel: TemperaturePanel) -> None:
 
 
 def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
-    """A named cause's evidence: a line's spectrum over its floor; any other cause of a triad on a scalar path,
+    """A named cause's evidence: a line's spectrum over its floor; a low-pass's spectrum with the fitted response;
+    any other cause of a triad on a scalar path,
     that triad's scalar residual per position against time (the change's turn marked) and against the
     orientation of the cause's axis (for the triad's cross-axis term, ``u_x u_y u_z``); a temperature effect
     also against temperature with its fitted curve (:func:`temperature_panel`; a hysteresis heating and cooling
@@ -334,6 +335,29 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
         ax.set_xlabel("frequency (Hz)")
         ax.set_ylabel(f"PSD ({UNIT[cause.triad]}²/Hz)")
         ax.set_title(f"{cause.triad.value} {cause.axis}: spectrum of the static samples")
+        ax.legend(fontsize=7)
+        save_figure(fig, path, dpi=100)
+        return True
+    if cause.effect == "lowpass":
+        fig, ax = plt.subplots(figsize=(8, 3.4))
+        f = p["spectrum_freq_hz"]
+        for i, ax_name in enumerate(AXES):
+            ax.semilogy(
+                f, p["spectrum_si2"][i], f"C{i}-", lw=0.7, label=f"{ax_name} static samples"
+            )
+            ax.semilogy(f, p["fitted_si2"][i], f"C{i}--", lw=1.0)
+        ax.axvline(
+            p["cutoff_hz"],
+            color="k",
+            lw=0.6,
+            label=f"order {p['order']} at {p['cutoff_hz']:.3g} Hz "
+            f"({p['cutoff_low_hz']:.3g}–{p['cutoff_high_hz']:.3g}); dashed: the fitted response",
+        )
+        ax.set_xlabel("frequency (Hz)")
+        ax.set_ylabel(f"periodogram ({UNIT[cause.triad]}² per sample)")
+        ax.set_title(
+            f"{cause.triad.value}: the static noise's spectrum through the firmware low-pass"
+        )
         ax.legend(fontsize=7)
         save_figure(fig, path, dpi=100)
         return True
@@ -419,7 +443,13 @@ def _fmt(v) -> str:
     return str(v)
 
 
-PLOTTED_ONLY = ("spectrum_freq_hz", "spectrum_psd_si2_per_hz", "floor_psd_si2_per_hz")
+PLOTTED_ONLY = (
+    "spectrum_freq_hz",
+    "spectrum_psd_si2_per_hz",
+    "floor_psd_si2_per_hz",
+    "spectrum_si2",
+    "fitted_si2",
+)
 """Parameters that are a plot's data (the mechanism plot shows them), not a figure for the text."""
 
 

@@ -104,12 +104,12 @@ def test_a_profiled_change_that_explains_more_wins_over_a_single_test_with_a_low
 
 def test_the_bonferroni_split_counts_the_new_candidates():
     # accel: drift, K2/K3, bias step, instability per axis (+ temperature bias, scale, hysteresis);
-    # cross-axis, non-orthogonality change, nonstatic, clipping, a line; gyro: drift, g-sensitivity,
-    # bias step, instability per axis (+ temperature bias and hysteresis, and temperature scale where
-    # the gyro resolves the Earth rate), clipping and a line.
-    assert count_tests(True, True) == 3 * 7 + 5 + 3 * 6 + 2
-    assert count_tests(True, True, earth_rate=True) == 3 * 7 + 5 + 3 * 7 + 2
-    assert count_tests(False, False) == 3 * 4 + 5
+    # cross-axis, non-orthogonality change, nonstatic, clipping, a line, a low-pass; gyro: drift,
+    # g-sensitivity, bias step, instability per axis (+ temperature bias and hysteresis, and
+    # temperature scale where the gyro resolves the Earth rate), clipping, a line and a low-pass.
+    assert count_tests(True, True) == 3 * 7 + 6 + 3 * 6 + 3
+    assert count_tests(True, True, earth_rate=True) == 3 * 7 + 6 + 3 * 7 + 3
+    assert count_tests(False, False) == 3 * 4 + 6
 
 
 def test_the_new_simulator_effects_do_what_they_say():

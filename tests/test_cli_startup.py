@@ -167,13 +167,12 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
     not_needed = {"estimators.sim", "service.pipeline.fleet"}
     # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
-    # commands listed from their folder), nor numpy.ma (np.median's and np.quantile's first
-    # call: estimators.quantiles), nor tomllib (a sidecar's, and the session has none).
+    # commands listed from their folder), nor tomllib (a sidecar's, and the session has none).
     not_needed |= {f"service.commands.{name}" for name in command_modules()} - {
         "service.commands.calibrate",
         "service.commands.diagnose",  # the passport against its own session, as diagnose runs F0
     }
-    not_needed |= {"pkgutil", "numpy.ma", "tomllib"}
+    not_needed |= {"pkgutil", "tomllib"}
     assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
 
 

@@ -753,6 +753,7 @@ AUDIT_EFFECTS = {
     "temperature_hysteresis",
     "clipping",
     "spectral_line",
+    "lowpass",
 }
 
 

@@ -42,6 +42,9 @@ from estimators.noise import (
     dequantized_white_sd,
     fit_noise_colour,
     gm_mean_variance,
+    lowpass_autocovariance,
+    lowpass_mean_variance,
+    lowpass_spread_share,
     quantization_step,
     rounding_mean_var,
     sample_noise_cov,
@@ -58,6 +61,7 @@ from estimators.sim import (
     CrossAxisNonlinearity,
     ErrorModel,
     GSensitivity,
+    LowPass,
     NonOrthogonality,
     NonOrthogonalityChange,
     NonstaticPositions,
@@ -91,6 +95,7 @@ from .candidates import (
     earth_rate_records,
     gyro_records,
     line_candidates,
+    lowpass_candidate,
     mean_variance_factor,
     residual_structure,
     temperature_reason,
@@ -163,6 +168,9 @@ class TriadBaseline:
     scalar_resolved : the triad takes its scalar path (the accelerometers: the chain resolved all nine
         parameters against g, always so when the audit goes on; a gyro: :func:`earth_rate_resolved`, :func:`grade_path`).
     resolution_reason : the chain's observability verdict, one line.
+    lowpass_order, lowpass_cutoff_hz : the firmware low-pass the noise went through (the ``lowpass`` candidate,
+        :class:`estimators.sim.LowPass`), order 0 for none. With it the white part of ``white_sd_si`` is the
+        filtered noise: its input (:attr:`white_input_sd_si`) is what averages keep.
     """
 
     params: FloatArray
@@ -180,6 +188,8 @@ class TriadBaseline:
     noise_correlation: FloatArray = field(default_factory=lambda: np.eye(3))
     scalar_resolved: bool = True
     resolution_reason: str = ""
+    lowpass_order: int = 0
+    lowpass_cutoff_hz: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -198,15 +208,32 @@ class TriadBaseline:
             "colour_sigma_si": [[float(v) for v in row] for row in self.colour_sigma_si],
             "colour_tau_s": [[float(v) for v in row] for row in self.colour_tau_s],
             "colour_lr": [[float(v) for v in row] for row in self.colour_lr],
+            "lowpass_order": int(self.lowpass_order),
+            "lowpass_cutoff_hz": float(self.lowpass_cutoff_hz),
             "noise_correlation": [[float(v) for v in row] for row in self.noise_correlation],
         }
 
     @property
     def colour_level_sd_si(self) -> FloatArray:
-        """(3,) the level at which long averages of white plus colour shrink, ``√(σ_w² + Σ σ_c² (1 + φ)/(1 − φ))``, SI."""
+        """(3,) the level at which long averages of white plus colour shrink, ``√(σ_w² + Σ σ_c² (1 + φ)/(1 − φ))``, SI
+        (``σ_w`` the white noise before a low-pass: the filter keeps the spectrum at 0)."""
         phi = np.exp(-1.0 / (self.rate_hz * self.colour_tau_s))
         gain = np.sum(self.colour_sigma_si**2 * (1.0 + phi) / (1.0 - phi), axis=1)
-        out: FloatArray = np.sqrt(self.white_only_sd_si**2 + gain)
+        out: FloatArray = np.sqrt(self.white_input_sd_si**2 + gain)
+        return out
+
+    @property
+    def lowpass_variance_share(self) -> float:
+        """The per-sample variance the low-pass leaves of white noise, ``∫|H|² = r(0)`` (1 without one)."""
+        if self.lowpass_order == 0:
+            return 1.0
+        r = lowpass_autocovariance(self.lowpass_order, self.lowpass_cutoff_hz, self.rate_hz, 1)
+        return float(r[0])
+
+    @property
+    def white_input_sd_si(self) -> FloatArray:
+        """(3,) the white noise before the low-pass, SI (:attr:`white_only_sd_si` without one)."""
+        out: FloatArray = self.white_only_sd_si / np.sqrt(self.lowpass_variance_share)
         return out
 
     @property
@@ -234,9 +261,22 @@ def effective_noise_std_norm(baseline: TriadBaseline, reference: float, n_avg: i
     so it enters as ``n_avg·σ²·V(T/τ)``, on every axis its loading moves
     (``Σ_i L_ji² σ_i² V(T/τ_i)`` on axis ``j``); each colour term likewise as
     ``n_avg·σ_c²·V_n(φ)`` (:func:`estimators.noise.gm_mean_variance`):
-    ``σ_eff² = σ_w² + n_avg·Σ σ_c² V_n(φ) + n_avg·σ_gm²·V(T/τ)``.
+    ``σ_eff² = σ_w² + n_avg·Σ σ_c² V_n(φ) + n_avg·σ_gm²·V(T/τ)``. Through a low-pass the white term is
+    ``n_avg·σ_in²·V_lp(n_avg)`` (:func:`estimators.noise.lowpass_mean_variance`): a window's mean keeps the
+    input's level, not the filtered per-sample one (``σ_w² = σ_in² r(0)`` at ``n_avg = 1``).
     """
     white = baseline.white_only_sd_si / reference
+    if baseline.lowpass_order:
+        white = (
+            baseline.white_input_sd_si
+            / reference
+            * np.sqrt(
+                n_avg
+                * lowpass_mean_variance(
+                    baseline.lowpass_order, baseline.lowpass_cutoff_hz, baseline.rate_hz, n_avg
+                )
+            )
+        )
     phi = np.exp(-1.0 / (baseline.rate_hz * baseline.colour_tau_s))
     colour = np.sum(
         (baseline.colour_sigma_si / reference) ** 2 * gm_mean_variance(phi, n_avg), axis=1
@@ -343,27 +383,24 @@ def fit_baseline(
         if triad is Triad.GYRO
         else est.params is not None and est.verdict is Verdict.OBSERVABLE
     )
-    return TriadBaseline(
+    out = TriadBaseline(
         params,
         white,
         quant,
         session.rate_hz,
         mean_sd,
-        **(
-            {}
-            if fit is None
-            else {
-                "colour_sigma_si": fit.sigma_si
-                * (white / np.maximum(np.sqrt(fit.white_sd_si**2 + fit.variance_si), 1e-300))[
-                    :, None
-                ],
-                "colour_tau_s": fit.tau_s,
-                "colour_lr": fit.lr,
-            }
-        ),
         noise_correlation=correlation,
         scalar_resolved=resolved,
         resolution_reason=est.reason,
+    )
+    if fit is None:
+        return out
+    return replace(
+        out,
+        colour_sigma_si=fit.sigma_si
+        * (white / np.maximum(np.sqrt(fit.white_sd_si**2 + fit.variance_si), 1e-300))[:, None],
+        colour_tau_s=fit.tau_s,
+        colour_lr=fit.lr,
     )
 
 
@@ -440,18 +477,20 @@ def grade_path(
 
 def triad_model(base: TriadBaseline, reference: float) -> TriadErrorModel:
     """The simulator chain of a baseline (non-orthogonality, scale, bias, white and coloured noise with the axes'
-    correlation, quantization)."""
+    correlation, the firmware's low-pass, quantization)."""
     p = base.params
     effects = [
         NonOrthogonality(_angles_from_cosines(p[6:9])),
         ScaleFactor(p[3:6]),
         Bias(p[:3] * reference),
     ]
-    effects.append(WhiteNoise.from_sample_sd(base.white_only_sd_si, 1.0, base.noise_correlation))
+    effects.append(WhiteNoise.from_sample_sd(base.white_input_sd_si, 1.0, base.noise_correlation))
     if np.any(base.colour_sigma_si > 0):
         effects.append(
             ColouredNoise(base.colour_sigma_si, base.colour_tau_s, base.noise_correlation)
         )
+    if base.lowpass_order:
+        effects.append(LowPass(base.lowpass_order, base.lowpass_cutoff_hz))
     if base.quant_step_si is not None:
         effects.append(Quantization(base.quant_step_si, Rounding.NEAREST))
     return TriadErrorModel(tuple(effects))
@@ -912,6 +951,18 @@ def find_candidates(
         cands += line_candidates(
             t, triad_samples(session, t), tab_a.spans, session.rate_hz, n_tests
         )
+        q = baselines[t].quant_step_si
+        cands.append(
+            lowpass_candidate(
+                t,
+                triad_samples(session, t),
+                tab_a.spans,
+                session.rate_hz,
+                COLOUR_SEGMENT_WINDOWS * max(2, round(batch_s * session.rate_hz)),
+                np.zeros(3) if q is None else q**2 / 12.0,
+                n_tests,
+            )
+        )
     return cands
 
 
@@ -1248,7 +1299,8 @@ def extend_model(
     A change between positions (bias step, non-orthogonality change) happens in the middle of the
     simulated turn before its position, ``turn_mid_s`` (P − 1,) (the measured turn's without it); the
     cross-axis term, whose axis the norm does not tell, is shared equally by the three axes; a rail
-    is a symmetric clip; a spectral line is simulated and its variance ``A²/2`` leaves the white noise.
+    is a symmetric clip; a spectral line is simulated and its variance ``A²/2`` leaves the white noise; a
+    low-pass filters white noise of the level averages keep, in place of the baseline's colour.
     """
     ext = model
     base = dict(baseline)
@@ -1264,6 +1316,7 @@ def extend_model(
     rails = {t: np.full(3, np.inf) for t in Triad}
     line_hz = {t: np.zeros(3) for t in Triad}
     line_amp = {t: np.zeros(3) for t in Triad}
+    lowpass: dict[Triad, Candidate] = {}
 
     def change_time(c: Candidate) -> float:
         if turn_mid_s is None:
@@ -1325,6 +1378,8 @@ def extend_model(
         elif c.effect == "spectral_line":
             line_hz[c.triad][i] = c.params["freq_hz"]
             line_amp[c.triad][i] = c.params["amplitude_si"]
+        elif c.effect == "lowpass":
+            lowpass[c.triad] = c
         elif (
             c.effect == "nonstatic_positions"
             and c.params.get("common_wobble", True)
@@ -1377,6 +1432,40 @@ def extend_model(
             base[t] = replace(
                 base[t], white_sd_si=np.sqrt(np.clip(b.white_sd_si**2 - line_var, 0.0, None))
             )
+        if t in lowpass:
+            # The filter is the noise's colour: it replaces the Gauss–Markov terms that stood in for it. The
+            # spread about the baseline's moving mean read the filtered noise short by about the mean's share
+            # (r(0) − 1/w, not r(0)(1 − 1/w): 2 % in sd at 20 Hz on 200 Hz): the input's level is what it read
+            # over what it reads of the filter.
+            lp = replace(
+                base[t],
+                colour_sigma_si=np.zeros((3, 0)),
+                colour_tau_s=np.ones((3, 0)),
+                colour_lr=np.zeros((3, 0)),
+                lowpass_order=int(lowpass[t].params["order"]),
+                lowpass_cutoff_hz=float(lowpass[t].params["cutoff_hz"]),
+            )
+            read = lowpass_spread_share(
+                lp.lowpass_order,
+                lp.lowpass_cutoff_hz,
+                lp.rate_hz,
+                max(2, round(NOISE_WINDOW_S * lp.rate_hz)),
+            )
+            base[t] = replace(
+                lp, white_sd_si=lp.white_sd_si * np.sqrt(lp.lowpass_variance_share / read)
+            )
+            wn = ext.triad(t).find(WhiteNoise)
+            chain_t = (
+                ext.triad(t)
+                .without(ColouredNoise.name)
+                .with_effect(
+                    WhiteNoise.from_sample_sd(
+                        base[t].white_input_sd_si, 1.0, None if wn is None else wn.correlation
+                    )
+                )
+                .with_effect(LowPass(base[t].lowpass_order, base[t].lowpass_cutoff_hz))
+            )
+            ext = replace(ext, accel=chain_t) if t is Triad.ACCEL else replace(ext, gyro=chain_t)
     if np.any(k2) or np.any(k3):
         ext = ext.with_effect(ScaleNonlinearity(k2, k3), Triad.ACCEL)
     if np.any(kc):

@@ -65,6 +65,8 @@ direction of gravity in the sensor axes, ``ΔT`` temperature about its mean):
   explains less behind a lower threshold;
 * ``clipping``: samples held on a rail, read from the samples (:func:`clipping_candidates`);
 * ``spectral_line``: a peak of the static samples' spectrum over its floor (:func:`line_candidates`);
+* ``lowpass`` (noise colour): the static noise through a firmware Butterworth low-pass, order and
+  cut-off fitted on its spectrum (:func:`lowpass_candidate`);
 * ``g_sensitivity``: per gyro axis, the mean on the specific force ``[f_x, f_y, f_z]`` (M4),
   after the vertical Earth rate ``c·Ω·u_i`` with ``|c| ≤ 1`` (:func:`vertical_earth_rate`);
 * ``bias_instability``: per sensor axis, bias wander that does not average
@@ -99,6 +101,7 @@ import numpy as np
 # `calibrate` imports this module (through the audit) for sessions the audit does not simulate too.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, Triad
+from estimators.noise import LOWPASS_ORDERS, fit_lowpass
 from estimators.temperature import chosen_order, held_out_scores
 
 from .statistics import PositionTable
@@ -132,6 +135,7 @@ CANDIDATE_NAMES = (
     "temperature_hysteresis",
     "clipping",
     "spectral_line",
+    "lowpass",
     "g_sensitivity",
     "quantization",
     "gravity_mismatch",
@@ -209,15 +213,20 @@ def mean_test(
     ``base`` (n, p) and ``extra`` (n, k) are already weighted regressors, ``z`` (n,) the weighted data.
     The LR is the common scale's free (``n ln(RSS₀/RSS₁)``), or with ``known_scale`` the weights' own
     (``RSS₀ − RSS₁``, χ²ₖ under the null): then what another effect leaves does not dilute it.
-    The standard errors take the weights as exact (the detection scale of the effect).
+    The standard errors take the weights as exact (the detection scale of the effect). An effect the
+    positions cannot tell from the base (the joint design singular: a change at the last break of 12
+    positions against nine parameters) has LR 0 and infinite standard errors: it cannot be named.
     """
-    rss0, loo0, _ = _loo_rss(base, z)
     full = np.hstack([base, extra])
+    # numpy's stub types every mode as QRResult; mode="r" returns R alone.
+    r: FloatArray = np.linalg.qr(full, mode="r")  # type: ignore[assignment]
+    diag = np.abs(np.diag(r))
+    if full.shape[1] >= z.size or diag.min() <= 1e-10 * diag.max():
+        return 0.0, 1.0, np.zeros(extra.shape[1]), np.full(extra.shape[1], np.inf)
+    rss0, loo0, _ = _loo_rss(base, z)
     rss1, loo1, coef = _loo_rss(full, z)
     n = z.size
     lr = float(rss0 - rss1) if known_scale else float(n * np.log(rss0 / max(rss1, 1e-300)))
-    # numpy's stub types every mode as QRResult; mode="r" returns R alone.
-    r: FloatArray = np.linalg.qr(full, mode="r")  # type: ignore[assignment]
     rinv = np.linalg.solve(r, np.eye(r.shape[0]))
     se = np.sqrt(np.sum(rinv**2, axis=1))
     k = base.shape[1]
@@ -427,29 +436,45 @@ class VarianceData:
     ----------
     y : (n, q) data (normalized units); s0 : (n, q, q) their known covariance;
     comps : (m, n, q, q) the component matrices ``A_jk`` (one per parameter ``θ_j``);
-    rows : (n,) index of each datum in the position table.
+    rows : (n,) index of each datum in the position table;
+    weight : (n,) each datum's share of one in the likelihood, or None (all 1): a fit's residuals over
+        ``√(1 − h_kk)`` (:func:`leverage_residual`) are n numbers with ``n − p`` degrees of freedom, so each
+        counts ``1 − h_kk`` — counted as n, the 3 residual degrees of freedom of 12 positions against nine
+        parameters passed for 12, and a 1.7 % scatter (χ²₃ = 10.2) read as a wander at LR 23 (threshold 16).
     """
 
     y: FloatArray
     s0: FloatArray
     comps: FloatArray
     rows: IntArray
+    weight: FloatArray | None = None
 
     @classmethod
-    def finite(cls, y: FloatArray, s0: FloatArray, comps: FloatArray) -> VarianceData:
-        """The rows of ``y`` (n, q), ``s0`` (n, q, q), ``comps`` (m, n, q, q) whose data are finite."""
+    def finite(
+        cls, y: FloatArray, s0: FloatArray, comps: FloatArray, weight: FloatArray | None = None
+    ) -> VarianceData:
+        """The rows of ``y`` (n, q), ``s0`` (n, q, q), ``comps`` (m, n, q, q) (and ``weight`` (n,)) whose data are finite."""
         ok = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(s0), axis=(1, 2))
-        return cls(y[ok], s0[ok], comps[:, ok], np.flatnonzero(ok))
+        return cls(
+            y[ok], s0[ok], comps[:, ok], np.flatnonzero(ok), None if weight is None else weight[ok]
+        )
+
+    @property
+    def shares(self) -> FloatArray:
+        """(n,) each datum's weight in the likelihood (ones when none was given)."""
+        return np.ones(self.y.shape[0]) if self.weight is None else self.weight
 
     def subset(self, keep: BoolArray) -> VarianceData:
         """The same data with only the components ``keep`` (bool (m,))."""
-        return VarianceData(self.y, self.s0, self.comps[np.asarray(keep, bool)], self.rows)
+        return VarianceData(
+            self.y, self.s0, self.comps[np.asarray(keep, bool)], self.rows, self.weight
+        )
 
     def with_fixed(self, theta: FloatArray, fixed: BoolArray) -> VarianceData:
         """Components ``fixed`` (bool (m,)) folded into ``s0`` at ``theta``; the rest stay free."""
         fixed = np.asarray(fixed, bool)
         s0 = self.s0 + np.einsum("j,jkab->kab", np.asarray(theta, float)[fixed], self.comps[fixed])
-        return VarianceData(self.y, s0, self.comps[~fixed], self.rows)
+        return VarianceData(self.y, s0, self.comps[~fixed], self.rows, self.weight)
 
     def scaled(self, weight: FloatArray) -> VarianceData:
         """The single free component multiplied per position by ``weight`` (indexed by table row)."""
@@ -458,26 +483,29 @@ class VarianceData:
             self.s0,
             self.comps * np.asarray(weight, float)[self.rows][None, :, None, None],
             self.rows,
+            self.weight,
         )
 
 
 def _nll_score(theta: FloatArray, data: list[VarianceData]) -> tuple[float, FloatArray, FloatArray]:
-    """``½ Σ_k [ln det S_k + y_kᵀ S_k⁻¹ y_k]`` over every dataset, its gradient in ``θ`` and the Fisher information.
+    """``½ Σ_k w_k [ln det S_k + y_kᵀ S_k⁻¹ y_k]`` over every dataset, its gradient in ``θ`` and the Fisher information.
 
-    Gradient ``½ Σ_k [tr(S⁻¹A_j) − yᵀS⁻¹A_jS⁻¹y]``; information ``½ Σ_k tr(S⁻¹A_j S⁻¹A_l)``.
+    Gradient ``½ Σ_k w_k [tr(S⁻¹A_j) − yᵀS⁻¹A_jS⁻¹y]``; information ``½ Σ_k w_k tr(S⁻¹A_j S⁻¹A_l)``
+    (``w_k`` :attr:`VarianceData.shares`).
     """
     m = theta.size
     nll, grad, info = 0.0, np.zeros(m), np.zeros((m, m))
     for d in data:
+        w = d.shares
         s = d.s0 + np.einsum("j,jkab->kab", theta, d.comps)
         sol = np.linalg.solve(s, d.y[..., None])[..., 0]
         _, logdet = np.linalg.slogdet(s)
-        nll += 0.5 * float(np.sum(logdet) + np.einsum("ka,ka->", d.y, sol))
+        nll += 0.5 * float(w @ (logdet + np.einsum("ka,ka->k", d.y, sol)))
         s_inv_a = np.linalg.solve(s[None], d.comps)
         grad += 0.5 * (
-            np.einsum("jkaa->j", s_inv_a) - np.einsum("ka,jkab,kb->j", sol, d.comps, sol)
+            np.einsum("k,jkaa->j", w, s_inv_a) - np.einsum("k,ka,jkab,kb->j", w, sol, d.comps, sol)
         )
-        info += 0.5 * np.einsum("jkab,lkba->jl", s_inv_a, s_inv_a)
+        info += 0.5 * np.einsum("k,jkab,lkba->jl", w, s_inv_a, s_inv_a)
     return nll, grad, info
 
 
@@ -519,9 +547,9 @@ def fit_variance(data: list[VarianceData], *, max_iter: int = 100) -> tuple[Floa
 
 
 def variance_se_at_zero(d: VarianceData, j: int) -> float:
-    """Fisher standard error of ``θ_j`` at ``θ = 0``: ``1/√(½ Σ_k tr(S0⁻¹A_jk S0⁻¹A_jk))`` (the detection scale of a variance effect)."""
+    """Fisher standard error of ``θ_j`` at ``θ = 0``: ``1/√(½ Σ_k w_k tr(S0⁻¹A_jk S0⁻¹A_jk))`` (the detection scale of a variance effect)."""
     m = np.linalg.solve(d.s0, d.comps[j])
-    info = 0.5 * float(np.einsum("kab,kba->", m, m))
+    info = 0.5 * float(np.einsum("k,kab,kba->", d.shares, m, m))
     return float(1.0 / np.sqrt(info)) if info > 0 else float("inf")
 
 
@@ -1035,6 +1063,68 @@ def line_candidates(
     return out
 
 
+# --- noise colour: the firmware's low-pass ---------------------------------------
+
+
+def lowpass_candidate(
+    triad: Triad,
+    x_si: FloatArray,
+    spans: IntArray,
+    rate_hz: float,
+    segment: int,
+    floor_var_si2: FloatArray,
+    n_tests: int,
+) -> Candidate:
+    """``lowpass`` (noise colour, for the triad): the static noise went through a Butterworth low-pass of order
+    ``n`` and cut-off ``f_c`` (:func:`estimators.noise.fit_lowpass` on ``segment``-sample pieces of the positions).
+
+    A low-pass keeps the spectrum at 0 (the level of position means) and takes the rest: the per-sample
+    variance is ``σ²∫|H|²``, below the means' level, and the Allan deviation at short τ falls under white
+    noise's. LR against white noise, threshold χ² with two degrees of freedom (the cut-off and the filter's
+    size) at the family-wise rate split over the tests and the orders tried. Named with the order, the
+    cut-off and its 95 % profile interval, the orders the data cannot tell from it and the input's
+    per-sample sd (what the simulation filters); ``floor_var_si2`` (3,) the output grid's rounding.
+    """
+    from scipy.stats import chi2
+
+    records = [x_si[a:b] for a, b in spans if b - a >= segment]
+    if not records:
+        return not_identifiable(
+            "lowpass", triad, None, f"not identifiable: no position holds {segment} samples"
+        )
+    thr = float(chi2.isf(FAMILY_ALPHA / (max(n_tests, 1) * len(LOWPASS_ORDERS)), 2))
+    fit = fit_lowpass(records, rate_hz, segment, floor_var_si2, interval_above=thr)
+    low, high = fit.cutoff_interval_hz
+    orders = ", ".join(str(o) for o in fit.orders_consistent)
+    return Candidate(
+        "lowpass",
+        triad,
+        None,
+        True,
+        fit.lr,
+        thr,
+        1.0,
+        {
+            "order": fit.order,
+            "cutoff_hz": fit.cutoff_hz,
+            "cutoff_low_hz": low,
+            "cutoff_high_hz": high,
+            "orders_consistent": list(fit.orders_consistent),
+            "lr_by_order": [float(v) for v in fit.lr_by_order],
+            "input_sd_si": [float(v) for v in fit.input_sd_si],
+            "band_tried_hz": [float(v) for v in fit.band_hz],
+            "spectrum_freq_hz": [float(v) for v in fit.freq_hz],
+            "spectrum_si2": [[float(v) for v in row] for row in fit.pgram_si2.T],
+            "fitted_si2": [[float(v) for v in row] for row in fit.fitted_si2.T],
+        },
+        fit.lr > thr,
+        f"{triad.value} noise colour: the static spectrum falls as a Butterworth low-pass of order {fit.order} "
+        f"(orders {orders} within 95 %) at {fit.cutoff_hz:.3g} Hz (95 % {low:.3g}–{high:.3g} Hz; "
+        f"{fit.band_hz[0]:.2g}–{fit.band_hz[1]:.3g} Hz tried): LR {fit.lr:.1f} against white noise "
+        f"(threshold {thr:.1f})",
+    )
+
+
 # --- the candidates of each triad ---------------------------------------------
 
 
@@ -1057,11 +1147,11 @@ def count_tests(has_gyro: bool, temperature: bool, earth_rate: bool = False) -> 
     bias step, instability (+ temperature bias, scale and hysteresis); the cross-axis term, a change
     of non-orthogonality and nonstatic positions; per gyro axis drift, g-sensitivity, bias step,
     instability (+ temperature bias and hysteresis, and temperature scale when the gyro resolves the
-    Earth rate: ``earth_rate``); per triad clipping and a spectral line. A step profiled over the breaks counts once here; its own threshold splits
+    Earth rate: ``earth_rate``); per triad clipping, a spectral line and a low-pass. A step profiled over the breaks counts once here; its own threshold splits
     its share over the breaks (:func:`forward_select`)."""
-    accel = 3 * (4 + (3 if temperature else 0)) + 5
+    accel = 3 * (4 + (3 if temperature else 0)) + 6
     gyro_temp = (3 if earth_rate else 2) if temperature else 0
-    gyro = 3 * (4 + gyro_temp) + 2 if has_gyro else 0
+    gyro = 3 * (4 + gyro_temp) + 3 if has_gyro else 0
     return accel + gyro
 
 
@@ -1820,10 +1910,12 @@ def _scalar_records(
     out = _mean_candidates(effects, tests, triad, to_si, what, n_tests)
     # Variance last: after the selected mean effects, so a deterministic effect is not also named as instability.
     design = np.hstack([jac, chosen])
+    q, _ = np.linalg.qr(design / sd[:, None])
     between = VarianceData.finite(
         leverage_residual(design, residual, sd)[:, None],
         var0[:, None, None],
         leverage_components(design, sd, g_b2.T)[:, :, None, None],
+        1.0 - np.einsum("ij,ij->i", q, q),
     )
     return out, between, _halves_record(tab, halves_mean, motion)
 

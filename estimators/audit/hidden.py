@@ -56,6 +56,14 @@ wander's covariance, the white noise plus the Gauss–Markov covariance of the p
 the residual's sensitivity to the wandering axis (:func:`wander_se_ratio`). The wander keeps its own
 size (its evidence on the effect-free session).
 
+``lowpass`` (:data:`LOWPASS_KIND`): the firmware's Butterworth low-pass of order :data:`LOWPASS_ORDER` at
+:data:`LOWPASS_CUTOFF_HZ` on a :data:`LINE_RATE_HZ` session, on the triad (a noise colour: there or not,
+so ``size`` is kept as given and does not scale it).
+
+Session shapes (:data:`SHAPES`): effect-free sessions of issue 31's independent trial, 12 positions at
+200 Hz and 30 at 50 Hz, with and without the temperature column, MEMS and navigation grade, and with the
+20 Hz low-pass on both triads (then the low-pass is the effect: named, and nothing else; :func:`shape_trial`).
+
 A hidden ``quantization`` is named by the baseline (it is part of it): a trial
 counts it named when the baseline found a grid on that triad.
 """
@@ -85,6 +93,7 @@ from estimators.sim import (
     ErrorModel,
     Grade,
     GSensitivity,
+    LowPass,
     NonOrthogonality,
     NonOrthogonalityChange,
     NonstaticPositions,
@@ -169,6 +178,12 @@ amplitude in per-sample noise sd (the issue's case: 1.5)."""
 LINE_FREQ_HZ = 50.0
 LINE_RATE_HZ = 200.0
 
+LOWPASS_KIND = ("lowpass", Triad.ACCEL)
+"""The firmware's anti-alias low-pass as a noise colour (issue 31): :data:`LOWPASS_ORDER` at :data:`LOWPASS_CUTOFF_HZ`
+on a :data:`LINE_RATE_HZ` session."""
+LOWPASS_ORDER = 2
+LOWPASS_CUTOFF_HZ = 20.0
+
 TEMPERATURE_KINDS: tuple[tuple[str, Triad], ...] = (
     ("temperature_bias", Triad.ACCEL),
     ("temperature_scale", Triad.ACCEL),
@@ -188,7 +203,7 @@ def kinds_of(grade: Grade) -> tuple[tuple[str, Triad], ...]:
     return HIDDEN_KINDS + tuple(extra) + MECHANISM_KINDS + gyro
 
 
-_AXIS_FREE = ("nonstatic_positions", "quantization")
+_AXIS_FREE = ("nonstatic_positions", "quantization", "lowpass")
 _TRIAD_LEVEL = ("nonorthogonality_change", "cross_axis_nonlinearity")
 """Named for the triad: the scalar residual tells their size, not their axis."""
 _CHANGE_COSINE = {"x": 0, "y": 1, "z": 2}
@@ -258,15 +273,15 @@ def baseline_model(
     return ErrorModel(accel=acc, gyro=gyr)
 
 
-def trial_attitudes(seed: int) -> FloatArray:
-    """(N_POSITIONS, 3, 3) random attitudes, each at least :data:`MIN_TURN_DEG` from the one before.
+def trial_attitudes(seed: int, n_positions: int = N_POSITIONS) -> FloatArray:
+    """(n_positions, 3, 3) random attitudes, each at least :data:`MIN_TURN_DEG` from the one before.
 
     A smaller turn is slow enough for the static detector to keep it inside one
     position — a real ``nonstatic_positions`` case an effect-free session must not contain.
     """
     rng = np.random.default_rng(seed)
     att = [random_attitudes(1, rng)[0]]
-    while len(att) < N_POSITIONS:
+    while len(att) < n_positions:
         cand = random_attitudes(1, rng)[0]
         turn = np.degrees(np.arccos(np.clip((np.trace(att[-1].T @ cand) - 1.0) / 2.0, -1.0, 1.0)))
         if turn >= MIN_TURN_DEG:
@@ -299,14 +314,17 @@ def session_of(
     temperature: bool = True,
     grade: Grade = Grade.MEMS,
     rate_hz: float = RATE_HZ,
+    n_positions: int = N_POSITIONS,
 ) -> tuple[ImuSession, ChainResult]:
     """The trial session of ``seed`` with ``model`` (same orientations and noise stream for every model), through the chain.
 
     ``temperature=False`` drops the temperature column (the unit is still on the same cycle: a
     temperature effect is then in the data but nothing can name it). ``rate_hz``: the sampling rate
-    (the white noise keeps its density: at 200 Hz its per-sample sd doubles).
+    (the white noise keeps its density: at 200 Hz its per-sample sd doubles); ``n_positions`` held.
     """
-    profile = multi_position_profile(trial_attitudes(seed), static_s=HOLD_S, transition_s=TURN_S)
+    profile = multi_position_profile(
+        trial_attitudes(seed, n_positions), static_s=HOLD_S, transition_s=TURN_S
+    )
     spec = SessionSpec(
         profile, model, rate_hz=rate_hz, gravity_mps2=GRAVITY_MPS2, temperature=TEMPERATURE
     )
@@ -456,6 +474,16 @@ def _hide(
     seed: int, effect: str, triad: Triad, axis: str | None, size: float, sign: float, grade: Grade
 ) -> HiddenEffect:
     model = baseline_model(np.random.default_rng(seed), grade)
+    if effect == "lowpass":
+        return HiddenEffect(
+            effect,
+            triad,
+            None,
+            size,
+            LOWPASS_CUTOFF_HZ,
+            model.with_effect(LowPass(LOWPASS_ORDER, LOWPASS_CUTOFF_HZ), triad),
+            rate_hz=LINE_RATE_HZ,
+        )
     if effect == "spectral_line":
         if axis is None:
             raise ValueError("a spectral line is hidden on one axis: give axis x, y or z")
@@ -793,6 +821,62 @@ def clean_trial(
     return not named_effects(
         *session_of(model, seed, temperature=temperature, grade=grade, rate_hz=rate_hz)
     )
+
+
+@dataclass(frozen=True)
+class SessionShape:
+    """An effect-free session shape of issue 31's trials (:data:`SHAPES`): ``n_positions`` held at ``rate_hz``, the
+    temperature column or not, the grade, and the firmware low-pass on both triads (``lowpass_hz`` 0: none)."""
+
+    n_positions: int
+    rate_hz: float
+    temperature: bool
+    grade: Grade
+    lowpass_hz: float = 0.0
+
+    @property
+    def label(self) -> str:
+        return (
+            f"{self.n_positions} positions, {self.rate_hz:g} Hz, {self.grade.value}"
+            f"{'' if self.temperature else ', no temp column'}"
+            f"{f', {LOWPASS_ORDER}nd-order {self.lowpass_hz:g} Hz low-pass' if self.lowpass_hz else ''}"
+        )
+
+    @property
+    def expected(self) -> set[tuple[str, Triad, str | None]]:
+        """What the audit must name: the low-pass of each triad when the shape has one, else nothing."""
+        return {("lowpass", t, None) for t in Triad} if self.lowpass_hz else set()
+
+
+SHAPES: tuple[SessionShape, ...] = (
+    *(
+        SessionShape(n, rate, temperature, grade)
+        for n, rate in ((12, 200.0), (30, 50.0))
+        for grade in (Grade.MEMS, Grade.NAVIGATION)
+        for temperature in (True, False)
+    ),
+    SessionShape(12, 200.0, True, Grade.MEMS, LOWPASS_CUTOFF_HZ),
+    SessionShape(30, 50.0, True, Grade.MEMS, LOWPASS_CUTOFF_HZ),
+)
+"""Issue 31's effect-free shapes: 12 positions at 200 Hz and 30 at 50 Hz, MEMS and navigation, with and without
+the temperature column; and the 20 Hz low-pass at both rates (at 50 Hz it cuts only the top 5 Hz of the band)."""
+
+
+def shape_trial(shape: SessionShape, seed: int) -> bool:
+    """True when the audit names exactly what ``shape`` holds on its session of ``seed`` (:attr:`SessionShape.expected`)."""
+    model = baseline_model(np.random.default_rng(seed), shape.grade)
+    if shape.lowpass_hz:
+        lp = LowPass(LOWPASS_ORDER, shape.lowpass_hz)
+        model = model.with_effect(lp, Triad.ACCEL).with_effect(lp, Triad.GYRO)
+    session = session_of(
+        model,
+        seed,
+        temperature=shape.temperature,
+        grade=shape.grade,
+        rate_hz=shape.rate_hz,
+        n_positions=shape.n_positions,
+    )
+    return named_effects(*session) == shape.expected
 
 
 NEAR_LIMIT_GYRO_SD_RPS = (1.0e-5, 1.3e-5)

@@ -26,6 +26,7 @@ stage  name                     what it does to ``y`` (per sensor axis ``i``)
 40     ``white_noise``          ``y_i += σ_i n_i``, ``σ_i = density_i·√rate``, ``corr(n) = R``
 41     ``coloured_noise``       ``y_i +=`` a sum of short Gauss–Markov terms (noise colour), driven with ``R``
 42     ``spectral_line``        ``y_i += A_i sin(2π f_i t + φ_i)`` (mains or rotor pickup; φ from the stream)
+44     ``lowpass``              ``y_i`` through the firmware's anti-alias Butterworth low-pass (order ``n``, cut-off ``f_c``)
 45     (noise-burst faults)     see :mod:`estimators.sim.faults`
 48     ``clipping``             ``y_i`` held on the rails ``±r_i`` (the converter's full scale)
 50     ``quantization``         ``y_i = k_i·Entier(y_i / k_i)`` (M2)
@@ -677,6 +678,42 @@ class SpectralLine(Effect):
 
 
 @dataclass(frozen=True)
+class LowPass(Effect):
+    """The firmware's anti-alias low-pass: a digital Butterworth filter of ``order`` and ``cutoff_hz`` on every axis.
+
+    The bilinear design of :func:`scipy.signal.butter` (``|H(f)|² = 1/(1 + (tan(πf/f_s)/tan(πf_c/f_s))^{2n})``,
+    unit gain at 0 Hz), run causally from its steady state on the first sample, as an IMU's digital
+    filter runs; everything before it in the chain (the noise, a line) is filtered, the rail and the
+    output grid come after it. ``cutoff_hz`` must lie below the session's Nyquist frequency.
+    """
+
+    order: int = 2
+    cutoff_hz: float = 20.0
+    name: ClassVar[str] = "lowpass"
+    stage: ClassVar[int] = 44
+
+    def __post_init__(self) -> None:
+        if int(self.order) != self.order or not 1 <= self.order <= 8:
+            raise ValueError(f"order must be an integer 1…8, got {self.order!r}")
+        if not np.isfinite(self.cutoff_hz) or self.cutoff_hz <= 0:
+            raise ValueError(f"cutoff_hz must be positive, got {self.cutoff_hz!r}")
+        object.__setattr__(self, "order", int(self.order))
+        object.__setattr__(self, "cutoff_hz", float(self.cutoff_hz))
+
+    def apply(self, y: FloatArray, ctx: EffectContext) -> FloatArray:
+        from scipy.signal import butter, sosfilt, sosfilt_zi
+
+        if self.cutoff_hz >= 0.5 * ctx.rate_hz:
+            raise ValueError(
+                f"a {self.cutoff_hz:g} Hz low-pass needs a rate above {2 * self.cutoff_hz:g} Hz, got {ctx.rate_hz:g}"
+            )
+        sos = butter(self.order, self.cutoff_hz, fs=ctx.rate_hz, output="sos")
+        zi = sosfilt_zi(sos)[:, :, None] * y[0]
+        out: FloatArray = sosfilt(sos, y, axis=0, zi=zi)[0]
+        return out
+
+
+@dataclass(frozen=True)
 class Clipping(Effect):
     """The output held on the rails ``±rail_si`` per axis (the converter's full scale): ``y_i = clip(y_i, −r_i, r_i)``."""
 
@@ -835,6 +872,7 @@ EFFECTS: dict[str, type[Effect] | type[EnvironmentEffect]] = {
         WhiteNoise,
         ColouredNoise,
         SpectralLine,
+        LowPass,
         Clipping,
         Quantization,
         GravityMismatch,
