@@ -605,11 +605,8 @@ def _rotation_between(
         return None
     rot = RotationIntegrator(bias)
     rows = acc[last_end : first + 1]
-    tt = t[rows].tolist()
-    ww = gyro[rows].tolist()
-    for k in range(1, len(tt)):
-        wx, wy, wz = ww[k]
-        rot.add(wx, wy, wz, tt[k] - tt[k - 1])
+    tt = t[rows]
+    rot.add_many(gyro[rows[1:]], tt[1:] - tt[:-1])
     return rot.angle_deg
 
 
@@ -951,8 +948,8 @@ class PositionAccumulator:
         k0, k1 = lo - ext.base, hi - ext.base
         if k1 > k0:
             tt = ext.cols[0]
-            gyro = np.column_stack([ext.cols[c][k0:k1] for c in (4, 5, 6)]).tolist()
-            self._rot.add_many(gyro, (tt[k0:k1] - tt[k0 - 1 : k1 - 1]).tolist())
+            gyro = np.column_stack([ext.cols[c][k0:k1] for c in (4, 5, 6)])
+            self._rot.add_many(gyro, tt[k0:k1] - tt[k0 - 1 : k1 - 1])
 
     def _add_many(self, ext: _Extended, lo: int, hi: int) -> None:
         """:meth:`_add` for accepted samples ``[lo, hi)``: the same sequential sums, by ``cumsum``."""
