@@ -605,7 +605,8 @@ def _rotation_between(
         return None
     rot = RotationIntegrator(bias)
     rows = acc[last_end : first + 1]
-    rot.add_many(gyro[rows[1:]].tolist(), np.diff(t[rows]).tolist())
+    tt = t[rows]
+    rot.add_many(gyro[rows[1:]], tt[1:] - tt[:-1])
     return rot.angle_deg
 
 
@@ -947,8 +948,8 @@ class PositionAccumulator:
         k0, k1 = lo - ext.base, hi - ext.base
         if k1 > k0:
             tt = ext.cols[0]
-            gyro = np.column_stack([ext.cols[c][k0:k1] for c in (4, 5, 6)]).tolist()
-            self._rot.add_many(gyro, (tt[k0:k1] - tt[k0 - 1 : k1 - 1]).tolist())
+            gyro = np.column_stack([ext.cols[c][k0:k1] for c in (4, 5, 6)])
+            self._rot.add_many(gyro, tt[k0:k1] - tt[k0 - 1 : k1 - 1])
 
     def _add_many(self, ext: _Extended, lo: int, hi: int) -> None:
         """:meth:`_add` for accepted samples ``[lo, hi)``: the same sequential sums, by ``cumsum``."""

@@ -42,6 +42,20 @@ def finite_rows(
     return finite
 
 
+def all_usable(
+    t_s: FloatArray, accel_mps2: FloatArray, gyro_rps: FloatArray, temp_c: FloatArray | None
+) -> bool:
+    """Whether every sample is finite and plausible (:func:`finite_rows` and :func:`plausible_rows`
+    true on every row), one reduction an array: a triad's largest magnitude is NaN when any value
+    is, and NaN and ±inf both fail the bound."""
+    return bool(
+        np.isfinite(t_s).all()
+        and np.abs(accel_mps2).max(initial=0.0) <= ACCEL_IMPLAUSIBLE_MPS2
+        and np.abs(gyro_rps).max(initial=0.0) <= GYRO_IMPLAUSIBLE_RPS
+        and (temp_c is None or np.isfinite(temp_c).all())
+    )
+
+
 class SessionError(ValueError):
     """The session cannot be used at all (the message says why, in one line)."""
 

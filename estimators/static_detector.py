@@ -1228,20 +1228,42 @@ class RotationIntegrator:
         self.mark = self.q
 
     def add(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
-        self.add_many(((wx, wy, wz),), (dt_s,))
-
-    def add_many(self, rates_rps: Iterable[Sequence[float]], dts_s: Iterable[float]) -> None:
-        """:meth:`add` for each ``(wx, wy, wz)`` of ``rates_rps`` held over the matching ``dts_s``, in order."""
         bx, by, bz = self.bias_rps
+        rx, ry, rz = (wx - bx) * dt_s, (wy - by) * dt_s, (wz - bz) * dt_s
+        th = math.sqrt(rx * rx + ry * ry + rz * rz)
+        half = 0.5 * th
+        # sin(θ/2)/θ by its series below 1e-4 rad, where the division would lose digits.
+        k = math.sin(half) / th if th > 1e-4 else 0.5 - th * th / 48.0
+        self._compose((math.cos(half),), (rx * k,), (ry * k,), (rz * k,))
+
+    def add_many(self, rates_rps: FloatArray, dts_s: FloatArray) -> None:
+        """:meth:`add` for each row ``(wx, wy, wz)`` of ``rates_rps`` (N, 3) held over the matching ``dts_s`` (N,), in order.
+
+        The increments are :meth:`add`'s operations on arrays: element by element the same
+        IEEE operations (square root included), with sine and cosine from :mod:`math` as
+        :meth:`add` takes them (numpy's may differ in the last bit), so the rotation agrees
+        to the bit; only the composition stays a loop.
+        """
+        r = np.asarray(rates_rps, dtype=float).reshape(-1, 3) - np.asarray(self.bias_rps)
+        dt = np.asarray(dts_s, dtype=float)
+        if dt.shape != r.shape[:1]:
+            raise ValueError(f"{r.shape[0]} rates but {dt.size} time steps")
+        rx, ry, rz = r[:, 0] * dt, r[:, 1] * dt, r[:, 2] * dt
+        th = np.sqrt(rx * rx + ry * ry + rz * rz)
+        half = (0.5 * th).tolist()
+        big = th > 1e-4
+        k = 0.5 - th * th / 48.0
+        k[big] = np.fromiter(map(math.sin, half), float, len(half))[big] / th[big]
+        self._compose(
+            list(map(math.cos, half)), (rx * k).tolist(), (ry * k).tolist(), (rz * k).tolist()
+        )
+
+    def _compose(
+        self, dws: Iterable[float], dxs: Iterable[float], dys: Iterable[float], dzs: Iterable[float]
+    ) -> None:
+        """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order."""
         w, x, y, z = self.q
-        sin, cos, sqrt = math.sin, math.cos, math.sqrt
-        for (wx, wy, wz), dt_s in zip(rates_rps, dts_s, strict=True):
-            rx, ry, rz = (wx - bx) * dt_s, (wy - by) * dt_s, (wz - bz) * dt_s
-            th = sqrt(rx * rx + ry * ry + rz * rz)
-            half = 0.5 * th
-            # sin(θ/2)/θ by its series below 1e-4 rad, where the division would lose digits.
-            k = sin(half) / th if th > 1e-4 else 0.5 - th * th / 48.0
-            dw, dx, dy, dz = cos(half), rx * k, ry * k, rz * k
+        for dw, dx, dy, dz in zip(dws, dxs, dys, dzs, strict=True):
             w, x, y, z = (
                 w * dw - x * dx - y * dy - z * dz,
                 w * dx + x * dw + y * dz - z * dy,

@@ -3,7 +3,16 @@
 import numpy as np
 import pytest
 
-from estimators.session import ImuSession, SessionError, validate_session
+from estimators.session import (
+    ACCEL_IMPLAUSIBLE_MPS2,
+    GYRO_IMPLAUSIBLE_RPS,
+    ImuSession,
+    SessionError,
+    all_usable,
+    finite_rows,
+    plausible_rows,
+    validate_session,
+)
 
 
 def _session(n=10):
@@ -52,3 +61,35 @@ def test_empty_or_all_bad_session_is_an_error():
 def test_a_session_needs_a_triad():
     with pytest.raises(SessionError, match="neither"):
         validate_session(ImuSession(np.arange(3.0), None, None))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "usable"),
+    [
+        (None, None, True),
+        ("t", np.nan, False),
+        ("accel", np.nan, False),
+        ("accel", -np.inf, False),
+        ("accel", ACCEL_IMPLAUSIBLE_MPS2, True),
+        ("accel", -np.nextafter(ACCEL_IMPLAUSIBLE_MPS2, np.inf), False),
+        ("gyro", np.nan, False),
+        ("gyro", -GYRO_IMPLAUSIBLE_RPS, True),
+        ("gyro", np.nextafter(GYRO_IMPLAUSIBLE_RPS, np.inf), False),
+        ("gyro", 1e300, False),
+        ("temp", np.inf, False),
+    ],
+)
+def test_all_usable_is_every_row_finite_and_plausible(field, value, usable):
+    """A frame joins a replay's group on one reduction per array: it must say what the rows'
+    finite and plausible tests say of the frame, a value at the bound kept, one past it or not
+    finite in any field refused."""
+    s = _session(6)
+    temp = np.full(6, 25.0)
+    arrays = {"t": s.t_s, "accel": s.accel_mps2, "gyro": s.gyro_rps, "temp": temp}
+    if field is not None:
+        arrays[field].flat[4] = value
+    plausible = plausible_rows(s.accel_mps2, s.gyro_rps)
+    for t_c in (temp, None):
+        rows = finite_rows(s.t_s, s.accel_mps2, s.gyro_rps, t_c) & plausible
+        assert all_usable(s.t_s, s.accel_mps2, s.gyro_rps, t_c) == bool(rows.all())
+    assert all_usable(s.t_s, s.accel_mps2, s.gyro_rps, temp) == usable

@@ -22,7 +22,7 @@ from estimators.ninepar import RecursiveNineParam
 from estimators.passport import Passport
 from estimators.positions import Position, PositionAccumulator
 from estimators.scalar import f0_batch, persistence_samples, persistent_failure
-from estimators.session import finite_rows, plausible_rows
+from estimators.session import all_usable, finite_rows, plausible_rows
 from estimators.stream_validity import (
     StreamValidity,
     ValidityReport,
@@ -452,13 +452,8 @@ class ImuPipeline:
         return (
             (last_seq is None or batch.seq == last_seq + 1)
             and (last_t_s is None or last_t_s < t[0] <= last_t_s + self._jump_s())
-            and bool(np.all(np.diff(t) > 0))
-            and bool(
-                (
-                    finite_rows(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
-                    & plausible_rows(batch.accel_mps2, batch.gyro_rps)
-                ).all()
-            )
+            and bool((t[1:] > t[:-1]).all())
+            and all_usable(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
         )
 
     def _jump_s(self) -> float:
