@@ -270,3 +270,39 @@ def test_a_unit_s_first_fault_loads_no_module_the_daemon_did_not_freeze(tmp_path
     # The unit went the whole way: F0 on the fault, then the diagnosis that names it.
     assert result["predicates"] == ["F0", "F6"]
     assert result["new"] == []
+
+
+LOADED_BY_REPLAY = """
+import json, sys
+from service.cli import main
+status = main(["replay", sys.argv[1], "--json", "--report", sys.argv[2]])
+print(json.dumps({"status": status, "modules": sorted(sys.modules)}))
+"""
+
+
+def test_replay_of_a_ulog_imports_neither_the_daemon_nor_its_transports(tmp_path):
+    # Replay runs the daemon's pipeline on a log, not the daemon: its options come from the
+    # pipeline's own module (service.pipeline.options), so the service's start-up (asyncio, the
+    # outbox, the intake, the sinks) is not paid by every replay (benchmarks/bench_replay_formats.py).
+    import numpy as np
+
+    from estimators.conventions import Grade
+    from estimators.sim import grade_error_model, simulate
+    from estimators.sixpos import ferraris_spec
+    from protocols.ulog import write_ulog
+
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    res = simulate(ferraris_spec(model, static_s=6.0, transition_s=4.0, turn_s=6.0), seed=1)
+    write_ulog(tmp_path / "six.ulg", {0: res.session})
+    run = subprocess.run(
+        [sys.executable, "-c", LOADED_BY_REPLAY, str(tmp_path / "six.ulg"), str(tmp_path / "r")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    out = json.loads(run.stdout.splitlines()[-1])
+    assert (tmp_path / "r" / "report.json").exists(), run.stderr
+    not_needed = {"service.daemon", "service.supervisor", "service.outbox", "service.intake"}
+    not_needed |= {"service.delivery", "service.sinks", "protocols.mavlink_process"}
+    assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
