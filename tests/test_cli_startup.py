@@ -289,9 +289,10 @@ def test_replay_of_a_ulog_imports_neither_the_daemon_nor_pymavlink(tmp_path):
     # Replay runs the daemon's pipeline on a log, not the daemon: its options come from the
     # pipeline's own module (service.pipeline.options), so the service's start-up (the outbox, the
     # intake, the sinks) is not paid by every replay (benchmarks/bench_replay_formats.py). Nor
-    # pymavlink and its dialects (about 0.3 s of CPU) where the log is no MAVLink or DataFlash
-    # one: the configuration's MAVLink settings come from protocols.mavlink_settings, and the
-    # readers of the other formats import pymavlink where they read one.
+    # pymavlink and its dialects (about 40 ms of CPU, bytecode cached) where the log is no
+    # MAVLink or DataFlash one: the configuration's MAVLink settings come from
+    # protocols.mavlink_settings, and the readers of the other formats import pymavlink where
+    # they read one.
     import numpy as np
 
     from estimators.conventions import Grade
