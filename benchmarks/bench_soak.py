@@ -60,10 +60,10 @@ from protocols.zenoh_adapter import (  # noqa: E402
 )
 from protocols.zenoh_router import RouterProcess, free_local_port  # noqa: E402
 from service.config import config_from_dict  # noqa: E402
-from service.daemon import pipeline_options  # noqa: E402
 from service.demo import DEMO_FRAME_SAMPLES, demo_passport, demo_scenario  # noqa: E402
 from service.passport_store import PassportStore  # noqa: E402
 from service.pipeline import FleetProcessor  # noqa: E402
+from service.pipeline.options import pipeline_options  # noqa: E402
 
 GAP_S = 0.5
 """Data time between the end of one wave and the start of the next (the unit rests)."""

@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pymavlink import mavutil
 
 from estimators.firmware_health import (
     ARDUPILOT_CLIP_SOURCE,
@@ -50,7 +49,6 @@ from estimators.firmware_health import (
     level_summary,
 )
 from protocols.logs import DataFlashStream, LogFormat
-from protocols.mavlink_adapter import use_mavlink2
 
 BATCH_SENSORS = {0: "accel", 1: "gyro"}
 """``ISBH.type``: ArduPilot's ``AP_InertialSensor::IMU_SENSOR_TYPE_ACCEL`` (0) and ``_GYRO`` (1)."""
@@ -251,6 +249,10 @@ class _Batches:
 
 
 def _tlog_messages(path: Path, kind: str) -> Iterator[Any]:
+    from pymavlink import mavutil
+
+    from protocols.mavlink_adapter import use_mavlink2
+
     conn = use_mavlink2(mavutil.mavlogfile(str(path), notimestamps=False))
     try:
         while (msg := conn.recv_msg()) is not None:

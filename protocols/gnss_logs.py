@@ -31,14 +31,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pymavlink import mavutil
 
 from estimators._typing import FloatArray
 from estimators.thrust_gnss import up_velocity_from_altitude
-from protocols.dataflash_numpy import DataFlashScan
 from protocols.logs import LogFormat, detect_format
-from protocols.mavlink_adapter import GPS_RAW_INT_FIELDS, MILLI_UNITS
-from protocols.tlog_numpy import TlogScan
+from protocols.mavlink_settings import GPS_RAW_INT_FIELDS, MILLI_UNITS
 
 GPS_FIX_3D = 3
 SEARCH_BLOCK_BYTES = 1 << 20
@@ -131,6 +128,8 @@ def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
 
 
 def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
+    from pymavlink import mavutil
+
     conn = mavutil.mavlink_connection(os.fspath(path))
     try:
         out = []
@@ -162,6 +161,8 @@ def _bin_gps_messages(path: str | os.PathLike[str]) -> list[Any]:
     scan of :mod:`protocols.dataflash_numpy`: pymavlink's reader builds a message of every record
     (the IMU's at 1 kHz) to hand out the few GPS ones, half of a replay's time on a 1 kHz log.
     pymavlink stays the oracle (tests/test_thrust_gnss_replay.py)."""
+    from protocols.dataflash_numpy import DataFlashScan
+
     scan = DataFlashScan(Path(path), wanted=frozenset(["GPS"]), held={}, flush=1)
     return list(scan)
 
@@ -235,6 +236,8 @@ def _scanned_gps_raw_int_rows(path: str | os.PathLike[str]) -> FloatArray | None
     1 kHz, to hand out the few GPS ones); None where the scan stops short of the end (damage,
     signed packets): pymavlink reads that file. pymavlink stays the oracle
     (tests/test_thrust_gnss_replay.py)."""
+    from protocols.tlog_numpy import TlogScan
+
     scan = TlogScan(
         Path(path),
         held={},

@@ -63,22 +63,16 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
-from pymavlink import DFReader, mavutil
-from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from estimators._typing import BoolArray
 from estimators.session import ImuSession, finite_rows
 from protocols.frames import MAX_SAMPLES, SampleBatch, concat_batches
-from protocols.mavlink_adapter import (
+from protocols.mavlink_settings import (
     DEFAULT_IMU_INDEX,
     RAW_IMU_ARDUPILOT,
     ImuMessage,
     ImuScale,
     LinkRejection,
-    decode_imu_message,
-    highres_triads_updated,
-    imu_message,
-    use_mavlink2,
 )
 from protocols.ulog import ULOG_MAGIC, ImuRows, NearestPairer, UlogImuStream, session_triads
 
@@ -454,6 +448,14 @@ class LogReader:
         return batch
 
     def _tlog_samples(self) -> Iterator[_Sample | ImuRows]:
+        from pymavlink import mavutil
+
+        from protocols.mavlink_adapter import (
+            decode_imu_message,
+            highres_triads_updated,
+            use_mavlink2,
+        )
+
         size = max(os.path.getsize(self.path), 1)
         start = 0
         if NUMPY_DECODING:
@@ -633,6 +635,8 @@ def _df_format(type_id: int, name: str, length: int, fmt: str, columns: str) -> 
     values when a column is read), and a redefinition of ``FMT`` itself other than the one every
     log assumes (the readers take an ``FMT``'s fields by position).
     """
+    from pymavlink import DFReader
+
     if length < 3 or any(c not in DFReader.FORMAT_TO_STRUCT for c in fmt):
         # Checked here: DFFormat prints to stdout and raises a bare Exception for an unknown character.
         raise ValueError(f"FMT of {name!r}: length {length}, format {fmt!r}")
@@ -651,6 +655,8 @@ def _df_format(type_id: int, name: str, length: int, fmt: str, columns: str) -> 
 
 def _fmt_of_fmt() -> Any:
     """The ``FMT`` message's own format (the writers' :data:`_FMT_OF_FMT`), which every log assumes."""
+    from pymavlink import DFReader
+
     f = _FMT_OF_FMT
     return DFReader.DFFormat(f.type_id, f.name, f.length, f.fmt, ",".join(f.columns))
 
@@ -710,6 +716,8 @@ class DataFlashStream(_StreamCounts):
         return self._binary() if self.binary else self._text()
 
     def _binary(self) -> Iterator[Any]:
+        from pymavlink import DFReader
+
         formats = {_DF_FMT_ID: _fmt_of_fmt()}
         unpack: dict[int, Callable[[bytes], tuple[Any, ...]]] = {}
         held, wanted = self.held, self.wanted
@@ -814,6 +822,8 @@ class DataFlashStream(_StreamCounts):
                 return None
             self.formats[defined.name] = defined
         elif name in self.wanted:
+            from pymavlink import DFReader
+
             return DFReader.DFMessage(fmt, values, False, None)
         return None
 
@@ -1025,6 +1035,10 @@ def write_tlog(
     field; for SCALED_IMU* the message number is the IMU). Record stamps are
     ``wall_start_s + t_s``. Integer messages quantize to their counts.
     """
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from protocols.mavlink_adapter import imu_message
+
     for imu, kind in ((imu, ImuMessage(messages[imu])) for imu in sessions):
         if (
             kind not in (ImuMessage.RAW_IMU, ImuMessage.HIGHRES_IMU)

@@ -31,7 +31,7 @@ RATE_EPOCHS = 32
 
 
 class GpsRawIntStream:
-    """GPS_RAW_INT fields (rows of :data:`~protocols.mavlink_adapter.GPS_RAW_INT_FIELDS`) in, in
+    """GPS_RAW_INT fields (rows of :data:`~protocols.mavlink_settings.GPS_RAW_INT_FIELDS`) in, in
     arrival order, the GNSS frames of ``vehicle`` out; epochs left out counted in ``counters``."""
 
     def __init__(self, vehicle: str, counters: LinkCounters):

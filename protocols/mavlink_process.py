@@ -64,8 +64,8 @@ from protocols.mavlink_adapter import (
     ImuConverter,
     LinkCounters,
     MavlinkLink,
-    MavlinkSettings,
 )
+from protocols.mavlink_settings import MavlinkSettings
 
 # The folder the top package of this module's name is found in: the checkout for
 # ``protocols.mavlink_process``, site-packages for ``ins_health.protocols.mavlink_process``.

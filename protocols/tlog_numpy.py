@@ -36,13 +36,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from protocols.byte_chain import STRUCT_TO_NUMPY, chain
 from protocols.dataflash_numpy import Blocker
-from protocols.mavlink_adapter import (
-    FIELD_NAMES,
-    ImuMessage,
-    ImuScale,
-    LinkRejection,
-    imu_fields_si,
-)
+from protocols.mavlink_adapter import FIELD_NAMES, imu_fields_si
+from protocols.mavlink_settings import ImuMessage, ImuScale, LinkRejection
 from protocols.ulog import ImuRows
 
 BLOCK = 1 << 18

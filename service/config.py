@@ -37,7 +37,7 @@ from estimators.conventions import STANDARD_GRAVITY_MPS2, normal_gravity_mps2
 from estimators.nominal_passport import SensorClass
 from estimators.stream_validity import ValidityLimits
 from protocols._schema import MAX_IMU_INDEX, SchemaError, check_vehicle
-from protocols.mavlink_adapter import UDP_RCVBUF_MIN_BYTES, MavlinkSettings
+from protocols.mavlink_settings import UDP_RCVBUF_MIN_BYTES, MavlinkSettings
 from protocols.zenoh_adapter import (
     ALL_FRAMES,
     AckMode,
@@ -246,7 +246,7 @@ class MavlinkSection:
     reader : ``"process"`` (default) or ``"thread"``: where the link is read and parsed
         (:class:`MavlinkReader`).
     link : the link itself, from the other keys of the table, read by
-        :meth:`protocols.mavlink_adapter.MavlinkSettings.from_dict`: ``device`` (pymavlink
+        :meth:`protocols.mavlink_settings.MavlinkSettings.from_dict`: ``device`` (pymavlink
         connection string, default ``"udpin:127.0.0.1:14550"``; ``tcp:…``, or a serial device
         with ``baud``), ``vehicle`` (vehicle id of this link's IMUs, default :data:`DEFAULT_MAVLINK_VEHICLE`; Zenoh
         frames under the same id are refused once the link has fed it IMU samples),

@@ -87,7 +87,6 @@ from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from protocols.checkpoint_codec import encode_state
 from protocols.events import (
@@ -125,7 +124,8 @@ from service.notify import FramePathWatch, Notifier
 from service.outbox import DataDirLock, Outbox, OutboxUnavailable
 from service.outbox_writer import RETRY_MAX_S, RETRY_MIN_S, OutboxWriter
 from service.passport_store import PassportStore
-from service.pipeline import FleetProcessor, PipelineOptions
+from service.pipeline import FleetProcessor
+from service.pipeline.options import pipeline_options
 from service.sinks import TRANSPORT_ERRORS, EventSink, MavlinkAlertSink, ZenohEventSink
 from service.supervisor import Supervisor
 
@@ -160,22 +160,6 @@ log = logger("daemon")
 
 REVIVE_MAX_AGE_S = 7 * 86_400.0
 """Checkpoints saved longer ago than this are not admitted at start (a unit heard again resumes from its own)."""
-
-
-def pipeline_options(config: ServiceConfig) -> PipelineOptions:
-    """The pipelines' options from the service configuration."""
-    site = config.site
-    # A configured gravity (measured or WGS-84 at the site) is good to ~1e-4; standard gravity to ~3e-3.
-    rel_err = 1.0e-4 if (site.gravity_mps2 is not None or site.latitude_deg is not None) else 3.0e-3
-    return PipelineOptions(
-        gravity_mps2=site.local_gravity_mps2,
-        gravity_rel_err=rel_err,
-        false_alarm_probability=config.pipeline.false_alarm_probability,
-        f0_persistence_s=config.pipeline.f0_persistence_s,
-        diagnosis_false_alarm_probability=DEFAULT_FALSE_ALARM_PROB,
-        min_positions=config.pipeline.min_positions,
-        validity=config.validity,
-    )
 
 
 class _Wake:

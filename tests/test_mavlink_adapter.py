@@ -25,7 +25,6 @@ from protocols.gnss_logs import gps_raw_int_messages
 from protocols.mavlink_adapter import (
     REREADS_MAX,
     STATUSTEXT_MAX_CHARS,
-    UDP_RCVBUF_MIN_BYTES,
     AlertRateLimiter,
     ImuBatcher,
     ImuMessage,
@@ -42,6 +41,7 @@ from protocols.mavlink_adapter import (
     statustext_messages,
     use_mavlink2,
 )
+from protocols.mavlink_settings import UDP_RCVBUF_MIN_BYTES
 
 pytestmark = pytest.mark.network
 WAIT_S = 5.0

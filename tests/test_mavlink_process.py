@@ -32,7 +32,6 @@ from protocols import mavlink_process
 from protocols.events import Predicate, Severity, StreamCause, event_from_finding, make_event
 from protocols.mavlink_adapter import (
     DEFAULT_IMU_INDEX,
-    UDP_RCVBUF_MIN_BYTES,
     ImuBatcher,
     ImuMessage,
     LinkCounters,
@@ -46,6 +45,7 @@ from protocols.mavlink_process import (
     ReaderProcessEnded,
     ReaderProcessFailed,
 )
+from protocols.mavlink_settings import UDP_RCVBUF_MIN_BYTES
 from service.sinks import TRANSPORT_ERRORS
 
 pytestmark = pytest.mark.network

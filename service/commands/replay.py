@@ -409,9 +409,9 @@ def replay_log(
     from estimators.coverage import Verdict, untested_lines, verdict
     from estimators.log_health import HealthConfig, ImuHealthAccumulator, pair_differences
     from estimators.stream_validity import CLOCK_BASE_MIN_S
-    from service.daemon import pipeline_options
     from service.pipeline import FleetProcessor, detector_config
     from service.pipeline.coverage import imu_coverage
+    from service.pipeline.options import pipeline_options
     from service.pipeline.thrust_axis import ThrustAxisReplay
 
     notes: list[str] = []

@@ -1,10 +1,11 @@
-"""What every pipeline of a service shares: :class:`PipelineOptions`, the severities of the events,
+"""What every pipeline of a service shares: :class:`PipelineOptions` (from a service configuration: :func:`pipeline_options`), the severities of the events,
 the chain's thresholds (package docstring) and the static detector's thresholds for a unit (:func:`detector_config`)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 from estimators.conventions import (
     EARTH_RATE_RPS,
@@ -22,6 +23,9 @@ from protocols.events import (
     Predicate,
     Severity,
 )
+
+if TYPE_CHECKING:
+    from service.config import ServiceConfig
 
 PIPELINE_STATE_VERSION = 1
 
@@ -163,4 +167,20 @@ def detector_config(
         gyro_rate_rps=EARTH_RATE_RPS * math.sqrt(1.0 + 2.0 * lambda0)
         + DETECTOR_NOISE_FACTOR * window_noise,
         gyro_rate_centre_rps=(float(zero[0]), float(zero[1]), float(zero[2])),
+    )
+
+
+def pipeline_options(config: ServiceConfig) -> PipelineOptions:
+    """The pipelines' options from the service configuration."""
+    site = config.site
+    # A configured gravity (measured or WGS-84 at the site) is good to ~1e-4; standard gravity to ~3e-3.
+    rel_err = 1.0e-4 if (site.gravity_mps2 is not None or site.latitude_deg is not None) else 3.0e-3
+    return PipelineOptions(
+        gravity_mps2=site.local_gravity_mps2,
+        gravity_rel_err=rel_err,
+        false_alarm_probability=config.pipeline.false_alarm_probability,
+        f0_persistence_s=config.pipeline.f0_persistence_s,
+        diagnosis_false_alarm_probability=DEFAULT_FALSE_ALARM_PROB,
+        min_positions=config.pipeline.min_positions,
+        validity=config.validity,
     )
