@@ -1330,8 +1330,9 @@ def extend_model(
     for c in cands:
         if not c.selected:
             continue
-        # A change whose axis is not identifiable is re-simulated on the axis fitted: the scalar alike.
-        axis = c.axis or c.params.get("fitted_axis")
+        # A change whose axis is not identifiable is re-simulated on the alike axis of the smallest step
+        # (candidates.smallest_alike): the tie's winner could need many times the step and show it as excess.
+        axis = c.axis or c.params.get("simulated_axis")
         i = None if axis is None else AXES.index(axis)
         ref = g if c.triad is Triad.ACCEL else EARTH_RATE_RPS
         if c.effect == "bias_instability":
@@ -1362,9 +1363,9 @@ def extend_model(
         elif c.effect == "cross_axis_nonlinearity":
             kc[:] = c.params["kc_norm"] / g / 3.0
         elif c.effect == "bias_step":
-            step[c.triad][i] = (
-                c.params["step_norm"] * g if c.triad is Triad.ACCEL else c.params["step_rps"]
-            )
+            key = "step_norm" if c.triad is Triad.ACCEL else "step_rps"
+            value = float(c.params[f"simulated_{key}" if c.axis is None else key])
+            step[c.triad][i] = value * g if c.triad is Triad.ACCEL else value
             t_step[c.triad][i] = change_time(c)
         elif c.effect == "nonorthogonality_change":
             cosine_change = np.array([c.params[f"d_{p}_change"] for p in ("xy", "xz", "yz")])

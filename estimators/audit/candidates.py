@@ -62,7 +62,9 @@ direction of gravity in the sensor axes, ``ΔT`` temperature about its mean):
   triad ``J_d`` (three cosines), from position ``b`` on, profiled over the ``n − 1`` breaks (a knock or a
   mounting slip in a turn); the threshold splits the candidate's share of the rate over the breaks, the ranking uses the
   single test's margin (:func:`forward_select`): a deterministic effect is not beaten by one that
-  explains less behind a lower threshold;
+  explains less behind a lower threshold; once several are selected each break is re-profiled with the
+  others refitted (:func:`_reprofiled`), and a change whose axis is not told is re-simulated on the alike
+  axis of the smallest step (:func:`smallest_alike`);
 * ``clipping``: samples held on a rail, read from the samples (:func:`clipping_candidates`);
 * ``spectral_line``: a peak of the static samples' spectrum over its floor (:func:`line_candidates`);
 * ``lowpass`` (noise colour): the static noise through a firmware Butterworth low-pass, order and
@@ -239,6 +241,8 @@ class MeanTest:
 
     ``rivals``: for a selected candidate, every candidate's LR in the round it joined (against the
     same model): a profiled change's likelihood over its breaks, for the interval of its time.
+    ``rival_fits``: for a selected change, each rival's (coefficients, standard errors) against the same
+    model (what the change would be on another axis at its break, :func:`alike_axes`).
     """
 
     lr: float
@@ -248,6 +252,7 @@ class MeanTest:
     se: FloatArray
     selected: bool
     rivals: dict[int, float] = field(default_factory=dict)
+    rival_fits: dict[int, tuple[FloatArray, FloatArray]] = field(default_factory=dict)
 
 
 def forward_select(
@@ -257,6 +262,7 @@ def forward_select(
     n_tests: int,
     multiplicity: dict[int, int] | None = None,
     known_scale: bool = False,
+    changes: dict[int, object] | None = None,
 ) -> dict[int, MeanTest]:
     """Stepwise selection of mean effects (weighted columns ``regs[key]`` (n, k)), every step a joint refit.
 
@@ -286,11 +292,18 @@ def forward_select(
     it explains, not against a scale the others' leftovers inflate, so effects that are there
     together are found together; thresholds χ²ₖ at the same split rate.
 
+    ``changes[key]``: which profiled change the candidate is one break of (its effect and axis). Once a
+    change is selected next to others, every selected change's break is re-profiled with the others
+    refitted, until none moves (:func:`_reprofiled`): the first change's break was fixed before a second
+    joined, so a step on two axes at one turn was placed at two turns, each wrong.
+
     Every selected effect's test is the last joint one (against all the others); a change's ``rivals``
-    are every candidate's LR against the same model (the profile of its break); an unselected
-    candidate's test is against the final set.
+    are every candidate's LR against the same model, its own breaks' with the other changes re-profiled
+    (:func:`_change_profile`, the profile of its break); an unselected candidate's test is against the
+    final set.
     """
     mult = multiplicity or {}
+    group = changes or {}
 
     def threshold(k: int, p: int, tests_: int) -> float:
         return _threshold(k, tests_) if known_scale else _threshold_mean(k, z.size, p, tests_)
@@ -328,6 +341,7 @@ def forward_select(
             selected = [*selected, max(passing, key=lambda k: single_margin(k, tests[k], selected))]
         else:
             selected = _swapped(selected, regs, test, passes, single_margin)
+        selected = _reprofiled(selected, group, test)
         while len(selected) > 1:
             joint = {k: test(k, [j for j in selected if j != k]) for k in selected}
             failing = [k for k in selected if not passes(joint[k])]
@@ -348,11 +362,60 @@ def forward_select(
     for k in selected:
         others = [j for j in selected if j != k]
         t = test(k, others)
-        rivals = (
-            {j: test(j, others).lr for j in regs if j not in others} if mult.get(k, 1) > 1 else {}
-        )
-        out[k] = MeanTest(t.lr, t.threshold, t.cv_ratio, t.coef, t.se, True, rivals)
+        if mult.get(k, 1) > 1:
+            fits = {j: test(j, others) for j in regs if j not in others}
+            rivals = _change_profile(k, others, {j: u.lr for j, u in fits.items()}, group, test)
+            rival_fits = {j: (u.coef, u.se) for j, u in fits.items()}
+        else:
+            rivals, rival_fits = {}, {}
+        out[k] = MeanTest(t.lr, t.threshold, t.cv_ratio, t.coef, t.se, True, rivals, rival_fits)
     return out
+
+
+def _reprofiled(
+    selected: list[int], group: dict[int, object], test: Callable[[int, list[int]], MeanTest]
+) -> list[int]:
+    """``selected`` with each change (``group``: the breaks of one change) moved to the break of the largest LR
+    against the others refitted, until none moves. Each move raises the joint fit (the LR against the
+    same others ranks the joint fits), so the loop ends; alone, a change already sits at its best break."""
+    out = list(selected)
+    moved = len(out) > 1
+    while moved:
+        moved = False
+        for i, s in enumerate(out):
+            if s not in group:
+                continue
+            others = out[:i] + out[i + 1 :]
+            tried = {
+                c: test(c, others).lr for c in group if group[c] == group[s] and c not in others
+            }
+            best = max(tried, key=lambda c: tried[c])
+            if tried[best] > tried[s]:
+                out[i], moved = best, True
+    return out
+
+
+def _change_profile(
+    k: int,
+    others: list[int],
+    lrs: dict[int, float],
+    group: dict[int, object],
+    test: Callable[[int, list[int]], MeanTest],
+) -> dict[int, float]:
+    """The rivals of the selected change ``k``: every candidate's LR against ``others`` (``lrs``), its own breaks'
+    profiled: at each break of ``k``'s change, the best joint fit over the breaks of each other selected
+    change (one moved at a time), less the fit of ``others``. With the other change held at its break, a
+    step on two axes at one turn had a profile that peaked where the other was put and excluded the turn."""
+    rivals = dict(lrs)
+    for o in (o for o in others if o in group):
+        rest = [j for j in others if j != o]
+        own = test(o, rest).lr
+        for c in (c for c in group if group[c] == group[o] and c != o and c not in rest):
+            # LRs add along a chain of nested fits: J(rest + c + j) − J(others) = LR(c | rest) − LR(o | rest) + LR(j | rest + c).
+            shift = test(c, rest).lr - own
+            for j in (j for j in rivals if group.get(j) == group.get(k) and j != c):
+                rivals[j] = max(rivals[j], shift + test(j, [*rest, c]).lr)
+    return rivals
 
 
 def _swapped(
@@ -1404,6 +1467,7 @@ def _select_means(
         n_tests,
         {k: e.breaks for k, e in enumerate(effects)},
         known_scale,
+        {k: (e.name, e.axis) for k, e in enumerate(effects) if e.after is not None},
     )
     chosen = [effects[k].reg for k, t in tests.items() if t.selected]
     halves_mean = np.zeros((data.size, n_halves))
@@ -1487,8 +1551,8 @@ def _mean_candidates(
     :data:`CHANGE_TIME_LR` of the best (a 95 % profile-likelihood set; a break only positions blind to
     the axis lie next to is as likely as the best), its middle ± half its span. A selected change whose
     break another axis explains as well (its LR within :data:`CHANGE_TIME_LR` in the round it joined) is
-    named for the triad, the axes in ``axes_alike`` and the one fitted in ``fitted_axis``
-    (:func:`alike_axes`).
+    named for the triad, the axes in ``axes_alike`` and the one fitted in ``fitted_axis`` (:func:`alike_axes`);
+    the extended model re-simulates it on ``simulated_axis`` at ``simulated_<key>``, the smallest (:func:`smallest_alike`).
     """
     shown: dict[tuple[str, int], int] = {}
     for k, t in tests.items():
@@ -1504,6 +1568,8 @@ def _mean_candidates(
     for k in shown.values():
         t, e = tests[k], effects[k]
         ax = None if e.triad_level else AXES[e.axis]
+        changed = e.after is not None and not e.triad_level
+        alike = alike_axes(effects, tests, k) if t.selected and changed else []
         fitted: CandidateParams = (
             {key: float(e.sign * c * to_si) for key, c in zip(e.keys, t.coef, strict=True)}
             | {f"{key}_se": float(s * to_si) for key, s in zip(e.keys, t.se, strict=True)}
@@ -1531,11 +1597,19 @@ def _mean_candidates(
                 "breaks_tried": e.breaks,
             } | change_min_detectable(effects, tests, k, to_si, scalar_tests)
             when = f" in the turn before position {e.after} ({lo:.1f}–{hi:.1f} s; {e.breaks} breaks tried)"
-        changed = e.after is not None and not e.triad_level
-        alike = alike_axes(effects, tests, k) if t.selected and changed else []
         if len(alike) > 1:
             ax = None
-            fitted |= {"axes_alike": alike, "fitted_axis": AXES[e.axis]}
+            # Re-simulated on the alike axis of the smallest step (its own sizes stay the fitted axis').
+            src = smallest_alike(effects, t, k, alike)
+            coef = t.coef if src == k else t.rival_fits[src][0]
+            fitted |= {
+                "axes_alike": alike,
+                "fitted_axis": AXES[e.axis],
+                "simulated_axis": AXES[effects[src].axis],
+            } | {
+                f"simulated_{key}": float(e.sign * c * to_si)
+                for key, c in zip(e.keys, coef, strict=True)
+            }
             when += (
                 f"; its axis is not identifiable: {', '.join(alike)} explain it alike (one position on "
                 "one side of the turn, or their columns alike there)"
@@ -1610,6 +1684,23 @@ def alike_axes(effects: list[_MeanEffect], tests: dict[int, MeanTest], k: int) -
             if lr >= test.lr - CHANGE_TIME_LR:
                 out.append(AXES[o.axis])
     return out
+
+
+def smallest_alike(effects: list[_MeanEffect], test: MeanTest, k: int, alike: list[str]) -> int:
+    """Of the selected change ``effects[k]`` and its rivals at its break on the ``alike`` axes, the key of the
+    smallest fitted change. The axes explain the data alike, so the step on each is the datum over that
+    axis' column: the tie's winner (the first axis tried) could carry a column near zero and a step many
+    times the others', which, re-simulated, shows on that axis' own statistics as unexplained excess; the
+    smallest is the least change that explains what the data show."""
+    e = effects[k]
+    keys = [k] + [
+        j
+        for j in test.rival_fits
+        if (effects[j].name, effects[j].after) == (e.name, e.after)
+        and AXES[effects[j].axis] in alike
+    ]
+    size = {j: float(np.linalg.norm(test.coef if j == k else test.rival_fits[j][0])) for j in keys}
+    return min(keys, key=lambda j: size[j])
 
 
 @dataclass(frozen=True)
