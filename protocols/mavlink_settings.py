@@ -165,21 +165,25 @@ class MavlinkSettings:
                 raise ValueError(f"{name} must be in 0..255, got {value}")
         object.__setattr__(self, "messages", tuple(ImuMessage(m) for m in self.messages))
 
-    _KEYS = (
+    _PLAIN_KEYS = (
         "device",
         "vehicle",
         "baud",
         "source_system",
         "source_component",
         "autopilot_system",
+        "signing_link_id",
+        "accept_unsigned",
+        "udp_rcvbuf_bytes",
+    )
+    """The keys taken as they are; the others are converted (:meth:`from_dict`)."""
+    _KEYS = (
+        *_PLAIN_KEYS,
         "messages",
         "imu_index",
         "raw_scale",
         "signing_key_hex",
         "signing_key_file",
-        "signing_link_id",
-        "accept_unsigned",
-        "udp_rcvbuf_bytes",
     )
 
     @classmethod
@@ -193,21 +197,7 @@ class MavlinkSettings:
         for name in ("device", "vehicle"):
             if not isinstance(table.get(name), str) or not table[name]:
                 raise ValueError(f"mavlink {name} must be a non-empty string")
-        kw: dict[str, Any] = {
-            k: table[k]
-            for k in (
-                "device",
-                "vehicle",
-                "baud",
-                "source_system",
-                "source_component",
-                "autopilot_system",
-                "signing_link_id",
-                "accept_unsigned",
-                "udp_rcvbuf_bytes",
-            )
-            if k in table
-        }
+        kw: dict[str, Any] = {k: table[k] for k in cls._PLAIN_KEYS if k in table}
         try:
             if "messages" in table:
                 kw["messages"] = tuple(ImuMessage(m) for m in table["messages"])

@@ -36,7 +36,7 @@ from estimators.audit.hidden import (
 from estimators.audit.statistics import scalar_residuals
 from estimators.chain import ChainConfig
 from estimators.conventions import EARTH_RATE_RPS, Triad
-from estimators.sim import BiasStep, Grade, TemperatureHysteresis
+from estimators.sim import BiasStep, ErrorModel, Grade, TemperatureHysteresis
 from service.audit_report import temperature_panel, write_report
 
 G = 9.80665
@@ -267,22 +267,33 @@ def test_a_gyro_mechanism_plot_puts_the_earth_rate_on_its_orientation_axis(tmp_p
     assert "u_x (the Earth rate on the axis)" in xlabels, xlabels
 
 
-def test_a_step_on_two_axes_at_one_turn_has_a_time_interval_that_holds_the_turn():
-    # Steps of 10 SE on x and y in the turn before position 13: each axis' break was profiled with the
-    # other's held where forward selection had put it, so the profile peaked there and both intervals
-    # (130.5 ± 5.8 s and 134.5 ± 1.8 s) excluded the turn (102.5 s); re-profiled with the other refitted
-    # at each of its breaks, every interval holds it (12 of 12 on seeds 390000-390005, 7 of 12 before).
-    seed, after = 390004, 13
+def _gyro_steps_at_10_se(seed: int, after: int) -> tuple[ErrorModel, float, np.ndarray]:
+    """A navigation unit's model, the time of the turn before position ``after`` (s) and, per gyro axis,
+    a step of 10 of its standard errors at that turn (rad/s)."""
     m = baseline_model(np.random.default_rng(seed), NAV)
     s, chain = session_of(m, seed, grade=NAV)
     base = fit_baselines(s, chain, colour=False)
     jac = scalar_residuals(
         base[Triad.GYRO].params, candidate_table(chain, s, Triad.GYRO, base[Triad.GYRO])
     )[2]
-    step = np.zeros(3)
-    for i in (0, 1):
-        step[i] = 10.0 * change_se(s, chain, jac[:, [i]], after, Triad.GYRO)[0] * EARTH_RATE_RPS
+    step = np.array(
+        [
+            10.0 * change_se(s, chain, jac[:, [i]], after, Triad.GYRO)[0] * EARTH_RATE_RPS
+            for i in range(3)
+        ]
+    )
     t = 0.5 * (chain.positions[after - 1].t_end_s + chain.positions[after].t_start_s)
+    return m, t, step
+
+
+def test_a_step_on_two_axes_at_one_turn_has_a_time_interval_that_holds_the_turn():
+    # Steps of 10 SE on x and y in the turn before position 13: each axis' break was profiled with the
+    # other's held where forward selection had put it, so the profile peaked there and both intervals
+    # (130.5 ± 5.8 s and 134.5 ± 1.8 s) excluded the turn (102.5 s); re-profiled with the other refitted
+    # at each of its breaks, every interval holds it (12 of 12 on seeds 390000-390005, 7 of 12 before).
+    seed = 390004
+    m, t, step_10se = _gyro_steps_at_10_se(seed, after=13)
+    step = np.array([step_10se[0], step_10se[1], 0.0])
     s2, chain2 = session_of(
         m.with_effect(BiasStep(np.full(3, t), step), Triad.GYRO), seed, grade=NAV
     )
@@ -302,15 +313,9 @@ def test_a_step_whose_axis_is_not_told_is_re_simulated_as_the_smallest_step_that
     # each the datum over that axis' column. The first axis tried (x) won the tie and was re-simulated
     # at 2.0e-4 rad/s, 30 times the hidden 6.6e-6, an excess on the per-axis gyro statistics; the step
     # on any alike axis is at most the hidden axis' own (within its noise: 10 SE ± 4).
-    seed, after = 360000, 1
-    m = baseline_model(np.random.default_rng(seed), NAV)
-    s, chain = session_of(m, seed, grade=NAV)
-    base = fit_baselines(s, chain, colour=False)
-    jac = scalar_residuals(
-        base[Triad.GYRO].params, candidate_table(chain, s, Triad.GYRO, base[Triad.GYRO])
-    )[2]
-    hidden = 10.0 * change_se(s, chain, jac[:, [1]], after, Triad.GYRO)[0] * EARTH_RATE_RPS
-    t = 0.5 * (chain.positions[after - 1].t_end_s + chain.positions[after].t_start_s)
+    seed = 360000
+    m, t, step_10se = _gyro_steps_at_10_se(seed, after=1)
+    hidden = step_10se[1]
     s2, chain2 = session_of(
         m.with_effect(BiasStep(np.full(3, t), [0.0, hidden, 0.0]), Triad.GYRO), seed, grade=NAV
     )
