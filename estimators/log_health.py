@@ -289,6 +289,11 @@ class ImuHealthAccumulator:
             if t.size and t[0] <= pt[-1] and pt.size >= 2:
                 # A run shorter than RUN_START_SAMPLES, ended by a restart: taken on its own.
                 self._begin(pt, pa, pg, ptemp)
+            elif t.size and t[0] <= pt[-1]:
+                # A run of one sample, ended by a restart: no interval to start the filters on,
+                # and joined to the next run it would be a step back in its time.
+                self.n_samples += 1
+                self._run += 1
             else:
                 t, a, g, temp = (
                     np.concatenate([pt, t]), np.vstack([pa, a]), np.vstack([pg, g]), np.concatenate([ptemp, temp]),
@@ -497,8 +502,11 @@ class ImuHealthAccumulator:
     def result(self, gravity_mps2: float) -> ImuHealth:
         """The figures (module docstring); ``gravity_mps2`` is the local gravity the residual refers to."""
         self._flush()
-        if self._pending is not None and self._pending[0].size >= 2:
-            self._begin(*self._pending)
+        if self._pending is not None:
+            if self._pending[0].size >= 2:
+                self._begin(*self._pending)
+            else:
+                self.n_samples += 1
             self._pending = None
         c = self._carry
         self._blocks(c.t, c.a, c.g, c.temp, c.vibe, c.px4a, c.px4g, final=True)

@@ -70,7 +70,7 @@ import numpy as np
 from pyulog import ULog
 
 from estimators.session import ImuSession
-from protocols.ulog_numpy import message_run
+from protocols.ulog_numpy import DATA, DATA_MIN_SIZE, SUBSCRIBE, message_run
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 SYNC_BYTES = b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"
@@ -88,6 +88,10 @@ INTERLEAVE_S = 0.5
 """Slices of log time in which the IMUs of one flush are handed on in turn (:func:`_interleave`)."""
 MAX_MESSAGE_BYTES = 10000
 """A larger (or empty) message is taken as corruption, as pyulog does."""
+_MIN_SIZE = {DATA: DATA_MIN_SIZE, SUBSCRIBE: 3}
+"""Bytes a data and a subscription message need for their fixed fields (``msg_id``; ``multi_id``
+and ``msg_id``): one shorter is a corrupt message, not read past its end (into the next message,
+or past the file's end: a log cut after such a message raised)."""
 MAX_FLAT_FIELDS = 2 * MAX_MESSAGE_BYTES
 """Most fields and nested instances a topic's format may flatten to (:func:`struct_dtype`). A data
 message holds at most :data:`MAX_MESSAGE_BYTES`, each field takes a byte or more and each nested
@@ -340,6 +344,12 @@ class UlogImuStream:
                 if end > len(buf):
                     self.contents.cut_at_byte = self.size - (len(buf) - pos)
                     break
+                if size < _MIN_SIZE.get(mtype, 1):
+                    # Too short for its fixed fields: corrupt, but its size still says where the
+                    # next message starts.
+                    self.contents.corrupt_messages += 1
+                    pos = end
+                    continue
                 if mtype == 0x44:  # 'D'
                     (msg_id,) = struct.unpack_from("<H", buf, pos + 3)
                     sub = subs.get(msg_id)

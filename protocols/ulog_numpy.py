@@ -7,7 +7,8 @@ row is the walk of :func:`protocols.byte_chain.chain`: the candidates are the po
 the stream takes (a size of 1 … :data:`protocols.ulog.MAX_MESSAGE_BYTES`, a type letter ``A`` … ``Z``),
 each leading to the one where its message ends. The run stops before anything the stream does one
 step at a time: a header it takes as corrupt, a subscription (``A``: it changes what later data
-messages are), a message the buffer does not hold whole, or one starting past ``stop``.
+messages are), a message the buffer does not hold whole, a data message too short for its id, or
+one starting past ``stop``.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ import numpy as np
 from protocols.byte_chain import chain
 
 SUBSCRIBE = ord("A")
+DATA = ord("D")
+DATA_MIN_SIZE = 2
+"""A data message's ``uint16 msg_id``: one shorter is corrupt (the stream's loop says so)."""
 
 
 def message_run(
@@ -37,6 +41,7 @@ def message_run(
     at = np.flatnonzero(maybe)
     size = head[at].astype(np.int64) | (head[at + 1].astype(np.int64) << 8)
     good = (size > 0) & (size <= max_size) & (pos + at + 3 + size <= d.size)
+    good &= (size >= DATA_MIN_SIZE) | (kind[at] != DATA)
     at, size = at[good], size[good]
     if not at.size or at[0] != 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.uint8), np.zeros(0, dtype=np.int64)

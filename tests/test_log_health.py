@@ -176,6 +176,21 @@ def _cuts(lo, hi, size):
     return [(k, min(k + size, hi)) for k in range(lo, hi, size)]
 
 
+def test_a_run_of_one_sample_is_counted_and_not_joined_to_the_next():
+    """A reboot right after the logger's first IMU sample: that run has no interval to start the
+    filters on. Joined to the next run it made a step back of 47 s: the duration came out
+    negative (-17 s) and the restart went uncounted; a last run of one sample was not counted."""
+    t, a, g = _stream((8.0, 16.0))
+    acc = ImuHealthAccumulator(HealthConfig())
+    acc.update(np.array([t[7599] + 47.0]), a[:1], g[:1])
+    for lo, hi in _cuts(7600, t.size, 100):
+        acc.update(t[lo:hi], a[lo:hi], g[lo:hi])
+    acc.update(np.array([t[7600]]), a[:1], g[:1])
+    h = acc.result(G)
+    assert (h.n_samples, h.runs) == (t.size - 7600 + 2, 3)
+    assert h.duration_s == pytest.approx(t[-1] - t[7600])
+
+
 def test_a_block_still_settling_after_motion_is_no_noise():
     """The ringing after a landing (12 Hz, 0.3 m/s² decaying in 0.25 s on z) keeps the first block
     after it within a detector's spread (here 0.2 m/s², a replay raises it to the passport's noise)

@@ -20,6 +20,7 @@ import service.commands.replay as replay_command
 from protocols.logs import write_dataflash_bin
 from protocols.passport_codec import write_passport_json
 from service.demo import DEMO_FAULT_MAGNITUDE, demo_passport, demo_scenario
+from service.pipeline.imu_pipeline import ImuPipeline
 
 FRAME_BY_FRAME = replay_command.REPLAY_BATCH_SAMPLES
 """A group of one frame: the path replay took before issue 33."""
@@ -94,3 +95,28 @@ def test_a_shared_log_replays_as_it_did_frame_by_frame(log, capsys, monkeypatch,
     IMUs goes frame by frame as before; it is left to the replay tests' own checks."""
     before = _replay(capsys, monkeypatch, tmp_path, log, FRAME_BY_FRAME)
     assert _replay(capsys, monkeypatch, tmp_path, log, None) == before
+
+
+def test_frames_lost_to_a_pipeline_error_in_a_group_are_all_counted(capsys, monkeypatch, tmp_path):
+    """The chain raises on the samples of one second of flight: replay names as many frames as the
+    failing calls took (frame by frame a few; grouped, the whole group of about 41 frames is lost,
+    not one frame as the count of calls says)."""
+    log = tmp_path / "boot.bin"
+    write_dataflash_bin(log, {0: _boots()[0]})
+    lost: list[int] = []
+    process = ImuPipeline.process
+
+    def failing(self, batch, *, arrival_s, frames=1):
+        if ((batch.t_s >= 30.0) & (batch.t_s < 31.0)).any():
+            lost.append(frames)
+            raise ValueError("injected")
+        return process(self, batch, arrival_s=arrival_s, frames=frames)
+
+    monkeypatch.setattr(ImuPipeline, "process", failing)
+    for size in (FRAME_BY_FRAME, replay_command.REPLAY_GROUP_SAMPLES):
+        lost.clear()
+        with monkeypatch.context() as m:
+            m.setattr(replay_command, "REPLAY_GROUP_SAMPLES", size)
+            *_, err, _ = replay_with_coverage(capsys, log, "--gravity", demo_passport()[1])
+        assert f"the pipeline failed on {sum(lost)} frame(s) (ValueError: injected)" in err
+    assert max(lost) > 1  # the grouped run lost a joined batch of several frames

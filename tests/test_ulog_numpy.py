@@ -62,3 +62,26 @@ def test_damaged_ulogs_read_as_the_loop_reads_them(tmp_path, monkeypatch, how, s
         data[at : at + 3] = b"\xff\xff\x44"
     path.write_bytes(bytes(data))
     _assert_same_as_the_loop(path, monkeypatch)
+
+
+@pytest.mark.parametrize(
+    "short",
+    [b"\x01\x00D\x07", b"\x01\x00A\x00", b"\x02\x00A\x00\x00"],
+    ids=["data_of_one_byte", "subscription_of_one_byte", "subscription_of_two_bytes"],
+)
+@pytest.mark.parametrize("where", ["at_the_end", "mid_log"])
+def test_a_message_too_short_for_its_fields_is_corrupt(tmp_path, monkeypatch, short, where):
+    """A data message holds a uint16 msg_id, a subscription a uint8 and a uint16: one shorter was
+    read past its end, and at the file's end that raised (IndexError, struct.error) instead of a
+    counted corrupt message. Mid-log it is skipped by its size, the samples all read."""
+    clean = tmp_path / "clean.ulg"
+    write_ulog(clean, three_imus(300, seed=0))
+    data = clean.read_bytes()
+    path = tmp_path / "flight.ulg"
+    # mid-log: a dropout message (5 ms) after it
+    path.write_bytes(data + short + (b"\x02\x00O\x05\x00" if where == "mid_log" else b""))
+    want, _ = _read(clean, monkeypatch, True)
+    for runs in (True, False):
+        got, stats = _read(path, monkeypatch, runs)
+        assert stats.dropped.get("corrupt_messages") == 1
+        assert_same_reading((got, None), (want, None))

@@ -112,7 +112,7 @@ class FleetProcessor:
         refused entry falls back to it too: a corrupt or altered file must not switch F0 off, and the
         unit stays reported as refused (``on_passport_error``, the status). Only a passport of its own
         counts as one for the vehicle limit.
-    on_pipeline_error : told ``(vehicle, imu, error)`` when an IMU's chain raised on a frame: that
+    on_pipeline_error : told ``(vehicle, imu, error)`` for each frame an IMU's chain raised on: that
         IMU starts afresh (its counters kept, ``pipeline.errors`` counted) and the others go on.
     max_vehicles : vehicles served at once; at the limit a vehicle with a passport takes the place of
         the longest idle vehicle without one (``vehicles.evicted_without_passport``, and
@@ -455,15 +455,17 @@ class FleetProcessor:
         try:
             events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
         except Exception as exc:
-            self._start_afresh(pipe, exc)
+            self._start_afresh(pipe, exc, frames=len(run))
             return []
         pipe.last_batch_n = last.n_samples
         return events + self._thrust_imu(pipe)
 
-    def _start_afresh(self, pipe: ImuPipeline, exc: Exception) -> None:
-        """An IMU whose chain raised: a half-updated chain would refuse every later frame (a detector
-        ahead of its positions), so the IMU starts afresh with its passport, keeping its counters
-        (``pipeline.errors`` added), and ``on_pipeline_error`` is told. The other IMUs go on."""
+    def _start_afresh(self, pipe: ImuPipeline, exc: Exception, *, frames: int = 1) -> None:
+        """An IMU whose chain raised on ``frames`` frames (joined ones raise together): a half-updated
+        chain would refuse every later frame (a detector ahead of its positions), so the IMU starts
+        afresh with its passport, keeping its counters (``pipeline.errors`` added), and
+        ``on_pipeline_error`` is told once per frame lost, as frame-by-frame processing tells it.
+        The other IMUs go on."""
         fresh = ImuPipeline(
             pipe.vehicle,
             pipe.imu,
@@ -478,7 +480,8 @@ class FleetProcessor:
         self.pipelines[(pipe.vehicle, pipe.imu)] = fresh
         self._by_vehicle[pipe.vehicle][pipe.imu] = fresh
         if self._on_pipeline_error is not None:
-            self._on_pipeline_error(pipe.vehicle, pipe.imu, f"{type(exc).__name__}: {exc}")
+            for _ in range(frames):
+                self._on_pipeline_error(pipe.vehicle, pipe.imu, f"{type(exc).__name__}: {exc}")
 
     def _cross(self, good: SampleBatch) -> list[Event]:
         """Cross-IMU consistency of a frame's accepted samples (it needs a second IMU on the vehicle):
