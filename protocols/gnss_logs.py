@@ -27,11 +27,10 @@ flags not valid (ULog), a value not finite or unknown, a time not after the prev
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import io
 import os
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -118,9 +117,9 @@ def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
 
 def _mentions(path: str | os.PathLike[str], *names: bytes) -> bool:
     """Whether the file's bytes hold any of ``names`` anywhere: a topic or message of that name
-    cannot be in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every record
-    in Python to find the few GNSS ones, as long as reading the IMU again: a log without GNSS
-    skips that. Read in blocks of :data:`SEARCH_BLOCK_BYTES` (a mapped file's pages would count
+    cannot be in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every
+    record in Python to find the few GNSS ones, as long as reading the IMU again: a log without
+    GNSS skips that. Read in blocks of :data:`SEARCH_BLOCK_BYTES` (a mapped file's pages would count
     in the process's resident memory), each searched with the last bytes before it."""
     tail = b""
     keep = max(map(len, names)) - 1
@@ -150,7 +149,7 @@ def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
         return None
     taken = max(tracks, key=lambda track: track.t_s.size)  # the first of a tie (module docstring)
     unused = {track.source: int(track.t_s.size) for track in tracks if track is not taken}
-    return dataclasses.replace(taken, unused=unused)
+    return replace(taken, unused=unused)
 
 
 def _ulog_track(f: dict[str, np.ndarray], source: str) -> GnssTrack:
