@@ -4,9 +4,13 @@ The receiver's own velocity, never a filter's (the EKF's velocity is built from 
 under test and would agree with its fault). Converted here to SI, East-North-Up, on the log's IMU
 clock:
 
-* PX4 ULog (pyulog): topic ``vehicle_gps_position`` (instance 0), ``timestamp`` µs,
-  ``vel_n_m_s``, ``vel_e_m_s``, ``vel_d_m_s``; an epoch counts with ``fix_type`` ≥ 3 and
-  ``vel_ned_valid``.
+* PX4 ULog (pyulog): topics :data:`ULOG_GNSS_TOPICS`, ``timestamp`` µs (``timestamp_sample``,
+  where the message has it, is 0 in the shared SITL log), ``vel_n_m_s``, ``vel_e_m_s``,
+  ``vel_d_m_s``; an epoch counts with ``fix_type`` ≥ 3 and ``vel_ned_valid``. Of the topics and
+  instances the log holds, the one with the most such epochs is taken, a tie going to
+  ``vehicle_gps_position``, then to the lowest instance: the check learns its noise and judges on
+  epochs, and the others are said (:attr:`GnssTrack.unused`). Each receiver's ``sensor_gps``
+  instance is kept apart, never mixed: receivers differ in lag and noise.
 * ArduPilot DataFlash ``.bin``/``.log`` (pymavlink): message ``GPS`` (instance ``I`` 0 where the
   format has it), ``TimeUS`` µs (ArduCopter 3.1: ``T`` ms), ground speed ``Spd`` m/s along the course ``GCrs`` (degrees from
   north), ``VZ`` m/s down; ``Status`` ≥ 3 (3D fix).
@@ -16,8 +20,8 @@ clock:
   velocity over the two neighbouring epochs (:func:`estimators.thrust_gnss.up_velocity_from_altitude`).
   Unknown speed or course (``UINT16_MAX``) leaves the epoch out.
 
-Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a value not finite or
-unknown, a time not after the previous epoch's.
+Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a velocity the receiver
+flags not valid (ULog), a value not finite or unknown, a time not after the previous epoch's.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ import contextlib
 import io
 import os
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +44,12 @@ from protocols.mavlink_settings import GPS_RAW_INT_FIELDS, MILLI_UNITS
 GPS_FIX_3D = 3
 SEARCH_BLOCK_BYTES = 1 << 20
 UNKNOWN_U16 = 65535
+ULOG_GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
+"""PX4 topics of the receivers' own solution with NED velocity and its validity flag:
+``vehicle_gps_position``, what PX4's sensors module publishes from the receivers (the selected
+one, or the blend of several weighted by their reported accuracy; no IMU in it), and
+``sensor_gps``, each receiver's own (an instance per receiver; on newer PX4 the only one a log
+may hold). PX4's default logging profile writes the first every 100 ms, the second every 1 s."""
 
 
 class GnssLogError(ValueError):
@@ -49,23 +59,35 @@ class GnssLogError(ValueError):
 @dataclass(frozen=True)
 class GnssTrack:
     """GNSS velocity epochs of one receiver: ``t_s`` (M,) s on the IMU clock, ``vel_enu_mps``
-    (M, 3); ``source`` the message or topic; ``rejected`` epochs left out by reason."""
+    (M, 3); ``source`` the message or topic; ``rejected`` epochs left out by reason; ``unused``
+    the other GNSS topics or instances the log holds, not taken, with their usable epochs."""
 
     t_s: FloatArray
     vel_enu_mps: FloatArray
     source: str
     rejected: dict[str, int] = field(default_factory=dict)
+    unused: dict[str, int] = field(default_factory=dict)
 
     @property
     def rate_hz(self) -> float:
         return 1.0 / float(np.median(np.diff(self.t_s))) if self.t_s.size > 1 else 0.0
 
 
-def _track(t_s: FloatArray, vel: FloatArray, fix_ok: np.ndarray, source: str) -> GnssTrack:
-    """The epochs with a 3D fix and finite values, in increasing time; the rest counted."""
+def _track(
+    t_s: FloatArray,
+    vel: FloatArray,
+    fix_ok: np.ndarray,
+    source: str,
+    vel_ok: np.ndarray | None = None,
+) -> GnssTrack:
+    """The epochs with a 3D fix, a velocity not flagged invalid (``vel_ok``, where the record has
+    the flag) and finite values, in increasing time; the rest counted."""
     rejected: dict[str, int] = {}
     keep = np.asarray(fix_ok, bool)
     rejected["no_3d_fix"] = int((~keep).sum())
+    if vel_ok is not None:
+        rejected["velocity_not_valid"] = int((keep & ~vel_ok).sum())
+        keep &= vel_ok
     finite = np.all(np.isfinite(vel), axis=1) & np.isfinite(t_s)
     rejected["not_finite"] = int((keep & ~finite).sum())
     keep &= finite
@@ -93,38 +115,50 @@ def read_gnss_track(path: str | os.PathLike[str]) -> GnssTrack | None:
         raise GnssLogError(f"{os.fspath(path)}: GNSS records unreadable: {exc}") from exc
 
 
-def _mentions(path: str | os.PathLike[str], name: bytes) -> bool:
-    """Whether the file's bytes hold ``name`` anywhere: a topic or message of that name cannot be
-    in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every record
-    in Python to find the few GNSS ones, as long as reading the IMU again: a log without GNSS
-    skips that. Read in blocks of :data:`SEARCH_BLOCK_BYTES` (a mapped file's pages would count
+def _mentions(path: str | os.PathLike[str], *names: bytes) -> bool:
+    """Whether the file's bytes hold any of ``names`` anywhere: a topic or message of that name
+    cannot be in a log whose bytes do not hold it. pyulog and pymavlink's text reader decode every
+    record in Python to find the few GNSS ones, as long as reading the IMU again: a log without
+    GNSS skips that. Read in blocks of :data:`SEARCH_BLOCK_BYTES` (a mapped file's pages would count
     in the process's resident memory), each searched with the last bytes before it."""
     tail = b""
+    keep = max(map(len, names)) - 1
     with open(path, "rb") as fh:
         while block := fh.read(SEARCH_BLOCK_BYTES):
             window = tail + block
-            if name in window:
+            if any(name in window for name in names):
                 return True
-            tail = window[max(0, len(window) - len(name) + 1) :]
+            tail = window[max(0, len(window) - keep) :]
     return False
 
 
 def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     from pyulog import ULog
 
-    topic = "vehicle_gps_position"
-    if not _mentions(path, topic.encode()):
+    if not _mentions(path, *(topic.encode() for topic in ULOG_GNSS_TOPICS)):
         return None
     # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
     with contextlib.redirect_stdout(io.StringIO()):
-        log = ULog(os.fspath(path), [topic], disable_str_exceptions=True)
-    data = next((d for d in log.data_list if d.name == topic and d.multi_id == 0), None)
-    if data is None:
+        log = ULog(os.fspath(path), list(ULOG_GNSS_TOPICS), disable_str_exceptions=True)
+    held = sorted(log.data_list, key=lambda d: (ULOG_GNSS_TOPICS.index(d.name), d.multi_id))
+    several = {d.name for d in held if d.multi_id > 0}
+    tracks = [
+        _ulog_track(d.data, f"{d.name}.{d.multi_id}" if d.name in several else d.name) for d in held
+    ]
+    if not tracks:
         return None
-    f = data.data
+    taken = max(tracks, key=lambda track: track.t_s.size)  # the first of a tie (module docstring)
+    unused = {track.source: int(track.t_s.size) for track in tracks if track is not taken}
+    return replace(taken, unused=unused)
+
+
+def _ulog_track(f: dict[str, np.ndarray], source: str) -> GnssTrack:
+    """The epochs of one instance of a :data:`ULOG_GNSS_TOPICS` topic: NED m/s to ENU, µs to s."""
     vel = np.column_stack([f["vel_e_m_s"], f["vel_n_m_s"], -np.asarray(f["vel_d_m_s"], float)])
-    fix_ok = (np.asarray(f["fix_type"]) >= GPS_FIX_3D) & (np.asarray(f["vel_ned_valid"]) != 0)
-    return _track(np.asarray(f["timestamp"], float) * 1e-6, vel.astype(float), fix_ok, topic)
+    fix_ok = np.asarray(f["fix_type"]) >= GPS_FIX_3D
+    vel_ok = np.asarray(f["vel_ned_valid"]) != 0
+    t_s = np.asarray(f["timestamp"], float) * 1e-6
+    return _track(t_s, vel.astype(float), fix_ok, source, vel_ok)
 
 
 def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:

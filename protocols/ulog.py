@@ -715,12 +715,19 @@ _FORMATS = {
     ),
     "sensor_selection": "uint64_t timestamp;uint32_t accel_device_id;uint32_t gyro_device_id;",
     "vehicle_status": "uint64_t timestamp;uint8_t arming_state;uint8_t nav_state;",
+    **dict.fromkeys(
+        ("sensor_gps", "vehicle_gps_position"),
+        "uint64_t timestamp;uint64_t timestamp_sample;uint32_t device_id;float vel_n_m_s;"
+        "float vel_e_m_s;float vel_d_m_s;uint8_t fix_type;bool vel_ned_valid;",
+    ),
 }
 _PACK = {
     "sensor_combined": struct.Struct("<Q3fIi3fIBBBB"),
     "sensor_accel": struct.Struct("<QQI4fI3BB"),
     "sensor_gyro": struct.Struct("<QQI4fI3BB"),
     "sensor_selection": struct.Struct("<QII"),
+    "sensor_gps": struct.Struct("<QQI3fB?"),
+    "vehicle_gps_position": struct.Struct("<QQI3fB?"),
 }
 DEVICE_ID_BASE = 0x240000
 """Device ids the writer gives the IMUs' sensors (``DEVICE_ID_BASE + imu``)."""
@@ -733,6 +740,21 @@ def session_triads(session: ImuSession) -> tuple[np.ndarray, np.ndarray]:
     return session.accel_mps2, session.gyro_rps
 
 
+@dataclass(frozen=True)
+class UlogGnss:
+    """A receiver's epochs for :func:`write_ulog`: ``topic`` ``sensor_gps`` or
+    ``vehicle_gps_position`` (the fields :mod:`protocols.gnss_logs` reads), instance ``multi_id``,
+    ``t_s`` (M,) s, ``vel_ned_mps`` (M, 3) North-East-Down, per epoch (or one for all)
+    ``fix_type`` and ``vel_ned_valid``."""
+
+    topic: str
+    t_s: np.ndarray
+    vel_ned_mps: np.ndarray
+    multi_id: int = 0
+    fix_type: int | np.ndarray = 3
+    vel_ned_valid: bool | np.ndarray = True
+
+
 def _message(mtype: bytes, payload: bytes) -> bytes:
     return struct.pack("<H", len(payload)) + mtype + payload
 
@@ -743,6 +765,7 @@ def write_ulog(
     *,
     clipped: Mapping[int, np.ndarray] | None = None,
     topics: Sequence[str] | None = None,
+    gnss: Sequence[UlogGnss] = (),
     system: str = "ins-health",
 ) -> int:
     """Write IMU sessions as a ULog file (module docstring); returns the number of data messages.
@@ -752,6 +775,7 @@ def write_ulog(
     with ``temperature``. ``clipped`` (per IMU, (N,) bool) sets the clipping bits/counters of those
     samples. ``topics`` restricts what is written (e.g. ``["vehicle_status"]`` for a log without IMU
     topics, which then holds one ``vehicle_status`` message per second of the first session).
+    ``gnss``: receivers' epochs written beside them (:class:`UlogGnss`).
     """
     wanted = set(topics) if topics is not None else set(_PACK)
     clipped = clipped or {}
@@ -795,6 +819,13 @@ def write_ulog(
                 tk = int(t_us[k])
                 data(tk, "sensor_accel", imu - 1, tk, tk, dev, *map(float, acc[k]), float(temp[k]), 0, c, c, c, 1)  # fmt: skip
                 data(tk, "sensor_gyro", imu - 1, tk, tk, dev, *map(float, gyr[k]), float(temp[k]), 0, c, c, c, 1)  # fmt: skip
+    for receiver in gnss:
+        n = len(receiver.t_s)
+        fix = np.broadcast_to(receiver.fix_type, n)
+        valid = np.broadcast_to(receiver.vel_ned_valid, n)
+        for k, t in enumerate(np.round(np.asarray(receiver.t_s) * 1e6).astype(np.int64)):
+            data(int(t), receiver.topic, receiver.multi_id, int(t), int(t), 0,
+                 *map(float, receiver.vel_ned_mps[k]), int(fix[k]), bool(valid[k]))  # fmt: skip
     rows.sort()
     start_us = rows[0][0] if rows else 0
     with open(path, "wb") as fh:

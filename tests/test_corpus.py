@@ -327,6 +327,38 @@ def test_what_replay_leaves_out_is_said_with_a_count(log, reports):
         assert f"{reason} {count}" in run.err
 
 
+GNSS_NOTE = re.compile(
+    r"GNSS: (?P<used>\d+) epochs of (?P<source>\S+) at [^;]+; left out (?P<left>[^;\n]+)"
+    r"(?:; not used: (?P<unused>[^(\n]+) \()?"
+)
+"""replay's note of the GNSS the thrust-axis check takes (service/pipeline/thrust_axis.py)."""
+ULOGS = [log for log in READ if log.suffix.lower() == ".ulg"]
+
+
+@pytest.mark.parametrize("log", ULOGS, ids=_ids(ULOGS))
+def test_every_gnss_topic_pyulog_reads_is_used_or_said_not_used(log, reports):
+    """Each PX4 GNSS topic instance pyulog reads is the one the check takes, its epochs plus those
+    left out by reason being pyulog's messages of it, or is named as not used; without one the
+    coverage says there is no GNSS; the source a sidecar states."""
+    from protocols.gnss_logs import ULOG_GNSS_TOPICS
+
+    run = reports(log)[0]
+    held = {k: len(s) for k, s in _ulog_stamps(log, set(ULOG_GNSS_TOPICS)).items()}
+    several = {name for name, multi_id in held if multi_id > 0}
+    named = {f"{n}.{m}" if n in several else n: count for (n, m), count in held.items()}
+    note = GNSS_NOTE.search(run.err)
+    if not held:
+        assert note is None and "thrust_axis: does not apply (no GNSS velocity" in run.err
+        return
+    assert note is not None, f"{log.name}: pyulog reads {sorted(named)}, replay says no GNSS"
+    left = note["left"]
+    left_out = 0 if left == "none" else sum(int(p.split()[-1]) for p in left.split(", "))
+    assert int(note["used"]) + left_out == named.pop(note["source"])
+    unused = note["unused"] or ""
+    assert {p.rsplit(" ", 2)[0] for p in unused.split(", ") if p} == set(named)
+    assert note["source"] == sidecar(log).get("gnss_source", note["source"])
+
+
 # --- sessions --------------------------------------------------------------------------------
 
 

@@ -4,7 +4,8 @@ with GNSS read, and replayed without an in-flight alarm.
 
 The simulated log: the project's flight profile (10 s rest, 170 s of ``Fly``, 10 s rest) of a
 consumer-MEMS unit as HIGHRES_IMU at 100 Hz and a receiver's GPS_RAW_INT at 10 Hz (0.05 m/s of
-velocity noise, 0.15 s latency; the vertical from the altitude) in one tlog.
+velocity noise, 0.15 s latency; the vertical from the altitude) in one tlog; the same flight as a
+PX4 ULog, ``sensor_combined`` and the receiver's own ``sensor_gps`` (newer PX4).
 """
 
 from __future__ import annotations
@@ -20,33 +21,39 @@ from estimators.sim.gnss import gnss_velocity
 from estimators.thrust_gnss import up_velocity_from_altitude
 from protocols import gnss_logs
 from protocols.events import Predicate, event_from_json, event_to_dict
-from protocols.gnss_logs import append_gps_raw_int, read_gnss_track
+from protocols.gnss_logs import ULOG_GNSS_TOPICS, append_gps_raw_int, read_gnss_track
 from protocols.logs import write_dataflash_text, write_tlog
 from protocols.mavlink_adapter import ImuMessage
-from protocols.ulog import write_ulog
+from protocols.ulog import UlogGnss, write_ulog
 from service.cli import EXIT_FAULT, EXIT_UNTESTED
 
 ONSET_S = 140.0
 T0_S = 1000.0
 
 
-def _tlog(path, *, fault: bool):
+def _flight(*, fault: bool):
+    """The IMU session (on the log's clock) and the receiver's epochs, ENU."""
     res = simulate(flight_spec(fly=Fly(170.0), rest_s=10.0), 4)
     s = res.session
     gt, gv = gnss_velocity(
         res.truth, rate_hz=10.0, vel_sd_mps=0.05, latency_s=0.15, rng=np.random.default_rng(4)
     )
-    alt = 100.0 + np.r_[0.0, np.cumsum(0.5 * (gv[1:, 2] + gv[:-1, 2]) * np.diff(gt))]
     accel = s.accel_mps2.copy()
     if fault:
         accel[s.t_s >= ONSET_S, 2] += 0.1
-    write_tlog(
-        path,
-        {0: ImuSession(s.t_s + T0_S, accel, s.gyro_rps)},
-        messages={0: ImuMessage.HIGHRES_IMU},
-    )
-    append_gps_raw_int(path, gt + T0_S, gv, alt)
+    return ImuSession(s.t_s + T0_S, accel, s.gyro_rps), gt + T0_S, gv
+
+
+def _tlog(path, *, fault: bool):
+    imu, gt, gv = _flight(fault=fault)
+    alt = 100.0 + np.r_[0.0, np.cumsum(0.5 * (gv[1:, 2] + gv[:-1, 2]) * np.diff(gt))]
+    write_tlog(path, {0: imu}, messages={0: ImuMessage.HIGHRES_IMU})
+    append_gps_raw_int(path, gt, gv, alt)
     return path
+
+
+def _ned(vel_enu_mps):
+    return np.column_stack([vel_enu_mps[:, 1], vel_enu_mps[:, 0], -vel_enu_mps[:, 2]])
 
 
 def _thrust_check(coverage):
@@ -72,6 +79,75 @@ def test_a_thrust_axis_fault_in_a_logged_flight_is_an_event(capsys, tmp_path):
     assert "GNSS: 1899 epochs of GPS_RAW_INT at 10 Hz; left out none" in err
     assert "in flight: z accelerometer tested against GNSS on" in err
     assert "x, y not observable" in err
+
+
+def test_a_px4_log_with_only_sensor_gps_is_checked_against_it(capsys, tmp_path):
+    """Newer PX4 logs the receiver as ``sensor_gps``, maybe without ``vehicle_gps_position``: the
+    check runs on it (NED to ENU) and finds the z + 0.1 m/s² from 140 s as on the tlog."""
+    imu, gt, gv = _flight(fault=True)
+    log = tmp_path / "flight.ulg"
+    write_ulog(
+        log, {0: imu}, topics=["sensor_combined"], gnss=[UlogGnss("sensor_gps", gt, _ned(gv))]
+    )
+    status, lines, err, coverage = replay_with_coverage(capsys, log, "--json")
+    thrust = [e for e in map(event_from_json, lines) if e.predicate is Predicate.THRUST_AXIS]
+    assert status == EXIT_FAULT and len(thrust) == 1
+    assert T0_S + ONSET_S <= thrust[0].t_s <= T0_S + ONSET_S + 10.0
+    assert thrust[0].axis == "z" and _thrust_check(coverage)["ran"]
+    assert f"GNSS: {gt.size} epochs of sensor_gps at 10 Hz; left out none" in err
+
+
+def _still_ulog(path, *receivers):
+    n = 500
+    still = ImuSession(
+        np.arange(n) / 100.0, np.tile([0.0, 0.0, 9.8], (n, 1)), np.zeros((n, 3)), None
+    )
+    write_ulog(path, {0: still}, topics=["sensor_combined"], gnss=receivers)
+    return path
+
+
+def _epochs(topic, *, multi_id=0, fix_type=3, vel_ned_valid=True, n=20):
+    t = 0.1 + np.arange(n) * 0.2
+    vel = np.column_stack([np.full(n, 1.0), np.full(n, -2.0), np.full(n, 0.5)])
+    return UlogGnss(topic, t, vel, multi_id, fix_type, vel_ned_valid)
+
+
+def test_of_several_px4_gnss_sources_the_one_with_most_epochs_is_taken_the_others_said(tmp_path):
+    """Receiver 0 without a fix, receiver 1 with one: receiver 1 (North 1, East -2, Down 0.5 m/s
+    is ENU (-2, 1, -0.5)); the same epochs in vehicle_gps_position and sensor_gps: the first."""
+    fixes = np.r_[np.zeros(5, int), np.full(15, 3)]
+    valid = np.r_[np.ones(17, bool), np.zeros(3, bool)]
+    two = _still_ulog(
+        tmp_path / "two.ulg",
+        _epochs("sensor_gps", fix_type=0),
+        _epochs("sensor_gps", multi_id=1, fix_type=fixes, vel_ned_valid=valid),
+    )
+    track = read_gnss_track(two)
+    assert (track.source, track.unused) == ("sensor_gps.1", {"sensor_gps.0": 0})
+    assert track.rejected == {"no_3d_fix": 5, "velocity_not_valid": 3}
+    np.testing.assert_allclose(track.vel_enu_mps, np.tile([-2.0, 1.0, -0.5], (12, 1)))
+    np.testing.assert_allclose(track.t_s, 0.1 + np.arange(5, 17) * 0.2)
+    both = _still_ulog(
+        tmp_path / "both.ulg", _epochs("sensor_gps"), _epochs("vehicle_gps_position")
+    )
+    track = read_gnss_track(both)
+    assert (track.source, track.unused) == ("vehicle_gps_position", {"sensor_gps": 20})
+
+
+@pytest.mark.parametrize("topic", ULOG_GNSS_TOPICS)
+def test_a_px4_gnss_topic_without_a_valid_velocity_is_said_not_called_absent(
+    capsys, tmp_path, topic
+):
+    """A receiver that never flags its velocity valid: the coverage names the topic and why no
+    epoch was kept, not "no GNSS velocity in the log"."""
+    log = _still_ulog(tmp_path / "invalid.ulg", _epochs(topic, vel_ned_valid=False))
+    _, _, err, coverage = replay_with_coverage(capsys, log, "--json")
+    reason = _thrust_check(coverage)["reason"]
+    assert reason == (
+        f"0 GNSS epoch(s) with a 3D fix and a valid velocity of {topic}, 2 needed; "
+        "left out velocity_not_valid 20"
+    )
+    assert f"accel thrust_axis: does not apply ({reason})" in err
 
 
 def test_the_fault_free_flight_raises_nothing_and_its_report_plots_the_statistic(capsys, tmp_path):
@@ -103,10 +179,11 @@ def test_the_shared_logs_gnss_is_read_on_their_imu_clock():
     """ULog's vehicle_gps_position (no-fix epochs left out), DataFlash GPS (ArduCopter 3.1's boot
     clock T), the tlog's GPS_RAW_INT: ENU, m/s, seconds of the autopilot's boot clock."""
     px4 = read_gnss_track(LOGS / "px4-events.ulg")
-    assert (px4.source, px4.t_s.size, px4.rejected) == (
+    assert (px4.source, px4.t_s.size, px4.rejected, px4.unused) == (
         "vehicle_gps_position",
         423,
         {"no_3d_fix": 160},
+        {"sensor_gps": 22},  # the same receiver logged every second
     )
     tlog = read_gnss_track(LOGS / "ardupilot-sitl-vtol.tlog")
     assert (tlog.source, tlog.t_s.size) == ("GPS_RAW_INT", 798)
@@ -221,7 +298,7 @@ def test_a_log_without_gnss_is_not_decoded_a_second_time(tmp_path, monkeypatch):
     ulg, text = tmp_path / "imu.ulg", tmp_path / "imu.log"
     write_ulog(ulg, {0: still}, topics=["sensor_combined"])
     write_dataflash_text(text, {0: still})
-    assert not [d for d in ULog(str(ulg), ["vehicle_gps_position"]).data_list]
+    assert not [d for d in ULog(str(ulg), list(ULOG_GNSS_TOPICS)).data_list]
 
     def decoded_again(*_args, **_kwargs):
         raise AssertionError("the whole log decoded again")

@@ -157,13 +157,17 @@ class ThrustAxisReplay:
             return
         if track is None:
             return
-        if track.t_s.size < 2:
-            self.why_not = f"{track.t_s.size} GNSS epoch(s) with a 3D fix"
-            return
         left = ", ".join(f"{k} {n}" for k, n in track.rejected.items()) or "none"
+        if track.t_s.size < 2:
+            # The log holds GNSS records: say what kept them out, not "no GNSS" as if absent.
+            self.why_not = (
+                f"{track.t_s.size} GNSS epoch(s) with a 3D fix and a valid velocity of "
+                f"{track.source}, 2 needed; left out {left}{_unused(track)}"
+            )
+            return
         self.notes.append(
             f"GNSS: {track.t_s.size} epochs of {track.source} at {track.rate_hz:.3g} Hz; "
-            f"left out {left}"
+            f"left out {left}{_unused(track)}"
         )
         self.track = track
 
@@ -217,3 +221,11 @@ class ThrustAxisReplay:
             t, z = check.statistic()
             out[imu] = ThrustStatistic(t, z, check.monitor.threshold)
         return out
+
+
+def _unused(track: GnssTrack) -> str:
+    """The log's other GNSS topics or instances, not taken (protocols.gnss_logs: the most epochs)."""
+    if not track.unused:
+        return ""
+    listed = ", ".join(f"{source} {n} epochs" for source, n in track.unused.items())
+    return f"; not used: {listed} (the one with the most epochs is taken)"
