@@ -9,8 +9,10 @@ clock:
   ``vel_d_m_s``; an epoch counts with ``fix_type`` ≥ 3 and ``vel_ned_valid``. Of the topics and
   instances the log holds, the one with the most such epochs is taken, a tie going to
   ``vehicle_gps_position``, then to the lowest instance: the check learns its noise and judges on
-  epochs, and the others are said (:attr:`GnssTrack.unused`). Each receiver's ``sensor_gps``
-  instance is kept apart, never mixed: receivers differ in lag and noise.
+  epochs, and the others are said (:attr:`GnssTrack.unused`; one whose message version lacks a
+  field :attr:`GnssTrack.unreadable`, ``vel_ned_valid`` excepted: no flag). Each receiver's
+  ``sensor_gps`` instance is kept apart, never mixed: receivers differ in lag and noise; an
+  instance subscribed twice is one receiver.
 * ArduPilot DataFlash ``.bin``/``.log`` (pymavlink): message ``GPS`` (instance ``I`` 0 where the
   format has it), ``TimeUS`` µs (ArduCopter 3.1: ``T`` ms), ground speed ``Spd`` m/s along the course ``GCrs`` (degrees from
   north), ``VZ`` m/s down; ``Status`` ≥ 3 (3D fix).
@@ -60,13 +62,15 @@ class GnssLogError(ValueError):
 class GnssTrack:
     """GNSS velocity epochs of one receiver: ``t_s`` (M,) s on the IMU clock, ``vel_enu_mps``
     (M, 3); ``source`` the message or topic; ``rejected`` epochs left out by reason; ``unused``
-    the other GNSS topics or instances the log holds, not taken, with their usable epochs."""
+    the other GNSS topics or instances the log holds, not taken, with their usable epochs;
+    ``unreadable`` those not taken for a field their message version lacks, with the reason."""
 
     t_s: FloatArray
     vel_enu_mps: FloatArray
     source: str
     rejected: dict[str, int] = field(default_factory=dict)
     unused: dict[str, int] = field(default_factory=dict)
+    unreadable: dict[str, str] = field(default_factory=dict)
 
     @property
     def rate_hz(self) -> float:
@@ -140,23 +144,43 @@ def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
     with contextlib.redirect_stdout(io.StringIO()):
         log = ULog(os.fspath(path), list(ULOG_GNSS_TOPICS), disable_str_exceptions=True)
-    held = sorted(log.data_list, key=lambda d: (ULOG_GNSS_TOPICS.index(d.name), d.multi_id))
-    several = {d.name for d in held if d.multi_id > 0}
-    tracks = [
-        _ulog_track(d.data, f"{d.name}.{d.multi_id}" if d.name in several else d.name) for d in held
-    ]
+    # An instance subscribed twice (ULog allows it: two message ids) is one receiver.
+    instances: dict[tuple[int, int], list[dict[str, np.ndarray]]] = {}
+    for d in log.data_list:
+        instances.setdefault((ULOG_GNSS_TOPICS.index(d.name), d.multi_id), []).append(d.data)
+    several = {topic for topic, multi_id in instances if multi_id > 0}
+    tracks, unreadable = [], {}
+    for (topic, multi_id), parts in sorted(instances.items()):
+        name = ULOG_GNSS_TOPICS[topic]
+        source = f"{name}.{multi_id}" if topic in several else name
+        try:
+            tracks.append(_ulog_track(_merged(parts), source))
+        except KeyError as exc:
+            unreadable[source] = f"no field {exc.args[0]}"
     if not tracks:
+        if unreadable:  # read_gnss_track says it with the file
+            raise ValueError("; ".join(f"{s}: {why}" for s, why in unreadable.items()))
         return None
     taken = max(tracks, key=lambda track: track.t_s.size)  # the first of a tie (module docstring)
     unused = {track.source: int(track.t_s.size) for track in tracks if track is not taken}
-    return replace(taken, unused=unused)
+    return replace(taken, unused=unused, unreadable=unreadable)
+
+
+def _merged(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """One instance's fields from its subscriptions, in time order (each subscription's own)."""
+    if len(parts) == 1:
+        return parts[0]
+    f = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(f["timestamp"], kind="stable")
+    return {k: v[order] for k, v in f.items()}
 
 
 def _ulog_track(f: dict[str, np.ndarray], source: str) -> GnssTrack:
-    """The epochs of one instance of a :data:`ULOG_GNSS_TOPICS` topic: NED m/s to ENU, µs to s."""
+    """The epochs of one instance of a :data:`ULOG_GNSS_TOPICS` topic: NED m/s to ENU, µs to s;
+    a ``vel_ned_valid`` the message version lacks is no flag. KeyError: a field it lacks."""
     vel = np.column_stack([f["vel_e_m_s"], f["vel_n_m_s"], -np.asarray(f["vel_d_m_s"], float)])
     fix_ok = np.asarray(f["fix_type"]) >= GPS_FIX_3D
-    vel_ok = np.asarray(f["vel_ned_valid"]) != 0
+    vel_ok = np.asarray(f["vel_ned_valid"]) != 0 if "vel_ned_valid" in f else None
     t_s = np.asarray(f["timestamp"], float) * 1e-6
     return _track(t_s, vel.astype(float), fix_ok, source, vel_ok)
 
