@@ -23,7 +23,8 @@ clock:
   Unknown speed or course (``UINT16_MAX``) leaves the epoch out.
 
 Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a velocity the receiver
-flags not valid (ULog), a value not finite or unknown, a time not after the previous epoch's.
+flags not valid (ULog), a value not finite or unknown, a speed above :data:`MAX_SPEED_MPS` (ULog,
+DataFlash), a time not after the previous epoch's.
 """
 
 from __future__ import annotations
@@ -46,6 +47,11 @@ from protocols.mavlink_settings import GPS_RAW_INT_FIELDS, MILLI_UNITS
 GPS_FIX_3D = 3
 SEARCH_BLOCK_BYTES = 1 << 20
 UNKNOWN_U16 = 65535
+MAX_SPEED_MPS = 515.0
+"""A civil receiver reports no velocity above 1,000 knots (the COCOM export limit): a larger one in
+a log's float fields (ULog, DataFlash) is a damaged record, and one of 1e17 m/s would bury the
+thrust-axis check's velocity integral in rounding (false alarms on a sound unit). MAVLink's
+integer fields cannot carry one that large."""
 ULOG_GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 """PX4 topics of the receivers' own solution with NED velocity and its validity flag:
 ``vehicle_gps_position``, what PX4's sensors module publishes from the receivers (the selected
@@ -83,9 +89,11 @@ def _track(
     fix_ok: np.ndarray,
     source: str,
     vel_ok: np.ndarray | None = None,
+    max_speed_mps: float = np.inf,
 ) -> GnssTrack:
     """The epochs with a 3D fix, a velocity not flagged invalid (``vel_ok``, where the record has
-    the flag) and finite values, in increasing time; the rest counted."""
+    the flag), finite values and no velocity component above ``max_speed_mps`` (so a speed above
+    it), in increasing time; the rest counted."""
     rejected: dict[str, int] = {}
     keep = np.asarray(fix_ok, bool)
     rejected["no_3d_fix"] = int((~keep).sum())
@@ -95,6 +103,10 @@ def _track(
     finite = np.all(np.isfinite(vel), axis=1) & np.isfinite(t_s)
     rejected["not_finite"] = int((keep & ~finite).sum())
     keep &= finite
+    if np.isfinite(max_speed_mps):
+        fast = np.any(np.abs(np.where(keep[:, None], vel, 0.0)) > max_speed_mps, axis=1)
+        rejected[f"speed_over_{max_speed_mps:g}_mps"] = int(fast.sum())
+        keep &= ~fast
     t, v = t_s[keep], vel[keep]
     later = np.r_[True, t[1:] > np.maximum.accumulate(t)[:-1]] if t.size else np.empty(0, bool)
     rejected["time_not_increasing"] = int((~later).sum())
@@ -182,7 +194,7 @@ def _ulog_track(f: dict[str, np.ndarray], source: str) -> GnssTrack:
     fix_ok = np.asarray(f["fix_type"]) >= GPS_FIX_3D
     vel_ok = np.asarray(f["vel_ned_valid"]) != 0 if "vel_ned_valid" in f else None
     t_s = np.asarray(f["timestamp"], float) * 1e-6
-    return _track(t_s, vel.astype(float), fix_ok, source, vel_ok)
+    return _track(t_s, vel.astype(float), fix_ok, source, vel_ok, MAX_SPEED_MPS)
 
 
 def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
@@ -211,7 +223,7 @@ def _dataflash(path: str | os.PathLike[str], fmt: LogFormat) -> GnssTrack | None
     rows = np.array([[_boot_time_us(m), m.Status, m.Spd, m.GCrs, m.VZ] for m in msgs], float)
     course = np.radians(rows[:, 3])
     vel = np.column_stack([rows[:, 2] * np.sin(course), rows[:, 2] * np.cos(course), -rows[:, 4]])
-    return _track(rows[:, 0] * 1e-6, vel, rows[:, 1] >= GPS_FIX_3D, "GPS")
+    return _track(rows[:, 0] * 1e-6, vel, rows[:, 1] >= GPS_FIX_3D, "GPS", None, MAX_SPEED_MPS)
 
 
 def _bin_gps_messages(path: str | os.PathLike[str]) -> list[Any]:

@@ -201,6 +201,29 @@ def test_a_px4_gnss_instance_under_two_subscriptions_is_one_receiver(tmp_path):
     np.testing.assert_allclose(track.t_s, t)
 
 
+def test_a_damaged_gnss_velocity_beyond_any_receiver_is_left_out_not_a_fault(capsys, tmp_path):
+    """One epoch of 1e20 m/s (a damaged float) in the fault-free flight's sensor_gps: it would bury
+    the check's velocity integral in rounding (on main: an alarm, exit 1); it is above the 515 m/s
+    a civil receiver reports, left out and counted. DataFlash's float GPS likewise."""
+    imu, gt, gv = _flight(fault=False)
+    vel = _ned(gv)
+    vel[1500, 2] = 1e20
+    log = tmp_path / "glitch.ulg"
+    write_ulog(log, {0: imu}, topics=["sensor_combined"], gnss=[UlogGnss("sensor_gps", gt, vel)])
+    status, lines, err, _ = replay_with_coverage(capsys, log, "--json")
+    assert status != EXIT_FAULT and not [e for e in lines if "thrust_axis" in e]
+    assert (
+        f"GNSS: {gt.size - 1} epochs of sensor_gps at 10 Hz; left out speed_over_515_mps 1" in err
+    )
+    text = tmp_path / "glitch.log"
+    write_dataflash_text(text, {0: imu})
+    with open(text, "a", encoding="ascii") as fh:
+        fh.write("FMT, 130, 23, GPS, QBIHfff, TimeUS,Status,GMS,GWk,Spd,GCrs,VZ\n")
+        for k, speed in enumerate([2.0, 1e20, 2.0]):
+            fh.write(f"GPS, {1_000_000 + k * 200_000}, 3, 0, 2200, {speed}, 90.0, -0.5\n")
+    assert read_gnss_track(text).rejected == {"speed_over_515_mps": 1}
+
+
 @pytest.mark.parametrize("topic", ULOG_GNSS_TOPICS)
 def test_a_px4_gnss_topic_without_a_valid_velocity_is_said_not_called_absent(
     capsys, tmp_path, topic
