@@ -172,6 +172,11 @@ def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     if not tracks:
         if unreadable:  # read_gnss_track says it with the file
             raise ValueError("; ".join(f"{s}: {why}" for s, why in unreadable.items()))
+        if log.file_corruption:
+            # Its bytes name a GNSS topic, and a damaged definition drops its records unsaid.
+            raise ValueError(
+                f"the file is damaged and no record of {' or '.join(ULOG_GNSS_TOPICS)} was read"
+            )
         return None
     taken = max(tracks, key=lambda track: track.t_s.size)  # the first of a tie (module docstring)
     unused = {track.source: int(track.t_s.size) for track in tracks if track is not taken}

@@ -172,6 +172,19 @@ def test_a_px4_gnss_instance_of_another_message_version_leaves_the_others_read(c
     assert (track.t_s.size, track.rejected) == (16, {"no_3d_fix": 4})
 
 
+def test_a_px4_gnss_topic_lost_to_a_damaged_definition_is_not_called_absent(capsys, tmp_path):
+    """A type misspelt in sensor_gps's format definition: pyulog drops its 20 records as damage;
+    the coverage says the GNSS could not be read, not "no GNSS velocity in the log"."""
+    log = _still_ulog(tmp_path / "damaged.ulg", _epochs("sensor_gps"))
+    _renamed(log, "sensor_gps", b"float vel_n_m_s", b"flozt vel_n_m_s")
+    _, _, err, coverage = replay_with_coverage(capsys, log, "--json")
+    assert _thrust_check(coverage)["reason"] == (
+        f"{log}: GNSS records unreadable: the file is damaged and no record of "
+        "vehicle_gps_position or sensor_gps was read"
+    )
+    assert "no GNSS velocity" not in err
+
+
 def _resubscribed(path, topic, multi_id):
     """The log with ``topic`` instance ``multi_id``'s subscription renamed instance 0: the same
     receiver under two subscriptions (two message ids)."""
