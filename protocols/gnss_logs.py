@@ -9,8 +9,10 @@ clock:
   ``vel_d_m_s``; an epoch counts with ``fix_type`` ≥ 3 and ``vel_ned_valid``. Of the topics and
   instances the log holds, the one with the most such epochs is taken, a tie going to
   ``vehicle_gps_position``, then to the lowest instance: the check learns its noise and judges on
-  epochs, and the others are said (:attr:`GnssTrack.unused`). Each receiver's ``sensor_gps``
-  instance is kept apart, never mixed: receivers differ in lag and noise.
+  epochs, and the others are said (:attr:`GnssTrack.unused`; one whose message version lacks a
+  field :attr:`GnssTrack.unreadable`, ``vel_ned_valid`` excepted: no flag). Each receiver's
+  ``sensor_gps`` instance is kept apart, never mixed: receivers differ in lag and noise; an
+  instance subscribed twice is one receiver.
 * ArduPilot DataFlash ``.bin``/``.log`` (pymavlink): message ``GPS`` (instance ``I`` 0 where the
   format has it), ``TimeUS`` µs (ArduCopter 3.1: ``T`` ms), ground speed ``Spd`` m/s along the course ``GCrs`` (degrees from
   north), ``VZ`` m/s down; ``Status`` ≥ 3 (3D fix).
@@ -21,7 +23,8 @@ clock:
   Unknown speed or course (``UINT16_MAX``) leaves the epoch out.
 
 Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a velocity the receiver
-flags not valid (ULog), a value not finite or unknown, a time not after the previous epoch's.
+flags not valid (ULog), a value not finite or unknown, a speed above :data:`MAX_SPEED_MPS` (ULog,
+DataFlash), a time not after the previous epoch's.
 """
 
 from __future__ import annotations
@@ -44,6 +47,11 @@ from protocols.mavlink_settings import GPS_RAW_INT_FIELDS, MILLI_UNITS
 GPS_FIX_3D = 3
 SEARCH_BLOCK_BYTES = 1 << 20
 UNKNOWN_U16 = 65535
+MAX_SPEED_MPS = 515.0
+"""A civil receiver reports no velocity above 1,000 knots (the COCOM export limit): a larger one in
+a log's float fields (ULog, DataFlash) is a damaged record, and one of 1e17 m/s would bury the
+thrust-axis check's velocity integral in rounding (false alarms on a sound unit). MAVLink's
+integer fields cannot carry one that large."""
 ULOG_GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 """PX4 topics of the receivers' own solution with NED velocity and its validity flag:
 ``vehicle_gps_position``, what PX4's sensors module publishes from the receivers (the selected
@@ -60,13 +68,15 @@ class GnssLogError(ValueError):
 class GnssTrack:
     """GNSS velocity epochs of one receiver: ``t_s`` (M,) s on the IMU clock, ``vel_enu_mps``
     (M, 3); ``source`` the message or topic; ``rejected`` epochs left out by reason; ``unused``
-    the other GNSS topics or instances the log holds, not taken, with their usable epochs."""
+    the other GNSS topics or instances the log holds, not taken, with their usable epochs;
+    ``unreadable`` those not taken for a field their message version lacks, with the reason."""
 
     t_s: FloatArray
     vel_enu_mps: FloatArray
     source: str
     rejected: dict[str, int] = field(default_factory=dict)
     unused: dict[str, int] = field(default_factory=dict)
+    unreadable: dict[str, str] = field(default_factory=dict)
 
     @property
     def rate_hz(self) -> float:
@@ -79,9 +89,11 @@ def _track(
     fix_ok: np.ndarray,
     source: str,
     vel_ok: np.ndarray | None = None,
+    max_speed_mps: float = np.inf,
 ) -> GnssTrack:
     """The epochs with a 3D fix, a velocity not flagged invalid (``vel_ok``, where the record has
-    the flag) and finite values, in increasing time; the rest counted."""
+    the flag), finite values and no velocity component above ``max_speed_mps`` (so a speed above
+    it), in increasing time; the rest counted."""
     rejected: dict[str, int] = {}
     keep = np.asarray(fix_ok, bool)
     rejected["no_3d_fix"] = int((~keep).sum())
@@ -91,6 +103,10 @@ def _track(
     finite = np.all(np.isfinite(vel), axis=1) & np.isfinite(t_s)
     rejected["not_finite"] = int((keep & ~finite).sum())
     keep &= finite
+    if np.isfinite(max_speed_mps):
+        fast = np.any(np.abs(np.where(keep[:, None], vel, 0.0)) > max_speed_mps, axis=1)
+        rejected[f"speed_over_{max_speed_mps:g}_mps"] = int(fast.sum())
+        keep &= ~fast
     t, v = t_s[keep], vel[keep]
     later = np.r_[True, t[1:] > np.maximum.accumulate(t)[:-1]] if t.size else np.empty(0, bool)
     rejected["time_not_increasing"] = int((~later).sum())
@@ -140,25 +156,50 @@ def _ulog(path: str | os.PathLike[str]) -> GnssTrack | None:
     # pyulog prints its findings on a damaged file to stdout, where --json writes (protocols.ulog).
     with contextlib.redirect_stdout(io.StringIO()):
         log = ULog(os.fspath(path), list(ULOG_GNSS_TOPICS), disable_str_exceptions=True)
-    held = sorted(log.data_list, key=lambda d: (ULOG_GNSS_TOPICS.index(d.name), d.multi_id))
-    several = {d.name for d in held if d.multi_id > 0}
-    tracks = [
-        _ulog_track(d.data, f"{d.name}.{d.multi_id}" if d.name in several else d.name) for d in held
-    ]
+    # An instance subscribed twice (ULog allows it: two message ids) is one receiver.
+    instances: dict[tuple[int, int], list[dict[str, np.ndarray]]] = {}
+    for d in log.data_list:
+        instances.setdefault((ULOG_GNSS_TOPICS.index(d.name), d.multi_id), []).append(d.data)
+    several = {topic for topic, multi_id in instances if multi_id > 0}
+    tracks, unreadable = [], {}
+    for (topic, multi_id), parts in sorted(instances.items()):
+        name = ULOG_GNSS_TOPICS[topic]
+        source = f"{name}.{multi_id}" if topic in several else name
+        try:
+            tracks.append(_ulog_track(_merged(parts), source))
+        except KeyError as exc:
+            unreadable[source] = f"no field {exc.args[0]}"
     if not tracks:
+        if unreadable:  # read_gnss_track says it with the file
+            raise ValueError("; ".join(f"{s}: {why}" for s, why in unreadable.items()))
+        if log.file_corruption:
+            # Its bytes name a GNSS topic, and a damaged definition drops its records unsaid.
+            raise ValueError(
+                f"the file is damaged and no record of {' or '.join(ULOG_GNSS_TOPICS)} was read"
+            )
         return None
     taken = max(tracks, key=lambda track: track.t_s.size)  # the first of a tie (module docstring)
     unused = {track.source: int(track.t_s.size) for track in tracks if track is not taken}
-    return replace(taken, unused=unused)
+    return replace(taken, unused=unused, unreadable=unreadable)
+
+
+def _merged(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """One instance's fields from its subscriptions, in time order (each subscription's own)."""
+    if len(parts) == 1:
+        return parts[0]
+    f = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(f["timestamp"], kind="stable")
+    return {k: v[order] for k, v in f.items()}
 
 
 def _ulog_track(f: dict[str, np.ndarray], source: str) -> GnssTrack:
-    """The epochs of one instance of a :data:`ULOG_GNSS_TOPICS` topic: NED m/s to ENU, µs to s."""
+    """The epochs of one instance of a :data:`ULOG_GNSS_TOPICS` topic: NED m/s to ENU, µs to s;
+    a ``vel_ned_valid`` the message version lacks is no flag. KeyError: a field it lacks."""
     vel = np.column_stack([f["vel_e_m_s"], f["vel_n_m_s"], -np.asarray(f["vel_d_m_s"], float)])
     fix_ok = np.asarray(f["fix_type"]) >= GPS_FIX_3D
-    vel_ok = np.asarray(f["vel_ned_valid"]) != 0
+    vel_ok = np.asarray(f["vel_ned_valid"]) != 0 if "vel_ned_valid" in f else None
     t_s = np.asarray(f["timestamp"], float) * 1e-6
-    return _track(t_s, vel.astype(float), fix_ok, source, vel_ok)
+    return _track(t_s, vel.astype(float), fix_ok, source, vel_ok, MAX_SPEED_MPS)
 
 
 def _messages(path: str | os.PathLike[str], kind: str) -> list[Any]:
@@ -187,7 +228,7 @@ def _dataflash(path: str | os.PathLike[str], fmt: LogFormat) -> GnssTrack | None
     rows = np.array([[_boot_time_us(m), m.Status, m.Spd, m.GCrs, m.VZ] for m in msgs], float)
     course = np.radians(rows[:, 3])
     vel = np.column_stack([rows[:, 2] * np.sin(course), rows[:, 2] * np.cos(course), -rows[:, 4]])
-    return _track(rows[:, 0] * 1e-6, vel, rows[:, 1] >= GPS_FIX_3D, "GPS")
+    return _track(rows[:, 0] * 1e-6, vel, rows[:, 1] >= GPS_FIX_3D, "GPS", None, MAX_SPEED_MPS)
 
 
 def _bin_gps_messages(path: str | os.PathLike[str]) -> list[Any]:

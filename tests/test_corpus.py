@@ -329,7 +329,7 @@ def test_what_replay_leaves_out_is_said_with_a_count(log, reports):
 
 GNSS_NOTE = re.compile(
     r"GNSS: (?P<used>\d+) epochs of (?P<source>\S+) at [^;]+; left out (?P<left>[^;\n]+)"
-    r"(?:; not used: (?P<unused>[^(\n]+) \()?"
+    r"(?:; not used: (?P<unused>[^(\n]+) \([^)]*\))?(?:; unreadable: (?P<unreadable>[^\n]+))?"
 )
 """replay's note of the GNSS the thrust-axis check takes (service/pipeline/thrust_axis.py)."""
 ULOGS = [log for log in READ if log.suffix.lower() == ".ulg"]
@@ -355,7 +355,8 @@ def test_every_gnss_topic_pyulog_reads_is_used_or_said_not_used(log, reports):
     left_out = 0 if left == "none" else sum(int(p.split()[-1]) for p in left.split(", "))
     assert int(note["used"]) + left_out == named.pop(note["source"])
     unused = note["unused"] or ""
-    assert {p.rsplit(" ", 2)[0] for p in unused.split(", ") if p} == set(named)
+    unreadable = re.findall(r"(\S+) \(", note["unreadable"] or "")
+    assert {p.rsplit(" ", 2)[0] for p in unused.split(", ") if p} | set(unreadable) == set(named)
     assert note["source"] == sidecar(log).get("gnss_source", note["source"])
 
 

@@ -10,6 +10,8 @@ PX4 ULog, ``sensor_combined`` and the receiver's own ``sensor_gps`` (newer PX4).
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from real_data import LOGS, SHARED, needs
@@ -132,6 +134,107 @@ def test_of_several_px4_gnss_sources_the_one_with_most_epochs_is_taken_the_other
     )
     track = read_gnss_track(both)
     assert (track.source, track.unused) == ("vehicle_gps_position", {"sensor_gps": 20})
+
+
+def _renamed(path, topic, field, new):
+    """The log with ``field`` of ``topic``'s format definition renamed (same length): a message
+    version without that field."""
+    raw = path.read_bytes()
+    at = raw.index(field, raw.index(f"{topic}:".encode()))
+    path.write_bytes(raw[:at] + new + raw[at + len(field) :])
+    return path
+
+
+def test_a_px4_gnss_instance_of_another_message_version_leaves_the_others_read(capsys, tmp_path):
+    """A ``sensor_gps`` without ``vel_n_m_s`` beside a readable ``vehicle_gps_position``: the
+    latter is taken and the former said unreadable (not the whole log's GNSS lost); without any
+    readable instance, the error names the topic and field. A ``vel_ned_valid`` the message lacks
+    is no flag (as DataFlash and MAVLink have none), not an unreadable topic."""
+    log = _still_ulog(
+        tmp_path / "old.ulg", _epochs("vehicle_gps_position", n=15), _epochs("sensor_gps")
+    )
+    track = read_gnss_track(_renamed(log, "sensor_gps", b"vel_n_m_s", b"vel_n_m_x"))
+    assert (track.source, track.t_s.size) == ("vehicle_gps_position", 15)
+    assert track.unreadable == {"sensor_gps": "no field vel_n_m_s"}
+    _, _, err, _ = replay_with_coverage(capsys, log)
+    assert (
+        "GNSS: 15 epochs of vehicle_gps_position at 5 Hz; left out none; "
+        "unreadable: sensor_gps (no field vel_n_m_s)"
+    ) in err
+    alone = _renamed(_still_ulog(tmp_path / "alone.ulg", _epochs("sensor_gps")), "sensor_gps", b"vel_n_m_s", b"vel_n_m_x")  # fmt: skip
+    with pytest.raises(gnss_logs.GnssLogError, match="sensor_gps: no field vel_n_m_s"):
+        read_gnss_track(alone)
+    fixes = np.r_[np.zeros(4, int), np.full(16, 3)]
+    unflagged = _still_ulog(
+        tmp_path / "unflagged.ulg", _epochs("vehicle_gps_position", fix_type=fixes)
+    )
+    track = read_gnss_track(_renamed(unflagged, "vehicle_gps_position", b"vel_ned_valid", b"vel_ned_vali_"))  # fmt: skip
+    assert (track.t_s.size, track.rejected) == (16, {"no_3d_fix": 4})
+
+
+def test_a_px4_gnss_topic_lost_to_a_damaged_definition_is_not_called_absent(capsys, tmp_path):
+    """A type misspelt in sensor_gps's format definition: pyulog drops its 20 records as damage;
+    the coverage says the GNSS could not be read, not "no GNSS velocity in the log"."""
+    log = _still_ulog(tmp_path / "damaged.ulg", _epochs("sensor_gps"))
+    _renamed(log, "sensor_gps", b"float vel_n_m_s", b"flozt vel_n_m_s")
+    _, _, err, coverage = replay_with_coverage(capsys, log, "--json")
+    assert _thrust_check(coverage)["reason"] == (
+        f"{log}: GNSS records unreadable: the file is damaged and no record of "
+        "vehicle_gps_position or sensor_gps was read"
+    )
+    assert "no GNSS velocity" not in err
+
+
+def _resubscribed(path, topic, multi_id):
+    """The log with ``topic`` instance ``multi_id``'s subscription renamed instance 0: the same
+    receiver under two subscriptions (two message ids)."""
+    raw = path.read_bytes()
+    at = re.search(b"A" + bytes([multi_id]) + b".." + topic.encode(), raw, re.DOTALL).start()
+    path.write_bytes(raw[: at + 1] + b"\x00" + raw[at + 2 :])
+    return path
+
+
+def test_a_px4_gnss_instance_under_two_subscriptions_is_one_receiver(tmp_path):
+    """ULog lets a topic instance be subscribed twice (two message ids): its epochs, every other
+    one in each, are one receiver's 20 in time order, which outnumber vehicle_gps_position's 15."""
+    t = 0.1 + np.arange(20) * 0.2
+    vel = np.tile([1.0, -2.0, 0.5], (10, 1))
+    log = _still_ulog(
+        tmp_path / "twice.ulg",
+        _epochs("vehicle_gps_position", n=15),
+        UlogGnss("sensor_gps", t[::2], vel),
+        UlogGnss("sensor_gps", t[1::2], vel, multi_id=9),
+    )
+    track = read_gnss_track(_resubscribed(log, "sensor_gps", 9))
+    assert (track.source, track.rejected, track.unused) == (
+        "sensor_gps",
+        {},
+        {"vehicle_gps_position": 15},
+    )
+    np.testing.assert_allclose(track.t_s, t)
+
+
+def test_a_damaged_gnss_velocity_beyond_any_receiver_is_left_out_not_a_fault(capsys, tmp_path):
+    """One epoch of 1e20 m/s (a damaged float) in the fault-free flight's sensor_gps: it would bury
+    the check's velocity integral in rounding (on main: an alarm, exit 1); it is above the 515 m/s
+    a civil receiver reports, left out and counted. DataFlash's float GPS likewise."""
+    imu, gt, gv = _flight(fault=False)
+    vel = _ned(gv)
+    vel[1500, 2] = 1e20
+    log = tmp_path / "glitch.ulg"
+    write_ulog(log, {0: imu}, topics=["sensor_combined"], gnss=[UlogGnss("sensor_gps", gt, vel)])
+    status, lines, err, _ = replay_with_coverage(capsys, log, "--json")
+    assert status != EXIT_FAULT and not [e for e in lines if "thrust_axis" in e]
+    assert (
+        f"GNSS: {gt.size - 1} epochs of sensor_gps at 10 Hz; left out speed_over_515_mps 1" in err
+    )
+    text = tmp_path / "glitch.log"
+    write_dataflash_text(text, {0: imu})
+    with open(text, "a", encoding="ascii") as fh:
+        fh.write("FMT, 130, 23, GPS, QBIHfff, TimeUS,Status,GMS,GWk,Spd,GCrs,VZ\n")
+        for k, speed in enumerate([2.0, 1e20, 2.0]):
+            fh.write(f"GPS, {1_000_000 + k * 200_000}, 3, 0, 2200, {speed}, 90.0, -0.5\n")
+    assert read_gnss_track(text).rejected == {"speed_over_515_mps": 1}
 
 
 @pytest.mark.parametrize("topic", ULOG_GNSS_TOPICS)

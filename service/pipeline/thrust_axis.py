@@ -225,7 +225,11 @@ class ThrustAxisReplay:
 
 def _unused(track: GnssTrack) -> str:
     """The log's other GNSS topics or instances, not taken (protocols.gnss_logs: the most epochs)."""
-    if not track.unused:
-        return ""
-    listed = ", ".join(f"{source} {n} epochs" for source, n in track.unused.items())
-    return f"; not used: {listed} (the one with the most epochs is taken)"
+    said = ""
+    if track.unused:
+        listed = ", ".join(f"{source} {n} epochs" for source, n in track.unused.items())
+        said = f"; not used: {listed} (the one with the most epochs is taken)"
+    if track.unreadable:
+        listed = ", ".join(f"{source} ({why})" for source, why in track.unreadable.items())
+        said += f"; unreadable: {listed}"
+    return said
