@@ -177,6 +177,9 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
     assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
     not_needed = {"estimators.sim", "service.pipeline.fleet"}
+    # Nor the audit's statistics (and their noise analysis): calibrate asks only its minimum of
+    # positions, which the package states itself.
+    not_needed |= {"estimators.audit.statistics", "estimators.noise"}
     # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
     # commands listed from their folder), nor tomllib (a sidecar's, and the session has none).
     not_needed |= {f"service.commands.{name}" for name in command_modules()} - {
