@@ -19,7 +19,7 @@ from estimators.static_detector import StaticDetectorConfig
 from estimators.stream_validity import (
     ValidityLimits,
 )
-from protocols.events import (
+from protocols.event_kinds import (  # not protocols.events: F0's configuration needs no schemas
     Predicate,
     Severity,
 )
