@@ -25,7 +25,7 @@ tolerances are the runs' envelope (the reproducibility the unit showed).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,6 +94,22 @@ def fit_linear(
     y = np.asarray(y, dtype=float)
     if h.ndim != 2 or y.shape != (h.shape[0],):
         raise ValueError(f"need H of shape (M, P) and y of shape (M,), got {h.shape} and {y.shape}")
+    return linear_solver(h, sigma_y=sigma_y, names=names)(y)
+
+
+def linear_solver(
+    h: FloatArray,
+    *,
+    sigma_y: float | None = None,
+    names: Sequence[str] | None = None,
+) -> Callable[[FloatArray], LinearFit]:
+    """:func:`fit_linear` of the design ``h`` for any observations ``y`` (M,): ``h`` is checked
+    and factored once, and each ``y`` costs a product and a triangular solve (a Jacobian by
+    central differences fits one design dozens of times). The same operations on the same
+    numbers: bit for bit :func:`fit_linear`'s result. Raises its errors about ``h`` here."""
+    h = np.asarray(h, dtype=float)
+    if h.ndim != 2:
+        raise ValueError(f"need H of shape (M, P), got {h.shape}")
     m, p = h.shape
     needed = p if sigma_y is not None else p + 1
     if m < needed:
@@ -113,21 +129,30 @@ def fit_linear(
         raise ValueError(
             f"the equations cannot separate {_name(names, int(np.flatnonzero(weak)[0]))} from the other unknowns"
         )
-    theta_scaled = np.linalg.solve(r, q.T @ y)
-    values = theta_scaled / col
-    resid = y - h @ values
-    if sigma_y is None:
-        dof = float(m - p)
-        sigma = float(np.sqrt(resid @ resid / dof))
-    else:
-        dof = np.inf
-        sigma = float(sigma_y)
     # R⁻¹ by an LU solve against the identity: scipy's triangular solve with a
     # matrix right-hand side goes through threaded BLAS and costs milliseconds
     # on a busy machine for a 3×3 system.
     r_inv = np.linalg.solve(r, np.eye(p))
-    cov = sigma**2 * (r_inv @ r_inv.T) / np.outer(col, col)
-    return LinearFit(values=values, cov=cov, residuals=resid, sigma=sigma, dof=dof)
+    unit_cov = r_inv @ r_inv.T
+    col_outer = np.outer(col, col)
+
+    def fit(y: FloatArray) -> LinearFit:
+        y = np.asarray(y, dtype=float)
+        if y.shape != (m,):
+            raise ValueError(f"need y of shape ({m},), got {y.shape}")
+        theta_scaled = np.linalg.solve(r, q.T @ y)
+        values = theta_scaled / col
+        resid = y - h @ values
+        if sigma_y is None:
+            dof = float(m - p)
+            sigma = float(np.sqrt(resid @ resid / dof))
+        else:
+            dof = np.inf
+            sigma = float(sigma_y)
+        cov = sigma**2 * unit_cov / col_outer
+        return LinearFit(values=values, cov=cov, residuals=resid, sigma=sigma, dof=dof)
+
+    return fit
 
 
 def _name(names: Sequence[str] | None, j: int) -> str:
