@@ -9,19 +9,12 @@ runs the same steps sample by sample (``service/pipeline/``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimators._typing import FloatArray
-from estimators.conventions import N_PARAMS, Triad, reference_magnitude
-from estimators.diagnosis import (
-    DEFAULT_FALSE_ALARM_PROB,
-    Diagnosis,
-    Finding,
-    critical_z,
-    diagnose,
-)
+from estimators.conventions import DEFAULT_FALSE_ALARM_PROB, N_PARAMS, Triad, reference_magnitude
 from estimators.ninepar import (
     SOURCE_SCALAR,
     SOURCE_VECTOR,
@@ -56,6 +49,9 @@ from estimators.sixpos import (
     six_position_accel_fitter,
 )
 from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
+
+if TYPE_CHECKING:  # the diagnosis loads when a passport is given: calibrate has none
+    from estimators.diagnosis import Diagnosis, Finding
 
 FOREIGN_PASSPORT_MIN_FAILED = 4
 """Failed predicates (and more than half of the evaluated ones) that suggest the passport is another unit's."""
@@ -405,6 +401,8 @@ def _changed(whole: TriadResult, false_alarm_prob: float) -> bool:
     if whole.residuals is None or whole.residual_sigma is None:
         return False
     z = np.abs(whole.residuals) / whole.residual_sigma
+    from estimators.diagnosis import critical_z
+
     return bool(np.max(z) > critical_z(false_alarm_prob, z.size))
 
 
@@ -455,9 +453,11 @@ def _fit_triads(
             mean, cov = position_arrays(positions, triad, reference)
             residuals = ellipsoid_residual(est.params, mean)[0]
             sigma = equation_sigma(est.params, mean, cov)
-        diag = (
-            diagnose(est, tp, false_alarm_prob=config.false_alarm_prob) if tp is not None else None
-        )
+        diag = None
+        if tp is not None:
+            from estimators.diagnosis import diagnose
+
+            diag = diagnose(est, tp, false_alarm_prob=config.false_alarm_prob)
         out[triad] = TriadResult(est, residuals, sigma, diag)
     return out
 

@@ -182,6 +182,8 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     not_needed |= {"estimators.audit.statistics", "estimators.noise"}
     # Nor the events' schemas and coverage: F0's configuration names predicates and severities only.
     not_needed |= {"protocols.events", "estimators.coverage"}
+    # Nor the diagnosis F1…F9: there is no passport to diagnose against.
+    not_needed |= {"estimators.diagnosis"}
     # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
     # commands listed from their folder), nor tomllib (a sidecar's, and the session has none).
     not_needed |= {f"service.commands.{name}" for name in command_modules()} - {

@@ -8,11 +8,11 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from estimators.conventions import (
+    DEFAULT_FALSE_ALARM_PROB,
     EARTH_RATE_RPS,
     STANDARD_GRAVITY_MPS2,
     Triad,
 )
-from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from estimators.positions import PositionConfig
 from estimators.static_detector import StaticDetectorConfig
