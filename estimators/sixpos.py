@@ -36,10 +36,10 @@ import numpy as np
 
 from estimators._typing import BoolArray, FloatArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Grade, nine_params
+from estimators.least_squares import LinearFit, fit_linear, linear_solver
 from estimators.ninepar import SOURCE_NONE, SOURCE_STATIC_MEANS, SOURCE_TURNS
 from estimators.plateaus import find_plateaus
 from estimators.positions import Position, build_positions
-from estimators.repeatability import LinearFit, fit_linear, linear_solver
 from estimators.session import ImuSession
 from estimators.static_detector import StaticDetectorConfig, StaticInterval, detect_static
 
@@ -105,7 +105,7 @@ def _weighted_solver(
     h: FloatArray, var: FloatArray | None, names: Sequence[str] | None
 ) -> Callable[[FloatArray], LinearFit]:
     """:func:`_weighted_fit` of the design ``h`` and variances ``var`` for any ``y``, factored once
-    (:func:`~estimators.repeatability.linear_solver`)."""
+    (:func:`~estimators.least_squares.linear_solver`)."""
     if var is None:
         return linear_solver(h, names=names)
     if np.any(~(var > 0)):
