@@ -186,6 +186,8 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     not_needed |= {"estimators.diagnosis"}
     # Nor M2's repeatability: the six-position fit needs its least squares alone.
     not_needed |= {"estimators.repeatability"}
+    # Nor the stream checks: a session's plausible rates and the options need their limits alone.
+    not_needed |= {"estimators.stream_validity"}
     # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
     # commands listed from their folder), nor tomllib (a sidecar's, and the session has none).
     not_needed |= {f"service.commands.{name}" for name in command_modules()} - {

@@ -16,7 +16,7 @@ from estimators.conventions import (
 from estimators.passport import Passport
 from estimators.positions import PositionConfig
 from estimators.static_detector import StaticDetectorConfig
-from estimators.stream_validity import (
+from estimators.validity_limits import (
     ValidityLimits,
 )
 from protocols.event_kinds import (  # not protocols.events: F0's configuration needs no schemas
