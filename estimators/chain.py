@@ -9,19 +9,12 @@ runs the same steps sample by sample (``service/pipeline/``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from estimators._typing import FloatArray
-from estimators.conventions import N_PARAMS, Triad, reference_magnitude
-from estimators.diagnosis import (
-    DEFAULT_FALSE_ALARM_PROB,
-    Diagnosis,
-    Finding,
-    critical_z,
-    diagnose,
-)
+from estimators.conventions import DEFAULT_FALSE_ALARM_PROB, N_PARAMS, Triad, reference_magnitude
 from estimators.ninepar import (
     SOURCE_SCALAR,
     SOURCE_VECTOR,
@@ -48,13 +41,17 @@ from estimators.session import ImuSession, Rejections, validate_session
 from estimators.sixpos import (
     FULL_TURN_RAD,
     FullTurn,
+    face_directions,
     face_positions,
     find_full_turns,
     gyro_nine_from_turns,
     six_face_session,
-    six_position_accel,
+    six_position_accel_fitter,
 )
 from estimators.static_detector import StaticDetection, StaticDetectorConfig, detect_static
+
+if TYPE_CHECKING:  # the diagnosis loads when a passport is given: calibrate has none
+    from estimators.diagnosis import Diagnosis, Finding
 
 FOREIGN_PASSPORT_MIN_FAILED = 4
 """Failed predicates (and more than half of the evaluated ones) that suggest the passport is another unit's."""
@@ -404,6 +401,8 @@ def _changed(whole: TriadResult, false_alarm_prob: float) -> bool:
     if whole.residuals is None or whole.residual_sigma is None:
         return False
     z = np.abs(whole.residuals) / whole.residual_sigma
+    from estimators.diagnosis import critical_z
+
     return bool(np.max(z) > critical_z(false_alarm_prob, z.size))
 
 
@@ -454,9 +453,11 @@ def _fit_triads(
             mean, cov = position_arrays(positions, triad, reference)
             residuals = ellipsoid_residual(est.params, mean)[0]
             sigma = equation_sigma(est.params, mean, cov)
-        diag = (
-            diagnose(est, tp, false_alarm_prob=config.false_alarm_prob) if tp is not None else None
-        )
+        diag = None
+        if tp is not None:
+            from estimators.diagnosis import diagnose
+
+            diag = diagnose(est, tp, false_alarm_prob=config.false_alarm_prob)
         out[triad] = TriadResult(est, residuals, sigma, diag)
     return out
 
@@ -571,13 +572,17 @@ def _accel_vector(
         else np.asarray(scalar.observable, dtype=bool)
     )
 
+    # The faces of the means: a step of a tenth of a mean's σ turns no position 20° (a Jacobian
+    # of the fit at its faces), so the three designs are factored once for all its fits.
+    fit_faces = six_position_accel_fitter(
+        face_directions(mean[index] * gravity_mps2),
+        gravity_mps2=gravity_mps2,
+        accel_cov_mps2=cov[index] * gravity_mps2**2,
+        quadratic=False,
+    )
+
     def combined(m: FloatArray) -> FloatArray:
-        fit = six_position_accel(
-            m[index] * gravity_mps2,
-            gravity_mps2=gravity_mps2,
-            accel_cov_mps2=cov[index] * gravity_mps2**2,
-            quadratic=False,
-        )
+        fit = fit_faces(m[index] * gravity_mps2)
         vector = fit.nine_params()
         if not keep.any():
             return vector

@@ -116,6 +116,11 @@ PARAM_AXIS = ("x", "y", "z", "x", "y", "z", "xy", "xz", "yz")
 
 N_PARAMS = 9
 
+DEFAULT_FALSE_ALARM_PROB = 1.0e-3
+"""Per-triad probability α that the diagnosis (F1…F9, :mod:`estimators.diagnosis`) flags a healthy
+triad, unless configured; stated here so that the chain's and the service's options, which
+default to it, do not load the diagnosis."""
+
 
 def normal_gravity_mps2(latitude_deg: float, height_m: float = 0.0) -> float:
     """Local gravity magnitude from the WGS-84 normal gravity field, m/s².

@@ -39,14 +39,13 @@ from typing import Any
 import numpy as np
 
 from estimators._typing import FloatArray
+from estimators.conventions import DEFAULT_FALSE_ALARM_PROB as DEFAULT_FALSE_ALARM_PROB
 from estimators.conventions import N_PARAMS, PARAM_AXIS, PARAM_CAUSE, PARAM_NAMES, Cause, Triad
 from estimators.ninepar import Estimate
 from estimators.passport import Passport, TriadPassport
 
 PREDICATES = tuple(f"F{j + 1}" for j in range(N_PARAMS))
 """Names of the predicates; ``PREDICATES[j]`` tests parameter ``PARAM_NAMES[j]``."""
-
-DEFAULT_FALSE_ALARM_PROB = 1.0e-3
 
 
 class Outcome(StrEnum):

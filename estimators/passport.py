@@ -84,7 +84,7 @@ from estimators.conventions import (
 )
 from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method, physical
 from estimators.positions import Position
-from estimators.stream_validity import ValidityLimits
+from estimators.validity_limits import ValidityLimits
 
 PASSPORT_TYPE = "ins.health.passport"
 PASSPORT_SCHEMA_VERSION = 3

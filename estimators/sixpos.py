@@ -28,7 +28,7 @@ the paper used 9.788 m/s² at Guangzhou; assuming 9.80665 instead scales every
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypeVar
 
@@ -36,10 +36,10 @@ import numpy as np
 
 from estimators._typing import BoolArray, FloatArray
 from estimators.conventions import AXES, EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Grade, nine_params
+from estimators.least_squares import LinearFit, fit_linear, linear_solver
 from estimators.ninepar import SOURCE_NONE, SOURCE_STATIC_MEANS, SOURCE_TURNS
 from estimators.plateaus import find_plateaus
 from estimators.positions import Position, build_positions
-from estimators.repeatability import LinearFit, fit_linear
 from estimators.session import ImuSession
 from estimators.static_detector import StaticDetectorConfig, StaticInterval, detect_static
 
@@ -98,15 +98,32 @@ def _weighted_fit(
     h: FloatArray, y: FloatArray, var: FloatArray | None, names: Sequence[str] | None
 ) -> LinearFit:
     """LS with per-equation variances ``var`` (M,) (known noise) or, if None, noise from the residuals."""
+    return _weighted_solver(h, var, names)(y)
+
+
+def _weighted_solver(
+    h: FloatArray, var: FloatArray | None, names: Sequence[str] | None
+) -> Callable[[FloatArray], LinearFit]:
+    """:func:`_weighted_fit` of the design ``h`` and variances ``var`` for any ``y``, factored once
+    (:func:`~estimators.least_squares.linear_solver`)."""
     if var is None:
-        return fit_linear(h, y, names=names)
+        return linear_solver(h, names=names)
     if np.any(~(var > 0)):
         raise ValueError("every position needs a positive variance of its mean")
     s = 1.0 / np.sqrt(var)
-    fit = fit_linear(h * s[:, None], y * s, sigma_y=1.0, names=names)
-    return LinearFit(
-        values=fit.values, cov=fit.cov, residuals=y - h @ fit.values, sigma=1.0, dof=fit.dof
-    )
+    solve = linear_solver(h * s[:, None], sigma_y=1.0, names=names)
+
+    def fit(y: FloatArray) -> LinearFit:
+        scaled = solve(y * s)
+        return LinearFit(
+            values=scaled.values,
+            cov=scaled.cov,
+            residuals=y - h @ scaled.values,
+            sigma=1.0,
+            dof=scaled.dof,
+        )
+
+    return fit
 
 
 def _diag_var(cov: FloatArray | None, k: int) -> FloatArray | None:
@@ -244,9 +261,26 @@ def six_position_accel(
         raise ValueError(
             f"up directions must have the shape of the means {meas.shape}, got {up.shape}"
         )
+    return six_position_accel_fitter(
+        up, gravity_mps2=gravity_mps2, accel_cov_mps2=accel_cov_mps2, quadratic=quadratic
+    )(meas)
+
+
+def six_position_accel_fitter(
+    up_b: FloatArray,
+    *,
+    gravity_mps2: float,
+    accel_cov_mps2: FloatArray | None = None,
+    quadratic: bool = True,
+) -> Callable[[FloatArray], AccelSixPosition]:
+    """:func:`six_position_accel` of K positions whose up directions ``up_b`` (K, 3) and
+    covariances are fixed, for any means (K, 3): its three designs checked and factored once
+    (a Jacobian of the fit by central differences perturbs the means only). The same
+    operations on the same numbers: bit for bit :func:`six_position_accel`'s result."""
+    up = np.asarray(up_b, dtype=float)
     if not gravity_mps2 > 0:
         raise ValueError(f"gravity_mps2 must be positive, got {gravity_mps2!r}")
-    k = meas.shape[0]
+    k = up.shape[0]
     if k < 6:
         raise ValueError(f"the six-position test needs at least 6 positions, got {k}")
     var = _diag_var(accel_cov_mps2, k)
@@ -255,29 +289,42 @@ def six_position_accel(
             "with exactly six positions the noise cannot be estimated from residuals: give the covariances of the means"
         )
     a = float(gravity_mps2) * up
-    values = np.zeros((3, 5))
-    cov = np.zeros((3, 5, 5))
-    resid = np.zeros((k, 3))
     terms = 5 if quadratic else 4
+    solvers = []
     for i in range(3):
         j, k2 = [m for m in range(3) if m != i]
         h = np.column_stack([np.ones(k), a[:, i], a[:, j], a[:, k2], a[:, i] ** 2])[:, :terms]
         names = [f"{n} ({AXES[i]})" for n in ACCEL_TERM_NAMES[:terms]]
-        fit = _weighted_fit(h, meas[:, i] - a[:, i], None if var is None else var[:, i], names)
-        values[i, :terms], cov[i, :terms, :terms], resid[:, i] = fit.values, fit.cov, fit.residuals
-    mis = np.zeros((3, 3))
-    for i in range(3):
-        j, k2 = [m for m in range(3) if m != i]
-        mis[i, j], mis[i, k2] = values[i, 2], values[i, 3]
-    return AccelSixPosition(
-        gravity_mps2=float(gravity_mps2),
-        bias_mps2=values[:, 0],
-        scale_error=values[:, 1],
-        misalignment=mis,
-        quad_per_mps2=values[:, 4],
-        cov=cov,
-        residuals_mps2=resid,
-    )
+        solvers.append(_weighted_solver(h, None if var is None else var[:, i], names))
+
+    def fit(accel_mean_mps2: FloatArray) -> AccelSixPosition:
+        meas = np.asarray(accel_mean_mps2, dtype=float)
+        if meas.shape != up.shape:
+            raise ValueError(
+                f"up directions must have the shape of the means {meas.shape}, got {up.shape}"
+            )
+        values = np.zeros((3, 5))
+        cov = np.zeros((3, 5, 5))
+        resid = np.zeros((k, 3))
+        for i, solve in enumerate(solvers):
+            axis_fit = solve(meas[:, i] - a[:, i])
+            values[i, :terms], cov[i, :terms, :terms] = axis_fit.values, axis_fit.cov
+            resid[:, i] = axis_fit.residuals
+        mis = np.zeros((3, 3))
+        for i in range(3):
+            j, k2 = [m for m in range(3) if m != i]
+            mis[i, j], mis[i, k2] = values[i, 2], values[i, 3]
+        return AccelSixPosition(
+            gravity_mps2=float(gravity_mps2),
+            bias_mps2=values[:, 0],
+            scale_error=values[:, 1],
+            misalignment=mis,
+            quad_per_mps2=values[:, 4],
+            cov=cov,
+            residuals_mps2=resid,
+        )
+
+    return fit
 
 
 @dataclass(frozen=True)

@@ -60,9 +60,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estimators._typing import FloatArray, IntArray
+from estimators.least_squares import fit_linear
 from estimators.passport import TemperatureModel
 from estimators.positions import Position
-from estimators.repeatability import fit_linear
 from estimators.session import ImuSession
 from estimators.sixpos import AccelSixPosition, six_position_accel, six_position_spec
 

@@ -90,7 +90,7 @@ import numpy as np
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2
 from estimators.session import ImuSession, SessionError
-from estimators.stream_validity import ValidityLimits
+from estimators.validity_limits import ValidityLimits
 from protocols.atomic_file import atomic_write_bytes
 
 CSV_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz", "temp")

@@ -177,6 +177,17 @@ def test_calibrate_of_a_six_position_session_imports_no_heavy_module(tmp_path):
     assert "audit concluded nothing" in run.stderr and "white-noise model kept" in run.stderr
     assert set(out["loaded"]).isdisjoint(HEAVY), sorted(set(out["loaded"]) & set(HEAVY))
     not_needed = {"estimators.sim", "service.pipeline.fleet"}
+    # Nor the audit's statistics (and their noise analysis): calibrate asks only its minimum of
+    # positions, which the package states itself.
+    not_needed |= {"estimators.audit.statistics", "estimators.noise"}
+    # Nor the events' schemas and coverage: F0's configuration names predicates and severities only.
+    not_needed |= {"protocols.events", "estimators.coverage"}
+    # Nor the diagnosis F1…F9: there is no passport to diagnose against.
+    not_needed |= {"estimators.diagnosis"}
+    # Nor M2's repeatability: the six-position fit needs its least squares alone.
+    not_needed |= {"estimators.repeatability"}
+    # Nor the stream checks: a session's plausible rates and the options need their limits alone.
+    not_needed |= {"estimators.stream_validity"}
     # Nor the other commands' modules (the parser of the command named alone), nor pkgutil (the
     # commands listed from their folder), nor tomllib (a sidecar's, and the session has none).
     not_needed |= {f"service.commands.{name}" for name in command_modules()} - {

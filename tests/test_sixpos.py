@@ -22,6 +22,7 @@ from estimators.sixpos import (
     session_positions,
     simulate_rate_table,
     six_position_accel,
+    six_position_accel_fitter,
     six_position_spec,
     six_position_test,
 )
@@ -47,6 +48,33 @@ TERMS = np.array(
         [0.08, 5e-3, -9e-4, 7e-4, 1.5e-4],
     ]
 )
+
+
+@pytest.mark.parametrize("quadratic", [False, True])
+@pytest.mark.parametrize("with_cov", [True, False])
+def test_the_fitter_factored_once_gives_each_fit_bit_for_bit(quadratic, with_cov):
+    # calibrate's covariance of the six-position fit is a Jacobian by central differences: the
+    # means perturbed dozens of times, faces and covariances fixed, the designs factored once.
+    # Each fit must be exactly the one six_position_accel makes of those means (the passport's
+    # bytes rest on it).
+    rng = np.random.default_rng(5)
+    up = np.vstack([SIX_FACES_UP_B, SIX_FACES_UP_B[:2]])
+    base = _model_means(TERMS, G_LOCAL, up) + 1e-3 * rng.standard_normal(up.shape)
+    cov = (
+        np.einsum("k,ij->kij", 1e-6 * (1.0 + rng.random(len(up))), np.eye(3)) if with_cov else None
+    )
+    fit = six_position_accel_fitter(
+        up, gravity_mps2=G_LOCAL, accel_cov_mps2=cov, quadratic=quadratic
+    )
+    for _ in range(6):
+        means = base + 1e-4 * rng.standard_normal(base.shape)
+        once = six_position_accel(
+            means, gravity_mps2=G_LOCAL, accel_cov_mps2=cov, up_b=up, quadratic=quadratic
+        )
+        factored = fit(means)
+        for name in ("bias_mps2", "scale_error", "misalignment", "quad_per_mps2", "cov"):
+            assert np.array_equal(getattr(factored, name), getattr(once, name)), name
+        assert np.array_equal(factored.residuals_mps2, once.residuals_mps2)
 
 
 def test_six_exact_positions_give_back_the_terms():

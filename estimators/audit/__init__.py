@@ -5,8 +5,9 @@ Public entry points: :func:`run_audit` with :class:`AuditConfig`, and
 :func:`estimators.scalar.derive_lambda0`).
 
 The submodules load on first use of one of their names: ``calibrate`` asks
-:data:`MIN_POSITIONS` before it runs the audit, and a six-position session, too
-few for it, does not pay for importing the simulator.
+:data:`MIN_POSITIONS` (defined here, so that asking loads none of them) before it runs the
+audit, and a six-position session, too few for it, does not pay for importing the
+simulator, nor the statistics and their noise analysis.
 """
 
 from __future__ import annotations
@@ -29,7 +30,10 @@ if TYPE_CHECKING:
         same_session_spec,
     )
     from .candidates import CANDIDATE_NAMES, FAMILY_ALPHA, Candidate
-    from .statistics import MIN_POSITIONS, Comparison, TriadCurves
+    from .statistics import Comparison, TriadCurves
+
+MIN_POSITIONS = 12
+"""Positions needed for the accelerometer statistics (9 parameters plus a few degrees of freedom)."""
 
 __all__ = [
     "CANDIDATE_NAMES",
@@ -55,7 +59,6 @@ _NOT_IN_AUDIT = {
     "CANDIDATE_NAMES": "candidates",
     "FAMILY_ALPHA": "candidates",
     "Candidate": "candidates",
-    "MIN_POSITIONS": "statistics",
     "Comparison": "statistics",
     "TriadCurves": "statistics",
 }

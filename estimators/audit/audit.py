@@ -82,6 +82,7 @@ from estimators.sim import (
     tilt_sequence,
 )
 
+from . import MIN_POSITIONS
 from .candidates import (
     FAMILY_ALPHA,
     TEMPERATURE_ORDERS,
@@ -104,7 +105,6 @@ from .candidates import (
 )
 from .statistics import (
     INSIDE_POSITION_STATISTICS,
-    MIN_POSITIONS,
     Comparison,
     PositionTable,
     TriadCurves,

@@ -114,6 +114,7 @@ from estimators.sim import (
 )
 from estimators.static_detector import StaticDetectorConfig
 
+from . import MIN_POSITIONS
 from .audit import NOISE_WINDOW_S, candidate_table, find_candidates, fit_baselines, triad_samples
 from .candidates import (
     EARTH_RATE_VAR_NORM,
@@ -124,7 +125,7 @@ from .candidates import (
     leverage_components,
     mean_variance_factor,
 )
-from .statistics import MIN_POSITIONS, position_table, scalar_residuals
+from .statistics import position_table, scalar_residuals
 
 GRAVITY_MPS2 = 9.80665
 RATE_HZ = 50.0

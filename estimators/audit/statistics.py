@@ -43,15 +43,13 @@ from typing import Any
 import numpy as np
 
 from estimators._typing import BoolArray, FloatArray, IntArray
+from estimators.audit import MIN_POSITIONS
 from estimators.chain import ChainResult
 from estimators.conventions import AXES, Triad, reference_magnitude
 from estimators.ninepar import canonical_triad_matrix, ellipsoid_residual, position_arrays
 from estimators.noise import overlapping_allan_deviation
 from estimators.positions import Position
 from estimators.scalar import F0Config, f0_batch
-
-MIN_POSITIONS = 12
-"""Positions needed for the accelerometer statistics (9 parameters plus a few degrees of freedom)."""
 
 INSIDE_POSITION_STATISTICS = ("halves_rms", "f0_sd", "f0_q999", "allan", "means_rms")
 """Statistics made of what happens inside a position: its halves, its samples, its Allan record, a gyro's

@@ -8,18 +8,18 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from estimators.conventions import (
+    DEFAULT_FALSE_ALARM_PROB,
     EARTH_RATE_RPS,
     STANDARD_GRAVITY_MPS2,
     Triad,
 )
-from estimators.diagnosis import DEFAULT_FALSE_ALARM_PROB
 from estimators.passport import Passport
 from estimators.positions import PositionConfig
 from estimators.static_detector import StaticDetectorConfig
-from estimators.stream_validity import (
+from estimators.validity_limits import (
     ValidityLimits,
 )
-from protocols.events import (
+from protocols.event_kinds import (  # not protocols.events: F0's configuration needs no schemas
     Predicate,
     Severity,
 )
