@@ -137,7 +137,8 @@ class _GnssFrames:
 
 
 def _through_intake(items: list) -> tuple[FleetProcessor, list, list[str]]:
-    """IMU and GNSS frames in their order through the daemon's intake: the fleet, events, log lines."""
+    """IMU and GNSS frames in their order through the daemon's intake, the GNSS ones over the wire
+    (encoded and decoded, as the Zenoh source gives them): the fleet, events, log lines."""
     fleet = FleetProcessor(passports=lambda v, i: None, nominal=SensorClass.CONSUMER_MEMS)
     events: list = []
     said: list[str] = []
@@ -146,7 +147,8 @@ def _through_intake(items: list) -> tuple[FleetProcessor, list, list[str]]:
     async def feed() -> None:
         for item in items:
             if isinstance(item, GnssFrame):
-                await intake.gnss_frames(_GnssFrames([item]))  # type: ignore[arg-type]
+                wire = decode_gnss_frame(encode_gnss_frame(item))
+                await intake.gnss_frames(_GnssFrames([wire]))  # type: ignore[arg-type]
             else:
                 intake.process([item])
 
@@ -168,7 +170,8 @@ def test_a_damaged_gnss_velocity_is_left_out_and_counted_and_the_check_goes_on()
         list(_interleaved("uav-1", lambda: (session, gt, damaged)))
     )
     assert [e for e in events if e.predicate is Predicate.THRUST_AXIS] == []
-    assert fleet.service_counters["gnss.rejected.speed_over_515_mps"] == 1
+    status = fleet.status("uav-1", service="test", now_unix_s=0.0)
+    assert status.counters["service.gnss.rejected.speed_over_515_mps"] == 1
     assert [line for line in said if "speed_over_515_mps" in line] != []
     without = (session, np.delete(gt, k), np.delete(gv, k, axis=0))
     clean, _, _ = _through_intake(list(_interleaved("uav-1", lambda: without)))
