@@ -494,7 +494,8 @@ class ThrustAxisMonitor:
         return out
 
     def update_gnss(self, t_s: FloatArray, vel_enu_mps: FloatArray) -> Evaluations:
-        """Take GNSS velocity epochs (m/s, East-North-Up, the receiver's own: not a filter's)."""
+        """Take GNSS velocity epochs (m/s, East-North-Up, the receiver's own: not a filter's; each
+        component at most :data:`MAX_SPEED_MPS`, which the readers see to)."""
         t = np.asarray(t_s, float)
         v = np.asarray(vel_enu_mps, float)
         if t.ndim != 1 or v.shape != (t.size, 3):
