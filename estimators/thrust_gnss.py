@@ -124,6 +124,13 @@ DETECTION_QUANTILE = NormalDist().inv_cdf(0.95)
 THRUST_AXIS = 2
 """The body axis the specific force follows on a multicopter: z."""
 
+MAX_SPEED_MPS = 515.0
+"""The largest GNSS velocity component a reader hands the check, m/s: a civil receiver reports none
+above 1,000 knots (the COCOM export limit), so a larger one is a damaged value. The check must not
+take one: its velocity integral ``V`` carries it, and the differences of ``V`` that make ``ā_L``
+are lost to rounding (1e17 m/s alarmed on a sound unit; 1e15 m/s was harmless). The readers leave
+such epochs out and count them: :mod:`protocols.gnss_logs` (replay) and the daemon's intake."""
+
 
 class Exclusion(IntEnum):
     """Why an epoch was not tested (0: tested)."""
@@ -487,7 +494,8 @@ class ThrustAxisMonitor:
         return out
 
     def update_gnss(self, t_s: FloatArray, vel_enu_mps: FloatArray) -> Evaluations:
-        """Take GNSS velocity epochs (m/s, East-North-Up, the receiver's own: not a filter's)."""
+        """Take GNSS velocity epochs (m/s, East-North-Up, the receiver's own: not a filter's; each
+        component at most :data:`MAX_SPEED_MPS`, which the readers see to)."""
         t = np.asarray(t_s, float)
         v = np.asarray(vel_enu_mps, float)
         if t.ndim != 1 or v.shape != (t.size, 3):

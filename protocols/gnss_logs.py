@@ -23,8 +23,9 @@ clock:
   Unknown speed or course (``UINT16_MAX``) leaves the epoch out.
 
 Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a velocity the receiver
-flags not valid (ULog), a value not finite or unknown, a speed above :data:`MAX_SPEED_MPS` (ULog,
-DataFlash), a time not after the previous epoch's.
+flags not valid (ULog), a value not finite or unknown, a speed above
+:data:`~estimators.thrust_gnss.MAX_SPEED_MPS` (ULog, DataFlash: MAVLink's integer fields cannot
+carry one large enough to harm the check), a time not after the previous epoch's.
 """
 
 from __future__ import annotations
@@ -40,18 +41,13 @@ from typing import Any
 import numpy as np
 
 from estimators._typing import FloatArray
-from estimators.thrust_gnss import up_velocity_from_altitude
+from estimators.thrust_gnss import MAX_SPEED_MPS, up_velocity_from_altitude
 from protocols.logs import LogFormat, detect_format
 from protocols.mavlink_settings import GPS_RAW_INT_FIELDS, MILLI_UNITS
 
 GPS_FIX_3D = 3
 SEARCH_BLOCK_BYTES = 1 << 20
 UNKNOWN_U16 = 65535
-MAX_SPEED_MPS = 515.0
-"""A civil receiver reports no velocity above 1,000 knots (the COCOM export limit): a larger one in
-a log's float fields (ULog, DataFlash) is a damaged record, and one of 1e17 m/s would bury the
-thrust-axis check's velocity integral in rounding (false alarms on a sound unit). MAVLink's
-integer fields cannot carry one that large."""
 ULOG_GNSS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 """PX4 topics of the receivers' own solution with NED velocity and its validity flag:
 ``vehicle_gps_position``, what PX4's sensors module publishes from the receivers (the selected

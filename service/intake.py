@@ -5,11 +5,16 @@ outbox cannot take are held and delivered from memory (:mod:`service.outbox_writ
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import Awaitable, Callable, Iterator
 
+import numpy as np
+
+from estimators.thrust_gnss import MAX_SPEED_MPS
 from protocols._schema import Reason, SchemaError
 from protocols.events import Event
 from protocols.frames import FrameError, SampleBatch
+from protocols.gnss_frames import GnssFrame
 from protocols.log_rate import LogRate
 from protocols.mavlink_adapter import MavlinkSource
 from protocols.mavlink_gnss import MavlinkGnssSource
@@ -27,6 +32,8 @@ COALESCE_MAX = 256
 """MAVLink samples queued per ``queue_capacity`` (a frame's worth: the queue holds that many samples)."""
 QUEUED_SAMPLES_MAX = 2000
 """Samples of queued Zenoh frames taken together (2 ms of a 1 kHz IMU's chain per 1000 in one batch)."""
+SPEED_REJECTED = f"speed_over_{MAX_SPEED_MPS:g}_mps"
+"""The reason a GNSS epoch faster than a receiver reports is left out (replay's name for it too)."""
 
 
 async def _one_turn() -> None:
@@ -163,17 +170,42 @@ class Intake:
     ) -> None:
         """Every GNSS frame of the source (Zenoh's, or the MAVLink link's GPS_RAW_INT) into the
         thrust-axis checks, under :attr:`group_lock` (they read the IMUs' pipelines), until it is
-        closed and drained; what the source dropped (its queue full) counted as ``dropped_as``."""
+        closed and drained; what the source dropped (its queue full) counted as ``dropped_as``;
+        epochs faster than a receiver reports left out (:meth:`_receiver_speeds`)."""
         while True:
             try:
                 frame = await source.get()
             except EOFError:
                 return
-            async with self.group_lock:
-                self._store(self.fleet.gnss(frame))
+            kept = self._receiver_speeds(frame)
+            if kept is not None:
+                async with self.group_lock:
+                    self._store(self.fleet.gnss(kept))
             if source.dropped:
                 self.fleet.service_counters[dropped_as] = source.dropped
             await asyncio.sleep(0)
+
+    def _receiver_speeds(self, frame: GnssFrame) -> GnssFrame | None:
+        """``frame`` without its epochs with a velocity component above
+        :data:`~estimators.thrust_gnss.MAX_SPEED_MPS` (damaged values: the check's velocity integral
+        carried one of 1e17 m/s into a false alarm), counted as ``gnss.rejected.speed_over_515_mps``
+        and said once, as the decoder's refusals; None when no epoch is left. Here both sources are
+        protected: a Zenoh frame's float64 carries any value, GPS_RAW_INT's speed up to 655 m/s."""
+        fast = np.any(np.abs(frame.vel_enu_mps) > MAX_SPEED_MPS, axis=1)
+        if not fast.any():
+            return frame
+        self.fleet.count_service(f"gnss.rejected.{SPEED_REJECTED}", int(fast.sum()))
+        if f"gnss:{SPEED_REJECTED}" not in self._reported:
+            self._reported.add(f"gnss:{SPEED_REJECTED}")
+            self._say(
+                f"GNSS epoch(s) left out: {frame.vehicle} seq {frame.seq}: {int(fast.sum())} with a "
+                f"velocity above {MAX_SPEED_MPS:g} m/s (counted as gnss.rejected.{SPEED_REJECTED})"
+            )
+        if fast.all():
+            return None
+        return dataclasses.replace(
+            frame, t_s=frame.t_s[~fast], vel_enu_mps=frame.vel_enu_mps[~fast]
+        )
 
     def gnss_reject(self, key: str, error: FrameError) -> None:
         """A GNSS frame the decoder refused: counted as ``gnss.rejected.<reason>``, a new reason said."""
