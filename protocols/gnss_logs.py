@@ -23,9 +23,10 @@ clock:
   Unknown speed or course (``UINT16_MAX``) leaves the epoch out.
 
 Left out and counted by reason (:attr:`GnssTrack.rejected`): no 3D fix, a velocity the receiver
-flags not valid (ULog), a value not finite or unknown, a speed above
-:data:`~estimators.thrust_gnss.MAX_SPEED_MPS` (ULog, DataFlash: MAVLink's integer fields cannot
-carry one large enough to harm the check), a time not after the previous epoch's.
+flags not valid (ULog), a value not finite or unknown, a velocity component above
+:data:`~estimators.thrust_gnss.MAX_SPEED_MPS` (in every format, as the live intake does: a
+GPS_RAW_INT speed can reach 655 m/s, and its vertical, from an altitude jump, more), a time not
+after the previous epoch's.
 """
 
 from __future__ import annotations
@@ -290,7 +291,7 @@ def gps_raw_int_track(rows: FloatArray) -> GnssTrack:
         up[good] = up_velocity_from_altitude(t[good], rows[good, 4])
     speed, course = rows[:, 2], rows[:, 3]
     vel = np.column_stack([speed * np.sin(course), speed * np.cos(course), up])
-    return _track(t, vel, fix_ok, "GPS_RAW_INT")
+    return _track(t, vel, fix_ok, "GPS_RAW_INT", None, MAX_SPEED_MPS)
 
 
 def _tlog(path: str | os.PathLike[str]) -> GnssTrack | None:

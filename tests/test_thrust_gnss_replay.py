@@ -23,7 +23,12 @@ from estimators.sim.gnss import gnss_velocity
 from estimators.thrust_gnss import up_velocity_from_altitude
 from protocols import gnss_logs
 from protocols.events import Predicate, event_from_json, event_to_dict
-from protocols.gnss_logs import ULOG_GNSS_TOPICS, append_gps_raw_int, read_gnss_track
+from protocols.gnss_logs import (
+    ULOG_GNSS_TOPICS,
+    append_gps_raw_int,
+    gps_raw_int_track,
+    read_gnss_track,
+)
 from protocols.logs import write_dataflash_text, write_tlog
 from protocols.mavlink_adapter import ImuMessage
 from protocols.ulog import UlogGnss, write_ulog
@@ -235,6 +240,11 @@ def test_a_damaged_gnss_velocity_beyond_any_receiver_is_left_out_not_a_fault(cap
         for k, speed in enumerate([2.0, 1e20, 2.0]):
             fh.write(f"GPS, {1_000_000 + k * 200_000}, 3, 0, 2200, {speed}, 90.0, -0.5\n")
     assert read_gnss_track(text).rejected == {"speed_over_515_mps": 1}
+    # A tlog's GPS_RAW_INT as the live intake: 600 m/s fits its uint16 cm/s, and is left out.
+    rows = np.array(
+        [[1.0 + 0.2 * k, 3, speed, 0.5, 100.0] for k, speed in enumerate([2, 600, 2, 2])]
+    )
+    assert gps_raw_int_track(rows).rejected == {"speed_over_515_mps": 1}
 
 
 @pytest.mark.parametrize("topic", ULOG_GNSS_TOPICS)
