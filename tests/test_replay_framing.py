@@ -52,9 +52,9 @@ def _boots():
 def test_events_and_report_are_the_same_however_the_frames_are_grouped(
     capsys, monkeypatch, tmp_path
 ):
-    """A fault, a gap and a reboot in a DataFlash log: frame by frame, in groups of 1000 samples
-    and of replay's own give the same events (ids included), coverage line and report.json, to
-    the bit."""
+    """A fault, a gap and a reboot in a DataFlash log: frame by frame, in groups of 1000 and 4096
+    samples and of replay's own (more than a boot) give the same events (ids included), coverage line
+    and report.json, to the bit."""
     parts = []
     for k, boot in enumerate(_boots()):
         part = tmp_path / f"boot{k}.bin"
@@ -68,7 +68,7 @@ def test_events_and_report_are_the_same_however_the_frames_are_grouped(
     options = ("--passport", pfile, "--gravity", g)
     runs = [
         _replay(capsys, monkeypatch, tmp_path, log, size, *options)
-        for size in (FRAME_BY_FRAME, 1000, replay_command.REPLAY_GROUP_SAMPLES)
+        for size in (FRAME_BY_FRAME, 1000, 4096, replay_command.REPLAY_GROUP_SAMPLES)
     ]
     status, lines, _, report = runs[0]
     # The log holds what the test is about: the fault found, the reboot and the gap seen.

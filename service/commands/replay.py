@@ -94,12 +94,13 @@ if TYPE_CHECKING:
 REPLAY_BATCH_SAMPLES = 100
 """Samples per frame the log is read in: the frames the cross-IMU checks and the report see, in
 the order the log holds them, as a live stream's."""
-REPLAY_GROUP_SAMPLES = 4096
+REPLAY_GROUP_SAMPLES = 16384
 """Samples of consecutive frames taken together at full speed
 (:meth:`~service.pipeline.FleetProcessor.process_queued`, as the daemon takes queued frames): their
 IMU's pipeline takes them as one batch (its cost is mostly per batch: about 1 ms, 56,000
-samples/s in frames of 100), and its events and the report do not depend on how the samples are
-batched (``tests/test_replay_framing.py``). Only frames of IMUs each alone on its vehicle so far
+samples/s in frames of 100; 20 minutes at 1 kHz replayed 0.3 s faster in groups of 16,384 than of
+4,096, none faster in groups of 32,768), and its events and the report do not depend on how the
+samples are batched (``tests/test_replay_framing.py``). Only frames of IMUs each alone on its vehicle so far
 are taken together (:func:`_take`)."""
 REPLAY_MAX_IMUS = 16
 COVERAGE_TYPE = "ins.health.coverage"
