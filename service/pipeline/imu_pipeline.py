@@ -3,6 +3,7 @@ static detection and positions, F0, re-estimation and diagnosis, events; its sta
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -73,6 +74,18 @@ def _rows(batch: SampleBatch, rows: slice | np.ndarray) -> SampleBatch:
         batch.vehicle, batch.imu, batch.seq, batch.t_s[rows], batch.accel_mps2[rows],
         batch.gyro_rps[rows], None if batch.temp_c is None else batch.temp_c[rows], batch.run,
     )  # fmt: skip
+
+
+def split_batch(batch: SampleBatch, frames: int) -> list[SampleBatch]:
+    """The ``frames`` equal frames ``batch`` joins (:func:`join_batches` of them gives it back),
+    numbered up to its ``seq``."""
+    size = batch.n_samples // frames
+    return [
+        dataclasses.replace(
+            _rows(batch, slice(k * size, (k + 1) * size)), seq=batch.seq - frames + 1 + k
+        )
+        for k in range(frames)
+    ]
 
 
 def join_batches(batches: list[SampleBatch]) -> SampleBatch | None:
@@ -430,8 +443,10 @@ class ImuPipeline:
             return events
         return events + self._chain(good, prev_t_s)
 
-    def joins(self, prev: SampleBatch | None, batch: SampleBatch) -> bool:
+    def joins(self, prev: SampleBatch | None, batch: SampleBatch, frames: int = 1) -> bool:
         """Whether ``batch`` may join one batch with the frames before it (``prev``: the last of them; None: the first).
+
+        ``frames`` > 1: ``batch`` joins that many equal frames (:func:`split_batch`), each of which must join.
 
         Only where joining changes nothing but the cost: the chain is set up and
         in no timeout, error-density or restart episode, and the frame is of the same run, finite,
@@ -449,10 +464,14 @@ class ImuPipeline:
         if batch.run != (self.run if prev is None else prev.run):
             return False
         t = batch.t_s
+        size = t.size // frames
+        # Where one joined frame ends and the next starts: within a time jump, as between frames.
+        starts = t[size::size]
         return (
-            (last_seq is None or batch.seq == last_seq + 1)
+            (last_seq is None or batch.seq - frames + 1 == last_seq + 1)
             and (last_t_s is None or last_t_s < t[0] <= last_t_s + self._jump_s())
             and bool((t[1:] > t[:-1]).all())
+            and bool((starts - t[size - 1 : -1 : size] <= self._jump_s()).all())
             and all_usable(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
         )
 
