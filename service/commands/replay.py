@@ -92,8 +92,9 @@ if TYPE_CHECKING:
     from service.pipeline import FleetProcessor
 
 REPLAY_BATCH_SAMPLES = 100
-"""Samples per frame the log is read in: the frames the cross-IMU checks and the report see, in
-the order the log holds them, as a live stream's."""
+"""Samples per frame the log is read in: the frames the cross-IMU checks see, in the order the log
+holds them, as a live stream's (at full speed the reader joins an IMU's frames that come in a row:
+an IMU alone on its vehicle takes them joined, :func:`_taken`)."""
 REPLAY_GROUP_SAMPLES = 16384
 """Samples of consecutive frames taken together at full speed
 (:meth:`~service.pipeline.FleetProcessor.process_queued`, as the daemon takes queued frames): their
