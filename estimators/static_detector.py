@@ -357,6 +357,39 @@ class StaticInterval:
         return self.t_end_s - self.t_start_s
 
 
+def exact_sums(x: FloatArray) -> FloatArray:
+    """``math.fsum`` down each column of the windows ``x`` (R, M, K), bit for bit: (R, K).
+
+    ``fsum`` is the exact sum correctly rounded (half to even). Vectorized: the sequential sums
+    ``sᵢ = fl(sᵢ₋₁ + xᵢ)`` (``cumsum``) and each addition's exact error ``eᵢ`` (Knuth's TwoSum:
+    ``sᵢ₋₁ + xᵢ = sᵢ + eᵢ``) give ``Σx = s_M + Σe`` exactly; ``E = fl(Σe)`` is within
+    ``γ_M·Σ|e|`` of ``Σe`` (Higham, *Accuracy and Stability of Numerical Algorithms*, eq. 4.4,
+    any order of the additions; taken twice, plus M of the least subnormal for what underflows),
+    and TwoSum of ``s_M`` and ``E`` gives ``r + t = s_M + E``. When ``t`` ± that bound lies strictly
+    inside half an ulp of ``r`` on either side, the exact sum rounds to ``r``: that is ``fsum``'s
+    value. Any other column (a sum of zero, a near tie, a value or sum that is not finite) is
+    ``fsum``'s own.
+    """
+    m = x.shape[-2]
+    with np.errstate(invalid="ignore", over="ignore"):  # what overflows is fsum's to sum
+        s = np.cumsum(x, axis=-2)
+        prev, cur = s[:, :-1], s[:, 1:]
+        part = cur - prev
+        err = (prev - (cur - part)) + (x[:, 1:] - part)
+        err_sum = err.sum(axis=-2)
+        bound = np.abs(err).sum(axis=-2) * (2.0 * m * 2.0**-53) + m * 2.0**-1074
+        last = s[:, -1]
+        total: FloatArray = last + err_sum
+        part = total - last
+        rest = (last - (total - part)) + (err_sum - part)
+        up = np.nextafter(total, np.inf) - total
+        down = total - np.nextafter(total, -np.inf)
+        sure = (rest + bound < 0.5 * up) & (rest - bound > -0.5 * down) & (total != 0.0)
+    for r, k in zip(*np.nonzero(~sure), strict=True):
+        total[r, k] = math.fsum(x[r, :, k].tolist())
+    return total
+
+
 def _required(x: FloatArray | None, name: str) -> FloatArray:
     """The samples of a triad the detector was built with."""
     if x is None:
@@ -964,10 +997,11 @@ class StreamingStaticDetector:
         starts = np.empty((2 * nc, len(res) + 1))
         starts[:nc, 0] = np.asarray(self._s)[chans]
         starts[nc:, 0] = np.asarray(self._q)[chans]
-        for r, i in enumerate(res, start=1):
-            # Only the window being re-summed goes to lists: most batches of a stream hold no re-summation.
-            starts[:nc, r] = [math.fsum(e) for e in ext[i + 1 : i + w + 1].T.tolist()]
-            starts[nc:, r] = [math.fsum(e) for e in ext2[i + 1 : i + w + 1].T.tolist()]
+        if res:
+            # The windows re-summed, one after the other: _resum's fsum of each (exact_sums).
+            whole = slice(i_res + 1, i_res + 1 + len(res) * w)
+            starts[:nc, 1:] = exact_sums(ext[whole].reshape(len(res), w, nc)).T
+            starts[nc:, 1:] = exact_sums(ext2[whole].reshape(len(res), w, nc)).T
         # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order.
         plus = np.concatenate([y, ext2[w:]], axis=1).T
         minus = -np.concatenate([ext[:n], ext2[:n]], axis=1).T

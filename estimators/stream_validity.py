@@ -47,6 +47,15 @@ def typical_step_s(steps_s: FloatArray) -> float:
     return float(steps[quarter : steps.size - quarter].mean())
 
 
+def typical_steps_s(blocks_s: FloatArray) -> FloatArray:
+    """:func:`typical_step_s` of each row of ``blocks_s`` (K, M), s: (K,), the same bits (each row's
+    middle half sorted and summed as one row, divided by its count)."""
+    steps = np.sort(np.asarray(blocks_s, dtype=float), axis=1)
+    quarter = steps.shape[1] // 4
+    means: FloatArray = steps[:, quarter : steps.shape[1] - quarter].mean(axis=1)
+    return means
+
+
 def plausible_rate_hz(t_s: FloatArray, limits: ValidityLimits) -> float | None:
     """The sample rate of increasing time stamps, Hz, or None when it is not plausible.
 

@@ -37,7 +37,9 @@ is left out and counted in :class:`LogStats`; a run of samples whose time
 started again is kept and counted (``clock_restarts``,
 :data:`CLOCK_RESTART_SAMPLES`): the batch before it ends there, and the batches from it on carry
 the next run id (:attr:`~protocols.frames.SampleBatch.run`: 0 from the log's start, one more at
-each restart), so the pipeline starts a new run at once and refuses none of them; so
+each restart), so the pipeline starts a new run at once and refuses none of them. With
+``join_frames`` > 1 the full batches one IMU fills in a row come joined, up to that many in one
+(what replay takes at full speed: the cost is per batch); so
 is a corrupt message (``corrupt_messages``: a DataFlash one that does not decode, a
 tlog packet with a bad CRC), the bytes passed over to the next message
 (``skipped_bytes``) and where a file cut mid-message ends (``cut_at_byte``).
@@ -315,6 +317,9 @@ class LogReader:
     path : the log file.
     vehicle : vehicle id given to the batches.
     batch_samples : samples per batch (the last of each IMU may be shorter).
+    join_frames : up to this many full batches of one IMU that come one after the other, joined
+        in one, numbered as the last of them (its ``seq`` steps by the batches it joins; a
+        shorter batch always comes alone): ``frames_of`` tells how many a batch joins.
     log_format : override :func:`detect_format`.
     raw_scale, imu_index : MAVLink settings (:mod:`protocols.mavlink_adapter`), tlog only.
 
@@ -330,18 +335,24 @@ class LogReader:
         *,
         vehicle: str = "replay",
         batch_samples: int = 1000,
+        join_frames: int = 1,
         log_format: LogFormat | None = None,
         raw_scale: ImuScale = RAW_IMU_ARDUPILOT,
         imu_index: Mapping[ImuMessage, int] = DEFAULT_IMU_INDEX,
     ):
         if not 1 <= batch_samples <= MAX_SAMPLES:
             raise ValueError(f"batch_samples must be in 1..{MAX_SAMPLES}, got {batch_samples}")
+        if not 1 <= join_frames <= MAX_SAMPLES // batch_samples:
+            raise ValueError(
+                f"join_frames must be in 1..{MAX_SAMPLES // batch_samples}, got {join_frames}"
+            )
         self.path = Path(path)
         if not self.path.is_file():
             raise ValueError(f"{self.path}: no such log file")
         self.format = LogFormat(log_format) if log_format is not None else detect_format(self.path)
         self.vehicle = vehicle
         self._batch = int(batch_samples)
+        self._join = int(join_frames)
         self._raw_scale = raw_scale
         self._imu_index = imu_index
         self._ulog = UlogImuStream(self.path) if self.format is LogFormat.ULOG else None
@@ -380,7 +391,8 @@ class LogReader:
                     continue
                 self._keep(rows.imu, buf, [piece])
                 while buf.n >= self._batch:
-                    yield self._emit(rows.imu, buf, self._batch)
+                    k = min(buf.n // self._batch, self._join)
+                    yield self._emit(rows.imu, buf, k * self._batch, frames=k)
         for imu in sorted(buffers):
             buf = buffers[imu]
             # The log ended: a held sample had no next one to tell a glitch (it is kept); a run of
@@ -429,7 +441,11 @@ class LogReader:
         )
         yield from _rows_from_samples(samples, min(self._batch, _FLUSH_MESSAGES))
 
-    def _emit(self, imu: int, buf: _Buffer, n: int) -> SampleBatch:
+    def frames_of(self, batch: SampleBatch) -> int:
+        """How many batches of ``batch_samples`` the reader's ``batch`` joins (``join_frames``)."""
+        return -(-batch.n_samples // self._batch)
+
+    def _emit(self, imu: int, buf: _Buffer, n: int, *, frames: int = 1) -> SampleBatch:
         rows = _concat(buf.parts)
         head = _select(rows, slice(0, n))
         rest = _select(rows, slice(n, None))
@@ -437,14 +453,14 @@ class LogReader:
         batch = SampleBatch(
             self.vehicle,
             imu,
-            buf.seq,
+            buf.seq + frames - 1,
             head.t_s,
             head.accel_mps2,
             head.gyro_rps,
             head.temp_c,
             buf.run,
         )
-        buf.seq += 1
+        buf.seq += frames
         return batch
 
     def _tlog_samples(self) -> Iterator[_Sample | ImuRows]:

@@ -24,6 +24,8 @@ from protocols.logs import (
     write_tlog,
 )
 from protocols.mavlink_adapter import ImuMessage
+from protocols.ulog import SYNC_BYTES, write_ulog
+from service.pipeline.imu_pipeline import split_batch
 
 REAL_COPTER31 = LOGS / "ardupilot-copter31-no-imu.log"
 
@@ -539,3 +541,32 @@ def test_an_endless_text_line_costs_a_bounded_read_and_is_counted(tmp_path):
         tracemalloc.stop()
     assert back[0].n_samples == 20 and stats.dropped == {"corrupt_messages": 1}
     assert peak < 2 << 20, peak
+
+
+@pytest.mark.parametrize(
+    ("writer", "most"), [(write_dataflash_bin, 1), (write_ulog, 7)], ids=["bin", "ulg"]
+)
+def test_joined_batches_are_the_batches_one_by_one(tmp_path, writer, most):
+    """Two IMUs, then the autopilot rebooted (its clock starts again): with ``join_frames`` the
+    reader gives each IMU's full batches that come in a row joined, numbered as the last; split
+    again they are the batches read one by one, in their order, each IMU's last and the one
+    before the reboot shorter and alone. A ULog's topics come in runs of messages, so batches
+    come in a row; a DataFlash log's IMUs take turns batch by batch."""
+    parts = []
+    for k, n in enumerate((2345, 1234)):
+        path = tmp_path / f"boot{k}"
+        writer(path, _sessions(n=n, seed=k, imus=(0, 1)))
+        parts.append(path.read_bytes())
+    # The second boot's data after the first's definitions: a DataFlash log's two FMT messages
+    # (89 bytes each), a ULog's header up to its first sync message.
+    cut = 2 * 89 if writer is write_dataflash_bin else parts[1].index(b"\x08\x00S" + SYNC_BYTES)
+    log = tmp_path / "joined"
+    log.write_bytes(parts[0] + parts[1][cut:])
+    one_by_one = list(LogReader(log, batch_samples=100))
+    reader = LogReader(log, batch_samples=100, join_frames=7)
+    joined = list(reader)
+    frames = [reader.frames_of(b) for b in joined]
+    assert max(frames) == most
+    split = [part for b, f in zip(joined, frames, strict=True) for part in split_batch(b, f)]
+    assert split == one_by_one
+    assert {b.run for b in one_by_one} == {0, 1}

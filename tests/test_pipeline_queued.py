@@ -11,6 +11,7 @@ from protocols.events import Event, Predicate
 from protocols.frames import SampleBatch
 from service.demo import DEMO_VEHICLE, demo_scenario
 from service.pipeline import FleetProcessor, ImuPipeline
+from service.pipeline.imu_pipeline import join_batches
 
 V = DEMO_VEHICLE
 
@@ -35,6 +36,19 @@ def queued(frames: list[SampleBatch], seed: int) -> tuple[list[Event], FleetProc
     return events, f
 
 
+def frames_taken(monkeypatch) -> list[int]:
+    """The frames each call of the chain takes from now on (``ImuPipeline.process``'s ``frames``)."""
+    taken: list[int] = []
+    process = ImuPipeline.process
+
+    def spy(self, batch, *, arrival_s, frames=1):
+        taken.append(frames)
+        return process(self, batch, arrival_s=arrival_s, frames=frames)
+
+    monkeypatch.setattr(ImuPipeline, "process", spy)
+    return taken
+
+
 def counters(f: FleetProcessor) -> dict:
     return {key: dict(p.counters) for key, p in f.pipelines.items()}
 
@@ -43,14 +57,7 @@ def test_the_faulty_demo_unit_gives_the_same_events_and_counters_in_queued_group
     """F0, positions and the diagnosis of the demo's fault, in frames of 20: same events, same counters."""
     frames = list(batches_of(demo_scenario().session, vehicle=V, imu=0, batch_samples=20))
     alone, f_alone = one_by_one(frames)
-    joined = []
-    process = ImuPipeline.process
-
-    def spy(self, batch, *, arrival_s, frames=1):
-        joined.append(frames)
-        return process(self, batch, arrival_s=arrival_s, frames=frames)
-
-    monkeypatch.setattr(ImuPipeline, "process", spy)
+    joined = frames_taken(monkeypatch)
     together, f_together = queued(frames, seed=1)
     # Most frames went through the chain joined with others.
     assert sum(n for n in joined if n > 1) > 0.9 * len(frames)
@@ -146,3 +153,47 @@ def test_imus_without_a_pipeline_are_admitted_in_the_order_their_frames_came():
     f.process_queued([*imu0, dataclasses.replace(imu0[0], imu=1)], arrival_s=0.0)
     assert sorted(f.pipelines) == [(V, 0)]
     assert f.status(V, service="t", now_unix_s=0.0).counters["frames.rejected.over_imu_limit"] == 1
+
+
+def test_frames_joined_as_a_log_reader_joins_them_give_what_they_give_one_by_one(monkeypatch):
+    """A lost frame, a non-finite sample and a time jump at a frame's start: consecutive frames
+    joined (1…8, as :class:`~protocols.logs.LogReader` joins them, ``frames`` saying how many)
+    and queued give the events and counters of the frames one by one. A joined batch holding the
+    jump or the bad sample is taken frame by frame (its frames would not join), so the jump is
+    counted where it was and the bad sample's frame goes through the checks alone."""
+    sc = demo_scenario(fault_magnitude=0.0)
+    imu0 = list(batches_of(sc.session, vehicle=V, imu=0, batch_samples=20))[:900]
+    accel = imu0[300].accel_mps2.copy()
+    accel[5, 1] = np.nan
+    nan = dataclasses.replace(imu0[300], accel_mps2=accel)
+    jumped = [dataclasses.replace(b, t_s=b.t_s + 3.0) for b in imu0[501:]]
+    frames = [*imu0[:200], *imu0[201:300], nan, *imu0[301:501], *jumped]
+    alone, f_alone = one_by_one(frames)
+    c = counters(f_alone)[(V, 0)]
+    assert c["frames.missing"] == 1 and c["time_jumps"] == 2  # the lost frame, the jump
+    assert c["samples.rejected.out_of_order_or_non_finite"] == 1
+    taken = frames_taken(monkeypatch)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        runs, k = [], 0
+        while k < len(frames):
+            run = [frames[k]]
+            while len(run) < rng.integers(1, 9) and k + len(run) < len(frames):
+                nxt = frames[k + len(run)]
+                if nxt.seq != run[-1].seq + 1:
+                    break
+                run.append(nxt)
+            runs.append(run)
+            k += len(run)
+        f = demo_fleet()
+        together = []
+        for g in range(0, len(runs), 3):
+            group = runs[g : g + 3]
+            together += f.process_queued(
+                [join_batches(run) for run in group],
+                arrival_s=float(group[-1][-1].t_s[-1]),
+                frames=[len(run) for run in group],
+            )
+        assert sorted(together, key=lambda e: e.event_id) == sorted(alone, key=lambda e: e.event_id)
+        assert counters(f) == counters(f_alone), seed
+    assert max(taken) > 8  # joined batches went through joined

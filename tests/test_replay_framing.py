@@ -19,6 +19,7 @@ from replay_support import replay_with_coverage
 import service.commands.replay as replay_command
 from protocols.logs import write_dataflash_bin
 from protocols.passport_codec import write_passport_json
+from protocols.ulog import SYNC_BYTES, write_ulog
 from service.demo import DEMO_FAULT_MAGNITUDE, demo_passport, demo_scenario
 from service.pipeline.imu_pipeline import ImuPipeline
 
@@ -49,18 +50,26 @@ def _boots():
     return first, dataclasses.replace(second, t_s=second.t_s - second.t_s[0] + 3.0)
 
 
+@pytest.mark.parametrize("suffix", [".bin", ".ulg"])
 def test_events_and_report_are_the_same_however_the_frames_are_grouped(
-    capsys, monkeypatch, tmp_path
+    capsys, monkeypatch, tmp_path, suffix
 ):
-    """A fault, a gap and a reboot in a DataFlash log: frame by frame, in groups of 1000 samples
-    and of replay's own give the same events (ids included), coverage line and report.json, to
-    the bit."""
+    """A fault, a gap and a reboot in a DataFlash log and a ULog: frame by frame, in groups of
+    1000 and 4096 samples and of replay's own (more than a boot) give the same events (ids
+    included), coverage line and report.json, to the bit. The reader joins the ULog's frames
+    (but frame by frame)."""
     parts = []
     for k, boot in enumerate(_boots()):
-        part = tmp_path / f"boot{k}.bin"
-        write_dataflash_bin(part, {0: boot})
-        parts.append(part.read_bytes())
-    log = tmp_path / "joined.bin"
+        part = tmp_path / f"boot{k}{suffix}"
+        if suffix == ".bin":
+            write_dataflash_bin(part, {0: boot})
+            parts.append(part.read_bytes())
+        else:
+            write_ulog(part, {0: boot}, topics=["sensor_combined"])
+            data = part.read_bytes()
+            # The second boot's messages after the first's definitions.
+            parts.append(data[data.index(b"\x08\x00S" + SYNC_BYTES) :] if k else data)
+    log = tmp_path / f"joined{suffix}"
     log.write_bytes(b"".join(parts))
     passport, g = demo_passport()
     pfile = tmp_path / "passport.json"
@@ -68,7 +77,7 @@ def test_events_and_report_are_the_same_however_the_frames_are_grouped(
     options = ("--passport", pfile, "--gravity", g)
     runs = [
         _replay(capsys, monkeypatch, tmp_path, log, size, *options)
-        for size in (FRAME_BY_FRAME, 1000, replay_command.REPLAY_GROUP_SAMPLES)
+        for size in (FRAME_BY_FRAME, 1000, 4096, replay_command.REPLAY_GROUP_SAMPLES)
     ]
     status, lines, _, report = runs[0]
     # The log holds what the test is about: the fault found, the reboot and the gap seen.

@@ -17,6 +17,7 @@ from estimators.static_detector import (
     StreamingStaticDetector,
     detect_static,
     direction_change_deg,
+    exact_sums,
     is_new_orientation,
 )
 from protocols.session_file import read_session
@@ -332,3 +333,52 @@ def test_the_streaming_detector_ends_a_run_where_the_data_jump_as_the_batch_one(
         static, intervals, _ = _stream(session, rate_hz=100.0, state_at=state_at)
         assert intervals == list(batch.intervals)
         np.testing.assert_array_equal(static, batch.static)
+
+
+def test_exact_sums_are_math_fsum_bit_for_bit():
+    """The re-summations' vectorized fsum against math.fsum (the oracle) on windows of the
+    detector's size: noise and its squares, float32 read-outs, values over 600 decades, exact
+    cancellations, ties of the rounding and sums just past them, signed zeros, subnormals, sums near overflow."""
+    rng = np.random.default_rng(8)
+    noise = rng.normal(0.0, 0.05, (8, 500, 6))
+    cancel = rng.normal(0.0, 1.0, (4, 500, 6))
+    cancel[:, 250:] = -cancel[:, :250]
+    cancel[1, 0, :] += 1e-300
+    ties = np.ones((2, 500, 6))
+    ties[:, 0] = 2.0**53
+    quarter = rng.integers(-(2**20), 2**20, (2, 500, 6)) * 2.0**-30
+    quarter[:, 0] = 1.5 * 2.0**52
+    # Just past or short of a tie: 1 + 2⁻⁵³ ± k·2⁻¹⁰⁶, where rounding the sum of the errors first
+    # lands on the tie and rounds to even.
+    past = np.zeros((2, 500, 6))
+    past[:, 0], past[:, 1] = 1.0, 2.0**-53
+    past[:, 2] = np.array([[1, 2, 3, -1, -2, -3], [5, 7, -5, -7, 1, -1]]) * 2.0**-106
+    zeros = np.zeros((2, 500, 6))
+    zeros[0] = -0.0
+    zeros[1, 0] = -0.0
+    tiny = np.full((2, 500, 6), 5e-324)
+    tiny[:, ::2] *= -1.0
+    tiny[1, 3] = 5e-324
+    huge = rng.normal(0.0, 1e306, (2, 500, 6))
+    huge[1, :, 0] = 1.7e308
+    huge[1, 1::2, 0] = -1.7e308
+    huge[1, 0, 0] = 1.6e308
+    windows = [
+        noise,
+        noise**2,
+        noise.astype(np.float32).astype(float),
+        rng.normal(0.0, 1.0, (4, 500, 6)) * 10.0 ** rng.integers(-300, 300, (4, 500, 6)),
+        cancel,
+        ties,
+        past,
+        quarter,
+        zeros,
+        tiny,
+        huge,
+    ]
+    for x in windows:
+        got = exact_sums(x)
+        want = [[math.fsum(x[r, :, k].tolist()) for k in range(6)] for r in range(x.shape[0])]
+        assert [[(v, math.copysign(1.0, v)) for v in row] for row in got.tolist()] == [
+            [(v, math.copysign(1.0, v)) for v in row] for row in want
+        ]

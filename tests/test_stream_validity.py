@@ -14,6 +14,8 @@ from estimators.stream_validity import (
     best_clock_offset,
     compare_imus,
     run_lengths,
+    typical_step_s,
+    typical_steps_s,
 )
 from protocols.checkpoint_codec import decode_state, encode_state
 
@@ -424,3 +426,19 @@ def test_cross_imu_state_of_version_1_is_resumed_without_clocks():
     second = CrossImuMonitor.from_state({**v1, "version": 1}, limits=limits)
     got += [r for item in items[16:] for r in second.add(*item)]
     assert got == want
+
+
+def test_typical_steps_of_blocks_are_each_block_s_typical_step_bit_for_bit():
+    """The rate watch takes the blocks a batch completes at once: each row's typical step is the
+    one typical_step_s gives that block alone, to the bit (it is compared with the tolerance and
+    sizes the detector), for steps of 1 kHz with jitter, of whole milliseconds, and with gaps."""
+    rng = np.random.default_rng(4)
+    blocks = np.vstack(
+        [
+            1e-3 + rng.normal(0.0, 1e-5, (300, 128)),
+            rng.choice([2e-3, 3e-3], (300, 128)),
+            rng.exponential(2.5e-3, (300, 128)),
+        ]
+    )
+    assert typical_steps_s(blocks).tolist() == [typical_step_s(b) for b in blocks]
+    assert typical_steps_s(np.empty((0, 128))).shape == (0,)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections import deque
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from typing import Any
 
 from estimators.conventions import (
@@ -31,7 +31,7 @@ from protocols.events import (
 )
 from protocols.frames import SampleBatch
 from protocols.gnss_frames import GnssFrame
-from service.pipeline.imu_pipeline import ImuPipeline, join_batches
+from service.pipeline.imu_pipeline import ImuPipeline, join_batches, split_batch
 from service.pipeline.norm_check import NormBlockSink, VehicleNorm
 from service.pipeline.options import (
     RECOVERED_SEVERITY,
@@ -378,7 +378,13 @@ class FleetProcessor:
         pipe.thrust = None
         pipe.counters["thrust_axis.restarts"] = pipe.counters.get("thrust_axis.restarts", 0) + 1
 
-    def process_queued(self, batches: list[SampleBatch], *, arrival_s: float) -> list[Event]:
+    def process_queued(
+        self,
+        batches: list[SampleBatch],
+        *,
+        arrival_s: float,
+        frames: Sequence[int] | None = None,
+    ) -> list[Event]:
         """Frames taken from a queue together: the same events as :meth:`process` frame by frame, at less cost.
 
         The chain's cost is mostly per batch, so a run of consecutive frames of
@@ -395,11 +401,23 @@ class FleetProcessor:
         processing does: the IMUs it compares are the same however the frames
         were queued (an IMU whose frames were all taken first would otherwise
         run ahead of the others by the whole group).
+
+        ``frames``: how many equal frames each batch joins (:func:`~service.pipeline.imu_pipeline.split_batch`;
+        default one each), as a log reader joins them: the same events as those frames queued one
+        by one. A batch of several that cannot join is taken frame by frame.
         """
-        return [e for step in self.queued_steps(batches, arrival_s=arrival_s) for e in step]
+        return [
+            e
+            for step in self.queued_steps(batches, arrival_s=arrival_s, frames=frames)
+            for e in step
+        ]
 
     def queued_steps(
-        self, batches: list[SampleBatch], *, arrival_s: float
+        self,
+        batches: list[SampleBatch],
+        *,
+        arrival_s: float,
+        frames: Sequence[int] | None = None,
     ) -> Iterator[list[Event]]:
         """:meth:`process_queued` one IMU at a time: the events of each IMU's frames as soon as its
         frames are through, then those of the cross-IMU check (lists that may be empty).
@@ -409,55 +427,67 @@ class FleetProcessor:
         two steps this processor must not take frames or give states to a checkpoint (the
         group's cross-IMU check comes at its end).
         """
-        groups: dict[tuple[str, int], list[tuple[int, SampleBatch]]] = {}
-        for n, b in enumerate(batches):
-            groups.setdefault((b.vehicle, b.imu), []).append((n, b))
-        accepted: list[tuple[int, SampleBatch]] = []
+        counts = [1] * len(batches) if frames is None else list(frames)
+        groups: dict[tuple[str, int], list[tuple[int, SampleBatch, int]]] = {}
+        for n, (b, f) in enumerate(zip(batches, counts, strict=True)):
+            groups.setdefault((b.vehicle, b.imu), []).append((n, b, f))
+        accepted: list[tuple[int, SampleBatch, int]] = []
 
-        def order(item: tuple[tuple[str, int], list[tuple[int, SampleBatch]]]) -> tuple[bool, int]:
+        def order(
+            item: tuple[tuple[str, int], list[tuple[int, SampleBatch, int]]],
+        ) -> tuple[bool, int]:
             key, group = item
             known = key in self.pipelines
-            return (not known, sum(b.n_samples for _, b in group) if known else 0)
+            return (not known, sum(b.n_samples for _, b, _ in group) if known else 0)
 
         for key, group in sorted(groups.items(), key=order):
             events: list[Event] = []
             i = 0
             while i < len(group):
                 pipe = self.pipelines.get(key)
+                n, first, f = group[i]
                 j = i + 1
-                if pipe is not None and pipe.joins(None, group[i][1]):
-                    while j < len(group) and pipe.joins(group[j - 1][1], group[j][1]):
+                if pipe is not None and pipe.joins(None, first, f):
+                    while j < len(group) and pipe.joins(group[j - 1][1], group[j][1], group[j][2]):
                         j += 1
-                if pipe is None or j == i + 1:
-                    raised, good = self._through_pipeline(group[i][1], arrival_s)
+                elif f > 1:
+                    # Taken frame by frame, as they came.
+                    group[i : i + 1] = [(n, b, 1) for b in split_batch(first, f)]
+                    continue
+                if pipe is None or (j == i + 1 and f == 1):
+                    raised, good = self._through_pipeline(first, arrival_s)
                     events += raised
                     if good is not None:
-                        accepted.append((group[i][0], good))
+                        accepted.append((n, good, 1))
                 else:
-                    events += self._process_joined(pipe, [b for _, b in group[i:j]], arrival_s)
+                    events += self._process_joined(pipe, group[i:j], arrival_s)
                     # Joined frames are clean: every sample of each was accepted.
                     accepted += group[i:j]
                 i = j
             yield events
         cross: list[Event] = []
-        for _, good in sorted(accepted, key=lambda item: item[0]):
-            cross += self._cross(good)
+        for _, good, f in sorted(accepted, key=lambda item: item[0]):
+            alone = len(self._by_vehicle.get(good.vehicle, {})) < 2
+            for frame in [good] if f == 1 or alone else split_batch(good, f):
+                cross += self._cross(frame)
         yield cross
 
     def _process_joined(
-        self, pipe: ImuPipeline, run: list[SampleBatch], arrival_s: float
+        self, pipe: ImuPipeline, run: list[tuple[int, SampleBatch, int]], arrival_s: float
     ) -> list[Event]:
-        last = run[-1]
-        self._seen[last.vehicle] = self._frames_routed = self._frames_routed + len(run)
+        """Consecutive frames ``run`` (queue index, batch, frames it joins) through ``pipe`` as one batch."""
+        _, last, last_frames = run[-1]
+        frames = sum(f for _, _, f in run)
+        self._seen[last.vehicle] = self._frames_routed = self._frames_routed + frames
         # joins() keeps a run's frames all with temperature or all without.
-        joined = join_batches(run)
+        joined = join_batches([b for _, b, _ in run])
         assert joined is not None
         try:
-            events = pipe.process(joined, arrival_s=arrival_s, frames=len(run))
+            events = pipe.process(joined, arrival_s=arrival_s, frames=frames)
         except Exception as exc:
-            self._start_afresh(pipe, exc, frames=len(run))
+            self._start_afresh(pipe, exc, frames=frames)
             return []
-        pipe.last_batch_n = last.n_samples
+        pipe.last_batch_n = last.n_samples // last_frames
         return events + self._thrust_imu(pipe)
 
     def _start_afresh(self, pipe: ImuPipeline, exc: Exception, *, frames: int = 1) -> None:

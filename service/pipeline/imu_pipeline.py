@@ -3,6 +3,7 @@ static detection and positions, F0, re-estimation and diagnosis, events; its sta
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -28,6 +29,7 @@ from estimators.stream_validity import (
     ValidityReport,
     plausible_rate_hz,
     typical_step_s,
+    typical_steps_s,
 )
 from estimators.temperature import to_reference_temperature
 from protocols.events import (
@@ -73,6 +75,18 @@ def _rows(batch: SampleBatch, rows: slice | np.ndarray) -> SampleBatch:
         batch.vehicle, batch.imu, batch.seq, batch.t_s[rows], batch.accel_mps2[rows],
         batch.gyro_rps[rows], None if batch.temp_c is None else batch.temp_c[rows], batch.run,
     )  # fmt: skip
+
+
+def split_batch(batch: SampleBatch, frames: int) -> list[SampleBatch]:
+    """The ``frames`` equal frames ``batch`` joins (:func:`join_batches` of them gives it back),
+    numbered up to its ``seq``."""
+    size = batch.n_samples // frames
+    return [
+        dataclasses.replace(
+            _rows(batch, slice(k * size, (k + 1) * size)), seq=batch.seq - frames + 1 + k
+        )
+        for k in range(frames)
+    ]
 
 
 def join_batches(batches: list[SampleBatch]) -> SampleBatch | None:
@@ -261,24 +275,30 @@ class ImuPipeline:
         det = self.detection
         if det is None:
             return None
-        # Steps written straight into the block (np.diff with prepend cost 10 µs a frame).
         first = 0 if prev_t_s is not None else 1  # the first sample whose step is known
-        prev = t_s[0] if prev_t_s is None else prev_t_s
-        block = self._rate_steps_s
-        i = first
-        while i < t_s.size:
-            take = min(t_s.size - i, RATE_CHECK_SAMPLES - self._rate_fill)
-            out = block[self._rate_fill : self._rate_fill + take]
-            out[0] = t_s[i] - prev
-            np.subtract(t_s[i + 1 : i + take], t_s[i : i + take - 1], out=out[1:])
-            prev = t_s[i + take - 1]
-            self._rate_fill += take
-            i += take
-            if self._rate_fill < RATE_CHECK_SAMPLES:
-                break
-            self._rate_fill = 0
-            rate_hz = 1.0 / typical_step_s(block)
-            limits = self.options.validity
+        if t_s.size <= first:
+            return None
+        steps = np.empty(t_s.size - first)
+        steps[0] = t_s[first] - (t_s[0] if prev_t_s is None else prev_t_s)
+        np.subtract(t_s[first + 1 :], t_s[first:-1], out=steps[1:])
+        block, fill = self._rate_steps_s, self._rate_fill
+        need = RATE_CHECK_SAMPLES - fill
+        if steps.size < need:
+            block[fill : fill + steps.size] = steps
+            self._rate_fill += steps.size
+            return None
+        block[fill:] = steps[:need]
+        n_full = (steps.size - need) // RATE_CHECK_SAMPLES
+        full = steps[need : need + n_full * RATE_CHECK_SAMPLES]
+        # The blocks this batch completes, all at once (typical_steps_s: each block's typical_step_s).
+        rates = (
+            1.0
+            / np.concatenate(
+                [[typical_step_s(block)], typical_steps_s(full.reshape(n_full, RATE_CHECK_SAMPLES))]
+            )
+        ).tolist()
+        limits = self.options.validity
+        for k, rate_hz in enumerate(rates):
             if abs(rate_hz / det.rate_hz - 1.0) <= RATE_CHECK_TOLERANCE or not (
                 limits.min_rate_hz <= rate_hz <= limits.max_rate_hz
             ):
@@ -286,7 +306,11 @@ class ImuPipeline:
                 continue
             self._rate_off += 1
             if self._rate_off >= RATE_CHECK_BLOCKS:
-                return i - 1, rate_hz
+                self._rate_fill = 0
+                return first + need - 1 + k * RATE_CHECK_SAMPLES, rate_hz
+        rest = steps[need + full.size :]
+        block[: rest.size] = rest
+        self._rate_fill = rest.size
         return None
 
     def _resize(self, rate_hz: float) -> list[Event]:
@@ -430,8 +454,10 @@ class ImuPipeline:
             return events
         return events + self._chain(good, prev_t_s)
 
-    def joins(self, prev: SampleBatch | None, batch: SampleBatch) -> bool:
+    def joins(self, prev: SampleBatch | None, batch: SampleBatch, frames: int = 1) -> bool:
         """Whether ``batch`` may join one batch with the frames before it (``prev``: the last of them; None: the first).
+
+        ``frames`` > 1: ``batch`` joins that many equal frames (:func:`split_batch`), each of which must join.
 
         Only where joining changes nothing but the cost: the chain is set up and
         in no timeout, error-density or restart episode, and the frame is of the same run, finite,
@@ -449,10 +475,14 @@ class ImuPipeline:
         if batch.run != (self.run if prev is None else prev.run):
             return False
         t = batch.t_s
+        size = t.size // frames
+        # Where one joined frame ends and the next starts: within a time jump, as between frames.
+        starts = t[size::size]
         return (
-            (last_seq is None or batch.seq == last_seq + 1)
+            (last_seq is None or batch.seq - frames + 1 == last_seq + 1)
             and (last_t_s is None or last_t_s < t[0] <= last_t_s + self._jump_s())
             and bool((t[1:] > t[:-1]).all())
+            and bool((starts - t[size - 1 : -1 : size] <= self._jump_s()).all())
             and all_usable(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
         )
 
