@@ -17,14 +17,15 @@ through ``0·inf``, so outputs that are not all finite are refused.
 
 Why: importing scipy.signal costs 0.46 s of CPU at every start (0.05 s where filterpy has
 already loaded scipy.stats and scipy.linalg, as replay's pipeline does); scipy.linalg costs
-0.11 s alone. The solve takes about twice lfilter's time (9 ns a sample and column against 5).
-Applies to ``|a1| ≤ 1`` (every low-pass ``y = α·x + (1 − α)·y₋₁``).
+0.11 s alone, imported at the first call. The solve takes about twice lfilter's time (9 ns a
+sample and column against 5). Applies to ``|a1| ≤ 1`` (every low-pass ``y = α·x + (1 − α)·y₋₁``).
+Used by the log health figures (:mod:`estimators.log_health`) and the thrust-axis check's
+averages (:mod:`estimators.thrust_gnss`).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg.lapack import dgtsv
 
 from estimators._typing import FloatArray
 
@@ -46,6 +47,9 @@ def first_order_filter(
     y: FloatArray = u
     info = 0
     if n > 1:  # one sample is its first right-hand side (LAPACK takes no empty diagonal)
+        # Imported where it is used: a module importing this one does not pay for scipy.linalg.
+        from scipy.linalg.lapack import dgtsv
+
         _, _, _, y, info = dgtsv(
             np.full(n - 1, a1), np.ones(n), np.zeros(n - 1), u, overwrite_b=True
         )
