@@ -111,9 +111,9 @@ from typing import Any
 
 import numpy as np
 
-# scipy (signal, optimize, spatial.transform, and the strapdown module through it) is imported
-# where it is used: together about a second to import, and the daemon and replay import this
-# module for every run, GNSS or not.
+# scipy (optimize, spatial.transform, and the strapdown module through it; linalg in the
+# low-passes) is imported where it is used: together about a second to import, and the daemon and
+# replay import this module for every run, GNSS or not.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import Triad
 from estimators.coverage import IN_FLIGHT_WITHIN_S, OBSERVABLE_SHARE, Check, CheckCoverage
