@@ -171,12 +171,9 @@ def test_no_window_holding_the_touch_down_is_judged(flights):
     assert monitor.alarms == 0
 
 
-def test_frames_give_what_the_whole_flight_gives(flights):
-    """The daemon's path (IMU frames of 50 samples, GNSS frames of 7 epochs, interleaved in time)
-    judges the same epochs with the same statistic as the batch path."""
-    session, gt, gv = flights[0]
-    accel = _inject(session, "zero signal")
-    batch, _ = thrust_axis_batch(session.t_s, accel, session.gyro_rps, gt, gv)
+def _in_frames(session: ImuSession, accel: np.ndarray, gt: np.ndarray, gv: np.ndarray):
+    """The daemon's path: IMU frames of 50 samples, GNSS frames of 7 epochs, interleaved in time;
+    the monitor and what each update judged."""
     monitor = ThrustAxisMonitor(gnss_rate_hz=10.0)
     parts = []
     j = 0
@@ -187,6 +184,15 @@ def test_frames_give_what_the_whole_flight_gives(flights):
             parts.append(monitor.update_gnss(gt[j : j + 7], gv[j : j + 7]))
             j += 7
     parts.append(monitor.update_gnss(gt[j:], gv[j:]))
+    return monitor, parts
+
+
+def test_frames_give_what_the_whole_flight_gives(flights):
+    """The daemon's path judges the same epochs with the same statistic as the batch path."""
+    session, gt, gv = flights[0]
+    accel = _inject(session, "zero signal")
+    batch, _ = thrust_axis_batch(session.t_s, accel, session.gyro_rps, gt, gv)
+    monitor, parts = _in_frames(session, accel, gt, gv)
     t = np.concatenate([p.t_s for p in parts])
     z = np.concatenate([p.z for p in parts])
     code = np.concatenate([p.excluded for p in parts])
@@ -209,15 +215,7 @@ def test_the_averages_give_the_statistic_lfilter_gives(monkeypatch):
     judged = []
     for solver in (thrust_gnss.first_order_filter, oracle):
         monkeypatch.setattr(thrust_gnss, "first_order_filter", solver)
-        monitor = ThrustAxisMonitor(gnss_rate_hz=10.0)
-        parts = []
-        j = 0
-        for i in range(0, session.t_s.size, 50):
-            sl = slice(i, i + 50)
-            parts.append(monitor.update_imu(session.t_s[sl], accel[sl], session.gyro_rps[sl]))
-            while j < gt.size and gt[j] <= session.t_s[sl][-1]:
-                parts.append(monitor.update_gnss(gt[j : j + 7], gv[j : j + 7]))
-                j += 7
+        monitor, parts = _in_frames(session, accel, gt, gv)
         fields = ("t_s", "d_mps2", "z", "excluded", "alarm")
         judged.append([np.concatenate([getattr(p, f) for p in parts]).tobytes() for f in fields])
         assert monitor.alarms > 0
