@@ -27,7 +27,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import welch
 
 from estimators._typing import FloatArray
 
@@ -152,6 +151,9 @@ class BatchStreamAccumulator:
         self._diff_sq += (d**2).sum(axis=0)
         self._diff_n += d.shape[0]
         if x.shape[0] >= self.nfft:
+            # Only a log with batch-sampler blocks pays for scipy.signal (0.46 s of CPU to import).
+            from scipy.signal import welch
+
             self._freq, p = welch(x, fs=rate_hz, window="hann", nperseg=self.nfft, axis=0)
             self._psd_sum = p if self._psd_sum is None else self._psd_sum + p
             self._psd_n += 1

@@ -111,12 +111,13 @@ from typing import Any
 
 import numpy as np
 
-# scipy (signal, optimize, spatial.transform, and the strapdown module through it) is imported
-# where it is used: together about a second to import, and the daemon and replay import this
-# module for every run, GNSS or not.
+# scipy (optimize, spatial.transform, and the strapdown module through it; linalg in the
+# low-passes) is imported where it is used: together about a second to import, and the daemon and
+# replay import this module for every run, GNSS or not.
 from estimators._typing import BoolArray, FloatArray, IntArray
 from estimators.conventions import Triad
 from estimators.coverage import IN_FLIGHT_WITHIN_S, OBSERVABLE_SHARE, Check, CheckCoverage
+from estimators.first_order_filter import first_order_filter
 
 DETECTION_QUANTILE = NormalDist().inv_cdf(0.95)
 """The MDF's margin above the threshold: a step at the MDF is detected with probability 95 %."""
@@ -551,8 +552,6 @@ class ThrustAxisMonitor:
     ) -> tuple[BoolArray, BoolArray]:
         """Rest: the exponential averages of ``|f̃|``, ``|f̃|²`` and ``|ω̃|`` quiet (carried across
         frames); and the loud samples (module docstring: the raw signal not quiet)."""
-        from scipy.signal import lfilter
-
         imu = self._imu
         mag = np.linalg.norm(f, axis=1)
         x = np.stack([mag, mag * mag, np.linalg.norm(w, axis=1)])
@@ -562,7 +561,9 @@ class ThrustAxisMonitor:
             imu.filter_a = float(np.exp(-step / self.config.rest_tau_s))
             imu.filter_state = imu.filter_a * x[:, :1]
         a = imu.filter_a
-        y, imu.filter_state = lfilter([1.0 - a], [1.0, -a], x, axis=1, zi=imu.filter_state)
+        # lfilter([1 − a], [1, −a], x, axis=1)'s numbers (its inputs, magnitudes, are not negative).
+        y, state = first_order_filter(1.0 - a, -a, x.T, imu.filter_state.T)
+        y, imu.filter_state = y.T, state.T
         spread = np.sqrt(np.maximum(y[1] - y[0] ** 2, 0.0))
         rest: BoolArray = (spread < self.config.rest_accel_sd_mps2) & (
             y[2] < self.config.rest_gyro_rps
@@ -732,8 +733,6 @@ class ThrustAxisMonitor:
         and a fault is judged against the noise from before it (read at once, a step's own ramp
         raised σ by a third within the 10 s it had to be found in).
         """
-        from scipy.signal import lfilter
-
         assert self.noise is not None
         learned = self.noise.sigma_mps2
         a = float(np.exp(-1.0 / (self.gnss_rate_hz * self.config.noise_memory_s)))
@@ -742,7 +741,7 @@ class ThrustAxisMonitor:
             lag = max(1, round(self.config.noise_lag_s * self.gnss_rate_hz))
             self._running_lagged = np.tile(learned**2, (lag, 1))
         x = np.minimum(d**2, 9.0 * learned**2)
-        y, state = lfilter([1.0 - a], [1.0, -a], x, axis=0, zi=self._running_state[None])
+        y, state = first_order_filter(1.0 - a, -a, x, self._running_state[None])
         self._running_state = state[0]
         lagged = np.vstack([self._running_lagged, y])
         self._running_lagged = lagged[d.shape[0] :]

@@ -9,7 +9,7 @@ import numpy as np
 
 from estimators.audit import AuditResult
 from estimators.conventions import AXES, Triad, reference_magnitude
-from service.figures import plt, save_figure
+from service.figures import save_figure, subplots
 
 MODELS = (("baseline", "C0"), ("extended", "C1"))
 UNIT = {Triad.ACCEL: "m/s²", Triad.GYRO: "rad/s"}
@@ -40,7 +40,7 @@ def _residual_plot(result: AuditResult, path: Path) -> bool:
     if meas is None:
         return False
     k = np.arange(1, meas.size + 1)
-    fig, ax = plt.subplots(figsize=(8, 3.6))
+    fig, ax = subplots(figsize=(8, 3.6))
     # Extended first: the wider band goes underneath the baseline's.
     for name, colour, curves in reversed(_simulated(result)):
         same = [
@@ -78,7 +78,7 @@ def _allan_plot(result: AuditResult, path: Path) -> bool:
     ]
     if not triads:
         return False
-    fig, axes = plt.subplots(len(triads), 3, figsize=(10, 3.0 * len(triads)), squeeze=False)
+    fig, axes = subplots(len(triads), 3, figsize=(10, 3.0 * len(triads)), squeeze=False)
     for row, t in zip(axes, triads, strict=True):
         meas = result.measured_curves[t]
         for i, ax in enumerate(row):
@@ -127,7 +127,7 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
         + [v for v in lam.values() if v]
     )
     edges = np.linspace(-1.05 * top, 1.05 * top, 41).tolist()
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    fig, ax = subplots(figsize=(7, 3.6))
     for name, colour in MODELS:
         if pooled.get(name, np.zeros(0)).size:
             ax.hist(
@@ -163,7 +163,7 @@ def _f0_plot(result: AuditResult, path: Path) -> bool:
 
 def _stat_plot(result: AuditResult, path: Path) -> bool:
     """Measured / median-simulated ratio of every statistic, baseline and extended, with the replicas' 5–95 % band."""
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig, ax = subplots(figsize=(9, 4))
     for k, (name, cmp, mark) in enumerate(
         (("baseline", result.baseline_cmp, "o"), ("extended", result.extended_cmp, "s"))
     ):
@@ -192,7 +192,7 @@ def _stat_plot(result: AuditResult, path: Path) -> bool:
 
 def _headline_plot(result: AuditResult, path: Path) -> bool:
     """Histogram of the simulated χ²/dof (baseline and extended) with the measured value."""
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig, ax = subplots(figsize=(6, 3.5))
     for name, k in (("baseline", 0), ("extended", 1)):
         reps = result.replica_stats.get(name, {})
         # The headline's records are those of the first triad with replicas.
@@ -320,7 +320,7 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
     apart)."""
     p = cause.params
     if cause.effect == "spectral_line":
-        fig, ax = plt.subplots(figsize=(8, 3.4))
+        fig, ax = subplots(figsize=(8, 3.4))
         for key, style, label in (
             ("spectrum_psd_si2_per_hz", "k-", "static samples"),
             ("floor_psd_si2_per_hz", "C1--", "noise floor (running median)"),
@@ -339,7 +339,7 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
         save_figure(fig, path, dpi=100)
         return True
     if cause.effect == "lowpass":
-        fig, ax = plt.subplots(figsize=(8, 3.4))
+        fig, ax = subplots(figsize=(8, 3.4))
         f = p["spectrum_freq_hz"]
         for i, ax_name in enumerate(AXES):
             ax.semilogy(
@@ -366,9 +366,7 @@ def _mechanism_plot(result: AuditResult, cause, path: Path) -> bool:
         return False
     z = st.residual_norm / st.sigma_norm
     panel = temperature_panel(cause, st, result.gravity_mps2)
-    fig, axes = plt.subplots(
-        1, 2 if panel is None else 3, figsize=(10 if panel is None else 15, 3.4)
-    )
+    fig, axes = subplots(1, 2 if panel is None else 3, figsize=(10 if panel is None else 15, 3.4))
     a_t, a_u = axes[0], axes[1]
     if panel is not None:
         _draw_temperature(axes[2], cause, panel)

@@ -38,7 +38,7 @@ from estimators.nominal_passport import SensorClass
 from estimators.stream_validity import ValidityLimits
 from protocols._schema import MAX_IMU_INDEX, SchemaError, check_vehicle
 from protocols.mavlink_settings import UDP_RCVBUF_MIN_BYTES, MavlinkSettings
-from protocols.zenoh_adapter import (
+from protocols.zenoh_settings import (
     ALL_FRAMES,
     AckMode,
     Mode,
@@ -185,7 +185,7 @@ class ZenohSection:
     frames_key : key expression of the frames this instance handles (default ``"ins/*/imu/*"``);
         split a fleet across instances by giving each its own (e.g. ``"ins/alpha-$*/imu/*"``).
     event_ack : ``"receiver"`` (default: an event is delivered once a receiving application
-        acknowledged it, :class:`protocols.zenoh_adapter.AckMode`) or ``"matched"`` (once the
+        acknowledged it, :class:`protocols.zenoh_settings.AckMode`) or ``"matched"`` (once the
         reliable put found a subscriber).
     ack_timeout_s : how long one delivery waits for acknowledgements (default 1.0 s).
     min_acks : distinct receivers whose acknowledgements an event needs (default 1; one receiver
@@ -196,7 +196,7 @@ class ZenohSection:
         counted (``service.zenoh.acks_refused``) and logged. Under the deploy's access control a
         name is bound to a ground station's certificate (``deploy/zenoh-router.json5``).
     session : the session itself, from the other keys of the table, read by
-        :meth:`protocols.zenoh_adapter.ZenohSettings.from_dict`: ``mode`` (default ``"client"``),
+        :meth:`protocols.zenoh_settings.ZenohSettings.from_dict`: ``mode`` (default ``"client"``),
         ``connect`` (default ``["tcp/127.0.0.1:7447"]`` in client mode), ``listen``,
         ``multicast_scouting`` (default false), ``connect_timeout_s`` (default: wait for the
         router), ``tls`` and ``access_control`` (tables passed to Zenoh), ``extra``.

@@ -102,11 +102,11 @@ from protocols.zenoh_adapter import (
     GnssSource,
     Session,
     StatusPublisher,
-    ZenohSettings,
     connected_nodes,
     gnss_selector,
     open_session_within,
 )
+from protocols.zenoh_settings import ZenohSettings
 from service.alert_policy import AlertPolicy
 from service.checkpoint import (
     CheckpointError,

@@ -58,13 +58,12 @@ from protocols.events import Predicate
 from protocols.zenoh_adapter import (
     EventReceiver,
     FramePublisher,
-    Mode,
-    ZenohSettings,
     open_router,
     open_session,
     subscribe_status,
 )
 from protocols.zenoh_router import free_local_port
+from protocols.zenoh_settings import Mode, ZenohSettings
 from service.config import config_from_dict
 from service.daemon import Service
 from service.log_setup import logging_to

@@ -16,7 +16,7 @@ from estimators.repeatability import RunSpread
 from estimators.sixpos import RateTableFit
 from estimators.temperature import TemperatureFit, TemperatureSeries, model_errors
 from estimators.tilt import TiltPassportResult, TiltRun
-from service.figures import plt, save_figure
+from service.figures import save_figure, subplots
 
 _ARCMIN = np.pi / 180.0 / 60.0
 _DPI = 72
@@ -34,7 +34,7 @@ def plot_tilt(
     # Display units: δa in pulses, δα in arc minutes, Δk in ppm.
     unit = np.array([1.0 / k0, 1.0 / _ARCMIN, 1e6])
     labels = ("δa, pulse", "δα, arcmin", "Δk, ppm")
-    fig, ax = plt.subplots(2, 3, figsize=(10, 5.6))
+    fig, ax = subplots(2, 3, figsize=(10, 5.6))
     st = result.fits[0].stabilization
     for j in range(3):
         a = ax[0, j]
@@ -74,7 +74,7 @@ def plot_triad(spread: RunSpread, path: Path, *, truth: np.ndarray | None = None
 
     ``spread`` over the runs, parameters in ``PARAM_NAMES`` order; ``truth`` (9,) of a simulated unit.
     """
-    fig, ax = plt.subplots(3, 3, figsize=(10, 7.2))
+    fig, ax = subplots(3, 3, figsize=(10, 7.2))
     # Display units: zero signals in mg (normalized by g), scale errors in ppm, cosines in mrad.
     scales, units = (1e3, 1e6, 1e3), ("mg", "ppm", "mrad")
     for j, name in enumerate(PARAM_NAMES):
@@ -130,7 +130,7 @@ def _interval_panel(
 
 def plot_temperature(fit: TemperatureFit, series: TemperatureSeries, path: Path) -> None:
     """Held-out vs training criterion per order, and the bias and scale error with the selected model (M3)."""
-    fig, ax = plt.subplots(1, 3, figsize=(10, 3.4))
+    fig, ax = subplots(1, 3, figsize=(10, 3.4))
     orders = [s.order for s in fit.scores]
     ax[0].semilogy(
         orders, [s.regularity for s in fit.scores], "o-", label="held-out (GMDH regularity)"
@@ -165,7 +165,7 @@ def plot_temperature(fit: TemperatureFit, series: TemperatureSeries, path: Path)
 
 def plot_rate_table(fit: RateTableFit, path: Path) -> None:
     """Gyro output minus table rate on every step, and the residuals of the straight-line fit (M4)."""
-    fig, ax = plt.subplots(1, 2, figsize=(8, 3.2))
+    fig, ax = subplots(1, 2, figsize=(8, 3.2))
     r = np.degrees(fit.table_rate_rps)
     ax[0].plot(
         r,

@@ -11,12 +11,12 @@ from typing import Protocol
 from protocols.events import Event
 from protocols.mavlink_adapter import ImuLink
 from protocols.zenoh_adapter import (
-    AckMode,
     Acknowledgement,
     EventPublisher,
     Session,
     ZenohError,
 )
+from protocols.zenoh_settings import AckMode
 from service.alert_policy import AlertPolicy
 
 TRANSPORT_ERRORS = (ZenohError, OSError, ConnectionError, ValueError)

@@ -259,7 +259,6 @@ def test_a_gyro_mechanism_plot_puts_the_earth_rate_on_its_orientation_axis(tmp_p
 
     def keep_labels(fig, path, **_):
         labels[path.name] = [a.get_xlabel() for a in fig.axes]
-        report.plt.close(fig)
 
     monkeypatch.setattr(report, "save_figure", keep_labels)
     write_report(res, tmp_path, title="gyro")

@@ -296,7 +296,9 @@ print(json.dumps({"status": status, "modules": sorted(sys.modules)}))
 """
 
 
-def test_replay_of_a_ulog_imports_neither_the_daemon_nor_pymavlink(tmp_path):
+def test_replay_of_a_ulog_imports_neither_the_daemon_nor_pymavlink_zenoh_scipy_signal_pyplot(
+    tmp_path,
+):
     # Replay runs the daemon's pipeline on a log, not the daemon: its options come from the
     # pipeline's own module (service.pipeline.options), so the service's start-up (the outbox, the
     # intake, the sinks) is not paid by every replay (benchmarks/bench_replay_formats.py). Nor
@@ -321,3 +323,15 @@ def test_replay_of_a_ulog_imports_neither_the_daemon_nor_pymavlink(tmp_path):
     not_needed |= {"service.delivery", "service.sinks", "protocols.mavlink_process"}
     not_needed |= {"pymavlink", "protocols.mavlink_adapter", "protocols.dataflash_numpy"}
     assert not_needed.isdisjoint(out["modules"]), sorted(not_needed & set(out["modules"]))
+    # Nor zenoh, with asyncio and ssl (0.02 s of CPU): the configuration's Zenoh settings come from
+    # protocols.zenoh_settings.
+    transport = {"zenoh", "protocols.zenoh_adapter", "asyncio", "ssl"}
+    assert transport.isdisjoint(out["modules"]), sorted(transport & set(out["modules"]))
+    # Nor scipy.signal (0.05 s of CPU after the scipy.stats the pipeline's filterpy loads, 0.43 s
+    # without): the report's low-passes are estimators.first_order_filter, and welch is imported
+    # for a log's batch-sampler blocks only. Nor pyplot: the report's figures are Figures on Agg.
+    report_not_needed = {"scipy.signal", "matplotlib.pyplot"}
+    assert "matplotlib.figure" in out["modules"]  # the report was drawn in this process
+    assert report_not_needed.isdisjoint(out["modules"]), sorted(
+        report_not_needed & set(out["modules"])
+    )

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 
 from estimators import log_health
 from estimators.conventions import EARTH_RATE_RPS, STANDARD_GRAVITY_MPS2, Triad
@@ -141,6 +143,29 @@ def test_frames_taken_in_passes_give_the_figures_of_a_pass_per_frame(monkeypatch
         passes.update(*frame)
     assert _figures(passes) == _figures(per_frame)
     assert len(calls) < len(frames) / 10 and max(calls) >= log_health.PASS_SAMPLES
+
+
+@pytest.mark.parametrize("fly", [(8.0, 16.0), (-1.0, 31.0)], ids=["rest", "no_rest"])
+def test_the_vibration_filters_give_the_figures_lfilter_gives(monkeypatch, fly):
+    """VIBE's floor and level and PX4's two metrics, first-order low-passes solved by
+    estimators.first_order_filter (no scipy.signal to import), give the figures scipy.signal.lfilter
+    gives, the block table and the report's plain form byte for byte (a zero's sign included),
+    on a replay's frames with a restart."""
+
+    def oracle(b0, a1, x, zi):
+        return lfilter([b0], [1.0, a1], x, axis=0, zi=zi)
+
+    results = []
+    for solver in (log_health.first_order_filter, oracle):
+        monkeypatch.setattr(log_health, "first_order_filter", solver)
+        acc = ImuHealthAccumulator(HealthConfig())
+        for frame in _frames(fly):
+            acc.update(*frame)
+        h = acc.result(G)
+        table = [np.asarray(getattr(h.blocks, f)).tobytes() for f in h.blocks.__dataclass_fields__]
+        results.append((json.dumps(h.to_dict()), table))
+    assert results[0] == results[1]
+    assert json.loads(results[0][0])["vibration"]["ardupilot_vibe_mps2"] is not None
 
 
 def _stream(fly, seed=5):

@@ -5,11 +5,15 @@ from __future__ import annotations
 import functools
 import json
 
+import numpy as np
 import pytest
 from real_data import LOGS, needs
 
+from estimators.log_health import ImuHealthAccumulator
+from protocols.firmware_health import FirmwareHealth
 from protocols.logs import write_dataflash_bin, write_dataflash_text, write_tlog
 from protocols.ulog import write_ulog
+from service import log_report
 from service.cli import EXIT_FAULT, EXIT_NO_FAULT, EXIT_UNTESTED, main
 from service.commands import replay as replay_command
 from service.demo import demo_scenario
@@ -116,6 +120,27 @@ def test_report_is_deterministic_and_complete(tmp_path, capsys):
     )
     for png in ("gravity_residual.png", "spectra.png", "cross_imu.png"):
         assert (tmp_path / "a" / png).stat().st_size > 1000
+
+
+def test_the_spectra_s_log_axes_are_labelled_in_plain_text(tmp_path, monkeypatch):
+    """1e−05, not mathtext's $10^{-5}$: its parser was built for these labels at every replay
+    (0.07 s of CPU)."""
+    drawn = []
+
+    def keep(fig, path, **kwargs):
+        save_figure(fig, path, **kwargs)
+        drawn.append(fig)
+
+    save_figure = log_report.save_figure
+    monkeypatch.setattr(log_report, "save_figure", keep)
+    rng = np.random.default_rng(2)
+    acc = ImuHealthAccumulator()
+    acc.update(
+        np.arange(4000) / 400.0, rng.normal(0.0, 0.02, (4000, 3)), rng.normal(0.0, 0.003, (4000, 3))
+    )
+    assert log_report._spectra_plot({0: acc.result(9.81)}, FirmwareHealth(), tmp_path / "s.png")
+    labels = [t.get_text() for ax in drawn[0].axes for t in ax.get_yticklabels(which="both")]
+    assert [s for s in labels if s] and not [s for s in labels if "$" in s], labels
 
 
 def test_progress_lines_on_stderr(tmp_path, capsys, monkeypatch):

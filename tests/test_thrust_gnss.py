@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 from scipy.stats import binom
 
+from estimators import thrust_gnss
 from estimators.session import ImuSession
 from estimators.sim import ErrorModel, Fly, flight_spec, simulate
 from estimators.sim.gnss import gnss_velocity
@@ -169,12 +171,9 @@ def test_no_window_holding_the_touch_down_is_judged(flights):
     assert monitor.alarms == 0
 
 
-def test_frames_give_what_the_whole_flight_gives(flights):
-    """The daemon's path (IMU frames of 50 samples, GNSS frames of 7 epochs, interleaved in time)
-    judges the same epochs with the same statistic as the batch path."""
-    session, gt, gv = flights[0]
-    accel = _inject(session, "zero signal")
-    batch, _ = thrust_axis_batch(session.t_s, accel, session.gyro_rps, gt, gv)
+def _in_frames(session: ImuSession, accel: np.ndarray, gt: np.ndarray, gv: np.ndarray):
+    """The daemon's path: IMU frames of 50 samples, GNSS frames of 7 epochs, interleaved in time;
+    the monitor and what each update judged."""
     monitor = ThrustAxisMonitor(gnss_rate_hz=10.0)
     parts = []
     j = 0
@@ -185,6 +184,15 @@ def test_frames_give_what_the_whole_flight_gives(flights):
             parts.append(monitor.update_gnss(gt[j : j + 7], gv[j : j + 7]))
             j += 7
     parts.append(monitor.update_gnss(gt[j:], gv[j:]))
+    return monitor, parts
+
+
+def test_frames_give_what_the_whole_flight_gives(flights):
+    """The daemon's path judges the same epochs with the same statistic as the batch path."""
+    session, gt, gv = flights[0]
+    accel = _inject(session, "zero signal")
+    batch, _ = thrust_axis_batch(session.t_s, accel, session.gyro_rps, gt, gv)
+    monitor, parts = _in_frames(session, accel, gt, gv)
     t = np.concatenate([p.t_s for p in parts])
     z = np.concatenate([p.z for p in parts])
     code = np.concatenate([p.excluded for p in parts])
@@ -192,6 +200,26 @@ def test_frames_give_what_the_whole_flight_gives(flights):
     np.testing.assert_array_equal(code, batch.excluded)
     np.testing.assert_allclose(z, batch.z, rtol=1e-6, equal_nan=True)
     assert monitor.alarms == np.count_nonzero(batch.alarm) > 0
+
+
+def test_the_averages_give_the_statistic_lfilter_gives(monkeypatch):
+    """The rest detector's and the running noise's exponential averages, first-order low-passes
+    solved by estimators.first_order_filter (no scipy.signal to import), judge every epoch as
+    scipy.signal.lfilter's did, byte for byte, on a faulty flight taken in the daemon's frames."""
+
+    def oracle(b0, a1, x, zi):
+        return lfilter([b0], [1.0, a1], x, axis=0, zi=zi)
+
+    session, gt, gv = _flight(0)
+    accel = _inject(session, "zero signal")
+    judged = []
+    for solver in (thrust_gnss.first_order_filter, oracle):
+        monkeypatch.setattr(thrust_gnss, "first_order_filter", solver)
+        monitor, parts = _in_frames(session, accel, gt, gv)
+        fields = ("t_s", "d_mps2", "z", "excluded", "alarm")
+        judged.append([np.concatenate([getattr(p, f) for p in parts]).tobytes() for f in fields])
+        assert monitor.alarms > 0
+    assert judged[0] == judged[1]
 
 
 def test_the_coverage_names_the_thrust_axis_and_not_x_y(flights):

@@ -359,9 +359,9 @@ def _text(report: dict, notes: list[str], earth: bool) -> str:
 
 def plot_drifts(result: RockingResult, path: Path) -> None:
     """The third angle of each run as recorded and after the correction (the paper's Figs. 1 and 2)."""
-    from service.figures import plt, save_figure
+    from service.figures import save_figure, subplots
 
-    fig, axes = plt.subplots(1, 3, figsize=(9.6, 3.0))
+    fig, axes = subplots(1, 3, figsize=(9.6, 3.0))
     for a, k in zip(axes, (1, 2, 0), strict=True):  # ψ, θ, γ: the paper's order
         e, c, f = result.episodes[k], result.corrected[k], result.fitted[k]
         step = max(1, e.t_s.size // 1500)
