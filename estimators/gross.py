@@ -593,7 +593,9 @@ class GrossMonitor:
         sig = np.empty((k, 6))
         for j, (q, sl) in enumerate(((quiet_a, _ACC), (quiet_g, _GYR))):
             n_q = self._var_n[j] + np.cumsum(q)
-            v_q = self._var_sum[sl] + np.cumsum(var[:, sl] * q[:, None], axis=0)
+            # Added window by window onto the sum so far, as one window at a time would: the same
+            # bits however the stream is cut into batches.
+            v_q = np.cumsum(np.vstack([self._var_sum[sl], var[:, sl] * q[:, None]]), axis=0)[1:]
             wander = cfg.accel_wander_mps2 if j == 0 else cfg.gyro_wander_rps
             # Before any quiet window (n_q = 0) the window is not quiet either: its σ is not used.
             sig[:, sl] = np.sqrt(v_q / np.maximum(n_q, 1.0)[:, None] / w + wander**2)

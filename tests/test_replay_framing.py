@@ -17,6 +17,7 @@ from real_data import FIELD, LOGS, needs
 from replay_support import replay_with_coverage
 
 import service.commands.replay as replay_command
+from estimators.log_health import ImuHealthAccumulator
 from protocols.logs import write_dataflash_bin
 from protocols.passport_codec import write_passport_json
 from protocols.ulog import SYNC_BYTES, write_ulog
@@ -129,3 +130,26 @@ def test_frames_lost_to_a_pipeline_error_in_a_group_are_all_counted(capsys, monk
             *_, err, _ = replay_with_coverage(capsys, log, "--gravity", demo_passport()[1])
         assert f"the pipeline failed on {sum(lost)} frame(s) (ValueError: injected)" in err
     assert max(lost) > 1  # the grouped run lost a joined batch of several frames
+
+
+def test_the_reports_spectra_are_those_of_the_frames_one_by_one(capsys, monkeypatch, tmp_path):
+    """The report's accumulator sums its periodograms per pass of the frames it queued (about
+    4,096 samples): fed the reader's joined batches (16,400 samples) it summed them in other
+    passes, and the spectra (the report's figure) moved in their last bits. Replay feeds it the
+    frames one by one: the spectra of the demo-fault ULog's first 100 s (a batch of 163 frames,
+    then 37 joined) are the bits of the frame-by-frame replay."""
+    log = tmp_path / "demo.ulg"
+    session = demo_scenario(fault_magnitude=DEMO_FAULT_MAGNITUDE).session.select(slice(0, 20_000))
+    write_ulog(log, {0: session}, topics=["sensor_combined"])
+    spectra: list[bytes] = []
+    result = ImuHealthAccumulator.result
+
+    def kept(self, gravity_mps2):
+        health = result(self, gravity_mps2)
+        spectra.append(health.accel_psd.tobytes() + health.gyro_psd.tobytes())
+        return health
+
+    monkeypatch.setattr(ImuHealthAccumulator, "result", kept)
+    runs = [_replay(capsys, monkeypatch, tmp_path, log, size) for size in (FRAME_BY_FRAME, None)]
+    assert len(spectra) == 2 and spectra[1] == spectra[0]
+    assert runs[1] == runs[0]

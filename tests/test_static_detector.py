@@ -2,6 +2,7 @@
 
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -382,3 +383,20 @@ def test_exact_sums_are_math_fsum_bit_for_bit():
         assert [[(v, math.copysign(1.0, v)) for v in row] for row in got.tolist()] == [
             [(v, math.copysign(1.0, v)) for v in row] for row in want
         ]
+
+
+def test_exact_sums_raise_as_math_fsum_where_its_partial_sums_overflow():
+    """At the largest double a quarter of its ulp (2⁹⁶⁹) added twice leaves every running sum of
+    ``cumsum`` at the largest double, whose upper half-ulp is infinite: the rounding looks certain.
+    fsum's own partial sum reaches 2¹⁰²⁴ there and it raises, whether the exact sum then comes back
+    under the largest double (−2⁹⁶⁹, −the largest) or not (+2⁻¹⁰⁷⁴): exact_sums is fsum, so it raises too."""
+    big, quarter = sys.float_info.max, 2.0**969
+    for tail in (-quarter, -big, 5e-324):
+        column = [big, quarter, quarter, tail]
+        with pytest.raises(OverflowError):
+            math.fsum(column)
+        for sign in (1.0, -1.0):
+            x = np.zeros((2, len(column), 3))
+            x[1, :, 2] = np.multiply(sign, column)
+            with pytest.raises(OverflowError):
+                exact_sums(x)
