@@ -39,7 +39,10 @@ started again is kept and counted (``clock_restarts``,
 the next run id (:attr:`~protocols.frames.SampleBatch.run`: 0 from the log's start, one more at
 each restart), so the pipeline starts a new run at once and refuses none of them. With
 ``join_frames`` > 1 the full batches one IMU fills in a row come joined, up to that many in one
-(what replay takes at full speed: the cost is per batch); so
+(what replay takes at full speed: the cost is per batch): an IMU's full batches wait until that
+many are full, or until another IMU's rows, a restart of its clock or the log's end come, so a
+lone IMU's come joined across the blocks the DataFlash and tlog decoders read, and no batch
+passes another IMU's; so
 is a corrupt message (``corrupt_messages``: a DataFlash one that does not decode, a
 tlog packet with a bad CRC), the bytes passed over to the next message
 (``skipped_bytes``) and where a file cut mid-message ends (``cut_at_byte``).
@@ -319,7 +322,8 @@ class LogReader:
     batch_samples : samples per batch (the last of each IMU may be shorter).
     join_frames : up to this many full batches of one IMU that come one after the other, joined
         in one, numbered as the last of them (its ``seq`` steps by the batches it joins; a
-        shorter batch always comes alone): ``frames_of`` tells how many a batch joins.
+        shorter batch always comes alone; held until that many, another IMU's rows, a restart or
+        the end): ``frames_of`` tells how many a batch joins.
     log_format : override :func:`detect_format`.
     raw_scale, imu_index : MAVLink settings (:mod:`protocols.mavlink_adapter`), tlog only.
 
@@ -371,11 +375,16 @@ class LogReader:
     def __iter__(self) -> Iterator[SampleBatch]:
         self.stats = LogStats()
         buffers: dict[int, _Buffer] = {}
+        last: int | None = None  # the IMU of the last rows: the only one holding full batches
         for rows in self._rows():
             stats = self.stats
             n = rows.t_s.size
             stats.messages[rows.kind] = stats.messages.get(rows.kind, 0) + n
             stats.sources.setdefault(rows.imu, rows.kind)
+            if last is not None and last != rows.imu:
+                # Another IMU's rows: the full batches held for joining go first, as they came.
+                yield from self._full(last, buffers[last])
+            last = rows.imu
             buf = buffers.setdefault(rows.imu, _Buffer())
             finite = finite_rows(rows.t_s, rows.accel_mps2, rows.gyro_rps, rows.temp_c)
             stats._drop("non_finite", int(n - finite.sum()))
@@ -383,6 +392,7 @@ class LogReader:
                 if piece is None:
                     # The clock started again: what came before is the old run's last batch (a batch
                     # going back in time inside was refused past its turn), what follows a new run's.
+                    yield from self._full(rows.imu, buf)
                     if buf.n:
                         yield self._emit(rows.imu, buf, buf.n)
                     buf.run += 1
@@ -390,9 +400,10 @@ class LogReader:
                     stats.clock_restarts = max(stats.clock_restarts, buf.run)
                     continue
                 self._keep(rows.imu, buf, [piece])
-                while buf.n >= self._batch:
-                    k = min(buf.n // self._batch, self._join)
-                    yield self._emit(rows.imu, buf, k * self._batch, frames=k)
+                while buf.n >= self._batch * self._join:
+                    yield self._emit(rows.imu, buf, self._batch * self._join, frames=self._join)
+        if last is not None:
+            yield from self._full(last, buffers[last])
         for imu in sorted(buffers):
             buf = buffers[imu]
             # The log ended: a held sample had no next one to tell a glitch (it is kept); a run of
@@ -440,6 +451,12 @@ class LogReader:
             self._tlog_samples() if self.format is LogFormat.TLOG else self._dataflash_samples()
         )
         yield from _rows_from_samples(samples, min(self._batch, _FLUSH_MESSAGES))
+
+    def _full(self, imu: int, buf: _Buffer) -> Iterator[SampleBatch]:
+        """The full batches ``buf`` holds, joined up to ``join_frames`` in one."""
+        while buf.n >= self._batch:
+            k = min(buf.n // self._batch, self._join)
+            yield self._emit(imu, buf, k * self._batch, frames=k)
 
     def frames_of(self, batch: SampleBatch) -> int:
         """How many batches of ``batch_samples`` the reader's ``batch`` joins (``join_frames``)."""

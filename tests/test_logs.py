@@ -543,30 +543,73 @@ def test_an_endless_text_line_costs_a_bounded_read_and_is_counted(tmp_path):
     assert peak < 2 << 20, peak
 
 
-@pytest.mark.parametrize(
-    ("writer", "most"), [(write_dataflash_bin, 1), (write_ulog, 7)], ids=["bin", "ulg"]
+def _second_boot(data, writer):
+    """A log's data after its definitions, as the second boot of logs joined end to end: a
+    DataFlash log's two FMT messages (89 bytes each, or two lines), a ULog's header up to its
+    first sync message (a tlog has none)."""
+    if writer is write_dataflash_bin:
+        return data[2 * 89 :]
+    if writer is write_dataflash_text:
+        return data.split(b"\n", 2)[2]
+    return data[data.index(b"\x08\x00S" + SYNC_BYTES) :] if writer is write_ulog else data
+
+
+def _rebooted(tmp_path, writer, sizes, imus):
+    """A log of two boots of ``sizes`` samples of ``imus`` (the clock starts again at the second)."""
+    parts = []
+    for k, n in enumerate(sizes):
+        path = tmp_path / f"boot{k}"
+        writer(path, _sessions(n=n, seed=k, imus=imus))
+        parts.append(path.read_bytes() if k == 0 else _second_boot(path.read_bytes(), writer))
+    log = tmp_path / "joined"
+    log.write_bytes(b"".join(parts))
+    return log
+
+
+def _joined(log):
+    """The batches read one by one, and those read with ``join_frames`` 7 with the frames of each."""
+    one_by_one = list(LogReader(log, batch_samples=100))
+    reader = LogReader(log, batch_samples=100, join_frames=7)
+    joined = list(reader)
+    return one_by_one, joined, [reader.frames_of(b) for b in joined]
+
+
+_WRITERS = pytest.mark.parametrize(
+    "writer",
+    [write_dataflash_bin, write_dataflash_text, write_tlog, write_ulog],
+    ids=["bin", "log", "tlog", "ulg"],
 )
-def test_joined_batches_are_the_batches_one_by_one(tmp_path, writer, most):
+
+
+@_WRITERS
+def test_joined_batches_are_the_batches_one_by_one(tmp_path, writer):
     """Two IMUs, then the autopilot rebooted (its clock starts again): with ``join_frames`` the
     reader gives each IMU's full batches that come in a row joined, numbered as the last; split
     again they are the batches read one by one, in their order, each IMU's last and the one
     before the reboot shorter and alone. A ULog's topics come in runs of messages, so batches
-    come in a row; a DataFlash log's IMUs take turns batch by batch."""
-    parts = []
-    for k, n in enumerate((2345, 1234)):
-        path = tmp_path / f"boot{k}"
-        writer(path, _sessions(n=n, seed=k, imus=(0, 1)))
-        parts.append(path.read_bytes())
-    # The second boot's data after the first's definitions: a DataFlash log's two FMT messages
-    # (89 bytes each), a ULog's header up to its first sync message.
-    cut = 2 * 89 if writer is write_dataflash_bin else parts[1].index(b"\x08\x00S" + SYNC_BYTES)
-    log = tmp_path / "joined"
-    log.write_bytes(parts[0] + parts[1][cut:])
-    one_by_one = list(LogReader(log, batch_samples=100))
-    reader = LogReader(log, batch_samples=100, join_frames=7)
-    joined = list(reader)
-    frames = [reader.frames_of(b) for b in joined]
-    assert max(frames) == most
+    come in a row; the IMUs of the other formats take turns batch by batch (no batch of one
+    passes another IMU's)."""
+    log = _rebooted(tmp_path, writer, (2345, 1234), (0, 1))
+    one_by_one, joined, frames = _joined(log)
+    assert max(frames) == (7 if writer is write_ulog else 1)
     split = [part for b, f in zip(joined, frames, strict=True) for part in split_batch(b, f)]
     assert split == one_by_one
     assert {b.run for b in one_by_one} == {0, 1}
+
+
+@_WRITERS
+def test_a_lone_imus_batches_come_joined_in_every_format(tmp_path, writer):
+    """One IMU, rebooted: its full batches come ``join_frames`` at a time whatever blocks the
+    format's reader decodes (a DataFlash log's or tlog's a few kB to 256 kB of messages at a
+    time, 1 to 32 batches), those before the reboot and the last fewer, then each run's short
+    batch alone; split again they are the batches read one by one."""
+    sizes = (12345, 3050)
+    log = _rebooted(tmp_path, writer, sizes, (0,))
+    one_by_one, joined, frames = _joined(log)
+    expected = []
+    for n in sizes:
+        full = n // 100
+        expected += [7] * (full // 7) + [full % 7] * (full % 7 > 0) + [1] * (n % 100 > 0)
+    assert frames == expected
+    split = [part for b, f in zip(joined, frames, strict=True) for part in split_batch(b, f)]
+    assert split == one_by_one

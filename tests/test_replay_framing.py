@@ -18,7 +18,7 @@ from replay_support import replay_with_coverage
 
 import service.commands.replay as replay_command
 from estimators.log_health import ImuHealthAccumulator
-from protocols.logs import write_dataflash_bin
+from protocols.logs import write_dataflash_bin, write_dataflash_text, write_tlog
 from protocols.passport_codec import write_passport_json
 from protocols.ulog import SYNC_BYTES, write_ulog
 from service.demo import DEMO_FAULT_MAGNITUDE, demo_passport, demo_scenario
@@ -26,6 +26,19 @@ from service.pipeline.imu_pipeline import ImuPipeline
 
 FRAME_BY_FRAME = replay_command.REPLAY_BATCH_SAMPLES
 """A group of one frame: the path replay took before issue 33."""
+
+
+WRITERS = {".bin": write_dataflash_bin, ".log": write_dataflash_text, ".tlog": write_tlog}
+
+
+def _definitions(data, suffix):
+    """Where a log's data starts after its definitions: a DataFlash log's two FMT messages (89
+    bytes each, or two lines), a ULog's header up to its first sync message; a tlog has none."""
+    if suffix == ".bin":
+        return 2 * 89
+    if suffix == ".log":
+        return data.index(b"\n", data.index(b"\n") + 1) + 1
+    return data.index(b"\x08\x00S" + SYNC_BYTES) if suffix == ".ulg" else 0
 
 
 def _replay(capsys, monkeypatch, tmp_path, log, group_samples, *options):
@@ -51,25 +64,24 @@ def _boots():
     return first, dataclasses.replace(second, t_s=second.t_s - second.t_s[0] + 3.0)
 
 
-@pytest.mark.parametrize("suffix", [".bin", ".ulg"])
+@pytest.mark.parametrize("suffix", [".bin", ".log", ".tlog", ".ulg"])
 def test_events_and_report_are_the_same_however_the_frames_are_grouped(
     capsys, monkeypatch, tmp_path, suffix
 ):
-    """A fault, a gap and a reboot in a DataFlash log and a ULog: frame by frame, in groups of
-    1000 and 4096 samples and of replay's own (more than a boot) give the same events (ids
-    included), coverage line and report.json, to the bit. The reader joins the ULog's frames
-    (but frame by frame)."""
+    """A fault, a gap and a reboot in a log of each format: frame by frame, in groups of 1000
+    and 4096 samples and of replay's own (more than a boot) give the same events (ids included),
+    coverage line and report.json, to the bit. The reader joins the frames (but frame by frame)
+    across the blocks its decoder reads."""
     parts = []
     for k, boot in enumerate(_boots()):
         part = tmp_path / f"boot{k}{suffix}"
-        if suffix == ".bin":
-            write_dataflash_bin(part, {0: boot})
-            parts.append(part.read_bytes())
-        else:
+        if suffix == ".ulg":
             write_ulog(part, {0: boot}, topics=["sensor_combined"])
-            data = part.read_bytes()
-            # The second boot's messages after the first's definitions.
-            parts.append(data[data.index(b"\x08\x00S" + SYNC_BYTES) :] if k else data)
+        else:
+            WRITERS[suffix](part, {0: boot})
+        data = part.read_bytes()
+        # The second boot's messages after the first's definitions (a tlog has none).
+        parts.append(data[_definitions(data, suffix) :] if k else data)
     log = tmp_path / f"joined{suffix}"
     log.write_bytes(b"".join(parts))
     passport, g = demo_passport()
