@@ -1002,16 +1002,17 @@ class StreamingStaticDetector:
             whole = slice(i_res + 1, i_res + 1 + len(res) * w)
             starts[:nc, 1:] = exact_sums(ext[whole].reshape(len(res), w, nc)).T
             starts[nc:, 1:] = exact_sums(ext2[whole].reshape(len(res), w, nc)).T
-        # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order.
-        plus = np.concatenate([y, ext2[w:]], axis=1).T
-        minus = -np.concatenate([ext[:n], ext2[:n]], axis=1).T
+        # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order,
+        # written into the terms straight from ext and ext2 (no joined copies of +y and −p).
         sums = np.empty((2 * nc, n))
         cuts = [0, *(i + 1 for i in res if i + 1 < n), n]
         for r, (a, b) in enumerate(itertools.pairwise(cuts)):
             z = np.empty((2 * nc, 2 * (b - a) + 1))
             z[:, 0] = starts[:, r]
-            z[:, 1::2] = plus[:, a:b]
-            z[:, 2::2] = minus[:, a:b]
+            z[:nc, 1::2] = ext[w + a : w + b].T
+            z[nc:, 1::2] = ext2[w + a : w + b].T
+            np.negative(ext[a:b].T, out=z[:nc, 2::2])
+            np.negative(ext2[a:b].T, out=z[nc:, 2::2])
             np.cumsum(z, axis=1, out=z)
             sums[:, a:b] = z[:, 2::2]
         quiet = np.ones(n, dtype=bool)
