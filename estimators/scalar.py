@@ -656,13 +656,12 @@ _SPHERE_POINTS = 2000
 refinement from the best node makes the result exact to the optimizer's tolerance."""
 
 
-def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
-    """``s = ½(|A u + b|² − 1)`` (M, K) of the conventions model for parameter rows ``params`` (M, 9) and directions ``u`` (K, 3).
+def _model_matrices(params: FloatArray) -> FloatArray:
+    """``A = diag(1 + e) R`` (M, 3, 3) of the conventions model for parameter rows ``params`` (M, 9), ``R Rᵀ`` the matrix of the cosines δ.
 
-    ``A = diag(1 + e) R`` with ``R Rᵀ`` the matrix of the cosines δ: every ``A`` with the same
-    ``A Aᵀ`` maps the unit sphere onto the same ellipsoid, so the symmetric square root is as good
-    as the sensor axes themselves. A cosine matrix that is not positive semi-definite (axes that no
-    real triad has) is clipped to the nearest one that is.
+    Every ``A`` with the same ``A Aᵀ`` maps the unit sphere onto the same ellipsoid, so the
+    symmetric square root is as good as the sensor axes themselves. A cosine matrix that is not
+    positive semi-definite (axes that no real triad has) is clipped to the nearest one that is.
     """
     d = params[:, 6:]
     c = np.empty((params.shape[0], 3, 3))
@@ -672,7 +671,13 @@ def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
     c[:, 1, 2] = c[:, 2, 1] = d[:, 2]
     w, v = np.linalg.eigh(c)
     root = np.einsum("mij,mj,mkj->mik", v, np.sqrt(np.maximum(w, 0.0)), v)
-    a = (1.0 + params[:, 3:6])[:, :, None] * root
+    a: FloatArray = (1.0 + params[:, 3:6])[:, :, None] * root
+    return a
+
+
+def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
+    """``s = ½(|A u + b|² − 1)`` (M, K) of the conventions model (:func:`_model_matrices`) for parameter rows ``params`` (M, 9) and directions ``u`` (K, 3)."""
+    a = _model_matrices(params)
     # ``A u + b`` and ``|A u + b|²`` as numpy's einsum ("mij,kj->mki", "mki,mki->mk") adds
     # three terms, ``(x₀ + x₂) + x₁``, bit for bit (tests/test_scalar.py holds einsum
     # as the oracle): einsum's first product took 0.02 s of each tolerance's 2000-direction

@@ -1288,23 +1288,26 @@ class RotationIntegrator:
         half = (0.5 * th).tolist()
         big = th > 1e-4
         k = 0.5 - th * th / 48.0
-        k[big] = np.fromiter(map(math.sin, half), float, len(half))[big] / th[big]
-        self._compose(
-            list(map(math.cos, half)), (rx * k).tolist(), (ry * k).tolist(), (rz * k).tolist()
+        # The sine only where it is taken (at rest θ is mostly below 1e-4 rad), the cosine as the loop asks.
+        n_big = int(np.count_nonzero(big))
+        k[big] = (
+            np.fromiter(map(math.sin, itertools.compress(half, big.tolist())), float, n_big)
+            / th[big]
         )
+        self._compose(map(math.cos, half), (rx * k).tolist(), (ry * k).tolist(), (rz * k).tolist())
 
     def _compose(
         self, dws: Iterable[float], dxs: Iterable[float], dys: Iterable[float], dzs: Iterable[float]
     ) -> None:
         """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order."""
         w, x, y, z = self.q
+        # Plain names, not a tuple built and unpacked per sample: the same products and sums.
         for dw, dx, dy, dz in zip(dws, dxs, dys, dzs, strict=True):
-            w, x, y, z = (
-                w * dw - x * dx - y * dy - z * dz,
-                w * dx + x * dw + y * dz - z * dy,
-                w * dy - x * dz + y * dw + z * dx,
-                w * dz + x * dy - y * dx + z * dw,
-            )
+            w1 = w * dw - x * dx - y * dy - z * dz
+            x1 = w * dx + x * dw + y * dz - z * dy
+            y1 = w * dy - x * dz + y * dw + z * dx
+            z = w * dz + x * dy - y * dx + z * dw
+            w, x, y = w1, x1, y1
         self.q = (w, x, y, z)
 
     def set_mark(self) -> None:

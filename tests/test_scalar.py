@@ -25,6 +25,7 @@ from estimators.scalar import (
     F0Config,
     F0Monitor,
     F0State,
+    _model_matrices,
     _static_residual,
     compensate,
     derive_lambda0,
@@ -161,16 +162,7 @@ def test_tolerance_bound_holds_for_every_unit_and_orientation():
 
 def _static_residual_einsum(params: np.ndarray, u: np.ndarray) -> np.ndarray:
     """The residual as estimators.scalar wrote it with einsum before: the oracle of its bits."""
-    d = params[:, 6:]
-    c = np.empty((params.shape[0], 3, 3))
-    c[:, 0, 0] = c[:, 1, 1] = c[:, 2, 2] = 1.0
-    c[:, 0, 1] = c[:, 1, 0] = d[:, 0]
-    c[:, 0, 2] = c[:, 2, 0] = d[:, 1]
-    c[:, 1, 2] = c[:, 2, 1] = d[:, 2]
-    w, v = np.linalg.eigh(c)
-    root = np.einsum("mij,mj,mkj->mik", v, np.sqrt(np.maximum(w, 0.0)), v)
-    a = (1.0 + params[:, 3:6])[:, :, None] * root
-    out = np.einsum("mij,kj->mki", a, u) + params[:, None, :3]
+    out = np.einsum("mij,kj->mki", _model_matrices(params), u) + params[:, None, :3]
     return 0.5 * (np.einsum("mki,mki->mk", out, out) - 1.0)
 
 
