@@ -656,12 +656,13 @@ _SPHERE_POINTS = 2000
 refinement from the best node makes the result exact to the optimizer's tolerance."""
 
 
-def _model_matrices(params: FloatArray) -> FloatArray:
-    """``A = diag(1 + e) R`` (M, 3, 3) of the conventions model for parameter rows ``params`` (M, 9), ``R Rᵀ`` the matrix of the cosines δ.
+def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
+    """``s = ½(|A u + b|² − 1)`` (M, K) of the conventions model for parameter rows ``params`` (M, 9) and directions ``u`` (K, 3).
 
-    Every ``A`` with the same ``A Aᵀ`` maps the unit sphere onto the same ellipsoid, so the
-    symmetric square root is as good as the sensor axes themselves. A cosine matrix that is not
-    positive semi-definite (axes that no real triad has) is clipped to the nearest one that is.
+    ``A = diag(1 + e) R`` with ``R Rᵀ`` the matrix of the cosines δ: every ``A`` with the same
+    ``A Aᵀ`` maps the unit sphere onto the same ellipsoid, so the symmetric square root is as good
+    as the sensor axes themselves. A cosine matrix that is not positive semi-definite (axes that no
+    real triad has) is clipped to the nearest one that is.
     """
     d = params[:, 6:]
     c = np.empty((params.shape[0], 3, 3))
@@ -671,23 +672,9 @@ def _model_matrices(params: FloatArray) -> FloatArray:
     c[:, 1, 2] = c[:, 2, 1] = d[:, 2]
     w, v = np.linalg.eigh(c)
     root = np.einsum("mij,mj,mkj->mik", v, np.sqrt(np.maximum(w, 0.0)), v)
-    a: FloatArray = (1.0 + params[:, 3:6])[:, :, None] * root
-    return a
-
-
-def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
-    """``s = ½(|A u + b|² − 1)`` (M, K) of the conventions model (:func:`_model_matrices`) for parameter rows ``params`` (M, 9) and directions ``u`` (K, 3)."""
-    a = _model_matrices(params)
-    # ``A u + b`` and ``|A u + b|²`` as numpy's einsum ("mij,kj->mki", "mki,mki->mk") adds
-    # three terms, ``(x₀ + x₂) + x₁``, bit for bit (tests/test_scalar.py holds einsum
-    # as the oracle): einsum's first product took 0.02 s of each tolerance's 2000-direction
-    # grid, a replay's set-up pays it per passport; these (M, K) arrays take 0.005 s.
-    ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
-    ox, oy, oz = (
-        (a[:, i, 0, None] * ux + a[:, i, 2, None] * uz) + a[:, i, 1, None] * uy + params[:, i, None]
-        for i in range(3)
-    )
-    res: FloatArray = 0.5 * (((ox * ox + oz * oz) + oy * oy) - 1.0)
+    a = (1.0 + params[:, 3:6])[:, :, None] * root
+    out = np.einsum("mij,kj->mki", a, u) + params[:, None, :3]
+    res: FloatArray = 0.5 * (np.einsum("mki,mki->mk", out, out) - 1.0)
     return res
 
 

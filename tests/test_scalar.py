@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from estimators import scalar as scalar_module
 from estimators.conventions import (
     EARTH_RATE_RPS,
     Triad,
@@ -20,13 +19,10 @@ from estimators.conventions import (
     sensor_axes,
     triad_matrix,
 )
-from estimators.nominal_passport import SensorClass, nominal_passport
 from estimators.scalar import (
     F0Config,
     F0Monitor,
     F0State,
-    _model_matrices,
-    _static_residual,
     compensate,
     derive_lambda0,
     f0_batch,
@@ -35,7 +31,6 @@ from estimators.scalar import (
     normalize,
     persistent_failure,
     scalar_residual,
-    tolerance_extremes,
     triad_reference,
 )
 from estimators.sim import Fault, FaultKind, Grade, multi_position_spec, simulate, static_spec
@@ -158,55 +153,6 @@ def test_tolerance_bound_holds_for_every_unit_and_orientation():
         worst_ratio = max(worst_ratio, np.max(np.abs(s)) / bound)
     # ... and is not loose: some unit comes close to it.
     assert worst_ratio > 0.8
-
-
-def _static_residual_einsum(params: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """The residual as estimators.scalar wrote it with einsum before: the oracle of its bits."""
-    out = np.einsum("mij,kj->mki", _model_matrices(params), u) + params[:, None, :3]
-    return 0.5 * (np.einsum("mki,mki->mk", out, out) - 1.0)
-
-
-def _class_tolerances() -> list[np.ndarray]:
-    """Every nominal class's accelerometer tolerances, normalized by g (as F0 and the gross test take them)."""
-    tols = []
-    for cls in SensorClass:
-        tp = nominal_passport(cls, gravity_mps2=G).triads[Triad.ACCEL]
-        tol = tp.tolerance.copy()
-        tol[:3] *= tp.reference / G
-        tols.append(tol)
-    return tols
-
-
-def test_static_residual_is_einsums_to_the_bit_on_the_grid_and_in_the_search():
-    # tolerance_extremes seeds its search on every corner of the tolerance box times 2000
-    # directions, then asks for one unit in one direction at a time: both shapes, random
-    # units (cosines beyond any real triad included, which the square root clips).
-    rng = np.random.default_rng(33)
-    u = rng.normal(size=(2000, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    signs = np.array(list(itertools.product([-1.0, 1.0], repeat=9)))
-    for tol in [*_class_tolerances(), rng.uniform(0.0, 0.3, 9)]:
-        corners = signs * tol
-        assert np.array_equal(_static_residual(corners, u), _static_residual_einsum(corners, u))
-    units = rng.normal(0.0, 0.2, size=(500, 9))
-    for k in range(units.shape[0]):
-        p, d = units[k : k + 1], u[k : k + 1]
-        assert np.array_equal(_static_residual(p, d), _static_residual_einsum(p, d))
-
-
-def test_tolerance_extremes_are_those_of_the_einsum_residual(monkeypatch):
-    # The whole search (grid, seeds, L-BFGS-B's finite differences) from either residual.
-    rng = np.random.default_rng(34)
-    tols = [*_class_tolerances(), rng.uniform(0.0, 0.05, 9)]
-    new = []
-    for tol in tols:
-        scalar_module._tolerance_extremes.cache_clear()
-        new.append(tolerance_extremes(tol))
-    monkeypatch.setattr(scalar_module, "_static_residual", _static_residual_einsum)
-    for tol, got in zip(tols, new, strict=True):
-        scalar_module._tolerance_extremes.cache_clear()
-        assert got == tolerance_extremes(tol)
-    scalar_module._tolerance_extremes.cache_clear()
 
 
 def test_lambda0_rejects_bad_input():
