@@ -1006,16 +1006,17 @@ class StreamingStaticDetector:
             whole = slice(i_res + 1, i_res + 1 + len(res) * w)
             starts[:nc, 1:] = exact_sums(ext[whole].reshape(len(res), w, nc)).T
             starts[nc:, 1:] = exact_sums(ext2[whole].reshape(len(res), w, nc)).T
-        # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order.
-        plus = np.concatenate([y, ext2[w:]], axis=1).T
-        minus = -np.concatenate([ext[:n], ext2[:n]], axis=1).T
+        # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order,
+        # written into the terms straight from ext and ext2 (no joined copies of +y and −p).
         sums = np.empty((2 * nc, n))
         cuts = [0, *(i + 1 for i in res if i + 1 < n), n]
         for r, (a, b) in enumerate(itertools.pairwise(cuts)):
             z = np.empty((2 * nc, 2 * (b - a) + 1))
             z[:, 0] = starts[:, r]
-            z[:, 1::2] = plus[:, a:b]
-            z[:, 2::2] = minus[:, a:b]
+            z[:nc, 1::2] = ext[w + a : w + b].T
+            z[nc:, 1::2] = ext2[w + a : w + b].T
+            np.negative(ext[a:b].T, out=z[:nc, 2::2])
+            np.negative(ext2[a:b].T, out=z[nc:, 2::2])
             np.cumsum(z, axis=1, out=z)
             sums[:, a:b] = z[:, 2::2]
         quiet = np.ones(n, dtype=bool)
@@ -1291,23 +1292,26 @@ class RotationIntegrator:
         half = (0.5 * th).tolist()
         big = th > 1e-4
         k = 0.5 - th * th / 48.0
-        k[big] = np.fromiter(map(math.sin, half), float, len(half))[big] / th[big]
-        self._compose(
-            list(map(math.cos, half)), (rx * k).tolist(), (ry * k).tolist(), (rz * k).tolist()
+        # The sine only where it is taken (at rest θ is mostly below 1e-4 rad), the cosine as the loop asks.
+        n_big = int(np.count_nonzero(big))
+        k[big] = (
+            np.fromiter(map(math.sin, itertools.compress(half, big.tolist())), float, n_big)
+            / th[big]
         )
+        self._compose(map(math.cos, half), (rx * k).tolist(), (ry * k).tolist(), (rz * k).tolist())
 
     def _compose(
         self, dws: Iterable[float], dxs: Iterable[float], dys: Iterable[float], dzs: Iterable[float]
     ) -> None:
         """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order."""
         w, x, y, z = self.q
+        # Plain names, not a tuple built and unpacked per sample: the same products and sums.
         for dw, dx, dy, dz in zip(dws, dxs, dys, dzs, strict=True):
-            w, x, y, z = (
-                w * dw - x * dx - y * dy - z * dz,
-                w * dx + x * dw + y * dz - z * dy,
-                w * dy - x * dz + y * dw + z * dx,
-                w * dz + x * dy - y * dx + z * dw,
-            )
+            w1 = w * dw - x * dx - y * dy - z * dz
+            x1 = w * dx + x * dw + y * dz - z * dy
+            y1 = w * dy - x * dz + y * dw + z * dx
+            z = w * dz + x * dy - y * dx + z * dw
+            w, x, y = w1, x1, y1
         self.q = (w, x, y, z)
 
     def set_mark(self) -> None:

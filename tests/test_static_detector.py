@@ -248,6 +248,38 @@ def test_rotation_integrator_composes_like_rotation_matrices():
     assert again.q == rot.q and again.bias_rps == rot.bias_rps
 
 
+def test_rotation_integrator_add_many_is_add_sample_by_sample_to_the_bit():
+    # Rates at rest (θ = |ω − bias|·dt below 1e-4 rad: the series) and in turns (the sine),
+    # and both sides of the switch, in pieces of every size the positions hand over.
+    rng = np.random.default_rng(61)
+    scale = rng.choice([2e-3, 0.09, 0.11, 3.0], size=(4000, 1))
+    rates = rng.normal(0.0, 1.0, (4000, 3)) * scale
+    dts = rng.uniform(0.5e-3, 1.5e-3, 4000)
+    bias = (0.01, -0.02, 0.005)
+    one, many = RotationIntegrator(bias), RotationIntegrator(bias)
+    q = (1.0, 0.0, 0.0, 0.0)  # the oracle: exp(½ (ω − bias) dt) composed on the right, written out
+    for (wx, wy, wz), dt in zip(rates.tolist(), dts.tolist(), strict=True):
+        one.add(wx, wy, wz, dt)
+        rx, ry, rz = (wx - bias[0]) * dt, (wy - bias[1]) * dt, (wz - bias[2]) * dt
+        th = math.sqrt(rx * rx + ry * ry + rz * rz)
+        s = math.sin(0.5 * th) / th if th > 1e-4 else 0.5 - th * th / 48.0
+        dw, dx, dy, dz = math.cos(0.5 * th), rx * s, ry * s, rz * s
+        w, x, y, z = q
+        q = (
+            w * dw - x * dx - y * dy - z * dz,
+            w * dx + x * dw + y * dz - z * dy,
+            w * dy - x * dz + y * dw + z * dx,
+            w * dz + x * dy - y * dx + z * dw,
+        )
+    assert one.q == q
+    k = 0
+    for size in [0, 1, *rng.integers(1, 700, size=40).tolist()]:
+        many.add_many(rates[k : k + size], dts[k : k + size])
+        k += size
+    many.add_many(rates[k:], dts[k:])
+    assert many.q == q
+
+
 def test_new_orientation_needs_a_change_in_any_available_measure():
     cfg = StaticDetectorConfig(orientation_change_deg=1.0)
     assert not is_new_orientation(cfg, direction_deg=0.5, rotation_deg=0.5)

@@ -39,6 +39,31 @@ def test_run_lengths_by_hand():
     np.testing.assert_array_equal(runs[:, 0], [5, 6, 1, 2, 3, 1])
 
 
+def test_run_lengths_are_those_counted_sample_by_sample():
+    # Coarse values repeat (runs of every length, across the cuts), NaN breaks every run.
+    rng = np.random.default_rng(71)
+    values = np.round(rng.normal(0.0, 0.6, (3000, 6)))
+    values[rng.random(3000) < 0.01, 2] = np.nan
+    prev_value, prev_run = np.full(6, np.nan), np.zeros(6, dtype=np.int64)
+    expected = np.empty(values.shape, dtype=np.int64)
+    last, run = prev_value.copy(), prev_run.copy()
+    for i, row in enumerate(values):
+        for k, x in enumerate(row):
+            run[k] = run[k] + 1 if x == last[k] else 1
+            last[k] = x
+        expected[i] = run
+    i = 0
+    for size in [0, 1, *rng.integers(1, 400, size=30).tolist(), values.shape[0]]:
+        piece = values[i : i + size]
+        runs = run_lengths(piece, prev_value, prev_run)
+        assert runs.shape == piece.shape and runs.dtype == np.int64
+        np.testing.assert_array_equal(runs, expected[i : i + size])
+        if piece.shape[0]:
+            prev_value, prev_run = piece[-1], runs[-1]
+        i += piece.shape[0]
+    assert i == values.shape[0]
+
+
 def test_noisy_stream_is_never_stale_and_stuck_gyro_is_named():
     rng = np.random.default_rng(1)
     limits = ValidityLimits()
