@@ -13,7 +13,7 @@ from typing import Any
 
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
-from matplotlib.ticker import LogFormatter, NullLocator
+from matplotlib.ticker import LogFormatter, NullLocator, ScalarFormatter
 
 
 def subplots(
@@ -47,6 +47,12 @@ def save_figure(fig: Figure, path: Path, *, dpi: int, margins: Margins | None = 
         if grid is None:
             raise ValueError("save_figure: margins need axes on a grid, as subplots makes them")
         rows = grid.nrows
+        for ax in fig.axes:
+            if isinstance(ax.yaxis.get_major_formatter(), ScalarFormatter):
+                # Six characters at most (the margins are set for them): 1.25 and ×1e−4 above the
+                # axis, not 0.000125; −8 and ×1e5, not −800000 (matplotlib's default keeps 1e−5
+                # to 1e6 written out).
+                ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 5))
         tall = height - margins.top - margins.bottom
         each = (tall - (rows - 1) * margins.between) / rows
         fig.subplots_adjust(

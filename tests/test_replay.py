@@ -392,3 +392,26 @@ def test_a_telemetry_log_reads_in_times_from_its_start_and_its_report_says_no_pa
         log_start(1710773374.854)
         == "1710773374.854 s of the log's clock, 2024-03-18T14:49:34.854 UTC"
     )
+
+
+def test_a_sample_too_large_for_the_reports_figures_leaves_the_verdict_said_and_the_report_refused(
+    tmp_path, capsys, passport_file
+):
+    """A text DataFlash log carries float64: one accelerometer value of 1e300 m/s² is rejected by
+    the pipeline (implausible, counted) but reaches the report's figures, whose squares overflow.
+    Before the report's low-passes were first_order_filter the verdict was said and report.json
+    then failed on its NaNs (status 2); with them the replay stopped at that frame, the coverage
+    and the verdict unsaid. The verdict is said, and the report refused naming why (status 2)."""
+    _passport, g, _faulty, _part, clean = flight()
+    session = clean.select(clean.t_s < clean.t_s[0] + 40.0)  # past a pass of the figures
+    accel = session.accel_mps2.copy()
+    accel[500, 0] = 1e300
+    log = tmp_path / "big.log"
+    write_dataflash_text(log, {0: dataclasses.replace(session, accel_mps2=accel)})
+    status, _, err = replay(
+        capsys, log, "--passport", passport_file, "--gravity", g, "--report", tmp_path / "r"
+    )
+    assert status == 2
+    assert "imu0.samples.rejected.implausible_value 1" in err and "verdict: " in err
+    assert "report not written: IMU0's figures: first_order_filter: an output is not finite" in err
+    assert not (tmp_path / "r" / "report.json").exists()

@@ -479,6 +479,9 @@ def replay_log(
         on_pipeline_error=pipeline_error,
     )
     health: dict[int, ImuHealthAccumulator] = {}
+    # IMU -> why its figures cannot be drawn (a finite sample whose square overflows): the replay
+    # goes on to its verdict, the report is refused after it.
+    unreportable: dict[int, str] = {}
     health_config = HealthConfig()
     start_t_s: list[float] = []
     thrust = ThrustAxisReplay(args.log, args.vehicle, on_event)
@@ -507,7 +510,7 @@ def replay_log(
             starts[batch.imu] = first
             if on_start is not None:
                 on_start(batch.imu, first)
-        if args.report is None:
+        if args.report is None or batch.imu in unreportable:
             return
         acc = health.get(batch.imu)
         if acc is None:
@@ -528,9 +531,12 @@ def replay_log(
         # Frame by frame, as before the reader joined them: the accumulator sums its spectra per
         # pass of the frames it queued, and other passes would move their last bits.
         size = batch.n_samples // frames
-        for rows in (slice(k, k + size) for k in range(0, batch.n_samples, size)):
-            temp_c = None if batch.temp_c is None else batch.temp_c[rows]
-            acc.update(batch.t_s[rows], batch.accel_mps2[rows], batch.gyro_rps[rows], temp_c)
+        try:
+            for rows in (slice(k, k + size) for k in range(0, batch.n_samples, size)):
+                temp_c = None if batch.temp_c is None else batch.temp_c[rows]
+                acc.update(batch.t_s[rows], batch.accel_mps2[rows], batch.gyro_rps[rows], temp_c)
+        except ValueError as exc:
+            unreportable[batch.imu] = str(exc)
 
     events, reader = replay_events(
         args.log,
@@ -627,7 +633,19 @@ def replay_log(
         firmware = read_firmware_health(args.log, reader.format, reader.stats.held)
         if firmware.unread:
             note(f"{args.log.name}: the firmware's own health data not read ({firmware.unread})")
-        healths = {imu: acc.result(options.gravity_mps2) for imu, acc in sorted(health.items())}
+        healths = {}
+        for imu, acc in sorted(health.items()):
+            try:
+                healths[imu] = acc.result(options.gravity_mps2)
+            except ValueError as exc:
+                unreportable.setdefault(imu, str(exc))
+        if unreportable:
+            raise ValueError(
+                "report not written: "
+                + "; ".join(
+                    f"IMU{imu}'s figures: {why}" for imu, why in sorted(unreportable.items())
+                )
+            )
         pairs = pair_differences({i: h.blocks for i, h in healths.items()}, health_config.block_s)
         report = build_report(
             log_name=args.log.name,
