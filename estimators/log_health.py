@@ -82,6 +82,11 @@ RUN_START_SAMPLES = 100
 first difference's sum of squares, counted from the run's start: the figures then do not depend on
 how the samples are cut into frames (these are the frames of 100 that replay handed the report
 before it took larger ones, so its figures stay those it gave)."""
+PSD_GROUP_SAMPLES = -(-PASS_SAMPLES // RUN_START_SAMPLES) * RUN_START_SAMPLES
+"""The periodograms are summed in groups, the group's sum then added to the total: those a run
+completes in its first :data:`RUN_START_SAMPLES` samples, then in each ``PSD_GROUP_SAMPLES`` after.
+These are the passes its frames of 100 made (one, then :data:`PASS_SAMPLES` of them queued), so
+the spectra keep the bits they had then, whatever the framing and the passes now."""
 _BLOCK_FIELDS = 27  # k, n, mean a(3), mean g(3), var a(3), var g(3), vibe(3), vibe max(3), px4 a, px4 g, temp min, max, t first, t last, run
 
 
@@ -248,7 +253,12 @@ class ImuHealthAccumulator:
         self._tables: list[FloatArray] = []
         self._welch_buf: list[FloatArray] = []
         self._welch_n = 0
+        self._welch_segs = 0
+        """Periodogram segments the run has completed."""
         self._psd_sum: FloatArray | None = None
+        self._psd_open: FloatArray | None = None
+        """The sum of the periodograms of the group (:data:`PSD_GROUP_SAMPLES`) not yet complete."""
+        self._psd_group = 0
         self._psd_count = 0
         self._diff_sq = np.zeros(6)
         self._diff_open = np.zeros(6)
@@ -370,7 +380,8 @@ class ImuHealthAccumulator:
         self._t_last = None
         self._last_a = self._last_g = None
         # A periodogram segment across the restart would hold the step between two clocks.
-        self._welch_buf, self._welch_n = [], 0
+        self._welch_buf, self._welch_n, self._welch_segs = [], 0, 0
+        self._close_psd()
 
     def _start(self, t: FloatArray, a: FloatArray) -> None:
         self._t_first = float(t[0])
@@ -445,9 +456,25 @@ class ImuHealthAccumulator:
         w = np.hanning(nfft)
         segs = (segs - segs.mean(axis=1, keepdims=True)) * w[None, :, None]
         power = np.abs(np.fft.rfft(segs, axis=1)) ** 2
-        total = power.sum(axis=0)
-        self._psd_sum = total if self._psd_sum is None else self._psd_sum + total
+        ends = (self._welch_segs + np.arange(1, m + 1)) * nfft
+        groups = -(-(ends - RUN_START_SAMPLES) // PSD_GROUP_SAMPLES)
+        self._welch_segs += m
         self._psd_count += m
+        cuts = np.flatnonzero(np.diff(groups)) + 1
+        # Sums over axis 0 add the rows in turn: a group's segments are added in order, the
+        # group's open sum first, across passes as within one.
+        for part, group in zip(np.split(power, cuts), groups[np.r_[0, cuts]].tolist(), strict=True):
+            if self._psd_open is not None and group == self._psd_group:
+                part = np.concatenate([self._psd_open[None], part])
+            else:
+                self._close_psd()
+            self._psd_open, self._psd_group = part.sum(axis=0), group
+
+    def _close_psd(self) -> None:
+        """The open group's sum added to the total (:data:`PSD_GROUP_SAMPLES`)."""
+        if self._psd_open is not None:
+            s, self._psd_open = self._psd_open, None
+            self._psd_sum = s if self._psd_sum is None else self._psd_sum + s
 
     def _blocks(
         self,
@@ -509,6 +536,7 @@ class ImuHealthAccumulator:
             else:
                 self.n_samples += 1
             self._pending = None
+        self._close_psd()
         c = self._carry
         self._blocks(c.t, c.a, c.g, c.temp, c.vibe, c.px4a, c.px4g, final=True)
         table = np.vstack(self._tables) if self._tables else np.zeros((0, _BLOCK_FIELDS))

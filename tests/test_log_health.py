@@ -145,6 +145,30 @@ def test_frames_taken_in_passes_give_the_figures_of_a_pass_per_frame(monkeypatch
     assert len(calls) < len(frames) / 10 and max(calls) >= log_health.PASS_SAMPLES
 
 
+def test_the_figures_and_spectra_are_the_same_bits_in_any_framing():
+    """Replay hands the accumulator frames of 100 samples or joined batches of 16,400: it sums its
+    periodograms in groups counted from the run's start (PSD_GROUP_SAMPLES), not per pass of what
+    it was handed, so the spectra, block table and figures are the same bits fed a sample at a
+    time, in frames of 100, 4,096 or 16,384, or all at once, across a lost second and a restart."""
+    t, a, g = _unit(n_s=45.0, fly=(10.0, 30.0))
+    temp = np.linspace(30.0, 35.0, t.size)
+    keep = np.r_[0:4000, 4400 : t.size]  # a lost second
+    t, a, g, temp = t[keep], a[keep], g[keep], temp[keep]
+    restart = 14_000  # three groups and a part, then a clock 40 s back
+    t = np.r_[t[:restart], t[restart:] - 40.0]
+    figures = []
+    for size in (100, 1, 4096, 16_384, t.size):
+        acc = ImuHealthAccumulator(HealthConfig())
+        for run in (slice(0, restart), slice(restart, t.size)):
+            for lo in range(run.start, run.stop, size):
+                rows = slice(lo, min(lo + size, run.stop))
+                acc.update(t[rows], a[rows], g[rows], temp[rows])
+        h = acc.result(G)
+        figures.append((_figures(acc), h.accel_psd.tobytes() + h.gyro_psd.tobytes()))
+    assert h.runs == 2 and h.accel_psd.size
+    assert all(f == figures[0] for f in figures[1:])
+
+
 @pytest.mark.parametrize("fly", [(8.0, 16.0), (-1.0, 31.0)], ids=["rest", "no_rest"])
 def test_the_vibration_filters_give_the_figures_lfilter_gives(monkeypatch, fly):
     """VIBE's floor and level and PX4's two metrics, first-order low-passes solved by

@@ -145,11 +145,11 @@ def test_frames_lost_to_a_pipeline_error_in_a_group_are_all_counted(capsys, monk
 
 
 def test_the_reports_spectra_are_those_of_the_frames_one_by_one(capsys, monkeypatch, tmp_path):
-    """The report's accumulator sums its periodograms per pass of the frames it queued (about
+    """The report's accumulator summed its periodograms per pass of the frames it queued (about
     4,096 samples): fed the reader's joined batches (16,400 samples) it summed them in other
-    passes, and the spectra (the report's figure) moved in their last bits. Replay feeds it the
-    frames one by one: the spectra of the demo-fault ULog's first 100 s (a batch of 163 frames,
-    then 37 joined) are the bits of the frame-by-frame replay."""
+    passes, and the spectra (the report's figure) moved in their last bits. It sums them in groups
+    counted from the run's start: fed the joined batches, the spectra of the demo-fault ULog's
+    first 100 s (a batch of 163 frames, then 37 joined) are the bits of the frame-by-frame replay."""
     log = tmp_path / "demo.ulg"
     session = demo_scenario(fault_magnitude=DEMO_FAULT_MAGNITUDE).session.select(slice(0, 20_000))
     write_ulog(log, {0: session}, topics=["sensor_combined"])

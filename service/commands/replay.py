@@ -528,13 +528,8 @@ def replay_log(
                     gyro_rest_rps=det.gyro_std_rps,
                 )
             )
-        # Frame by frame, as before the reader joined them: the accumulator sums its spectra per
-        # pass of the frames it queued, and other passes would move their last bits.
-        size = batch.n_samples // frames
         try:
-            for rows in (slice(k, k + size) for k in range(0, batch.n_samples, size)):
-                temp_c = None if batch.temp_c is None else batch.temp_c[rows]
-                acc.update(batch.t_s[rows], batch.accel_mps2[rows], batch.gyro_rps[rows], temp_c)
+            acc.update(batch.t_s, batch.accel_mps2, batch.gyro_rps, batch.temp_c)
         except ValueError as exc:
             unreportable[batch.imu] = str(exc)
 
