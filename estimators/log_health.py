@@ -406,22 +406,29 @@ class ImuHealthAccumulator:
         docstring). The squared differences are summed in blocks of :data:`RUN_START_SAMPLES`
         from the run's start, then the blocks' sums in turn: the same additions however the
         samples are framed."""
-        a5, a2 = self._alpha(VIBE_FLOOR_HZ), self._alpha(VIBE_FILTER_HZ)
-        floor, self._zi["floor"] = first_order_filter(a5, a5 - 1.0, a, self._zi["floor"])
-        level, self._zi["vibe"] = first_order_filter(
-            a2, a2 - 1.0, (a - floor) ** 2, self._zi["vibe"]
-        )
-        last_a = a[:1] if self._last_a is None else self._last_a[None, :]
-        last_g = g[:1] if self._last_g is None else self._last_g[None, :]
-        diff = np.hstack([np.diff(a, axis=0, prepend=last_a), np.diff(g, axis=0, prepend=last_g)])
-        sq = diff**2
-        # |Δa|, |Δg| added as np.linalg.norm adds them, (x² + y²) + z², a tenth of its time.
-        steps = np.sqrt(
-            np.column_stack([(sq[:, 0] + sq[:, 1]) + sq[:, 2], (sq[:, 3] + sq[:, 4]) + sq[:, 5]])
-        )
-        px4, self._zi["px4"] = first_order_filter(
-            PX4_VIBE_ALPHA, PX4_VIBE_ALPHA - 1.0, steps * dt[:, None], self._zi["px4"]
-        )
+        # A square that overflows is refused by first_order_filter with its reason (ValueError),
+        # not left to numpy's RuntimeWarning on the user's terminal.
+        with np.errstate(over="ignore"):
+            a5, a2 = self._alpha(VIBE_FLOOR_HZ), self._alpha(VIBE_FILTER_HZ)
+            floor, self._zi["floor"] = first_order_filter(a5, a5 - 1.0, a, self._zi["floor"])
+            level, self._zi["vibe"] = first_order_filter(
+                a2, a2 - 1.0, (a - floor) ** 2, self._zi["vibe"]
+            )
+            last_a = a[:1] if self._last_a is None else self._last_a[None, :]
+            last_g = g[:1] if self._last_g is None else self._last_g[None, :]
+            diff = np.hstack(
+                [np.diff(a, axis=0, prepend=last_a), np.diff(g, axis=0, prepend=last_g)]
+            )
+            sq = diff**2
+            # |Δa|, |Δg| added as np.linalg.norm adds them, (x² + y²) + z², a tenth of its time.
+            steps = np.sqrt(
+                np.column_stack(
+                    [(sq[:, 0] + sq[:, 1]) + sq[:, 2], (sq[:, 3] + sq[:, 4]) + sq[:, 5]]
+                )
+            )
+            px4, self._zi["px4"] = first_order_filter(
+                PX4_VIBE_ALPHA, PX4_VIBE_ALPHA - 1.0, steps * dt[:, None], self._zi["px4"]
+            )
         # Sums over axis 0 and cumsum add the rows in turn (add.reduceat does not, to the bit).
         head = min(sq.shape[0], RUN_START_SAMPLES - self._diff_open_n)
         self._diff_open = np.vstack([self._diff_open, sq[:head]]).sum(axis=0)
