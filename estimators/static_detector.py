@@ -1254,17 +1254,35 @@ class RotationIntegrator:
     (body rate in rad/s held over ``dt_s``) on the right; ``angle_deg`` is the
     angle of the accumulated rotation. ``bias_rps`` is removed first: the mean
     gyro output of the last static position (zero signal plus Earth rate).
+
+    :meth:`add_many` composes when the rotation is next read (``q``, :meth:`set_mark`,
+    :meth:`state_dict`, :meth:`add`), in the order the samples came: what :meth:`reset`
+    drops before then is never composed (a Python step per sample saved). The positions
+    integrate a static run's first samples in case the run is rejected, and an accepted run
+    resets the rotation: those samples are then never composed. At most
+    :attr:`DEFERRED_SAMPLES` wait (bounded memory in a long turn or flight).
     """
 
-    __slots__ = ("bias_rps", "mark", "q")
+    __slots__ = ("_deferred", "_n_deferred", "_q", "bias_rps", "mark")
+
+    DEFERRED_SAMPLES = 1 << 16
 
     def __init__(self, bias_rps: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
         self.reset(bias_rps)
 
     def reset(self, bias_rps: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
         self.bias_rps = tuple(float(v) for v in bias_rps)
-        self.q = (1.0, 0.0, 0.0, 0.0)
-        self.mark = self.q
+        self._q = (1.0, 0.0, 0.0, 0.0)
+        self.mark = self._q
+        self._deferred: list[tuple[FloatArray, FloatArray]] = []
+        self._n_deferred = 0
+
+    @property
+    def q(self) -> tuple[float, float, float, float]:
+        """The accumulated rotation (w, x, y, z)."""
+        if self._deferred:
+            self._compose_deferred()
+        return self._q
 
     def add(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
         bx, by, bz = self.bias_rps
@@ -1281,12 +1299,24 @@ class RotationIntegrator:
         The increments are :meth:`add`'s operations on arrays: element by element the same
         IEEE operations (square root included), with sine and cosine from :mod:`math` as
         :meth:`add` takes them (numpy's may differ in the last bit), so the rotation agrees
-        to the bit; only the composition stays a loop.
+        to the bit; only the composition stays a loop. Both wait for the rotation to be read
+        (class docstring): element by element, the operations do not depend on the calls
+        the samples came in.
         """
         r = np.asarray(rates_rps, dtype=float).reshape(-1, 3) - np.asarray(self.bias_rps)
-        dt = np.asarray(dts_s, dtype=float)
+        dt = np.array(dts_s, dtype=float)
         if dt.shape != r.shape[:1]:
             raise ValueError(f"{r.shape[0]} rates but {dt.size} time steps")
+        self._deferred.append((r, dt))
+        self._n_deferred += dt.size
+        if self._n_deferred >= self.DEFERRED_SAMPLES:
+            self._compose_deferred()
+
+    def _compose_deferred(self) -> None:
+        """Compose the samples :meth:`add_many` left waiting, in order."""
+        parts, self._deferred, self._n_deferred = self._deferred, [], 0
+        r = parts[0][0] if len(parts) == 1 else np.concatenate([p[0] for p in parts])
+        dt = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts])
         rx, ry, rz = r[:, 0] * dt, r[:, 1] * dt, r[:, 2] * dt
         th = np.sqrt(rx * rx + ry * ry + rz * rz)
         half = (0.5 * th).tolist()
@@ -1303,7 +1333,7 @@ class RotationIntegrator:
     def _compose(
         self, dws: Iterable[float], dxs: Iterable[float], dys: Iterable[float], dzs: Iterable[float]
     ) -> None:
-        """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order."""
+        """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order (after those waiting)."""
         w, x, y, z = self.q
         # Plain names, not a tuple built and unpacked per sample: the same products and sums.
         for dw, dx, dy, dz in zip(dws, dxs, dys, dzs, strict=True):
@@ -1312,7 +1342,7 @@ class RotationIntegrator:
             y1 = w * dy - x * dz + y * dw + z * dx
             z = w * dz + x * dy - y * dx + z * dw
             w, x, y = w1, x1, y1
-        self.q = (w, x, y, z)
+        self._q = (w, x, y, z)
 
     def set_mark(self) -> None:
         """Remember the rotation so far (the start of the next static run)."""
@@ -1346,7 +1376,7 @@ class RotationIntegrator:
             raise ValueError(
                 "invalid RotationIntegrator state: q and mark need 4 numbers, bias_rps 3"
             )
-        r.q = (q[0], q[1], q[2], q[3])
+        r._q = (q[0], q[1], q[2], q[3])
         r.mark = (mark[0], mark[1], mark[2], mark[3])
         return r
 

@@ -280,6 +280,43 @@ def test_rotation_integrator_add_many_is_add_sample_by_sample_to_the_bit():
     assert many.q == q
 
 
+def test_rotation_integrator_composes_add_many_when_read_and_never_what_a_reset_drops(monkeypatch):
+    # The positions integrate a static run's first samples in case it is rejected; an accepted run
+    # resets the rotation: those samples are then never composed (a Python step per sample).
+    rng = np.random.default_rng(62)
+    rates = rng.normal(0.0, 0.5, (3000, 3))
+    dts = np.full(3000, 1e-3)
+    composed = []
+    compose = RotationIntegrator._compose
+
+    def counting(self, dws, dxs, dys, dzs):
+        dxs = list(dxs)
+        composed.append(len(dxs))
+        compose(self, dws, dxs, dys, dzs)
+
+    monkeypatch.setattr(RotationIntegrator, "_compose", counting)
+    rot, ref = RotationIntegrator((0.01, 0.0, 0.0)), RotationIntegrator((0.01, 0.0, 0.0))
+    rot.add_many(rates[:300], dts[:300])
+    rot.add_many(rates[300:600], dts[300:600])
+    rot.reset()
+    assert composed == []
+    monkeypatch.setattr(RotationIntegrator, "DEFERRED_SAMPLES", 1000)
+    # Read in between, past the bound (composed at 1,000 waiting), and after a sample by sample add:
+    # the same rotation to the bit as one call.
+    rot.reset((0.01, 0.0, 0.0))
+    rot.add_many(rates[:700], dts[:700])
+    rot.set_mark()
+    rot.add_many(rates[700:1500], dts[700:1500])
+    rot.add_many(rates[1500:2500], dts[1500:2500])
+    rot.add(*rates[2500].tolist(), 1e-3)
+    rot.add_many(rates[2501:], dts[2501:])
+    assert composed == [700, 1800, 1]
+    q = rot.q
+    assert composed == [700, 1800, 1, 499]
+    ref.add_many(rates, dts)
+    assert q == ref.q
+
+
 def test_new_orientation_needs_a_change_in_any_available_measure():
     cfg = StaticDetectorConfig(orientation_change_deg=1.0)
     assert not is_new_orientation(cfg, direction_deg=0.5, rotation_deg=0.5)
