@@ -372,14 +372,21 @@ def exact_sums(x: FloatArray) -> FloatArray:
     partials may overflow there: its OverflowError, not a finite sum).
     """
     m = x.shape[-2]
+    # Each column's window along contiguous memory: the sums down it take a tenth of the time
+    # they take across the channels' stride, and the value does not depend on their order.
+    xt = np.ascontiguousarray(np.swapaxes(x, -1, -2))
     with np.errstate(invalid="ignore", over="ignore"):  # what overflows is fsum's to sum
-        s = np.cumsum(x, axis=-2)
-        prev, cur = s[:, :-1], s[:, 1:]
+        s = np.cumsum(xt, axis=-1)
+        prev, cur = s[..., :-1], s[..., 1:]
         part = cur - prev
-        err = (prev - (cur - part)) + (x[:, 1:] - part)
-        err_sum = err.sum(axis=-2)
-        bound = np.abs(err).sum(axis=-2) * (2.0 * m * 2.0**-53) + m * 2.0**-1074
-        last = s[:, -1]
+        # err = (prev − (cur − part)) + (x − part), in two buffers, not five temporaries.
+        err = np.subtract(cur, part)
+        np.subtract(prev, err, out=err)
+        np.subtract(xt[..., 1:], part, out=part)
+        err += part
+        err_sum = err.sum(axis=-1)
+        bound = np.abs(err, out=err).sum(axis=-1) * (2.0 * m * 2.0**-53) + m * 2.0**-1074
+        last = s[..., -1]
         total: FloatArray = last + err_sum
         part = total - last
         rest = (last - (total - part)) + (err_sum - part)
