@@ -35,9 +35,11 @@ def message_run(
     n = end - pos
     head = d[pos : end + 2]
     kind = head[2 : n + 2]
-    # The size's high byte first: max_size < 2**16 leaves few positions to look at closely.
-    maybe = (head[1 : n + 1] <= max_size >> 8) & (kind >= ord("A")) & (kind <= ord("Z"))
-    maybe &= kind != SUBSCRIBE
+    # A type letter B … Z (A, a subscription, ends a run): one subtraction that wraps the bytes
+    # below B past Z (uint8) and one comparison, then the size's high byte (max_size < 2**16
+    # leaves few positions to look at closely): four passes over the bytes, not seven.
+    maybe = kind - (SUBSCRIBE + 1) <= ord("Z") - (SUBSCRIBE + 1)
+    maybe &= head[1 : n + 1] <= max_size >> 8
     at = np.flatnonzero(maybe)
     size = head[at].astype(np.int64) | (head[at + 1].astype(np.int64) << 8)
     good = (size > 0) & (size <= max_size) & (pos + at + 3 + size <= d.size)
