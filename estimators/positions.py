@@ -55,9 +55,10 @@ since until then a following interval may still be merged into it.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -477,9 +478,15 @@ def _offer(
     det_config: StaticDetectorConfig,
     pending: _Group | None,
     group: _Group,
-    rotation_deg: float | None,
+    rotation: Callable[[], float | None],
 ) -> tuple[_Group, _Group | None, PositionRejection | None]:
-    """Merge ``group`` into ``pending`` or start a new position: ``(new pending, emitted or None, rejection or None)``."""
+    """Merge ``group`` into ``pending`` or start a new position: ``(new pending, emitted or None, rejection or None)``.
+
+    ``rotation()`` gives the rotation between them (deg; None where unknown), asked only where the
+    specific force leaves the answer open (:func:`is_new_orientation`: a turn of the specific force
+    by ``orientation_change_deg`` is a new position whatever the gyros say): integrating the gyros
+    is a Python step per sample (:class:`RotationIntegrator`).
+    """
     if pending is None:
         return group, None, None
     direction = (
@@ -487,6 +494,8 @@ def _offer(
         if group.accel is None
         else direction_change_deg(_present(pending.accel).mean, group.accel.mean)
     )
+    turned = direction is not None and not direction < det_config.orientation_change_deg
+    rotation_deg = None if turned else rotation()
     if is_new_orientation(det_config, direction_deg=direction, rotation_deg=rotation_deg):
         return group, pending, None
     parts = [
@@ -568,9 +577,10 @@ def build_positions(
             0.0 if finite_t is None else float(finite_t.sum()),
             0 if finite_t is None else int(finite_t.size),
         )
-        rotation = None
+        rotation: Callable[[], float | None] = _unknown_rotation
         if gyro is not None and pending is not None:
-            rotation = _rotation_between(
+            rotation = functools.partial(
+                _rotation_between,
                 t,
                 gyro,
                 acc,
@@ -589,6 +599,11 @@ def build_positions(
         positions.append(pending.position(config, batch))
     rejections.sort(key=lambda r: r.start)
     return PositionsResult(tuple(positions), tuple(rejections))
+
+
+def _unknown_rotation() -> float | None:
+    """No gyros, or no position before: no rotation to compare."""
+    return None
 
 
 def _rotation_between(
@@ -1144,12 +1159,11 @@ class PositionAccumulator:
             sm.temp_sum,
             sm.temp_n,
         )
-        rotation = (
-            self._rot.mark_angle_deg if (self._pending is not None and self._rot_active) else None
+        known = self._pending is not None and self._rot_active and det.has_gyro
+        rot = self._rot
+        self._pending, emitted, rej = _offer(
+            det.config, self._pending, group, lambda: rot.mark_angle_deg if known else None
         )
-        if not det.has_gyro:
-            rotation = None
-        self._pending, emitted, rej = _offer(det.config, self._pending, group, rotation)
         if rej is not None:
             self.rejections.append(rej)
         if det.has_gyro:

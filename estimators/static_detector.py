@@ -1262,15 +1262,16 @@ class RotationIntegrator:
     angle of the accumulated rotation. ``bias_rps`` is removed first: the mean
     gyro output of the last static position (zero signal plus Earth rate).
 
-    :meth:`add_many` composes when the rotation is next read (``q``, :meth:`set_mark`,
-    :meth:`state_dict`, :meth:`add`), in the order the samples came: what :meth:`reset`
-    drops before then is never composed (a Python step per sample saved). The positions
-    integrate a static run's first samples in case the run is rejected, and an accepted run
-    resets the rotation: those samples are then never composed. At most
-    :attr:`DEFERRED_SAMPLES` wait (bounded memory in a long turn or flight).
+    :meth:`add_many` composes when the rotation is next read (``q``, ``mark``,
+    :meth:`state_dict`, :meth:`add`), in the order the samples came; :meth:`set_mark` remembers
+    where the samples stood. What :meth:`reset` drops before then is never composed (a Python
+    step per sample saved): the positions integrate a static run's first samples in case the run
+    is rejected, and the turn before it in case the specific force cannot tell the run from the
+    position before (:func:`estimators.positions`' ``_offer``); an accepted run resets the
+    rotation. At most :attr:`DEFERRED_SAMPLES` wait (bounded memory in a long turn or flight).
     """
 
-    __slots__ = ("_deferred", "_n_deferred", "_q", "bias_rps", "mark")
+    __slots__ = ("_deferred", "_mark", "_mark_parts", "_n_deferred", "_q", "bias_rps")
 
     DEFERRED_SAMPLES = 1 << 16
 
@@ -1280,16 +1281,34 @@ class RotationIntegrator:
     def reset(self, bias_rps: Iterable[float] = (0.0, 0.0, 0.0)) -> None:
         self.bias_rps = tuple(float(v) for v in bias_rps)
         self._q = (1.0, 0.0, 0.0, 0.0)
-        self.mark = self._q
+        self._mark = self._q
+        self._mark_parts: int | None = None
+        """The waiting calls the mark holds (None: ``_mark`` is composed)."""
         self._deferred: list[tuple[FloatArray, FloatArray]] = []
         self._n_deferred = 0
 
     @property
     def q(self) -> tuple[float, float, float, float]:
         """The accumulated rotation (w, x, y, z)."""
-        if self._deferred:
-            self._compose_deferred()
+        self._compose_all()
         return self._q
+
+    @property
+    def mark(self) -> tuple[float, float, float, float]:
+        """The rotation at the last :meth:`set_mark` (w, x, y, z)."""
+        if self._mark_parts is not None:
+            self._compose_mark()
+        return self._mark
+
+    def _compose_mark(self) -> None:
+        assert self._mark_parts is not None
+        self._compose_deferred(self._mark_parts)
+        self._mark, self._mark_parts = self._q, None
+
+    def _compose_all(self) -> None:
+        if self._mark_parts is not None:
+            self._compose_mark()
+        self._compose_deferred(len(self._deferred))
 
     def add(self, wx: float, wy: float, wz: float, dt_s: float) -> None:
         bx, by, bz = self.bias_rps
@@ -1298,6 +1317,7 @@ class RotationIntegrator:
         half = 0.5 * th
         # sin(θ/2)/θ by its series below 1e-4 rad, where the division would lose digits.
         k = math.sin(half) / th if th > 1e-4 else 0.5 - th * th / 48.0
+        self._compose_all()
         self._compose((math.cos(half),), (rx * k,), (ry * k,), (rz * k,))
 
     def add_many(self, rates_rps: FloatArray, dts_s: FloatArray) -> None:
@@ -1317,11 +1337,14 @@ class RotationIntegrator:
         self._deferred.append((r, dt))
         self._n_deferred += dt.size
         if self._n_deferred >= self.DEFERRED_SAMPLES:
-            self._compose_deferred()
+            self._compose_all()
 
-    def _compose_deferred(self) -> None:
-        """Compose the samples :meth:`add_many` left waiting, in order."""
-        parts, self._deferred, self._n_deferred = self._deferred, [], 0
+    def _compose_deferred(self, n_parts: int) -> None:
+        """Compose the first ``n_parts`` calls :meth:`add_many` left waiting, in order."""
+        if not n_parts:
+            return
+        parts, self._deferred = self._deferred[:n_parts], self._deferred[n_parts:]
+        self._n_deferred -= sum(p[1].size for p in parts)
         r = parts[0][0] if len(parts) == 1 else np.concatenate([p[0] for p in parts])
         dt = parts[0][1] if len(parts) == 1 else np.concatenate([p[1] for p in parts])
         rx, ry, rz = r[:, 0] * dt, r[:, 1] * dt, r[:, 2] * dt
@@ -1340,8 +1363,8 @@ class RotationIntegrator:
     def _compose(
         self, dws: Iterable[float], dxs: Iterable[float], dys: Iterable[float], dzs: Iterable[float]
     ) -> None:
-        """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order (after those waiting)."""
-        w, x, y, z = self.q
+        """Compose the increments ``(dw, dx, dy, dz)`` on the right, in order."""
+        w, x, y, z = self._q
         # Plain names, not a tuple built and unpacked per sample: the same products and sums.
         for dw, dx, dy, dz in zip(dws, dxs, dys, dzs, strict=True):
             w1 = w * dw - x * dx - y * dy - z * dz
@@ -1353,7 +1376,10 @@ class RotationIntegrator:
 
     def set_mark(self) -> None:
         """Remember the rotation so far (the start of the next static run)."""
-        self.mark = self.q
+        if self._deferred:
+            self._mark_parts = len(self._deferred)
+        else:
+            self._mark, self._mark_parts = self._q, None
 
     @staticmethod
     def quaternion_angle_deg(q: Sequence[float]) -> float:
@@ -1384,7 +1410,7 @@ class RotationIntegrator:
                 "invalid RotationIntegrator state: q and mark need 4 numbers, bias_rps 3"
             )
         r._q = (q[0], q[1], q[2], q[3])
-        r.mark = (mark[0], mark[1], mark[2], mark[3])
+        r._mark = (mark[0], mark[1], mark[2], mark[3])
         return r
 
 

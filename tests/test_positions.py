@@ -19,7 +19,12 @@ from estimators.positions import (
 )
 from estimators.session import ImuSession
 from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
-from estimators.static_detector import FinalDecisions, StaticDetectorConfig, detect_static
+from estimators.static_detector import (
+    FinalDecisions,
+    RotationIntegrator,
+    StaticDetectorConfig,
+    detect_static,
+)
 
 
 def _stream(session: ImuSession, *, rate_hz: float, state_at: int | None = None, **options):
@@ -389,6 +394,34 @@ def test_update_batch_equals_update_bit_for_bit_for_any_cut(case):
         assert acc.drain_rejections() == ref_rejections
     if case == "messy":
         assert ref.detector.rejections.counts == {"non_finite": 12, "non_monotonic_time": 8}
+
+
+def test_update_batch_composes_the_rotation_only_where_the_specific_force_cannot_tell_a_turn(
+    monkeypatch,
+):
+    # Turns about horizontal axes move the specific force by 90°: a new position whatever the gyros
+    # say, so the rotation (a Python step per sample) is never composed. A turn about the vertical
+    # leaves the specific force where it was: only the integrated gyros tell the positions apart.
+    composed = []
+    compose = RotationIntegrator._compose
+
+    def counting(self, dws, dxs, dys, dzs):
+        dxs = list(dxs)
+        composed.append(len(dxs))
+        compose(self, dws, dxs, dys, dzs)
+
+    monkeypatch.setattr(RotationIntegrator, "_compose", counting)
+    rng = np.random.default_rng(71)
+    for turns, about_vertical in (([(1, 0, 0), (0, 0, 1)], False), ([None], True)):
+        segments = [Rest(6.0)]
+        for axis in turns:
+            segments += [Rotate(2.0, axis, 90.0), Rest(6.0)]
+        s = build_scene(segments, rng=rng).session
+        acc = PositionAccumulator(rate_hz=100.0, has_accel=True, has_gyro=True)
+        got = acc.update_batch(s.t_s, s.accel_mps2, s.gyro_rps)[0] + acc.flush()
+        assert len(got) == len(turns) + 1
+        assert bool(composed) == about_vertical
+        composed.clear()
 
 
 def test_update_batch_checkpoints_mid_stream_and_rejects_bad_shapes():

@@ -301,19 +301,26 @@ def test_rotation_integrator_composes_add_many_when_read_and_never_what_a_reset_
     rot.reset()
     assert composed == []
     monkeypatch.setattr(RotationIntegrator, "DEFERRED_SAMPLES", 1000)
-    # Read in between, past the bound (composed at 1,000 waiting), and after a sample by sample add:
-    # the same rotation to the bit as one call.
+    # The mark waits too, and is composed alone when read; reads past the bound (composed at 1,000
+    # waiting) and after a sample by sample add: the same rotations to the bit as one call each.
     rot.reset((0.01, 0.0, 0.0))
     rot.add_many(rates[:700], dts[:700])
     rot.set_mark()
-    rot.add_many(rates[700:1500], dts[700:1500])
+    rot.add_many(rates[700:900], dts[700:900])
+    assert composed == []
+    mark = rot.mark
+    assert composed == [700]
+    rot.add_many(rates[900:1500], dts[900:1500])
     rot.add_many(rates[1500:2500], dts[1500:2500])
+    assert composed == [700, 1800]
     rot.add(*rates[2500].tolist(), 1e-3)
     rot.add_many(rates[2501:], dts[2501:])
     assert composed == [700, 1800, 1]
     q = rot.q
     assert composed == [700, 1800, 1, 499]
-    ref.add_many(rates, dts)
+    ref.add_many(rates[:700], dts[:700])
+    assert mark == ref.q
+    ref.add_many(rates[700:], dts[700:])
     assert q == ref.q
 
 
