@@ -357,6 +357,13 @@ class StaticInterval:
         return self.t_end_s - self.t_start_s
 
 
+SIDE_BY_SIDE_SUMS = 128
+"""Running sums a batch of :meth:`StreamingStaticDetector.update_batch` must hold (channels and their
+squares, times the stretches of a window between re-summations) before they are added side by side,
+a step per call: below, cumsum along each stretch is quicker (12 sums of 500 steps: 0.35 ms both
+ways at 8 stretches, at 32 cumsum 1.5 ms and side by side 0.6 ms)."""
+
+
 def exact_sums(x: FloatArray) -> FloatArray:
     """``math.fsum`` down each column of the windows ``x`` (R, M, K), bit for bit: (R, K).
 
@@ -1000,30 +1007,45 @@ class StreamingStaticDetector:
             ]
         )
         y = x - np.asarray(self._x0)[chans]
-        # y of the accepted samples c0 − W … c0 + n − 1 (the ring, then the batch), and their squares.
+        # y of the accepted samples c0 − W … c0 + n − 1 (the ring, then the batch), and their
+        # squares: the values of a channel and of its squares in one row (along contiguous memory).
         buf = self._buf.array()
-        ext = np.concatenate([buf[chans][:, old_pos].T, y])
-        ext2 = ext * ext
+        ext = np.empty((2 * nc, w + n))
+        ext[:nc, :w] = buf[chans][:, old_pos]
+        ext[:nc, w:] = y.T
+        np.multiply(ext[:nc], ext[:nc], out=ext[nc:])
         res = res_at.tolist()
         starts = np.empty((2 * nc, len(res) + 1))
         starts[:nc, 0] = np.asarray(self._s)[chans]
         starts[nc:, 0] = np.asarray(self._q)[chans]
         if res:
             # The windows re-summed, one after the other: _resum's fsum of each (exact_sums).
-            whole = slice(i_res + 1, i_res + 1 + len(res) * w)
-            starts[:nc, 1:] = exact_sums(ext[whole].reshape(len(res), w, nc)).T
-            starts[nc:, 1:] = exact_sums(ext2[whole].reshape(len(res), w, nc)).T
+            whole = ext[:, i_res + 1 : i_res + 1 + len(res) * w].reshape(2 * nc, len(res), w)
+            starts[:, 1:] = exact_sums(whole.transpose(1, 2, 0)).T
         # Each stretch between re-summations: start, +y, −p, +y, −p, … added in update's order,
-        # written into the terms straight from ext and ext2 (no joined copies of +y and −p).
+        # written into the terms straight from ext (no joined copies of +y and −p).
         sums = np.empty((2 * nc, n))
         cuts = [0, *(i + 1 for i in res if i + 1 < n), n]
-        for r, (a, b) in enumerate(itertools.pairwise(cuts)):
+        stretches = list(enumerate(itertools.pairwise(cuts)))
+        m = len(cuts) - 3  # the stretches of W samples: all but the first and the last
+        if 2 * nc * m >= SIDE_BY_SIDE_SUMS:
+            # Those side by side, a step per row: one call adds a step to all of them, where cumsum
+            # adds along each one element at a time (y − p is y + (−p), bit for bit).
+            a, b = cuts[1], cuts[-2]
+            add = ext[:, w + a : w + b].reshape(2 * nc, m, w).transpose(2, 0, 1).copy()
+            sub = ext[:, a:b].reshape(2 * nc, m, w).transpose(2, 0, 1).copy()
+            acc = starts[:, 1 : m + 1].copy()
+            for k in range(w):
+                acc += add[k]
+                acc -= sub[k]
+                add[k] = acc
+            sums[:, a:b] = add.transpose(1, 2, 0).reshape(2 * nc, b - a)
+            stretches = [stretches[0], stretches[-1]]
+        for r, (a, b) in stretches:
             z = np.empty((2 * nc, 2 * (b - a) + 1))
             z[:, 0] = starts[:, r]
-            z[:nc, 1::2] = ext[w + a : w + b].T
-            z[nc:, 1::2] = ext2[w + a : w + b].T
-            np.negative(ext[a:b].T, out=z[:nc, 2::2])
-            np.negative(ext2[a:b].T, out=z[nc:, 2::2])
+            z[:, 1::2] = ext[:, w + a : w + b]
+            np.negative(ext[:, a:b], out=z[:, 2::2])
             np.cumsum(z, axis=1, out=z)
             sums[:, a:b] = z[:, 2::2]
         quiet = np.ones(n, dtype=bool)

@@ -348,9 +348,15 @@ def test_gaps_split_segments_and_windows_never_span_them():
     np.testing.assert_array_equal(static, det.static)
 
 
-def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
+@pytest.mark.parametrize(
+    ("rest_s", "max_batch"),
+    # Batches of up to 300 samples (6 windows), and up to 1,600: 12 or more windows of 50 samples
+    # between re-summations, whose running sums go side by side (SIDE_BY_SIDE_SUMS).
+    [(3.0, 300), (12.0, 1600)],
+)
+def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit(rest_s, max_batch):
     rng = np.random.default_rng(5)
-    s = build_scene(tumble(4, rest_s=3.0, rng=rng), rng=rng).session
+    s = build_scene(tumble(4, rest_s=rest_s, rng=rng), rng=rng).session
     t, accel, gyro = s.t_s, s.accel_mps2, s.gyro_rps
     rows = np.column_stack([t, accel, gyro]).tolist()  # update takes plain floats
     config = StaticDetectorConfig(gyro_rate_rps=0.05)
@@ -362,7 +368,7 @@ def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
         ref.update(*rows[i])
         i += 1
     closed = 0
-    for size in rng.integers(1, 300, size=200).tolist():
+    for size in rng.integers(1, max_batch, size=200).tolist():
         sl = slice(i, min(t.size, i + size))
         assert det.clean_batch(t[sl], accel[sl], gyro[sl])
         static, closes = det.update_batch(t[sl], accel[sl], gyro[sl])
