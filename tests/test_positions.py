@@ -15,6 +15,7 @@ from estimators.positions import (
     PositionAccumulator,
     PositionConfig,
     RejectReason,
+    _seq_sum_rows,
     build_positions,
 )
 from estimators.session import ImuSession
@@ -422,6 +423,20 @@ def test_update_batch_composes_the_rotation_only_where_the_specific_force_cannot
         assert len(got) == len(turns) + 1
         assert bool(composed) == about_vertical
         composed.clear()
+
+
+def test_seq_sum_rows_adds_the_rows_in_turn_in_any_memory_order():
+    # numpy sums pairwise along the fast axis: rows in Fortran order (a fancy index of columns gives
+    # them) or one column would be summed pairwise, not as the running += of the per-sample path.
+    rng = np.random.default_rng(72)
+    for k in (1, 2, 21):
+        rows = rng.normal(0.0, 1.0, (3000, k)) * rng.choice([1e-6, 1.0, 1e6], (3000, 1))
+        start = rng.normal(0.0, 1.0, k)
+        expected = start.tolist()
+        for row in rows.tolist():
+            expected = [a + b for a, b in zip(expected, row, strict=True)]
+        for order in ("C", "F"):
+            assert _seq_sum_rows(start, np.asarray(rows, order=order)).tolist() == expected
 
 
 def test_update_batch_checkpoints_mid_stream_and_rejects_bad_shapes():
