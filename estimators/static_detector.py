@@ -359,9 +359,9 @@ class StaticInterval:
 
 SIDE_BY_SIDE_SUMS = 128
 """Running sums a batch of :meth:`StreamingStaticDetector.update_batch` must hold (channels and their
-squares, times the stretches of a window between re-summations) before they are added side by side,
-a step per call: below, cumsum along each stretch is quicker (12 sums of 500 steps: 0.35 ms both
-ways at 8 stretches, at 32 cumsum 1.5 ms and side by side 0.6 ms)."""
+squares, times the stretches of a window between re-summations; :func:`exact_sums`: its columns)
+before they are added side by side, a step per call: below, cumsum along each is quicker (12 sums
+of 500 steps: 0.35 ms both ways at 8 stretches, at 32 cumsum 1.5 ms and side by side 0.6 ms)."""
 
 
 def exact_sums(x: FloatArray) -> FloatArray:
@@ -378,22 +378,29 @@ def exact_sums(x: FloatArray) -> FloatArray:
     ``fsum``'s own, and every column where a running sum of ``x`` passes 2¹⁰²¹ (fsum's own
     partials may overflow there: its OverflowError, not a finite sum).
     """
-    m = x.shape[-2]
-    # Each column's window along contiguous memory: the sums down it take a tenth of the time
-    # they take across the channels' stride, and the value does not depend on their order.
-    xt = np.ascontiguousarray(np.swapaxes(x, -1, -2))
+    r, m, k = x.shape
+    # The windows' columns side by side, a sample per row: the sums down them add whole rows (the
+    # value does not depend on their order), and where there are SIDE_BY_SIDE_SUMS columns or more
+    # the running sums take a step per call for all of them (cumsum adds one element at a time).
+    xs = np.ascontiguousarray(np.moveaxis(x, 1, 0)).reshape(m, r * k)
     with np.errstate(invalid="ignore", over="ignore"):  # what overflows is fsum's to sum
-        s = np.cumsum(xt, axis=-1)
-        prev, cur = s[..., :-1], s[..., 1:]
+        if r * k >= SIDE_BY_SIDE_SUMS:
+            s = np.empty_like(xs)
+            s[0] = xs[0]
+            for i in range(1, m):
+                np.add(s[i - 1], xs[i], out=s[i])
+        else:
+            s = np.cumsum(xs, axis=0)
+        prev, cur = s[:-1], s[1:]
         part = cur - prev
         # err = (prev − (cur − part)) + (x − part), in two buffers, not five temporaries.
         err = np.subtract(cur, part)
         np.subtract(prev, err, out=err)
-        np.subtract(xt[..., 1:], part, out=part)
+        np.subtract(xs[1:], part, out=part)
         err += part
-        err_sum = err.sum(axis=-1)
-        bound = np.abs(err, out=err).sum(axis=-1) * (2.0 * m * 2.0**-53) + m * 2.0**-1074
-        last = s[..., -1]
+        err_sum = err.sum(axis=0)
+        bound = np.abs(err, out=err).sum(axis=0) * (2.0 * m * 2.0**-53) + m * 2.0**-1074
+        last = s[-1]
         total: FloatArray = last + err_sum
         part = total - last
         rest = (last - (total - part)) + (err_sum - part)
@@ -403,8 +410,9 @@ def exact_sums(x: FloatArray) -> FloatArray:
         # fsum raises where its partial sums overflow, even when the sum itself is finite; one
         # test for all the windows (an abs and a max per column cost a fifth of the whole).
         sure &= max(s.max(initial=0.0), -s.min(initial=0.0)) < 2.0**1021
-    for r, k in zip(*np.nonzero(~sure), strict=True):
-        total[r, k] = math.fsum(x[r, :, k].tolist())
+    total, sure = total.reshape(r, k), sure.reshape(r, k)
+    for i, j in zip(*np.nonzero(~sure), strict=True):
+        total[i, j] = math.fsum(x[i, :, j].tolist())
     return total
 
 
