@@ -7,7 +7,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy import stats
-from synthetic_static import G_MPS2, Bump, Gap, Rest, Rotate, build_scene, tumble
+from synthetic_static import (
+    G_MPS2,
+    Bump,
+    Gap,
+    Rest,
+    Rotate,
+    build_scene,
+    count_compositions,
+    tumble,
+)
 
 from estimators.positions import (
     CovarianceMethod,
@@ -22,7 +31,6 @@ from estimators.session import ImuSession
 from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
 from estimators.static_detector import (
     FinalDecisions,
-    RotationIntegrator,
     StaticDetectorConfig,
     detect_static,
 )
@@ -403,15 +411,7 @@ def test_update_batch_composes_the_rotation_only_where_the_specific_force_cannot
     # Turns about horizontal axes move the specific force by 90°: a new position whatever the gyros
     # say, so the rotation (a Python step per sample) is never composed. A turn about the vertical
     # leaves the specific force where it was: only the integrated gyros tell the positions apart.
-    composed = []
-    compose = RotationIntegrator._compose
-
-    def counting(self, dws, dxs, dys, dzs):
-        dxs = list(dxs)
-        composed.append(len(dxs))
-        compose(self, dws, dxs, dys, dzs)
-
-    monkeypatch.setattr(RotationIntegrator, "_compose", counting)
+    composed = count_compositions(monkeypatch)
     rng = np.random.default_rng(71)
     for turns, about_vertical in (([(1, 0, 0), (0, 0, 1)], False), ([None], True)):
         segments = [Rest(6.0)]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from real_data import XSENS, needs
 from scipy.spatial.transform import Rotation
-from synthetic_static import Bump, Gap, Rest, Rotate, build_scene, tumble
+from synthetic_static import Bump, Gap, Rest, Rotate, build_scene, count_compositions, tumble
 
 from estimators.session import ImuSession
 from estimators.sim import Grade, multi_position_spec, simulate
@@ -286,15 +286,7 @@ def test_rotation_integrator_composes_add_many_when_read_and_never_what_a_reset_
     rng = np.random.default_rng(62)
     rates = rng.normal(0.0, 0.5, (3000, 3))
     dts = np.full(3000, 1e-3)
-    composed = []
-    compose = RotationIntegrator._compose
-
-    def counting(self, dws, dxs, dys, dzs):
-        dxs = list(dxs)
-        composed.append(len(dxs))
-        compose(self, dws, dxs, dys, dzs)
-
-    monkeypatch.setattr(RotationIntegrator, "_compose", counting)
+    composed = count_compositions(monkeypatch)
     rot, ref = RotationIntegrator((0.01, 0.0, 0.0)), RotationIntegrator((0.01, 0.0, 0.0))
     rot.add_many(rates[:300], dts[:300])
     rot.add_many(rates[300:600], dts[300:600])
