@@ -55,9 +55,10 @@ since until then a following interval may still be merged into it.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -477,9 +478,15 @@ def _offer(
     det_config: StaticDetectorConfig,
     pending: _Group | None,
     group: _Group,
-    rotation_deg: float | None,
+    rotation: Callable[[], float | None],
 ) -> tuple[_Group, _Group | None, PositionRejection | None]:
-    """Merge ``group`` into ``pending`` or start a new position: ``(new pending, emitted or None, rejection or None)``."""
+    """Merge ``group`` into ``pending`` or start a new position: ``(new pending, emitted or None, rejection or None)``.
+
+    ``rotation()`` gives the rotation between them (deg; None where unknown), asked only where the
+    specific force leaves the answer open (:func:`is_new_orientation`: a turn of the specific force
+    by ``orientation_change_deg`` is a new position whatever the gyros say): integrating the gyros
+    is a Python step per sample (:class:`RotationIntegrator`).
+    """
     if pending is None:
         return group, None, None
     direction = (
@@ -487,6 +494,8 @@ def _offer(
         if group.accel is None
         else direction_change_deg(_present(pending.accel).mean, group.accel.mean)
     )
+    turned = direction is not None and not direction < det_config.orientation_change_deg
+    rotation_deg = None if turned else rotation()
     if is_new_orientation(det_config, direction_deg=direction, rotation_deg=rotation_deg):
         return group, pending, None
     parts = [
@@ -568,9 +577,10 @@ def build_positions(
             0.0 if finite_t is None else float(finite_t.sum()),
             0 if finite_t is None else int(finite_t.size),
         )
-        rotation = None
+        rotation: Callable[[], float | None] = _unknown_rotation
         if gyro is not None and pending is not None:
-            rotation = _rotation_between(
+            rotation = functools.partial(
+                _rotation_between,
                 t,
                 gyro,
                 acc,
@@ -589,6 +599,11 @@ def build_positions(
         positions.append(pending.position(config, batch))
     rejections.sort(key=lambda r: r.start)
     return PositionsResult(tuple(positions), tuple(rejections))
+
+
+def _unknown_rotation() -> float | None:
+    """No gyros, or no position before: no rotation to compare."""
+    return None
 
 
 def _rotation_between(
@@ -651,8 +666,15 @@ def _seq_sum_rows(start: FloatArray, rows: FloatArray) -> FloatArray:
     """(K,) ``start + rows[0] + rows[1] + …`` per column, added row by row (:func:`_seq_sum` per column)."""
     if rows.shape[0] == 0:
         return start
-    last_sums: FloatArray = np.cumsum(np.vstack([start, rows]), axis=0)[-1]
-    return last_sums
+    stacked = np.empty((rows.shape[0] + 1, rows.shape[1]))  # C order, whatever rows' order
+    stacked[0], stacked[1:] = start, rows
+    if stacked.shape[1] == 1:  # one column is summed pairwise: cumsum adds in turn
+        last: FloatArray = np.cumsum(stacked, axis=0)[-1]
+        return last
+    # Down the rows of a C-ordered array of two columns or more, a sum adds the rows in turn (numpy
+    # sums pairwise only along the fast axis): the cumsum's last row, in a fifth of its time.
+    sums: FloatArray = stacked.sum(axis=0)
+    return sums
 
 
 @dataclass(frozen=True)
@@ -980,9 +1002,9 @@ class PositionAccumulator:
         s_arr[chans] = _seq_sum_rows(s_arr[chans], y)
         q_arr[pairs[0]] = _seq_sum_rows(q_arr[pairs[0]], y[:, pairs[1]] * y[:, pairs[2]])
         first = _seq_sum_rows(part[chans], y[:head])
-        full = np.cumsum(y[head : head + n_full * bt].reshape(n_full, bt, len(chans)), axis=1)[
-            :, -1, :
-        ]
+        # Each batch's rows added in turn (_seq_sum_rows: the channels are the fast axis).
+        whole = np.ascontiguousarray(y[head : head + n_full * bt])
+        full = whole.reshape(n_full, bt, len(chans)).sum(axis=1)
         if done_first:
             means = np.vstack([first, full]) / bt
             part[chans] = _seq_sum_rows(np.zeros(len(chans)), y[m - tail :])
@@ -1144,12 +1166,11 @@ class PositionAccumulator:
             sm.temp_sum,
             sm.temp_n,
         )
-        rotation = (
-            self._rot.mark_angle_deg if (self._pending is not None and self._rot_active) else None
+        known = self._pending is not None and self._rot_active and det.has_gyro
+        rot = self._rot
+        self._pending, emitted, rej = _offer(
+            det.config, self._pending, group, lambda: rot.mark_angle_deg if known else None
         )
-        if not det.has_gyro:
-            rotation = None
-        self._pending, emitted, rej = _offer(det.config, self._pending, group, rotation)
         if rej is not None:
             self.rejections.append(rej)
         if det.has_gyro:

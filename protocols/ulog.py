@@ -302,15 +302,17 @@ class UlogImuStream:
                     data = at[kinds == 0x44]
                     msg_ids = d[data + 3].astype(np.int64) | (d[data + 4].astype(np.int64) << 8)
                     wanted = np.zeros(data.size, dtype=bool)
-                    for msg_id in np.unique(msg_ids).tolist():
-                        mine = msg_ids == msg_id
+                    # The ids (uint16) counted by bincount: a tenth of np.unique's time.
+                    counts = np.bincount(msg_ids)
+                    for msg_id in np.flatnonzero(counts).tolist():
                         sub = subs.get(msg_id)
                         if sub is None:
-                            self.contents.unsubscribed_data += int(mine.sum())
+                            self.contents.unsubscribed_data += int(counts[msg_id])
                             continue
                         key = f"{sub[0]}.{sub[1]}"
-                        topics[key] = topics.get(key, 0) + int(mine.sum())
-                        wanted |= mine if sub[2] is not None else False
+                        topics[key] = topics.get(key, 0) + int(counts[msg_id])
+                        if sub[2] is not None:
+                            wanted |= msg_ids == msg_id
                     kept = np.flatnonzero(wanted)
                     while kept.size:
                         now, kept = (
@@ -318,8 +320,9 @@ class UlogImuStream:
                             kept[FLUSH_MESSAGES - n_pending :],
                         )
                         n_pending += now.size
-                        for msg_id in np.unique(msg_ids[now]).tolist():
-                            rows = now[msg_ids[now] == msg_id]
+                        ids_now = msg_ids[now]
+                        for msg_id in np.flatnonzero(np.bincount(ids_now)).tolist():
+                            rows = now[ids_now == msg_id]
                             self._pend(
                                 pending, subs, msg_id, d, data[rows], sizes[kinds == 0x44][rows]
                             )

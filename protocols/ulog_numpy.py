@@ -35,9 +35,11 @@ def message_run(
     n = end - pos
     head = d[pos : end + 2]
     kind = head[2 : n + 2]
-    # The size's high byte first: max_size < 2**16 leaves few positions to look at closely.
-    maybe = (head[1 : n + 1] <= max_size >> 8) & (kind >= ord("A")) & (kind <= ord("Z"))
-    maybe &= kind != SUBSCRIBE
+    # A type letter B … Z (A, a subscription, ends a run): one subtraction that wraps the bytes
+    # below B past Z (uint8) and one comparison, then the size's high byte (max_size < 2**16
+    # leaves few positions to look at closely): four passes over the bytes, not seven.
+    maybe = kind - (SUBSCRIBE + 1) <= ord("Z") - (SUBSCRIBE + 1)
+    maybe &= head[1 : n + 1] <= max_size >> 8
     at = np.flatnonzero(maybe)
     size = head[at].astype(np.int64) | (head[at + 1].astype(np.int64) << 8)
     good = (size > 0) & (size <= max_size) & (pos + at + 3 + size <= d.size)
@@ -46,9 +48,14 @@ def message_run(
     if not at.size or at[0] != 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.uint8), np.zeros(0, dtype=np.int64)
     nxt = at + 3 + size
-    k = np.searchsorted(at, nxt)
+    # Looked up only where a message ends on a byte the scan kept (most candidates inside payloads
+    # end elsewhere): the binary search for half the candidates.
+    look = np.flatnonzero(maybe[np.minimum(nxt, n - 1)] & (nxt < n))
+    k = np.searchsorted(at, nxt[look])
     found = k < at.size
-    found[found] = at[k[found]] == nxt[found]
-    path = chain(0, np.where(found, k, -1))
+    found[found] = at[k[found]] == nxt[look[found]]
+    succ = np.full(at.size, -1, dtype=np.int64)
+    succ[look[found]] = k[found]
+    path = chain(0, succ)
     starts = pos + at[path]
     return starts, d[starts + 2], size[path]

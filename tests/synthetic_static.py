@@ -143,3 +143,20 @@ def tumble(n_rest: int, *, rest_s: float, turn_s: float = 2.0, rng: np.random.Ge
             Rest(rest_s),
         ]
     return segs
+
+
+def count_compositions(monkeypatch) -> list[int]:
+    """The samples of each composition a :class:`RotationIntegrator` runs from now on (its Python
+    step per sample), appended as they run."""
+    from estimators.static_detector import RotationIntegrator
+
+    composed: list[int] = []
+    compose = RotationIntegrator._compose
+
+    def counting(self, dws, dxs, dys, dzs):
+        dxs = list(dxs)
+        composed.append(len(dxs))
+        compose(self, dws, dxs, dys, dzs)
+
+    monkeypatch.setattr(RotationIntegrator, "_compose", counting)
+    return composed

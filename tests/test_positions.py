@@ -7,7 +7,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy import stats
-from synthetic_static import G_MPS2, Bump, Gap, Rest, Rotate, build_scene, tumble
+from synthetic_static import (
+    G_MPS2,
+    Bump,
+    Gap,
+    Rest,
+    Rotate,
+    build_scene,
+    count_compositions,
+    tumble,
+)
 
 from estimators.positions import (
     CovarianceMethod,
@@ -15,11 +24,16 @@ from estimators.positions import (
     PositionAccumulator,
     PositionConfig,
     RejectReason,
+    _seq_sum_rows,
     build_positions,
 )
 from estimators.session import ImuSession
 from estimators.sim import Grade, RampTemperature, multi_position_spec, simulate
-from estimators.static_detector import FinalDecisions, StaticDetectorConfig, detect_static
+from estimators.static_detector import (
+    FinalDecisions,
+    StaticDetectorConfig,
+    detect_static,
+)
 
 
 def _stream(session: ImuSession, *, rate_hz: float, state_at: int | None = None, **options):
@@ -389,6 +403,40 @@ def test_update_batch_equals_update_bit_for_bit_for_any_cut(case):
         assert acc.drain_rejections() == ref_rejections
     if case == "messy":
         assert ref.detector.rejections.counts == {"non_finite": 12, "non_monotonic_time": 8}
+
+
+def test_update_batch_composes_the_rotation_only_where_the_specific_force_cannot_tell_a_turn(
+    monkeypatch,
+):
+    # Turns about horizontal axes move the specific force by 90°: a new position whatever the gyros
+    # say, so the rotation (a Python step per sample) is never composed. A turn about the vertical
+    # leaves the specific force where it was: only the integrated gyros tell the positions apart.
+    composed = count_compositions(monkeypatch)
+    rng = np.random.default_rng(71)
+    for turns, about_vertical in (([(1, 0, 0), (0, 0, 1)], False), ([None], True)):
+        segments = [Rest(6.0)]
+        for axis in turns:
+            segments += [Rotate(2.0, axis, 90.0), Rest(6.0)]
+        s = build_scene(segments, rng=rng).session
+        acc = PositionAccumulator(rate_hz=100.0, has_accel=True, has_gyro=True)
+        got = acc.update_batch(s.t_s, s.accel_mps2, s.gyro_rps)[0] + acc.flush()
+        assert len(got) == len(turns) + 1
+        assert bool(composed) == about_vertical
+        composed.clear()
+
+
+def test_seq_sum_rows_adds_the_rows_in_turn_in_any_memory_order():
+    # numpy sums pairwise along the fast axis: rows in Fortran order (a fancy index of columns gives
+    # them) or one column would be summed pairwise, not as the running += of the per-sample path.
+    rng = np.random.default_rng(72)
+    for k in (1, 2, 21):
+        rows = rng.normal(0.0, 1.0, (3000, k)) * rng.choice([1e-6, 1.0, 1e6], (3000, 1))
+        start = rng.normal(0.0, 1.0, k)
+        expected = start.tolist()
+        for row in rows.tolist():
+            expected = [a + b for a, b in zip(expected, row, strict=True)]
+        for order in ("C", "F"):
+            assert _seq_sum_rows(start, np.asarray(rows, order=order)).tolist() == expected
 
 
 def test_update_batch_checkpoints_mid_stream_and_rejects_bad_shapes():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from real_data import XSENS, needs
 from scipy.spatial.transform import Rotation
-from synthetic_static import Bump, Gap, Rest, Rotate, build_scene, tumble
+from synthetic_static import Bump, Gap, Rest, Rotate, build_scene, count_compositions, tumble
 
 from estimators.session import ImuSession
 from estimators.sim import Grade, multi_position_spec, simulate
@@ -280,6 +280,42 @@ def test_rotation_integrator_add_many_is_add_sample_by_sample_to_the_bit():
     assert many.q == q
 
 
+def test_rotation_integrator_composes_add_many_when_read_and_never_what_a_reset_drops(monkeypatch):
+    # The positions integrate a static run's first samples in case it is rejected; an accepted run
+    # resets the rotation: those samples are then never composed (a Python step per sample).
+    rng = np.random.default_rng(62)
+    rates = rng.normal(0.0, 0.5, (3000, 3))
+    dts = np.full(3000, 1e-3)
+    composed = count_compositions(monkeypatch)
+    rot, ref = RotationIntegrator((0.01, 0.0, 0.0)), RotationIntegrator((0.01, 0.0, 0.0))
+    rot.add_many(rates[:300], dts[:300])
+    rot.add_many(rates[300:600], dts[300:600])
+    rot.reset()
+    assert composed == []
+    monkeypatch.setattr(RotationIntegrator, "DEFERRED_SAMPLES", 1000)
+    # The mark waits too, and is composed alone when read; reads past the bound (composed at 1,000
+    # waiting) and after a sample by sample add: the same rotations to the bit as one call each.
+    rot.reset((0.01, 0.0, 0.0))
+    rot.add_many(rates[:700], dts[:700])
+    rot.set_mark()
+    rot.add_many(rates[700:900], dts[700:900])
+    assert composed == []
+    mark = rot.mark
+    assert composed == [700]
+    rot.add_many(rates[900:1500], dts[900:1500])
+    rot.add_many(rates[1500:2500], dts[1500:2500])
+    assert composed == [700, 1800]
+    rot.add(*rates[2500].tolist(), 1e-3)
+    rot.add_many(rates[2501:], dts[2501:])
+    assert composed == [700, 1800, 1]
+    q = rot.q
+    assert composed == [700, 1800, 1, 499]
+    ref.add_many(rates[:700], dts[:700])
+    assert mark == ref.q
+    ref.add_many(rates[700:], dts[700:])
+    assert q == ref.q
+
+
 def test_new_orientation_needs_a_change_in_any_available_measure():
     cfg = StaticDetectorConfig(orientation_change_deg=1.0)
     assert not is_new_orientation(cfg, direction_deg=0.5, rotation_deg=0.5)
@@ -304,9 +340,15 @@ def test_gaps_split_segments_and_windows_never_span_them():
     np.testing.assert_array_equal(static, det.static)
 
 
-def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
+@pytest.mark.parametrize(
+    ("rest_s", "max_batch"),
+    # Batches of up to 300 samples (6 windows), and up to 1,600: 12 or more windows of 50 samples
+    # between re-summations, whose running sums go side by side (SIDE_BY_SIDE_SUMS).
+    [(3.0, 300), (12.0, 1600)],
+)
+def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit(rest_s, max_batch):
     rng = np.random.default_rng(5)
-    s = build_scene(tumble(4, rest_s=3.0, rng=rng), rng=rng).session
+    s = build_scene(tumble(4, rest_s=rest_s, rng=rng), rng=rng).session
     t, accel, gyro = s.t_s, s.accel_mps2, s.gyro_rps
     rows = np.column_stack([t, accel, gyro]).tolist()  # update takes plain floats
     config = StaticDetectorConfig(gyro_rate_rps=0.05)
@@ -318,7 +360,7 @@ def test_update_batch_gives_update_s_decisions_and_state_bit_for_bit():
         ref.update(*rows[i])
         i += 1
     closed = 0
-    for size in rng.integers(1, 300, size=200).tolist():
+    for size in rng.integers(1, max_batch, size=200).tolist():
         sl = slice(i, min(t.size, i + size))
         assert det.clean_batch(t[sl], accel[sl], gyro[sl])
         static, closes = det.update_batch(t[sl], accel[sl], gyro[sl])
@@ -407,8 +449,10 @@ def test_exact_sums_are_math_fsum_bit_for_bit():
         quarter,
         zeros,
         tiny,
-        huge,
     ]
+    # All of them at once (252 columns: side by side, SIDE_BY_SIDE_SUMS), and the partials near
+    # overflow on their own (they send every column of their call to fsum).
+    windows += [np.concatenate(windows), huge]
     for x in windows:
         got = exact_sums(x)
         want = [[math.fsum(x[r, :, k].tolist()) for k in range(6)] for r in range(x.shape[0])]

@@ -56,12 +56,21 @@ what the log holds); 3 not enough to test — a check that applies did not run, 
 the pipeline failed on frames (a passport it cannot use, say: each kind of
 failure is named once with the frames it cost, and those samples were not tested).
 A fault outranks 3. A summary goes to stderr.
+
+Memory: the pipeline's batches of up to :data:`REPLAY_GROUP_SAMPLES` make temporaries of a few MB
+each. glibc's malloc maps each one larger than its threshold (128 kB at the start) from the
+kernel and unmaps it when freed, so every batch faults its pages in afresh; the threshold rises
+by itself only when the process happens to free a larger mapped block first. The command sets it
+(:func:`keep_batch_temporaries_on_heap`): with glibc's start value held, the hour of ULog took 4.4
+million page faults and about 8 s more of CPU (7.5 s in the kernel) than with it risen (42,000
+faults), or set (31,000). Other C libraries are left as they are.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -105,6 +114,14 @@ its events and the report do not depend on how the samples are batched
 (``tests/test_replay_framing.py``). Only frames of IMUs each alone on its vehicle so far are taken
 together (:func:`_take`); the reader joins up to as many (:func:`replay_events`)."""
 REPLAY_MAX_IMUS = 16
+HEAP_MMAP_THRESHOLD_BYTES = 16 << 20
+"""Blocks glibc's malloc takes from its heap, not from fresh kernel mappings, in a replay (module
+docstring: a batch's temporaries are a few MB; freed, the heap keeps them for the next batch)."""
+HEAP_TRIM_THRESHOLD_BYTES = 32 << 20
+"""Free memory at the top of the heap glibc keeps rather than gives back (its rule: twice the
+mapping threshold, as when the threshold rises by itself)."""
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+"""mallopt's parameter numbers (glibc's ``malloc.h``)."""
 COVERAGE_TYPE = "ins.health.coverage"
 COVERAGE_VERSION = 2
 """Schema of the ``--json`` summary line, the last of stdout even when no event came: ``type``
@@ -402,11 +419,30 @@ class ReplayResult:
         return _coverage_map(self)
 
 
+def keep_batch_temporaries_on_heap() -> bool:
+    """Where the C library is glibc, set its malloc's mapping and trim thresholds for a replay's
+    batches (:data:`HEAP_MMAP_THRESHOLD_BYTES`, module docstring); True when set. Other C libraries
+    (musl, macOS, Windows) are left as they are: this is glibc's policy and glibc's call."""
+    try:
+        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
+            return False
+        import ctypes
+
+        mallopt = ctypes.CDLL(None).mallopt
+    except (ValueError, OSError, AttributeError):  # no such confstr name, library or symbol
+        return False
+    return bool(
+        mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_THRESHOLD_BYTES)
+        and mallopt(_M_TRIM_THRESHOLD, HEAP_TRIM_THRESHOLD_BYTES)
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     import json
 
     from protocols.events import event_to_json
 
+    keep_batch_temporaries_on_heap()
     starts: dict[int, float] = {}
     printer = (
         (lambda e: print(event_to_json(e), flush=True))
