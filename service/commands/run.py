@@ -116,10 +116,9 @@ callbacks, the MAVLink reader, event delivery) wait for the interpreter lock whi
 pipeline; a 1 ms interval bounds that wait, which is most of the fault-to-event latency's tail."""
 
 
-PIPELINE_IMPORTS = ("scipy.special", "scipy.optimize", "filterpy.kalman")
+PIPELINE_IMPORTS = ("scipy.special", "scipy.optimize")
 """Modules a unit's pipeline loads on first use, not with its module (the F0 threshold's λ0 is derived
-with scipy.special and scipy.optimize; the streaming nine-parameter filter is filterpy's, which loads
-scipy.stats)."""
+with scipy.special and scipy.optimize)."""
 
 
 def freeze_imports() -> None:
