@@ -5,7 +5,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
+import platform
 import struct
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -417,3 +421,41 @@ def test_a_sample_too_large_for_the_reports_figures_leaves_the_verdict_said_and_
     assert "imu0.samples.rejected.implausible_value 1" in err and "verdict: " in err
     assert "report not written: IMU0's figures: first_order_filter: an output is not finite" in err
     assert not (tmp_path / "r" / "report.json").exists()
+
+
+BATCHES_FAULTS = """
+import json, resource, sys
+import numpy as np
+if sys.argv[1] == "set":
+    from service.commands.replay import keep_freed_memory
+    keep_freed_memory()
+def batch():
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    arrays = [np.ones(1 << 17) for _ in range(6)]  # a batch's temporaries: six of 1 MiB
+    del arrays
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+print(json.dumps([batch() for _ in range(4)]))
+"""
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc thresholds")
+def test_replay_s_process_keeps_the_memory_its_batches_free():
+    # glibc maps each temporary above its mmap threshold afresh and returns a heap top beyond its
+    # trim threshold: every batch faulted its temporaries in again, page by page (system time).
+    # With replay's thresholds the first batch's pages serve the next ones. In a fresh interpreter,
+    # so that nothing before has raised glibc's own.
+
+    def faults(mode: str) -> list[int]:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+        run = subprocess.run(
+            [sys.executable, "-c", BATCHES_FAULTS, mode],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return json.loads(run.stdout)
+
+    pages = (6 << 20) // 4096
+    assert min(faults("default")[1:]) >= pages // 2  # what the test tells apart: glibc's default
+    assert faults("set")[1:] == [0, 0, 0]
