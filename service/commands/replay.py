@@ -423,7 +423,7 @@ def keep_freed_memory() -> None:
 
     try:
         mallopt = ctypes.CDLL(None).mallopt  # the C library the interpreter runs on
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # no C library by that call, or no mallopt in it
         return
     mallopt(-1, 2 * MALLOC_MMAP_THRESHOLD_BYTES)  # M_TRIM_THRESHOLD
     mallopt(-3, MALLOC_MMAP_THRESHOLD_BYTES)  # M_MMAP_THRESHOLD
