@@ -75,7 +75,7 @@ NO_OWN_SESSION_CHECK = """
 import sys
 import service.commands.calibrate as calibrate
 calibrate.own_session_check = lambda *args: None
-from service.cli import main
+from ins_health.__main__ import main
 sys.exit(main())
 """
 
@@ -157,7 +157,12 @@ def main(n: int = 7, bytecode_cache: bool = True) -> int:
         path = Path(tmp) / "six.csv"
         write_csv_session(path, res.session, metadata={"gravity_mps2": repr(g)})
         sections = _sections(res)
-        cli = [sys.executable, "-c", "import sys; from service.cli import main; sys.exit(main())"]
+        # What the console script runs (its own process: ins_health.__main__.main).
+        cli = [
+            sys.executable,
+            "-c",
+            "import sys; from ins_health.__main__ import main; sys.exit(main())",
+        ]
         unchecked = [sys.executable, "-c", NO_OWN_SESSION_CHECK]
         commands = {
             "ins-health calibrate (default)": [*cli, "calibrate", str(path), "--out", str(Path(tmp) / "b.json")],

@@ -84,6 +84,7 @@ from estimators.conventions import (
 )
 from estimators.ninepar import SOURCE_NONE, SOURCE_SCALAR, Estimate, Method, physical
 from estimators.positions import Position
+from estimators.quantiles import median
 from estimators.validity_limits import ValidityLimits
 
 PASSPORT_TYPE = "ins.health.passport"
@@ -760,7 +761,7 @@ def per_sample_noise_std(
         )
     if not variances:
         raise PassportError("no positions to estimate the noise from")
-    return np.sqrt(np.median(np.array(variances), axis=0)) / reference
+    return np.sqrt(median(np.array(variances), axis=0)) / reference
 
 
 def passport_from_estimates(

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimators._typing import BoolArray, FloatArray
+from estimators.quantiles import median
 
 ACCEL_IMPLAUSIBLE_MPS2 = 1e6
 """Beyond about 100,000 g no accelerometer measures: a larger value is a corrupt record, not a sample."""
@@ -86,7 +87,7 @@ class ImuSession:
         """Median sample rate, Hz."""
         if self.n_samples < 2:
             raise SessionError("a session needs at least two samples to have a rate")
-        return float(1.0 / np.median(np.diff(self.t_s)))
+        return float(1.0 / median(np.diff(self.t_s)))
 
     def select(self, mask_or_slice: BoolArray | slice) -> ImuSession:
         """A sub-session (boolean mask or slice over samples)."""

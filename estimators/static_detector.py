@@ -138,6 +138,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimators._typing import BoolArray, FloatArray, IntArray
+from estimators.quantiles import median, quantile
 from estimators.session import ImuSession, Rejections, SessionError, validate_session
 
 SESSION_NOISE_FACTOR = 3.0
@@ -274,8 +275,8 @@ class StaticDetectorConfig:
             spread, means = _block_spreads(np.asarray(x, dtype=float), w)
             if spread.size == 0:
                 continue
-            low = spread <= LOW_MODE_FACTOR * np.quantile(spread, LOW_QUANTILE)
-            typical = float(np.median(spread[low]))
+            low = spread <= LOW_MODE_FACTOR * quantile(spread, LOW_QUANTILE)
+            typical = float(median(spread[low]))
             windows[is_gyro] = (spread, means, typical)
             if is_gyro:
                 out = replace(out, gyro_std_rps=max(factor * typical, SPREAD_FLOOR_RPS))
@@ -284,7 +285,7 @@ class StaticDetectorConfig:
             else:
                 out = replace(out, accel_std_mps2=max(factor * typical, SPREAD_FLOOR_MPS2))
         if quiet_means is not None and quiet_means.size:
-            cx, cy, cz = (float(v) for v in np.median(quiet_means, axis=0))
+            cx, cy, cz = (float(v) for v in median(quiet_means, axis=0))
             out = replace(out, gyro_rate_rps=rate_bound, gyro_rate_centre_rps=(cx, cy, cz))
             if False in windows:
                 out = out._with_tremor(windows[False], windows[True], w, factor)
@@ -321,8 +322,8 @@ class StaticDetectorConfig:
             return self
         return replace(
             self,
-            gyro_std_rps=max(self.gyro_std_rps, factor * float(np.median(g_spread[tremor]))),
-            gyro_rate_rps=max(self.gyro_rate_rps or 0.0, factor * float(np.median(rate[tremor]))),
+            gyro_std_rps=max(self.gyro_std_rps, factor * float(median(g_spread[tremor]))),
+            gyro_rate_rps=max(self.gyro_rate_rps or 0.0, factor * float(median(rate[tremor]))),
         )
 
     def window_samples(self, rate_hz: float) -> int:

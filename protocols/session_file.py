@@ -89,6 +89,7 @@ from pathlib import Path
 import numpy as np
 
 from estimators.conventions import STANDARD_GRAVITY_MPS2
+from estimators.quantiles import median, percentile
 from estimators.session import ImuSession, SessionError
 from estimators.validity_limits import ValidityLimits
 from protocols.atomic_file import atomic_write_bytes
@@ -1194,7 +1195,7 @@ def check_units(
             norm = np.linalg.norm(a, axis=1)
         norm = norm[np.isfinite(norm)]
         if norm.size:
-            raw = float(np.median(norm)) / SI_PER_UNIT[used.accel]
+            raw = float(median(norm)) / SI_PER_UNIT[used.accel]
             if not _plausible("accel", raw, used.accel):
                 looks = next((u for u in AccelUnit if _plausible("accel", raw, u)), None)
                 refusal = _refuse("accel", used.accel, looks, f"median |a| {raw:.4g} {used.accel}")
@@ -1207,7 +1208,7 @@ def check_units(
             rate = np.linalg.norm(w, axis=1)
         rate = rate[np.isfinite(rate)]
         if rate.size:
-            med, p995 = (float(v) for v in np.percentile(rate, [50.0, 99.5]))
+            med, p995 = (float(v) for v in percentile(rate, [50.0, 99.5]))
             if med > GYRO_MEDIAN_LIMIT_RPS or p995 > GYRO_P995_LIMIT_RPS:
                 raise _refuse(
                     "gyro",
@@ -1218,7 +1219,7 @@ def check_units(
     dt = np.diff(session.t_s)
     dt = dt[np.isfinite(dt) & (dt > 0)]
     if dt.size and used.time is not None:
-        raw = float(np.median(dt)) / SI_PER_UNIT[used.time]
+        raw = float(median(dt)) / SI_PER_UNIT[used.time]
         looks_t = min(
             (u for u in TimeUnit if _plausible("time", raw, u)),
             key=lambda u: abs(math.log(raw * SI_PER_UNIT[u] / _TYPICAL_INTERVAL_S)),
