@@ -322,7 +322,7 @@ def test_a_unit_s_first_fault_loads_no_module_the_daemon_did_not_freeze(tmp_path
 
 LOADED_BY_REPLAY = """
 import gc, json, sys
-from service.cli import main
+from ins_health.__main__ import main  # the console script's: the command is its own process
 status = main(["replay", sys.argv[1], "--json", "--report", sys.argv[2]])
 heavy = ("numpy", "scipy.optimize", "scipy.special", "matplotlib.figure", "service.log_report")
 walked = {id(o) for o in gc.get_objects()}  # every generation but the frozen objects

@@ -417,7 +417,7 @@ def keep_freed_memory() -> None:
     A 12 MB temporary of the tolerances' search (:func:`estimators.scalar.tolerance_extremes`) used
     to raise both before the first batch, by chance; set here, they do not depend on what ran
     before (a 20-minute ULog: 33,000 minor faults with that temporary, 60,000 without, 27,000 set).
-    Without glibc's ``mallopt`` nothing changes.
+    Without glibc's ``mallopt`` nothing changes. The command sets them as its own process only.
     """
     import ctypes
 
@@ -439,8 +439,9 @@ def freeze_imports(*, report: bool) -> None:
     during the imports. With the collector off while they run and their objects frozen, no full
     pass runs before the exit's, which walks what the replay made (5 ms), and 70 young ones (10 ms).
     The daemon freezes its imports too (:func:`service.commands.run.freeze_imports`). The command
-    calls it, whose process ends with the replay; :func:`replay_log`, also a library's
-    call, does not freeze its caller's objects.
+    calls it as its own process only (``service.cli.main(own_process=True)``: the console script);
+    called within a process (the tests, a library user) it leaves the collector as it is, as
+    :func:`replay_log` does.
     """
     import gc
     import importlib
@@ -461,8 +462,9 @@ def run(args: argparse.Namespace) -> int:
 
     from protocols.events import event_to_json
 
-    keep_freed_memory()
-    freeze_imports(report=args.report is not None)
+    if args.own_process:
+        keep_freed_memory()
+        freeze_imports(report=args.report is not None)
     starts: dict[int, float] = {}
     printer = (
         (lambda e: print(event_to_json(e), flush=True))
