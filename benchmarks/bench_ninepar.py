@@ -2,8 +2,8 @@
 
 1. Time per re-estimation at 9, 18 and 100 positions: the batch linear
    (paper) and refined (exact ellipsoid) estimators on all positions, and the
-   recursive form per new position (one IEKF update through filterpy plus the
-   estimate with its verdict).
+   recursive form per new position (one IEKF update through
+   ``estimators.kalman_update``, filterpy's numbers, plus the estimate with its verdict).
 2. Statistical efficiency: the Cramér–Rao bound of each parameter
    (``ninepar.cramer_rao_bound``, checked against the full nuisance-parameter
    Fisher matrix in ``tests/test_ninepar.py``) divided by the empirical mean

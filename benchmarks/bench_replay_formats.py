@@ -13,8 +13,8 @@ its peak resident memory (``ru_maxrss`` of that child) is its own:
   or pyulog (``ULog(path, ["sensor_combined"])``, which holds the topic in memory);
 * ``read``: :class:`protocols.logs.LogReader` (frames of 100 samples, as replay);
 * ``replay``: ``ins-health replay LOG --json --report DIR`` (reader, the daemon's
-  pipeline with the nominal passport, the health report), started through
-  :func:`service.cli.main` in the child.
+  pipeline with the nominal passport, the health report), started in the child as the
+  console script starts it (``ins_health.__main__.main``: the command is its own process).
 
 Wall and CPU (user + system) times include each child's start (imports, about
 1–2 s). Every module's bytecode is cached (``PYTHONPYCACHEPREFIX`` in the temporary
@@ -125,7 +125,7 @@ _PEAK = (
 (Linux keeps it across fork and exec), ``VmHWM`` of the new process image does not."""
 
 REPLAY = (
-    "from service.cli import main\n"
+    "from ins_health.__main__ import main  # the console script's: the command is its process\n"
     "status = main(['replay', PATH, '--json', '--report', PATH + '.report'])\n"
     "assert status != 2, status  # a verdict (0, 1 or 3), not an unusable log\n"
     "n = -1\n"

@@ -15,8 +15,8 @@ oracle). The back-substitution subtracts ``0·y[n+1]``: it changes no finite val
 zero output ``−0.0`` followed by a negative one into ``+0.0``; and an overflow would reach back
 through ``0·inf``, so outputs that are not all finite are refused.
 
-Why: importing scipy.signal costs 0.46 s of CPU at every start (0.05 s where filterpy has
-already loaded scipy.stats and scipy.linalg, as replay's pipeline does); scipy.linalg costs
+Why: importing scipy.signal costs 0.46 s of CPU at every start (0.05 s where scipy.stats and
+scipy.linalg are already loaded, as replay's pipeline had them through filterpy); scipy.linalg costs
 0.11 s alone, imported at the first call. The solve takes about twice lfilter's time (9 ns a
 sample and column against 5). Applies to ``|a1| ≤ 1`` (every low-pass ``y = α·x + (1 − α)·y₋₁``).
 Used by the log health figures (:mod:`estimators.log_health`) and the thrust-axis check's

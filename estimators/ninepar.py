@@ -33,9 +33,10 @@ reference g or Ω; :func:`position_arrays` does that from
   estimate moves by less than 1e-4 σ (two passes when the noise is small
   against the reference).
 * :class:`RecursiveNineParam`, the streaming form: filterpy's Kalman filter
-  with a static 9-state, one scalar pseudo-measurement per new position (the
-  ellipsoid equation linearized at the current estimate, iterated: IEKF),
-  Joseph-form covariance update, O(1) per position. It buffers a warm-up
+  update (its numbers, :mod:`estimators.kalman_update`) with a static 9-state,
+  one scalar pseudo-measurement per new position (the ellipsoid equation
+  linearized at the current estimate, iterated: IEKF), Joseph-form covariance
+  update, O(1) per position. It buffers a warm-up
   (18 positions by default, with an observable geometry), starts from the
   refined batch solution on them, and from then on updates recursively; it
   stays within 0.001 σ of the refined batch estimate.
@@ -115,6 +116,7 @@ import numpy as np
 
 from estimators._typing import ArrayT, BoolArray, FloatArray
 from estimators.conventions import N_PARAMS, PARAM_NAMES, Triad
+from estimators.kalman_update import kalman_update
 from estimators.positions import Position
 from estimators.scalar import normalize, scalar_residual
 
@@ -985,7 +987,8 @@ class RecursiveNineParam:
     starting from 9 ill-conditioned positions, below 0.001 σ after an 18-position warm-up).
 
     *Recursion.* Each later position is one scalar pseudo-measurement through
-    filterpy's ``KalmanFilter.update`` (Joseph form): the ellipsoid equation
+    filterpy's ``KalmanFilter.update`` (Joseph form; :func:`estimators.kalman_update.
+    kalman_update` computes its numbers without filterpy's import): the ellipsoid equation
     ``f_k(θ) = 0`` linearized at ``θ_i``, ``h_i θ = h_i θ_i − f_k(θ_i)`` with
     ``R = σ_k²(θ_i)``, relinearized from the same prior until the step is below
     1e-4 σ (iterated EKF). The state is static (no process noise): this is the
@@ -1018,10 +1021,9 @@ class RecursiveNineParam:
         self.warmup_positions = int(warmup_positions)
         self.max_buffer = int(max_buffer)
         self.max_iterations = int(max_iterations)
-        # filterpy loads scipy.stats: only the streaming form pays for it.
-        from filterpy.kalman import KalmanFilter
-
-        self._kf = KalmanFilter(dim_x=N_PARAMS, dim_z=1)
+        # The state (N_PARAMS, 1) and its covariance, as filterpy's KalmanFilter starts them.
+        self._x = np.zeros((N_PARAMS, 1))
+        self._p = np.eye(N_PARAMS)
         self._initialized = False
         self._buffer = _Buffer()
         self._gram = np.zeros((N_PARAMS, N_PARAMS))
@@ -1063,12 +1065,12 @@ class RecursiveNineParam:
             return self._warmup_estimate()[0]
         rank, condition, _ = _rank_condition(self._gram)
         geo = _Geometry(True, "", rank, condition, self._gram, None)
-        params = self._kf.x[:, 0].copy()
+        params = self._x[:, 0].copy()
         return _finish(
             self.triad,
             Method.RECURSIVE,
             params,
-            self._kf.P.copy(),
+            self._p.copy(),
             self._chi2,
             self._n_positions,
             geo,
@@ -1104,10 +1106,10 @@ class RecursiveNineParam:
         est, geo = self._warmup_estimate()
         if est.params is None:
             return RecursiveUpdate(initialized=False)
-        self._kf.x = est.params.reshape(-1, 1).copy()
+        self._x = est.params.reshape(-1, 1).copy()
         # An estimate with params comes with its covariance, chi-square and a passed geometry.
         assert est.cov is not None and est.chi2 is not None and geo.gram is not None
-        self._kf.P = est.cov.copy()
+        self._p = est.cov.copy()
         self._gram = geo.gram.copy()
         self._chi2 = float(est.chi2)
         self._buffer = _Buffer()
@@ -1115,9 +1117,8 @@ class RecursiveNineParam:
         return RecursiveUpdate(initialized=True)
 
     def _absorb(self, mean: FloatArray, cov: FloatArray) -> RecursiveUpdate:
-        kf = self._kf
-        x_prior, p_prior = kf.x.copy(), kf.P.copy()
-        x_i = x_prior
+        x_prior, p_prior = self._x, self._p
+        x_i, p_i = x_prior, p_prior
         innovation: float | None = None
         innovation_var: float | None = None
         iterations = 0
@@ -1126,20 +1127,21 @@ class RecursiveNineParam:
             r = float(df_dm[0] @ cov @ df_dm[0])
             h = df_dp  # (1, 9)
             z = h @ x_i - f[0]
-            kf.x, kf.P = x_prior.copy(), p_prior.copy()
-            kf.update(z.reshape(1, 1), R=np.array([[r]]), H=h)
+            # Each pass updates the same prior, linearized at the last pass's state (IEKF).
+            post = kalman_update(x_prior, p_prior, z.reshape(1, 1), np.array([[r]]), h)
             if innovation is None:
-                innovation, innovation_var = float(kf.y[0, 0]), float(kf.S[0, 0])
-            step = kf.x - x_i
-            x_i = kf.x.copy()
-            if np.all(np.abs(step[:, 0]) <= 1e-4 * np.sqrt(np.diag(kf.P))):
+                innovation, innovation_var = float(post.y[0, 0]), float(post.S[0, 0])
+            step = post.x - x_i
+            x_i, p_i = post.x, post.P
+            if np.all(np.abs(step[:, 0]) <= 1e-4 * np.sqrt(np.diag(p_i))):
                 break
         # max_iterations >= 1: the first pass has set both.
         assert innovation is not None and innovation_var is not None
+        self._x, self._p = x_i, p_i
         nis = innovation**2 / innovation_var
         self._chi2 += nis
         self._n_positions += 1
-        h_geo = regressors(_unit_rows((mean - kf.x[0:3, 0])[None]))
+        h_geo = regressors(_unit_rows((mean - self._x[0:3, 0])[None]))
         self._gram += h_geo.T @ h_geo
         return RecursiveUpdate(True, innovation, innovation_var, nis, iterations)
 
@@ -1167,8 +1169,8 @@ class RecursiveNineParam:
             "initialized": self._initialized,
             "buffer_means": [m.tolist() for m in self._buffer.means],
             "buffer_covs": [c.tolist() for c in self._buffer.covs],
-            "x": self._kf.x[:, 0].tolist(),
-            "P": self._kf.P.tolist(),
+            "x": self._x[:, 0].tolist(),
+            "P": self._p.tolist(),
             "gram": self._gram.tolist(),
             "chi2": self._chi2,
             "n_positions": self._n_positions,
@@ -1215,8 +1217,8 @@ class RecursiveNineParam:
             raise ValueError("recursive state is inconsistent (initialized flag vs buffer)")
         if means:
             _check_positions(np.array(means), np.array(covs))
-        obj._kf.x = x.reshape(-1, 1)
-        obj._kf.P = p
+        obj._x = x.reshape(-1, 1)
+        obj._p = p
         obj._gram = gram
         obj._buffer = _Buffer(means, covs)
         obj._initialized = initialized

@@ -656,14 +656,8 @@ _SPHERE_POINTS = 2000
 refinement from the best node makes the result exact to the optimizer's tolerance."""
 
 
-def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
-    """``s = ½(|A u + b|² − 1)`` (M, K) of the conventions model for parameter rows ``params`` (M, 9) and directions ``u`` (K, 3).
-
-    ``A = diag(1 + e) R`` with ``R Rᵀ`` the matrix of the cosines δ: every ``A`` with the same
-    ``A Aᵀ`` maps the unit sphere onto the same ellipsoid, so the symmetric square root is as good
-    as the sensor axes themselves. A cosine matrix that is not positive semi-definite (axes that no
-    real triad has) is clipped to the nearest one that is.
-    """
+def _model_matrices(params: FloatArray) -> FloatArray:
+    """The matrices ``A = diag(1 + e) R`` (M, 3, 3) of :func:`_static_residual` for parameter rows ``params`` (M, 9)."""
     d = params[:, 6:]
     c = np.empty((params.shape[0], 3, 3))
     c[:, 0, 0] = c[:, 1, 1] = c[:, 2, 2] = 1.0
@@ -672,8 +666,24 @@ def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
     c[:, 1, 2] = c[:, 2, 1] = d[:, 2]
     w, v = np.linalg.eigh(c)
     root = np.einsum("mij,mj,mkj->mik", v, np.sqrt(np.maximum(w, 0.0)), v)
-    a = (1.0 + params[:, 3:6])[:, :, None] * root
-    out = np.einsum("mij,kj->mki", a, u) + params[:, None, :3]
+    a: FloatArray = (1.0 + params[:, 3:6])[:, :, None] * root
+    return a
+
+
+def _static_residual(params: FloatArray, u: FloatArray) -> FloatArray:
+    """``s = ½(|A u + b|² − 1)`` (M, K) of the conventions model for parameter rows ``params`` (M, 9) and directions ``u`` (K, 3).
+
+    ``A = diag(1 + e) R`` with ``R Rᵀ`` the matrix of the cosines δ: every ``A`` with the same
+    ``A Aᵀ`` maps the unit sphere onto the same ellipsoid, so the symmetric square root is as good
+    as the sensor axes themselves. A cosine matrix that is not positive semi-definite (axes that no
+    real triad has) is clipped to the nearest one that is.
+    """
+    return _residual_of(_model_matrices(params), params[:, :3], u)
+
+
+def _residual_of(a: FloatArray, b: FloatArray, u: FloatArray) -> FloatArray:
+    """``½(|A u + b|² − 1)`` (M, K) for matrices ``a`` (M, 3, 3), offsets ``b`` (M, 3) and directions ``u`` (K, 3)."""
+    out = np.einsum("mij,kj->mki", a, u) + b[:, None, :]
     res: FloatArray = 0.5 * (np.einsum("mki,mki->mk", out, out) - 1.0)
     return res
 
@@ -704,15 +714,8 @@ def _tolerance_extremes(tolerance: tuple[float, ...]) -> tuple[float, float]:
         return 0.0, 0.0
     from scipy import optimize  # loaded when λ0 is derived, not with the module
 
-    # (u, b) and (−u, −b) read the same |ã|: the corners with b_x ≥ 0 and the whole sphere suffice.
-    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 9, indexing="ij")).reshape(9, -1).T
-    corners = np.unique(signs[signs[:, 0] > 0] * tol, axis=0)
-    k = np.arange(_SPHERE_POINTS) + 0.5
-    z = 1.0 - 2.0 * k / _SPHERE_POINTS
-    ph = np.pi * (1.0 + 5.0**0.5) * k
-    r = np.sqrt(1.0 - z * z)
-    u = np.stack([r * np.cos(ph), r * np.sin(ph), z], axis=1)
-    s = _static_residual(corners, u)
+    corners, u = _search_grid(tol)
+    seeds = _grid_extremes(corners, u)
 
     def residual(x: FloatArray) -> float:
         th, phi = x[0], x[1]
@@ -721,8 +724,7 @@ def _tolerance_extremes(tolerance: tuple[float, ...]) -> tuple[float, float]:
 
     bounds = [(-np.pi, 2.0 * np.pi)] * 2 + [(-t, t) for t in tol]
     extremes = []
-    for sign, flat in ((1.0, int(np.argmax(s))), (-1.0, int(np.argmin(s)))):
-        m, j = divmod(flat, _SPHERE_POINTS)
+    for sign, (m, j, s_node) in zip((1.0, -1.0), seeds, strict=True):
         start = np.r_[
             np.arccos(np.clip(u[j, 2], -1.0, 1.0)), np.arctan2(u[j, 1], u[j, 0]), corners[m]
         ]
@@ -733,8 +735,52 @@ def _tolerance_extremes(tolerance: tuple[float, ...]) -> tuple[float, float]:
             bounds=bounds,
             options={"ftol": 1e-15, "gtol": 1e-12},
         )
-        extremes.append(sign * max(sign * float(s.flat[flat]), -float(res.fun)))
+        extremes.append(sign * max(sign * s_node, -float(res.fun)))
     return extremes[1], extremes[0]
+
+
+def _search_grid(tol: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The nodes that seed :func:`tolerance_extremes`' search: the corners (M, 9) of the box ± ``tol``
+    (9,) and :data:`_SPHERE_POINTS` directions (K, 3) spread evenly over the sphere (a Fibonacci lattice)."""
+    # (u, b) and (−u, −b) read the same |ã|: the corners with b_x ≥ 0 and the whole sphere suffice.
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 9, indexing="ij")).reshape(9, -1).T
+    corners = np.unique(signs[signs[:, 0] > 0] * tol, axis=0)
+    k = np.arange(_SPHERE_POINTS) + 0.5
+    z = 1.0 - 2.0 * k / _SPHERE_POINTS
+    ph = np.pi * (1.0 + 5.0**0.5) * k
+    r = np.sqrt(1.0 - z * z)
+    return corners, np.stack([r * np.cos(ph), r * np.sin(ph), z], axis=1)
+
+
+def _grid_extremes(corners: FloatArray, u: FloatArray) -> list[tuple[int, int, float]]:
+    """The largest and the least node of ``s = _static_residual(corners, u)``: ``(m, k, s[m, k])`` each,
+    the first in ``s``'s row-major order among equals (``np.argmax``/``np.argmin``), the same bits.
+
+    Only the rows that can hold either are evaluated. Over the whole sphere a row's values lie
+    between ``½(max(σ_min − |b|, |b| − σ_max, 0)² − 1)`` and ``½((σ_max + |b|)² − 1)``, ``σ`` the
+    singular values of its ``A``; every tenth direction of every row bounds the extremes from
+    within, and rows whose bounds cannot reach them are left out: for the consumer-MEMS
+    tolerances about 30 rows of the 256 corners are evaluated, in a quarter of the whole grid's
+    time. The matrices ``A`` are computed for all rows at once, as the whole grid computes them,
+    and each kept row's values are those of the whole grid (numpy's einsum computes a row alike
+    in a stack of any height; tests/test_scalar.py holds the nodes to the whole grid's).
+    """
+    a = _model_matrices(corners)
+    b = corners[:, :3]
+    sv = np.linalg.svd(a, compute_uv=False)
+    norm_b = np.sqrt(np.einsum("mi,mi->m", b, b))
+    high = 0.5 * ((sv[:, 0] + norm_b) ** 2 - 1.0)
+    low = 0.5 * (np.maximum(np.maximum(sv[:, 2] - norm_b, norm_b - sv[:, 0]), 0.0) ** 2 - 1.0)
+    # Far above the rounding of the bounds and of the nodes, far below the gaps they leave.
+    slack = 1e-9 * (sv[:, 0] + norm_b) ** 2 + 1e-12
+    coarse = _residual_of(a, b, u[::10])
+    rows = np.flatnonzero((high + slack >= coarse.max()) | (low - slack <= coarse.min()))
+    s = _residual_of(a[rows], b[rows], u)
+    nodes = []
+    for flat in (int(np.argmax(s)), int(np.argmin(s))):
+        m, k = divmod(flat, u.shape[0])
+        nodes.append((int(rows[m]), k, float(s[m, k])))
+    return nodes
 
 
 def derive_lambda0(

@@ -203,6 +203,9 @@ def _run(argv: list[str] | None, own_process: bool) -> int:
     with _start_up(own_process):
         parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
+    # Whether the command may set what holds for the whole process (the collector, malloc's
+    # thresholds: replay's freeze_imports and keep_batch_temporaries_on_heap), as _start_up does.
+    args.own_process = own_process
     try:
         check_outputs(args)
         return int(args.func(args) or 0)

@@ -155,6 +155,43 @@ def test_tolerance_bound_holds_for_every_unit_and_orientation():
     assert worst_ratio > 0.8
 
 
+def test_the_search_starts_from_the_whole_grid_s_extreme_nodes():
+    # tolerance_extremes' search starts from the largest and the least s over every corner of the
+    # tolerance box and every direction of the sphere grid. Only the corners whose bounds can reach
+    # them are evaluated: the nodes, their values to the bit and the first among equal values must
+    # be the whole grid's. The nominal classes' tolerances (equal axes: ties), gyro-sized zero
+    # signals (|b| far above 1), single and zero parameters, random ones over seven decades.
+    from estimators.nominal_passport import SensorClass, nominal_passport
+    from estimators.scalar import (
+        _grid_extremes,
+        _model_matrices,
+        _residual_of,
+        _search_grid,
+        _static_residual,
+    )
+
+    rng = np.random.default_rng(12)
+    cases = [tp.tolerance for c in SensorClass for tp in nominal_passport(c).triads.values()] + [
+        np.eye(9)[j] * 0.02 for j in range(9)
+    ]
+    for _ in range(25):
+        tol = 10.0 ** rng.uniform(-6.0, 1.0, 9) * (rng.random(9) < 0.8)
+        tol[:3] = tol[0] if rng.random() < 0.3 else tol[:3]
+        cases.append(tol if np.any(tol) else tol + 1e-3)
+    for tol in cases:
+        corners, u = _search_grid(tol)
+        s = _static_residual(corners, u)
+        whole = [(*divmod(f, u.shape[0]), float(s.flat[f])) for f in (np.argmax(s), np.argmin(s))]
+        assert _grid_extremes(corners, u) == whole, tol
+    # What that rests on: a row's values are the same bits in a stack of any height.
+    corners, u = _search_grid(cases[0])
+    a, b = _model_matrices(corners), corners[:, :3]
+    whole = _residual_of(a, b, u)
+    for size in (1, 2, 17, 100):
+        rows = np.sort(rng.choice(len(corners), size, replace=False))
+        np.testing.assert_array_equal(_residual_of(a[rows], b[rows], u), whole[rows])
+
+
 def test_lambda0_rejects_bad_input():
     with pytest.raises(ValueError, match="noise_std_norm"):
         derive_lambda0(noise_std_norm=[0.0, 1.0, 1.0], false_alarm_prob=1e-3)

@@ -116,24 +116,20 @@ callbacks, the MAVLink reader, event delivery) wait for the interpreter lock whi
 pipeline; a 1 ms interval bounds that wait, which is most of the fault-to-event latency's tail."""
 
 
-PIPELINE_IMPORTS = ("scipy.special", "scipy.optimize", "filterpy.kalman")
-"""Modules a unit's pipeline loads on first use, not with its module (the F0 threshold's λ0 is derived
-with scipy.special and scipy.optimize; the streaming nine-parameter filter is filterpy's, which loads
-scipy.stats)."""
-
-
 def freeze_imports() -> None:
     """Keep what the imports made (modules, numpy's, scipy's, zenoh's and pymavlink's tables: it lives as
     long as the process) out of the cyclic collector's full passes.
 
     A full pass walks every tracked object and stops every thread meanwhile, and an event delivered
     during one comes that much later. The modules a pipeline loads on its first frame
-    (:data:`PIPELINE_IMPORTS`) are loaded here first, so they are frozen with the rest: loaded
+    (:data:`service.pipeline.PIPELINE_IMPORTS`) are loaded here first, so they are frozen with the rest: loaded
     after the freeze, they were 44,000 of the 44,300 objects the full passes walked in the daemon
     under the MAVLink latency benchmark (passes of 13–47 ms; 330 objects after). The daemon
     starts 0.8 s later and its first unit's first frame no longer waits for them. Objects made
     later are collected as before.
     """
+    from service.pipeline import PIPELINE_IMPORTS
+
     for name in PIPELINE_IMPORTS:
         importlib.import_module(name)
     gc.collect()

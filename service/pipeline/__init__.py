@@ -97,6 +97,7 @@ if TYPE_CHECKING:
     from service.pipeline.static_gate import StaticGate
 
 __all__ = [
+    "PIPELINE_IMPORTS",
     "FleetProcessor",
     "ImuPipeline",
     "PassportLookup",
@@ -104,6 +105,11 @@ __all__ = [
     "StaticGate",
     "detector_config",
 ]
+
+PIPELINE_IMPORTS = ("scipy.special", "scipy.optimize")
+"""Modules a unit's pipeline loads on first use, not with its modules (the F0 threshold's λ0 is derived
+with scipy.special and scipy.optimize): the daemon and replay load them first and freeze them with
+the rest (:func:`service.commands.run.freeze_imports`, :func:`service.commands.replay.freeze_imports`)."""
 
 _SUBMODULE_NAMES = {
     "fleet": ("FleetProcessor", "PassportLookup"),
