@@ -7,9 +7,10 @@ and ``np.percentile`` choose their partition's indices with ``np.unique``, which
 ``benchmarks/bench_sixpos_calibrate.py``). These are numpy's own definitions
 (``numpy.lib._function_base_impl``: ``_median``; ``_quantile`` with its default ``linear``
 method, Hyndman & Fan's 7th, and ``_lerp``): the order statistics found by ``np.partition``,
-their mean or their linear interpolation formed as numpy forms it, NaN where a NaN is among
-the values. They give numpy's values bit for bit (``tests/test_quantiles.py``, numpy as the
-oracle).
+their mean or their linear interpolation formed as numpy forms it, the values' own NaN where
+one is among them. They give numpy's values bit for bit (``tests/test_quantiles.py``, numpy as the
+oracle) for float64 values, as every caller has: others are cast to float64 first, where
+numpy works in float32's, float16's or long double's own arithmetic or keeps a mask.
 """
 
 from __future__ import annotations
@@ -31,10 +32,13 @@ def median(values: ArrayLike, axis: int | None = None) -> FloatArray:
         return np.asarray(np.median(a, axis=axis))
     half = n // 2
     kth = [half - 1, half] if n % 2 == 0 else [half]
-    middle = np.take(np.partition(a, kth, axis=axis), kth, axis=axis)
+    # numpy's partition, the last place among its kth: a NaN sorts there, and numpy returns
+    # that NaN itself (its sign and payload), not a NaN of its own.
+    part = np.partition(a, [*kth, -1], axis=axis)
     # The mean of one or two values as np.mean forms it: their sum over their count.
-    mean = np.add.reduce(middle, axis=axis) / len(kth)
-    return np.where(np.isnan(a).any(axis=axis), np.nan, mean)
+    mean = np.add.reduce(np.take(part, kth, axis=axis), axis=axis) / len(kth)
+    last: FloatArray = np.take(part, -1, axis=axis)
+    return np.where(np.isnan(last), last, mean)
 
 
 def quantile(values: ArrayLike, q: ArrayLike) -> FloatArray:
@@ -51,13 +55,15 @@ def quantile(values: ArrayLike, q: ArrayLike) -> FloatArray:
     previous = np.where(top, -1.0, np.floor(virtual))
     following = np.where(top, -1.0, previous + 1.0)
     lo, hi = previous.astype(np.intp), following.astype(np.intp)
-    part = np.partition(a, sorted({0, n - 1, *lo.ravel().tolist(), *hi.ravel().tolist()}))
+    # numpy's kth (np.unique of 0, -1 and the neighbours): the same partition, whose last
+    # place holds the NaN numpy returns.
+    part = np.partition(a, sorted({0, -1, *lo.ravel().tolist(), *hi.ravel().tolist()}))
     below, above = part[lo], part[hi]
     gamma = virtual - previous
     step = above - below
     # From the nearer neighbour, as numpy's _lerp forms it.
     between = np.where(gamma >= 0.5, above - step * (1.0 - gamma), below + step * gamma)
-    return np.where(np.isnan(part[-1]), np.nan, between)
+    return np.where(np.isnan(part[-1]), part[-1], between)
 
 
 def percentile(values: ArrayLike, q: ArrayLike) -> FloatArray:

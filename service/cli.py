@@ -168,6 +168,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Streaming fault detection for strapdown IMUs (scalar method).",
     )
     parser.add_argument("--version", action=_Version, help="print the version and exit")
+    # Options parsed here and run through args.func within a process (ins_health's API, a
+    # library user) leave the process's collector and malloc alone; _run says when it is its own.
+    parser.set_defaults(own_process=False)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     names = command_modules()
     for name in [command] if command in names else names:

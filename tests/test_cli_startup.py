@@ -156,6 +156,14 @@ def test_the_command_as_its_own_process_freezes_what_its_start_up_made(module, o
     assert (int(frozen) > 20_000) == own_process, frozen
 
 
+def test_the_parser_s_options_name_a_command_within_a_process():
+    """What :func:`build_parser` parses runs through the command's own function as :func:`main`
+    runs it within a process (``ins_health``'s API parses so): the command leaves the collector
+    and malloc alone unless :func:`main` says it is the whole of its process."""
+    for command in command_modules():
+        assert build_parser(command).get_default("own_process") is False, command
+
+
 LOADED_BY_CALIBRATE = """
 import json, sys
 from service.cli import main
