@@ -156,6 +156,23 @@ def test_the_command_as_its_own_process_freezes_what_its_start_up_made(module, o
     assert (int(frozen) > 20_000) == own_process, frozen
 
 
+COLLECTOR_OFF_THROUGH_REPLAY_S_IMPORTS = """
+import gc
+from service.commands.replay import freeze_imports
+gc.disable()
+freeze_imports(report=False)
+print(gc.isenabled())
+"""
+
+
+def test_replay_s_imports_leave_a_collector_the_process_turned_off_off():
+    """A process that runs without the cyclic collector (a ``sitecustomize`` turning it off, as
+    :func:`service.cli._start_up` respects) keeps it off through replay's own imports."""
+    assert _in_a_fresh_interpreter(COLLECTOR_OFF_THROUGH_REPLAY_S_IMPORTS).stdout.split() == [
+        "False"
+    ]
+
+
 def test_the_parser_s_options_name_a_command_within_a_process():
     """What :func:`build_parser` parses runs through the command's own function as :func:`main`
     runs it within a process (``ins_health``'s API parses so): the command leaves the collector

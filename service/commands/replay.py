@@ -121,6 +121,13 @@ HEAP_TRIM_THRESHOLD_BYTES = 32 << 20
 """Free memory at the top of the heap glibc keeps rather than gives back (its rule: twice the
 mapping threshold, as when the threshold rises by itself)."""
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+USER_MALLOC_SETTINGS = (
+    "MALLOC_MMAP_THRESHOLD_",
+    "MALLOC_TRIM_THRESHOLD_",
+    "MALLOC_TOP_PAD_",
+    "MALLOC_MMAP_MAX_",
+)
+"""glibc's environment variables for the thresholds a replay would set: set by the user, they stand."""
 """mallopt's parameter numbers (glibc's ``malloc.h``)."""
 COVERAGE_TYPE = "ins.health.coverage"
 COVERAGE_VERSION = 2
@@ -422,7 +429,13 @@ class ReplayResult:
 def keep_batch_temporaries_on_heap() -> bool:
     """Where the C library is glibc, set its malloc's mapping and trim thresholds for a replay's
     batches (:data:`HEAP_MMAP_THRESHOLD_BYTES`, module docstring); True when set. Other C libraries
-    (musl, macOS, Windows) are left as they are: this is glibc's policy and glibc's call."""
+    (musl, macOS, Windows) are left as they are: this is glibc's policy and glibc's call. So are
+    thresholds the user set for the process (``MALLOC_*_`` or ``glibc.malloc.*`` in
+    ``GLIBC_TUNABLES``, :data:`USER_MALLOC_SETTINGS`): a device short of memory may ask for eager
+    trimming, and gets it."""
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    if any(name in os.environ for name in USER_MALLOC_SETTINGS) or "glibc.malloc." in tunables:
+        return False
     try:
         if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
             return False
@@ -456,13 +469,15 @@ def freeze_imports(*, report: bool) -> None:
 
     from service.pipeline import PIPELINE_IMPORTS
 
+    was_enabled = gc.isenabled()  # a process that runs without the collector keeps it off
     gc.disable()  # the collector's passes over the imports' objects would find nothing to free
     try:
         for name in PIPELINE_IMPORTS + (("service.log_report",) if report else ()):
             importlib.import_module(name)
     finally:
         gc.freeze()
-        gc.enable()
+        if was_enabled:
+            gc.enable()
 
 
 def run(args: argparse.Namespace) -> int:
