@@ -1217,8 +1217,9 @@ class RecursiveNineParam:
             raise ValueError("recursive state is inconsistent (initialized flag vs buffer)")
         if means:
             _check_positions(np.array(means), np.array(covs))
-        obj._x = x.reshape(-1, 1)
-        obj._p = p
+        # C-ordered copies, as filterpy's filter updated them: the products' bits depend on the order.
+        obj._x = x.reshape(-1, 1).copy()
+        obj._p = p.copy()
         obj._gram = gram
         obj._buffer = _Buffer(means, covs)
         obj._initialized = initialized

@@ -767,14 +767,20 @@ def _grid_extremes(corners: FloatArray, u: FloatArray) -> list[tuple[int, int, f
     """
     a = _model_matrices(corners)
     b = corners[:, :3]
-    sv = np.linalg.svd(a, compute_uv=False)
-    norm_b = np.sqrt(np.einsum("mi,mi->m", b, b))
-    high = 0.5 * ((sv[:, 0] + norm_b) ** 2 - 1.0)
-    low = 0.5 * (np.maximum(np.maximum(sv[:, 2] - norm_b, norm_b - sv[:, 0]), 0.0) ** 2 - 1.0)
-    # Far above the rounding of the bounds and of the nodes, far below the gaps they leave.
-    slack = 1e-9 * (sv[:, 0] + norm_b) ** 2 + 1e-12
-    coarse = _residual_of(a, b, u[::10])
-    rows = np.flatnonzero((high + slack >= coarse.max()) | (low - slack <= coarse.min()))
+    rows = np.arange(corners.shape[0])
+    # Tolerances near 1e300 overflow A: LAPACK's SVD refuses inf (printing on stdout) and NaN
+    # nodes order by argmax's rule, not by bounds. The whole grid then, as before the cut.
+    if np.all(np.isfinite(a)):
+        sv = np.linalg.svd(a, compute_uv=False)
+        norm_b = np.sqrt(np.einsum("mi,mi->m", b, b))
+        high = 0.5 * ((sv[:, 0] + norm_b) ** 2 - 1.0)
+        low = 0.5 * (np.maximum(np.maximum(sv[:, 2] - norm_b, norm_b - sv[:, 0]), 0.0) ** 2 - 1.0)
+        # Far above the rounding of the bounds and of the nodes, far below the gaps they leave.
+        slack = 1e-9 * (sv[:, 0] + norm_b) ** 2 + 1e-12
+        if np.all(np.isfinite(high)):
+            # Every node is then finite (|A u + b| <= σ_max + |b|), the bounds order them.
+            coarse = _residual_of(a, b, u[::10])
+            rows = rows[(high + slack >= coarse.max()) | (low - slack <= coarse.min())]
     s = _residual_of(a[rows], b[rows], u)
     nodes = []
     for flat in (int(np.argmax(s)), int(np.argmin(s))):

@@ -404,3 +404,34 @@ def test_replay_of_a_ulog_imports_neither_the_daemon_nor_pymavlink_zenoh_scipy_s
     # not walk it again (one at the report's first figure and the interpreter's last at exit, about
     # 0.1 s of CPU in a five-minute replay). A module's namespace stands for what its import made.
     assert out["walked"] == []
+
+
+REPLAY_WITHOUT_MATPLOTLIB = """
+import sys
+sys.modules["matplotlib"] = None  # not installed: importing it raises ImportError
+from ins_health.__main__ import main
+try:
+    main(["replay", sys.argv[1], "--report", sys.argv[2]])
+except ImportError as exc:
+    print("report:", exc, file=sys.stderr)
+"""
+
+
+def test_replay_as_its_own_process_says_its_verdict_before_a_report_it_cannot_draw(tmp_path):
+    # Without matplotlib, --report fails where the report is drawn, after the replay has said its
+    # events, coverage and verdict. Loading the report's modules ahead (freeze_imports) must not
+    # fail the replay before it has read the log.
+    import numpy as np
+
+    from estimators.conventions import Grade
+    from estimators.sim import grade_error_model, simulate
+    from estimators.sixpos import ferraris_spec
+    from protocols.ulog import write_ulog
+
+    model = grade_error_model(Grade.MEMS, rng=np.random.default_rng(3))
+    res = simulate(ferraris_spec(model, static_s=6.0, transition_s=4.0, turn_s=6.0), seed=1)
+    write_ulog(tmp_path / "six.ulg", {0: res.session})
+    run = _in_a_fresh_interpreter(REPLAY_WITHOUT_MATPLOTLIB, tmp_path / "six.ulg", tmp_path / "r")
+    said = run.stderr.splitlines()
+    assert any(" verdict: " in line for line in said), run.stderr
+    assert said[-1].startswith("report: "), run.stderr

@@ -86,3 +86,22 @@ def test_recursive_estimator_holds_filterpys_state(monkeypatch):
             assert runs[0] == runs[1]
             iterations += [s.iterations for s in runs[1][0] if s.nis is not None]
     assert max(iterations) >= 2 and len(r_values) > 100
+
+
+def test_a_state_restored_from_any_memory_order_updates_as_filterpys():
+    # filterpy's filter, as the estimator held it, updated C-ordered copies of the state whatever
+    # arrays it was given; the dot products' last bits depend on the order. A checkpoint's P given
+    # as a Fortran-ordered array (a transpose, np.load) must update as the same P given as lists.
+    rng = np.random.default_rng(78)
+    case = mems_accel(rng, 30)
+    (means,) = case.draw(rng, 1)
+    positions = list(zip(means, case.cov, strict=True))
+    rec = RecursiveNineParam(case.triad)
+    for m, c in positions[:20]:
+        rec.update(m, c)
+    state = rec.state_dict()
+    lists = RecursiveNineParam.from_state_dict(state)
+    fortran = RecursiveNineParam.from_state_dict({**state, "P": np.asfortranarray(state["P"])})
+    for m, c in positions[20:]:
+        assert lists.update(m, c) == fortran.update(m, c)
+    assert lists.state_dict() == fortran.state_dict()

@@ -192,6 +192,25 @@ def test_the_search_starts_from_the_whole_grid_s_extreme_nodes():
         np.testing.assert_array_equal(_residual_of(a[rows], b[rows], u), whole[rows])
 
 
+def test_grid_extremes_of_overflowing_tolerances_are_the_whole_grids(capfd):
+    # Finite tolerances pass tolerance_extremes' check, however large: near 1e300 the model's
+    # matrices overflow and the grid holds NaN. The cut must pick the whole grid's nodes as
+    # np.argmax/argmin do (the first NaN) and print nothing: LAPACK's SVD, given inf, writes
+    # "On entry to DLASCL ..." on the process's stdout, replay --json's event stream.
+    from estimators.scalar import _grid_extremes, _search_grid, _static_residual
+
+    for tol in (np.full(9, 1e300), np.r_[0.0, 1e308, 0.0, 1e308, 1e308, 0.0, 1e308, 1e308, 1e308]):
+        corners, u = _search_grid(tol)
+        with np.errstate(all="ignore"):
+            s = _static_residual(corners, u)
+            nodes = _grid_extremes(corners, u)
+        whole = [
+            (*divmod(int(f), u.shape[0]), float(s.flat[f])) for f in (np.argmax(s), np.argmin(s))
+        ]
+        assert repr(nodes) == repr(whole), tol
+    assert capfd.readouterr().out == ""
+
+
 def test_lambda0_rejects_bad_input():
     with pytest.raises(ValueError, match="noise_std_norm"):
         derive_lambda0(noise_std_norm=[0.0, 1.0, 1.0], false_alarm_prob=1e-3)

@@ -464,6 +464,7 @@ def freeze_imports(*, report: bool) -> None:
     called within a process (the tests, a library user) it leaves the collector as it is, as
     :func:`replay_log` does.
     """
+    import contextlib
     import gc
     import importlib
 
@@ -473,7 +474,10 @@ def freeze_imports(*, report: bool) -> None:
     gc.disable()  # the collector's passes over the imports' objects would find nothing to free
     try:
         for name in PIPELINE_IMPORTS + (("service.log_report",) if report else ()):
-            importlib.import_module(name)
+            # One that cannot load (no matplotlib for the report) fails where the replay uses it,
+            # after the events and the verdict, as without this preload.
+            with contextlib.suppress(ImportError):
+                importlib.import_module(name)
     finally:
         gc.freeze()
         if was_enabled:
