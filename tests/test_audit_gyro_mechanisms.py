@@ -12,6 +12,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
+import estimators.audit.audit as audit_module
 from estimators.audit import AuditConfig, run_audit
 from estimators.audit.audit import (
     baseline_error_model,
@@ -37,7 +38,7 @@ from estimators.audit.hidden import (
 from estimators.audit.statistics import scalar_residuals
 from estimators.chain import ChainConfig
 from estimators.conventions import EARTH_RATE_RPS, Triad
-from estimators.sim import BiasStep, ErrorModel, Grade, TemperatureHysteresis
+from estimators.sim import Bias, BiasStep, ErrorModel, Grade, TemperatureHysteresis
 from service.audit_report import temperature_panel, write_report
 
 G = 9.80665
@@ -356,3 +357,28 @@ def test_a_turns_tail_held_on_a_level_far_out_is_not_a_rail():
     x[:, 1] = np.minimum(x[:, 1], rail)
     (c,) = [c for c in clipping_candidates(Triad.GYRO, x, spans, sd, step, 160) if c.axis == "y"]
     assert c.selected and c.params["rail_si"] == pytest.approx(rail, abs=step[1]), c.reason
+
+
+def test_replicas_the_chain_refuses_are_a_stated_outcome_not_unusable_input(monkeypatch):
+    # A rail named near zero clips every replica position's gyro y flat on one side (a MEMS bias of 14 noise
+    # sd): the chain refuses each such replica. The session itself is valid: the audit completes and says the
+    # extension went unchecked, where it stopped with the chain's ValueError.
+    found = audit_module.clipping_candidates
+
+    def rail_on_gyro_y(triad, *args):
+        cands = found(triad, *args)
+        if triad is not Triad.GYRO:
+            return cands
+        return [
+            replace(c, selected=True, params={**c.params, "rail_si": 1e-9}) if c.axis == "y" else c
+            for c in cands
+        ]
+
+    monkeypatch.setattr(audit_module, "clipping_candidates", rail_on_gyro_y)
+    model = baseline_model(np.random.default_rng(2)).with_effect(Bias((0.0, 0.02, 0.0)), Triad.GYRO)
+    s, _ = session_of(model, 8500)
+    res = run_audit(s, AuditConfig(trial_chain_config(Grade.MEMS, s), replicas=2))
+    assert any(c.effect == "clipping" for c in res.named)
+    (st,) = [st for st in res.statements if st.startswith("extended model: the chain refused")]
+    assert "2 of its 2 replicas" in st and "no spread" in st, st
+    assert "extended" not in res.replica_stats and res.extended_cmp == res.baseline_cmp
