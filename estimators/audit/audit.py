@@ -1224,8 +1224,26 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
             out.append(
                 f"minimum detectable on this session ({t.value}, 95 % power; units in each name): "
                 + "; ".join(parts)
+                + _step_competes(cands, t)
             )
     return out
+
+
+def _step_competes(cands: list[Candidate], t: Triad) -> str:
+    """What a drift's stated power does not account for, where a bias step is also a candidate of the triad.
+
+    Each size is the power of one effect's test against none. A drift and a step at a middle turn both move
+    the later positions' means one way, and the forward selection ranks a profiled step on a single test's
+    margin (:func:`estimators.audit.candidates.forward_select`, so that a real step is not lost to a drift):
+    a step can then be named in the drift's place, the drift no longer passing beside it.
+    """
+    kinds = {c.effect for c in cands if c.triad is t and c.identifiable}
+    if not {"bias_drift", "bias_step"} <= kinds:
+        return ""
+    return (
+        "; not accounted for: a bias_drift's size is its power against no effect, not against a bias_step "
+        "profiled over the turns, which competes with it (a drift of that size can be named as a step)"
+    )
 
 
 def earth_rate_blind_spot(path: dict[str, str | float]) -> str:
