@@ -12,6 +12,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
+import estimators.audit.audit as audit_module
 from estimators.audit import AuditConfig, run_audit
 from estimators.audit.audit import (
     baseline_error_model,
@@ -22,6 +23,7 @@ from estimators.audit.audit import (
     fit_baselines,
     structure_of,
 )
+from estimators.audit.candidates import clipping_candidates
 from estimators.audit.hidden import (
     GYRO_MECHANISM_KINDS,
     TRIAL_UNITS,
@@ -36,7 +38,7 @@ from estimators.audit.hidden import (
 from estimators.audit.statistics import scalar_residuals
 from estimators.chain import ChainConfig
 from estimators.conventions import EARTH_RATE_RPS, Triad
-from estimators.sim import BiasStep, ErrorModel, Grade, TemperatureHysteresis
+from estimators.sim import Bias, BiasStep, ErrorModel, Grade, TemperatureHysteresis
 from service.audit_report import temperature_panel, write_report
 
 G = 9.80665
@@ -328,3 +330,55 @@ def test_a_step_whose_axis_is_not_told_is_re_simulated_as_the_smallest_step_that
     assert np.linalg.norm(simulated) <= 1.4 * abs(hidden), (simulated, hidden)
     assert c.params["simulated_axis"] in c.params["axes_alike"], c.params
     assert simulated["xyz".index(c.params["simulated_axis"])] == c.params["simulated_step_rps"]
+
+
+def _gyro_positions(seed, mean_rps, sd_rps=8.75e-4, step_rps=1.3316e-4, n_pos=20, n=1000):
+    """Static gyro positions on an output grid (x_si, spans): white noise about ``mean_rps`` on every axis."""
+    rng = np.random.default_rng(seed)
+    x = np.round((mean_rps + sd_rps * rng.standard_normal((n_pos * n, 3))) / step_rps) * step_rps
+    spans = np.array([(k * n, (k + 1) * n) for k in range(n_pos)])
+    return x, spans, np.full(3, sd_rps), np.full(3, step_rps)
+
+
+def test_a_turns_tail_held_on_a_level_far_out_is_not_a_rail():
+    # The 48-position session of bench_audit: a position's span began with two samples of the turn's tail
+    # on one grid level 8.8 sd above its mean. Two samples where 4e-14 are expected stack beyond chance, but
+    # no rail there clips anything the noise reaches (a rail holds the samples beyond it): named as a rail,
+    # the extended model's replicas clipped every position's y there and the chain refused them.
+    x, spans, sd, step = _gyro_positions(48, -7.0e-3)
+    a = spans[7, 0]
+    x[a : a + 4, 1] = (
+        np.round((-7.0e-3 + np.array([8.8, 8.8, 6.0, 3.0]) * sd[1]) / step[1]) * step[1]
+    )
+    (c,) = [c for c in clipping_candidates(Triad.GYRO, x, spans, sd, step, 160) if c.axis == "y"]
+    assert c.lr > c.threshold and not c.selected, c.reason
+    # A rail inside the noise on the same session is named: it holds what the noise put beyond it.
+    rail = -7.0e-3 + 1.0 * sd[1]
+    x[:, 1] = np.minimum(x[:, 1], rail)
+    (c,) = [c for c in clipping_candidates(Triad.GYRO, x, spans, sd, step, 160) if c.axis == "y"]
+    assert c.selected and c.params["rail_si"] == pytest.approx(rail, abs=step[1]), c.reason
+
+
+def test_replicas_the_chain_refuses_are_a_stated_outcome_not_unusable_input(monkeypatch):
+    # A rail named near zero clips every replica position's gyro y flat on one side (a MEMS bias of 14 noise
+    # sd): the chain refuses each such replica. The session itself is valid: the audit completes and says the
+    # extension went unchecked, where it stopped with the chain's ValueError.
+    found = audit_module.clipping_candidates
+
+    def rail_on_gyro_y(triad, *args):
+        cands = found(triad, *args)
+        if triad is not Triad.GYRO:
+            return cands
+        return [
+            replace(c, selected=True, params={**c.params, "rail_si": 1e-9}) if c.axis == "y" else c
+            for c in cands
+        ]
+
+    monkeypatch.setattr(audit_module, "clipping_candidates", rail_on_gyro_y)
+    model = baseline_model(np.random.default_rng(2)).with_effect(Bias((0.0, 0.02, 0.0)), Triad.GYRO)
+    s, _ = session_of(model, 8500)
+    res = run_audit(s, AuditConfig(trial_chain_config(Grade.MEMS, s), replicas=2))
+    assert any(c.effect == "clipping" for c in res.named)
+    (st,) = [st for st in res.statements if st.startswith("extended model: the chain refused")]
+    assert "2 of its 2 replicas" in st and "no spread" in st, st
+    assert "extended" not in res.replica_stats and res.extended_cmp == res.baseline_cmp

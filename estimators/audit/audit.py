@@ -647,8 +647,12 @@ def replica_statistics(
     left_out_s: FloatArray | None = None,
     progress: Callable[[str], None] | None = None,
     label: str = "baseline",
-) -> tuple[dict[Triad, list[dict[str, float]]], dict[Triad, list[TriadCurves]]]:
-    """Statistics and plotted curves of ``replicas`` simulated sessions, per triad.
+) -> tuple[dict[Triad, list[dict[str, float]]], dict[Triad, list[TriadCurves]], list[str]]:
+    """Statistics and plotted curves of ``replicas`` simulated sessions, per triad, and the replicas the chain
+    refused (``"replica r: reason"``), which the statistics leave out.
+
+    A model the audit extended can make sessions the chain refuses (an axis clipped flat at a position):
+    that is the model's outcome, counted and stated by :func:`run_audit`, not the session's fault.
 
     ``left_out_s`` (m, 2): simulated holds ``[start, end)``, s from the session's start, whose positions the
     statistics inside a position leave out (:func:`triad_statistics`' ``described``): a replica position
@@ -658,12 +662,17 @@ def replica_statistics(
     """
     stats: dict[Triad, list[dict[str, float]]] = {t: [] for t in triads}
     curves: dict[Triad, list[TriadCurves]] = {t: [] for t in triads}
+    refused: list[str] = []
     for r in range(replicas):
         sim = simulate(spec, np.random.SeedSequence([seed, r]).generate_state(1)[0])
         s = sim.session
         if Triad.GYRO not in triads:
             s = ImuSession(s.t_s, s.accel_mps2, None, s.temp_c)
-        chain = run_chain(s, config)
+        try:
+            chain = run_chain(s, config)
+        except ValueError as e:
+            refused.append(f"replica {r}: {e}")
+            continue
         described = None
         if left_out_s is not None:
             mid = np.array([0.5 * (p.t_start_s + p.t_end_s) for p in chain.positions]) - s.t_s[0]
@@ -676,7 +685,17 @@ def replica_statistics(
             curves[t].append(triad_curves(chain, x, s.t_s, t, s.rate_hz))
         if progress is not None:
             progress(f"{label} model: {r + 1} of {replicas} replicas simulated")
-    return stats, curves
+    return stats, curves, refused
+
+
+def refused_statement(label: str, refused: list[str], replicas: int) -> str:
+    """What the chain's refusal of a model's replicas leaves of its check (:func:`replica_statistics`)."""
+    rest = (
+        "the model is not checked against the session (the comparison is the baseline's)"
+        if len(refused) == replicas
+        else f"its band is of the other {replicas - len(refused)}"
+    )
+    return f"{label} model: the chain refused {len(refused)} of its {replicas} replicas ({refused[0]}): {rest}"
 
 
 @dataclass(frozen=True)
@@ -1094,9 +1113,14 @@ def run_audit(
         )
         res.measured_curves[t] = triad_curves(chain, x, session.t_s, t, session.rate_hz)
     spec = same_session_spec(chain, session, model)
-    reps, res.replica_curves["baseline"] = replica_statistics(
+    reps, res.replica_curves["baseline"], refused = replica_statistics(
         spec, chain_config, triads, config.replicas, config.seed, progress=progress
     )
+    if refused:
+        # Without a baseline band there is nothing to compare the session or an extension with.
+        if len(refused) == config.replicas:
+            raise ValueError(refused_statement("baseline", refused, config.replicas))
+        res.statements.append(refused_statement("baseline", refused, config.replicas))
     res.replica_stats["baseline"] = reps
     # Every position: the baseline's comparison shows what it misses, disturbed positions included.
     res.baseline_cmp = [
@@ -1129,18 +1153,11 @@ def run_audit(
         {"effect": c.effect, "triad": c.triad.value, "axis": c.axis, "params": c.params}
         for c in res.named
     ]
+    ext_checked = False
     if res.named:
-        described = np.ones(n, bool)
-        described[list(res.left_out)] = False
-        res.measured_stats["extended"] = {
-            t: triad_statistics(
-                chain, triad_samples(session, t), session.t_s, t, session.rate_hz, described
-            )
-            for t in triads
-        }
         start = simulated_hold_starts_s(hold, turns)
         left_out_s = np.column_stack([start, start + hold])[list(res.left_out)]
-        ext_reps, res.replica_curves["extended"] = replica_statistics(
+        ext_reps, ext_curves, refused = replica_statistics(
             same_session_spec(chain, session, ext_model),
             chain_config,
             triads,
@@ -1150,6 +1167,19 @@ def run_audit(
             progress,
             "extended",
         )
+        if refused:
+            res.statements.append(refused_statement("extended", refused, config.replicas))
+        ext_checked = len(refused) < config.replicas
+    if ext_checked:
+        described = np.ones(n, bool)
+        described[list(res.left_out)] = False
+        res.measured_stats["extended"] = {
+            t: triad_statistics(
+                chain, triad_samples(session, t), session.t_s, t, session.rate_hz, described
+            )
+            for t in triads
+        }
+        res.replica_curves["extended"] = ext_curves
         res.replica_stats["extended"] = ext_reps
         res.extended_cmp = [
             c
@@ -1194,8 +1224,26 @@ def detectable_statements(cands: list[Candidate]) -> list[str]:
             out.append(
                 f"minimum detectable on this session ({t.value}, 95 % power; units in each name): "
                 + "; ".join(parts)
+                + _step_competes(cands, t)
             )
     return out
+
+
+def _step_competes(cands: list[Candidate], t: Triad) -> str:
+    """What a drift's stated power does not account for, where a bias step is also a candidate of the triad.
+
+    Each size is the power of one effect's test against none. A drift and a step at a middle turn both move
+    the later positions' means one way, and the forward selection ranks a profiled step on a single test's
+    margin (:func:`estimators.audit.candidates.forward_select`, so that a real step is not lost to a drift):
+    a step can then be named in the drift's place, the drift no longer passing beside it.
+    """
+    kinds = {c.effect for c in cands if c.triad is t and c.identifiable}
+    if not {"bias_drift", "bias_step"} <= kinds:
+        return ""
+    return (
+        "; not accounted for: a bias_drift's size is its power against no effect, not against a bias_step "
+        "profiled over the turns, which competes with it (a drift of that size can be named as a step)"
+    )
 
 
 def earth_rate_blind_spot(path: dict[str, str | float]) -> str:

@@ -917,7 +917,14 @@ def clipping_candidates(
     ``−2 ln(α/(tests·6))`` (two sides of three axes per triad): both are tried because symmetric rails
     clip both sides of an axis whose positions reach either (a gyro's Earth rate projects on an axis
     with either sign, so its extremes are alike in magnitude and the stack may be on the smaller
-    one). The rail is exact to half a step. On a grid coarser than the noise the
+    one). A stack is a rail's only where a rail explains it: a rail there holds the level's samples and
+    those the noise puts beyond it, ``B = Σ_k n_k P(beyond)``, so the ``c`` others are Poisson of mean
+    ``E + B``. Either that does not reject the count (``−2 ln P(≥ c | E + B)`` within the threshold: a rail
+    a few samples deep), or a rail beats none by the threshold, ``LR_rail = 2 (c ln(1 + B/E) − B)`` (a
+    deep rail, whose clipped samples pull the means inward and so ``B`` below the count). A level far out
+    in the tail (a turn's end at a position's edge held on a level for two samples) stacks beyond ``E``,
+    but a rail there clips nothing the noise reaches (``B ≈ E``): it fails both. The rail is exact to half
+    a step. On a grid coarser than the noise the
     levels' counts hang on where each mean falls between two levels: not identifiable there.
     """
     thr = float(-2.0 * np.log(FAMILY_ALPHA / (max(n_tests, 1) * 6)))
@@ -938,11 +945,12 @@ def clipping_candidates(
         static = np.concatenate(pieces)
         step = 0.0 if step_si is None else float(step_si[i])
         sides = {
-            r: _rail_level(static, pieces, float(sample_sd_si[i]), step, r)
-            for r in (float(static.max()), float(static.min()))
+            r: _rail_level(static, pieces, float(sample_sd_si[i]), step, r, side)
+            for r, side in ((float(static.max()), 1.0), (float(static.min()), -1.0))
         }
         rail = max(sides, key=lambda r: (sides[r][0], abs(r)))
-        lr, width, count, expected = sides[rail]
+        lr, width, count, expected, lr_rail, lr_fit = sides[rail]
+        explained = lr_rail > thr or lr_fit <= thr
         touched = [
             k for k, piece in enumerate(pieces) if np.any(np.abs(piece - rail) <= 0.5 * width)
         ]
@@ -962,32 +970,48 @@ def clipping_candidates(
                     "expected_without_rail": expected,
                     "positions_on_rail": touched,
                 },
-                lr > thr,
+                lr > thr and explained,
                 f"{triad.value} {ax}: {count} static samples on {rail:.6g} SI, the extreme level "
                 f"({expected:.2g} expected there without a rail; positions {', '.join(f'#{k}' for k in touched[:5])}"
-                f"{', …' if len(touched) > 5 else ''}): LR {lr:.1f} (threshold {thr:.1f})",
+                f"{', …' if len(touched) > 5 else ''}): LR {lr:.1f} (threshold {thr:.1f})"
+                + (
+                    f"; not a rail: one there would hold what the noise puts beyond it, too few to make the "
+                    f"stack (LR of the stack against such a rail {lr_fit:.1f}, of a rail against none {lr_rail:.1f})"
+                    if lr > thr and not explained
+                    else ""
+                ),
             )
         )
     return out
 
 
 def _rail_level(
-    static: FloatArray, pieces: list[FloatArray], sd: float, step: float, rail: float
-) -> tuple[float, float, int, float]:
-    """(LR, level width, count, expected count) of the static samples on the level of ``rail``
-    (:func:`clipping_candidates`); ``pieces`` are the positions' samples, ``sd`` their per-sample noise."""
+    static: FloatArray, pieces: list[FloatArray], sd: float, step: float, rail: float, side: float
+) -> tuple[float, float, int, float, float, float]:
+    """(LR, level width, count, expected count, LR of a rail there against none, LR of the count against such
+    a rail) of the static samples on the level of ``rail``
+    (:func:`clipping_candidates`); ``pieces`` are the positions' samples, ``sd`` their per-sample noise,
+    ``side`` +1 for the highest extreme, −1 for the lowest.
+
+    The level and what lies beyond it are read on the extreme's own side, not on the side of the rail's
+    sign: the two differ when both extremes share a sign (a bias larger than the noise)."""
     from scipy.stats import norm, poisson
 
     width = max(step, 2.0 * float(np.spacing(np.float32(abs(rail)))))
     count = int(np.sum(np.abs(static - rail) <= 0.5 * width))
     means = np.array([p.mean() for p in pieces])
     n_k = np.array([p.size for p in pieces])
-    z_hi = (abs(rail) + 0.5 * width - np.sign(rail) * means) / sd
-    z_lo = (abs(rail) - 0.5 * width - np.sign(rail) * means) / sd
+    z_hi = (side * (rail - means) + 0.5 * width) / sd
+    z_lo = (side * (rail - means) - 0.5 * width) / sd
     expected = float(np.sum(n_k * (norm.sf(z_lo) - norm.sf(z_hi))))
+    beyond = float(np.sum(n_k * norm.sf(z_hi)))
     # The extreme sample itself is on the level by construction: the count is of the others.
-    p = float(poisson.sf(count - 2, expected)) if count >= 2 else 1.0
-    return float(-2.0 * np.log(max(p, 1e-300))), width, count, expected
+    others = max(count - 1, 0)
+    p = float(poisson.sf(others - 1, expected)) if others else 1.0
+    lr_rail = 2.0 * (others * float(np.log1p(beyond / max(expected, 1e-300))) - beyond)
+    p_rail = float(poisson.sf(others - 1, expected + beyond)) if others else 1.0
+    lr = float(-2.0 * np.log(max(p, 1e-300)))
+    return lr, width, count, expected, lr_rail, float(-2.0 * np.log(max(p_rail, 1e-300)))
 
 
 # --- spectral lines -------------------------------------------------------------
